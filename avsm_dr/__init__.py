@@ -1,0 +1,22 @@
+"""avsm_dr: differentiable volumetric shadow representations on Dr.Jit.
+
+    import avsm_dr as ad
+    seg = ad.Segments.from_arrays(offsets, z0, z1, transmittance=t_exit)
+    rep = ad.build("avsm", seg, nodes=8)
+    T = rep.eval(texel, depth)
+"""
+from ._llvm import ensure_libllvm as _ensure_libllvm
+
+_ensure_libllvm()  # must run before drjit is imported
+
+from .backend import available_backends, get_backend, set_backend  # noqa: E402
+from .representations import REGISTRY, build, kinds, register  # noqa: E402
+from .representations.base import Representation  # noqa: E402
+from .segments import OPAQUE_OPTICAL_DEPTH, Segments  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Segments", "build", "kinds", "register", "REGISTRY", "Representation",
+    "set_backend", "get_backend", "available_backends", "OPAQUE_OPTICAL_DEPTH",
+]

@@ -1,0 +1,73 @@
+"""Conversions between NumPy / Python input and Dr.Jit arrays, with boundary checks.
+
+Public functions validate here and raise ``ValueError`` naming the argument;
+kernels trust what they receive (DESIGN.md habit 6).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import drjit as dr
+import numpy as np
+
+from . import backend
+
+DTYPES = ("float32", "float64")
+
+
+def is_drjit(x: Any) -> bool:
+    return dr.is_array_v(x)
+
+
+def float_type(dtype: str):
+    """Dr.Jit AD float type of the current backend for ``dtype``."""
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype: expected one of {DTYPES}, got {dtype!r}")
+    t = backend.types()
+    return t.Float if dtype == "float32" else t.Float64
+
+
+def dtype_of(x: Any) -> str:
+    """'float32' or 'float64' for a Dr.Jit float array."""
+    return "float64" if dr.type_v(x) == dr.VarType.Float64 else "float32"
+
+
+def host(x: Any, name: str, dtype=np.float64) -> np.ndarray:
+    """A NumPy copy of ``x`` (NumPy, list, scalar or Dr.Jit array) for validation."""
+    if is_drjit(x):
+        dr.eval(x)
+        arr = np.asarray(dr.detach(x).numpy(), dtype=dtype)
+    else:
+        try:
+            arr = np.asarray(x, dtype=dtype)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name}: cannot convert to a numeric array ({exc})") from None
+    return arr
+
+
+def host_1d(x: Any, name: str, dtype=np.float64) -> np.ndarray:
+    arr = host(x, name, dtype)
+    if arr.ndim != 1:
+        raise ValueError(f"{name}: expected a 1-D array, got shape {arr.shape}")
+    return arr
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    if arr.size and not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        raise ValueError(f"{name}: contains {bad} NaN or inf value(s)")
+
+
+def to_float(x: Any, Float) -> Any:
+    """``x`` as the Dr.Jit type ``Float``; Dr.Jit input keeps its AD graph."""
+    if is_drjit(x):
+        return x if type(x) is Float else Float(x)
+    dt = np.float64 if dr.type_v(Float) == dr.VarType.Float64 else np.float32
+    return Float(np.ascontiguousarray(np.asarray(x, dtype=dt).ravel()))
+
+
+def to_uint32(x: Any) -> Any:
+    UInt32 = backend.types().UInt32
+    if is_drjit(x):
+        return x if type(x) is UInt32 else UInt32(x)
+    return UInt32(np.ascontiguousarray(np.asarray(x, dtype=np.uint32).ravel()))

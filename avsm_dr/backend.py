@@ -1,0 +1,62 @@
+"""Dr.Jit backend selection: LLVM (CPU) by default, CUDA when a GPU is present.
+
+``set_backend("llvm" | "cuda")`` chooses; ``types()`` returns the Dr.Jit AD module
+(``drjit.llvm.ad`` or ``drjit.cuda.ad``) whose ``Float``, ``UInt32``... every
+kernel uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice.
+"""
+from __future__ import annotations
+
+import os
+from types import ModuleType
+
+import drjit as dr
+
+from ._llvm import INSTALL_HINT
+
+_BACKENDS = ("llvm", "cuda")
+_current: str | None = None
+
+
+def available_backends() -> list[str]:
+    """Backends usable in this process, e.g. ``['llvm']`` or ``['llvm', 'cuda']``."""
+    out = []
+    if dr.has_backend(dr.JitBackend.LLVM):
+        out.append("llvm")
+    if dr.has_backend(dr.JitBackend.CUDA):
+        out.append("cuda")
+    return out
+
+
+def default_backend() -> str:
+    """``$AVSM_DR_BACKEND`` if set, else ``cuda`` when a GPU is usable, else ``llvm``."""
+    env = os.environ.get("AVSM_DR_BACKEND")
+    if env:
+        return env
+    return "cuda" if "cuda" in available_backends() else "llvm"
+
+
+def set_backend(name: str) -> None:
+    """Select the Dr.Jit backend for every kernel built afterwards."""
+    global _current
+    if name not in _BACKENDS:
+        raise ValueError(f"backend: expected one of {_BACKENDS}, got {name!r}")
+    if name not in available_backends():
+        hint = INSTALL_HINT if name == "llvm" else "no CUDA device/driver was found"
+        raise RuntimeError(f"backend {name!r} is not available: {hint}")
+    _current = name
+
+
+def get_backend() -> str:
+    """Name of the backend in use (chosen lazily on first use)."""
+    if _current is None:
+        set_backend(default_backend())
+    return _current  # type: ignore[return-value]
+
+
+def types() -> ModuleType:
+    """The Dr.Jit AD type module of the current backend (``drjit.<backend>.ad``)."""
+    if get_backend() == "cuda":
+        import drjit.cuda.ad as mod
+    else:
+        import drjit.llvm.ad as mod
+    return mod
