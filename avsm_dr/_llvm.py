@@ -67,3 +67,9 @@ def ensure_libllvm() -> str | None:
     if path is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = path
     return path
+
+
+if __name__ == "__main__":  # used by scripts/setup.sh before the package is installed
+    found = find_libllvm()
+    print(found or "")
+    sys.exit(0 if found else 1)

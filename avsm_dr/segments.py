@@ -78,7 +78,6 @@ class Segments:
                 if A.is_drjit(x) and A.dtype_of(x) == "float64":
                     dtype = "float64"
         Float = A.float_type(dtype)
-
         if transmittance is not None:
             th = A.host_1d(transmittance, "transmittance")
             if th.size != n:
@@ -86,13 +85,15 @@ class Segments:
             A.check_finite(th, "transmittance")
             if np.any((th < 0) | (th > 1)):
                 raise ValueError("transmittance: values must lie in [0, 1] (opacity above 1 or negative)")
+            if n == 0:  # no blockers at all: every texel is empty (T = 1 everywhere)
+                return cls(off, Float(), Float(), Float(), dtype)
             t = A.to_float(transmittance, Float)
             tiny = float(np.exp(-OPAQUE_OPTICAL_DEPTH)) if dtype == "float64" else 0.0
             # -ln t, with t = 0 (opaque) mapped to OPAQUE_OPTICAL_DEPTH without an
             # infinite derivative leaking into the AD graph.
-            safe = dr.maximum(t, Float(1e-300 if dtype == "float64" else 1e-38))
+            safe = dr.maximum(t, 1e-300 if dtype == "float64" else 1e-38)
             tau = dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH),
-                            Float(OPAQUE_OPTICAL_DEPTH))
+                            OPAQUE_OPTICAL_DEPTH)
         else:
             oh = A.host_1d(optical_depth, "optical_depth")
             if oh.size != n:
@@ -100,6 +101,8 @@ class Segments:
             A.check_finite(oh, "optical_depth")
             if np.any(oh < 0):
                 raise ValueError("optical_depth: values must be >= 0 (negative density)")
+            if n == 0:
+                return cls(off, Float(), Float(), Float(), dtype)
             tau = dr.minimum(A.to_float(optical_depth, Float), OPAQUE_OPTICAL_DEPTH)
         return cls(off, A.to_float(z0, Float), A.to_float(z1, Float), tau, dtype)
 

@@ -1,0 +1,273 @@
+"""Adaptive Volumetric Shadow Maps (Salvi et al. 2010, seed 000 sections 3.1-3.3, 4.1-4.2).
+
+Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``.
+
+Insertion of a segment ``[a, b]`` with exit transmittance ``ts`` (sec. 3.1, 4.1):
+    the curve becomes ``T'(x) = T(x) R(x)`` with the segment's linear ramp
+    ``R(x) = 1 (x <= a),  1 + (ts - 1)(x - a)/(b - a) (a < x < b),  ts (x >= b, x > a)``;
+    existing nodes are multiplied by ``R(d_i)``; an entry node ``(a, T(a))`` and an exit
+    node ``(b, T(b) ts)`` are added after existing nodes of equal depth.
+Compression (sec. 3.2): while more than N nodes, remove the interior node with the
+    smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|``
+    (ties: the deepest such node); the first and last node are never removed and no
+    node is ever moved.
+Sampling (sec. 3.3): T = 1 in front of the first node, the last node's value behind
+    the last one, and linear (eq. 2) or exponential interpolation in between.
+
+Conventions made explicit here (the paper leaves them open):
+* Clear nodes ``(far, T)`` sort after every inserted node of equal depth and are the
+  first nodes dropped when the texel overflows: they carry zero area (their metric is
+  exactly 0), so this is the paper's metric with a fixed tie-break, and it means a
+  texel with room left does no compression work at all.
+* A segment whose entry lies where the curve is already 0 is not inserted: it cannot
+  change the curve (behind a fully opaque point nothing changes).
+
+Kernel: one lane per non-empty texel (texels ordered by segment count so SIMD packets
+run similar loop lengths); the N nodes live in registers as Python lists of Float and
+all insertion / removal steps are branch-free ``dr.select`` shifts.  A first loop runs
+the insert-only steps while the texel has room, a second one the compressing steps.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from .. import backend
+from . import register
+from .base import Representation
+
+INTERPOLATIONS = ("linear", "exp")
+
+
+# ----------------------------------------------------------------------------
+# Branch-free node-list operations (lists of Dr.Jit arrays, one entry per node)
+# ----------------------------------------------------------------------------
+def curve_value(d, t, x):
+    """T(x) of the node list (right-continuous, linear between nodes)."""
+    n = len(d)
+    val = dr.full(type(x), 1.0, dr.width(x))
+    for k in range(n):
+        if k + 1 < n:
+            dd = d[k + 1] - d[k]
+            safe = dr.select(dd > 0, dd, 1)
+            inner = t[k] + (x - d[k]) * (t[k + 1] - t[k]) / safe
+            v = dr.select(d[k + 1] > x, inner, t[k])
+        else:
+            v = t[k]
+        val = dr.select(d[k] <= x, v, val)
+    return val
+
+
+def insert_segment(d, t, used, a, b, ts):
+    """Nodes after inserting segment [a, b] (exit transmittance ts): N + 2 entries.
+
+    ``used``: number of inserted (non-clear) nodes, which come first in the list.
+    """
+    n = len(d)
+    UInt32 = type(used)
+    ta = curve_value(d, t, a)
+    tb = curve_value(d, t, b) * ts
+    length = b - a
+    safe_len = dr.select(length > 0, length, 1)
+    e = UInt32(0)          # slot of the entry node = inserted nodes with d <= a
+    x = UInt32(1)          # slot of the exit node  = inserted nodes with d <= b, + 1
+    scaled = []
+    for k in range(n):
+        real = UInt32(k) < used
+        e += UInt32(real & (d[k] <= a))
+        x += UInt32(real & (d[k] <= b))
+        ramp = 1 + (ts - 1) * (d[k] - a) / safe_len
+        # clear nodes stand behind every blocker: they always take the full ts
+        factor = dr.select(real, dr.select(d[k] > a, dr.select(d[k] >= b, ts, ramp), 1), ts)
+        scaled.append(t[k] * factor)
+    out_d, out_t = [], []
+    for j in range(n + 2):
+        shift = UInt32(e < j) + UInt32(x < j)     # inserted nodes in front of slot j
+        cd, ct = a, ta                            # default: entry node
+        for s in (2, 1, 0):                       # existing node j - shift
+            k = j - s
+            if 0 <= k < n:
+                cd = dr.select(shift == s, d[k], cd)
+                ct = dr.select(shift == s, scaled[k], ct)
+        cd = dr.select(x == j, b, cd)
+        ct = dr.select(x == j, tb, ct)
+        cd = dr.select(e == j, a, cd)
+        ct = dr.select(e == j, ta, ct)
+        out_d.append(cd)
+        out_t.append(ct)
+    return out_d, out_t
+
+
+def area_metric(d, t, i):
+    """Area change when removing interior node i (seed 000, sec. 3.2.1)."""
+    return dr.abs((d[i + 1] - d[i - 1]) * (t[i + 1] - t[i])
+                  - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
+
+
+def remove_smallest(d, t):
+    """Remove the interior node of smallest area metric (ties: the deepest one)."""
+    n = len(d)
+    UInt32 = backend.types().UInt32
+    best = area_metric(d, t, 1)
+    idx = dr.full(UInt32, 1, dr.width(best))
+    for i in range(2, n - 1):
+        m = area_metric(d, t, i)
+        take = m <= best
+        best = dr.select(take, m, best)
+        idx = dr.select(take, UInt32(i), idx)
+    out_d = [dr.select(idx <= j, d[j + 1], d[j]) for j in range(n - 1)]
+    out_t = [dr.select(idx <= j, t[j + 1], t[j]) for j in range(n - 1)]
+    return out_d, out_t
+
+
+def interpolate(d, t, depth, mode: str):
+    """Sample the node list at ``depth`` (seed 000 sec. 3.3 / 4.2), branch-free bracket."""
+    Float = type(depth)
+    n = len(d)
+    val = dr.full(Float, 1.0, dr.width(depth))
+    for k in range(n):
+        if k + 1 < n:
+            dd = d[k + 1] - d[k]
+            safe = dr.select(dd > 0, dd, 1)
+            w = dr.clip((depth - d[k]) / safe, 0, 1)
+            lin = t[k] + w * (t[k + 1] - t[k])
+            if mode == "exp":
+                ok = (t[k] > 0) & (t[k + 1] > 0)
+                tl = dr.select(ok, t[k], 1)
+                tr = dr.select(ok, t[k + 1], 1)
+                ex = tl * dr.exp(w * (dr.log(tr) - dr.log(tl)))
+                lin = dr.select(ok, ex, lin)
+            v = dr.select(d[k + 1] > depth, lin, t[k])
+        else:
+            v = t[k]
+        val = dr.select(d[k] <= depth, v, val)
+    return val
+
+
+# ----------------------------------------------------------------------------
+@register("avsm")
+class AVSM(Representation):
+    """AVSM with ``nodes`` N in [2, 64].
+
+    Parameters: nodes=8, sort=False (insert in the given order, or sorted by depth per
+    texel), interpolation='linear'|'exp', near/far (default: global bounds; nodes are
+    cleared to (far, 1)).  ``nbytes_per_texel`` = 2 N itemsize.
+    Extra attributes: ``depths``/``values`` (lists of N Dr.Jit arrays of length T) and
+    ``used`` (NumPy (T,), inserted nodes kept per texel, N at most).
+    Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
+    """
+
+    def __init__(self, segments, nodes: int = 8, sort: bool = False,
+                 interpolation: str = "linear", near: float | None = None,
+                 far: float | None = None):
+        if not isinstance(nodes, (int, np.integer)) or not 2 <= int(nodes) <= 64:
+            raise ValueError(f"nodes: expected an integer in [2, 64], got {nodes!r}")
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got {interpolation!r}")
+        if not isinstance(sort, (bool, np.bool_)):
+            raise ValueError(f"sort: expected a bool, got {sort!r}")
+        super().__init__(segments, nodes=int(nodes), sort=bool(sort), interpolation=interpolation)
+        lo, hi = segments.bounds()
+        near = lo if near is None else float(near)
+        far = hi if far is None else float(far)
+        if not (np.isfinite(near) and np.isfinite(far)) or near > far:
+            raise ValueError(f"far: need finite near <= far, got near={near}, far={far}")
+        if segments.n_segments and (hi > far or lo < near):
+            raise ValueError(f"far: segments span [{lo}, {hi}], outside [near={near}, far={far}]")
+        self.params.update(near=near, far=far)
+        self.N = int(nodes)
+        self._build()
+
+    @property
+    def nbytes_per_texel(self) -> float:
+        return 2 * self.N * (4 if self.segments.dtype == "float32" else 8)
+
+    # ------------------------------------------------------------------ build
+    def _build(self):
+        seg = self.segments.sorted() if self.params["sort"] else self.segments
+        Float, UInt32 = seg.Float, backend.types().UInt32
+        N, far, T = self.N, self.params["far"], seg.n_texels
+        counts = seg.counts
+        # Non-empty texels only, longest first: a SIMD packet runs as long as its longest lane.
+        lanes_np = np.nonzero(counts > 0)[0]
+        lanes_np = lanes_np[np.argsort(-counts[lanes_np], kind="stable")]
+        self.depths = [dr.full(Float, far, T) for _ in range(N)]
+        self.values = [dr.full(Float, 1.0, T) for _ in range(N)]
+        self.used = np.zeros(T, np.int64)
+        if lanes_np.size == 0:
+            return
+        lanes = A.to_uint32(lanes_np)
+        L = lanes_np.size
+        offsets = seg.offsets_dr()
+        i = dr.gather(UInt32, offsets, lanes)             # next segment to insert
+        end = dr.gather(UInt32, offsets, lanes + 1)       # one past the texel's last segment
+        d = [dr.full(Float, far, L) for _ in range(N)]    # node depths
+        t = [dr.full(Float, 1.0, L) for _ in range(N)]    # node transmittances
+        used = dr.zeros(UInt32, L)                        # inserted nodes kept (<= N)
+        done = dr.zeros(backend.types().Bool, L)          # sorted and behind an opaque point
+        sorted_input = bool(self.params["sort"])
+        max_count = seg.max_count
+
+        def fetch(i):
+            return (dr.gather(Float, seg.z0, i), dr.gather(Float, seg.z1, i),
+                    dr.exp(-dr.gather(Float, seg.optical_depth, i)))
+
+        # ---- phase 1: insert while the texel has room (no compression work)
+        def cond_room(i, used, done, d, t):
+            return (i < end) & (used + 2 <= N) & ~done
+
+        def body_room(i, used, done, d, t):
+            a, b, ts = fetch(i)
+            skip = curve_value(d, t, a) == 0
+            nd, nt = insert_segment(d, t, used, a, b, ts)
+            d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
+            t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
+            used = dr.select(skip, used, used + 2)
+            if sorted_input:
+                done = skip
+            return i + 1, used, done, d, t
+
+        i, used, done, d, t = dr.while_loop(
+            (i, used, done, d, t), cond_room, body_room,
+            max_iterations=max_count, label="avsm_insert")
+
+        # ---- phase 2: insert and compress back to N nodes
+        def cond_full(i, used, done, d, t):
+            return (i < end) & ~done
+
+        def body_full(i, used, done, d, t):
+            a, b, ts = fetch(i)
+            skip = curve_value(d, t, a) == 0
+            nd, nt = insert_segment(d, t, used, a, b, ts)
+            nd, nt = remove_smallest(nd, nt)
+            nd, nt = remove_smallest(nd, nt)
+            d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
+            t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
+            if sorted_input:
+                done = skip
+            return i + 1, used, done, d, t
+
+        i, used, done, d, t = dr.while_loop(
+            (i, used, done, d, t), cond_full, body_full,
+            max_iterations=max_count, label="avsm_compress")
+
+        for k in range(N):
+            dr.scatter(self.depths[k], d[k], lanes)
+            dr.scatter(self.values[k], t[k], lanes)
+        dr.eval(self.depths, self.values)
+        used_np = np.zeros(T, np.int64)
+        used_np[lanes_np] = np.asarray(used.numpy(), np.int64)
+        self.used = used_np
+
+    # ----------------------------------------------------------------- lookup
+    def _eval_texels(self, texel, depth):
+        Float = self.Float
+        d = [dr.gather(Float, self.depths[k], texel) for k in range(self.N)]
+        t = [dr.gather(Float, self.values[k], texel) for k in range(self.N)]
+        return interpolate(d, t, depth, self.params["interpolation"])
+
+    def nodes_numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T, N) node depths and transmittances as NumPy arrays."""
+        return (np.stack([np.asarray(x.numpy()) for x in self.depths], axis=1),
+                np.stack([np.asarray(x.numpy()) for x in self.values], axis=1))
