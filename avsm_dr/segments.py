@@ -150,9 +150,11 @@ class Segments:
         """Global (near, far): min z0 and max z1 over all segments ((0, 1) if none)."""
         if self.n_segments == 0:
             return 0.0, 1.0
-        z0 = A.host(self.z0, "z0")
-        z1 = A.host(self.z1, "z1")
-        return float(z0.min()), float(z1.max())
+        if "bounds" not in self._cache:  # reduced on the device: no host copy of S values
+            lo = dr.min(dr.detach(self.z0))
+            hi = dr.max(dr.detach(self.z1))
+            self._cache["bounds"] = (float(lo[0]), float(hi[0]))
+        return self._cache["bounds"]
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""

@@ -153,3 +153,19 @@ def test_property_matches_reference_and_bounds(seed, nodes, sort):
     np.testing.assert_allclose(V, Vr, atol=1e-12)
     assert np.all(np.diff(D, axis=1) >= 0) and np.all((V >= 0) & (V <= 1))
     assert np.all(np.diff(V, axis=1) <= 1e-15)  # non-increasing node values
+
+
+def test_vectorised_numpy_peer_agrees(rng):
+    """The NumPy peer used by the benchmark runs the same algorithm (float64)."""
+    from avsm_dr.peers import numpy_avsm
+    seg = to_segments(random_segments(rng, texels=150, max_count=25), "float64")
+    h = seg.numpy()
+    for nodes in (3, 8):
+        rep = ad.build("avsm", seg, nodes=nodes)
+        D, V = rep.nodes_numpy()
+        Dn, Vn = numpy_avsm.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], nodes, rep.params["far"])
+        np.testing.assert_array_equal(D, Dn)
+        np.testing.assert_allclose(V, Vn, atol=1e-13)
+        tex = rng.integers(0, 150, 500)
+        depth = rng.uniform(0, 1, 500)
+        np.testing.assert_allclose(numpy_avsm.lookup(Dn, Vn, tex, depth), np.asarray(rep.eval(tex, depth)), atol=1e-13)
