@@ -51,21 +51,28 @@ def find_libllvm(min_version: int = MIN_VERSION) -> str | None:
     return best[1] if best else None
 
 
+#: The libLLVM Dr.Jit was pointed at (None: none >= 16 found, or drjit was imported first).
+LIBLLVM: str | None = None
+
+
 def ensure_libllvm() -> str | None:
     """Set ``DRJIT_LIBLLVM_PATH`` to a working libLLVM unless the user set it.
 
-    Returns the path in use, or None when none was found (the LLVM backend then
-    raises :class:`RuntimeError` with :data:`INSTALL_HINT` when it is selected).
+    Returns the path in use, or None when none was found; the LLVM backend then
+    raises :class:`RuntimeError` with :data:`INSTALL_HINT` when it is selected.
     Does nothing once ``drjit`` is imported: the variable is read at import.
     """
+    global LIBLLVM
     current = os.environ.get("DRJIT_LIBLLVM_PATH")
     if current:
+        LIBLLVM = current
         return current
     if "drjit" in sys.modules:
         return None
     path = find_libllvm()
     if path is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = path
+    LIBLLVM = path
     return path
 
 

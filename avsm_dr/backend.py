@@ -11,6 +11,7 @@ from types import ModuleType
 
 import drjit as dr
 
+from . import _llvm
 from ._llvm import INSTALL_HINT
 
 _BACKENDS = ("llvm", "cuda")
@@ -20,7 +21,7 @@ _current: str | None = None
 def available_backends() -> list[str]:
     """Backends usable in this process, e.g. ``['llvm']`` or ``['llvm', 'cuda']``."""
     out = []
-    if dr.has_backend(dr.JitBackend.LLVM):
+    if dr.has_backend(dr.JitBackend.LLVM) and _llvm.LIBLLVM is not None:
         out.append("llvm")
     if dr.has_backend(dr.JitBackend.CUDA):
         out.append("cuda")
@@ -32,7 +33,7 @@ def default_backend() -> str:
     env = os.environ.get("AVSM_DR_BACKEND")
     if env:
         return env
-    return "cuda" if "cuda" in available_backends() else "llvm"
+    return "cuda" if "cuda" in available_backends() else "llvm"  # llvm raises the install hint
 
 
 def set_backend(name: str) -> None:
@@ -41,6 +42,7 @@ def set_backend(name: str) -> None:
     if name not in _BACKENDS:
         raise ValueError(f"backend: expected one of {_BACKENDS}, got {name!r}")
     if name not in available_backends():
+        # the LLVM backend counts only with a libLLVM >= 16: LLVM 15 aborts the process
         hint = INSTALL_HINT if name == "llvm" else "no CUDA device/driver was found"
         raise RuntimeError(f"backend {name!r} is not available: {hint}")
     _current = name

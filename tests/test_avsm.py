@@ -169,3 +169,22 @@ def test_vectorised_numpy_peer_agrees(rng):
         tex = rng.integers(0, 150, 500)
         depth = rng.uniform(0, 1, 500)
         np.testing.assert_allclose(numpy_avsm.lookup(Dn, Vn, tex, depth), np.asarray(rep.eval(tex, depth)), atol=1e-13)
+
+
+def test_work_skipped_where_a_texel_does_not_need_it(rng):
+    """Empty texels run no lane; texels with room do no compression; segments behind an
+    opaque point are not inserted (sorted input stops the texel there)."""
+    counts = np.zeros(100, int)
+    counts[::10] = 3                      # 10 texels with 3 segments each, 90 empty
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    n = offsets[-1]
+    seg = ad.Segments.from_arrays(offsets, rng.uniform(0, 0.5, n), rng.uniform(0.5, 1, n),
+                                  transmittance=rng.uniform(0.2, 0.9, n))
+    rep = ad.build("avsm", seg, nodes=8)  # 3 segments = 6 nodes <= 8: never compresses
+    assert rep.stats == {"lanes": 10, "segments": 30, "skipped": 0, "compressed": 0}
+    rep4 = ad.build("avsm", seg, nodes=4)  # 2 insertions fit, the third compresses
+    assert rep4.stats["compressed"] == 10
+    z0 = np.array([0.1, 0.2, 0.4, 0.5, 0.6])
+    seg_o = ad.Segments.from_arrays([0, 5], z0, z0 + 0.05, transmittance=[0.5, 0.0, 0.5, 0.5, 0.5])
+    assert ad.build("avsm", seg_o, nodes=4, sort=True).stats["skipped"] == 3
+    assert ad.build("avsm", seg_o, nodes=4, sort=False).stats["skipped"] == 3

@@ -153,8 +153,10 @@ class AVSM(Representation):
     Parameters: nodes=8, sort=False (insert in the given order, or sorted by depth per
     texel), interpolation='linear'|'exp', near/far (default: global bounds; nodes are
     cleared to (far, 1)).  ``nbytes_per_texel`` = 2 N itemsize.
-    Extra attributes: ``depths``/``values`` (lists of N Dr.Jit arrays of length T) and
-    ``used`` (NumPy (T,), inserted nodes kept per texel, N at most).
+    Extra attributes: ``depths``/``values`` (lists of N Dr.Jit arrays of length T),
+    ``used`` (NumPy (T,), inserted nodes kept per texel, N at most) and ``stats``
+    (lanes run = non-empty texels, segments skipped behind opaque points, insertions
+    that needed compression).
     Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
     """
 
@@ -195,6 +197,7 @@ class AVSM(Representation):
         self.depths = [dr.full(Float, far, T) for _ in range(N)]
         self.values = [dr.full(Float, 1.0, T) for _ in range(N)]
         self.used = np.zeros(T, np.int64)
+        self.stats = {"lanes": 0, "segments": 0, "skipped": 0, "compressed": 0}
         if lanes_np.size == 0:
             return
         lanes = A.to_uint32(lanes_np)
@@ -206,6 +209,8 @@ class AVSM(Representation):
         t = [dr.full(Float, 1.0, L) for _ in range(N)]    # node transmittances
         used = dr.zeros(UInt32, L)                        # inserted nodes kept (<= N)
         done = dr.zeros(backend.types().Bool, L)          # sorted and behind an opaque point
+        skipped = dr.zeros(UInt32, L)                     # segments not inserted (behind T = 0)
+        compressed = dr.zeros(UInt32, L)                  # insertions that needed node removal
         sorted_input = bool(self.params["sort"])
         max_count = seg.max_count
 
@@ -214,10 +219,10 @@ class AVSM(Representation):
                     dr.exp(-dr.gather(Float, seg.optical_depth, i)))
 
         # ---- phase 1: insert while the texel has room (no compression work)
-        def cond_room(i, used, done, d, t):
+        def cond_room(i, used, done, skipped, d, t):
             return (i < end) & (used + 2 <= N) & ~done
 
-        def body_room(i, used, done, d, t):
+        def body_room(i, used, done, skipped, d, t):
             a, b, ts = fetch(i)
             skip = curve_value(d, t, a) == 0
             nd, nt = insert_segment(d, t, used, a, b, ts)
@@ -226,17 +231,17 @@ class AVSM(Representation):
             used = dr.select(skip, used, used + 2)
             if sorted_input:
                 done = skip
-            return i + 1, used, done, d, t
+            return i + 1, used, done, skipped + UInt32(skip), d, t
 
-        i, used, done, d, t = dr.while_loop(
-            (i, used, done, d, t), cond_room, body_room,
+        i, used, done, skipped, d, t = dr.while_loop(
+            (i, used, done, skipped, d, t), cond_room, body_room,
             max_iterations=max_count, label="avsm_insert")
 
         # ---- phase 2: insert and compress back to N nodes
-        def cond_full(i, used, done, d, t):
+        def cond_full(i, done, skipped, compressed, d, t):
             return (i < end) & ~done
 
-        def body_full(i, used, done, d, t):
+        def body_full(i, done, skipped, compressed, d, t):
             a, b, ts = fetch(i)
             skip = curve_value(d, t, a) == 0
             nd, nt = insert_segment(d, t, used, a, b, ts)
@@ -246,10 +251,10 @@ class AVSM(Representation):
             t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
             if sorted_input:
                 done = skip
-            return i + 1, used, done, d, t
+            return i + 1, done, skipped + UInt32(skip), compressed + UInt32(~skip), d, t
 
-        i, used, done, d, t = dr.while_loop(
-            (i, used, done, d, t), cond_full, body_full,
+        i, done, skipped, compressed, d, t = dr.while_loop(
+            (i, done, skipped, compressed, d, t), cond_full, body_full,
             max_iterations=max_count, label="avsm_compress")
 
         for k in range(N):
@@ -259,6 +264,10 @@ class AVSM(Representation):
         used_np = np.zeros(T, np.int64)
         used_np[lanes_np] = np.asarray(used.numpy(), np.int64)
         self.used = used_np
+        # skipped: behind an opaque point (sorted input: the rest of the texel counts too)
+        n_skipped = int(dr.sum(skipped)[0]) + int(dr.sum(end - i)[0])
+        self.stats = {"lanes": int(L), "segments": seg.n_segments, "skipped": n_skipped,
+                      "compressed": int(dr.sum(compressed)[0])}
 
     # ----------------------------------------------------------------- lookup
     def _eval_texels(self, texel, depth):
