@@ -13,11 +13,13 @@ import sys
 
 
 def experiment_names() -> list[str]:
+    """Names of the experiment modules in avsm_dr.experiments."""
     from . import experiments
     return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Parse the command line and run one experiment; returns the exit status."""
     names = experiment_names()
     parser = argparse.ArgumentParser(prog="avsm_dr", description=__doc__.splitlines()[0])
     parser.add_argument("experiment", choices=names, help="which experiment to run")

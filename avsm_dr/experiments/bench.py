@@ -22,6 +22,8 @@ SETTINGS = [
 
 
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write CSV, figures and meta.json into ``out``
+    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     side = 64 if quick else 256
     params = dict(side=side, min_count=50, max_count=300, lookups=200_000 if quick else 1_000_000,
                   numpy_texels=256 if quick else 2048, repeats=3 if quick else 5)

@@ -17,6 +17,8 @@ METHODS = [("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 12
 
 
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write CSV, figures and meta.json into ``out``
+    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import capture, scenes as scene_lib
     names = ["hair_and_smoke", "three_columns"]
     params = dict(scenes=names, resolution=64 if quick else 256, samples=400 if quick else 2000)

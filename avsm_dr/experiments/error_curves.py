@@ -120,6 +120,8 @@ def findings(rows) -> dict:
 
 
 def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
+    """Run the experiment; write CSV, figures and meta.json into ``out``
+    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import scenes as scene_lib
     names = list(scenes or (SCENES[:3] if quick else SCENES))
     params = dict(scenes=names, resolution=64 if quick else 256, spp=64 if quick else 512,

@@ -24,6 +24,8 @@ def shuffled(seg: Segments, rng) -> Segments:
 
 
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write CSV, figures and meta.json into ``out``
+    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import capture, scenes as scene_lib
     names = ["three_columns"] if quick else ["three_columns", "hair_and_smoke", "plume"]
     params = dict(scenes=names, resolution=64 if quick else 128, orders=3 if quick else 8, nodes=[4, 8, 12, 16])

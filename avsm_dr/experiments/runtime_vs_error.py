@@ -25,6 +25,8 @@ def pareto(points):
 
 
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write CSV, figures and meta.json into ``out``
+    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import capture, scenes as scene_lib
     names = SCENES[:2] if quick else SCENES
     params = dict(scenes=names, resolution=64 if quick else 256, repeats=3 if quick else 7,

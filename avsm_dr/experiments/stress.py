@@ -53,6 +53,8 @@ def cases(quick: bool, rng):
 
 
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write CSV, figures and meta.json into ``out``
+    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     params = dict(seed=7)
     res = Results("stress", out, quick, params)
     if res.exists() and not force:

@@ -54,7 +54,7 @@ def build(offsets, z0, z1, tau, nodes: int, far: float):
         real = np.arange(N)[None, :] < u[:, None]
         length = b - a
         safe = np.where(length > 0, length, 1.0)
-        ramp = 1 + (ts - 1)[:, None] * (d - a[:, None]) / safe[:, None]
+        ramp = 1 + (ts - 1)[:, None] * ((d - a[:, None]) * (1.0 / safe)[:, None])
         factor = np.where(real, np.where(d > a[:, None], np.where(d >= b[:, None], ts[:, None], ramp), 1.0), ts[:, None])
         sv = v * factor
         e = np.sum(real & (d <= a[:, None]), axis=1)

@@ -29,6 +29,7 @@ def build(kind: str, segments: Segments, **params) -> Representation:
 
 
 def kinds() -> list[str]:
+    """Registered representation names, sorted."""
     return sorted(REGISTRY)
 
 

@@ -43,20 +43,30 @@ INTERPOLATIONS = ("linear", "exp")
 # ----------------------------------------------------------------------------
 # Branch-free node-list operations (lists of Dr.Jit arrays, one entry per node)
 # ----------------------------------------------------------------------------
-def curve_value(d, t, x):
-    """T(x) of the node list (right-continuous, linear between nodes)."""
+def bracket(d, t, x):
+    """Nodes around x: the last node with d_k <= x and its successor, branch-free.
+
+    In front of the first node both carry T = 1; behind the last node both are the last
+    node.  Returns (d_l, t_l, d_r, t_r)."""
     n = len(d)
-    val = dr.full(type(x), 1.0, dr.width(x))
+    one = dr.full(type(x), 1.0, dr.width(x))
+    dl, tl, dr_, tr = x, one, x, one
     for k in range(n):
-        if k + 1 < n:
-            dd = d[k + 1] - d[k]
-            safe = dr.select(dd > 0, dd, 1)
-            inner = t[k] + (x - d[k]) * (t[k + 1] - t[k]) / safe
-            v = dr.select(d[k + 1] > x, inner, t[k])
-        else:
-            v = t[k]
-        val = dr.select(d[k] <= x, v, val)
-    return val
+        c = d[k] <= x
+        nxt = min(k + 1, n - 1)
+        dl = dr.select(c, d[k], dl)
+        tl = dr.select(c, t[k], tl)
+        dr_ = dr.select(c, d[nxt], dr_)
+        tr = dr.select(c, t[nxt], tr)
+    return dl, tl, dr_, tr
+
+
+def curve_value(d, t, x):
+    """T(x) of the node list (right-continuous, linear between nodes):
+    t_l + (x - d_l)(t_r - t_l) / (d_r - d_l)."""
+    dl, tl, dr_, tr = bracket(d, t, x)
+    dd = dr_ - dl
+    return tl + (x - dl) * (tr - tl) / dr.select(dd > 0, dd, 1)
 
 
 def insert_segment(d, t, used, a, b, ts):
@@ -69,7 +79,7 @@ def insert_segment(d, t, used, a, b, ts):
     ta = curve_value(d, t, a)
     tb = curve_value(d, t, b) * ts
     length = b - a
-    safe_len = dr.select(length > 0, length, 1)
+    inv_len = 1 / dr.select(length > 0, length, 1)
     e = UInt32(0)          # slot of the entry node = inserted nodes with d <= a
     x = UInt32(1)          # slot of the exit node  = inserted nodes with d <= b, + 1
     scaled = []
@@ -77,7 +87,7 @@ def insert_segment(d, t, used, a, b, ts):
         real = UInt32(k) < used
         e += UInt32(real & (d[k] <= a))
         x += UInt32(real & (d[k] <= b))
-        ramp = 1 + (ts - 1) * (d[k] - a) / safe_len
+        ramp = 1 + (ts - 1) * ((d[k] - a) * inv_len)
         # clear nodes stand behind every blocker: they always take the full ts
         factor = dr.select(real, dr.select(d[k] > a, dr.select(d[k] >= b, ts, ramp), 1), ts)
         scaled.append(t[k] * factor)
@@ -122,27 +132,20 @@ def remove_smallest(d, t):
 
 
 def interpolate(d, t, depth, mode: str):
-    """Sample the node list at ``depth`` (seed 000 sec. 3.3 / 4.2), branch-free bracket."""
-    Float = type(depth)
-    n = len(d)
-    val = dr.full(Float, 1.0, dr.width(depth))
-    for k in range(n):
-        if k + 1 < n:
-            dd = d[k + 1] - d[k]
-            safe = dr.select(dd > 0, dd, 1)
-            w = dr.clip((depth - d[k]) / safe, 0, 1)
-            lin = t[k] + w * (t[k + 1] - t[k])
-            if mode == "exp":
-                ok = (t[k] > 0) & (t[k + 1] > 0)
-                tl = dr.select(ok, t[k], 1)
-                tr = dr.select(ok, t[k + 1], 1)
-                ex = tl * dr.exp(w * (dr.log(tr) - dr.log(tl)))
-                lin = dr.select(ok, ex, lin)
-            v = dr.select(d[k + 1] > depth, lin, t[k])
-        else:
-            v = t[k]
-        val = dr.select(d[k] <= depth, v, val)
-    return val
+    """Sample the node list at ``depth`` (seed 000 sec. 3.3 / 4.2): bracket, then one
+    interpolation, w = (depth - d_l) / (d_r - d_l):
+    linear ``t_l + w (t_r - t_l)`` (eq. 2) or exponential ``t_l (t_r / t_l)^w``
+    (uniform density between nodes; linear where t_l or t_r is 0)."""
+    dl, tl, dr_, tr = bracket(d, t, depth)
+    dd = dr_ - dl
+    w = dr.clip((depth - dl) / dr.select(dd > 0, dd, 1), 0, 1)
+    lin = tl + w * (tr - tl)
+    if mode == "exp":
+        ok = (tl > 0) & (tr > 0)
+        sl = dr.select(ok, tl, 1)
+        sr = dr.select(ok, tr, 1)
+        lin = dr.select(ok, sl * dr.exp(w * (dr.log(sr) - dr.log(sl))), lin)
+    return lin
 
 
 # ----------------------------------------------------------------------------

@@ -36,7 +36,7 @@ def insert(nodes, a, b, ts):
         elif dk >= b:
             f = ts
         else:
-            f = 1.0 + (ts - 1.0) * (dk - a) / (b - a)
+            f = 1.0 + (ts - 1.0) * ((dk - a) * (1.0 / (b - a)))
         out.append((dk, tk * f, clear))
     real = [n for n in out if not n[2]]
     clear = [n for n in out if n[2]]
@@ -103,6 +103,7 @@ def sample(depths, values, x, mode="linear"):
         if depths[k] <= x:
             if k + 1 < n and depths[k + 1] > x:
                 w = (x - depths[k]) / (depths[k + 1] - depths[k])
+                w = min(max(w, 0.0), 1.0)
                 tl, tr = values[k], values[k + 1]
                 if mode == "exp" and tl > 0 and tr > 0:
                     val = tl * np.exp(w * (np.log(tr) - np.log(tl)))
