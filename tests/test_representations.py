@@ -25,10 +25,11 @@ def test_bounds_monotone_and_unity_in_front(rng, case):
     assert np.all((T >= 0) & (T <= 1))
     if monotone:
         assert np.all(np.diff(T, axis=1) <= 1e-6)  # float32 rounding of equal neighbours
-    # in front of the texel's first blocker nothing is shadowed (FOM rings: excluded)
+    # in front of the texel's first blocker nothing is shadowed; basis methods (OSM slices,
+    # FOM ringing) spread absorption over their depth resolution, so only node methods
     near, _ = seg.texel_bounds()
     front = depth[None, :] < near[:, None] - 1e-6
-    if kind != "fom":
+    if kind in ("exact", "avsm", "dsm"):
         np.testing.assert_allclose(T[front], 1.0, atol=1e-6)
     empty = np.diff(data["offsets"]) == 0
     np.testing.assert_allclose(T[empty], 1.0, atol=1e-6)

@@ -5,8 +5,9 @@ Contract (stated once here; subclasses document only what differs):
 * ``build`` consumes a :class:`~avsm_dr.segments.Segments` and keeps fixed-size
   per-texel buffers (``[coefficient or node][texel]`` Dr.Jit arrays).
 * ``eval(texel, depth)`` returns the transmittance ``T`` of each receiver,
-  ``0 <= T <= 1``, ``T = 1`` in front of the first blocker; representations
-  with ``monotone = True`` guarantee ``T`` non-increasing in depth.
+  ``0 <= T <= 1``; ``T = 1`` in front of the first blocker for node methods
+  (exact, AVSM, DSM), up to their depth resolution for basis methods (OSM, FOM);
+  representations with ``monotone = True`` guarantee ``T`` non-increasing in depth.
 * ``nbytes_per_texel`` is the exact storage of the compressed form
   (for variable-size forms such as DSM: the mean over texels).
 * Gradients flow from ``T`` back to the segments' ``optical_depth`` (and
