@@ -150,6 +150,7 @@ def _plot(res, rows, names):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401
     colors = {"avsm": "C0", "fom": "C1", "osm": "C2", "dsm": "C3"}
     for xkey, fname, xlabel in (("param", "error_vs_count.png", "nodes / harmonics / slices / tolerance"),
                                 ("bytes_per_texel", "error_vs_memory.png", "bytes per texel")):
@@ -169,6 +170,8 @@ def _plot(res, rows, names):
                 ax.axhline(gap["rmse_vs_mitsuba"], color="k", lw=0.8, ls=":", label="exact vs Mitsuba rmse")
             ax.set_title(name)
             ax.set_xlabel(xlabel)
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         axes[0][0].set_ylabel("transmittance error vs exact")
-        axes[0][-1].legend(fontsize=7)
+        handles, labels = axes[0][0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=5, fontsize=8, bbox_to_anchor=(0.5, -0.12))
         res.save_figure(fig, fname)
