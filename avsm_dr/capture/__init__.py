@@ -1,0 +1,291 @@
+"""Light-view capture: scene content -> occluder segments along one light ray per texel.
+
+    cap = ad.capture(scene, resolution=256)     # cap.segments: Segments of every texel
+    texel, depth = cap.lookup(points)           # world points -> (texel, light-space depth)
+    T = ad.build("exact", cap.segments).eval(texel, depth)
+
+Every kind of content becomes segments ``[z0, z1]`` with optical depth ``tau``
+(seed 000 sec. 3): density grids by ray marching (:mod:`.grid`), particles as
+chords (:mod:`.particles`), hair strands as crossings (:mod:`.hair`), opaque
+blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
+(:mod:`.camera`) fits a directional light's orthographic map to the content's
+bounds (the non-zero part of a grid, with one empty texel of margin), uses the
+spot cone for a spot light and a cube of six faces for a point light.  Segments
+of a texel are sorted by depth.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from .. import backend
+from ..scene import DirectionalLight, PointLight, Scene, SpotLight
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
+from . import hair as _hair
+from . import opaque as _opaque
+from . import particles as _particles
+from .camera import Camera, CubeCamera, OrthoCamera, PerspectiveCamera, make_camera, orthonormal_basis
+from .grid import GridVolume, march
+from .hair import load_tfx, procedural_strands
+
+RESOLUTION_RANGE = (64, 1024)
+
+
+@dataclass(eq=False)
+class Capture:
+    """Result of :func:`capture`.
+
+    segments: :class:`~avsm_dr.Segments` over ``width * height`` texels (row-major,
+        texel ``y * width + x``; cube maps stack their six faces vertically).
+    camera: the light camera (rays and projection); light, resolution, step, epsilon: the inputs.
+    stats: counts and host/kernel timings of the capture.
+    """
+    segments: Segments
+    camera: Camera
+    light: Any
+    resolution: int
+    step: float | None
+    epsilon: float
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    def lookup(self, points, continuous: bool = False):
+        """World points (K, 3) -> (texel, depth) through the light's camera.
+
+        Returns (K,) int64 texel indices (nearest texel, clamped to the map) and (K,)
+        float64 light-space depths; with ``continuous=True`` the (K, 2) float64 map
+        coordinates (x, y) in texel units instead of indices, for the filters of
+        :mod:`avsm_dr.filtering` (``rep.eval(coords, depth, filter, width=cap.width,
+        height=cap.height)``).
+        """
+        p = _points(points)
+        coords, depth = self.camera.project(p)
+        if continuous:
+            return coords, depth
+        return self.camera.texel_index(coords), depth
+
+    def transmittance(self, rep, points, filter: str = "point", radius: float = 1.0):
+        """T at world points from representation ``rep`` (built on ``self.segments``)."""
+        if filter == "point":
+            texel, depth = self.lookup(points)
+            return rep.eval(texel, depth)
+        coords, depth = self.lookup(points, continuous=True)
+        return rep.eval(coords, depth, filter=filter, width=self.width, height=self.height, radius=radius)
+
+    def __repr__(self) -> str:
+        return (f"Capture({type(self.light).__name__}, {self.width}x{self.height}, "
+                f"{self.segments!r})")
+
+
+# ------------------------------------------------------------------ validation
+def _points(points) -> np.ndarray:
+    p = A.host(points, "points")
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points: expected shape (K, 3), got {p.shape}")
+    A.check_finite(p, "points")
+    return p
+
+
+def _check_params(resolution, step, epsilon):
+    if not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool) \
+            or not RESOLUTION_RANGE[0] <= resolution <= RESOLUTION_RANGE[1]:
+        raise ValueError(f"resolution: expected an integer in [{RESOLUTION_RANGE[0]}, "
+                         f"{RESOLUTION_RANGE[1]}], got {resolution!r}")
+    if step is not None and not (isinstance(step, (int, float, np.floating)) and np.isfinite(step) and step > 0):
+        raise ValueError(f"step: must be a finite number > 0, got {step!r}")
+    if not (isinstance(epsilon, (int, float, np.floating)) and 0 < epsilon < 1):
+        raise ValueError(f"epsilon: must lie in (0, 1), got {epsilon!r}")
+
+
+def validate_scene(scene: Scene) -> None:
+    """Checks shared by capture and ground truth; ValueError names the field."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
+    if not isinstance(scene.light, (DirectionalLight, SpotLight, PointLight)):
+        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(scene.light).__name__}")
+    r = A.host(scene.receivers, "receivers")
+    if r.ndim != 2 or r.shape[1] != 3:
+        raise ValueError(f"receivers: expected shape (K, 3), got {r.shape}")
+    A.check_finite(r, "receivers")
+    if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
+        raise ValueError("scene: no content (density, particles, hair or blockers)")
+
+
+# --------------------------------------------------------------------- capture
+def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
+            density=None, block: int = 8, keep_zero: bool = False, dtype: str | None = None,
+            opaque_bias: float | None = None, opaque_slope_bias: float = 2.0, bounds=None) -> Capture:
+    """Segments of every shadow-map texel for ``scene`` seen from ``scene.light``.
+
+    resolution: texels per side, 64..1024 (a point light's cube map is resolution x 6 resolution).
+    step: grid march step in world units (default half the smallest voxel side).
+    epsilon: a grid ray stops once its transmittance falls below ``epsilon``.
+    density: overrides ``scene.density`` - a (z, y, x) NumPy array, a 3-D Dr.Jit tensor
+        (``TensorXf``/``TensorXf64``, e.g. with ``dr.enable_grad``: gradients flow to
+        ``segments.optical_depth``), a ``.vol`` path or a prepared :class:`GridVolume`.
+    block: empty-space-skipping block size in voxels.
+    keep_zero: emit zero-density steps inside occupied blocks (see :func:`.grid.march`).
+    dtype: 'float32' (default) | 'float64' (default for float64 Dr.Jit densities).
+    opaque_bias: constant depth offset (and thickness) of opaque blocker segments
+        (default 1e-4 x the content's diagonal).
+    opaque_slope_bias: extra offset in texel widths x tan(angle of incidence), so receivers
+        on a blocker's lit surface are not shadowed by it (see :mod:`.opaque`).
+    bounds: (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
+    """
+    validate_scene(scene)
+    _check_params(resolution, step, epsilon)
+    stats: dict = {}
+    t_start = time.perf_counter()
+
+    # ---- content and its world bounds
+    grid = None
+    dens = scene.density if density is None else density
+    if dens is not None:
+        grid = GridVolume.prepare(dens, scene.bbox, block=block, dtype=dtype, skip_empty=not keep_zero)
+    if dtype is None:
+        dtype = grid.dtype if grid is not None else "float32"
+    Float = A.float_type(dtype)
+    if grid is not None and grid.dtype != dtype:
+        raise ValueError(f"dtype: {dtype!r} differs from the prepared grid's {grid.dtype!r}")
+    blockers = _opaque.validate(scene.blockers)
+    boxes = []
+    if grid is not None and grid.occupied is not None:
+        boxes.append(grid.occupied)
+    if scene.particles is not None:
+        c, r, _ = _particles.validate(scene.particles)
+        if c.shape[0]:
+            boxes.append(((c - r[:, None]).min(0), (c + r[:, None]).max(0)))
+    if scene.hair is not None:
+        s, r, _ = _hair.validate(scene.hair)
+        pts = s.reshape(-1, 3)
+        boxes.append((pts.min(0) - r, pts.max(0) + r))
+    for b in blockers:
+        boxes.append(_opaque.bounds(b))
+    if not boxes and grid is not None:
+        boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
+    if bounds is not None:
+        lo, hi = (np.asarray(v, np.float64).reshape(3) for v in bounds)
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)):
+            raise ValueError(f"bounds: expected finite (min_xyz, max_xyz) with max >= min, got {bounds!r}")
+        boxes = [(lo, hi)]
+    bmin = np.array([b[0] for b in boxes])
+    bmax = np.array([b[1] for b in boxes])
+    diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0
+
+    # ---- the light
+    light = scene.light
+    if isinstance(light, (SpotLight, PointLight)):
+        pos = light.position
+        if grid is not None and np.all((pos >= grid.bmin) & (pos <= grid.bmax)):
+            raise ValueError("light: a spot/point light inside the density grid's bbox is not supported "
+                             "(move it outside the volume)")
+        for i, b in enumerate(blockers):
+            if _opaque.contains(b, pos):
+                raise ValueError(f"light: the light lies inside blockers[{i}]")
+    camera = make_camera(light, int(resolution), bmin, bmax)
+    if step is None and grid is not None:
+        step = 0.5 * float(grid.voxel.min())
+    stats["setup_s"] = time.perf_counter() - t_start
+
+    # ---- segments of every content kind
+    pieces = []                                            # (texel, z0, z1, tau)
+    if grid is not None:
+        t0 = time.perf_counter()
+        tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero)
+        stats["grid"] = dict(st, seconds=time.perf_counter() - t0)
+        if tex.size:
+            pieces.append((tex, z0, z1, tau))
+    if scene.particles is not None:
+        t0 = time.perf_counter()
+        tex, z0, z1, tau = _particles.capture_particles(camera, scene.particles, Float)
+        stats["particles"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
+        if tex.size:
+            pieces.append((tex, z0, z1, tau))
+    if scene.hair is not None:
+        t0 = time.perf_counter()
+        tex, z0, z1, tau = _hair.capture_hair(camera, scene.hair)
+        stats["hair"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
+        if tex.size:
+            pieces.append((tex, z0, z1, tau))
+    if blockers:
+        bias = 1e-4 * diag if opaque_bias is None else float(opaque_bias)
+        if not (np.isfinite(bias) and bias > 0):
+            raise ValueError(f"opaque_bias: must be > 0, got {opaque_bias!r}")
+        if not (np.isfinite(opaque_slope_bias) and opaque_slope_bias >= 0):
+            raise ValueError(f"opaque_slope_bias: must be >= 0, got {opaque_slope_bias!r}")
+        tex, z0, z1 = _opaque.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias)
+        stats["opaque"] = {"segments": int(tex.size)}
+        if tex.size:
+            pieces.append((tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)))
+
+    t0 = time.perf_counter()
+    seg = _combine(pieces, camera.n_texels, Float)
+    stats["combine_s"] = time.perf_counter() - t0
+    stats["total_s"] = time.perf_counter() - t_start
+    return Capture(seg, camera, light, int(resolution), step, float(epsilon), stats)
+
+
+def _combine(pieces, n_texels: int, Float) -> Segments:
+    """CSR Segments from (texel, z0, z1, tau) pieces, each texel's segments sorted by (z0, z1)."""
+    dtype = "float64" if dr.type_v(Float) == dr.VarType.Float64 else "float32"
+    if not pieces:
+        return Segments.from_arrays(np.zeros(n_texels + 1, np.int64), Float(), Float(),
+                                    optical_depth=Float(), dtype=dtype)
+    tex = np.concatenate([p[0] for p in pieces])
+    z0 = _cat([A.to_float(p[1], Float) for p in pieces])
+    z1 = _cat([A.to_float(p[2], Float) for p in pieces])
+    tau = _cat([A.to_float(p[3], Float) for p in pieces])
+    already = len(pieces) == 1 and np.all(np.diff(tex) >= 0)  # a grid march: texel- and depth-ordered
+    if not already:
+        perm = _texel_depth_order(tex, A.host(z0, "z0"))
+        tex = tex[perm]
+        idx = A.to_uint32(perm)
+        z0, z1, tau = (dr.gather(Float, a, idx) for a in (z0, z1, tau))
+    offsets = np.zeros(n_texels + 1, np.int64)
+    np.cumsum(np.bincount(tex, minlength=n_texels), out=offsets[1:])
+    # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
+    # build the CSR directly (Segments.from_arrays would copy everything to the host again)
+    tau = dr.minimum(tau, OPAQUE_OPTICAL_DEPTH)
+    return Segments(offsets, z0, z1, tau, dtype, sorted_by_depth=True)
+
+
+def _texel_depth_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:
+    """Stable permutation sorting by (texel, z0): one uint64 key (texel << 32 | z0 quantised to
+    32 bits over its range, finer than float32 depths), sorted by timsort, which runs in near
+    linear time on the already sorted runs of each piece (a 3-key lexsort took 1.2 s for 4.9 M)."""
+    lo, hi = float(z0.min()), float(z0.max())
+    scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
+    zq = ((z0 - lo) * scale).astype(np.uint64)
+    key = (tex.astype(np.uint64) << np.uint64(32)) | zq
+    return np.argsort(key, kind="stable")
+
+
+def _cat(arrays):
+    arrays = [a for a in arrays if dr.width(a) > 0]
+    if len(arrays) == 1:
+        return arrays[0]
+    Float = type(arrays[0])
+    out = dr.zeros(Float, sum(dr.width(a) for a in arrays))
+    UInt32 = backend.types().UInt32
+    start = 0
+    for a in arrays:
+        n = dr.width(a)
+        dr.scatter(out, a, dr.arange(UInt32, start, start + n))
+        start += n
+    return out
+
+
+__all__ = ["capture", "Capture", "GridVolume", "validate_scene", "load_tfx", "procedural_strands",
+           "OrthoCamera", "PerspectiveCamera", "CubeCamera", "orthonormal_basis", "RESOLUTION_RANGE"]

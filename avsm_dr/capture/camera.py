@@ -1,0 +1,318 @@
+"""Light cameras: one light ray per shadow-map texel, and world point -> (texel, depth).
+
+Every camera shoots the ray of texel ``k`` from ``origin[k]`` along the unit
+direction ``dir[k]``; the light-space depth of the point ``origin + t * dir`` is
+``t`` itself, so segments ``[z0, z1]`` are ray parameters and a receiver's depth
+comes from the same camera (:meth:`Camera.project`):
+
+* :class:`OrthoCamera` (directional light): the map is a square window of
+  half-size ``half`` on the plane through ``center`` orthogonal to ``d``, fitted
+  to the content; depth ``= (p - center) . d`` (distance from that plane).
+* :class:`PerspectiveCamera` (spot light, and each face of a cube): square map
+  over the cone of full angle ``fov``; depth ``= |p - position|``.
+* :class:`CubeCamera` (point light): six 90-degree faces (+x, -x, +y, -y, +z, -z)
+  stacked vertically, ``width = res``, ``height = 6 res``; texel index
+  ``face * res * res + y * res + x``.
+
+Texel ``(i, j)`` covers the continuous coordinates ``[i, i+1) x [j, j+1)``
+(the convention of :mod:`avsm_dr.filtering`); its ray passes through its centre.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def orthonormal_basis(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, w): right-handed orthonormal frame whose third axis is ``w`` (normalised).
+
+    u = normalize(up x w) with up = +y unless w is within ~8 degrees of +-y (then +x);
+    v = w x u.  Deterministic, used by every camera and by :class:`~avsm_dr.scene.OpaquePlane`.
+    """
+    w = np.asarray(w, dtype=np.float64)
+    w = w / np.linalg.norm(w)
+    up = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(up, w)
+    u /= np.linalg.norm(u)
+    v = np.cross(w, u)
+    return u, v, w
+
+
+def _rect_from_coords(x, y, res):
+    """Inclusive texel rectangle covering continuous coordinates (x, y) (..., n); empty -> x0 > x1."""
+    x0 = np.floor(x.min(axis=-1)).astype(np.int64)
+    x1 = np.floor(x.max(axis=-1)).astype(np.int64)
+    y0 = np.floor(y.min(axis=-1)).astype(np.int64)
+    y1 = np.floor(y.max(axis=-1)).astype(np.int64)
+    empty = (x1 < 0) | (y1 < 0) | (x0 > res - 1) | (y0 > res - 1)
+    x0, x1 = np.clip(x0, 0, res - 1), np.clip(x1, 0, res - 1)
+    y0, y1 = np.clip(y0, 0, res - 1), np.clip(y1, 0, res - 1)
+    x1 = np.where(empty, x0 - 1, x1)
+    return x0, x1, y0, y1
+
+
+def _box_corners(bmin, bmax):
+    """(N, 8, 3) corners of N axis-aligned boxes."""
+    bmin = np.asarray(bmin, np.float64).reshape(-1, 3)
+    bmax = np.asarray(bmax, np.float64).reshape(-1, 3)
+    sel = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
+    return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
+
+
+def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
+    """All (item, texel) pairs of inclusive rectangles; texel = offset + y * res + x."""
+    wx = np.maximum(x1 - x0 + 1, 0)
+    wy = np.maximum(y1 - y0 + 1, 0)
+    counts = wx * wy
+    total = int(counts.sum())
+    item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
+    if total == 0:
+        return item, np.zeros(0, np.int64)
+    starts = np.cumsum(counts) - counts
+    local = np.arange(total, dtype=np.int64) - starts[item]
+    lx = local % wx[item]
+    ly = local // wx[item]
+    texel = texel_offset + (y0[item] + ly) * res + (x0[item] + lx)
+    return item, texel
+
+
+class Camera:
+    """Common interface.  ``width``, ``height``, ``n_texels``; see the module docstring."""
+
+    width: int
+    height: int
+
+    @property
+    def n_texels(self) -> int:
+        return self.width * self.height
+
+    def rays(self, texels=None) -> tuple[np.ndarray, np.ndarray]:
+        """(origins (K, 3), unit directions (K, 3)) float64 of the given texels (default: all)."""
+        raise NotImplementedError
+
+    def project(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Continuous map coordinates (K, 2) (x, y in texel units) and depths (K,) float64."""
+        raise NotImplementedError
+
+    def texel_index(self, coords) -> np.ndarray:
+        """Texel containing each continuous coordinate, clamped to the map (cube: to the face)."""
+        raise NotImplementedError
+
+    def footprint(self, bmin, bmax):
+        """Candidate texels of N boxes: (item (M,), texel (M,)) int64 with every texel whose
+        ray may meet box ``item`` (conservative, one entry per pair)."""
+        raise NotImplementedError
+
+    def texel_width(self, texels, t) -> np.ndarray:
+        """World width of a texel's footprint across its ray at depth ``t`` (K,)."""
+        raise NotImplementedError
+
+
+class OrthoCamera(Camera):
+    """Orthographic map for a directional light travelling along ``direction``.
+
+    center: (3,) point on the reference plane (depth 0) at the map centre.
+    half: half-size of the square window in world units; res: texels per side.
+    """
+
+    def __init__(self, direction, center, half: float, res: int):
+        self.u, self.v, self.d = orthonormal_basis(direction)
+        self.center = np.asarray(center, dtype=np.float64)
+        self.half = float(half)
+        self.res = self.width = self.height = int(res)
+        self.texel_size = 2.0 * self.half / self.res
+
+    @classmethod
+    def fit(cls, direction, bmin, bmax, res: int, margin_texels: float = 1.0):
+        """Fit the window to the union of boxes (N, 3) ``bmin``/``bmax``, keeping
+        ``margin_texels`` empty texels on each side (so edge-clamped lookups outside
+        the content read an empty texel), with the reference plane in front of all of it."""
+        u, v, d = orthonormal_basis(direction)
+        corners = _box_corners(bmin, bmax).reshape(-1, 3)
+        pu, pv, pd = corners @ u, corners @ v, corners @ d
+        size = max(np.ptp(pu), np.ptp(pv), np.ptp(pd), 1e-6)
+        ext = max(np.ptp(pu), np.ptp(pv), 1e-6 * size)
+        half = 0.5 * ext * res / (res - 2.0 * margin_texels)
+        cu, cv = 0.5 * (pu.min() + pu.max()), 0.5 * (pv.min() + pv.max())
+        cd = pd.min() - 0.05 * size
+        return cls(d, cu * u + cv * v + cd * d, half, res)
+
+    def rays(self, texels=None):
+        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
+        x = (t % self.res + 0.5) * self.texel_size - self.half
+        y = (t // self.res + 0.5) * self.texel_size - self.half
+        o = self.center + x[:, None] * self.u + y[:, None] * self.v
+        return o, np.broadcast_to(self.d, o.shape).copy()
+
+    def project(self, points):
+        q = np.asarray(points, np.float64) - self.center
+        x = (q @ self.u + self.half) / self.texel_size
+        y = (q @ self.v + self.half) / self.texel_size
+        return np.stack([x, y], axis=1), q @ self.d
+
+    def texel_index(self, coords):
+        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
+        return iy * self.res + ix
+
+    def texel_width(self, texels, t):
+        return np.full(np.shape(t), self.texel_size)
+
+    def footprint(self, bmin, bmax):
+        c = _box_corners(bmin, bmax)                                   # (N, 8, 3)
+        q = c - self.center
+        x = (q @ self.u + self.half) / self.texel_size
+        y = (q @ self.v + self.half) / self.texel_size
+        return expand_rects(*_rect_from_coords(x, y, self.res), self.res)
+
+
+class PerspectiveCamera(Camera):
+    """Perspective square map at ``position`` looking along ``direction``, full angle ``fov``
+    degrees (spot light, or one cube face with fov = 90)."""
+
+    def __init__(self, position, direction, fov: float, res: int, basis=None, texel_offset: int = 0):
+        self.position = np.asarray(position, dtype=np.float64)
+        self.u, self.v, self.w = basis if basis is not None else orthonormal_basis(direction)
+        self.fov = float(fov)
+        self.tan_half = math.tan(math.radians(self.fov) / 2)
+        self.res = self.width = self.height = int(res)
+        self.texel_offset = int(texel_offset)
+
+    def rays(self, texels=None):
+        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64) - self.texel_offset
+        sx = ((t % self.res + 0.5) / self.res * 2 - 1) * self.tan_half
+        sy = ((t // self.res + 0.5) / self.res * 2 - 1) * self.tan_half
+        d = self.w + sx[:, None] * self.u + sy[:, None] * self.v
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.broadcast_to(self.position, d.shape).copy(), d
+
+    def _coords(self, q):
+        zc = q @ self.w
+        safe = np.where(zc > 0, zc, 1.0)
+        x = ((q @ self.u) / (safe * self.tan_half) + 1) * 0.5 * self.res
+        y = ((q @ self.v) / (safe * self.tan_half) + 1) * 0.5 * self.res
+        return x, y, zc
+
+    def project(self, points):
+        """Points behind the light (or on its plane) get coordinates far outside the map."""
+        q = np.asarray(points, np.float64) - self.position
+        x, y, zc = self._coords(q)
+        x = np.where(zc > 0, x, -1e9)
+        y = np.where(zc > 0, y, -1e9)
+        return np.stack([x, y], axis=1), np.linalg.norm(q, axis=1)
+
+    def texel_index(self, coords):
+        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
+        return self.texel_offset + iy * self.res + ix
+
+    def texel_width(self, texels, t):
+        """t * (2 tan(fov/2) / res) / cos^2(alpha), alpha the ray's angle off the axis (an
+        upper bound of the footprint's extent across the ray)."""
+        _, d = self.rays(texels)
+        cos = d @ self.w
+        return np.asarray(t) * (2 * self.tan_half / self.res) / (cos * cos)
+
+    def footprint(self, bmin, bmax):
+        c = _box_corners(bmin, bmax)
+        q = c - self.position
+        x, y, zc = self._coords(q)
+        tiny = 1e-9
+        front = np.all(zc > tiny, axis=1)
+        behind = np.all(zc <= tiny, axis=1)
+        x0, x1, y0, y1 = _rect_from_coords(x, y, self.res)
+        straddle = ~front & ~behind          # box crosses the light's plane: whole face
+        x0 = np.where(straddle, 0, x0)
+        y0 = np.where(straddle, 0, y0)
+        x1 = np.where(straddle, self.res - 1, np.where(behind, x0 - 1, x1))
+        y1 = np.where(straddle, self.res - 1, y1)
+        return expand_rects(x0, x1, y0, y1, self.res, self.texel_offset)
+
+
+#: Cube faces: (forward axis, sign); face f owns texels [f res^2, (f+1) res^2).
+CUBE_FACES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0), (2, -1.0))
+
+
+class CubeCamera(Camera):
+    """Six 90-degree perspective faces around a point light, stacked vertically."""
+
+    def __init__(self, position, res: int):
+        self.position = np.asarray(position, dtype=np.float64)
+        self.res = int(res)
+        self.width, self.height = self.res, 6 * self.res
+        self.faces = []
+        for f, (axis, sign) in enumerate(CUBE_FACES):
+            w = np.zeros(3)
+            w[axis] = sign
+            self.faces.append(PerspectiveCamera(position, w, 90.0, res, texel_offset=f * res * res))
+
+    def rays(self, texels=None):
+        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
+        o = np.empty((t.size, 3))
+        d = np.empty((t.size, 3))
+        face = t // (self.res * self.res)
+        for f, cam in enumerate(self.faces):
+            m = face == f
+            if m.any():
+                o[m], d[m] = cam.rays(t[m])
+        return o, d
+
+    def face_of(self, q):
+        """Face index of directions q (K, 3): the dominant axis and its sign."""
+        axis = np.argmax(np.abs(q), axis=1)
+        neg = q[np.arange(q.shape[0]), axis] < 0
+        return 2 * axis + neg
+
+    def project(self, points):
+        """y includes the face offset ``face * res``; within a face the coordinates are
+        clamped to [0.5, res - 0.5] so bilinear taps never read a neighbouring face
+        (wider filters near face edges still do; cube maps are filtered per face only)."""
+        q = np.asarray(points, np.float64) - self.position
+        face = self.face_of(q)
+        xy = np.empty((q.shape[0], 2))
+        for f, cam in enumerate(self.faces):
+            m = face == f
+            if m.any():
+                x, y, _ = cam._coords(q[m])
+                xy[m, 0] = np.clip(x, 0.5, self.res - 0.5)
+                xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
+        return xy, np.linalg.norm(q, axis=1)
+
+    def texel_index(self, coords):
+        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
+        face = np.clip(np.floor(coords[:, 1] / self.res), 0, 5).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1] - face * self.res), 0, self.res - 1).astype(np.int64)
+        return face * self.res * self.res + iy * self.res + ix
+
+    def texel_width(self, texels, t):
+        texels = np.asarray(texels, np.int64)
+        t = np.broadcast_to(np.asarray(t, np.float64), texels.shape)
+        out = np.empty(texels.shape)
+        face = texels // (self.res * self.res)
+        for f, cam in enumerate(self.faces):
+            m = face == f
+            if m.any():
+                out[m] = cam.texel_width(texels[m], t[m])
+        return out
+
+    def footprint(self, bmin, bmax):
+        items, texels = [], []
+        for cam in self.faces:
+            i, t = cam.footprint(bmin, bmax)
+            items.append(i)
+            texels.append(t)
+        return np.concatenate(items), np.concatenate(texels)
+
+
+def make_camera(light, res: int, bmin=None, bmax=None) -> Camera:
+    """The camera of ``light``: ortho fitted to boxes (N, 3) ``bmin``/``bmax`` for a
+    directional light, perspective for a spot light, a cube for a point light."""
+    from ..scene import DirectionalLight, PointLight, SpotLight
+    if isinstance(light, DirectionalLight):
+        return OrthoCamera.fit(light.direction, bmin, bmax, res)
+    if isinstance(light, SpotLight):
+        return PerspectiveCamera(light.position, light.direction, light.fov, res)
+    if isinstance(light, PointLight):
+        return CubeCamera(light.position, res)
+    raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")

@@ -1,0 +1,212 @@
+"""Hair strands: TressFX loading, procedural strands, and strand crossings as segments.
+
+Seed 000 sec. 3: "for hair we insert a short segment where the light enters and
+exits the hair strand".  A strand is a polyline of capsules (radius ``r`` around
+each of its line segments).  A texel ray's passage through one capsule is the
+interval hull of its chords through the finite cylinder and the two end spheres
+(a capsule is convex); passages through consecutive capsules of the same strand
+that overlap (at the joints) are merged, so one crossing of a strand is one
+segment ``[t_in, t_out]`` whatever the tessellation, with
+
+    T_exit = 1 - opacity,      tau = -ln(1 - opacity)      (opacity per crossing).
+"""
+from __future__ import annotations
+
+import os
+import struct
+
+import numpy as np
+
+from .. import _arrays as A
+from ..segments import OPAQUE_OPTICAL_DEPTH
+
+#: Capsules whose footprints are enumerated at once (bounds host memory).
+CHUNK = 2048
+
+
+# --------------------------------------------------------------------- loading
+def load_tfx(path, return_w: bool = False):
+    """Read a TressFX 4.x ``.tfx`` file (little-endian).
+
+    Header: float32 version, uint32 numHairStrands, uint32 numVerticesPerStrand,
+    uint32 offsetVertexPosition, ...; positions are S x V float32 (x, y, z, w) at that
+    offset (w = 0 for fixed root vertices).  Returns (S, V, 3) float32 strands
+    (and the (S, V) w when ``return_w``).
+    """
+    path = os.fspath(path)
+    with open(path, "rb") as f:
+        raw = f.read()
+    if len(raw) < 16:
+        raise ValueError(f"path: {path!r} is too short for a TressFX header")
+    version, S, V, off = struct.unpack("<f3I", raw[:16])
+    if not (1.0 <= version < 10.0) or S == 0 or V < 2 or off < 16:
+        raise ValueError(f"path: {path!r} is not a TressFX file (version {version}, {S} strands, {V} vertices)")
+    n = S * V * 4
+    if off + 4 * n > len(raw):
+        raise ValueError(f"path: {path!r} is truncated ({len(raw)} bytes, positions need {off + 4 * n})")
+    xyzw = np.frombuffer(raw, dtype="<f4", count=n, offset=off).reshape(S, V, 4)
+    strands = np.ascontiguousarray(xyzw[..., :3], dtype=np.float32)
+    if not np.all(np.isfinite(strands)):
+        raise ValueError(f"path: {path!r} has non-finite vertex positions")
+    if return_w:
+        return strands, np.ascontiguousarray(xyzw[..., 3])
+    return strands
+
+
+def procedural_strands(n_strands: int = 300, n_vertices: int = 16, root_center=(0.0, -0.3, 0.0),
+                       root_radius: float = 0.2, length: float = 0.6, curl: float = 0.35,
+                       seed: int = 0) -> np.ndarray:
+    """A tuft of wavy strands rooted on a disc (normal +y) and growing upward.
+
+    Roots uniform on the disc of ``root_radius`` around ``root_center``; each strand
+    leaves at a random tilt away from the axis, its direction wandering by
+    ``curl`` radians per unit length (deterministic for ``seed``).
+    Returns (n_strands, n_vertices, 3) float32.
+    """
+    if n_strands < 1 or n_vertices < 2:
+        raise ValueError(f"n_strands: need >= 1 strands of >= 2 vertices, got {n_strands} x {n_vertices}")
+    if not (length > 0 and root_radius >= 0):
+        raise ValueError(f"length: must be > 0 (and root_radius >= 0), got {length}, {root_radius}")
+    rng = np.random.default_rng(seed)
+    rad = root_radius * np.sqrt(rng.random(n_strands))
+    ang = 2 * np.pi * rng.random(n_strands)
+    root = np.asarray(root_center, np.float64) + np.stack(
+        [rad * np.cos(ang), np.zeros(n_strands), rad * np.sin(ang)], axis=1)
+    out = np.empty((n_strands, n_vertices, 3))
+    out[:, 0] = root
+    tilt = 0.15 + 0.35 * rad / max(root_radius, 1e-9)         # lean outwards from the axis
+    d = np.stack([tilt * np.cos(ang), np.ones(n_strands), tilt * np.sin(ang)], axis=1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    seg = length / (n_vertices - 1)
+    phase = 2 * np.pi * rng.random((n_strands, 2))
+    for k in range(1, n_vertices):
+        wob = curl * np.sqrt(seg) * rng.standard_normal((n_strands, 3))
+        wave = 0.5 * curl * seg * np.stack([np.sin(phase[:, 0] + 6 * k / n_vertices), np.zeros(n_strands),
+                                            np.cos(phase[:, 1] + 6 * k / n_vertices)], axis=1)
+        d = d + wob + wave
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out[:, k] = out[:, k - 1] + seg * d
+    return out.astype(np.float32)
+
+
+def fit_strands(strands: np.ndarray, bmin, bmax, fill: float = 0.8) -> np.ndarray:
+    """Uniformly scale and centre strands into the box (bmin, bmax), filling ``fill`` of it."""
+    s = np.asarray(strands, np.float64)
+    lo, hi = s.reshape(-1, 3).min(0), s.reshape(-1, 3).max(0)
+    bmin, bmax = np.asarray(bmin, np.float64), np.asarray(bmax, np.float64)
+    scale = fill * np.min((bmax - bmin) / np.maximum(hi - lo, 1e-12))
+    return ((s - 0.5 * (lo + hi)) * scale + 0.5 * (bmin + bmax)).astype(np.float32)
+
+
+# --------------------------------------------------------------------- geometry
+def validate(hair):
+    """(strands (S, V, 3) float64, radius, opacity) after checks."""
+    s = A.host(hair.strands, "hair.strands")
+    if s.ndim != 3 or s.shape[2] != 3 or s.shape[1] < 2 or s.shape[0] < 1:
+        raise ValueError(f"hair.strands: expected shape (S, V, 3) with V >= 2, got {s.shape}")
+    A.check_finite(s, "hair.strands")
+    r = float(hair.radius)
+    if not (np.isfinite(r) and r > 0):
+        raise ValueError(f"hair.radius: must be > 0, got {hair.radius!r}")
+    op = float(hair.opacity)
+    if not (0.0 <= op <= 1.0):
+        raise ValueError(f"hair.opacity: must lie in [0, 1], got {hair.opacity!r}")
+    return s, r, op
+
+
+def ray_capsule(o, d, pa, pb, r):
+    """(t_in, t_out, hit) of unit rays (o, d) (K, 3) through capsules (pa, pb (K, 3), radius r), float64."""
+    ba = pb - pa
+    L2 = np.einsum("ij,ij->i", ba, ba)
+    oa = o - pa
+    bd = np.einsum("ij,ij->i", ba, d)
+    boa = np.einsum("ij,ij->i", ba, oa)
+    od = np.einsum("ij,ij->i", oa, d)
+    oo = np.einsum("ij,ij->i", oa, oa)
+    t_in = np.full(o.shape[0], np.inf)
+    t_out = np.full(o.shape[0], -np.inf)
+
+    # finite cylinder: |oa + t d|^2 L2 - ((oa + t d) . ba)^2 = r^2 L2, axial 0 <= (.) . ba <= L2
+    a = L2 - bd * bd
+    b = L2 * od - boa * bd
+    c = L2 * oo - boa * boa - r * r * L2
+    disc = b * b - a * c
+    cyl = (a > 1e-12 * np.maximum(L2, 1e-300)) & (disc > 0)     # parallel rays: the end spheres cover it
+    sq = np.sqrt(np.where(cyl, disc, 0.0))
+    sa = np.where(cyl, a, 1.0)
+    ta, tb = (-b - sq) / sa, (-b + sq) / sa
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s0 = (0.0 - boa) / bd
+        s1 = (L2 - boa) / bd
+    lo_s = np.where(bd != 0, np.minimum(s0, s1), np.where((boa >= 0) & (boa <= L2), -np.inf, np.inf))
+    hi_s = np.where(bd != 0, np.maximum(s0, s1), np.where((boa >= 0) & (boa <= L2), np.inf, -np.inf))
+    ca, cb = np.maximum(ta, lo_s), np.minimum(tb, hi_s)
+    cyl &= cb > ca
+    t_in = np.where(cyl, np.minimum(t_in, ca), t_in)
+    t_out = np.where(cyl, np.maximum(t_out, cb), t_out)
+
+    # end spheres
+    for p in (pa, pb):
+        oc = p - o
+        bb = np.einsum("ij,ij->i", oc, d)
+        perp = oc - bb[:, None] * d
+        h2 = r * r - np.einsum("ij,ij->i", perp, perp)
+        hs = h2 > 0
+        s = np.sqrt(np.where(hs, h2, 0.0))
+        t_in = np.where(hs, np.minimum(t_in, bb - s), t_in)
+        t_out = np.where(hs, np.maximum(t_out, bb + s), t_out)
+    t_in = np.maximum(t_in, 0.0)
+    return t_in, t_out, t_out > t_in
+
+
+def merge_crossings(texel, strand, t_in, t_out):
+    """Merge overlapping intervals of the same (texel, strand); returns the merged arrays."""
+    order = np.lexsort((t_in, strand, texel))
+    texel, strand, t_in, t_out = texel[order], strand[order], t_in[order], t_out[order]
+    n = texel.size
+    if n == 0:
+        return texel, strand, t_in, t_out
+    group_start = np.ones(n, bool)
+    group_start[1:] = (texel[1:] != texel[:-1]) | (strand[1:] != strand[:-1])
+    group = np.cumsum(group_start) - 1
+    # running max of t_out within each group, via ranks made group-disjoint (exact integers)
+    _, rank = np.unique(np.concatenate([t_in, t_out]), return_inverse=True)
+    big = 2 * n + 1
+    r_in = rank[:n] + group * big
+    r_out = rank[n:] + group * big
+    run = np.maximum.accumulate(r_out)
+    new = group_start.copy()
+    new[1:] |= r_in[1:] > run[:-1]
+    starts = np.flatnonzero(new)
+    return (texel[starts], strand[starts], t_in[starts],
+            np.maximum.reduceat(t_out, starts))
+
+
+def capture_hair(camera, hair):
+    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand."""
+    s, r, op = validate(hair)
+    S, V, _ = s.shape
+    pa = s[:, :-1].reshape(-1, 3)
+    pb = s[:, 1:].reshape(-1, 3)
+    strand_of = np.repeat(np.arange(S), V - 1)
+    bmin = np.minimum(pa, pb) - r
+    bmax = np.maximum(pa, pb) + r
+    tex, sid, ti, to = [], [], [], []
+    for start in range(0, pa.shape[0], CHUNK):
+        sl = slice(start, start + CHUNK)
+        item, texel = camera.footprint(bmin[sl], bmax[sl])
+        if texel.size == 0:
+            continue
+        item = item + start
+        o, d = camera.rays(texel)
+        t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r)
+        tex.append(texel[hit])
+        sid.append(strand_of[item[hit]])
+        ti.append(t_in[hit])
+        to.append(t_out[hit])
+    if not tex:
+        z = np.zeros(0)
+        return np.zeros(0, np.int64), z, z, z
+    texel, _, z0, z1 = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to)))
+    tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
+    return texel, z0, z1, np.full(texel.size, tau)

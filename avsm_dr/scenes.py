@@ -1,0 +1,260 @@
+"""Built-in scenes: each function returns a :class:`~avsm_dr.scene.Scene` (content, light,
+receivers in and behind the volume, a receiver plane for images).
+
+``size`` sets the grid resolution (voxels per world unit along the scene's unit length;
+small by default so tests stay fast); densities are deterministic for a given ``seed``.
+
+* :func:`plume`            a rising, widening smoke plume (procedural fBm noise).
+* :func:`three_columns`    three smoke columns one behind the other along the light,
+                           light / dense / medium (seed 000 figures 4 and 7).
+* :func:`hair_and_smoke`   hair strands inside a smoke puff (seed 000 figures 5-6);
+                           procedural strands, or a TressFX file when ``tfx_path`` is given.
+* :func:`particles`        a cloud of spherical particles.
+* :func:`smoke_over_table` a smoke puff above an opaque table top that receives its shadow.
+
+Every scene takes ``light=`` to replace its default directional light.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import DirectionalLight, Hair, OpaqueBox, Particles, Scene
+
+
+# --------------------------------------------------------------------- noise
+def value_noise(shape, cells: int, rng: np.random.Generator) -> np.ndarray:
+    """Smooth value noise in [0, 1] on a (nz, ny, nx) grid: random values on a lattice of
+    ``cells`` cells along the longest axis, interpolated with smoothstep weights."""
+    shape = tuple(int(s) for s in shape)
+    nmax = max(shape)
+    axes = []
+    for n in shape:
+        c = max(1, int(np.ceil(cells * n / nmax)))
+        u = (np.arange(n) + 0.5) / n * c
+        i0 = np.minimum(np.floor(u).astype(np.int64), c - 1)
+        f = u - i0
+        axes.append((i0, f * f * (3 - 2 * f), c))
+    lat = rng.random(tuple(a[2] + 1 for a in axes))
+    (iz, wz, _), (iy, wy, _), (ix, wx, _) = axes
+    out = np.zeros(shape)
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                w = ((wz if dz else 1 - wz)[:, None, None] * (wy if dy else 1 - wy)[None, :, None]
+                     * (wx if dx else 1 - wx)[None, None, :])
+                out += w * lat[np.ix_(iz + dz, iy + dy, ix + dx)]
+    return out
+
+
+def fbm(shape, seed: int, octaves: int = 4, cells: int = 3) -> np.ndarray:
+    """Fractal (fBm) value noise in [0, 1]: octaves at doubling frequency, halving amplitude."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros(tuple(shape))
+    total = 0.0
+    for o in range(octaves):
+        amp = 0.5 ** o
+        out += amp * value_noise(shape, cells * 2 ** o, rng)
+        total += amp
+    return out / total
+
+
+def _centres(shape, bmin, bmax):
+    """World coordinates (X, Y, Z) of the voxel centres, each (nz, ny, nx)."""
+    nz, ny, nx = shape
+    bmin, bmax = np.asarray(bmin, np.float64), np.asarray(bmax, np.float64)
+    x = bmin[0] + (np.arange(nx) + 0.5) * (bmax[0] - bmin[0]) / nx
+    y = bmin[1] + (np.arange(ny) + 0.5) * (bmax[1] - bmin[1]) / ny
+    z = bmin[2] + (np.arange(nz) + 0.5) * (bmax[2] - bmin[2]) / nz
+    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
+    return X, Y, Z
+
+
+def _grid_shape(bmin, bmax, size: int):
+    if not isinstance(size, (int, np.integer)) or size < 4:
+        raise ValueError(f"size: expected an integer >= 4, got {size!r}")
+    ext = np.asarray(bmax, np.float64) - np.asarray(bmin, np.float64)
+    nx, ny, nz = np.maximum(np.round(ext * size).astype(int), 2)
+    return int(nz), int(ny), int(nx)
+
+
+def _wall_points(center, u, v, half: float, n: int) -> np.ndarray:
+    """n x n points on the square centre +- half along u and v."""
+    s = (np.arange(n) + 0.5) / n * 2 - 1
+    a, b = np.meshgrid(s, s, indexing="ij")
+    return (np.asarray(center) + half * (a.reshape(-1, 1) * np.asarray(u) + b.reshape(-1, 1) * np.asarray(v)))
+
+
+def _volume_points(density, bmin, bmax, k: int, rng) -> np.ndarray:
+    """k random points in voxels with density > 0 (jittered within the voxel)."""
+    nz, ny, nx = density.shape
+    idx = np.flatnonzero(density.ravel() > 0)
+    if idx.size == 0 or k == 0:
+        return np.zeros((0, 3))
+    pick = rng.choice(idx, size=k, replace=idx.size < k)
+    kz, rem = np.divmod(pick, ny * nx)
+    ky, kx = np.divmod(rem, nx)
+    h = (np.asarray(bmax) - np.asarray(bmin)) / np.array([nx, ny, nz])
+    return np.asarray(bmin) + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * h
+
+
+def _check_count(n, name):
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"{name}: expected an integer >= 1, got {n!r}")
+
+
+# --------------------------------------------------------------------- scenes
+def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None,
+          n_receivers: int = 1024) -> Scene:
+    """A smoke plume rising from y = 0 and widening with height, in the box
+    [-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5], swaying with height; fBm noise (``seed``)
+    breaks it into puffs.  Light: directional, mostly along +x, slightly down.
+    Receivers: half in the smoke, half on the wall x = 0.8 behind it (the receiver plane).
+    """
+    _check_count(n_receivers, "n_receivers")
+    bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
+    shape = _grid_shape(bmin, bmax, size)
+    X, Y, Z = _centres(shape, bmin, bmax)
+    h = Y / 1.5
+    cx = 0.07 * np.sin(5.0 * Y + 0.3)
+    cz = 0.05 * np.cos(4.0 * Y)
+    R = 0.08 + 0.24 * h
+    r2 = ((X - cx) ** 2 + (Z - cz) ** 2) / R ** 2
+    n = fbm(shape, seed)
+    body = np.exp(-2.0 * r2) * np.clip(6 * h, 0, 1) * np.clip(6 * (1 - h), 0, 1)
+    dens = np.maximum(body * (0.35 + 0.9 * n) - 0.18, 0.0) * density_scale
+    dens = dens.astype(np.float32)
+    light = light or DirectionalLight(direction=(1.0, -0.3, 0.25))
+    rng = np.random.default_rng(seed + 1)
+    k_vol = n_receivers // 2
+    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
+    wall = _wall_points((0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75, m)[: n_receivers - k_vol]
+    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), wall])
+    return Scene("plume", light, rec, density=dens, bbox=(bmin, bmax),
+                 receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
+                 meta={"seed": seed, "size": size, "density_scale": density_scale})
+
+
+def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, light=None,
+                  n_receivers: int = 1024) -> Scene:
+    """Three vertical smoke columns at x = -1, 0, 1 in the box [-1.5, 1.5] x [0, 1] x [-0.5, 0.5],
+    one behind the other along the (nearly horizontal, +x) light so each casts on the next:
+    a translucent one nearest the light, a dense one, then a medium one (seed 000 figs. 4, 7).
+    Receivers: half in the columns, half on the wall x = 1.8 behind them.
+    """
+    _check_count(n_receivers, "n_receivers")
+    bmin, bmax = np.array([-1.5, 0.0, -0.5]), np.array([1.5, 1.0, 0.5])
+    shape = _grid_shape(bmin, bmax, size)
+    X, Y, Z = _centres(shape, bmin, bmax)
+    n = fbm(shape, seed, cells=4)
+    dens = np.zeros(shape)
+    for x0, z0, radius, weight in ((-1.0, -0.12, 0.22, 0.35), (0.0, 0.0, 0.25, 1.6), (1.0, 0.12, 0.22, 1.0)):
+        wob = 0.04 * np.sin(7 * Y + 3 * x0)
+        r2 = ((X - x0 - wob) ** 2 + (Z - z0) ** 2) / radius ** 2
+        top = np.clip(8 * (0.92 - Y), 0, 1) * np.clip(8 * Y, 0, 1)
+        dens += weight * np.maximum(np.exp(-1.5 * r2) * top * (0.4 + 0.8 * n) - 0.2, 0.0)
+    dens = (dens * density_scale).astype(np.float32)
+    light = light or DirectionalLight(direction=(1.0, -0.12, 0.08))
+    rng = np.random.default_rng(seed + 1)
+    k_vol = n_receivers // 2
+    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
+    wall = _wall_points((1.8, 0.5, 0.0), (0, 1, 0), (0, 0, 1), 0.5, m)[: n_receivers - k_vol]
+    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), wall])
+    return Scene("three_columns", light, rec, density=dens, bbox=(bmin, bmax),
+                 receiver_plane=(np.array([1.8, 0.5, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
+                 meta={"seed": seed, "size": size, "density_scale": density_scale})
+
+
+def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int = 300,
+                   hair_radius: float = 0.002, hair_opacity: float = 0.3,
+                   density_scale: float = 8.0, light=None, n_receivers: int = 1024) -> Scene:
+    """Hair strands inside a smoke puff in the box [-0.5, 0.5]^3 (seed 000 figures 5-6).
+
+    Hair: ``n_strands`` procedural strands (:func:`~avsm_dr.capture.hair.procedural_strands`),
+    or the strands of the TressFX file ``tfx_path`` scaled into the box.  Each crossing of a
+    light ray with a strand absorbs ``hair_opacity``.  Light: directional, nearly horizontal
+    (+x).  Receivers: half in the smoke/hair, half on the wall x = 0.8 behind it.
+    """
+    from .capture.hair import fit_strands, load_tfx, procedural_strands
+    _check_count(n_receivers, "n_receivers")
+    bmin, bmax = np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5])
+    shape = _grid_shape(bmin, bmax, size)
+    X, Y, Z = _centres(shape, bmin, bmax)
+    n = fbm(shape, seed)
+    r2 = (X ** 2 + (Y + 0.05) ** 2 / 1.3 + Z ** 2) / 0.33 ** 2
+    dens = (np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * n) - 0.15, 0.0) * density_scale).astype(np.float32)
+    if tfx_path is not None:
+        strands = fit_strands(load_tfx(tfx_path), bmin, bmax, fill=0.8)
+    else:
+        _check_count(n_strands, "n_strands")
+        strands = procedural_strands(n_strands, 16, root_center=(0.0, -0.35, 0.0), root_radius=0.22,
+                                     length=0.7, seed=seed)
+    hair = Hair(strands=strands, radius=hair_radius, opacity=hair_opacity)
+    light = light or DirectionalLight(direction=(1.0, -0.2, 0.1))
+    rng = np.random.default_rng(seed + 1)
+    k_vol = n_receivers // 2
+    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
+    wall = _wall_points((0.8, 0.0, 0.0), (0, 1, 0), (0, 0, 1), 0.5, m)[: n_receivers - k_vol]
+    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), wall])
+    return Scene("hair_and_smoke", light, rec, density=dens, bbox=(bmin, bmax), hair=hair,
+                 receiver_plane=(np.array([0.8, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
+                 meta={"seed": seed, "size": size, "tfx_path": None if tfx_path is None else str(tfx_path)})
+
+
+def particles(n: int = 200, seed: int = 0, light=None, n_receivers: int = 1024) -> Scene:
+    """A cloud of ``n`` spherical particles (radius 0.03..0.1, extinction 5..20 per unit)
+    around (0, 0.3, 0); light from above (directional, mostly -y).  Receivers: half inside
+    the cloud, half on the ground y = -0.5 (the receiver plane)."""
+    _check_count(n, "n")
+    _check_count(n_receivers, "n_receivers")
+    rng = np.random.default_rng(seed)
+    centers = np.array([0.0, 0.3, 0.0]) + 0.2 * rng.standard_normal((n, 3))
+    radii = rng.uniform(0.03, 0.1, n)
+    dens = rng.uniform(5.0, 20.0, n)
+    light = light or DirectionalLight(direction=(0.25, -1.0, 0.15))
+    k_vol = n_receivers // 2
+    pick = rng.integers(0, n, k_vol)
+    u = rng.standard_normal((k_vol, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    inside = centers[pick] + u * (radii[pick] * rng.random(k_vol) ** (1 / 3))[:, None]
+    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
+    ground = _wall_points((0.0, -0.5, 0.0), (1, 0, 0), (0, 0, 1), 0.8, m)[: n_receivers - k_vol]
+    return Scene("particles", light, np.concatenate([inside, ground]),
+                 particles=Particles(centers=centers, radii=radii, density=dens),
+                 receiver_plane=(np.array([0.0, -0.5, 0.0]), np.array([0.0, 1.0, 0.0]), 0.8),
+                 meta={"seed": seed, "n": n})
+
+
+def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0, light=None,
+                     n_receivers: int = 1024) -> Scene:
+    """A smoke puff in [-0.4, 0.4] x [0.1, 0.9] x [-0.4, 0.4] above an opaque table top
+    (the box [-1, 1] x [-0.05, 0] x [-1, 1], an :class:`OpaqueBox` blocker); light from
+    above.  Receivers: half in the smoke, half on the table's top face y = 0 (the receiver
+    plane; lit except where the smoke shadows it)."""
+    _check_count(n_receivers, "n_receivers")
+    bmin, bmax = np.array([-0.4, 0.1, -0.4]), np.array([0.4, 0.9, 0.4])
+    shape = _grid_shape(bmin, bmax, size)
+    X, Y, Z = _centres(shape, bmin, bmax)
+    n = fbm(shape, seed)
+    r2 = (X ** 2 + (Y - 0.5) ** 2 + Z ** 2) / 0.3 ** 2
+    dens = (np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * n) - 0.15, 0.0) * density_scale).astype(np.float32)
+    light = light or DirectionalLight(direction=(0.3, -1.0, 0.2))
+    table = OpaqueBox(min=np.array([-1.0, -0.05, -1.0]), max=np.array([1.0, 0.0, 1.0]))
+    rng = np.random.default_rng(seed + 1)
+    k_vol = n_receivers // 2
+    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
+    top = _wall_points((0.0, 0.0, 0.0), (1, 0, 0), (0, 0, 1), 0.9, m)[: n_receivers - k_vol]
+    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), top])
+    return Scene("smoke_over_table", light, rec, density=dens, bbox=(bmin, bmax), blockers=[table],
+                 receiver_plane=(np.array([0.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 1.0),
+                 meta={"seed": seed, "size": size, "density_scale": density_scale})
+
+
+SCENES = {"plume": plume, "three_columns": three_columns, "hair_and_smoke": hair_and_smoke,
+          "particles": particles, "smoke_over_table": smoke_over_table}
+
+
+def get(name: str, **kwargs) -> Scene:
+    """Scene by name (see :data:`SCENES`)."""
+    if name not in SCENES:
+        raise ValueError(f"name: unknown scene {name!r}; known: {sorted(SCENES)}")
+    return SCENES[name](**kwargs)
