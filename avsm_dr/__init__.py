@@ -13,7 +13,7 @@ from .backend import available_backends, get_backend, set_backend  # noqa: E402
 from .representations import REGISTRY, build, kinds, register  # noqa: E402
 from .representations.base import Representation  # noqa: E402
 from .segments import OPAQUE_OPTICAL_DEPTH, Segments  # noqa: E402
-from . import scenes  # noqa: E402
+from . import groundtruth, scenes, shading  # noqa: E402
 from .capture import Capture, capture  # noqa: E402
 
 __version__ = "0.1.0"
@@ -21,5 +21,5 @@ __version__ = "0.1.0"
 __all__ = [
     "Segments", "build", "kinds", "register", "REGISTRY", "Representation",
     "set_backend", "get_backend", "available_backends", "OPAQUE_OPTICAL_DEPTH",
-    "capture", "Capture", "scenes",
+    "capture", "Capture", "scenes", "groundtruth", "shading",
 ]

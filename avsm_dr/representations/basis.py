@@ -1,0 +1,371 @@
+"""Linear transmittance representations: projection of the absorption onto a basis
+(Jansen and Bavoil 2010, "Fourier Opacity Mapping", seed 004 section 5).
+
+Depth is normalised per range ``u = (z - near) / (far - near)`` in [0, 1].  The
+absorption ``sigma(u)`` of a texel is projected onto projection functions ``f_k``
+and rebuilt from reconstruction integrals ``g_k``:
+
+    a_k  = int_0^1 sigma(u) f_k(u) du                       (coefficient map, sec. 5)
+    D(u) = sum_k a_k g_k(u),   T(u) = clamp(exp(-D(u)), 0, 1)
+
+For an orthonormal basis ``g_k(u) = F_k(u) = int_0^u f_k``; scaled pairs (the
+paper's Fourier ``a'_k``, the simplified piecewise-constant form of sec. 5.1)
+override ``g``.  Segments are integrated analytically, not as points: a segment
+``[u0, u1]`` with optical depth ``tau`` (uniform density ``tau / (u1 - u0)``) adds
+
+    a_k += tau * (F_k(u1) - F_k(u0)) / (u1 - u0)            (``Basis.average``)
+
+and a zero-length segment the delta limit ``tau * f_k(u0)`` (sec. 5:
+``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  The difference quotient loses
+digits for short segments, so the default ``average`` switches to 3-point
+Gauss-Legendre on ``f`` below a length of ``2e-2`` (float32) / ``2e-3`` (float64); the Fourier
+and piecewise-constant bases override it with cancellation-free formulas.
+
+Adding a basis is a few lines (an orthonormal one needs ``n_coefficients``, ``f``
+and ``F``; lists of Dr.Jit arrays, one per coefficient)::
+
+    @register_basis("cosine")
+    class CosineBasis(Basis):
+        def f(self, u):   # 1, sqrt(2) cos(pi k u)
+            return [1 + 0 * u] + [SQRT2 * cos_pi(k * u) for k in range(1, self.n)]
+        def F(self, u):   # u, sqrt(2) sin(pi k u) / (pi k)
+            return [u] + [SQRT2 * sin_pi(k * u) / (math.pi * k) for k in range(1, self.n)]
+
+    rep = ad.build("basis", seg, basis="cosine", n=8)    # or basis=CosineBasis(8)
+
+Depth range (``depth_range=``):
+* ``"global"``: one ``[near, far]`` for all texels (default: ``Segments.bounds()``).
+* ``"texel"``: tight per-texel bounds ``Segments.texel_bounds()``, stored per texel
+  (2 floats, counted in ``nbytes_per_texel``); ``near=``/``far=`` must not be given.
+  Bounds are constants of the build: gradients w.r.t. ``z0``/``z1`` hold them fixed.
+A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` (e.g. all segments of a
+texel zero-length at one depth) is widened to that length.
+
+Segments outside an explicit ``[near, far]`` are clipped (a documented choice):
+the part in front of ``near`` is counted as a delta at ``u = 0`` (so ``T(far)`` still
+includes it, while ``T(near) = 1`` as for every basis with ``g_k(0) = 0``), the part
+behind ``far`` is dropped.  Receiver depths clamp to the range: ``u = clamp(u, 0, 1)``.
+
+Kernel (DESIGN.md, linear methods): one lane per segment computes its ``K``
+coefficient contributions, summed with ``dr.scatter_reduce(ReduceOp.Add)`` into
+``[coefficient][texel]`` buffers; ``eval`` is one lane per receiver gathering its
+texel's coefficients.  Gradients w.r.t. ``optical_depth``, ``z0`` and ``z1`` flow
+through the scatter and the gathers.
+"""
+from __future__ import annotations
+
+import math
+from numbers import Integral
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from . import register
+from .base import Representation
+
+SQRT2 = math.sqrt(2.0)
+#: Shortest depth range: MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS (float32 resolves
+#: ~6e-8 relative; the absolute term only keeps near = far = 0 from dividing by 0).
+MIN_SPAN_REL = 1e-6
+MIN_SPAN_ABS = 1e-30
+DEPTH_RANGES = ("global", "texel")
+#: Segment length (in u) below which Basis.average integrates f by quadrature instead of
+#: differencing F (balances eps / du against the quadrature error for ~12 cosines).
+SHORT = {"float32": 2e-2, "float64": 2e-3}
+
+BASES: dict[str, type] = {}
+
+
+def register_basis(name: str):
+    """Class decorator adding a :class:`Basis` under ``name`` (for ``basis="name"``)."""
+    def deco(cls):
+        cls.name = name
+        BASES[name] = cls
+        return cls
+    return deco
+
+
+def check_count(value, name: str, lo: int = 1, hi: int | None = None) -> int:
+    """``value`` as an int in [lo, hi], else ValueError naming ``name``."""
+    ok = isinstance(value, Integral) and not isinstance(value, bool)
+    if ok:
+        value = int(value)
+        ok = value >= lo and (hi is None or value <= hi)
+    if not ok:
+        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ValueError(f"{name}: expected an integer {rng}, got {value!r}")
+    return value
+
+
+# ----------------------------------------------------------------------------
+# Exactly periodic trigonometry: the argument is reduced before the multiply by
+# pi, so integer arguments give sin = 0 exactly (T exact at far, seed 004 eq. 3).
+# ----------------------------------------------------------------------------
+def sincos_pi(y):
+    """(sin(pi y), cos(pi y)) with y reduced to r = y - floor(y) in [0, 1) first."""
+    n = dr.floor(y)
+    r = y - n
+    sign = 1 - 2 * (n - 2 * dr.floor(0.5 * n))    # (-1)^n
+    s, c = dr.sincos(math.pi * r)
+    return sign * s, sign * c
+
+
+def sin_pi(y):
+    return sincos_pi(y)[0]
+
+
+def cos_pi(y):
+    return sincos_pi(y)[1]
+
+
+def sinc(x):
+    """sin(x) / x for x >= 0; Taylor series to x^12 below 0.1 (error < x^14/15! ~ 1e-26)
+    so that neither the value nor its derivative cancels."""
+    x2 = x * x
+    taylor = 1.0
+    for j in (13, 11, 9, 7, 5, 3):      # 1 - x^2/3! + x^4/5! - ... + x^12/13!
+        taylor = 1 - x2 * taylor / (j * (j - 1))
+    safe = dr.select(x > 0.1, x, 1)
+    return dr.select(x > 0.1, dr.sin(safe) / safe, taylor)
+
+
+# ----------------------------------------------------------------------------
+# The basis interface
+# ----------------------------------------------------------------------------
+class Basis:
+    """A set of ``n_coefficients`` projection functions on [0, 1].
+
+    Subclasses give ``f(u)`` and ``F(u)`` (lists of arrays, one per coefficient),
+    and override ``g`` when the reconstruction is not ``F`` (non-orthonormal scaling)
+    and ``average`` when a cancellation-free segment mean is known.
+    ``n`` is the basis' size parameter (harmonics, slices, functions).
+    """
+
+    name = "base"
+    #: True when every a_k >= 0 for tau >= 0 and every g_k is non-decreasing (T monotone).
+    monotone = False
+
+    def __init__(self, n: int, arg: str = "n"):
+        self.n = check_count(n, arg)
+
+    @property
+    def n_coefficients(self) -> int:
+        return self.n
+
+    def f(self, u) -> list:
+        """Projection functions f_k(u)."""
+        raise NotImplementedError
+
+    def F(self, u) -> list:
+        """Antiderivatives F_k(u) = int_0^u f_k."""
+        raise NotImplementedError
+
+    def g(self, u) -> list:
+        """Reconstruction integrals: D(u) = sum_k a_k g_k(u).  Orthonormal: g = F."""
+        return self.F(u)
+
+    def average(self, u0, u1) -> list:
+        """Mean of f_k over [u0, u1] (u0 <= u1): (F_k(u1) - F_k(u0)) / (u1 - u0), or, for
+        segments shorter than SHORT (where the quotient loses eps / du), 3-point
+        Gauss-Legendre on f (error ~ du^6 f^(6) / 2e6; = f(u0) when u1 = u0, the delta)."""
+        du = u1 - u0
+        big = du > (SHORT["float32"] if dr.type_v(du) == dr.VarType.Float32 else SHORT["float64"])
+        safe = dr.select(big, du, 1)
+        F0, F1 = self.F(u0), self.F(u1)
+        m, h = 0.5 * (u0 + u1), (0.5 * math.sqrt(0.6)) * du
+        fl, fm, fr = self.f(m - h), self.f(m), self.f(m + h)
+        return [dr.select(big, (b - a) / safe, (5 * p + 8 * q + 5 * r) * (1 / 18))
+                for a, b, p, q, r in zip(F0, F1, fl, fm, fr)]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.n})"
+
+
+@register_basis("cosine")
+class CosineBasis(Basis):
+    """Cosine (DCT-like) basis, orthonormal on [0, 1]: f_0 = 1, f_k = sqrt(2) cos(pi k u),
+    k < n.  F_k(1) = 0 for k >= 1, so T(far) = exp(-total tau) exactly."""
+
+    def f(self, u):
+        return [1 + 0 * u] + [SQRT2 * cos_pi(k * u) for k in range(1, self.n)]
+
+    def F(self, u):
+        return [u + 0] + [SQRT2 / (math.pi * k) * sin_pi(k * u) for k in range(1, self.n)]
+
+
+@register_basis("legendre")
+class LegendreBasis(Basis):
+    """Shifted Legendre polynomials, orthonormal on [0, 1]: f_k = sqrt(2k+1) P_k(2u - 1),
+    k < n;  F_k = (P_{k+1}(x) - P_{k-1}(x)) / (2 sqrt(2k+1)) (k >= 1), F_0 = u.
+    P_k(+-1) = (+-1)^k exactly, so T(near) = 1 and T(far) = exp(-total tau)."""
+
+    def _legendre(self, u, m):
+        x = 2 * u - 1
+        p = [1 + 0 * x, x + 0]
+        for k in range(1, m - 1):       # (k+1) P_{k+1} = (2k+1) x P_k - k P_{k-1}
+            p.append(((2 * k + 1) * x * p[k] - k * p[k - 1]) * (1 / (k + 1)))
+        return p[:m]
+
+    def f(self, u):
+        p = self._legendre(u, self.n)
+        return [math.sqrt(2 * k + 1) * p[k] for k in range(self.n)]
+
+    def F(self, u):
+        p = self._legendre(u, self.n + 1)
+        return [u + 0] + [(p[k + 1] - p[k - 1]) * (0.5 / math.sqrt(2 * k + 1))
+                          for k in range(1, self.n)]
+
+
+def make_basis(basis, n=None) -> Basis:
+    """A Basis from an instance, or a registered name with size ``n``."""
+    if isinstance(basis, Basis):
+        if n is not None:
+            raise ValueError("n: give n= only with a basis name, not with a Basis instance")
+        return basis
+    if isinstance(basis, str):
+        if basis not in BASES:
+            raise ValueError(f"basis: unknown basis {basis!r}; known: {sorted(BASES)}")
+        if n is None:
+            raise ValueError(f"n: basis {basis!r} needs its size n=")
+        return BASES[basis](n)
+    raise ValueError(f"basis: expected a Basis instance or one of {sorted(BASES)}, got {basis!r}")
+
+
+# ----------------------------------------------------------------------------
+# The representation
+# ----------------------------------------------------------------------------
+@register("basis")
+class BasisRepresentation(Representation):
+    """Coefficient map of any :class:`Basis` (module docstring).
+
+    Parameters: ``basis`` (Basis instance or registered name), ``n`` (size, with a
+    name), ``near``, ``far`` (floats, default ``Segments.bounds()``, ``near < far``),
+    ``depth_range`` ``'global'`` | ``'texel'``.
+    Attributes: ``coefficients`` list of K Dr.Jit arrays of length T (``a_k`` per texel);
+    ``near``, ``far``: floats (global) or Dr.Jit arrays of length T (texel).
+    ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
+    """
+
+    monotone = False
+
+    def __init__(self, segments, basis="legendre", n=None, near=None, far=None,
+                 depth_range: str = "global"):
+        basis = make_basis(basis, n)
+        super().__init__(segments)
+        self.basis = basis
+        self.monotone = basis.monotone
+        if depth_range not in DEPTH_RANGES:
+            raise ValueError(f"depth_range: expected one of {DEPTH_RANGES}, got {depth_range!r}")
+        self.params.update(basis=basis, depth_range=depth_range)
+        Float = segments.Float
+        if depth_range == "texel":
+            if near is not None or far is not None:
+                raise ValueError("near: near=/far= cannot be combined with depth_range='texel'")
+            lo, hi = segments.texel_bounds()
+            self.near, self.far = Float(lo), Float(hi)
+            self._per_texel = True
+        else:
+            lo, hi = segments.bounds()
+            for name, v in (("near", near), ("far", far)):
+                if v is not None and not (isinstance(v, (int, float, np.floating, np.integer))
+                                          and not isinstance(v, bool) and np.isfinite(v)):
+                    raise ValueError(f"{name}: expected a finite number, got {v!r}")
+            if (near is not None or far is not None):
+                near = lo if near is None else float(near)
+                far = hi if far is None else float(far)
+                if not near < far:
+                    raise ValueError(f"near: need near < far, got near={near}, far={far}")
+            else:
+                near, far = lo, hi
+            self.near, self.far = float(near), float(far)
+            self._per_texel = False
+            self.params.update(near=self.near, far=self.far)
+        self.coefficients = self._project()
+
+    # -------------------------------------------------------------- storage
+    @property
+    def itemsize(self) -> int:
+        return 4 if self.segments.dtype == "float32" else 8
+
+    @property
+    def nbytes_per_texel(self) -> float:
+        extra = 2 if self._per_texel else 0
+        return (self.basis.n_coefficients + extra) * self.itemsize
+
+    # ---------------------------------------------------------------- range
+    def _range(self, texel=None):
+        """(near, span) for the given texels (arrays) or globally (floats)."""
+        Float = self.Float
+        if self._per_texel:
+            near = dr.gather(Float, self.near, texel)
+            far = dr.gather(Float, self.far, texel)
+        else:
+            # opaque: a new near/far does not recompile the kernels
+            near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+        floor = MIN_SPAN_REL * dr.maximum(dr.abs(near), dr.abs(far)) + MIN_SPAN_ABS
+        return near, dr.maximum(far - near, floor)
+
+    # ---------------------------------------------------------- projection
+    def _clipped_segments(self):
+        """Per segment (one lane each): texel, clipped normalised depths c0 <= c1 in
+        [0, 1], optical depth inside the range and in front of near (behind: dropped)."""
+        seg = self.segments
+        texel = seg.texel_of_segment()
+        near, span = self._range(texel if self._per_texel else None)
+        u0 = (seg.z0 - near) / span                 # normalised entry depth
+        u1 = (seg.z1 - near) / span                 # normalised exit depth
+        c0, c1 = dr.clip(u0, 0, 1), dr.clip(u1, 0, 1)
+        du = u1 - u0
+        safe = dr.select(du > 0, du, 1)
+        tau = seg.optical_depth
+        inside = dr.select(du > 0, (c1 - c0) / safe, dr.select((u0 >= 0) & (u0 <= 1), 1, 0))
+        front = dr.select(du > 0, (dr.minimum(u1, 0) - dr.minimum(u0, 0)) / safe,
+                          dr.select(u0 < 0, 1, 0))
+        return texel, c0, c1, tau * inside, tau * front
+
+    def _project(self):
+        """a_k per texel: scatter-add of every segment's contribution (one lane each)."""
+        seg, basis = self.segments, self.basis
+        Float, T, K = seg.Float, seg.n_texels, basis.n_coefficients
+        coeffs = [dr.zeros(Float, T) for _ in range(K)]
+        if seg.n_segments == 0:
+            return coeffs
+        texel, c0, c1, tau_in, tau_front = self._clipped_segments()
+        avg = basis.average(c0, c1)                 # mean of f_k over [c0, c1]
+        f_near = basis.f(dr.zeros(Float, 1))        # f_k(0): the part in front of near
+        for k in range(K):
+            dr.scatter_reduce(dr.ReduceOp.Add, coeffs[k], tau_in * avg[k] + tau_front * f_near[k],
+                              texel)
+        dr.eval(coeffs)
+        return coeffs
+
+    # -------------------------------------------------------- reconstruction
+    def normalized_depth(self, texel, depth):
+        """u = clamp((depth - near) / (far - near), 0, 1) for each receiver."""
+        near, span = self._range(texel)
+        return dr.clip((depth - near) / span, 0, 1)
+
+    def _optical_depth(self, texel, depth):
+        u = self.normalized_depth(texel, depth)
+        g = self.basis.g(u)
+        D = dr.zeros(self.Float, dr.width(u))
+        for k, gk in enumerate(g):
+            D += dr.gather(self.Float, self.coefficients[k], texel) * gk
+        return D
+
+    def optical_depth(self, texel, depth):
+        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp).
+
+        texel: (K,) integer texel indices (not validated: a diagnostic, use ``eval`` for
+        checked input); depth: (K,) or scalar light-space depths.  Returns Float (K,)."""
+        tex = texel if A.is_drjit(texel) else A.to_uint32(np.asarray(texel).astype(np.uint32))
+        if A.is_drjit(depth):
+            d = A.to_float(depth, self.Float)
+        else:
+            d = A.to_float(np.broadcast_to(np.asarray(depth, np.float64), (dr.width(tex),)),
+                           self.Float)
+        return self._optical_depth(tex, d)
+
+    def _eval_texels(self, texel, depth):
+        return dr.clip(dr.exp(-self._optical_depth(texel, depth)), 0, 1)
