@@ -15,6 +15,11 @@ REPRESENTATIONS = [
     ("dsm", {"tolerance": 0.01}, True),
     ("osm", {"slices": 16}, True),
     ("fom", {"harmonics": 4}, False),
+    ("fom", {"harmonics": 3, "depth_range": "texel"}, False),
+    ("basis", {"basis": "legendre", "n": 6}, False),
+    ("basis", {"basis": "cosine", "n": 6}, False),
+    ("moments", {}, False),
+    ("dsm", {"tolerance": 0.01, "placement": "curve"}, True),
 ]
 
 

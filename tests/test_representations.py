@@ -54,10 +54,11 @@ def test_adversarial_input_stays_finite(case):
 
 
 @pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_behind_everything_matches_exact_for_node_methods(rng, case):
+def test_behind_everything_matches_exact(rng, case):
     kind, params, _ = case
-    if kind not in ("exact", "avsm", "dsm"):
-        pytest.skip("only node-based methods keep the total exactly")
+    # node methods keep the last node; bases whose first function is constant and whose
+    # others integrate to 0 over [near, far] (Fourier, slices, Legendre, cosine) and the
+    # moments keep the total optical depth exactly
     data = random_segments(rng, texels=40, max_count=30)
     seg = to_segments(data, "float64")
     rep = ad.build(kind, seg, **params)
@@ -65,7 +66,8 @@ def test_behind_everything_matches_exact_for_node_methods(rng, case):
     T = np.asarray(rep.eval(np.arange(40), np.full(40, far + 1)))
     ref = exact_ref.evaluate(data["offsets"], data["z0"], data["z1"],
                              np.minimum(data["tau"], ad.OPAQUE_OPTICAL_DEPTH), np.arange(40), np.full(40, far + 1))
-    tol = params.get("tolerance", 1e-12)
+    # float64 throughout; FOM/moments evaluate sums of ~1e3 terms: 1e-9 absolute
+    tol = params.get("tolerance", 1e-12 if kind in ("exact", "avsm") else 1e-9)
     np.testing.assert_allclose(T, ref, atol=tol)
 
 
