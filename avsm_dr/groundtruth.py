@@ -765,6 +765,7 @@ def _to_light(light, p):
 
 
 def check_camera(scene, camera) -> dict:
+    """Validated camera dict (origin, target, up, fov); the default view when ``camera`` is None."""
     cam = default_camera(scene) if camera is None else dict(camera)
     for key in ("origin", "target", "up"):
         if key not in cam:

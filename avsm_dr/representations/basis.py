@@ -112,10 +112,12 @@ def sincos_pi(y):
 
 
 def sin_pi(y):
+    """sin(pi y) with exact argument reduction (see :func:`sincos_pi`)."""
     return sincos_pi(y)[0]
 
 
 def cos_pi(y):
+    """cos(pi y) with exact argument reduction (see :func:`sincos_pi`)."""
     return sincos_pi(y)[1]
 
 

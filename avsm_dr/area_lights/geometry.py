@@ -1,0 +1,178 @@
+"""Vectorised ray geometry (Dr.Jit): camera hits, shadow-ray occlusion, VPL rays.
+
+All functions work on one lane per ray with the Dr.Jit types of :class:`Kit`;
+scene constants enter kernels as literals (they do not change between launches).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from .. import backend
+from .scene import AreaLightScene, Sphere
+
+#: Surface kinds returned by :func:`camera_hits`.
+EXIT, DIFFUSE, LIGHT_FRONT, LIGHT_BACK = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class Kit:
+    """Dr.Jit types for one precision: Float, Vec3, UInt32, Int32, Bool, PCG32."""
+    dtype: str
+    Float: type
+    Vec3: type
+    UInt32: type
+    Int32: type
+    Bool: type
+    PCG32: type
+
+    def vec(self, v) -> object:
+        """A width-1 Vec3 from 3 numbers, opaque (evaluated): Dr.Jit 1.5 resizes a literal
+        Array3f with a zero component in place when it meets a wider array (measured:
+        ``Array3f(0, 1, 0) * arange(Float, 4)`` leaves the first operand of width 4)."""
+        v = np.asarray(v, np.float64)
+        return self.Vec3(*(dr.opaque(self.Float, float(c)) for c in v))
+
+    def vec_array(self, a: np.ndarray) -> object:
+        """Vec3 of width N from an (N, 3) array."""
+        a = np.asarray(a, np.float64)
+        f = (lambda c: A.to_float(np.ascontiguousarray(a[:, c]), self.Float))
+        return self.Vec3(f(0), f(1), f(2))
+
+
+def kit(dtype: str = "float32") -> Kit:
+    t = backend.types()
+    Float = A.float_type(dtype)
+    Vec3 = t.Array3f if dtype == "float32" else t.Array3f64
+    return Kit(dtype, Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
+
+
+def safe_dir(d):
+    """Replace exact zero components by a tiny value so 1 / d stays finite-signed."""
+    return type(d)(*[dr.select(c == 0, 1e-20, c) for c in (d.x, d.y, d.z)])
+
+
+def ray_sphere(o, d, center, radius):
+    """(hit, t0, t1) of the unit-direction ray o + t d with a sphere (t0 <= t1)."""
+    oc = o - center
+    b = dr.dot(oc, d)
+    c = dr.dot(oc, oc) - radius * radius
+    disc = b * b - c
+    sq = dr.sqrt(dr.maximum(disc, 0))
+    return disc > 0, -b - sq, -b + sq
+
+
+def ray_box(o, inv_d, lo, hi):
+    """(hit, t0, t1) of the ray with the slab box [lo, hi]; ``inv_d = 1 / d``."""
+    a = (lo - o) * inv_d
+    b = (hi - o) * inv_d
+    tmin = dr.maximum(dr.maximum(dr.minimum(a.x, b.x), dr.minimum(a.y, b.y)), dr.minimum(a.z, b.z))
+    tmax = dr.minimum(dr.minimum(dr.maximum(a.x, b.x), dr.maximum(a.y, b.y)), dr.maximum(a.z, b.z))
+    return tmax > tmin, tmin, tmax
+
+
+def box_normal(x, lo, hi, Vec3):
+    """Outward normal of the box face nearest to the surface point x."""
+    c = (lo + hi) * 0.5
+    h = (hi - lo) * 0.5
+    q = (x - c) / h
+    ax, ay, az = dr.abs(q.x), dr.abs(q.y), dr.abs(q.z)
+    isx = (ax >= ay) & (ax >= az)
+    isy = ~isx & (ay >= az)
+    isz = ~isx & ~isy
+    return Vec3(dr.select(isx, dr.sign(q.x), 0), dr.select(isy, dr.sign(q.y), 0),
+                dr.select(isz, dr.sign(q.z), 0))
+
+
+def occluder_hits(scene: AreaLightScene, k: Kit, o, d):
+    """Per occluder: (hit, t0, t1, occluder) for unit-direction rays o + t d."""
+    inv = 1.0 / safe_dir(d)
+    out = []
+    for occ in scene.occluders:
+        if isinstance(occ, Sphere):
+            h, t0, t1 = ray_sphere(o, d, k.vec(occ.center), float(occ.radius))
+        else:
+            h, t0, t1 = ray_box(o, inv, k.vec(occ.min), k.vec(occ.max))
+        out.append((h, t0, t1, occ))
+    return out
+
+
+def occluded(scene: AreaLightScene, k: Kit, x, p, eps: float):
+    """True where the open segment x -> p (shortened by eps at both ends) meets an occluder."""
+    v = p - x
+    r = dr.norm(v)
+    d = v / dr.select(r > 0, r, 1)
+    blocked = dr.zeros(k.Bool, dr.width(r))
+    for h, t0, t1, _ in occluder_hits(scene, k, x, d):
+        blocked |= h & (t1 > eps) & (t0 < r - eps)
+    return blocked
+
+
+@dataclass
+class CameraHits:
+    """Per pixel: origin o (width 1), unit direction d, end distance t_end (first surface
+    or medium-box exit), surface kind, normal n and albedo at the end point."""
+    o: object
+    d: object
+    t_end: object
+    kind: object
+    n: object
+    albedo: object
+
+
+def camera_hits(scene: AreaLightScene, k: Kit) -> CameraHits:
+    """Closest hit of each pixel-centre camera ray with floor, occluders, light and box."""
+    cam = scene.camera
+    o = k.vec(cam.origin)
+    d = k.vec_array(cam.rays())
+    n_pix = dr.width(d)
+    inv = 1.0 / safe_dir(d)
+    lo, hi = scene.bounds
+    Float, Vec3 = k.Float, k.Vec3
+
+    # -- medium box exit (the camera is inside) ------------------------------------
+    _, _, t_exit = ray_box(o, inv, k.vec(lo), k.vec(hi))
+    t_best = t_exit
+    kind = dr.full(k.UInt32, EXIT, n_pix)
+    nrm = Vec3(0, 1, 0) + dr.zeros(Vec3, n_pix)
+    alb = dr.zeros(Float, n_pix)
+
+    # -- floor: the bottom face y = lo_y; it wins near-ties with the box exit (the two
+    #    distances round differently, which left unlit speckles on the floor) ---------
+    dy = dr.select(d.y < 0, d.y, -1)
+    t_floor = (float(lo[1]) - o.y) / dy
+    m = (d.y < 0) & (t_floor <= t_best + 1e-5 * scene.extent)
+    t_best = dr.select(m, t_floor, t_best)
+    kind = dr.select(m, DIFFUSE, kind)
+    alb = dr.select(m, float(scene.floor_albedo), alb)
+
+    # -- occluders ------------------------------------------------------------------
+    for h, t0, _, occ in occluder_hits(scene, k, o, d):
+        m = h & (t0 > 0) & (t0 < t_best)
+        t_best = dr.select(m, t0, t_best)
+        kind = dr.select(m, DIFFUSE, kind)
+        alb = dr.select(m, float(occ.albedo), alb)
+        x = o + t0 * d
+        if isinstance(occ, Sphere):
+            nn = (x - k.vec(occ.center)) / float(occ.radius)
+        else:
+            nn = box_normal(x, k.vec(occ.min), k.vec(occ.max), Vec3)
+        nrm = dr.select(m, nn, nrm)
+
+    # -- the light quad: front side emits, back side is black ---------------------------
+    L = scene.light
+    ln = k.vec(L.normal)
+    denom = dr.dot(d, ln)
+    sd = dr.select(denom != 0, denom, 1)
+    t_l = dr.dot(k.vec(L.center) - o, ln) / sd
+    dual = np.linalg.pinv(np.stack([L.edge_u, L.edge_v], 1))     # (2, 3): a, b from x - c
+    rel = o + t_l * d - k.vec(L.center)
+    a = dr.dot(rel, k.vec(dual[0]))
+    b = dr.dot(rel, k.vec(dual[1]))
+    m = (denom != 0) & (t_l > 0) & (t_l < t_best) & (dr.abs(a) <= 0.5) & (dr.abs(b) <= 0.5)
+    t_best = dr.select(m, t_l, t_best)
+    kind = dr.select(m, dr.select(denom < 0, LIGHT_FRONT, LIGHT_BACK), kind)
+    return CameraHits(o, d, t_best, kind, nrm, alb)

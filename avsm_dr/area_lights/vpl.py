@@ -1,0 +1,154 @@
+"""Virtual point lights (VPLs) on the quad light, and the light-space grid they share.
+
+Area light as K point lights (seed 002 sec. 1, after Heckbert and Herf 1997):
+
+    L_in(x) = sum_k  L_e (A / K) max(0, n . w_k) / r_k^2,   w_k = (x - p_k) / r_k,
+
+with p_k stratified on the quad: cell centres of a sqrt(K) x sqrt(K) grid when K is a
+square (optionally jittered inside each cell), Hammersley points otherwise.
+
+Every VPL k gets a grid of R x R x R voxels in its own light space (seed 002 sec. 2):
+texel (i, j) is the perspective direction ``e_u s + e_v t + n`` with
+``(s, t)`` in ``[s_min, s_max] x [t_min, t_max]`` (a frustum fitted around all occluders,
+shared by all VPLs), depth bin ``b`` the distance ``r`` to the VPL, binned linearly with
+bins 0 .. R-2 covering the occluders' range ``[r_near, r_far]`` and bin R-1 everything
+beyond.  A point outside the frustum or nearer than ``r_near`` has no occluder between
+it and the VPL (the frustum is a cone containing every occluder), so it is visible.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .scene import AreaLightScene, QuadLight, Sphere
+
+
+def check_count(value, name: str, lo: int) -> int:
+    """An integer >= lo, or ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name}: expected an integer, got {value!r}")
+    if value < lo:
+        raise ValueError(f"{name}: must be >= {lo}, got {value}")
+    return int(value)
+
+
+def _radical_inverse2(i: np.ndarray) -> np.ndarray:
+    out = np.zeros(i.shape, np.float64)
+    f = 0.5
+    i = i.copy()
+    while np.any(i):
+        out += f * (i & 1)
+        i >>= 1
+        f *= 0.5
+    return out
+
+
+def vpl_uv(K: int, jitter: bool = False, seed: int = 0) -> np.ndarray:
+    """(K, 2) stratified positions (a, b) in [0, 1)^2 on the quad."""
+    K = check_count(K, "vpls", 1)
+    m = int(round(math.sqrt(K)))
+    if m * m == K:
+        i, j = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+        off = np.random.default_rng(seed).random((K, 2)) if jitter else np.full((K, 2), 0.5)
+        return (np.stack([i.ravel(), j.ravel()], 1) + off) / m
+    k = np.arange(K)
+    uv = np.stack([(k + 0.5) / K, _radical_inverse2(k)], 1)
+    if jitter:
+        uv = (uv + np.random.default_rng(seed).random(2)) % 1.0  # Cranley-Patterson rotation
+    return uv
+
+
+def sample_vpls(light: QuadLight, K: int, jitter: bool = False, seed: int = 0) -> np.ndarray:
+    """(K, 3) VPL positions p_k on the quad (float64); each carries intensity
+    ``L_e (A / K) max(0, n . w)`` (W/sr per unit radiance)."""
+    uv = vpl_uv(K, jitter, seed) - 0.5
+    return light.center[None] + uv[:, :1] * light.edge_u[None] + uv[:, 1:] * light.edge_v[None]
+
+
+def _point_aabb_distance(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Distance from points (K, 3) to the box [lo, hi]."""
+    d = np.maximum(np.maximum(lo[None] - p, 0), p - hi[None])
+    return np.linalg.norm(d, axis=1)
+
+
+@dataclass(frozen=True)
+class LightGrid:
+    """Per-VPL light-space grid shared by all VPLs (see the module docstring).
+
+    R: texels per side and depth bins; s_min..t_max: the frustum in slope units
+    (x / z, y / z in the light frame); r_near, r_far: occluder distance range;
+    ``dr_bin = (r_far - r_near) / (R - 1)``; words = ceil(R / 32) UInt32 per texel ray.
+    """
+    R: int
+    s_min: float
+    s_max: float
+    t_min: float
+    t_max: float
+    r_near: float
+    r_far: float
+    empty: bool = False
+    z_near: float = 0.0     # smallest light-frame depth n . (x - p) of any occluder
+
+    @property
+    def words(self) -> int:
+        return (self.R + 31) // 32
+
+    @property
+    def dr_bin(self) -> float:
+        return (self.r_far - self.r_near) / (self.R - 1)
+
+    @property
+    def n_texels(self) -> int:
+        return self.R * self.R
+
+
+def _light_frame_extent(o, vpls: np.ndarray, frame) -> tuple[np.ndarray, ...]:
+    """Per VPL: (x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, r_lo, r_hi) of occluder ``o`` in
+    the light frame centred at the VPL (bounds, exact for spheres along each axis)."""
+    eu, ev, n = frame
+    if isinstance(o, Sphere):
+        d = o.center[None] - vpls
+        cx, cy, cz = d @ eu, d @ ev, d @ n
+        dist = np.linalg.norm(d, axis=1)
+        r = o.radius
+        return cx - r, cx + r, cy - r, cy + r, cz - r, cz + r, np.maximum(dist - r, 0), dist + r
+    a, b = o.aabb()
+    corners = np.array([[x, y, z] for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
+    d = corners[None, :, :] - vpls[:, None, :]                         # (K, 8, 3)
+    x, y, z = d @ eu, d @ ev, d @ n
+    return (x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1),
+            _point_aabb_distance(vpls, a, b), np.linalg.norm(d, axis=2).max(axis=1))
+
+
+def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
+    """Fit the frustum and depth range of every VPL's grid around all occluders.
+
+    An occluder with light-frame extents x in [x_lo, x_hi], z in [z_lo, z_hi]
+    (z_lo > 0: in front of the light plane) has slopes x / z within
+    [min(x_lo / z_lo, x_lo / z_hi), max(x_hi / z_lo, x_hi / z_hi)]; the union over all
+    occluders and VPLs, padded by half a texel, is the shared frustum.
+    """
+    R = check_count(R, "resolution", 2)
+    frame = scene.light.frame()
+    if not scene.occluders:
+        return LightGrid(R, -1.0, 1.0, -1.0, 1.0, 0.0, 1.0, empty=True)
+    s_lo, s_hi, t_lo, t_hi, r_lo, r_hi, z_lo = [], [], [], [], [], [], []
+    for o in scene.occluders:
+        x0, x1, y0, y1, z0, z1, rl, rh = _light_frame_extent(o, vpls, frame)
+        s_lo.append(np.minimum(x0 / z0, x0 / z1))
+        s_hi.append(np.maximum(x1 / z0, x1 / z1))
+        t_lo.append(np.minimum(y0 / z0, y0 / z1))
+        t_hi.append(np.maximum(y1 / z0, y1 / z1))
+        r_lo.append(rl)
+        r_hi.append(rh)
+        z_lo.append(z0)
+    s_min, s_max = float(np.min(s_lo)), float(np.max(s_hi))
+    t_min, t_max = float(np.min(t_lo)), float(np.max(t_hi))
+    ps = 0.5 * (s_max - s_min) / R + 1e-6
+    pt = 0.5 * (t_max - t_min) / R + 1e-6
+    r_near, r_far = float(np.min(r_lo)), float(np.max(r_hi))
+    pad = 1e-4 * (r_far - r_near) + 1e-7
+    return LightGrid(R, s_min - ps, s_max + ps, t_min - pt, t_max + pt,
+                     max(r_near - pad, 0.0), r_far + pad, z_near=float(np.min(z_lo)))
