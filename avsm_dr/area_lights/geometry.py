@@ -44,6 +44,7 @@ class Kit:
 
 
 def kit(dtype: str = "float32") -> Kit:
+    """The Dr.Jit types (Float, Vec3, UInt32, ...) of the current backend for ``dtype``."""
     t = backend.types()
     Float = A.float_type(dtype)
     Vec3 = t.Array3f if dtype == "float32" else t.Array3f64
