@@ -5,7 +5,7 @@ Each image shows the receiver plane (and the medium in front of it) from the sam
 the reference is Mitsuba ``volpath`` on the density grid (or the deterministic ray-marched
 ground truth for scenes Mitsuba cannot hold), ours use light transmittance from each
 representation with bilinear shadow filtering, as in the paper.  The medium scatters
-(single scattering, albedo 0.8), so the smoke's self-shadowing - where the
+(single scattering, albedo 1) and the view is from the side, so the smoke's self-shadowing - where the
 representations differ - is visible, not only the shadow on the wall behind it (which
 every method here reproduces exactly: node methods keep the last node, FOM/OSM are exact
 at far).
@@ -22,6 +22,16 @@ METHODS = [("exact", {}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 12}), ("fom
            ("osm", {"slices": 32}), ("dsm", {"tolerance": 0.01})]
 
 
+#: Side views: the light crosses the image, so the smoke's self-shadowing (where the
+#: representations differ) is in view, with the receiver behind or below it.
+CAMERAS = {
+    "three_columns": dict(origin=[0.0, 0.5, 4.2], target=[0.2, 0.5, 0.0], up=[0, 1, 0], fov=52.0, aspect=2.2),
+    "hair_and_smoke": dict(origin=[0.1, 0.0, 2.8], target=[0.15, 0.0, 0.0], up=[0, 1, 0], fov=40.0),
+    "smoke_over_table": dict(origin=[0.0, 1.5, 2.4], target=[0.0, 0.35, 0.0], up=[0, 1, 0], fov=45.0),
+    "plume": dict(origin=[0.0, 0.75, 3.4], target=[0.15, 0.75, 0.0], up=[0, 1, 0], fov=40.0),
+}
+
+
 def _label(kind, p):
     return kind if not p else f"{kind}-{next(iter(p.values()))}"
 
@@ -32,7 +42,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     from .. import capture, groundtruth, scenes as scene_lib, shading
     names = ["three_columns"] if quick else ["three_columns", "hair_and_smoke", "smoke_over_table"]
     params = dict(scenes=names, resolution=64 if quick else 256, image=48 if quick else 160,
-                  spp=16 if quick else 128, filter="bilinear", albedo=0.8)
+                  spp=32 if quick else 256, filter="bilinear", albedo=1.0, reflectance=0.25)
     res = Results("images", out, quick, params)
     if res.exists() and not force:
         return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
@@ -44,37 +54,40 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     for name in tqdm(names, desc="images", unit="scene"):
         scene = getattr(scene_lib, name)()
         cap = capture(scene, resolution=params["resolution"])
+        cam = dict(CAMERAS.get(name, {}))
+        Wx = int(round(W * cam.pop("aspect", 1.0)))
+        look = dict(albedo=params["albedo"], reflectance=params["reflectance"], camera=cam or None)
         try:
-            ref = groundtruth.render_reference(scene, width=W, height=W, spp=params["spp"], albedo=params["albedo"])
+            ref = groundtruth.render_reference(scene, width=Wx, height=W, spp=params["spp"], **look)
             ref_name = "Mitsuba volpath"
         except ValueError:
-            ref = shading.groundtruth_plane(scene, width=W, height=W, albedo=params["albedo"])
+            ref = shading.groundtruth_plane(scene, width=Wx, height=W, **look)
             ref_name = "ray-marched ground truth"
         todo = [(k, p) for k, p in METHODS if k in kinds()]
         imgs = {}
         for kind, p in todo:
             rep = build(kind, cap.segments, **p)
-            imgs[_label(kind, p)] = shading.shade_plane(scene, rep, cap, width=W, height=W, filter=params["filter"],
-                                                        albedo=params["albedo"])
+            imgs[_label(kind, p)] = shading.shade_plane(scene, rep, cap, width=Wx, height=W,
+                                                        filter=params["filter"], **look)
         exact_img = imgs.get("exact")
         vmax = float(np.percentile(ref, 99.5)) or 1.0
-        fig, axes = plt.subplots(3, len(imgs) + 1, figsize=(2.6 * (len(imgs) + 1), 8))
+        # one row per representation: image, 4x |difference| to the reference, to exact
+        aspect = Wx / W
+        fig, axes = plt.subplots(len(imgs) + 1, 3, figsize=(3 * 2.4 * aspect, 2.3 * (len(imgs) + 1)), squeeze=False)
+        for ax in axes.ravel():
+            ax.axis("off")
         axes[0][0].imshow(ref, cmap="gray", vmin=0, vmax=vmax)
         axes[0][0].set_title(ref_name, fontsize=8)
-        for ax in axes[:, 0]:
-            ax.axis("off")
-        for col, (label, img) in enumerate(imgs.items(), start=1):
+        for row, (label, img) in enumerate(imgs.items(), start=1):
             vs_ref = shading.compare_images(ref, img)
             vs_exact = shading.compare_images(exact_img, img) if exact_img is not None else None
-            axes[0][col].imshow(img, cmap="gray", vmin=0, vmax=vmax)
-            axes[0][col].set_title(label, fontsize=9)
-            axes[1][col].imshow(vs_ref["diff4x"], cmap="gray", vmin=0, vmax=vmax)
-            axes[1][col].set_title(f"4x |vs ref| rmse {vs_ref['rmse']:.3g}", fontsize=7)
+            axes[row][0].imshow(img, cmap="gray", vmin=0, vmax=vmax)
+            axes[row][0].set_title(label, fontsize=9)
+            axes[row][1].imshow(vs_ref["diff4x"], cmap="gray", vmin=0, vmax=vmax)
+            axes[row][1].set_title(f"4x |{label} - reference|, rmse {vs_ref['rmse']:.3g}", fontsize=7)
             if vs_exact is not None:
-                axes[2][col].imshow(vs_exact["diff4x"], cmap="gray", vmin=0, vmax=vmax)
-                axes[2][col].set_title(f"4x |vs exact| rmse {vs_exact['rmse']:.3g}", fontsize=7)
-            for r in range(3):
-                axes[r][col].axis("off")
+                axes[row][2].imshow(vs_exact["diff4x"], cmap="gray", vmin=0, vmax=vmax)
+                axes[row][2].set_title(f"4x |{label} - exact|, rmse {vs_exact['rmse']:.3g}", fontsize=7)
             kind = label.split("-")[0]
             rows.append(dict(scene=name, method=kind, param=label[len(kind) + 1:], reference=ref_name,
                              rmse_vs_reference=vs_ref["rmse"], max_abs_vs_reference=vs_ref["max_abs"],
