@@ -63,6 +63,8 @@ import numpy as np
 
 from . import _arrays as A
 from . import backend
+from .capture.grid import check_bbox
+from .capture.particles import validate as validate_particles
 from .scene import (DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight,
                     Scene, SpotLight)
 
@@ -146,16 +148,7 @@ def _check_grid(density, bbox):
         raise ValueError("density: negative density")
     if bbox is None:
         raise ValueError("bbox: a density grid needs bbox = (min_xyz, max_xyz)")
-    try:
-        lo, hi = bbox
-        lo = np.asarray(lo, np.float64).reshape(3)
-        hi = np.asarray(hi, np.float64).reshape(3)
-    except (TypeError, ValueError):
-        raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise ValueError("bbox: contains NaN or inf")
-    if np.any(hi <= lo):
-        raise ValueError(f"bbox: zero-size or inverted box {lo.tolist()} .. {hi.tolist()}")
+    lo, hi = check_bbox(bbox)
     return g.astype(np.float32), lo, hi
 
 
@@ -173,24 +166,8 @@ def check_points(points, name: str = "points") -> np.ndarray:
 
 
 def _particles(scene):
-    if scene.particles is None:
-        return None
-    P = scene.particles
-    c = A.host(P.centers, "particles.centers")
-    r = A.host(P.radii, "particles.radii").reshape(-1)
-    s = A.host(P.density, "particles.density").reshape(-1)
-    if c.ndim != 2 or c.shape[1] != 3:
-        raise ValueError(f"particles.centers: expected shape (P, 3), got {c.shape}")
-    for name, a in (("particles.radii", r), ("particles.density", s)):
-        if a.size != c.shape[0]:
-            raise ValueError(f"{name}: expected {c.shape[0]} values (one per particle), got {a.size}")
-    for name, a in (("particles.centers", c), ("particles.radii", r), ("particles.density", s)):
-        A.check_finite(a, name)
-    if np.any(r <= 0):
-        raise ValueError("particles.radii: radii must be > 0")
-    if np.any(s < 0):
-        raise ValueError("particles.density: negative density")
-    return c, r, s
+    """Validated particle arrays of the scene, or None (the capture's own checks)."""
+    return None if scene.particles is None else validate_particles(scene.particles)
 
 
 def _hair(scene):

@@ -65,7 +65,8 @@ def block_max(density: np.ndarray, block: int) -> np.ndarray:
     return out
 
 
-def _check_bbox(bbox) -> tuple[np.ndarray, np.ndarray]:
+def check_bbox(bbox) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) float64 corners of a finite, non-empty box; ValueError naming ``bbox``."""
     try:
         lo, hi = bbox
         lo = np.asarray(lo, np.float64).reshape(3)
@@ -139,7 +140,7 @@ class GridVolume:
                 bbox = file_bbox
         if bbox is None:
             raise ValueError("bbox: a density grid needs its world box (min_xyz, max_xyz)")
-        lo, hi = _check_bbox(bbox)
+        lo, hi = check_bbox(bbox)
 
         data = None
         if A.is_drjit(density):
