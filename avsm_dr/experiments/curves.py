@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from .. import build, kinds
 from ._common import Results
+from .error_curves import _march_step
 
 METHODS = [("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 12}), ("avsm", {"nodes": 16}),
            ("fom", {"harmonics": 16}), ("osm", {"slices": 32}), ("dsm", {"tolerance": 0.01})]
@@ -21,7 +22,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import capture, scenes as scene_lib
     names = ["hair_and_smoke", "three_columns"]
-    params = dict(scenes=names, resolution=64 if quick else 256, samples=400 if quick else 2000)
+    params = dict(scenes=names, resolution=64 if quick else 256, samples=400 if quick else 2000, step_fraction=0.125)
     res = Results("curves", out, quick, params)
     if res.exists() and not force:
         return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
@@ -33,7 +34,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     summary = {}
     for ax, name in tqdm(list(zip(axes[0], names)), desc="curves", unit="scene"):
         scene = getattr(scene_lib, name)()
-        seg = capture(scene, resolution=params["resolution"]).segments
+        seg = capture(scene, resolution=params["resolution"],
+                      step=_march_step(scene, params["step_fraction"])).segments
         texel = int(np.argmax(seg.counts))
         h = seg.numpy()
         s = slice(h["offsets"][texel], h["offsets"][texel + 1])

@@ -33,12 +33,24 @@ QUICK_SWEEPS = {
 SCENES = ["plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table"]
 
 
-def _scene_rows(name, scene, resolution, spp, sweeps, res_rows, rng, quick):
+def _march_step(scene, fraction):
+    """``fraction`` of the smallest voxel side of the scene's grid (None without a grid)."""
+    if scene.density is None:
+        return None
+    lo, hi = (np.asarray(b, float) for b in scene.bbox)
+    return float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1]))) * fraction
+
+
+def _scene_rows(name, scene, resolution, spp, sweeps, res_rows, rng, quick, step_fraction, filt):
     from .. import capture, groundtruth
-    cap = capture(scene, resolution=resolution)
+    cap = capture(scene, resolution=resolution, step=_march_step(scene, step_fraction))
     points = np.asarray(scene.receivers, dtype=np.float64)
+
+    def lookup(rep):
+        return np.asarray(cap.transmittance(rep, points, filter=filt), dtype=np.float64)
+
     texel, depth = cap.lookup(points)
-    exact = np.asarray(build("exact", cap.segments).eval(texel, depth), dtype=np.float64)
+    exact = lookup(build("exact", cap.segments))
     mitsuba = stderr = None
     if scene.density is not None:
         try:
@@ -58,7 +70,7 @@ def _scene_rows(name, scene, resolution, spp, sweeps, res_rows, rng, quick):
             continue
         for v in values:
             t_build, _, rep = timed(lambda: build(kind, cap.segments, **{pname: v}), repeats=1)
-            est = np.asarray(rep.eval(texel, depth), dtype=np.float64)
+            est = lookup(rep)
             st = error_stats(est, exact)
             r = dict(scene=name, method=kind, param=v, bytes_per_texel=rep.nbytes_per_texel,
                      rmse=st["rmse"], max_error=st["max_error"], mean_error=st["mean_error"],
@@ -67,11 +79,22 @@ def _scene_rows(name, scene, resolution, spp, sweeps, res_rows, rng, quick):
             if mitsuba is not None:
                 sm = error_stats(est, mitsuba)
                 r.update(rmse_vs_mitsuba=sm["rmse"], max_error_vs_mitsuba=sm["max_error"])
+            if kind == "avsm":
+                r["interpolation"] = "linear"
             res_rows.append(r)
+    # AVSM's linear ramp inside thick segments vs the exponential (uniform density) option
+    if "avsm" in sweeps and "avsm" in kinds():
+        for v in (8, 16):
+            rep = build("avsm", cap.segments, nodes=v, interpolation="exp")
+            st = error_stats(lookup(rep), exact)
+            res_rows.append(dict(scene=name, method="avsm", param=v, interpolation="exp",
+                                 bytes_per_texel=rep.nbytes_per_texel, rmse=st["rmse"], max_error=st["max_error"],
+                                 mean_error=st["mean_error"], nan_count=st["nan_count"], inf_count=st["inf_count"],
+                                 receivers=points.shape[0], resolution=resolution))
     return cap, texel, depth, exact
 
 
-def _depth_range_rows(cap, texel, depth, exact, rows, quick):
+def _depth_range_rows(cap, texel, depth, exact, rows, quick, points, filt):
     near, far = cap.segments.bounds()
     for stretch in (1, 2, 4, 8):
         far_s = near + (far - near) * stretch
@@ -79,7 +102,7 @@ def _depth_range_rows(cap, texel, depth, exact, rows, quick):
             if kind not in kinds():
                 continue
             rep = build(kind, cap.segments, near=near, far=far_s, **p)
-            st = error_stats(np.asarray(rep.eval(texel, depth)), exact)
+            st = error_stats(np.asarray(cap.transmittance(rep, points, filter=filt)), exact)
             rows.append(dict(scene=f"plume_range_x{stretch}", method=kind, param=next(iter(p.values())),
                              bytes_per_texel=rep.nbytes_per_texel, rmse=st["rmse"], max_error=st["max_error"],
                              depth_range_stretch=stretch))
@@ -89,7 +112,8 @@ def findings(rows) -> dict:
     """What our measurements say about the seed papers' claims (numbers, not adjectives)."""
     def get(scene, method, param, key="rmse"):
         for r in rows:
-            if r["scene"] == scene and r["method"] == method and str(r["param"]) == str(param):
+            if r["scene"] == scene and r["method"] == method and str(r["param"]) == str(param) \
+                    and r.get("interpolation", "linear") == "linear":
                 return r.get(key)
         return None
 
@@ -116,6 +140,14 @@ def findings(rows) -> dict:
         if f is not None and a is not None:
             out[f"claim_fom_rings_on_thin_opaque_{scene}"] = {"fom16_max_error": f, "avsm16_max_error": a,
                                                              "confirmed": bool(f > 2 * a)}
+    exp_gain = {}
+    for r in rows:
+        if r.get("interpolation") == "exp":
+            lin = get(r["scene"], "avsm", r["param"])
+            if lin is not None:
+                exp_gain[f"{r['scene']}_avsm{r['param']}"] = {"linear_rmse": lin, "exp_rmse": r["rmse"]}
+    if exp_gain:
+        out["avsm_exp_vs_linear_interpolation"] = exp_gain
     return out
 
 
@@ -124,8 +156,10 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
     (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import scenes as scene_lib
     names = list(scenes or (SCENES[:3] if quick else SCENES))
+    # march step voxel/8 (capture error ~1e-3, see tests/test_groundtruth.py) and bilinear
+    # lookups, so that the exact curve is a fair ground truth for receivers anywhere
     params = dict(scenes=names, resolution=64 if quick else 256, spp=64 if quick else 512,
-                  sweeps=QUICK_SWEEPS if quick else SWEEPS)
+                  sweeps=QUICK_SWEEPS if quick else SWEEPS, step_fraction=0.125, filter="bilinear")
     res = Results("error_curves", out, quick, params)
     if res.exists() and not force:
         return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
@@ -134,9 +168,10 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
     for name in tqdm(names, desc="error_curves", unit="scene"):
         scene = getattr(scene_lib, name)()
         cap, texel, depth, exact = _scene_rows(name, scene, params["resolution"], params["spp"],
-                                               params["sweeps"], rows, rng, quick)
+                                               params["sweeps"], rows, rng, quick, params["step_fraction"],
+                                               params["filter"])
         if name == "plume":
-            _depth_range_rows(cap, texel, depth, exact, rows, quick)
+            _depth_range_rows(cap, texel, depth, exact, rows, quick, np.asarray(scene.receivers), params["filter"])
     csv = res.write_csv(rows)
     _plot(res, rows, names)
     summary = findings(rows)
@@ -157,7 +192,8 @@ def _plot(res, rows, names):
         fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.6), squeeze=False)
         for ax, name in zip(axes[0], names):
             for kind, c in colors.items():
-                rs = [r for r in rows if r["scene"] == name and r["method"] == kind]
+                rs = [r for r in rows if r["scene"] == name and r["method"] == kind
+                      and r.get("interpolation", "linear") == "linear"]
                 if not rs:
                     continue
                 if xkey == "param" and kind == "dsm":
