@@ -209,5 +209,5 @@ def _plot(res, rows, names):
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         axes[0][0].set_ylabel("transmittance error vs exact")
         handles, labels = axes[0][0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="lower center", ncol=5, fontsize=8, bbox_to_anchor=(0.5, -0.12))
+        fig.legend(handles, labels, loc="upper center", ncol=5, fontsize=8, bbox_to_anchor=(0.5, -0.02))
         res.save_figure(fig, fname)
