@@ -14,7 +14,7 @@ def reference_nodes(seg, rep):
                           rep.params["far"], rep.params["sort"])
 
 
-@pytest.mark.parametrize("nodes", [2, 3, 4, 8, 13, 16])
+@pytest.mark.parametrize("nodes", [2, 3, 4, 8, 13, 16, 64])
 @pytest.mark.parametrize("sort", [False, True])
 def test_nodes_match_reference_float64(rng, nodes, sort):
     """Same algorithm in float64: node depths bit-identical, values to float64 rounding."""
