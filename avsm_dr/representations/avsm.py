@@ -38,6 +38,7 @@ from . import register
 from .base import Representation
 
 INTERPOLATIONS = ("linear", "exp")
+REVERSE_MODES = ("auto", "trajectory", "checkpoint")
 
 
 # ----------------------------------------------------------------------------
@@ -161,17 +162,24 @@ class AVSM(Representation):
     (lanes run = non-empty texels, segments skipped behind opaque points, insertions
     that needed compression).
     Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
+    reverse='auto'|'trajectory'|'checkpoint', chunk=None: how reverse mode stores the
+    build loops (see :meth:`_checkpointed`); 'auto' checkpoints only texels too long for
+    Dr.Jit's per-lane trajectory.  Without gradients every mode builds the same kernel.
     """
 
     def __init__(self, segments, nodes: int = 8, sort: bool = False,
                  interpolation: str = "linear", near: float | None = None,
-                 far: float | None = None):
+                 far: float | None = None, reverse: str = "auto", chunk: int | None = None):
         if not isinstance(nodes, (int, np.integer)) or not 2 <= int(nodes) <= 64:
             raise ValueError(f"nodes: expected an integer in [2, 64], got {nodes!r}")
         if interpolation not in INTERPOLATIONS:
             raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got {interpolation!r}")
         if not isinstance(sort, (bool, np.bool_)):
             raise ValueError(f"sort: expected a bool, got {sort!r}")
+        if reverse not in REVERSE_MODES:
+            raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
+        if chunk is not None and (not isinstance(chunk, (int, np.integer)) or chunk < 1):
+            raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
         super().__init__(segments, nodes=int(nodes), sort=bool(sort), interpolation=interpolation)
         lo, hi = segments.bounds()
         near = lo if near is None else float(near)
@@ -182,16 +190,38 @@ class AVSM(Representation):
             raise ValueError(f"far: segments span [{lo}, {hi}], outside [near={near}, far={far}]")
         self.params.update(near=near, far=far)
         self.N = int(nodes)
+        self._reverse, self._chunk = reverse, chunk
         self._build()
 
     @property
     def nbytes_per_texel(self) -> float:
         return 2 * self.N * (4 if self.segments.dtype == "float32" else 8)
 
+    @property
+    def chunk(self) -> int:
+        """Iterations per checkpointed chunk (reverse mode through long texels)."""
+        from ..checkpoint import loop_words, safe_chunk
+        return self._chunk or safe_chunk(loop_words("avsm", {"nodes": self.N}))
+
+    def _checkpointed(self, seg) -> bool:
+        """Run the build loops in checkpointed chunks?  Only when the segments carry
+        gradients and reverse mode would otherwise keep a per-lane trajectory of
+        ``max segments x (2N + 5)`` words (which overflows the CPU worker stack at a
+        few thousand segments per texel, see :mod:`avsm_dr.checkpoint`)."""
+        if self._reverse == "trajectory":
+            return False
+        if not any(dr.grad_enabled(x) for x in (seg.z0, seg.z1, seg.optical_depth)):
+            return False
+        if self._reverse == "checkpoint":
+            return True
+        from ..checkpoint import TRAJECTORY_BUDGET_WORDS, trajectory_words
+        return trajectory_words("avsm", {"nodes": self.N}, seg.max_count) > TRAJECTORY_BUDGET_WORDS
+
     # ------------------------------------------------------------------ build
     def _build(self):
         seg = self.segments.sorted() if self.params["sort"] else self.segments
-        Float, UInt32 = seg.Float, backend.types().UInt32
+        t_ = backend.types()
+        Float, UInt32, Bool = seg.Float, t_.UInt32, t_.Bool
         N, far, T = self.N, self.params["far"], seg.n_texels
         counts = seg.counts
         # Non-empty texels only, longest first: a SIMD packet runs as long as its longest lane.
@@ -206,64 +236,66 @@ class AVSM(Representation):
         lanes = A.to_uint32(lanes_np)
         L = lanes_np.size
         offsets = seg.offsets_dr()
-        i = dr.gather(UInt32, offsets, lanes)             # next segment to insert
         end = dr.gather(UInt32, offsets, lanes + 1)       # one past the texel's last segment
-        d = [dr.full(Float, far, L) for _ in range(N)]    # node depths
-        t = [dr.full(Float, 1.0, L) for _ in range(N)]    # node transmittances
-        used = dr.zeros(UInt32, L)                        # inserted nodes kept (<= N)
-        done = dr.zeros(backend.types().Bool, L)          # sorted and behind an opaque point
-        skipped = dr.zeros(UInt32, L)                     # segments not inserted (behind T = 0)
-        compressed = dr.zeros(UInt32, L)                  # insertions that needed node removal
         sorted_input = bool(self.params["sort"])
         max_count = seg.max_count
+        params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
-        def fetch(i):
-            return (dr.gather(Float, seg.z0, i), dr.gather(Float, seg.z1, i),
-                    dr.exp(-dr.gather(Float, seg.optical_depth, i)))
+        def insert(p, i, used, done, d, t, compress):
+            a = dr.gather(Float, p[0], i)                 # segment entry depth
+            b = dr.gather(Float, p[1], i)                 # segment exit depth
+            ts = dr.exp(-dr.gather(Float, p[2], i))       # segment exit transmittance
+            skip = curve_value(d, t, a) == 0
+            nd, nt = insert_segment(d, t, used, a, b, ts)
+            if compress:
+                nd, nt = remove_smallest(*remove_smallest(nd, nt))
+            d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
+            t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
+            return skip, (skip if sorted_input else done), d, t
 
+        # state: i (next segment), used (inserted nodes kept, <= N), done (sorted and behind
+        # an opaque point), skipped (segments not inserted), compressed (insertions that
+        # needed node removal), node depths d_0..d_{N-1}, node transmittances t_0..t_{N-1}
         # ---- phase 1: insert while the texel has room (no compression work)
-        def cond_room(i, used, done, skipped, d, t):
+        def cond_room(p, i, used, done, *rest):
             return (i < end) & (used + 2 <= N) & ~done
 
-        def body_room(i, used, done, skipped, d, t):
-            a, b, ts = fetch(i)
-            skip = curve_value(d, t, a) == 0
-            nd, nt = insert_segment(d, t, used, a, b, ts)
-            d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
-            t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
+        def body_room(p, i, used, done, skipped, compressed, *dt):
+            skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), False)
             used = dr.select(skip, used, used + 2)
-            if sorted_input:
-                done = skip
-            return i + 1, used, done, skipped + UInt32(skip), d, t
-
-        i, used, done, skipped, d, t = dr.while_loop(
-            (i, used, done, skipped, d, t), cond_room, body_room,
-            max_iterations=max_count, label="avsm_insert")
+            return (i + 1, used, done, skipped + UInt32(skip), compressed, *d, *t)
 
         # ---- phase 2: insert and compress back to N nodes
-        def cond_full(i, done, skipped, compressed, d, t):
+        def cond_full(p, i, used, done, *rest):
             return (i < end) & ~done
 
-        def body_full(i, done, skipped, compressed, d, t):
-            a, b, ts = fetch(i)
-            skip = curve_value(d, t, a) == 0
-            nd, nt = insert_segment(d, t, used, a, b, ts)
-            nd, nt = remove_smallest(nd, nt)
-            nd, nt = remove_smallest(nd, nt)
-            d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
-            t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
-            if sorted_input:
-                done = skip
-            return i + 1, done, skipped + UInt32(skip), compressed + UInt32(~skip), d, t
+        def body_full(p, i, used, done, skipped, compressed, *dt):
+            skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), True)
+            return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip), *d, *t)
 
-        i, done, skipped, compressed, d, t = dr.while_loop(
-            (i, done, skipped, compressed, d, t), cond_full, body_full,
-            max_iterations=max_count, label="avsm_compress")
+        if self._checkpointed(seg):
+            from ..checkpoint import checkpointed_while_loop
+
+            def run(state, cond, body, label):
+                return checkpointed_while_loop(state, params, cond, body, max_count, self.chunk)
+        else:
+            def run(state, cond, body, label):
+                return dr.while_loop(state, lambda *s: cond(params, *s), lambda *s: body(params, *s),
+                                     max_iterations=max_count, label=label)
+
+        state = (dr.gather(UInt32, offsets, lanes), dr.zeros(UInt32, L), dr.zeros(Bool, L),
+                 dr.zeros(UInt32, L), dr.zeros(UInt32, L),
+                 *[dr.full(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
+        state = run(state, cond_room, body_room, "avsm_insert")
+        state = run(state, cond_full, body_full, "avsm_compress")
+        i, used, done, skipped, compressed = state[:5]
+        d, t = list(state[5:5 + N]), list(state[5 + N:])
 
         for k in range(N):
             dr.scatter(self.depths[k], d[k], lanes)
             dr.scatter(self.values[k], t[k], lanes)
-        dr.eval(self.depths, self.values)
+        # one kernel: the counters read below would otherwise each re-run both loops
+        dr.eval(self.depths, self.values, used, i, skipped, compressed)
         used_np = np.zeros(T, np.int64)
         used_np[lanes_np] = np.asarray(used.numpy(), np.int64)
         self.used = used_np

@@ -555,8 +555,8 @@ class DeepShadowMap(Representation):
             f = dr.select(is_left & (z0 == z1) & (z == z0), 0.0, f)   # V(z^-) before a step
             return i + 1, tau + od * f
 
-        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=seg.max_count,
-                               label="dsm_node_gradients")
+        # a sum loop: reverse mode recomputes it (no per-lane trajectory, no bound)
+        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="dsm_node_gradients")
         v = dr.exp(-tau)
         return value + (v - dr.detach(v))
 

@@ -5,7 +5,8 @@
 with f_i(d) = [d >= z0_i] for zero-length segments (uniform density inside a
 segment, seed 000 eq. 1).  One lane per receiver loops over its texel's
 segments, accumulating optical depth; the loop stops early once the optical
-depth reaches ``OPAQUE_OPTICAL_DEPTH`` (T is then exactly 0).
+depth reaches ``OPAQUE_OPTICAL_DEPTH`` (T is then exactly 0).  Reverse mode
+recomputes the loop (sum-loop path), so it needs no memory per iteration.
 """
 from __future__ import annotations
 
@@ -57,6 +58,8 @@ class Exact(Representation):
             od = dr.gather(Float, seg.optical_depth, i)
             return i + 1, tau + od * segment_fraction(depth, z0, z1)
 
-        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=seg.max_count,
-                               label="exact_eval")
+        # A sum loop (the increment does not read tau; the early exit only reads it in
+        # the condition): max_iterations=-1 lets reverse mode re-run the loop instead of
+        # storing a per-lane trajectory (checked against finite differences in the tests).
+        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="exact_eval")
         return dr.exp(-tau)

@@ -1,0 +1,369 @@
+"""Differentiable shadows end to end, and recovering a density grid from shadow images.
+
+Pipeline (every step differentiable with respect to the voxel densities ``sigma``)::
+
+    sigma (z, y, x) --capture--> segments (tau_i by Simpson's rule, gradients to the
+    8 voxels of each sample) --build--> representation --eval--> T at receivers
+    --> radiance L = albedo / pi * E * cos * T --> loss
+
+* **Capture** (:func:`avsm_dr.capture`) with ``density=`` a Dr.Jit tensor with
+  gradients and ``keep_zero=True``: every march step inside the box becomes a
+  segment, including empty ones, so voxels that are still 0 receive gradients, and
+  the light camera is fitted to the whole box (the map does not move while the
+  density changes).  Segment boundaries are geometry only; with a tiny
+  ``epsilon`` (no early ray termination) the layout does not depend on the density.
+* **Representations**: ``exact``, ``fom``, ``osm`` (linear in tau: scatter-adds),
+  ``avsm`` (node layout held fixed: which nodes are inserted/removed is a
+  piecewise-constant function of the density; gradients flow through the node
+  values and the insertion ramps of the current layout) and ``dsm`` with
+  ``placement='curve'`` (node depths held fixed, values on the exact curve).
+  ``dsm`` with the default mid-slope placement is not differentiable.
+* Reverse mode for many parameters (the whole grid: ``dr.backward``), forward mode
+  for a few (``dr.forward_to`` along a direction); :func:`gradient_check` compares
+  the two - it catches a loop bound that is too small, which silently corrupts
+  reverse mode only.  Loops are built through
+  :func:`avsm_dr.checkpoint.build_differentiable`, which recomputes / checkpoints
+  where the reverse-mode trajectory (segments x loop state) would be too large.
+
+Inverse problem (:func:`recover`): minimise over ``sigma >= 0``
+
+    E(sigma) = 1/|lights| sum_l mean_k (T_l,k(sigma) - T*_l,k)^2 + lambda sum_(v,w) (sigma_v - sigma_w)^2 / n_pairs
+
+(``T*`` the target shadow images, the second term a smoothness prior over
+face-adjacent voxel pairs) with Adam [Kingma & Ba 2015] and projection onto
+``sigma >= 0`` after each step.  A few directional lights give a limited-angle
+tomography problem: shadows behind the volume only constrain line integrals,
+so the recovered grid matches the targets long before it matches the density.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import drjit as dr
+import numpy as np
+
+from . import _arrays as A
+from . import backend
+from .capture import capture as _capture
+from .capture.camera import orthonormal_basis
+from .checkpoint import build_differentiable
+from .scene import DirectionalLight, Scene
+
+#: Representations differentiable with respect to the segments (and their parameters).
+DIFFERENTIABLE = {
+    "exact": {},
+    "fom": {"harmonics": 4},
+    "osm": {"slices": 16},
+    "avsm": {"nodes": 8},
+    "dsm": {"tolerance": 0.01, "placement": "curve"},
+}
+
+
+# ============================================================== lights, receivers
+def light_from_angles(azimuth: float, elevation: float, irradiance: float = 1.0) -> DirectionalLight:
+    """Directional light coming from azimuth/elevation (degrees; azimuth about +y from
+    +x towards +z, elevation above the horizon); ``direction`` is where it travels."""
+    az, el = math.radians(azimuth), math.radians(elevation)
+    toward = np.array([math.cos(el) * math.cos(az), math.sin(el), math.cos(el) * math.sin(az)])
+    return DirectionalLight(direction=-toward, irradiance=irradiance)
+
+
+def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05) -> np.ndarray:
+    """(n*n, 3) receivers on the plane orthogonal to ``light.direction`` just behind the box
+    (``gap`` world units past its far corner), covering the box's shadow footprint.
+
+    Behind the whole volume each receiver sees the full line integral along its light
+    ray: the image is a radiograph of the grid along the light."""
+    if not isinstance(light, DirectionalLight):
+        raise ValueError(f"light: expected a DirectionalLight, got {type(light).__name__}")
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n: expected an integer >= 1, got {n!r}")
+    lo, hi = (np.asarray(v, np.float64).reshape(3) for v in bbox)
+    u, v, w = orthonormal_basis(light.direction)
+    c = 0.5 * (lo + hi)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]) - c
+    hu, hv = np.abs(corners @ u).max(), np.abs(corners @ v).max()
+    depth = (corners @ w).max() + float(gap)
+    s = (np.arange(n) + 0.5) / n * 2 - 1
+    a, b = np.meshgrid(s, s, indexing="ij")
+    return c + depth * w + hu * a.reshape(-1, 1) * u + hv * b.reshape(-1, 1) * v
+
+
+def with_light(scene: Scene, light, density=None) -> Scene:
+    """A copy of ``scene`` lit by ``light`` (and holding ``density`` when given)."""
+    changes = {"light": light}
+    if density is not None:
+        changes["density"] = density
+    return dataclasses.replace(scene, **changes)
+
+
+# ================================================================= the pipeline
+def density_tensor(density, dtype: str = "float32", grad: bool = True):
+    """A Dr.Jit 3-D tensor (``TensorXf`` / ``TensorXf64``) of ``density`` (z, y, x), with
+    gradients enabled when ``grad``."""
+    t = backend.types()
+    arr = np.asarray(density, np.float64 if dtype == "float64" else np.float32)
+    if arr.ndim != 3:
+        raise ValueError(f"density: expected a 3-D (z, y, x) array, got shape {arr.shape}")
+    x = (t.TensorXf64 if dtype == "float64" else t.TensorXf)(arr)
+    if grad:
+        dr.enable_grad(x)
+    return x
+
+
+@dataclass(eq=False)
+class Shadow:
+    """Result of :func:`shadow`: ``T`` (Dr.Jit Float (K,), AD graph kept), the capture
+    and the representation it came from."""
+    T: object
+    capture: object
+    rep: object
+
+
+def shadow(scene: Scene, density, points=None, light=None, kind: str = "fom", params: dict | None = None,
+           resolution: int = 64, step: float | None = None, epsilon: float = 1e-4,
+           filter: str = "point", reverse: str = "auto") -> Shadow:
+    """Transmittance from ``light`` (default ``scene.light``) to ``points`` (default
+    ``scene.receivers``) through ``density`` (a Dr.Jit tensor, gradients kept, or NumPy),
+    via capture -> ``kind`` (``params``, default :data:`DIFFERENTIABLE`) -> lookup.
+
+    resolution, step, epsilon: of :func:`avsm_dr.capture` (``keep_zero=True`` always).
+    filter: lookup filter ('point' | 'bilinear' | ...).  reverse: reverse-mode strategy
+    of :func:`avsm_dr.checkpoint.build_differentiable`.
+    """
+    if kind not in DIFFERENTIABLE:
+        raise ValueError(f"kind: expected one of {sorted(DIFFERENTIABLE)}, got {kind!r}")
+    p = dict(DIFFERENTIABLE[kind] if params is None else params)
+    if kind == "dsm" and p.get("placement", "midslope") != "curve":
+        raise ValueError("params: dsm is differentiable only with placement='curve'")
+    sc = scene if light is None else with_light(scene, light)
+    cap = _capture(sc, resolution=resolution, step=step, epsilon=epsilon, density=density, keep_zero=True)
+    rep = build_differentiable(kind, cap.segments, reverse=reverse, **p)
+    pts = sc.receivers if points is None else points
+    return Shadow(cap.transmittance(rep, pts, filter=filter), cap, rep)
+
+
+def radiance_weights(light, points, normal=None, albedo: float = 1.0) -> np.ndarray:
+    """(K,) factor ``albedo / pi * E * cos`` turning light transmittance into the outgoing
+    radiance of diffuse receivers (the model of :func:`avsm_dr.shading.shade_receivers`);
+    ``normal`` (3,) one-sided, ``cos = max(0, n . l)`` with ``l`` the unit direction to the
+    light; default: receivers facing the light (cos = 1)."""
+    from .shading import irradiance
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    cos = np.ones(p.shape[0])
+    if normal is not None:
+        n = np.asarray(normal, np.float64).reshape(3)
+        if isinstance(light, DirectionalLight):
+            l = np.broadcast_to(-light.direction, p.shape)
+        else:
+            l = light.position - p
+            l = l / np.linalg.norm(l, axis=1, keepdims=True)
+        cos = np.maximum(l @ (n / np.linalg.norm(n)), 0.0)
+    return albedo / math.pi * irradiance(light, p) * cos
+
+
+def radiance(T, weights):
+    """Differentiable receiver radiance ``weights * T`` (weights from :func:`radiance_weights`)."""
+    return T * A.to_float(np.asarray(weights, np.float64), type(T))
+
+
+def image_loss(predictions: Sequence, targets: Sequence):
+    """Mean over images of the mean squared difference (Dr.Jit scalar, differentiable)."""
+    if len(predictions) != len(targets) or not predictions:
+        raise ValueError("targets: need one target image per prediction (and at least one)")
+    total = 0
+    for pred, tgt in zip(predictions, targets):
+        tg = A.to_float(np.asarray(tgt, np.float64).reshape(-1), type(pred))
+        if dr.width(tg) != dr.width(pred):
+            raise ValueError(f"targets: image of {dr.width(tg)} pixels for a prediction of {dr.width(pred)}")
+        total = total + dr.mean(dr.square(pred - tg))
+    return total / len(predictions)
+
+
+def neighbour_pairs(shape) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (a, b) of all face-adjacent voxel pairs of a (z, y, x) grid."""
+    idx = np.arange(int(np.prod(shape))).reshape(shape)
+    a, b = [], []
+    for ax in range(3):
+        sl0 = [slice(None)] * 3
+        sl1 = [slice(None)] * 3
+        sl0[ax], sl1[ax] = slice(0, -1), slice(1, None)
+        a.append(idx[tuple(sl0)].ravel())
+        b.append(idx[tuple(sl1)].ravel())
+    return np.concatenate(a), np.concatenate(b)
+
+
+def smoothness(x, pairs=None):
+    """Mean squared difference of face-adjacent voxels of the tensor ``x`` (differentiable)."""
+    a, b = neighbour_pairs(tuple(x.shape)) if pairs is None else pairs
+    if a.size == 0:
+        return dr.zeros(type(x.array), 1)
+    Float = type(x.array)
+    ia, ib = A.to_uint32(a), A.to_uint32(b)
+    return dr.mean(dr.square(dr.gather(Float, x.array, ia) - dr.gather(Float, x.array, ib)))
+
+
+# ================================================================ optimisation
+class Adam:
+    """Adam [Kingma & Ba 2015] on one flat Dr.Jit array, with projection onto ``[lower, inf)``.
+
+        m <- b1 m + (1 - b1) g;  v <- b2 v + (1 - b2) g^2
+        x <- max(x - lr * m / (1 - b1^t) / (sqrt(v / (1 - b2^t)) + eps), lower)
+    """
+
+    def __init__(self, lr: float = 0.1, beta1: float = 0.9, beta2: float = 0.99, eps: float = 1e-8,
+                 lower: float | None = 0.0):
+        for name, val, lo, hi in (("lr", lr, 0, math.inf), ("beta1", beta1, 0, 1), ("beta2", beta2, 0, 1)):
+            if not (np.isfinite(val) and lo <= val < hi) or (name == "lr" and val <= 0):
+                raise ValueError(f"{name}: out of range, got {val!r}")
+        self.lr, self.beta1, self.beta2, self.eps, self.lower = float(lr), float(beta1), float(beta2), float(eps), lower
+        self.t = 0
+        self.m = self.v = None
+
+    def step(self, x, grad):
+        """New (detached) parameters from ``x`` and its gradient ``grad`` (same type)."""
+        x, g = dr.detach(x), dr.detach(grad)
+        if self.m is None:
+            self.m, self.v = dr.zeros(type(x), dr.width(x)), dr.zeros(type(x), dr.width(x))
+        self.t += 1
+        self.m = self.beta1 * self.m + (1 - self.beta1) * g
+        self.v = self.beta2 * self.v + (1 - self.beta2) * dr.square(g)
+        mh = self.m / (1 - self.beta1 ** self.t)
+        vh = self.v / (1 - self.beta2 ** self.t)
+        x = x - self.lr * mh / (dr.sqrt(vh) + self.eps)
+        if self.lower is not None:
+            x = dr.maximum(x, self.lower)
+        dr.eval(x, self.m, self.v)
+        return x
+
+
+def gradient_check(loss_fn: Callable, x, rng=None, rtol: float = 1e-4, atol: float = 1e-9) -> dict:
+    """Reverse mode vs forward mode on ``loss_fn(x)`` (a Dr.Jit scalar of tensor ``x``).
+
+    Reverse mode gives ``g = dL/dx``; forward mode along a random direction ``v`` gives
+    ``dL/dx . v`` without any loop-bound hint, so a mismatch exposes a reverse-mode
+    path that is silently wrong (e.g. a symbolic loop with a too-small
+    ``max_iterations``).  Returns dict(reverse, forward, error, ok).
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    Tensor = type(x)
+    host = np.asarray(dr.detach(x).numpy())
+    xr = Tensor(host)
+    dr.enable_grad(xr)
+    dr.backward(loss_fn(xr))
+    g = np.asarray(dr.grad(xr).numpy(), np.float64).ravel()
+    v = rng.normal(size=host.size)
+    xf = Tensor(host)
+    dr.enable_grad(xf)
+    L = loss_fn(xf)
+    dr.set_grad(xf, Tensor(v.reshape(host.shape).astype(host.dtype)))
+    dr.forward_to(L)
+    fwd = float(np.asarray(dr.grad(L).numpy()).ravel()[0])
+    rev = float(g @ v)
+    err = abs(rev - fwd)
+    return {"reverse": rev, "forward": fwd, "error": err,
+            "ok": bool(err <= atol + rtol * max(abs(rev), abs(fwd)))}
+
+
+def density_error(recovered, truth) -> dict:
+    """Errors of a recovered grid against the known one: relative L2, RMSE, mean
+    absolute, max absolute, and the relative error of the total mass."""
+    r = np.asarray(recovered, np.float64)
+    t = np.asarray(truth, np.float64)
+    if r.shape != t.shape:
+        raise ValueError(f"recovered: shape {r.shape} differs from the truth's {t.shape}")
+    d = r - t
+    nt = np.linalg.norm(t)
+    return {"rel_l2": float(np.linalg.norm(d) / nt) if nt > 0 else float(np.linalg.norm(d)),
+            "rmse": float(np.sqrt(np.mean(d * d))), "mae": float(np.mean(np.abs(d))),
+            "max_abs": float(np.abs(d).max()),
+            "mass_rel": float((r.sum() - t.sum()) / t.sum()) if t.sum() > 0 else float(r.sum())}
+
+
+@dataclass
+class Recovery:
+    """Result of :func:`recover`: ``density`` (z, y, x) float NumPy, ``history``: one dict
+    per iteration (loss, data term, smoothness, density errors, seconds)."""
+    density: np.ndarray
+    history: list = field(default_factory=list)
+    gradient_check: dict | None = None
+
+
+def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequence, kind: str = "fom",
+            params: dict | None = None, iterations: int = 100, lr: float = 0.5, init: str = "empty",
+            init_value: float = 0.0, smooth: float = 0.0, resolution: int = 64, step: float | None = None,
+            epsilon: float = 1e-4, filter: str = "point", reverse: str = "auto", truth=None,
+            check_gradients: bool = True,
+            callback: Callable[[int, dict], None] | None = None) -> Recovery:
+    """Recover ``scene``'s density grid (shape and box) from shadow images.
+
+    lights: directional lights; targets: one (K_l,) transmittance image per light at
+    ``receivers[l]`` (K_l, 3).  kind/params: the differentiable shadow model.
+    init: 'empty' (all 0) or 'uniform' (``init_value`` everywhere).  smooth: weight
+    lambda of the smoothness prior.  resolution, step, epsilon, filter, reverse: of
+    :func:`shadow`.  truth: the known grid, for the error history.
+    check_gradients: run :func:`gradient_check` (reverse vs forward mode) at the start;
+    RuntimeError when they disagree.  callback(iteration, record) after every step.
+    """
+    if scene.density is None or scene.bbox is None:
+        raise ValueError("scene: needs a density grid and its bbox (shape and box of the unknown)")
+    if not (len(lights) == len(targets) == len(receivers)) or not lights:
+        raise ValueError("targets: need one target image and one receiver set per light")
+    if init not in ("empty", "uniform"):
+        raise ValueError(f"init: expected 'empty' or 'uniform', got {init!r}")
+    if not isinstance(iterations, (int, np.integer)) or iterations < 0:
+        raise ValueError(f"iterations: expected an integer >= 0, got {iterations!r}")
+    shape = tuple(np.asarray(scene.density).shape)
+    start = np.zeros(shape) if init == "empty" else np.full(shape, float(init_value))
+    x = density_tensor(start, grad=False)
+    pairs = neighbour_pairs(shape)
+    tgts = [np.asarray(t, np.float64).reshape(-1) for t in targets]
+
+    def losses(xt):
+        preds = [shadow(scene, xt, pts, light=l, kind=kind, params=params, resolution=resolution,
+                        step=step, epsilon=epsilon, filter=filter, reverse=reverse).T
+                 for l, pts in zip(lights, receivers)]
+        data = image_loss(preds, tgts)
+        reg = smoothness(xt, pairs) if smooth > 0 else 0
+        return data, reg, data + smooth * reg if smooth > 0 else data
+
+    out = Recovery(start.astype(np.float32))
+    if check_gradients:
+        # float32: the two modes sum in different orders (relative ~1e-6); a wrong loop bound
+        # gives O(1) errors.  An empty start is checked at 0.5 everywhere (every segment absorbs).
+        chk = gradient_check(lambda xt: losses(xt)[2], x + 0.5 if init == "empty" else x, rtol=1e-3)
+        out.gradient_check = chk
+        if not chk["ok"]:
+            raise RuntimeError(f"gradient check failed (reverse vs forward mode): {chk}")
+    opt = Adam(lr=lr)
+    flat = dr.detach(x.array)
+    Tensor = type(x)
+    for it in range(int(iterations) + 1):
+        t0 = time.perf_counter()
+        xt = Tensor(flat, shape)
+        dr.enable_grad(xt)
+        data, reg, total = losses(xt)
+        last = it == iterations
+        if not last:
+            dr.backward(total)
+            g = dr.grad(xt).array
+            flat = opt.step(flat, g)
+        rec = {"iteration": it, "loss": float(total[0]), "data": float(data[0]),
+               "smoothness": float(reg[0]) if smooth > 0 else 0.0, "seconds": time.perf_counter() - t0}
+        if truth is not None:
+            cur = np.asarray(dr.detach(xt).numpy())
+            rec.update({f"density_{k}": v for k, v in density_error(cur, truth).items()})
+        out.history.append(rec)
+        if callback is not None:
+            callback(it, rec)
+    out.density = np.asarray(Tensor(flat, shape).numpy(), np.float32)
+    return out
+
+
+__all__ = ["DIFFERENTIABLE", "light_from_angles", "receiver_grid", "with_light", "density_tensor", "shadow",
+           "Shadow", "radiance_weights", "radiance", "image_loss", "neighbour_pairs", "smoothness", "Adam",
+           "gradient_check", "density_error", "Recovery", "recover"]

@@ -1,0 +1,121 @@
+"""Benchmark peers run the same algorithms as our kernels (issue 7).
+
+The Numba peers (optional ``bench`` extra) are checked against the Dr.Jit kernels in
+float64; the tests skip when Numba is absent, except the one proving that the modules
+import without it.  Tolerances:
+* AVSM node depths bit-identical (depths are only copied, never computed); node values
+  and lookups to 1e-13 (products of <= ~1200 factors each rounded to 1.1e-16; Dr.Jit may
+  contract a multiply-add where Numba does not).
+* FOM coefficients to 1e-13 x 2 sum(tau) of the texel (|a'_k| <= 2 sum tau; different
+  sin/cos: Dr.Jit's polynomial per harmonic vs libm + angle-addition recurrence, a few
+  ulp each); transmittance to 1e-10 (exp of an optical depth wrong by <= 1e-13 x 2e4
+  for opaque texels, where T is 0 anyway).
+"""
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+from avsm_dr.peers import numba_avsm, numba_fom, numpy_avsm
+from cases import random_segments, to_segments
+
+
+def adversarial(rng, texels=120):
+    """Random overlapping, zero-length and opaque segments, empty texels, and one texel
+    with 1200 segments."""
+    case = random_segments(rng, texels=texels, max_count=30)
+    n_big = 1200
+    z0 = rng.uniform(0, 0.9, n_big)
+    big = dict(z0=z0, z1=z0 + rng.uniform(0, 0.1, n_big), tau=rng.exponential(0.01, n_big))
+    counts = np.diff(case["offsets"])
+    offsets = np.concatenate([[0], np.cumsum(np.append(counts, n_big))]).astype(np.int64)
+    return to_segments(dict(offsets=offsets, **{k: np.concatenate([case[k], big[k]])
+                                                for k in ("z0", "z1", "tau")}), "float64")
+
+
+def test_peers_import_without_numba(monkeypatch):
+    """Importing needs no Numba; calling without it raises an ImportError naming the extra."""
+    for mod in (numba_avsm, numba_fom):
+        monkeypatch.setattr(mod, "numba", None)
+        monkeypatch.setattr(mod, "_KERNELS", {})
+        assert not mod.available()
+    with pytest.raises(ImportError, match="bench"):
+        numba_avsm.build([0, 1], [0.1], [0.2], [0.5], 4, 1.0)
+    with pytest.raises(ImportError, match="bench"):
+        numba_fom.build([0, 1], [0.1], [0.2], [0.5], 2, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("nodes", [2, 3, 8])
+@pytest.mark.parametrize("sort", [False, True])
+def test_numba_avsm_matches_kernel(rng, nodes, sort):
+    pytest.importorskip("numba")
+    seg = adversarial(rng)
+    rep = ad.build("avsm", seg, nodes=nodes, sort=sort)
+    h = (seg.sorted() if sort else seg).numpy()
+    D, V, used, stats = numba_avsm.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], nodes,
+                                         rep.params["far"], sort=sort)
+    Dk, Vk = rep.nodes_numpy()
+    np.testing.assert_array_equal(D, Dk)
+    np.testing.assert_allclose(V, Vk, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(used, rep.used)
+    assert stats == {"skipped": rep.stats["skipped"], "compressed": rep.stats["compressed"]}
+    assert stats["compressed"] > 0 and stats["skipped"] > 0       # both paths exercised
+    tex = rng.integers(0, seg.n_texels, 3000)
+    depth = np.concatenate([rng.uniform(-0.2, 1.2, 2000), D[tex[2000:], rng.integers(0, nodes, 1000)]])
+    np.testing.assert_allclose(numba_avsm.lookup(D, V, tex, depth), np.asarray(rep.eval(tex, depth)),
+                               rtol=0, atol=1e-13)
+
+
+def test_numba_avsm_matches_numpy_peer(rng):
+    """Both peers of the benchmark compute the same nodes (unsorted insertion)."""
+    pytest.importorskip("numba")
+    h = adversarial(rng, texels=60).numpy()
+    far = float(h["z1"].max())
+    D, V, _, _ = numba_avsm.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], 6, far)
+    Dn, Vn = numpy_avsm.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], 6, far)
+    np.testing.assert_array_equal(D, Dn)
+    np.testing.assert_allclose(V, Vn, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("harmonics", [1, 4, 8])
+@pytest.mark.parametrize("bounds", [None, (0.2, 0.8)])
+def test_numba_fom_matches_kernel(rng, harmonics, bounds):
+    """Global range from the segments, and an explicit range that clips segments."""
+    pytest.importorskip("numba")
+    seg = adversarial(rng)
+    kw = {} if bounds is None else dict(near=bounds[0], far=bounds[1])
+    rep = ad.build("fom", seg, harmonics=harmonics, **kw)
+    h = seg.numpy()
+    C = numba_fom.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], harmonics, rep.near, rep.far)
+    Ck = np.stack([np.asarray(c) for c in rep.coefficients], axis=1)
+    scale = 2 * np.add.reduceat(np.append(h["optical_depth"], 0), h["offsets"][:-1])
+    scale[np.diff(h["offsets"]) == 0] = 0
+    assert np.all(np.abs(C - Ck) <= 1e-13 * scale[:, None] + 1e-15)
+    tex = rng.integers(0, seg.n_texels, 3000)
+    depth = rng.uniform(-0.2, 1.2, 3000)
+    np.testing.assert_allclose(numba_fom.lookup(C, rep.near, rep.far, tex, depth),
+                               np.asarray(rep.eval(tex, depth)), rtol=0, atol=1e-10)
+
+
+def test_bench_ablation_kernel_equals_avsm(rng):
+    """The benchmark's ablation kernel (skipping switched off piece by piece) computes
+    exactly the nodes of ``ad.build('avsm')``, so its timings compare like with like."""
+    from avsm_dr.experiments import bench
+    seg = to_segments(random_segments(rng, texels=200, max_count=12, empty_fraction=0.5), "float32")
+    rep = ad.build("avsm", seg, nodes=4)
+    Dk, Vk = rep.nodes_numpy()
+    for flags in [dict(), dict(compact=False), dict(group=False), dict(split=False),
+                  dict(compact=False, group=False, split=False)]:
+        D, V = bench.avsm_variant(seg, 4, **flags)
+        np.testing.assert_array_equal(D, Dk)
+        np.testing.assert_array_equal(V, Vk)
+
+
+@pytest.mark.slow
+def test_bench_quick_writes_its_tables(tmp_path):
+    """``python -m avsm_dr bench --quick`` end to end (about a minute on 2 shared cores)."""
+    from avsm_dr.experiments import bench
+    out = bench.run(quick=True, out=tmp_path, force=True)
+    for name in ("data.csv", "peers.csv", "scaling.csv", "skipping.csv", "memory.csv", "scenes.csv",
+                 "meta.json", "throughput.png", "scaling.png"):
+        assert (tmp_path / name).exists(), name
+    assert out["summary"]["avsm8_insertions_per_cpu_s"] > 0
