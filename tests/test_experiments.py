@@ -8,7 +8,8 @@ import pytest
 from avsm_dr import cli
 
 ERROR_COLUMNS = {"scene", "method", "param", "bytes_per_texel", "rmse", "max_error"}
-EXPERIMENTS = ["error_curves", "runtime_vs_error", "curves", "images", "stress", "ordering", "bench"]
+EXPERIMENTS = ["error_curves", "runtime_vs_error", "curves", "images", "stress", "ordering", "bench",
+               "inverse", "backward_cost"]
 
 
 def _rows(path):
