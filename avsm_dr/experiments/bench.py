@@ -37,8 +37,9 @@ Writes into ``results/bench/`` (or ``--out``):
   with one skip switched off (it computes the same nodes, ``tests/test_peers.py``).
 * ``memory.csv`` / ``memory.png`` - peak memory of build and lookup per representation
   against ``nbytes_per_texel x texels``: process RSS growth (Linux ``VmHWM`` reset through
-  ``/proc/self/clear_refs``, after ``dr.flush_malloc_cache()``; includes Dr.Jit's host
-  buffers, NumPy and temporaries) and the ``tracemalloc`` peak (Python / NumPy only).
+  ``/proc/self/clear_refs``, after ``dr.flush_malloc_cache()``, with glibc told to mmap
+  allocations >= 64 KiB; includes Dr.Jit's host buffers, NumPy and temporaries) and the growth
+  of Dr.Jit's allocator watermark (its buffers of any size); peak = the larger.
 
 Timing: median of ``repeats`` calls after one warm-up call; peers that are compared run
 interleaved (ours, peer, ours, peer, ...) so load from other processes hits both alike.
@@ -55,7 +56,6 @@ import os
 import re
 import statistics
 import time
-import tracemalloc
 from collections import Counter
 
 import drjit as dr
@@ -81,6 +81,10 @@ SETTINGS = [
 #: Settings run on the built-in scenes, in the memory table and the scaling plots.
 SCENE_SETTINGS = [("avsm", {"nodes": 8}), ("exact", {}), ("osm", {"slices": 32}),
                   ("fom", {"harmonics": 8}), ("dsm", {"tolerance": 0.01}), ("moments", {})]
+#: Settings whose build holds O(segments) host memory or sorts on the host (DSM needs about
+#: 360 bytes per segment, sort=True a host lexsort): skipped, with a note, on larger maps.
+HEAVY = ("dsm", "sort")
+HEAVY_MAX_SEGMENTS = 8_000_000
 #: Vector instructions one core issues per cycle, nominal, for 512-bit registers on a core
 #: with four 256-bit FP pipes (AMD Zen 4 runs a 512-bit op as two 256-bit halves).
 NOMINAL_VECTOR_OPS_PER_CYCLE = 2.0
@@ -88,21 +92,21 @@ NOMINAL_VECTOR_OPS_PER_CYCLE = 2.0
 
 def _params(quick: bool) -> dict:
     if quick:
-        return dict(maps=[(64, 10), (64, 100), (32, 1000)], lookups=200_000, numpy_texels=256,
+        return dict(maps=[(64, 10), (64, 100), (32, 1000)], lookups=200_000, numpy_segments=500_000,
                     repeats=3, big_repeats=1, scene_resolution=64, scene_repeats=3,
                     mitsuba_spp=[4, 16, 64], mitsuba_cap=2048,
                     mitsuba_reps=[("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("fom", {"harmonics": 4})],
                     scale_texels=[16, 32, 64, 128], scale_counts=[10, 30, 100, 300, 1000], scale_side=32,
-                    scale_nodes=[2, 4, 8, 16, 32], scale_repeats=2, skip_side=32, memory_side=64,
-                    dense_plume=24, peak_iters=2000)
+                    scale_nodes=[2, 4, 8, 16, 32], scale_repeats=2, skip_side=64, memory_side=64,
+                    dense_plume=48, skip_resolution=128, peak_iters=2000)
     return dict(maps=[(256, 10), (256, 100), (256, 1000), (1024, 10), (1024, 100)], lookups=1_000_000,
-                numpy_texels=2048, repeats=5, big_repeats=1, scene_resolution=256, scene_repeats=5,
+                numpy_segments=8_000_000, repeats=5, big_repeats=1, scene_resolution=256, scene_repeats=5,
                 mitsuba_spp=[16, 64, 256], mitsuba_cap=16384,
                 mitsuba_reps=[("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 16}),
                               ("fom", {"harmonics": 4}), ("fom", {"harmonics": 8}), ("osm", {"slices": 32})],
                 scale_texels=[32, 64, 128, 256, 512], scale_counts=[10, 30, 100, 300, 1000], scale_side=128,
-                scale_nodes=[2, 4, 8, 16, 32, 64], scale_repeats=3, skip_side=128, memory_side=256,
-                dense_plume=48, peak_iters=8000)
+                scale_nodes=[2, 4, 8, 16, 32, 64], scale_repeats=3, skip_side=256, memory_side=256,
+                dense_plume=48, skip_resolution=256, peak_iters=8000)
 
 
 # =============================================================================== timing
@@ -129,12 +133,12 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
     res = {}
     for name, fn in fns.items():
         dr.kernel_history()
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         out = fn()
         _sync(out)
-        first = time.perf_counter() - t0
+        first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
         jit = _jit_kernels(dr.kernel_history())
-        res[name] = dict(first_s=first, out=out, wall=[], cpu=[], kern=[], kernels=0,
+        res[name] = dict(first_s=first, first_cpu_s=first_cpu, out=out, wall=[], cpu=[], kern=[], kernels=0,
                          jit_s=sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in jit) / 1e3,
                          compiled=sum(1 for k in jit if not k.get("cache_hit")),
                          from_disk=sum(1 for k in jit if k.get("cache_disk")))
@@ -156,7 +160,7 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
             r["out"] = out
     for r in res.values():
         r["wall_s"] = statistics.median(r.pop("wall")) if repeats else r["first_s"]
-        r["cpu_s"] = statistics.median(r.pop("cpu")) if repeats else float("nan")
+        r["cpu_s"] = statistics.median(r.pop("cpu")) if repeats else r["first_cpu_s"]
         r["kernel_s"] = statistics.median(r.pop("kern")) if repeats else float("nan")
     return res
 
@@ -181,8 +185,14 @@ def _lookups(T: int, K: int, seed: int = 2):
     return rng.integers(0, T, K), rng.uniform(0, 1, K)
 
 
-def throughput(P, rows_peer_numpy, progress) -> list[dict]:
-    """data.csv rows: every setting and the peers on every synthetic map."""
+def _heavy(kind, p) -> bool:
+    return kind in HEAVY or any(k in HEAVY and v for k, v in p.items())
+
+
+def throughput(P, notes, progress) -> list[dict]:
+    """data.csv rows: every setting of :data:`SETTINGS` on every synthetic map of
+    ``P['maps']``, with the Numba peer of the setting interleaved where there is one, and
+    the NumPy peer on the maps with about 100 segments per texel."""
     rows = []
     todo = [(k, p) for k, p in SETTINGS if k in kinds()]
     for side, mean in P["maps"]:
@@ -195,6 +205,11 @@ def throughput(P, rows_peer_numpy, progress) -> list[dict]:
         host = seg.numpy() if numba_avsm.available() else None
         for kind, p in todo:
             progress.set_postfix_str(f"{name} {_label(kind, p)}")
+            if _heavy(kind, p) and S > HEAVY_MAX_SEGMENTS:
+                notes.append(f"{_label(kind, p)} skipped on {name} ({S} segments > {HEAVY_MAX_SEGMENTS}: "
+                             "host memory / host sort)")
+                progress.update()
+                continue
             s_in = seg.sorted() if p.get("sort") else seg     # host sort once, outside the timing
             fns = {"drjit": (lambda k=kind, p=p, s=s_in: build(k, s, **p))}
             peer = _numba_build(kind, p, host, seg) if host is not None else None
@@ -229,7 +244,7 @@ def throughput(P, rows_peer_numpy, progress) -> list[dict]:
                 ours_row["lookup_speedup_vs_numba"] = nb_row["lookup_s"] / ours_row["lookup_s"]
             progress.update()
         # NumPy peer: a subset of texels (it is ~1000x slower), rates per insertion / lookup
-        if mean == 100 or (side, mean) == P["maps"][0]:
+        if mean == 100 or (side, mean) == P["maps"][0]:      # NumPy: ~1 M insertions/s
             rows += _numpy_peer(P, seg, base, rows)
     return rows
 
@@ -250,19 +265,23 @@ def _numba_build(kind, p, host, seg):
 
 
 def _numpy_peer(P, seg, base, rows) -> list[dict]:
-    sub = seg.select_texels(np.arange(min(P["numpy_texels"], seg.n_texels)))
+    """The NumPy peer on the whole map (or its first texels up to ``numpy_segments``
+    segments), interleaved with our kernel on the same segments."""
+    n_tex = int(np.searchsorted(seg.offsets, P["numpy_segments"], side="right")) - 1
+    sub = seg if n_tex >= seg.n_texels else seg.select_texels(np.arange(max(n_tex, 1)))
     h = sub.numpy()
     out = []
-    tex, depth = _lookups(sub.n_texels, 100_000, seed=3)
+    tex, depth = _lookups(sub.n_texels, min(P["lookups"], 200_000), seed=3)
     for nodes in (4, 8, 16):
         far = float(h["z1"].max())
         fns = {"numpy": lambda: numpy_avsm.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], nodes, far),
                "drjit": lambda: build("avsm", sub, nodes=nodes, far=far)}
-        m = measure(fns, repeats=1, warmup=1)
+        m = measure({"numpy": fns["numpy"]}, repeats=0)   # NumPy needs no warm-up: one call
+        m.update(measure({"drjit": fns["drjit"]}, repeats=3))
         D, V = m["numpy"]["out"]
         rep = m["drjit"]["out"]
-        ml = measure({"numpy": lambda: numpy_avsm.lookup(D, V, tex, depth),
-                      "drjit": lambda: rep.eval(tex, depth)}, repeats=1)
+        ml = measure({"numpy": lambda: numpy_avsm.lookup(D, V, tex, depth)}, repeats=0)
+        ml.update(measure({"drjit": lambda: rep.eval(tex, depth)}, repeats=3))
         S = sub.n_segments
         row = dict(base, texels=sub.n_texels, segments=S, method="avsm", param=nodes, setting=f"avsm-nodes={nodes}",
                    impl="numpy", build_s=m["numpy"]["wall_s"], build_cpu_s=m["numpy"]["cpu_s"],
@@ -300,7 +319,7 @@ def scenes(P, progress) -> tuple[list[dict], dict]:
                          receivers=tex.size, seconds=m["wall_s"], cpu_s=m["cpu_s"], first_call_s=m["first_s"],
                          jit_s=m["jit_s"], rate_per_s=seg.n_segments / m["wall_s"]))
         exact = None
-        for kind, p in SCENE_SETTINGS:
+        for kind, p in sorted(SCENE_SETTINGS, key=lambda s: s[0] != "exact"):   # exact first
             if kind not in kinds():
                 continue
             progress.set_postfix_str(f"{name} {_label(kind, p)}")
@@ -364,10 +383,14 @@ def mitsuba_equal_error(P, caps) -> list[dict]:
         else:
             t_rt, measured, nz = float(np.polyval(tfit, spp)), False, float(np.sqrt(v / spp))
         ours = t_cap + mb["wall_s"] + ml["wall_s"]
+        # ratio tracking costs per receiver, ours mostly per map: receivers where both cost the same
+        per_rt, per_ours = t_rt / len(pts), ml["wall_s"] / len(pts)
+        even = (t_cap + mb["wall_s"]) / (per_rt - per_ours) if per_rt > per_ours else float("inf")
         rows.append(dict(peer="mitsuba", setting=_label(kind, p), rep_rmse_vs_exact=err, spp=spp,
                          seconds=t_rt, time_measured=measured, rmse_vs_raymarch=nz, capture_floor=floor,
                          ours_capture_s=t_cap, ours_build_s=mb["wall_s"], ours_lookup_s=ml["wall_s"],
-                         ours_total_s=ours, ratio=t_rt / ours, receivers=len(pts), noise_v=v))
+                         ours_total_s=ours, ratio=t_rt / ours, receivers=len(pts), noise_v=v,
+                         break_even_receivers=even))
     return rows
 
 
@@ -431,10 +454,16 @@ def _peak_vector_rate(iters: int) -> dict:
             return it + 1, [dr.select(v < 0.7, v * 1.001, v - 0.0001) for v in x]
         it, x = dr.while_loop((it, x), lambda it, x: it < iters, body, label="bench_peak")
         return x
-    m = _one(run, repeats=5)
+    _sync(run())                                          # compile
+    cpu, wall = [], []
+    for _ in range(7):                                    # peak: the fastest of 7 runs
+        c0, t0 = time.process_time(), time.perf_counter()
+        _sync(run())
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - t0)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()
     run_ir = None
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
     _sync(run())
     for k in _jit_kernels(dr.kernel_history()):
         if "ir" in k and "bench_peak" in k["ir"].getvalue():
@@ -442,10 +471,9 @@ def _peak_vector_rate(iters: int) -> dict:
     ops, width = loop_ops(run_ir, "bench_peak")
     n_ops = sum(ops.values())
     packets = lanes // width
-    best_cpu = m["cpu_s"]
     return dict(ops_per_iteration=n_ops, width=width, ops=dict(ops),
-                vector_ops_per_cpu_s=packets * iters * n_ops / best_cpu,
-                vector_ops_per_wall_s=packets * iters * n_ops / m["wall_s"])
+                vector_ops_per_cpu_s=packets * iters * n_ops / min(cpu),
+                vector_ops_per_wall_s=packets * iters * n_ops / min(wall))
 
 
 def machine_limit(P, data_rows) -> dict:
@@ -468,11 +496,13 @@ def machine_limit(P, data_rows) -> dict:
         comp, width = loop_ops(ir, "avsm_compress")
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())
-        lim_core = peak["vector_ops_per_cpu_s"] * width / n_comp
         nominal_core = cpu["mhz"] * 1e6 * NOMINAL_VECTOR_OPS_PER_CYCLE * width / n_comp
+        measured_core = peak["vector_ops_per_cpu_s"] * width / n_comp
+        lim_core = max(measured_core, nominal_core) if np.isfinite(nominal_core) else measured_core
         row = dict(ops_per_insertion_packet=n_comp, insert_only_ops=sum(ins.values()), lanes=width,
                    ops_by_kind=dict(comp.most_common()),
                    limit_per_core_s=lim_core, limit_machine_per_s=lim_core * cores,
+                   microbench_limit_per_core_s=measured_core,
                    nominal_limit_per_core_s=nominal_core, nominal_limit_machine_per_s=nominal_core * cores)
         ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == f"avsm-nodes={nodes}"]
         if ours:
@@ -488,12 +518,16 @@ def machine_limit(P, data_rows) -> dict:
 
 # ============================================================================== scaling
 def scaling(P, progress) -> list[dict]:
+    """Build and lookup (100k receivers) time against texels (100 segments each), segments
+    per texel and N (AVSM nodes, FOM harmonics, OSM slices; x = stored floats per texel)."""
     rows = []
     K = 100_000
     meth = [(k, p) for k, p in [("avsm", {"nodes": 8}), ("fom", {"harmonics": 8}), ("osm", {"slices": 32}),
                                 ("exact", {}), ("dsm", {"tolerance": 0.01})] if k in kinds()]
 
     def run(axis, x, seg, kind, p):
+        if _heavy(kind, p) and seg.n_segments > HEAVY_MAX_SEGMENTS:
+            return
         tex, depth = _lookups(seg.n_texels, K)
         mb = _one(lambda: build(kind, seg, **p), P["scale_repeats"])
         rep = mb["out"]
@@ -524,18 +558,21 @@ def scaling(P, progress) -> list[dict]:
 
 
 def slopes(rows) -> dict:
-    """Log-log slopes of build and lookup time per axis and method."""
+    """Log-log slopes of build and lookup time per axis and method, fitted to the three
+    largest sizes (small sizes are dominated by fixed per-call costs)."""
     out = {}
     for axis in ("texels", "segments_per_texel"):
         for setting in sorted({r["setting"] for r in rows if r["axis"] == axis}):
-            rs = [r for r in rows if r["axis"] == axis and r["setting"] == setting]
+            rs = sorted([r for r in rows if r["axis"] == axis and r["setting"] == setting],
+                        key=lambda r: r["x"])[-3:]
             x = np.log([r["x"] for r in rs])
             for what in ("build_s", "lookup_s"):
                 y = np.array([r[what] for r in rs])
                 if np.all(y > 0) and len(rs) > 1:
                     out[f"{axis}:{setting}:{what}"] = float(np.polyfit(x, np.log(y), 1)[0])
     for method in ("avsm", "fom", "osm"):
-        rs = [r for r in rows if r["axis"] == "N" and r["method"] == method]
+        rs = sorted([r for r in rows if r["axis"] == "N" and r["method"] == method],
+                    key=lambda r: r["floats_per_texel"])[-3:]
         if len(rs) > 1:
             x = np.log([r["floats_per_texel"] for r in rs])
             for what in ("build_s", "lookup_s"):
@@ -651,6 +688,8 @@ def _with_front_blocker(side: int, tau_front: float, seed: int = 5) -> Segments:
 
 
 def skipping(P, progress) -> list[dict]:
+    """Each kind of skipped work as a measured saving (rows of one case share ``case``;
+    ``time_vs_skipping`` = time / time with skipping, also for CPU and kernel time)."""
     from .. import capture as _capture, scenes as scene_lib
     rows = []
     side = P["skip_side"]
@@ -666,6 +705,7 @@ def skipping(P, progress) -> list[dict]:
         for r in rs:
             r["time_vs_skipping"] = r["seconds"] / on["seconds"]
             r["cpu_vs_skipping"] = r["cpu_s"] / on["cpu_s"] if on["cpu_s"] > 0 else float("nan")
+            r["kernel_vs_skipping"] = r["kernel_s"] / on["kernel_s"] if on["kernel_s"] > 0 else float("nan")
 
     # 1. empty texels: the same segments in a map 16x larger (15 of 16 texels empty)
     dense = counts_map(side, 100)
@@ -702,12 +742,12 @@ def skipping(P, progress) -> list[dict]:
     saving("lanes grouped by segment count (AVSM-8, 10% of texels 1000 segments, 90% 10)")
     progress.update()
 
-    # 3. texels with room: 1-4 segments per texel, N = 8 (no compression ever needed)
-    few = random_map(side * side * 4, 1, 4, seed=6)
-    m = measure({"split": lambda: avsm_variant(few, 8, as_numpy=False),
-                 "one": lambda: avsm_variant(few, 8, split=False, as_numpy=False),
-                 "build": lambda: build("avsm", few, nodes=8)}, reps)
-    case = "texels with fewer nodes than N (AVSM-8, 1-4 segments per texel)"
+    # 3. texels with room: 4-8 segments per texel, N = 16 (no compression ever needed)
+    few = random_map(side * side * 4, 4, 8, seed=6)
+    m = measure({"split": lambda: avsm_variant(few, 16, as_numpy=False),
+                 "one": lambda: avsm_variant(few, 16, split=False, as_numpy=False),
+                 "build": lambda: build("avsm", few, nodes=16)}, reps)
+    case = "texels with fewer nodes than N (AVSM-16, 4-8 segments per texel; see kernel_s)"
     add(case, "insert-only loop while there is room", True, m["split"], segments=few.n_segments,
         texels=few.n_texels, compressed=m["build"]["out"].stats["compressed"])
     add(case, "compression computed in every step (one loop)", False, m["one"], segments=few.n_segments,
@@ -746,21 +786,28 @@ def skipping(P, progress) -> list[dict]:
 
     # 5. capture: rays stop once T < epsilon (dense plume)
     sc = scene_lib.plume(size=P["dense_plume"], density_scale=600.0)
-    res = P["scene_resolution"]
+    res = P["skip_resolution"]
     m = measure({"eps": lambda: _capture(sc, resolution=res, epsilon=1e-4),
                  "no_eps": lambda: _capture(sc, resolution=res, epsilon=1e-30)}, reps)
     case = "capture rays below transmittance epsilon (plume x10 density)"
+    caps = {}
     for key, label, on in (("eps", "epsilon = 1e-4 (default)", True), ("no_eps", "epsilon = 1e-30", False)):
-        cap = m[key]["out"]
+        cap = caps[key] = m[key]["out"]
         add(case, label, on, m[key], segments=cap.segments.n_segments, texels=cap.segments.n_texels,
             march_iterations=cap.stats.get("grid", {}).get("iterations"))
+    saving(case)
+    m = measure({k: (lambda c=c: build("avsm", c.segments, nodes=8)) for k, c in caps.items()}, reps)
+    case = "AVSM-8 build on those captures (segments below epsilon not emitted)"
+    add(case, "epsilon = 1e-4 (default)", True, m["eps"], segments=caps["eps"].segments.n_segments)
+    add(case, "epsilon = 1e-30", False, m["no_eps"], segments=caps["no_eps"].segments.n_segments)
     saving(case)
     # 6. capture of a mostly empty map: 4x the bounds at 4x the resolution (same texel size)
     sc = scene_lib.plume(size=P["dense_plume"])
     cap0 = _capture(sc, resolution=res)
-    lo, hi = (np.asarray(b, np.float64) for b in sc.bbox)
+    from ..capture import GridVolume
+    lo, hi = (np.asarray(b, np.float64) for b in GridVolume.prepare(sc.density, sc.bbox).occupied)
     c, h = (lo + hi) / 2, (hi - lo) / 2
-    # the map covers 4x the content's extent along both map axes (16x the area)
+    # the map is fitted to 4x the content's extent (16x the area), at 4x the resolution
     r4 = min(4 * res, 1024)
     m = measure({"tight": lambda: _capture(sc, resolution=res),
                  "wide": lambda: _capture(sc, resolution=r4, bounds=(c - 4 * h, c + 4 * h))}, reps)
@@ -790,33 +837,52 @@ def _status_kb() -> dict:
     return out
 
 
+def _malloc_returns_memory():
+    """glibc: serve allocations >= 64 KiB by mmap and trim freed memory, so that RSS
+    growth reflects what a call allocates (the default adaptive threshold recycles freed
+    blocks from the heap, which is already resident).  No-op elsewhere."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 1 << 16)      # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 1 << 16)      # M_TRIM_THRESHOLD
+        return True
+    except (OSError, AttributeError):
+        return False
+
+
 def peak_memory(fn) -> dict:
-    """Peak process RSS growth (bytes, Linux; NaN elsewhere) and tracemalloc peak while
-    ``fn`` runs, after freeing Dr.Jit's allocation cache; returns dict(rss, host, out)."""
+    """Peak memory while ``fn`` runs, after freeing Dr.Jit's allocation cache:
+    dict(rss = process RSS growth (bytes, Linux VmHWM; NaN elsewhere), jit = growth of
+    Dr.Jit's allocator watermark (its buffers, all sizes), out = fn's result).
+    (No tracemalloc: on CPython < 3.12.9 stopping it while Dr.Jit / Numba threads allocate
+    crashes the process, which this benchmark hit.)"""
     gc.collect()
     dr.sync_thread()
     dr.flush_malloc_cache()
+    jb = dr.JitBackend.CUDA if backend.get_backend() == "cuda" else dr.JitBackend.LLVM
+    dr.detail.malloc_clear_statistics()
+    w0 = dr.detail.malloc_watermark(jb)
     try:
         with open("/proc/self/clear_refs", "w") as fh:
             fh.write("5")                             # reset VmHWM to the current RSS
         base = _status_kb().get("VmRSS")
     except OSError:
         base = None
-    tracemalloc.start()
     out = fn()
     _sync(out)
-    _, host_peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
     hwm = _status_kb().get("VmHWM")
     rss = (hwm - base) * 1024 if base is not None and hwm is not None else float("nan")
-    return dict(rss=float(rss), host=float(host_peak), out=out)
+    return dict(rss=float(rss), jit=float(dr.detail.malloc_watermark(jb) - w0), out=out)
 
 
 def memory(P, progress) -> list[dict]:
+    """Peak memory of build and lookup per setting against nbytes_per_texel x texels."""
     seg = counts_map(P["memory_side"], 100)
     dr.eval(seg.z0, seg.z1, seg.optical_depth)
     tex, depth = _lookups(seg.n_texels, P["lookups"])
     rows = []
+    _malloc_returns_memory()
     seg_bytes = seg.n_segments * 3 * 4 + (seg.n_texels + 1) * 8
     for kind, p in [(k, p) for k, p in SCENE_SETTINGS + [("avsm", {"nodes": 16}), ("fom", {"harmonics": 16})]
                     if k in kinds()]:
@@ -827,9 +893,11 @@ def memory(P, progress) -> list[dict]:
         formula = rep.nbytes_per_texel * seg.n_texels
         rows.append(dict(setting=_label(kind, p), texels=seg.n_texels, segments=seg.n_segments,
                          nbytes_per_texel=rep.nbytes_per_texel, formula_bytes=formula, segments_bytes=seg_bytes,
-                         build_peak_rss=mb["rss"], build_peak_tracemalloc=mb["host"],
-                         build_rss_over_formula=mb["rss"] / formula if formula else float("nan"),
-                         lookup_receivers=tex.size, lookup_peak_rss=ml["rss"], lookup_peak_tracemalloc=ml["host"],
+                         build_peak_rss=mb["rss"], build_peak_jit=mb["jit"],
+                         build_peak=max(mb["rss"], mb["jit"]),
+                         build_peak_over_formula=max(mb["rss"], mb["jit"]) / formula if formula else float("nan"),
+                         lookup_receivers=tex.size, lookup_peak_rss=ml["rss"], lookup_peak_jit=ml["jit"],
+                         lookup_peak=max(ml["rss"], ml["jit"]),
                          lookup_io_bytes=tex.size * 3 * 4))
         del rep, mb, ml
         progress.update()
@@ -941,9 +1009,9 @@ def _plots(res, data, peers, scal, skip, mem):
         fig, ax = plt.subplots(figsize=(11, 4))
         x = np.arange(len(mem))
         for k, (key, lab) in enumerate((("formula_bytes", "bytes_per_texel x texels"),
-                                        ("build_peak_rss", "build peak RSS growth"),
-                                        ("build_peak_tracemalloc", "build peak tracemalloc"),
-                                        ("lookup_peak_rss", "lookup peak RSS growth"))):
+                                        ("build_peak", "build peak"),
+                                        ("build_peak_jit", "build: Dr.Jit allocator"),
+                                        ("lookup_peak", "lookup peak"))):
             ax.bar(x + 0.2 * k, [max(r[key], 1) / 1e6 for r in mem], 0.2, label=lab)
         ax.set_xticks(x + 0.3, [r["setting"] for r in mem], rotation=30, ha="right", fontsize=7)
         ax.set_yscale("log")
@@ -983,8 +1051,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     t_start = time.perf_counter()
     n_steps = (len(P["maps"]) * len([s for s in SETTINGS if s[0] in kinds()]) + 5 + len(P["scale_texels"])
                + len(P["scale_counts"]) + len(P["scale_nodes"]) + 5 + len(SCENE_SETTINGS) + 2)
+    tqdm.monitor_interval = 0                         # no monitor thread in timed code
     with tqdm(total=n_steps, desc="bench", unit="step") as progress:
-        data = throughput(P, None, progress)
+        data = throughput(P, notes, progress)
         scene_rows, caps = scenes(P, progress)
         peers = _peer_rows(data)
         try:
@@ -1032,6 +1101,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
 
 
 def _print(data, peers, machine, skip, mem, summary):
+    """The main numbers on stdout."""
     for r in data:
         extra = ""
         if r["impl"] == "drjit":
@@ -1044,7 +1114,8 @@ def _print(data, peers, machine, skip, mem, summary):
     for r in peers:
         if r.get("peer") == "mitsuba" and "ratio" in r:
             print(f"mitsuba {r['setting']:18s} rmse {r['rep_rmse_vs_exact']:.4f} -> spp {r['spp']:6d}: "
-                  f"{r['seconds']:.3f} s vs ours {r['ours_total_s']:.4f} s (x{r['ratio']:.1f})")
+                  f"{r['seconds']:.3f} s vs ours {r['ours_total_s']:.4f} s (x{r['ratio']:.1f}; "
+                  f"equal cost at {r['break_even_receivers']:.0f} receivers)")
     for n, r in machine.get("avsm", {}).items():
         print(f"machine AVSM-{n}: {r['ops_per_insertion_packet']} vector ops / {r['lanes']} insertions; limit "
               f"{r['limit_per_core_s'] / 1e6:.0f} M/core-s (nominal {r['nominal_limit_per_core_s'] / 1e6:.0f}); "
@@ -1052,8 +1123,11 @@ def _print(data, peers, machine, skip, mem, summary):
               f"{100 * r.get('fraction_of_limit', float('nan')):.0f} %")
     for r in skip:
         print(f"skip {r['case'][:60]:60s} | {r['variant'][:48]:48s} {r['seconds'] * 1e3:9.2f} ms "
-              f"(x{r.get('time_vs_skipping', float('nan')):.2f})")
+              f"(x{r.get('time_vs_skipping', float('nan')):.2f}; CPU x{r.get('cpu_vs_skipping', float('nan')):.2f}; "
+              f"kernels x{r.get('kernel_vs_skipping', float('nan')):.2f})")
     for r in mem:
-        print(f"memory {r['setting']:24s} formula {r['formula_bytes'] / 1e6:8.2f} MB build RSS "
-              f"{r['build_peak_rss'] / 1e6:8.2f} MB lookup RSS {r['lookup_peak_rss'] / 1e6:8.2f} MB")
+        print(f"memory {r['setting']:24s} formula {r['formula_bytes'] / 1e6:8.2f} MB | build peak "
+              f"{r['build_peak'] / 1e6:8.2f} MB (RSS {r['build_peak_rss'] / 1e6:.2f}, Dr.Jit "
+              f"{r['build_peak_jit'] / 1e6:.2f}) | lookup peak "
+              f"{r['lookup_peak'] / 1e6:8.2f} MB")
     print(f"bench: {summary['seconds']:.0f} s; notes: {summary['notes']}")

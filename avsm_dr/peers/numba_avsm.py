@@ -18,9 +18,14 @@ kernels compile on the first call (:func:`compile_seconds` reports how long that
 """
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
+
+# Numba's OpenMP threads spin after each parallel region by default; that burns the
+# cores (and the process CPU time) of whatever runs next, e.g. the kernel it is compared with.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 try:  # optional dependency: pip install "avsm_dr[bench]"
     import numba

@@ -18,11 +18,16 @@ Numba is optional (the ``bench`` extra); importing this module never needs it.
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
 
 from ..representations.basis import MIN_SPAN_ABS, MIN_SPAN_REL
+
+# Numba's OpenMP threads spin after each parallel region by default; that burns the
+# cores (and the process CPU time) of whatever runs next, e.g. the kernel it is compared with.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 try:  # optional dependency: pip install "avsm_dr[bench]"
     import numba
