@@ -70,10 +70,12 @@ def curve_value(d, t, x):
     return tl + (x - dl) * (tr - tl) / dr.select(dd > 0, dd, 1)
 
 
-def insert_segment(d, t, used, a, b, ts):
+def insert_segment(d, t, used, a, b, ts, full: bool = False):
     """Nodes after inserting segment [a, b] (exit transmittance ts): N + 2 entries.
 
     ``used``: number of inserted (non-clear) nodes, which come first in the list.
+    ``full``: the caller guarantees ``used >= N - 1`` (compressing phase), so only the
+    last node can be a clear node - the same result with fewer instructions.
     """
     n = len(d)
     UInt32 = type(used)
@@ -85,22 +87,32 @@ def insert_segment(d, t, used, a, b, ts):
     x = UInt32(1)          # slot of the exit node  = inserted nodes with d <= b, + 1
     scaled = []
     for k in range(n):
-        real = UInt32(k) < used
-        e += UInt32(real & (d[k] <= a))
-        x += UInt32(real & (d[k] <= b))
         ramp = 1 + (ts - 1) * ((d[k] - a) * inv_len)
-        # clear nodes stand behind every blocker: they always take the full ts
-        factor = dr.select(real, dr.select(d[k] > a, dr.select(d[k] >= b, ts, ramp), 1), ts)
+        inner = dr.select(d[k] > a, dr.select(d[k] >= b, ts, ramp), 1)
+        if full and k < n - 1:
+            e += UInt32(d[k] <= a)
+            x += UInt32(d[k] <= b)
+            factor = inner
+        else:
+            real = UInt32(k) < used
+            e += UInt32(real & (d[k] <= a))
+            x += UInt32(real & (d[k] <= b))
+            # clear nodes stand behind every blocker: they always take the full ts
+            factor = dr.select(real, inner, ts)
         scaled.append(t[k] * factor)
     out_d, out_t = [], []
     for j in range(n + 2):
-        shift = UInt32(e < j) + UInt32(x < j)     # inserted nodes in front of slot j
-        cd, ct = a, ta                            # default: entry node
-        for s in (2, 1, 0):                       # existing node j - shift
-            k = j - s
-            if 0 <= k < n:
-                cd = dr.select(shift == s, d[k], cd)
-                ct = dr.select(shift == s, scaled[k], ct)
+        # slot j holds existing node j - (inserted nodes in front of it); x > e, so an
+        # exit in front implies an entry in front
+        cd, ct = (d[j], scaled[j]) if j < n else (a, ta)
+        if 1 <= j <= n:
+            past_e = e < j
+            cd = dr.select(past_e, d[j - 1], cd)
+            ct = dr.select(past_e, scaled[j - 1], ct)
+        if 2 <= j <= n + 1:
+            past_x = x < j
+            cd = dr.select(past_x, d[j - 2], cd)
+            ct = dr.select(past_x, scaled[j - 2], ct)
         cd = dr.select(x == j, b, cd)
         ct = dr.select(x == j, tb, ct)
         cd = dr.select(e == j, a, cd)
@@ -246,7 +258,7 @@ class AVSM(Representation):
             b = dr.gather(Float, p[1], i)                 # segment exit depth
             ts = dr.exp(-dr.gather(Float, p[2], i))       # segment exit transmittance
             skip = curve_value(d, t, a) == 0
-            nd, nt = insert_segment(d, t, used, a, b, ts)
+            nd, nt = insert_segment(d, t, used, a, b, ts, full=compress)
             if compress:
                 nd, nt = remove_smallest(*remove_smallest(nd, nt))
             d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
