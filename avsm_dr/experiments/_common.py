@@ -89,20 +89,21 @@ def timed(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> tuple[flo
     Every call is followed by ``dr.eval`` + ``dr.sync_thread`` so lazy kernels are timed."""
     t0 = time.perf_counter()
     out = fn()
-    _sync(out)
+    sync(out)
     first = time.perf_counter() - t0
     for _ in range(max(warmup - 1, 0)):
-        _sync(fn())
+        sync(fn())
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         out = fn()
-        _sync(out)
+        sync(out)
         times.append(time.perf_counter() - t0)
     return statistics.median(times), first, out
 
 
-def _sync(out):
+def sync(out):
+    """Evaluate ``out`` (if it holds Dr.Jit arrays) and wait for the device."""
     try:
         dr.eval(out)
     except Exception:

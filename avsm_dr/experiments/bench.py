@@ -68,7 +68,7 @@ from ..peers import numba_avsm, numba_fom, numpy_avsm
 from ..representations import avsm as _avsm
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from ..synthetic import random_map
-from ._common import Results
+from ._common import Results, sync
 
 #: (kind, parameters) of every setting benchmarked on the synthetic maps.
 SETTINGS = [
@@ -110,14 +110,6 @@ def _params(quick: bool) -> dict:
 
 
 # =============================================================================== timing
-def _sync(out):
-    try:
-        dr.eval(out)
-    except Exception:
-        pass
-    dr.sync_thread()
-
-
 def _jit_kernels(hist):
     return [k for k in hist if k["type"] == dr.KernelType.JIT]
 
@@ -135,7 +127,7 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
         dr.kernel_history()
         c0, t0 = time.process_time(), time.perf_counter()
         out = fn()
-        _sync(out)
+        sync(out)
         first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
         jit = _jit_kernels(dr.kernel_history())
         res[name] = dict(first_s=first, first_cpu_s=first_cpu, out=out, wall=[], cpu=[], kern=[], kernels=0,
@@ -143,13 +135,13 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
                          compiled=sum(1 for k in jit if not k.get("cache_hit")),
                          from_disk=sum(1 for k in jit if k.get("cache_disk")))
         for _ in range(max(warmup - 1, 0)):
-            _sync(fn())
+            sync(fn())
     for _ in range(repeats):
         for name, fn in fns.items():
             dr.kernel_history()
             c0, t0 = time.process_time(), time.perf_counter()
             out = fn()
-            _sync(out)
+            sync(out)
             w, c = time.perf_counter() - t0, time.process_time() - c0
             jit = _jit_kernels(dr.kernel_history())
             r = res[name]
@@ -454,17 +446,17 @@ def _peak_vector_rate(iters: int) -> dict:
             return it + 1, [dr.select(v < 0.7, v * 1.001, v - 0.0001) for v in x]
         it, x = dr.while_loop((it, x), lambda it, x: it < iters, body, label="bench_peak")
         return x
-    _sync(run())                                          # compile
+    sync(run())                                          # compile
     cpu, wall = [], []
     for _ in range(7):                                    # peak: the fastest of 7 runs
         c0, t0 = time.process_time(), time.perf_counter()
-        _sync(run())
+        sync(run())
         cpu.append(time.process_time() - c0)
         wall.append(time.perf_counter() - t0)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()
     run_ir = None
-    _sync(run())
+    sync(run())
     for k in _jit_kernels(dr.kernel_history()):
         if "ir" in k and "bench_peak" in k["ir"].getvalue():
             run_ir = k["ir"].getvalue()
@@ -870,7 +862,7 @@ def peak_memory(fn) -> dict:
     except OSError:
         base = None
     out = fn()
-    _sync(out)
+    sync(out)
     hwm = _status_kb().get("VmHWM")
     rss = (hwm - base) * 1024 if base is not None and hwm is not None else float("nan")
     return dict(rss=float(rss), jit=float(dr.detail.malloc_watermark(jb) - w0), out=out)

@@ -18,19 +18,11 @@ kernels compile on the first call (:func:`compile_seconds` reports how long that
 """
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
 
-# Numba's OpenMP threads spin after each parallel region by default; that burns the
-# cores (and the process CPU time) of whatever runs next, e.g. the kernel it is compared with.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-try:  # optional dependency: pip install "avsm_dr[bench]"
-    import numba
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    numba = None
+from ._numba import numba, require as _require_numba
 
 _KERNELS: dict = {}
 _COMPILE_S: dict = {}
@@ -46,16 +38,11 @@ def compile_seconds() -> dict:
     return dict(_COMPILE_S)
 
 
-def _require():
-    if numba is None:
-        raise ImportError("numba is not installed: pip install 'avsm_dr[bench]' (numba>=0.60)")
-
-
 def _kernels() -> dict:
     """The jitted functions, created on first use (so that importing needs no Numba)."""
     if _KERNELS:
         return _KERNELS
-    _require()
+    _require_numba(numba)
     njit, prange = numba.njit, numba.prange
 
     @njit(inline="always")

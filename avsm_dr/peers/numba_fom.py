@@ -18,21 +18,13 @@ Numba is optional (the ``bench`` extra); importing this module never needs it.
 from __future__ import annotations
 
 import math
-import os
 import time
 
 import numpy as np
 
 from ..representations.basis import MIN_SPAN_ABS, MIN_SPAN_REL
 
-# Numba's OpenMP threads spin after each parallel region by default; that burns the
-# cores (and the process CPU time) of whatever runs next, e.g. the kernel it is compared with.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-try:  # optional dependency: pip install "avsm_dr[bench]"
-    import numba
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    numba = None
+from ._numba import numba, require as _require_numba
 
 _KERNELS: dict = {}
 _COMPILE_S: dict = {}
@@ -51,8 +43,7 @@ def compile_seconds() -> dict:
 def _kernels() -> dict:
     if _KERNELS:
         return _KERNELS
-    if numba is None:
-        raise ImportError("numba is not installed: pip install 'avsm_dr[bench]' (numba>=0.60)")
+    _require_numba(numba)
     njit, prange = numba.njit, numba.prange
     PI = math.pi
 
