@@ -112,6 +112,16 @@ class Segments:
         return type(self.z0)
 
     @property
+    def itemsize(self) -> int:
+        """Bytes per stored float (4 for float32, 8 for float64)."""
+        return 4 if self.dtype == "float32" else 8
+
+    @property
+    def requires_grad(self) -> bool:
+        """True when z0, z1 or optical_depth carry gradients."""
+        return any(dr.grad_enabled(x) for x in (self.z0, self.z1, self.optical_depth))
+
+    @property
     def n_texels(self) -> int:
         return int(self.offsets.size - 1)
 

@@ -6,25 +6,22 @@ import numpy as np
 
 import avsm_dr as ad
 
-#: (kind, build parameters, monotone guaranteed)
-REPRESENTATIONS = [
-    ("exact", {}, True),
-    ("avsm", {"nodes": 8}, True),
-    ("avsm", {"nodes": 4, "sort": True}, True),
-    ("avsm", {"nodes": 8, "interpolation": "exp"}, True),
-    ("dsm", {"tolerance": 0.01}, True),
-    ("osm", {"slices": 16}, True),
-    ("fom", {"harmonics": 4}, False),
-    ("fom", {"harmonics": 3, "depth_range": "texel"}, False),
-    ("basis", {"basis": "legendre", "n": 6}, False),
-    ("basis", {"basis": "cosine", "n": 6}, False),
-    ("moments", {}, False),
-    ("dsm", {"tolerance": 0.01, "placement": "curve"}, True),
-]
+def representations():
+    """(kind, build parameters) for every registered kind: its defaults and each of the
+    parameter sets its schema lists as ``examples`` (the registry is the one list)."""
+    out, seen = [], []
+    for kind in ad.kinds():
+        schema = ad.REGISTRY[kind].schema
+        for params in [{}] + ad.describe(kind)["examples"]:
+            full = (kind, schema.validate(kind, params))      # defaults filled in: no duplicates
+            if full not in seen:
+                seen.append(full)
+                out.append((kind, params))
+    return out
 
 
-def available(reps=REPRESENTATIONS):
-    return [r for r in reps if r[0] in ad.kinds()]
+def available(reps=None):
+    return representations() if reps is None else [r for r in reps if r[0] in ad.kinds()]
 
 
 def case_id(case):

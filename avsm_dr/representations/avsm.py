@@ -34,11 +34,12 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from . import register
+from .registry import register
+from ._loops import run_loop
 from .base import Representation
+from .schema import Param, Schema, far_param, near_param
 
 INTERPOLATIONS = ("linear", "exp")
-REVERSE_MODES = ("auto", "trajectory", "checkpoint")
 
 
 # ----------------------------------------------------------------------------
@@ -164,70 +165,65 @@ def interpolate(d, t, depth, mode: str):
 # ----------------------------------------------------------------------------
 @register("avsm")
 class AVSM(Representation):
-    """AVSM with ``nodes`` N in [2, 64].
+    """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel.
 
-    Parameters: nodes=8, sort=False (insert in the given order, or sorted by depth per
-    texel), interpolation='linear'|'exp', near/far (default: global bounds; nodes are
-    cleared to (far, 1)).  ``nbytes_per_texel`` = 2 N itemsize.
+    Parameters (schema below): nodes N in [2, 64], sort, interpolation, near/far
+    (default: global bounds; nodes are cleared to (far, 1)).  ``nbytes_per_texel`` =
+    2 N itemsize.
     Extra attributes: ``depths``/``values`` (lists of N Dr.Jit arrays of length T),
     ``used`` (NumPy (T,), inserted nodes kept per texel, N at most) and ``stats``
     (lanes run = non-empty texels, segments skipped behind opaque points, insertions
     that needed compression).
     Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
-    reverse='auto'|'trajectory'|'checkpoint', chunk=None: how reverse mode stores the
-    build loops (see :meth:`_checkpointed`); 'auto' checkpoints only texels too long for
-    Dr.Jit's per-lane trajectory.  Without gradients every mode builds the same kernel.
+    Reverse mode: the build loops carry ``2 N + 5`` state words per lane, checkpointed
+    beyond the trajectory budget (:meth:`Representation.checkpoint_chunk`).  Without
+    gradients every ``reverse`` mode builds the same kernel.
     """
 
-    def __init__(self, segments, nodes: int = 8, sort: bool = False,
-                 interpolation: str = "linear", near: float | None = None,
-                 far: float | None = None, reverse: str = "auto", chunk: int | None = None):
-        if not isinstance(nodes, (int, np.integer)) or not 2 <= int(nodes) <= 64:
-            raise ValueError(f"nodes: expected an integer in [2, 64], got {nodes!r}")
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got {interpolation!r}")
-        if not isinstance(sort, (bool, np.bool_)):
-            raise ValueError(f"sort: expected a bool, got {sort!r}")
-        if reverse not in REVERSE_MODES:
-            raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
-        if chunk is not None and (not isinstance(chunk, (int, np.integer)) or chunk < 1):
-            raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
-        super().__init__(segments, nodes=int(nodes), sort=bool(sort), interpolation=interpolation)
+    schema = Schema(
+        params=(
+            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
+            Param("sort", "bool", False, "insert segments sorted by depth per texel (deterministic) "
+                  "instead of in the given order"),
+            Param("interpolation", "choice", "linear", "between nodes: 'linear' (the paper's eq. 2) or "
+                  "'exp' (uniform density)", choices=INTERPOLATIONS),
+            near_param(), far_param(),
+            # Private ablation switches (benchmarks only; the nodes are the same either way):
+            Param("_compact", "bool", True, "private: lanes only for non-empty texels (else one per texel)"),
+            Param("_group", "bool", True, "private: lanes ordered by segment count, longest first"),
+            Param("_split", "bool", True, "private: an insert-only loop while the texel has room, then a "
+                  "compressing loop (else one loop computing both and selecting)"),
+        ),
+        size="nodes", sweep=(2, 4, 6, 8, 12, 16, 24, 32), quick_sweep=(2, 4, 8, 12, 16),
+        examples=({"nodes": 8}, {"nodes": 4, "sort": True}, {"nodes": 8, "interpolation": "exp"}),
+        headline={"nodes": 8},
+        summary="N (depth, transmittance) nodes, streaming insertion + area-based removal",
+        paper="Salvi et al. 2010",
+    )
+
+    def __init__(self, segments, **params):
+        super().__init__(segments, **params)
         lo, hi = segments.bounds()
-        near = lo if near is None else float(near)
-        far = hi if far is None else float(far)
-        if not (np.isfinite(near) and np.isfinite(far)) or near > far:
-            raise ValueError(f"far: need finite near <= far, got near={near}, far={far}")
+        P = self.params
+        near = lo if P["near"] is None else P["near"]
+        far = hi if P["far"] is None else P["far"]
+        if near > far:
+            raise ValueError(f"far: need near <= far, got near={near}, far={far}")
         if segments.n_segments and (hi > far or lo < near):
             raise ValueError(f"far: segments span [{lo}, {hi}], outside [near={near}, far={far}]")
-        self.params.update(near=near, far=far)
-        self.N = int(nodes)
-        self._reverse, self._chunk = reverse, chunk
+        P.update(near=near, far=far)
+        self.N = P["nodes"]
+        self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._build()
 
     @property
     def nbytes_per_texel(self) -> float:
-        return 2 * self.N * (4 if self.segments.dtype == "float32" else 8)
+        return 2 * self.N * self.segments.itemsize
 
     @property
-    def chunk(self) -> int:
-        """Iterations per checkpointed chunk (reverse mode through long texels)."""
-        from ..checkpoint import loop_words, safe_chunk
-        return self._chunk or safe_chunk(loop_words("avsm", {"nodes": self.N}))
-
-    def _checkpointed(self, seg) -> bool:
-        """Run the build loops in checkpointed chunks?  Only when the segments carry
-        gradients and reverse mode would otherwise keep a per-lane trajectory of
-        ``max segments x (2N + 5)`` words (which overflows the CPU worker stack at a
-        few thousand segments per texel, see :mod:`avsm_dr.checkpoint`)."""
-        if self._reverse == "trajectory":
-            return False
-        if not any(dr.grad_enabled(x) for x in (seg.z0, seg.z1, seg.optical_depth)):
-            return False
-        if self._reverse == "checkpoint":
-            return True
-        from ..checkpoint import TRAJECTORY_BUDGET_WORDS, trajectory_words
-        return trajectory_words("avsm", {"nodes": self.N}, seg.max_count) > TRAJECTORY_BUDGET_WORDS
+    def loop_state_words(self) -> int:
+        """N depths, N values, index, count, done flag and two counters."""
+        return 2 * self.N + 5
 
     # ------------------------------------------------------------------ build
     def _build(self):
@@ -236,14 +232,16 @@ class AVSM(Representation):
         Float, UInt32, Bool = seg.Float, t_.UInt32, t_.Bool
         N, far, T = self.N, self.params["far"], seg.n_texels
         counts = seg.counts
+        ablate = self._ablation
         # Non-empty texels only, longest first: a SIMD packet runs as long as its longest lane.
-        lanes_np = np.nonzero(counts > 0)[0]
-        lanes_np = lanes_np[np.argsort(-counts[lanes_np], kind="stable")]
+        lanes_np = np.nonzero(counts > 0)[0] if ablate["_compact"] else np.arange(T)
+        if ablate["_group"]:
+            lanes_np = lanes_np[np.argsort(-counts[lanes_np], kind="stable")]
         self.depths = [dr.full(Float, far, T) for _ in range(N)]
         self.values = [dr.full(Float, 1.0, T) for _ in range(N)]
         self.used = np.zeros(T, np.int64)
         self.stats = {"lanes": 0, "segments": 0, "skipped": 0, "compressed": 0}
-        if lanes_np.size == 0:
+        if lanes_np.size == 0 or seg.n_segments == 0:
             return
         lanes = A.to_uint32(lanes_np)
         L = lanes_np.size
@@ -254,13 +252,18 @@ class AVSM(Representation):
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
         def insert(p, i, used, done, d, t, compress):
+            # compress: False (room left), True (full), or a Bool mask (_split=False ablation)
             a = dr.gather(Float, p[0], i)                 # segment entry depth
             b = dr.gather(Float, p[1], i)                 # segment exit depth
             ts = dr.exp(-dr.gather(Float, p[2], i))       # segment exit transmittance
             skip = curve_value(d, t, a) == 0
-            nd, nt = insert_segment(d, t, used, a, b, ts, full=compress)
-            if compress:
+            nd, nt = insert_segment(d, t, used, a, b, ts, full=compress is True)
+            if compress is True:
                 nd, nt = remove_smallest(*remove_smallest(nd, nt))
+            elif compress is not False:
+                cd, ct = remove_smallest(*remove_smallest(nd, nt))
+                nd = [dr.select(compress, cd[k], nd[k]) for k in range(N)]
+                nt = [dr.select(compress, ct[k], nt[k]) for k in range(N)]
             d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
             t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
             return skip, (skip if sorted_input else done), d, t
@@ -285,21 +288,26 @@ class AVSM(Representation):
             skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), True)
             return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip), *d, *t)
 
-        if self._checkpointed(seg):
-            from ..checkpoint import checkpointed_while_loop
+        # ---- ablation (_split=False): one loop computing both steps and selecting
+        def body_one(p, i, used, done, skipped, compressed, *dt):
+            full = used + 2 > N
+            skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), full)
+            used = dr.select(skip | full, used, used + 2)
+            return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip & full), *d, *t)
 
-            def run(state, cond, body, label):
-                return checkpointed_while_loop(state, params, cond, body, max_count, self.chunk)
-        else:
-            def run(state, cond, body, label):
-                return dr.while_loop(state, lambda *s: cond(params, *s), lambda *s: body(params, *s),
-                                     max_iterations=max_count, label=label)
+        chunk = self.checkpoint_chunk(seg)
+
+        def run(state, cond, body, label):
+            return run_loop(state, params, cond, body, max_count, chunk, label)
 
         state = (dr.gather(UInt32, offsets, lanes), dr.zeros(UInt32, L), dr.zeros(Bool, L),
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L),
                  *[dr.full(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
-        state = run(state, cond_room, body_room, "avsm_insert")
-        state = run(state, cond_full, body_full, "avsm_compress")
+        if ablate["_split"]:
+            state = run(state, cond_room, body_room, "avsm_insert")
+            state = run(state, cond_full, body_full, "avsm_compress")
+        else:
+            state = run(state, cond_full, body_one, "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
         d, t = list(state[5:5 + N]), list(state[5 + N:])
 

@@ -15,6 +15,7 @@ Contract (stated once here; subclasses document only what differs):
 """
 from __future__ import annotations
 
+import abc
 from typing import Any
 
 import drjit as dr
@@ -24,38 +25,114 @@ from .. import _arrays as A
 from .. import backend
 from ..filtering import FILTERS, taps
 from ..segments import Segments
+from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk, trajectory_words
+from .schema import Param, Schema
 
 
-class Representation:
-    """Base class: validation, filtering and dispatch to the per-texel kernel."""
+class Representation(abc.ABC):
+    """Base class: parameter schema, traits, reverse-mode policy, validation, filtering
+    and dispatch to the per-texel kernel.
+
+    A kind is one subclass with a ``schema`` (:class:`~.schema.Schema`: parameters with
+    defaults and ranges, the size parameter and its sweep) registered with
+    ``@register("name")``; it implements ``_eval_texels`` and ``nbytes_per_texel`` and
+    reads its validated parameters from ``self.params``.
+
+    Every kind also accepts ``reverse`` ('auto' | 'trajectory' | 'checkpoint') and
+    ``chunk`` (iterations per checkpoint): how reverse mode stores the build loops of
+    kinds whose ``loop_state_words > 0`` (see :mod:`._loops`).  'auto' checkpoints only
+    when ``max segments per texel x loop_state_words`` exceeds the trajectory budget;
+    'trajectory' refuses (ValueError) what would overflow it.
+    """
 
     kind: str = "base"
-    #: True when T is guaranteed non-increasing in depth.
-    monotone: bool = True
-    #: True when gradients w.r.t. optical depth are supported.
-    differentiable: bool = True
+    schema: Schema = Schema()
 
     def __init__(self, segments: Segments, **params: Any):
         if not isinstance(segments, Segments):
             raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
+        reverse = params.pop("reverse", "auto")
+        chunk = params.pop("chunk", None)
+        if reverse not in REVERSE_MODES:
+            raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
+        if chunk is not None:
+            chunk = Param("chunk", "int", min=1).validate(chunk)
         self.segments = segments
-        self.params: dict[str, Any] = dict(params)
+        self.reverse, self._chunk = reverse, chunk
+        self.params: dict[str, Any] = self.schema.validate(self.kind, params)
 
-    # --------------------------------------------------------------- kernel
-    def _eval_texels(self, texel, depth):
-        """T at ``depth`` (Float) along texel ``texel`` (UInt32); one lane per receiver."""
-        raise NotImplementedError
+    # --------------------------------------------------------------- traits
+    @property
+    def monotone(self) -> bool:
+        """True when T is guaranteed non-increasing in depth (to float rounding)."""
+        return True
 
     @property
+    def differentiable(self) -> bool:
+        """True when gradients w.r.t. the segments' optical depths are supported."""
+        return True
+
+    @property
+    def unity_in_front(self) -> bool:
+        """True when T = 1 exactly in front of the texel's first segment (node methods);
+        basis methods spread absorption over their depth resolution."""
+        return True
+
+    @property
+    def loop_state_words(self) -> int:
+        """State words per lane of the build loop reverse mode must store (0: no loop, or
+        a sum loop that reverse mode recomputes)."""
+        return 0
+
+    # ------------------------------------------------------- reverse policy
+    @property
+    def chunk(self) -> int:
+        """Iterations per checkpointed chunk (given, or the largest that fits the budget)."""
+        return self._chunk or safe_chunk(self.loop_state_words)
+
+    def checkpoint_chunk(self, segments: Segments | None = None) -> int | None:
+        """How to run this kind's build loops over ``segments`` (default: its own):
+        None for a plain ``dr.while_loop``, else the checkpoint chunk length.
+
+        Plain when there is no loop state or no gradient; checkpointed when asked
+        (``reverse='checkpoint'``) or when 'auto' finds the trajectory
+        ``max_count x loop_state_words`` above :data:`TRAJECTORY_BUDGET_WORDS`;
+        ``reverse='trajectory'`` beyond the budget raises ValueError (the CPU worker
+        stack would overflow: a segfault, measured at ~4 x the budget)."""
+        seg = segments if segments is not None else self.segments
+        words = self.loop_state_words
+        if words == 0 or not seg.requires_grad:
+            return None
+        traj = trajectory_words(words, seg.max_count)
+        if self.reverse == "trajectory":
+            if traj > TRAJECTORY_BUDGET_WORDS:
+                raise ValueError(
+                    f"reverse: 'trajectory' would keep {traj} words per lane ({seg.max_count} segments x "
+                    f"{words} state words), above the budget of {TRAJECTORY_BUDGET_WORDS} that Dr.Jit's "
+                    "per-lane trajectory survives; use reverse='auto' or 'checkpoint'")
+            return None
+        if self.reverse == "checkpoint" or traj > TRAJECTORY_BUDGET_WORDS:
+            return self.chunk
+        return None
+
+    # --------------------------------------------------------------- kernel
+    @abc.abstractmethod
+    def _eval_texels(self, texel, depth):
+        """T at ``depth`` (Float) along texel ``texel`` (UInt32); one lane per receiver."""
+
+    @property
+    @abc.abstractmethod
     def nbytes_per_texel(self) -> float:
-        raise NotImplementedError
+        """Storage of the compressed form per texel in bytes (variable-size forms: mean)."""
 
     @property
     def n_texels(self) -> int:
+        """Number of shadow-map texels."""
         return self.segments.n_texels
 
     @property
     def Float(self):
+        """The Dr.Jit float type of the segments (Float32 or Float64 of the backend)."""
         return self.segments.Float
 
     # ----------------------------------------------------------- public API

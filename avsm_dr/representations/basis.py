@@ -61,8 +61,9 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
-from . import register
+from .registry import register
 from .base import Representation
+from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 SQRT2 = math.sqrt(2.0)
 #: Shortest depth range: MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS (float32 resolves
@@ -249,17 +250,24 @@ class BasisRepresentation(Representation):
     ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
     """
 
-    monotone = False
+    schema = Schema(
+        params=(
+            Param("basis", "object", "legendre", f"a Basis instance or a registered name {sorted(BASES)}"),
+            Param("n", "int", None, "size of a named basis (functions; default 8)", min=1, nullable=True),
+            near_param(), far_param(), depth_range_param(),
+        ),
+        size="n", sweep=(2, 4, 6, 8, 12, 16), quick_sweep=(4, 8),
+        examples=({"basis": "legendre", "n": 6}, {"basis": "cosine", "n": 6}),
+        headline={"basis": "legendre", "n": 8},
+        summary="any orthonormal basis of the absorption (FOM/OSM are two of them)",
+        paper="Jansen & Bavoil 2010, sec. 5",
+    )
 
-    def __init__(self, segments, basis="legendre", n=None, near=None, far=None,
-                 depth_range: str = "global"):
-        basis = make_basis(basis, n)
-        super().__init__(segments)
-        self.basis = basis
-        self.monotone = basis.monotone
-        if depth_range not in DEPTH_RANGES:
-            raise ValueError(f"depth_range: expected one of {DEPTH_RANGES}, got {depth_range!r}")
-        self.params.update(basis=basis, depth_range=depth_range)
+    def __init__(self, segments, **params):
+        super().__init__(segments, **params)
+        self.basis = self._make_basis()
+        P = self.params
+        depth_range, near, far = P["depth_range"], P["near"], P["far"]
         Float = segments.Float
         if depth_range == "texel":
             if near is not None or far is not None:
@@ -269,26 +277,43 @@ class BasisRepresentation(Representation):
             self._per_texel = True
         else:
             lo, hi = segments.bounds()
-            for name, v in (("near", near), ("far", far)):
-                if v is not None and not (isinstance(v, (int, float, np.floating, np.integer))
-                                          and not isinstance(v, bool) and np.isfinite(v)):
-                    raise ValueError(f"{name}: expected a finite number, got {v!r}")
-            if (near is not None or far is not None):
-                near = lo if near is None else float(near)
-                far = hi if far is None else float(far)
+            if near is not None or far is not None:
+                near = lo if near is None else near
+                far = hi if far is None else far
                 if not near < far:
                     raise ValueError(f"near: need near < far, got near={near}, far={far}")
             else:
                 near, far = lo, hi
             self.near, self.far = float(near), float(far)
             self._per_texel = False
-            self.params.update(near=self.near, far=self.far)
+            P.update(near=self.near, far=self.far)
         self.coefficients = self._project()
+
+    def _make_basis(self) -> Basis:
+        """The basis this kind projects onto (from ``params``; subclasses fix it)."""
+        basis, n = self.params["basis"], self.params["n"]
+        if isinstance(basis, str) and n is None:
+            n = 8
+        basis = make_basis(basis, n)
+        self.params["basis"] = basis.name if isinstance(self.params["basis"], str) else basis
+        self.params["n"] = basis.n
+        return basis
+
+    @property
+    def monotone(self) -> bool:
+        """The basis' guarantee (non-negative coefficients, non-decreasing g_k)."""
+        return bool(self.basis.monotone)
+
+    @property
+    def unity_in_front(self) -> bool:
+        """Basis methods spread absorption over their depth resolution."""
+        return False
 
     # -------------------------------------------------------------- storage
     @property
     def itemsize(self) -> int:
-        return 4 if self.segments.dtype == "float32" else 8
+        """Bytes per stored coefficient (the segments' dtype)."""
+        return self.segments.itemsize
 
     @property
     def nbytes_per_texel(self) -> float:

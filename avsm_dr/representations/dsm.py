@@ -27,7 +27,11 @@ Pipeline (one build, three phases):
    crosses each level once, so a texel's polyline has at most ``2 B + N`` vertices
    (B breakpoints, N ~ sqrt(1 / eps_p) levels) however opaque a segment is.  Inserted
    depths are rounded to the storage dtype first and their values are the exact curve
-   at the rounded depth, so stored depths are exact and vertices sit on ``V``.
+   at the rounded depth, so stored depths are exact and vertices sit on ``V``.  A
+   crossing that rounds onto the previous vertex (a curve dropping within one ulp, e.g.
+   an opaque segment of sub-ulp length at a large depth offset) moves to the next
+   representable depth, and levels already passed there are skipped: dropping it would
+   leave the chord to the next breakpoint far above ``V``.
    ``eps_p = epsilon / 4``.  Level crossings: one Dr.Jit lane per breakpoint (a
    counting pass, an exclusive sum, a writing pass).
 
@@ -72,8 +76,9 @@ import drjit as dr
 import numpy as np
 
 from .. import backend
-from . import register
+from .registry import register
 from .base import Representation
+from .schema import Param, Schema
 from .exact import segment_fraction
 
 PLACEMENTS = ("midslope", "curve")
@@ -258,6 +263,17 @@ def _count_below(table, x, m: int, strict: bool):
     return lo
 
 
+def next_up(z, dtype: str):
+    """The next depth after ``z`` (Float64 lanes holding ``dtype`` values) representable
+    in the storage dtype (IEEE bit increment; +-0 -> the smallest subnormal)."""
+    t = backend.types()
+    F, U = (t.Float, t.UInt32) if dtype == "float32" else (t.Float64, t.UInt64)
+    x = F(z)
+    bits = dr.reinterpret_array(U, x)
+    up = dr.select(x > 0, bits + 1, dr.select(x < 0, bits - 1, U(1)))
+    return t.Float64(dr.reinterpret_array(F, up))
+
+
 def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     """Polyline within ``eps_p`` of the exact curve (phase A), all texels at once.
 
@@ -297,25 +313,33 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     safe_slope = dr.select(slope > 0, slope, 1.0)
 
     def crossings(base, write: bool):
-        """Loop over the candidate levels of each breakpoint; keep a crossing whose depth,
-        rounded to the storage dtype, lies strictly inside the interval and after the
-        previous one.  Counts them, and with ``write`` scatters them from ``base``."""
-        def cond(i, n, z_prev):
+        """Loop over the candidate levels of each breakpoint.  A level not yet passed by
+        the previous vertex (``Lambda_i > tau_prev``) gets a vertex at its crossing depth
+        rounded to the storage dtype, or at the next representable depth after the
+        previous vertex when it rounds onto it (a curve that drops within one ulp: the
+        vertex then lies past several levels, which are skipped); kept when it lies
+        before the next breakpoint.  Counts them, and with ``write`` scatters them from
+        ``base``."""
+        def cond(i, n, z_prev, tau_prev):
             return i < i1
 
-        def body(i, n, z_prev):
-            zc = bz + (dr.gather(F64, lam, i) - tr) / safe_slope
+        def body(i, n, z_prev, tau_prev):
+            lam_i = dr.gather(F64, lam, i)
+            zc = bz + (lam_i - tr) / safe_slope
             if dtype == "float32":
                 zc = F64(F32(zc))
-            keep = (zc > z_prev) & (zc < z_next)
+            zc = dr.maximum(zc, next_up(z_prev, dtype))
+            tc = tr + slope * (zc - bz)
+            keep = (lam_i > tau_prev) & (zc > z_prev) & (zc < z_next)
             if write:
                 idx = base + n
                 dr.scatter(out_z, zc, idx, keep)
-                dr.scatter(out_tau, tr + slope * (zc - bz), idx, keep)
-            return i + 1, n + dr.select(keep, U32(1), U32(0)), dr.select(keep, zc, z_prev)
+                dr.scatter(out_tau, tc, idx, keep)
+            return (i + 1, n + dr.select(keep, U32(1), U32(0)), dr.select(keep, zc, z_prev),
+                    dr.select(keep, tc, tau_prev))
 
-        _, n, _ = dr.while_loop((U32(i0), dr.zeros(U32, nb), F64(bz)), cond, body,
-                                label="dsm_level_crossings")
+        _, n, _, _ = dr.while_loop((U32(i0), dr.zeros(U32, nb), F64(bz), F64(tr)), cond, body,
+                                   label="dsm_level_crossings")
         return n
 
     out_z = out_tau = None
@@ -487,25 +511,31 @@ class DeepShadowMap(Representation):
     ``n_polyline_vertices`` (T,) size of the phase-A polyline.
     """
 
-    differentiable = False
+    schema = Schema(
+        params=(
+            Param("tolerance", "float", 0.01, "epsilon, the bound on |DSM(z) - V(z)| (below 1e-9 the bound "
+                  "is lost in float rounding and the level table grows as 1/sqrt(tolerance))",
+                  min=MIN_TOLERANCE),
+            Param("placement", "choice", "midslope", "'midslope' (Lokovic-Veach, not differentiable) or "
+                  "'curve' (nodes on the exact curve, differentiable)", choices=PLACEMENTS),
+        ),
+        size="tolerance", sweep=(0.1, 0.05, 0.02, 0.01, 0.005, 0.002), quick_sweep=(0.05, 0.01),
+        examples=({"tolerance": 0.01}, {"tolerance": 0.01, "placement": "curve"}),
+        headline={"tolerance": 0.01},
+        summary="error-bounded polyline (variable node count)",
+        paper="Lokovic & Veach 2000",
+    )
 
-    def __init__(self, segments, tolerance: float = 0.01, placement: str = "midslope"):
-        super().__init__(segments, tolerance=tolerance, placement=placement)
-        try:
-            eps = float(tolerance)
-        except (TypeError, ValueError):
-            raise ValueError(f"tolerance: expected a positive number, got {tolerance!r}") from None
-        if not math.isfinite(eps) or eps <= 0:
-            raise ValueError(f"tolerance: must be finite and > 0, got {tolerance!r}")
-        if eps < MIN_TOLERANCE:
-            raise ValueError(f"tolerance: below {MIN_TOLERANCE:g} the bound is lost in float "
-                             f"rounding (and the level table grows as 1/sqrt(tolerance)), got {eps!r}")
-        if placement not in PLACEMENTS:
-            raise ValueError(f"placement: expected one of {PLACEMENTS}, got {placement!r}")
-        self.tolerance = eps
-        self.placement = placement
-        self.differentiable = placement == "curve"
+    def __init__(self, segments, **params):
+        super().__init__(segments, **params)
+        self.tolerance = self.params["tolerance"]
+        self.placement = self.params["placement"]
         self._build()
+
+    @property
+    def differentiable(self) -> bool:
+        """Only ``placement='curve'`` (node values on the exact curve) has gradients."""
+        return self.placement == "curve"
 
     # ------------------------------------------------------------- build
     def _build(self):
@@ -529,8 +559,7 @@ class DeepShadowMap(Representation):
         self._max_nodes = int(counts.max()) if counts.size else 0
 
     def _needs_grad(self) -> bool:
-        seg = self.segments
-        return any(dr.grad_enabled(x) for x in (seg.z0, seg.z1, seg.optical_depth))
+        return self.segments.requires_grad
 
     def _attach_gradients(self, value, nz, left, counts):
         """value + (V(z) - detach(V(z))): the primal stays the float64 one, the gradient is
@@ -563,9 +592,8 @@ class DeepShadowMap(Representation):
     # ------------------------------------------------------------ storage
     @property
     def nbytes_per_texel(self) -> float:
-        itemsize = 4 if self.segments.dtype == "float32" else 8
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
-        return 2 * itemsize * mean + 4
+        return 2 * self.segments.itemsize * mean + 4
 
     def nodes_numpy(self, texel: int) -> tuple[np.ndarray, np.ndarray]:
         """(depths, values) of one texel's nodes as float64 NumPy arrays."""

@@ -14,8 +14,9 @@ import drjit as dr
 
 from .. import backend
 from ..segments import OPAQUE_OPTICAL_DEPTH
-from . import register
+from .registry import register
 from .base import Representation
+from .schema import Schema
 
 
 def segment_fraction(depth, z0, z1):
@@ -28,16 +29,14 @@ def segment_fraction(depth, z0, z1):
 @register("exact")
 class Exact(Representation):
     """Stores the segments themselves; ``nbytes_per_texel`` = 12 bytes x mean segment count
-    (z0, z1, tau in float32) plus the 4-byte CSR offset."""
+    (z0, z1, tau in the segments' dtype) plus the 4-byte CSR offset."""
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    schema = Schema(summary="every occluder segment (uncompressed ground truth)", paper="-")
 
     @property
     def nbytes_per_texel(self) -> float:
-        itemsize = 4 if self.segments.dtype == "float32" else 8
         mean = self.segments.n_segments / max(self.segments.n_texels, 1)
-        return 3 * itemsize * mean + 4
+        return 3 * self.segments.itemsize * mean + 4
 
     def _eval_texels(self, texel, depth):
         seg = self.segments

@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import math
 
-from . import register
-from .basis import Basis, BasisRepresentation, check_count, register_basis, sinc, sincos_pi
+from .registry import register
+from .basis import Basis, BasisRepresentation, register_basis, sinc, sincos_pi
+from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 
 @register_basis("fourier")
@@ -83,16 +84,21 @@ class FourierOpacityMap(BasisRepresentation):
     'global' | 'texel'.  ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2 itemsize per-texel
     range).  Coefficients: ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (k = 1..n, b[0] = None)."""
 
-    monotone = False
+    schema = Schema(
+        params=(
+            Param("harmonics", "int", 3, "n harmonics: 2n + 1 coefficients per texel (the paper's 7: n = 3)",
+                  min=1),
+            near_param(), far_param(), depth_range_param(),
+        ),
+        size="harmonics", sweep=(1, 2, 3, 4, 6, 8, 12, 16), quick_sweep=(1, 4, 8, 16),
+        examples=({"harmonics": 4}, {"harmonics": 3, "depth_range": "texel"}),
+        headline={"harmonics": 4},
+        summary="2n+1 Fourier coefficients of the absorption",
+        paper="Jansen & Bavoil 2010",
+    )
 
-    def __init__(self, segments, harmonics: int = 3, near=None, far=None,
-                 depth_range: str = "global"):
-        harmonics = check_count(harmonics, "harmonics")
-        super().__init__(segments, basis=FourierBasis(harmonics), near=near, far=far,
-                         depth_range=depth_range)
-        self.params.pop("basis")
-        self.params["harmonics"] = harmonics
-        self.monotone = False
+    def _make_basis(self):
+        return FourierBasis(self.params["harmonics"])
 
     @property
     def a(self) -> list:

@@ -34,10 +34,10 @@ exact arithmetic, but the float reconstruction is not guaranteed to be, so False
 from __future__ import annotations
 
 import drjit as dr
-import numpy as np
 
-from . import register
+from .registry import register
 from .basis import Basis, BasisRepresentation, register_basis
+from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 #: Moments of the uniform distribution on [-1, 1] (k = 1..4): the bias target.
 UNIFORM_MOMENTS = (0.0, 1.0 / 3.0, 0.0, 1.0 / 5.0)
@@ -68,8 +68,7 @@ class PowerMomentBasis(Basis):
         return [(p[k] * x - (-1) ** (k + 1)) * (0.5 / (k + 1)) for k in range(self.n + 1)]
 
     def average(self, u0, u1):
-        x0, x1 = 2 * u0 - 1, 2 * u1 - 1
-        p0, p1 = self.f(u0), self.f(u1)          # powers of x0, x1
+        p0, p1 = self.f(u0), self.f(u1)          # powers of x0 = 2 u0 - 1, x1 = 2 u1 - 1
         return [sum(p1[k - j] * p0[j] for j in range(k + 1)) * (1 / (k + 1))
                 for k in range(self.n + 1)]
 
@@ -124,24 +123,28 @@ class MomentShadowMap(BasisRepresentation):
     ``bias`` (alpha), ``overestimation`` (beta, default 0.25), ``near``/``far``,
     ``depth_range`` 'global' | 'texel'."""
 
-    monotone = False
+    schema = Schema(
+        params=(
+            Param("bias", "float", None, "alpha: weight of the uniform distribution's moments (default 1e-5 "
+                  "in float32, 1e-9 in float64; keeps the Hankel matrix positive definite)",
+                  min=0.0, max=1.0, open_min=True, nullable=True),
+            Param("overestimation", "float", 0.25, "beta: 0 = lower bound (light), 1 = upper bound (dark)",
+                  min=0.0, max=1.0),
+            near_param(), far_param(), depth_range_param(),
+        ),
+        examples=({},),
+        headline={},
+        summary="4 power moments of the absorbance, Hamburger bound",
+        paper="Peters & Klein 2015; Muenstermann et al. 2018",
+    )
 
-    def __init__(self, segments, bias: float | None = None, overestimation: float = 0.25,
-                 near=None, far=None, depth_range: str = "global"):
-        if bias is None:
-            bias = DEFAULT_BIAS[segments.dtype]
-        for name, v, lo, hi in (("bias", bias, 0.0, 1.0),
-                                ("overestimation", overestimation, 0.0, 1.0)):
-            if not (isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
-                    and np.isfinite(v) and lo <= v <= hi):
-                raise ValueError(f"{name}: expected a number in [{lo}, {hi}], got {v!r}")
-        if not bias > 0:
-            raise ValueError("bias: must be > 0 (the Hankel matrix of a few deltas is singular)")
-        super().__init__(segments, basis=PowerMomentBasis(4), near=near, far=far,
-                         depth_range=depth_range)
-        self.params.pop("basis")
-        self.params.update(bias=float(bias), overestimation=float(overestimation))
-        self.monotone = False
+    def __init__(self, segments, **params):
+        super().__init__(segments, **params)
+        if self.params["bias"] is None:
+            self.params["bias"] = DEFAULT_BIAS[segments.dtype]
+
+    def _make_basis(self):
+        return PowerMomentBasis(4)
 
     def bounds(self, texel, depth):
         """(lower, upper) bounds of the absorbance fraction in front of each receiver

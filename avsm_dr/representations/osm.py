@@ -28,8 +28,9 @@ from __future__ import annotations
 import drjit as dr
 
 from .. import backend
-from . import register
-from .basis import Basis, BasisRepresentation, check_count, register_basis
+from .registry import register
+from .basis import Basis, BasisRepresentation, register_basis
+from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 
 @register_basis("piecewise_constant")
@@ -76,16 +77,24 @@ class OpacityShadowMap(BasisRepresentation):
     ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel range).
     Attributes: ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
 
-    monotone = True
+    schema = Schema(
+        params=(
+            Param("slices", "int", 16, "n uniform slices over [near, far]", min=1),
+            near_param(), far_param(), depth_range_param(),
+        ),
+        size="slices", sweep=(4, 8, 16, 32, 64), quick_sweep=(4, 16, 32),
+        examples=({"slices": 16},),
+        headline={"slices": 32},
+        summary="n uniform opacity slices",
+        paper="Kim & Neumann 2001",
+    )
 
-    def __init__(self, segments, slices: int = 16, near=None, far=None,
-                 depth_range: str = "global"):
-        slices = check_count(slices, "slices")
-        super().__init__(segments, basis=PiecewiseConstantBasis(slices), near=near, far=far,
-                         depth_range=depth_range)
-        self.params.pop("basis")
-        self.params["slices"] = slices
-        self.monotone = True
+    def _make_basis(self):
+        return PiecewiseConstantBasis(self.params["slices"])
+
+    def __init__(self, segments, **params):
+        super().__init__(segments, **params)
+        slices = self.params["slices"]
         # ---- stored form: C_j = sum_{k<j} a_k, flat texel-major [texel * (n + 1) + j]
         Float, UInt32, T = self.Float, backend.types().UInt32, self.n_texels
         C = [dr.zeros(Float, T)]
@@ -137,7 +146,7 @@ class OpacityShadowMap(BasisRepresentation):
 
     def _optical_depth(self, texel, depth):
         UInt32, Float = backend.types().UInt32, self.Float
-        n, T = self.basis.n, self.n_texels
+        n = self.basis.n
         t = n * self.normalized_depth(texel, depth)      # position in slice units, [0, n]
         j = dr.minimum(dr.floor(t), n - 1)               # slice holding the receiver
         i = texel * (n + 1) + UInt32(j)

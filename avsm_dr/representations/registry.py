@@ -1,0 +1,72 @@
+"""The registry itself: kind name -> Representation subclass, and the functions that read it.
+Kind modules import :func:`register` from here; the package ``__init__`` imports every kind."""
+from __future__ import annotations
+
+from ..segments import Segments
+from .base import Representation
+from .schema import Schema
+
+REGISTRY: dict[str, type[Representation]] = {}
+
+
+def register(kind: str):
+    """Class decorator adding a :class:`Representation` subclass under ``kind``."""
+    def deco(cls):
+        if not (isinstance(cls, type) and issubclass(cls, Representation)):
+            raise ValueError(f"kind: {kind!r} must register a Representation subclass, got {cls!r}")
+        if not isinstance(cls.__dict__.get("schema", cls.schema), Schema):
+            raise ValueError(f"kind: {kind!r} needs a Schema as its `schema` attribute")
+        cls.kind = kind
+        REGISTRY[kind] = cls
+        return cls
+    return deco
+
+
+def unregister(kind: str) -> None:
+    """Remove ``kind`` from the registry (for kinds registered at run time, e.g. in tests)."""
+    REGISTRY.pop(kind, None)
+
+
+def _check_kind(kind) -> type[Representation]:
+    if not isinstance(kind, str) or kind not in REGISTRY:
+        raise ValueError(f"kind: unknown representation {kind!r}; known: {sorted(REGISTRY)}")
+    return REGISTRY[kind]
+
+
+def build(kind: str, segments: Segments, **params) -> Representation:
+    """Build representation ``kind`` from ``segments`` with ``params`` (see ``describe``);
+    every kind also takes ``reverse='auto'|'trajectory'|'checkpoint'`` and ``chunk``."""
+    return _check_kind(kind)(segments, **params)
+
+
+def kinds() -> list[str]:
+    """Registered representation names, sorted."""
+    return sorted(REGISTRY)
+
+
+def describe(kind: str) -> dict:
+    """What ``kind`` takes and how experiments size it.
+
+    Returns a dict: ``params`` (name -> dict(default, type, min, max, doc[, choices,
+    nullable])), ``size`` (the size parameter's name, or None), ``sweep`` /
+    ``quick_sweep`` (its values in the experiments), ``examples`` (parameter sets the
+    contract tests run), ``headline`` (the configuration of benchmarks), ``summary``,
+    ``paper`` and ``doc`` (the class docstring's first paragraph)."""
+    cls = _check_kind(kind)
+    out = cls.schema.describe()
+    out["kind"] = kind
+    out["doc"] = (cls.__doc__ or "").strip().split("\n\n")[0]
+    return out
+
+
+def configurations(kind: str, quick: bool = False) -> list[dict]:
+    """Parameter sets of ``kind``'s sweep: ``headline`` with the size parameter set to each
+    sweep value (the headline alone when the kind has no size parameter)."""
+    d = describe(kind)
+    base = dict(d["headline"])
+    if d["size"] is None:
+        return [base]
+    values = d["quick_sweep"] if quick else d["sweep"]
+    return [dict(base, **{d["size"]: v}) for v in values]
+
+

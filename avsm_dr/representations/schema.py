@@ -1,0 +1,173 @@
+"""Parameter schemas: each representation declares its parameters once, and validation,
+``ad.describe(kind)``, the experiments' sweeps and the docs' tables read them.
+
+One rule for every parameter (the reliability contract):
+
+* ``int``: an integral number (Python or NumPy), never ``bool``; range checked.
+* ``float``: a real, finite number (Python or NumPy, integers allowed), never ``bool`` or
+  ``str``; range checked (``min``/``max`` inclusive unless ``open_min``/``open_max``).
+* ``bool``: ``True``/``False`` (Python or NumPy bool) only.
+* ``choice``: one of ``choices`` (strings).
+* ``object``: passed through (validated by the representation itself).
+
+``nullable=True`` admits ``None`` (meaning: derived from the segments, e.g. near/far).
+Errors are ``ValueError("<name>: expected ..., got ...")``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from numbers import Integral, Real
+from typing import Any
+
+import numpy as np
+
+KINDS = ("int", "float", "bool", "choice", "object")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One build parameter: name, type (see :data:`KINDS`), default, valid range, doc."""
+
+    name: str
+    type: str
+    default: Any = None
+    doc: str = ""
+    min: float | None = None
+    max: float | None = None
+    open_min: bool = False
+    open_max: bool = False
+    choices: tuple = ()
+    nullable: bool = False
+
+    def __post_init__(self):
+        if self.type not in KINDS:
+            raise ValueError(f"type: expected one of {KINDS}, got {self.type!r}")
+
+    # ---------------------------------------------------------------- checks
+    def _range_text(self) -> str:
+        lo = "" if self.min is None else (f"> {self.min:g}" if self.open_min else f">= {self.min:g}")
+        hi = "" if self.max is None else (f"< {self.max:g}" if self.open_max else f"<= {self.max:g}")
+        if lo and hi:
+            left = "(" if self.open_min else "["
+            right = ")" if self.open_max else "]"
+            return f"in {left}{self.min:g}, {self.max:g}{right}"
+        return lo or hi
+
+    def _in_range(self, v) -> bool:
+        if self.min is not None and (v <= self.min if self.open_min else v < self.min):
+            return False
+        if self.max is not None and (v >= self.max if self.open_max else v > self.max):
+            return False
+        return True
+
+    def validate(self, value):
+        """The value converted to its Python type, or ValueError naming the parameter."""
+        if value is None and self.nullable:
+            return None
+        t = self.type
+        if t == "object":
+            return value
+        if t == "bool":
+            if isinstance(value, (bool, np.bool_)):
+                return bool(value)
+            raise ValueError(f"{self.name}: expected True or False, got {value!r}")
+        if t == "choice":
+            if isinstance(value, str) and value in self.choices:
+                return value
+            raise ValueError(f"{self.name}: expected one of {self.choices}, got {value!r}")
+        is_bool = isinstance(value, (bool, np.bool_))
+        if t == "int":
+            ok = isinstance(value, Integral) and not is_bool and self._in_range(int(value))
+            if not ok:
+                rng = self._range_text()
+                raise ValueError(f"{self.name}: expected an integer{' ' + rng if rng else ''}, got {value!r}")
+            return int(value)
+        # float
+        ok = isinstance(value, Real) and not is_bool and math.isfinite(float(value)) \
+            and self._in_range(float(value))
+        if not ok:
+            rng = self._range_text()
+            raise ValueError(f"{self.name}: expected a finite real number{' ' + rng if rng else ''}, "
+                             f"got {value!r}")
+        return float(value)
+
+    def describe(self) -> dict:
+        """Plain-data description (for ``ad.describe`` and the docs)."""
+        out = {"default": self.default, "type": self.type, "min": self.min, "max": self.max,
+               "doc": self.doc}
+        if self.choices:
+            out["choices"] = list(self.choices)
+        if self.nullable:
+            out["nullable"] = True
+        return out
+
+
+@dataclass(frozen=True)
+class Schema:
+    """A kind's parameters, its size parameter and the size values experiments sweep.
+
+    ``size``: the parameter that trades memory for accuracy (None: no such parameter).
+    ``sweep`` / ``quick_sweep``: its values in the experiments (full / ``--quick``).
+    ``examples``: parameter sets the contract tests run (besides the defaults).
+    ``headline``: the configuration benchmarks and single-setting experiments use.
+    ``summary``, ``paper``: one line each for the docs' kinds table.
+    """
+
+    params: tuple = ()
+    size: str | None = None
+    sweep: tuple = ()
+    quick_sweep: tuple = ()
+    examples: tuple = ()
+    headline: dict = field(default_factory=dict)
+    summary: str = ""
+    paper: str = ""
+
+    def __post_init__(self):
+        names = [p.name for p in self.params]
+        if len(set(names)) != len(names):
+            raise ValueError(f"params: duplicate names in {names}")
+        if self.size is not None and self.size not in names:
+            raise ValueError(f"size: {self.size!r} is not a parameter ({names})")
+
+    def param(self, name: str) -> Param:
+        for p in self.params:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    def validate(self, kind: str, given: dict) -> dict:
+        """Defaults filled in and every value checked; unknown names raise ValueError."""
+        unknown = sorted(set(given) - set(self.names()))
+        if unknown:
+            raise ValueError(f"{unknown[0]}: unknown parameter of {kind!r}; known: {self.names()}")
+        return {p.name: p.validate(given.get(p.name, p.default)) for p in self.params}
+
+    def describe(self) -> dict:
+        """Plain-data description; private parameters (names starting with ``_``, e.g. a
+        benchmark's ablation switches) are left out."""
+        return {"params": {p.name: p.describe() for p in self.params if not p.name.startswith("_")},
+                "size": self.size,
+                "sweep": list(self.sweep), "quick_sweep": list(self.quick_sweep or self.sweep),
+                "examples": [dict(e) for e in self.examples], "headline": dict(self.headline),
+                "summary": self.summary, "paper": self.paper}
+
+
+# Parameters several kinds share (one definition, one message).
+def near_param() -> Param:
+    return Param("near", "float", None, "start of the depth range (default: the segments' global bounds)",
+                 nullable=True)
+
+
+def far_param() -> Param:
+    return Param("far", "float", None, "end of the depth range (default: the segments' global bounds)",
+                 nullable=True)
+
+
+def depth_range_param() -> Param:
+    return Param("depth_range", "choice", "global",
+                 "'global': one [near, far] for all texels; 'texel': tight per-texel bounds, stored "
+                 "(2 floats per texel)", choices=("global", "texel"))
