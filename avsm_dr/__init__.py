@@ -13,7 +13,7 @@ from .backend import available_backends, get_backend, set_backend  # noqa: E402
 from .representations import REGISTRY, build, configurations, describe, kinds, register  # noqa: E402
 from .representations.base import Representation  # noqa: E402
 from .segments import OPAQUE_OPTICAL_DEPTH, Segments  # noqa: E402
-from . import groundtruth, scenes, shading  # noqa: E402
+from . import builtin_scenes as scenes, groundtruth, shading  # noqa: E402
 from .capture import Capture, capture  # noqa: E402
 
 __version__ = "0.1.0"

@@ -1,9 +1,14 @@
 """Find a libLLVM that Dr.Jit's LLVM backend can use, before ``drjit`` is imported.
 
 Dr.Jit 1.5 on LLVM 15 aborts the whole process at the first ``dr.maximum`` /
-``dr.minimum`` ("Cannot select: fmaximum"); LLVM >= 16 works.  This module points
-``DRJIT_LIBLLVM_PATH`` at the newest libLLVM >= 16 it can find, unless the user
-already set the variable.
+``dr.minimum`` ("Cannot select: fmaximum"); LLVM >= 16 works.  Dr.Jit loads its
+libLLVM once, eagerly, inside ``import drjit`` (``DRJIT_LIBLLVM_PATH`` if set, else
+its own search; measured with drjit 1.5: setting the variable afterwards changes
+nothing).  So :func:`ensure_libllvm` points ``DRJIT_LIBLLVM_PATH`` at the newest
+libLLVM >= 16 it can find, unless the user set it, and must run before ``drjit`` is
+imported; :func:`check_loaded` then asks Dr.Jit which LLVM it actually loaded.
+When ``drjit`` was imported first, its own choice stands: fine when it found
+LLVM >= 16, otherwise :data:`PROBLEM` says that the import order is the cause.
 """
 from __future__ import annotations
 
@@ -51,29 +56,88 @@ def find_libllvm(min_version: int = MIN_VERSION) -> str | None:
     return best[1] if best else None
 
 
-#: The libLLVM Dr.Jit was pointed at (None: none >= 16 found, or drjit was imported first).
+#: The libLLVM Dr.Jit loaded when it is >= 16 (its path where the OS tells, else a
+#: description), None when the LLVM backend is unusable (:data:`PROBLEM` says why).
 LIBLLVM: str | None = None
+#: Why the LLVM backend is unusable, '' when it is usable or not checked yet.
+PROBLEM: str = ""
+#: True when ``drjit`` was imported before ``avsm_dr`` (Dr.Jit had already chosen its libLLVM).
+DRJIT_IMPORTED_FIRST = False
+_USER_PATH: str | None = None
 
 
 def ensure_libllvm() -> str | None:
-    """Set ``DRJIT_LIBLLVM_PATH`` to a working libLLVM unless the user set it.
+    """Set ``DRJIT_LIBLLVM_PATH`` to a libLLVM >= 16 unless the user set it or ``drjit``
+    is already imported (too late: Dr.Jit loads its libLLVM at import).
 
-    Returns the path in use, or None when none was found; the LLVM backend then
-    raises :class:`RuntimeError` with :data:`INSTALL_HINT` when it is selected.
-    Does nothing once ``drjit`` is imported: the variable is read at import.
+    Returns the value of ``DRJIT_LIBLLVM_PATH`` afterwards (None when unset).
     """
-    global LIBLLVM
+    global DRJIT_IMPORTED_FIRST, _USER_PATH
+    DRJIT_IMPORTED_FIRST = "drjit" in sys.modules
     current = os.environ.get("DRJIT_LIBLLVM_PATH")
     if current:
-        LIBLLVM = current
+        _USER_PATH = current
         return current
-    if "drjit" in sys.modules:
+    if DRJIT_IMPORTED_FIRST:
         return None
     path = find_libllvm()
     if path is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = path
-    LIBLLVM = path
     return path
+
+
+def _loaded_path() -> str | None:
+    """Path of the libLLVM mapped into this process (Linux /proc only), else None."""
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if "libLLVM" in line}
+    except OSError:
+        return None
+    return sorted(paths)[0] if len(paths) == 1 else None
+
+
+def problem(version: tuple | None, drjit_first: bool, user_path: str | None, found: str | None) -> str:
+    """Why Dr.Jit's LLVM backend is unusable ('' when it is).
+
+    version: the (major, minor, patch) Dr.Jit loaded, None or major < 0 when none;
+    drjit_first: ``drjit`` was imported before ``avsm_dr``; user_path: the user's
+    ``DRJIT_LIBLLVM_PATH``; found: a libLLVM >= 16 on this machine (:func:`find_libllvm`).
+    """
+    if version is not None and version[0] >= MIN_VERSION:
+        return ""
+    what = (f"libLLVM {'.'.join(map(str, version))}" if version is not None and version[0] >= 0
+            else "no libLLVM")
+    fix = (f"DRJIT_LIBLLVM_PATH={found}" if found else "DRJIT_LIBLLVM_PATH=/path/to/libLLVM.so.<16 or newer>")
+    if user_path:
+        return (f"Dr.Jit loaded {what} from DRJIT_LIBLLVM_PATH={user_path}, but its LLVM backend needs "
+                f"libLLVM >= {MIN_VERSION} (LLVM 15 aborts the process at dr.maximum). Set {fix} "
+                "before starting Python, or unset it (avsm_dr, imported before drjit, then finds one).")
+    if drjit_first:
+        return (f"drjit was imported before avsm_dr and loaded {what}; its LLVM backend needs libLLVM >= "
+                f"{MIN_VERSION} (LLVM 15 aborts the process at dr.maximum). Dr.Jit picks its libLLVM once, "
+                "at `import drjit`, so the import order is the cause: `import avsm_dr` before `import drjit` "
+                f"(and before `import mitsuba`), or set {fix} before starting Python."
+                + ("" if found else " " + INSTALL_HINT))
+    return INSTALL_HINT
+
+
+def check_loaded() -> str | None:
+    """Ask Dr.Jit (already imported) which libLLVM it loaded; set :data:`LIBLLVM` and
+    :data:`PROBLEM`.  Returns :data:`LIBLLVM`."""
+    global LIBLLVM, PROBLEM
+    import drjit as dr
+    try:
+        version = tuple(dr.detail.llvm_version())
+    except (AttributeError, RuntimeError):  # no such query: trust DRJIT_LIBLLVM_PATH
+        path = os.environ.get("DRJIT_LIBLLVM_PATH")
+        version = (_major_version(path) or 0, 0, 0) if path else None
+    PROBLEM = problem(version, DRJIT_IMPORTED_FIRST, _USER_PATH, find_libllvm())
+    if PROBLEM:
+        LIBLLVM = None
+    else:
+        LIBLLVM = (_loaded_path() or os.environ.get("DRJIT_LIBLLVM_PATH")
+                   or f"libLLVM {'.'.join(map(str, version))}")
+    return LIBLLVM
 
 
 if __name__ == "__main__":  # used by scripts/setup.sh before the package is installed

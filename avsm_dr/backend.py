@@ -1,18 +1,21 @@
 """Dr.Jit backend selection: LLVM (CPU) by default, CUDA when a GPU is present.
 
-``set_backend("llvm" | "cuda")`` chooses; ``types()`` returns the Dr.Jit AD module
-(``drjit.llvm.ad`` or ``drjit.cuda.ad``) whose ``Float``, ``UInt32``... every
-kernel uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice.
+``set_backend("llvm" | "cuda")`` chooses (``with use_backend(name):`` for a block);
+``types()`` returns the Dr.Jit AD module (``drjit.llvm.ad`` or ``drjit.cuda.ad``) whose
+``Float``, ``UInt32``... every kernel uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice.
 """
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from types import ModuleType
+from typing import Iterator
 
 import drjit as dr
 
 from . import _llvm
-from ._llvm import INSTALL_HINT
+
+_llvm.check_loaded()  # which libLLVM did Dr.Jit load (it chooses once, at `import drjit`)?
 
 _BACKENDS = ("llvm", "cuda")
 _current: str | None = None
@@ -43,7 +46,7 @@ def set_backend(name: str) -> None:
         raise ValueError(f"backend: expected one of {_BACKENDS}, got {name!r}")
     if name not in available_backends():
         # the LLVM backend counts only with a libLLVM >= 16: LLVM 15 aborts the process
-        hint = INSTALL_HINT if name == "llvm" else "no CUDA device/driver was found"
+        hint = (_llvm.PROBLEM or _llvm.INSTALL_HINT) if name == "llvm" else "no CUDA device/driver was found"
         raise RuntimeError(f"backend {name!r} is not available: {hint}")
     _current = name
 
@@ -53,6 +56,22 @@ def get_backend() -> str:
     if _current is None:
         set_backend(default_backend())
     return _current  # type: ignore[return-value]
+
+
+@contextmanager
+def use_backend(name: str | None) -> Iterator[str | None]:
+    """Select backend ``name`` inside a ``with`` block and restore the previous choice
+    (also an unmade one: ``None`` leaves the choice to :func:`get_backend`) on exit."""
+    global _current
+    previous = _current
+    if name is not None:
+        set_backend(name)
+    else:
+        _current = None
+    try:
+        yield name
+    finally:
+        _current = previous
 
 
 def types() -> ModuleType:

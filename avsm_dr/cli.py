@@ -1,8 +1,12 @@
-"""Command line: ``python -m avsm_dr <experiment> [--quick] [--out DIR] [--force]``.
+"""Command line: ``python -m avsm_dr <experiment> [--quick] [--out DIR] [--force] [--backend B]``.
 
-Each experiment is a module ``avsm_dr.experiments.<name>`` exposing
-``run(quick=False, out=None, force=False) -> dict``; it writes PNG figures, a CSV of
-every number and a JSON of its parameters into ``results/<name>/`` (or ``--out``).
+Each experiment is a module (or package) ``avsm_dr.experiments.<name>`` exposing
+``run(quick=False, out=None, force=False) -> dict``; it writes PNG figures, a CSV of every
+number and a ``meta.json`` (parameters, versions, git commit, machine) into its own folder
+``<DIR>/<name>/`` (default ``results/<name>/``), so experiments sharing ``--out`` never
+overwrite each other.  Results whose parameters, package source and library versions
+match are reused unless ``--force``.  A bad ``--out`` (empty, a file, not writable) is
+reported in one line with exit status 2.
 """
 from __future__ import annotations
 
@@ -10,31 +14,72 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import tempfile
+from pathlib import Path
 
 
 def experiment_names() -> list[str]:
-    """Names of the experiment modules in avsm_dr.experiments."""
+    """Names of the experiment modules and packages in avsm_dr.experiments."""
     from . import experiments
     return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
 
 
+def parser(names: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's argument parser (``names``: the experiments offered)."""
+    names = experiment_names() if names is None else names
+    p = argparse.ArgumentParser(prog="avsm_dr", description=__doc__.splitlines()[0],
+                                epilog="Results go to DIR/<experiment>/ (data.csv, meta.json, *.png).")
+    p.add_argument("experiment", choices=names, help="which experiment to run")
+    p.add_argument("--quick", action="store_true", help="small sizes, under a minute on 2 cores")
+    p.add_argument("--out", default="results", metavar="DIR",
+                   help="parent folder; the experiment writes into DIR/<experiment>/ (default results/)")
+    p.add_argument("--force", action="store_true", help="recompute even if results exist")
+    p.add_argument("--backend", default=None, choices=("llvm", "cuda"), help="Dr.Jit backend")
+    return p
+
+
+def output_folder(out: str, name: str) -> Path:
+    """``<out>/<name>/``, created and checked writable; ValueError naming ``--out``
+    (empty, a file, or a folder that cannot be created or written)."""
+    if not str(out).strip():
+        raise ValueError(f"--out: expected a folder, got {out!r}")
+    base = Path(out)
+    if base.exists() and not base.is_dir():
+        raise ValueError(f"--out: {out!r} is a file, expected a folder")
+    folder = base / name
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"--out: {str(folder)!r} is a file, expected a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise ValueError(f"--out: cannot write into {str(folder)!r}: {exc.strerror or exc}") from None
+    return folder
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Parse the command line and run one experiment; returns the exit status."""
-    names = experiment_names()
-    parser = argparse.ArgumentParser(prog="avsm_dr", description=__doc__.splitlines()[0])
-    parser.add_argument("experiment", choices=names, help="which experiment to run")
-    parser.add_argument("--quick", action="store_true", help="small sizes, under a minute on 2 cores")
-    parser.add_argument("--out", default=None, help="output folder (default results/<experiment>)")
-    parser.add_argument("--force", action="store_true", help="recompute even if results exist")
-    parser.add_argument("--backend", default=None, choices=("llvm", "cuda"), help="Dr.Jit backend")
-    args = parser.parse_args(argv)
+    """Parse the command line and run one experiment; returns the exit status (2: bad
+    output folder, reported in one line on stderr)."""
+    args = parser().parse_args(argv)
+    try:
+        out = output_folder(args.out, args.experiment)
+    except ValueError as exc:
+        print(f"avsm_dr: error: {exc}", file=sys.stderr)
+        return 2
     if args.backend:
         from . import backend
         backend.set_backend(args.backend)
     module = importlib.import_module(f"avsm_dr.experiments.{args.experiment}")
-    result = module.run(quick=args.quick, out=args.out, force=args.force)
+    try:
+        result = module.run(quick=args.quick, out=out, force=args.force)
+    except ValueError as exc:
+        if not str(exc).startswith("out:"):
+            raise
+        print(f"avsm_dr: error: --{exc}", file=sys.stderr)
+        return 2
     for key, value in (result or {}).items():
-        if key in ("csv", "out", "summary", "figures"):
+        if key in ("csv", "out", "summary", "figures", "cached"):
             print(f"{key}: {value}")
     return 0
 

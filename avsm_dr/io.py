@@ -12,9 +12,12 @@ import struct
 
 import numpy as np
 
+from . import validation as V
+
 _MAGIC = b"VOL"
 _VERSION = 3
 _FLOAT32 = 1
+_HEADER = 48
 
 
 def write_vol(path, data, bbox=None) -> None:
@@ -23,14 +26,20 @@ def write_vol(path, data, bbox=None) -> None:
     bbox: (min_xyz, max_xyz) stored in the header (default the unit cube; Mitsuba places
     ``gridvolume`` by its ``to_world`` and does not use it).
     """
-    a = np.asarray(data)
+    a = V.array(data, "data", np.float32, finite=False)
     if a.ndim == 3:
         a = a[..., None]
     if a.ndim != 4 or min(a.shape) < 1:
         raise ValueError(f"data: expected a (z, y, x) or (z, y, x, c) array, got shape {np.shape(data)}")
     if bbox is None:
         bbox = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    lo, hi = (np.asarray(b, np.float32).reshape(3) for b in bbox)
+    try:
+        lo, hi = bbox
+    except (TypeError, ValueError):
+        raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
+    lo, hi = V.vec3(lo, "bbox"), V.vec3(hi, "bbox")
+    if max(np.abs(lo).max(), np.abs(hi).max()) > np.finfo(np.float32).max:
+        raise ValueError(f"bbox: beyond the float32 range of the .vol header, got {bbox!r}")
     nz, ny, nx, nc = a.shape
     with open(path, "wb") as f:
         f.write(_MAGIC + bytes([_VERSION]))
@@ -46,9 +55,11 @@ def read_vol(path, with_bbox: bool = False):
     """
     path = os.fspath(path)
     with open(path, "rb") as f:
-        head = f.read(48)
-        if len(head) < 48 or head[:3] != _MAGIC:
+        head = f.read(_HEADER)
+        if head[:3] != _MAGIC:
             raise ValueError(f"path: {path!r} is not a Mitsuba .vol file (bad magic)")
+        if len(head) < _HEADER:
+            raise ValueError(f"path: {path!r} has a truncated .vol header ({len(head)} of {_HEADER} bytes)")
         if head[3] != _VERSION:
             raise ValueError(f"path: {path!r} has .vol version {head[3]}, expected {_VERSION}")
         enc, nx, ny, nz, nc = struct.unpack("<5i", head[4:24])
@@ -58,9 +69,11 @@ def read_vol(path, with_bbox: bool = False):
             raise ValueError(f"path: {path!r} has an invalid size {(nx, ny, nz, nc)}")
         bb = np.array(struct.unpack("<6f", head[24:48]), dtype=np.float64)
         n = nx * ny * nz * nc
+        have = (os.fstat(f.fileno()).st_size - _HEADER) // 4      # before allocating n values
+        if have < n:
+            raise ValueError(f"path: {path!r} is truncated ({have} of the {n} values its header "
+                             f"{(nx, ny, nz, nc)} announces)")
         data = np.fromfile(f, dtype="<f4", count=n)
-    if data.size != n:
-        raise ValueError(f"path: {path!r} is truncated ({data.size} of {n} values)")
     data = data.reshape(nz, ny, nx, nc).astype(np.float32)
     if nc == 1:
         data = data[..., 0]

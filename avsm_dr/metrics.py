@@ -1,25 +1,108 @@
-"""Error metrics between transmittance estimates and a reference."""
+"""Error metrics between transmittance estimates and a reference.
+
+Sign convention: ``error = estimate - reference``; positive = light leaking (the estimate
+is brighter than the truth), negative = over-darkening.  All statistics are over the
+finite estimates (non-finite ones are counted, not averaged).
+
+* :func:`error_stats`: RMSE, max, mean (signed) and mean |error|, the fractions of receivers
+  leaking / over-darkening by more than ``threshold`` (0.02), the 99th and 99.9th
+  percentiles of |error|, counts of NaN / inf / out-of-[0, 1] estimates.
+* :func:`optical_depth_error`: the same in the log domain, ``tau = -ln max(T, floor)``,
+  for dense media where T -> 0 hides errors (floor 1e-4: the capture's default stop
+  threshold, below which no transmittance is resolved).
+
+A 99.9th percentile needs thousands of receivers to mean more than the maximum: with
+K receivers it interpolates between the two largest errors when K < 1000.
+"""
 from __future__ import annotations
 
 import numpy as np
 
+from . import validation as V
 
-def error_stats(estimate, reference) -> dict:
-    """rmse, max_error, mean_error (signed), nan/inf counts and [0, 1] bounds violations.
+#: Default |error| above which a receiver counts as leaking / over-darkening.
+THRESHOLD = 0.02
+#: Default transmittance floor of :func:`optical_depth_error` (tau <= -ln 1e-4 = 9.21).
+T_FLOOR = 1e-4
 
-    Non-finite estimates are counted and excluded from the error statistics."""
+
+def _pair(estimate, reference):
     est = np.asarray(estimate, dtype=np.float64).ravel()
     ref = np.asarray(reference, dtype=np.float64).ravel()
     if est.shape != ref.shape:
         raise ValueError(f"estimate: shape {est.shape} does not match reference {ref.shape}")
-    finite = np.isfinite(est)
-    diff = est[finite] - ref[finite]
+    if not np.all(np.isfinite(ref)):
+        raise ValueError("reference: contains NaN or inf")
+    return est, ref
+
+
+def _check_threshold(threshold):
+    return V.real(threshold, "threshold", 0.0)
+
+
+def _summary(diff: np.ndarray, threshold: float, prefix: str = "") -> dict:
+    """Statistics of signed errors ``diff`` (finite)."""
+    if diff.size == 0:
+        nan = float("nan")
+        return {f"{prefix}{k}": nan for k in ("rmse", "max_error", "mean_error", "mean_abs_error",
+                                              "leak_fraction", "dark_fraction", "p99_error", "p999_error")}
+    a = np.abs(diff)
+    p99, p999 = np.percentile(a, [99.0, 99.9])
     return {
-        "rmse": float(np.sqrt(np.mean(diff ** 2))) if diff.size else float("nan"),
-        "max_error": float(np.max(np.abs(diff))) if diff.size else float("nan"),
-        "mean_error": float(np.mean(diff)) if diff.size else float("nan"),
+        f"{prefix}rmse": float(np.sqrt(np.mean(diff ** 2))),
+        f"{prefix}max_error": float(a.max()),
+        f"{prefix}mean_error": float(np.mean(diff)),
+        f"{prefix}mean_abs_error": float(np.mean(a)),
+        f"{prefix}leak_fraction": float(np.mean(diff > threshold)),
+        f"{prefix}dark_fraction": float(np.mean(diff < -threshold)),
+        f"{prefix}p99_error": float(p99),
+        f"{prefix}p999_error": float(p999),
+    }
+
+
+def error_stats(estimate, reference, threshold: float = THRESHOLD) -> dict:
+    """Errors of ``estimate`` against ``reference`` (same number of values, any shape).
+
+    Keys: rmse, max_error (max |e|), mean_error (signed mean of e = estimate - reference;
+    > 0: light leaking), mean_abs_error, leak_fraction (share of receivers with
+    e > threshold), dark_fraction (e < -threshold), p99_error and p999_error (99th /
+    99.9th percentile of |e|, linear interpolation), nan_count, inf_count,
+    bounds_violations (estimates outside [0, 1]) and n (all values).  Non-finite
+    estimates are counted and excluded from the error statistics.
+    """
+    est, ref = _pair(estimate, reference)
+    _check_threshold(threshold)
+    finite = np.isfinite(est)
+    out = _summary(est[finite] - ref[finite], float(threshold))
+    out.update({
         "nan_count": int(np.count_nonzero(np.isnan(est))),
         "inf_count": int(np.count_nonzero(np.isinf(est))),
         "bounds_violations": int(np.count_nonzero((est[finite] < 0) | (est[finite] > 1))),
         "n": int(est.size),
-    }
+    })
+    return out
+
+
+def optical_depth(transmittance, floor: float = T_FLOOR) -> np.ndarray:
+    """``-ln max(T, floor)`` (float64): optical depth, capped at ``-ln floor``."""
+    V.real(floor, "floor", 0.0, 1.0, open_min=True, open_max=True)
+    return -np.log(np.maximum(np.asarray(transmittance, np.float64), floor))
+
+
+def optical_depth_error(estimate, reference, floor: float = T_FLOOR, threshold: float = 0.1) -> dict:
+    """Errors in the log domain: ``e_tau = tau(reference) - tau(estimate)`` with
+    ``tau = -ln max(T, floor)`` (so e_tau > 0 is light leaking, as in :func:`error_stats`).
+
+    Both sides are clamped at ``floor`` (default 1e-4), so a receiver where both are
+    below it has no error and the largest possible |e_tau| is ``-ln floor``.  Keys:
+    tau_rmse, tau_max_error, tau_mean_error, tau_mean_abs_error, tau_leak_fraction /
+    tau_dark_fraction (|e_tau| > ``threshold``, default 0.1: about 10 % relative error
+    in T), tau_p99_error, tau_p999_error, tau_floor.
+    """
+    est, ref = _pair(estimate, reference)
+    _check_threshold(threshold)
+    finite = np.isfinite(est)
+    diff = optical_depth(ref[finite], floor) - optical_depth(est[finite], floor)
+    out = _summary(diff, float(threshold), prefix="tau_")
+    out["tau_floor"] = float(floor)
+    return out

@@ -19,12 +19,7 @@ from typing import Optional, Union
 
 import numpy as np
 
-
-def _vec(v, name: str) -> np.ndarray:
-    a = np.asarray(v, dtype=np.float64).reshape(-1)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: expected 3 finite numbers, got {v!r}")
-    return a
+from . import validation as V
 
 
 @dataclass
@@ -34,11 +29,8 @@ class DirectionalLight:
     irradiance: float = 1.0
 
     def __post_init__(self):
-        d = _vec(self.direction, "direction")
-        n = np.linalg.norm(d)
-        if n == 0:
-            raise ValueError("direction: must be non-zero")
-        self.direction = d / n
+        self.direction = V.unit_vector(self.direction, "direction")
+        self.irradiance = V.real(self.irradiance, "irradiance", 0.0)
 
 
 @dataclass
@@ -50,13 +42,10 @@ class SpotLight:
     intensity: float = 1.0
 
     def __post_init__(self):
-        self.position = _vec(self.position, "position")
-        d = _vec(self.direction, "direction")
-        if np.linalg.norm(d) == 0:
-            raise ValueError("direction: must be non-zero")
-        self.direction = d / np.linalg.norm(d)
-        if not (0 < self.fov < 180):
-            raise ValueError(f"fov: must lie in (0, 180) degrees, got {self.fov}")
+        self.position = V.vec3(self.position, "position")
+        self.direction = V.unit_vector(self.direction, "direction")
+        self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
+        self.intensity = V.real(self.intensity, "intensity", 0.0)
 
 
 @dataclass
@@ -66,7 +55,8 @@ class PointLight:
     intensity: float = 1.0
 
     def __post_init__(self):
-        self.position = _vec(self.position, "position")
+        self.position = V.vec3(self.position, "position")
+        self.intensity = V.real(self.intensity, "intensity", 0.0)
 
 
 Light = Union[DirectionalLight, SpotLight, PointLight]

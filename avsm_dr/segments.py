@@ -5,6 +5,19 @@ light-space depths ``z0[i] <= z1[i]`` and holds a uniform density, so its
 transmittance at a depth ``d`` is ``exp(-tau_i * clamp((d - z0_i) / (z1_i - z0_i), 0, 1))``
 with ``tau_i`` the segment's optical depth (``-ln`` of its exit transmittance).
 A zero-length segment is a step at ``z0`` (a receiver at exactly ``z0`` is behind it).
+
+Storage dtype (float32 or float64) limits, checked at :meth:`Segments.from_arrays`:
+every depth, and the depth range ``max z1 - min z0`` (hence every length), must be
+finite in that dtype (``ValueError`` naming ``z0``/``z1`` otherwise; a float32 overflow
+used to become inf and crash or silently corrupt the kernels).  Subnormal depths and
+optical depths (below the dtype's smallest normal number) are stored as 0: Dr.Jit's CPU
+worker threads flush subnormals to zero (denormals-are-zero) while the calling thread
+does not, so they would otherwise give results that depend on the array size
+(measured: a receiver at depth -1.4e-45 behind a step at 0 got T = 1 in a batch of 8,
+T = 0.61 in a batch of 16).  :meth:`Segments.check_depth` applies the same rules to
+other depths (receivers, near/far).  A positive length below :data:`MIN_LENGTH` (2.4e-295,
+only near depth 0 in float64) is stored as a zero-length step: its density would
+overflow float64.
 """
 from __future__ import annotations
 
@@ -21,6 +34,50 @@ from . import backend
 #: ``exp(-1e4)`` is 0 in float32 and float64 alike, and the value stays finite so
 #: that products with zero-length fractions never make NaN.
 OPAQUE_OPTICAL_DEPTH = 1.0e4
+#: Shortest positive segment length (2.4e-295): below it the summed density of up to 2^32
+#: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64 (the DSM polyline
+#: then made NaN slopes and segfaulted).  Such lengths only occur within ~1e-279 of depth
+#: 0 in float64 storage; they are stored as zero-length steps at z0.
+MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
+
+
+_HINT = {"float32": " or use dtype='float64'", "float64": ""}
+
+
+def _np_dtype(dtype: str):
+    return np.float32 if dtype == "float32" else np.float64
+
+
+def check_in_dtype(arr: np.ndarray, name: str, dtype: str) -> np.ndarray:
+    """``arr`` (float64 host values, finite) checked to be finite once stored in
+    ``dtype``; returns it with subnormal values (in ``dtype``) set to 0."""
+    info = np.finfo(_np_dtype(dtype))
+    if arr.size:
+        with np.errstate(over="ignore"):
+            bad = ~np.isfinite(arr.astype(info.dtype))
+        if bad.any():
+            what = (f"{float(arr[0]):g} overflows" if arr.size == 1 else
+                    f"{int(np.count_nonzero(bad))} value(s) overflow (e.g. {float(arr[bad][0]):g})")
+            raise ValueError(f"{name}: {what} the {dtype} storage (|x| <= {float(info.max):.6g}); "
+                             f"rescale the scene{_HINT[dtype]}")
+        tiny = np.abs(arr) < float(info.tiny)
+        if tiny.any():
+            arr = np.where(tiny, 0.0, arr)
+    return arr
+
+
+def check_tiny(arr: np.ndarray, dtype: str) -> np.ndarray:
+    """``arr`` with values below the smallest normal number of ``dtype`` set to 0."""
+    tiny = float(np.finfo(_np_dtype(dtype)).tiny)
+    return np.where(np.abs(arr) < tiny, 0.0, arr) if arr.size else arr
+
+
+def flush_subnormal(x, host_arr: np.ndarray, dtype: str):
+    """Dr.Jit ``x`` (type Float) with its subnormal values set to 0 (AD graph kept)."""
+    tiny = float(np.finfo(_np_dtype(dtype)).tiny)
+    if host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)):
+        return dr.select(dr.abs(x) < tiny, 0.0, x)
+    return x
 
 
 @dataclass(eq=False)
@@ -59,25 +116,43 @@ class Segments:
             raise ValueError("offsets: must be integers starting at 0")
         if np.any(np.diff(off) < 0):
             raise ValueError("offsets: must be non-decreasing")
+        if off[-1] >= 2**32:
+            raise ValueError(f"offsets: {off[-1]:.6g} segments exceed the 2^32 - 1 that UInt32 indices address")
         off = off.astype(np.int64)
         n = int(off[-1])
-        z0h = A.host_1d(z0, "z0")
-        z1h = A.host_1d(z1, "z1")
-        for name, arr in (("z0", z0h), ("z1", z1h)):
-            if arr.size != n:
-                raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
-            A.check_finite(arr, name)
-        if np.any(z1h < z0h):
-            raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
-        if (transmittance is None) == (optical_depth is None):
-            raise ValueError("transmittance: pass exactly one of transmittance= or optical_depth=")
-
         if dtype is None:
             dtype = "float32"
             for x in (z0, z1, transmittance, optical_depth):
                 if A.is_drjit(x) and A.dtype_of(x) == "float64":
                     dtype = "float64"
         Float = A.float_type(dtype)
+        z0h = A.host_1d(z0, "z0")
+        z1h = A.host_1d(z1, "z1")
+        for name, arr in (("z0", z0h), ("z1", z1h)):
+            if arr.size != n:
+                raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
+            A.check_finite(arr, name)
+        z0f = check_in_dtype(z0h, "z0", dtype)
+        z1f = check_in_dtype(z1h, "z1", dtype)
+        if np.any(z1h < z0h):
+            raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
+        if n:   # the depth range (basis spans), hence every length, must be finite in dtype too
+            ft = _np_dtype(dtype)
+            with np.errstate(over="ignore"):
+                span = ft(z1f.max()) - ft(z0f.min())
+            if not np.isfinite(span):
+                raise ValueError(f"z1: the depth range max(z1) - min(z0) = {z1f.max() - z0f.min():.6g} "
+                                 f"overflows the {dtype} storage; rescale the scene{_HINT[dtype]}")
+        if (transmittance is None) == (optical_depth is None):
+            raise ValueError("transmittance: pass exactly one of transmittance= or optical_depth=")
+        z0d = flush_subnormal(A.to_float(z0 if A.is_drjit(z0) else z0f, Float), z0h, dtype)
+        z1d = flush_subnormal(A.to_float(z1 if A.is_drjit(z1) else z1f, Float), z1h, dtype)
+        if n:   # lengths whose density tau / length overflows float64 become steps (docstring)
+            ft = _np_dtype(dtype)
+            length = z1f.astype(ft) - z0f.astype(ft)
+            short = (length > 0) & (length < MIN_LENGTH)
+            if short.any():
+                z1d = dr.select(backend.types().Bool(short), z0d, z1d)
         if transmittance is not None:
             th = A.host_1d(transmittance, "transmittance")
             if th.size != n:
@@ -103,8 +178,11 @@ class Segments:
                 raise ValueError("optical_depth: values must be >= 0 (negative density)")
             if n == 0:
                 return cls(off, Float(), Float(), Float(), dtype)
-            tau = dr.minimum(A.to_float(optical_depth, Float), OPAQUE_OPTICAL_DEPTH)
-        return cls(off, A.to_float(z0, Float), A.to_float(z1, Float), tau, dtype)
+            # clamped on the host first: a value beyond the dtype's range must not become inf
+            tau = A.to_float(optical_depth if A.is_drjit(optical_depth)
+                             else np.minimum(check_tiny(oh, dtype), OPAQUE_OPTICAL_DEPTH), Float)
+            tau = flush_subnormal(dr.minimum(tau, OPAQUE_OPTICAL_DEPTH), oh, dtype)
+        return cls(off, z0d, z1d, tau, dtype)
 
     # ------------------------------------------------------------ properties
     @property
@@ -203,9 +281,40 @@ class Segments:
                        dr.gather(Float, self.optical_depth, idx), self.dtype, True)
         return out
 
+    def check_depth(self, value, name: str):
+        """``value`` (a depth: scalar or 1-D array) checked against the storage dtype:
+        finite there (``ValueError`` naming ``name`` otherwise, e.g. ``far=1e39`` with
+        float32 segments), and with subnormal values set to 0 (module docstring).
+        Returns a Python float for a scalar, a float64 NumPy array otherwise."""
+        arr = A.host(value, name)
+        A.check_finite(arr, name)
+        out = check_in_dtype(np.atleast_1d(arr).ravel(), name, self.dtype).reshape(arr.shape)
+        return float(out) if out.ndim == 0 else out
+
+    def check_depth_range(self, near, far, names=("near", "far")) -> tuple[float, float]:
+        """(near, far) as floats checked with :meth:`check_depth`, and ``far - near``
+        finite in the storage dtype (the basis methods divide by it)."""
+        lo, hi = self.check_depth(near, names[0]), self.check_depth(far, names[1])
+        ft = np.float32 if self.dtype == "float32" else np.float64
+        with np.errstate(over="ignore"):
+            span = ft(hi) - ft(lo)
+        if not np.isfinite(span):
+            raise ValueError(f"{names[1]}: the range {names[1]} - {names[0]} = {hi - lo:.6g} overflows the "
+                             f"{self.dtype} storage")
+        return lo, hi
+
     def select_texels(self, texels) -> "Segments":
-        """A new Segments with only the given texels (in that order)."""
-        texels = np.asarray(texels, dtype=np.int64)
+        """A new Segments with only the given texels (in that order; repeats allowed).
+
+        texels: 1-D non-empty integers in [0, n_texels) (negative indices are refused, not
+        counted from the end)."""
+        arr = A.host(texels, "texels")
+        if arr.ndim != 1 or arr.size == 0:
+            raise ValueError(f"texels: expected a non-empty 1-D array of texel indices, got shape {arr.shape}")
+        A.check_finite(arr, "texels")
+        if np.any(arr != np.round(arr)) or np.any(arr < 0) or np.any(arr >= self.n_texels):
+            raise ValueError(f"texels: indices must be integers in [0, {self.n_texels})")
+        texels = arr.astype(np.int64)
         c = self.counts[texels]
         off = np.concatenate([[0], np.cumsum(c)]).astype(np.int64)
         idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels]) \

@@ -33,22 +33,29 @@ import math
 
 import numpy as np
 
-from . import groundtruth as gt
-from .scene import DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, Scene, SpotLight
+from . import validation as V
+from .capture.camera import orthonormal_basis
+from .groundtruth.content import check_scene, particles_tau, ray_box, ray_sphere, to_light
+from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for, spot_beam_width
+from .groundtruth.tracking import default_step, march, transmittance as gt_transmittance
+from .scene import DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight, Scene, SpotLight
 
-#: Points per chunk when querying a representation (host memory bound).
-CHUNK = 1 << 20
+#: Points per call of a light-transmittance callable (host memory bound; the ground truth
+#: marches at most ``groundtruth.MAX_SAMPLES`` = 2^28 samples per call, ~1000 per point).
+CHUNK = 1 << 18
 
 
 # ================================================================== lighting
 def spot_falloff(light: SpotLight, points) -> np.ndarray:
     """(K,) Mitsuba ``spot`` profile in [0, 1] at ``points`` (K, 3)."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if not isinstance(light, SpotLight):
+        raise ValueError(f"light: expected a SpotLight, got {type(light).__name__}")
+    p = V.points(points, allow_empty=True)
     v = p - light.position
     r = np.linalg.norm(v, axis=1)
     cos = np.where(r > 0, (v @ light.direction) / np.where(r > 0, r, 1.0), 1.0)
     cutoff = math.radians(light.fov / 2)
-    beam = math.radians(gt.spot_beam_width(light))
+    beam = math.radians(spot_beam_width(light))
     ang = np.arccos(np.clip(cos, -1.0, 1.0))
     prof = np.where(cos >= math.cos(beam), 1.0, (cutoff - ang) / (cutoff - beam))
     return np.where(cos > math.cos(cutoff), prof, 0.0)
@@ -56,7 +63,9 @@ def spot_falloff(light: SpotLight, points) -> np.ndarray:
 
 def irradiance(light, points) -> np.ndarray:
     """(K,) unshadowed irradiance E on a surface facing the light at ``points``."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
+        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+    p = V.points(points, allow_empty=True)
     if isinstance(light, DirectionalLight):
         return np.full(p.shape[0], float(light.irradiance))
     r2 = np.sum((p - light.position) ** 2, axis=1)
@@ -75,26 +84,24 @@ def shade_receivers(scene: Scene, transmittance, points=None, normals=None,
     normals (cos = max(0, n . l)); default: the receiver plane's normal, two-sided
     (cos = |n . l|), or cos = 1 (receivers facing the light) without a plane.
     """
-    p = gt.check_points(scene.receivers if points is None else points)
-    T = np.asarray(transmittance, np.float64).reshape(-1)
+    p = V.points(scene.receivers if points is None else points)
+    T = V.array(transmittance, "transmittance").reshape(-1)
     if T.size != p.shape[0]:
         raise ValueError(f"transmittance: length {T.size} does not match {p.shape[0]} points")
-    if not np.all(np.isfinite(T)):
-        raise ValueError("transmittance: contains NaN or inf")
-    if not (np.isfinite(albedo) and albedo >= 0):
-        raise ValueError(f"albedo: must be a finite number >= 0, got {albedo!r}")
-    l = gt._to_light(scene.light, p)
+    albedo = V.real(albedo, "albedo", 0.0)
+    l = to_light(scene.light, p)
     if normals is not None:
-        n = np.asarray(normals, np.float64)
-        n = np.broadcast_to(n.reshape(-1, 3) if n.size != 3 else n.reshape(1, 3), p.shape)
-        if not np.all(np.isfinite(n)):
-            raise ValueError("normals: contains NaN or inf")
-        nn = np.linalg.norm(n, axis=1, keepdims=True)
-        if np.any(nn == 0):
+        n = V.points(normals, "normals")
+        if n.shape[0] not in (1, p.shape[0]):
+            raise ValueError(f"normals: expected (3,) or ({p.shape[0]}, 3), got {n.shape}")
+        n = np.broadcast_to(n, p.shape)
+        m = np.max(np.abs(n), axis=1, keepdims=True)
+        if np.any(m == 0):
             raise ValueError("normals: zero-length normal")
-        cos = np.maximum(np.sum(n / nn * l, axis=1), 0.0)
+        n = n / m                                        # no overflow in the norm
+        cos = np.maximum(np.sum(n / np.linalg.norm(n, axis=1, keepdims=True) * l, axis=1), 0.0)
     elif scene.receiver_plane is not None:
-        _, n, _ = gt._receiver_plane(scene)
+        _, n, _ = receiver_plane(scene)
         cos = np.abs(l @ n)
     else:
         cos = np.ones(p.shape[0])
@@ -103,8 +110,8 @@ def shade_receivers(scene: Scene, transmittance, points=None, normals=None,
 
 # ================================================================ ray casting
 def _hit_plane(o, d, c, n, half):
-    """t (N,) of rays with the square (c, n, half) oriented by plane_basis; inf = miss."""
-    u, v, n = gt.plane_basis(n)
+    """t (N,) of rays with the square (c, n, half) oriented by orthonormal_basis; inf = miss."""
+    u, v, n = orthonormal_basis(n)
     den = d @ n
     ok = np.abs(den) > 1e-300
     t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), np.inf)
@@ -118,11 +125,11 @@ def _hit_blockers(o, d, blockers):
     t = np.full(o.shape[0], np.inf)
     for b in blockers:
         if isinstance(b, OpaqueSphere):
-            t0, t1, hit = gt.ray_sphere(o, d, np.asarray(b.center, np.float64), float(b.radius))
+            t0, t1, hit = ray_sphere(o, d, np.asarray(b.center, np.float64), float(b.radius))
             th = np.where(t0 > 0, t0, t1)
             t = np.where(hit & (th > 0), np.minimum(t, th), t)
         elif isinstance(b, OpaqueBox):
-            t0, t1 = gt.ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
+            t0, t1 = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
             th = np.where(t0 > 0, t0, t1)
             t = np.where((t0 <= t1) & (th > 0), np.minimum(t, th), t)
         elif isinstance(b, OpaquePlane):
@@ -149,15 +156,17 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
     albedo > 0 adds single scattering in the medium (step: march step along view
     rays, default half the smallest voxel side).  See the module docstring.
     """
-    content = gt._check_scene(scene)
-    cam = gt.check_camera(scene, camera)
-    c, n, half = gt.receiver_plane_for(scene, cam)
+    content = check_scene(scene)
+    cam = check_camera(scene, camera)
+    c, n, half = receiver_plane_for(scene, cam)
     if not callable(light_transmittance):
         raise ValueError("light_transmittance: expected a callable points -> T")
-    if not (0 <= albedo <= 1):
-        raise ValueError(f"albedo: must lie in [0, 1], got {albedo!r}")
-    s = int(supersample)
-    o, d = gt.camera_rays(scene, width, height, cam, s)
+    albedo = V.real(albedo, "albedo", 0.0, 1.0)
+    reflectance = V.real(reflectance, "reflectance", 0.0)
+    if step is not None:
+        step = V.real(step, "step", 0.0, open_min=True)
+    s = V.integer(supersample, "supersample", 1)
+    o, d = camera_rays(scene, width, height, cam, s)
     N = o.shape[0]
     t_plane = _hit_plane(o, d, c, n, half)
     t_block = _hit_blockers(o, d, content["blockers"])
@@ -168,7 +177,7 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
     idx = np.nonzero(on_plane)[0]
     if idx.size:
         x = o[idx] + t_plane[idx, None] * d[idx]
-        l = gt._to_light(scene.light, x)
+        l = to_light(scene.light, x)
         n_cam = np.where(((-d[idx]) @ n)[:, None] >= 0, n, -n)
         shade = reflectance / math.pi * irradiance(scene.light, x) * np.maximum(np.sum(n_cam * l, 1), 0.0)
         lit = shade > 0
@@ -188,53 +197,27 @@ def _view_tau(content, o, d, L):
     tau = np.zeros(o.shape[0])
     if content["grid"] is not None:
         g, lo, hi = content["grid"]
-        step = float(np.min((hi - lo) / np.array(g.shape[::-1]))) / 4
-        tau += gt._raymarch(g.astype(np.float64), lo, hi, o, d, L, step)
+        tau += march(g.astype(np.float64), lo, hi, o, d, L, default_step(g, lo, hi, 1 / 4))[0]
     if content["particles"] is not None:
-        tau += gt._particles_tau(content["particles"], o, d, L)
+        tau += particles_tau(content["particles"], o, d, L)
     return tau
 
 
 def _single_scattering(scene, content, o, d, t_end, light_T, albedo, step):
+    """L_ss of the module docstring along view rays [0, t_end] (the ground truth's ray march)."""
     g, lo, hi = content["grid"]
-    g = g.astype(np.float64)
     if step is None:
-        step = float(np.min((hi - lo) / np.array(g.shape[::-1]))) / 2
-    t0, t1 = gt.ray_box(o, d, lo, hi)
-    t0 = np.maximum(t0, 0.0)
-    t1 = np.minimum(t1, t_end)
-    length = np.where(t1 > t0, t1 - t0, 0.0)
-    cnt = np.ceil(length / step).astype(np.int64)
-    h = np.where(cnt > 0, length / np.maximum(cnt, 1), 0.0)
-    out = np.zeros(o.shape[0])
-    rays = np.nonzero(cnt)[0]
-    start = 0
-    while start < rays.size:
-        csum = np.cumsum(cnt[rays[start:]])
-        stop = start + max(1, int(np.searchsorted(csum, CHUNK, side="right")))
-        r = rays[start:stop]
-        k = cnt[r]
-        rid = np.repeat(np.arange(r.size), k)
-        first = np.cumsum(k) - k
-        j = np.arange(k.sum()) - np.repeat(first, k)
-        hh = h[r][rid]
-        t = t0[r][rid] + (j + 0.5) * hh
-        x = o[r][rid] + t[:, None] * d[r][rid]
-        sig = gt._sample(g, lo, hi, x)
-        # view transmittance to the sample: all earlier pieces plus half of its own
-        od = sig * hh
-        cum = np.cumsum(od)
-        before = cum - od - np.repeat(cum[first] - od[first], k)
-        tv = np.exp(-(before + 0.5 * od))
-        e = irradiance(scene.light, x)
-        w = hh * tv * albedo * sig / (4 * math.pi) * e
+        step = default_step(g, lo, hi, 1 / 2)
+
+    def integrand(x, sig, h, tau_view):
+        w = h * np.exp(-tau_view) * albedo * sig / (4 * math.pi) * irradiance(scene.light, x)
         m = w > 0
         T = np.zeros(x.shape[0])
         if m.any():
-            T[m] = np.clip(np.asarray(light_T(x[m]), np.float64).reshape(-1), 0.0, None)
-        out[r] = np.bincount(rid, weights=w * T, minlength=r.size)
-        start = stop
-    return out
+            T[m] = np.clip(_chunked(light_T, x[m]), 0.0, None)
+        return w * T
+
+    return march(g.astype(np.float64), lo, hi, o, d, t_end, step, integrand)[1]
 
 
 def shade_plane(scene: Scene, rep, capture, width: int = 128, height: int = 128,
@@ -242,18 +225,12 @@ def shade_plane(scene: Scene, rep, capture, width: int = 128, height: int = 128,
                 **kw) -> np.ndarray:
     """The :func:`render_plane` image with shadows from representation ``rep``.
 
-    T at a world point = ``rep.eval(*capture.lookup(points))`` (``filter='point'``), or
-    ``rep.eval(coords, depth, filter=..., width=capture.width, height=capture.height)``
-    with ``coords, depth = capture.lookup(points, continuous=True)`` for other filters.
+    T at a world point = ``capture.transmittance(rep, points, filter, radius)`` (1 where
+    the light's map does not reach, see :meth:`avsm_dr.capture.Capture.lookup`).
     Extra keywords go to :func:`render_plane` (supersample, reflectance, albedo, step).
     """
     def light_T(points):
-        if filter == "point":
-            texel, depth = capture.lookup(points)
-            return np.asarray(rep.eval(texel, depth), np.float64)
-        coords, depth = capture.lookup(points, continuous=True)
-        return np.asarray(rep.eval(coords, depth, filter=filter, width=capture.width,
-                                   height=capture.height, radius=radius), np.float64)
+        return np.asarray(capture.transmittance(rep, points, filter=filter, radius=radius), np.float64)
     return render_plane(scene, light_T, width, height, camera, **kw)
 
 
@@ -261,7 +238,7 @@ def groundtruth_plane(scene: Scene, width: int = 128, height: int = 128, camera:
                       step: float | None = None, **kw) -> np.ndarray:
     """:func:`render_plane` with the deterministic ground-truth transmittance (ray march)."""
     def light_T(points):
-        return gt.transmittance(scene, points, method="raymarch", step=step)[0]
+        return gt_transmittance(scene, points, method="raymarch", step=step)[0]
     return render_plane(scene, light_T, width, height, camera, **kw)
 
 
@@ -271,15 +248,12 @@ def compare_images(a, b) -> dict:
 
     Returns dict(rmse, max_abs, mean_abs, rel_rmse = rmse / mean |a|, diff4x = 4 |a - b|).
     """
-    a = np.asarray(a, np.float64)
-    b = np.asarray(b, np.float64)
+    a = V.array(a, "a")
+    b = V.array(b, "b")
     if a.shape != b.shape:
         raise ValueError(f"b: shape {b.shape} does not match a's {a.shape}")
     if a.size == 0:
         raise ValueError("a: empty image")
-    for name, x in (("a", a), ("b", b)):
-        if not np.all(np.isfinite(x)):
-            raise ValueError(f"{name}: contains NaN or inf")
     diff = a - b
     rmse = float(np.sqrt(np.mean(diff ** 2)))
     scale = float(np.mean(np.abs(a)))

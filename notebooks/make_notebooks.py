@@ -1,6 +1,5 @@
 """Regenerate notebooks 01-03 from this source: python notebooks/make_notebooks.py (run from the repo root)."""
 import nbformat as nbf
-from pathlib import Path
 
 def nb(cells, path):
     n = nbf.v4.new_notebook()
@@ -39,7 +38,7 @@ nb([
 
 nb([
 ("md", "# Error analysis: error against memory for every representation\n\nReads the CSV written by `python -m avsm_dr error_curves` (runs the quick version if it is missing) and draws error against bytes per texel, plus what the measurements say about the papers' claims."),
-("code", "import json, os\nfrom pathlib import Path\nimport avsm_dr as ad\nimport matplotlib.pyplot as plt\nfrom avsm_dr.experiments import error_curves\nfrom avsm_dr.experiments._common import read_csv\nSMALL = os.environ.get('AVSM_DR_NOTEBOOK_SMALL') == '1'\nout = Path(os.environ.get('AVSM_DR_RESULTS', 'results')) / ('error_curves_quick' if SMALL else 'error_curves')\nresult = error_curves.run(quick=SMALL, out=out)\nrows = read_csv(result['csv'])\nprint(len(rows), 'rows')"),
+("code", "import json\nimport os\nfrom pathlib import Path\nimport avsm_dr  # noqa: F401  (first: picks Dr.Jit's libLLVM)\nimport matplotlib.pyplot as plt\nfrom avsm_dr.experiments import error_curves\nfrom avsm_dr.experiments._common import read_csv\nSMALL = os.environ.get('AVSM_DR_NOTEBOOK_SMALL') == '1'\nout = Path(os.environ.get('AVSM_DR_RESULTS', 'results')) / ('error_curves_quick' if SMALL else 'error_curves')\nresult = error_curves.run(quick=SMALL, out=out)\nrows = read_csv(result['csv'])\nprint(len(rows), 'rows')"),
 ("code", "scenes = sorted({r['scene'] for r in rows if '_range_' not in r['scene']})\nfig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 3.6), squeeze=False)\nfor ax, s in zip(axes[0], scenes):\n    for m in ['avsm', 'fom', 'osm', 'dsm']:\n        rs = [r for r in rows if r['scene'] == s and r['method'] == m]\n        if rs:\n            ax.loglog([float(r['bytes_per_texel']) for r in rs], [max(float(r['rmse']), 1e-6) for r in rs], 'o-', label=m)\n    ax.set_title(s); ax.set_xlabel('bytes per texel')\naxes[0][0].set_ylabel('RMSE vs exact'); axes[0][0].legend();"),
 ("md", "## The papers' claims, as measured"),
 ("code", "print(json.dumps(json.loads((out / 'findings.json').read_text()), indent=1))"),

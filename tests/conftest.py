@@ -1,4 +1,5 @@
-"""Shared fixtures: backend, JIT state, optional ../shared data."""
+"""Shared fixtures: the Dr.Jit backend (one run per available backend), JIT state,
+optional external data, a seeded RNG."""
 from __future__ import annotations
 
 import os
@@ -6,30 +7,60 @@ from pathlib import Path
 
 import pytest
 
-import avsm_dr as ad  # noqa: F401  (sets DRJIT_LIBLLVM_PATH before drjit loads)
+import avsm_dr as ad  # sets DRJIT_LIBLLVM_PATH before drjit loads
 import drjit as dr
+from avsm_dr import backend as _backend
+
+import toy_kind  # noqa: E402
+
+# A kind defined outside the package, registered at run time: every registry-driven test
+# and experiment sweep picks it up (tests/test_registry.py checks that it does).
+toy_kind.register()
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
+def _params(names):
+    """Backends as pytest params; CUDA ones carry the ``gpu`` marker (``-m 'not gpu'`` skips them)."""
+    return [pytest.param(n, marks=pytest.mark.gpu) if n == "cuda" else n for n in names]
+
+
+BACKENDS = _params(ad.available_backends())
+
+
 @pytest.fixture(autouse=True)
 def _clean_jit():
-    """Each test starts with the default (llvm) backend and leaves no pending JIT state."""
-    yield
-    dr.sync_thread()
+    """Each test leaves the backend choice it found and no pending JIT work behind."""
+    with _backend.use_backend(_backend._current):
+        yield
+        dr.sync_thread()
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request) -> str:
+    """Run the test once per backend of :func:`avsm_dr.available_backends` (LLVM here;
+    LLVM and CUDA on a GPU host), with that backend selected; afterwards the previous
+    backend is restored and the JIT's memory cache flushed (cheap; the kernel cache is
+    kept, since recompiling costs seconds)."""
+    with _backend.use_backend(request.param):
+        yield request.param
+        dr.sync_thread()
+        dr.flush_malloc_cache()
 
 
 @pytest.fixture
 def shared_dir() -> Path:
-    """../shared beside the checkout; tests using it skip cleanly when absent."""
+    """Optional external data folder (``$AVSM_DR_SHARED``, default: ``shared`` beside the
+    checkout); tests using it skip cleanly when it is absent."""
     path = Path(os.environ.get("AVSM_DR_SHARED", SHARED))
     if not path.is_dir():
-        pytest.skip("../shared is not present")
+        pytest.skip(f"external data folder {path} is not present")
     return path
 
 
 @pytest.fixture
 def rng():
+    """numpy Generator with a fixed seed (12345)."""
     import numpy as np
     return np.random.default_rng(12345)

@@ -1,4 +1,5 @@
-"""Area lights: imperfect voxelized shadow volumes (avsm_dr.area_lights, seed 002).
+"""Area lights: imperfect voxelized shadow volumes (avsm_dr.area_lights;
+Wyman and Dai 2013, "Imperfect Voxelized Shadow Volumes", HPG).
 
 References: tests/reference/area_lights_ref.py (float64 NumPy, independent), an
 adaptive-quadrature single-scattering integral, and Mitsuba 3 volpath (marker mitsuba).
@@ -191,7 +192,7 @@ def test_grid_contains_every_occluder_point():
 # ------------------------------------------------------------------------ interpolation
 @pytest.mark.parametrize("method", ["imperfect", "naive_voxel"])
 def test_boundary_interpolation_equals_bilinear_everywhere(method):
-    """Seed 002: interpolating only at shadow boundaries gives the same Riemann sum as
+    """Wyman and Dai 2013: interpolating only at shadow boundaries gives the same Riemann sum as
     interpolating at every step (the other terms cancel).  float32: 1e-5 of the max."""
     scene = small_scene(16, 16)
     kw = dict(vpls=9, resolution=24, steps=64)
@@ -274,8 +275,8 @@ def test_render_rejects_bad_arguments(kwargs, name):
     (lambda: al.QuadLight([0, 1, 0], [1, 0, 0], [0, 0, 1], radiance=-1), "radiance"),
     (lambda: al.Sphere([0, 0, 0], 0.0), "radius"),
     (lambda: al.Box([0, 0, 0], [1, -1, 1]), "max"),
-    (lambda: al.Camera([0, 0, 0], [0, 0, -1], width=0), "width"),
-    (lambda: al.Camera([0, 0, 0], [0, 0, -1], fov=180), "fov"),
+    (lambda: al.PinholeCamera([0, 0, 0], [0, 0, -1], width=0), "width"),
+    (lambda: al.PinholeCamera([0, 0, 0], [0, 0, -1], fov=180), "fov"),
 ])
 def test_scene_objects_reject_bad_arguments(make, name):
     with pytest.raises(ValueError, match=name):
@@ -287,7 +288,7 @@ def test_scene_rejects_occluder_behind_the_light_and_camera_outside():
     with pytest.raises(ValueError, match="occluders"):
         al.AreaLightScene(s.medium, s.light, s.camera, s.bounds, [al.Sphere([0, 2.3, 0], 0.05)])
     with pytest.raises(ValueError, match="camera"):
-        cam = al.Camera([0, 1, 5], [0, 1, 0], width=4, height=4)
+        cam = al.PinholeCamera([0, 1, 5], [0, 1, 0], width=4, height=4)
         al.AreaLightScene(s.medium, s.light, cam, s.bounds, [])
     with pytest.raises(ValueError, match="spp"):
         al.render_mitsuba(s, spp=0)

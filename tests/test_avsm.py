@@ -1,4 +1,4 @@
-"""AVSM kernel against the plain-Python reference (seed 000 sec. 3-4) and its properties."""
+"""AVSM kernel against the plain-Python reference (Salvi et al. 2010, secs. 3-4) and its properties."""
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st, HealthCheck

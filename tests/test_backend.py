@@ -1,13 +1,22 @@
-"""libLLVM discovery and backend choice."""
+"""libLLVM discovery, import order (drjit before or after avsm_dr) and backend choice."""
+import glob
+import os
+import subprocess
+import sys
+
+import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr import _llvm, backend
+import drjit as dr
+from avsm_dr import _llvm
+from avsm_dr import backend as backend_mod
 
 
 def test_libllvm_found_and_recent():
-    assert _llvm.LIBLLVM is not None
+    assert _llvm.LIBLLVM is not None and _llvm.PROBLEM == ""
     assert (_llvm._major_version(_llvm.LIBLLVM) or 99) >= 16
+    assert dr.detail.llvm_version()[0] >= 16
 
 
 @pytest.mark.parametrize("name, version", [
@@ -18,8 +27,83 @@ def test_version_from_file_name(name, version):
 
 def test_llvm_backend_refused_without_good_libllvm(monkeypatch):
     monkeypatch.setattr(_llvm, "LIBLLVM", None)
+    monkeypatch.setattr(_llvm, "PROBLEM", "")
     with pytest.raises(RuntimeError, match="libllvm19"):
-        backend.set_backend("llvm")
+        backend_mod.set_backend("llvm")
+    monkeypatch.setattr(_llvm, "PROBLEM", "drjit was imported before avsm_dr and loaded libLLVM 15.0.6")
+    with pytest.raises(RuntimeError, match="imported before avsm_dr"):
+        backend_mod.set_backend("llvm")
+
+
+def test_problem_names_the_cause():
+    good = "/usr/lib/libLLVM.so.19.1"
+    assert _llvm.problem((19, 1, 7), True, None, good) == ""
+    order = _llvm.problem((15, 0, 6), True, None, good)
+    assert "drjit was imported before avsm_dr" in order and "libLLVM 15.0.6" in order
+    assert "import order is the cause" in order and f"DRJIT_LIBLLVM_PATH={good}" in order
+    assert "no libLLVM" in _llvm.problem((-1, -1, -1), True, None, None)
+    assert "libllvm19" in _llvm.problem((-1, -1, -1), True, None, None)          # nothing to point at
+    user = _llvm.problem((15, 0, 6), False, "/x/libLLVM-15.so.1", good)
+    assert "DRJIT_LIBLLVM_PATH=/x/libLLVM-15.so.1" in user and "import order" not in user
+    assert _llvm.problem((15, 0, 6), False, None, None) == _llvm.INSTALL_HINT
+
+
+_PROBE = """
+import os, sys
+first = sys.argv[1]
+if first == "drjit":
+    import drjit as dr
+    import avsm_dr as ad
+else:
+    import avsm_dr as ad
+    import drjit as dr
+import numpy as np
+from avsm_dr import _llvm
+seg = ad.Segments.from_arrays(np.array([0, 2]), np.array([0.1, 0.3]), np.array([0.2, 0.4]),
+                              optical_depth=np.array([0.5, 0.25]))
+T = ad.build("avsm", seg, nodes=2).eval(np.array([0]), np.array([1.0]))   # dr.maximum inside
+print(ad.get_backend(), _llvm.DRJIT_IMPORTED_FIRST, dr.detail.llvm_version()[0], float(T[0]))
+"""
+
+
+def _probe(first: str, env=None):
+    e = {k: v for k, v in os.environ.items() if k != "DRJIT_LIBLLVM_PATH"}
+    e.update(env or {})
+    return subprocess.run([sys.executable, "-c", _PROBE, first], capture_output=True, text=True,
+                          timeout=300, env=e)
+
+
+@pytest.mark.parametrize("first", ["avsm_dr", "drjit"])
+def test_either_import_order_works(first):
+    """drjit imported first keeps its own libLLVM choice (LLVM 19 on this machine) and
+    avsm_dr accepts it instead of reporting a missing libLLVM."""
+    out = _probe(first)
+    if first == "drjit" and out.returncode != 0 and "import order is the cause" in out.stderr:
+        pytest.skip("Dr.Jit's own search picks an LLVM < 16 on this machine (the next test covers the error)")
+    assert out.returncode == 0, out.stderr
+    name, drjit_first, major, T = out.stdout.split()
+    assert name == "llvm" and drjit_first == str(first == "drjit") and int(major) >= 16
+    assert float(T) == pytest.approx(np.exp(-0.75), rel=1e-6)
+
+
+def test_drjit_first_with_old_llvm_names_the_import_order():
+    """Dr.Jit picking LLVM 15 by itself (simulated: DRJIT_LIBLLVM_PATH set for its import,
+    then removed before avsm_dr looks): the error names the import order as the cause."""
+    old = sorted(p for pattern in _llvm._SEARCH_PATTERNS for p in glob.glob(pattern)
+                 if (_llvm._major_version(p) or 99) < 16)
+    if not old:
+        pytest.skip("no libLLVM < 16 on this machine to simulate the failure with")
+    code = (f"import os; os.environ['DRJIT_LIBLLVM_PATH'] = {old[0]!r}\n"
+            "import drjit\n"
+            "del os.environ['DRJIT_LIBLLVM_PATH']\n"
+            "import avsm_dr as ad\n"
+            "assert 'llvm' not in ad.available_backends()\n"
+            "ad.set_backend('llvm')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={k: v for k, v in os.environ.items() if k != "DRJIT_LIBLLVM_PATH"})
+    assert out.returncode != 0
+    assert "drjit was imported before avsm_dr" in out.stderr and "import order is the cause" in out.stderr
+    assert "RuntimeError" in out.stderr and "Cannot select" not in out.stderr      # refused, not aborted
 
 
 def test_set_backend_validates_name():
@@ -27,3 +111,23 @@ def test_set_backend_validates_name():
         ad.set_backend("metal")
     ad.set_backend("llvm")
     assert ad.get_backend() == "llvm"
+
+
+def test_use_backend_restores_the_previous_choice():
+    ad.set_backend("llvm")
+    with backend_mod.use_backend("llvm") as name:
+        assert name == "llvm" and ad.get_backend() == "llvm"
+    with backend_mod.use_backend(None):
+        assert backend_mod._current is None
+    assert backend_mod._current == "llvm"
+
+
+def test_backend_fixture_selects_each_available_backend(backend):
+    """The contract-test fixture: one run per available backend, that backend selected and
+    its types used by the kernels."""
+    assert backend in ad.available_backends() and ad.get_backend() == backend
+    seg = ad.Segments.from_arrays(np.array([0, 1]), np.array([0.1]), np.array([0.2]),
+                                  optical_depth=np.array([0.5]))
+    T = ad.build("exact", seg).eval(np.array([0]), np.array([1.0]))
+    assert dr.backend_v(T) == (dr.JitBackend.CUDA if backend == "cuda" else dr.JitBackend.LLVM)
+    assert float(T[0]) == pytest.approx(np.exp(-0.5), rel=1e-6)

@@ -604,6 +604,8 @@ def _scene(**kw):
     ({}, {"step": 0.0}, "step"),
     ({}, {"step": float("nan")}, "step"),
     ({}, {"epsilon": 1.0}, "epsilon"),
+    ({}, {"method": "simpson"}, "method"),
+    ({}, {"method": "exact", "step": 0.01}, "step"),
     ({"density": None, "particles": Particles(np.zeros((2, 3)), np.ones(3), np.ones(2))}, {}, "particles.radii"),
     ({"density": None, "particles": Particles(np.zeros((2, 3)), np.ones(2), -np.ones(2))}, {}, "particles.density"),
     ({"density": None, "hair": Hair(np.zeros((3, 1, 3)), 0.1)}, {}, "hair.strands"),

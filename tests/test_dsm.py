@@ -256,6 +256,83 @@ def test_property_error_bound(seed, tol, placement):
 
 
 # ----------------------------------------------------------------------------
+# the bound at the float resolution: curves that drop within an ulp (issue 11, item 7)
+# ----------------------------------------------------------------------------
+def ulp_depths(z0, z1, dtype, ulps=6):
+    """dense_depths plus the first ``ulps`` representable depths after every breakpoint
+    (where a sub-ulp opaque segment drops)."""
+    d = dense_depths(z0, z1, dtype).astype(dtype)
+    bps = np.unique(np.r_[z0, z1]).astype(dtype)
+    more = [bps]
+    for _ in range(ulps):
+        more.append(np.nextafter(more[-1], dtype(np.inf)))
+    d = np.r_[d, np.concatenate(more)]
+    d[np.abs(d) < np.finfo(dtype).tiny] = 0      # eval reads subnormal depths as 0 (Segments)
+    return np.unique(d).astype(np.float64)
+
+
+def check_bound_at_ulps(data, dtype, placement, tol):
+    """|DSM - V| <= tol + slack at dense depths and every few ulps after a breakpoint, V
+    the float64 direct sum over the stored (dtype-rounded) segments at the same depths."""
+    seg = make_seg(data, dtype)
+    h = seg.numpy()
+    rep = ad.build("dsm", seg, tolerance=tol, placement=placement)
+    np_dt = np.float32 if dtype == "float32" else np.float64
+    for t in range(seg.n_texels):
+        s = slice(h["offsets"][t], h["offsets"][t + 1])
+        if s.stop == s.start:
+            continue
+        d = ulp_depths(h["z0"][s], h["z1"][s], np_dt)
+        T = np.asarray(rep.eval(np.full(d.size, t), d), np.float64)
+        V = dsm_ref.exact_curve(h["z0"][s], h["z1"][s], h["optical_depth"][s], d)
+        err = np.abs(T - V)
+        assert err.max() <= tol + SLACK[dtype], (dtype, placement, t, err.max(), d[err.argmax()])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("placement", PLACEMENTS)
+def test_opaque_segment_shorter_than_an_ulp_of_its_depth(placement, dtype):
+    """An opaque segment of [1, 1.00005] (float32: 420 ulps, the curve drops within the
+    first) and [1e6, 1e6 + 4] (float32: 64 ulps): every level crossing rounded onto z0
+    used to be dropped, leaving the chord from (z0, 1) to (z1, 0) (T = 0.8 / 0.6 / 0.2 at
+    1.00001 / 1.00002 / 1.00004, exact 0).  Float64: [1e6, 1e6 + 1e-9] (9 ulps)."""
+    tol = 0.01
+    cases = [(1.0, 1.00005, [1.00001, 1.00002, 1.00004]), (1e6, 1e6 + 4, [1e6 + 0.5, 1e6 + 2])]
+    if dtype == "float64":
+        cases.append((1e6, 1e6 + 1e-9, [1e6 + 2.5e-10, 1e6 + 5e-10]))
+    for z0, z1, depths in cases:
+        data = _pack([([z0], [z1], [1e4])])
+        rep = ad.build("dsm", make_seg(data, dtype), tolerance=tol, placement=placement)
+        T = np.asarray(rep.eval([0] * len(depths), depths))
+        assert np.all(T <= tol), (z0, T)
+        check_bound_at_ulps(data, dtype, placement, tol)
+
+
+def _adversarial_texel():
+    """1-3 segments at one depth offset (up to 3e7, beyond float32's integer range):
+    lengths from 0 to a few units down to sub-ulp, optical depths up to opaque."""
+    seg = st.tuples(st.floats(0, 4), st.sampled_from([0.0, 1e-12, 1e-9, 1e-7, 1e-5, 1e-3, 0.1, 4.0]),
+                    st.floats(0, 1), st.sampled_from([0.0, 1e-3, 0.5, 5.0, 60.0, 1e4]))
+    return st.tuples(st.sampled_from([0.0, -1.0, 1.0, 1e3, 1e6, -1e6, 3e7]),
+                     st.lists(seg, min_size=1, max_size=3))
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(texels=st.lists(_adversarial_texel(), min_size=1, max_size=3),
+       dtype=st.sampled_from(DTYPES), placement=st.sampled_from(PLACEMENTS),
+       tol=st.sampled_from([0.1, 0.01, 1e-3]))
+def test_property_error_bound_adversarial_texels(texels, dtype, placement, tol):
+    """|DSM - V| <= tolerance for tiny segments at large offsets and opaque ones, in both
+    dtypes, at dense depths and every ulp just after each breakpoint."""
+    packed = []
+    for offset, segs in texels:
+        z0 = [offset + a for a, _, _, _ in segs]
+        z1 = [offset + a + length * u for a, length, u, _ in segs]
+        packed.append((z0, z1, [tau for *_, tau in segs]))
+    check_bound_at_ulps(_pack(packed), dtype, placement, tol)
+
+
+# ----------------------------------------------------------------------------
 # gradients (placement='curve': node values on the exact curve, depths held fixed)
 # ----------------------------------------------------------------------------
 def test_curve_gradients_match_finite_differences(rng):
@@ -313,6 +390,39 @@ def test_midslope_is_marked_not_differentiable(rng):
     seg = make_seg(random_segments(rng, texels=4, max_count=5), "float32")
     assert not ad.build("dsm", seg).differentiable
     assert ad.build("dsm", seg, placement="curve").differentiable
+
+
+def test_midslope_gradient_request_names_the_differentiable_option():
+    """dr.backward through a midslope DSM gave Dr.Jit's generic 'does not depend on the
+    input' message; it now says why and names placement='curve' (forward mode too)."""
+    F = backend.types().Float
+    t = F([1.0, 0.5])
+    dr.enable_grad(t)
+    seg = ad.Segments.from_arrays([0, 2], [0.0, 0.4], [0.5, 0.9], optical_depth=t)
+    T = ad.build("dsm", seg).eval([0, 0], [0.3, 0.7])
+    np.testing.assert_allclose(np.asarray(T), np.asarray(ad.build("dsm", make_seg(
+        _pack([([0.0, 0.4], [0.5, 0.9], [1.0, 0.5])]), "float32")).eval([0, 0], [0.3, 0.7])))
+    with pytest.raises(ValueError, match="^placement: 'midslope'.*placement='curve'"):
+        dr.backward(dr.sum(T))
+    dr.set_grad(t, F([1.0, 1.0]))
+    with pytest.raises(ValueError, match="^placement:"):
+        dr.forward_to(ad.build("dsm", seg).eval([0], [0.3]))
+
+
+def test_polyline_beyond_the_memory_budget_is_refused(monkeypatch):
+    """tolerance=1e-9 on texels that go opaque: 44,727 levels, ~2.9 MB per texel (a 256^2
+    map would need ~190 GB).  The bound 2 B + crossings is checked before allocating; the
+    message names the tolerance that fits, and that tolerance builds."""
+    from avsm_dr.representations import dsm
+    T = 64
+    seg = ad.Segments.from_arrays(np.arange(T + 1), np.zeros(T), np.ones(T), optical_depth=np.full(T, 30.0))
+    monkeypatch.setattr(dsm, "MEMORY_BUDGET_BYTES", 64 * 20_000 * dsm.BYTES_PER_VERTEX)
+    with pytest.raises(ValueError, match=r"^tolerance: 1e-09 needs a polyline of up to [\d,]+ vertices") as e:
+        ad.build("dsm", seg, tolerance=1e-9)
+    fits = float(str(e.value).split("tolerance >= ")[1].split(" fits")[0])
+    rep = ad.build("dsm", seg, tolerance=fits * 1.1)
+    assert rep.n_polyline_vertices.sum() * dsm.BYTES_PER_VERTEX <= dsm.MEMORY_BUDGET_BYTES
+    assert dsm.transmittance_levels(0.25e-9).size == 44727
 
 
 # ----------------------------------------------------------------------------

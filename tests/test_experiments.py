@@ -1,49 +1,224 @@
-"""Every experiment runs in --quick mode and writes its CSV (with the documented columns),
-figures and meta.json; the CLI dispatches to it."""
-import csv
+"""Every experiment runs in --quick mode through the CLI and writes its CSV (with the
+documented columns), figures and meta.json into its own ``<--out>/<name>/`` folder; the
+results cache is keyed on parameters, package source and versions; the CLI reports a bad
+``--out`` in one line; the recipes in ``experiments/`` call existing experiments."""
 import json
+import re
+import shlex
+import subprocess
+import sys
+import types
+from pathlib import Path
 
+import drjit as dr
 import pytest
 
 from avsm_dr import cli
+from avsm_dr.experiments import _common
 
+ROOT = Path(__file__).resolve().parents[1]
 ERROR_COLUMNS = {"scene", "method", "param", "bytes_per_texel", "rmse", "max_error"}
 EXPERIMENTS = ["error_curves", "runtime_vs_error", "curves", "images", "stress", "ordering", "bench",
-               "inverse", "backward_cost"]
+               "bench_capture", "inverse", "backward_cost"]
 
 
 def _rows(path):
-    with open(path) as fh:
-        return list(csv.DictReader(fh))
+    return _common.read_csv(path)
+
+
+@pytest.fixture(scope="module")
+def shared_out(tmp_path_factory):
+    """One ``--out`` for every experiment of this module: none may touch another's files."""
+    return tmp_path_factory.mktemp("results")
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_quick_experiment_writes_results(name, tmp_path):
+def test_quick_experiment_writes_results(name, shared_out):
     assert name in cli.experiment_names()
-    assert cli.main([name, "--quick", "--out", str(tmp_path)]) == 0
-    rows = _rows(tmp_path / "data.csv")
+    assert cli.main([name, "--quick", "--out", str(shared_out)]) == 0
+    out = shared_out / name
+    rows = _rows(out / "data.csv")
     assert rows, "empty CSV"
-    meta = json.loads((tmp_path / "meta.json").read_text())
-    assert meta["params"]["quick"] is True
-    assert list(tmp_path.glob("*.png")), "no figure written"
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["params"]["quick"] is True and meta["experiment"] == name
+    assert meta["drjit"] == dr.__version__ and meta["numpy"] and meta["backend"] and meta["machine"]
+    assert "git_commit" in meta and meta["cache_key"] == _common.cache_key()
+    assert list(out.glob("*.png")), "no figure written"
+    # experiments sharing --out keep to their own folders
+    assert not [p for p in shared_out.iterdir() if p.is_file()]
+    for sub in shared_out.iterdir():
+        if (sub / "meta.json").exists():
+            assert json.loads((sub / "meta.json").read_text())["experiment"] == sub.name
     if name == "error_curves":
         assert ERROR_COLUMNS <= set(rows[0])
         assert {r["method"] for r in rows} >= {"exact", "avsm", "fom", "osm", "dsm"}
         assert all(r["method"] == r["method"].lower() for r in rows)
-        assert (tmp_path / "findings.json").exists()
+        assert (out / "findings.json").exists()
     if name == "stress":
         cols = set(rows[0])
         assert any("nan" in c for c in cols) and any("inf" in c for c in cols)
         assert sum(int(r["nan_count"]) + int(r["inf_count"]) for r in rows) == 0
         assert sum(int(r["bounds_violations"]) for r in rows) == 0
+        checks = _rows(out / "reliability.csv")          # hostile input: refused or right
+        assert len(checks) >= 10 and sum(int(r["failures"]) for r in checks) == 0, checks
     if name == "ordering":
         sorted_rows = [r for r in rows if r["sorted"] == "True"]
         assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
+    if name == "bench_capture":
+        assert [r["case"] for r in rows] == ["tight", "4x per axis", "4x volume"]
+        assert float(rows[0]["ratio_capture"]) == 1.0
+        assert all(int(r["segments"]) > 0 and float(r["capture_s"]) > 0 for r in rows)
     # a second run with the same parameters reuses the results
-    again = __import__(f"avsm_dr.experiments.{name}", fromlist=["run"]).run(quick=True, out=tmp_path)
+    again = __import__(f"avsm_dr.experiments.{name}", fromlist=["run"]).run(quick=True, out=out)
     assert again.get("cached") is True
 
 
 def test_unknown_experiment_is_rejected(capsys):
     with pytest.raises(SystemExit):
         cli.main(["no_such_experiment"])
+
+
+# ------------------------------------------------------------------ results cache
+def _toy_results(tmp_path, name="toy"):
+    res = _common.Results(name, tmp_path / name, quick=True, params={"n": 3})
+    res.write_csv([{"x": 1.0}])
+    res.write_meta({"ok": True})
+    return res
+
+
+def test_cache_key_includes_source_and_versions(tmp_path, monkeypatch):
+    """Cached results are reused only with the same source hash, versions and backend."""
+    res = _toy_results(tmp_path)
+    assert res.cached() == {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    assert res.cached(force=True) is None
+    assert _common.Results("toy", res.dir, True, {"n": 4}).cached() is None          # other parameters
+    with monkeypatch.context() as m:
+        m.setattr(_common, "source_hash", lambda: "0" * 16)                          # the code changed
+        assert _common.Results("toy", res.dir, True, {"n": 3}).cached() is None
+    with monkeypatch.context() as m:
+        installed = _common.versions()
+        m.setattr(_common, "versions", lambda: dict(installed, numpy="0.0"))        # a library changed
+        assert _common.Results("toy", res.dir, True, {"n": 3}).cached() is None
+    assert _common.Results("toy", res.dir, True, {"n": 3}).cached() is not None
+
+
+def test_source_hash_covers_the_package():
+    h = _common.source_hash()
+    assert re.fullmatch(r"[0-9a-f]{16}", h) and h == _common.source_hash()
+    assert (_common.PACKAGE_DIR / "experiments" / "_common.py").exists()
+
+
+def test_meta_records_provenance(tmp_path):
+    meta = json.loads((_toy_results(tmp_path).dir / "meta.json").read_text())
+    from importlib import metadata
+    assert meta["mitsuba"] == metadata.version("mitsuba")
+    assert meta["drjit"] == dr.__version__
+    assert meta["git_commit"] is None or re.fullmatch(r"[0-9a-f]{40}", meta["git_commit"])
+    assert meta["cache_key"]["source"] == _common.source_hash()
+    assert meta["backend"] == meta["cache_key"]["backend"]
+
+
+def test_versions_do_not_import_mitsuba():
+    code = ("import avsm_dr, sys; from avsm_dr.experiments._common import versions; v = versions(); "
+            "print('mitsuba' in sys.modules, v['mitsuba'] is not None)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert out.stdout.split() == ["False", "True"]
+
+
+def test_git_commit_fails_gracefully(monkeypatch, tmp_path):
+    monkeypatch.setattr(_common, "PACKAGE_DIR", tmp_path)                 # not a git checkout
+    assert _common.git_commit() is None
+
+    def no_git(*a, **k):
+        raise FileNotFoundError("git")
+    monkeypatch.setattr(_common.subprocess, "run", no_git)
+    assert _common.git_commit() is None
+
+
+def test_results_refuse_another_experiments_folder(tmp_path):
+    res = _toy_results(tmp_path, "first")
+    with pytest.raises(ValueError, match="^out: .*'first'"):
+        _common.Results("second", res.dir, True, {})
+    with pytest.raises(ValueError, match="^out:"):
+        _common.Results("second", "", True, {})
+    with pytest.raises(ValueError, match="^out: .*file"):
+        _common.Results("second", res.dir / "data.csv", True, {})
+
+
+# ------------------------------------------------------------------------- CLI
+def test_experiments_sharing_out_keep_their_own_folders(tmp_path, monkeypatch, capsys):
+    """Two experiments into one --out: each writes <out>/<name>/, neither touches the other."""
+    def make(name, value):
+        def run(quick=False, out=None, force=False):
+            res = _common.Results(name, out, quick, {})
+            if (hit := res.cached(force)) is not None:
+                return hit
+            csv = res.write_csv([{"value": value}])
+            import matplotlib
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+            res.save_figure(plt.figure(), f"{name}.png")
+            res.write_meta()
+            return {"csv": str(csv), "out": str(res.dir)}
+        return types.SimpleNamespace(run=run)
+
+    for name, value in (("toy_a", 1), ("toy_b", 2)):
+        monkeypatch.setitem(sys.modules, f"avsm_dr.experiments.{name}", make(name, value))
+    monkeypatch.setattr(cli, "experiment_names", lambda: ["toy_a", "toy_b"])
+    assert cli.main(["toy_a", "--out", str(tmp_path)]) == 0
+    assert cli.main(["toy_b", "--out", str(tmp_path)]) == 0
+    assert _rows(tmp_path / "toy_a" / "data.csv") == [{"value": "1"}]
+    assert _rows(tmp_path / "toy_b" / "data.csv") == [{"value": "2"}]
+    assert sorted(p.name for p in (tmp_path / "toy_a").glob("*.png")) == ["toy_a.png"]
+    assert sorted(p.name for p in (tmp_path / "toy_b").glob("*.png")) == ["toy_b.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["toy_a", "toy_b"]
+    # a folder holding another experiment's results is refused in one line (exit 2)
+    (tmp_path / "toy_a" / "toy_b").mkdir()
+    (tmp_path / "toy_a" / "toy_b" / "meta.json").write_text(json.dumps({"experiment": "toy_a"}))
+    capsys.readouterr()
+    assert cli.main(["toy_b", "--out", str(tmp_path / "toy_a")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("avsm_dr: error: --out:")
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "avsm_dr", *args], capture_output=True, text=True, timeout=300,
+                          cwd=ROOT)
+
+
+@pytest.mark.parametrize("case", ["empty", "file", "under_file", "proc"])
+def test_bad_out_is_a_one_line_error(tmp_path, case):
+    """An empty, file-valued or unwritable --out: one line on stderr, exit status 2, no traceback
+    and nothing written."""
+    f = tmp_path / "a_file"
+    f.write_text("keep")
+    out = {"empty": "", "file": str(f), "under_file": str(f / "sub"), "proc": "/proc/avsm_dr_no_such_dir"}[case]
+    p = _cli("curves", "--quick", "--out", out)
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and p.stderr.count("\n") == 1, p.stderr
+    assert p.stderr.startswith("avsm_dr: error: --out"), p.stderr
+    assert f.read_text() == "keep" and sorted(x.name for x in tmp_path.iterdir()) == ["a_file"]
+
+
+# ---------------------------------------------------------------------- recipes
+def _recipe_calls():
+    calls = []
+    for script in sorted((ROOT / "experiments").glob("*.sh")):
+        for line in script.read_text().splitlines():
+            if line.startswith("python -m avsm_dr "):
+                calls.append((script.name, [a for a in shlex.split(line)[3:] if a != "$@"]))
+    return calls
+
+
+def test_recipes_call_existing_experiments():
+    """Each recipe line parses with the CLI's own parser, and every experiment has a recipe."""
+    calls = _recipe_calls()
+    assert calls
+    parser = cli.parser()
+    used = set()
+    for script, args in calls:
+        ns = parser.parse_args(args)
+        assert ns.out == "${OUT:-results}", script
+        used.add(ns.experiment)
+    assert used == set(cli.experiment_names())
+    assert not list((ROOT / "experiments").glob("*.py")), "recipes call the CLI, they do not wrap it"

@@ -1,7 +1,7 @@
 """Gradients end to end: density grid (or particle densities) -> capture -> representation
 -> transmittance at receivers -> loss, against central finite differences in float64;
 reverse vs forward mode; loop bounds; checkpointed / recomputed reverse paths; the
-inverse problem's building blocks (avsm_dr.inverse, avsm_dr.checkpoint).
+inverse problem's building blocks (avsm_dr.reconstruction, avsm_dr.representations._loops).
 
 Tolerances (float64 throughout, eps = 1e-6 central differences): truncation
 O(eps^2 |f'''|) ~ 1e-12 and cancellation ~ 1e-16 |f| / eps ~ 1e-10 |f| with |f| <= 10,
@@ -9,13 +9,16 @@ so |g - fd| <= 1e-7 + 1e-6 |fd|.  Reverse vs forward mode: same arithmetic in an
 order, rtol 1e-9.
 """
 import copy
+import math
 
 import numpy as np
 import pytest
 
 import avsm_dr as ad
 import drjit as dr
-from avsm_dr import backend, checkpoint as ck, inverse as inv
+from avsm_dr import backend, reconstruction as inv
+from avsm_dr.testing import check_gradients
+from avsm_dr.representations import _loops as ck
 from avsm_dr.representations.exact import Exact
 from avsm_dr.scene import DirectionalLight, Particles, Scene
 
@@ -49,16 +52,15 @@ def _tensor(d, grad=False):
 # ----------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", KINDS)
 def test_grid_gradients_match_finite_differences(kind):
+    """Reverse mode against central differences (4 largest |g| + 4 random voxels) and
+    against forward mode along a random direction (avsm_dr.testing.check_gradients)."""
     rng = np.random.default_rng(7)
     scene, dens = _scene(rng)
     w = rng.normal(size=scene.receivers.shape[0])
-    x = _tensor(dens, grad=True)
-    L, sh = _loss(scene, x, kind, w)
+    L, sh = _loss(scene, _tensor(dens), kind, w)
     assert sh.capture.segments.dtype == "float64"
-    dr.backward(L)
-    g = np.asarray(dr.grad(x).numpy())
-    assert np.all(np.isfinite(g)) and np.abs(g).max() > 1e-3
 
+    primal = accept = None
     if kind == "dsm":
         # node depths held fixed: the primal of the same layout with values on the exact curve
         base = sh.rep
@@ -66,45 +68,27 @@ def test_grid_gradients_match_finite_differences(kind):
         tex = np.repeat(np.arange(base.n_texels), base.node_counts)
         zn = np.asarray(dr.detach(base.node_depth).numpy())
 
-        def f(d):
+        def primal(d):
             s = inv.shadow(scene, _tensor(d), kind="exact", resolution=64, epsilon=1e-12)
             rep = copy.copy(base)
             rep.node_value = Exact(s.capture.segments).eval(tex, zn)
             T = s.capture.transmittance(rep, scene.receivers)
             return float(dr.sum(T * T64.Float64(w))[0])
-        assert f(dens) == pytest.approx(L[0], abs=1e-12)
-    else:
-        def f(d):
-            return float(_loss(scene, _tensor(d), kind, w)[0][0])
+        assert primal(dens) == pytest.approx(L[0], abs=1e-12)
+    elif kind == "avsm":
+        def layout(d):
+            rep = _loss(scene, _tensor(d), kind, w)[1].rep
+            return [np.asarray(a.numpy()) for a in rep.depths] + [rep.used]
+        base_layout = layout(dens)
 
-    def layout(d):
-        rep = _loss(scene, _tensor(d), kind, w)[1].rep
-        return [np.asarray(a.numpy()) for a in rep.depths] + [rep.used] if kind == "avsm" else []
+        def accept(dp, dm):                                          # FD straddles a layout change?
+            return all(np.array_equal(a, b) for d_ in (dp, dm) for a, b in zip(layout(d_), base_layout))
 
-    flat = np.argsort(-np.abs(g).ravel())
-    pick = np.concatenate([flat[:4], rng.choice(flat[4:], 4, replace=False)])
-    base_layout = layout(dens)
-    checked = 0
-    for j in pick:
-        idx = np.unravel_index(j, dens.shape)
-        dp, dm = dens.copy(), dens.copy()
-        dp[idx] += EPS
-        dm[idx] -= EPS
-        if kind == "avsm" and not all(np.array_equal(a, b) for d_ in (dp, dm)
-                                      for a, b in zip(layout(d_), base_layout)):
-            continue                                                 # FD straddles a layout change
-        fd = (f(dp) - f(dm)) / (2 * EPS)
-        assert abs(g[idx] - fd) <= 1e-7 + 1e-6 * abs(fd), (kind, idx, g[idx], fd)
-        checked += 1
-    assert checked >= 6
-
-    # forward mode (a few parameters: one direction) agrees with reverse mode
-    v = rng.normal(size=dens.shape)
-    xf = _tensor(dens, grad=True)
-    Lf, _ = _loss(scene, xf, kind, w)
-    dr.set_grad(xf, T64.TensorXf64(v))
-    dr.forward_to(Lf)
-    np.testing.assert_allclose(dr.grad(Lf)[0], np.sum(g * v), rtol=1e-9, atol=1e-12)
+    chk = check_gradients(lambda x: _loss(scene, x, kind, w)[0], _tensor(dens), fd=8, eps=EPS,
+                          primal=primal, accept=accept, rng=rng)
+    assert chk.ok, chk
+    assert np.all(np.isfinite(chk.gradient)) and np.abs(chk.gradient).max() > 1e-3
+    assert len(chk.indices) >= 6
 
 
 def test_empty_voxels_receive_gradients():
@@ -130,25 +114,15 @@ def test_particle_density_gradients_match_finite_differences():
     w = rng.normal(size=rec.shape[0])
 
     for kind, params in (("exact", {}), ("avsm", {"nodes": 8})):
-        def f(s, grad=False):
-            sd = T64.Float64(s)
-            if grad:
-                dr.enable_grad(sd)
+        def loss(sd):
             scene = Scene("p", DirectionalLight((0.3, -1.0, 0.2)), rec, particles=Particles(c, r, sd))
             cap = ad.capture(scene, resolution=64, dtype="float64")
             T = cap.transmittance(ad.build(kind, cap.segments, **params), rec)
-            return sd, dr.sum(T * T64.Float64(w))
+            return dr.sum(T * T64.Float64(w))
 
-        sd, L = f(s0, grad=True)
-        dr.backward(L)
-        g = dr.grad(sd).numpy()
-        assert np.abs(g).max() > 1e-3
-        for j in range(P):
-            sp, sm = s0.copy(), s0.copy()
-            sp[j] += EPS
-            sm[j] -= EPS
-            fd = (f(sp)[1][0] - f(sm)[1][0]) / (2 * EPS)
-            assert abs(g[j] - fd) <= 1e-7 + 1e-6 * abs(fd), (kind, j, g[j], fd)
+        chk = check_gradients(loss, T64.Float64(s0), fd=range(P), eps=EPS)
+        assert chk.ok, (kind, chk)
+        assert np.abs(chk.gradient).max() > 1e-3
 
 
 # ----------------------------------------------------------------------------
@@ -179,11 +153,12 @@ def _unequal_counts(rng):
 
 LOOP_MODELS = {
     "exact": lambda s: ad.build("exact", s),
-    "exact-recompute": lambda s: ck.ExactRecompute(s),
+    "exact-checkpoint": lambda s: ad.build("exact", s, reverse="checkpoint"),
     "avsm": lambda s: ad.build("avsm", s, nodes=6),
-    "avsm-checkpointed": lambda s: ck.CheckpointedAVSM(s, nodes=6, chunk=7),
+    "avsm-checkpointed": lambda s: ad.build("avsm", s, nodes=6, reverse="checkpoint", chunk=7),
     "avsm-sorted": lambda s: ad.build("avsm", s, nodes=4, sort=True, interpolation="exp"),
-    "avsm-sorted-checkpointed": lambda s: ck.CheckpointedAVSM(s, nodes=4, sort=True, interpolation="exp", chunk=5),
+    "avsm-sorted-checkpointed": lambda s: ad.build("avsm", s, nodes=4, sort=True, interpolation="exp",
+                                                   reverse="checkpoint", chunk=5),
     "dsm-curve": lambda s: ad.build("dsm", s, tolerance=0.01, placement="curve"),
 }
 
@@ -207,7 +182,7 @@ def test_reverse_matches_forward_mode_with_unequal_counts(name):
     np.testing.assert_allclose(fwd, rev @ v, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("plain, cheap", [("exact", "exact-recompute"), ("avsm", "avsm-checkpointed"),
+@pytest.mark.parametrize("plain, cheap", [("exact", "exact-checkpoint"), ("avsm", "avsm-checkpointed"),
                                           ("avsm-sorted", "avsm-sorted-checkpointed")])
 def test_cheaper_reverse_paths_give_identical_gradients(plain, cheap):
     rng = np.random.default_rng(5)
@@ -224,7 +199,7 @@ def test_cheaper_reverse_paths_give_identical_gradients(plain, cheap):
 def test_too_small_loop_bound_is_silently_wrong_and_detected(name, monkeypatch):
     """A kernel handing ``max_iterations`` below the true iteration count (here: half the
     largest segment count): primal and forward mode are unchanged, reverse mode is wrong
-    without any error - and the reverse-vs-forward check (``inverse.gradient_check``'s
+    without any error - and the reverse-vs-forward check (``reconstruction.gradient_check``'s
     principle) catches it."""
     rng = np.random.default_rng(2)
     data, tex, depth, w = _unequal_counts(rng)
@@ -282,7 +257,7 @@ def test_checkpointed_loop_refuses_a_too_small_bound():
 def test_checkpointed_avsm_handles_long_texels():
     """Thousands of segments per texel: the plain AVSM reverse pass keeps a trajectory of
     max_count x (2N + 5) words per lane on the worker stack (segfaults near 4000 segments
-    for N = 8, see avsm_dr.checkpoint); the checkpointed one replays chunks of
+    for N = 8, see avsm_dr.representations._loops); the checkpointed one replays chunks of
     safe_chunk(2N + 5) iterations.  Gradient checked against forward mode."""
     rng = np.random.default_rng(9)
     T_, M = 4, 3000
@@ -291,12 +266,18 @@ def test_checkpointed_avsm_handles_long_texels():
     data = dict(offsets=off, z0=z0, z1=z0 + 1e-3, tau=rng.uniform(0, 2.0 / M, T_ * M))
     tex, depth, w = np.arange(T_), np.full(T_, 0.7), rng.normal(size=T_)
     v = rng.normal(size=T_ * M)
-    make = lambda s: ck.CheckpointedAVSM(s, nodes=8)                     # noqa: E731
+    make = lambda s: ad.build("avsm", s, nodes=8)                     # noqa: E731  ('auto')
     rev, fwd, _ = _reverse_and_forward(data, tex, depth, w, make, v)
     np.testing.assert_allclose(fwd, rev @ v, rtol=1e-9)
-    assert ck.trajectory_words("avsm", {"nodes": 8}, M) > ck.TRAJECTORY_BUDGET_WORDS
-    assert ck.build_differentiable("avsm", ad.Segments.from_arrays(off, z0, z0, optical_depth=data["tau"]),
-                                   nodes=8).__class__ is ck.CheckpointedAVSM
+    assert ck.trajectory_words(2 * 8 + 5, M) > ck.TRAJECTORY_BUDGET_WORDS
+    t = T64.Float64(data["tau"])
+    dr.enable_grad(t)
+    seg = ad.Segments.from_arrays(off, z0, z0 + 1e-3, optical_depth=t)
+    rep = ad.build("avsm", seg, nodes=8)
+    assert rep.checkpoint_chunk() == ck.safe_chunk(rep.loop_state_words)       # 'auto' checkpoints
+    # the explicit trajectory mode refuses what would overflow the worker stack (segfault)
+    with pytest.raises(ValueError, match="reverse"):
+        ad.build("avsm", seg, nodes=8, reverse="trajectory")
 
 
 @pytest.mark.parametrize("kind", ["avsm"])  # exact: a sum loop, immune (test_exact_sum_loop_needs_no_bound)
@@ -328,21 +309,24 @@ def test_gradient_check_reports_agreement():
 # ----------------------------------------------------------------------------
 # inverse-problem building blocks
 # ----------------------------------------------------------------------------
-def test_adam_matches_reference_formula():
-    F = T64.Float64
+def test_projected_adam_matches_reference_formula():
+    """drjit.opt.Adam's update (eps inside the square root, as Dr.Jit does for eps <= 1e-6)
+    with the projection onto [0, inf) after each step, moments kept across projections."""
+    F = T64.TensorXf64
     rng = np.random.default_rng(0)
-    x0 = rng.uniform(0, 1, 50)
-    grads = [rng.normal(size=50) for _ in range(3)]
-    opt = inv.Adam(lr=0.1, beta1=0.9, beta2=0.99, eps=1e-8)
-    x = F(x0)
-    m = v = np.zeros(50)
+    x0 = rng.uniform(0, 1, (2, 5, 5))
+    grads = [rng.normal(size=x0.shape) for _ in range(3)]
+    opt = inv.ProjectedAdam(lr=0.1, params={"sigma": F(x0)}, beta1=0.9, beta2=0.99, eps=1e-8)
+    m = v = np.zeros(x0.shape)
     ref = x0.copy()
     for t_, g in enumerate(grads, start=1):
-        x = opt.step(x, F(g))
+        x = opt["sigma"]
+        dr.backward(dr.sum(x * F(g)).array)                            # dL/dx = g
+        opt.step()
         m = 0.9 * m + 0.1 * g
         v = 0.99 * v + 0.01 * g * g
-        ref = np.maximum(ref - 0.1 * (m / (1 - 0.9 ** t_)) / (np.sqrt(v / (1 - 0.99 ** t_)) + 1e-8), 0.0)
-    np.testing.assert_allclose(x.numpy(), ref, rtol=1e-12, atol=1e-15)
+        ref = np.maximum(ref - 0.1 * math.sqrt(1 - 0.99 ** t_) / (1 - 0.9 ** t_) * m / np.sqrt(v + 1e-16), 0.0)
+    np.testing.assert_allclose(opt["sigma"].numpy(), ref, rtol=1e-12, atol=1e-15)
     assert np.any(ref == 0.0)                                            # projection exercised
 
 
@@ -406,14 +390,15 @@ def test_recover_plume_three_lights(kind):
 
 
 @pytest.mark.parametrize("call, name", [
-    (lambda s, d: inv.shadow(s, d, kind="moments"), "kind"),
+    (lambda s, d: inv.shadow(s, d, kind="nope"), "kind"),
     (lambda s, d: inv.shadow(s, d, kind="dsm", params={"tolerance": 0.01}), "params"),
     (lambda s, d: inv.shadow(s, -d, kind="fom"), "density"),
     (lambda s, d: inv.recover(s, [s.light], [np.ones(3)], [np.zeros((3, 3))], init="random"), "init"),
     (lambda s, d: inv.recover(s, [s.light], [], [np.zeros((3, 3))]), "targets"),
     (lambda s, d: inv.density_error(d, d[:-1]), "recovered"),
     (lambda s, d: inv.receiver_grid(s.bbox, s.light, 0), "n"),
-    (lambda s, d: inv.Adam(lr=0.0), "lr"),
+    (lambda s, d: inv.ProjectedAdam(lr=0.0), "lr"),
+    (lambda s, d: inv.ProjectedAdam(beta2=1.0), "beta2"),
     (lambda s, d: ck.checkpointed_while_loop((), [], None, None, 3, chunk=0), "chunk"),
 ])
 def test_bad_input_raises_value_error(call, name):

@@ -251,6 +251,77 @@ def test_matches_reference_per_texel_range(config, case_name, dtype, rng):
     assert rep.params["depth_range"] == "texel"
 
 
+#: Sizes beyond LIST_UNROLL (legendre: the chunked list path) and large indexed sizes.
+#: Legendre only in float64 (its float32 recurrence exceeds the model's bound at n = 45,
+#: before and after the chunking: a limit of the error model, not of the chunks); cosine
+#: n <= 36 (the reference's 64-point Gauss-Legendre resolves cos(pi k u) to k ~ 40).
+LARGE = [(("fom", {"harmonics": 45}), "float32"), (("fom", {"harmonics": 45}), "float64"),
+         (("osm", {"slices": 300}), "float32"), (("osm", {"slices": 300}), "float64"),
+         (("basis", {"basis": "legendre", "n": 45}), "float64"),
+         (("basis", {"basis": "cosine", "n": 36}), "float32"),
+         (("basis", {"basis": "cosine", "n": 36}), "float64")]
+
+
+@pytest.mark.parametrize("config, dtype", LARGE, ids=lambda c: c if isinstance(c, str) else lin_id(c))
+def test_matches_reference_large_sizes(config, dtype, rng):
+    """The indexed kernels (one lane per segment x coefficient) and the chunked list
+    path hold the same error bounds as the small sizes (issue 11, item 5)."""
+    kind, params = config
+    check_against_reference(kind, params, CASES["random"](rng), dtype)
+
+
+class _ListOnly:
+    """Mixin: the same basis through its list forms (indexed = False)."""
+    indexed = False
+
+
+@pytest.mark.parametrize("basis", [FourierBasis(5), PiecewiseConstantBasis(9),
+                                   ad.representations.basis.CosineBasis(7)], ids=repr)
+def test_indexed_forms_equal_list_forms(basis, rng):
+    """f_at / F_at / g_at / average_at are the list forms, coefficient by coefficient:
+    coefficients and T agree to float64 rounding (1e-13 relative to the largest
+    coefficient: opaque segments make coefficients ~1e4)."""
+    listed = type("List" + type(basis).__name__, (_ListOnly, type(basis)), {})(basis.n)
+    seg = to_segments(random_segments(rng, texels=10, max_count=8), "float64")
+    a = ad.build("basis", seg, basis=basis)
+    b = ad.build("basis", seg, basis=listed)
+    ca, cb = coefficient_array(a), coefficient_array(b)
+    np.testing.assert_allclose(ca, cb, rtol=0, atol=1e-13 * np.abs(cb).max())
+    tex = np.repeat(np.arange(10), 7)
+    d = np.tile(np.linspace(-0.1, 1.1, 7), 10)
+    np.testing.assert_allclose(np.asarray(a.eval(tex, d)), np.asarray(b.eval(tex, d)), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("kind, arg", [("fom", "harmonics"), ("osm", "slices"), ("basis", "n")])
+def test_trace_does_not_grow_with_size(kind, arg, rng):
+    """Build + eval trace the same kernels whatever the size (indexed bases) or a number
+    of fixed-size chunks (legendre): the operations per kernel do not grow with N (one
+    kernel for all N made the cost quadratic; issue 11, item 5).  A structural check via
+    dr.kernel_history, not a timing."""
+    seg = to_segments(random_segments(rng, texels=8, max_count=10), "float32")
+    extra = {"basis": "cosine"} if kind == "basis" else {}
+    biggest = {}
+    for N in (40, 400):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()
+        rep = ad.build(kind, seg, **extra, **{arg: N})
+        np.asarray(rep.eval(np.arange(8), np.full(8, 0.5)))
+        hist = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        biggest[N] = max(k["operation_count"] for k in hist)
+    assert biggest[400] == biggest[40], biggest
+    # the list path: chunks of LIST_CHUNK coefficients, so its kernels stay bounded too
+    ops = []
+    for n in (40, 200):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()
+        rep = ad.build("basis", seg, basis="legendre", n=n)
+        np.asarray(rep.eval(np.arange(8), np.full(8, 0.5)))
+        ops.append(max(k["operation_count"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT))
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert ops[1] <= ops[0] * 1.2, ops
+
+
 @pytest.mark.parametrize("config", LINEAR, ids=lin_id)
 def test_clipping_to_explicit_range(config, rng):
     """Segments cut by an explicit [near, far]: the part in front of near is a delta at
@@ -650,6 +721,13 @@ def test_nbytes_per_texel():
     assert ad.build("basis", s32, basis="legendre", n=5).nbytes_per_texel == 5 * 4
 
 
+def test_named_basis_defaults_to_eight_functions():
+    """The schema's documented default: a named basis without n= has 8 functions."""
+    seg = ad.Segments.from_arrays([0, 2], [0.1, 0.5], [0.3, 0.9], optical_depth=[1.0, 0.5])
+    rep = ad.build("basis", seg, basis="legendre")
+    assert rep.basis.n == 8 and rep.params["n"] == 8
+
+
 @pytest.mark.parametrize("kind,params,arg", [
     ("fom", {"harmonics": 0}, "harmonics"),
     ("fom", {"harmonics": -2}, "harmonics"),
@@ -668,8 +746,8 @@ def test_nbytes_per_texel():
     ("fom", {"depth_range": "texel", "near": 0.0}, "near"),
     ("basis", {"basis": "wavelet", "n": 3}, "basis"),
     ("basis", {"basis": 3}, "basis"),
-    ("basis", {"basis": "legendre"}, "n"),
     ("basis", {"basis": "legendre", "n": 0}, "n"),
+    ("basis", {"basis": "legendre", "n": True}, "n"),
     ("basis", {"basis": SineBasis(2), "n": 3}, "n"),
 ])
 def test_bad_input(kind, params, arg):

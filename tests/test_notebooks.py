@@ -1,5 +1,4 @@
 """The notebooks run top to bottom (small sizes), so they cannot drift from the API."""
-import os
 from pathlib import Path
 
 import pytest

@@ -1,8 +1,8 @@
 """Benchmark peers run the same algorithms as our kernels (issue 7).
 
-The Numba peers (optional ``bench`` extra) are checked against the Dr.Jit kernels in
-float64; the tests skip when Numba is absent, except the one proving that the modules
-import without it.  Tolerances:
+The Numba peers (Numba: in the ``test`` and ``bench`` extras) are checked against the
+Dr.Jit kernels in float64; these tests need Numba (absent, they fail rather than skip),
+and one proves that the modules import without it.  Tolerances:
 * AVSM node depths bit-identical (depths are only copied, never computed); node values
   and lookups to 1e-13 (products of <= ~1200 factors each rounded to 1.1e-16; Dr.Jit may
   contract a multiply-add where Numba does not).
@@ -47,7 +47,6 @@ def test_peers_import_without_numba(monkeypatch):
 @pytest.mark.parametrize("nodes", [2, 3, 8])
 @pytest.mark.parametrize("sort", [False, True])
 def test_numba_avsm_matches_kernel(rng, nodes, sort):
-    pytest.importorskip("numba")
     seg = adversarial(rng)
     rep = ad.build("avsm", seg, nodes=nodes, sort=sort)
     h = (seg.sorted() if sort else seg).numpy()
@@ -67,7 +66,6 @@ def test_numba_avsm_matches_kernel(rng, nodes, sort):
 
 def test_numba_avsm_matches_numpy_peer(rng):
     """Both peers of the benchmark compute the same nodes (unsorted insertion)."""
-    pytest.importorskip("numba")
     h = adversarial(rng, texels=60).numpy()
     far = float(h["z1"].max())
     D, V, _, _ = numba_avsm.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], 6, far)
@@ -80,7 +78,6 @@ def test_numba_avsm_matches_numpy_peer(rng):
 @pytest.mark.parametrize("bounds", [None, (0.2, 0.8)])
 def test_numba_fom_matches_kernel(rng, harmonics, bounds):
     """Global range from the segments, and an explicit range that clips segments."""
-    pytest.importorskip("numba")
     seg = adversarial(rng)
     kw = {} if bounds is None else dict(near=bounds[0], far=bounds[1])
     rep = ad.build("fom", seg, harmonics=harmonics, **kw)
@@ -96,18 +93,28 @@ def test_numba_fom_matches_kernel(rng, harmonics, bounds):
                                np.asarray(rep.eval(tex, depth)), rtol=0, atol=1e-10)
 
 
-def test_bench_ablation_kernel_equals_avsm(rng):
-    """The benchmark's ablation kernel (skipping switched off piece by piece) computes
-    exactly the nodes of ``ad.build('avsm')``, so its timings compare like with like."""
-    from avsm_dr.experiments import bench
+@pytest.mark.parametrize("sort", [False, True])
+def test_avsm_ablations_compute_the_same_nodes(rng, sort):
+    """The benchmark's ablations (AVSM's private ``_compact`` / ``_group`` / ``_split``
+    switches: work skipping switched off piece by piece) give exactly the nodes, node
+    counts and counters of the default kernel, so their timings compare like with like."""
     seg = to_segments(random_segments(rng, texels=200, max_count=12, empty_fraction=0.5), "float32")
-    rep = ad.build("avsm", seg, nodes=4)
+    rep = ad.build("avsm", seg, nodes=4, sort=sort)
     Dk, Vk = rep.nodes_numpy()
-    for flags in [dict(), dict(compact=False), dict(group=False), dict(split=False),
-                  dict(compact=False, group=False, split=False)]:
-        D, V = bench.avsm_variant(seg, 4, **flags)
+    assert rep.stats["compressed"] > 0 and rep.stats["lanes"] < seg.n_texels    # both skips exercised
+    for flags in [dict(_compact=False), dict(_group=False), dict(_split=False),
+                  dict(_compact=False, _group=False, _split=False)]:
+        abl = ad.build("avsm", seg, nodes=4, sort=sort, **flags)
+        D, V = abl.nodes_numpy()
         np.testing.assert_array_equal(D, Dk)
         np.testing.assert_array_equal(V, Vk)
+        np.testing.assert_array_equal(abl.used, rep.used)
+        assert {k: abl.stats[k] for k in ("skipped", "compressed")} == \
+            {k: rep.stats[k] for k in ("skipped", "compressed")}
+        assert abl.params == rep.params                   # private switches stay out of params
+    assert ad.build("avsm", seg, nodes=4, _compact=False).stats["lanes"] == seg.n_texels
+    with pytest.raises(ValueError, match="_split"):
+        ad.build("avsm", seg, _split=1)
 
 
 @pytest.mark.slow

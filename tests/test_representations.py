@@ -1,4 +1,5 @@
-"""Contract of every representation (base.py), driven by the registry (cases.py reads it)."""
+"""Contract of every representation (base.py), driven by the registry (cases.py reads it),
+run on every available backend (the ``backend`` fixture: LLVM here, LLVM and CUDA on a GPU host)."""
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
@@ -13,7 +14,7 @@ CASES = representations()
 
 
 @pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_bounds_monotone_and_unity_in_front(rng, case):
+def test_bounds_monotone_and_unity_in_front(backend, rng, case):
     kind, params = case
     data = random_segments(rng, texels=50, max_count=30)
     seg = to_segments(data)
@@ -38,7 +39,7 @@ def test_bounds_monotone_and_unity_in_front(rng, case):
 
 
 @pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_adversarial_input_stays_finite(case):
+def test_adversarial_input_stays_finite(backend, case):
     kind, params = case
     # coincident, zero-length, opaque, huge optical depth, tiny and huge depth ranges
     z0 = np.array([0.0, 0.0, 0.5, 0.5, 0.5, 1e-7, 0.9, 1.0])
@@ -55,7 +56,7 @@ def test_adversarial_input_stays_finite(case):
 
 
 @pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_behind_everything_matches_exact(rng, case):
+def test_behind_everything_matches_exact(backend, rng, case):
     kind, params = case
     # node methods keep the last node; bases whose first function is constant and whose
     # others integrate to 0 over [near, far] (Fourier, slices, Legendre, cosine) and the
@@ -115,7 +116,7 @@ def _fd_check(kind, params, rng, texels=12, max_count=10):
 
 
 @pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_gradients_match_finite_differences(rng, case):
+def test_gradients_match_finite_differences(backend, rng, case):
     kind, params = case
     seg = ad.Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
     if not ad.build(kind, seg, **params).differentiable:
@@ -195,3 +196,135 @@ def test_property_bounds_all_kinds(seed):
     for kind, params in CASES:
         T = np.asarray(ad.build(kind, seg, **params).eval(tex, d))
         assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1)), kind
+
+
+# ----------------------------------------------------------------------------
+# filters under hostile parameters (issue 11, items 6 and 10)
+# ----------------------------------------------------------------------------
+def _map(W, H, rng):
+    data = random_segments(rng, texels=W * H, max_count=4, empty_fraction=0.0)
+    return ad.build("exact", to_segments(data, "float64"))
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(radius=-1.0), "radius"), (dict(radius=0.0), "radius"), (dict(radius=float("inf")), "radius"),
+    (dict(radius=float("nan")), "radius"), (dict(radius=True), "radius"), (dict(radius="2"), "radius"),
+    (dict(radius=7.5), "radius"),                       # larger than the 6 x 5 map
+    (dict(width=1.5, height=20), "width"), (dict(width=-4, height=-5), "width"),
+    (dict(width=True, height=30), "width"), (dict(width=6, height=5.0), "height"),
+])
+@pytest.mark.parametrize("flt", ["box", "gaussian"])
+def test_filter_bad_parameters(flt, kwargs, name, rng):
+    """radius: finite, > 0, at most max(width, height); width/height: integers >= 1.
+    (radius=-1 gave T = 0 from zero taps; width=1.5 was accepted; width=-4 failed in Dr.Jit.)"""
+    rep = _map(6, 5, rng)
+    args = dict(width=6, height=5, radius=1.0)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=f"^{name}:"):
+        rep.eval(np.array([[1.2, 2.3]]), [0.5], filter=flt, **args)
+
+
+def test_gaussian_tiny_radius_is_the_point_filter(rng):
+    """All weights used to underflow (0/0 = NaN) at radius 0.01: weights are relative to
+    the receiver's own texel (weight 1), so a tiny radius is the point filter."""
+    rep = _map(6, 5, rng)
+    xy = rng.uniform(0, [6, 5], size=(40, 2))
+    d = rng.uniform(0, 1, 40)
+    point = np.asarray(rep.eval(xy, d, filter="point", width=6, height=5))
+    for radius in (0.01, 1e-6):
+        g = np.asarray(rep.eval(xy, d, filter="gaussian", width=6, height=5, radius=radius))
+        np.testing.assert_allclose(g, point, rtol=0, atol=1e-15)
+
+
+def test_box_and_gaussian_against_direct_sum(rng):
+    """Batched taps = the direct double sum over the (2r+1)^2 clamped texels."""
+    W, H = 7, 5
+    rep = _map(W, H, rng)
+    xy = np.r_[rng.uniform(-2, [W + 2, H + 2], size=(25, 2)), [[0.0, 0.0], [W - 1e-9, H - 1e-9]]]
+    d = rng.uniform(0, 1.2, xy.shape[0])
+    for flt, radius in (("box", 2.0), ("gaussian", 2.6), ("box", 7.0)):
+        got = np.asarray(rep.eval(xy, d, filter=flt, width=W, height=H, radius=radius))
+        r = int(np.ceil(radius))
+        sigma = radius / 2
+        for k, ((x, y), dk) in enumerate(zip(xy, d)):
+            cx, cy = np.floor(x), np.floor(y)
+            num = den = 0.0
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    w = 1.0 if flt == "box" else np.exp(-((cx + dx + 0.5 - x) ** 2 + (cy + dy + 0.5 - y) ** 2)
+                                                        / (2 * sigma ** 2))
+                    t = int(np.clip(cy + dy, 0, H - 1) * W + np.clip(cx + dx, 0, W - 1))
+                    num += w * float(np.asarray(rep.eval([t], [dk]))[0])
+                    den += w
+            assert got[k] == pytest.approx(num / den, abs=1e-12), (flt, k)
+
+
+def test_coordinates_beyond_int32_clamp_to_the_edge(rng):
+    """x >= 2^31 used to wrap in Int32 and land on texel 0; coordinates are split on the
+    host (int64, clamped) and clamp to the edge for every filter."""
+    W, H = 4, 3
+    rep = _map(W, H, rng)
+    far = np.array([[2.0**31 + 5, 1.2], [1e30, -1e30], [-2.0**40, 2.5]])
+    edge = np.array([[W - 0.5, 1.2], [W - 0.5, 0.5], [0.5, 2.5]])
+    for flt in ("point", "bilinear", "box", "gaussian"):
+        a = np.asarray(rep.eval(far, [0.7] * 3, filter=flt, width=W, height=H))
+        b = np.asarray(rep.eval(edge, [0.7] * 3, filter=flt, width=W, height=H))
+        if flt in ("point", "bilinear"):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-15, err_msg=flt)
+        else:   # the support sees only clamped edge texels far outside: still in [0, 1]
+            assert np.all((a >= 0) & (a <= 1))
+    # a coordinate near 2^24 selects its texel exactly (float32 coordinates could not)
+    from avsm_dr.filtering import filtered_eval
+    t = backend.types()
+    W = 2**25
+    x = np.array([[2.0**24 + 1.5, 0.5], [2.0**24 + 2.25, 0.5], [W - 0.5, 0.5]])
+    ident = lambda tex, depth: t.Float64(tex)            # noqa: E731  (texel index as value)
+    got = np.asarray(filtered_eval(ident, x, t.Float64(np.zeros(3)), W, 1, "point", 1.0,
+                                   t.Float64, t.UInt32, t.Int32))
+    np.testing.assert_array_equal(got, [2**24 + 1, 2**24 + 2, W - 1])
+
+
+def test_filter_trace_does_not_grow_with_radius(rng):
+    """Taps run as batched (receiver, tap) lanes: the same kernels for radius 2 and 15
+    (Python-unrolled taps made a trace growing as r^2: radius 15 took 18-38 s for 10
+    receivers).  A structural check via dr.kernel_history, not a timing."""
+    rep = _map(16, 16, rng)
+    xy = rng.uniform(0, 16, size=(10, 2))
+    ops = {}
+    for radius in (2.0, 15.0):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()
+        T = np.asarray(rep.eval(xy, np.full(10, 0.6), filter="gaussian", width=16, height=16, radius=radius))
+        hist = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        ops[radius] = max(k["operation_count"] for k in hist)   # (kernel count varies by caching)
+        assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1))
+    assert ops[2.0] == ops[15.0], ops
+
+
+def test_filtered_gradients_match_finite_differences(rng):
+    """Reverse mode through the batched taps (gathers and block sums), gaussian radius
+    1.7 on a 4 x 4 map, float64, vs central differences (eps 1e-6, atol 1e-8)."""
+    F64 = backend.types().Float64
+    data = random_segments(rng, texels=16, max_count=4, opaque_fraction=0.0)
+    xy = rng.uniform(0, 4, size=(7, 2))
+    d = rng.uniform(0, 1.2, 7)
+    w = rng.normal(size=7)
+
+    def loss(tau, grad=False):
+        t = F64(tau)
+        if grad:
+            dr.enable_grad(t)
+        seg = ad.Segments.from_arrays(data["offsets"], data["z0"], data["z1"], optical_depth=t)
+        L = dr.sum(ad.build("exact", seg).eval(xy, d, filter="gaussian", width=4, height=4, radius=1.7) * F64(w))
+        if grad:
+            dr.backward(L)
+            return dr.grad(t).numpy()
+        return float(L[0])
+
+    tau = np.minimum(data["tau"], 3.0)
+    g = loss(tau, grad=True)
+    eps = 1e-6
+    fd = np.array([(loss(tau + eps * e) - loss(tau - eps * e)) / (2 * eps) for e in np.eye(tau.size)])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
+    assert np.abs(g).max() > 1e-3

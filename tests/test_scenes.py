@@ -75,7 +75,7 @@ def test_three_columns_cast_on_each_other():
 
 
 def test_hair_and_smoke_has_hair_steps():
-    """Hair crossings are short segments of T = 1 - opacity inside smooth smoke (seed 000 fig. 6)."""
+    """Hair crossings are short segments of T = 1 - opacity inside smooth smoke (Salvi et al. 2010, fig. 6)."""
     sc = ad.scenes.hair_and_smoke(**SMALL["hair_and_smoke"])
     T, cap = exact_T(sc, resolution=128)
     assert cap.stats["hair"]["segments"] > 100 and cap.stats["grid"]["segments"] > 1000

@@ -69,3 +69,125 @@ def test_drjit_float64_input_selects_float64():
     F64 = backend.types().Float64
     seg = ad.Segments.from_arrays([0, 1], F64([0.0]), F64([1.0]), optical_depth=F64([0.5]))
     assert seg.dtype == "float64" and type(seg.z0) is F64
+
+
+# ----------------------------------------------------------------------------
+# the storage dtype's range (issue 11, item 1), subnormals, texel selection (item 11)
+# ----------------------------------------------------------------------------
+def _run(code):
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, "-c", "import avsm_dr as ad\n" + code], capture_output=True,
+                          text=True, timeout=600)
+
+
+def test_float32_overflow_is_refused_before_any_kernel_runs():
+    """z1 = 1e39 is finite in float64 but inf in the float32 storage: dsm then segfaulted
+    ("double free or corruption"); now from_arrays refuses it.  In a subprocess: a
+    regression would kill the test process."""
+    p = _run("seg = ad.Segments.from_arrays([0, 1], [0.0], [1e39], optical_depth=[1.0])\n"
+             "ad.build('dsm', seg)\n")
+    assert p.returncode == 1, p.stderr[-500:]
+    assert p.stderr.strip().splitlines()[-1].startswith("ValueError: z1: 1e+39 overflows the float32"), p.stderr
+
+
+@pytest.mark.parametrize("over, name", [
+    (dict(z1=[0.3, 0.2, 1e39]), "z1"),
+    (dict(z0=[-1e39, 0.2, 0.0]), "z0"),
+    (dict(z0=[-3e38, 0.2, 0.0], z1=[0.3, 0.2, 3e38]), "z1"),          # range 6e38 overflows
+])
+def test_values_beyond_float32_are_refused(over, name):
+    with pytest.raises(ValueError, match=f"^{name}: .*float32"):
+        make(**over)
+    make(**over, dtype="float64")                                     # fine in float64
+
+
+def test_optical_depth_beyond_float32_is_opaque():
+    seg = make(transmittance=None, optical_depth=[1e39, 1.0, 0.5])
+    np.testing.assert_allclose(np.asarray(seg.optical_depth), [ad.OPAQUE_OPTICAL_DEPTH, 1.0, 0.5])
+
+
+def test_check_depth_against_the_storage():
+    seg = make()
+    assert seg.check_depth(2.0, "far") == 2.0
+    np.testing.assert_array_equal(seg.check_depth([1.0, 1e-40], "depth"), [1.0, 0.0])   # subnormal -> 0
+    for bad in (1e39, -1e39, np.inf, np.nan):
+        with pytest.raises(ValueError, match="^far:"):
+            seg.check_depth(bad, "far")
+    with pytest.raises(ValueError, match="^far: the range"):
+        seg.check_depth_range(-3e38, 3e38)
+    assert seg.check_depth_range(-1e38, 1e38) == (-1e38, 1e38)
+    assert make(dtype="float64").check_depth(1e39, "far") == 1e39
+
+
+@pytest.mark.parametrize("kind, params, name", [
+    ("fom", dict(far=1e39), "far"), ("osm", dict(near=-1e39), "near"), ("moments", dict(far=1e39), "far"),
+    ("basis", dict(near=-3e38, far=3e38), "far"), ("avsm", dict(near=-1e39), "near"),
+])
+def test_near_far_beyond_the_storage_are_refused(kind, params, name):
+    """fom/osm gave T = 1 everywhere with far = 1e39."""
+    with pytest.raises(ValueError, match=f"^{name}:"):
+        ad.build(kind, make(), **params)
+
+
+@pytest.mark.parametrize("kind", ["exact", "avsm", "dsm", "osm", "fom"])
+def test_receiver_depth_beyond_the_storage_is_refused(kind):
+    """avsm gave NaN at depth -1e39 (inf in float32)."""
+    rep = ad.build(kind, make())
+    with pytest.raises(ValueError, match="^depth:"):
+        rep.eval([0], [-1e39])
+
+
+def test_subnormal_depths_are_stored_as_zero():
+    """Dr.Jit's worker threads flush subnormals, the calling thread does not: a receiver
+    at -1.4e-45 behind a step at 0 got T = 1 alone and T = 0.61 in a batch of 16.  Depths
+    below the dtype's smallest normal number are read as 0 everywhere."""
+    seg = ad.Segments.from_arrays([0, 2], [1e-40, 0.0], [2e-40, 0.0], optical_depth=[0.25, 0.5])
+    np.testing.assert_array_equal(np.asarray(seg.z0), [0.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(seg.z1), [0.0, 0.0])
+    rep = ad.build("exact", seg)
+    for n in (1, 8, 16, 100):
+        T = np.asarray(rep.eval(np.zeros(n, int), np.full(n, -1.4e-45)))
+        np.testing.assert_allclose(T, np.exp(-0.75), rtol=1e-6)
+    F = backend.types().Float
+    T = np.asarray(rep.eval(np.zeros(20, int), F(np.full(20, -1.4e-45, np.float32))))
+    np.testing.assert_allclose(T, np.exp(-0.75), rtol=1e-6)
+
+
+@pytest.mark.parametrize("texels", [[-1], [-2], [2], [0, 5], [0.5], [], [[0, 1]], [np.nan]])
+def test_select_texels_refuses_bad_indices(texels):
+    """[-2] returned texel 0's count with texel 1's segments; [-1] claimed 2 segments
+    with empty arrays; [] made a zero-texel map that osm rejected with 'incompatible sizes'."""
+    with pytest.raises(ValueError, match="^texels:"):
+        make().select_texels(texels)
+
+
+def test_select_texels_keeps_order_and_repeats():
+    seg = make().select_texels([1, 0, 1])
+    np.testing.assert_array_equal(seg.counts, [1, 2, 1])
+    np.testing.assert_allclose(np.asarray(seg.z0), [0.0, 0.1, 0.2, 0.0])
+    T = np.asarray(ad.build("osm", seg).eval([0, 1, 2], [1.0, 1.0, 1.0]))
+    np.testing.assert_allclose(T, [1.0, 0.0, 1.0], atol=1e-6)
+
+
+def test_float64_lengths_whose_density_overflows_become_steps():
+    """[0, 2.3e-308] with optical depth 1e4 in float64: density 4e311 = inf made NaN DSM
+    slopes and a segfault.  Lengths below MIN_LENGTH (only near depth 0) are stored as
+    zero-length steps; every kind then agrees with exact.  In a subprocess."""
+    p = _run("import numpy as np\n"
+             "seg = ad.Segments.from_arrays([0, 2], [0.0, 0.0], [2.3e-308, 1e-296], optical_depth=[1e4, 1e4],"
+             " dtype='float64')\n"
+             "assert np.asarray(seg.z1).tolist() == [0.0, 0.0]\n"
+             "for kind in ('exact', 'dsm', 'avsm', 'osm', 'fom'):\n"
+             "    T = np.asarray(ad.build(kind, seg).eval([0, 0, 0], [-1.0, 0.0, 1.0]))\n"
+             "    assert T[[0, 2]].tolist() == [1.0, 0.0], (kind, T)   # basis kinds: T(near) = 1\n"
+             "    assert kind in ('osm', 'fom') or T[1] == 0.0, (kind, T)\n"
+             "print('ok')\n")
+    assert p.returncode == 0 and p.stdout.strip() == "ok", p.stderr[-800:]
+    assert ad.segments.MIN_LENGTH < 1e-294
+
+
+def test_offsets_beyond_uint32_are_refused():
+    """offsets[-1] = 1e20 overflowed int64 silently and blamed z0's length."""
+    with pytest.raises(ValueError, match="^offsets: .*2\\^32"):
+        ad.Segments.from_arrays([0, 1e20], [0.0], [1.0], optical_depth=[1.0])

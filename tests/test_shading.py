@@ -1,10 +1,14 @@
 """Shading and images: our receiver-plane renderer against Mitsuba's volpath reference.
 
-Image tolerances: the Mitsuba reference carries Monte Carlo noise; its per-pixel noise
-sigma is measured from two renders with different seeds (rmse / sqrt 2).  Our image is
-deterministic, so on pixels fully covered by the plane rmse(ours, reference) must be
-close to sigma (a deterministic mismatch would add in quadrature), and the mean
-difference within 4 sigma / sqrt(pixels).
+Image tolerances (avsm_dr.testing.mc_agreement with one noise level for all pixels): the
+Mitsuba reference carries Monte Carlo noise; its per-pixel noise sigma is measured from
+two renders with different seeds (rmse / sqrt 2).  Our image is deterministic, so on
+pixels fully covered by the plane rmse(ours, reference) must be close to sigma (a
+deterministic mismatch would add in quadrature: ``max_rms_ratio``), and the mean
+difference within 4 sigma / sqrt(pixels) (``max_z = 4``).  No per-pixel band
+(``min_fraction=0``): sigma is one RMS noise level, not a per-pixel standard error
+(brighter pixels are noisier), and 2.6-4.5 % of the pixels of these unbiased renders lie
+beyond 3 sigma (measured).
 """
 import math
 
@@ -12,10 +16,14 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
+from avsm_dr import builtin_scenes as scenes
 from avsm_dr import groundtruth as gt
+from avsm_dr.groundtruth.content import to_light
+from avsm_dr.groundtruth.images import receiver_plane
 from avsm_dr import shading as sh
 from avsm_dr.scene import (DirectionalLight, OpaqueSphere, Particles, PointLight, Scene,
                            SpotLight)
+from avsm_dr.testing import mc_agreement
 
 pytestmark = pytest.mark.mitsuba
 
@@ -148,10 +156,9 @@ def test_groundtruth_plane_matches_mitsuba_with_volume(kind):
     ours = sh.groundtruth_plane(scene, W, H, supersample=4)
     m = full_pixels(scene, W, H)
     sigma = math.sqrt(np.mean((ref0[m] - ref1[m]) ** 2) / 2)
-    rmse = math.sqrt(np.mean((ref0[m] - ours[m]) ** 2))
     assert ours[m].min() < 0.5 * ours[m].max()                   # a visible shadow
-    assert rmse < 1.2 * sigma, (rmse, sigma)
-    assert abs(np.mean(ref0[m] - ours[m])) < 4 * sigma / math.sqrt(m.sum())
+    r = mc_agreement(ref0[m], ours[m], sigma, min_fraction=0, max_rms_ratio=1.2, max_z=4)
+    assert r.ok, r
 
 
 def test_single_scattering_matches_mitsuba():
@@ -171,16 +178,16 @@ def test_single_scattering_matches_mitsuba():
     glow = m & (ours - dark > 0.02)
     assert glow.sum() > 20                                          # scattering is visible
     sigma = math.sqrt(np.mean((ref0[m] - ref1[m]) ** 2) / 2)
-    rmse = math.sqrt(np.mean((ref0[m] - ours[m]) ** 2))
-    assert rmse < 1.3 * sigma, (rmse, sigma)
-    assert abs(np.mean(ref0[glow] - ours[glow])) < 4 * sigma / math.sqrt(glow.sum()) + 2e-3
+    r = mc_agreement(ref0[m], ours[m], sigma, min_fraction=0, max_rms_ratio=1.3, max_z=4)
+    assert r.ok, r
+    # bias where the smoke glows: within 4 sigma / sqrt(pixels) plus 2e-3 absolute
+    r = mc_agreement(ref0[glow], ours[glow], sigma, min_fraction=0, max_z=4, floor=2e-3)
+    assert r.ok, r
 
 
 def test_shade_plane_with_captured_representation():
-    cap_mod = pytest.importorskip("avsm_dr.capture")
-    scenes = pytest.importorskip("avsm_dr.scenes")
     scene = scenes.plume()
-    cap = cap_mod.capture(scene, resolution=128)
+    cap = ad.capture(scene, resolution=128)
     rep = ad.build("exact", cap.segments)
     W = H = 40
     truth = sh.groundtruth_plane(scene, W, H, supersample=2)
@@ -209,11 +216,10 @@ def test_compare_images_and_plot(tmp_path, rng):
 
 
 def test_default_camera_sees_plane_from_light_side_outside_volume():
-    scenes = pytest.importorskip("avsm_dr.scenes")
     for scene in (scenes.plume(), scenes.three_columns(), scenes.smoke_over_table(), blob_scene(LIGHTS["spot"])):
         cam = gt.default_camera(scene)
-        c, n, _ = gt._receiver_plane(scene)
-        l = gt._to_light(scene.light, c[None])[0]
+        c, n, _ = receiver_plane(scene)
+        l = to_light(scene.light, c[None])[0]
         lo, hi = scene.bbox
         assert not np.all((cam["origin"] >= lo) & (cam["origin"] <= hi))
         assert np.sign((cam["origin"] - c) @ n) == np.sign(l @ n)

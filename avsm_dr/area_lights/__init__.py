@@ -1,4 +1,4 @@
-"""Area-light volumetric shadows: imperfect voxelized shadow volumes (seed 002).
+"""Area-light volumetric shadows: imperfect voxelized shadow volumes.
 
 Wyman and Dai, "Imperfect Voxelized Shadow Volumes": an area light in a homogeneous
 single-scattering medium is sampled as K virtual point lights (VPLs); each VPL gets a
@@ -13,18 +13,18 @@ boundaries.
     out.image, out.timings          # (H, W) radiance; seconds per phase
     ref, err = al.render_mitsuba(scene, spp=1024)   # Mitsuba volpath ground truth
 
-Modules: :mod:`.scene` (dataclasses, validation), :mod:`.vpl` (VPL sampling, light grid),
+Modules: :mod:`.area_scene` (dataclasses, validation), :mod:`.vpl` (VPL sampling, light grid),
 :mod:`.geometry` (ray casting), :mod:`.visibility` (voxelize, scan, lookups),
 :mod:`.gather` (Riemann sum), :mod:`.methods` (the three methods, timings), :mod:`.reference`
 (Mitsuba ground truth).
 """
 from .methods import INTERPOLATIONS, METHODS, AreaLightRender, render
-from .scene import AreaLightScene, Box, Camera, Medium, QuadLight, Sphere, default_scene
+from .area_scene import AreaLightScene, Box, Medium, PinholeCamera, QuadLight, Sphere, default_scene
 from .reference import render_mitsuba
 from .vpl import LightGrid, fit_grid, sample_vpls
 
 __all__ = [
-    "AreaLightScene", "Box", "Camera", "Medium", "QuadLight", "Sphere", "default_scene",
+    "AreaLightScene", "Box", "PinholeCamera", "Medium", "QuadLight", "Sphere", "default_scene",
     "render", "AreaLightRender", "METHODS", "INTERPOLATIONS", "render_mitsuba",
     "LightGrid", "fit_grid", "sample_vpls",
 ]

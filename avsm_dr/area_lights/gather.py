@@ -1,4 +1,5 @@
-"""Final gather: single scattering along camera rays by a Riemann sum (seed 002 sec. 2).
+"""Final gather: single scattering along camera rays by a Riemann sum (Wyman and Dai 2013,
+"Imperfect Voxelized Shadow Volumes", HPG, sec. 2).
 
 For a camera ray ``x(t) = o + t d`` ending at ``t_end`` (first surface or medium
 boundary) and VPL k at ``p_k`` with intensity ``I_k(w) = I max(0, n . w)``,
@@ -26,7 +27,7 @@ import math
 import drjit as dr
 
 from .geometry import DIFFUSE, CameraHits, Kit, occluded
-from .scene import AreaLightScene
+from .area_scene import AreaLightScene
 
 
 def phase_hg(cos_theta, g: float):
@@ -109,7 +110,7 @@ def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, 
 
 def boundary_correction(scene: AreaLightScene, k: Kit, hits: CameraHits, steps: int, intensity,
                         flags: list, lane_info, vis_delta):
-    """Second gather pass over the boundary steps only (seed 002's interpolation).
+    """Second gather pass over the boundary steps only (Wyman and Dai 2013's interpolation).
 
     The Riemann sum with interpolated visibility differs from the nearest-voxel one only
     where they disagree, which the boundary mask bounds: L = L_point + sum over flagged

@@ -12,7 +12,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .scene import AreaLightScene, Sphere
+from .area_scene import AreaLightScene, Sphere
 
 #: Surface kinds returned by :func:`camera_hits`.
 EXIT, DIFFUSE, LIGHT_FRONT, LIGHT_BACK = 0, 1, 2, 3
@@ -39,8 +39,7 @@ class Kit:
     def vec_array(self, a: np.ndarray) -> object:
         """Vec3 of width N from an (N, 3) array."""
         a = np.asarray(a, np.float64)
-        f = (lambda c: A.to_float(np.ascontiguousarray(a[:, c]), self.Float))
-        return self.Vec3(f(0), f(1), f(2))
+        return self.Vec3(*(A.to_float(np.ascontiguousarray(a[:, c]), self.Float) for c in range(3)))
 
 
 def kit(dtype: str = "float32") -> Kit:

@@ -4,7 +4,7 @@
   Riemann step and surface point (full resolution); no scan.
 * ``naive_voxel``  -- one pass per VPL (voxelized shadow volumes, Wyman 2011, applied per
   VPL): exact texel-ray voxelization of an R^3 grid, scan, nearest-voxel gather.
-* ``imperfect``    -- imperfect VSVs (seed 002): all K grids in one buffer, populated by
+* ``imperfect``    -- imperfect VSVs (Wyman and Dai 2013): all K grids in one buffer, populated by
   splatting per-VPL random surface points, one scan over the whole buffer, one gather over
   (pixel, VPL) lanes with bilinear interpolation only at shadow boundaries.
 
@@ -24,10 +24,11 @@ import numpy as np
 from .. import _arrays as A
 from .gather import boundary_correction, exact_visibility, gather
 from .geometry import LIGHT_FRONT, Kit, camera_hits, kit
-from .scene import AreaLightScene
+from .area_scene import AreaLightScene
 from .visibility import (boundary_mask, interleave, lookup_bilinear, lookup_point, lookup_point_edge,
                          project, scan, voxelize_points, voxelize_rays)
-from .vpl import LightGrid, check_count, fit_grid, sample_vpls
+from ..validation import integer as check_count, real
+from .vpl import LightGrid, fit_grid, sample_vpls
 
 METHODS = ("naive_exact", "naive_voxel", "imperfect")
 INTERPOLATIONS = ("none", "boundary", "full")
@@ -62,16 +63,6 @@ class _Clock:
         return out
 
 
-def _finite(value, name: str, positive: bool) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {value!r}") from None
-    if not np.isfinite(x) or x < 0 or (positive and x == 0):
-        raise ValueError(f"{name}: must be finite and {'> 0' if positive else '>= 0'}, got {value!r}")
-    return x
-
-
 def _validate(scene, method, vpls, resolution, steps, interpolation, voxelization, points_per_vpl,
               splat_coverage, surface_bias, dtype):
     if not isinstance(scene, AreaLightScene):
@@ -91,9 +82,9 @@ def _validate(scene, method, vpls, resolution, steps, interpolation, voxelizatio
         raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
     if points_per_vpl is not None:
         check_count(points_per_vpl, "points_per_vpl", 1)
-    _finite(splat_coverage, "splat_coverage", positive=True)
+    real(splat_coverage, "splat_coverage", 0.0, open_min=True)
     if surface_bias is not None:
-        _finite(surface_bias, "surface_bias", positive=False)
+        real(surface_bias, "surface_bias", 0.0)
     A.float_type(dtype)  # raises ValueError naming dtype
 
 

@@ -7,7 +7,7 @@ diffuse ``sphere``/``cube`` occluders and a one-sided ``rectangle`` with an ``ar
 emitter (black back side).  ``volpath`` with ``max_depth = 2`` keeps the directly seen
 emitter and one scattering event (medium or surface) with next-event estimation, i.e.
 single scattering; Russian roulette is off.  Rays are the same pixel-centre rays as
-:meth:`Camera.rays` (no pixel filter), started inside the medium.
+:meth:`PinholeCamera.rays` (no pixel filter), started inside the medium.
 
 The variant (``llvm_ad_rgb``) is set when a function is called, never at import.
 """
@@ -18,8 +18,8 @@ import math
 import drjit as dr
 import numpy as np
 
-from .scene import AreaLightScene, Sphere
-from .vpl import check_count
+from .area_scene import AreaLightScene, Sphere
+from ..validation import integer as check_count
 
 VARIANT = "llvm_ad_rgb"
 

@@ -1,9 +1,10 @@
-"""Per-VPL voxel visibility: voxelize, scan into shadow volumes, look up (seed 002 sec. 2).
+"""Per-VPL voxel visibility: voxelize, scan into shadow volumes, look up (Wyman and Dai 2013,
+"Imperfect Voxelized Shadow Volumes", HPG, sec. 2).
 
 Storage.  VPL ``k``'s grid (:class:`~.vpl.LightGrid`, R x R texels x R depth bins) is a
 bit volume: texel ray ``ray = k R^2 + j R + i`` owns ``W = ceil(R / 32)`` consecutive
 UInt32 words, bit ``b & 31`` of word ``ray W + (b >> 5)`` is depth bin ``b``.  All VPLs
-of a batch live in one buffer (the seed's "single render target").
+of a batch live in one buffer (the paper's "single render target").
 
 1. *Voxelize* (occupancy ``O``): set the bin of each occluder surface seen along a
    texel ray.  ``voxelize_rays`` casts the exact texel-centre ray from the VPL
@@ -30,7 +31,7 @@ import numpy as np
 
 from .. import backend
 from .geometry import Kit, occluder_hits
-from .scene import AreaLightScene, Sphere
+from .area_scene import AreaLightScene, Sphere
 from .vpl import LightGrid
 
 FULL = 0xFFFFFFFF
@@ -268,7 +269,7 @@ def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, active=True,
 def lookup_point_edge(grid: LightGrid, k: Kit, SE, vpl, c: GridCoords):
     """Nearest-texel visibility and the boundary flag E at the same voxel, from the
     interleaved buffer of :func:`interleave`.  Where E is 0 the bilinear visibility equals
-    the nearest one (seed 002: "interpolate at shadow boundaries";
+    the nearest one (Wyman and Dai 2013: "interpolate at shadow boundaries";
     :func:`~.gather.boundary_correction` adds the difference where E is 1)."""
     i = k.UInt32(dr.clip(c.fs, 0, grid.R - 1))
     j = k.UInt32(dr.clip(c.ft, 0, grid.R - 1))

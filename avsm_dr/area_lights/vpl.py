@@ -1,13 +1,14 @@
 """Virtual point lights (VPLs) on the quad light, and the light-space grid they share.
 
-Area light as K point lights (seed 002 sec. 1, after Heckbert and Herf 1997):
+Area light as K point lights (Wyman and Dai 2013, "Imperfect Voxelized Shadow
+Volumes", sec. 1, after Heckbert and Herf 1997):
 
     L_in(x) = sum_k  L_e (A / K) max(0, n . w_k) / r_k^2,   w_k = (x - p_k) / r_k,
 
 with p_k stratified on the quad: cell centres of a sqrt(K) x sqrt(K) grid when K is a
 square (optionally jittered inside each cell), Hammersley points otherwise.
 
-Every VPL k gets a grid of R x R x R voxels in its own light space (seed 002 sec. 2):
+Every VPL k gets a grid of R x R x R voxels in its own light space (Wyman and Dai 2013, sec. 2):
 texel (i, j) is the perspective direction ``e_u s + e_v t + n`` with
 ``(s, t)`` in ``[s_min, s_max] x [t_min, t_max]`` (a frustum fitted around all occluders,
 shared by all VPLs), depth bin ``b`` the distance ``r`` to the VPL, binned linearly with
@@ -22,16 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scene import AreaLightScene, QuadLight, Sphere
-
-
-def check_count(value, name: str, lo: int) -> int:
-    """An integer >= lo, or ValueError naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name}: expected an integer, got {value!r}")
-    if value < lo:
-        raise ValueError(f"{name}: must be >= {lo}, got {value}")
-    return int(value)
+from ..validation import integer as check_count
+from .area_scene import AreaLightScene, QuadLight, Sphere
 
 
 def _radical_inverse2(i: np.ndarray) -> np.ndarray:

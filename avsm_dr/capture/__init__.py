@@ -5,9 +5,9 @@
     T = ad.build("exact", cap.segments).eval(texel, depth)
 
 Every kind of content becomes segments ``[z0, z1]`` with optical depth ``tau``
-(seed 000 sec. 3): density grids by ray marching (:mod:`.grid`), particles as
-chords (:mod:`.particles`), hair strands as crossings (:mod:`.hair`), opaque
-blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
+(Salvi et al., "Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3): density grids
+by ray marching (:mod:`.grid`), particles as chords (:mod:`.particles`), hair strands
+as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
 (:mod:`.camera`) fits a directional light's orthographic map to the content's
 bounds (the non-zero part of a grid, with one empty texel of margin), uses the
 spot cone for a spot light and a cube of six faces for a point light.  Segments
@@ -24,16 +24,27 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 from ..scene import DirectionalLight, PointLight, Scene, SpotLight
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
 from . import opaque as _opaque
+from . import opaque_map as _opaque_map
 from . import particles as _particles
-from .camera import Camera, CubeCamera, OrthoCamera, PerspectiveCamera, make_camera, orthonormal_basis
-from .grid import GridVolume, march
+from .camera import CubeCamera, LightCamera, OrthoCamera, PerspectiveCamera, make_camera, orthonormal_basis
+from .dda import traverse
+from .grid import GridVolume, check_method, march
 from .hair import load_tfx, procedural_strands
 
 RESOLUTION_RANGE = (64, 1024)
+#: Depth that :meth:`Capture.lookup` gives points the map does not cover: the light's own
+#: position (spot/point) or reference plane (directional), in front of every segment
+#: (segments lie at ray parameters >= 0), so every representation returns T = 1 there.
+OUTSIDE_DEPTH = 0.0
+#: Finest grid march step, as a fraction of the smallest voxel side: the march's error
+#: along a trilinear field falls at least as step^2, nothing measurable is gained below
+#: this, and the march costs one iteration per step per texel.
+MIN_STEP_FRACTION = 1.0 / 1024
 
 
 @dataclass(eq=False)
@@ -44,14 +55,17 @@ class Capture:
         texel ``y * width + x``; cube maps stack their six faces vertically).
     camera: the light camera (rays and projection); light, resolution, step, epsilon: the inputs.
     stats: counts and host/kernel timings of the capture.
+    opaque_depth: (texels,) float64 opaque depth map of ``capture(..., opaque='separate')``
+        (+inf: no blocker), composed with every representation at lookup; None when inline.
     """
     segments: Segments
-    camera: Camera
+    camera: LightCamera
     light: Any
     resolution: int
     step: float | None
     epsilon: float
     stats: dict = field(default_factory=dict)
+    opaque_depth: Any = None
 
     @property
     def width(self) -> int:
@@ -69,20 +83,45 @@ class Capture:
         coordinates (x, y) in texel units instead of indices, for the filters of
         :mod:`avsm_dr.filtering` (``rep.eval(coords, depth, filter, width=cap.width,
         height=cap.height)``).
+
+        Points the map does not cover (:meth:`covers`: behind a spot light or outside its
+        square frustum, beside a directional map's window; a cube map covers everything)
+        are lit, the border convention of shadow mapping: they get the nearest texel
+        (coordinates clamped onto the map) and depth :data:`OUTSIDE_DEPTH`, in front of
+        every segment, so ``rep.eval`` returns 1 for them.
         """
-        p = _points(points)
-        coords, depth = self.camera.project(p)
+        coords, depth, _ = self._lookup(points)
         if continuous:
             return coords, depth
         return self.camera.texel_index(coords), depth
 
+    def _lookup(self, points):
+        """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
+        coords, depth = self.camera.project(_points(points))
+        out = ~self.camera.covers(coords)
+        if out.any():
+            depth = np.where(out, OUTSIDE_DEPTH, depth)
+            coords[out, 0] = np.clip(coords[out, 0], 0.5, self.width - 0.5)
+            coords[out, 1] = np.clip(coords[out, 1], 0.5, self.height - 0.5)
+        return coords, depth, out
+
+    def covers(self, points) -> np.ndarray:
+        """(K,) bool: the points lie inside the light camera's map (see :meth:`lookup`)."""
+        return ~self._lookup(points)[2]
+
     def transmittance(self, rep, points, filter: str = "point", radius: float = 1.0):
-        """T at world points from representation ``rep`` (built on ``self.segments``)."""
+        """T at world points from representation ``rep`` (built on ``self.segments``);
+        exactly 1 at points the map does not cover (:meth:`lookup`)."""
+        coords, depth, out = self._lookup(points)
+        rep = _opaque_map.compose(rep, self.opaque_depth)
         if filter == "point":
-            texel, depth = self.lookup(points)
-            return rep.eval(texel, depth)
-        coords, depth = self.lookup(points, continuous=True)
-        return rep.eval(coords, depth, filter=filter, width=self.width, height=self.height, radius=radius)
+            T = rep.eval(self.camera.texel_index(coords), depth)
+        else:
+            T = rep.eval(coords, depth, filter=filter, width=self.width, height=self.height,
+                         radius=radius)
+        if out.any():
+            T = dr.select(backend.types().Bool(out), 1.0, T)
+        return T
 
     def __repr__(self) -> str:
         return (f"Capture({type(self.light).__name__}, {self.width}x{self.height}, "
@@ -91,22 +130,17 @@ class Capture:
 
 # ------------------------------------------------------------------ validation
 def _points(points) -> np.ndarray:
-    p = A.host(points, "points")
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points: expected shape (K, 3), got {p.shape}")
-    A.check_finite(p, "points")
-    return p
+    return V.points(points, "points", allow_empty=True)
 
 
-def _check_params(resolution, step, epsilon):
-    if not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool) \
-            or not RESOLUTION_RANGE[0] <= resolution <= RESOLUTION_RANGE[1]:
-        raise ValueError(f"resolution: expected an integer in [{RESOLUTION_RANGE[0]}, "
-                         f"{RESOLUTION_RANGE[1]}], got {resolution!r}")
-    if step is not None and not (isinstance(step, (int, float, np.floating)) and np.isfinite(step) and step > 0):
-        raise ValueError(f"step: must be a finite number > 0, got {step!r}")
-    if not (isinstance(epsilon, (int, float, np.floating)) and 0 < epsilon < 1):
-        raise ValueError(f"epsilon: must lie in (0, 1), got {epsilon!r}")
+def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
+    V.integer(resolution, "resolution", *RESOLUTION_RANGE)
+    if step is not None:
+        V.real(step, "step", 0.0, open_min=True)
+    V.real(epsilon, "epsilon", 0.0, 1.0, open_min=True, open_max=True)
+    if opaque_bias is not None:
+        V.real(opaque_bias, "opaque_bias", 0.0, open_min=True)
+    V.real(opaque_slope_bias, "opaque_slope_bias", 0.0)
 
 
 def validate_scene(scene: Scene) -> None:
@@ -115,10 +149,7 @@ def validate_scene(scene: Scene) -> None:
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
     if not isinstance(scene.light, (DirectionalLight, SpotLight, PointLight)):
         raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(scene.light).__name__}")
-    r = A.host(scene.receivers, "receivers")
-    if r.ndim != 2 or r.shape[1] != 3:
-        raise ValueError(f"receivers: expected shape (K, 3), got {r.shape}")
-    A.check_finite(r, "receivers")
+    V.points(scene.receivers, "receivers", allow_empty=True)
     if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
         raise ValueError("scene: no content (density, particles, hair or blockers)")
 
@@ -126,11 +157,12 @@ def validate_scene(scene: Scene) -> None:
 # --------------------------------------------------------------------- capture
 def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
             density=None, block: int = 8, keep_zero: bool = False, dtype: str | None = None,
-            opaque_bias: float | None = None, opaque_slope_bias: float = 2.0, bounds=None) -> Capture:
+            opaque_bias: float | None = None, opaque_slope_bias: float = 2.0, bounds=None,
+            method: str | None = None, opaque: str = "inline") -> Capture:
     """Segments of every shadow-map texel for ``scene`` seen from ``scene.light``.
 
     resolution: texels per side, 64..1024 (a point light's cube map is resolution x 6 resolution).
-    step: grid march step in world units (default half the smallest voxel side).
+    step: grid march step in world units (method 'march'; default half the smallest voxel side).
     epsilon: a grid ray stops once its transmittance falls below ``epsilon``.
     density: overrides ``scene.density`` - a (z, y, x) NumPy array, a 3-D Dr.Jit tensor
         (``TensorXf``/``TensorXf64``, e.g. with ``dr.enable_grad``: gradients flow to
@@ -143,9 +175,15 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     opaque_slope_bias: extra offset in texel widths x tan(angle of incidence), so receivers
         on a blocker's lit surface are not shadowed by it (see :mod:`.opaque`).
     bounds: (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
+    method: grid capture - 'march' (default: Simpson steps of ``step``) or 'exact' (one
+        segment per dual-cell crossing, integrated exactly, no step: :mod:`.dda`).
+    opaque: 'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
+        depth map, ``Capture.opaque_depth``, composed at lookup; see :mod:`.opaque_map`).
     """
     validate_scene(scene)
-    _check_params(resolution, step, epsilon)
+    _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias)
+    method = check_method(method, step)
+    V.one_of(opaque, "opaque", _opaque_map.OPAQUE_MODES)
     stats: dict = {}
     t_start = time.perf_counter()
 
@@ -165,8 +203,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         boxes.append(grid.occupied)
     if scene.particles is not None:
         c, r, _ = _particles.validate(scene.particles)
-        if c.shape[0]:
-            boxes.append(((c - r[:, None]).min(0), (c + r[:, None]).max(0)))
+        boxes.append(((c - r[:, None]).min(0), (c + r[:, None]).max(0)))
     if scene.hair is not None:
         s, r, _ = _hair.validate(scene.hair)
         pts = s.reshape(-1, 3)
@@ -176,16 +213,21 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     if not boxes and grid is not None:
         boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
     if bounds is not None:
-        lo, hi = (np.asarray(v, np.float64).reshape(3) for v in bounds)
-        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)):
-            raise ValueError(f"bounds: expected finite (min_xyz, max_xyz) with max >= min, got {bounds!r}")
+        try:
+            lo, hi = bounds
+        except (TypeError, ValueError):
+            raise ValueError(f"bounds: expected (min_xyz, max_xyz), got {bounds!r}") from None
+        lo, hi = V.vec3(lo, "bounds"), V.vec3(hi, "bounds")
+        if not np.all(hi >= lo):
+            raise ValueError(f"bounds: expected max >= min on every axis, got {bounds!r}")
         boxes = [(lo, hi)]
     bmin = np.array([b[0] for b in boxes])
     bmax = np.array([b[1] for b in boxes])
+    light = scene.light
+    _check_range(bmin, bmax, getattr(light, "position", None), dtype)
     diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0
 
     # ---- the light
-    light = scene.light
     if isinstance(light, (SpotLight, PointLight)):
         pos = light.position
         if grid is not None and np.all((pos >= grid.bmin) & (pos <= grid.bmax)):
@@ -195,15 +237,24 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
             if _opaque.contains(b, pos):
                 raise ValueError(f"light: the light lies inside blockers[{i}]")
     camera = make_camera(light, int(resolution), bmin, bmax)
-    if step is None and grid is not None:
-        step = 0.5 * float(grid.voxel.min())
+    if grid is not None and method == "march":
+        finest = MIN_STEP_FRACTION * float(grid.voxel.min())
+        if step is None:
+            step = 0.5 * float(grid.voxel.min())
+        elif step < finest:
+            raise ValueError(f"step: {step:g} is below 1/{round(1 / MIN_STEP_FRACTION)} of the smallest "
+                             f"voxel side (finest useful step {finest:.3g}; the march costs one "
+                             f"iteration per step per texel)")
     stats["setup_s"] = time.perf_counter() - t_start
 
     # ---- segments of every content kind
     pieces = []                                            # (texel, z0, z1, tau)
     if grid is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero)
+        if method == "exact":
+            tex, z0, z1, tau, st = traverse(grid, camera, epsilon, keep_zero=keep_zero)
+        else:
+            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, method=method)
         stats["grid"] = dict(st, seconds=time.perf_counter() - t0)
         if tex.size:
             pieces.append((tex, z0, z1, tau))
@@ -219,22 +270,39 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         stats["hair"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
         if tex.size:
             pieces.append((tex, z0, z1, tau))
+    opaque_depth = None
     if blockers:
         bias = 1e-4 * diag if opaque_bias is None else float(opaque_bias)
-        if not (np.isfinite(bias) and bias > 0):
-            raise ValueError(f"opaque_bias: must be > 0, got {opaque_bias!r}")
-        if not (np.isfinite(opaque_slope_bias) and opaque_slope_bias >= 0):
-            raise ValueError(f"opaque_slope_bias: must be >= 0, got {opaque_slope_bias!r}")
         tex, z0, z1 = _opaque.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias)
         stats["opaque"] = {"segments": int(tex.size)}
-        if tex.size:
+        if opaque == "separate":
+            opaque_depth = _opaque_map.depth_map(tex, z0, camera.n_texels)
+            pieces = _opaque_map.clip_pieces(pieces, opaque_depth, Float)
+        elif tex.size:
             pieces.append((tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)))
 
     t0 = time.perf_counter()
     seg = _combine(pieces, camera.n_texels, Float)
     stats["combine_s"] = time.perf_counter() - t0
     stats["total_s"] = time.perf_counter() - t_start
-    return Capture(seg, camera, light, int(resolution), step, float(epsilon), stats)
+    return Capture(seg, camera, light, int(resolution), step, float(epsilon), stats, opaque_depth)
+
+
+def _check_range(bmin, bmax, position, dtype: str) -> None:
+    """Content and light coordinates small enough that depths fit the storage dtype.
+
+    Depths are differences of coordinates (at most 4x the largest magnitude along the
+    map's rays), so the coordinates must stay below 1/16 of the dtype's largest value.
+    """
+    coords = [np.abs(bmin).max(), np.abs(bmax).max()]
+    if position is not None:
+        coords.append(np.abs(position).max())
+    reach = float(max(coords))
+    limit = float(np.finfo(dtype).max) / 16
+    if not reach <= limit:
+        raise ValueError(f"scene: content or light coordinates reach {reach:.3g}; {dtype} depths need "
+                         f"coordinates below {limit:.3g}"
+                         + (" (use dtype='float64')" if dtype == "float32" else ""))
 
 
 def _combine(pieces, n_texels: int, Float) -> Segments:
@@ -288,4 +356,5 @@ def _cat(arrays):
 
 
 __all__ = ["capture", "Capture", "GridVolume", "validate_scene", "load_tfx", "procedural_strands",
-           "OrthoCamera", "PerspectiveCamera", "CubeCamera", "orthonormal_basis", "RESOLUTION_RANGE"]
+           "LightCamera", "OrthoCamera", "PerspectiveCamera", "CubeCamera", "orthonormal_basis",
+           "RESOLUTION_RANGE", "OUTSIDE_DEPTH", "MIN_STEP_FRACTION"]

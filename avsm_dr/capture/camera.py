@@ -3,7 +3,7 @@
 Every camera shoots the ray of texel ``k`` from ``origin[k]`` along the unit
 direction ``dir[k]``; the light-space depth of the point ``origin + t * dir`` is
 ``t`` itself, so segments ``[z0, z1]`` are ray parameters and a receiver's depth
-comes from the same camera (:meth:`Camera.project`):
+comes from the same camera (:meth:`LightCamera.project`):
 
 * :class:`OrthoCamera` (directional light): the map is a square window of
   half-size ``half`` on the plane through ``center`` orthogonal to ``d``, fitted
@@ -16,6 +16,10 @@ comes from the same camera (:meth:`Camera.project`):
 
 Texel ``(i, j)`` covers the continuous coordinates ``[i, i+1) x [j, j+1)``
 (the convention of :mod:`avsm_dr.filtering`); its ray passes through its centre.
+A point whose coordinates fall outside ``[0, width) x [0, height)`` (behind a spot
+light, outside its square frustum, beside a directional map's window) is not seen by
+the map (:meth:`LightCamera.covers`); :meth:`avsm_dr.capture.Capture.lookup` treats it
+as lit.
 """
 from __future__ import annotations
 
@@ -23,15 +27,18 @@ import math
 
 import numpy as np
 
+from .. import validation as V
+
 
 def orthonormal_basis(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(u, v, w): right-handed orthonormal frame whose third axis is ``w`` (normalised).
 
     u = normalize(up x w) with up = +y unless w is within ~8 degrees of +-y (then +x);
-    v = w x u.  Deterministic, used by every camera and by :class:`~avsm_dr.scene.OpaquePlane`.
+    v = w x u.  Deterministic; the one frame of the package: every light camera, the
+    squares of :class:`~avsm_dr.scene.OpaquePlane` and the receiver plane (ground truth,
+    shading), the inverse problem's receiver grid.
     """
-    w = np.asarray(w, dtype=np.float64)
-    w = w / np.linalg.norm(w)
+    w = V.unit_vector(w, "w")
     up = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.99 else np.array([1.0, 0.0, 0.0])
     u = np.cross(up, w)
     u /= np.linalg.norm(u)
@@ -60,6 +67,16 @@ def _box_corners(bmin, bmax):
     return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
 
 
+#: (box, texel) pairs enumerated at once by :meth:`LightCamera.footprint_chunks` (host memory:
+#: the rays of one chunk take 2 x 3 float64 per pair, 200 MB).
+MAX_PAIRS = 1 << 22
+
+
+def _rect_areas(x0, x1, y0, y1) -> np.ndarray:
+    """Texels in each inclusive rectangle (0 when empty)."""
+    return np.maximum(x1 - x0 + 1, 0) * np.maximum(y1 - y0 + 1, 0)
+
+
 def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     """All (item, texel) pairs of inclusive rectangles; texel = offset + y * res + x."""
     wx = np.maximum(x1 - x0 + 1, 0)
@@ -77,8 +94,9 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     return item, texel
 
 
-class Camera:
-    """Common interface.  ``width``, ``height``, ``n_texels``; see the module docstring."""
+class LightCamera:
+    """Common interface of the light cameras.  ``width``, ``height``, ``n_texels``; see the
+    module docstring."""
 
     width: int
     height: int
@@ -99,17 +117,50 @@ class Camera:
         """Texel containing each continuous coordinate, clamped to the map (cube: to the face)."""
         raise NotImplementedError
 
+    def covers(self, coords) -> np.ndarray:
+        """(K,) bool: the continuous coordinates (K, 2) lie on the map, ``[0, width) x [0, height)``."""
+        c = np.asarray(coords, np.float64)
+        return (c[:, 0] >= 0) & (c[:, 0] < self.width) & (c[:, 1] >= 0) & (c[:, 1] < self.height)
+
+    def footprint_rects(self, bmin, bmax) -> list:
+        """Inclusive texel rectangles of N boxes, one tuple ``(x0, x1, y0, y1, texel_offset)``
+        of (N,) int64 arrays per map face, holding every texel whose ray may meet the box
+        (conservative; empty rectangles have ``x0 > x1``)."""
+        raise NotImplementedError
+
+    def footprint_pairs(self, bmin, bmax) -> int:
+        """Number of (box, texel) pairs :meth:`footprint` would return (no enumeration)."""
+        return sum(int(_rect_areas(*r[:4]).sum()) for r in self.footprint_rects(bmin, bmax))
+
+    def footprint_chunks(self, bmin, bmax, max_pairs: int = MAX_PAIRS):
+        """Yield (item, texel) int64 pairs of :meth:`footprint` in chunks of at most
+        ``max_pairs`` pairs (or one box's footprint when that alone is larger)."""
+        for x0, x1, y0, y1, offset in self.footprint_rects(bmin, bmax):
+            csum = np.cumsum(_rect_areas(x0, x1, y0, y1))
+            start = 0
+            while start < csum.size:
+                base = int(csum[start - 1]) if start else 0
+                stop = max(start + 1, int(np.searchsorted(csum, base + max_pairs, side="right")))
+                sl = slice(start, stop)
+                item, texel = expand_rects(x0[sl], x1[sl], y0[sl], y1[sl], self.res, offset)
+                if texel.size:
+                    yield item + start, texel
+                start = stop
+
     def footprint(self, bmin, bmax):
         """Candidate texels of N boxes: (item (M,), texel (M,)) int64 with every texel whose
         ray may meet box ``item`` (conservative, one entry per pair)."""
-        raise NotImplementedError
+        chunks = list(self.footprint_chunks(bmin, bmax, max_pairs=np.iinfo(np.int64).max))
+        if not chunks:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
 
     def texel_width(self, texels, t) -> np.ndarray:
         """World width of a texel's footprint across its ray at depth ``t`` (K,)."""
         raise NotImplementedError
 
 
-class OrthoCamera(Camera):
+class OrthoCamera(LightCamera):
     """Orthographic map for a directional light travelling along ``direction``.
 
     center: (3,) point on the reference plane (depth 0) at the map centre.
@@ -159,15 +210,15 @@ class OrthoCamera(Camera):
     def texel_width(self, texels, t):
         return np.full(np.shape(t), self.texel_size)
 
-    def footprint(self, bmin, bmax):
+    def footprint_rects(self, bmin, bmax):
         c = _box_corners(bmin, bmax)                                   # (N, 8, 3)
         q = c - self.center
         x = (q @ self.u + self.half) / self.texel_size
         y = (q @ self.v + self.half) / self.texel_size
-        return expand_rects(*_rect_from_coords(x, y, self.res), self.res)
+        return [(*_rect_from_coords(x, y, self.res), 0)]
 
 
-class PerspectiveCamera(Camera):
+class PerspectiveCamera(LightCamera):
     """Perspective square map at ``position`` looking along ``direction``, full angle ``fov``
     degrees (spot light, or one cube face with fov = 90)."""
 
@@ -214,7 +265,7 @@ class PerspectiveCamera(Camera):
         cos = d @ self.w
         return np.asarray(t) * (2 * self.tan_half / self.res) / (cos * cos)
 
-    def footprint(self, bmin, bmax):
+    def footprint_rects(self, bmin, bmax):
         c = _box_corners(bmin, bmax)
         q = c - self.position
         x, y, zc = self._coords(q)
@@ -227,14 +278,14 @@ class PerspectiveCamera(Camera):
         y0 = np.where(straddle, 0, y0)
         x1 = np.where(straddle, self.res - 1, np.where(behind, x0 - 1, x1))
         y1 = np.where(straddle, self.res - 1, y1)
-        return expand_rects(x0, x1, y0, y1, self.res, self.texel_offset)
+        return [(x0, x1, y0, y1, self.texel_offset)]
 
 
 #: Cube faces: (forward axis, sign); face f owns texels [f res^2, (f+1) res^2).
 CUBE_FACES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0), (2, -1.0))
 
 
-class CubeCamera(Camera):
+class CubeCamera(LightCamera):
     """Six 90-degree perspective faces around a point light, stacked vertically."""
 
     def __init__(self, position, res: int):
@@ -296,16 +347,11 @@ class CubeCamera(Camera):
                 out[m] = cam.texel_width(texels[m], t[m])
         return out
 
-    def footprint(self, bmin, bmax):
-        items, texels = [], []
-        for cam in self.faces:
-            i, t = cam.footprint(bmin, bmax)
-            items.append(i)
-            texels.append(t)
-        return np.concatenate(items), np.concatenate(texels)
+    def footprint_rects(self, bmin, bmax):
+        return [r for cam in self.faces for r in cam.footprint_rects(bmin, bmax)]
 
 
-def make_camera(light, res: int, bmin=None, bmax=None) -> Camera:
+def make_camera(light, res: int, bmin=None, bmax=None) -> LightCamera:
     """The camera of ``light``: ortho fitted to boxes (N, 3) ``bmin``/``bmax`` for a
     directional light, perspective for a spot light, a cube for a point light."""
     from ..scene import DirectionalLight, PointLight, SpotLight

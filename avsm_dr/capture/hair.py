@@ -1,12 +1,12 @@
 """Hair strands: TressFX loading, procedural strands, and strand crossings as segments.
 
-Seed 000 sec. 3: "for hair we insert a short segment where the light enters and
-exits the hair strand".  A strand is a polyline of capsules (radius ``r`` around
-each of its line segments).  A texel ray's passage through one capsule is the
-interval hull of its chords through the finite cylinder and the two end spheres
-(a capsule is convex); passages through consecutive capsules of the same strand
-that overlap (at the joints) are merged, so one crossing of a strand is one
-segment ``[t_in, t_out]`` whatever the tessellation, with
+Salvi et al., "Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3: "for hair we insert
+a short segment where the light enters and exits the hair strand". A strand is a
+polyline of capsules (radius ``r`` around each of its line segments). A texel ray's
+passage through one capsule is the interval hull of its chords through the finite
+cylinder and the two end spheres (a capsule is convex); passages through consecutive
+capsules of the same strand that overlap (at the joints) are merged, so one crossing of
+a strand is one segment ``[t_in, t_out]`` whatever the tessellation, with
 
     T_exit = 1 - opacity,      tau = -ln(1 - opacity)      (opacity per crossing).
 """
@@ -17,11 +17,14 @@ import struct
 
 import numpy as np
 
-from .. import _arrays as A
+from .. import validation as V
 from ..segments import OPAQUE_OPTICAL_DEPTH
+from .particles import MAX_CANDIDATES, check_candidates
 
-#: Capsules whose footprints are enumerated at once (bounds host memory).
+#: Capsules whose footprint rectangles are computed at once (bounds host memory).
 CHUNK = 2048
+#: Most vertices :func:`procedural_strands` generates (2^24, 400 MB of float64 work arrays).
+MAX_VERTICES = 1 << 24
 
 
 # --------------------------------------------------------------------- loading
@@ -63,11 +66,15 @@ def procedural_strands(n_strands: int = 300, n_vertices: int = 16, root_center=(
     ``curl`` radians per unit length (deterministic for ``seed``).
     Returns (n_strands, n_vertices, 3) float32.
     """
-    if n_strands < 1 or n_vertices < 2:
-        raise ValueError(f"n_strands: need >= 1 strands of >= 2 vertices, got {n_strands} x {n_vertices}")
-    if not (length > 0 and root_radius >= 0):
-        raise ValueError(f"length: must be > 0 (and root_radius >= 0), got {length}, {root_radius}")
-    rng = np.random.default_rng(seed)
+    n_strands = V.integer(n_strands, "n_strands", 1)
+    n_vertices = V.integer(n_vertices, "n_vertices", 2)
+    if n_strands * n_vertices > MAX_VERTICES:
+        raise ValueError(f"n_strands: {n_strands} x {n_vertices} vertices exceed {MAX_VERTICES}")
+    length = V.real(length, "length", 0.0, open_min=True)
+    root_radius = V.real(root_radius, "root_radius", 0.0)
+    curl = V.real(curl, "curl", 0.0)
+    root_center = V.vec3(root_center, "root_center")
+    rng = np.random.default_rng(V.integer(seed, "seed", 0))
     rad = root_radius * np.sqrt(rng.random(n_strands))
     ang = 2 * np.pi * rng.random(n_strands)
     root = np.asarray(root_center, np.float64) + np.stack(
@@ -91,9 +98,12 @@ def procedural_strands(n_strands: int = 300, n_vertices: int = 16, root_center=(
 
 def fit_strands(strands: np.ndarray, bmin, bmax, fill: float = 0.8) -> np.ndarray:
     """Uniformly scale and centre strands into the box (bmin, bmax), filling ``fill`` of it."""
-    s = np.asarray(strands, np.float64)
+    s = V.array(strands, "strands")
+    if s.ndim != 3 or s.shape[2] != 3 or s.size == 0:
+        raise ValueError(f"strands: expected a non-empty (S, V, 3) array, got shape {s.shape}")
     lo, hi = s.reshape(-1, 3).min(0), s.reshape(-1, 3).max(0)
-    bmin, bmax = np.asarray(bmin, np.float64), np.asarray(bmax, np.float64)
+    bmin, bmax = V.vec3(bmin, "bmin"), V.vec3(bmax, "bmax")
+    fill = V.real(fill, "fill", 0.0, open_min=True)
     scale = fill * np.min((bmax - bmin) / np.maximum(hi - lo, 1e-12))
     return ((s - 0.5 * (lo + hi)) * scale + 0.5 * (bmin + bmax)).astype(np.float32)
 
@@ -101,16 +111,11 @@ def fit_strands(strands: np.ndarray, bmin, bmax, fill: float = 0.8) -> np.ndarra
 # --------------------------------------------------------------------- geometry
 def validate(hair):
     """(strands (S, V, 3) float64, radius, opacity) after checks."""
-    s = A.host(hair.strands, "hair.strands")
+    s = V.array(hair.strands, "hair.strands")
     if s.ndim != 3 or s.shape[2] != 3 or s.shape[1] < 2 or s.shape[0] < 1:
-        raise ValueError(f"hair.strands: expected shape (S, V, 3) with V >= 2, got {s.shape}")
-    A.check_finite(s, "hair.strands")
-    r = float(hair.radius)
-    if not (np.isfinite(r) and r > 0):
-        raise ValueError(f"hair.radius: must be > 0, got {hair.radius!r}")
-    op = float(hair.opacity)
-    if not (0.0 <= op <= 1.0):
-        raise ValueError(f"hair.opacity: must lie in [0, 1], got {hair.opacity!r}")
+        raise ValueError(f"hair.strands: expected shape (S, V, 3) with S >= 1, V >= 2, got {s.shape}")
+    r = V.real(hair.radius, "hair.radius", 0.0, open_min=True)
+    op = V.real(hair.opacity, "hair.opacity", 0.0, 1.0)
     return s, r, op
 
 
@@ -191,19 +196,18 @@ def capture_hair(camera, hair):
     strand_of = np.repeat(np.arange(S), V - 1)
     bmin = np.minimum(pa, pb) - r
     bmax = np.maximum(pa, pb) + r
+    check_candidates(camera, bmin, bmax, "hair", MAX_CANDIDATES)
     tex, sid, ti, to = [], [], [], []
     for start in range(0, pa.shape[0], CHUNK):
         sl = slice(start, start + CHUNK)
-        item, texel = camera.footprint(bmin[sl], bmax[sl])
-        if texel.size == 0:
-            continue
-        item = item + start
-        o, d = camera.rays(texel)
-        t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r)
-        tex.append(texel[hit])
-        sid.append(strand_of[item[hit]])
-        ti.append(t_in[hit])
-        to.append(t_out[hit])
+        for item, texel in camera.footprint_chunks(bmin[sl], bmax[sl]):
+            item = item + start
+            o, d = camera.rays(texel)
+            t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r)
+            tex.append(texel[hit])
+            sid.append(strand_of[item[hit]])
+            ti.append(t_in[hit])
+            to.append(t_out[hit])
     if not tex:
         z = np.zeros(0)
         return np.zeros(0, np.int64), z, z, z

@@ -1,4 +1,5 @@
-"""Opaque blockers as short segments that take transmittance to zero (seed 000 sec. 3:
+"""Opaque blockers as short segments that take transmittance to zero (Salvi et al.,
+"Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3:
 "a short, dense segment that takes the transmittance to zero at the exit point").
 
 A texel ray first meets the blocker's surface at depth ``t_hit``; the segment is
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import validation as V
 from ..scene import OpaqueBox, OpaquePlane, OpaqueSphere
 from .camera import orthonormal_basis
 from .grid import clip_rays
@@ -38,30 +40,17 @@ def validate(blockers) -> list:
     out = []
     for i, b in enumerate(blockers):
         name = f"blockers[{i}]"
-
-        def vec(v, field):
-            a = np.asarray(v, np.float64).reshape(-1)
-            if a.shape != (3,) or not np.all(np.isfinite(a)):
-                raise ValueError(f"{name}.{field}: expected 3 finite numbers, got {v!r}")
-            return a
-
-        def pos(v, field):
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name}.{field}: must be a finite number > 0, got {v!r}")
-            return float(v)
-
         if isinstance(b, OpaqueSphere):
-            out.append(OpaqueSphere(vec(b.center, "center"), pos(b.radius, "radius")))
+            out.append(OpaqueSphere(V.vec3(b.center, f"{name}.center"),
+                                    V.real(b.radius, f"{name}.radius", 0.0, open_min=True)))
         elif isinstance(b, OpaqueBox):
-            lo, hi = vec(b.min, "min"), vec(b.max, "max")
+            lo, hi = V.vec3(b.min, f"{name}.min"), V.vec3(b.max, f"{name}.max")
             if np.any(hi <= lo):
                 raise ValueError(f"{name}.max: zero-size box (max must exceed min on every axis)")
             out.append(OpaqueBox(lo, hi))
         elif isinstance(b, OpaquePlane):
-            n = vec(b.normal, "normal")
-            if np.linalg.norm(n) == 0:
-                raise ValueError(f"{name}.normal: must be non-zero")
-            out.append(OpaquePlane(vec(b.point, "point"), n / np.linalg.norm(n), pos(b.extent, "extent")))
+            out.append(OpaquePlane(V.vec3(b.point, f"{name}.point"), V.unit_vector(b.normal, f"{name}.normal"),
+                                   V.real(b.extent, f"{name}.extent", 0.0, open_min=True)))
         else:
             raise ValueError(f"{name}: expected OpaqueSphere, OpaqueBox or OpaquePlane, got {type(b).__name__}")
     return out
@@ -117,15 +106,13 @@ def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float
     tex, z0 = [], []
     for b in blockers:
         lo, hi = bounds(b)
-        _, texel = camera.footprint(lo[None], hi[None])
-        if texel.size == 0:
-            continue
-        o, d = camera.rays(texel)
-        t, hit, cos = first_hit(b, o, d)
-        texel, t, cos = texel[hit], t[hit], cos[hit]
-        tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)
-        tex.append(texel)
-        z0.append(t + bias + slope * camera.texel_width(texel, t) * (tan + 0.5))
+        for _, texel in camera.footprint_chunks(lo[None], hi[None]):
+            o, d = camera.rays(texel)
+            t, hit, cos = first_hit(b, o, d)
+            texel, t, cos = texel[hit], t[hit], cos[hit]
+            tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)
+            tex.append(texel)
+            z0.append(t + bias + slope * camera.texel_width(texel, t) * (tan + 0.5))
     if not tex:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     tex, z0 = np.concatenate(tex), np.concatenate(z0)

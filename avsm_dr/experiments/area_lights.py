@@ -1,10 +1,11 @@
-"""Area lights: imperfect voxelized shadow volumes vs naive per-VPL VSVs (seed 002 table).
+"""Area lights: imperfect voxelized shadow volumes vs naive per-VPL VSVs (Wyman and Dai
+2013, "Imperfect Voxelized Shadow Volumes", HPG, results table).
 
 For K in {1, 16, 64, 256} VPLs (quick: {1, 16, 64}, smaller image and grids) renders the default scene (four
 occluders in a homogeneous medium under a ceiling quad light) with
 
 * ``naive_exact``      full-resolution visibility: a shadow ray per Riemann step and VPL,
-* ``naive_voxel`` @ R_high (the seed's 512^3 row) and @ R_coarse (128^3), one pass per VPL,
+* ``naive_voxel`` @ R_high (the paper's 512^3 row) and @ R_coarse (128^3), one pass per VPL,
 * ``imperfect``   @ R_coarse: one buffer, point-splat voxelization, one scan, one gather
   with interpolation at shadow boundaries (and ``imperfect_nointerp`` without it),
 
@@ -85,10 +86,8 @@ def run(quick: bool = False, out: str | Path | None = "results/area_lights", for
                   occluders=len(scene.occluders), mitsuba_max_depth=2, interpolation_default="boundary",
                   points_per_vpl="4 R^2", splat_coverage=1.5)
     res = Results("area_lights", out, quick, params)
-    csv_path = res.dir / "data.csv"
-    if res.exists() and not force:
-        return {"csv": str(csv_path), "out": str(res.dir), "figures": [str(res.dir / "images.png")],
-                "summary": "exists (use force=True to recompute)"}
+    if (hit := res.cached(force)) is not None:
+        return dict(hit, figures=[str(res.dir / "images.png")], summary="exists (use force=True to recompute)")
 
     configs = _configs(p)
     flag = dr.flag(dr.JitFlag.KernelHistory)

@@ -10,8 +10,8 @@ differentiated w.r.t. the voxels) - in five modes:
 * ``forward_ad``      primal with gradients enabled (records the AD graph);
 * ``reverse``         ``dr.backward`` after ``forward_ad`` (all voxels at once);
 * ``forward_mode``    one directional derivative (``dr.forward_to``) after ``forward_ad``;
-* ``reverse_cheap``   reverse mode through :func:`avsm_dr.checkpoint.build_differentiable`
-                      with ``reverse='recompute'`` (exact: sum-loop recomputation;
+* ``reverse_cheap``   reverse mode through ``build(kind, seg, reverse='checkpoint')``
+                      (exact: sum-loop recomputation, its default;
                       AVSM: checkpointing), forward + backward.
 
 Memory: ``heap_mb`` = peak of Dr.Jit's allocator above the live arrays before the
@@ -30,7 +30,6 @@ Timings are medians after one warm-up (JIT compile excluded), on a shared machin
 """
 from __future__ import annotations
 
-import gc
 import statistics
 import subprocess
 import sys
@@ -39,16 +38,15 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from ._common import Meter as _Meter
 from ._common import Results
 
-KINDS = [("exact", {}), ("fom", {"harmonics": 4}), ("osm", {"slices": 16}), ("avsm", {"nodes": 8}),
-         ("dsm", {"tolerance": 0.01, "placement": "curve"})]
 MODES = ["forward", "forward_ad", "reverse", "forward_mode", "reverse_cheap"]
 
 _STACK_SCRIPT = r"""
 import sys, time
 import avsm_dr as ad, numpy as np, drjit as dr
-from avsm_dr import backend, checkpoint as ck
+from avsm_dr import backend
 F = backend.types().Float
 mode, N, M, T = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 off = np.concatenate([[0], np.cumsum(np.full(T, M))])
@@ -57,67 +55,40 @@ z0 = np.sort(rng.uniform(0, 1, (T, M)), axis=1).ravel()
 tau = F(rng.uniform(0, 3.0 / M, off[-1]).astype(np.float32)); dr.enable_grad(tau)
 seg = ad.Segments.from_arrays(off, z0, z0 + 1e-3, optical_depth=tau)
 t0 = time.perf_counter()
-rep = ad.build("avsm", seg, nodes=N) if mode == "plain" else ck.CheckpointedAVSM(seg, nodes=N)
+try:
+    rep = ad.build("avsm", seg, nodes=N, reverse="trajectory" if mode == "plain" else "checkpoint")
+except ValueError as exc:          # trajectory beyond the budget: refused, not a segfault
+    print("REFUSED", exc); sys.exit(3)
 dr.backward(dr.sum(rep.eval(np.arange(T), np.full(T, 0.7))))
 dr.eval(dr.grad(tau)); dr.sync_thread()
 print("OK", time.perf_counter() - t0)
 """
 
 
-def _status(key: str) -> float:
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(key):
-                    return int(line.split()[1]) / 1e3
-    except OSError:
-        pass
-    return float("nan")
-
-
-def _reset_peaks():
-    import drjit as dr
-    gc.collect()
-    dr.sync_thread()
-    dr.flush_malloc_cache()
-    dr.detail.malloc_clear_statistics()
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-    except OSError:
-        pass
-    return _status("VmRSS")
-
-
-class _Meter:
-    """Time and peak memory of one step (device work synchronised)."""
-
-    def __enter__(self):
-        import drjit as dr
-        self.rss0 = _reset_peaks()
-        self.heap0 = dr.detail.malloc_watermark(dr.JitBackend.LLVM)
-        self.t0 = time.perf_counter()
-        return self
-
-    def __exit__(self, *exc):
-        import drjit as dr
-        dr.sync_thread()
-        self.seconds = time.perf_counter() - self.t0
-        self.heap_mb = (dr.detail.malloc_watermark(dr.JitBackend.LLVM) - self.heap0) / 1e6
-        self.rss_mb = _status("VmHWM") - self.rss0
-        return False
+def differentiable_kinds() -> list[tuple[str, dict]]:
+    """(kind, params) for every registered kind that is not an offline reference and has a
+    differentiable configuration (``ad.representations.differentiable_configuration``)."""
+    from .. import describe, kinds
+    from ..representations import differentiable_configuration
+    out = []
+    for kind in kinds():
+        p = None if describe(kind)["offline"] else differentiable_configuration(kind)
+        if p is not None:
+            out.append((kind, p))
+    return out
 
 
 def _stack_limit(n_nodes: int, segments: int, mode: str, texels: int = 64) -> dict:
     """AVSM reverse pass on ``texels`` texels of ``segments`` segments in a subprocess."""
-    from ..checkpoint import safe_chunk
+    from ..representations._loops import safe_chunk
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", _STACK_SCRIPT, mode, str(n_nodes), str(segments), str(texels)],
                           capture_output=True, text=True, timeout=600)
     ok = proc.returncode == 0 and "OK" in proc.stdout
     return {"table": "stack_limit", "kind": "avsm", "mode": f"reverse_{mode}", "nodes": n_nodes,
             "max_count": segments, "lanes": texels, "returncode": proc.returncode,
-            "outcome": "ok" if ok else ("segfault" if proc.returncode in (-11, 139) else "error"),
+            "outcome": "ok" if ok else ("refused" if proc.returncode == 3 else
+                                        "segfault" if proc.returncode in (-11, 139) else "error"),
             "seconds": time.perf_counter() - t0,
             "trajectory_words_per_lane": (segments if mode == "plain" else
                                           min(segments, safe_chunk(2 * n_nodes + 5))) * (2 * n_nodes + 5)}
@@ -127,8 +98,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     """Run the benchmark; write CSV, figures and meta.json into ``out``
     (default ``results/backward_cost/``); ``quick`` = small sizes, ``force`` = recompute."""
     import drjit as dr
-    from .. import backend, inverse as inv, scenes as scene_lib
-    from ..checkpoint import build_differentiable, trajectory_words
+    from .. import backend, builtin_scenes as scene_lib, reconstruction as inv
+    from .. import build
+    KINDS = differentiable_kinds()
     from ..capture import capture
     from ..segments import Segments
     params = dict(size=12 if quick else 16, density_scale=20.0, resolution=64 if quick else 128,
@@ -136,8 +108,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                   repeats=2 if quick else 3, kinds=[k for k, _ in KINDS],
                   stack_cases=[(8, 4000)] if quick else [(8, 1000), (8, 4000), (32, 500), (32, 2000)])
     res = Results("backward_cost", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    if (hit := res.cached(force)) is not None:
+        return hit
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -152,7 +124,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     rows = []
 
     def pipeline(x, kind, p, step, reverse="trajectory"):
-        if not dr.is_tensor_v(x) and reverse == "recompute":
+        if not dr.is_tensor_v(x) and reverse == "checkpoint":
             reverse = "trajectory"
         sh = inv.shadow(scene, x, pts, kind=kind, params=p, resolution=params["resolution"], step=step,
                         reverse=reverse)
@@ -162,10 +134,14 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
 
     def representation(seg, tau, kind, p, reverse="trajectory"):
         s = Segments(seg.offsets, seg.z0, seg.z1, tau, seg.dtype, seg.sorted_by_depth)
-        rep = build_differentiable(kind, s, reverse=reverse, **p)
+        rep = build(kind, s, reverse=reverse, **p)
         loss = dr.sum(rep.eval(tex, depth) * t.Float(w))
         dr.eval(loss)
         return loss, None
+
+    probe = Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
+    # the cheap reverse path differs from the plain one where a loop is stored or recomputed
+    cheap_kinds = {k for k, p in KINDS if k == "exact" or build(k, probe, **p).loop_state_words > 0}
 
     def measure(make_leaf, forward, kind):
         """Median seconds and peak memory of the five modes; ``make_leaf(grad)`` -> input,
@@ -198,10 +174,10 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                 dr.eval(dl)
             meas["forward_mode"] = m
             del loss, keep, x
-            if kind in ("exact", "avsm"):
+            if kind in cheap_kinds:
                 x = make_leaf(True)
                 with _Meter() as m:
-                    loss, keep = forward(x, "recompute")
+                    loss, keep = forward(x, "checkpoint")
                     dr.backward(loss)
                     g = dr.grad(x)
                     dr.eval(g)
@@ -239,12 +215,12 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         def dens_leaf(grad):
             return inv.density_tensor(dens) if grad else dens
 
-        words = trajectory_words(kind, p, info["max_count"])
+        words = build(kind, seg, **p).loop_state_words * info["max_count"]   # 0: sum loop, recomputed
         # loop lanes: receivers for exact's lookup loop, non-empty texels for AVSM's build
         # loop, DSM nodes for its gradient loop
         lanes = {"exact": pts.shape[0], "avsm": info["lanes"]}.get(kind, 0)
         if kind == "dsm":
-            lanes = int(build_differentiable("dsm", seg, reverse="trajectory", **p).node_counts.sum())
+            lanes = int(build("dsm", seg, **p).node_counts.sum())
         info["loop_lanes"] = lanes
         for table, leaf, fwd in (("representation", tau_leaf, lambda x, r: representation(seg, x, kind, p, r)),
                                  ("pipeline", dens_leaf, lambda x, r: pipeline(x, kind, p, step, r))):

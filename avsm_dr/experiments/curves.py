@@ -1,5 +1,6 @@
 """Transmittance along single texels: the exact curve (hundreds of segments) next to
-AVSM-4/8/12/16, FOM-16, OSM-32 and DSM, as in seed 000 figures 6-7.
+AVSM-4/8/12/16, FOM-16, OSM-32 and DSM, as in Salvi et al. 2010, "Adaptive
+Volumetric Shadow Maps", figs. 6-7.
 
 Texels chosen: the one with the most segments in ``hair_and_smoke`` (hair steps in
 smoke, fig. 6) and in ``three_columns`` (three smoke columns, fig. 7).
@@ -20,12 +21,12 @@ METHODS = [("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 12
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
     """Run the experiment; write CSV, figures and meta.json into ``out``
     (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
-    from .. import capture, scenes as scene_lib
+    from .. import builtin_scenes as scene_lib, capture
     names = ["hair_and_smoke", "three_columns"]
     params = dict(scenes=names, resolution=64 if quick else 256, samples=400 if quick else 2000, step_fraction=0.125)
     res = Results("curves", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    if (hit := res.cached(force)) is not None:
+        return hit
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

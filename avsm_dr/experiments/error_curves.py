@@ -1,213 +1,340 @@
-"""Error of every representation against ground truth, per built-in scene, as a function
-of node / coefficient / slice count and of memory (bytes per texel).
+"""Error of every representation against the true transmittance, decomposed, per built-in
+scene, over seeds and lights, with the papers' claims tested (``findings.json``).
 
-Ground truth: the ``exact`` curve of the captured segments (primary) and Mitsuba ratio
-tracking on the same density grid (secondary, for grid scenes); the gap between the
-two is reported as method ``exact`` with its ``*_vs_mitsuba`` columns.  A depth-range
-sweep (global [near, far] stretched 1x..8x behind the plume) tests the claim that AVSM
-is less affected by the depth range than FOM and OSM.
+What is measured (module :mod:`._error_terms` states the formulas):
+
+* **Decomposition** of each receiver's error ``T_rep - T`` into compression (the
+  representation vs the exact curve of the same segments, same bilinear lookup), capture
+  (the exact curve vs the true integral along the texel's own ray) and spatial (texel rays
+  and the filter vs the receiver's own light path); ``T`` is a float64 quadrature of the
+  same density plus the analytic particles, hair and blockers.  Mitsuba ratio tracking
+  (``spp`` paths, standard error) checks the truth in the base configuration.
+* **Signed and tail errors** (:func:`avsm_dr.metrics.error_stats`): mean signed error
+  (> 0: light leaking), the shares leaking / over-darkening by > 0.02, p99 / p99.9 of
+  |error| over thousands of receivers, and the optical-depth error
+  (:func:`avsm_dr.metrics.optical_depth_error`).
+* **Receiver sets** (:mod:`avsm_dr.receivers`): in-volume receivers drawn by contribution,
+  surface receivers (wall / ground / table top), and the scene's own uniform set (base
+  configuration only), in separate rows (column ``receivers``).
+* **Configurations**: every registered kind (``ad.kinds()``); in the base configuration
+  (first seed, the scene's light) each kind's whole size sweep (``ad.configurations``),
+  next to per-texel depth ranges for the kinds whose schema has ``depth_range``; in every
+  configuration (4 seeds x 2 directional lights, and a spot light with 2 seeds) the headline
+  sizes and the sizes the claims name, each with every value of its tuning parameters
+  (choice parameters of the schema, and :data:`TUNING`); scenes with opaque blockers
+  twice, ``opaque='inline'`` and ``'separate'`` (:mod:`avsm_dr.capture.opaque_map`).
+* **Depth range** (scene :data:`RANGE_SCENE`): the global range stretched 8x, and a faint
+  segment behind the content of every texel (depth spread within the texel 8x / 32x).
+* **Claims** (:mod:`._error_findings`): paired bootstrap intervals per configuration and
+  pooled (:func:`avsm_dr.stats.claim`), and whether each holds in every configuration.
 """
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
+import time
 
 import numpy as np
 from tqdm import tqdm
 
-from .. import build, kinds
-from ..metrics import error_stats
-from ._common import Results, timed
+from .. import build, configurations, describe, kinds
+from ..metrics import error_stats, optical_depth_error
+from . import _error_findings as F
+from ._common import Results
+from ._error_labels import TUNING, _with_size, label, tuned  # noqa: F401  (re-exported)
+from ._error_terms import Built, Probe, SubsetBuilder, light_variants, with_faint_segments
 
-SWEEPS = {
-    "avsm": ("nodes", [2, 4, 6, 8, 12, 16, 24, 32]),
-    "fom": ("harmonics", [1, 2, 3, 4, 6, 8, 12, 16]),
-    "osm": ("slices", [4, 8, 16, 32, 64]),
-    "dsm": ("tolerance", [0.1, 0.05, 0.02, 0.01, 0.005, 0.002]),
-}
-QUICK_SWEEPS = {
-    "avsm": ("nodes", [2, 4, 8, 12, 16]),
-    "fom": ("harmonics", [1, 4, 8, 16]),
-    "osm": ("slices", [4, 16, 32]),
-    "dsm": ("tolerance", [0.05, 0.01]),
-}
-SCENES = ["plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table"]
+SCENES = ["plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table", "simulated_plume"]
+QUICK_SCENES = ["plume", "hair_and_smoke", "smoke_over_table"]
+#: Scene of the depth-range study, its global-range stretches and faint-segment stretches.
+RANGE_SCENE = "plume"
+RANGE_STRETCH = (8,)
+FAINT_STRETCH = (8, 32)
+LIGHTS = ("dir_a", "dir_b", "spot")
+#: The spot light runs with the first SPOT_SEEDS seeds (the directional lights with all four).
+SPOT_SEEDS = 2
+#: CPU seconds above which one build + lookup marks a kind slow (offline references such as
+#: a dynamic-programming optimum): from then on it is built only at its headline setting in
+#: the base configuration of each scene (``slow_kinds`` in findings.json; machine-dependent).
+SLOW_BUILD_CPU_S = 3.0
+#: Mitsuba runs in float32: a path that meets no tentative collision returns T = 1 exactly
+#: (standard error 0) where the truth is 1 - 1e-9; differences below this are rounding.
+MITSUBA_FLOOR = 1e-6
+#: Largest |T| difference between a build on the probes' texels and one on the whole map
+#: (float32 kernels on the same segments: rounding only).
+SUBSET_TOLERANCE = 1e-5
 
 
 def _march_step(scene, fraction):
-    """``fraction`` of the smallest voxel side of the scene's grid (None without a grid)."""
+    """``fraction`` of the smallest voxel side of the scene's grid (None without a grid);
+    used by :mod:`.curves` for its march captures."""
     if scene.density is None:
         return None
     lo, hi = (np.asarray(b, float) for b in scene.bbox)
     return float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1]))) * fraction
 
 
-def _scene_rows(name, scene, resolution, spp, sweeps, res_rows, rng, quick, step_fraction, filt):
-    from .. import capture, groundtruth
-    cap = capture(scene, resolution=resolution, step=_march_step(scene, step_fraction))
-    points = np.asarray(scene.receivers, dtype=np.float64)
+# =================================================================== variants
+def variants(kind: str, quick: bool, sweep: bool) -> list[tuple[dict, bool]]:
+    """(parameters, in_sweep) of ``kind`` to build, the headline first: the headline size and
+    the sizes the claims name, each with every combination of :func:`tuned` values (in
+    quick mode only the combinations the claims name); with ``sweep`` also every size of
+    ``ad.configurations(kind, quick)`` at default tuning and with ``depth_range='texel'``
+    where the schema has it (``in_sweep`` True: built on the whole map, for the bytes)."""
+    d = describe(kind)
+    size = d["size"]
+    head = _with_size(kind, d["headline"].get(size) if size else None)
+    out = [(head, sweep)]
+    if sweep:
+        for p in configurations(kind, quick):
+            out.append((dict(p), True))
+            if "depth_range" in d["params"]:
+                out.append((dict(p, depth_range="texel"), True))
+    sizes = [d["headline"].get(size)] if size else [None]
+    sizes += [v for v in F.claim_sizes().get(kind, ()) if v not in sizes]
+    grid = tuned(kind)
+    named = F.claim_settings()
+    for v in sizes:
+        for combo in itertools.product(*grid.values()):
+            p = dict(_with_size(kind, v), **dict(zip(grid, combo)))
+            if not quick or label(kind, p) in named or not any(p[k] != head.get(k) for k in grid):
+                out.append((p, False))
+    seen, uniq = set(), []
+    for p, full in out:
+        key = label(kind, p)
+        if key not in seen:
+            seen.add(key)
+            uniq.append((p, full))
+    return uniq
 
-    def lookup(rep):
-        return np.asarray(cap.transmittance(rep, points, filter=filt), dtype=np.float64)
 
-    texel, depth = cap.lookup(points)
-    exact = lookup(build("exact", cap.segments))
-    mitsuba = stderr = None
-    if scene.density is not None:
-        try:
-            mitsuba, stderr = groundtruth.transmittance(scene, points, spp=spp, seed=1)
-        except ValueError as exc:   # content Mitsuba cannot represent (e.g. hair)
-            print(f"[error_curves] {name}: no Mitsuba ground truth ({exc})")
-    row = dict(scene=name, method="exact", param="", bytes_per_texel=build("exact", cap.segments).nbytes_per_texel,
-               rmse=0.0, max_error=0.0, receivers=points.shape[0], resolution=resolution)
+# ======================================================================= rows
+def _stats_row(est, exact, truth) -> dict:
+    """Compression statistics (vs the exact curve; the historical column names), total ones
+    (vs the truth, prefix ``total_``) and optical-depth errors vs the truth (``tau_*``)."""
+    r = error_stats(est, exact)
+    r["compression_tau_rmse"] = optical_depth_error(est, exact)["tau_rmse"]
+    r.update({f"total_{k}": v for k, v in error_stats(est, truth).items()
+              if k not in ("nan_count", "inf_count", "bounds_violations", "n")})
+    r.update({k: v for k, v in optical_depth_error(est, truth).items() if k != "tau_floor"})
+    return r
+
+
+def _rms(x) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+
+
+def _row(head, probe, est, exact, mitsuba) -> dict:
+    t = probe.terms(est, exact)
+    r = dict(head, **_stats_row(est, exact, probe.truth))
+    r.update(compression_rms=_rms(t["compression"]), capture_rms=_rms(t["capture"]),
+             spatial_rms=_rms(t["spatial"]), total_rms_decomp=_rms(t["total_decomp"]),
+             capture_mean=float(np.mean(t["capture"])) if t["capture"].size else float("nan"),
+             spatial_mean=float(np.mean(t["spatial"])) if t["spatial"].size else float("nan"),
+             decomp_n=probe.n_decomp)
     if mitsuba is not None:
-        gap = error_stats(exact, mitsuba)
-        row.update(rmse_vs_mitsuba=gap["rmse"], max_error_vs_mitsuba=gap["max_error"],
-                   mitsuba_mean_stderr=float(np.mean(stderr)),
-                   within_3_stderr=float(np.mean(np.abs(exact - mitsuba) <= 3 * np.maximum(stderr, 1e-12))))
-    res_rows.append(row)
-    for kind, (pname, values) in sweeps.items():
-        if kind not in kinds():
-            continue
-        for v in values:
-            t_build, _, rep = timed(lambda: build(kind, cap.segments, **{pname: v}), repeats=1)
-            est = lookup(rep)
-            st = error_stats(est, exact)
-            r = dict(scene=name, method=kind, param=v, bytes_per_texel=rep.nbytes_per_texel,
-                     rmse=st["rmse"], max_error=st["max_error"], mean_error=st["mean_error"],
-                     nan_count=st["nan_count"], inf_count=st["inf_count"], build_s=t_build,
-                     receivers=points.shape[0], resolution=resolution)
-            if mitsuba is not None:
-                sm = error_stats(est, mitsuba)
-                r.update(rmse_vs_mitsuba=sm["rmse"], max_error_vs_mitsuba=sm["max_error"])
-            if kind == "avsm":
-                r["interpolation"] = "linear"
-            res_rows.append(r)
-    # AVSM's linear ramp inside thick segments vs the exponential (uniform density) option
-    if "avsm" in sweeps and "avsm" in kinds():
-        for v in (8, 16):
-            rep = build("avsm", cap.segments, nodes=v, interpolation="exp")
-            st = error_stats(lookup(rep), exact)
-            res_rows.append(dict(scene=name, method="avsm", param=v, interpolation="exp",
-                                 bytes_per_texel=rep.nbytes_per_texel, rmse=st["rmse"], max_error=st["max_error"],
-                                 mean_error=st["mean_error"], nan_count=st["nan_count"], inf_count=st["inf_count"],
-                                 receivers=points.shape[0], resolution=resolution))
-    return cap, texel, depth, exact
+        mean, se = mitsuba
+        r.update(total_rmse_vs_mitsuba=_rms(est - mean), reference_se_rms=_rms(se))
+    return r
 
 
-def _depth_range_rows(cap, texel, depth, exact, rows, quick, points, filt):
+def _reference_row(head, probe, mitsuba) -> dict:
+    """The truth against Mitsuba ratio tracking (rms difference, rms standard error, the
+    share within 3 standard errors)."""
+    mean, se = mitsuba
+    diff = probe.truth - mean
+    return dict(head, method="truth_vs_mitsuba", param="", rmse=_rms(diff), reference_se_rms=_rms(se),
+                mean_error=float(np.mean(diff)),
+                within_3_stderr=float(np.mean(np.abs(diff) <= 3 * np.maximum(se, MITSUBA_FLOOR))))
+
+
+# ===================================================================== config
+@dataclasses.dataclass
+class _Config:
+    scene_name: str
+    scene: object
+    label: str          # e.g. "s0-dir_a"
+    base: bool          # the first seed with the scene's own light: size sweep, Mitsuba, uniform set
+
+
+def _run_config(cfg: _Config, P: dict, rows: list, store: dict, quick: bool, state: dict):
+    from .. import capture, groundtruth, receivers
+    scene = cfg.scene
+    seed = int(cfg.label.split("-")[0][1:])
+    sets = receivers.receiver_sets(scene, P["n_volume"], P["n_surface"], seed=seed)
+    if not cfg.base:
+        sets.pop("uniform", None)
+    caps = {"inline": capture(scene, resolution=P["resolution"])}
+    if scene.blockers:
+        caps["separate"] = capture(scene, resolution=P["resolution"], opaque="separate")
+    probes = {s: Probe(caps["inline"], scene, p, P["n_decomp"]) for s, p in sets.items()}
+    mitsuba = {}
+    if cfg.base and scene.density is not None:
+        for s, p in sets.items():
+            mitsuba[s] = groundtruth.transmittance(scene, p, spp=P["spp"], seed=1)
+    head0 = dict(scene=cfg.scene_name, config=cfg.label, seed=seed, light=cfg.label.split("-", 1)[1],
+                 base=cfg.base, resolution=P["resolution"], study="main")
+    for mode, cap in caps.items():
+        pr = {s: probe.with_capture(cap) for s, probe in probes.items()}
+        sub = SubsetBuilder(cap.segments, np.concatenate([p.tex.ravel() for p in pr.values()]),
+                            cap.opaque_depth)
+        exact_rep = build("exact", cap.segments)
+        ex = {s: p.lookup(exact_rep) for s, p in pr.items()}
+        for s, p in pr.items():
+            if s in mitsuba and mode == "inline":
+                rows.append(_reference_row(dict(head0, receivers=s, n=p.k, opaque=mode), p, mitsuba[s]))
+        base = cfg.base and mode == "inline"
+        for kind in kinds():
+            size = describe(kind)["size"]
+            for i, (params, whole) in enumerate(variants(kind, quick, sweep=base)):
+                if kind in state["slow"] and not (base and i == 0):
+                    continue                               # slow kinds: headline, base configuration only
+                name = label(kind, params)
+                whole = whole or kind in state["whole_map"]
+                c0 = time.process_time()
+                rep = exact_rep if kind == "exact" else build(kind, cap.segments, **params) if whole \
+                    else sub.build(kind, params)
+                est = {s: p.lookup(rep) for s, p in pr.items()}
+                cpu = time.process_time() - c0
+                if cpu > SLOW_BUILD_CPU_S:
+                    state["slow"][kind] = max(cpu, state["slow"].get(kind, 0.0))
+                elif base and i == 0 and kind != "exact":
+                    _check_subset(kind, params, est, sub, pr, cfg.scene_name, state)
+                brep = rep.rep if isinstance(rep, Built) else rep
+                head = dict(head0, method=kind, param=params.get(size, "") if size else "", setting=name,
+                            opaque=mode, bytes_per_texel=brep.nbytes_per_texel, build_lookup_cpu_s=cpu,
+                            texels_built=brep.n_texels, **{_column(k): params.get(k, "") for k in _tuning_columns()})
+                curve = base and whole and name == label(kind, _with_size(kind, params.get(size)))
+                for s, p in pr.items():
+                    rows.append(_row(dict(head, receivers=s, n=p.k, curve=curve and s == "in_volume"),
+                                     p, est[s], ex[s], mitsuba.get(s) if mode == "inline" else None))
+                    if s != "uniform":
+                        store[(cfg.scene_name, cfg.label, name, mode, s, "main")] = \
+                            (np.float32(est[s] - ex[s]), np.float32(est[s] - p.truth))
+        if cfg.scene_name == RANGE_SCENE and mode == "inline" and "in_volume" in pr:
+            _depth_range(cap, sub, pr["in_volume"], ex["in_volume"], head0, rows, store, cfg)
+
+
+def _check_subset(kind, params, est, sub, probes, scene_name, state):
+    """In the base configuration: a build on the probes' texels must give the whole-map
+    lookups ``est`` (else the kind is built on the whole map from now on)."""
+    b = sub.build(kind, params)
+    diff = max(float(np.max(np.abs(p.lookup(b) - est[s]))) for s, p in probes.items())
+    state["subset_check"][f"{scene_name}/{kind}"] = diff
+    if diff > SUBSET_TOLERANCE:
+        state["whole_map"].add(kind)
+
+
+#: Row columns of the experiment itself; a tuning parameter of the same name becomes ``param_<name>``.
+RESERVED = {"scene", "config", "seed", "light", "base", "resolution", "study", "method", "param", "setting",
+            "opaque", "bytes_per_texel", "build_lookup_cpu_s", "texels_built", "receivers", "n", "curve",
+            "stretch"}
+
+
+def _column(name: str) -> str:
+    return f"param_{name}" if name in RESERVED else name
+
+
+def _tuning_columns() -> list[str]:
+    cols = []
+    for k in kinds():
+        for name in tuned(k):
+            if name not in cols:
+                cols.append(name)
+    return cols
+
+
+def _depth_range(cap, sub, probe, exact, head0, rows, store, cfg):
+    """Global range stretched (``study='global_range'``) and a faint segment behind every
+    texel's content (``study='faint_segment'``), for the kinds the depth-range claims name
+    (built on the probe's texels, global ranges from the whole map)."""
     near, far = cap.segments.bounds()
-    for stretch in (1, 2, 4, 8):
-        far_s = near + (far - near) * stretch
-        for kind, p in (("avsm", {"nodes": 8}), ("fom", {"harmonics": 8}), ("osm", {"slices": 32})):
-            if kind not in kinds():
-                continue
-            rep = build(kind, cap.segments, near=near, far=far_s, **p)
-            st = error_stats(np.asarray(cap.transmittance(rep, points, filter=filt)), exact)
-            rows.append(dict(scene=f"plume_range_x{stretch}", method=kind, param=next(iter(p.values())),
-                             bytes_per_texel=rep.nbytes_per_texel, rmse=st["rmse"], max_error=st["max_error"],
-                             depth_range_stretch=stretch))
+    todo = [(k, v) for k, v in F.RANGE_KINDS if k in kinds()]
+    for stretch in RANGE_STRETCH:
+        for kind, v in todo:
+            p = dict(_with_size(kind, v), near=near, far=near + (far - near) * stretch)
+            _range_row(kind, p, sub.build(kind, p), probe, exact, head0, rows, store, cfg, "global_range", stretch)
+    for stretch in FAINT_STRETCH:
+        sub_f = SubsetBuilder(with_faint_segments(cap.segments, stretch), sub.texels)
+        ex_f = probe.lookup(sub_f.build("exact", {}))
+        for kind, v in todo:
+            ranges = ["global", "texel"] if "depth_range" in describe(kind)["params"] else [None]
+            for dr_ in ranges:
+                p = _with_size(kind, v) if dr_ is None else dict(_with_size(kind, v), depth_range=dr_)
+                _range_row(kind, p, sub_f.build(kind, p), probe, ex_f, head0, rows, store, cfg, "faint_segment",
+                           stretch)
 
 
-def findings(rows) -> dict:
-    """What our measurements say about the seed papers' claims (numbers, not adjectives)."""
-    def get(scene, method, param, key="rmse"):
-        for r in rows:
-            if r["scene"] == scene and r["method"] == method and str(r["param"]) == str(param) \
-                    and r.get("interpolation", "linear") == "linear":
-                return r.get(key)
-        return None
-
-    out = {}
-    h = "hair_and_smoke"
-    a12, f16, o32 = get(h, "avsm", 12), get(h, "fom", 16), get(h, "osm", 32)
-    if None not in (a12, f16, o32):
-        out["claim_avsm12_beats_fom16_osm32_on_hair_smoke"] = {
-            "avsm12_rmse": a12, "fom16_rmse": f16, "osm32_rmse": o32,
-            "avsm12_max": get(h, "avsm", 12, "max_error"), "fom16_max": get(h, "fom", 16, "max_error"),
-            "osm32_max": get(h, "osm", 32, "max_error"),
-            "confirmed": bool(a12 < f16 and a12 < o32)}
-    growth = {}
-    for kind, p in (("avsm", 8), ("fom", 8), ("osm", 32)):
-        e1, e8 = get("plume_range_x1", kind, p), get("plume_range_x8", kind, p)
-        if e1 is not None and e8 is not None:
-            growth[kind] = {"rmse_x1": e1, "rmse_x8": e8, "ratio": (e8 / e1) if e1 > 0 else float("inf")}
-    if growth:
-        ok = all(growth["avsm"]["ratio"] < growth[k]["ratio"] for k in growth if k != "avsm") if "avsm" in growth else None
-        out["claim_avsm_less_affected_by_depth_range"] = dict(growth, confirmed=ok)
-    for scene in ("smoke_over_table", "hair_and_smoke"):
-        f = get(scene, "fom", 16, "max_error")
-        a = get(scene, "avsm", 16, "max_error")
-        if f is not None and a is not None:
-            out[f"claim_fom_rings_on_thin_opaque_{scene}"] = {"fom16_max_error": f, "avsm16_max_error": a,
-                                                             "confirmed": bool(f > 2 * a)}
-    exp_gain = {}
-    for r in rows:
-        if r.get("interpolation") == "exp":
-            lin = get(r["scene"], "avsm", r["param"])
-            if lin is not None:
-                exp_gain[f"{r['scene']}_avsm{r['param']}"] = {"linear_rmse": lin, "exp_rmse": r["rmse"]}
-    if exp_gain:
-        out["avsm_exp_vs_linear_interpolation"] = exp_gain
-    return out
+def _range_row(kind, p, rep, probe, exact, head0, rows, store, cfg, study, stretch):
+    est = probe.lookup(rep)
+    name = label(kind, p)
+    size = describe(kind)["size"]
+    r = dict(head0, study=study, stretch=stretch, method=kind, param=p.get(size, ""), setting=name,
+             opaque="inline", receivers="in_volume", n=probe.k, bytes_per_texel=rep.rep.nbytes_per_texel,
+             depth_range=p.get("depth_range", ""))
+    r.update(error_stats(est, exact))
+    rows.append(r)
+    store[(cfg.scene_name, cfg.label, name, "inline", "in_volume", f"{study}_x{stretch}")] = \
+        (np.float32(est - exact), np.float32(est - probe.truth))
 
 
+# ======================================================================== run
 def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json into
+    ``out`` (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     from .. import scenes as scene_lib
-    names = list(scenes or (SCENES[:3] if quick else SCENES))
-    # march step voxel/8 (capture error ~1e-3, see tests/test_groundtruth.py) and bilinear
-    # lookups, so that the exact curve is a fair ground truth for receivers anywhere
-    params = dict(scenes=names, resolution=64 if quick else 256, spp=64 if quick else 512,
-                  sweeps=QUICK_SWEEPS if quick else SWEEPS, step_fraction=0.125, filter="bilinear")
-    res = Results("error_curves", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    known = getattr(scene_lib, "SCENES", {})
+    names = list(scenes or [n for n in (QUICK_SCENES if quick else SCENES) if n in known])
+    configs = [[0, "dir_a"], [1, "spot"]] if quick else \
+        [[s, li] for s in range(4) for li in LIGHTS if li != "spot" or s < SPOT_SEEDS]
+    P = dict(scenes=names, resolution=64 if quick else 256, configs=configs,
+             n_volume=512 if quick else 4096, n_surface=256 if quick else 1024,
+             n_decomp=128 if quick else 512, spp=32 if quick else 256, filter="bilinear",
+             truth="raymarch, step 1/8 voxel, float64", tuning={k: list(v) for k, v in TUNING.items()},
+             variants={k: [label(k, p) for p, _ in variants(k, quick, True)] for k in kinds()},
+             range_stretch=list(RANGE_STRETCH), faint_stretch=list(FAINT_STRETCH))
+    res = Results("error_curves", out, quick, P)
+    if (hit := res.cached(force)) is not None:
+        return hit
     rows: list[dict] = []
-    rng = np.random.default_rng(0)
-    for name in tqdm(names, desc="error_curves", unit="scene"):
-        scene = getattr(scene_lib, name)()
-        cap, texel, depth, exact = _scene_rows(name, scene, params["resolution"], params["spp"],
-                                               params["sweeps"], rows, rng, quick, params["step_fraction"],
-                                               params["filter"])
-        if name == "plume":
-            _depth_range_rows(cap, texel, depth, exact, rows, quick, np.asarray(scene.receivers), params["filter"])
+    store: dict = {}
+    state = {"slow": {}, "whole_map": set(), "subset_check": {}}
+    t0 = time.perf_counter()
+    jobs = [(n, s, li) for n in names for s, li in configs]
+    sc0 = None
+    for name, seed, lname in tqdm(jobs, desc="error_curves", unit="config"):
+        if sc0 is None or (sc0.name, sc0.meta.get("seed")) != (name, seed):
+            sc0 = scene_lib.get(name, seed=seed)
+        scene = dataclasses.replace(sc0, light=light_variants(sc0)[lname])
+        cfg = _Config(name, scene, f"s{seed}-{lname}", [seed, lname] == configs[0])
+        _run_config(cfg, P, rows, store, quick, state)
+    elapsed = time.perf_counter() - t0
     csv = res.write_csv(rows)
-    _plot(res, rows, names)
-    summary = findings(rows)
-    res.write_meta(summary)
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary, indent=2))
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    summary = F.findings(store, rows, n_boot=200 if quick else 1000)
+    summary.update(run_seconds=elapsed, slow_kinds=state["slow"], whole_map_kinds=sorted(state["whole_map"]),
+                   subset_max_difference=state["subset_check"])
+    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1, default=float))
+    from . import _error_plots
+    _error_plots.plot_all(res, rows, names)
+    verdicts = {k: v.get("verdict") for k, v in summary.get("claims", {}).items()}
+    res.write_meta(verdicts)
+    return {"csv": str(csv), "out": str(res.dir), "summary": verdicts, "figures": res.figures}
 
 
-def _plot(res, rows, names):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import matplotlib.ticker  # noqa: F401
-    colors = {"avsm": "C0", "fom": "C1", "osm": "C2", "dsm": "C3"}
-    for xkey, fname, xlabel in (("param", "error_vs_count.png", "nodes / harmonics / slices / tolerance"),
-                                ("bytes_per_texel", "error_vs_memory.png", "bytes per texel")):
-        fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.6), squeeze=False)
-        for ax, name in zip(axes[0], names):
-            for kind, c in colors.items():
-                rs = [r for r in rows if r["scene"] == name and r["method"] == kind
-                      and r.get("interpolation", "linear") == "linear"]
-                if not rs:
-                    continue
-                if xkey == "param" and kind == "dsm":
-                    continue  # tolerance is not a count: shown in the memory plot
-                x = [float(r[xkey]) for r in rs]
-                ax.loglog(x, [max(r["rmse"], 1e-6) for r in rs], "o-", color=c, label=f"{kind} rmse")
-                ax.loglog(x, [max(r["max_error"], 1e-6) for r in rs], "x--", color=c, alpha=0.5, label=f"{kind} max")
-            gap = next((r for r in rows if r["scene"] == name and r["method"] == "exact" and "rmse_vs_mitsuba" in r), None)
-            if gap:
-                ax.axhline(gap["rmse_vs_mitsuba"], color="k", lw=0.8, ls=":", label="exact vs Mitsuba rmse")
-            ax.set_title(name)
-            ax.set_xlabel(xlabel)
-            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-        axes[0][0].set_ylabel("transmittance error vs exact")
-        handles, labels = axes[0][0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="upper center", ncol=5, fontsize=8, bbox_to_anchor=(0.5, -0.02))
-        res.save_figure(fig, fname)
+# ============================================================ generic helper
+def sweep_rows(segments, lookup, truth, quick: bool, kind_names=None) -> list[dict]:
+    """One row per registered kind (or the given ones) and size value of its sweep
+    (``ad.configurations``): ``method``, ``param`` (the size value, '' without one),
+    ``bytes_per_texel``, error statistics of ``lookup(rep)`` against ``truth``; ``_estimate``
+    holds the looked-up values for further comparisons."""
+    rows = []
+    for kind in (kind_names if kind_names is not None else kinds()):
+        size = describe(kind)["size"]
+        for p in configurations(kind, quick):
+            rep = build(kind, segments, **p)
+            est = np.asarray(lookup(rep), np.float64)
+            r = dict(method=kind, param=p.get(size, "") if size else "", setting=label(kind, p),
+                     bytes_per_texel=rep.nbytes_per_texel, **error_stats(est, truth), _estimate=est)
+            rows.append(r)
+    return rows

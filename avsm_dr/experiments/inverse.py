@@ -1,6 +1,6 @@
 """Inverse problem: recover a smoke plume's density grid from its shadows.
 
-Setup (see :mod:`avsm_dr.inverse`): the built-in ``plume`` (small grid, density scale 20
+Setup (see :mod:`avsm_dr.reconstruction`): the built-in ``plume`` (small grid, density scale 20
 so that shadows are not saturated), three directional training lights 120 degrees
 apart in azimuth at 20 degrees elevation, and per light a shadow image of
 ``image x image`` receivers on a plane behind the volume plus a lattice of probe
@@ -44,7 +44,9 @@ def _rmse(a, b) -> float:
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
     """Run the experiment; write CSV, figures and meta.json into ``out``
     (default ``results/inverse/``); ``quick`` = small sizes, ``force`` = recompute."""
-    from .. import groundtruth as gt, inverse as inv, scenes as scene_lib
+    from .. import builtin_scenes as scene_lib
+    from .. import groundtruth as gt
+    from .. import reconstruction as inv
     params = dict(size=8 if quick else 12, density_scale=20.0, resolution=64 if quick else 96,
                   image=20 if quick else 32, probes=[4, 6, 4] if quick else [6, 9, 6],
                   iterations=40 if quick else 200, lr=0.5, smooth=0.0, filter="bilinear",
@@ -52,8 +54,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                   train=TRAIN, held_out=HELD_OUT, spp=64 if quick else 512,
                   models=[m[0] for m in MODELS], target="raymarch")
     res = Results("inverse", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    if (hit := res.cached(force)) is not None:
+        return hit
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -1,4 +1,4 @@
-"""Effect of insertion order on AVSM (seed 000 sec. 4.1): error against the exact curve and
+"""Effect of insertion order on AVSM (Salvi et al. 2010, sec. 4.1): error against the exact curve and
 temporal flicker (the change of T between two random insertion orders of the same
 segments, as unordered GPU capture would produce frame to frame), with and without
 sorting, for several node counts.
@@ -26,12 +26,13 @@ def shuffled(seg: Segments, rng) -> Segments:
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
     """Run the experiment; write CSV, figures and meta.json into ``out``
     (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
-    from .. import capture, scenes as scene_lib
+    from .. import builtin_scenes as scene_lib
+    from .. import capture
     names = ["three_columns"] if quick else ["three_columns", "hair_and_smoke", "plume"]
     params = dict(scenes=names, resolution=64 if quick else 128, orders=3 if quick else 8, nodes=[4, 8, 12, 16])
     res = Results("ordering", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    if (hit := res.cached(force)) is not None:
+        return hit
     rng = np.random.default_rng(3)
     rows = []
     for name in tqdm(names, desc="ordering", unit="scene"):
@@ -62,7 +63,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
             lab = f"{name} {'sorted' if sort else 'unsorted'}"
             axes[0].semilogy([r["param"] for r in rs], [max(r["rmse"], 1e-7) for r in rs], "o" + ls, label=lab)
             axes[1].semilogy([r["param"] for r in rs], [max(r["flicker_rms"], 1e-7) for r in rs], "o" + ls, label=lab)
-    axes[0].set_ylabel("RMSE vs exact"); axes[1].set_ylabel("RMS change between two orders (flicker)")
+    axes[0].set_ylabel("RMSE vs exact")
+    axes[1].set_ylabel("RMS change between two orders (flicker)")
     for ax in axes:
         ax.set_xlabel("AVSM nodes")
     axes[1].legend(fontsize=7)

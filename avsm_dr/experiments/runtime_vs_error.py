@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
-from .. import build, kinds
+from .. import build, configurations, describe, kinds
 from ..metrics import error_stats
 from ._common import Results, timed
-from .error_curves import QUICK_SWEEPS, SCENES, SWEEPS
+from .error_curves import SCENES
 
 
 def pareto(points):
@@ -27,13 +27,15 @@ def pareto(points):
 def run(quick: bool = False, out=None, force: bool = False) -> dict:
     """Run the experiment; write CSV, figures and meta.json into ``out``
     (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
-    from .. import capture, scenes as scene_lib
+    from .. import builtin_scenes as scene_lib
+    from .. import capture
     names = SCENES[:2] if quick else SCENES
     params = dict(scenes=names, resolution=64 if quick else 256, repeats=3 if quick else 7,
-                  lookups_per_receiver=1, sweeps=QUICK_SWEEPS if quick else SWEEPS)
+                  lookups_per_receiver=1,
+                  sweeps={k: configurations(k, quick) for k in kinds() if k != "exact"})
     res = Results("runtime_vs_error", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    if (hit := res.cached(force)) is not None:
+        return hit
     rows = []
     for name in tqdm(names, desc="runtime_vs_error", unit="scene"):
         scene = getattr(scene_lib, name)()
@@ -45,11 +47,11 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         rows.append(dict(scene=name, method="exact", param="", build_s=0.0, lookup_s=t_ex, first_call_s=first_ex,
                          rmse=0.0, max_error=0.0, bytes_per_texel=ex_rep.nbytes_per_texel,
                          segments=cap.segments.n_segments, receivers=len(texel)))
-        for kind, (pname, values) in params["sweeps"].items():
-            if kind not in kinds():
-                continue
-            for v in values:
-                t_b, first_b, rep = timed(lambda: build(kind, cap.segments, **{pname: v}), repeats=params["repeats"])
+        for kind, settings in params["sweeps"].items():
+            size = describe(kind)["size"]
+            for p in settings:
+                v = p.get(size, "") if size else ""
+                t_b, first_b, rep = timed(lambda: build(kind, cap.segments, **p), repeats=params["repeats"])
                 t_l, first_l, est = timed(lambda: rep.eval(texel, depth), repeats=params["repeats"])
                 st = error_stats(est, exact)
                 rows.append(dict(scene=name, method=kind, param=v, build_s=t_b, lookup_s=t_l,
@@ -75,8 +77,10 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                 ax.loglog([1e3 * (r["build_s"] + r["lookup_s"]) for r in rs], [max(r["rmse"], 1e-6) for r in rs],
                           "o-", color=c, label=kind)
                 for r in rs:
-                    ax.annotate(str(r["param"]), (1e3 * (r["build_s"] + r["lookup_s"]), max(r["rmse"], 1e-6)), fontsize=6)
-        pf = sorted([r for r in rows if r["scene"] == name and r.get("pareto")], key=lambda r: r["build_s"] + r["lookup_s"])
+                    ax.annotate(str(r["param"]), (1e3 * (r["build_s"] + r["lookup_s"]), max(r["rmse"], 1e-6)),
+                                fontsize=6)
+        pf = sorted([r for r in rows if r["scene"] == name and r.get("pareto")],
+                    key=lambda r: r["build_s"] + r["lookup_s"])
         ax.loglog([1e3 * (r["build_s"] + r["lookup_s"]) for r in pf], [max(r["rmse"], 1e-6) for r in pf], "k:", lw=1,
                   label="Pareto front")
         ax.set_title(name)

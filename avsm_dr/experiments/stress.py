@@ -5,6 +5,11 @@ Cases: opacities up to exactly 1, optical depths up to 1e4, segment lengths down
 and shuffled insertion order (AVSM unsorted vs sorted).  Every estimate is compared
 with the float64 exact curve; the CSV counts NaN / inf outputs (must be 0) and bound
 violations, and reports RMSE / max error.
+
+``reliability.csv``: hostile input that must be refused with a ValueError naming the
+argument or answered correctly in bounded time (float32 overflow, huge counts, long
+sums, the DSM bound on sub-ulp opaque segments; see :mod:`._stress_checks`), one row per
+check with its ``failures`` (must be 0).
 """
 from __future__ import annotations
 
@@ -15,6 +20,7 @@ from .. import build, kinds
 from ..metrics import error_stats
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from ._common import Results
+from ._stress_checks import run_checks
 
 METHODS = [("exact", {}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 8, "sort": True}),
            ("dsm", {"tolerance": 0.01}), ("osm", {"slices": 32}), ("fom", {"harmonics": 8})]
@@ -57,8 +63,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
     params = dict(seed=7)
     res = Results("stress", out, quick, params)
-    if res.exists() and not force:
-        return {"csv": str(res.dir / "data.csv"), "out": str(res.dir), "cached": True}
+    if (hit := res.cached(force)) is not None:
+        return hit
     rng = np.random.default_rng(params["seed"])
     rows = []
     todo = cases(quick, rng)
@@ -92,6 +98,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
             rows.append(dict(case=f"shuffled_order_{trial}", method="avsm", param=8, sorted=sort,
                              dtype="float32", **error_stats(est, ref)))
     csv = res.write_csv(rows)
+    checks = run_checks(quick)
+    res.write_csv(checks, "reliability.csv")
 
     import matplotlib
     matplotlib.use("Agg")
@@ -109,7 +117,10 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     res.save_figure(fig, "stress_max_error.png")
     bad = sum(r["nan_count"] + r["inf_count"] for r in rows)
     viol = sum(r["bounds_violations"] for r in rows)
-    summary = {"nan_inf_total": bad, "bounds_violations_total": viol, "rows": len(rows)}
+    failed = sum(r["failures"] for r in checks)
+    summary = {"nan_inf_total": bad, "bounds_violations_total": viol, "rows": len(rows),
+               "reliability_checks": len(checks), "reliability_failures": failed}
     res.write_meta(summary)
-    print(f"stress: {len(rows)} runs, NaN+inf outputs: {bad}, bounds violations: {viol}")
+    print(f"stress: {len(rows)} runs, NaN+inf outputs: {bad}, bounds violations: {viol}; "
+          f"reliability: {failed} of {len(checks)} checks failed")
     return {"csv": str(csv), "out": str(res.dir), "summary": summary}

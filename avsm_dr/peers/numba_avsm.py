@@ -1,9 +1,9 @@
 """AVSM with Numba ``parallel=True``: what a careful researcher would write instead of
 Dr.Jit (scalar code per texel, texels spread over threads with ``prange``).
 
-Same algorithm and conventions as :mod:`avsm_dr.representations.avsm` (seed 000
-sec. 3.1-3.3): N nodes cleared to ``(far, 1)``; a segment ``[a, b]`` with exit
-transmittance ``ts`` multiplies the inserted nodes by its linear ramp
+Same algorithm and conventions as :mod:`avsm_dr.representations.avsm` (Salvi et al.,
+"Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3.1-3.3): N nodes cleared to
+``(far, 1)``; a segment ``[a, b]`` with exit transmittance ``ts`` multiplies the inserted nodes by its linear ramp
 ``R(d) = 1 (d <= a), 1 + (ts - 1)(d - a)/(b - a) (a < d < b), ts (d >= b)`` and the clear
 nodes by ``ts``, then adds ``(a, T(a))`` and ``(b, T(b) ts)`` after the inserted nodes of
 equal depth; while over N, the interior node of smallest

@@ -1,6 +1,7 @@
 """Fourier opacity maps with Numba ``parallel=True``: the peer a careful researcher would
-write for :mod:`avsm_dr.representations.fom` (seed 004 eqs. 1-6, segments integrated
-analytically), global depth range ``[near, far]``.
+write for :mod:`avsm_dr.representations.fom` (Jansen and Bavoil, "Fourier Opacity
+Mapping", I3D 2010, eqs. 1-6; segments integrated analytically), global depth range
+``[near, far]``.
 
 Build: one thread-chunk of texels at a time, each texel summing its segments' coefficients
 

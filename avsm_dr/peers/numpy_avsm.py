@@ -55,7 +55,8 @@ def build(offsets, z0, z1, tau, nodes: int, far: float):
         length = b - a
         safe = np.where(length > 0, length, 1.0)
         ramp = 1 + (ts - 1)[:, None] * ((d - a[:, None]) * (1.0 / safe)[:, None])
-        factor = np.where(real, np.where(d > a[:, None], np.where(d >= b[:, None], ts[:, None], ramp), 1.0), ts[:, None])
+        inner = np.where(d > a[:, None], np.where(d >= b[:, None], ts[:, None], ramp), 1.0)
+        factor = np.where(real, inner, ts[:, None])
         sv = v * factor
         e = np.sum(real & (d <= a[:, None]), axis=1)
         x = np.sum(real & (d <= b[:, None]), axis=1) + 1

@@ -1,4 +1,4 @@
-"""Adaptive Volumetric Shadow Maps (Salvi et al. 2010, seed 000 sections 3.1-3.3, 4.1-4.2).
+"""Adaptive Volumetric Shadow Maps (Salvi, Vidimce, Lauritzen and Lefohn 2010, EGSR; secs. 3.1-3.3, 4.1-4.2).
 
 Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``.
 
@@ -124,7 +124,7 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False):
 
 
 def area_metric(d, t, i):
-    """Area change when removing interior node i (seed 000, sec. 3.2.1)."""
+    """Area change when removing interior node i (Salvi et al. 2010, sec. 3.2.1)."""
     return dr.abs((d[i + 1] - d[i - 1]) * (t[i + 1] - t[i])
                   - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
 
@@ -146,7 +146,7 @@ def remove_smallest(d, t):
 
 
 def interpolate(d, t, depth, mode: str):
-    """Sample the node list at ``depth`` (seed 000 sec. 3.3 / 4.2): bracket, then one
+    """Sample the node list at ``depth`` (Salvi et al. 2010, secs. 3.3 / 4.2): bracket, then one
     interpolation, w = (depth - d_l) / (d_r - d_l):
     linear ``t_l + w (t_r - t_l)`` (eq. 2) or exponential ``t_l (t_r / t_l)^w``
     (uniform density between nodes; linear where t_l or t_r is 0)."""
@@ -163,8 +163,29 @@ def interpolate(d, t, depth, mode: str):
 
 
 # ----------------------------------------------------------------------------
+class NodeList(Representation):
+    """Kinds storing N (depth, transmittance) nodes per texel as ``depths``/``values``
+    (lists of N Dr.Jit arrays of length T) with ``self.N`` set and an ``interpolation``
+    parameter: storage ``2 N itemsize`` and the bracket-then-interpolate lookup."""
+
+    @property
+    def nbytes_per_texel(self) -> float:
+        return 2 * self.N * self.segments.itemsize
+
+    def _eval_texels(self, texel, depth):
+        Float = self.Float
+        d = [dr.gather(Float, self.depths[k], texel) for k in range(self.N)]
+        t = [dr.gather(Float, self.values[k], texel) for k in range(self.N)]
+        return interpolate(d, t, depth, self.params["interpolation"])
+
+    def nodes_numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T, N) node depths and transmittances as NumPy arrays."""
+        return (np.stack([np.asarray(x.numpy()) for x in self.depths], axis=1),
+                np.stack([np.asarray(x.numpy()) for x in self.values], axis=1))
+
+
 @register("avsm")
-class AVSM(Representation):
+class AVSM(NodeList):
     """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel.
 
     Parameters (schema below): nodes N in [2, 64], sort, interpolation, near/far
@@ -207,6 +228,7 @@ class AVSM(Representation):
         P = self.params
         near = lo if P["near"] is None else P["near"]
         far = hi if P["far"] is None else P["far"]
+        near, far = segments.check_depth(near, "near"), segments.check_depth(far, "far")
         if near > far:
             raise ValueError(f"far: need near <= far, got near={near}, far={far}")
         if segments.n_segments and (hi > far or lo < near):
@@ -215,10 +237,6 @@ class AVSM(Representation):
         self.N = P["nodes"]
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._build()
-
-    @property
-    def nbytes_per_texel(self) -> float:
-        return 2 * self.N * self.segments.itemsize
 
     @property
     def loop_state_words(self) -> int:
@@ -324,14 +342,3 @@ class AVSM(Representation):
         self.stats = {"lanes": int(L), "segments": seg.n_segments, "skipped": n_skipped,
                       "compressed": int(dr.sum(compressed)[0])}
 
-    # ----------------------------------------------------------------- lookup
-    def _eval_texels(self, texel, depth):
-        Float = self.Float
-        d = [dr.gather(Float, self.depths[k], texel) for k in range(self.N)]
-        t = [dr.gather(Float, self.values[k], texel) for k in range(self.N)]
-        return interpolate(d, t, depth, self.params["interpolation"])
-
-    def nodes_numpy(self) -> tuple[np.ndarray, np.ndarray]:
-        """(T, N) node depths and transmittances as NumPy arrays."""
-        return (np.stack([np.asarray(x.numpy()) for x in self.depths], axis=1),
-                np.stack([np.asarray(x.numpy()) for x in self.values], axis=1))

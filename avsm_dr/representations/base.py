@@ -23,8 +23,8 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..filtering import FILTERS, taps
-from ..segments import Segments
+from ..filtering import FILTERS, check_radius, check_size, filtered_eval
+from ..segments import Segments, flush_subnormal
 from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk, trajectory_words
 from .schema import Param, Schema
 
@@ -150,6 +150,9 @@ class Representation(abc.ABC):
         Float, UInt32, Int32 = self.Float, t.UInt32, t.Int32
         if filter not in FILTERS:
             raise ValueError(f"filter: expected one of {FILTERS}, got {filter!r}")
+        width = None if width is None else check_size(width, "width")
+        height = None if height is None else check_size(height, "height")
+        radius = check_radius(radius, width, height)
 
         coords = None
         if A.is_drjit(texel):
@@ -175,13 +178,13 @@ class Representation(abc.ABC):
 
         if A.is_drjit(depth):
             d_h = A.host(depth, "depth")
-            depth_dr = A.to_float(depth, Float)
+            depth_dr = flush_subnormal(A.to_float(depth, Float), d_h, self.segments.dtype)
         else:
             d_h = np.atleast_1d(np.asarray(depth, dtype=np.float64))
             depth_dr = None
         if d_h.ndim > 1:
             raise ValueError(f"depth: expected shape (K,), got {d_h.shape}")
-        A.check_finite(d_h, "depth")
+        d_h = self.segments.check_depth(d_h, "depth")   # finite in the storage dtype
         if d_h.size not in (1, k) and k != 1:
             raise ValueError(f"depth: length {d_h.size} does not match {k} texels")
         if k == 0 or d_h.size == 0:
@@ -206,12 +209,8 @@ class Representation(abc.ABC):
             raise ValueError(f"width: width*height = {width * height} does not match {self.n_texels} texels")
         if coords.shape[0] == 1 and n > 1:
             coords = np.broadcast_to(coords, (n, 2))
-        x = A.to_float(coords[:, 0], Float)
-        y = A.to_float(coords[:, 1], Float)
-        total = Float(0)
-        for tex, w in taps(x, y, width, height, filter, radius, Float, UInt32, Int32):
-            total += w * self._eval_texels(tex, depth_dr)
-        return total
+        return filtered_eval(self._eval_texels, np.asarray(coords, np.float64), depth_dr, width, height,
+                             filter, radius, Float, UInt32, Int32)
 
     def __repr__(self) -> str:
         p = ", ".join(f"{k}={v!r}" for k, v in self.params.items())

@@ -1,5 +1,5 @@
-"""Deep shadow maps (Lokovic and Veach 2000, "Deep shadow maps", SIGGRAPH; seed 000
-sec. 2, 3.2 and 5 compare AVSM against them).
+"""Deep shadow maps (Lokovic and Veach 2000, "Deep shadow maps", SIGGRAPH; Salvi et al.
+2010, "Adaptive Volumetric Shadow Maps", secs. 2, 3.2 and 5 compare AVSM against them).
 
 Each texel stores a variable number of nodes ``(z_i, V_i)`` (depth, transmittance)
 that reproduce the texel's exact visibility function ``V(z)`` within a user tolerance
@@ -79,7 +79,7 @@ from .. import backend
 from .registry import register
 from .base import Representation
 from .schema import Param, Schema
-from .exact import segment_fraction
+from .exact import exact_values
 
 PLACEMENTS = ("midslope", "curve")
 
@@ -88,6 +88,13 @@ POLYLINE_SHARE = 0.25
 BAND_SHARE = 0.5
 #: smallest accepted tolerance (the level table has ~1/sqrt(2 eps_p) entries)
 MIN_TOLERANCE = 1e-9
+#: Memory the build may use for its phase-A polyline and phase-B buffers (bytes; 2 GiB).
+#: The polyline's size is bounded before anything is allocated (``BYTES_PER_VERTEX`` per
+#: vertex); a larger one raises ValueError saying which tolerance would fit.
+MEMORY_BUDGET_BYTES = 2 * 2**30
+#: Device and host bytes per polyline vertex over the build (phase A: depth, optical
+#: depth, value, flag = 25; phase B: node depth, value, source = 20; host copies ~20).
+BYTES_PER_VERTEX = 64
 
 
 # ----------------------------------------------------------------------------
@@ -274,6 +281,25 @@ def next_up(z, dtype: str):
     return t.Float64(dr.reinterpret_array(F, up))
 
 
+def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p: float) -> None:
+    """ValueError (naming ``tolerance``) when the polyline's upper bound of
+    ``2 B + crossings`` vertices exceeds :data:`MEMORY_BUDGET_BYTES`.  The level part
+    grows as ``1 / sqrt(tolerance)`` (e.g. 44,727 levels at 1e-9: ~2.9 MB per opaque
+    texel, ~190 GB for a 256^2 map), so the message names the tolerance that would fit."""
+    bound = 2 * int(n_breakpoints) + int(n_crossings)
+    need = bound * BYTES_PER_VERTEX
+    if need <= MEMORY_BUDGET_BYTES:
+        return
+    tol = eps_p / POLYLINE_SHARE
+    room = MEMORY_BUDGET_BYTES // BYTES_PER_VERTEX - 2 * int(n_breakpoints)
+    fit = "no tolerance fits: fewer texels or segments" if room <= 0 else \
+        f"tolerance >= {tol * (n_crossings / room) ** 2:.2g} fits"
+    raise ValueError(
+        f"tolerance: {tol:g} needs a polyline of up to {bound:,} vertices over {n_tex} texels "
+        f"({need / 2**30:.1f} GiB > the {MEMORY_BUDGET_BYTES / 2**30:g} GiB of "
+        f"avsm_dr.representations.dsm.MEMORY_BUDGET_BYTES); {fit} (vertices grow as 1/sqrt(tolerance))")
+
+
 def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     """Polyline within ``eps_p`` of the exact curve (phase A), all texels at once.
 
@@ -310,6 +336,7 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     i0 = _count_below(lam, tr, m, strict=False) if m else dr.zeros(U32, nb)
     i1 = dr.select(has_next, _count_below(lam, tl_next, m, strict=True) if m else i0, i0)
     i1 = dr.maximum(i1, i0)
+    check_polyline_size(nb, (i1 - i0).numpy().astype(np.int64).sum(), n_tex, eps_p)
     safe_slope = dr.select(slope > 0, slope, 1.0)
 
     def crossings(base, write: bool):
@@ -502,13 +529,19 @@ class DeepShadowMap(Representation):
     """Deep shadow map with error bound ``tolerance`` (see the module docstring).
 
     tolerance: epsilon, the bound on |DSM(z) - V(z)|, in [1e-9, inf) (default 0.01, the
-        value of seed 000 Table 1).
+        value of Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", table 1).
     placement: 'midslope' (Lokovic-Veach, not differentiable) or 'curve' (nodes on the
         exact curve; gradients w.r.t. optical depth with the node depths held fixed).
     Attributes: ``node_counts`` (T,) int64 NumPy; ``node_depth``, ``node_value`` Dr.Jit
     arrays in CSR order; ``node_offsets`` (T+1,) int64 NumPy; ``node_left`` (bool NumPy)
     the node's polyline vertex is the value just before a step at its depth;
     ``n_polyline_vertices`` (T,) size of the phase-A polyline.
+
+    Limit: the build holds the phase-A polyline, up to ``2 B + N`` vertices per texel
+    (B breakpoints, N ~ sqrt(2 / tolerance) levels for a texel that goes opaque: 15 at
+    0.01, 1418 at 1e-6, 44,727 at 1e-9), ``BYTES_PER_VERTEX`` bytes each; a build whose
+    bound exceeds ``MEMORY_BUDGET_BYTES`` (2 GiB) raises ValueError naming the
+    tolerance that fits, before allocating.
     """
 
     schema = Schema(
@@ -563,30 +596,10 @@ class DeepShadowMap(Representation):
 
     def _attach_gradients(self, value, nz, left, counts):
         """value + (V(z) - detach(V(z))): the primal stays the float64 one, the gradient is
-        that of the exact curve at each node's fixed depth (left limit before a step)."""
-        seg = self.segments
-        Float, UInt32 = seg.Float, backend.types().UInt32
+        that of the exact curve at each node's fixed depth (left limit before a step;
+        :func:`.exact.exact_values`, a sum loop that reverse mode recomputes)."""
         tex = np.repeat(np.arange(counts.size), counts)
-        i = UInt32(seg.offsets[tex].astype(np.uint32))
-        end = UInt32(seg.offsets[tex + 1].astype(np.uint32))
-        z = Float(nz.astype(np.float32 if seg.dtype == "float32" else np.float64))
-        is_left = backend.types().Bool(left)
-        tau = dr.zeros(Float, nz.size)
-
-        def cond(i, tau):
-            return i < end
-
-        def body(i, tau):
-            z0 = dr.gather(Float, seg.z0, i)
-            z1 = dr.gather(Float, seg.z1, i)
-            od = dr.gather(Float, seg.optical_depth, i)
-            f = segment_fraction(z, z0, z1)
-            f = dr.select(is_left & (z0 == z1) & (z == z0), 0.0, f)   # V(z^-) before a step
-            return i + 1, tau + od * f
-
-        # a sum loop: reverse mode recomputes it (no per-lane trajectory, no bound)
-        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="dsm_node_gradients")
-        v = dr.exp(-tau)
+        v = exact_values(self.segments, tex, nz, left)
         return value + (v - dr.detach(v))
 
     # ------------------------------------------------------------ storage
@@ -633,4 +646,28 @@ class DeepShadowMap(Representation):
         w = dr.clip((depth - za) / safe, 0.0, 1.0)
         interp = va + w * (vb - va)
         out = dr.select(inside, interp, dr.select(after, va, 1.0))
-        return dr.clip(out, 0.0, 1.0)
+        out = dr.clip(out, 0.0, 1.0)
+        if self.placement == "midslope" and self._needs_grad():
+            seg = self.segments     # a gradient request raises a clear ValueError, not Dr.Jit's
+            out = dr.custom(_MidslopeNoGradient, out, seg.optical_depth, seg.z0, seg.z1)
+        return out
+
+
+class _MidslopeNoGradient(dr.CustomOp):
+    """Identity on T whose derivative (either mode) raises: the mid-slope nodes sit off the
+    curve, so DSM with ``placement='midslope'`` has no gradient w.r.t. the segments."""
+
+    MESSAGE = ("placement: 'midslope' DSM nodes lie off the exact curve and are not differentiable; "
+               "build with placement='curve' for gradients (node values on the curve, depths fixed)")
+
+    def eval(self, T, *anchors):
+        return dr.detach(T)
+
+    def forward(self):
+        raise ValueError(self.MESSAGE)
+
+    def backward(self):
+        raise ValueError(self.MESSAGE)
+
+    def name(self):
+        return "dsm_midslope_no_gradient"

@@ -3,14 +3,17 @@
     T(d) = prod_i exp(-tau_i * f_i(d)),   f_i(d) = clamp((d - z0_i) / (z1_i - z0_i), 0, 1)
 
 with f_i(d) = [d >= z0_i] for zero-length segments (uniform density inside a
-segment, seed 000 eq. 1).  One lane per receiver loops over its texel's
-segments, accumulating optical depth; the loop stops early once the optical
+segment, Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", eq. 1).  One lane per receiver loops over its texel's
+segments, accumulating optical depth in float64 (whatever the storage dtype: the
+ground truth must stay the most accurate representation over millions of segments);
+the loop stops early once the optical
 depth reaches ``OPAQUE_OPTICAL_DEPTH`` (T is then exactly 0).  Reverse mode
 recomputes the loop (sum-loop path), so it needs no memory per iteration.
 """
 from __future__ import annotations
 
 import drjit as dr
+import numpy as np
 
 from .. import backend
 from ..segments import OPAQUE_OPTICAL_DEPTH
@@ -43,10 +46,11 @@ class Exact(Representation):
         Float, UInt32 = seg.Float, backend.types().UInt32
         if seg.n_segments == 0:
             return dr.full(Float, 1.0, dr.width(depth))
+        F64 = backend.types().Float64
         offsets = seg.offsets_dr()
         i = dr.gather(UInt32, offsets, texel)          # current segment
         end = dr.gather(UInt32, offsets, texel + 1)    # one past the texel's last segment
-        tau = dr.zeros(Float, dr.width(depth))         # optical depth accumulated in front of depth
+        tau = dr.zeros(F64, dr.width(depth))           # optical depth accumulated in front of depth
 
         def cond(i, tau):
             return (i < end) & (tau < OPAQUE_OPTICAL_DEPTH)
@@ -55,10 +59,41 @@ class Exact(Representation):
             z0 = dr.gather(Float, seg.z0, i)
             z1 = dr.gather(Float, seg.z1, i)
             od = dr.gather(Float, seg.optical_depth, i)
-            return i + 1, tau + od * segment_fraction(depth, z0, z1)
+            return i + 1, tau + F64(od * segment_fraction(depth, z0, z1))
 
         # A sum loop (the increment does not read tau; the early exit only reads it in
         # the condition): max_iterations=-1 lets reverse mode re-run the loop instead of
         # storing a per-lane trajectory (checked against finite differences in the tests).
+        # The sum is float64 whatever the storage: in float32 n equal terms of total 3
+        # drifted by -2.3 % at n = 1e6 and +8 % at 4e6 (this is the ground truth).
         i, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="exact_eval")
-        return dr.exp(-tau)
+        return Float(dr.exp(-tau))
+
+
+def exact_values(segments, texel: np.ndarray, z: np.ndarray, left: np.ndarray):
+    """``T`` of the exact curve at depths ``z`` of texels ``texel`` (left limits where
+    ``left``), as a Dr.Jit Float of the segments' type carrying their AD graph.
+    One lane per point; a sum loop over the texel's segments (reverse mode recomputes it)."""
+    seg = segments
+    t = backend.types()
+    Float, UInt32 = seg.Float, t.UInt32
+    dt = np.float32 if seg.dtype == "float32" else np.float64
+    i = UInt32(seg.offsets[texel].astype(np.uint32))
+    end = UInt32(seg.offsets[texel + 1].astype(np.uint32))
+    zd = Float(np.asarray(z, dt))
+    is_left = t.Bool(np.asarray(left, bool))
+    tau = dr.zeros(Float, z.size)
+
+    def cond(i, tau):
+        return i < end
+
+    def body(i, tau):
+        z0 = dr.gather(Float, seg.z0, i)
+        z1 = dr.gather(Float, seg.z1, i)
+        od = dr.gather(Float, seg.optical_depth, i)
+        f = segment_fraction(zd, z0, z1)
+        f = dr.select(is_left & (z0 == z1) & (zd == z0), 0.0, f)   # T(z^-) before a step
+        return i + 1, tau + od * f
+
+    _, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="curve_exact_values")
+    return dr.exp(-tau)

@@ -1,7 +1,7 @@
-"""Fourier opacity maps (Jansen and Bavoil 2010, seed 004 eqs. 1-6).
+"""Fourier opacity maps (Jansen and Bavoil 2010, "Fourier Opacity Mapping", I3D, eqs. 1-6).
 
 With ``n`` harmonics a texel stores ``2n + 1`` coefficients, in the paper's
-packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (seed 004 fig. 2):
+packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (Jansen and Bavoil 2010, fig. 2):
 
     a'_k = 2 int_0^1 sigma(u) cos(2 pi k u) du                                   (1)
     b'_k = 2 int_0^1 sigma(u) sin(2 pi k u) du                                   (2)
@@ -24,6 +24,8 @@ clipping and kernel layout: see :mod:`avsm_dr.representations.basis`.
 from __future__ import annotations
 
 import math
+
+import drjit as dr
 
 from .registry import register
 from .basis import Basis, BasisRepresentation, register_basis, sinc, sincos_pi
@@ -75,6 +77,35 @@ class FourierBasis(Basis):
             w = 2 * sinc(math.pi * k * du)
             out += [w * c, w * s]
         return out
+
+    # ---- indexed forms (coefficient j of [a'_0, a'_1, b'_1, ...]: harmonic (j + 1) // 2)
+    indexed = True
+
+    @staticmethod
+    def _harmonic(j, u):
+        """(k as a float array, True for a b'_k coefficient) of coefficient index j."""
+        return type(u)((j + 1) >> 1), (j > 0) & ((j & 1) == 0)
+
+    def f_at(self, j, u):
+        k, is_b = self._harmonic(j, u)
+        s, c = sincos_pi(2 * k * u)
+        return dr.select(j == 0, 2.0, 2 * dr.select(is_b, s, c))
+
+    def F_at(self, j, u):
+        k, is_b = self._harmonic(j, u)
+        s, c = sincos_pi(k * u)
+        return dr.select(j == 0, 2 * u, (2 / math.pi) / dr.maximum(k, 1) * s * dr.select(is_b, s, c))
+
+    def g_at(self, j, u):
+        k, is_b = self._harmonic(j, u)
+        s, c = sincos_pi(k * u)
+        return dr.select(j == 0, 0.5 * u, (1 / math.pi) / dr.maximum(k, 1) * s * dr.select(is_b, s, c))
+
+    def average_at(self, j, u0, u1):
+        k, is_b = self._harmonic(j, u0)
+        s, c = sincos_pi(2 * k * (0.5 * (u0 + u1)))
+        w = 2 * sinc(math.pi * k * (u1 - u0))
+        return dr.select(j == 0, 2.0, w * dr.select(is_b, s, c))
 
 
 @register("fom")

@@ -154,7 +154,8 @@ class MomentShadowMap(BasisRepresentation):
     def _reconstruct(self, texel, depth):
         Float = self.Float
         u = self.normalized_depth(texel, depth)
-        b = [dr.gather(Float, c, texel) for c in self.coefficients]
+        K = self.basis.n_coefficients
+        b = [dr.gather(Float, self._coef, texel * K + k) for k in range(K)]
         D, lo, up = hamburger4(*b, 2 * u - 1, self.params["bias"], self.params["overestimation"])
         D = dr.select(u <= 0, 0, dr.select(u >= 1, b[0], D))
         return D, lo, up

@@ -70,3 +70,14 @@ def configurations(kind: str, quick: bool = False) -> list[dict]:
     return [dict(base, **{d["size"]: v}) for v in values]
 
 
+
+
+def differentiable_configuration(kind: str) -> dict | None:
+    """Parameters of ``kind``'s first differentiable configuration (its headline, then its
+    schema's examples in order), or None when none is differentiable."""
+    d = describe(kind)
+    probe = Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
+    for p in (d["headline"], *d["examples"]):
+        if REGISTRY[kind](probe, **p).differentiable:
+            return dict(p)
+    return None

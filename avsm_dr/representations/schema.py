@@ -112,6 +112,8 @@ class Schema:
     ``examples``: parameter sets the contract tests run (besides the defaults).
     ``headline``: the configuration benchmarks and single-setting experiments use.
     ``summary``, ``paper``: one line each for the docs' kinds table.
+    ``offline``: the build is an offline reference (host code, cost superlinear in the
+    segments per texel): benchmarks and full-size sweeps run it only where it fits.
     """
 
     params: tuple = ()
@@ -122,6 +124,7 @@ class Schema:
     headline: dict = field(default_factory=dict)
     summary: str = ""
     paper: str = ""
+    offline: bool = False
 
     def __post_init__(self):
         names = [p.name for p in self.params]
@@ -153,21 +156,24 @@ class Schema:
                 "size": self.size,
                 "sweep": list(self.sweep), "quick_sweep": list(self.quick_sweep or self.sweep),
                 "examples": [dict(e) for e in self.examples], "headline": dict(self.headline),
-                "summary": self.summary, "paper": self.paper}
+                "summary": self.summary, "paper": self.paper, "offline": self.offline}
 
 
 # Parameters several kinds share (one definition, one message).
 def near_param() -> Param:
+    """``near``: start of the depth range (None: the segments' global bounds)."""
     return Param("near", "float", None, "start of the depth range (default: the segments' global bounds)",
                  nullable=True)
 
 
 def far_param() -> Param:
+    """``far``: end of the depth range (None: the segments' global bounds)."""
     return Param("far", "float", None, "end of the depth range (default: the segments' global bounds)",
                  nullable=True)
 
 
 def depth_range_param() -> Param:
+    """``depth_range``: 'global' (one range) or 'texel' (tight per-texel ranges, stored)."""
     return Param("depth_range", "choice", "global",
                  "'global': one [near, far] for all texels; 'texel': tight per-texel bounds, stored "
                  "(2 floats per texel)", choices=("global", "texel"))

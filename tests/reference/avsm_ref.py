@@ -1,4 +1,5 @@
-"""AVSM in plain Python/NumPy, one texel at a time, written from seed 000 sec. 3-4.
+"""AVSM in plain Python/NumPy, one texel at a time, written from Salvi et
+al. 2010, "Adaptive Volumetric Shadow Maps", secs. 3-4.
 
 Mirrors the conventions documented in avsm_dr/representations/avsm.py: nodes cleared
 to (far, 1) and flagged 'clear'; clear nodes sort after inserted nodes of equal depth

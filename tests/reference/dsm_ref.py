@@ -5,8 +5,9 @@ Same specification, written the obvious way:
 * optical depth at a depth is the direct sum  tau(d) = sum_i tau_i f_i(d)  (O(S) per
   query, no prefix sums), with the left limit  f_i(d^-)  before zero-length segments;
 * level table  L_{n+1} = L_n exp(-sqrt(8 eps_p / L_n))  down to the first  L_N <= eps_p;
-  inside each breakpoint interval a vertex where the curve crosses a level, its depth
-  rounded to the storage dtype, its value the exact curve there;
+  inside each breakpoint interval a vertex where the curve crosses a level not yet passed
+  by the previous vertex, its depth rounded to the storage dtype (one ulp past the
+  previous vertex when it rounds onto it), its value the exact curve there;
 * Lokovic-Veach greedy compression with a slope window ("midslope"), or the subset
   greedy ("curve") checking every intermediate vertex against the chord directly.
 """
@@ -43,6 +44,13 @@ def _round(x, dtype):
     return float(np.float32(x)) if dtype == "float32" else float(x)
 
 
+def _next_up(x, dtype):
+    """Next value after x representable in dtype."""
+    if dtype == "float32":
+        return float(np.nextafter(np.float32(x), np.float32(np.inf)))
+    return float(np.nextafter(x, np.inf))
+
+
 def polyline(z0, z1, tau, eps_p, dtype="float64"):
     """Vertices (z, v) of one texel's polyline, within eps_p of the exact curve."""
     if len(z0) == 0:
@@ -62,13 +70,15 @@ def polyline(z0, z1, tau, eps_p, dtype="float64"):
             break
         nb = bps[k + 1]
         tn = optical_depth(z0, z1, tau, nb, left=True)
-        last = b
+        last, tau_last = b, tr
         for L in lam:
-            if tr < L < tn:
+            if tr < L < tn and L > tau_last:    # a level the last vertex has not passed
                 z = _round(b + (L - tr) * (nb - b) / (tn - tr), dtype)
+                z = max(z, _next_up(last, dtype))   # rounded onto the last vertex: one ulp on
                 if last < z < nb:
                     zs.append(z)
-                    vs.append(math.exp(-optical_depth(z0, z1, tau, z)))
+                    tau_last = optical_depth(z0, z1, tau, z)
+                    vs.append(math.exp(-tau_last))
                     last = z
     return zs, vs
 

@@ -1,5 +1,6 @@
 """Linear representations (FOM, OSM, any basis) in plain float64 NumPy loops, one
-texel and one segment at a time, written from seed 004 eqs. 1-3 and sec. 5 / 5.1.
+texel and one segment at a time, written from Jansen and Bavoil 2010,
+"Fourier Opacity Mapping", eqs. 1-3 and secs. 5 / 5.1.
 
 Conventions mirrored from avsm_dr/representations/basis.py (documented there):
 u = (z - near) / span, span = max(far - near, 1e-6 max(|near|, |far|) + 1e-30); the part of a

@@ -6,19 +6,27 @@ small by default so tests stay fast); densities are deterministic for a given ``
 
 * :func:`plume`            a rising, widening smoke plume (procedural fBm noise).
 * :func:`three_columns`    three smoke columns one behind the other along the light,
-                           light / dense / medium (seed 000 figures 4 and 7).
-* :func:`hair_and_smoke`   hair strands inside a smoke puff (seed 000 figures 5-6);
+                           light / dense / medium (the AVSM paper's figures 4 and 7).
+* :func:`hair_and_smoke`   hair strands inside a smoke puff (the AVSM paper's figures 5-6);
                            procedural strands, or a TressFX file when ``tfx_path`` is given.
 * :func:`particles`        a cloud of spherical particles.
 * :func:`smoke_over_table` a smoke puff above an opaque table top that receives its shadow.
 
-Every scene takes ``light=`` to replace its default directional light.
+Every scene takes ``light=`` to replace its default directional light.  The AVSM paper:
+Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps", EGSR 2010.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .scene import DirectionalLight, Hair, OpaqueBox, Particles, Scene
+from . import validation as V
+from .scene import DirectionalLight, Hair, OpaqueBox, Particles, PointLight, Scene, SpotLight
+
+#: Largest ``size`` (voxels per unit; the plume's grid is then 256 x 384 x 256 and its
+#: float64 noise work arrays take ~1.5 GB).
+MAX_SIZE = 256
+#: Most receivers or particles a built-in scene generates.
+MAX_POINTS = 1 << 22
 
 
 # --------------------------------------------------------------------- noise
@@ -70,11 +78,19 @@ def _centres(shape, bmin, bmax):
 
 
 def _grid_shape(bmin, bmax, size: int):
-    if not isinstance(size, (int, np.integer)) or size < 4:
-        raise ValueError(f"size: expected an integer >= 4, got {size!r}")
+    size = V.integer(size, "size", 4, MAX_SIZE)
     ext = np.asarray(bmax, np.float64) - np.asarray(bmin, np.float64)
     nx, ny, nz = np.maximum(np.round(ext * size).astype(int), 2)
     return int(nz), int(ny), int(nx)
+
+
+def _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, center, u, v, half) -> np.ndarray:
+    """Receivers: half inside the density (:func:`_volume_points`), the rest on a square
+    surface (:func:`_wall_points`: ``center``, axes ``u``, ``v``, half size ``half``)."""
+    k_vol = n_receivers // 2
+    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
+    surface = _wall_points(center, u, v, half, m)[: n_receivers - k_vol]
+    return np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), surface])
 
 
 def _wall_points(center, u, v, half: float, n: int) -> np.ndarray:
@@ -97,9 +113,14 @@ def _volume_points(density, bmin, bmax, k: int, rng) -> np.ndarray:
     return np.asarray(bmin) + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * h
 
 
-def _check_count(n, name):
-    if not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"{name}: expected an integer >= 1, got {n!r}")
+def _check(seed, light, n_receivers, density_scale=1.0):
+    """The arguments every scene shares, checked (ValueError names the argument)."""
+    V.integer(seed, "seed", 0)
+    V.integer(n_receivers, "n_receivers", 1, MAX_POINTS)
+    V.real(density_scale, "density_scale", 0.0)
+    if light is not None and not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
+        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, "
+                         f"got {type(light).__name__}")
 
 
 # --------------------------------------------------------------------- scenes
@@ -110,7 +131,7 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
     breaks it into puffs.  Light: directional, mostly along +x, slightly down.
     Receivers: half in the smoke, half on the wall x = 0.8 behind it (the receiver plane).
     """
-    _check_count(n_receivers, "n_receivers")
+    _check(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
@@ -123,12 +144,9 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
     body = np.exp(-2.0 * r2) * np.clip(6 * h, 0, 1) * np.clip(6 * (1 - h), 0, 1)
     dens = np.maximum(body * (0.35 + 0.9 * n) - 0.18, 0.0) * density_scale
     dens = dens.astype(np.float32)
-    light = light or DirectionalLight(direction=(1.0, -0.3, 0.25))
+    light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    k_vol = n_receivers // 2
-    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
-    wall = _wall_points((0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75, m)[: n_receivers - k_vol]
-    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), wall])
+    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
     return Scene("plume", light, rec, density=dens, bbox=(bmin, bmax),
                  receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
@@ -138,10 +156,10 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
                   n_receivers: int = 1024) -> Scene:
     """Three vertical smoke columns at x = -1, 0, 1 in the box [-1.5, 1.5] x [0, 1] x [-0.5, 0.5],
     one behind the other along the (nearly horizontal, +x) light so each casts on the next:
-    a translucent one nearest the light, a dense one, then a medium one (seed 000 figs. 4, 7).
+    a translucent one nearest the light, a dense one, then a medium one (the AVSM paper's figures 4 and 7).
     Receivers: half in the columns, half on the wall x = 1.8 behind them.
     """
-    _check_count(n_receivers, "n_receivers")
+    _check(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-1.5, 0.0, -0.5]), np.array([1.5, 1.0, 0.5])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
@@ -153,12 +171,9 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
         top = np.clip(8 * (0.92 - Y), 0, 1) * np.clip(8 * Y, 0, 1)
         dens += weight * np.maximum(np.exp(-1.5 * r2) * top * (0.4 + 0.8 * n) - 0.2, 0.0)
     dens = (dens * density_scale).astype(np.float32)
-    light = light or DirectionalLight(direction=(1.0, -0.12, 0.08))
+    light = DirectionalLight(direction=(1.0, -0.12, 0.08)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    k_vol = n_receivers // 2
-    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
-    wall = _wall_points((1.8, 0.5, 0.0), (0, 1, 0), (0, 0, 1), 0.5, m)[: n_receivers - k_vol]
-    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), wall])
+    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (1.8, 0.5, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
     return Scene("three_columns", light, rec, density=dens, bbox=(bmin, bmax),
                  receiver_plane=(np.array([1.8, 0.5, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
@@ -167,7 +182,7 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
 def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int = 300,
                    hair_radius: float = 0.002, hair_opacity: float = 0.3,
                    density_scale: float = 8.0, light=None, n_receivers: int = 1024) -> Scene:
-    """Hair strands inside a smoke puff in the box [-0.5, 0.5]^3 (seed 000 figures 5-6).
+    """Hair strands inside a smoke puff in the box [-0.5, 0.5]^3 (the AVSM paper's figures 5-6).
 
     Hair: ``n_strands`` procedural strands (:func:`~avsm_dr.capture.hair.procedural_strands`),
     or the strands of the TressFX file ``tfx_path`` scaled into the box.  Each crossing of a
@@ -175,7 +190,9 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
     (+x).  Receivers: half in the smoke/hair, half on the wall x = 0.8 behind it.
     """
     from .capture.hair import fit_strands, load_tfx, procedural_strands
-    _check_count(n_receivers, "n_receivers")
+    _check(seed, light, n_receivers, density_scale)
+    hair_radius = V.real(hair_radius, "hair_radius", 0.0, open_min=True)
+    hair_opacity = V.real(hair_opacity, "hair_opacity", 0.0, 1.0)
     bmin, bmax = np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
@@ -185,16 +202,13 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
     if tfx_path is not None:
         strands = fit_strands(load_tfx(tfx_path), bmin, bmax, fill=0.8)
     else:
-        _check_count(n_strands, "n_strands")
+        V.integer(n_strands, "n_strands", 1)
         strands = procedural_strands(n_strands, 16, root_center=(0.0, -0.35, 0.0), root_radius=0.22,
                                      length=0.7, seed=seed)
     hair = Hair(strands=strands, radius=hair_radius, opacity=hair_opacity)
-    light = light or DirectionalLight(direction=(1.0, -0.2, 0.1))
+    light = DirectionalLight(direction=(1.0, -0.2, 0.1)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    k_vol = n_receivers // 2
-    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
-    wall = _wall_points((0.8, 0.0, 0.0), (0, 1, 0), (0, 0, 1), 0.5, m)[: n_receivers - k_vol]
-    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), wall])
+    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.0, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
     return Scene("hair_and_smoke", light, rec, density=dens, bbox=(bmin, bmax), hair=hair,
                  receiver_plane=(np.array([0.8, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
                  meta={"seed": seed, "size": size, "tfx_path": None if tfx_path is None else str(tfx_path)})
@@ -204,13 +218,13 @@ def particles(n: int = 200, seed: int = 0, light=None, n_receivers: int = 1024) 
     """A cloud of ``n`` spherical particles (radius 0.03..0.1, extinction 5..20 per unit)
     around (0, 0.3, 0); light from above (directional, mostly -y).  Receivers: half inside
     the cloud, half on the ground y = -0.5 (the receiver plane)."""
-    _check_count(n, "n")
-    _check_count(n_receivers, "n_receivers")
+    V.integer(n, "n", 1, MAX_POINTS)
+    _check(seed, light, n_receivers)
     rng = np.random.default_rng(seed)
     centers = np.array([0.0, 0.3, 0.0]) + 0.2 * rng.standard_normal((n, 3))
     radii = rng.uniform(0.03, 0.1, n)
     dens = rng.uniform(5.0, 20.0, n)
-    light = light or DirectionalLight(direction=(0.25, -1.0, 0.15))
+    light = DirectionalLight(direction=(0.25, -1.0, 0.15)) if light is None else light
     k_vol = n_receivers // 2
     pick = rng.integers(0, n, k_vol)
     u = rng.standard_normal((k_vol, 3))
@@ -230,20 +244,17 @@ def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0,
     (the box [-1, 1] x [-0.05, 0] x [-1, 1], an :class:`OpaqueBox` blocker); light from
     above.  Receivers: half in the smoke, half on the table's top face y = 0 (the receiver
     plane; lit except where the smoke shadows it)."""
-    _check_count(n_receivers, "n_receivers")
+    _check(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.4, 0.1, -0.4]), np.array([0.4, 0.9, 0.4])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
     n = fbm(shape, seed)
     r2 = (X ** 2 + (Y - 0.5) ** 2 + Z ** 2) / 0.3 ** 2
     dens = (np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * n) - 0.15, 0.0) * density_scale).astype(np.float32)
-    light = light or DirectionalLight(direction=(0.3, -1.0, 0.2))
+    light = DirectionalLight(direction=(0.3, -1.0, 0.2)) if light is None else light
     table = OpaqueBox(min=np.array([-1.0, -0.05, -1.0]), max=np.array([1.0, 0.0, 1.0]))
     rng = np.random.default_rng(seed + 1)
-    k_vol = n_receivers // 2
-    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
-    top = _wall_points((0.0, 0.0, 0.0), (1, 0, 0), (0, 0, 1), 0.9, m)[: n_receivers - k_vol]
-    rec = np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), top])
+    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.0, 0.0, 0.0), (1, 0, 0), (0, 0, 1), 0.9)
     return Scene("smoke_over_table", light, rec, density=dens, bbox=(bmin, bmax), blockers=[table],
                  receiver_plane=(np.array([0.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 1.0),
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
@@ -255,6 +266,33 @@ SCENES = {"plume": plume, "three_columns": three_columns, "hair_and_smoke": hair
 
 def get(name: str, **kwargs) -> Scene:
     """Scene by name (see :data:`SCENES`)."""
-    if name not in SCENES:
+    if not (isinstance(name, str) and name in SCENES):
         raise ValueError(f"name: unknown scene {name!r}; known: {sorted(SCENES)}")
     return SCENES[name](**kwargs)
+
+
+def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, density_scale: float = 40.0,
+                    light=None, n_receivers: int = 1024) -> Scene:
+    """A buoyant smoke plume simulated by stable fluids (:func:`avsm_dr.fluid.simulate_plume`:
+    Stam 1999 with buoyancy, vorticity confinement and MacCormack density advection), in the
+    box [-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5] of the procedural :func:`plume`: sharp fronts,
+    curled sheets and holes that fBm noise lacks.  ``steps`` (default 1.25 x size) from a
+    seeded, wandering source on the floor; the density (peak ~1) is scaled by
+    ``density_scale``.  Cached on disk per parameters (a 32 x 48 x 32 run: seconds).
+    Light, receivers and receiver plane as in :func:`plume`.
+    """
+    from .fluid import simulate_plume
+    _check(seed, light, n_receivers, density_scale)
+    steps = int(round(1.25 * size)) if steps is None else V.integer(steps, "steps", 1)
+    bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
+    shape = _grid_shape(bmin, bmax, size)
+    dens = (simulate_plume(shape, steps=steps, seed=seed) * density_scale).astype(np.float32)
+    light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
+    rng = np.random.default_rng(seed + 1)
+    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
+    return Scene("simulated_plume", light, rec, density=dens, bbox=(bmin, bmax),
+                 receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
+                 meta={"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
+
+
+SCENES["simulated_plume"] = simulated_plume

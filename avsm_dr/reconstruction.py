@@ -21,19 +21,21 @@ Pipeline (every step differentiable with respect to the voxel densities ``sigma`
 * Reverse mode for many parameters (the whole grid: ``dr.backward``), forward mode
   for a few (``dr.forward_to`` along a direction); :func:`gradient_check` compares
   the two - it catches a loop bound that is too small, which silently corrupts
-  reverse mode only.  Loops are built through
-  :func:`avsm_dr.checkpoint.build_differentiable`, which recomputes / checkpoints
-  where the reverse-mode trajectory (segments x loop state) would be too large.
+  reverse mode only.  Representations are built by :func:`avsm_dr.build` with
+  ``reverse='auto'`` (checkpointed where the reverse-mode trajectory, segments x
+  loop state, would be too large), ``'trajectory'`` or ``'checkpoint'``.
 
 Inverse problem (:func:`recover`): minimise over ``sigma >= 0``
 
     E(sigma) = 1/|lights| sum_l mean_k (T_l,k(sigma) - T*_l,k)^2 + lambda sum_(v,w) (sigma_v - sigma_w)^2 / n_pairs
 
 (``T*`` the target shadow images, the second term a smoothness prior over
-face-adjacent voxel pairs) with Adam [Kingma & Ba 2015] and projection onto
-``sigma >= 0`` after each step.  A few directional lights give a limited-angle
-tomography problem: shadows behind the volume only constrain line integrals,
-so the recovered grid matches the targets long before it matches the density.
+face-adjacent voxel pairs) with Adam (Kingma and Ba 2015, "Adam: A Method for
+Stochastic Optimization", ICLR; Dr.Jit's ``drjit.opt.Adam``) and projection onto
+``sigma >= 0`` after each step (:class:`ProjectedAdam`).  A few directional lights
+give a limited-angle tomography problem: shadows behind the volume only constrain
+line integrals, so the recovered grid matches the targets long before it matches
+the density.
 """
 from __future__ import annotations
 
@@ -44,23 +46,18 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import drjit as dr
+import drjit.opt
 import numpy as np
 
 from . import _arrays as A
 from . import backend
+from . import validation as V
 from .capture import capture as _capture
 from .capture.camera import orthonormal_basis
-from .checkpoint import build_differentiable
+from .representations import build, differentiable_configuration, kinds
 from .scene import DirectionalLight, Scene
+from .testing import check_gradients
 
-#: Representations differentiable with respect to the segments (and their parameters).
-DIFFERENTIABLE = {
-    "exact": {},
-    "fom": {"harmonics": 4},
-    "osm": {"slices": 16},
-    "avsm": {"nodes": 8},
-    "dsm": {"tolerance": 0.01, "placement": "curve"},
-}
 
 
 # ============================================================== lights, receivers
@@ -129,20 +126,25 @@ def shadow(scene: Scene, density, points=None, light=None, kind: str = "fom", pa
            filter: str = "point", reverse: str = "auto") -> Shadow:
     """Transmittance from ``light`` (default ``scene.light``) to ``points`` (default
     ``scene.receivers``) through ``density`` (a Dr.Jit tensor, gradients kept, or NumPy),
-    via capture -> ``kind`` (``params``, default :data:`DIFFERENTIABLE`) -> lookup.
+    via capture -> ``kind`` (``params``, default: the kind's first differentiable
+    configuration in the registry, ``representations.differentiable_configuration``) -> lookup.
 
-    resolution, step, epsilon: of :func:`avsm_dr.capture` (``keep_zero=True`` always).
-    filter: lookup filter ('point' | 'bilinear' | ...).  reverse: reverse-mode strategy
-    of :func:`avsm_dr.checkpoint.build_differentiable`.
+    resolution, step, epsilon: of :func:`avsm_dr.capture` (``keep_zero=True`` and the
+    Simpson march, ``method='march'``, always: its empty steps are what carry gradients
+    to voxels that are still 0).  filter: lookup filter ('point' | 'bilinear' | ...).  reverse: how reverse mode stores
+    loops, 'auto' | 'trajectory' | 'checkpoint' (see :func:`avsm_dr.build`).
     """
-    if kind not in DIFFERENTIABLE:
-        raise ValueError(f"kind: expected one of {sorted(DIFFERENTIABLE)}, got {kind!r}")
-    p = dict(DIFFERENTIABLE[kind] if params is None else params)
-    if kind == "dsm" and p.get("placement", "midslope") != "curve":
-        raise ValueError("params: dsm is differentiable only with placement='curve'")
+    if kind not in kinds():
+        raise ValueError(f"kind: expected one of {kinds()}, got {kind!r}")
+    p = differentiable_configuration(kind) if params is None else dict(params)
+    if p is None:
+        raise ValueError(f"kind: {kind!r} has no differentiable configuration")
     sc = scene if light is None else with_light(scene, light)
-    cap = _capture(sc, resolution=resolution, step=step, epsilon=epsilon, density=density, keep_zero=True)
-    rep = build_differentiable(kind, cap.segments, reverse=reverse, **p)
+    cap = _capture(sc, resolution=resolution, step=step, epsilon=epsilon, density=density, keep_zero=True,
+                   method="march")
+    rep = build(kind, cap.segments, reverse=reverse, **p)
+    if not rep.differentiable:
+        raise ValueError(f"params: {kind} with {p} is not differentiable (see ad.describe({kind!r}))")
     pts = sc.receivers if points is None else points
     return Shadow(cap.transmittance(rep, pts, filter=filter), cap, rep)
 
@@ -208,37 +210,32 @@ def smoothness(x, pairs=None):
 
 
 # ================================================================ optimisation
-class Adam:
-    """Adam [Kingma & Ba 2015] on one flat Dr.Jit array, with projection onto ``[lower, inf)``.
+class ProjectedAdam(drjit.opt.Adam):
+    """Dr.Jit's Adam (``drjit.opt.Adam``: Kingma and Ba 2015) followed, after every step,
+    by projection of each parameter onto ``[lower, inf)`` (the moments are kept)::
 
         m <- b1 m + (1 - b1) g;  v <- b2 v + (1 - b2) g^2
-        x <- max(x - lr * m / (1 - b1^t) / (sqrt(v / (1 - b2^t)) + eps), lower)
-    """
+        x <- max(x - lr sqrt(1 - b2^t) / (1 - b1^t) * m / sqrt(v + eps^2), lower)
 
-    def __init__(self, lr: float = 0.1, beta1: float = 0.9, beta2: float = 0.99, eps: float = 1e-8,
-                 lower: float | None = 0.0):
-        for name, val, lo, hi in (("lr", lr, 0, math.inf), ("beta1", beta1, 0, 1), ("beta2", beta2, 0, 1)):
-            if not (np.isfinite(val) and lo <= val < hi) or (name == "lr" and val <= 0):
-                raise ValueError(f"{name}: out of range, got {val!r}")
-        self.lr, self.beta1, self.beta2, self.eps, self.lower = float(lr), float(beta1), float(beta2), float(eps), lower
-        self.t = 0
-        self.m = self.v = None
+    (``sqrt(v + eps^2)``: Dr.Jit's form for eps <= 1e-6, ``sqrt(v) + eps`` above.)
+    beta2 defaults to 0.99, the value the inverse experiment was tuned with (Adam's
+    own default is 0.999)."""
 
-    def step(self, x, grad):
-        """New (detached) parameters from ``x`` and its gradient ``grad`` (same type)."""
-        x, g = dr.detach(x), dr.detach(grad)
-        if self.m is None:
-            self.m, self.v = dr.zeros(type(x), dr.width(x)), dr.zeros(type(x), dr.width(x))
-        self.t += 1
-        self.m = self.beta1 * self.m + (1 - self.beta1) * g
-        self.v = self.beta2 * self.v + (1 - self.beta2) * dr.square(g)
-        mh = self.m / (1 - self.beta1 ** self.t)
-        vh = self.v / (1 - self.beta2 ** self.t)
-        x = x - self.lr * mh / (dr.sqrt(vh) + self.eps)
+    def __init__(self, lr: float = 0.1, params=None, *, beta1: float = 0.9, beta2: float = 0.99,
+                 eps: float = 1e-8, lower: float | None = 0.0):
+        lr = V.real(lr, "lr", 0, open_min=True)
+        beta1 = V.real(beta1, "beta1", 0, 1, open_max=True)
+        beta2 = V.real(beta2, "beta2", 0, 1, open_max=True)
+        eps = V.real(eps, "eps", 0, open_min=True)
+        self.lower = None if lower is None else V.real(lower, "lower")
+        super().__init__(lr, params, beta_1=beta1, beta_2=beta2, epsilon=eps)
+
+    def step(self, **kwargs) -> None:
+        """One Adam step (keyword arguments of ``drjit.opt.Adam.step``), then the projection."""
+        super().step(**kwargs)
         if self.lower is not None:
-            x = dr.maximum(x, self.lower)
-        dr.eval(x, self.m, self.v)
-        return x
+            for key in list(self.keys()):
+                self[key] = dr.maximum(self[key], self.lower)
 
 
 def gradient_check(loss_fn: Callable, x, rng=None, rtol: float = 1e-4, atol: float = 1e-9) -> dict:
@@ -247,26 +244,11 @@ def gradient_check(loss_fn: Callable, x, rng=None, rtol: float = 1e-4, atol: flo
     Reverse mode gives ``g = dL/dx``; forward mode along a random direction ``v`` gives
     ``dL/dx . v`` without any loop-bound hint, so a mismatch exposes a reverse-mode
     path that is silently wrong (e.g. a symbolic loop with a too-small
-    ``max_iterations``).  Returns dict(reverse, forward, error, ok).
+    ``max_iterations``).  :func:`avsm_dr.testing.check_gradients` without finite
+    differences; returns dict(reverse, forward, error, ok).
     """
-    rng = np.random.default_rng(0) if rng is None else rng
-    Tensor = type(x)
-    host = np.asarray(dr.detach(x).numpy())
-    xr = Tensor(host)
-    dr.enable_grad(xr)
-    dr.backward(loss_fn(xr))
-    g = np.asarray(dr.grad(xr).numpy(), np.float64).ravel()
-    v = rng.normal(size=host.size)
-    xf = Tensor(host)
-    dr.enable_grad(xf)
-    L = loss_fn(xf)
-    dr.set_grad(xf, Tensor(v.reshape(host.shape).astype(host.dtype)))
-    dr.forward_to(L)
-    fwd = float(np.asarray(dr.grad(L).numpy()).ravel()[0])
-    rev = float(g @ v)
-    err = abs(rev - fwd)
-    return {"reverse": rev, "forward": fwd, "error": err,
-            "ok": bool(err <= atol + rtol * max(abs(rev), abs(fwd)))}
+    chk = check_gradients(loss_fn, x, fd=0, rtol=rtol, atol=atol, rng=rng)
+    return {k: chk.summary()[k] for k in ("reverse", "forward", "error", "ok")}
 
 
 def density_error(recovered, truth) -> dict:
@@ -339,19 +321,14 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
         out.gradient_check = chk
         if not chk["ok"]:
             raise RuntimeError(f"gradient check failed (reverse vs forward mode): {chk}")
-    opt = Adam(lr=lr)
-    flat = dr.detach(x.array)
-    Tensor = type(x)
+    opt = ProjectedAdam(lr=lr, params={"sigma": x})
     for it in range(int(iterations) + 1):
         t0 = time.perf_counter()
-        xt = Tensor(flat, shape)
-        dr.enable_grad(xt)
+        xt = opt["sigma"]                                   # gradients enabled by the optimizer
         data, reg, total = losses(xt)
-        last = it == iterations
-        if not last:
+        if it < iterations:
             dr.backward(total)
-            g = dr.grad(xt).array
-            flat = opt.step(flat, g)
+            opt.step()
         rec = {"iteration": it, "loss": float(total[0]), "data": float(data[0]),
                "smoothness": float(reg[0]) if smooth > 0 else 0.0, "seconds": time.perf_counter() - t0}
         if truth is not None:
@@ -360,10 +337,10 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
         out.history.append(rec)
         if callback is not None:
             callback(it, rec)
-    out.density = np.asarray(Tensor(flat, shape).numpy(), np.float32)
+    out.density = np.asarray(dr.detach(opt["sigma"]).numpy(), np.float32)
     return out
 
 
-__all__ = ["DIFFERENTIABLE", "light_from_angles", "receiver_grid", "with_light", "density_tensor", "shadow",
-           "Shadow", "radiance_weights", "radiance", "image_loss", "neighbour_pairs", "smoothness", "Adam",
+__all__ = ["light_from_angles", "receiver_grid", "with_light", "density_tensor", "shadow",
+           "Shadow", "radiance_weights", "radiance", "image_loss", "neighbour_pairs", "smoothness", "ProjectedAdam",
            "gradient_check", "density_error", "Recovery", "recover"]

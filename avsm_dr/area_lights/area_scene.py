@@ -1,4 +1,5 @@
-"""Scene description for area-light volumetric shadows (seed 002, Wyman and Dai).
+"""Scene description for area-light volumetric shadows (Wyman and Dai, "Imperfect Voxelized
+Shadow Volumes", HPG 2013).
 
 Conventions (shared by every method and by the Mitsuba reference):
 
@@ -22,35 +23,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import validation as V
+from ..scene import OpaqueBox, OpaqueSphere
 
-def _vec(v, name: str) -> np.ndarray:
-    try:
-        a = np.asarray(v, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected 3 finite numbers, got {v!r}") from None
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: expected 3 finite numbers, got {v!r}")
-    return a
-
-
-def _scalar(v, name: str, lo: float | None = None, lo_open: bool = False) -> float:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {v!r}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"{name}: must be finite, got {x}")
-    if lo is not None and (x < lo or (lo_open and x == lo)):
-        op = ">" if lo_open else ">="
-        raise ValueError(f"{name}: must be {op} {lo}, got {x}")
-    return x
-
+#: Largest image side of a :class:`PinholeCamera` (pixels).
+MAX_SIDE = 1 << 14
 
 def _albedo(v, name: str = "albedo") -> float:
-    a = _scalar(v, name, 0.0)
-    if a > 1:
-        raise ValueError(f"{name}: must lie in [0, 1], got {a}")
-    return a
+    return V.real(v, name, 0.0, 1.0)
 
 
 @dataclass
@@ -67,13 +47,11 @@ class Medium:
     g: float = 0.0
 
     def __post_init__(self):
-        self.sigma_s = _scalar(self.sigma_s, "sigma_s", 0.0)
-        self.sigma_t = _scalar(self.sigma_t, "sigma_t", 0.0)
+        self.sigma_s = V.real(self.sigma_s, "sigma_s", 0.0)
+        self.sigma_t = V.real(self.sigma_t, "sigma_t", 0.0)
         if self.sigma_s > self.sigma_t:
             raise ValueError(f"sigma_s: must be <= sigma_t ({self.sigma_t}), got {self.sigma_s}")
-        self.g = _scalar(self.g, "g")
-        if not -1 < self.g < 1:
-            raise ValueError(f"g: must lie in (-1, 1), got {self.g}")
+        self.g = V.real(self.g, "g", -1.0, 1.0, open_min=True, open_max=True)
 
 
 @dataclass
@@ -86,10 +64,10 @@ class QuadLight:
     radiance: float = 1.0
 
     def __post_init__(self):
-        self.center = _vec(self.center, "center")
-        self.edge_u = _vec(self.edge_u, "edge_u")
-        self.edge_v = _vec(self.edge_v, "edge_v")
-        self.radiance = _scalar(self.radiance, "radiance", 0.0)
+        self.center = V.vec3(self.center, "center")
+        self.edge_u = V.vec3(self.edge_u, "edge_u")
+        self.edge_v = V.vec3(self.edge_v, "edge_v")
+        self.radiance = V.real(self.radiance, "radiance", 0.0)
         cr = np.cross(self.edge_u, self.edge_v)
         if np.linalg.norm(cr) <= 1e-12 * max(1.0, np.linalg.norm(self.edge_u) * np.linalg.norm(self.edge_v)):
             raise ValueError("edge_u: edge_u and edge_v must be non-zero and not parallel")
@@ -124,8 +102,8 @@ class Sphere:
     albedo: float = 0.5
 
     def __post_init__(self):
-        self.center = _vec(self.center, "center")
-        self.radius = _scalar(self.radius, "radius", 0.0, lo_open=True)
+        self.center = V.vec3(self.center, "center")
+        self.radius = V.real(self.radius, "radius", 0.0, open_min=True)
         self.albedo = _albedo(self.albedo)
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
@@ -144,8 +122,8 @@ class Box:
     albedo: float = 0.5
 
     def __post_init__(self):
-        self.min = _vec(self.min, "min")
-        self.max = _vec(self.max, "max")
+        self.min = V.vec3(self.min, "min")
+        self.max = V.vec3(self.max, "max")
         if np.any(self.max <= self.min):
             raise ValueError(f"max: must exceed min on every axis, got min={self.min}, max={self.max}")
         self.albedo = _albedo(self.albedo)
@@ -160,10 +138,11 @@ class Box:
 
 
 @dataclass
-class Camera:
+class PinholeCamera:
     """Pinhole camera at ``origin`` looking at ``target``; ``fov`` is the horizontal
-    field of view in degrees (Mitsuba's default ``fov_axis='x'``); one ray per pixel
-    centre, pixel (row j, column i) = image[j, i], row 0 at the top."""
+    field of view in degrees (Mitsuba's default ``fov_axis='x'``, as the camera dicts of
+    :mod:`avsm_dr.groundtruth.images`); one ray per pixel centre, pixel (row j, column i)
+    = image[j, i], row 0 at the top."""
     origin: np.ndarray
     target: np.ndarray
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
@@ -172,17 +151,12 @@ class Camera:
     height: int = 32
 
     def __post_init__(self):
-        self.origin = _vec(self.origin, "origin")
-        self.target = _vec(self.target, "target")
-        self.up = _vec(self.up, "up")
-        self.fov = _scalar(self.fov, "fov")
-        if not 0 < self.fov < 180:
-            raise ValueError(f"fov: must lie in (0, 180) degrees, got {self.fov}")
-        for name in ("width", "height"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name}: must be a positive integer, got {v!r}")
-            setattr(self, name, int(v))
+        self.origin = V.vec3(self.origin, "origin")
+        self.target = V.vec3(self.target, "target")
+        self.up = V.vec3(self.up, "up")
+        self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
+        self.width = V.integer(self.width, "width", 1, MAX_SIDE)
+        self.height = V.integer(self.height, "height", 1, MAX_SIDE)
         fwd = self.target - self.origin
         if np.linalg.norm(fwd) == 0:
             raise ValueError("target: must differ from origin")
@@ -209,10 +183,9 @@ def _as_occluder(o):
     """Accept our Sphere/Box and the package's avsm_dr.scene.OpaqueSphere/OpaqueBox."""
     if isinstance(o, (Sphere, Box)):
         return o
-    from .. import scene as _sc
-    if isinstance(o, _sc.OpaqueSphere):
+    if isinstance(o, OpaqueSphere):
         return Sphere(o.center, o.radius)
-    if isinstance(o, _sc.OpaqueBox):
+    if isinstance(o, OpaqueBox):
         return Box(o.min, o.max)
     raise ValueError(f"occluders: expected Sphere or Box entries, got {type(o).__name__}")
 
@@ -222,7 +195,7 @@ class AreaLightScene:
     """Occluders in a homogeneous medium box lit by a quad light, seen by a camera."""
     medium: Medium
     light: QuadLight
-    camera: Camera
+    camera: PinholeCamera
     bounds: tuple
     occluders: list = field(default_factory=list)
     floor_albedo: float = 0.5
@@ -233,13 +206,13 @@ class AreaLightScene:
             raise ValueError(f"medium: expected Medium, got {type(self.medium).__name__}")
         if not isinstance(self.light, QuadLight):
             raise ValueError(f"light: expected QuadLight, got {type(self.light).__name__}")
-        if not isinstance(self.camera, Camera):
-            raise ValueError(f"camera: expected Camera, got {type(self.camera).__name__}")
+        if not isinstance(self.camera, PinholeCamera):
+            raise ValueError(f"camera: expected PinholeCamera, got {type(self.camera).__name__}")
         try:
             lo, hi = self.bounds
         except (TypeError, ValueError):
             raise ValueError(f"bounds: expected (min_xyz, max_xyz), got {self.bounds!r}") from None
-        lo, hi = _vec(lo, "bounds"), _vec(hi, "bounds")
+        lo, hi = V.vec3(lo, "bounds"), V.vec3(hi, "bounds")
         if np.any(hi <= lo):
             raise ValueError(f"bounds: max must exceed min on every axis, got {lo}, {hi}")
         self.bounds = (lo, hi)
@@ -287,6 +260,6 @@ def default_scene(width: int = 32, height: int = 32, occluders: bool = True, sig
                Box([-0.8, 1.05, -0.55], [-0.1, 1.2, 0.15], albedo=0.5),
                Box([0.45, 0.0, -0.9], [0.8, 0.75, -0.55], albedo=0.5),
                Sphere([-0.35, 0.3, 0.35], 0.22, albedo=0.7)]
-    cam = Camera(origin=[0.0, 1.05, 1.42], target=[0.0, 0.85, -0.6], fov=72.0, width=width, height=height)
+    cam = PinholeCamera(origin=[0.0, 1.05, 1.42], target=[0.0, 0.85, -0.6], fov=72.0, width=width, height=height)
     return AreaLightScene(Medium(sigma_s, sigma_t, g), light, cam, (lo, hi), occ, floor_albedo=0.5,
                           name="default" if occluders else "default_unoccluded")

@@ -1,0 +1,44 @@
+"""Names and tuning values of the builds ``error_curves`` runs (shared with its plots and
+findings, so that they need not import the experiment itself)."""
+from __future__ import annotations
+
+from .. import describe
+
+#: Values swept for tuning parameters that are not choices (moments' overestimation beta).
+TUNING = {"overestimation": (0.0, 0.25, 1.0)}
+
+
+def tuned(kind: str) -> dict:
+    """Tuning parameters of ``kind`` and their values: every choice parameter's choices and
+    the :data:`TUNING` values of the parameters its schema has (never the size)."""
+    d = describe(kind)
+    out = {}
+    for name, p in d["params"].items():
+        if name == d["size"]:
+            continue
+        if p.get("type") == "choice" and p.get("choices"):
+            out[name] = tuple(p["choices"])
+        elif name in TUNING:
+            out[name] = TUNING[name]
+    return out
+
+
+def label(kind: str, params: dict) -> str:
+    """Readable name of a build: ``kind-size`` plus ``/name=value`` for every tuning value
+    that differs from the kind's default, e.g. ``fom-16/depth_range=texel``."""
+    d = describe(kind)
+    size = d["size"]
+    s = kind + (f"-{params[size]}" if size and size in params else "")
+    for name in sorted(tuned(kind)):
+        default = d["headline"].get(name, d["params"][name]["default"])
+        if name in params and params[name] != default:
+            s += f"/{name}={params[name]}"
+    return s
+
+
+def _with_size(kind, value):
+    d = describe(kind)
+    base = dict(d["headline"])
+    if d["size"] is not None and value is not None:
+        base[d["size"]] = value
+    return base

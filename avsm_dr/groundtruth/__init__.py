@@ -1,0 +1,37 @@
+"""Independent ground truth for scene transmittance and images, with Mitsuba 3.
+
+Transmittance from the light to a receiver ``x`` along the light path
+``r(s) = o + s d``, ``0 <= s <= L`` (``o`` on the light side, ``|d| = 1``)::
+
+    T(x) = exp(-int_0^L sigma_t(r(s)) ds)                       density grid
+         * prod_p exp(-sigma_p * |chord_p cap [0, L]|)            particles
+         * prod_c f_c                                              hair crossings
+         * [no opaque blocker meets (0, L)]                        blockers
+
+Modules, one concern each:
+
+* :mod:`.media`: the density grid as a Mitsuba ``heterogeneous`` medium
+  (``gridvolume``), and :func:`sample_density`, the NumPy statement of its convention;
+* :mod:`.content`: light paths, and the analytic factors (particles, hair, blockers);
+* :mod:`.tracking`: the grid term, by ratio tracking (Mitsuba, unbiased) or the
+  float64 ray march shared with :mod:`avsm_dr.shading`, and :func:`transmittance`;
+* :mod:`.images`: cameras and :func:`render_reference` (Mitsuba ``volpath``).
+
+Mitsuba is imported only inside the functions that use it, and the variant
+(``llvm_ad_rgb``, or ``cuda_ad_rgb`` when :func:`avsm_dr.backend.get_backend` is
+``'cuda'``) is chosen inside each call, never at import time.
+"""
+from ..validation import points as check_points
+from .content import EPS_REL, MAX_CHUNK, blocked, light_paths, ray_box, ray_sphere
+from .images import (PLANE_OFFSET, camera_rays, check_camera, default_camera, receiver_plane_for,
+                     render_reference, spot_beam_width)
+from .media import mitsuba, mitsuba_medium, mitsuba_volume, sample_density
+from .tracking import MAX_LANES, MAX_SAMPLES, METHODS, raymarch_optical_depth, transmittance
+
+__all__ = [
+    "transmittance", "render_reference", "raymarch_optical_depth", "sample_density",
+    "light_paths", "blocked", "ray_box", "ray_sphere", "check_points",
+    "mitsuba", "mitsuba_medium", "mitsuba_volume",
+    "default_camera", "check_camera", "camera_rays", "receiver_plane_for", "spot_beam_width",
+    "METHODS", "MAX_LANES", "MAX_SAMPLES", "MAX_CHUNK", "EPS_REL", "PLANE_OFFSET",
+]

@@ -1,0 +1,310 @@
+"""Light paths and the analytic part of the ground truth: particles, hair, opaque blockers.
+
+Paths: a point or spot light at ``P`` gives ``o = P``, ``L = |x - P|`` (the spot
+cone does not limit transmittance; shading applies it).  A directional light
+travelling along ``w`` gives ``o = x - L w`` with ``o`` outside every piece of
+content (light side), so the path crosses the whole volume in front of ``x``.
+
+Particles (``scene.particles``): exact analytic chords (uniform extinction in each
+sphere; overlapping spheres add).  Hair (``scene.hair``): the strand model of
+:mod:`avsm_dr.capture.hair` stated analytically: each strand is a chain of
+capsules (radius ``r`` around each polyline segment), one *crossing* is a
+maximal interval of the path inside the union of one strand's capsules, and a
+crossing ``[a, b]`` absorbs ``tau_c = -ln(1 - opacity)`` spread uniformly over it
+(partial when ``a < L < b``).  Cost O(receivers x capsules).
+Opaque blockers: ``T = 0`` when the open path ``(0, L - eps)`` passes through the
+blocker, ``eps = 1e-6 * scene scale``: a receiver lying on a blocker's lit
+surface stays lit, one on the far side is dark.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .. import validation as V
+from ..capture.camera import orthonormal_basis
+from ..capture.hair import validate as validate_hair
+from ..capture.opaque import validate as validate_blockers
+from ..capture.particles import validate as validate_particles
+from ..scene import (DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight, Scene,
+                     SpotLight)
+from .media import check_grid
+
+#: Upper bound on NumPy (receiver, particle) pair tests per chunk (host memory).
+MAX_CHUNK = 1 << 22
+#: Relative surface epsilon (times the scene scale) for blocker tests.
+EPS_REL = 1e-6
+
+
+# ===================================================================== validation
+def check_scene(scene) -> dict:
+    """Validated host copies of the scene's content; ValueError names the field.
+
+    Returns dict(grid=(g, lo, hi) | None, particles=(c, r, s) | None,
+    hair=(strands, radius, opacity) | None, blockers=[...]).
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
+    if not isinstance(scene.light, (DirectionalLight, SpotLight, PointLight)):
+        raise ValueError(f"scene.light: expected DirectionalLight, SpotLight or PointLight, "
+                         f"got {type(scene.light).__name__}")
+    out: dict[str, Any] = {
+        "grid": None,
+        "particles": None if scene.particles is None else validate_particles(scene.particles),
+        "hair": None if scene.hair is None else validate_hair(scene.hair),
+    }
+    if scene.density is not None:
+        out["grid"] = check_grid(scene.density, scene.bbox)
+    blockers = validate_blockers(scene.blockers or [])
+    out["blockers"] = blockers
+    if out["grid"] is None and out["particles"] is None and out["hair"] is None and not blockers:
+        raise ValueError("scene: has no density grid, particles, hair or opaque blockers")
+    return out
+
+
+# ======================================================================= geometry
+def content_sphere(content) -> tuple[np.ndarray, float]:
+    """(centre, radius) of a sphere enclosing every piece of (checked) content."""
+    lo, hi = [], []
+    if content["grid"] is not None:
+        lo.append(content["grid"][1])
+        hi.append(content["grid"][2])
+    if content["particles"] is not None:
+        c, r, _ = content["particles"]
+        lo.append((c - r[:, None]).min(0))
+        hi.append((c + r[:, None]).max(0))
+    if content["hair"] is not None:
+        st, rad, _ = content["hair"]
+        pts = st.reshape(-1, 3)
+        lo.append(pts.min(0) - rad)
+        hi.append(pts.max(0) + rad)
+    for b in content["blockers"]:
+        if isinstance(b, OpaqueSphere):
+            c = np.asarray(b.center, np.float64)
+            lo.append(c - b.radius)
+            hi.append(c + b.radius)
+        elif isinstance(b, OpaqueBox):
+            lo.append(np.asarray(b.min, np.float64))
+            hi.append(np.asarray(b.max, np.float64))
+        else:
+            c = np.asarray(b.point, np.float64)
+            e = float(b.extent) * math.sqrt(2.0)
+            lo.append(c - e)
+            hi.append(c + e)
+    lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
+    return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+
+
+def light_paths(scene: Scene, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Light-side origins o (K, 3), unit directions d (K, 3) towards the points, lengths L (K,).
+
+    Point/spot: o = light position.  Directional (travelling along w): o = x - L w
+    with L the distance from x back to the plane, orthogonal to w, that touches the
+    light side of the content's bounding sphere (L = 0 when x is beyond it).
+    """
+    content = check_scene(scene)
+    return paths(scene, V.points(points), content)
+
+
+def paths(scene, p, content):
+    """:func:`light_paths` for checked points ``p`` and content."""
+    light = scene.light
+    if isinstance(light, DirectionalLight):
+        w = light.direction
+        c, R = content_sphere(content)
+        L = np.maximum((p - c) @ w + R, 0.0) * (1 + 1e-9) + 1e-9 * (1 + R)
+        d = np.broadcast_to(w, p.shape).copy()
+        o = p - L[:, None] * d
+    else:
+        o = np.broadcast_to(light.position, p.shape).astype(np.float64)
+        v = p - o
+        L = np.linalg.norm(v, axis=1)
+        d = np.where(L[:, None] > 0, v / np.where(L > 0, L, 1.0)[:, None], np.array([0.0, 0.0, 1.0]))
+    return o, d, L
+
+
+def to_light(light, p):
+    """(K, 3) unit directions from points ``p`` (K, 3) towards the light."""
+    if isinstance(light, DirectionalLight):
+        return np.broadcast_to(-light.direction, p.shape).copy()
+    v = light.position - p
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+
+
+def scene_scale(content, scene, p) -> float:
+    """Largest coordinate magnitude of the content, the light and the points (>= 1)."""
+    c, R = content_sphere(content)
+    m = max(float(np.abs(p).max()), float(np.abs(c).max()) + R)
+    pos = getattr(scene.light, "position", None)
+    if pos is not None:
+        m = max(m, float(np.abs(pos).max()))
+    return max(m, 1.0)
+
+
+def ray_box(o, d, lo, hi):
+    """Slab test: (t_near, t_far) of rays o + t d with the box [lo, hi]; t_near > t_far = miss."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - o) * inv
+        t2 = (hi - o) * inv
+    tmin = np.minimum(t1, t2)
+    tmax = np.maximum(t1, t2)
+    par = d == 0                                    # parallel to a slab: inside it or miss
+    inside = (o >= lo) & (o <= hi)
+    tmin = np.where(par, np.where(inside, -np.inf, np.inf), tmin)
+    tmax = np.where(par, np.where(inside, np.inf, -np.inf), tmax)
+    return tmin.max(axis=1), tmax.min(axis=1)
+
+
+def ray_sphere(o, d, c, r):
+    """(t_near, t_far, hit) of rays (unit d) with spheres c (K or 1, 3), r (K or 1,)."""
+    oc = c - o
+    b = np.einsum("ij,ij->i", oc, d) if oc.ndim == 2 else oc @ d
+    perp = oc - b[..., None] * d
+    h2 = r * r - np.einsum("...j,...j->...", perp, perp)
+    hit = h2 > 0
+    s = np.sqrt(np.where(hit, h2, 0.0))
+    return b - s, b + s, hit
+
+
+# ======================================================================= blockers
+def blocked(scene: Scene, points) -> np.ndarray:
+    """(K,) True where an opaque blocker lies between the light and the point."""
+    content = check_scene(scene)
+    p = V.points(points)
+    o, d, L = paths(scene, p, content)
+    return blocked_paths(content["blockers"], o, d, L, EPS_REL * scene_scale(content, scene, p))
+
+
+def blocked_paths(blockers, o, d, L, eps):
+    """(K,) True where a blocker meets the open path (0, L - eps) of rays o + t d."""
+    out = np.zeros(o.shape[0], bool)
+    far = L - eps
+    for b in blockers:
+        if isinstance(b, OpaqueSphere):
+            t0, t1, hit = ray_sphere(o, d, np.asarray(b.center, np.float64), float(b.radius))
+            out |= hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
+        elif isinstance(b, OpaqueBox):
+            t0, t1 = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
+            out |= (t0 <= t1) & (np.maximum(t0, 0.0) < np.minimum(t1, far))
+        elif isinstance(b, OpaquePlane):
+            u, v, n = orthonormal_basis(b.normal)
+            c = np.asarray(b.point, np.float64)
+            den = d @ n
+            ok = den != 0
+            t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), -1.0)
+            q = o + t[:, None] * d - c
+            inside = (np.abs(q @ u) <= b.extent) & (np.abs(q @ v) <= b.extent)
+            out |= ok & inside & (t > 0) & (t < far)
+    return out
+
+
+# ====================================================================== particles
+def particles_tau(particles, o, d, L):
+    """(K,) optical depth of the particles along [0, L] (exact chords)."""
+    c, r, s = particles
+    K = o.shape[0]
+    tau = np.zeros(K)
+    chunk = max(1, MAX_CHUNK // max(K, 1))
+    for a in range(0, c.shape[0], chunk):
+        cc, rr, ss = c[a:a + chunk], r[a:a + chunk], s[a:a + chunk]
+        oc = cc[None, :, :] - o[:, None, :]                        # (K, P, 3)
+        b = np.einsum("kpj,kj->kp", oc, d)
+        h2 = rr[None] ** 2 - (np.einsum("kpj,kpj->kp", oc, oc) - b * b)
+        h = np.sqrt(np.maximum(h2, 0.0))
+        chord = np.clip(np.minimum(b + h, L[:, None]) - np.maximum(b - h, 0.0), 0.0, None)
+        tau += np.where(h2 > 0, chord, 0.0) @ ss
+    return tau
+
+
+# =========================================================================== hair
+def _capsule_intervals(o, d, A0, A1, r):
+    """Entry/exit (t0, t1) (K, C) of rays (K) with capsules A0-A1 (C) of radius r; NaN = miss.
+
+    A capsule is convex, so the path meets it in one interval: the hull of its
+    chords through the two end spheres and through the finite cylinder.
+    """
+    t0 = np.full((o.shape[0], A0.shape[0]), np.inf)
+    t1 = np.full_like(t0, -np.inf)
+    for c in (A0, A1):                                             # end spheres
+        oc = c[None] - o[:, None]
+        b = np.einsum("kcj,kj->kc", oc, d)
+        h2 = r * r - (np.einsum("kcj,kcj->kc", oc, oc) - b * b)
+        h = np.sqrt(np.maximum(h2, 0.0))
+        t0 = np.where(h2 > 0, np.minimum(t0, b - h), t0)
+        t1 = np.where(h2 > 0, np.maximum(t1, b + h), t1)
+    ax = A1 - A0                                                   # cylinder
+    ln = np.linalg.norm(ax, axis=1)
+    a = ax / np.where(ln > 0, ln, 1.0)[:, None]
+    w = o[:, None] - A0[None]                                      # (K, C, 3)
+    da = d @ a.T                                                   # (K, C)
+    wa = np.einsum("kcj,cj->kc", w, a)
+    dp = d[:, None] - da[..., None] * a[None]
+    wp = w - wa[..., None] * a[None]
+    qa = np.einsum("kcj,kcj->kc", dp, dp)
+    qb = np.einsum("kcj,kcj->kc", wp, dp)
+    qc = np.einsum("kcj,kcj->kc", wp, wp) - r * r
+    disc = qb * qb - qa * qc
+    ok = (qa > 1e-12) & (disc > 0) & (ln[None] > 0)
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    qs = np.where(ok, qa, 1.0)
+    c0, c1 = (-qb - sq) / qs, (-qb + sq) / qs
+    # keep the part whose axial coordinate wa + t da lies in [0, ln]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s0 = (0 - wa) / da
+        s1 = (ln[None] - wa) / da
+    par = da == 0
+    lo_s = np.where(par, np.where((wa >= 0) & (wa <= ln[None]), -np.inf, np.inf), np.minimum(s0, s1))
+    hi_s = np.where(par, np.where((wa >= 0) & (wa <= ln[None]), np.inf, -np.inf), np.maximum(s0, s1))
+    c0, c1 = np.maximum(c0, lo_s), np.minimum(c1, hi_s)
+    ok &= c0 < c1
+    t0 = np.where(ok, np.minimum(t0, c0), t0)
+    t1 = np.where(ok, np.maximum(t1, c1), t1)
+    miss = ~(t0 < t1)
+    t0[miss] = np.nan
+    t1[miss] = np.nan
+    return t0, t1
+
+
+def hair_tau(hair, o, d, L):
+    """(K,) optical depth of hair crossings along [0, L] (see the module docstring)."""
+    st, r, alpha = hair
+    K = o.shape[0]
+    tau = np.zeros(K)
+    if alpha <= 0:
+        return tau
+    tau_c = -math.log(1.0 - alpha) if alpha < 1 else 1e4
+    S, V_, _ = st.shape
+    lo = st.min(axis=1) - r                                         # strand boxes for culling
+    hi = st.max(axis=1) + r
+    for s in range(S):
+        tb0, tb1 = ray_box(o, d, lo[s], hi[s])
+        cand = np.nonzero((tb0 <= tb1) & (tb1 >= 0) & (tb0 <= L))[0]
+        if cand.size == 0:
+            continue
+        t0, t1 = _capsule_intervals(o[cand], d[cand], st[s, :-1], st[s, 1:], r)
+        key = np.where(np.isnan(t0), np.inf, t0)
+        order = np.argsort(key, axis=1)
+        a = np.take_along_axis(t0, order, 1)
+        b = np.take_along_axis(t1, order, 1)
+        # merge overlapping passages: a new crossing starts where entry > max exit so far
+        bm = np.fmax.accumulate(np.where(np.isnan(b), -np.inf, b), axis=1)
+        prev = np.concatenate([np.full((cand.size, 1), -np.inf), bm[:, :-1]], axis=1)
+        start = ~np.isnan(a) & (a > prev)
+        comp = np.cumsum(start, axis=1) - 1                          # crossing id per passage
+        ncomp = int(start.sum(axis=1).max()) if start.any() else 0
+        for k in range(ncomp):
+            m = (comp == k) & ~np.isnan(a)
+            ca = np.where(m, a, np.inf).min(axis=1)
+            cb = np.where(m, b, -np.inf).max(axis=1)
+            has = np.isfinite(ca)
+            Lc = L[cand]
+            ca0 = np.maximum(ca, 0.0)
+            length = cb - ca0
+            frac = np.where(length > 0, np.clip((Lc - ca0) / np.where(length > 0, length, 1.0), 0, 1),
+                            (Lc >= ca0).astype(float))
+            frac = np.where(has & (cb > 0), frac, 0.0)
+            tau[cand] += tau_c * frac
+    return tau

@@ -1,0 +1,124 @@
+"""Mitsuba media of a density grid, and the NumPy statement of their lookup convention.
+
+The grid the capture marches becomes a Mitsuba ``heterogeneous`` medium whose ``sigma_t``
+is a ``gridvolume`` (``mi.VolumeGrid`` of the (z, y, x) float32 array, ``to_world``
+mapping the unit cube onto ``bbox``, ``filter_type='trilinear'``, ``scale = 1``).
+:func:`sample_density` states that convention in NumPy (cell-centred, trilinear,
+clamped to the edge inside the box, 0 outside); the tests check it against Mitsuba.
+
+Mitsuba is imported inside the functions that need it (a GPU host may have Dr.Jit
+without Mitsuba); the variant is chosen per call (:func:`mitsuba`), never at import.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import backend
+from .. import validation as V
+from ..capture.grid import check_bbox
+
+
+def mitsuba():
+    """The ``mitsuba`` module with this package's variant set.
+
+    ``cuda_ad_rgb`` when the Dr.Jit backend is CUDA, else ``llvm_ad_rgb``; the
+    variant is changed only when it differs (Mitsuba and Dr.Jit share the process).
+    """
+    import mitsuba as mi
+    want = "cuda_ad_rgb" if backend.get_backend() == "cuda" else "llvm_ad_rgb"
+    if mi.variant() != want:
+        mi.set_variant(want)
+    return mi
+
+
+def check_grid(density, bbox):
+    """(grid float32 (nz, ny, nx), lo (3,), hi (3,)) after checks; ValueError names the field."""
+    if density is None:
+        raise ValueError("density: the scene has no density grid")
+    g = V.array(density, "density")
+    if g.ndim != 3 or min(g.shape) < 1:
+        raise ValueError(f"density: expected a (nz, ny, nx) array, got shape {g.shape}")
+    if np.any(g < 0):
+        raise ValueError("density: negative density")
+    if bbox is None:
+        raise ValueError("bbox: a density grid needs bbox = (min_xyz, max_xyz)")
+    lo, hi = check_bbox(bbox)
+    g32 = g.astype(np.float32)
+    if not np.all(np.isfinite(g32)):
+        raise ValueError(f"density: values beyond the float32 range of Mitsuba's grid "
+                         f"(largest {float(g.max()):.3g})")
+    return g32, lo, hi
+
+
+def grid_to_world(mi, lo, hi):
+    """ScalarTransform4f mapping the unit cube onto the box [lo, hi]."""
+    return (mi.ScalarTransform4f().translate([float(v) for v in lo])
+            @ mi.ScalarTransform4f().scale([float(v) for v in hi - lo]))
+
+
+def _volume_dict(mi, grid, lo, hi) -> dict:
+    return {
+        "type": "gridvolume",
+        "grid": mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32)),
+        "to_world": grid_to_world(mi, lo, hi),
+        "filter_type": "trilinear",
+    }
+
+
+def medium_dict(mi, grid, lo, hi, albedo: float) -> dict:
+    """``load_dict`` description of the heterogeneous medium (sigma_t = grid, scale 1)."""
+    return {"type": "heterogeneous", "sigma_t": _volume_dict(mi, grid, lo, hi),
+            "albedo": float(albedo), "scale": 1.0}
+
+
+def mitsuba_volume(density, bbox):
+    """The ``gridvolume`` for ``density`` (nz, ny, nx) over ``bbox`` (trilinear).
+
+    Mitsuba clamps lookups to the edge even outside the box; the medium built by
+    :func:`mitsuba_medium` is only ever evaluated inside it.
+    """
+    mi = mitsuba()
+    grid, lo, hi = check_grid(density, bbox)
+    return mi.load_dict(_volume_dict(mi, grid, lo, hi))
+
+
+def mitsuba_medium(scene, albedo: float = 0.0):
+    """Mitsuba ``heterogeneous`` medium of ``scene.density`` (sigma_t = density, scale 1)."""
+    mi = mitsuba()
+    grid, lo, hi = check_grid(scene.density, scene.bbox)
+    return mi.load_dict(medium_dict(mi, grid, lo, hi, V.real(albedo, "albedo", 0.0, 1.0)))
+
+
+def sample_density(density, bbox, points) -> np.ndarray:
+    """sigma_t at world ``points`` (K, 3): (K,) float64.
+
+    Voxel (k, j, i) sits at ``lo + ((i, j, k) + 0.5) * (hi - lo) / (nx, ny, nz)``;
+    trilinear in between, clamped to the edge inside the box, 0 outside it
+    (the Mitsuba ``gridvolume`` convention, see :mod:`avsm_dr.scene`).
+    """
+    g, lo, hi = check_grid(density, bbox)
+    return sample_grid(g.astype(np.float64), lo, hi, V.points(points))
+
+
+def sample_grid(g, lo, hi, p) -> np.ndarray:
+    """:func:`sample_density` on checked input: float64 grid ``g``, box ``lo``/``hi``, points (K, 3)."""
+    nz, ny, nx = g.shape
+    n = np.array([nx, ny, nz], np.float64)
+    u = (p - lo) / (hi - lo) * n - 0.5
+    inside = np.all((p >= lo) & (p <= hi), axis=1)
+    u = np.clip(u, 0.0, n - 1)
+    i0 = np.minimum(np.floor(u).astype(np.int64), np.maximum(n.astype(np.int64) - 2, 0))
+    f = u - i0
+    i1 = np.minimum(i0 + 1, n.astype(np.int64) - 1)
+    out = np.zeros(p.shape[0])
+    for cz in (0, 1):
+        kz = i1[:, 2] if cz else i0[:, 2]
+        wz = f[:, 2] if cz else 1 - f[:, 2]
+        for cy in (0, 1):
+            ky = i1[:, 1] if cy else i0[:, 1]
+            wy = f[:, 1] if cy else 1 - f[:, 1]
+            for cx in (0, 1):
+                kx = i1[:, 0] if cx else i0[:, 0]
+                wx = f[:, 0] if cx else 1 - f[:, 0]
+                out += wz * wy * wx * g[kz, ky, kx]
+    return np.where(inside, out, 0.0)

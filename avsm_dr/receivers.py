@@ -1,0 +1,145 @@
+"""Receiver sets for error measurements: points where a shadow carries information.
+
+A uniform set (half the points uniform over occupied voxels, half on a wall) weighs every
+voxel alike and fills half the set with wall points whose error is the same for every
+method.  The sets here are reported separately:
+
+* :func:`in_volume`  points inside the medium drawn with probability approximately
+  proportional to its *contribution* to an image: ``sigma_t(x) * T_light(x) * T_view(x)``
+  (single scattering seen by the default camera of
+  :func:`avsm_dr.groundtruth.default_camera`: a point matters where there is medium, where
+  light reaches it and where the camera sees it).  Sampling-importance-resampling:
+  ``4 n`` candidates are drawn proportionally to density (a voxel of the grid with
+  probability ~ its density, a point uniform inside it; or a particle with probability ~
+  extinction x volume, a point uniform inside the sphere), then ``n`` of them are kept
+  without replacement with probability ~ ``T_light * T_view``.  The visibilities are
+  float64 ray marches (:func:`avsm_dr.groundtruth.transmittance`, ``method='raymarch'``,
+  one-voxel steps: a sampling weight, not a measurement) through the grid, particles and
+  blockers; hair is left out of the weights (its analytic visibility costs O(points x capsules), and it does not change
+  where the medium is).
+* :func:`surface`    a jittered, stratified grid on the scene's receiver plane (the wall or
+  ground behind the volume, or the table top).
+* ``uniform``        the scene's own ``scene.receivers`` (continuity with earlier results).
+
+Every set is deterministic for a given seed.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from . import validation as V
+from .scene import PointLight, Scene
+
+#: Names of the sets :func:`receiver_sets` returns, in order.
+SETS = ("in_volume", "surface", "uniform")
+#: Candidates drawn per kept in-volume receiver (sampling-importance-resampling).
+CANDIDATES_PER_POINT = 4
+
+
+def _check(scene, n, seed):
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
+    V.integer(n, "n", 0)
+    V.integer(seed, "seed", 0)
+
+
+def _density_candidates(scene: Scene, m: int, rng) -> np.ndarray:
+    """(m, 3) points drawn proportionally to the extinction of the grid or the particles."""
+    if scene.density is not None and float(np.max(scene.density)) > 0:
+        d = np.asarray(scene.density, np.float64)
+        nz, ny, nx = d.shape
+        lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
+        p = d.ravel() / d.sum()
+        pick = rng.choice(p.size, size=m, p=p)
+        kz, rem = np.divmod(pick, ny * nx)
+        ky, kx = np.divmod(rem, nx)
+        h = (hi - lo) / np.array([nx, ny, nz])
+        return lo + (np.stack([kx, ky, kz], 1) + rng.random((m, 3))) * h
+    if scene.particles is not None:
+        c = np.asarray(scene.particles.centers, np.float64)
+        r = np.asarray(scene.particles.radii, np.float64)
+        s = np.asarray(scene.particles.density, np.float64)
+        w = s * r ** 3
+        pick = rng.choice(w.size, size=m, p=w / w.sum())
+        u = rng.standard_normal((m, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        return c[pick] + u * (r[pick] * rng.random(m) ** (1 / 3))[:, None]
+    return np.zeros((0, 3))
+
+
+def visibility(scene: Scene, points, origin=None, step_fraction: float = 1.0) -> np.ndarray:
+    """(K,) float64 transmittance from ``scene.light`` (``origin=None``) or from the point
+    ``origin`` to each point, through grid, particles and blockers (hair left out), by a
+    float64 ray march with one-voxel steps (``step_fraction`` voxels)."""
+    from . import groundtruth
+    p = V.points(points, "points", allow_empty=True)
+    if p.shape[0] == 0:
+        return np.zeros(0)
+    sc = dataclasses.replace(scene, hair=None)
+    if origin is not None:
+        sc = dataclasses.replace(sc, light=PointLight(position=V.vec3(origin, "origin")))
+    if sc.density is None and sc.particles is None and not sc.blockers:
+        return np.ones(p.shape[0])
+    step = None
+    if sc.density is not None:
+        lo, hi = (np.asarray(b, np.float64) for b in sc.bbox)
+        step = step_fraction * float(np.min((hi - lo) / np.array(sc.density.shape[::-1])))
+    return groundtruth.transmittance(sc, p, method="raymarch", step=step)[0]
+
+
+def in_volume(scene: Scene, n: int, seed: int = 0, camera: dict | None = None) -> np.ndarray:
+    """(n, 3) points in the medium, drawn ~ density x T_light x T_view (module docstring).
+
+    camera: dict with ``origin`` (the viewpoint; default
+    :func:`avsm_dr.groundtruth.default_camera`, or no view term for a scene without a
+    receiver plane).  Returns (0, 3) for a scene with neither grid nor particles.
+    """
+    _check(scene, n, seed)
+    rng = np.random.default_rng(seed)
+    cand = _density_candidates(scene, CANDIDATES_PER_POINT * n, rng)
+    if cand.shape[0] == 0 or n == 0:
+        return np.zeros((0, 3))
+    w = visibility(scene, cand)
+    if camera is None and scene.receiver_plane is not None:
+        from .groundtruth import default_camera
+        camera = default_camera(scene)
+    if camera is not None:
+        if not (isinstance(camera, dict) and "origin" in camera):
+            raise ValueError(f"camera: expected a dict with 'origin', got {camera!r}")
+        w = w * visibility(scene, cand, origin=camera["origin"])
+    if not np.any(w > 0):
+        w = np.ones_like(w)
+    # keep n of the candidates, without replacement, with probability ~ w
+    k = min(n, int(np.count_nonzero(w > 0)))
+    keep = rng.choice(w.size, size=k, replace=False, p=w / w.sum())
+    return cand[np.sort(keep)]
+
+
+def surface(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
+    """(m*m, 3) points, m = ceil(sqrt(n)), one jittered point per cell of an m x m grid
+    over the receiver plane's square (centre, normal, half size); (0, 3) without a plane."""
+    _check(scene, n, seed)
+    if scene.receiver_plane is None or n == 0:
+        return np.zeros((0, 3))
+    from .capture.camera import orthonormal_basis
+    from .groundtruth.images import receiver_plane
+    c, normal, half = receiver_plane(scene)
+    u, v, _ = orthonormal_basis(normal)
+    m = int(np.ceil(np.sqrt(n)))
+    rng = np.random.default_rng(seed)
+    a, b = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+    s = (a.reshape(-1) + rng.random(m * m)) / m * 2 - 1
+    t = (b.reshape(-1) + rng.random(m * m)) / m * 2 - 1
+    return c + half * (s[:, None] * u + t[:, None] * v)
+
+
+def receiver_sets(scene: Scene, n_volume: int = 4096, n_surface: int = 1024, seed: int = 0,
+                  camera: dict | None = None) -> dict[str, np.ndarray]:
+    """{'in_volume': :func:`in_volume`, 'surface': :func:`surface`, 'uniform':
+    ``scene.receivers``}; empty sets are left out."""
+    out = {"in_volume": in_volume(scene, n_volume, seed, camera),
+           "surface": surface(scene, n_surface, seed),
+           "uniform": V.points(scene.receivers, "receivers", allow_empty=True)}
+    return {k: v for k, v in out.items() if v.shape[0] > 0}

@@ -1,0 +1,147 @@
+"""The exact transmittance curve as a list of points per texel, for the kinds that choose
+their nodes from it (``greedy``, ``optimal``, ``avsm_march``).
+
+Between the texel's sorted unique segment ends ("breakpoints") the optical depth is
+linear, so ``T = exp(-tau)`` is exactly exponential; a zero-length segment is a step.
+The points are, per breakpoint ``z_k``: ``(z_k, T(z_k^-))`` when a step sits there (the
+*left* point), then ``(z_k, T(z_k))``; with the slope ``s_k = d tau / dz`` of the interval
+that follows.  Between consecutive points ``p``, ``q`` the curve is
+``T(x) = T_p exp(-s_p (x - z_p))``.  Breakpoints, optical depths and slopes come from
+:mod:`.dsm`'s phase A (event sort, compensated prefix sums, float64).
+
+Also here: gradients of stored curve values (:func:`attach_exact_gradients`), texel
+buckets for padded NumPy work (:func:`buckets`, :func:`padded`), a per-segments cache
+(:func:`cached`) and node lists from chosen points (:func:`fill_slots`,
+:func:`store_nodes`).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from .. import backend
+from .dsm import _breakpoints, _prefix_optical_depth
+from .exact import exact_values  # noqa: F401  (re-exported: the kinds choosing nodes use it)
+
+
+def curve_points(segments) -> dict:
+    """Points of every texel's exact curve (host float64 NumPy).
+
+    Returns dict: ``off`` (T+1,) int64 CSR over points; per point ``z`` (depth), ``tau``
+    (optical depth), ``v`` (``exp(-tau)``), ``slope`` (d tau / dz after the point; for a
+    left point that of its right point), ``left`` (bool: value just before a step) and
+    ``texel`` (int64).  Empty texels have no points.
+    """
+    h = segments.numpy()
+    n_tex = segments.n_texels
+    if segments.n_segments == 0:
+        e = np.zeros(0)
+        return dict(off=np.zeros(n_tex + 1, np.int64), z=e, tau=e, v=e, slope=e,
+                    left=np.zeros(0, bool), texel=np.zeros(0, np.int64))
+    bp = _breakpoints(h["offsets"], h["z0"], h["z1"], h["optical_depth"])
+    tl, tr, slope = (np.asarray(x.numpy(), np.float64) for x in _prefix_optical_depth(bp))
+    step = bp["jump"] > 0
+    per_bp = 1 + step.astype(np.int64)
+    first = np.concatenate([[0], np.cumsum(per_bp)])[:-1]      # slot of each breakpoint's first point
+    n = int(per_bp.sum())
+    z = np.repeat(bp["z"], per_bp)
+    tau = np.empty(n)
+    tau[first] = np.where(step, tl, tr)
+    tau[first[step] + 1] = tr[step]
+    left = np.zeros(n, bool)
+    left[first[step]] = True
+    slope_p = np.repeat(slope, per_bp)
+    bp_tex = np.repeat(np.arange(n_tex), np.diff(bp["off"]))
+    texel = np.repeat(bp_tex, per_bp)
+    off = np.concatenate([[0], np.cumsum(np.bincount(texel, minlength=n_tex))]).astype(np.int64)
+    return dict(off=off, z=z, tau=tau, v=np.exp(-tau), slope=slope_p, left=left, texel=texel)
+
+
+
+
+def attach_exact_gradients(segments, value, texel, z, left):
+    """``value + (V - detach(V))`` with ``V`` = :func:`exact_values`: the primal stays
+    ``value`` (a Dr.Jit Float), the gradient is that of the exact curve at the fixed
+    depths ``z``.  Returns ``value`` unchanged when the segments carry no gradients."""
+    if not segments.requires_grad or np.size(z) == 0:
+        return value
+    v = exact_values(segments, np.asarray(texel), np.asarray(z), np.asarray(left))
+    return value + (v - dr.detach(v))
+
+
+def buckets(off: np.ndarray, texels: np.ndarray | None = None, max_elems: int = 1 << 22,
+            power: int = 2):
+    """Groups of non-empty texels of similar point count K (same power of two), each
+    small enough that ``len(group) * Kmax**power <= max_elems``: yields
+    ``(texels, Kmax)``."""
+    counts = np.diff(off)
+    tex = np.flatnonzero(counts > 0) if texels is None else np.asarray(texels)
+    if tex.size == 0:
+        return
+    key = np.ceil(np.log2(np.maximum(counts[tex], 1))).astype(np.int64)
+    for b in np.unique(key):
+        group = tex[key == b]
+        kmax = int(counts[group].max())
+        step = max(1, max_elems // max(1, kmax ** power))
+        for s in range(0, group.size, step):
+            yield group[s:s + step], kmax
+
+
+def padded(off: np.ndarray, texels: np.ndarray, kmax: int, *arrays):
+    """(B, kmax) blocks of per-point ``arrays`` for ``texels``, each row padded with its
+    texel's last point; also returns the (B,) point counts."""
+    start = off[texels]
+    count = off[texels + 1] - start
+    cols = np.arange(kmax)
+    idx = start[:, None] + np.minimum(cols[None, :], count[:, None] - 1)
+    return count, [a[idx] for a in arrays]
+
+
+def cached(segments, key: str, fn):
+    """``fn()`` computed once per :class:`~avsm_dr.Segments` (kept in its cache: the
+    points and the offline orders depend only on the segments' values)."""
+    store = segments._cache
+    if key not in store:
+        store[key] = fn()
+    return store[key]
+
+
+def fill_slots(sel_tex: np.ndarray, sel_pt: np.ndarray, slot: np.ndarray, N: int, T: int) -> np.ndarray:
+    """(N, T) point index of every node slot from the chosen points (texel, point, slot;
+    slots 0..count-1 per texel in depth order): slots beyond a texel's count repeat its
+    last node (duplicates change no lookup); -1 for empty texels."""
+    src = np.full((N, T), -1, np.int64)
+    src[slot, sel_tex] = sel_pt
+    count = np.bincount(sel_tex, minlength=T)
+    nz = np.flatnonzero(count > 0)
+    last = src[count[nz] - 1, nz]
+    for k in range(N):
+        fill = count[nz] <= k
+        src[k, nz[fill]] = last[fill]
+    return src
+
+
+def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None = None):
+    """Node lists (N Dr.Jit Floats of length T) from the (N, T) point indices ``src``
+    (:func:`fill_slots`): depths ``z[src]``, values ``values`` (default: the exact values
+    ``v[src]``, with the exact curve's gradients attached); empty texels hold (0, 1)."""
+    N, T = src.shape
+    dt = np.float32 if segments.dtype == "float32" else np.float64
+    Float = segments.Float
+    has = src >= 0
+    s = np.maximum(src, 0)
+    d = np.where(has, pts["z"][s] if pts["z"].size else 0.0, 0.0)
+    t = np.where(has, (pts["v"][s] if pts["v"].size else 1.0) if values is None else values, 1.0)
+    depths = [Float(d[k].astype(dt)) for k in range(N)]
+    if values is not None or not segments.requires_grad or not has.any():
+        return depths, [Float(t[k].astype(dt)) for k in range(N)]
+    # gradients of the exact curve at each node's fixed depth (one lane per stored node)
+    UInt32 = backend.types().UInt32
+    flat = np.flatnonzero(has.ravel())
+    p = src.ravel()[flat]
+    g = attach_exact_gradients(segments, dr.zeros(Float, flat.size), pts["texel"][p], pts["z"][p], pts["left"][p])
+    allv = Float(t.ravel().astype(dt))
+    grad = dr.zeros(Float, N * T)
+    dr.scatter(grad, g, UInt32(flat.astype(np.uint32)))
+    allv = allv + grad
+    return depths, [dr.gather(Float, allv, dr.arange(UInt32, T) + k * T) for k in range(N)]

@@ -1,0 +1,222 @@
+"""Bootstrap confidence intervals, paired comparisons and claims over configurations.
+
+Efron and Tibshirani, "An Introduction to the Bootstrap", 1993: the percentile interval
+(ch. 13) and the bias-corrected and accelerated (BCa) interval (ch. 14, eq. 14.9-14.15;
+acceleration from the jackknife).  Every resampling is vectorised NumPy (an (B, n) index
+matrix) and seeded, so the same call gives the same interval.
+
+* :func:`bootstrap_ci`     interval for a statistic of one sample.
+* :func:`paired_bootstrap` two methods evaluated on the same receivers: each replicate
+  resamples receivers once for both, so receiver-to-receiver variation cancels;
+  compares the statistics by difference (a - b) or ratio (a / b).
+* :func:`claim`            a paired comparison in each configuration (seed x light x ...),
+  the pooled effect (geometric mean of ratios, or mean difference, across configurations,
+  by a two-stage bootstrap: configurations, then receivers within each) and whether the
+  claim holds in every configuration.
+
+Statistics are names (``'mean'``, ``'median'``, ``'rmse'``, ``'mean_abs'``, ``'p99'``,
+``'max'``) or callables ``f(x, axis) -> array`` reducing along ``axis``.
+"""
+from __future__ import annotations
+
+from statistics import NormalDist
+from typing import Callable
+
+import numpy as np
+
+from . import validation as V
+
+STATISTICS: dict[str, Callable] = {
+    "mean": lambda x, axis: np.mean(x, axis=axis),
+    "median": lambda x, axis: np.median(x, axis=axis),
+    "rmse": lambda x, axis: np.sqrt(np.mean(np.square(x), axis=axis)),
+    "mean_abs": lambda x, axis: np.mean(np.abs(x), axis=axis),
+    "p99": lambda x, axis: np.percentile(np.abs(x), 99.0, axis=axis),
+    "max": lambda x, axis: np.max(np.abs(x), axis=axis),
+}
+METHODS = ("percentile", "bca")
+#: Bound on the entries of one (replicates x samples) index block (host memory).
+_BLOCK = 1 << 24
+
+
+# ================================================================== validation
+def _stat(statistic) -> Callable:
+    if callable(statistic):
+        return statistic
+    if statistic not in STATISTICS:
+        raise ValueError(f"statistic: expected one of {sorted(STATISTICS)} or a callable, got {statistic!r}")
+    return STATISTICS[statistic]
+
+
+def _sample(x, name: str) -> np.ndarray:
+    a = V.array(x, name).ravel()
+    if a.size < 2:
+        raise ValueError(f"{name}: expected at least 2 values, got {a.size}")
+    return a
+
+
+def _check(n_boot, level, method):
+    V.integer(n_boot, "n_boot", 100)
+    V.real(level, "level", 0.0, 1.0, open_min=True, open_max=True)
+    V.one_of(method, "method", METHODS)
+
+
+# ==================================================================== kernels
+def _replicates(fn: Callable, n: int, n_boot: int, rng) -> np.ndarray:
+    """(n_boot,) values of ``fn(idx)`` for (B, n) blocks of resampled indices."""
+    out = np.empty(n_boot)
+    per = max(1, _BLOCK // max(n, 1))
+    for a in range(0, n_boot, per):
+        b = min(n_boot, a + per)
+        out[a:b] = fn(rng.integers(0, n, size=(b - a, n)))
+    return out
+
+
+def _jackknife(fn: Callable, n: int) -> np.ndarray:
+    """(n,) leave-one-out values of ``fn(idx)`` (rows of the (n, n - 1) index matrix)."""
+    out = np.empty(n)
+    per = max(1, _BLOCK // max(n, 1))
+    base = np.arange(n - 1)
+    for a in range(0, n, per):
+        rows = np.arange(a, min(n, a + per))
+        idx = base[None, :] + (base[None, :] >= rows[:, None])       # skip index `row`
+        out[a:a + rows.size] = fn(idx)
+    return out
+
+
+def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: Callable | None) -> tuple:
+    """(low, high) of the percentile or BCa interval from bootstrap replicates ``boot``."""
+    alpha = (1.0 - level) / 2
+    q = np.array([alpha, 1.0 - alpha])
+    if method == "bca":
+        nd = NormalDist()
+        frac = (np.count_nonzero(boot < theta) + 0.5 * np.count_nonzero(boot == theta)) / boot.size
+        frac = min(max(frac, 0.5 / boot.size), 1 - 0.5 / boot.size)
+        z0 = nd.inv_cdf(frac)                                            # bias correction
+        th = jack()
+        d = th.mean() - th
+        den = 6.0 * np.sum(d ** 2) ** 1.5
+        acc = float(np.sum(d ** 3) / den) if den > 0 else 0.0             # acceleration
+        z = np.array([nd.inv_cdf(v) for v in q])
+        adj = z0 + (z0 + z) / (1 - acc * (z0 + z))
+        q = np.array([nd.cdf(v) for v in adj])
+    lo, hi = np.quantile(boot, q)
+    return float(lo), float(hi)
+
+
+def _result(theta, boot, level, method, jack, **extra) -> dict:
+    lo, hi = _interval(theta, boot, level, method, jack)
+    return dict(estimate=float(theta), low=lo, high=hi, level=level, method=method, n_boot=int(boot.size),
+                std_error=float(np.std(boot, ddof=1)), **extra)
+
+
+# ===================================================================== public
+def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, method: str = "percentile",
+                 seed: int = 0) -> dict:
+    """Bootstrap ``level`` interval for ``statistic`` of the sample ``x`` (1-D, >= 2 values).
+
+    Returns dict(estimate (the statistic of x), low, high, level, method, n_boot, n,
+    std_error (of the replicates)).  method: 'percentile' or 'bca'.
+    """
+    a = _sample(x, "x")
+    _check(n_boot, level, method)
+    f = _stat(statistic)
+    rng = np.random.default_rng(seed)
+    boot = _replicates(lambda idx: f(a[idx], axis=1), a.size, n_boot, rng)
+    return _result(f(a[None, :], axis=1)[0], boot, level, method,
+                   lambda: _jackknife(lambda idx: f(a[idx], axis=1), a.size), n=int(a.size))
+
+
+def _compare(sa, sb, compare):
+    if compare == "difference":
+        return sa - sb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return sa / sb
+
+
+def paired_bootstrap(a, b, statistic="rmse", compare: str = "ratio", n_boot: int = 2000,
+                     level: float = 0.95, method: str = "percentile", seed: int = 0) -> dict:
+    """Interval for ``stat(a) - stat(b)`` (compare='difference') or ``stat(a) / stat(b)``
+    ('ratio') where a[i] and b[i] belong to the same receiver i (e.g. the errors of two
+    methods); each replicate resamples receivers once for both.
+
+    Returns the keys of :func:`bootstrap_ci` plus ``a`` and ``b`` (the two statistics)
+    and ``p_a_smaller``: the share of replicates with stat(a) < stat(b).
+    """
+    x, y = _sample(a, "a"), _sample(b, "b")
+    if x.size != y.size:
+        raise ValueError(f"b: expected {x.size} values (paired with a), got {y.size}")
+    if compare not in ("difference", "ratio"):
+        raise ValueError(f"compare: expected 'difference' or 'ratio', got {compare!r}")
+    _check(n_boot, level, method)
+    return _paired(x, y, _stat(statistic), compare, n_boot, level, method, seed)[0]
+
+
+def _paired(x, y, f, compare, n_boot, level, method, seed):
+    """(result dict of :func:`paired_bootstrap`, (n_boot,) replicates); inputs checked."""
+    rng = np.random.default_rng(seed)
+    smaller = []
+
+    def rep(idx):
+        sa, sb = f(x[idx], axis=1), f(y[idx], axis=1)
+        smaller.append(np.count_nonzero(sa < sb))
+        return _compare(sa, sb, compare)
+    boot = _replicates(rep, x.size, n_boot, rng)
+    sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])
+    jack = lambda: _jackknife(lambda idx: _compare(f(x[idx], axis=1), f(y[idx], axis=1), compare),  # noqa: E731
+                              x.size)
+    res = _result(float(_compare(np.array(sa), np.array(sb), compare)), boot, level, method, jack,
+                  n=int(x.size), a=sa, b=sb, p_a_smaller=float(sum(smaller)) / n_boot)
+    return res, boot
+
+
+def claim(a_by_config, b_by_config, statistic="rmse", compare: str = "ratio", below: float | None = None,
+          configs=None, n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> dict:
+    """Does ``stat(a) / stat(b) < below`` (compare='ratio', default below = 1) or
+    ``stat(a) - stat(b) < below`` ('difference', default 0) hold, per configuration and
+    pooled?  ``a_by_config`` / ``b_by_config``: sequences (one per configuration, e.g.
+    seed x light) of paired per-receiver values (e.g. |errors| of methods a and b).
+
+    Returns dict(
+      per_config: [paired_bootstrap result + config + holds (the whole interval below
+          ``below``) + point_holds (the estimate below it)],
+      estimate, low, high: the pooled effect - geometric mean of the per-configuration
+          ratios (mean of differences) - and its interval from a two-stage bootstrap
+          (configurations resampled, then receivers within each, replicate by replicate),
+      holds_in_every_configuration (every per-config interval below ``below``),
+      point_holds_in_every_configuration, holds_pooled (the pooled interval below it),
+      n_configs, below, compare, statistic (its name)).
+    """
+    if len(a_by_config) != len(b_by_config) or len(a_by_config) == 0:
+        raise ValueError(f"b_by_config: expected {len(a_by_config)} configurations (as a_by_config), "
+                         f"got {len(b_by_config)}")
+    if compare not in ("difference", "ratio"):
+        raise ValueError(f"compare: expected 'difference' or 'ratio', got {compare!r}")
+    _check(n_boot, level, "percentile")
+    below = (1.0 if compare == "ratio" else 0.0) if below is None else float(below)
+    C = len(a_by_config)
+    configs = list(range(C)) if configs is None else list(configs)
+    if len(configs) != C:
+        raise ValueError(f"configs: expected {C} labels, got {len(configs)}")
+    f = _stat(statistic)
+    log = compare == "ratio"
+    per, reps = [], np.empty((C, n_boot))
+    for c in range(C):
+        x, y = _sample(a_by_config[c], f"a_by_config[{c}]"), _sample(b_by_config[c], f"b_by_config[{c}]")
+        if x.size != y.size:
+            raise ValueError(f"b_by_config[{c}]: expected {x.size} values (paired), got {y.size}")
+        r, reps[c] = _paired(x, y, f, compare, n_boot, level, "percentile", seed + c)
+        r.update(config=configs[c], holds=bool(r["high"] < below), point_holds=bool(r["estimate"] < below))
+        per.append(r)
+    pick = np.random.default_rng(seed + C).integers(0, C, size=(n_boot, C))
+    vals = reps[pick, np.arange(n_boot)[:, None]]         # (n_boot, C): config resample x receiver replicate
+    est = np.array([r["estimate"] for r in per])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pooled = np.exp(np.mean(np.log(vals), axis=1)) if log else np.mean(vals, axis=1)
+        theta = float(np.exp(np.mean(np.log(est)))) if log else float(np.mean(est))
+    lo, hi = np.quantile(pooled, [(1 - level) / 2, (1 + level) / 2])
+    return dict(per_config=per, estimate=theta, low=float(lo), high=float(hi), level=level,
+                holds_in_every_configuration=all(r["holds"] for r in per),
+                point_holds_in_every_configuration=all(r["point_holds"] for r in per),
+                holds_pooled=bool(hi < below), n_configs=C, below=below, compare=compare,
+                statistic=statistic if isinstance(statistic, str) else getattr(statistic, "__name__", "custom"))

@@ -1,0 +1,77 @@
+"""The spatial-vs-depth budget experiment (``python -m avsm_dr budget``) and the reference
+transmittance it and ``images`` are measured against."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+from avsm_dr import cli
+from avsm_dr.experiments import _common, budget, images
+
+
+def test_fit_spends_the_budget_on_the_size_parameter():
+    """Largest size value that fits: AVSM 8 bytes per node, FOM 4 (2n + 1), OSM 4 per slice
+    (float32), read through the registry."""
+    assert budget.fit("avsm", 128.0) == dict(ad.describe("avsm")["headline"], nodes=16)
+    assert budget.fit("avsm", 127.9)["nodes"] == 15
+    assert budget.fit("fom", 124.0)["harmonics"] == 15
+    assert budget.fit("osm", 32.0)["slices"] == 8
+    assert budget.fit("avsm", 8.0) is None                       # fewer bytes than 2 nodes
+    for kind, per in (("avsm", 300.0), ("fom", 61.0), ("osm", 17.0)):
+        p = budget.fit(kind, per)
+        size = ad.describe(kind)["size"]
+        assert budget.bytes_per_texel(kind, **p) <= per < budget.bytes_per_texel(kind, **dict(p, **{size: p[size] + 1}))
+
+
+def test_plan_keeps_bytes_per_map():
+    B = 1 << 19
+    pl = budget.plan(B, [64, 128, 256])
+    assert ("avsm", 64, {"nodes": 16}) in [(k, r, {ad.describe(k)["size"]: p[ad.describe(k)["size"]]})
+                                           for k, r, p in pl if k == "avsm"]
+    for kind, r, p in pl:
+        assert r * r * budget.bytes_per_texel(kind, **p) <= B
+    mom = [r for k, r, _ in pl if k == "moments"]
+    assert len(mom) == 1 and mom[0] == int(np.sqrt(B / budget.bytes_per_texel("moments")))
+
+
+@pytest.mark.mitsuba
+def test_quadrature_light_is_the_groundtruth_raymarch():
+    """The images/budget reference T (Dr.Jit, one lane per point) equals
+    groundtruth.transmittance(method='raymarch') on the same midpoints (float64 sums in
+    another order: 1e-12), with the table (a blocker) as an analytic factor."""
+    for scene in (ad.scenes.three_columns(size=8), ad.scenes.smoke_over_table(size=8)):
+        lo, hi = (np.asarray(b, float) for b in scene.bbox)
+        p = np.concatenate([scene.receivers[::8],
+                            lo + np.random.default_rng(0).random((200, 3)) * (hi - lo)])
+        want = ad.groundtruth.transmittance(scene, p, method="raymarch")[0]
+        got = images.quadrature_light(scene)(p)
+        assert want.min() < 0.5
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_quick_budget_run(tmp_path):
+    assert "budget" in cli.experiment_names()
+    assert cli.main(["budget", "--quick", "--out", str(tmp_path)]) == 0
+    out = tmp_path / "budget"
+    rows = _common.read_csv(out / "data.csv")
+    assert {r["kind"] for r in rows} >= {"exact", "avsm", "fom", "osm", "moments"}
+    assert {r["receivers"] for r in rows} == {"all", "volume", "surface"}
+    for r in rows:
+        assert float(r["rmse"]) >= 0 and int(r["nan_count"]) == 0
+        assert float(r["lookup_ns"]) > 0
+        if r["kind"] != "exact":
+            assert int(float(r["map_bytes"])) <= int(r["budget_bytes"])
+    # at equal bytes a finer map with fewer nodes is a different trade-off, not the same numbers
+    avsm = {int(r["resolution"]): float(r["rmse"]) for r in rows if r["kind"] == "avsm" and r["receivers"] == "all"}
+    assert len(avsm) == 2 and avsm[64] != avsm[128]
+    findings = json.loads((out / "findings.json").read_text())
+    item = findings[f"plume_{1 << 19}B_avsm"]
+    assert item["best_resolution"] in (64, 128)
+    for v in item["per_resolution"].values():
+        assert v["low"] <= v["rmse"] <= v["high"]
+    assert sorted(p.name for p in out.glob("*.png")) == ["error_vs_resolution.png", "lookup_cost.png"]
+    again = budget.run(quick=True, out=out)
+    assert again.get("cached") is True

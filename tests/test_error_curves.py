@@ -1,0 +1,212 @@
+"""error_curves' measurement machinery: the error decomposition, receiver sets, the separate
+opaque depth map, builds on a subset of texels, the variants read from the registry and
+the claims' intervals."""
+import json
+
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+from avsm_dr import receivers
+from avsm_dr.capture.opaque_map import OpaqueComposite
+from avsm_dr.experiments import _error_findings as F
+from avsm_dr.experiments import error_curves as E
+from avsm_dr.experiments._error_terms import Probe, SubsetBuilder, light_variants, with_faint_segments
+from avsm_dr.groundtruth import sample_density
+
+
+@pytest.fixture(scope="module")
+def plume():
+    return ad.scenes.get("plume", size=16)
+
+
+@pytest.fixture(scope="module")
+def table():
+    sc = ad.scenes.get("smoke_over_table", size=16)
+    return sc, ad.capture(sc, resolution=64), ad.capture(sc, resolution=64, opaque="separate")
+
+
+# ------------------------------------------------------------------ decomposition
+def test_terms_add_up_and_probe_is_the_bilinear_filter(plume):
+    cap = ad.capture(plume, resolution=64)
+    pts = receivers.in_volume(plume, 300, seed=1)
+    probe = Probe(cap, plume, pts, n_decomp=300)
+    rep, exact = ad.build("avsm", cap.segments, nodes=4), ad.build("exact", cap.segments)
+    est, ex = probe.lookup(rep), probe.lookup(exact)
+    # the probe's own taps are the package's bilinear filter (float32 kernels: rounding only)
+    np.testing.assert_allclose(est, np.asarray(cap.transmittance(rep, pts, filter="bilinear")), atol=2e-6)
+    t = probe.terms(est, ex)
+    np.testing.assert_allclose(t["compression"] + t["capture"] + t["spatial"], t["total"], atol=1e-12)
+    rms = {k: float(np.sqrt(np.mean(v ** 2))) for k, v in t.items()}
+    assert rms["total"] <= rms["compression"] + rms["capture"] + rms["spatial"] + 1e-12
+    # AVSM-4 compresses a plume visibly; exact-curve compression is zero
+    assert rms["compression"] > 1e-3
+    assert np.all(probe.terms(ex, ex)["compression"] == 0)
+    # the exact map's error is capture + spatial only, and both are resolved (not zero)
+    assert rms["spatial"] > 1e-4 and rms["capture"] > 0
+
+
+def test_receivers_on_texel_rays_have_only_a_capture_term(plume):
+    """Receivers on texel rays (at texel centres): the spatial term is zero, so the exact
+    map's error is the capture term alone; a march capture with 1/8-voxel steps keeps it
+    at the midpoint rule's O(step^2) (and float32) level."""
+    lo, hi = plume.bbox
+    voxel = float(np.min((hi - lo) / np.array(plume.density.shape[::-1])))
+    cap = ad.capture(plume, resolution=64, step=voxel / 8)
+    near, far = cap.segments.bounds()
+    tex = np.nonzero(cap.segments.counts > 0)[0][::7][:200]
+    o, d = cap.camera.rays(tex)
+    pts = o + (near + (far - near) * np.linspace(0.2, 0.8, tex.size))[:, None] * d
+    probe = Probe(cap, plume, pts, n_decomp=tex.size)
+    ex = probe.lookup(ad.build("exact", cap.segments))
+    t = probe.terms(ex, ex)
+    assert np.max(np.abs(t["spatial"])) < 1e-9        # the same paths, float64
+    assert 0 < np.max(np.abs(t["capture"])) < 2e-3    # measured 1.2e-3 (size 16, 64^2)
+    np.testing.assert_allclose(t["total"], t["capture"], atol=1e-9)
+
+
+# ---------------------------------------------------------------------- receivers
+def test_in_volume_receivers_are_deterministic_inside_and_weighted(plume):
+    a = receivers.in_volume(plume, 400, seed=2)
+    b = receivers.in_volume(plume, 400, seed=2)
+    c = receivers.in_volume(plume, 400, seed=3)
+    assert a.shape == (400, 3) and np.array_equal(a, b) and not np.array_equal(a, c)
+    lo, hi = plume.bbox
+    assert np.all((a >= lo) & (a <= hi))
+    assert np.all(sample_density(plume.density, plume.bbox, a) > 0)
+    # drawn towards lit, visible medium: higher light x view visibility than density-only draws
+    rng = np.random.default_rng(0)
+    cand = receivers._density_candidates(plume, 2000, rng)
+    cam = ad.groundtruth.default_camera(plume)
+    vis = lambda p: receivers.visibility(plume, p) * receivers.visibility(plume, p, origin=cam["origin"])  # noqa
+    assert vis(a).mean() > 1.2 * vis(cand).mean()
+
+
+def test_surface_receivers_lie_on_the_receiver_plane(plume):
+    p = receivers.surface(plume, 100, seed=0)
+    c, n, half = plume.receiver_plane
+    assert p.shape == (100, 3)
+    np.testing.assert_allclose((p - c) @ n, 0, atol=1e-12)
+    assert np.all(np.abs(p - c) <= half + 1e-12)
+    sets = receivers.receiver_sets(plume, 64, 16)
+    assert list(sets) == ["in_volume", "surface", "uniform"]
+
+
+@pytest.mark.parametrize("bad, msg", [(dict(n=-1), "n:"), (dict(seed=1.5), "seed:")])
+def test_receiver_arguments_are_checked(plume, bad, msg):
+    kw = dict(n=10, seed=0) | bad
+    with pytest.raises(ValueError, match=f"^{msg}"):
+        receivers.in_volume(plume, **kw)
+
+
+# ------------------------------------------------------------- separate opaque map
+def test_separate_opaque_map_equals_inline_for_exact(table):
+    sc, inline, separate = table
+    assert inline.opaque_depth is None and np.isfinite(separate.opaque_depth).sum() > 0
+    assert separate.segments.n_segments < inline.segments.n_segments       # the table is not in the segments
+    pts = np.concatenate([receivers.in_volume(sc, 300, seed=0), receivers.surface(sc, 300, seed=0),
+                          sc.receivers])
+    for filt in ("point", "bilinear"):
+        a = np.asarray(inline.transmittance(ad.build("exact", inline.segments), pts, filter=filt))
+        b = np.asarray(separate.transmittance(ad.build("exact", separate.segments), pts, filter=filt))
+        np.testing.assert_allclose(a, b, atol=1e-6)                     # float32 rounding only
+
+
+def test_separate_opaque_map_removes_fom_ringing(table):
+    sc, inline, separate = table
+    top = receivers.surface(sc, 400, seed=1)                           # on the table top
+    ex = np.asarray(inline.transmittance(ad.build("exact", inline.segments), top))
+
+    def rmse(cap):
+        return float(np.sqrt(np.mean((np.asarray(cap.transmittance(ad.build("fom", cap.segments, harmonics=16), top))
+                                      - ex) ** 2)))
+    assert rmse(inline) > 0.1          # the step to T = 0 in the same Fourier series rings
+    assert rmse(separate) < 1e-4
+
+
+def test_opaque_composite_storage_and_checks(table):
+    _, _, separate = table
+    fom = ad.build("fom", separate.segments, harmonics=4)
+    comp = OpaqueComposite(fom, separate.opaque_depth)
+    assert comp.nbytes_per_texel == fom.nbytes_per_texel + 4
+    assert comp.monotone == fom.monotone
+    with pytest.raises(ValueError, match="^depth:"):
+        OpaqueComposite(fom, separate.opaque_depth[:-1])
+    with pytest.raises(ValueError, match="^opaque:"):
+        ad.capture(table[0], resolution=64, opaque="sometimes")
+
+
+# ---------------------------------------------------------------- subsets, studies
+@pytest.mark.parametrize("kind, params", [("avsm", dict(nodes=8)), ("fom", dict(harmonics=8)),
+                                          ("osm", dict(slices=16)), ("dsm", dict(tolerance=0.02))])
+def test_subset_build_equals_whole_map(plume, kind, params):
+    cap = ad.capture(plume, resolution=64)
+    probe = Probe(cap, plume, receivers.in_volume(plume, 200, seed=0), n_decomp=0)
+    sub = SubsetBuilder(cap.segments, probe.tex.ravel())
+    assert sub.texels.size < cap.segments.n_texels
+    whole = probe.lookup(ad.build(kind, cap.segments, **params))
+    np.testing.assert_allclose(probe.lookup(sub.build(kind, params)), whole, atol=1e-6)
+
+
+def test_faint_segments_leave_the_curve_in_front_unchanged(plume):
+    seg = ad.capture(plume, resolution=64).segments
+    f = with_faint_segments(seg, 8.0)
+    nz = seg.counts > 0
+    assert np.array_equal(f.counts, seg.counts + nz)
+    near, far = seg.texel_bounds()
+    tex = np.nonzero(nz)[0]
+    z = near[tex] + 0.9 * (far[tex] - near[tex])
+    np.testing.assert_allclose(np.asarray(ad.build("exact", f).eval(tex, z)),
+                               np.asarray(ad.build("exact", seg).eval(tex, z)), atol=1e-7)
+    fn, ff = f.texel_bounds()
+    np.testing.assert_allclose((ff - fn)[tex], 8.01 * (far - near)[tex], rtol=1e-5)
+
+
+def test_light_variants(plume):
+    lv = light_variants(plume)
+    d0, d1 = lv["dir_a"].direction, lv["dir_b"].direction
+    assert np.degrees(np.arccos(np.clip(d0 @ d1, -1, 1))) == pytest.approx(25.0, abs=1e-6)
+    cap = ad.capture(E.dataclasses.replace(plume, light=lv["spot"]), resolution=64)
+    assert cap.covers(receivers.in_volume(plume, 200, seed=0)).all()
+
+
+# ------------------------------------------------------------- registry, claims
+def test_variants_are_read_from_the_registry():
+    for kind in ad.kinds():
+        vs = E.variants(kind, quick=True, sweep=True)
+        assert vs and len({E.label(kind, p) for p, _ in vs}) == len(vs)
+        if "depth_range" in ad.describe(kind)["params"]:
+            assert any(p.get("depth_range") == "texel" for p, _ in vs)
+    labels = {E.label("moments", p) for p, _ in E.variants("moments", quick=False, sweep=False)}
+    assert {"moments", "moments/overestimation=0.0", "moments/overestimation=1.0"} <= labels
+    assert {"avsm-8", "avsm-8/interpolation=exp"} <= {E.label("avsm", p) for p, _ in
+                                                      E.variants("avsm", quick=False, sweep=False)}
+
+
+def test_claims_report_intervals_per_configuration():
+    rng = np.random.default_rng(0)
+    store = {}
+    for c in range(4):
+        cfg = f"s{c}-dir_a"
+        base = rng.standard_normal(500)
+        for v, scale in (("avsm-12", 0.1), ("fom-16", 1.0)):
+            e = np.float32(scale * base + 0.01 * rng.standard_normal(500))
+            store[(F.H, cfg, v, "inline", F.C, "main")] = (e, e)
+    spec = next(s for s in F._claims() if s["id"] == "avsm12_vs_fom16_hair_smoke_compression")
+    r = F.evaluate(spec, store, sorted({k[1] for k in store}), n_boot=200)
+    assert r["n_configs"] == 4 and len(r["per_config"]) == 4
+    assert r["low"] <= r["estimate"] <= r["high"] < 1
+    assert all(p["low"] <= p["estimate"] <= p["high"] for p in r["per_config"])
+    assert r["verdict"] == "holds in every configuration"
+    swapped = dict(spec, a=spec["b"], b=spec["a"])
+    assert F.evaluate(swapped, store, sorted({k[1] for k in store}), n_boot=200)["verdict"] == "does not hold"
+    json.dumps(r)                                                      # serialisable as findings.json
+
+
+@pytest.mark.slow
+def test_quick_run_writes_findings_with_intervals(tmp_path):
+    out = E.run(quick=True, out=tmp_path / "ec", scenes=["plume"])
+    f = json.loads((tmp_path / "ec" / "findings.json").read_text())
+    assert f["claims"] and all({"low", "high", "estimate", "verdict", "per_config"} <= set(c)
+                               for c in f["claims"].values())
+    assert set(out["summary"]) == set(f["claims"])
