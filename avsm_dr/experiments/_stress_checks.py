@@ -161,7 +161,38 @@ def checks(quick: bool) -> list[tuple[str, str, str, callable]]:
         ("dsm_bound", "opaque sub-ulp segments at offsets up to 3e7", "|DSM - exact| <= tol",
          lambda: _dsm_bound(quick)),
         ("messages", "dsm midslope + dr.backward", "ValueError placement", _midslope_backward),
+        ("behind_the_light", "receivers behind / outside a spot light's map, every kind", "T = 1",
+         _behind_the_light),
     ]
+
+
+def _behind_the_light() -> tuple[bool, str]:
+    """Receivers behind a spot light, outside its map, and beside a directional map get
+    T = 1 for every kind (they used to read a corner texel's shadow)."""
+    from .. import builtin_scenes, capture, kinds
+    from ..scene import SpotLight
+    scene = builtin_scenes.plume(size=12)
+    lo, hi = (np.asarray(b, float) for b in scene.bbox)
+    c = 0.5 * (lo + hi)
+    spot = SpotLight(position=c - np.array([3.0, 0.0, 0.0]), direction=(1.0, 0.0, 0.0), fov=40.0)
+    pts = np.array([c - [6.0, 0.0, 0.0],            # behind the spot light
+                    c + [0.0, 50.0, 0.0],            # far outside its cone
+                    c - [3.0, 0.0, 0.5]])            # beside it, behind its plane
+    cap = capture(_with_fields(scene, light=spot), resolution=64)
+    worst = 0.0
+    for kind in kinds():
+        if kind == "optimal":            # offline, seconds per build; its lookup is greedy's (NodeList)
+            continue
+        T = np.asarray(cap.transmittance(build(kind, cap.segments), pts), np.float64)
+        worst = max(worst, float(np.max(np.abs(T - 1.0))))
+    covered = cap.covers(pts)
+    return worst == 0.0 and not covered.any(), f"max |T - 1| = {worst:g} over {len(kinds())} kinds; covered {covered}"
+
+
+def _with_fields(scene, **kw):
+    """``scene`` with fields replaced (scenes are dataclasses)."""
+    import dataclasses
+    return dataclasses.replace(scene, **kw)
 
 
 def _sizes(N: int) -> tuple[bool, str]:

@@ -79,6 +79,16 @@ class Representation(abc.ABC):
         return True
 
     @property
+    def prefilterable(self) -> bool:
+        """True when ``eval(..., prefilter=True)`` is supported: the kind is linear in a
+        stored per-texel map, so filtering the map and reconstructing once is defined."""
+        return False
+
+    def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
+        """T reconstructed once from the filtered stored map (prefilterable kinds only)."""
+        raise NotImplementedError
+
+    @property
     def loop_state_words(self) -> int:
         """State words per lane of the build loop reverse mode must store (0: no loop, or
         a sum loop that reverse mode recomputes)."""
@@ -137,19 +147,30 @@ class Representation(abc.ABC):
 
     # ----------------------------------------------------------- public API
     def eval(self, texel, depth, filter: str = "point", width: int | None = None,
-             height: int | None = None, radius: float = 1.0):
+             height: int | None = None, radius: float = 1.0, prefilter: bool = False):
         """Transmittance at receivers.
 
         texel: (K,) integer texel indices, or (K, 2) float continuous shadow-map
             coordinates (x, y) in texel units (needs ``width``/``height``).
         depth: (K,) light-space receiver depths (or a scalar), NumPy or Dr.Jit.
         filter: 'point' | 'bilinear' | 'box' | 'gaussian' (see :mod:`avsm_dr.filtering`).
+        prefilter: False (default): filter the reconstructed T, ``sum_j w_j T_j``.  True
+            (kinds with ``prefilterable``, a non-point filter): filter the stored map,
+            ``a = sum_j w_j a[tex_j]``, and reconstruct T once, as hardware filtering of
+            a coefficient texture does (see the kind's ``_prefiltered_eval``).
         Returns a Dr.Jit Float of length K (``np.asarray`` works; AD graph kept).
         """
         t = backend.types()
         Float, UInt32, Int32 = self.Float, t.UInt32, t.Int32
         if filter not in FILTERS:
             raise ValueError(f"filter: expected one of {FILTERS}, got {filter!r}")
+        if not isinstance(prefilter, (bool, np.bool_)):
+            raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
+        if prefilter and not self.prefilterable:
+            raise ValueError(f"prefilter: kind {self.kind!r} is not linear in a stored map "
+                             "(prefilterable = False); filter its T instead (prefilter=False)")
+        if prefilter and filter == "point":
+            raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
         width = None if width is None else check_size(width, "width")
         height = None if height is None else check_size(height, "height")
         radius = check_radius(radius, width, height)
@@ -209,6 +230,9 @@ class Representation(abc.ABC):
             raise ValueError(f"width: width*height = {width * height} does not match {self.n_texels} texels")
         if coords.shape[0] == 1 and n > 1:
             coords = np.broadcast_to(coords, (n, 2))
+        if prefilter:
+            return self._prefiltered_eval(np.asarray(coords, np.float64), depth_dr, width, height,
+                                          filter, radius)
         return filtered_eval(self._eval_texels, np.asarray(coords, np.float64), depth_dr, width, height,
                              filter, radius, Float, UInt32, Int32)
 

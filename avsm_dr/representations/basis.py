@@ -69,6 +69,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from ..filtering import filtered_eval
 from .registry import register
 from .base import Representation
 from .schema import Param, Schema, depth_range_param, far_param, near_param
@@ -479,13 +480,25 @@ class BasisRepresentation(Representation):
         near, span = self._range(texel)
         return dr.clip((depth - near) / span, 0, 1)
 
+    @property
+    def _store(self):
+        """The flat texel-major store ``[texel * K + k]`` that reconstruction reads (the
+        coefficients a_k; kinds storing a linear transform of them, e.g. OSM's cumulative
+        sums, override it).  Linear in a_k, so a weighted sum of stores is the store of the
+        weighted sum of coefficients (what prefiltering relies on)."""
+        return self._coef
+
     def _optical_depth(self, texel, depth):
-        """D(u) = sum_k a_k g_k(u): indexed bases over (receiver, coefficient) lanes with
-        block sums; others a Python loop over k, evaluated every LIST_CHUNK terms beyond
-        LIST_UNROLL."""
+        """D at ``depth`` along texel ``texel``: :meth:`_reconstruct_from` the stored map."""
+        return self._reconstruct_from(self._store, texel, self.normalized_depth(texel, depth))
+
+    def _reconstruct_from(self, store, row, u):
+        """D(u) = sum_k a_k g_k(u) with a_k read from a flat store ``store[row * K + k]``
+        (row: UInt32 per receiver; u: normalised depth per receiver).  Indexed bases over
+        (receiver, coefficient) lanes with block sums; others a Python loop over k,
+        evaluated every LIST_CHUNK terms beyond LIST_UNROLL."""
         Float, UInt32 = self.Float, backend.types().UInt32
         basis, K = self.basis, self.basis.n_coefficients
-        u = self.normalized_depth(texel, depth)
         R = dr.width(u)
         D = dr.zeros(Float, R)
         if basis.indexed:
@@ -494,18 +507,56 @@ class BasisRepresentation(Representation):
                 lane = dr.arange(UInt32, R * kc)
                 r = lane // kc                                   # receiver
                 j = dr.opaque(UInt32, j0) + lane % kc            # coefficient
-                a = dr.gather(Float, self._coef, dr.gather(UInt32, texel, r) * K + j)
+                a = dr.gather(Float, store, dr.gather(UInt32, row, r) * K + j)
                 D += dr.block_sum(a * basis.g_at(j, dr.gather(Float, u, r)), kc)
                 if len(batches) > 1:
                     dr.eval(D)
             return D
-        base = texel * K
+        base = row * K
         for k, gk in enumerate(basis.g(u)):
             kk = dr.opaque(UInt32, k) if K > LIST_UNROLL else k
-            D += dr.gather(Float, self._coef, base + kk) * gk
+            D += dr.gather(Float, store, base + kk) * gk
             if K > LIST_UNROLL and k % LIST_CHUNK == LIST_CHUNK - 1:
                 dr.eval(D)
         return D
+
+    # ---------------------------------------------------------- prefiltering
+    @property
+    def prefilterable(self) -> bool:
+        """Linear in the coefficients: ``eval(..., prefilter=True)`` filters the stored map."""
+        return True
+
+    def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
+        """T from the filtered coefficient map: per receiver ``a_k = sum_j w_j a_k[tex_j] /
+        sum_j w_j`` over the filter's taps (:func:`~avsm_dr.filtering.filtered_eval` applied
+        to each stored coefficient), then one reconstruction ``exp(-sum_k a_k g_k(u))``.
+        With one global depth range this is exact filtering of the coefficient map (what
+        bilinear / mip filtering of a coefficient texture does in hardware).  A per-texel
+        range is refused (ValueError): each texel's a_k are coordinates over its own
+        [near, far], so their weighted sum projects no absorption, and filtering the ranges
+        as well would not make it one."""
+        if self._per_texel:
+            raise ValueError("prefilter: needs depth_range='global'; with 'texel' every texel's "
+                             "coefficients live on its own [near, far] and cannot be averaged")
+        t = backend.types()
+        Float, UInt32, Int32 = self.Float, t.UInt32, t.Int32
+        store, K, R = self._store, self.basis.n_coefficients, coords.shape[0]
+        self._check_index_range(R, K)
+        flat = dr.zeros(Float, R * K)                   # receiver-major [r * K + k]
+        idx = dr.arange(UInt32, R) * K
+        for k in range(K):
+            kk = dr.opaque(UInt32, k) if K > LIST_UNROLL else k
+
+            def coefficient(tex, _depth, kk=kk):
+                return dr.gather(Float, store, tex * K + kk)
+
+            a_k = filtered_eval(coefficient, coords, depth, width, height, filter, radius,
+                                Float, UInt32, Int32)
+            dr.scatter(flat, a_k, idx + kk)
+            if K > LIST_UNROLL and k % LIST_CHUNK == LIST_CHUNK - 1:
+                dr.eval(flat)
+        u = self.normalized_depth(None, depth)
+        return dr.clip(dr.exp(-self._reconstruct_from(flat, dr.arange(UInt32, R), u)), 0, 1)
 
     def optical_depth(self, texel, depth):
         """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp).

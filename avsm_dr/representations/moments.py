@@ -152,13 +152,16 @@ class MomentShadowMap(BasisRepresentation):
         return self._reconstruct(texel, depth)[1:]
 
     def _reconstruct(self, texel, depth):
+        return self._bounded(self._store, texel, self.normalized_depth(texel, depth))
+
+    def _bounded(self, store, row, u):
+        """(D, lower, upper) from moments read from a flat store ``store[row * 5 + k]``."""
         Float = self.Float
-        u = self.normalized_depth(texel, depth)
         K = self.basis.n_coefficients
-        b = [dr.gather(Float, self._coef, texel * K + k) for k in range(K)]
+        b = [dr.gather(Float, store, row * K + k) for k in range(K)]
         D, lo, up = hamburger4(*b, 2 * u - 1, self.params["bias"], self.params["overestimation"])
         D = dr.select(u <= 0, 0, dr.select(u >= 1, b[0], D))
         return D, lo, up
 
-    def _optical_depth(self, texel, depth):
-        return self._reconstruct(texel, depth)[0]
+    def _reconstruct_from(self, store, row, u):
+        return self._bounded(store, row, u)[0]

@@ -157,15 +157,24 @@ class OpacityShadowMap(BasisRepresentation):
         # a_j = P_j + sum_{i <= j} R_i: a prefix sum inside each texel's block of n, in
         # float64 (a float32 running sum over 1e6 slices drifted by 8e-4)
         a = P + Float(dr.block_prefix_sum(backend.types().Float64(Rd), n, exclusive=False))
+        # R's +r / -r pairs are scattered in the storage dtype in any order, so a slice no
+        # segment covers can keep a rounding residual; a negative one (-1.5e-8 found in
+        # float32) made D decrease: clamp it (a select, so a_k = 0 keeps its gradient)
+        a = dr.select(a < 0, 0, a)
         dr.eval(a)
         return a
 
-    def _optical_depth(self, texel, depth):
+    @property
+    def _store(self):
+        """Reconstruction reads the cumulative sums C_j (linear in a_k: prefilterable)."""
+        return self._cum
+
+    def _reconstruct_from(self, store, row, u):
         UInt32, Float = backend.types().UInt32, self.Float
         n = self.basis.n
-        t = n * self.normalized_depth(texel, depth)      # position in slice units, [0, n]
+        t = n * u                                        # position in slice units, [0, n]
         j = dr.minimum(dr.floor(t), n - 1)               # slice holding the receiver
-        i = texel * n + UInt32(j)
-        c0 = dr.gather(Float, self._cum, i - 1, j > 0)   # C_j (C_0 = 0)
-        c1 = dr.gather(Float, self._cum, i)              # C_{j+1}
+        i = row * n + UInt32(j)
+        c0 = dr.gather(Float, store, i - 1, j > 0)       # C_j (C_0 = 0)
+        c1 = dr.gather(Float, store, i)                  # C_{j+1}
         return dr.minimum(c0 + (c1 - c0) * (t - j), c1)
