@@ -267,32 +267,6 @@ def _loss(x, scene, **kw):
     return dr.sum(cap.transmittance(ad.build("exact", cap.segments), scene.receivers)), cap
 
 
-def test_exact_capture_gradient_matches_finite_differences():
-    """d(sum of T at receivers)/d(voxel) by reverse-mode AD through the exact capture vs central
-    differences in float64 (h = 1e-5: truncation ~h^2, rounding ~1e-11/h); relative 1e-5."""
-    from drjit.llvm.ad import TensorXf64
-    rng = np.random.default_rng(5)
-    d = small_grid(shape=(6, 7, 8)).astype(np.float64)
-    d[:, :, :2] = 0
-    d[:2] = 0
-    sc = grid_scene(LIGHTS["directional"], d, rng.uniform(-0.3, 0.9, (200, 3)))
-    x = TensorXf64(d)
-    dr.enable_grad(x)
-    loss, cap = _loss(x, sc)
-    assert cap.segments.dtype == "float64"
-    dr.backward(loss)
-    g = dr.grad(x).numpy()
-    for idx in [(3, 3, 4), (4, 5, 6), (5, 1, 7), (3, 4, 5)]:
-        fd = []
-        for sign in (1, -1):
-            dp = d.copy()
-            dp[idx] += sign * 1e-5
-            fd.append(float(_loss(TensorXf64(dp), sc)[0][0]))
-        fd = (fd[0] - fd[1]) / 2e-5
-        assert abs(fd) > 1e-3
-        assert abs(g[idx] - fd) <= 1e-5 * abs(fd), (idx, g[idx], fd)
-
-
 def test_exact_capture_gradient_reaches_zero_voxels_with_keep_zero():
     """sum tau is linear in the density: <grad, d> = sum tau; a zero voxel inside the empty
     slab gets a gradient only when zero crossings are kept (keep_zero also disables skipping)."""

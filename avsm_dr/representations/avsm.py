@@ -129,8 +129,10 @@ def area_metric(d, t, i):
                   - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
 
 
-def remove_smallest(d, t):
-    """Remove the interior node of smallest area metric (ties: the deepest one)."""
+def remove_smallest(d, t, *extra):
+    """Remove the interior node of smallest area metric (ties: the deepest one) from the
+    node lists ``d``, ``t`` and any ``extra`` lists carried along (e.g. node sources);
+    returns the shortened lists in the same order."""
     n = len(d)
     UInt32 = backend.types().UInt32
     best = area_metric(d, t, 1)
@@ -140,9 +142,7 @@ def remove_smallest(d, t):
         take = m <= best
         best = dr.select(take, m, best)
         idx = dr.select(take, UInt32(i), idx)
-    out_d = [dr.select(idx <= j, d[j + 1], d[j]) for j in range(n - 1)]
-    out_t = [dr.select(idx <= j, t[j + 1], t[j]) for j in range(n - 1)]
-    return out_d, out_t
+    return tuple([dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra))
 
 
 def interpolate(d, t, depth, mode: str):

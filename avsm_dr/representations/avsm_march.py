@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import backend
 from . import _curve
-from .avsm import INTERPOLATIONS, area_metric
+from .avsm import INTERPOLATIONS, remove_smallest
 from .base import Representation
 from .registry import register
 from .schema import Param, Schema
@@ -121,21 +121,6 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
     pos = node_off[lanes_np][:, None] + cols
     out[pos[keep]] = src_np[keep]
     return counts, out
-
-
-def remove_smallest(d, v, s):
-    """Remove the interior node of smallest AVSM area metric (:func:`.avsm.area_metric`;
-    ties: the deepest) from the node lists d, v and the matching source list s."""
-    n = len(d)
-    U32 = backend.types().UInt32
-    best = area_metric(d, v, 1)
-    idx = dr.full(U32, 1, dr.width(best))
-    for i in range(2, n - 1):
-        m = area_metric(d, v, i)
-        take = m <= best
-        best = dr.select(take, m, best)
-        idx = dr.select(take, U32(i), idx)
-    return tuple([dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, v, s))
 
 
 @register("avsm_march")
