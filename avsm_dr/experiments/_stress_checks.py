@@ -10,6 +10,7 @@ formerly crashing cases run in a subprocess, so a regression is a row, not a dea
 """
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import time
@@ -178,7 +179,7 @@ def _behind_the_light() -> tuple[bool, str]:
     pts = np.array([c - [6.0, 0.0, 0.0],            # behind the spot light
                     c + [0.0, 50.0, 0.0],            # far outside its cone
                     c - [3.0, 0.0, 0.5]])            # beside it, behind its plane
-    cap = capture(_with_fields(scene, light=spot), resolution=64)
+    cap = capture(dataclasses.replace(scene, light=spot), resolution=64)
     worst = 0.0
     for kind in kinds():
         if kind == "optimal":            # offline, seconds per build; its lookup is greedy's (NodeList)
@@ -187,12 +188,6 @@ def _behind_the_light() -> tuple[bool, str]:
         worst = max(worst, float(np.max(np.abs(T - 1.0))))
     covered = cap.covers(pts)
     return worst == 0.0 and not covered.any(), f"max |T - 1| = {worst:g} over {len(kinds())} kinds; covered {covered}"
-
-
-def _with_fields(scene, **kw):
-    """``scene`` with fields replaced (scenes are dataclasses)."""
-    import dataclasses
-    return dataclasses.replace(scene, **kw)
 
 
 def _sizes(N: int) -> tuple[bool, str]:
