@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import pkgutil
 import sys
 import tempfile
@@ -22,6 +23,16 @@ def experiment_names() -> list[str]:
     """Names of the experiment modules and packages in avsm_dr.experiments."""
     from . import experiments
     return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
+
+
+def sweep_experiments() -> list[str]:
+    """Experiments whose ``run`` takes ``workers``/``address`` (cells through :mod:`avsm_dr.sweep`)."""
+    out = []
+    for n in experiment_names():
+        run = getattr(importlib.import_module(f"avsm_dr.experiments.{n}"), "run", None)
+        if run is not None and "workers" in inspect.signature(run).parameters:
+            out.append(n)
+    return out
 
 
 def parser(names: list[str] | None = None) -> argparse.ArgumentParser:
@@ -35,6 +46,10 @@ def parser(names: list[str] | None = None) -> argparse.ArgumentParser:
                    help="parent folder; the experiment writes into DIR/<experiment>/ (default results/)")
     p.add_argument("--force", action="store_true", help="recompute even if results exist")
     p.add_argument("--backend", default=None, choices=("llvm", "cuda"), help="Dr.Jit backend")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="run the sweep's cells on a local Ray instance with N workers (extra 'cluster')")
+    p.add_argument("--address", default=None, metavar="ADDR",
+                   help="run the sweep's cells on the Ray cluster at ADDR (e.g. ray://head:10001 or auto)")
     return p
 
 
@@ -71,10 +86,15 @@ def main(argv: list[str] | None = None) -> int:
         from . import backend
         backend.set_backend(args.backend)
     module = importlib.import_module(f"avsm_dr.experiments.{args.experiment}")
+    extra = {k: v for k, v in (("workers", args.workers), ("address", args.address)) if v is not None}
+    if extra and not all(k in inspect.signature(module.run).parameters for k in extra):
+        print(f"avsm_dr: error: --{next(iter(extra))}: experiment {args.experiment!r} runs serially only "
+              f"(sweeps over cells: {', '.join(n for n in sweep_experiments())})", file=sys.stderr)
+        return 2
     try:
-        result = module.run(quick=args.quick, out=out, force=args.force)
+        result = module.run(quick=args.quick, out=out, force=args.force, **extra)
     except ValueError as exc:
-        if not str(exc).startswith("out:"):
+        if not str(exc).startswith(("out:", "workers:", "address:")):
             raise
         print(f"avsm_dr: error: --{exc}", file=sys.stderr)
         return 2

@@ -33,12 +33,13 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import shutil
 import time
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import build, configurations, describe, kinds
+from .. import kinds as all_kinds
 from ..metrics import error_stats, optical_depth_error
 from . import _error_findings as F
 from ._common import Results
@@ -55,8 +56,10 @@ LIGHTS = ("dir_a", "dir_b", "spot")
 #: The spot light runs with the first SPOT_SEEDS seeds (the directional lights with all four).
 SPOT_SEEDS = 2
 #: CPU seconds above which one build + lookup marks a kind slow (offline references such as
-#: a dynamic-programming optimum): from then on it is built only at its headline setting in
-#: the base configuration of each scene (``slow_kinds`` in findings.json; machine-dependent).
+#: a dynamic-programming optimum): for the rest of that configuration (one cell of the sweep)
+#: it is built only at its headline setting, in the base configuration (``slow_kinds`` in
+#: findings.json; machine-dependent).  Kinds whose schema says ``offline`` run in the base
+#: configuration of each scene only.
 SLOW_BUILD_CPU_S = 3.0
 #: Mitsuba runs in float32: a path that meets no tentative collision returns T = 1 exactly
 #: (standard error 0) where the truth is 1 - 1e-9; differences below this are rounding.
@@ -185,8 +188,10 @@ def _run_config(cfg: _Config, P: dict, rows: list, store: dict, quick: bool, sta
             if s in mitsuba and mode == "inline":
                 rows.append(_reference_row(dict(head0, receivers=s, n=p.k, opaque=mode), p, mitsuba[s]))
         base = cfg.base and mode == "inline"
-        for kind in kinds():
+        for kind in P["kinds"]:
             size = describe(kind)["size"]
+            if describe(kind)["offline"] and not base:
+                continue                                   # offline references: base configuration only
             for i, (params, whole) in enumerate(variants(kind, quick, sweep=base)):
                 if kind in state["slow"] and not (base and i == 0):
                     continue                               # slow kinds: headline, base configuration only
@@ -204,7 +209,8 @@ def _run_config(cfg: _Config, P: dict, rows: list, store: dict, quick: bool, sta
                 brep = rep.rep if isinstance(rep, Built) else rep
                 head = dict(head0, method=kind, param=params.get(size, "") if size else "", setting=name,
                             opaque=mode, bytes_per_texel=brep.nbytes_per_texel, build_lookup_cpu_s=cpu,
-                            texels_built=brep.n_texels, **{_column(k): params.get(k, "") for k in _tuning_columns()})
+                            texels_built=brep.n_texels,
+                            **{_column(k): params.get(k, "") for k in _tuning_columns(P["kinds"])})
                 curve = base and whole and name == label(kind, _with_size(kind, params.get(size)))
                 for s, p in pr.items():
                     rows.append(_row(dict(head, receivers=s, n=p.k, curve=curve and s == "in_volume"),
@@ -213,7 +219,7 @@ def _run_config(cfg: _Config, P: dict, rows: list, store: dict, quick: bool, sta
                         store[(cfg.scene_name, cfg.label, name, mode, s, "main")] = \
                             (np.float32(est[s] - ex[s]), np.float32(est[s] - p.truth))
         if cfg.scene_name == RANGE_SCENE and mode == "inline" and "in_volume" in pr:
-            _depth_range(cap, sub, pr["in_volume"], ex["in_volume"], head0, rows, store, cfg)
+            _depth_range(cap, sub, pr["in_volume"], ex["in_volume"], head0, rows, store, cfg, P["kinds"])
 
 
 def _check_subset(kind, params, est, sub, probes, scene_name, state):
@@ -236,21 +242,21 @@ def _column(name: str) -> str:
     return f"param_{name}" if name in RESERVED else name
 
 
-def _tuning_columns() -> list[str]:
+def _tuning_columns(kind_names) -> list[str]:
     cols = []
-    for k in kinds():
+    for k in kind_names:
         for name in tuned(k):
             if name not in cols:
                 cols.append(name)
     return cols
 
 
-def _depth_range(cap, sub, probe, exact, head0, rows, store, cfg):
+def _depth_range(cap, sub, probe, exact, head0, rows, store, cfg, kind_names):
     """Global range stretched (``study='global_range'``) and a faint segment behind every
     texel's content (``study='faint_segment'``), for the kinds the depth-range claims name
     (built on the probe's texels, global ranges from the whole map)."""
     near, far = cap.segments.bounds()
-    todo = [(k, v) for k, v in F.RANGE_KINDS if k in kinds()]
+    todo = [(k, v) for k, v in F.RANGE_KINDS if k in kind_names]
     for stretch in RANGE_STRETCH:
         for kind, v in todo:
             p = dict(_with_size(kind, v), near=near, far=near + (far - near) * stretch)
@@ -280,45 +286,85 @@ def _range_row(kind, p, rep, probe, exact, head0, rows, store, cfg, study, stret
 
 
 # ======================================================================== run
-def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
-    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json into
-    ``out`` (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _cell(job: dict) -> dict:
+    """One configuration (scene x seed x light) as an independent cell of the sweep
+    (:func:`avsm_dr.sweep.run_cells`): its rows, its error store and its state."""
     from .. import scenes as scene_lib
+    P = job["P"]
+    sc0 = scene_lib.get(job["scene"], seed=job["seed"])
+    scene = dataclasses.replace(sc0, light=light_variants(sc0)[job["light"]])
+    cfg = _Config(job["scene"], scene, f"s{job['seed']}-{job['light']}", job["base"])
+    rows: list[dict] = []
+    store: dict = {}
+    state = {"slow": {}, "whole_map": set(job["whole_map"]), "subset_check": {}}
+    _run_config(cfg, P, rows, store, job["quick"], state)
+    return dict(rows=rows, store=store, slow=state["slow"], whole_map=sorted(state["whole_map"]),
+                subset_check=state["subset_check"])
+
+
+def run(quick: bool = False, out=None, force: bool = False, scenes=None, kinds=None, workers=None,
+        address=None) -> dict:
+    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json into
+    ``out`` (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute.
+    scenes / kinds: subsets (default: the mode's scenes, every registered kind).  workers /
+    address: run the configurations as cells through Ray (:mod:`avsm_dr.sweep`; results
+    equal the serial run's); finished cells are cached under ``<out>/cells/`` so an
+    interrupted run resumes."""
+    from .. import scenes as scene_lib
+    from .. import sweep
+    from ._common import cache_key
+    sweep.check_workers(workers, address)
     known = getattr(scene_lib, "SCENES", {})
     names = list(scenes or [n for n in (QUICK_SCENES if quick else SCENES) if n in known])
+    kind_names = list(all_kinds()) if kinds is None else list(kinds)
+    for k in kind_names:
+        if k not in all_kinds():
+            raise ValueError(f"kinds: unknown kind {k!r}; known: {all_kinds()}")
     configs = [[0, "dir_a"], [1, "spot"]] if quick else \
         [[s, li] for s in range(4) for li in LIGHTS if li != "spot" or s < SPOT_SEEDS]
-    P = dict(scenes=names, resolution=64 if quick else 256, configs=configs,
+    P = dict(scenes=names, resolution=64 if quick else 256, configs=configs, kinds=kind_names,
              n_volume=512 if quick else 4096, n_surface=256 if quick else 1024,
              n_decomp=128 if quick else 512, spp=32 if quick else 256, filter="bilinear",
              truth="raymarch, step 1/8 voxel, float64", tuning={k: list(v) for k, v in TUNING.items()},
-             variants={k: [label(k, p) for p, _ in variants(k, quick, True)] for k in kinds()},
+             variants={k: [label(k, p) for p, _ in variants(k, quick, True)] for k in kind_names},
              range_stretch=list(RANGE_STRETCH), faint_stretch=list(FAINT_STRETCH))
     res = Results("error_curves", out, quick, P)
     if (hit := res.cached(force)) is not None:
         return hit
-    rows: list[dict] = []
-    store: dict = {}
-    state = {"slow": {}, "whole_map": set(), "subset_check": {}}
+    if force:
+        shutil.rmtree(res.dir / "cells", ignore_errors=True)
     t0 = time.perf_counter()
-    jobs = [(n, s, li) for n in names for s, li in configs]
-    sc0 = None
-    for name, seed, lname in tqdm(jobs, desc="error_curves", unit="config"):
-        if sc0 is None or (sc0.name, sc0.meta.get("seed")) != (name, seed):
-            sc0 = scene_lib.get(name, seed=seed)
-        scene = dataclasses.replace(sc0, light=light_variants(sc0)[lname])
-        cfg = _Config(name, scene, f"s{seed}-{lname}", [seed, lname] == configs[0])
-        _run_config(cfg, P, rows, store, quick, state)
+    jobs = [dict(scene=n, seed=s, light=li, base=[s, li] == configs[0], quick=quick, P=P)
+            for n in names for s, li in configs]
+    run_opts = dict(cache_dir=res.dir / "cells", key=dict(P=P, cache=cache_key()), workers=workers,
+                    address=address)
+    with sweep.pool(workers, address):
+        # base configurations first: their subset checks decide which kinds the others build on the whole map
+        base = sweep.run_cells(_cell, [dict(j, whole_map=[]) for j in jobs if j["base"]],
+                               desc="error_curves (base)", **run_opts)
+        whole = {j["scene"]: r["whole_map"] for j, r in zip([j for j in jobs if j["base"]], base)}
+        rest = sweep.run_cells(_cell, [dict(j, whole_map=whole[j["scene"]]) for j in jobs if not j["base"]],
+                               desc="error_curves", **run_opts)
+    it_base, it_rest = iter(base), iter(rest)
+    cells = [next(it_base) if j["base"] else next(it_rest) for j in jobs]
+    rows = [r for c in cells for r in c["rows"]]
+    store = {k: v for c in cells for k, v in c["store"].items()}
+    slow: dict = {}
+    for c in cells:
+        for k, v in c["slow"].items():
+            slow[k] = max(v, slow.get(k, 0.0))
     elapsed = time.perf_counter() - t0
     csv = res.write_csv(rows)
     summary = F.findings(store, rows, n_boot=200 if quick else 1000)
-    summary.update(run_seconds=elapsed, slow_kinds=state["slow"], whole_map_kinds=sorted(state["whole_map"]),
-                   subset_max_difference=state["subset_check"])
+    summary.update(run_seconds=elapsed, slow_kinds=slow,
+                   whole_map_kinds={n: w for n, w in whole.items() if w},
+                   subset_max_difference={k: v for c in base for k, v in c["subset_check"].items()})
     (res.dir / "findings.json").write_text(json.dumps(summary, indent=1, default=float))
     from . import _error_plots
     _error_plots.plot_all(res, rows, names)
     verdicts = {k: v.get("verdict") for k, v in summary.get("claims", {}).items()}
     res.write_meta(verdicts)
+    shutil.rmtree(res.dir / "cells", ignore_errors=True)     # complete: nothing left to resume
     return {"csv": str(csv), "out": str(res.dir), "summary": verdicts, "figures": res.figures}
 
 
