@@ -10,7 +10,7 @@ from ._llvm import ensure_libllvm as _ensure_libllvm
 _ensure_libllvm()  # must run before drjit is imported
 
 from .backend import available_backends, get_backend, set_backend  # noqa: E402
-from .representations import REGISTRY, build, configurations, describe, kinds, register  # noqa: E402
+from .representations import REGISTRY, allows, build, configurations, describe, kinds, register  # noqa: E402
 from .representations.base import Representation  # noqa: E402
 from .segments import OPAQUE_OPTICAL_DEPTH, Segments  # noqa: E402
 from . import builtin_scenes as scenes, groundtruth, shading  # noqa: E402
@@ -19,7 +19,7 @@ from .capture import Capture, capture  # noqa: E402
 __version__ = "0.1.0"
 
 __all__ = [
-    "Segments", "build", "describe", "configurations", "kinds", "register", "REGISTRY", "Representation",
+    "Segments", "allows", "build", "describe", "configurations", "kinds", "register", "REGISTRY", "Representation",
     "set_backend", "get_backend", "available_backends", "OPAQUE_OPTICAL_DEPTH",
     "capture", "Capture", "scenes", "groundtruth", "shading",
 ]

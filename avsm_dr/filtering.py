@@ -36,6 +36,8 @@ from numbers import Integral, Real
 import drjit as dr
 import numpy as np
 
+from . import _arrays as A
+
 FILTERS = ("point", "bilinear", "box", "gaussian")
 #: (receiver, tap) lanes evaluated per batch (bounds the temporary memory: ~50 bytes/lane).
 LANES_PER_BATCH = 1 << 22
@@ -88,14 +90,14 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
     if filter == "point":
         ix, iy, _, _ = split_coordinates(coords, width, height)
         tex = _clamped_texel(ix, iy, width, height).astype(np.uint32)
-        return eval_texels(UInt32(tex), depth)
+        return eval_texels(A.to_uint32(tex), depth)
     if filter == "bilinear":
         ix, iy, fx, fy = split_coordinates(coords - 0.5, width, height, margin=1)
         total = Float(0)
         for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
             tex = _clamped_texel(ix + dx, iy + dy, width, height).astype(np.uint32)
             w = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-            total = total + Float(w) * eval_texels(UInt32(tex), depth)
+            total = total + A.to_float(w, Float) * eval_texels(A.to_uint32(tex), depth)
         return total
 
     # box / gaussian: K x m lanes, lane = receiver * m + tap (receiver-major, block sums)
@@ -103,8 +105,8 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
     side = 2 * r + 1
     m = side * side
     ix, iy, fx, fy = split_coordinates(coords, width, height, margin=r)
-    ix_d, iy_d = Int32(ix.astype(np.int32)), Int32(iy.astype(np.int32))
-    fx_d, fy_d = Float(fx), Float(fy)
+    ix_d, iy_d = Int32(A.aligned(ix.astype(np.int32))), Int32(A.aligned(iy.astype(np.int32)))
+    fx_d, fy_d = A.to_float(fx, Float), A.to_float(fy, Float)
     inv2s2 = 1.0 / (2.0 * (radius / 2.0) ** 2)
     num, den = dr.zeros(Float, k), dr.zeros(Float, k)
     per = max(1, min(m, LANES_PER_BATCH // max(k, 1)))     # taps per batch

@@ -29,7 +29,9 @@ trilinear weights keeps ``d >= 0`` and is unconditionally stable, but it is neit
 exactly conservative nor free of numerical diffusion.
 
 :func:`simulate_plume` runs a buoyant plume from a seeded, wobbling source and caches the
-density on disk, keyed by its parameters and this module's source.
+density on disk, keyed by its parameters and this module's source; :func:`simulate_plume_sequence`
+caches an animation of the same plume (one frame every ``stride`` steps) and
+:func:`plume_frames` yields it step by step.
 """
 from __future__ import annotations
 
@@ -337,6 +339,13 @@ def _source_mask(shape, centre, radius: float, height: float) -> np.ndarray:
     return (np.clip(radius - r + 0.5, 0.0, 1.0) * (y < height)).astype(np.float32)
 
 
+def _cache_file(cache, name: str) -> Path | None:
+    """Where a cached result called ``name`` lives (None: caching off, ``cache=False``)."""
+    if cache is False:
+        return None
+    return (CACHE_DIR if cache is True else Path(cache)) / name
+
+
 def _cache_key(params: dict) -> str:
     h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
     h.update(Path(__file__).read_bytes())
@@ -372,12 +381,9 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
                   vorticity=float(vorticity), source_speed=float(source_speed), source_radius=radius,
                   wobble=float(wobble), iterations=int(iterations), backend=backend.get_backend(),
                   version=_VERSION)
-    path = None
-    if cache is not False:
-        folder = CACHE_DIR if cache is True else Path(cache)
-        path = folder / f"plume_{_cache_key(params)}.npy"
-        if path.exists():
-            return np.load(path)
+    path = _cache_file(cache, f"plume_{_cache_key(params)}.npy")
+    if path is not None and path.exists():
+        return np.load(path)
     sim = StableFluids(shape, buoyancy=buoyancy, vorticity=vorticity, iterations=iterations)
     rng = np.random.default_rng(seed)
     centre = np.array([nx / 2, nz / 2], np.float64)
@@ -390,6 +396,90 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
         sim.add_source(mask, 1.0, (kick[0], source_speed, kick[1]))
         sim.step(dt)
     out = np.maximum(sim.density(), 0.0)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+        np.save(tmp, out)
+        os.replace(tmp, path)
+    return out
+
+
+# ============================================================ an animation
+def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations):
+    """Checked parameters of the plume (as :func:`simulate_plume` checks them), source radius resolved."""
+    shape = _check_shape(shape)
+    seed = V.integer(seed, "seed", 0)
+    dt = V.real(dt, "dt", 0.0, open_min=True)
+    source_speed = V.real(source_speed, "source_speed", 0.0, open_min=True)
+    wobble = V.real(wobble, "wobble", 0.0)
+    V.integer(iterations, "iterations", 0)
+    radius = shape[2] / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
+    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=float(buoyancy),
+                vorticity=float(vorticity), source_speed=float(source_speed), source_radius=radius,
+                wobble=float(wobble), iterations=int(iterations))
+
+
+def plume_frames(shape=(32, 48, 32), seed: int = 0, dt: float = 1.0, buoyancy: float = 0.25,
+                 vorticity: float = 0.3, source_speed: float = 1.5, source_radius: float | None = None,
+                 wobble: float = 0.35, iterations: int = 40):
+    """Generator of the plume of :func:`simulate_plume`, one (nz, ny, nx) float32 density
+    after each step (the k-th yielded array, k = 1, 2, ..., equals ``simulate_plume(steps=k)``
+    with the same arguments bit for bit: the same seeded source walk and solver calls).
+    Endless: the caller stops it."""
+    p = _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations)
+    shape, radius = tuple(p["shape"]), p["source_radius"]
+    nz, ny, nx = shape
+    sim = StableFluids(shape, buoyancy=buoyancy, vorticity=vorticity, iterations=iterations)
+    rng = np.random.default_rng(p["seed"])
+    centre = np.array([nx / 2, nz / 2], np.float64)
+    kick = np.zeros(2)
+    height = max(2.0, ny / 16)
+    while True:
+        centre = np.clip(centre + p["wobble"] * rng.standard_normal(2), nx / 2 - 2 * radius, nx / 2 + 2 * radius)
+        kick = 0.7 * kick + p["wobble"] * rng.standard_normal(2)
+        mask = _source_mask(shape, centre, radius, height) * rng.uniform(0.5, 1.0, shape).astype(np.float32)
+        sim.add_source(mask, 1.0, (kick[0], p["source_speed"], kick[1]))
+        sim.step(p["dt"])
+        yield np.maximum(sim.density(), 0.0)
+
+
+def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 40, stride: int = 1,
+                            seed: int = 0, cache: bool | str | Path = True, progress: bool = False,
+                            **kwargs) -> np.ndarray:
+    """Animation of the plume of :func:`simulate_plume`: (frames, nz, ny, nx) float32, frame f
+    the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
+    one solver run for all frames.  kwargs: the solver parameters of :func:`simulate_plume`
+    (dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations).
+    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``, key = hash of the
+    parameters, backend and this module's source).  progress: a tqdm bar over the steps.
+    Measured on 2 shared cores: 32 x 48 x 32, 40 + 47 steps in about 15 s.
+    """
+    frames = V.integer(frames, "frames", 1, 100000)
+    start = V.integer(start, "start", 1)
+    stride = V.integer(stride, "stride", 1)
+    allowed = {"dt", "buoyancy", "vorticity", "source_speed", "source_radius", "wobble", "iterations"}
+    if set(kwargs) - allowed:
+        raise ValueError(f"kwargs: unknown solver parameters {sorted(set(kwargs) - allowed)}")
+    defaults = dict(dt=1.0, buoyancy=0.25, vorticity=0.3, source_speed=1.5, source_radius=None, wobble=0.35,
+                    iterations=40)
+    solver = dict(defaults, **kwargs)
+    params = dict(_plume_params(shape, seed, **solver), frames=int(frames), start=int(start), stride=int(stride),
+                  backend=backend.get_backend(), version=_VERSION)
+    path = _cache_file(cache, f"plume_seq_{_cache_key(params)}.npy")
+    if path is not None and path.exists():
+        return np.load(path)
+    out = np.empty((frames, *params["shape"]), np.float32)
+    last = start + (frames - 1) * stride
+    gen = plume_frames(shape, seed, **solver)
+    steps = range(1, last + 1)
+    if progress:
+        from tqdm import tqdm
+        steps = tqdm(steps, desc="plume", unit="step", leave=False)
+    for k in steps:
+        d = next(gen)
+        if k >= start and (k - start) % stride == 0:
+            out[(k - start) // stride] = d
+    gen.close()
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")

@@ -39,6 +39,9 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: then made NaN slopes and segfaulted).  Such lengths only occur within ~1e-279 of depth
 #: 0 in float64 storage; they are stored as zero-length steps at z0.
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
+#: :meth:`Segments.sorted` sorts on the device while ``sum count^2 <= DEVICE_SORT_WORK * S``
+#: (mean count weighted by segments <= 256): ranking costs ``count`` comparisons per segment.
+DEVICE_SORT_WORK = 256
 
 
 _HINT = {"float32": " or use dtype='float64'", "float64": ""}
@@ -78,6 +81,30 @@ def flush_subnormal(x, host_arr: np.ndarray, dtype: str):
     if host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)):
         return dr.select(dr.abs(x) < tiny, 0.0, x)
     return x
+
+
+def rank_in_ranges(lo, hi, keys, ids=None):
+    """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
+    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., ids_j) < (keys[0]_i, ..., ids_i)}``,
+    lexicographic, on the device (one lane per element, ``hi - lo`` gathers each).
+
+    keys: Dr.Jit arrays (S,) compared in order; ids: distinct tie-breakers (S,) (default:
+    the lane index, so equal keys keep their stored order, a stable sort).  Within each
+    range the ranks are a permutation of ``0 .. hi - lo - 1``."""
+    UInt32 = backend.types().UInt32
+    i = dr.arange(UInt32, dr.width(lo))
+
+    def cond(j, rank):
+        return j < hi
+
+    def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
+        before = j < i if ids is None else dr.gather(type(ids), ids, j) < ids
+        for k in reversed(keys):
+            kj = dr.gather(type(k), k, j)
+            before = (kj < k) | ((kj == k) & before)
+        return j + 1, rank + dr.select(before, 1, 0)
+
+    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), cond, body, labels=("j", "rank"))[1]
 
 
 @dataclass(eq=False)
@@ -228,10 +255,21 @@ class Segments:
         return self._cache["offsets"]
 
     def texel_of_segment(self):
-        """(S,) texel index of every segment, Dr.Jit UInt32 (cached)."""
+        """(S,) texel index of every segment, Dr.Jit UInt32 (cached), built on the device:
+        a 1 scattered (added) at every texel start ``offsets[1:T]`` below S, then an
+        inclusive prefix sum, ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}``."""
         if "texel_of" not in self._cache:
-            idx = np.repeat(np.arange(self.n_texels, dtype=np.uint32), self.counts)
-            self._cache["texel_of"] = A.to_uint32(idx)
+            UInt32 = backend.types().UInt32
+            n = self.n_segments
+            if self.n_texels < 2 or n == 0:
+                self._cache["texel_of"] = dr.zeros(UInt32, n)
+                return self._cache["texel_of"]
+            starts = self.offsets_dr()
+            k = dr.arange(UInt32, 1, self.n_texels)
+            at = dr.gather(UInt32, starts, k)
+            flag = dr.zeros(UInt32, n)
+            dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), at, at < n)
+            self._cache["texel_of"] = dr.cumsum(flag)
         return self._cache["texel_of"]
 
     def bounds(self) -> tuple[float, float]:
@@ -269,17 +307,60 @@ class Segments:
 
     # ------------------------------------------------------------- reorder
     def sorted(self) -> "Segments":
-        """Segments of each texel sorted by (z0, z1); gradients follow the permutation."""
-        if self.sorted_by_depth:
-            return self
-        h = self.numpy()
-        tex = np.repeat(np.arange(self.n_texels), self.counts)
-        perm = np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32)
-        idx = A.to_uint32(perm)
+        """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
+        lexsort); gradients follow the permutation.
+
+        On the device (:meth:`depth_order`) while the per-texel work ``sum count^2`` stays
+        within :data:`DEVICE_SORT_WORK` per segment, else a host lexsort (same order)."""
+        if self.sorted_by_depth or self.n_segments == 0:
+            return self if self.sorted_by_depth else Segments(self.offsets, self.z0, self.z1,
+                                                              self.optical_depth, self.dtype, True)
+        c = self.counts.astype(np.float64)
+        if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
+            idx = self.depth_order()
+            if idx is None:                                  # already in order
+                return Segments(self.offsets, self.z0, self.z1, self.optical_depth, self.dtype, True)
+        else:
+            h = self.numpy()
+            tex = np.repeat(np.arange(self.n_texels), self.counts)
+            idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
         Float = self.Float
         out = Segments(self.offsets, dr.gather(Float, self.z0, idx), dr.gather(Float, self.z1, idx),
                        dr.gather(Float, self.optical_depth, idx), self.dtype, True)
         return out
+
+    def depth_order(self):
+        """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
+        ties in stored order, computed on the device; None when they are already in order.
+
+        One lane per segment ``i`` of texel ``t``: its rank among the texel's segments,
+        ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic),
+        is its sorted slot, ``perm[o_t + r_i] = i``: ``sum_t count_t^2`` comparisons, no
+        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel."""
+        t = backend.types()
+        UInt32 = t.UInt32
+        n = self.n_segments
+        if n < 2:
+            return None
+        z0, z1 = dr.detach(self.z0), dr.detach(self.z1)
+        tex = self.texel_of_segment()
+        Float = type(z0)
+        # ---- already in order?  pairs (i, i+1) inside one texel
+        i = dr.arange(UInt32, n - 1)
+        same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
+        a0, b0 = dr.gather(Float, z0, i), dr.gather(Float, z0, i + 1)
+        a1, b1 = dr.gather(Float, z1, i), dr.gather(Float, z1, i + 1)
+        inverted = same & ((b0 < a0) | ((b0 == a0) & (b1 < a1)))
+        if not bool(dr.any(inverted)[0]):
+            return None
+        # ---- rank of every segment inside its texel
+        off = self.offsets_dr()
+        i = dr.arange(UInt32, n)
+        lo = dr.gather(UInt32, off, tex)
+        rank = rank_in_ranges(lo, dr.gather(UInt32, off, tex + 1), [z0, z1])
+        perm = dr.zeros(UInt32, n)
+        dr.scatter(perm, i, lo + rank)
+        return perm
 
     def check_depth(self, value, name: str):
         """``value`` (a depth: scalar or 1-D array) checked against the storage dtype:

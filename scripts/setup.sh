@@ -14,5 +14,5 @@ if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && ! "$PY" avsm_dr/_llvm.py >/dev/null; then
 fi
 echo "[setup] libLLVM: ${DRJIT_LIBLLVM_PATH:-$("$PY" avsm_dr/_llvm.py)}" >&2
 
-"$PY" -m pip install -q --disable-pip-version-check -e ".[test]"
+"$PY" -m pip install -q --disable-pip-version-check -e ".[test,docs]"
 echo "[setup] done" >&2

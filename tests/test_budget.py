@@ -33,8 +33,18 @@ def test_plan_keeps_bytes_per_map():
                                            for k, r, p in pl if k == "avsm"]
     for kind, r, p in pl:
         assert r * r * budget.bytes_per_texel(kind, **p) <= B
-    mom = [r for k, r, _ in pl if k == "moments"]
-    assert len(mom) == 1 and mom[0] == int(np.sqrt(B / budget.bytes_per_texel("moments")))
+    mom = [(r, p["moments"]) for k, r, p in pl if k == "moments"]
+    fits = [r for r in (64, 128, 256) if B / r ** 2 >= budget.bytes_per_texel("moments", moments=4)]
+    assert [r for r, _ in mom] == fits and len(fits) >= 2        # moments trade count for resolution too
+    assert all(m in (4, 6, 8) for _, m in mom) and mom[0][1] == 8
+
+
+def test_fit_skips_sizes_the_schema_does_not_allow():
+    """Power moments come in even counts (5, 7, 9 stored floats): the largest allowed one fits."""
+    assert budget.fit("moments", 27.9)["moments"] == 4
+    assert budget.fit("moments", 28.0)["moments"] == 6
+    assert budget.fit("moments", 100.0)["moments"] == 8
+    assert budget.fit("moments", 19.9) is None
 
 
 @pytest.mark.mitsuba

@@ -178,7 +178,13 @@ def test_variants_are_read_from_the_registry():
         if "depth_range" in ad.describe(kind)["params"]:
             assert any(p.get("depth_range") == "texel" for p, _ in vs)
     labels = {E.label("moments", p) for p, _ in E.variants("moments", quick=False, sweep=False)}
-    assert {"moments", "moments/overestimation=0.0", "moments/overestimation=1.0"} <= labels
+    assert {"moments-4", "moments-4/overestimation=0.0", "moments-4/overestimation=1.0",
+            "moments-3/family=trigonometric", "moments-8"} <= labels
+    # the schema's constraint: no 2 or 3 power moments, no 6 or 8 trigonometric ones
+    assert not any(lb.startswith(("moments-2", "moments-3")) and "trigonometric" not in lb for lb in labels)
+    assert not any(lb.startswith(("moments-6", "moments-8")) and "trigonometric" in lb for lb in labels)
+    assert {"avsm-8/precision=float16", "avsm-8/precision=unorm8"} <= {
+        E.label("avsm", p) for p, _ in E.variants("avsm", quick=True, sweep=False)}
     assert {"avsm-8", "avsm-8/interpolation=exp"} <= {E.label("avsm", p) for p, _ in
                                                       E.variants("avsm", quick=False, sweep=False)}
 

@@ -1,16 +1,22 @@
-"""Moment-based representation ('moments'): four power moments of the absorbance with
-the Hamburger 4-moment bound, against tests/reference/moments_ref.py.
+"""Moment-based representation ('moments'): 4, 6, 8 power moments of the absorbance with
+the Hamburger bound, linear and log depth warps, against tests/reference/moments_ref.py.
 
 Tolerances:
-* moments b_k: eps (16 + N) sum tau (|x^k| <= 1; N-term float sum), as for every basis.
-* bounds L, U in float64 vs the NumPy route (linalg.solve / roots / Vandermonde):
-  1e-7 absolute.  Both solve with the Hankel matrix B, whose condition number is up to
-  ~45 / (4 alpha) (its last pivot is floored at alpha 4/45), so eps64 / alpha ~ 2e-7 is the
-  worst case at alpha = 1e-9; measured <= 6e-10 on these inputs.
+* moments b_k, linear warp: eps (16 + N) sum tau (|x^k| <= 1; N-term float sum), as for
+  every basis.  Log warp: the same plus 64 eps sum tau for the logarithms of the clipped
+  depths (|d x^k / d ln z| <= 2k / ln(far / near), k <= 8) and the series / recurrence of
+  the segment means (``log_warp_means``, every term <= 1); measured <= 2e-15 absolute.
+* bounds L, U in float64 vs the NumPy route (linalg.solve / roots / Vandermonde): the
+  Hankel matrix has condition number up to ~1 / (alpha p_min) (its pivots are floored at
+  alpha times the bias target's, smallest p_min = 0.234, 0.026, 0.011 for 4, 6, 8
+  moments), so eps64 / (alpha p_min) ~ 1e-6 at the float64 defaults (alpha = 1e-9, 1e-8,
+  1e-7): asserted 1e-7 (4) and 1e-6 (6, 8); measured <= 5e-10 on these inputs.
 * the Chebyshev-Markov-Stieltjes property L(x) <= F(x-) and U(x) >= F(x) for the biased
-  absorbance distribution F: 1e-7 (same conditioning).
-* float32 vs float64 kernels at the same bias 1e-5: see test_float32_close_to_float64 (the
+  absorbance distribution F: the same tolerances (exact in exact arithmetic).
+* float32 vs float64 kernels at the same bias: see test_float32_close_to_float64 (the
   weights are ill-conditioned where x_f nears a support point).
+* trigonometric moments (2, 3, 4): coefficients as above; bounds of the kernel's Cayley
+  route vs the reference's Toeplitz route 1e-6 (see the test).
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ import avsm_dr as ad
 import drjit as dr
 
 from cases import random_segments, to_segments
+from avsm_dr.representations import moments as MOD
 from reference import linear_ref as R
 from reference import moments_ref as M
 
@@ -105,7 +112,7 @@ def test_bounds_bracket_the_true_distribution(rng):
     case = random_segments(rng, texels=40, max_count=10, opaque_fraction=0.0, zero_fraction=0.3)
     seg = to_segments(case, "float64")
     hc = host_case(seg)
-    rep = ad.build("moments", seg, near=0.0, far=1.0)
+    rep = ad.build("moments", seg, near=0.0, far=1.0, bias_target=MOD.UNIFORM_TARGET[4])
     alpha = rep.params["bias"]
     k = 57
     u = (np.arange(k) + 0.5) / k
@@ -131,7 +138,7 @@ def test_bounds_bracket_the_true_distribution(rng):
 def test_single_delta_is_a_step():
     """One zero-length segment: the upper bound (beta = 1) is the exact step, the lower
     bound (beta = 0) the same step with the receiver at the delta counted in front."""
-    seg = ad.Segments.from_arrays([0, 1], [0.5], [0.5], optical_depth=[1.5], dtype="float64")
+    seg = ad.Segments.from_arrays([0, 1, 1], [0.5], [0.5], optical_depth=[1.5], dtype="float64")
     d = np.array([0.0, 0.1, 0.3, 0.45, 0.5, 0.55, 0.7, 0.9, 1.0])
     exact = np.exp(-1.5 * (d >= 0.5))
     for beta, at_delta in ((1.0, np.exp(-1.5)), (0.0, 1.0)):
@@ -250,6 +257,18 @@ def test_gradients_match_finite_differences(rng):
     ({"overestimation": "0.2"}, "overestimation"),
     ({"near": 0.5, "far": 0.5}, "near"),
     ({"depth_range": "x"}, "depth_range"),
+    ({"moments": 5}, "moments"),
+    ({"moments": 10}, "moments"),
+    ({"moments": 6, "family": "x"}, "family"),
+    ({"moments": 6, "family": "trigonometric"}, "moments"),
+    ({"moments": 3}, "moments"),
+    ({"family": "trigonometric", "moments": 2, "bias_target": (0.0, 0.1)}, "bias_target"),
+    ({"warp": "cubic"}, "warp"),
+    ({"warp": "log", "near": 0.0}, "near"),
+    ({"warp": "log", "near": -1.0, "far": 1.0}, "near"),
+    ({"bias_target": (0.0, 0.3, 0.0)}, "bias_target"),
+    ({"bias_target": (0.0, 1.0, 0.0, 0.5)}, "bias_target"),        # m4 < m2^2: not positive definite
+    ({"bias_target": "abcd"}, "bias_target"),
 ])
 def test_bad_input(params, arg):
     seg = ad.Segments.from_arrays([0, 2], [0.1, 0.5], [0.3, 0.9], optical_depth=[1.0, 0.5])
@@ -269,3 +288,264 @@ def test_non_increasing_up_to_rounding(dtype, tol, rng):
         T = np.asarray(rep.eval(np.repeat(np.arange(50), d.size), np.tile(d, 50)), np.float64)
         assert np.diff(T.reshape(50, -1), axis=1).max() <= tol
     assert rep.monotone is False
+
+
+def test_log_warp_needs_positive_texel_depths():
+    seg = ad.Segments.from_arrays([0, 1, 2, 2], [0.0, 0.3], [0.2, 0.5], optical_depth=[1.0, 0.5])
+    with pytest.raises(ValueError, match="^near:"):
+        ad.build("moments", seg, warp="log", depth_range="texel")
+    seg = ad.Segments.from_arrays([0, 1, 2, 2], [0.1, 0.3], [0.2, 0.5], optical_depth=[1.0, 0.5])
+    rep = ad.build("moments", seg, warp="log", depth_range="texel")      # the empty texel is fine
+    T = np.asarray(rep.eval([0, 1, 2], [0.3, 0.6, 0.5]))
+    assert np.all(np.isfinite(T)) and T[2] == 1.0
+
+
+# ----------------------------------------------------------------------------
+# 6 and 8 moments, the log warp
+# ----------------------------------------------------------------------------
+def _log_receivers(near, span, tex, u, warp):
+    if warp == "linear":
+        return near[tex] + u * span[tex]
+    return near[tex] * np.exp(u * np.log((near[tex] + span[tex]) / near[tex]))
+
+
+@pytest.mark.parametrize("n", [4, 6, 8])
+@pytest.mark.parametrize("warp", ["linear", "log"])
+def test_moments_and_bounds_match_reference(n, warp, rng):
+    """Coefficients (global and per-texel ranges) and bounds / D / T (global) in float64;
+    tolerances in the module docstring."""
+    case = random_segments(rng, texels=16, max_count=10, opaque_fraction=0.0, depth_range=(0.05, 1.0))
+    seg = to_segments(case, "float64")
+    hc = host_case(seg)
+    counts = np.diff(hc["offsets"])
+    total = np.add.reduceat(np.append(hc["tau"], 0), hc["offsets"][:-1]) * (counts > 0)
+    extra = 64 if warp == "log" else 0
+    for rng_kw in ({}, {"depth_range": "texel"}):
+        rep = ad.build("moments", seg, moments=n, warp=warp, **rng_kw)
+        ref = M.moments(hc, n, warp, **rng_kw)
+        tol = EPS["float64"] * (16 + extra + counts) * total
+        assert np.all(np.abs(coefficient_array(rep) - ref) <= tol[:, None] + 1e-300)
+        assert rep.nbytes_per_texel == (n + 1 + (2 if rng_kw else 0)) * 8
+    alpha, beta = rep.params["bias"], 0.25
+    rep = ad.build("moments", seg, moments=n, warp=warp, overestimation=beta)
+    b = coefficient_array(rep)
+    near, span = R.ranges(hc)
+    k = 23
+    tex, u = np.repeat(np.arange(seg.n_texels), k), np.tile((np.arange(k) + 0.37) / k, seg.n_texels)
+    d = _log_receivers(near, span, tex, u, warp)
+    lo, up = (np.asarray(v) for v in rep.bounds(uint32(tex), ad.backend.types().Float64(d)))
+    uu = M.warped_u(d, near[tex], span[tex], warp)
+    ref = np.array([M.bounds(b[t], 2 * x - 1, alpha) for t, x in zip(tex, uu)])
+    ne = b[tex, 0] > 0
+    tol = 1e-7 if n == 4 else 1e-6
+    np.testing.assert_allclose(lo[ne], ref[ne, 0], rtol=0, atol=tol)
+    np.testing.assert_allclose(up[ne], ref[ne, 1], rtol=0, atol=tol)
+    Dref = np.array([M.optical_depth(b[t], [x], alpha, beta)[0] for t, x in zip(tex, uu)])
+    T = np.asarray(rep.eval(tex, d))
+    assert np.all(np.abs(T - np.exp(-Dref)) <= tol * (1 + b[tex, 0]))
+
+
+@pytest.mark.parametrize("n,warp", [(6, "linear"), (8, "log")])
+def test_bounds_bracket_the_true_distribution_6_8(n, warp, rng):
+    """L(x) <= F(x-) and F(x) <= U(x) (Chebyshev-Markov-Stieltjes) for the biased absorbance
+    distribution F = (1 - alpha) D_exact / b_0 + alpha u (bias toward the uniform target)."""
+    case = random_segments(rng, texels=24, max_count=10, opaque_fraction=0.0, zero_fraction=0.3,
+                           depth_range=(0.05, 1.0))
+    seg = to_segments(case, "float64")
+    hc = host_case(seg)
+    rep = ad.build("moments", seg, moments=n, warp=warp, near=0.05, far=1.0,
+                   bias_target=MOD.UNIFORM_TARGET[n])
+    alpha = rep.params["bias"]
+    k = 57
+    u = (np.arange(k) + 0.5) / k
+    near, span = np.array([0.05]), np.array([0.95])
+    d = _log_receivers(near, span, np.zeros(k, int), u, warp)
+    tex = np.repeat(np.arange(seg.n_texels), k)
+    lo, up = (np.asarray(v).reshape(seg.n_texels, k) for v in
+              rep.bounds(uint32(tex), ad.backend.types().Float64(np.tile(d, seg.n_texels))))
+    b0 = coefficient_array(rep)[:, 0]
+    checked = 0
+    for t in range(seg.n_texels):
+        if b0[t] <= 0:
+            continue
+        Fl = (1 - alpha) * R.exact_optical_depth(hc, t, d * (1 - 1e-12)) / b0[t] + alpha * u
+        Fr = (1 - alpha) * R.exact_optical_depth(hc, t, d) / b0[t] + alpha * u
+        assert np.all(lo[t] <= Fl + 1e-6), np.max(lo[t] - Fl)
+        assert np.all(up[t] >= Fr - 1e-6), np.max(Fr - up[t])
+        checked += 1
+    assert checked > 10
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_adversarial_texels_finite(dtype):
+    """One segment (rank-1 moment matrix before the bias), one zero-length segment, huge and
+    opaque optical depth, everything at one depth, two deltas: T finite in [0, 1] for every
+    moment count and beta, and 0 <= L <= U <= 1.  Float64: T within 1e-6 (1 + b_0) of the
+    reference (tolerances of the module docstring) where b_0 < 1e3; float32 with its
+    published bias: finite and bounded (the rank-1 case is where public float32 Cholesky
+    implementations return NaN)."""
+    offsets = [0, 1, 2, 3, 4, 7, 9, 9]
+    z0 = [0.5, 0.3, 0.3, 0.5, 0.5, 0.5, 0.5, 0.2, 0.7]
+    z1 = [0.5, 0.6, 0.6, 0.5, 0.5, 0.5, 0.5, 0.2, 0.7]
+    tau = [1.5, 2.0, 1e4, ad.OPAQUE_OPTICAL_DEPTH, 0.1, 1.0, 3.0, 1.0, 1.0]
+    seg = ad.Segments.from_arrays(offsets, z0, z1, optical_depth=tau, dtype=dtype)
+    d = np.linspace(0.0, 1.0, 101)
+    tex = np.repeat(np.arange(7), d.size)
+    dd = np.tile(d, 7)
+    for fam, n in (("power", 4), ("power", 6), ("power", 8), ("trigonometric", 2), ("trigonometric", 4)):
+        for beta in (0.0, 1.0):
+            rep = ad.build("moments", seg, family=fam, moments=n, near=0.0, far=1.0, overestimation=beta)
+            T = np.asarray(rep.eval(tex, dd), np.float64)
+            assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1)), (n, beta)
+            lo, up = (np.asarray(v, np.float64) for v in rep.bounds(uint32(tex), rep.Float(dd)))
+            assert np.all((0 <= lo) & (lo <= up) & (up <= 1)), (n, beta)
+            if dtype == "float64":
+                b = coefficient_array(rep)
+                a = rep.params["bias"]
+                if fam == "power":
+                    Dref = np.concatenate([M.optical_depth(b[t], d, a, beta) for t in range(7)])
+                else:
+                    Dref = np.concatenate([_trig_depth(b[t], d, a, beta) for t in range(7)])
+                ok = b[tex, 0] < 1e3                       # D = b_0 frac: compare T where b_0 is moderate
+                assert np.all(np.abs(T - np.exp(-Dref))[ok] <= 1e-6 * (1 + b[tex, 0][ok])), (n, beta)
+
+
+def _trig_depth(b, u, alpha, beta):
+    out = np.zeros(len(u))
+    for j, uj in enumerate(u):
+        if uj <= 0 or b[0] <= 0:
+            continue
+        lo, up = M.trig_bounds(b, 2 * uj - 1, alpha) if uj < 1 else (1.0, 1.0)
+        out[j] = b[0] * min(max(lo + beta * (up - lo), 0.0), 1.0)
+    return out
+
+
+@pytest.mark.parametrize("n,warp", [(2, "linear"), (3, "log"), (4, "linear")])
+def test_trigonometric_moments_and_bounds_match_reference(n, warp, rng):
+    """Coefficients against quadrature, and the bounds of the Cayley-transform route (the
+    kernel) against the Toeplitz route of the reference (roots of the kernel polynomial on
+    the unit circle by numpy.roots, weights by least squares on t_0..t_n).  Bounds: 1e-6
+    (the Hankel pivots of nu are floored at alpha = 1e-9 times the uniform distribution's,
+    >= 0.004 M_0 for n = 4: cond <~ 3e11, eps64 cond ~ 6e-5 a priori; measured <= 8e-9)."""
+    case = random_segments(rng, texels=16, max_count=10, opaque_fraction=0.0, depth_range=(0.05, 1.0))
+    seg = to_segments(case, "float64")
+    hc = host_case(seg)
+    counts = np.diff(hc["offsets"])
+    total = np.add.reduceat(np.append(hc["tau"], 0), hc["offsets"][:-1]) * (counts > 0)
+    rep = ad.build("moments", seg, family="trigonometric", moments=n, warp=warp)
+    b = coefficient_array(rep)
+    tol = EPS["float64"] * (16 + (64 if warp == "log" else 0) + counts) * total
+    assert np.all(np.abs(b - M.trig_moments(hc, n, warp)) <= tol[:, None] + 1e-300)
+    assert rep.nbytes_per_texel == (2 * n + 1) * 8
+    near, span = R.ranges(hc)
+    k = 23
+    tex, u = np.repeat(np.arange(seg.n_texels), k), np.tile((np.arange(k) + 0.37) / k, seg.n_texels)
+    d = _log_receivers(near, span, tex, u, warp)
+    lo, up = (np.asarray(v) for v in rep.bounds(uint32(tex), ad.backend.types().Float64(d)))
+    uu = M.warped_u(d, near[tex], span[tex], warp)
+    ref = np.array([M.trig_bounds(b[t], 2 * x - 1, rep.params["bias"]) for t, x in zip(tex, uu)])
+    ne = b[tex, 0] > 0
+    np.testing.assert_allclose(lo[ne], ref[ne, 0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(up[ne], ref[ne, 1], rtol=0, atol=1e-6)
+    # the reference's own check: the canonical points lie on the unit circle and fit t_0..t_n
+    t = np.r_[1.0, (b[0, 1::2] + 1j * b[0, 2::2]) / b[0, 0]] if b[0, 0] > 0 else None
+    if t is not None:
+        _, w, res, off_circle = M.trig_canonical(t, 0.3)
+        assert res < 1e-8 and off_circle < 1e-8 and np.all(w > -1e-8)
+
+
+def test_trigonometric_bounds_bracket_the_true_distribution(rng):
+    """L(phi) <= F(phi-) and F(phi) <= U(phi) on the circle (cut at pi) for the biased
+    F = (1 - alpha) D_exact / b_0 + alpha (phi + pi) / (2 pi); tolerance 1e-6 as above."""
+    case = random_segments(rng, texels=24, max_count=10, opaque_fraction=0.0, zero_fraction=0.3)
+    seg = to_segments(case, "float64")
+    hc = host_case(seg)
+    rep = ad.build("moments", seg, family="trigonometric", moments=4, near=0.0, far=1.0)
+    alpha = rep.params["bias"]
+    k = 57
+    u = (np.arange(k) + 0.5) / k
+    tex = np.repeat(np.arange(seg.n_texels), k)
+    lo, up = (np.asarray(v).reshape(seg.n_texels, k) for v in
+              rep.bounds(uint32(tex), ad.backend.types().Float64(np.tile(u, seg.n_texels))))
+    b0 = coefficient_array(rep)[:, 0]
+    phi = np.pi / 2 * (2 * u - 1)
+    checked = 0
+    for t in range(seg.n_texels):
+        if b0[t] <= 0:
+            continue
+        Fl = (1 - alpha) * R.exact_optical_depth(hc, t, u - 1e-12) / b0[t] + alpha * (phi + np.pi) / (2 * np.pi)
+        Fr = (1 - alpha) * R.exact_optical_depth(hc, t, u) / b0[t] + alpha * (phi + np.pi) / (2 * np.pi)
+        assert np.all(lo[t] <= Fl + 1e-6), np.max(lo[t] - Fl)
+        assert np.all(up[t] >= Fr - 1e-6), np.max(Fr - up[t])
+        checked += 1
+    assert checked > 10
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_log_warp_means_against_quadrature(dtype, rng):
+    """E[x^k] for optical depth uniform in z under the log warp vs float64 Gauss-Legendre in
+    t = ln z, for kappa = ln(z1 / z0) / 2 on both sides of KAPPA_SWITCH (series /
+    recurrence) and up to 40.  Float64: 1e-14 absolute (45 eps: sums of up to 9 binomial
+    terms and 17 series terms, each <= 1; series truncation < 1e-16; measured 4.1e-15);
+    float32: 2e-6 (the inputs' rounding, eps32 |ln z| / lambda, and
+    the recurrence's growth prod i / kappa <= 0.62)."""
+    Float = ad.backend.types().Float32 if dtype == "float32" else ad.backend.types().Float64
+    lam = np.concatenate([rng.uniform(0.01, 8, 200), [0.5, 4.0, 20.0, 40.0]])
+    x0 = rng.uniform(-1, 1, lam.size)
+    x1 = np.minimum(x0 + rng.uniform(0, 2, lam.size) * rng.choice([1e-6, 0.1, 1.0], lam.size), 1.0)
+    x0[-4:], x1[-4:] = -1.0, 1.0
+    x0h, x1h = (np.asarray(Float(v), np.float64) for v in (x0, x1))
+    got = np.stack([np.asarray(m, np.float64) for m in MOD.log_warp_means(Float(x0), Float(x1), Float(lam), 8,
+                                                                              dtype)], axis=1)
+    gx, gw = np.polynomial.legendre.leggauss(64)
+    for i in range(lam.size):
+        h = 0.5 * (x1h[i] - x0h[i])
+        x = 0.5 * (x0h[i] + x1h[i]) + h * gx
+        w = gw * np.exp(lam[i] * h * gx)
+        ref = (x[None, :] ** np.arange(9)[:, None]) @ w / w.sum()
+        tol = 1e-14 if dtype == "float64" else 2e-6
+        assert np.all(np.abs(got[i] - ref) <= tol), (lam[i], x0h[i], x1h[i], np.abs(got[i] - ref).max())
+    kappa = lam * 0.5 * (x1h - x0h)
+    assert np.any(kappa < MOD.KAPPA_SWITCH) and np.any(kappa > MOD.KAPPA_SWITCH)
+
+
+def test_default_bias_and_target_follow_the_storage():
+    seg32 = ad.Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
+    seg64 = ad.Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5], dtype="float64")
+    for n in (4, 6, 8):
+        assert ad.build("moments", seg32, moments=n).params["bias"] == MOD.DEFAULT_BIAS[n]["float32"]
+        assert ad.build("moments", seg64, moments=n).params["bias"] == MOD.DEFAULT_BIAS[n]["float64"]
+        rep = ad.build("moments", seg32, moments=n)
+        assert rep._target == MOD.MBOIT_TARGET[n]
+    assert MOD.DEFAULT_BIAS[4]["float32"] == 5e-7 and MOD.MBOIT_TARGET[4] == (0.0, 0.375, 0.0, 0.375)
+    assert ad.build("moments", seg32, bias=1e-3).params["bias"] == 1e-3
+
+
+def test_gradients_8_moments_log_warp(rng):
+    """Reverse mode through the quartic (closed form + Newton polish: at a converged root
+    the Newton step's derivative is the implicit one) vs central differences, float64."""
+    Float64 = ad.backend.types().Float64
+    case = random_segments(rng, texels=3, max_count=4, opaque_fraction=0.0, empty_fraction=0.0,
+                           zero_fraction=0.0, depth_range=(0.2, 0.8))
+    tex = np.repeat(np.arange(3), 7)
+    d = np.tile(np.linspace(0.15, 0.95, 7), 3)
+    w = rng.normal(size=tex.size)
+
+    def loss(tau):
+        seg = ad.Segments.from_arrays(case["offsets"], case["z0"], case["z1"], optical_depth=tau,
+                                      dtype="float64")
+        rep = ad.build("moments", seg, moments=8, warp="log", near=0.1, far=1.0)
+        return dr.sum(rep.eval(tex, d) * Float64(w))
+
+    x = Float64(case["tau"])
+    dr.enable_grad(x)
+    dr.backward(loss(x))
+    rev = np.asarray(dr.grad(x))
+    fd = np.zeros(x.shape[0] if hasattr(x, "shape") else len(case["tau"]))
+    for i in range(fd.size):
+        p, m = case["tau"].copy(), case["tau"].copy()
+        p[i] += 1e-6
+        m[i] -= 1e-6
+        fd[i] = (np.asarray(loss(p))[0] - np.asarray(loss(m))[0]) / 2e-6
+    np.testing.assert_allclose(rev, fd, rtol=1e-5, atol=1e-7)
+    assert np.any(np.abs(fd) > 1e-3)

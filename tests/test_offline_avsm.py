@@ -199,6 +199,14 @@ def test_avsm_gap_quick(tmp_path):
         assert float(r["depth_rms"]) <= subset + 1e-6
         assert float(r["depth_rms"]) == pytest.approx(float(r["objective_analytic"]), abs=1e-5)
     findings = json.loads((out / "findings.json").read_text())
-    assert set(findings) == {"plume", "three_columns", "hair_and_smoke"}
+    intervals = findings.pop("intervals")
+    assert set(findings) == {"plume", "three_columns", "hair_and_smoke"} == set(intervals)
     assert all("avsm_over_optimal" in d for s in findings.values() for d in s.values())
+    for scene in intervals.values():                  # paired bootstrap over texels, per N
+        for d in scene.values():
+            for m in ("avsm", "greedy", "optimal_subset"):
+                r = d[f"{m}_over_optimal"]
+                assert r["low"] <= r["estimate"] <= r["high"] and r["n_configs"] == 1
+                if m != "avsm":      # breakpoint subsets are DP candidates: per texel never below optimal
+                    assert r["low"] >= 1 - 1e-5
     assert (out / "gap_depth.png").exists() and (out / "gap_receivers.png").exists()

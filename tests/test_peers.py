@@ -11,6 +11,8 @@ and one proves that the modules import without it.  Tolerances:
   ulp each); transmittance to 1e-10 (exp of an optical depth wrong by <= 1e-13 x 2e4
   for opaque texels, where T is 0 anyway).
 """
+import json
+
 import numpy as np
 import pytest
 
@@ -126,3 +128,29 @@ def test_bench_quick_writes_its_tables(tmp_path):
                  "meta.json", "throughput.png", "scaling.png"):
         assert (tmp_path / name).exists(), name
     assert out["summary"]["avsm8_insertions_per_cpu_s"] > 0
+    kinds = json.loads((tmp_path / "machine.json").read_text())["kinds"]
+    assert {k for k in ad.kinds()} <= {name.split("-")[0] for name in kinds}
+    assert kinds["avsm-nodes=8"]["fraction_of_limit"] > 0
+
+
+def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
+    """``machine.kernel_ops`` (the per-kind operation counts of ``machine.json``): for AVSM the
+    loop with the most operations is its compress loop (the count the AVSM limit uses);
+    for a linear kind (no loop) every vector operation of the kernel is counted."""
+    import drjit as dr
+    from avsm_dr.experiments._common import _jit_kernels
+    from avsm_dr.experiments.bench import machine
+    from avsm_dr.experiments.bench.settings import counts_map
+    seg = counts_map(8, 10)
+    irs = {}
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for kind, p in (("avsm", {"nodes": 4}), ("fom", {"harmonics": 4})):
+            dr.kernel_history()
+            ad.build(kind, seg, **p)
+            irs[kind] = [k["ir"].getvalue() for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
+    ir = next(s for s in irs["avsm"] if "avsm_compress" in s)
+    ops, width, loop = machine.kernel_ops(ir)
+    assert loop == "avsm_compress" and width >= 4
+    assert ops == machine.loop_ops(ir, "avsm_compress")[0]
+    counted = [machine.kernel_ops(s) for s in irs["fom"]]
+    assert all(lab == "" for _, _, lab in counted) and max(sum(o.values()) for o, _, _ in counted) > 10

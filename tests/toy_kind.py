@@ -1,5 +1,5 @@
 """A toy representation registered at run time (tests/conftest.py): the worked example of
-docs/guide.md "Adding a representation", kept here so the test suite proves that a kind
+docs/extending.md ("Adding a representation"), kept here so the test suite proves that a kind
 defined outside the package joins every registry-driven test and experiment sweep.
 
 ``toy_beer``: one uniform medium per texel between its first entry ``a`` and last exit

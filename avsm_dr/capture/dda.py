@@ -50,6 +50,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .assembly import TexelRuns
 from .grid import _Kernel, lane_rays
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
@@ -110,7 +111,8 @@ def dual_grid(grid):
 
 # --------------------------------------------------------------------- traversal
 def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiable: bool | None = None,
-             lanes_rays=None, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET):
+             lanes_rays=None, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
+             runs: bool = False):
     """Integrate every texel ray of ``camera`` through ``grid`` exactly, one segment per
     dual-cell crossing with non-zero optical depth.
 
@@ -123,6 +125,8 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         (computed when None).
     capacity: segments a lane writes per round (see :data:`ROUND_CAPACITY`).
     slot_budget: most slots of the one-round layout (see :data:`SLOT_BUDGET`); 0 forces rounds.
+    runs: return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
+        count), not expanded to one per segment on the host.
     """
     t = backend.types()
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
@@ -266,7 +270,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         if S and (differentiable if differentiable is not None else dr.grad_enabled(grid.data)):
             tau = differentiable_tau(grid, o, d, counts, z0, z1)
         clock = time.perf_counter()
-        texel = np.repeat(lanes.astype(np.int64), counts)
+        texel = TexelRuns(lanes, counts) if runs else np.repeat(lanes.astype(np.int64), counts)
         stats["texel_s"] = time.perf_counter() - clock
         return (texel, z0, z1, tau, stats) if S else empty[:4] + (stats,)
 

@@ -41,6 +41,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from ..io import read_vol
+from .assembly import TexelRuns
 
 
 # --------------------------------------------------------------------- host prep
@@ -329,7 +330,7 @@ def check_method(method, step) -> str:
 
 
 def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zero: bool = False,
-          differentiable: bool | None = None, method: str = "march"):
+          differentiable: bool | None = None, method: str = "march", runs: bool = False):
     """March every texel ray of ``camera`` through ``grid``.
 
     Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``,
@@ -341,6 +342,8 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         to reach every voxel).
     differentiable: recompute tau from differentiable gathers (default: when the grid's
         data has gradients enabled).
+    runs: return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
+        count), not expanded to one per segment on the host.
     """
     if method != "march":
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
@@ -469,5 +472,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         def sig(tt):
             return kern.trilinear(grid.data, gx + ex * tt, gy + ey * tt, gz + ez * tt)
         tau = (z1 - z0) * (sig(z0) + 4 * sig(0.5 * (z0 + z1)) + sig(z1)) * (1.0 / 6.0)
+    if runs:
+        return TexelRuns(lanes, counts), z0, z1, tau, stats
     texel = np.repeat(lanes.astype(np.int64), counts)
     return texel, z0, z1, tau, stats

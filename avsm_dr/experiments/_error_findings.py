@@ -22,6 +22,17 @@ import numpy as np
 
 from .. import stats
 
+#: Every scene ``error_curves`` can run (claims about scenes not run are left out).
+SCENE_NAMES = ("plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table", "simulated_plume")
+#: Moment variants and the FOM of the same bytes (float32): 5, 7 and 9 stored floats.
+MOMENTS_VS_FOM = (("moments-4", "fom-2"), ("moments-2/family=trigonometric", "fom-2"),
+                  ("moments-6", "fom-3"), ("moments-3/family=trigonometric", "fom-3"),
+                  ("moments-8", "fom-4"), ("moments-4/family=trigonometric", "fom-4"))
+#: Headline settings compared in float16 and 8-bit storage against float32 (the segments' dtype).
+PRECISION_SETTINGS = ("avsm-8", "fom-4", "moments-4", "osm-32", "dsm-0.01")
+#: A storage precision "costs nothing" when the RMSE ratio to float32 stays below this.
+PRECISION_BOUND = 1.01
+
 #: (kind, size) of the depth-range study (the AVSM paper's comparison).
 RANGE_KINDS = (("avsm", 8), ("fom", 8), ("osm", 32))
 H, P, T, S, C = "hair_and_smoke", "plume", "smoke_over_table", "surface", "in_volume"
@@ -72,7 +83,7 @@ def _claims() -> list[dict]:
                     b=_side("fom-16", opaque="inline"),
                     statement="a separate opaque depth map lowers FOM-16's error inside the smoke"))
     for beta, sign in (("0.0", "leak"), ("", "leak"), ("1.0", "dark")):
-        v = "moments" + (f"/overestimation={beta}" if beta else "")
+        v = "moments-4" + (f"/overestimation={beta}" if beta else "")
         z = _side(v, "zero")
         a, b = (z, _side(v)) if sign == "leak" else (_side(v), z)
         out.append(dict(id=f"moments_beta{beta or '0.25'}_{sign}s_plume", scene=P, a=a, b=b, statistic="mean",
@@ -80,6 +91,22 @@ def _claims() -> list[dict]:
                         statement=f"4 power moments (beta = {beta or '0.25'}) "
                                   + ("leak light: mean signed error > 0" if sign == "leak"
                                      else "over-darken: mean signed error < 0")))
+    for sc in SCENE_NAMES:                                 # today's representations (issue 13)
+        for v, b in (("beer", "12 B"), ("beer/variant=two_node", "16 B")):
+            out.append(dict(id=f"avsm8_vs_{v.replace('/variant=', '_')}_{sc}", scene=sc, a=_side("avsm-8"),
+                            b=_side(v), statement=f"AVSM-8 (64 B) compresses better than the Beer shadow map "
+                                                  f"({v.split('=')[-1] if '=' in v else 'cloud'}, {b}): RMSE "
+                                                  "ratio < 1 vs the exact curve"))
+        for m, f in MOMENTS_VS_FOM:
+            out.append(dict(id=f"{m.replace('/family=trigonometric', '_trig').replace('-', '')}_vs_"
+                               f"{f.replace('-', '')}_{sc}", scene=sc, a=_side(m), b=_side(f),
+                            statement=f"{m} compresses better than {f} at equal bytes (RMSE ratio < 1)"))
+        for v in PRECISION_SETTINGS:
+            for prec in ("float16", "unorm8"):
+                out.append(dict(id=f"{v.replace('-', '').replace('.', '')}_{prec}_vs_float32_{sc}", scene=sc,
+                                a=_side(f"{v}/precision={prec}"), b=_side(v), below=PRECISION_BOUND,
+                                statement=f"{v} stored in {prec} loses under 1 % RMSE against float32 "
+                                          f"(ratio < {PRECISION_BOUND})"))
     return out
 
 
@@ -183,9 +210,10 @@ def _median_by(rows, key_fn, value, where) -> dict:
 def _leak_table(store, configs, n_boot) -> dict:
     """Shares of in-volume receivers leaking / over-darkening by > 0.02 (vs the exact curve),
     pooled over configurations, with bootstrap intervals over receivers, for every
-    moments variant and AVSM-8 / FOM-8, per scene."""
+    moments variant, AVSM-8, FOM-8 and the FOMs of the moments' bytes, per scene."""
     out = {}
-    variants = sorted({k[2] for k in store if k[2].startswith("moments")} | {"avsm-8", "fom-8"})
+    variants = sorted({k[2] for k in store if k[2].startswith("moments")} | {"avsm-8", "fom-8"}
+                      | {f for _, f in MOMENTS_VS_FOM})
     for sc in sorted({k[0] for k in store}):
         for v in variants:
             errs = [e for cfg in configs if (e := _errors(store, sc, cfg, _side(v))) is not None]

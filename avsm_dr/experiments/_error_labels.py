@@ -6,6 +6,12 @@ from .. import describe
 
 #: Values swept for tuning parameters that are not choices (moments' overestimation beta).
 TUNING = {"overestimation": (0.0, 0.25, 1.0)}
+#: Choice parameters not crossed with the rest: moments' ``warp='log'`` needs every depth
+#: > 0, which scenes with the light inside the depth range violate (the learned_warp
+#: experiment compares warps).
+UNTUNED = {"warp"}
+#: Storage precisions built at each kind's headline size (fp16 vs fp32 in findings.json).
+PRECISIONS = ("float16", "unorm8")
 
 
 def tuned(kind: str) -> dict:
@@ -14,7 +20,7 @@ def tuned(kind: str) -> dict:
     d = describe(kind)
     out = {}
     for name, p in d["params"].items():
-        if name == d["size"]:
+        if name == d["size"] or name in UNTUNED:
             continue
         if p.get("type") == "choice" and p.get("choices"):
             out[name] = tuple(p["choices"])
@@ -25,7 +31,8 @@ def tuned(kind: str) -> dict:
 
 def label(kind: str, params: dict) -> str:
     """Readable name of a build: ``kind-size`` plus ``/name=value`` for every tuning value
-    that differs from the kind's default, e.g. ``fom-16/depth_range=texel``."""
+    that differs from the kind's default, e.g. ``fom-16/depth_range=texel``, and the storage
+    ``/precision=...`` when one is given."""
     d = describe(kind)
     size = d["size"]
     s = kind + (f"-{params[size]}" if size and size in params else "")
@@ -33,6 +40,8 @@ def label(kind: str, params: dict) -> str:
         default = d["headline"].get(name, d["params"][name]["default"])
         if name in params and params[name] != default:
             s += f"/{name}={params[name]}"
+    if params.get("precision") is not None:
+        s += f"/precision={params['precision']}"
     return s
 
 

@@ -213,6 +213,37 @@ def _midslope_backward() -> tuple[bool, str]:
     return _refused("placement", lambda: dr.backward(dr.sum(T)))
 
 
+# ----------------------------------------------------------------------------
+# Storage precision: every kind x every precision it accepts
+# ----------------------------------------------------------------------------
+#: Cases the precision sweep runs in --quick mode (all of them otherwise).
+PRECISION_QUICK_CASES = ("opacity_1", "optical_depth_1e4", "depth_offset_1e6")
+
+
+def precision_configs(case: str) -> list[tuple[str, dict, str]]:
+    """(kind, headline parameters, precision) for every registered kind and every storage
+    precision it accepts (``describe(kind)['precisions']``); offline kinds (host O(K^2)
+    or more per texel) skip the one-ray case of thousands of segments."""
+    from .. import describe, kinds
+    out = []
+    for kind in kinds():
+        d = describe(kind)
+        if d["offline"] and case.endswith("_segments_one_ray"):
+            continue
+        out += [(kind, dict(d["headline"]), p) for p in d["precisions"]]
+    return out
+
+
+def precision_check(rows: list[dict], seconds: float) -> dict:
+    """Reliability row: the precision sweep's estimates are finite and in [0, 1]."""
+    runs = [r for r in rows if r["precision"] != "native"]
+    bad = sum(r["nan_count"] + r["inf_count"] + r["bounds_violations"] for r in runs)
+    pairs = sorted({(r["method"], r["precision"]) for r in runs})
+    return dict(check_class="precision", case=f"every kind x precision ({len(pairs)} pairs, {len(runs)} runs)",
+                expected="0 NaN/inf, T in [0, 1]", failures=int(bad > 0), seconds=round(seconds, 3),
+                detail=f"{bad} NaN/inf/out-of-range estimates")
+
+
 def run_checks(quick: bool) -> list[dict]:
     """Every check as a CSV row."""
     rows = []

@@ -25,7 +25,11 @@ Two measures of each representation against the exact curve of the same segments
   the capture: RMSE / max / mean signed error against the exact curve's lookups.
 
 ``findings.json``: per scene and N, AVSM / greedy / optimal ``depth_rms`` and the
-ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise.
+ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise (first
+configuration), and under ``intervals`` the depth-RMS ratios to optimal with 95 %
+bootstrap intervals: per configuration over texels (paired), pooled over the
+configurations (seed x light: the scene's light with seed 0, the tilted light ``dir_b``
+with seed 1; quick mode the first only) by :func:`avsm_dr.stats.claim`.
 """
 from __future__ import annotations
 
@@ -62,7 +66,7 @@ def node_depths(rep) -> tuple[np.ndarray, np.ndarray]:
     if hasattr(rep, "nodes_numpy") and rep.kind in ("avsm", "greedy", "optimal"):
         d, _ = rep.nodes_numpy()
         return np.repeat(np.arange(d.shape[0]), d.shape[1]), d.ravel()
-    if rep.kind == "avsm_march":
+    if rep.kind in ("avsm_march", "avsm_adaptive"):
         return np.repeat(np.arange(rep.n_texels), rep.node_counts), rep.node_depths()
     return np.zeros(0, np.int64), np.zeros(0)
 
@@ -119,16 +123,23 @@ class UniformObjective:
                 "_texel_rms": np.sqrt(mse)}
 
 
-def _scene_rows(name, P, rows, quick):
-    from .. import builtin_scenes, capture, receivers
-    scene = getattr(builtin_scenes, name)()
+def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
+    """Rows of one configuration (scene, seed, light); per-texel RMS of every method into
+    ``texel_errors[(scene, config, N, method)]`` (for the intervals)."""
+    import dataclasses
+    from .. import capture, receivers
+    from .. import scenes as scene_lib
+    from ._error_terms import light_variants
+    sc0 = scene_lib.get(name, seed=seed)
+    scene = dataclasses.replace(sc0, light=light_variants(sc0)[light])
+    config = f"s{seed}-{light}"
     cap = capture(scene, resolution=P["resolution"])
     seg = cap.segments
-    sets = receivers.receiver_sets(scene, P["n_volume"], P["n_surface"], seed=0)
+    sets = receivers.receiver_sets(scene, P["n_volume"], P["n_surface"], seed=seed)
     exact = build("exact", seg)
     ex = {s: np.asarray(cap.transmittance(exact, p, filter="bilinear"), np.float64) for s, p in sets.items()}
     obj = UniformObjective(seg)
-    head = dict(scene=name, resolution=P["resolution"], texels=int(obj.texels.size),
+    head = dict(scene=name, config=config, resolution=P["resolution"], texels=int(obj.texels.size),
                 max_segments=int(seg.max_count))
 
     def row(label, kind, params, n):
@@ -154,6 +165,9 @@ def _scene_rows(name, P, rows, quick):
                 continue
             r, texel_rms[label] = row(label, kind, params, n)
         sel = obj.texels
+        if texel_errors is not None:
+            for label, v in texel_rms.items():
+                texel_errors[(name, config, n, label)] = v[sel]
         for other in ("optimal_subset", "optimal"):
             if "avsm" in texel_rms and other in texel_rms and sel.size:
                 # lower by more than float32 lookup noise (~1e-7 in a texel's RMS)
@@ -163,12 +177,39 @@ def _scene_rows(name, P, rows, quick):
         row("beer", "beer", {}, 0)
 
 
-def findings(rows) -> dict:
-    """Per scene and N: AVSM / greedy / optimal uniform-depth RMS and in-volume RMSE, and
-    the ratios to optimal."""
+def intervals(texel_errors: dict, n_boot: int = 1000) -> dict:
+    """Per scene and N: AVSM / greedy / optimal_subset uniform-depth RMS over optimal's,
+    the per-texel RMS paired, with :func:`avsm_dr.stats.claim`'s intervals (per
+    configuration: bootstrap over texels; pooled: configurations, then texels)."""
+    from .. import stats
+    out: dict = {}
+    keys = sorted({(k[0], k[2]) for k in texel_errors})
+    for scene, n in keys:
+        configs = sorted({k[1] for k in texel_errors if k[0] == scene and k[2] == n})
+        for m in ("avsm", "greedy", "optimal_subset"):
+            used = [c for c in configs if (scene, c, n, m) in texel_errors and (scene, c, n, "optimal") in texel_errors
+                    and np.any(texel_errors[(scene, c, n, "optimal")] > 0)]
+            if not used:
+                continue
+            r = stats.claim([texel_errors[(scene, c, n, m)] for c in used],
+                            [texel_errors[(scene, c, n, "optimal")] for c in used], statistic="rmse",
+                            compare="ratio", below=1.0, configs=used, n_boot=n_boot)
+            out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{m}_over_optimal"] = dict(
+                estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
+                per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})
+    return out
+
+
+def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict:
+    """Per scene and N (the first configuration): AVSM / greedy / optimal uniform-depth RMS
+    and in-volume RMSE, and the ratios to optimal; with ``texel_errors``, the ratios'
+    intervals over every configuration under ``"intervals"``."""
     out = {}
+    first = {}
     for r in rows:
-        if r["method"] not in ("avsm", "greedy", "optimal_subset", "optimal"):
+        first.setdefault(r["scene"], r.get("config"))
+    for r in rows:
+        if r["method"] not in ("avsm", "greedy", "optimal_subset", "optimal") or r.get("config") != first[r["scene"]]:
             continue
         d = out.setdefault(r["scene"], {}).setdefault(f"N={r['nodes']}", {})
         d[f"{r['method']}_depth_rms"] = r["depth_rms"]
@@ -187,6 +228,8 @@ def findings(rows) -> dict:
             for m in ("avsm", "greedy", "optimal_subset"):
                 if oi and f"{m}_rmse_in_volume" in d:
                     d[f"{m}_over_optimal_in_volume"] = d[f"{m}_rmse_in_volume"] / oi
+    if texel_errors:
+        out["intervals"] = intervals(texel_errors, n_boot)
     return out
 
 
@@ -195,6 +238,7 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
     ``out`` (default ``results/avsm_gap/``); ``quick`` = small sizes, ``force`` = recompute."""
     names = list(scenes or SCENES)
     P = dict(scenes=names, resolution=64 if quick else 128, nodes=[4, 8] if quick else [2, 4, 8, 16, 32],
+             configs=[[0, "dir_a"]] if quick else [[0, "dir_a"], [1, "dir_b"]],
              n_volume=256 if quick else 4096, n_surface=128 if quick else 1024, gauss_points=GAUSS_POINTS,
              max_points=MAX_POINTS,
              filter="bilinear", methods=[m[0] for m in methods(0)] + ["beer"])
@@ -202,12 +246,17 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
     if (hit := res.cached(force)) is not None:
         return hit
     rows: list[dict] = []
-    for name in tqdm(names, desc="avsm_gap", unit="scene"):
-        _scene_rows(name, P, rows, quick)
+    texel_errors: dict = {}
+    jobs = [(name, seed, light) for name in names for seed, light in P["configs"]]
+    for name, seed, light in tqdm(jobs, desc="avsm_gap", unit="config"):
+        _scene_rows(name, P, rows, quick, seed, light, texel_errors)
     csv = res.write_csv(rows)
-    summary = findings(rows)
+    summary = findings(rows, texel_errors, n_boot=200 if quick else 1000)
     (res.dir / "findings.json").write_text(json.dumps(summary, indent=1))
-    _plot(res, rows, names)
+    first = {}
+    for r in rows:
+        first.setdefault(r["scene"], r["config"])
+    _plot(res, [r for r in rows if r["config"] == first[r["scene"]]], names)
     res.write_meta(summary)
     return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
 

@@ -241,7 +241,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     # ---- figures: reverse / forward time ratio and memory vs segments per texel
     pipe = [r for r in rows if r["table"] == "representation"]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    colors = dict(zip([k for k, _ in KINDS], plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    colors = {k: plt.cm.tab20(i % 20) for i, (k, _) in enumerate(KINDS)}     # more kinds than C0-C9
     for kind, _ in KINDS:
         rs = [r for r in pipe if r["kind"] == kind]
         fw = {r["step_fraction"]: r for r in rs if r["mode"] == "forward_ad"}

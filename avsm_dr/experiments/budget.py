@@ -27,7 +27,7 @@ import json
 import numpy as np
 from tqdm import tqdm
 
-from .. import build, describe, kinds
+from .. import allows, build, describe, kinds
 from ..metrics import error_stats, optical_depth_error
 from ..scene import DirectionalLight
 from ._common import Results, measure
@@ -64,12 +64,20 @@ def fit(kind: str, budget_per_texel: float) -> dict | None:
     lo = int(spec["min"] or 1)
     hi = int(spec["max"] or MAX_SIZE_VALUE)
     # bytes per texel are affine in the size value for every swept kind (8 N, 4 (2n + 1), 4 n):
-    # two toy builds give the line, one more checks the chosen value
-    b0 = bytes_per_texel(kind, **dict(base, **{d["size"]: lo}))
-    slope = bytes_per_texel(kind, **dict(base, **{d["size"]: lo + 1})) - b0
+    # toy builds at the two smallest allowed values give the line, one more checks the chosen
+    # value (the schema's constraint may allow only some values, e.g. even power-moment counts)
+    ok = lambda v: allows(kind, dict(base, **{d["size"]: v}))  # noqa: E731
+    a1 = next((v for v in range(lo, hi + 1) if ok(v)), None)
+    a2 = next((v for v in range(a1 + 1, hi + 1) if ok(v)), None) if a1 is not None else None
+    if a1 is None or a2 is None:
+        return None
+    b0 = bytes_per_texel(kind, **dict(base, **{d["size"]: a1}))
+    slope = (bytes_per_texel(kind, **dict(base, **{d["size"]: a2})) - b0) / (a2 - a1)
     if b0 > budget_per_texel or slope <= 0:
         return None
-    best = min(hi, lo + int((budget_per_texel - b0) // slope))
+    best = min(hi, a1 + int((budget_per_texel - b0) // slope))
+    while best > a1 and not ok(best):
+        best -= 1
     out = dict(base, **{d["size"]: best})
     if bytes_per_texel(kind, **out) > budget_per_texel:
         raise RuntimeError(f"{kind}: bytes per texel are not affine in {d['size']!r}")

@@ -38,15 +38,15 @@ import time
 
 import numpy as np
 
-from .. import build, configurations, describe, kinds
+from .. import allows, build, configurations, describe, kinds
 from .. import kinds as all_kinds
 from ..metrics import error_stats, optical_depth_error
 from . import _error_findings as F
 from ._common import Results
-from ._error_labels import TUNING, _with_size, label, tuned  # noqa: F401  (re-exported)
+from ._error_labels import PRECISIONS, TUNING, _with_size, label, tuned  # noqa: F401  (re-exported)
 from ._error_terms import Built, Probe, SubsetBuilder, light_variants, with_faint_segments
 
-SCENES = ["plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table", "simulated_plume"]
+SCENES = list(F.SCENE_NAMES)
 QUICK_SCENES = ["plume", "hair_and_smoke", "smoke_over_table"]
 #: Scene of the depth-range study, its global-range stretches and faint-segment stretches.
 RANGE_SCENE = "plume"
@@ -81,8 +81,9 @@ def _march_step(scene, fraction):
 # =================================================================== variants
 def variants(kind: str, quick: bool, sweep: bool) -> list[tuple[dict, bool]]:
     """(parameters, in_sweep) of ``kind`` to build, the headline first: the headline size and
-    the sizes the claims name, each with every combination of :func:`tuned` values (in
-    quick mode only the combinations the claims name); with ``sweep`` also every size of
+    the sizes the claims name, each with every valid combination of :func:`tuned` values (in
+    quick mode only the combinations the claims name), and the headline in each storage
+    precision of :data:`PRECISIONS` the kind offers; with ``sweep`` also every size of
     ``ad.configurations(kind, quick)`` at default tuning and with ``depth_range='texel'``
     where the schema has it (``in_sweep`` True: built on the whole map, for the bytes)."""
     d = describe(kind)
@@ -101,8 +102,13 @@ def variants(kind: str, quick: bool, sweep: bool) -> list[tuple[dict, bool]]:
     for v in sizes:
         for combo in itertools.product(*grid.values()):
             p = dict(_with_size(kind, v), **dict(zip(grid, combo)))
+            if not allows(kind, p):
+                continue                                   # e.g. 6 trigonometric moments
             if not quick or label(kind, p) in named or not any(p[k] != head.get(k) for k in grid):
                 out.append((p, False))
+    for prec in PRECISIONS:                                # storage precision at the headline size
+        if prec in d["precisions"]:
+            out.append((dict(head, precision=prec), False))
     seen, uniq = set(), []
     for p, full in out:
         key = label(kind, p)
@@ -208,7 +214,8 @@ def _run_config(cfg: _Config, P: dict, rows: list, store: dict, quick: bool, sta
                     _check_subset(kind, params, est, sub, pr, cfg.scene_name, state)
                 brep = rep.rep if isinstance(rep, Built) else rep
                 head = dict(head0, method=kind, param=params.get(size, "") if size else "", setting=name,
-                            opaque=mode, bytes_per_texel=brep.nbytes_per_texel, build_lookup_cpu_s=cpu,
+                            opaque=mode, precision=params.get("precision") or "native",
+                            bytes_per_texel=brep.nbytes_per_texel, build_lookup_cpu_s=cpu,
                             texels_built=brep.n_texels,
                             **{_column(k): params.get(k, "") for k in _tuning_columns(P["kinds"])})
                 curve = base and whole and name == label(kind, _with_size(kind, params.get(size)))
@@ -234,7 +241,7 @@ def _check_subset(kind, params, est, sub, probes, scene_name, state):
 
 #: Row columns of the experiment itself; a tuning parameter of the same name becomes ``param_<name>``.
 RESERVED = {"scene", "config", "seed", "light", "base", "resolution", "study", "method", "param", "setting",
-            "opaque", "bytes_per_texel", "build_lookup_cpu_s", "texels_built", "receivers", "n", "curve",
+            "opaque", "precision", "bytes_per_texel", "build_lookup_cpu_s", "texels_built", "receivers", "n", "curve",
             "stretch"}
 
 

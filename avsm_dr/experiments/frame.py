@@ -21,8 +21,12 @@ load from other processes hits them alike; medians.  A kind whose build is predi
 longer than ``build_budget_s`` is skipped at that size with a note.  Resolutions above the capture's limit are skipped
 with a note.
 
-The ratio the issue asks about: capture of the plume at the largest resolution over the
-AVSM-8 build on its output, per capture method (``meta.json`` summary).
+The ratios the issue asks about (``meta.json`` summary, wall and process-CPU time): capture
+of the plume at the largest resolution over the AVSM-8 build on its output, per capture
+method; and sorted over unsorted AVSM-8 end to end (``build(..., sort=True)``, which sorts
+each texel on the device, vs ``sort=False``) on the capture's segments shuffled inside every
+texel (``random_order``, shuffled once on the host outside the timing), per (scene,
+resolution, method): columns ``random_unsorted_s`` / ``random_sorted_s`` of the AVSM rows.
 
     python -m avsm_dr frame [--quick]
 
@@ -106,6 +110,19 @@ def lookup_points(scene, n: int, rng) -> np.ndarray:
     return rec[rng.integers(0, rec.shape[0], n)] + rng.normal(0, 1e-3 * ext, (n, 3))
 
 
+def random_order(seg, rng):
+    """``seg`` with the segments of every texel in random order (flagged unsorted)."""
+    from ..segments import Segments
+    if seg.n_segments == 0:
+        return seg
+    tex = np.repeat(np.arange(seg.n_texels), seg.counts)
+    idx = A.to_uint32(np.lexsort((rng.random(seg.n_segments), tex)).astype(np.uint32))
+    F = seg.Float
+    out = Segments(seg.offsets, *(dr.gather(F, a, idx) for a in (seg.z0, seg.z1, seg.optical_depth)), seg.dtype)
+    dr.eval(out.z0, out.z1, out.optical_depth)
+    return out
+
+
 def _build_evaluated(kind: str, seg, params: dict):
     """``ad.build`` with every Dr.Jit buffer of the result evaluated."""
     from .. import build
@@ -174,6 +191,11 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
             fns["build", m, kind] = (lambda key=(m, kind), kind=kind, seg=seg, params=params:
                                      built.__setitem__(key, _build_evaluated(kind, seg, params)) or built[key])
             fns["lookup", m, kind] = (lambda key=(m, kind), a=tex_d, b=dep_d: built[key].eval(a, b))
+            if kind == "avsm":                           # sorted vs unsorted on random-order input
+                shuffled = random_order(seg, rng)
+                for srt in (False, True):
+                    fns["random", m, srt] = (lambda s=shuffled, srt=srt, params=params:
+                                             _build_evaluated("avsm", s, dict(params, sort=srt)))
     r = measure(fns, repeats=repeats)
 
     rows = []
@@ -202,6 +224,10 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
                 continue
             b, lk = r["build", m, kind], r["lookup", m, kind]
             frame = c["wall_s"] + b["wall_s"] + lk["wall_s"]
+            if kind == "avsm":
+                ru, rs = r["random", m, False], r["random", m, True]
+                row.update(random_unsorted_s=ru["wall_s"], random_sorted_s=rs["wall_s"],
+                           random_unsorted_cpu_s=ru["cpu_s"], random_sorted_cpu_s=rs["cpu_s"])
             if segs:
                 predicted[kind] = max(b["wall_s"], 1e-9) / segs
             row.update(build_s=b["wall_s"], build_first_s=b["first_s"], build_jit_s=b["jit_s"],
@@ -212,6 +238,7 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
                        frame_s=frame, capture_share=c["wall_s"] / frame, build_share=b["wall_s"] / frame,
                        lookup_share=lk["wall_s"] / frame,
                        capture_over_build=c["wall_s"] / b["wall_s"] if b["wall_s"] > 0 else float("nan"),
+                       capture_over_build_cpu=c["cpu_s"] / b["cpu_s"] if b["cpu_s"] > 0 else float("nan"),
                        note="")
             rows.append(row)
     return rows
@@ -314,11 +341,15 @@ def run(quick: bool = False, out=None, force: bool = False, grid=None, scenes=No
             if r["resolution"] == top:
                 key = f"{name}_{top}_{r['method'] or 'capture'}"
                 summary[key + "_capture_over_avsm8_build"] = r["capture_over_build"]
+                summary[key + "_capture_over_avsm8_build_cpu"] = r["capture_over_build_cpu"]
+                summary[key + "_sorted_over_unsorted_random"] = r["random_sorted_s"] / r["random_unsorted_s"]
+                summary[key + "_sorted_over_unsorted_random_cpu"] = (r["random_sorted_cpu_s"]
+                                                                     / r["random_unsorted_cpu_s"])
                 summary[key + "_capture_s"] = r["capture_s"]
                 summary[key + "_segments"] = r["segments"]
     res.write_meta(summary)
     for key, v in summary.items():
-        if key.endswith("capture_over_avsm8_build"):
+        if key.endswith(("_build", "_build_cpu", "_random", "_random_cpu")):
             print(f"{key}: {v:.2f}")
     return {"csv": str(csv), "out": str(res.dir), "summary": summary}
 

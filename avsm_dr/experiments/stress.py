@@ -10,8 +10,15 @@ violations, and reports RMSE / max error.
 argument or answered correctly in bounded time (float32 overflow, huge counts, long
 sums, the DSM bound on sub-ulp opaque segments; see :mod:`._stress_checks`), one row per
 check with its ``failures`` (must be 0).
+
+Storage precision: every kind (headline parameters) at every ``precision`` it accepts
+runs on the cases too (float32 segments; both dtypes in the full run; ``--quick``: the
+cases of ``PRECISION_QUICK_CASES``), rows with ``precision`` set (``native`` otherwise);
+the reliability row ``precision`` fails on any NaN / inf / out-of-range estimate.
 """
 from __future__ import annotations
+
+import time
 
 import numpy as np
 from tqdm import tqdm
@@ -20,7 +27,7 @@ from .. import build, kinds
 from ..metrics import error_stats
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from ._common import Results
-from ._stress_checks import run_checks
+from ._stress_checks import PRECISION_QUICK_CASES, precision_check, precision_configs, run_checks
 
 METHODS = [("exact", {}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 8, "sort": True}),
            ("dsm", {"tolerance": 0.01}), ("osm", {"slices": 32}), ("fom", {"harmonics": 8})]
@@ -68,6 +75,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     rng = np.random.default_rng(params["seed"])
     rows = []
     todo = cases(quick, rng)
+    t_precision = 0.0
     for name, off, z0, z1, tau in tqdm(todo, desc="stress", unit="case"):
         T = len(off) - 1
         seg64 = Segments.from_arrays(off, z0, z1, optical_depth=tau, dtype="float64")
@@ -83,7 +91,16 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                 est = np.asarray(build(kind, seg, **p).eval(tex, depth))
                 stats = error_stats(est, ref)
                 rows.append(dict(case=name, method=kind, param=next(iter(p.values()), ""),
-                                 sorted=p.get("sort", False), dtype=dtype, **stats))
+                                 sorted=p.get("sort", False), dtype=dtype, precision="native", **stats))
+            if (quick and dtype == "float64") or (quick and name not in PRECISION_QUICK_CASES):
+                continue
+            t0 = time.perf_counter()
+            for kind, p, precision in precision_configs(name):
+                est = np.asarray(build(kind, seg, precision=precision, **p).eval(tex, depth))
+                rows.append(dict(case=name, method=kind, param=next(iter(p.values()), ""),
+                                 sorted=p.get("sort", False), dtype=dtype, precision=precision,
+                                 **error_stats(est, ref)))
+            t_precision += time.perf_counter() - t0
     # insertion order: AVSM on shuffled copies of the same smoke
     off, z0, z1, tau = _smoke(rng, 64, 60, 0.0, 1.0)
     seg64 = Segments.from_arrays(off, z0, z1, optical_depth=tau, dtype="float64")
@@ -96,9 +113,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         for sort in (False, True):
             est = np.asarray(build("avsm", seg, nodes=8, sort=sort).eval(tex, depth))
             rows.append(dict(case=f"shuffled_order_{trial}", method="avsm", param=8, sorted=sort,
-                             dtype="float32", **error_stats(est, ref)))
+                             dtype="float32", precision="native", **error_stats(est, ref)))
     csv = res.write_csv(rows)
-    checks = run_checks(quick)
+    checks = run_checks(quick) + [precision_check(rows, t_precision)]
     res.write_csv(checks, "reliability.csv")
 
     import matplotlib
@@ -109,7 +126,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     for i, (kind, p) in enumerate(m for m in METHODS if m[0] in kinds()):
         label = kind + ("-sorted" if p.get("sort") else "")
         vals = [next((r["max_error"] for r in rows if r["case"] == n and r["method"] == kind
-                      and r["sorted"] == p.get("sort", False) and r["dtype"] == "float32"), np.nan) for n in names]
+                      and r["sorted"] == p.get("sort", False) and r["dtype"] == "float32"
+                      and r["precision"] == "native"), np.nan) for n in names]
         ax.semilogy(range(len(names)), np.maximum(vals, 1e-9), "o-", label=label)
     ax.set_xticks(range(len(names)), names, rotation=45, ha="right")
     ax.set_ylabel("max |T - exact(float64)| (float32 runs)")
@@ -118,8 +136,12 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     bad = sum(r["nan_count"] + r["inf_count"] for r in rows)
     viol = sum(r["bounds_violations"] for r in rows)
     failed = sum(r["failures"] for r in checks)
+    prec = [r for r in rows if r["precision"] != "native"]
     summary = {"nan_inf_total": bad, "bounds_violations_total": viol, "rows": len(rows),
-               "reliability_checks": len(checks), "reliability_failures": failed}
+               "reliability_checks": len(checks), "reliability_failures": failed,
+               "precision_runs": len(prec),
+               "precision_nan_inf_total": sum(r["nan_count"] + r["inf_count"] for r in prec),
+               "precision_seconds": round(t_precision, 2)}
     res.write_meta(summary)
     print(f"stress: {len(rows)} runs, NaN+inf outputs: {bad}, bounds violations: {viol}; "
           f"reliability: {failed} of {len(checks)} checks failed")

@@ -8,8 +8,8 @@ so a new kind joins all of them by being registered.
 from __future__ import annotations
 
 from .base import Representation
-from .registry import (REGISTRY, build, configurations, describe, differentiable_configuration, kinds, register,
-                       unregister)
+from .registry import (REGISTRY, allows, build, configurations, describe, differentiable_configuration, kinds,
+                       register, unregister)
 from .schema import Param, Schema
 
 # The registry: each import registers its representation (explicit: a broken or
@@ -25,7 +25,8 @@ from . import beer  # noqa: E402,F401
 from . import greedy  # noqa: E402,F401
 from . import optimal  # noqa: E402,F401
 from . import avsm_march  # noqa: E402,F401
+from . import avsm_adaptive  # noqa: E402,F401
 
-__all__ = ["REGISTRY", "Param", "Representation", "Schema", "build", "configurations", "describe",
+__all__ = ["REGISTRY", "Param", "allows", "Representation", "Schema", "build", "configurations", "describe",
            "differentiable_configuration",
            "kinds", "register", "unregister"]

@@ -37,6 +37,7 @@ from .. import backend
 from .registry import register
 from ._loops import run_loop
 from .base import Representation
+from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema, far_param, near_param
 
 INTERPOLATIONS = ("linear", "exp")
@@ -163,13 +164,36 @@ def interpolate(d, t, depth, mode: str):
 
 
 # ----------------------------------------------------------------------------
+def node_range(segments, near, far) -> tuple[float, float]:
+    """(near, far) of a node list: the given values (None: the segments' global bounds),
+    checked finite in the storage dtype, ordered and covering every segment."""
+    lo, hi = segments.bounds()
+    near = lo if near is None else near
+    far = hi if far is None else far
+    near, far = segments.check_depth(near, "near"), segments.check_depth(far, "far")
+    if near > far:
+        raise ValueError(f"far: need near <= far, got near={near}, far={far}")
+    if segments.n_segments and (hi > far or lo < near):
+        raise ValueError(f"far: segments span [{lo}, {hi}], outside [near={near}, far={far}]")
+    return near, far
+
+
 class NodeList(Representation):
     """Kinds storing N (depth, transmittance) nodes per texel as ``depths``/``values``
     (lists of N Dr.Jit arrays of length T) with ``self.N`` set and an ``interpolation``
-    parameter: storage ``2 N itemsize`` and the bracket-then-interpolate lookup."""
+    parameter: storage ``2 N itemsize`` and the bracket-then-interpolate lookup.
+    ``precision``: depths relative to the texel's node range, values as transmittances
+    (:mod:`._precision`)."""
+
+    precisions = PRECISIONS
+
+    def _stored(self):
+        return (Stored("depths", "depth", "nodes"), Stored("values", "transmittance", "nodes"))
 
     @property
     def nbytes_per_texel(self) -> float:
+        if self.precision is not None:
+            return self._stored_nbytes
         return 2 * self.N * self.segments.itemsize
 
     def _eval_texels(self, texel, depth):
@@ -224,16 +248,8 @@ class AVSM(NodeList):
 
     def __init__(self, segments, **params):
         super().__init__(segments, **params)
-        lo, hi = segments.bounds()
         P = self.params
-        near = lo if P["near"] is None else P["near"]
-        far = hi if P["far"] is None else P["far"]
-        near, far = segments.check_depth(near, "near"), segments.check_depth(far, "far")
-        if near > far:
-            raise ValueError(f"far: need near <= far, got near={near}, far={far}")
-        if segments.n_segments and (hi > far or lo < near):
-            raise ValueError(f"far: segments span [{lo}, {hi}], outside [near={near}, far={far}]")
-        P.update(near=near, far=far)
+        P.update(zip(("near", "far"), node_range(segments, P["near"], P["far"])))
         self.N = P["nodes"]
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._build()
@@ -255,7 +271,7 @@ class AVSM(NodeList):
         lanes_np = np.nonzero(counts > 0)[0] if ablate["_compact"] else np.arange(T)
         if ablate["_group"]:
             lanes_np = lanes_np[np.argsort(-counts[lanes_np], kind="stable")]
-        self.depths = [dr.full(Float, far, T) for _ in range(N)]
+        self.depths = [dr.opaque(Float, far, T) for _ in range(N)]   # opaque: no kernel per far
         self.values = [dr.full(Float, 1.0, T) for _ in range(N)]
         self.used = np.zeros(T, np.int64)
         self.stats = {"lanes": 0, "segments": 0, "skipped": 0, "compressed": 0}
@@ -320,7 +336,7 @@ class AVSM(NodeList):
 
         state = (dr.gather(UInt32, offsets, lanes), dr.zeros(UInt32, L), dr.zeros(Bool, L),
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L),
-                 *[dr.full(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
+                 *[dr.opaque(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
         if ablate["_split"]:
             state = run(state, cond_room, body_room, "avsm_insert")
             state = run(state, cond_full, body_full, "avsm_compress")

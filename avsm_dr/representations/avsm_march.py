@@ -26,7 +26,9 @@ float16 depths would carry a relative error of up to 2^-11 ~ 1/2048 of the depth
 content spans when it lies far from the light; relative to the range the error is at
 most (hi - lo) 2^-12.  Quantised on store (round to nearest float16), dequantised on
 lookup as ``lo + q (hi - lo)`` (monotone in q, so the nodes stay sorted; the first node
-sits exactly at ``lo``).
+sits exactly at ``lo``).  That is the default (``precision=None``); with ``precision=p``
+(:mod:`._precision`) q and T are both stored in ``p`` (q: the code of q itself, T: the
+transmittance code) and the range in float32.
 
 Lookup: per receiver, a binary search of the texel's nodes for the last one at or before
 the depth, then exponential (default) or linear interpolation as AVSM; ``T = 1`` in
@@ -39,10 +41,12 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from .. import _arrays as A
 from .. import backend
 from . import _curve
 from .avsm import INTERPOLATIONS, remove_smallest
 from .base import Representation
+from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
 
@@ -172,19 +176,30 @@ class AVSMMarch(Representation):
         hi = np.ones(seg.n_texels)
         lo[nz] = pts["z"][off[:-1][nz]]
         hi[nz] = pts["z"][off[1:][nz] - 1]
-        self.range_lo, self.range_hi = Float(lo.astype(dt)), Float(hi.astype(dt))
+        self.range_lo, self.range_hi = Float(A.aligned(lo.astype(dt))), Float(A.aligned(hi.astype(dt)))
         tex = np.repeat(np.arange(seg.n_texels), self.node_counts)
         span = (hi - lo)[tex]
         q = np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0)
-        F16 = getattr(t, "Float16")
-        self.node_q = F16(np.clip(q, 0.0, 1.0).astype(np.float16))          # quantised on store
+        if self.precision is None:
+            F16 = getattr(t, "Float16")
+            self.node_q = F16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
+        else:                       # quantised after the build (:meth:`_stored`)
+            self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
         value = Float(pts["v"][src].astype(dt))
         self.node_value = _curve.attach_exact_gradients(seg, value, tex, pts["z"][src], pts["left"][src])
         self._offsets_dr = t.UInt32(self.node_offsets.astype(np.uint32))
         self._max_nodes = int(self.node_counts.max()) if self.node_counts.size else 0
 
+    precisions = PRECISIONS
+
+    def _stored(self):
+        return (Stored("node_q", "unit", "csr"), Stored("node_value", "transmittance", "csr"),
+                Stored("range_lo", "range", "texel"), Stored("range_hi", "range", "texel"))
+
     @property
     def nbytes_per_texel(self) -> float:
+        if self.precision is not None:      # codes, float32 range (:mod:`._precision`), offset
+            return self._stored_nbytes + 4
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
         item = self.segments.itemsize
         return 4 + 2 * item + mean * (2 + item)

@@ -22,14 +22,26 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
+from .. import _device_checks as DC
 from .. import backend
 from ..filtering import FILTERS, check_radius, check_size, filtered_eval
 from ..segments import Segments, flush_subnormal
 from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk, trajectory_words
+from ._precision import check_precision, quantise
 from .schema import Param, Schema
 
 
-class Representation(abc.ABC):
+class _Built(abc.ABCMeta):
+    """Metaclass running the shared post-build step once the whole constructor (the
+    subclass' build included) has run: storage quantisation (``precision``)."""
+
+    def __call__(cls, *args, **kwargs):
+        obj = super().__call__(*args, **kwargs)
+        obj._apply_precision()
+        return obj
+
+
+class Representation(metaclass=_Built):
     """Base class: parameter schema, traits, reverse-mode policy, validation, filtering
     and dispatch to the per-texel kernel.
 
@@ -43,16 +55,28 @@ class Representation(abc.ABC):
     kinds whose ``loop_state_words > 0`` (see :mod:`._loops`).  'auto' checkpoints only
     when ``max segments per texel x loop_state_words`` exceeds the trajectory budget;
     'trajectory' refuses (ValueError) what would overflow it.
+
+    And ``precision`` (None | 'float32' | 'float16' | 'unorm16' | 'unorm8'): the storage
+    format of the kind's stored buffers (:mod:`._precision`; None, the default: the
+    segments' own dtype).  A kind lists what it accepts in ``precisions`` and declares its
+    buffers in :meth:`_stored`; they are quantised once, after the build, by shared code.
     """
 
     kind: str = "base"
     schema: Schema = Schema()
+    #: Storage precisions the kind accepts besides None (see :mod:`._precision`); opt-in: a
+    #: kind lists them and declares its buffers in :meth:`_stored`.
+    precisions: tuple = ()
 
     def __init__(self, segments: Segments, **params: Any):
         if not isinstance(segments, Segments):
             raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
         reverse = params.pop("reverse", "auto")
         chunk = params.pop("chunk", None)
+        self.precision = check_precision(params.pop("precision", None))
+        if self.precision is not None and self.precision not in self.precisions:
+            raise ValueError(f"precision: kind {self.kind!r} accepts {self.precisions or 'only None'}, "
+                             f"got {self.precision!r}{self._precision_note}")
         if reverse not in REVERSE_MODES:
             raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
         if chunk is not None:
@@ -60,6 +84,20 @@ class Representation(abc.ABC):
         self.segments = segments
         self.reverse, self._chunk = reverse, chunk
         self.params: dict[str, Any] = self.schema.validate(self.kind, params)
+
+    # -------------------------------------------------------------- storage
+    #: Why some precisions are refused (appended to the ValueError).
+    _precision_note: str = ""
+
+    def _stored(self) -> tuple:
+        """The stored buffers :mod:`._precision` quantises (:class:`~._precision.Stored`)."""
+        return ()
+
+    def _apply_precision(self) -> None:
+        """Quantise the stored buffers to ``self.precision`` (after the build; no-op for
+        None); ``_stored_nbytes`` then holds their bytes per texel."""
+        if self.precision is not None:
+            self._stored_nbytes = quantise(self, self._stored())
 
     # --------------------------------------------------------------- traits
     @property
@@ -175,46 +213,76 @@ class Representation(abc.ABC):
         height = None if height is None else check_size(height, "height")
         radius = check_radius(radius, width, height)
 
-        coords = None
-        if A.is_drjit(texel):
-            tex_h = A.host(texel, "texel", np.float64)
-        else:
-            tex_h = np.asarray(texel)
-            if tex_h.dtype.kind not in "iuf":
-                raise ValueError(f"texel: expected a numeric array, got dtype {tex_h.dtype}")
-            tex_h = tex_h.astype(np.float64)
-        if tex_h.ndim == 2:
-            if tex_h.shape[1] != 2:
-                raise ValueError(f"texel: continuous coordinates must have shape (K, 2), got {tex_h.shape}")
-            if width is None or height is None:
-                raise ValueError("width: continuous texel coordinates need width= and height=")
-            coords = tex_h
-            k = tex_h.shape[0]
-        elif tex_h.ndim <= 1:
-            tex_h = np.atleast_1d(tex_h)
-            k = tex_h.size
-        else:
-            raise ValueError(f"texel: expected shape (K,) or (K, 2), got {tex_h.shape}")
-        A.check_finite(tex_h, "texel")
+        # Dr.Jit input is validated on the device (one flag read back, no copy of the arrays),
+        # NumPy integer texels by their min / max and NumPy float depths once converted
+        # (:mod:`avsm_dr._device_checks`); what those sufficient checks do not accept takes
+        # the host checks below, which raise the messages.
+        tex_dev = texel if filter == "point" and DC.flat(texel) else None
+        tex_np = filter == "point" and tex_dev is None and (tex_dev := DC.host_texels(texel, self.n_texels)) is not None
+        dep_dev = depth if DC.flat(depth) else DC.host_depth(depth, Float)
+        if tex_dev is not None and dep_dev is not None and (
+                dr.width(tex_dev) == dr.width(dep_dev) or 1 in (dr.width(tex_dev), dr.width(dep_dev))):
+            out = DC.point_lookup(self._eval_texels, tex_dev, tex_np, dep_dev, dep_dev is not depth,
+                                  self.n_texels, self.segments.dtype, Float)
+            if out is not None:
+                return out
+            tex_dev = dep_dev = None                          # the host checks raise below
+        masks = ([DC.texel_mask(tex_dev, self.n_texels)] if tex_dev is not None and not tex_np else []) + \
+            ([DC.depth_mask(dep_dev, self.segments.dtype, strict=dep_dev is not depth)] if dep_dev is not None else [])
+        if masks and not DC.all_true(*masks):
+            tex_dev = dep_dev = None
+        dev_t, dev_d = tex_dev is not None, dep_dev is not None
 
-        if A.is_drjit(depth):
-            d_h = A.host(depth, "depth")
-            depth_dr = flush_subnormal(A.to_float(depth, Float), d_h, self.segments.dtype)
+        coords = None
+        if dev_t:
+            k = dr.width(tex_dev)
         else:
-            d_h = np.atleast_1d(np.asarray(depth, dtype=np.float64))
-            depth_dr = None
-        if d_h.ndim > 1:
-            raise ValueError(f"depth: expected shape (K,), got {d_h.shape}")
-        d_h = self.segments.check_depth(d_h, "depth")   # finite in the storage dtype
-        if d_h.size not in (1, k) and k != 1:
-            raise ValueError(f"depth: length {d_h.size} does not match {k} texels")
-        if k == 0 or d_h.size == 0:
+            if A.is_drjit(texel):
+                tex_h = A.host(texel, "texel", np.float64)
+            else:
+                tex_h = np.asarray(texel)
+                if tex_h.dtype.kind not in "iuf":
+                    raise ValueError(f"texel: expected a numeric array, got dtype {tex_h.dtype}")
+                tex_h = tex_h.astype(np.float64)
+            if tex_h.ndim == 2:
+                if tex_h.shape[1] != 2:
+                    raise ValueError(f"texel: continuous coordinates must have shape (K, 2), got {tex_h.shape}")
+                if width is None or height is None:
+                    raise ValueError("width: continuous texel coordinates need width= and height=")
+                coords = tex_h
+                k = tex_h.shape[0]
+            elif tex_h.ndim <= 1:
+                tex_h = np.atleast_1d(tex_h)
+                k = tex_h.size
+            else:
+                raise ValueError(f"texel: expected shape (K,) or (K, 2), got {tex_h.shape}")
+            A.check_finite(tex_h, "texel")
+
+        if dev_d:
+            depth_dr, d_size = A.to_float(dep_dev, Float), dr.width(dep_dev)
+        else:
+            if A.is_drjit(depth):
+                d_h = A.host(depth, "depth")
+                depth_dr = flush_subnormal(A.to_float(depth, Float), d_h, self.segments.dtype)
+            else:
+                d_h = np.atleast_1d(np.asarray(depth, dtype=np.float64))
+                depth_dr = None
+            if d_h.ndim > 1:
+                raise ValueError(f"depth: expected shape (K,), got {d_h.shape}")
+            d_h = self.segments.check_depth(d_h, "depth")   # finite in the storage dtype
+            d_size = d_h.size
+        if d_size not in (1, k) and k != 1:
+            raise ValueError(f"depth: length {d_size} does not match {k} texels")
+        if k == 0 or d_size == 0:
             raise ValueError("texel: no receivers given (empty array)")
-        n = max(k, d_h.size)
+        n = max(k, d_size)
         if depth_dr is None:
             depth_dr = A.to_float(np.broadcast_to(d_h, (n,)), Float)
-        elif d_h.size == 1 and n > 1:
+        elif d_size == 1 and n > 1:
             depth_dr = dr.repeat(depth_dr, n) if hasattr(dr, "repeat") else depth_dr + dr.zeros(Float, n)
+        if dev_t:
+            tex_d = A.to_uint32(dr.detach(tex_dev))
+            return self._eval_texels(tex_d + dr.zeros(UInt32, n) if k == 1 and n > 1 else tex_d, depth_dr)
 
         if coords is None:
             if np.any(tex_h != np.round(tex_h)) or np.any(tex_h < 0) or np.any(tex_h >= self.n_texels):

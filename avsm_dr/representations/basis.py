@@ -41,6 +41,10 @@ Depth range (``depth_range=``):
 A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` (e.g. all segments of a
 texel zero-length at one depth) is widened to that length.
 
+Storage precision (``precision=``, :mod:`avsm_dr.representations._precision`): the stored
+map is quantised per texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted),
+a per-texel range is kept in float32.
+
 Segments outside an explicit ``[near, far]`` are clipped (a documented choice):
 the part in front of ``near`` is counted as a delta at ``u = 0`` (so ``T(far)`` still
 includes it, while ``T(near) = 1`` as for every basis with ``g_k(0) = 0``), the part
@@ -72,6 +76,7 @@ from .. import backend
 from ..filtering import filtered_eval
 from .registry import register
 from .base import Representation
+from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 SQRT2 = math.sqrt(2.0)
@@ -337,7 +342,7 @@ class BasisRepresentation(Representation):
             if near is not None or far is not None:
                 raise ValueError("near: near=/far= cannot be combined with depth_range='texel'")
             lo, hi = segments.texel_bounds()
-            self.near, self.far = Float(lo), Float(hi)
+            self.near, self.far = Float(A.aligned(lo)), Float(A.aligned(hi))
             self._per_texel = True
         else:
             lo, hi = segments.bounds()
@@ -381,8 +386,22 @@ class BasisRepresentation(Representation):
 
     @property
     def nbytes_per_texel(self) -> float:
+        if self.precision is not None:
+            return self._stored_nbytes
         extra = 2 if self._per_texel else 0
         return (self.basis.n_coefficients + extra) * self.itemsize
+
+    precisions = PRECISIONS
+    #: The flat store :mod:`._precision` quantises (the one reconstruction reads, ``_store``).
+    _stored_attr = "_coef"
+
+    def _stored(self):
+        """The stored map as coefficients scaled per texel (non-negative for monotone
+        bases), and a per-texel depth range in float32 (:mod:`._precision`)."""
+        out = (Stored(self._stored_attr, "coefficient", "flat", signed=not self.basis.monotone),)
+        if self._per_texel:
+            out += (Stored("near", "range", "texel"), Stored("far", "range", "texel"))
+        return out
 
     # ---------------------------------------------------------------- range
     def _range(self, texel=None):

@@ -19,7 +19,9 @@ Per texel, with ``a`` = first entry (min z0), ``b`` = last exit (max z1) and
   interpolation between them (with exponential interpolation it would be the cloud
   variant), ``T = 1`` in front, ``exp(-tau_max)`` behind.
 
-Storage: 3 floats per texel in the segments' dtype (``nbytes_per_texel = 3 itemsize``).
+Storage: 3 floats per texel in the segments' dtype (``nbytes_per_texel = 3 itemsize``);
+``precision='float32'|'float16'`` stores them in that format, depths relative to one
+global range (:mod:`._precision`); the unorm formats are refused.
 Gradients flow to the optical depths (``tau_max`` is a scatter-add); ``a`` and ``b`` are
 taken from the segments' depths without gradients.
 """
@@ -27,7 +29,9 @@ from __future__ import annotations
 
 import drjit as dr
 
+from .. import _arrays as A
 from .base import Representation
+from ._precision import Stored
 from .registry import register
 from .schema import Param, Schema
 
@@ -59,7 +63,11 @@ class BeerShadowMap(Representation):
         super().__init__(segments, **params)
         Float = segments.Float
         lo, hi = segments.texel_bounds()
-        self.front, self.back = Float(lo), Float(hi)
+        if self.precision is not None and segments.n_segments:
+            # empty texels (T = 1 whatever their bounds) must not widen the global depth range
+            empty = segments.counts == 0
+            lo[empty], hi[empty] = segments.bounds()
+        self.front, self.back = Float(A.aligned(lo)), Float(A.aligned(hi))
         # tau_max: total optical depth of the texel (one lane per segment, scatter-add)
         self.tau_max = dr.zeros(Float, segments.n_texels)
         if segments.n_segments:
@@ -76,8 +84,24 @@ class BeerShadowMap(Representation):
         """'cloud' or 'two_node'."""
         return self.params["variant"]
 
+    # precision: floating formats only (see _precision_note)
+    precisions = ("float32", "float16")
+    _precision_note = ("; beer's mean extinction and optical depth are unbounded per-texel scalars, and a "
+                       "fixed-point code would need a per-texel scale as large as the value itself")
+
+    def _stored(self):
+        """Depths relative to one global range; 'cloud': sigma_mean, tau_max (float16
+        saturates at 65504, where T = 0 anyway); 'two_node': T behind."""
+        if self.variant == "cloud":
+            return (Stored("front", "depth", "texel"), Stored("sigma_mean", "scalar", "texel"),
+                    Stored("tau_max", "scalar", "texel"))
+        return (Stored("front", "depth", "texel"), Stored("back", "depth", "texel"),
+                Stored("t_back", "transmittance", "texel"))
+
     @property
     def nbytes_per_texel(self) -> float:
+        if self.precision is not None:
+            return self._stored_nbytes
         return 3 * self.segments.itemsize
 
     def _eval_texels(self, texel, depth):

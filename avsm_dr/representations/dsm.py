@@ -75,9 +75,11 @@ import math
 import drjit as dr
 import numpy as np
 
+from .. import _arrays as A
 from .. import backend
 from .registry import register
 from .base import Representation
+from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema
 from .exact import exact_values
 
@@ -215,10 +217,10 @@ def _prefix_optical_depth(bp):
     F64, U32, I32 = t.Float64, t.UInt32, t.Int32
     nb = bp["z"].size
     lanes = _lanes_by_length(bp["off"])
-    start = U32(bp["off"][lanes].astype(np.uint32))
-    end = U32(bp["off"][lanes + 1].astype(np.uint32))
-    z, jump = F64(bp["z"]), F64(bp["jump"])
-    r_in, r_out = F64(bp["rate_in"]), F64(bp["rate_out"])
+    start = U32(A.aligned(bp["off"][lanes].astype(np.uint32)))
+    end = U32(A.aligned(bp["off"][lanes + 1].astype(np.uint32)))
+    z, jump = F64(A.aligned(bp["z"])), F64(A.aligned(bp["jump"]))
+    r_in, r_out = F64(A.aligned(bp["rate_in"])), F64(A.aligned(bp["rate_out"]))
     active = I32(bp["active"])
     tau_left, tau_right, slope_out = dr.zeros(F64, nb), dr.zeros(F64, nb), dr.zeros(F64, nb)
 
@@ -323,16 +325,16 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     last[bp["off"][1:][np.diff(bp["off"]) > 0] - 1] = True          # last breakpoint of a texel
     k = dr.arange(U32, nb)
     nxt = dr.minimum(k + 1, nb - 1)
-    has_next = ~Bool(last)
-    bz = F64(bp["z"])
+    has_next = ~Bool(A.aligned(last))
+    bz = F64(A.aligned(bp["z"]))
     z_next = dr.gather(F64, bz, nxt)
     tl_next = dr.gather(F64, tl, nxt)
-    step = Bool(bp["jump"] > 0)
+    step = Bool(A.aligned(bp["jump"] > 0))
 
     # levels Lambda_i with tau_right[k] < Lambda_i < tau_left[k+1] are crossed in (z_k, z_{k+1})
     lam_np = transmittance_levels(eps_p)
     m = lam_np.size
-    lam = F64(lam_np) if m else F64(0.0)
+    lam = F64(A.aligned(lam_np)) if m else F64(0.0)
     i0 = _count_below(lam, tr, m, strict=False) if m else dr.zeros(U32, nb)
     i1 = dr.select(has_next, _count_below(lam, tl_next, m, strict=True) if m else i0, i0)
     i1 = dr.maximum(i1, i0)
@@ -376,7 +378,7 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     counts = per_bp.numpy().astype(np.int64)
     base_np = np.concatenate([[0], np.cumsum(counts)])
     nv = int(base_np[-1])
-    base = U32(base_np[:-1].astype(np.uint32))
+    base = U32(A.aligned(base_np[:-1].astype(np.uint32)))
     out_z, out_tau = dr.zeros(F64, nv), dr.zeros(F64, nv)
     out_left = dr.zeros(Bool, nv)
     dr.scatter(out_z, bz, base)
@@ -410,8 +412,8 @@ def compress(poly, delta: float, placement: str = "midslope"):
         e = np.zeros(0)
         return np.zeros(n_tex, np.int64), e, e, np.zeros(0, np.int64)
     lanes = _lanes_by_length(off)
-    start = U32(off[lanes].astype(np.uint32))
-    end = U32(off[lanes + 1].astype(np.uint32))
+    start = U32(A.aligned(off[lanes].astype(np.uint32)))
+    end = U32(A.aligned(off[lanes + 1].astype(np.uint32)))
     pz, pv = poly["z"], poly["v"]
     out_z, out_v, out_src = dr.zeros(F64, nv), dr.zeros(F64, nv), dr.zeros(U32, nv)
     n = lanes.size
@@ -583,12 +585,12 @@ class DeepShadowMap(Representation):
         self.n_polyline_vertices = np.diff(poly["off"])
         self.node_left = (poly["left"].numpy()[src] if src.size else np.zeros(0, bool))
         Float = seg.Float
-        self.node_depth = Float(nz.astype(np.float32 if seg.dtype == "float32" else np.float64))
-        value = Float(nv.astype(np.float32 if seg.dtype == "float32" else np.float64))
+        self.node_depth = Float(A.aligned(nz.astype(np.float32 if seg.dtype == "float32" else np.float64)))
+        value = Float(A.aligned(nv.astype(np.float32 if seg.dtype == "float32" else np.float64)))
         if self.placement == "curve" and counts.sum() and self._needs_grad():
             value = self._attach_gradients(value, nz, self.node_left, counts)
         self.node_value = value
-        self._offsets_dr = t.UInt32(self.node_offsets.astype(np.uint32))
+        self._offsets_dr = t.UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
         self._max_nodes = int(counts.max()) if counts.size else 0
 
     def _needs_grad(self) -> bool:
@@ -603,8 +605,15 @@ class DeepShadowMap(Representation):
         return value + (v - dr.detach(v))
 
     # ------------------------------------------------------------ storage
+    precisions = PRECISIONS
+
+    def _stored(self):
+        return (Stored("node_depth", "depth", "csr"), Stored("node_value", "transmittance", "csr"))
+
     @property
     def nbytes_per_texel(self) -> float:
+        if self.precision is not None:      # codes + per-texel ranges (:mod:`._precision`) + offset
+            return self._stored_nbytes + 4
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
         return 2 * self.segments.itemsize * mean + 4
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from .. import _arrays as A
 from .. import backend
 from ..segments import OPAQUE_OPTICAL_DEPTH
 from .registry import register
@@ -35,6 +36,9 @@ class Exact(Representation):
     (z0, z1, tau in the segments' dtype) plus the 4-byte CSR offset."""
 
     schema = Schema(summary="every occluder segment (uncompressed ground truth)", paper="-")
+    # The ground truth others are measured against reads the segments themselves.
+    _precision_note = ("; 'exact' is the uncompressed ground truth and reads the segments in their own "
+                       "dtype (build the Segments in the dtype wanted)")
 
     @property
     def nbytes_per_texel(self) -> float:
@@ -80,8 +84,8 @@ def exact_values(segments, texel: np.ndarray, z: np.ndarray, left: np.ndarray):
     dt = np.float32 if seg.dtype == "float32" else np.float64
     i = UInt32(seg.offsets[texel].astype(np.uint32))
     end = UInt32(seg.offsets[texel + 1].astype(np.uint32))
-    zd = Float(np.asarray(z, dt))
-    is_left = t.Bool(np.asarray(left, bool))
+    zd = Float(A.aligned(np.asarray(z, dt)))
+    is_left = t.Bool(A.aligned(np.asarray(left, bool)))
     tau = dr.zeros(Float, z.size)
 
     def cond(i, tau):

@@ -169,6 +169,10 @@ class OpacityShadowMap(BasisRepresentation):
         """Reconstruction reads the cumulative sums C_j (linear in a_k: prefilterable)."""
         return self._cum
 
+    #: ``precision`` quantises the cumulative sums (non-negative, non-decreasing: the
+    #: rounded codes stay non-decreasing, so T stays monotone); ``coefficients`` stay exact.
+    _stored_attr = "_cum"
+
     def _reconstruct_from(self, store, row, u):
         UInt32, Float = backend.types().UInt32, self.Float
         n = self.basis.n

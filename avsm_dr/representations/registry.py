@@ -35,7 +35,8 @@ def _check_kind(kind) -> type[Representation]:
 
 def build(kind: str, segments: Segments, **params) -> Representation:
     """Build representation ``kind`` from ``segments`` with ``params`` (see ``describe``);
-    every kind also takes ``reverse='auto'|'trajectory'|'checkpoint'`` and ``chunk``."""
+    every kind also takes ``reverse='auto'|'trajectory'|'checkpoint'``, ``chunk`` and
+    ``precision`` (None or one of ``describe(kind)['precisions']``)."""
     return _check_kind(kind)(segments, **params)
 
 
@@ -51,10 +52,12 @@ def describe(kind: str) -> dict:
     nullable])), ``size`` (the size parameter's name, or None), ``sweep`` /
     ``quick_sweep`` (its values in the experiments), ``examples`` (parameter sets the
     contract tests run), ``headline`` (the configuration of benchmarks), ``summary``,
-    ``paper`` and ``doc`` (the class docstring's first paragraph)."""
+    ``paper``, ``doc`` (the class docstring's first paragraph) and ``precisions`` (the
+    storage precisions the base parameter ``precision`` accepts besides None)."""
     cls = _check_kind(kind)
     out = cls.schema.describe()
     out["kind"] = kind
+    out["precisions"] = list(cls.precisions)     # base parameter ``precision``: None or one of these
     out["doc"] = (cls.__doc__ or "").strip().split("\n\n")[0]
     return out
 
@@ -70,6 +73,10 @@ def configurations(kind: str, quick: bool = False) -> list[dict]:
     return [dict(base, **{d["size"]: v}) for v in values]
 
 
+def allows(kind: str, params: dict) -> bool:
+    """True when ``params`` are valid for ``kind`` (every parameter rule and the schema's
+    cross-parameter ``constraint``, e.g. moments: 6 power moments but no 6 trigonometric)."""
+    return _check_kind(kind).schema.allows(kind, {k: v for k, v in params.items() if k != "precision"})
 
 
 def differentiable_configuration(kind: str) -> dict | None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 from numbers import Integral, Real
 from typing import Any
 
@@ -114,6 +115,9 @@ class Schema:
     ``summary``, ``paper``: one line each for the docs' kinds table.
     ``offline``: the build is an offline reference (host code, cost superlinear in the
     segments per texel): benchmarks and full-size sweeps run it only where it fits.
+    ``constraint``: a rule across parameters, ``params -> message | None`` (the message
+    starts with the offending parameter's name), checked after the per-parameter rules;
+    :meth:`allows` asks it without raising, so sweeps can skip invalid combinations.
     """
 
     params: tuple = ()
@@ -125,6 +129,7 @@ class Schema:
     summary: str = ""
     paper: str = ""
     offline: bool = False
+    constraint: Callable[[dict], str | None] | None = None
 
     def __post_init__(self):
         names = [p.name for p in self.params]
@@ -147,7 +152,18 @@ class Schema:
         unknown = sorted(set(given) - set(self.names()))
         if unknown:
             raise ValueError(f"{unknown[0]}: unknown parameter of {kind!r}; known: {self.names()}")
-        return {p.name: p.validate(given.get(p.name, p.default)) for p in self.params}
+        out = {p.name: p.validate(given.get(p.name, p.default)) for p in self.params}
+        if self.constraint is not None and (msg := self.constraint(out)):
+            raise ValueError(msg)
+        return out
+
+    def allows(self, kind: str, given: dict) -> bool:
+        """True when ``given`` passes :meth:`validate` (every rule, the constraint too)."""
+        try:
+            self.validate(kind, given)
+        except ValueError:
+            return False
+        return True
 
     def describe(self) -> dict:
         """Plain-data description; private parameters (names starting with ``_``, e.g. a

@@ -1,6 +1,7 @@
 """The machine's limit for AVSM insertion (``machine.json``): vector operations per
 insertion counted in the kernel's LLVM IR, the best vector-operation rate this CPU
-reaches in a Dr.Jit loop of the same kind of operations, and the nominal one."""
+reaches in a Dr.Jit loop of the same kind of operations, and the nominal one; the same
+operation count and achieved fraction for every registered kind (``kinds``)."""
 from __future__ import annotations
 
 import os
@@ -34,17 +35,94 @@ def loop_ops(ir: str, label: str) -> tuple[Counter, int]:
         s = s.strip()
         if s == f"br label %{prefix}_cond":
             break
-        m = re.match(r"(?:%\S+ = )?(\w+)", s)
-        if not m or "<" not in s or m.group(1) in _SKIP_OPS or s.endswith(":"):
-            continue
-        op = m.group(1)
-        if op == "call":
-            c = re.search(r"@llvm\.([a-z.]+?)\.v\d", s)
-            op = c.group(1) if c else "call"
-        w = re.search(r"<(\d+) x", s)
-        width = max(width, int(w.group(1))) if w else width
-        ops[op] += 1
+        width = _count(s, ops, width)
     return ops, width
+
+
+def _count(s: str, ops: Counter, width: int) -> int:
+    """Count the vector operation on IR line ``s`` (if any) into ``ops``; returns the
+    widest vector width seen so far."""
+    m = re.match(r"(?:%\S+ = )?(\w+)", s)
+    if not m or "<" not in s or m.group(1) in _SKIP_OPS or s.endswith(":") or s.startswith(("declare", "define")):
+        return width
+    op = m.group(1)
+    if op == "call":
+        c = re.search(r"@llvm\.([a-z.]+?)\.v\d", s)
+        op = c.group(1) if c else "call"
+    ops[op] += 1
+    w = re.search(r"<(\d+) x", s)
+    return max(width, int(w.group(1))) if w else width
+
+
+def kernel_ops(ir: str) -> tuple[Counter, int, str]:
+    """Vector operations of one lane packet's pass through a kernel: its symbolic loop with
+    the most operations (the per-segment loop of node / curve kinds: one pass per inserted
+    segment), or the whole kernel when it has no loop (per-segment projections of the
+    linear kinds: one lane per segment).  Returns (ops by opcode, vector width, loop label
+    or '')."""
+    labels = re.findall(r"; Symbolic loop: (\S+)", ir)
+    best: tuple[Counter, int, str] = (Counter(), 0, "")
+    for lab in labels:
+        ops, width = loop_ops(ir, lab)
+        if sum(ops.values()) > sum(best[0].values()):
+            best = (ops, width, lab)
+    if labels:
+        return best
+    ops, width = Counter(), 0
+    for line in ir.splitlines():
+        width = _count(line.strip(), ops, width)
+    return ops, width, ""
+
+
+def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float) -> dict:
+    """Every benchmarked setting (the registry's kinds, :func:`.settings.settings`): vector
+    operations per packet of insertions in its build's main kernel (:func:`kernel_ops` of
+    the kernel with the most, on a 16^2 x 40 map), the insertion rate that operation count
+    allows at the peak vector-op rate (the larger of the microbenchmark's and the nominal,
+    as for AVSM), and our measured insertions per CPU-second
+    (``data.csv``, map with the most segments per texel) as a fraction of it."""
+    from .settings import SETTINGS, label, settings
+    seg = counts_map(16, 40)
+    out = {}
+    for kind, p in settings(SETTINGS):
+        name = label(kind, p)
+        try:
+            dr.kernel_history()
+            build(kind, seg, **p)
+            kern = [k for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
+        except Exception as exc:                            # noqa: BLE001 - say why, keep the table
+            out[name] = {"note": f"{type(exc).__name__}: {exc}"}
+            continue
+        cands = [(kernel_ops(k["ir"].getvalue()), k.get("size", 0)) for k in kern]
+        if not cands:
+            out[name] = {"note": "no Dr.Jit build kernel (a host build, or no build work)"}
+            continue
+        looped = [c for c in cands if c[0][2]]
+        if looped:          # one loop pass per inserted segment: the loop with the most ops
+            (ops, width, loop), size = max(looped, key=lambda c: sum(c[0][0].values()))
+            n = sum(ops.values())
+        else:               # per-segment (or per segment x coefficient) kernels: all of them
+            ops, width, loop, size = Counter(), max(c[0][1] for c in cands), "", sum(c[1] for c in cands)
+            for (o, _, _), lanes in cands:
+                for op, v in o.items():
+                    ops[op] += v * lanes / max(seg.n_segments, 1)
+            n = int(round(sum(ops.values())))
+        row = dict(ops_per_insertion_packet=n, lanes=width, loop=loop, kernel_lanes=size,
+                   ops_by_kind={k: round(v, 1) for k, v in ops.most_common(8)})
+        if n and width:
+            measured = peak["vector_ops_per_cpu_s"] * width / n
+            nominal = mhz * 1e6 * NOMINAL_VECTOR_OPS_PER_CYCLE * width / n
+            lim = max(measured, nominal) if np.isfinite(nominal) else measured     # as for AVSM above
+            row.update(limit_per_core_s=lim, microbench_limit_per_core_s=measured, nominal_limit_per_core_s=nominal,
+                       limit_machine_per_s=lim * cores)
+            ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == name
+                    and np.isfinite(r.get("insertions_per_cpu_s", float("nan")))]
+            if ours:
+                best = max(ours, key=lambda r: r["mean_count"])
+                row.update(measured_map=best["map"], measured_per_cpu_s=best["insertions_per_cpu_s"],
+                           fraction_of_limit=best["insertions_per_cpu_s"] / lim)
+        out[name] = row
+    return out
 
 
 def _cpuinfo() -> dict:
@@ -146,6 +224,7 @@ def _machine_limit(P, data_rows) -> dict:
                        fraction_of_limit=best["insertions_per_cpu_s"] / lim_core,
                        fraction_of_nominal=best["insertions_per_cpu_s"] / nominal_core)
         out["avsm"][nodes] = row
+    out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"])
     out["gpu"] = "not measured: no GPU in this run (run with --backend cuda on a GPU machine)"
     return out
 

@@ -19,8 +19,13 @@ def summary(data, peers, machine, scal, skip, notes, seconds) -> dict:
         "avsm8_speedup_vs_numpy": pick("avsm-nodes=8", key="speedup_vs_numpy_same_subset", mp=mid),
         "avsm8_speedup_vs_numba": pick("avsm-nodes=8", key="speedup_vs_numba", mp=mid),
         "fom8_speedup_vs_numba": pick("fom-harmonics=8", key="speedup_vs_numba", mp=mid),
+        "lookup_speedup_vs_numba": {f"{r['setting']} | {r['map']}": r["lookup_speedup_vs_numba"]
+                                    for r in data if r["impl"] == "drjit" and "lookup_speedup_vs_numba" in r},
         "machine_fraction_avsm8": machine.get("avsm", {}).get(8, {}).get("fraction_of_limit"),
         "machine_limit_avsm8_per_core_s": machine.get("avsm", {}).get(8, {}).get("limit_per_core_s"),
+        "machine_fraction_by_setting": {k: r.get("fraction_of_limit") for k, r in machine.get("kinds", {}).items()},
+        "ops_per_insertion_packet_by_setting": {k: r.get("ops_per_insertion_packet")
+                                                for k, r in machine.get("kinds", {}).items()},
         "mitsuba_time_ratio": {r["setting"]: r["ratio"] for r in peers
                                if r.get("peer") == "mitsuba" and "ratio" in r},
         "scaling_slopes": slopes(scal),
@@ -36,7 +41,8 @@ def print_report(data, peers, machine, skip, mem, summary):
     for r in data:
         extra = ""
         if r["impl"] == "drjit":
-            for key, lab in (("speedup_vs_numpy_same_subset", "NumPy"), ("speedup_vs_numba", "Numba")):
+            for key, lab in (("speedup_vs_numpy_same_subset", "NumPy"), ("speedup_vs_numba", "Numba"),
+                             ("lookup_speedup_vs_numba", "Numba lookups")):
                 if key in r:
                     extra += f"  x{r[key]:.1f} vs {lab}"
         print(f"{r['map']:>12s} {r['impl']:6s} {r['setting']:32s} {r['insertions_per_s'] / 1e6:9.2f} M ins/s "
@@ -52,6 +58,14 @@ def print_report(data, peers, machine, skip, mem, summary):
               f"{r['limit_per_core_s'] / 1e6:.0f} M/core-s (nominal {r['nominal_limit_per_core_s'] / 1e6:.0f}); "
               f"ours {r.get('measured_per_cpu_s', float('nan')) / 1e6:.1f} M/CPU-s = "
               f"{100 * r.get('fraction_of_limit', float('nan')):.0f} %")
+    for name, r in machine.get("kinds", {}).items():
+        if "ops_per_insertion_packet" in r:
+            print(f"machine {name:32s} {r['ops_per_insertion_packet']:5d} vector ops / {r['lanes']} insertions "
+                  f"({r['loop'] or 'no loop'}); limit {r.get('limit_per_core_s', float('nan')) / 1e6:8.1f} M/core-s; "
+                  f"ours {r.get('measured_per_cpu_s', float('nan')) / 1e6:7.1f} M/CPU-s = "
+                  f"{100 * r.get('fraction_of_limit', float('nan')):.0f} %")
+        else:
+            print(f"machine {name:32s} {r.get('note', '')}")
     for r in skip:
         print(f"skip {r['case'][:60]:60s} | {r['variant'][:48]:48s} {r['seconds'] * 1e3:9.2f} ms "
               f"(x{r.get('time_vs_skipping', float('nan')):.2f}; CPU x{r.get('cpu_vs_skipping', float('nan')):.2f}; "

@@ -21,8 +21,10 @@ SETTINGS = [
 #: Settings run on the built-in scenes, in the memory table and the scaling plots.
 SCENE_SETTINGS = [("avsm", {"nodes": 8}), ("exact", {}), ("osm", {"slices": 32}),
                   ("fom", {"harmonics": 8}), ("dsm", {"tolerance": 0.01}), ("moments", {})]
-#: Settings whose build holds O(segments) host memory or sorts on the host (DSM needs about
-#: 360 bytes per segment, sort=True a host lexsort): skipped, with a note, on larger maps.
+#: Settings whose build holds O(segments) host memory or sorts in superlinear time (DSM needs
+#: about 360 bytes per segment; sort=True ranks every segment against its texel's on the
+#: device, ``count^2`` per texel, or lexsorts on the host beyond ``DEVICE_SORT_WORK``):
+#: skipped, with a note, on larger maps.
 HEAVY = ("dsm", "sort")
 HEAVY_MAX_SEGMENTS = 8_000_000
 #: Offline kinds (``describe(kind)["offline"]``: greedy, optimal) run on maps up to this size.

@@ -44,7 +44,7 @@ def throughput(P, notes, progress) -> list[dict]:
                              "host memory / host sort / offline build)")
                 progress.update()
                 continue
-            s_in = seg.sorted() if p.get("sort") else seg     # host sort once, outside the timing
+            s_in = seg.sorted() if p.get("sort") else seg     # sorted once, outside the timing
             fns = {"drjit": (lambda k=kind, p=p, s=s_in: build(k, s, **p))}
             peer = _numba_build(kind, p, host, seg) if host is not None else None
             if peer is not None:

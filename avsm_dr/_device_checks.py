@@ -1,0 +1,115 @@
+"""Lookup arguments validated on the device (Dr.Jit arrays, and NumPy depths once converted).
+
+``Representation.eval`` used to copy every Dr.Jit texel / depth array to the host to check
+it (NumPy ``isfinite`` and ranges over float64 copies: ~6 ms per 1 M receivers measured,
+more than the AVSM-8 lookup itself).  Here the same rules reduce to one boolean per
+argument with ``dr.all`` (measured 0.45 ms per 1 M) and one readback of that flag; point
+lookups go further and check inside the lookup's own kernel (:func:`point_lookup`: one
+launch and a 4-byte readback, no separate reduction).
+
+NumPy lookups gain too (the bench's 200 k receivers: 8-10 ms of host checks and float64
+copies per call before, for a 2-4 ms kernel): integer texels are checked by their min and
+max, float depths converted once to the storage type and checked there.
+
+The device checks are *sufficient*, not exact: they accept only input the host checks
+accept, and anything they do not accept (including what the host checks would fix up,
+such as subnormal depths, or accept at a boundary, such as a float64 depth just above the
+float32 maximum that still rounds to it) returns ``None`` so the caller reruns the host
+checks, which raise their usual ``ValueError`` or handle the input as before.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from . import _arrays as A
+from . import backend
+
+_INT_TYPES = (dr.VarType.UInt32, dr.VarType.Int32, dr.VarType.UInt64, dr.VarType.Int64)
+_FLOAT_TYPES = (dr.VarType.Float16, dr.VarType.Float32, dr.VarType.Float64)
+
+
+def flat(x) -> bool:
+    """True for a non-empty flat (1-D, non-tensor) numeric Dr.Jit JIT array."""
+    return (dr.is_array_v(x) and dr.is_jit_v(x) and dr.depth_v(x) == 1 and not dr.is_tensor_v(x)
+            and dr.type_v(x) in _INT_TYPES + _FLOAT_TYPES and dr.width(x) > 0)
+
+
+def texel_mask(texel, n_texels: int):
+    """Per-lane Bool: ``texel`` is an integer in ``[0, n_texels)`` (finite for floats)."""
+    t = dr.detach(texel)
+    if dr.type_v(t) in _FLOAT_TYPES:
+        return dr.isfinite(t) & (t == dr.round(t)) & (t >= 0) & (t < n_texels)
+    ok = t < n_texels
+    return ok & (t >= 0) if dr.type_v(t) in (dr.VarType.Int32, dr.VarType.Int64) else ok
+
+
+def depth_mask(depth, dtype: str, strict: bool = False):
+    """Per-lane Bool: ``depth`` is finite, within the storage dtype's range, and not a
+    nonzero value below its smallest normal number (those the host path flushes to 0).
+    strict: also refuse exactly the smallest normal number, for depths already rounded to
+    the storage dtype (a smaller float64 value may have rounded up to it)."""
+    info = np.finfo(np.float32 if dtype == "float32" else np.float64)
+    d = dr.detach(depth)
+    if dr.type_v(d) in _INT_TYPES:     # |int| < 2^64: finite and normal in either dtype
+        return dr.full(dr.mask_t(d), True, dr.width(d))
+    a = dr.abs(d)
+    normal = a > float(info.tiny) if strict else a >= float(info.tiny)
+    return dr.isfinite(d) & (a <= float(info.max)) & ((d == 0) | normal)
+
+
+def host_texels(texel, n_texels: int):
+    """NumPy integer texel indices (1-D, non-empty) in ``[0, n_texels)`` as a Dr.Jit UInt32
+    array (checked by their min and max: no float64 copy), else None."""
+    if not isinstance(texel, np.ndarray) or texel.dtype.kind not in "iu" or texel.ndim != 1 or texel.size == 0:
+        return None
+    if int(texel.min()) < 0 or int(texel.max()) >= n_texels:
+        return None
+    return A.to_uint32(texel)
+
+
+def host_depth(depth, Float):
+    """NumPy float depths (1-D, non-empty) converted once to ``Float`` (checked afterwards
+    with ``depth_mask(..., strict=True)``), else None."""
+    if not isinstance(depth, np.ndarray) or depth.dtype.kind != "f" or depth.ndim != 1 or depth.size == 0:
+        return None
+    with np.errstate(over="ignore", invalid="ignore"):      # an overflow becomes inf: refused later
+        return A.to_float(depth, Float)
+
+
+def all_true(*masks) -> bool:
+    """``dr.all`` of every mask, read back as one Python bool."""
+    ok = None
+    for m in masks:
+        r = dr.all(m)
+        ok = r if ok is None else ok & r
+    return bool(ok[0])
+
+
+def point_lookup(eval_texels, texel, texel_checked: bool, depth, strict: bool, n_texels: int, dtype: str, Float):
+    """T of a point lookup whose arguments are checked *in the lookup's own kernel*: invalid
+    lanes read texel 0 at depth 0 and add 1 to a one-element counter (``dr.scatter_reduce``),
+    evaluated with T in one launch; returns T (evaluated), or None when any lane was
+    invalid (the caller then raises through the host checks).  One kernel and one
+    4-byte readback per lookup instead of a separate reduction (5 launches) and a sync.
+
+    texel_checked: ``texel`` was already checked on the host (NumPy min / max); strict: see
+    :func:`depth_mask`.  ``texel`` and ``depth`` have equal lengths, or one of them 1."""
+    UInt32 = backend.types().UInt32
+    ok = md = depth_mask(depth, dtype, strict)
+    tex = A.to_uint32(dr.detach(texel))
+    if not texel_checked:
+        mt = texel_mask(texel, n_texels)
+        tex = dr.select(mt, tex, 0)
+        ok = ok & mt
+    d = dr.select(ok if texel_checked else md, A.to_float(depth, Float), 0)
+    n = max(dr.width(tex), dr.width(d))
+    if dr.width(tex) != n:
+        tex = tex + dr.zeros(UInt32, n)
+    if dr.width(d) != n:
+        d = d + dr.zeros(Float, n)
+    T = eval_texels(tex, d)
+    bad = dr.zeros(UInt32, 1)
+    dr.scatter_reduce(dr.ReduceOp.Add, bad, UInt32(1), UInt32(0), ~ok)
+    dr.eval(T, bad)
+    return T if int(bad[0]) == 0 else None

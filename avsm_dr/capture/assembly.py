@@ -1,0 +1,175 @@
+"""CSR assembly of captured content: pieces ``(texel, z0, z1, tau)`` -> :class:`Segments`.
+
+Every content kind (grid, particles, hair, opaque blockers) yields a piece: per segment its
+texel (a NumPy array, or :class:`TexelRuns` for the grid, whose segments come as one run per
+ray), depths and optical depth (Dr.Jit or NumPy).  :func:`combine` orders them by
+``(texel, z0)`` and builds the offsets, on the device:
+
+* one grid piece (the plume): already in texel and depth order; the offsets come from the
+  ``L`` per-ray counts, no per-segment host array (the ``np.repeat`` of texels and the
+  ``np.bincount`` over them took 0.28 s + 0.56 s of a 2.4 s capture at 1024^2, 5 M segments);
+* merged content: counts per texel by ``dr.scatter_inc`` (which also gives each segment a
+  slot in its texel), an exclusive prefix sum for the offsets, a scatter into texel groups,
+  then each segment's rank inside its texel by ``(z0 quantised to 32 bits over its range,
+  concatenation index)`` (:func:`~avsm_dr.segments.rank_in_ranges`): the same order as the
+  host's stable argsort of ``texel << 32 | zq``, which stays the fallback when the per-texel
+  work ``sum count^2`` exceeds :data:`~avsm_dr.segments.DEVICE_SORT_WORK` per segment.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from .. import backend
+from ..segments import DEVICE_SORT_WORK, OPAQUE_OPTICAL_DEPTH, Segments, rank_in_ranges
+
+
+@dataclass
+class TexelRuns:
+    """Texels of segments stored as runs: ``counts[r]`` consecutive segments of texel
+    ``texels[r]`` (``texels`` distinct and ascending, int64 NumPy; ``counts`` >= 0).
+    ``np.asarray`` expands it to one texel per segment."""
+
+    texels: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def size(self) -> int:
+        """Number of segments."""
+        return int(self.counts.sum())
+
+    def __array__(self, dtype=None, copy=None):
+        return np.repeat(self.texels.astype(np.int64), self.counts).astype(dtype or np.int64)
+
+    def texel_counts(self, n_texels: int) -> np.ndarray:
+        """(n_texels,) segments per texel."""
+        c = np.zeros(n_texels, np.int64)
+        c[self.texels] = self.counts
+        return c
+
+    def device(self):
+        """Texel of every segment as a Dr.Jit UInt32 array, expanded on the device: the run's
+        index by a scatter of 1 at every run start and an inclusive prefix sum."""
+        UInt32 = backend.types().UInt32
+        nz = self.counts > 0
+        tex, cnt = self.texels[nz], self.counts[nz]
+        n = int(cnt.sum())
+        if tex.size <= 1:
+            return dr.full(UInt32, int(tex[0]) if tex.size else 0, n)
+        starts = A.to_uint32(np.cumsum(cnt[:-1]))
+        flag = dr.zeros(UInt32, n)
+        dr.scatter(flag, UInt32(1), starts)
+        return dr.gather(UInt32, A.to_uint32(tex), dr.cumsum(flag))
+
+
+def _dtype(Float) -> str:
+    return "float64" if dr.type_v(Float) == dr.VarType.Float64 else "float32"
+
+
+def combine(pieces, n_texels: int, Float) -> Segments:
+    """CSR Segments from ``(texel, z0, z1, tau)`` pieces, each texel's segments ordered by
+    ``(z0 quantised to 32 bits over the depth range, piece order)`` (module docstring)."""
+    dtype = _dtype(Float)
+    if not pieces:
+        return Segments.from_arrays(np.zeros(n_texels + 1, np.int64), Float(), Float(),
+                                    optical_depth=Float(), dtype=dtype)
+    z0 = _cat([A.to_float(p[1], Float) for p in pieces])
+    z1 = _cat([A.to_float(p[2], Float) for p in pieces])
+    tau = _cat([A.to_float(p[3], Float) for p in pieces])
+    offsets = np.zeros(n_texels + 1, np.int64)
+    if len(pieces) == 1 and isinstance(pieces[0][0], TexelRuns):      # one grid: in order already
+        np.cumsum(pieces[0][0].texel_counts(n_texels), out=offsets[1:])
+    elif len(pieces) == 1 and np.all(np.diff(pieces[0][0]) >= 0):     # a piece in texel order
+        np.cumsum(np.bincount(np.asarray(pieces[0][0], np.int64), minlength=n_texels), out=offsets[1:])
+    else:
+        offsets, perm = texel_depth_order([p[0] for p in pieces], z0, n_texels)
+        z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
+    # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
+    # build the CSR directly (Segments.from_arrays would copy everything to the host again)
+    tau = dr.minimum(tau, OPAQUE_OPTICAL_DEPTH)
+    return Segments(offsets, z0, z1, tau, dtype, sorted_by_depth=True)
+
+
+def _device_texels(texels) -> object:
+    UInt32 = backend.types().UInt32
+    parts = [t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
+             for t in texels]
+    parts = [p for p in parts if dr.width(p) > 0]
+    if len(parts) == 1:
+        return parts[0]
+    out = dr.zeros(UInt32, sum(dr.width(p) for p in parts))
+    start = 0
+    for p in parts:
+        dr.scatter(out, p, dr.arange(UInt32, start, start + dr.width(p)))
+        start += dr.width(p)
+    return out
+
+
+def quantised_depth(z0):
+    """``(z0 - min) * (2^32 - 1) / (max - min)`` truncated to an integer (Dr.Jit UInt64),
+    computed in float64 on the device exactly as the host key of :func:`host_order`."""
+    t = backend.types()
+    z = t.Float64(dr.detach(z0))
+    lo, hi = float(dr.min(z)[0]), float(dr.max(z)[0])
+    scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
+    return t.UInt64((z - dr.opaque(t.Float64, lo)) * dr.opaque(t.Float64, scale))
+
+
+def texel_depth_order(texels, z0, n_texels: int):
+    """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
+    the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by (texel, quantised
+    z0, concatenation index), on the device unless the per-texel work is too large."""
+    UInt32 = backend.types().UInt32
+    tex = _device_texels(texels)
+    n = dr.width(tex)
+    cnt = dr.zeros(UInt32, n_texels)
+    slot = dr.scatter_inc(cnt, tex)                        # arbitrary order inside a texel
+    dr.eval(cnt, slot)
+    counts = np.asarray(cnt.numpy(), np.int64)
+    offsets = np.zeros(n_texels + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    c = counts.astype(np.float64)
+    if float(c @ c) > DEVICE_SORT_WORK * max(n, 1):
+        tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
+        return offsets, A.to_uint32(host_order(tex_h, A.host(z0, "z0")).astype(np.uint32))
+    off = A.to_uint32(offsets)
+    # ---- group by texel (slots from the atomic counter), then rank inside each texel
+    pos = dr.gather(UInt32, off, tex) + slot
+    gid = dr.zeros(UInt32, n)
+    dr.scatter(gid, dr.arange(UInt32, n), pos)             # concatenation index at its group slot
+    gtex = dr.gather(UInt32, tex, gid)
+    gkey = dr.gather(type(zq := quantised_depth(z0)), zq, gid)
+    lo = dr.gather(UInt32, off, gtex)
+    rank = rank_in_ranges(lo, dr.gather(UInt32, off, gtex + 1), [gkey], ids=gid)
+    perm = dr.zeros(UInt32, n)
+    dr.scatter(perm, gid, lo + rank)
+    return offsets, perm
+
+
+def host_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:
+    """Stable permutation sorting by (texel, z0): one uint64 key (texel << 32 | z0 quantised to
+    32 bits over its range, finer than float32 depths), sorted by timsort, which runs in near
+    linear time on the already sorted runs of each piece (a 3-key lexsort took 1.2 s for 4.9 M)."""
+    lo, hi = float(z0.min()), float(z0.max())
+    scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
+    zq = ((z0 - lo) * scale).astype(np.uint64)
+    key = (tex.astype(np.uint64) << np.uint64(32)) | zq
+    return np.argsort(key, kind="stable")
+
+
+def _cat(arrays):
+    arrays = [a for a in arrays if dr.width(a) > 0]
+    if len(arrays) == 1:
+        return arrays[0]
+    Float = type(arrays[0])
+    out = dr.zeros(Float, sum(dr.width(a) for a in arrays))
+    UInt32 = backend.types().UInt32
+    start = 0
+    for a in arrays:
+        n = dr.width(a)
+        dr.scatter(out, a, dr.arange(UInt32, start, start + n))
+        start += n
+    return out

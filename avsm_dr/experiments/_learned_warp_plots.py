@@ -1,0 +1,101 @@
+"""Figures of the ``learned_warp`` experiment: warp curves, error per scene before and
+after, training loss."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def plot(res, rows, loss_rows, warp_rows) -> None:
+    """warps.png, error_per_scene.png, loss.png into ``res`` (a Results)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+    kinds = list(dict.fromkeys(r["kind"] for r in rows))
+
+    # ---- learned warp curves
+    fig, axes = plt.subplots(1, len(kinds), figsize=(3.8 * len(kinds), 3.6), squeeze=False)
+    for ax, kind in zip(axes[0], kinds):
+        ax.plot([0, 1], [0, 1], "k:", lw=0.8, label="identity")
+        for method, style in (("log", "C1--"), ("learned", "C0o-")):
+            w = [r for r in warp_rows if r["kind"] == kind and r["method"] == method]
+            lab = method if method == "learned" else f"log (r={w[0]['log_ratio']:g})"
+            ax.plot([r["u"] for r in w], [r["w"] for r in w], style, ms=3, label=lab)
+        ax.set_title(kind)
+        ax.set_xlabel("normalised depth u")
+        ax.set_aspect("equal")
+    axes[0][0].set_ylabel("warped depth w(u)")
+    axes[0][0].legend(fontsize=8)
+    res.save_figure(fig, "warps.png")
+
+    # ---- RMSE per scene: identity vs learned (and log), train and held-out
+    groups = list(dict.fromkeys(r["group"] for r in rows))
+    fig, axes = plt.subplots(1, len(kinds), figsize=(4.2 * len(kinds), 4.0), squeeze=False)
+    for ax, kind in zip(axes[0], kinds):
+        lo, hi = np.inf, 0.0
+        for gi, g in enumerate(groups):
+            base = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "identity"]
+            lrn = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "learned"]
+            x = np.array([r["rmse"] for r in base])
+            y = np.array([r["rmse"] for r in lrn])
+            ax.scatter(x, y, s=16, color=f"C{gi}", marker="o" if base[0]["split"] == "train" else "^",
+                       label=f"{g} ({base[0]['split']})")
+            lo, hi = min(lo, x.min(), y.min()), max(hi, x.max(), y.max())
+        lim = (lo / 1.2, hi * 1.2)
+        ax.plot(lim, lim, "k:", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlim(lim)
+        ax.set_ylim(lim)
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+            axis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+        ax.tick_params(axis="x", which="both", labelrotation=60, labelsize=7)
+        ax.tick_params(axis="y", which="both", labelsize=7)
+        ax.set_title(kind)
+        ax.set_xlabel("RMSE without warp")
+    axes[0][0].set_ylabel("RMSE with learned warp")
+    handles, labs = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labs, loc="upper center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, -0.02))
+    res.save_figure(fig, "error_per_scene.png")
+
+    # ---- training loss
+    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    for i, kind in enumerate(kinds):
+        ls = [r for r in loss_rows if r["kind"] == kind]
+        v = np.array([r["train_mse"] for r in ls])
+        ax.semilogy([r["iteration"] for r in ls], v / v[0], color=f"C{i}", label=kind)
+    ax.set_xlabel("Adam iteration")
+    ax.set_ylabel("training MSE / MSE of the identity warp")
+    ax.legend(fontsize=8)
+    res.save_figure(fig, "loss.png")
+
+
+def plot_metric(res, loss_rows, sweep) -> None:
+    """avsm_metric.png: beta and the surrogate's training MSE per iteration; the hard
+    algorithm's training RMSE over beta (when swept)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(10.5, 3.4))
+    fig.subplots_adjust(wspace=0.6)
+    it = [r["iteration"] for r in loss_rows]
+    axes[0].plot(it, [r["beta"] for r in loss_rows], "C0o-", ms=3, label="beta")
+    axes[0].set_xlabel("Adam iteration (temperature annealed)")
+    axes[0].set_ylabel("beta (weight of the depth-gap term)")
+    ax2 = axes[0].twinx()
+    ax2.semilogy(it, [r["surrogate_mse"] for r in loss_rows], "C1s--", ms=3, label="surrogate MSE")
+    ax2.set_ylabel("surrogate training MSE")
+    axes[0].legend(loc="upper left", fontsize=8)
+    ax2.legend(loc="upper right", fontsize=8)
+    if sweep:
+        b = np.array([r["beta"] for r in sweep])
+        axes[1].plot(np.maximum(b, 1e-4), [r["train_rmse"] for r in sweep], "C2o-", ms=3)
+        axes[1].axvline(max(loss_rows[-1]["beta_next"], 1e-4), color="k", ls=":", lw=0.8, label="learned")
+        axes[1].set_xscale("log")
+        axes[1].set_xlabel("beta (0 plotted at 1e-4)")
+        axes[1].set_ylabel("hard AVSM training RMSE")
+        axes[1].legend(fontsize=8)
+    else:
+        axes[1].set_axis_off()
+    res.save_figure(fig, "avsm_metric.png")

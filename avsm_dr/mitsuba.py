@@ -1,0 +1,412 @@
+"""Mitsuba 3 integrator ``avsm_single_scatter``: single scattering with shadow-map transmittance.
+
+    import avsm_dr.mitsuba                     # registers the plugin for the current variant
+    scene = mi.load_dict({..., "integrator": {"type": "avsm_single_scatter",
+                                              "representation": "avsm", "nodes": 8}})
+    img = mi.render(scene, spp=64)
+
+The image a game engine would show with a volumetric shadow map: the camera ray's own
+attenuation and the in-scattering integral are computed from Mitsuba's medium, and only
+the light's transmittance to each shading point comes from an avsm_dr representation
+built from a light-view capture of the same density grid (Salvi et al., "Adaptive
+Volumetric Shadow Maps", EGSR 2010, sec. 3; :mod:`avsm_dr.capture`).  With
+``representation='exact'`` this is Mitsuba's ``volpath`` with ``max_depth = 2``.
+
+Importing this module selects a Mitsuba variant only when none is set (``llvm_ad_rgb``,
+or ``cuda_ad_rgb`` on the CUDA backend: :func:`avsm_dr.groundtruth.mitsuba`), and
+re-registers the plugin whenever the variant changes.  The rest of the package imports
+Mitsuba lazily (a GPU host may have Dr.Jit without Mitsuba).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import backend
+from .capture import RESOLUTION_RANGE, capture
+from .capture.grid import METHODS as CAPTURE_METHODS
+from .filtering import FILTERS
+from .groundtruth.media import mitsuba as _mitsuba_with_variant, sample_grid
+from .representations import REGISTRY, build
+from .scene import DirectionalLight, PointLight, Scene, SpotLight
+
+NAME = "avsm_single_scatter"
+#: Null-BSDF interfaces (medium boundaries) a camera or shadow ray crosses before the first
+#: opaque surface; past that many, a camera ray counts as hitting nothing and a shadow ray as
+#: unblocked (a box medium needs 2).
+MAX_NULL_INTERFACES = 2
+#: Properties of the plugin itself; every other property is a parameter of the representation.
+OWN_PROPERTIES = ("representation", "resolution", "filter", "max_depth", "march_steps", "capture_method",
+                  "hide_emitters", "samples_per_pass", "timeout")
+
+
+# ===================================================================== scene reading
+def _host_matrix(transform) -> np.ndarray:
+    """(4, 4) float64 matrix of a (scalar or width-1 JIT) Mitsuba transform."""
+    return np.asarray(transform.matrix, np.float64).reshape(4, 4)
+
+
+def light_of(emitter):
+    """The avsm_dr light of a Mitsuba ``directional`` / ``point`` / ``spot`` emitter."""
+    name = emitter.class_name()
+    params = mi.traverse(emitter)
+    if name == "DirectionalEmitter":
+        return DirectionalLight(_host_matrix(emitter.world_transform())[:3, 2])
+    if name == "PointLight":
+        return PointLight(np.asarray(params["position"], np.float64).reshape(3))
+    if name == "SpotLight":
+        m = _host_matrix(params["to_world"])
+        return SpotLight(m[:3, 3], m[:3, 2], fov=2.0 * float(np.asarray(params["cutoff_angle"]).reshape(-1)[0]))
+    raise ValueError(f"scene: {NAME} supports one 'directional', 'point' or 'spot' emitter, got {name}")
+
+
+def scene_medium(scene):
+    """(medium, bbox lo (3,), bbox hi (3,)) of the one shape with an interior medium."""
+    found = [(s, s.interior_medium()) for s in scene.shapes() if s.interior_medium() is not None]
+    if len(found) != 1:
+        raise ValueError(f"scene: {NAME} needs exactly one shape with an interior medium, found {len(found)}")
+    shape, medium = found[0]
+    if medium.class_name() != "HeterogeneousMedium" or "sigma_t.data" not in mi.traverse(medium).keys():
+        raise ValueError(f"scene: the medium must be 'heterogeneous' with a 'gridvolume' sigma_t, "
+                         f"got {medium.class_name()}")
+    b = shape.bbox()
+    lo = np.array([float(v) for v in b.min], np.float64)
+    hi = np.array([float(v) for v in b.max], np.float64)
+    return medium, lo, hi
+
+
+def medium_density(medium):
+    """sigma_t grid (z, y, x) as a Dr.Jit TensorXf, ``scale * data``, AD graph kept."""
+    params = mi.traverse(medium)
+    data = params["sigma_t.data"]
+    if data.ndim != 4 or data.shape[3] != 1:
+        raise ValueError(f"scene: the medium's sigma_t grid must have one channel, got shape {data.shape}")
+    scale = float(params["scale"])
+    return mi.TensorXf(data.array * scale, tuple(int(s) for s in data.shape[:3]))
+
+
+def check_box(medium, density, lo, hi, n: int = 64) -> None:
+    """The gridvolume spans the medium shape's box (the convention of :mod:`avsm_dr.groundtruth`):
+    sigma_t from Mitsuba equals the NumPy trilinear lookup over [lo, hi] at ``n`` points."""
+    rng = np.random.default_rng(7)
+    p = lo + (hi - lo) * rng.uniform(0.02, 0.98, (n, 3))
+    mei = dr.zeros(mi.MediumInteraction3f, n)
+    mei.p = mi.Point3f(*(mi.Float(p[:, i].astype(np.float32)) for i in range(3)))
+    sig = np.asarray(dr.detach(medium.get_scattering_coefficients(mei)[2][0]).numpy(), np.float64)
+    g = np.asarray(dr.detach(density.array).numpy(), np.float64).reshape(density.shape)
+    ref = sample_grid(g, lo, hi, p)
+    if not np.allclose(sig, ref, rtol=1e-3, atol=1e-4 * max(float(g.max()), 1e-30)):
+        raise ValueError("scene: the medium's gridvolume must map the unit cube onto the box of the shape "
+                         "that holds the medium (to_world of the grid = the shape's bounding box)")
+
+
+# ======================================================================= integrator
+def _check_properties(props) -> dict:
+    """Plugin options and the representation's parameters (schema-validated); ValueError names one."""
+    kind = props.get("representation", "exact")
+    if kind not in REGISTRY:
+        raise ValueError(f"representation: unknown kind {kind!r}; known: {sorted(REGISTRY)}")
+    opts = {"kind": kind,
+            "resolution": props.get("resolution", 256),
+            "filter": props.get("filter", "bilinear"),
+            "max_depth": props.get("max_depth", 2),
+            "march_steps": props.get("march_steps", 64),
+            "capture_method": props.get("capture_method", "march"),
+            "hide_emitters": props.get("hide_emitters", False)}
+    lo, hi = RESOLUTION_RANGE
+    if type(opts["resolution"]) is not int or not lo <= opts["resolution"] <= hi:
+        raise ValueError(f"resolution: expected an integer in [{lo}, {hi}], got {opts['resolution']!r}")
+    if opts["filter"] not in FILTERS:
+        raise ValueError(f"filter: expected one of {FILTERS}, got {opts['filter']!r}")
+    if type(opts["max_depth"]) is not int or opts["max_depth"] not in (1, 2):
+        raise ValueError(f"max_depth: {NAME} renders paths of at most two segments (1: emitters seen "
+                         f"directly, 2: + single scattering and direct surface light), got {opts['max_depth']!r}")
+    if type(opts["march_steps"]) is not int or not 1 <= opts["march_steps"] <= 4096:
+        raise ValueError(f"march_steps: expected an integer in [1, 4096], got {opts['march_steps']!r}")
+    if not isinstance(opts["hide_emitters"], bool):
+        raise ValueError(f"hide_emitters: expected a boolean, got {opts['hide_emitters']!r}")
+    if opts["capture_method"] not in CAPTURE_METHODS:
+        raise ValueError(f"capture_method: expected one of {CAPTURE_METHODS}, got {opts['capture_method']!r}")
+    given = {k: props[k] for k in props.keys() if k not in OWN_PROPERTIES}
+    extra = {k: given.pop(k) for k in ("reverse", "chunk") if k in given}
+    REGISTRY[kind].schema.validate(kind, given)          # unknown name or bad value -> ValueError
+    opts["params"] = {**given, **extra}
+    return opts
+
+
+def _make_class():
+    """The integrator class for the current variant (Mitsuba's base classes are per variant)."""
+
+    class AVSMSingleScatterIntegrator(mi.SamplingIntegrator):
+        r"""Single scattering in a heterogeneous medium, light transmittance from a shadow map.
+
+        .. list-table::
+           :header-rows: 1
+
+           * - Property
+             - Type
+             - Description
+           * - representation
+             - string
+             - Kind of :func:`avsm_dr.kinds` storing the light's transmittance (default:
+               ``exact``, the segments themselves: equals ``volpath``).
+           * - *(kind parameters)*
+             - as the kind
+             - Every other property goes to :func:`avsm_dr.build` (e.g. ``nodes`` of
+               ``avsm``), checked by the kind's schema: an unknown name raises ValueError.
+           * - resolution
+             - integer
+             - Shadow-map texels per side, 64..1024 (default: 256; point lights: a cube map).
+           * - filter
+             - string
+             - Shadow-map lookup, ``point | bilinear | box | gaussian`` (default: ``bilinear``).
+           * - capture_method
+             - string
+             - Grid capture, ``march`` (Simpson steps of half a voxel) or ``exact`` (default: ``march``).
+           * - max_depth
+             - integer
+             - Longest path in segments, as ``volpath`` counts them: 1 = emitters seen directly,
+               2 = plus single scattering and direct light on surfaces (default: 2; nothing else).
+           * - march_steps
+             - integer
+             - Midpoint pieces along each camera ray's stretch inside the medium (default: 64).
+           * - hide_emitters
+             - boolean
+             - Hide directly visible area emitters (default: false).
+
+        Per camera sample, with ``[a, b]`` the ray's stretch inside the medium's box (cut at
+        the first surface), ``t* ~ U[a, b]`` and ``x* = o + t* d``::
+
+            L = (b - a) T_v(t*) sigma_s(x*) f_p(-d, l) L_e T_light(x*) V(x*)          medium
+              + T_v(b) f_r(x_s) |cos| L_e T_light(x_s) V(x_s)                         surface
+
+        ``T_v(t) = exp(-int_a^t sigma_t)`` by the midpoint rule with ``march_steps`` pieces of
+        ``[a, b]`` (one random ``t*`` per sample: unbiased for the in-scattering integral
+        given ``T_v``; ``T_v`` itself has the midpoint rule's O(h^2) error), ``L_e`` the
+        emitter sample (Mitsuba's ``sample_emitter_direction``), ``V`` the visibility of
+        the light through opaque surfaces (Mitsuba ray tests, null interfaces skipped) and
+        ``T_light`` the representation's transmittance through the medium at the point
+        (:meth:`avsm_dr.capture.Capture.transmittance`).  The medium is the interior of a
+        shape (its box bounds the march) holding a ``heterogeneous`` medium with a
+        one-channel ``gridvolume`` ``sigma_t`` spanning that box; its ``albedo`` and phase
+        function are Mitsuba's.  Reverse-mode AD (``dr.backward`` after ``mi.render``)
+        reaches the grid both through ``sigma_t`` along camera rays and through the
+        capture's optical depths (naive AD of the whole render).
+        """
+
+        def __init__(self, props):
+            super().__init__(props)
+            opts = _check_properties(props)
+            self.kind = opts["kind"]
+            self.params = opts["params"]
+            self.resolution = opts["resolution"]
+            self.filter = opts["filter"]
+            self.max_depth = opts["max_depth"]
+            self.march_steps = opts["march_steps"]
+            self.capture_method = opts["capture_method"]
+            self.hide_emitters_ = bool(opts["hide_emitters"])
+            self.shadow = None
+
+        # ------------------------------------------------------------- shadow map
+        def prepare_shadow(self, scene):
+            """Capture the scene's medium from its light and build the representation:
+            ``self.shadow = (capture, representation, medium, box)``, the AD graph kept when
+            the grid has gradients enabled."""
+            emitters = scene.emitters()
+            if len(emitters) != 1:
+                raise ValueError(f"scene: {NAME} needs exactly one emitter, found {len(emitters)}")
+            light = light_of(emitters[0])
+            medium, lo, hi = scene_medium(scene)
+            density = medium_density(medium)
+            with dr.suspend_grad():
+                check_box(medium, density, lo, hi)
+            with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+                av = Scene(NAME, light, np.zeros((0, 3)), density=density, bbox=(lo, hi))
+                cap = capture(av, resolution=self.resolution, density=density, method=self.capture_method)
+                rep = build(self.kind, cap.segments, **self.params)
+            self.shadow = (cap, rep, medium, mi.ScalarBoundingBox3f(lo.tolist(), hi.tolist()))
+            return self.shadow
+
+        def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+            """Capture the shadow map, then render as every SamplingIntegrator does."""
+            self.prepare_shadow(scene)
+            try:
+                return super().render(scene, sensor, seed, spp, develop, evaluate)
+            finally:
+                self.shadow = None           # the image's graph keeps what it needs
+
+        def light_transmittance(self, p):
+            """T_light at world points ``p`` (Point3f): the representation's lookup."""
+            cap, rep = self.shadow[:2]
+            pts = np.stack([np.asarray(dr.detach(p[i]).numpy(), np.float64) for i in range(3)], axis=1)
+            with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+                T = cap.transmittance(rep, pts, filter=self.filter)
+            return mi.Float(T)
+
+        # ---------------------------------------------------------------- tracing
+        @staticmethod
+        def _is_null(si):
+            return si.is_valid() & mi.has_flag(si.bsdf().flags(), mi.BSDFFlags.Null)
+
+        def first_surface(self, scene, ray, active):
+            """First intersection with a non-null BSDF (medium boundaries crossed)."""
+            o, act = mi.Point3f(ray.o), mi.Bool(active)
+            for _ in range(MAX_NULL_INTERFACES):
+                si = scene.ray_intersect(mi.Ray3f(o, ray.d), act)
+                null = act & self._is_null(si)
+                o = dr.select(null, si.spawn_ray(ray.d).o, o)
+                act = null
+            si = scene.ray_intersect(mi.Ray3f(o, ray.d), active)
+            return si, active & si.is_valid() & ~self._is_null(si)
+
+        def visible(self, scene, it, ds, active):
+            """Light not blocked by an opaque surface between ``it`` and the emitter sample
+            (``it``: a SurfaceInteraction3f, whose ray origin is offset off the surface, or an
+            Interaction3f inside the medium)."""
+            o = it.spawn_ray(ds.d).o if isinstance(it, mi.SurfaceInteraction3f) else mi.Point3f(it.p)
+            left, act = mi.Float(ds.dist), mi.Bool(active)
+            blocked = dr.zeros(mi.Bool, dr.width(act))
+            for _ in range(MAX_NULL_INTERFACES):
+                r = mi.Ray3f(o, ds.d)
+                r.maxt = left * (1 - mi.math.ShadowEpsilon)
+                si = scene.ray_intersect(r, act)
+                hit = act & si.is_valid()
+                null = hit & self._is_null(si)
+                blocked |= hit & ~null
+                left = dr.select(null, left - si.t, left)
+                o = dr.select(null, si.spawn_ray(ds.d).o, o)
+                act = null
+            return active & ~blocked
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            """One sample of the estimator in the class docstring: (radiance, valid, aovs)."""
+            if self.shadow is None:
+                self.prepare_shadow(scene)
+            _, _, med, box = self.shadow
+            active = mi.Bool(active)
+            n = dr.width(active) if dr.width(ray.o) == 1 else dr.width(ray.o)
+            d = mi.Vector3f(ray.d)
+            L = dr.zeros(mi.Spectrum, n)
+
+            # ---- camera ray: first surface and the stretch [a, b] inside the medium's box
+            si, on_surface = self.first_surface(scene, ray, active)
+            t_surf = dr.select(on_surface, dr.dot(si.p - ray.o, d), dr.inf)
+            mint, maxt = self._slabs(box, ray.o, d)
+            hit = maxt >= mint
+            a = dr.maximum(mint, 0.0)
+            b = dr.minimum(maxt, t_surf)
+            in_medium = active & hit & (b > a)
+            length = dr.select(in_medium, b - a, 0.0)
+            t_star = a + sampler.next_1d(active) * length             # scattering distance, pdf 1/length
+
+            # ---- midpoint march of T_v: one lane per (sample, piece); block sums per sample
+            N = self.march_steps
+            lane = dr.arange(mi.UInt32, n * N)
+            path = lane // N
+            j = mi.Float(lane - path * N)
+            o_l = dr.gather(mi.Point3f, ray.o, path)
+            d_l = dr.gather(mi.Vector3f, d, path)
+            h = dr.gather(mi.Float, length, path) / N                # piece length
+            s0 = dr.gather(mi.Float, a, path) + j * h                # piece start
+            ts = dr.gather(mi.Float, t_star, path)
+            live = dr.gather(mi.Bool, in_medium, path)
+            sig_mid = self._sigma_t(med, o_l + d_l * (s0 + 0.5 * h), live)
+            cut = dr.minimum(s0 + h, ts)                              # piece end, cut at t*
+            partial = live & (s0 < ts) & (s0 + h > ts)
+            sig_cut = self._sigma_t(med, o_l + d_l * (0.5 * (s0 + cut)), partial)
+            part = dr.select(s0 + h <= ts, sig_mid * h, dr.select(partial, sig_cut * (cut - s0), 0.0))
+            tau_b = dr.block_sum(sig_mid * h, N)                      # optical depth a -> b
+            tau_star = dr.block_sum(part, N)                          # optical depth a -> t*
+
+            # ---- emitters seen directly (max_depth >= 1)
+            if not self.hide_emitters_:
+                emitter = si.emitter(scene, on_surface)
+                L += dr.select(on_surface, emitter.eval(si, on_surface), 0.0) * dr.exp(-tau_b)
+            if self.max_depth < 2:
+                return L, active, []
+
+            # ---- emitter samples at the scattering point and at the surface
+            x_star = ray.o + d * t_star
+            it_m = dr.zeros(mi.Interaction3f, n)
+            it_m.p, it_m.t = x_star, t_star
+            ds_m, Le_m = scene.sample_emitter_direction(it_m, sampler.next_2d(in_medium), False, in_medium)
+            ds_s, Le_s = scene.sample_emitter_direction(si, sampler.next_2d(on_surface), False, on_surface)
+            vis_m = self.visible(scene, it_m, ds_m, in_medium & (ds_m.pdf > 0))
+            vis_s = self.visible(scene, si, ds_s, on_surface & (ds_s.pdf > 0))
+            T = self.light_transmittance(mi.Point3f(dr.concat([x_star.x, si.p.x]), dr.concat([x_star.y, si.p.y]),
+                                                    dr.concat([x_star.z, si.p.z])))
+            idx = dr.arange(mi.UInt32, n)
+            T_m, T_s = dr.gather(mi.Float, T, idx), dr.gather(mi.Float, T, idx + n)
+
+            # ---- single scattering: (b - a) T_v(t*) sigma_s f_p L_e T_light
+            mei = dr.zeros(mi.MediumInteraction3f, n)
+            mei.p, mei.t, mei.wi = x_star, t_star, -d
+            mei.sh_frame = mi.Frame3f(mei.wi)
+            sigma_s, _, _ = med.get_scattering_coefficients(mei, in_medium)
+            phase_val, _ = med.phase_function().eval_pdf(mi.PhaseFunctionContext(sampler), mei, ds_m.d, in_medium)
+            L += dr.select(vis_m, length * dr.exp(-tau_star) * sigma_s * phase_val * Le_m * T_m, 0.0)
+
+            # ---- surface: T_v(b) f_r L_e T_light
+            bsdf = si.bsdf(ray)
+            f = bsdf.eval(mi.BSDFContext(), si, si.to_local(ds_s.d), vis_s)
+            L += dr.select(vis_s, dr.exp(-tau_b) * f * Le_s * T_s, 0.0)
+            return L, active, []
+
+        @staticmethod
+        def _slabs(box, o, d):
+            """(t_enter, t_exit) of rays o + t d with the box (slab test)."""
+            t_enter, t_exit = mi.Float(-dr.inf), mi.Float(dr.inf)
+            for i in range(3):
+                inv = dr.rcp(d[i])
+                t0, t1 = (box.min[i] - o[i]) * inv, (box.max[i] - o[i]) * inv
+                t_enter = dr.maximum(t_enter, dr.minimum(t0, t1))
+                t_exit = dr.minimum(t_exit, dr.maximum(t0, t1))
+            return t_enter, t_exit
+
+        @staticmethod
+        def _sigma_t(medium, p, active):
+            mei = dr.zeros(mi.MediumInteraction3f, dr.width(p))
+            mei.p = p
+            return dr.select(active, medium.get_scattering_coefficients(mei, active)[2][0], 0.0)
+
+        def aov_names(self):
+            return []
+
+        def to_string(self):
+            return f"AVSMSingleScatterIntegrator[representation={self.kind!r}, params={self.params}]"
+
+    return AVSMSingleScatterIntegrator
+
+
+_CLASSES: dict[str, type] = {}
+
+
+def integrator_class():
+    """The ``avsm_single_scatter`` class of the current Mitsuba variant."""
+    variant = mi.variant()
+    if variant not in _CLASSES:
+        _CLASSES[variant] = _make_class()
+    return _CLASSES[variant]
+
+
+def register() -> None:
+    """Register ``avsm_single_scatter`` with Mitsuba for the current variant (a JIT AD variant:
+    ``llvm_ad_*`` / ``cuda_ad_*``); done at import and again after every variant change."""
+    variant = mi.variant()
+    if variant is None or not (variant.startswith("llvm_ad") or variant.startswith("cuda_ad")):
+        return
+    cls = integrator_class()
+    mi.register_integrator(NAME, lambda props: cls(props))
+
+
+def _on_variant_change(*_args) -> None:
+    register()
+
+
+if mi.variant() is None:
+    _mitsuba_with_variant()
+register()
+mi.detail.add_variant_callback(_on_variant_change)
+
+__all__ = ["NAME", "register", "integrator_class", "light_of", "scene_medium", "medium_density"]

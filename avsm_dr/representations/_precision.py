@@ -1,0 +1,277 @@
+"""Storage precision: quantise a representation's stored buffers on store, dequantise on
+lookup (``build(kind, seg, precision=...)``).
+
+``precision``: None (default: the segments' own dtype, nothing quantised), ``'float32'``,
+``'float16'``, ``'unorm16'`` or ``'unorm8'``.  Each kind declares its stored buffers
+(:class:`Stored`: attribute, meaning, layout) and this module quantises them once, after
+the build (:meth:`Representation._apply_precision`).  Codes are rounded to nearest
+(``unorm``: ``c = round(q M)``, ``M = 2^b - 1``, decoded ``c / M``; ``float16``: IEEE
+half, round to nearest even).  The buffers keep the *decoded* values in the segments'
+dtype: decoding is an elementwise function of the code and the texel's stored range, so
+this is bit for bit what decoding at lookup returns (computed in float64, rounded once),
+and every lookup kernel stays as it is.  ``nbytes_per_texel`` counts the codes plus the
+per-texel ranges and scales, which are stored in float32 (4 bytes each); float64 data
+beyond float32's range is refused (ValueError naming ``precision``).
+
+Encodings by meaning (``q`` the value quantised, in [0, 1] or [-1, 1]):
+
+* ``depth``: ``'float32'``: the depth itself.  Otherwise relative to the texel's depth
+  range ``q = (d - lo) / (hi - lo)`` (``lo``/``hi``: min/max of the texel's stored depths,
+  float32 rounded outward; 8 bytes per texel; a ``texel`` layout, one depth per texel, uses
+  one global range instead).  Error <= (hi - lo) / (2 M) (unorm) or (hi - lo) 2^-12 (float16:
+  half an ulp of q <= 1), plus the final rounding to the dtype.  Rounding is monotone, so
+  sorted nodes stay sorted; absolute float16 depths would err by up to |d| 2^-11.
+* ``unit``: already in [0, 1] (e.g. avsm_march's relative depths): the code of q itself.
+* ``transmittance``: T in [0, 1], zero-preserving (T = 0 stays 0, T > 0 stays positive:
+  exponential interpolation falls back to linear next to a zero node, and a rounding
+  across 0 would switch branch).  ``'float32'``/``'float16'``: T itself (float16 error
+  <= 2^-12); ``'unorm16'``: linear, error <= 1 / (2 x 65535) (1 / 65535 for T below half a
+  step, kept at the first code); ``'unorm8'``: **optical depth** ``tau = -ln T``
+  normalised by the texel's largest ``tau_max`` (capped at :data:`TAU_CAP`; float32,
+  4 bytes per texel): codes ``c = round(254 tau / tau_max)`` decoded ``exp(-tau_max c /
+  254)``, code 255 for T = 0.  A linear 8-bit T errs by up to 1/510 absolute, i.e. 20 % of
+  a T = 0.01 shadow; the optical-depth code errs by a *relative* ``exp(tau_max / 508) - 1``
+  (<= 2.2 % at the cap, far less in thin texels), keeps ``T = 1`` exact and is monotone
+  in tau.  0 < T < ``exp(-TAU_CAP)`` decodes to ``exp(-tau_max)``.
+* ``coefficient`` (basis kinds): scaled per texel by ``s = max_k |a_k|`` (float32, rounded
+  up; 4 bytes per texel; for power moments ``s = b_0``).  Signed: ``q = a / s`` in [-1, 1],
+  unorm code of ``(q + 1) / 2``, error <= s / M; non-negative (``signed=False``, e.g. OSM's
+  cumulative optical depths): code of ``a / s`` in [0, 1], error <= s / (2 M) and monotone
+  sequences stay monotone.  float16: ``fp16(a / s) s`` (relative 2^-11, no overflow).
+* ``range``: per-texel ranges a kind stores itself (basis ``depth_range='texel'``,
+  avsm_march): float32 whatever the precision.
+* ``scalar``: unbounded non-negative per-texel values (beer's mean extinction and optical
+  depth): floating formats only, float16 saturated at its largest finite value 65504.
+
+Gradients: straight-through estimator, ``dr.replace_grad(decoded, x)``: the primal is
+the decoded value, the derivative that of the unquantised ``x`` (rounding has zero
+derivative almost everywhere; the estimator keeps differentiable kinds differentiable,
+biased by at most the quantisation error).  Ranges and scales are constants of the build.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+
+#: Accepted values of ``precision`` (None: the segments' own dtype).
+PRECISIONS = ("float32", "float16", "unorm16", "unorm8")
+#: Bytes per code.
+CODE_BYTES = {"float32": 4, "float16": 2, "unorm16": 2, "unorm8": 1}
+#: unorm code maxima M = 2^b - 1.
+UNORM_MAX = {"unorm16": 65535, "unorm8": 255}
+#: Bytes of a stored per-texel range bound or scale (float32).
+RANGE_BYTES = 4
+#: Largest optical depth the 8-bit transmittance code spans (T floor 2^-16 ~ 1.5e-5).
+TAU_CAP = 16 * float(np.log(2.0))
+#: Largest finite float16 / float32.
+HALF_MAX = 65504.0
+FLOAT_MAX = float(np.finfo(np.float32).max)
+#: Steps of the 8-bit optical-depth code (code 255 is reserved for T = 0).
+T8_STEPS = 254
+#: Smallest positive decoded T per format (float32: smallest normal, since Dr.Jit's worker
+#: threads flush subnormals; float16: smallest subnormal 2^-24, normal in the float32 store).
+SMALLEST = {"float32": 2.0**-126, "float16": 2.0**-24, "unorm16": 1 / 65535, "unorm8": 0.0}
+MEANINGS = ("depth", "unit", "transmittance", "coefficient", "range", "scalar")
+LAYOUTS = ("nodes", "flat", "csr", "texel")
+
+
+def check_precision(value) -> str | None:
+    """``value`` if it is None or one of :data:`PRECISIONS`, else ValueError naming it."""
+    if value is None or (isinstance(value, str) and value in PRECISIONS):
+        return value
+    raise ValueError(f"precision: expected None or one of {PRECISIONS}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Stored:
+    """One stored buffer of a kind: attribute name, meaning (:data:`MEANINGS`) and layout.
+
+    Layouts: ``'nodes'`` a list of N arrays of length T (``[node][texel]``); ``'flat'`` one
+    texel-major array of K values per texel; ``'csr'`` one array grouped by texel with the
+    kind's ``node_counts`` (T,) per texel; ``'texel'`` one value per texel.
+    ``signed``: coefficients may be negative (else non-negative, a [0, 1] code)."""
+
+    attr: str
+    meaning: str
+    layout: str
+    signed: bool = True
+
+    def __post_init__(self):
+        if self.meaning not in MEANINGS:
+            raise ValueError(f"meaning: expected one of {MEANINGS}, got {self.meaning!r}")
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout: expected one of {LAYOUTS}, got {self.layout!r}")
+
+
+# ----------------------------------------------------------------------------
+# Host codecs (float64 NumPy in, float64 decoded values out)
+# ----------------------------------------------------------------------------
+def round_unit(q: np.ndarray, precision: str) -> np.ndarray:
+    """q in [0, 1] (or [-1, 1] for float formats) through the code of ``precision``."""
+    if precision == "float32":
+        return q.astype(np.float32).astype(np.float64)
+    if precision == "float16":
+        return q.astype(np.float16).astype(np.float64)
+    M = UNORM_MAX[precision]
+    return np.rint(np.clip(q, 0.0, 1.0) * M) / M
+
+
+def float32_down(x: np.ndarray) -> np.ndarray:
+    """Largest float32 <= x (float64 array)."""
+    f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) > x, np.nextafter(f, np.float32(-np.inf)), f).astype(np.float64)
+
+
+def float32_up(x: np.ndarray) -> np.ndarray:
+    """Smallest float32 >= x (float64 array)."""
+    f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f).astype(np.float64)
+
+
+def _texel_reduce(x: np.ndarray, tex: np.ndarray, n_tex: int, op, fill: float) -> np.ndarray:
+    out = np.full(n_tex, fill)
+    op.at(out, tex, x)
+    return out
+
+
+def encode_depth(d, tex, n_tex, precision):
+    """Decoded depths and the per-texel bytes (see the module docstring, ``depth``)."""
+    if precision == "float32":
+        return round_unit(d, "float32"), 0.0
+    if tex is None:                                  # one global range
+        lo = float32_down(np.array([d.min()]))[0] if d.size else 0.0
+        hi = float32_up(np.array([d.max()]))[0] if d.size else 0.0
+        lo_t, hi_t, extra = lo, hi, 0.0
+    else:
+        lo = float32_down(_texel_reduce(d, tex, n_tex, np.minimum, np.inf))
+        hi = float32_up(_texel_reduce(d, tex, n_tex, np.maximum, -np.inf))
+        lo_t, hi_t, extra = lo[tex], hi[tex], 2.0 * RANGE_BYTES
+    span = hi_t - lo_t
+    q = np.where(span > 0, (d - lo_t) / np.where(span > 0, span, 1.0), 0.0)
+    return np.clip(lo_t + round_unit(np.clip(q, 0.0, 1.0), precision) * span, lo_t, hi_t), extra
+
+
+def encode_transmittance(t, tex, n_tex, precision):
+    """Decoded transmittances and the per-texel bytes (module docstring).  Zero-preserving:
+    T = 0 decodes to 0 and T > 0 to a positive value (the smallest positive code where it
+    would round to 0), so exponential interpolation, which falls back to linear next to a
+    zero node, takes the same branch as with the native values."""
+    t = np.clip(t, 0.0, 1.0)
+    if precision != "unorm8":
+        dec = round_unit(t, precision)
+        return np.where((t > 0) & (dec == 0), SMALLEST[precision], dec), 0.0
+    zero = t == 0
+    with np.errstate(divide="ignore"):
+        tau = np.where(zero, 0.0, np.minimum(-np.log(np.where(zero, 1.0, t)), TAU_CAP))
+    if tex is None:
+        tmax = np.full(t.shape, float32_down(np.array([tau.max(initial=0.0)]))[0])
+        extra = 0.0
+    else:
+        tmax = float32_down(_texel_reduce(tau, tex, n_tex, np.maximum, 0.0))[tex]
+        extra = float(RANGE_BYTES)
+    q = np.where(tmax > 0, np.minimum(tau / np.where(tmax > 0, tmax, 1.0), 1.0), 0.0)
+    # codes 0..254 over [0, tau_max]; code 255 is T = 0
+    return np.where(zero, 0.0, np.exp(-tmax * (np.rint(q * T8_STEPS) / T8_STEPS))), extra
+
+
+def encode_coefficient(a, tex, n_tex, precision, signed: bool):
+    """Decoded coefficients and the per-texel bytes (module docstring)."""
+    if precision == "float32":
+        return round_unit(a, "float32"), 0.0
+    if tex is None:
+        s = np.full(a.shape, float32_up(np.array([np.abs(a).max(initial=0.0)]))[0])
+        extra = 0.0
+    else:
+        s = float32_up(_texel_reduce(np.abs(a), tex, n_tex, np.maximum, 0.0))[tex]
+        extra = float(RANGE_BYTES)
+    q = np.where(s > 0, a / np.where(s > 0, s, 1.0), 0.0)
+    if not signed:
+        q = np.clip(q, 0.0, 1.0)
+    if precision == "float16" or not signed:
+        return round_unit(q, precision) * s, extra
+    return (2.0 * round_unit(0.5 * (q + 1.0), precision) - 1.0) * s, extra
+
+
+def encode(meaning, x, tex, n_tex, precision, signed=True):
+    """Decoded values (float64) and the per-texel bytes of ranges / scales for one buffer.
+    ``tex``: the texel of each element, or None for one global range / scale."""
+    if meaning == "depth":
+        return encode_depth(x, tex, n_tex, precision)
+    if meaning == "transmittance":
+        return encode_transmittance(x, tex, n_tex, precision)
+    if meaning == "coefficient":
+        return encode_coefficient(x, tex, n_tex, precision, signed)
+    if meaning == "unit":
+        return round_unit(np.clip(x, 0.0, 1.0), precision), 0.0
+    if meaning == "range":
+        return round_unit(x, "float32"), 0.0
+    # scalar: floating formats only (the kind's ``precisions`` says so), saturated
+    if precision == "float16":
+        return np.minimum(x, HALF_MAX).astype(np.float16).astype(np.float64), 0.0
+    return round_unit(np.minimum(x, FLOAT_MAX), "float32"), 0.0
+
+
+def code_bytes(meaning: str, precision: str) -> int:
+    """Bytes of one stored element of ``meaning`` (ranges: always float32)."""
+    return RANGE_BYTES if meaning == "range" else CODE_BYTES[precision]
+
+
+# ----------------------------------------------------------------------------
+# Applying it to a representation
+# ----------------------------------------------------------------------------
+def _host(x) -> np.ndarray:
+    return np.asarray(dr.detach(x).numpy(), np.float64)
+
+
+def _device(rep, orig, dec: np.ndarray):
+    """Decoded values as the kind's Float, carrying the gradient of ``orig`` (straight
+    through)."""
+    Float = rep.Float
+    dt = np.float32 if rep.segments.dtype == "float32" else np.float64
+    out = Float(A.aligned(dec.astype(dt)))
+    if dr.grad_enabled(orig):
+        out = dr.replace_grad(out, Float(orig))
+    return out
+
+
+def quantise(rep, fields) -> float:
+    """Quantise ``rep``'s stored buffers ``fields`` (:class:`Stored`) in place to
+    ``rep.precision``; returns their bytes per texel (codes + ranges / scales)."""
+    precision, T = rep.precision, rep.n_texels
+    total = 0.0
+    for f in fields:
+        buf = getattr(rep, f.attr)
+        if f.layout == "nodes":
+            N = len(buf)
+            x = np.concatenate([_host(b) for b in buf]) if N else np.zeros(0)
+            tex = np.tile(np.arange(T), N)
+            per_texel = float(N)
+        elif f.layout == "flat":
+            x = _host(buf)
+            K = x.size // max(T, 1)
+            tex = np.repeat(np.arange(T), K)
+            per_texel = float(K)
+        elif f.layout == "csr":
+            x = _host(buf)
+            counts = np.asarray(rep.node_counts, np.int64)
+            tex = np.repeat(np.arange(T), counts)
+            per_texel = float(counts.mean()) if counts.size else 0.0
+        else:   # texel
+            x = _host(buf)
+            tex = None
+            per_texel = 1.0
+        if f.meaning != "scalar" and x.size and np.abs(x).max() > FLOAT_MAX:
+            raise ValueError(f"precision: {rep.kind!r} stores {f.attr} values up to {np.abs(x).max():.3g}, "
+                             "beyond float32's range (codes, ranges and scales are float32 at most); "
+                             "keep precision=None for such float64 data")
+        dec, extra = encode(f.meaning, x, tex, T, precision, f.signed)
+        total += per_texel * code_bytes(f.meaning, precision) + extra
+        if f.layout == "nodes":
+            setattr(rep, f.attr, [_device(rep, b, dec[k * T:(k + 1) * T]) for k, b in enumerate(buf)])
+        else:
+            setattr(rep, f.attr, _device(rep, buf, dec))
+    return total

@@ -1,0 +1,286 @@
+"""Adaptive AVSM under a memory budget: a total byte budget for the whole map, distributed
+over the texels by a cheap estimate of each texel's complexity, then AVSM (Salvi,
+Vidimce, Lauritzen and Lefohn 2010, "Adaptive Volumetric Shadow Maps", secs. 3-4) per
+texel with its own node count, stored compacted.
+
+Allocation (first pass, host float64, from the segments alone).  A texel with ``c``
+segments needs at most ``K = 2 c`` nodes: AVSM with ``N >= 2c`` never compresses (it
+keeps every entry and exit node).  Its options are the node counts of the ladder
+:data:`LADDER` below ``K`` (and at most ``max_nodes``) and ``K`` itself when
+``K <= max_nodes``; empty texels get 0 nodes, every other texel at least 2 (the first and
+the last node are kept).  The squared error of ``n`` nodes is modelled as
+
+    ``e(n) = span (1 - exp(-tau))^2 (1/n^2 - 1/K^2)^+``
+
+with ``span`` the texel's depth extent (``max z1 - min z0``) and ``tau`` its total optical
+depth: ``n`` nodes cut the drop ``1 - T_behind`` into ``n`` pieces whose deviation from a
+chord scales with the piece's drop, integrated over the span (receivers spread uniformly
+in depth); 0 once nothing is compressed.  ``e`` is convex in ``n``, so the slopes of its
+chords between consecutive options are non-increasing.  Water-filling: starting from the
+least option of every texel, upgrades ``n -> n'`` (the next option) are taken in order of
+decreasing gain per node ``(e(n) - e(n')) / (n' - n)`` (ties: lower texel, then smaller
+``n``) while the running node total fits the budget; the first that does not fit ends
+the pass, and upgrades the model says gain nothing are never taken (a map needing less
+than the budget stores less).  ``_score='count'`` uses ``span = 1``, ``tau = c`` (segment count only) and
+``_score='uniform'`` the same count ``n`` for every non-empty texel (the largest that
+fits): ablations for the ``memory_budget`` experiment.
+
+Build.  Dr.Jit AVSM keeps N nodes in registers with N a Python constant, so texels are
+grouped by their kernel N (the option's ladder value; ``K`` runs with the next ladder
+value, which never compresses) and :class:`~.avsm.AVSM` runs once per group on
+:meth:`~avsm_dr.Segments.select_texels` of the group with the map's near/far (clear nodes
+at the same far as a whole-map build).  A texel's AVSM-N nodes are therefore bit for bit
+those of ``build('avsm', seg, nodes=N)``.
+
+Storage (compacted; ``nbytes_per_texel`` counts all of it): CSR node offsets (T+1 uint32)
+and per node a depth and a transmittance in the segments' dtype.  A texel that was
+allocated fewer than ``K`` nodes stores all N of its kernel (a clear node at far may be
+among them); one allocated ``K`` stores its ``used`` inserted nodes (the clear nodes behind
+them carry the last value: dropping them changes no lookup).  The budget is
+``bytes_per_texel x T`` bytes: ``4 (T + 1)`` for the offsets, the rest for nodes at
+``2 itemsize`` each; the stored total never exceeds it.
+
+Lookup: binary search of the texel's nodes for the last one at or before the depth, then
+AVSM's bracket-and-interpolate (:func:`~.avsm.interpolate`) on that node and its
+successor: ``T = 1`` in front of the first node and in empty texels, the last node's
+value behind the last.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from .. import backend
+from .avsm import AVSM, INTERPOLATIONS, interpolate, node_range
+from .base import Representation
+from .registry import register
+from .schema import Param, Schema, far_param, near_param
+
+#: Kernel node counts (each distinct one is one compiled AVSM kernel).
+LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
+#: Bytes of one CSR offset (uint32).
+OFFSET_BYTES = 4
+SCORES = ("complexity", "count", "uniform")
+
+
+# ----------------------------------------------------------------------------
+# Allocation (host float64)
+# ----------------------------------------------------------------------------
+def ladder(max_nodes: int) -> np.ndarray:
+    """Kernel node counts available under ``max_nodes``: :data:`LADDER` below it, and it."""
+    return np.array([n for n in LADDER if n < max_nodes] + [max_nodes], np.int64)
+
+
+def options(counts: np.ndarray, max_nodes: int) -> np.ndarray:
+    """(T, L) node-count options per texel, ascending, padded with 0 (empty texels have
+    none): the :func:`ladder` values below ``K = 2 c``, then ``K`` where ``K <= max_nodes``."""
+    K = 2 * np.asarray(counts, np.int64)
+    lad = ladder(max_nodes)
+    opt = np.concatenate([np.where(lad[None, :] < K[:, None], lad[None, :], 0),
+                          np.where(K <= max_nodes, K, 0)[:, None]], axis=1)
+    big = np.iinfo(np.int64).max
+    s = np.sort(np.where(opt > 0, opt, big), axis=1)
+    return np.where(s == big, 0, s)
+
+
+def kernel_nodes(n: np.ndarray, counts: np.ndarray, max_nodes: int) -> np.ndarray:
+    """(T,) AVSM kernel N for allocated counts ``n``: ``n`` itself below ``K = 2 c``, the
+    smallest ladder value >= K at ``K`` (that kernel never compresses), 0 for empty texels."""
+    n = np.asarray(n, np.int64)
+    K = 2 * np.asarray(counts, np.int64)
+    lad = ladder(max_nodes)
+    up = lad[np.minimum(np.searchsorted(lad, n), lad.size - 1)]
+    return np.where(n == 0, 0, np.where(n < K, n, up))
+
+
+def model_error(n, K, weight):
+    """Modelled squared error ``weight (1/n^2 - 1/K^2)^+`` (0 where ``n`` is 0 or >= K)."""
+    n = np.asarray(n, np.float64)
+    K = np.asarray(K, np.float64)
+    safe = np.where(n > 0, n, 1.0)
+    Ks = np.where(K > 0, K, 1.0)
+    e = weight * np.maximum(1.0 / (safe * safe) - 1.0 / (Ks * Ks), 0.0)
+    return np.where(n > 0, e, 0.0)
+
+
+def complexity(segments, score: str) -> np.ndarray:
+    """(T,) float64 weight of :func:`model_error` per texel: ``span (1 - exp(-tau))^2``
+    (``score='count'``: ``(1 - exp(-c))^2``; ``'uniform'``: 1); 0 for empty texels."""
+    c = segments.counts
+    if score == "uniform":
+        return np.where(c > 0, 1.0, 0.0)
+    if score == "count":
+        return np.expm1(-c.astype(np.float64)) ** 2
+    lo, hi = segments.texel_bounds()
+    tau = np.zeros(c.size)
+    if segments.n_segments:
+        t = A.host(segments.optical_depth, "optical_depth")
+        tau = np.bincount(np.repeat(np.arange(c.size), c), weights=t, minlength=c.size)
+    return np.where(c > 0, (hi - lo) * np.expm1(-tau) ** 2, 0.0)
+
+
+def allocate(counts, weight, budget_nodes: int, max_nodes: int, uniform: bool = False) -> np.ndarray:
+    """(T,) int64 node count per texel within ``budget_nodes`` (module docstring):
+    water-filling by decreasing modelled gain per node from each texel's least option;
+    ``uniform``: the largest ladder value ``n`` such that every non-empty texel taking
+    ``min(n, K)`` fits.  The caller checks that the least options fit."""
+    counts = np.asarray(counts, np.int64)
+    K = 2 * counts
+    opt = options(counts, max_nodes)
+    first = opt[:, 0]
+    if uniform:
+        best = first
+        for n in ladder(max_nodes):
+            cand = np.where(K <= n, K, n)
+            if cand.sum() <= budget_nodes:
+                best = cand
+        return best
+    n0, n1 = opt[:, :-1], opt[:, 1:]
+    step = n1 > 0
+    Kc = np.broadcast_to(K[:, None], n0.shape)
+    w = np.broadcast_to(np.asarray(weight, np.float64)[:, None], n0.shape)
+    gain = (model_error(n0, Kc, w) - model_error(np.where(step, n1, n0), Kc, w)) / np.where(step, n1 - n0, 1)
+    gain = np.minimum.accumulate(gain, axis=1)     # non-increasing per texel (convex e; guards rounding)
+    step &= gain > 0                               # nothing is spent where the model gains nothing
+    tex = np.broadcast_to(np.arange(counts.size)[:, None], n0.shape)[step]
+    g, at, cost = gain[step], n0[step], (n1 - n0)[step]
+    order = np.lexsort((at, tex, -g))              # gain descending, then texel, then n
+    room = int(budget_nodes) - int(first.sum())
+    taken = int(np.searchsorted(np.cumsum(cost[order]), room, side="right"))
+    out = first.copy()
+    np.add.at(out, tex[order[:taken]], cost[order[:taken]])
+    return out
+
+
+# ----------------------------------------------------------------------------
+@register("avsm_adaptive")
+class AVSMAdaptive(Representation):
+    """AVSM with a per-texel node count chosen under a total memory budget (see the
+    module docstring): ``bytes_per_texel`` x T bytes for the whole map, offsets included.
+
+    Parameters: bytes_per_texel (mean budget per texel in bytes; ValueError when below
+    the offsets plus 2 nodes per non-empty texel), max_nodes (cap per texel, in [2, 64]),
+    sort, interpolation, near/far (as AVSM).  Attributes: ``allocated`` (T,) int64 node
+    counts of the allocation, ``kernel`` (T,) the AVSM kernel N per texel,
+    ``node_counts`` (T,) and ``node_offsets`` (T+1,) int64 of the stored nodes,
+    ``node_depth`` / ``node_value`` (Dr.Jit, CSR order), ``budget_nodes``, ``groups``
+    ({N: texels run with that kernel}).  Gradients flow as AVSM's (node layout fixed);
+    with ``reverse='auto'`` the groups' loops run checkpointed (see ``_build``).
+    """
+
+    schema = Schema(
+        params=(
+            Param("bytes_per_texel", "float", 64.0, "memory budget: mean bytes per texel over the whole map "
+                  "(offsets included; total = bytes_per_texel x texels)", min=8.0),
+            Param("max_nodes", "int", 32, "cap on the nodes of one texel", min=2, max=64),
+            Param("sort", "bool", False, "insert segments sorted by depth per texel (as AVSM)"),
+            Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp'",
+                  choices=INTERPOLATIONS),
+            near_param(), far_param(),
+            Param("_score", "choice", "complexity", "private: allocation score 'complexity' (span x drop^2), "
+                  "'count' (segments only) or 'uniform' (one count for all non-empty texels)", choices=SCORES),
+        ),
+        size="bytes_per_texel", sweep=(24.0, 32.0, 48.0, 64.0, 96.0, 128.0, 192.0, 256.0),
+        quick_sweep=(32.0, 64.0, 128.0),
+        examples=({"bytes_per_texel": 48.0, "interpolation": "exp"},
+                  {"bytes_per_texel": 96.0, "max_nodes": 8, "sort": True}),
+        headline={"bytes_per_texel": 64.0},
+        summary="AVSM with per-texel node counts under a total byte budget (complexity water-filling, CSR)",
+        paper="Salvi et al. 2010 (budgeted variant)",
+    )
+
+    def __init__(self, segments, **params):
+        super().__init__(segments, **params)
+        P = self.params
+        P.update(zip(("near", "far"), node_range(segments, P["near"], P["far"])))
+        self._score = P.pop("_score")
+        T, item = segments.n_texels, segments.itemsize
+        counts = segments.counts
+        self.budget_nodes = int((P["bytes_per_texel"] * T - OFFSET_BYTES * (T + 1)) // (2 * item))
+        least = int(2 * np.count_nonzero(counts))
+        if self.budget_nodes < least:
+            need = (OFFSET_BYTES * (T + 1) + 2 * item * least) / T
+            raise ValueError(f"bytes_per_texel: {P['bytes_per_texel']:g} is below the least storage of this map, "
+                             f"{need:.6g} (offsets and 2 nodes of {2 * item} bytes per non-empty texel)")
+        self.allocated = allocate(counts, complexity(segments, self._score), self.budget_nodes, P["max_nodes"],
+                                  uniform=self._score == "uniform")
+        self.kernel = kernel_nodes(self.allocated, counts, P["max_nodes"])
+        self._build()
+
+    @property
+    def loop_state_words(self) -> int:
+        """Those of the largest AVSM kernel run (2 N + 5)."""
+        return 2 * int(self.kernel.max(initial=0)) + 5
+
+    # ------------------------------------------------------------------ build
+    def _build(self):
+        seg, P = self.segments, self.params
+        Float, UInt32 = seg.Float, backend.types().UInt32
+        T = seg.n_texels
+        K = 2 * seg.counts
+        stored = np.zeros(T, np.int64)
+        runs = []
+        self.groups = {}
+        # Measured (Dr.Jit 1.5, LLVM): three or more AVSM builds with plain symbolic loops
+        # over different texel subsets of the same grad-enabled segments gave wrong
+        # reverse-mode gradients (some groups' gradients 0); checkpointed loops (a custom
+        # op replaying each chunk) matched finite differences.  'auto' therefore checkpoints.
+        reverse = "checkpoint" if self.reverse == "auto" and seg.requires_grad else self.reverse
+        for N in np.unique(self.kernel[self.kernel > 0]):
+            tex = np.flatnonzero(self.kernel == N)
+            self.groups[int(N)] = tex
+            sub = AVSM(seg.select_texels(tex), nodes=int(N), sort=P["sort"], interpolation=P["interpolation"],
+                       near=P["near"], far=P["far"], reverse=reverse, chunk=self._chunk)
+            # compressing texels keep all N nodes, the others their inserted ones
+            stored[tex] = np.where(self.allocated[tex] < K[tex], int(N), sub.used)
+            runs.append((tex, sub))
+        self.node_counts = stored
+        self.node_offsets = np.concatenate([[0], np.cumsum(stored)]).astype(np.int64)
+        total = int(self.node_offsets[-1])
+        self.node_depth = dr.zeros(Float, total)
+        self.node_value = dr.zeros(Float, total)
+        for tex, sub in runs:
+            for k in range(sub.N):
+                lanes = np.flatnonzero(stored[tex] > k)
+                if lanes.size == 0:
+                    break
+                src = A.to_uint32(lanes)
+                dst = A.to_uint32(self.node_offsets[tex[lanes]] + k)
+                dr.scatter(self.node_depth, dr.gather(Float, sub.depths[k], src), dst)
+                dr.scatter(self.node_value, dr.gather(Float, sub.values[k], src), dst)
+        dr.eval(self.node_depth, self.node_value)
+        self._offsets_dr = UInt32(self.node_offsets.astype(np.uint32))
+        self._max_nodes = int(stored.max(initial=0))
+
+    @property
+    def nbytes_per_texel(self) -> float:
+        T = self.n_texels
+        return (OFFSET_BYTES * (T + 1) + 2 * self.segments.itemsize * int(self.node_offsets[-1])) / T
+
+    def node_depths(self) -> np.ndarray:
+        """Depths of every stored node (float64 NumPy, CSR order: texel ``i`` owns
+        ``node_offsets[i]:node_offsets[i+1]``)."""
+        return np.asarray(self.node_depth.numpy(), np.float64)
+
+    def _eval_texels(self, texel, depth):
+        Float, U32 = self.Float, backend.types().UInt32
+        if self._max_nodes == 0:
+            return dr.full(Float, 1.0, dr.width(depth))
+        start = dr.gather(U32, self._offsets_dr, texel)
+        count = dr.gather(U32, self._offsets_dr, texel + 1) - start
+        n_le = dr.zeros(U32, dr.width(depth))       # nodes at or before the depth (binary search)
+        hi = U32(count)
+        for _ in range(int(np.ceil(np.log2(self._max_nodes + 1)))):
+            live = n_le < hi
+            mid = (n_le + hi) >> 1
+            below = dr.gather(Float, self.node_depth, start + mid, live) <= depth
+            n_le = dr.select(live & below, mid + 1, n_le)
+            hi = dr.select(live & ~below, mid, hi)
+        empty = count == 0
+        il = start + dr.select(n_le > 0, n_le - 1, 0)
+        ir = dr.select(n_le < count, il + 1, il)
+        ok = ~empty
+        d = [dr.gather(Float, self.node_depth, il, ok), dr.gather(Float, self.node_depth, ir, ok)]
+        t = [dr.gather(Float, self.node_value, il, ok), dr.gather(Float, self.node_value, ir, ok)]
+        return dr.select(empty, 1.0, interpolate(d, t, depth, self.params["interpolation"]))

@@ -1,0 +1,93 @@
+"""The learned depth warp experiment (``python -m avsm_dr learned_warp``): a quick run
+through the CLI writes its tables, findings with intervals and figures; training lowers the
+training loss; ``findings`` on hand-made rows."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from avsm_dr import cli
+from avsm_dr.experiments import _common, learned_warp
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("results")
+    assert cli.main(["learned_warp", "--quick", "--out", str(out)]) == 0
+    return out / "learned_warp"
+
+
+def test_quick_run_writes_results(quick_run):
+    rows = _common.read_csv(quick_run / "data.csv")
+    kinds = [k for k, _ in learned_warp.KINDS]
+    assert {r["kind"] for r in rows} == set(kinds)
+    assert {"identity", "log", "learned"} <= {r["method"] for r in rows} <= {"identity", "log", "learned", "kind_log"}
+    assert {r["split"] for r in rows} == {"train", "held_out"}
+    assert {"rmse", "max_error", "bytes_per_texel", "group", "seed", "light"} <= set(rows[0])
+    for kind in kinds:                       # equal bytes: one size per kind whatever the warp
+        assert len({r["bytes_per_texel"] for r in rows if r["kind"] == kind}) == 1
+    for name in ("warps.png", "error_per_scene.png", "loss.png", "avsm_metric.png", "meta.json", "losses.csv",
+                 "warps.csv", "avsm_metric.csv", "avsm_metric_loss.csv"):
+        assert (quick_run / name).is_file(), name
+    warps = _common.read_csv(quick_run / "warps.csv")
+    for kind in kinds:                       # monotone from 0 to 1 by construction
+        w = np.array([float(r["w"]) for r in warps if r["kind"] == kind and r["method"] == "learned"])
+        assert abs(w[0]) < 1e-12 and abs(w[-1] - 1) < 1e-6 and np.all(np.diff(w) > 0)
+
+
+def test_training_lowers_the_loss(quick_run):
+    """Adam from the identity lowers the training MSE for every kind, and for OSM and FOM
+    the learned warp beats no warp on the training scenes at fresh receivers."""
+    losses = _common.read_csv(quick_run / "losses.csv")
+    for kind, _ in learned_warp.KINDS:
+        v = [float(r["train_mse"]) for r in losses if r["kind"] == kind]
+        assert v[-1] < v[0], (kind, v)
+    f = json.loads((quick_run / "findings.json").read_text())
+    for kind in ("osm", "fom"):
+        assert f[kind]["train"]["learned_rmse"] < f[kind]["train"]["identity_rmse"]
+    for kind in f:
+        for g, e in f[kind].items():
+            for c in (v for k, v in (e.items() if isinstance(e, dict) else ()) if k.startswith("learned_over_")):
+                assert c["low"] <= c["ratio"] <= c["high"], (kind, g)
+    m = f["avsm_metric"]
+    assert 0 < m["beta_learned"] < 1 and m["bytes_per_texel"] == 64
+    assert {"paper_rmse", "learned_rmse", "learned_over_paper"} <= set(m["held_out_all"])
+
+
+def test_findings_on_hand_made_rows():
+    """Ratios are means of per-scene RMSEs; groups and their counts as given."""
+    rows = []
+    for split, group, k in (("train", "smoke", 3), ("held_out", "hair_and_smoke", 2)):
+        for s in range(k):
+            for m, v in (("identity", 0.2), ("log", 0.4), ("learned", 0.1)):
+                rows.append(dict(split=split, group=group, kind="osm", bytes_per_texel=32, method=m,
+                                 rmse=v * (s + 1)))
+    f = learned_warp.findings(rows)["osm"]
+    assert f["train"]["n_scenes"] == 3 and f["hair_and_smoke"]["n_scenes"] == 2
+    assert f["held_out_other_types"]["n_scenes"] == 2
+    assert f["train"]["learned_over_identity"]["ratio"] == pytest.approx(0.5)
+    assert f["train"]["learned_over_log"]["ratio"] == pytest.approx(0.25)
+    assert f["train"]["identity_rmse"] == pytest.approx(0.4)
+
+
+def test_blended_metric_avsm_at_beta_0_is_the_avsm_kind():
+    """The experiment's hard AVSM (kind's insertion, blended removal) with beta = 0 gives
+    the avsm kind's nodes bit for bit (same operations in the same order); beta > 0 moves
+    them, and the surrogate (softmin) stays finite."""
+    import avsm_dr as ad
+    from avsm_dr.experiments._learned_warp_avsm import _opaque, avsm_nodes
+    from cases import random_segments, to_segments
+    N = 5                                    # odd: the texel fills up with one clear node left
+    seg = to_segments(random_segments(np.random.default_rng(3), texels=48, max_count=12))
+    depths, values = ad.build("avsm", seg, nodes=N).nodes_numpy()
+    lanes, d, t = avsm_nodes(seg, N, _opaque(0.0))
+    got_d = np.stack([np.asarray(x) for x in d], 1)
+    got_t = np.stack([np.asarray(x) for x in t], 1)
+    np.testing.assert_array_equal(got_d, depths[lanes])
+    np.testing.assert_array_equal(got_t, values[lanes])
+    _, d2, _ = avsm_nodes(seg, N, _opaque(0.9))
+    assert not np.array_equal(np.stack([np.asarray(x) for x in d2], 1), got_d)
+    _, d3, t3 = avsm_nodes(seg, N, _opaque(0.3), _opaque(0.05))
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in d3 + t3)

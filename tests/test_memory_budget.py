@@ -1,0 +1,70 @@
+"""The memory-budget experiment (``python -m avsm_dr memory_budget``): the equal-error byte
+interpolation, the DSM byte matching, and one quick run through the CLI (rows at equal
+bytes, findings with intervals, figures, cache)."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+import avsm_dr as ad
+from avsm_dr import cli
+from avsm_dr.experiments import _common, memory_budget as MB
+from cases import random_segments, to_segments
+
+
+def test_bytes_to_match_interpolates_log_log():
+    b, e = [16, 32, 64, 128], [0.1, 0.01, 0.004, 0.004]
+    assert MB.bytes_to_match(b, e, 0.01) == pytest.approx(32)
+    # halfway in log error between 16 and 32 bytes: halfway in log bytes
+    assert MB.bytes_to_match(b, e, math.sqrt(0.1 * 0.01)) == pytest.approx(math.sqrt(16 * 32))
+    assert MB.bytes_to_match(b, e, 0.5) == 16                     # worse than the least budget
+    assert math.isnan(MB.bytes_to_match(b, e, 0.001))             # better than fixed ever gets: censored
+    assert MB.bytes_to_match(b, e, 0.004) == pytest.approx(64)    # the flat tail: the first budget reaching it
+    # a non-monotone curve is read as the best error reached with at most those bytes
+    assert MB.bytes_to_match([16, 32, 64], [0.1, 0.2, 0.01], 0.1) == 16
+
+
+def test_dsm_at_bytes_stays_below_the_target(rng):
+    seg = to_segments(random_segments(rng, texels=64, max_count=30))
+    least = ad.build("dsm", seg, tolerance=0.5).nbytes_per_texel
+    for target in (2.5 * least,):
+        rep = MB.dsm_at_bytes(seg, target, steps=3)
+        assert rep is not None and rep.nbytes_per_texel <= target
+        assert rep.nbytes_per_texel > 0.7 * target                  # the search got close from below
+    assert MB.dsm_at_bytes(seg, 0.9 * least) is None
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    out = tmp_path_factory.mktemp("results")
+    assert "memory_budget" in cli.experiment_names()
+    assert cli.main(["memory_budget", "--quick", "--out", str(out)]) == 0
+    return out / "memory_budget"
+
+
+def test_quick_run_compares_at_equal_bytes(quick):
+    rows = _common.read_csv(quick / "data.csv")
+    meta = json.loads((quick / "meta.json").read_text())
+    P = meta["params"]
+    assert {r["method"] for r in rows} >= {"avsm", "adaptive", "adaptive_uniform", "dsm", "optimal"}
+    for r in rows:
+        b, budget = float(r["bytes_per_texel"]), float(r["budget_bytes_per_texel"])
+        assert b <= budget + 1e-9, r                              # nobody exceeds the budget
+        assert 0 <= float(r["rmse"]) <= 1 and 0 <= float(r["depth_rms"]) <= 1
+        if r["method"] == "avsm":
+            assert b == 8 * int(r["nodes"])                       # float32: 2 N x 4 bytes
+    for n in P["budgets"]:
+        ad_rows = [r for r in rows if r["method"] == "adaptive" and int(r["nodes"]) == n]
+        fx = [r for r in rows if r["method"] == "avsm" and int(r["nodes"]) == n]
+        assert len(ad_rows) == len(fx) == len(P["scenes"])
+    # the allocation pays off on the plume at the smallest budget (measured: ratio ~0.04)
+    f = json.loads((quick / "findings.json").read_text())
+    r = f["rmse_ratio_adaptive_over_avsm"]["plume"]["N=2"]
+    assert r["low"] <= r["estimate"] <= r["high"] < 1
+    s = f["bytes_saved_at_equal_rmse"]["plume"]["N=2"]
+    assert s["censored"] == 0 and 0 < s["saving"] < 1
+    assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
+    again = MB.run(quick=True, out=quick)
+    assert again.get("cached") is True

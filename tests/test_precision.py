@@ -1,0 +1,301 @@
+"""Storage precision (``precision=`` on every kind that takes one): the codecs against the
+float64 references of tests/reference/precision_ref.py, the stored buffers against the
+reference decoding of the native buffers, T against the native T within the codecs'
+bounds propagated through each lookup, monotonicity, bytes, the default left untouched,
+straight-through gradients and the refusals."""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+from avsm_dr import backend
+from avsm_dr.representations import _precision as P
+from cases import random_segments, to_segments
+from reference import precision_ref as ref
+
+PRECISIONS = list(P.PRECISIONS)
+NODE_KINDS = ["avsm", "greedy", "optimal", "dsm", "avsm_march"]
+#: Linear interpolation for the window bound: exponential interpolation t_l (t_r / t_l)^w
+#: amplifies an absolute error e of a tiny t_r by w (t_l / t_r)^(1 - w) (not Lipschitz in
+#: the values), so only the relative unorm8 code carries the bound over to it.
+NODE_PARAMS = {"optimal": {"nodes": 4}, "avsm_march": {"interpolation": "linear"}}
+BASIS_KINDS = ["basis", "fom", "osm", "moments"]
+#: float32 lookups round each interpolation / exp: slack on T (as the contract tests' 1e-6)
+T_SLACK = 2e-6
+
+
+@pytest.fixture(scope="module")
+def seg():
+    data = random_segments(np.random.default_rng(13), texels=24, max_count=12)
+    return to_segments(data)
+
+
+def receivers(seg, per=24):
+    lo, hi = seg.bounds()
+    d = np.linspace(lo - 0.05, hi + 0.05, per)
+    return np.repeat(np.arange(seg.n_texels), per), np.tile(d, seg.n_texels)
+
+
+# ------------------------------------------------------------------ codecs
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_codec_matches_reference_within_bound(precision):
+    q = np.concatenate([np.random.default_rng(1).random(4000), [0.0, 1.0, 0.5, 2.0**-20, 1 - 2.0**-13]])
+    got = P.round_unit(q, precision)
+    want = ref.code(q, precision)
+    np.testing.assert_array_equal(got, want)
+    assert np.max(np.abs(got - q)) <= ref.code_bound(precision)
+    assert np.all(np.diff(got[np.argsort(q)]) >= 0)          # rounding is monotone
+    if precision in P.UNORM_MAX:                              # on the code grid
+        c = got * P.UNORM_MAX[precision]
+        np.testing.assert_array_equal(c, np.round(c))
+
+
+def test_half_reference_against_numpy_cast():
+    """The exponent-based reference rounding agrees with the IEEE cast (normals and
+    subnormals, ties to even)."""
+    x = np.concatenate([np.random.default_rng(2).uniform(-1, 1, 2000), [2.0**-24 * 1.5, 2.0**-24 * 2.5,
+                                                                         1 + 2.0**-11, 1 + 3 * 2.0**-11]])
+    np.testing.assert_array_equal(ref.half(x), x.astype(np.float16).astype(np.float64))
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_encoders_match_reference_per_texel(precision):
+    """Depth / transmittance / coefficient encoders over 3 texels equal the one-texel
+    reference, and their errors stay within its stated bounds."""
+    rng = np.random.default_rng(3)
+    counts = np.array([5, 1, 7])
+    tex = np.repeat(np.arange(3), counts)
+    d = np.concatenate([rng.uniform(1e3, 1e3 + 2, 5), [4.0], rng.uniform(-1, 1, 7)])
+    t = np.concatenate([np.sort(rng.random(5))[::-1], [1.0], [1.0, 0.5, 0.1, 1e-3, 1e-6, 0.0, 0.0]])
+    a = rng.normal(0, 2, counts.sum())
+    for k in range(3):
+        m = tex == k
+        for meaning, x, fn in (("depth", d, ref.depths), ("transmittance", t, ref.transmittances),
+                               ("coefficient", a, ref.coefficients)):
+            got, _ = P.encode(meaning, x, tex, 3, precision)
+            want, bound = fn(x[m], precision)
+            np.testing.assert_allclose(got[m], want, rtol=1e-15, atol=0, err_msg=f"{meaning} texel {k}")
+            if meaning == "transmittance" and precision == "unorm8":
+                err = np.abs(got[m] - x[m]) - bound * x[m]
+                assert np.all(err <= math.exp(-ref.TAU_CAP) * 1.001), meaning
+            else:
+                assert np.max(np.abs(got[m] - x[m])) <= bound * (1 + 1e-9), meaning
+
+
+# ------------------------------------------------------- stored buffers
+def _texel_lists(rep):
+    """Per texel (depths, values) of a node kind (native or quantised), float64."""
+    if isinstance(rep, ad.REGISTRY["avsm"].__mro__[1]):        # NodeList (avsm, greedy, optimal)
+        d, v = rep.nodes_numpy()
+        return [(d[t], v[t]) for t in range(rep.n_texels)]
+    off = rep.node_offsets
+    if rep.kind == "dsm":
+        return [rep.nodes_numpy(t) for t in range(rep.n_texels)]
+    z, v = rep.node_depths(), np.asarray(dr.detach(rep.node_value).numpy(), np.float64)
+    return [(z[off[t]:off[t + 1]], v[off[t]:off[t + 1]]) for t in range(rep.n_texels)]
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("kind", NODE_KINDS)
+def test_node_kinds(seg, kind, precision):
+    """Stored nodes = reference decoding of the native nodes; T within the window bound:
+    with node depths moved by <= delta (order kept) and values by <= eps, T^(x) is the
+    native T at some y with |y - x| <= delta, +- eps (a monotone reparametrisation of each
+    piece), so it lies in [min, max] of the native T over the window +- eps."""
+    params = NODE_PARAMS.get(kind, {})
+    native = ad.build(kind, seg, **params)
+    rep = ad.build(kind, seg, precision=precision, **params)
+    nat, got = _texel_lists(native), _texel_lists(rep)
+    delta, eps = np.zeros(seg.n_texels), np.zeros(seg.n_texels)
+    for t, ((dn, vn), (dq, vq)) in enumerate(zip(nat, got)):
+        if dn.size == 0:
+            continue
+        if kind == "avsm_march":       # native: fp16 relative depths; here q from float64
+            span = float(rep.range_hi.numpy()[t] - rep.range_lo.numpy()[t])
+            delta[t] = span * (ref.code_bound(precision) + 2.0**-12)
+            assert np.max(np.abs(dq - dn)) <= delta[t] + 4 * np.spacing(np.float32(abs(dn).max()))
+        else:
+            want_d, delta[t] = ref.depths(dn, precision)
+            np.testing.assert_array_equal(dq, want_d.astype(np.float32))
+        want_v, eps[t] = ref.transmittances(vn, precision)
+        np.testing.assert_array_equal(vq, want_v.astype(np.float32))
+        assert np.all(np.diff(dq) >= 0)                       # still sorted
+    tex, x = receivers(seg)
+    T = np.asarray(rep.eval(tex, x), np.float64)
+    assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1))
+    # window [x - delta, x + delta]: its ends and every native node depth inside it (both
+    # sides of a step) hold the native curve's extremes (piecewise monotone between nodes)
+    dl = delta[tex] + 4 * np.spacing(np.float32(np.abs(x).max() + 1))
+    pts = [x - dl, x + dl]
+    for t_nodes in range(max(d.size for d, _ in nat)):
+        dk = np.array([d[min(t_nodes, d.size - 1)] if d.size else 0.0 for d, _ in nat])[tex]
+        pts += [np.clip(dk, x - dl, x + dl), np.clip(np.nextafter(dk.astype(np.float32), -np.inf), x - dl, x + dl)]
+    vals = np.stack([np.asarray(native.eval(tex, p.astype(np.float32)), np.float64) for p in pts])
+    slack = eps[tex] + T_SLACK
+    assert np.all(T <= vals.max(axis=0) + slack), np.max(T - vals.max(axis=0) - slack)
+    assert np.all(T >= vals.min(axis=0) - slack), np.max(vals.min(axis=0) - slack - T)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("kind", BASIS_KINDS)
+def test_basis_kinds(seg, kind, precision):
+    """Stored map = reference decoding of the native map per texel; |T^ - T| <= |D^ - D|
+    <= sum_k |da_k| |g_k(u)| (min(1, exp(-D)) is 1-Lipschitz); OSM stores C_j and
+    interpolates two of them, so |dD| <= eps_C.  Moments: the Hamburger bound is not
+    Lipschitz in the moments (no propagated bound): T finite and in [0, 1]."""
+    native = ad.build(kind, seg)
+    rep = ad.build(kind, seg, precision=precision)
+    field = rep._stored()[0]
+    K = dr.width(getattr(native, field.attr)) // seg.n_texels      # stored values per texel
+    a_n = np.asarray(dr.detach(getattr(native, field.attr)).numpy(), np.float64).reshape(-1, K)
+    a_q = np.asarray(dr.detach(getattr(rep, field.attr)).numpy(), np.float64).reshape(-1, K)
+    bound = np.zeros(seg.n_texels)
+    for t in range(seg.n_texels):
+        want, bound[t] = ref.coefficients(a_n[t], precision, signed=field.signed)
+        np.testing.assert_array_equal(a_q[t], want.astype(np.float32))
+    tex, x = receivers(seg)
+    T = np.asarray(rep.eval(tex, x), np.float64)
+    assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1))
+    if kind == "moments":
+        return
+    T0 = np.asarray(native.eval(tex, x), np.float64)
+    if kind == "osm":
+        g_sum = np.ones_like(x)
+    else:
+        u = np.asarray(native.normalized_depth(backend.types().UInt32(tex), native.Float(x)), np.float64)
+        g = native.basis.g(backend.types().Float64(u))
+        g_sum = np.sum([np.abs(np.asarray(gk.numpy(), np.float64)) for gk in g], axis=0)
+    assert np.all(np.abs(T - T0) <= bound[tex] * g_sum + T_SLACK)
+
+
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+@pytest.mark.parametrize("variant", ["cloud", "two_node"])
+def test_beer(variant, precision):
+    """Stored depths = reference decoding over one global range (empty texels, whose T is 1
+    whatever their bounds, take the global bounds: they must not widen it); T within the
+    window bound, with sigma_mean, tau_max (cloud) or T behind (two_node) of relative error
+    <= 2^-11 (float16), so |dT| <= 2^-11 (T od <= 1).  Depths offset by 100: a range
+    anchored at 0 would be caught."""
+    data = random_segments(np.random.default_rng(17), texels=24, max_count=12)
+    seg = to_segments(dict(data, z0=data["z0"] + 100, z1=data["z1"] + 100))
+    native = ad.build("beer", seg, variant=variant)
+    rep = ad.build("beer", seg, variant=variant, precision=precision)
+    empty = seg.counts == 0
+    delta = 0.0
+    for name, fill in (("front", seg.bounds()[0]), ("back", seg.bounds()[1])):
+        if variant == "cloud" and name == "back":
+            continue
+        d = np.where(empty, fill, np.asarray(native.__dict__[name].numpy(), np.float64))
+        want, bound = ref.depths(d, precision)
+        np.testing.assert_array_equal(np.asarray(rep.__dict__[name].numpy()), want.astype(np.float32))
+        delta = max(delta, bound)
+    tex, x = receivers(seg)
+    T = np.asarray(rep.eval(tex, x), np.float64)
+    assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1))
+    dl = delta + 4 * np.spacing(np.float32(np.abs(x).max() + 1))
+    lo = np.asarray(native.eval(tex, (x + dl).astype(np.float32)), np.float64)
+    hi = np.asarray(native.eval(tex, (x - dl).astype(np.float32)), np.float64)
+    eps = (2.0**-11 if precision == "float16" else 2.0**-23) + T_SLACK
+    assert np.all((T >= lo - eps) & (T <= hi + eps))
+
+
+# ------------------------------------------------------------ contract
+def expected_nbytes(rep) -> float:
+    """The storage formula per kind (module docstring of _precision)."""
+    p = rep.precision
+    c = P.CODE_BYTES[p]
+    rng_d = 0 if p == "float32" else 8                       # per-texel depth range
+    t8 = 4 if p == "unorm8" else 0                           # per-texel max optical depth
+    scale = 0 if p == "float32" else 4                       # per-texel coefficient scale
+    if rep.kind in ("avsm", "greedy", "optimal"):
+        return rep.N * 2 * c + rng_d + t8
+    if rep.kind == "dsm":
+        return rep.node_counts.mean() * 2 * c + rng_d + t8 + 4
+    if rep.kind == "avsm_march":
+        return 4 + 8 + rep.node_counts.mean() * 2 * c + t8
+    if rep.kind == "beer":
+        return 3 * c
+    return rep.basis.n_coefficients * c + scale + (8 if rep._per_texel else 0)
+
+
+@pytest.mark.parametrize("kind", sorted(set(NODE_KINDS + BASIS_KINDS + ["beer"])))
+def test_nbytes_monotone_and_default(seg, kind):
+    """nbytes_per_texel follows the formula; monotone kinds stay monotone; precision=None
+    is the build without the parameter, bit for bit; 'float32' on float32 storage too
+    (except avsm_march, whose default keeps float16 relative depths)."""
+    params = {"depth_range": "texel"} if kind == "fom" else {}
+    plain = ad.build(kind, seg, **params)
+    tex, x = receivers(seg, per=40)
+    T0 = np.asarray(plain.eval(tex, x))
+    none = ad.build(kind, seg, precision=None, **params)
+    np.testing.assert_array_equal(np.asarray(none.eval(tex, x)), T0)
+    assert none.nbytes_per_texel == plain.nbytes_per_texel
+    for p in plain.precisions:
+        rep = ad.build(kind, seg, precision=p, **params)
+        assert rep.nbytes_per_texel == pytest.approx(expected_nbytes(rep), rel=1e-12), p
+        T = np.asarray(rep.eval(tex, x)).reshape(seg.n_texels, -1)
+        if rep.monotone:
+            assert np.all(np.diff(T, axis=1) <= 1e-6), p      # float32 rounding of equal neighbours
+        if p == "float32" and kind != "avsm_march":
+            np.testing.assert_array_equal(T.ravel(), T0)
+            assert rep.nbytes_per_texel == plain.nbytes_per_texel
+
+
+def test_float32_of_float64_storage(seg):
+    """float64 segments stored as float32: the nodes are the float32 roundings."""
+    data = random_segments(np.random.default_rng(5), texels=8, max_count=8)
+    s64 = to_segments(data, dtype="float64")
+    native = ad.build("avsm", s64)
+    rep = ad.build("avsm", s64, precision="float32")
+    d0, v0 = native.nodes_numpy()
+    d1, v1 = rep.nodes_numpy()
+    np.testing.assert_array_equal(d1, d0.astype(np.float32))
+    np.testing.assert_array_equal(v1, v0.astype(np.float32))
+    assert rep.nbytes_per_texel == 2 * 8 * 4 and native.nbytes_per_texel == 2 * 8 * 8
+
+
+@pytest.mark.parametrize("kind", ["fom", "osm", "avsm"])
+def test_straight_through_gradient(kind):
+    """The quantised kinds stay differentiable: for the basis kinds dT/dtau with the
+    straight-through estimator is -T^ sum_k g_k da_k/dtau, the native one times T^ / T
+    (one receiver, so the ratio is exact up to float32 rounding)."""
+    Float = backend.types().Float
+    # 2 texels: Segments.texel_of_segment fails on a one-texel map (a size-0 comparison)
+    data = random_segments(np.random.default_rng(9), texels=2, max_count=6, empty_fraction=0.0,
+                           opaque_fraction=0.0)
+    grads, Ts = {}, {}
+    for p in (None, "unorm8"):
+        tau = Float(data["tau"].astype(np.float32))
+        dr.enable_grad(tau)
+        s = ad.Segments.from_arrays(data["offsets"], data["z0"], data["z1"], optical_depth=tau)
+        T = ad.build(kind, s, precision=p).eval([0], [0.9])
+        dr.backward(T)
+        grads[p], Ts[p] = np.asarray(dr.grad(tau).numpy()), float(np.asarray(dr.detach(T))[0])
+    assert np.all(np.isfinite(grads["unorm8"])) and np.any(grads["unorm8"] != 0)
+    if kind in ("fom", "osm"):
+        np.testing.assert_allclose(grads["unorm8"], grads[None] * Ts["unorm8"] / Ts[None], rtol=1e-4, atol=1e-7)
+
+
+def test_refusals(seg):
+    for kind, p in (("exact", "float16"), ("exact", "float32"), ("beer", "unorm8"), ("beer", "unorm16"),
+                    ("avsm", "half"), ("avsm", 16)):
+        with pytest.raises(ValueError, match="^precision:"):
+            ad.build(kind, seg, precision=p)
+    far = ad.Segments.from_arrays([0, 1], [0.0], [1e39], optical_depth=[1.0], dtype="float64")
+    with pytest.raises(ValueError, match="^precision:.*float32's range"):
+        ad.build("avsm", far, precision="float16")        # a float32 range cannot hold 1e39
+    assert ad.describe("beer")["precisions"] == ["float32", "float16"]
+    assert ad.describe("exact")["precisions"] == []
+    assert ad.describe("avsm")["precisions"] == PRECISIONS
+
+
+def test_avsm_march_default_unchanged(seg):
+    """avsm_march keeps its float16 relative depths and native T without ``precision``."""
+    rep = ad.build("avsm_march", seg)
+    assert type(rep.node_q).__name__ == "Float16"
+    item = seg.itemsize
+    assert rep.nbytes_per_texel == 4 + 2 * item + rep.node_counts.mean() * (2 + item)

@@ -1,0 +1,120 @@
+"""The ``temporal`` experiment (``python -m avsm_dr temporal``): the flicker definition on
+synthetic errors with known answers, the cached plume animation, the moving-camera
+receivers, and a quick run through the CLI."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from avsm_dr import cli, fluid
+from avsm_dr.experiments import _common
+from avsm_dr.experiments import _temporal_metrics as M
+from avsm_dr.experiments import _temporal_scenes as S
+
+
+# ------------------------------------------------------------------ definition
+def test_flicker_of_known_error_sequences():
+    """e alternating +-a every frame: error a, flicker 2a, index sqrt(2); a frozen error:
+    flicker 0; a drift of b per frame: flicker |b|; the content term is the reference's own
+    change.  Exact in float64 (sums of equal squares)."""
+    F, K, a, b = 6, 5, 0.03, 0.004
+    ref = np.linspace(0.2, 0.9, F)[:, None] * np.ones((1, K))          # content changes 0.14 per frame
+    sign = (-1.0) ** np.arange(F)[:, None]
+    cases = {"alternating": (ref + a * sign, a, 2 * a),
+             "frozen": (ref + a, a, 0.0),
+             "drift": (ref + b * np.arange(F)[:, None], np.sqrt(np.mean((b * np.arange(F)) ** 2)), b)}
+    for name, (est, err, fl) in cases.items():
+        pf = M.per_frame(est, ref)
+        np.testing.assert_allclose(pf["flicker"][1:], fl, rtol=1e-12, atol=1e-15, err_msg=name)
+        np.testing.assert_allclose(pf["content"][1:], 0.7 / (F - 1), rtol=1e-12, err_msg=name)
+        assert np.isnan(pf["flicker"][0]) and np.isnan(pf["content"][0])
+        p = M.pooled(M.receiver_sums(est, ref), F)
+        np.testing.assert_allclose(p["error"], err, rtol=1e-12, err_msg=name)
+        np.testing.assert_allclose(p["flicker"], fl, rtol=1e-12, atol=1e-15, err_msg=name)
+        np.testing.assert_allclose(p["flicker_per_content"], fl / (0.7 / (F - 1)), rtol=1e-12, atol=1e-15)
+    p = M.pooled(M.receiver_sums(ref + a * sign, ref), F)
+    assert p["flicker_index"] == pytest.approx(np.sqrt(2.0), rel=1e-12)
+    assert M.pooled(M.receiver_sums(ref, ref), F)["flicker_index"] == 0.0        # no error: 0, not NaN
+
+
+def test_uncorrelated_errors_have_flicker_index_one():
+    """Independent zero-mean errors per frame: flicker^2 = 2 var, error^2 = var, index 1
+    (sampling error of 4e5 normal values ~ 0.2 %; tolerance 2 %)."""
+    rng = np.random.default_rng(5)
+    ref = rng.random((4, 100_000))
+    est = ref + 0.01 * rng.standard_normal(ref.shape)
+    assert M.pooled(M.receiver_sums(est, ref), 4)["flicker_index"] == pytest.approx(1.0, rel=0.02)
+
+
+def test_pooled_ci_brackets_the_estimate():
+    rng = np.random.default_rng(1)
+    ref = rng.random((5, 300))
+    est = ref + 0.02 * rng.standard_normal(ref.shape)
+    ci = M.pooled_ci(M.receiver_sums(est, ref), 5, n_boot=200)
+    for v in ci.values():
+        assert v["low"] <= v["estimate"] <= v["high"] and v["high"] - v["low"] < 0.5 * v["estimate"]
+
+
+@pytest.mark.parametrize("est, ref, name", [(np.zeros((1, 3)), np.zeros((1, 3)), "estimate"),
+                                            (np.zeros((3, 3)), np.zeros((3, 4)), "reference")])
+def test_metrics_reject_bad_shapes(est, ref, name):
+    with pytest.raises(ValueError, match=f"^{name}:"):
+        M.per_frame(est, ref)
+
+
+# ------------------------------------------------------------------ animation
+def test_plume_sequence_matches_simulate_plume_bit_for_bit(tmp_path):
+    shape = (16, 24, 16)                   # the quick run's grid (kernels compiled once for both)
+    seq = fluid.simulate_plume_sequence(shape, frames=2, start=2, stride=2, seed=1, cache=tmp_path)
+    assert seq.shape == (2, *shape) and seq.dtype == np.float32
+    for f in range(2):
+        assert np.array_equal(seq[f], fluid.simulate_plume(shape, steps=2 + 2 * f, seed=1, cache=False))
+    assert len(list(tmp_path.glob("plume_seq_*.npy"))) == 1
+    assert np.array_equal(fluid.simulate_plume_sequence(shape, frames=2, start=2, stride=2, seed=1,
+                                                        cache=tmp_path), seq)       # from the cache
+    with pytest.raises(ValueError, match="^frames:"):
+        fluid.simulate_plume_sequence(shape, frames=0, cache=False)
+    with pytest.raises(ValueError, match="^kwargs:"):
+        fluid.simulate_plume_sequence(shape, frames=1, start=1, cache=False, steps=3)
+
+
+def test_camera_receivers_stay_in_the_box_and_move():
+    lo, hi = S.PLUME_BOX
+    a, b = S.camera_points(S.PLUME_BOX, 0.0, 6), S.camera_points(S.PLUME_BOX, 10.0, 6)
+    assert a.shape == (72, 3)
+    for p in (a, b):
+        assert np.all(p >= lo - 1e-12) and np.all(p <= hi + 1e-12)
+    assert np.max(np.abs(a - b)) > 0.01
+    with pytest.raises(ValueError, match="^fov:"):
+        S.camera_points(S.PLUME_BOX, 0.0, 6, fov=90.0)
+
+
+# -------------------------------------------------------------------- the run
+def test_quick_temporal_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
+    assert "temporal" in cli.experiment_names()
+    assert cli.main(["temporal", "--quick", "--out", str(tmp_path)]) == 0
+    out = tmp_path / "temporal"
+    for name in ("data.csv", "findings.json", "meta.json", "error_flicker_per_frame.png", "flicker_vs_error.png",
+                 "shadow_smoke.gif"):
+        assert (out / name).stat().st_size > 0, name
+    rows = _common.read_csv(out / "data.csv")
+    assert {r["setting"] for r in rows} == {"smoke", "light", "camera", "hair"}
+    methods = {r["method"] for r in rows}
+    assert {"exact", "avsm-8 unsorted", "avsm-8 sorted", "avsm_march-8"} <= methods
+    exact = [r for r in rows if r["method"] == "exact" and r["vs"] == "exact"]
+    assert exact and all(float(r["error_rms"]) == 0.0 for r in exact)
+    assert all(float(r["flicker_rms"]) == 0.0 for r in exact if r["frame"] != "0")   # the same lookups
+    moved = [float(r["content_rms"]) for r in exact if r["frame"] != "0"]
+    assert min(moved) > 0                                                             # every animation moves
+    f = json.loads((out / "findings.json").read_text())
+    for setting, block in f["per_setting"].items():
+        assert block["exact"]["exact"]["flicker"]["estimate"] == 0.0
+        un = block["exact"]["avsm-8 unsorted"]
+        assert un["error"]["low"] <= un["error"]["estimate"] <= un["error"]["high"]
+        assert f["headline"][setting]["most_flicker"] in methods
+    from PIL import Image
+    with Image.open(out / "shadow_smoke.gif") as im:
+        assert im.n_frames == 5
