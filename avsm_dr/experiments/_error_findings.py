@@ -207,6 +207,19 @@ def _median_by(rows, key_fn, value, where) -> dict:
     return {k: float(np.median(v)) for k, v in _groups(rows, key_fn, value, where).items()}
 
 
+def share_ci(mask, n_boot: int = 1000, level: float = 0.95, seed: int = 0) -> list[float]:
+    """[share, low, high]: the share of True in ``mask`` with its percentile bootstrap
+    interval.  Resampling n items of a 0/1 sample with replacement draws Binomial(n, p) ones,
+    so the replicates are drawn as binomials: the same distribution in O(n_boot), not
+    O(n_boot n) (40 k receivers x 1000 replicates per variant took minutes)."""
+    mask = np.asarray(mask, bool).ravel()
+    n = mask.size
+    p = float(mask.mean()) if n else 0.0
+    reps = np.random.default_rng(seed).binomial(n, p, n_boot) / max(n, 1)
+    a = (1 - level) / 2
+    return [p, float(np.quantile(reps, a)), float(np.quantile(reps, 1 - a))]
+
+
 def _leak_table(store, configs, n_boot) -> dict:
     """Shares of in-volume receivers leaking / over-darkening by > 0.02 (vs the exact curve),
     pooled over configurations, with bootstrap intervals over receivers, for the moments
@@ -222,10 +235,7 @@ def _leak_table(store, configs, n_boot) -> dict:
             if not errs:
                 continue
             e = np.concatenate(errs)
-            leak = stats.bootstrap_ci((e > 0.02).astype(float), "mean", n_boot=n_boot)
-            dark = stats.bootstrap_ci((e < -0.02).astype(float), "mean", n_boot=n_boot)
-            out[f"{sc}/{v}"] = dict(leak_fraction=[leak["estimate"], leak["low"], leak["high"]],
-                                    dark_fraction=[dark["estimate"], dark["low"], dark["high"]],
+            out[f"{sc}/{v}"] = dict(leak_fraction=share_ci(e > 0.02, n_boot), dark_fraction=share_ci(e < -0.02, n_boot),
                                     mean_signed_error=float(np.mean(e)), receivers=int(e.size))
     return out
 
