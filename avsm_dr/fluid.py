@@ -346,6 +346,15 @@ def _cache_file(cache, name: str) -> Path | None:
     return (CACHE_DIR if cache is True else Path(cache)) / name
 
 
+def _save_cached(path: Path | None, out: np.ndarray) -> None:
+    """Write ``out`` to ``path`` atomically (a temporary file, then a rename); None: no cache."""
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+        np.save(tmp, out)
+        os.replace(tmp, path)
+
+
 def _cache_key(params: dict) -> str:
     h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
     h.update(Path(__file__).read_bytes())
@@ -396,11 +405,7 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
         sim.add_source(mask, 1.0, (kick[0], source_speed, kick[1]))
         sim.step(dt)
     out = np.maximum(sim.density(), 0.0)
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
-        np.save(tmp, out)
-        os.replace(tmp, path)
+    _save_cached(path, out)
     return out
 
 
@@ -480,9 +485,5 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
         if k >= start and (k - start) % stride == 0:
             out[(k - start) // stride] = d
     gen.close()
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
-        np.save(tmp, out)
-        os.replace(tmp, path)
+    _save_cached(path, out)
     return out
