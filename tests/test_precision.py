@@ -86,6 +86,62 @@ def test_encoders_match_reference_per_texel(precision):
                 assert np.max(np.abs(got[m] - x[m])) <= bound * (1 + 1e-9), meaning
 
 
+def test_transmittance_code_thin_smoke_before_dark_node():
+    """unorm8 T: a dark node (T = 1e-4, tau_max = 9.2) must not coarsen the thin smoke in
+    front: |dT| <= T^ |dtau|, |dtau| <= tau_max (2 q + 1/508) / 508 with q = sqrt(tau /
+    tau_max) (0.0029 at T = 0.97; codes linear in tau err by up to tau_max / 508 = 0.018);
+    relative error <= exp(tau_max / 254) - 1 at every node; T = 1 and T = 0 exact."""
+    t = np.array([1.0, 0.999, 0.97, 0.9, 0.6, 0.1, 1e-4, 0.0])
+    got, extra = P.encode("transmittance", t, np.zeros(t.size, np.int64), 1, "unorm8")
+    assert extra == 4.0 and got[0] == 1 and got[-1] == 0
+    tau, tmax = -np.log(t[:-1]), -math.log(1e-4)
+    q = np.sqrt(tau / tmax)
+    dtau = tmax * (2 * q + 1 / 508) / 508
+    err = np.abs(got[:-1] - t[:-1])
+    assert np.all(err <= np.maximum(got[:-1], t[:-1]) * dtau * (1 + 1e-9))
+    assert np.all(err <= t[:-1] * math.expm1(tmax / 254) * (1 + 1e-9))
+    assert np.all(err[1:4] <= 0.0029)
+    assert np.all(np.diff(got) <= 0)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_optical_depth_encoder(precision):
+    """OSM's cumulative optical depths: the encoder equals the one-texel reference; below
+    TAU_CAP the error is within s / (M - 1) however large the texel's largest value (an
+    opaque 1e4 behind thin smoke used to set the scale: every 8-bit step 39, the smoke 0);
+    beyond it every value decodes to the first one past the cap; zeros stay zero, sequences
+    stay non-decreasing; floating formats are the non-negative coefficient code, bit for bit."""
+    rng = np.random.default_rng(4)
+    texels = [np.array([0, 0, 0.01, 0.05, 0.2, 0.2, 1e4 + 0.2, 1e4 + 0.2]),   # thin smoke, opaque
+              np.zeros(3),                                                  # empty texel
+              np.array([0, 0.5, 3, 9, 12, 20, 40]),                         # dense: crosses the cap
+              np.array([20.0, 30.0]),                                       # past the cap at once
+              np.cumsum(rng.exponential(0.05, 9)),                          # thin smoke only
+              np.array([1e-9, 1e-9, 2e-9])]                                 # faint
+    tex = np.concatenate([np.full(t.size, k) for k, t in enumerate(texels)])
+    c = np.concatenate(texels)
+    got, extra = P.encode("optical_depth", c, tex, len(texels), precision)
+    if precision not in P.UNORM_MAX:
+        want, extra_c = P.encode("coefficient", c, tex, len(texels), precision, signed=False)
+        np.testing.assert_array_equal(got, want)
+        assert extra == extra_c
+    else:
+        assert extra == 8.0
+    for k, ck in enumerate(texels):
+        g = got[tex == k]
+        want, bound, far = ref.optical_depths(ck, precision)
+        np.testing.assert_allclose(g, want, rtol=1e-15, atol=0, err_msg=f"texel {k}")
+        assert np.all(np.diff(g) >= 0) and np.all(g[ck == 0] == 0), k
+        low = ck <= P.TAU_CAP if far is not None else np.ones(ck.size, bool)
+        assert np.all(np.abs(g[low] - ck[low]) <= bound * (1 + 1e-9)), k
+        if far is not None and np.any(~low):
+            first = ck[~low][0]
+            assert np.all(g[~low] == far) and 0 <= far - first <= np.spacing(np.float32(first)), k
+    if precision == "unorm8":                         # the thin smoke keeps its resolution:
+        g0, c0 = got[tex == 0][:6], texels[0][:6]     # |dC| <= s (2 sqrt(C / s) + 1/508) / 508
+        assert np.all(np.abs(g0 - c0) <= 0.2 * (2 * np.sqrt(c0 / 0.2) + 1 / 508) / 508 * (1 + 1e-6))
+
+
 # ------------------------------------------------------- stored buffers
 def _texel_lists(rep):
     """Per texel (depths, values) of a node kind (native or quantised), float64."""
@@ -148,14 +204,18 @@ def test_basis_kinds(seg, kind, precision):
     interpolates two of them, so |dD| <= eps_C.  Moments: the Hamburger bound is not
     Lipschitz in the moments (no propagated bound): T finite and in [0, 1]."""
     native = ad.build(kind, seg)
-    rep = ad.build(kind, seg, precision=precision)
+    scaled = {"quantization": "scaled"} if kind == "moments" else {}     # msm: tests/test_moment_quantization.py
+    rep = ad.build(kind, seg, precision=precision, **scaled)
     field = rep._stored()[0]
     K = dr.width(getattr(native, field.attr)) // seg.n_texels      # stored values per texel
     a_n = np.asarray(dr.detach(getattr(native, field.attr)).numpy(), np.float64).reshape(-1, K)
     a_q = np.asarray(dr.detach(getattr(rep, field.attr)).numpy(), np.float64).reshape(-1, K)
     bound = np.zeros(seg.n_texels)
     for t in range(seg.n_texels):
-        want, bound[t] = ref.coefficients(a_n[t], precision, signed=field.signed)
+        if field.meaning == "optical_depth":     # osm (the data hold opaque 1e4 segments)
+            want, bound[t], _ = ref.optical_depths(a_n[t], precision)
+        else:
+            want, bound[t] = ref.coefficients(a_n[t], precision, signed=field.signed)
         np.testing.assert_array_equal(a_q[t], want.astype(np.float32))
     tex, x = receivers(seg)
     T = np.asarray(rep.eval(tex, x), np.float64)
@@ -164,6 +224,10 @@ def test_basis_kinds(seg, kind, precision):
         return
     T0 = np.asarray(native.eval(tex, x), np.float64)
     if kind == "osm":
+        # |dD| <= bound where D comes from codes below the cap (or one below and the exact
+        # first value past it); past the cap T and T^ are both below exp(-TAU_CAP) = 2^-16
+        if precision in P.UNORM_MAX:
+            bound = np.maximum(bound, math.exp(-P.TAU_CAP))
         g_sum = np.ones_like(x)
     else:
         u = np.asarray(native.normalized_depth(backend.types().UInt32(tex), native.Float(x)), np.float64)
@@ -203,6 +267,51 @@ def test_beer(variant, precision):
     assert np.all((T >= lo - eps) & (T <= hi + eps))
 
 
+@pytest.mark.parametrize("precision", ["unorm8", "unorm16"])
+def test_osm_opaque_behind_thin_smoke(precision):
+    """An opaque blocker (optical depth 1e4) behind thin smoke, and a dense medium crossing
+    TAU_CAP inside one slice: T^ / T within exp(+-s / (M - 1)) (s: the texel's largest
+    cumulative optical depth below the cap, so the smoke's own), or both below 2^-16 past the
+    cap; T = 1 exactly in the slices in front of the content; T^ non-increasing.  The former
+    per-texel max scale left the smoke at code 0 (T = 1, errors up to 1 - T)."""
+    smoke = [0.001, 0.02, 0.1, 0.4, 1.0, 3.0]
+    offsets, z0, z1, tau = [0], [], [], []
+    for k, total in enumerate(smoke):                      # two smoke segments, then the table
+        z0 += [0.30, 0.45, 0.80 + 0.003 * k]
+        z1 += [0.50, 0.62, 0.81 + 0.003 * k]
+        tau += [0.4 * total, 0.6 * total, ad.OPAQUE_OPTICAL_DEPTH]
+        offsets.append(len(z0))
+    for dense in (12.0, 30.0, 200.0):                      # C crosses the cap inside a slice
+        z0 += [0.3, 0.55]
+        z1 += [0.5, 0.555]
+        tau += [0.5, dense]
+        offsets.append(len(z0))
+    seg = ad.Segments.from_arrays(offsets, z0, z1, optical_depth=tau)
+    native = ad.build("osm", seg, slices=32, near=0.0, far=1.0)
+    rep = ad.build("osm", seg, slices=32, near=0.0, far=1.0, precision=precision)
+    steps = P.UNORM_MAX[precision] - 1
+    cum = np.asarray(native._cum.numpy(), np.float64).reshape(seg.n_texels, -1)
+    eps = np.array([ref.optical_depths(c, precision)[1] for c in cum])
+    per = 513
+    tex = np.repeat(np.arange(seg.n_texels), per)
+    x = np.tile(np.linspace(0, 1, per), seg.n_texels)
+    T0 = np.asarray(native.eval(tex, x), np.float64)
+    T = np.asarray(rep.eval(tex, x), np.float64)
+    # float32 lookups: decoded C rounded to float32 (relative 6e-8, C <= TAU_CAP) and exp
+    slack = 4e-6 * T0 + 1e-12
+    tol = np.maximum(T0 * np.expm1(eps[tex]), math.exp(-P.TAU_CAP)) + slack
+    assert np.all(np.abs(T - T0) <= tol), np.max(np.abs(T - T0) - tol)
+    front = x < 9 / 32                                     # slices 0..8 hold no content
+    assert np.all(T[front] == 1) and np.all(T0[front] == 1)
+    assert np.all(np.diff(T.reshape(seg.n_texels, -1), axis=1) <= 1e-7)
+    smoke_only = (x < 0.78) & (tex < len(smoke))           # in front of the table
+    rel = np.abs(T - T0)[smoke_only] / T0[smoke_only]
+    assert np.max(rel) <= math.expm1(max(smoke) / steps) + 4e-6
+    # the old scale (the texel's largest C, the table's 1e4): the thinnest smoke rounds to 0
+    old, _ = P.encode("coefficient", cum[0], np.zeros(cum.shape[1], np.int64), 1, precision, signed=False)
+    assert np.all(old[cum[0] < 1e3] == 0) and np.any(cum[0][cum[0] < 1e3] > 0)
+
+
 # ------------------------------------------------------------ contract
 def expected_nbytes(rep) -> float:
     """The storage formula per kind (module docstring of _precision)."""
@@ -219,6 +328,10 @@ def expected_nbytes(rep) -> float:
         return 4 + 8 + rep.node_counts.mean() * 2 * c + t8
     if rep.kind == "beer":
         return 3 * c
+    if rep.kind == "moments" and rep.params["quantization"] == "msm":    # 4 codes + b_0 in float32
+        return 4 * c + 4 + (8 if rep._per_texel else 0)
+    if rep.kind == "osm" and p in P.UNORM_MAX:
+        scale = 8                                            # cap scale s and far value F
     return rep.basis.n_coefficients * c + scale + (8 if rep._per_texel else 0)
 
 

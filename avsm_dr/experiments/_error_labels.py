@@ -8,8 +8,8 @@ from .. import describe
 TUNING = {"overestimation": (0.0, 0.25, 1.0)}
 #: Choice parameters not crossed with the rest: moments' ``warp='log'`` needs every depth
 #: > 0, which scenes with the light inside the depth range violate (the learned_warp
-#: experiment compares warps).
-UNTUNED = {"warp"}
+#: experiment compares warps); moments' ``quantization`` applies to 16-bit storage only.
+UNTUNED = {"warp", "quantization"}
 #: Storage precisions built at each kind's headline size (fp16 vs fp32 in findings.json).
 PRECISIONS = ("float16", "unorm8")
 

@@ -30,6 +30,7 @@ import drjit as dr
 
 from .. import backend
 from .registry import register
+from ._precision import Stored
 from .basis import Basis, BasisRepresentation, register_basis
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
@@ -92,7 +93,9 @@ class PiecewiseConstantBasis(Basis):
 class OpacityShadowMap(BasisRepresentation):
     """Opacity shadow map: ``slices`` n >= 1 (default 16) uniform over ``near``/``far``
     (default: global bounds of the segments), ``depth_range`` 'global' | 'texel'.
-    ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel range).
+    ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel range); with ``precision``
+    n code bytes + the per-texel float32 scale (float16: 4 bytes) or cap scale and far
+    optical depth (unorm: 8 bytes, :mod:`._precision` ``optical_depth``) + 8 for a per-texel range.
     Attributes: ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
 
     schema = Schema(
@@ -172,6 +175,12 @@ class OpacityShadowMap(BasisRepresentation):
     #: ``precision`` quantises the cumulative sums (non-negative, non-decreasing: the
     #: rounded codes stay non-decreasing, so T stays monotone); ``coefficients`` stay exact.
     _stored_attr = "_cum"
+
+    def _stored(self):
+        """The cumulative sums as optical depths (:mod:`._precision` ``optical_depth``: unorm
+        codes of sqrt(tau) up to ``TAU_CAP``, so an opaque blocker behind thin smoke does not
+        scale the smoke's codes away), the per-texel range as the basis stores it."""
+        return (Stored("_cum", "optical_depth", "flat"),) + super()._stored()[1:]
 
     def _reconstruct_from(self, store, row, u):
         UInt32, Float = backend.types().UInt32, self.Float

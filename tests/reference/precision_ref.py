@@ -64,8 +64,10 @@ def depths(d: np.ndarray, precision: str):
 
 
 def transmittances(t: np.ndarray, precision: str):
-    """One texel's transmittances: (decoded, absolute error bound).  unorm8: optical depth
-    over the texel's (capped) maximum, relative error exp(tau_max / 510) - 1."""
+    """One texel's transmittances: (decoded, error bound: absolute, unorm8 relative).
+    unorm8: the square root of the optical depth over the texel's (capped) maximum,
+    |dtau| <= tau_max / 254 (half a step of sqrt(tau / tau_max) times q + q^ <= 2): relative
+    error exp(tau_max / 254) - 1, plus exp(-TAU_CAP) absolute for T below the cap."""
     t = np.clip(np.asarray(t, np.float64), 0, 1)
     if precision != "unorm8":
         smallest = {"float32": 2.0**-126, "float16": 2.0**-24, "unorm16": 1 / 65535}[precision]
@@ -73,9 +75,9 @@ def transmittances(t: np.ndarray, precision: str):
         return dec, max(code_bound(precision), smallest)
     tau = np.array([min(-math.log(v), TAU_CAP) if v > 0 else 0.0 for v in t])
     tmax = f32_down(tau.max(initial=0.0))
-    dec = np.array([math.exp(-tmax * round(254 * min(s / tmax, 1.0) if tmax > 0 else 0) / 254) if v > 0 else 0.0
-                    for v, s in zip(t, tau)])
-    return dec, math.expm1(tmax / 508) + math.exp(-TAU_CAP)
+    dec = np.array([math.exp(-tmax * (round(254 * math.sqrt(min(s / tmax, 1.0)) if tmax > 0 else 0) / 254) ** 2)
+                    if v > 0 else 0.0 for v, s in zip(t, tau)])
+    return dec, math.expm1(tmax / 254) + math.exp(-TAU_CAP)
 
 
 def coefficients(a: np.ndarray, precision: str, signed: bool = True):
@@ -90,3 +92,23 @@ def coefficients(a: np.ndarray, precision: str, signed: bool = True):
     if signed:
         return (2 * code((q + 1) / 2, precision) - 1) * s, 2 * code_bound(precision) * s
     return code(q, precision) * s, code_bound(precision) * s
+
+
+def optical_depths(c: np.ndarray, precision: str):
+    """One texel's cumulative optical depths (non-decreasing): (decoded, error bound of the
+    values <= TAU_CAP, far value).  Floating formats: as non-negative coefficients (far:
+    None).  unorm: s = largest C <= TAU_CAP (float32 up), S = M - 1 steps, codes
+    round(S sqrt(C / s)) decoded s (code / S)^2, so |dC| <= s |dq| (q + q^) <= s / S; every
+    C > TAU_CAP decodes to F, the first such C (float32 up, at least s)."""
+    c = np.asarray(c, np.float64)
+    if precision not in UNORM_MAX:
+        dec, bound = coefficients(c, precision, signed=False)
+        return dec, bound, None
+    steps = UNORM_MAX[precision] - 1
+    low = [v for v in c if v <= TAU_CAP]
+    high = [v for v in c if v > TAU_CAP]
+    s = f32_up(max(low)) if low else 0.0
+    far = max(f32_up(min(high)), s) if high else s
+    dec = np.array([s * (round(steps * math.sqrt(v / s)) / steps) ** 2 if v <= TAU_CAP and s > 0 else
+                    (0.0 if v <= TAU_CAP else far) for v in c])
+    return dec, s / steps, far
