@@ -67,6 +67,13 @@ Pipeline (one build, three phases):
 
 Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4``
 (the (depth, value) pairs plus one 4-byte CSR offset).
+
+Memory: phases A and B hold ~``TEMP_BYTES_PER_SEGMENT`` bytes per segment (float64 host
+events, device prefix sums, polyline, node buffers), so they run on chunks of texels
+sized from the output built so far (:func:`next_chunk_segments`); each chunk's nodes are
+kept in the storage dtype.  The build's peak stays within a few times the output's size
+(peak / output 1.9x at 6.5 M segments of the benchmark's memory map; 70x in one piece).  Texels are
+independent, so the nodes do not depend on the chunking.
 """
 from __future__ import annotations
 
@@ -90,13 +97,26 @@ POLYLINE_SHARE = 0.25
 BAND_SHARE = 0.5
 #: smallest accepted tolerance (the level table has ~1/sqrt(2 eps_p) entries)
 MIN_TOLERANCE = 1e-9
-#: Memory the build may use for its phase-A polyline and phase-B buffers (bytes; 2 GiB).
-#: The polyline's size is bounded before anything is allocated (``BYTES_PER_VERTEX`` per
+#: Memory the build may use for its phase-A polyline and phase-B buffers (bytes; 2 GiB),
+#: summed over its chunks of texels (the nodes, a subset of the polyline, are kept).
+#: Each chunk's polyline is bounded before it is allocated (``BYTES_PER_VERTEX`` per
 #: vertex); a larger one raises ValueError saying which tolerance would fit.
 MEMORY_BUDGET_BYTES = 2 * 2**30
 #: Device and host bytes per polyline vertex over the build (phase A: depth, optical
 #: depth, value, flag = 25; phase B: node depth, value, source = 20; host copies ~20).
 BYTES_PER_VERTEX = 64
+
+
+#: Builds run phases A and B on chunks of texels (:func:`next_chunk_segments`), so that their
+#: temporaries, ~``TEMP_BYTES_PER_SEGMENT`` per segment of a chunk (host and device, measured
+#: on random smoke-like maps), stay near the output's size: a chunk holds about as many
+#: segments as ``estimated output bytes / TEMP_BYTES_PER_SEGMENT`` (the first chunk
+#: ``MIN_CHUNK_SEGMENTS``, then extrapolated from the chunks built), clamped to
+#: [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS]: below the minimum the kernel launches of a
+#: chunk (~4 ms) would dominate.
+TEMP_BYTES_PER_SEGMENT = 400
+MIN_CHUNK_SEGMENTS = 1 << 13
+MAX_CHUNK_SEGMENTS = 1 << 18
 
 
 # ----------------------------------------------------------------------------
@@ -283,11 +303,14 @@ def next_up(z, dtype: str):
     return t.Float64(dr.reinterpret_array(F, up))
 
 
-def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p: float) -> None:
+def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p: float,
+                        partial: bool = False) -> None:
     """ValueError (naming ``tolerance``) when the polyline's upper bound of
-    ``2 B + crossings`` vertices exceeds :data:`MEMORY_BUDGET_BYTES`.  The level part
-    grows as ``1 / sqrt(tolerance)`` (e.g. 44,727 levels at 1e-9: ~2.9 MB per opaque
-    texel, ~190 GB for a 256^2 map), so the message names the tolerance that would fit."""
+    ``2 B + crossings`` vertices exceeds :data:`MEMORY_BUDGET_BYTES` (B breakpoints and
+    crossings of the first ``n_tex`` texels, all of them unless ``partial``).  The level
+    part grows as ``1 / sqrt(tolerance)`` (e.g. 44,727 levels at 1e-9: ~2.9 MB per opaque
+    texel, ~190 GB for a 256^2 map), so the message names the tolerance that would fit
+    (those texels; the rest of a ``partial`` map needs more)."""
     bound = 2 * int(n_breakpoints) + int(n_crossings)
     need = bound * BYTES_PER_VERTEX
     if need <= MEMORY_BUDGET_BYTES:
@@ -297,18 +320,21 @@ def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p:
     fit = "no tolerance fits: fewer texels or segments" if room <= 0 else \
         f"tolerance >= {tol * (n_crossings / room) ** 2:.2g} fits"
     raise ValueError(
-        f"tolerance: {tol:g} needs a polyline of up to {bound:,} vertices over {n_tex} texels "
+        f"tolerance: {tol:g} needs a polyline of up to {bound:,} vertices over "
+        f"{'the first ' if partial else ''}{n_tex} texels "
         f"({need / 2**30:.1f} GiB > the {MEMORY_BUDGET_BYTES / 2**30:g} GiB of "
         f"avsm_dr.representations.dsm.MEMORY_BUDGET_BYTES); {fit} (vertices grow as 1/sqrt(tolerance))")
 
 
-def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
+def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", before=(0, 0, 0)):
     """Polyline within ``eps_p`` of the exact curve (phase A), all texels at once.
 
-    offsets (T+1,) int; z0, z1, tau (S,) float64 host arrays (tau clamped as in Segments).
-    Returns dict: ``off`` (T+1,) int64 CSR over vertices and Dr.Jit arrays ``z``, ``tau``,
-    ``v`` (Float64 depth, optical depth, transmittance) and ``left`` (Bool: the vertex is
-    the value just before a step at its depth).  Per breakpoint k the vertices are
+    offsets (T+1,) int; z0, z1, tau (S,) float64 host arrays (tau clamped as in Segments);
+    ``before``: (breakpoints, level crossings, texels) of the chunks already built, counted
+    in :func:`check_polyline_size`.  Returns dict: ``off`` (T+1,) int64 CSR over vertices,
+    Dr.Jit arrays ``z``, ``tau``, ``v`` (Float64 depth, optical depth, transmittance) and
+    ``left`` (Bool: the vertex is the value just before a step at its depth), and
+    ``bound`` (breakpoints, level crossings) of these texels.  Per breakpoint k the vertices are
     (z_k, tau_left), (z_k, tau_right) if a zero-length segment steps there, then the
     level crossings inside (z_k, z_{k+1}) (one Dr.Jit lane per breakpoint, a counting
     pass and a writing pass).
@@ -317,18 +343,17 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     F64, F32, U32, Bool = t.Float64, t.Float, t.UInt32, t.Bool
     n_tex = offsets.size - 1
     if z0.size == 0:
-        return dict(off=np.zeros(n_tex + 1, np.int64), z=F64(), tau=F64(), v=F64(), left=Bool())
+        return dict(off=np.zeros(n_tex + 1, np.int64), z=F64(), tau=F64(), v=F64(), left=Bool(), bound=(0, 0))
     bp = _breakpoints(offsets, z0, z1, tau)
     tl, tr, slope = _prefix_optical_depth(bp)
     nb = bp["z"].size
     last = np.zeros(nb, dtype=bool)
     last[bp["off"][1:][np.diff(bp["off"]) > 0] - 1] = True          # last breakpoint of a texel
-    k = dr.arange(U32, nb)
-    nxt = dr.minimum(k + 1, nb - 1)
     has_next = ~Bool(A.aligned(last))
+    nxt = dr.arange(U32, nb) + 1        # masked gathers: no size literal, one kernel for every chunk
     bz = F64(A.aligned(bp["z"]))
-    z_next = dr.gather(F64, bz, nxt)
-    tl_next = dr.gather(F64, tl, nxt)
+    z_next = dr.gather(F64, bz, nxt, has_next)
+    tl_next = dr.gather(F64, tl, nxt, has_next)
     step = Bool(A.aligned(bp["jump"] > 0))
 
     # levels Lambda_i with tau_right[k] < Lambda_i < tau_left[k+1] are crossed in (z_k, z_{k+1})
@@ -338,7 +363,8 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     i0 = _count_below(lam, tr, m, strict=False) if m else dr.zeros(U32, nb)
     i1 = dr.select(has_next, _count_below(lam, tl_next, m, strict=True) if m else i0, i0)
     i1 = dr.maximum(i1, i0)
-    check_polyline_size(nb, (i1 - i0).numpy().astype(np.int64).sum(), n_tex, eps_p)
+    n_cross = int((i1 - i0).numpy().astype(np.int64).sum())
+    check_polyline_size(before[0] + nb, before[1] + n_cross, before[2] + n_tex, eps_p, partial=before[2] > 0)
     safe_slope = dr.select(slope > 0, slope, 1.0)
 
     def crossings(base, write: bool):
@@ -390,7 +416,7 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64"):
     v = dr.exp(-out_tau)
     dr.eval(out_z, out_tau, out_left, v)
     off = base_np[bp["off"]].astype(np.int64)
-    return dict(off=off, z=out_z, tau=out_tau, v=v, left=out_left)
+    return dict(off=off, z=out_z, tau=out_tau, v=v, left=out_left, bound=(nb, n_cross))
 
 
 # ----------------------------------------------------------------------------
@@ -524,6 +550,54 @@ def compress(poly, delta: float, placement: str = "midslope"):
 
 
 # ----------------------------------------------------------------------------
+# Chunks: phases A and B run on groups of texels, so temporaries scale with a chunk
+# ----------------------------------------------------------------------------
+def chunk_end(offsets: np.ndarray, t0: int, per_chunk: int) -> int:
+    """End ``t1`` of the chunk of texels that starts at ``t0`` and holds about ``per_chunk``
+    segments (at least one texel: a texel's curve needs all of its segments)."""
+    t1 = int(np.searchsorted(offsets, offsets[t0] + per_chunk, side="right")) - 1
+    return min(max(t1, t0 + 1), offsets.size - 1)
+
+
+def next_chunk_segments(output_bytes: float, segments_done: int, n_segments: int) -> int:
+    """Segments of the next chunk: the output extrapolated from the chunks built
+    (``output_bytes`` over ``segments_done`` of ``n_segments``) over
+    ``TEMP_BYTES_PER_SEGMENT``, clamped to [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS]."""
+    if segments_done <= 0:
+        return MIN_CHUNK_SEGMENTS
+    estimate = output_bytes * n_segments / segments_done
+    return int(min(MAX_CHUNK_SEGMENTS, max(MIN_CHUNK_SEGMENTS, estimate // TEMP_BYTES_PER_SEGMENT)))
+
+
+def _host_range(x, s0: int, s1: int) -> np.ndarray:
+    """Entries ``s0:s1`` of the Dr.Jit array ``x`` as float64 NumPy (the LLVM backend's
+    ``numpy()`` is a view of its buffer; elsewhere only the range is gathered and copied)."""
+    x = dr.detach(x)
+    dr.eval(x)
+    if dr.backend_v(x) == dr.JitBackend.LLVM:
+        return np.asarray(x.numpy()[s0:s1], np.float64)
+    U32 = backend.types().UInt32
+    idx = dr.arange(U32, s1 - s0) + dr.opaque(U32, s0)
+    return np.asarray(dr.gather(type(x), x, idx).numpy(), np.float64)
+
+
+def _concatenate(parts: list, k: int) -> np.ndarray:
+    """Entry ``k`` of every chunk's tuple, concatenated into one 64-byte aligned array
+    (:func:`avsm_dr._arrays.aligned`); each part is released once copied."""
+    dtype = parts[0][k].dtype if parts else np.float64
+    n = sum(p[k].size for p in parts)
+    buf = np.empty(n + 64 // dtype.itemsize, dtype)
+    first = (-buf.ctypes.data % 64) // dtype.itemsize
+    out = buf[first:first + n]
+    at = 0
+    for i, p in enumerate(parts):
+        out[at:at + p[k].size] = p[k]
+        at += p[k].size
+        parts[i] = p[:k] + (None,) + p[k + 1:]
+    return out
+
+
+# ----------------------------------------------------------------------------
 # The representation
 # ----------------------------------------------------------------------------
 @register("dsm")
@@ -541,9 +615,10 @@ class DeepShadowMap(Representation):
 
     Limit: the build holds the phase-A polyline, up to ``2 B + N`` vertices per texel
     (B breakpoints, N ~ sqrt(2 / tolerance) levels for a texel that goes opaque: 15 at
-    0.01, 1418 at 1e-6, 44,727 at 1e-9), ``BYTES_PER_VERTEX`` bytes each; a build whose
-    bound exceeds ``MEMORY_BUDGET_BYTES`` (2 GiB) raises ValueError naming the
-    tolerance that fits, before allocating.
+    0.01, 1418 at 1e-6, 44,727 at 1e-9), ``BYTES_PER_VERTEX`` bytes each, one chunk of
+    texels at a time; a build whose bound summed over its chunks exceeds
+    ``MEMORY_BUDGET_BYTES`` (2 GiB) raises ValueError naming the tolerance that fits,
+    before allocating the chunk that crosses it.
     """
 
     schema = Schema(
@@ -574,19 +649,40 @@ class DeepShadowMap(Representation):
 
     # ------------------------------------------------------------- build
     def _build(self):
+        """Phases A and B chunk by chunk of texels (:func:`next_chunk_segments`); each
+        chunk's nodes are kept in the storage dtype and copied once into the final arrays."""
         seg = self.segments
         t = backend.types()
-        h = seg.numpy()
-        poly = exact_polyline(h["offsets"], h["z0"], h["z1"], h["optical_depth"],
-                              POLYLINE_SHARE * self.tolerance, seg.dtype)
-        counts, nz, nv, src = compress(poly, BAND_SHARE * self.tolerance, self.placement)
+        store = np.float32 if seg.dtype == "float32" else np.float64
+        offsets = seg.offsets
+        n_tex = seg.n_texels
+        counts = np.zeros(n_tex, np.int64)
+        self.n_polyline_vertices = np.zeros(n_tex, np.int64)
+        parts, t0, node_bytes, bound = [], 0, 0, (0, 0)
+        while t0 < n_tex:
+            per_chunk = next_chunk_segments(node_bytes + 4 * t0, int(offsets[t0]), seg.n_segments)
+            t1 = chunk_end(offsets, t0, per_chunk)
+            s0, s1 = int(offsets[t0]), int(offsets[t1])
+            off = offsets[t0:t1 + 1] - s0
+            poly = exact_polyline(off, *(_host_range(x, s0, s1) for x in (seg.z0, seg.z1, seg.optical_depth)),
+                                  POLYLINE_SHARE * self.tolerance, seg.dtype, before=(*bound, t0))
+            bound = (bound[0] + poly["bound"][0], bound[1] + poly["bound"][1])
+            del poly["tau"]             # only v is compressed
+            self.n_polyline_vertices[t0:t1] = np.diff(poly["off"])
+            c, nz, nv, src = compress(poly, BAND_SHARE * self.tolerance, self.placement)
+            counts[t0:t1] = c
+            left = poly["left"].numpy()[src] if src.size else np.zeros(0, bool)
+            del poly
+            parts.append((nz.astype(store), nv.astype(store), left))
+            node_bytes += 2 * nz.size * seg.itemsize
+            del nz, nv, src
+            t0 = t1
         self.node_counts = counts
         self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self.n_polyline_vertices = np.diff(poly["off"])
-        self.node_left = (poly["left"].numpy()[src] if src.size else np.zeros(0, bool))
+        nz, nv, self.node_left = (_concatenate(parts, k) for k in range(3))
         Float = seg.Float
-        self.node_depth = Float(A.aligned(nz.astype(np.float32 if seg.dtype == "float32" else np.float64)))
-        value = Float(A.aligned(nv.astype(np.float32 if seg.dtype == "float32" else np.float64)))
+        self.node_depth = Float(nz)
+        value = Float(nv)
         if self.placement == "curve" and counts.sum() and self._needs_grad():
             value = self._attach_gradients(value, nz, self.node_left, counts)
         self.node_value = value
