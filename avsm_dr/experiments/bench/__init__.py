@@ -26,7 +26,8 @@ Writes into ``results/bench/`` (or ``<--out>/bench/``); one module per table:
   operation rate this CPU reaches in a Dr.Jit loop of the same kind of operations
   (compare / select / multiply, measured in CPU time) and the nominal one (clock x
   issue width), times SIMD lanes, per core; our measured insertions per CPU-second as a
-  fraction of it.
+  fraction of it; ``machine.csv`` has the same figures for every setting (also columns of
+  ``data.csv``), with the fraction from the median and from the fastest repeat.
 * ``scaling.csv`` / ``scaling.png`` - build and lookup time against texels, segments per
   texel and N (stored floats per texel), with fitted log-log slopes.
 * ``skipping.csv`` / ``skipping.png`` - each kind of skipped work as a measured saving:
@@ -85,6 +86,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         except Exception as exc:                      # Mitsuba missing or failing: say so
             notes.append(f"Mitsuba comparison skipped: {type(exc).__name__}: {exc}")
         machine = machine_limit(P, data)
+        report.annotate(data, machine)                # machine figures as columns of our rows
         scal = scaling.scaling(P, progress)
         skip = skipping.skipping(P, progress)
         mem = memory.memory(P, progress)
@@ -94,6 +96,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     res.write_csv(scal, "scaling.csv")
     res.write_csv(skip, "skipping.csv")
     res.write_csv(mem, "memory.csv")
+    res.write_csv(report.machine_rows(data, machine), "machine.csv")
     (res.dir / "machine.json").write_text(json.dumps(machine, indent=2, default=str))
     throughput.plot(res, data)
     peers.plot(res, peer)
