@@ -11,6 +11,7 @@ and one proves that the modules import without it.  Tolerances:
   ulp each); transmittance to 1e-10 (exp of an optical depth wrong by <= 1e-13 x 2e4
   for opaque texels, where T is 0 anyway).
 """
+import csv
 import json
 
 import numpy as np
@@ -125,12 +126,14 @@ def test_bench_quick_writes_its_tables(tmp_path):
     from avsm_dr.experiments import bench
     out = bench.run(quick=True, out=tmp_path, force=True)
     for name in ("data.csv", "peers.csv", "scaling.csv", "skipping.csv", "memory.csv", "scenes.csv",
-                 "meta.json", "throughput.png", "scaling.png"):
+                 "meta.json", "throughput.png", "scaling.png", "machine.csv"):
         assert (tmp_path / name).exists(), name
     assert out["summary"]["avsm8_insertions_per_cpu_s"] > 0
     kinds = json.loads((tmp_path / "machine.json").read_text())["kinds"]
     assert {k for k in ad.kinds()} <= {name.split("-")[0] for name in kinds}
     assert kinds["avsm-nodes=8"]["fraction_of_limit"] > 0
+    machine_rows = list(csv.DictReader(open(tmp_path / "machine.csv")))
+    assert any(r["setting"] == "avsm-nodes=8" and float(r["fraction_of_limit"]) > 0 for r in machine_rows)
 
 
 def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
