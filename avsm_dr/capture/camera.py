@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 
+import drjit as dr
 import numpy as np
 
 from .. import validation as V
@@ -108,6 +109,16 @@ class LightCamera:
     def rays(self, texels=None) -> tuple[np.ndarray, np.ndarray]:
         """(origins (K, 3), unit directions (K, 3)) float64 of the given texels (default: all)."""
         raise NotImplementedError
+
+    def rays_device(self, texels) -> tuple[list, list]:
+        """The rays of :meth:`rays` on the device: texels a Dr.Jit UInt32 array -> (origin,
+        direction), each a list of three Dr.Jit Float64 arrays (the same float64 formulas; the
+        camera's constants enter as opaque scalars, so one compiled kernel serves every
+        camera of a class).  This fallback computes them on the host."""
+        o, d = self.rays(np.asarray(texels.numpy(), np.int64))
+        F64 = _f64()
+        return ([F64(np.ascontiguousarray(o[:, a])) for a in range(3)],
+                [F64(np.ascontiguousarray(d[:, a])) for a in range(3)])
 
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Continuous map coordinates (K, 2) (x, y in texel units) and depths (K,) float64."""
@@ -196,6 +207,16 @@ class OrthoCamera(LightCamera):
         o = self.center + x[:, None] * self.u + y[:, None] * self.v
         return o, np.broadcast_to(self.d, o.shape).copy()
 
+    def rays_device(self, texels):
+        F64 = _f64()
+        res = _opaque_u32(self.res)
+        ts, half = (dr.opaque(F64, v) for v in (self.texel_size, self.half))
+        x = (F64(texels % res) + 0.5) * ts - half
+        y = (F64(texels // res) + 0.5) * ts - half
+        c, u, v, d = (_opaque_vec(a) for a in (self.center, self.u, self.v, self.d))
+        o = [c[a] + x * u[a] + y * v[a] for a in range(3)]
+        return o, [dr.full(F64, 0.0, dr.width(texels)) + d[a] for a in range(3)]
+
     def project(self, points):
         q = np.asarray(points, np.float64) - self.center
         x = (q @ self.u + self.half) / self.texel_size
@@ -237,6 +258,11 @@ class PerspectiveCamera(LightCamera):
         d = self.w + sx[:, None] * self.u + sy[:, None] * self.v
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.position, d.shape).copy(), d
+
+    def rays_device(self, texels):
+        t = texels - _opaque_u32(self.texel_offset)
+        return _perspective_rays(t, self.res, self.tan_half, *(_opaque_vec(a) for a in (self.u, self.v, self.w)),
+                                 _opaque_vec(self.position))
 
     def _coords(self, q):
         zc = q @ self.w
@@ -309,6 +335,19 @@ class CubeCamera(LightCamera):
                 o[m], d[m] = cam.rays(t[m])
         return o, d
 
+    def rays_device(self, texels):
+        """Each lane reads its face's basis from (6, 3) tables: one kernel for all faces."""
+        F64 = _f64()
+        UInt32 = type(texels)
+        n2 = _opaque_u32(self.res * self.res)
+        face = texels // n2
+        basis = []
+        for name in ("u", "v", "w"):
+            tab = [F64(np.ascontiguousarray([getattr(c, name)[a] for c in self.faces])) for a in range(3)]
+            basis.append([dr.gather(F64, tab[a], UInt32(face)) for a in range(3)])
+        return _perspective_rays(texels - face * n2, self.res, self.faces[0].tan_half, *basis,
+                                 _opaque_vec(self.position))
+
     def face_of(self, q):
         """Face index of directions q (K, 3): the dominant axis and its sign."""
         axis = np.argmax(np.abs(q), axis=1)
@@ -349,6 +388,35 @@ class CubeCamera(LightCamera):
 
     def footprint_rects(self, bmin, bmax):
         return [r for cam in self.faces for r in cam.footprint_rects(bmin, bmax)]
+
+
+def _f64():
+    from .. import backend
+    return backend.types().Float64
+
+
+def _opaque_u32(v: int):
+    from .. import backend
+    return dr.opaque(backend.types().UInt32, int(v))
+
+
+def _opaque_vec(a) -> list:
+    """A float64 3-vector as three opaque Dr.Jit Float64 scalars."""
+    return [dr.opaque(_f64(), float(x)) for x in np.asarray(a, np.float64).reshape(3)]
+
+
+def _perspective_rays(t, res: int, tan_half: float, u, v, w, position):
+    """Device rays of face-local texels ``t`` of a square perspective map (basis u, v, w:
+    lists of Float64): the formulas of :meth:`PerspectiveCamera.rays`."""
+    F64 = _f64()
+    r = _opaque_u32(res)
+    rf, th = dr.opaque(F64, float(res)), dr.opaque(F64, float(tan_half))
+    sx = ((F64(t % r) + 0.5) / rf * 2 - 1) * th
+    sy = ((F64(t // r) + 0.5) / rf * 2 - 1) * th
+    d = [w[a] + sx * u[a] + sy * v[a] for a in range(3)]
+    norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    zero = dr.zeros(F64, dr.width(t))
+    return [zero + position[a] for a in range(3)], [d[a] / norm for a in range(3)]
 
 
 def make_camera(light, res: int, bmin=None, bmax=None) -> LightCamera:

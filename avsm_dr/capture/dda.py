@@ -27,15 +27,23 @@ voxels reaching it are 0) is crossed in one iteration.  Robust in float32:
   never a step back;
 * axes the ray crosses less than 1e-6 cells along (grazing or parallel rays) are never
   chosen (their plane parameter is a large constant); no division by 0;
-* sigma inside a crossing is evaluated with the cell's own 8 corners (one set of 8
-  gathers per crossing), so the polynomial is the cell's even where rounding puts a
+* sigma inside a crossing is evaluated with the cell's own 8 corners (one packet load,
+  or 8 gathers, per crossing), so the polynomial is the cell's even where rounding puts a
   sample a few ulps across a plane.
 
-Output as :func:`~avsm_dr.capture.grid.march`, in one traversal: in rounds, every
-unfinished lane writes up to :data:`ROUND_CAPACITY` segments into its own slots and
-stops; lanes with more continue in the next round from their saved state; the slots are
-then compacted into CSR order (measured on the plume, 48 x 72 x 48 grid at 1024^2: kernel
-time 0.61 s against 0.74 s for a counting pass plus a writing pass, same process).
+Output as :func:`~avsm_dr.capture.grid.march`, in one traversal: every lane writes its
+segments into its own slots (one per dual cell its clipped ray meets, + 3), then
+:func:`~avsm_dr.capture.grid.compact_slots` gathers the filled ones into CSR order; when
+the slots exceed :data:`SLOT_BUDGET`, in rounds: every unfinished lane writes up to
+:data:`ROUND_CAPACITY` segments into its own slots and stops; lanes with more continue in
+the next round from their saved state.  The lanes' rays and constants are made on the
+device in float64 (:func:`lane_constants`), a crossing's 8 corners come from one packet
+load (:func:`corner_table`), so the host touches one value per ray (its texel and count).
+Measured on the plume (48 x 72 x 48 grid) at 1024^2 with the frame benchmark's timing (median
+of 5 interleaved calls, 2 loaded cores): capture 0.48 s, 1.06x the AVSM-8 build on its
+output, against 0.96 s and 2.14x with host ray setup (0.1-0.4 s), 8 gathers per crossing
+and a ``dr.compress`` over every slot.
+
 Gradients by recomputing each segment's Simpson sum from differentiable gathers (exact
 too: a segment lies in one dual cell).  The old half-voxel march costs 16 voxel reads
 per step, two steps per voxel of path; this costs 8 per crossing, |d_x| + |d_y| + |d_z|
@@ -51,7 +59,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .assembly import TexelRuns
-from .grid import _Kernel, lane_rays
+from .grid import _Kernel, compact_slots, hit_lanes, new_slots, read_slots, write_slots
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
 _FAR = 1e30
@@ -66,6 +74,9 @@ ROUND_CAPACITY = 16
 #: treated as parallel (never crossed): the cell polynomial is then evaluated at most
 #: this far outside its cell, a change of sigma far below float32 rounding.
 _GRAZING_CELLS = 1e-6
+#: Most dual cells of the table of 8 corners per cell (:func:`corner_table`, 256 MB in float32);
+#: larger windows read the 8 corners with 8 gathers from the padded window.
+CORNER_TABLE_CELLS = 1 << 23
 
 
 # --------------------------------------------------------------------- host prep
@@ -109,7 +120,67 @@ def dual_grid(grid):
     return cache["pad"], cache["occ"], cache["occ_shape"]
 
 
+def corner_table(grid):
+    """The 8 corner voxels of every dual cell, contiguous: cell ``((cz + 1) (wy + 1) + cy + 1)
+    (wx + 1) + cx + 1``, corner ``4 k + 2 j + i``, so a crossing reads them with one packet
+    load instead of 8 gathers (bit-identical values).  Gathered on the device from the padded
+    window of :func:`dual_grid` and cached on the grid; None when it would exceed
+    :data:`CORNER_TABLE_CELLS` cells (8 x the window's memory)."""
+    cache = grid.__dict__.setdefault("_dual_cache", {})
+    if "table" not in cache:
+        pad, _, _ = dual_grid(grid)
+        wz, wy, wx = grid.window_shape
+        n = (wx + 1) * (wy + 1) * (wz + 1)
+        table = None
+        if n <= CORNER_TABLE_CELLS:
+            UInt32 = backend.types().UInt32
+            i = dr.arange(UInt32, 8 * n)
+            cell, c = i // 8, i % 8
+            cz = cell // dr.opaque(UInt32, (wx + 1) * (wy + 1))
+            rest = cell - cz * dr.opaque(UInt32, (wx + 1) * (wy + 1))
+            cy = rest // dr.opaque(UInt32, wx + 1)
+            cx = rest - cy * dr.opaque(UInt32, wx + 1)
+            src = (((cz + (c >> 2)) * dr.opaque(UInt32, wy + 2) + cy + ((c >> 1) & 1)) * dr.opaque(UInt32, wx + 2)
+                   + cx + (c & 1))
+            table = dr.gather(grid.Float, pad, src)
+            dr.eval(table)
+        cache["table"] = table
+    return cache["table"]
+
+
 # --------------------------------------------------------------------- traversal
+def lane_constants(grid, o, d, t_in, t_out):
+    """Per-lane constants of the traversal from device float64 rays (lists of three Float64,
+    clipped to ``[t_in, t_out]``), the float64 formulas then rounded to ``grid.Float``:
+    (u_in (3), du (3), inv (3), s_end, t_in) as Floats, the first cell (3 Int32) and the
+    slot bound (UInt32: dual cells the ray meets + 3, for float32 rounding at its ends).
+
+    Position in window dual-cell units ``u = (p - lo) / h - 1/2``, its rate ``du = d / h``,
+    the first cell (on a plane and moving down: the lower one) and ``1 / du`` (0: an axis
+    the ray crosses less than :data:`_GRAZING_CELLS` cells along, never crossed)."""
+    t = backend.types()
+    F64, Float = type(t_in), grid.Float
+    h = grid.voxel
+    wlo = grid.bmin + (grid.window_lo + 0.5) * h                   # u = 0: window voxel 0's centre
+    wlen = np.array(grid.window_shape[::-1], np.int64)             # (wx, wy, wz)
+    s_end = t_out - t_in
+    u_in, du, inv, cell = [], [], [], []
+    cap = dr.zeros(F64, dr.width(t_in)) + 3
+    for a in range(3):
+        h_a = dr.opaque(F64, float(h[a]))
+        ua = (o[a] + d[a] * t_in - dr.opaque(F64, float(wlo[a]))) / h_a
+        dua = d[a] / h_a
+        flat = dr.abs(dua) * s_end < _GRAZING_CELLS
+        ca = dr.floor(ua)
+        ca = dr.select((dua < 0) & ~flat & (ca == ua), ca - 1, ca)
+        inv.append(Float(dr.select(flat, 0.0, 1.0 / dua)))
+        u_in.append(Float(ua))
+        du.append(Float(dua))
+        cell.append(t.Int32(dr.clip(ca, -1, dr.opaque(F64, float(wlen[a] - 1)))))
+        cap += dr.abs(dr.floor(ua + dua * s_end) - dr.floor(ua))
+    return u_in + du + inv + [Float(s_end), Float(t_in)], cell, t.UInt32(dr.select(dr.isfinite(cap), cap, 0))
+
+
 def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiable: bool | None = None,
              lanes_rays=None, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
              runs: bool = False):
@@ -121,8 +192,9 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     keep_zero: also emit crossings of positive length with tau = 0 inside occupied blocks.
     differentiable: recompute tau from differentiable gathers (default: when the grid's
         data has gradients enabled).
-    lanes_rays: (texels, o, d, t_in, t_out) from :func:`~avsm_dr.capture.grid.lane_rays`
-        (computed when None).
+    lanes_rays: host (texels, o, d, t_in, t_out) as :func:`~avsm_dr.capture.grid.lane_rays`
+        gives; default: the rays are made, clipped and compacted on the device
+        (:func:`~avsm_dr.capture.grid.hit_lanes`).
     capacity: segments a lane writes per round (see :data:`ROUND_CAPACITY`).
     slot_budget: most slots of the one-round layout (see :data:`SLOT_BUDGET`); 0 forces rounds.
     runs: return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
@@ -135,31 +207,29 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     if grid.occupied is None:
         return empty
     clock = time.perf_counter()
-    lanes, o, d, t_in, t_out = lane_rays(grid, camera) if lanes_rays is None else lanes_rays
-    L = lanes.size
-    if L == 0:
-        return empty
+    # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
+    if lanes_rays is None:
+        lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
+        L = dr.width(lanes_d)
+        if L == 0:
+            return empty
+        lanes = np.asarray(lanes_d.numpy(), np.int64)
+        host_rays = None
+    else:
+        lanes, o_h, d_h, t_in_h, t_out_h = lanes_rays
+        L = lanes.size
+        if L == 0:
+            return empty
+        F64 = t.Float64
+        o, d = ([F64(np.ascontiguousarray(v[:, a], np.float64)) for a in range(3)] for v in (o_h, d_h))
+        t_in, t_out = F64(np.asarray(t_in_h, np.float64)), F64(np.asarray(t_out_h, np.float64))
+        host_rays = (o_h, d_h)
+        cap = None
+    const, cell, cap_l = lane_constants(grid, o, d, t_in, t_out)
+    cap = cap_l if cap is None else cap
     times = {"lanes_s": time.perf_counter() - clock}
 
-    # ---- lane constants (host, float64, one axis at a time): position in window dual-cell
-    # units u = (p - lo) / h - 1/2, its rate du = d / h, the first cell, 1 / du (0: never crossed)
-    h = grid.voxel
-    wlo = grid.bmin + (grid.window_lo + 0.5) * h                  # u = 0: window voxel 0's centre
     wlen = np.array(grid.window_shape[::-1], np.int64)             # (wx, wy, wz)
-    s_end = t_out - t_in
-    u_in, du, inv, cell = [], [], [], []
-    for a in range(3):
-        ua = (o[:, a] + d[:, a] * t_in - wlo[a]) / h[a]
-        dua = d[:, a] / h[a]
-        flat = np.abs(dua) * s_end < _GRAZING_CELLS
-        ca = np.floor(ua)
-        ca -= (dua < 0) & ~flat & (ca == ua)                       # on a plane, moving down: the lower cell
-        with np.errstate(divide="ignore"):
-            inv.append(np.where(flat, 0.0, 1.0 / dua))
-        u_in.append(ua)
-        du.append(dua)
-        cell.append(np.clip(ca, -1, wlen[a] - 1))
-
     pad, occ, (nbz, nby, nbx) = dual_grid(grid)
     bs = int(grid.block)
     # one cell per iteration and axis (cells never go back except when re-derived at a block
@@ -167,9 +237,6 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     max_iter = int(2 * (wlen.sum() + 3) + 4 * (nbx + nby + nbz) + 16)
     K = int(capacity)
 
-    F = lambda a: A.to_float(np.ascontiguousarray(a), Float)  # noqa: E731
-    I = lambda a: Int32(A.aligned(np.asarray(a, dtype=np.int32)))  # noqa: E731
-    const = [F(v) for v in u_in + du + inv] + [F(s_end), F(t_in)]
     PX, PY = dr.opaque(Int32, int(wlen[0] + 2)), dr.opaque(Int32, int(wlen[1] + 2))
     NBX, NBY = dr.opaque(Int32, int(nbx)), dr.opaque(Int32, int(nby))
     WX, WY, WZ = (dr.opaque(Int32, int(v) - 1) for v in wlen)      # last cell per axis
@@ -177,8 +244,16 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     it_max = dr.opaque(UInt32, max_iter)
     far = dr.opaque(Float, _FAR)
 
+    table = corner_table(grid)
+    ArrX = t.ArrayXf if Float is t.Float else t.ArrayXf64
+    CX, CY = dr.opaque(Int32, int(wlen[0] + 1)), dr.opaque(Int32, int(wlen[1] + 1))
+
     def corners(cx, cy, cz, active):
         """The dual cell's 8 corner voxels c[k][j][i] (edge-padded window: no clamping)."""
+        if table is not None:
+            v = dr.gather(ArrX, table, UInt32(((cz + 1) * CY + (cy + 1)) * CX + (cx + 1)), active,
+                          shape=(8, dr.width(cx)))
+            return [[[v[4 * k + 2 * j + i] for i in (0, 1)] for j in (0, 1)] for k in (0, 1)]
         base = UInt32(((cz + 1) * PY + (cy + 1)) * PX + (cx + 1))
         sy, sz = UInt32(PX), UInt32(PX * PY)
         return [[[dr.gather(Float, pad, base + k * sz + j * sy + i, active) for i in (0, 1)]
@@ -196,7 +271,6 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         ux, uy, uz, dux, duy, duz, ivx, ivy, ivz, send, tin = cst
         n_lanes = dr.width(send)
         psx, psy, psz = (dr.select(v > 0, Int32(1), Int32(0)) for v in (dux, duy, duz))
-        bz0, bz1, btau = bufs
 
         def cond(s, cx, cy, cz, tau, sig0, it, nc, n, done):
             return ~done & (n < cap)
@@ -221,9 +295,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
             sig1 = dr.maximum(cubic(c, dr.fma(s1, dux, fx), dr.fma(s1, duy, fy), dr.fma(s1, duz, fz)), 0)
             seg = dr.select(occupied, dr.maximum((s1 - s) * (sig0 + 4 * sig_m + sig1) * (1.0 / 6.0), 0), 0)
             emit = occupied & ((s1 > s) if keep_zero else (seg > 0))
-            dr.scatter(bz0, tin + s, slot + n, emit)
-            dr.scatter(bz1, tin + s1, slot + n, emit)
-            dr.scatter(btau, seg, slot + n, emit)
+            write_slots(bufs, (tin + s, tin + s1, seg), slot + n, emit)
             n = n + dr.select(emit, 1, 0)
             nc = nc + dr.select(occupied, 1, 0)
             tau = tau + seg
@@ -251,7 +323,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
                              cond, body, label="grid_dda")
 
     times["prep_s"], clock = time.perf_counter() - clock - times["lanes_s"], time.perf_counter()
-    cx0, cy0, cz0 = (I(c) for c in cell)
+    cx0, cy0, cz0 = cell
     c0 = corners(cx0, cy0, cz0, True)
     sig_start = dr.maximum(cubic(c0, const[0] - Float(cx0), const[1] - Float(cy0), const[2] - Float(cz0)), 0)
     state0 = [dr.zeros(Float, L),              # s: ray parameter - t_in of the current point
@@ -268,29 +340,25 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         if stats["max_iterations"] >= max_iter:
             raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
         if S and (differentiable if differentiable is not None else dr.grad_enabled(grid.data)):
-            tau = differentiable_tau(grid, o, d, counts, z0, z1)
+            tau = differentiable_tau(grid, *(host_rays or camera.rays(lanes)), counts, z0, z1)
         clock = time.perf_counter()
         texel = TexelRuns(lanes, counts) if runs else np.repeat(lanes.astype(np.int64), counts)
         stats["texel_s"] = time.perf_counter() - clock
         return (texel, z0, z1, tau, stats) if S else empty[:4] + (stats,)
 
-    # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 2 for
-    # float32 rounding at its ends), then the filled slots in order: dr.compress + gathers
-    cap = sum(np.abs(np.floor(u_in[a] + du[a] * s_end) - np.floor(u_in[a])) for a in range(3)) + 3
-    n_slots = int(cap.sum())
+    # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 3 for
+    # float32 rounding at its ends); lane i's segments fill its first counts[i] slots
+    dr.eval(cap)
+    n_slots = int(dr.sum(t.UInt64(cap))[0])
     if n_slots <= slot_budget:
-        bufs = [dr.empty(Float, n_slots), dr.full(Float, -1.0, n_slots), dr.empty(Float, n_slots)]
-        out = run(const, state0, bufs, A.to_uint32(np.cumsum(cap) - cap), A.to_uint32(cap))
+        bufs = new_slots(Float, n_slots)
+        slot = dr.prefix_sum(cap)
+        out = run(const, state0, bufs, slot, cap)
         dr.eval(out, bufs)
         if bool(dr.all(out[9])):
             counts, iters, cross = (np.asarray(v.numpy(), np.int64) for v in (out[8], out[6], out[7]))
             times["rounds_s"], clock = time.perf_counter() - clock, time.perf_counter()
-            idx = dr.compress(bufs[1] >= 0)                 # filled slots (z1 >= t_in >= 0), in lane order
-            if dr.width(idx) != int(counts.sum()):
-                raise RuntimeError("grid traversal: filled slots and segment counts disagree")
-            z0, z1, tau = (dr.gather(Float, b, idx) for b in bufs)
-            dr.eval(z0, z1, tau)
-            dr.sync_thread()
+            z0, z1, tau = compact_slots(bufs, slot, out[8], int(counts.sum()))
             times["compact_s"] = time.perf_counter() - clock
             return finish(counts, iters, cross, 1, z0, z1, tau)
         clock = time.perf_counter()                          # a lane overflowed its bound: rounds
@@ -304,7 +372,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     iters = np.zeros(L, np.int64)
     cross = np.zeros(L, np.int64)
     while active.size:
-        bufs = [dr.empty(Float, active.size * K) for _ in range(3)]
+        bufs = new_slots(Float, active.size * K)
         out = run(cst, state, bufs, dr.arange(UInt32, active.size) * K, K)
         dr.eval(out, bufs)
         n_r = np.asarray(out[8].numpy(), np.int64)
@@ -338,8 +406,8 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         j = slot - i * K
         ok = j < dr.gather(UInt32, A.to_uint32(n_r), i)
         dst = dr.gather(UInt32, base, i, ok) + j
-        for src, dst_buf in zip(bufs, (z0, z1, tau)):
-            dr.scatter(dst_buf, dr.gather(Float, src, slot, ok), dst, ok)
+        for src, dst_buf in zip(read_slots(bufs, slot, ok), (z0, z1, tau)):
+            dr.scatter(dst_buf, src, dst, ok)
     dr.eval(z0, z1, tau)
     dr.sync_thread()
     times["compact_s"] = time.perf_counter() - clock
