@@ -29,6 +29,8 @@ import numpy as np
 
 from . import _arrays as A
 from . import backend
+from .texel_sort import TIE, UNSORTED, sort_texels
+from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
 #: ``exp(-1e4)`` is 0 in float32 and float64 alike, and the value stays finite so
@@ -39,9 +41,11 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: then made NaN slopes and segfaulted).  Such lengths only occur within ~1e-279 of depth
 #: 0 in float64 storage; they are stored as zero-length steps at z0.
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: :meth:`Segments.sorted` sorts on the device while ``sum count^2 <= DEVICE_SORT_WORK * S``
-#: (mean count weighted by segments <= 256): ranking costs ``count`` comparisons per segment.
+#: Where equal z0 leave z1 to decide, :meth:`Segments.sorted` ranks on the device while
+#: ``sum count^2 <= DEVICE_SORT_WORK * S`` (mean count weighted by segments <= 256): ranking
+#: costs ``count`` comparisons per segment.
 DEVICE_SORT_WORK = 256
+_TIES = object()        # :meth:`Segments._network_order`: equal z0 in a texel, z1 decides
 
 
 _HINT = {"float32": " or use dtype='float64'", "float64": ""}
@@ -310,28 +314,60 @@ class Segments:
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
         lexsort); gradients follow the permutation.
 
-        On the device (:meth:`depth_order`) while the per-texel work ``sum count^2`` stays
-        within :data:`DEVICE_SORT_WORK` per segment, else a host lexsort (same order)."""
+        On the device (:meth:`depth_order`); where equal z0 inside a texel leave z1 to decide
+        and the per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment,
+        a host lexsort (same order)."""
         if self.sorted_by_depth or self.n_segments == 0:
-            return self if self.sorted_by_depth else Segments(self.offsets, self.z0, self.z1,
-                                                              self.optical_depth, self.dtype, True)
-        c = self.counts.astype(np.float64)
-        if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
-            idx = self.depth_order()
-            if idx is None:                                  # already in order
-                return Segments(self.offsets, self.z0, self.z1, self.optical_depth, self.dtype, True)
-        else:
-            h = self.numpy()
-            tex = np.repeat(np.arange(self.n_texels), self.counts)
-            idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
+            return self if self.sorted_by_depth else self._reordered(None)
+        idx = self._network_order()
+        if idx is _TIES:
+            c = self.counts.astype(np.float64)
+            if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
+                idx = self._rank_order()
+            else:
+                h = self.numpy()
+                tex = np.repeat(np.arange(self.n_texels), self.counts)
+                idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
+        return self._reordered(idx)
+
+    def _reordered(self, idx) -> "Segments":
+        """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the
+        device copies of offsets, texels and the sort layout carry over."""
+        cache = {k: v for k, v in self._cache.items() if k in ("offsets", "texel_of", "sort_plan")}
+        if idx is None:
+            return Segments(self.offsets, self.z0, self.z1, self.optical_depth, self.dtype, True, cache)
         Float = self.Float
-        out = Segments(self.offsets, dr.gather(Float, self.z0, idx), dr.gather(Float, self.z1, idx),
-                       dr.gather(Float, self.optical_depth, idx), self.dtype, True)
-        return out
+        return Segments(self.offsets, dr.gather(Float, self.z0, idx), dr.gather(Float, self.z1, idx),
+                        dr.gather(Float, self.optical_depth, idx), self.dtype, True, cache)
 
     def depth_order(self):
         """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
         ties in stored order, computed on the device; None when they are already in order.
+
+        float32: by z0 alone with :func:`~avsm_dr.texel_sort.sort_texels` (sorting networks in
+        registers, one lane per texel), the words ``key(z0) << 32 | position`` making the
+        order stable; where a texel holds equal z0 (z1 must decide), and for float64, by rank:
+        :meth:`_rank_order`."""
+        idx = self._network_order()
+        return self._rank_order() if idx is _TIES else idx
+
+    def _network_order(self):
+        """Permutation, None (already in order) or ``_TIES`` (equal z0 in a texel, or float64)."""
+        if self.n_segments < 2:
+            return None
+        if self.dtype != "float32":
+            return _TIES
+        z0 = dr.detached_t(self.Float)(dr.detach(self.z0))      # words key(z0) << 32 | position
+        if "sort_plan" not in self._cache:
+            self._cache["sort_plan"] = sort_plan(self.counts, self.offsets_dr())
+        perm, flags = sort_texels(self.counts, self.offsets_dr(), self.texel_of_segment(), "float", (z0,),
+                                  layout=self._cache["sort_plan"])
+        if flags & TIE:
+            return _TIES
+        return backend.types().UInt32(perm) if flags & UNSORTED else None
+
+    def _rank_order(self):
+        """:meth:`depth_order` by rank, any dtype and ties.
 
         One lane per segment ``i`` of texel ``t``: its rank among the texel's segments,
         ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic),

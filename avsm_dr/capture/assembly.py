@@ -10,10 +10,11 @@ ray), depths and optical depth (Dr.Jit or NumPy).  :func:`combine` orders them b
   ``np.bincount`` over them took 0.28 s + 0.56 s of a 2.4 s capture at 1024^2, 5 M segments);
 * merged content: counts per texel by ``dr.scatter_inc`` (which also gives each segment a
   slot in its texel), an exclusive prefix sum for the offsets, a scatter into texel groups,
-  then each segment's rank inside its texel by ``(z0 quantised to 32 bits over its range,
-  concatenation index)`` (:func:`~avsm_dr.segments.rank_in_ranges`): the same order as the
-  host's stable argsort of ``texel << 32 | zq``, which stays the fallback when the per-texel
-  work ``sum count^2`` exceeds :data:`~avsm_dr.segments.DEVICE_SORT_WORK` per segment.
+  then every texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to
+  32 bits over its range; :func:`~avsm_dr.texel_sort.sort_texels`, sorting networks in
+  registers): the same order as the host's stable argsort of ``texel << 32 | zq``, which
+  stays the fallback when the per-texel work ``sum count^2`` exceeds
+  :data:`~avsm_dr.segments.DEVICE_SORT_WORK` per segment.
 """
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..segments import DEVICE_SORT_WORK, OPAQUE_OPTICAL_DEPTH, Segments, rank_in_ranges
+from ..segments import DEVICE_SORT_WORK, OPAQUE_OPTICAL_DEPTH, Segments
+from ..texel_sort import sort_texels
 
 
 @dataclass
@@ -136,17 +138,15 @@ def texel_depth_order(texels, z0, n_texels: int):
         tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
         return offsets, A.to_uint32(host_order(tex_h, A.host(z0, "z0")).astype(np.uint32))
     off = A.to_uint32(offsets)
-    # ---- group by texel (slots from the atomic counter), then rank inside each texel
+    # ---- group by texel (slots from the atomic counter), then sort inside each texel
     pos = dr.gather(UInt32, off, tex) + slot
     gid = dr.zeros(UInt32, n)
     dr.scatter(gid, dr.arange(UInt32, n), pos)             # concatenation index at its group slot
     gtex = dr.gather(UInt32, tex, gid)
-    gkey = dr.gather(type(zq := quantised_depth(z0)), zq, gid)
-    lo = dr.gather(UInt32, off, gtex)
-    rank = rank_in_ranges(lo, dr.gather(UInt32, off, gtex + 1), [gkey], ids=gid)
-    perm = dr.zeros(UInt32, n)
-    dr.scatter(perm, gid, lo + rank)
-    return offsets, perm
+    U32 = dr.detached_t(UInt32)
+    zq = U32(quantised_depth(z0))                          # < 2^32: words zq << 32 | index
+    perm, _ = sort_texels(counts, off, gtex, "index", (U32(gid), zq), ties=False)
+    return offsets, UInt32(perm)
 
 
 def host_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:

@@ -1,0 +1,130 @@
+"""Per-texel sorting on the device (issue 14, section 2): the sorting networks of
+:mod:`avsm_dr.texel_sort` and ``Segments.sorted()`` on adversarial input, always equal to
+a stable host lexsort by (texel, z0, z1)."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+import drjit as dr
+from avsm_dr import segments as S
+from avsm_dr import texel_sort as TS
+
+
+@pytest.mark.parametrize("n", range(1, 13))
+def test_network_sorts_every_zero_one_input(n):
+    """The 0-1 principle (Knuth, TAOCP vol. 3, 5.3.4): a comparator network that sorts all
+    2^n sequences of zeros and ones sorts every input of n keys."""
+    net = TS.network(n)
+    for bits in itertools.product((0, 1), repeat=n):
+        x = list(bits)
+        for i, j in net:
+            if x[i] > x[j]:
+                x[i], x[j] = x[j], x[i]
+        assert x == sorted(x)
+
+
+@pytest.mark.parametrize("n", [13, 24, 33, 47, 64])
+def test_network_sorts_random_keys_with_repeats(rng, n):
+    net = TS.network(n)
+    for _ in range(200):
+        x = list(rng.integers(0, 5, n))
+        for i, j in net:
+            if x[i] > x[j]:
+                x[i], x[j] = x[j], x[i]
+        assert x == sorted(x)
+
+
+def _host(seg):
+    h = seg.numpy()
+    perm = np.lexsort((h["z1"], h["z0"], np.repeat(np.arange(seg.n_texels), seg.counts)))
+    return {k: h[k][perm] for k in ("z0", "z1", "optical_depth")}
+
+
+def _segments(counts, z0, rng, z1=None):
+    off = np.concatenate([[0], np.cumsum(counts)])
+    z1 = z0 + rng.uniform(0.0, 1.0, z0.size) if z1 is None else z1
+    return ad.Segments.from_arrays(off, z0, z1, optical_depth=rng.uniform(0.0, 2.0, z0.size))
+
+
+def _check(seg, network: bool):
+    """sorted() equals the host lexsort; ``network``: the order came from the networks
+    (distinct z0 in every texel), not from the rank fallback."""
+    assert (seg._network_order() is not S._TIES) == network
+    got = seg.sorted()
+    assert got.sorted_by_depth and np.array_equal(got.offsets, seg.offsets)
+    want = _host(seg)
+    for k, v in got.numpy().items():
+        if k != "offsets":
+            assert np.array_equal(v, want[k]), k
+
+
+def _distinct(rng, n):
+    """n distinct float32 depths, some negative (sign handling of the integer keys)."""
+    z = np.unique(rng.uniform(-50.0, 50.0, 3 * n).astype(np.float32))
+    return rng.permutation(z)[:n].astype(np.float64)
+
+
+@pytest.mark.parametrize("layout", ["every_class", "empty_texels", "one_long_texel", "long_texels"])
+def test_random_order_matches_the_host_lexsort(backend, rng, layout):
+    """Texels of 0..70 segments (every size class, the 64-segment network and blocks beyond
+    it), long texels (64-blocks merged, 1000 segments), empty texels between them."""
+    counts = {"every_class": np.arange(71), "empty_texels": rng.integers(0, 3, 400) * rng.integers(0, 20, 400),
+              "one_long_texel": np.array([0, 3, 1000, 0, 5]),
+              "long_texels": np.array([65, 128, 129, 200, 7, 0, 300])}[layout]
+    z0 = _distinct(rng, int(counts.sum()))
+    _check(_segments(counts, z0, rng), network=True)
+
+
+def test_already_sorted_and_reversed(backend, rng):
+    counts = np.array([5, 0, 64, 1, 70, 2])
+    off = np.concatenate([[0], np.cumsum(counts)])
+    z0 = _distinct(rng, int(counts.sum()))
+    for t in range(counts.size):
+        z0[off[t]:off[t + 1]] = np.sort(z0[off[t]:off[t + 1]])
+    seg = _segments(counts, z0, rng)
+    small = _segments(counts[:4], z0[:off[4]], rng)          # no texel beyond 64: checked
+    assert small.depth_order() is None and small.sorted().z0 is small.z0
+    _check(seg, network=True)
+    for t in range(counts.size):
+        z0[off[t]:off[t + 1]] = z0[off[t]:off[t + 1]][::-1]
+    _check(_segments(counts, z0, rng), network=True)
+
+
+@pytest.mark.parametrize("counts", [[40, 3, 0, 9], [150, 2]])
+def test_equal_depths_fall_back_to_the_exact_order(backend, rng, counts):
+    """All z0 equal (z1 decides, then the stored order), and -0.0 next to 0.0: the networks
+    see equal keys and the rank sort (or host lexsort) orders them."""
+    counts = np.array(counts)
+    n = int(counts.sum())
+    z1 = rng.integers(0, 3, n) * 0.5
+    _check(_segments(counts, np.zeros(n), rng, z1=z1), network=False)
+    z0 = _distinct(rng, n)
+    z0[:2] = 0.0
+    seg = _segments(counts, z0, rng)
+    seg.z0 = dr.select(dr.arange(ad.backend.types().UInt32, n) == 1, seg.Float(-0.0), seg.z0)
+    _check(seg, network=False)
+
+
+def test_long_texel_with_equal_depths_in_different_blocks(backend, rng):
+    """Equal z0 that meet only in a merge of 64-blocks are detected there too."""
+    z0 = _distinct(rng, 200)
+    z0[150] = z0[3]
+    _check(_segments(np.array([200]), z0, rng), network=False)
+
+
+def test_gradients_follow_the_permutation(backend, rng):
+    counts = np.array([3, 0, 4])
+    z0 = _distinct(rng, 7)
+    seg = _segments(counts, z0, rng)
+    dr.enable_grad(seg.optical_depth)
+    out = seg.sorted()
+    w = ad.backend.types().Float(np.arange(7, dtype=np.float32))
+    dr.backward(dr.sum(out.optical_depth * w))
+    perm = np.lexsort((seg.numpy()["z0"], np.repeat(np.arange(3), counts)))
+    want = np.zeros(7)
+    want[perm] = np.arange(7)
+    assert np.array_equal(np.asarray(dr.grad(seg.optical_depth)), want)
