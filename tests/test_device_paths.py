@@ -200,3 +200,25 @@ def test_capture_assembly_on_the_device_matches_the_host_order(backend, rng, lay
         assert isinstance(seg, Segments) and seg.sorted_by_depth
         assert np.array_equal(seg.offsets, off)
         assert np.array_equal(seg.numpy()["z0"], z0_h[perm])
+
+
+def test_combine_of_new_piece_sizes_reuses_kernels(backend, rng):
+    """Merging pieces of other sizes (a mixed scene at a new resolution) compiles nothing: the
+    pieces' offsets in the concatenation are opaque, not literals in the kernel hash."""
+    from avsm_dr.capture import assembly as asm
+    Float = ad.backend.types().Float
+
+    def pieces(sizes, T):
+        out = []
+        for n in sizes:
+            tex = np.sort(rng.integers(0, T, n))
+            z0 = rng.random(n)
+            out.append((tex, z0, z0 + rng.random(n), rng.random(n)))
+        return out
+
+    def run(sizes, T):
+        seg = asm.combine(pieces(sizes, T), T, Float)
+        return seg.z0, seg.z1, seg.optical_depth
+
+    run((50, 70), 40)
+    assert _compiled(lambda: run((90, 33), 52)) == 0

@@ -105,7 +105,7 @@ def _device_texels(texels) -> object:
     out = dr.zeros(UInt32, sum(dr.width(p) for p in parts))
     start = 0
     for p in parts:
-        dr.scatter(out, p, dr.arange(UInt32, start, start + dr.width(p)))
+        dr.scatter(out, p, dr.arange(UInt32, dr.width(p)) + dr.opaque(UInt32, start))   # no offset in the hash
         start += dr.width(p)
     return out
 
@@ -170,6 +170,6 @@ def _cat(arrays):
     start = 0
     for a in arrays:
         n = dr.width(a)
-        dr.scatter(out, a, dr.arange(UInt32, start, start + n))
+        dr.scatter(out, a, dr.arange(UInt32, n) + dr.opaque(UInt32, start))   # opaque: no offset in the kernel hash
         start += n
     return out
