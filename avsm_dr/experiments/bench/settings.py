@@ -21,9 +21,10 @@ SETTINGS = [
 #: Settings run on the built-in scenes, in the memory table and the scaling plots.
 SCENE_SETTINGS = [("avsm", {"nodes": 8}), ("exact", {}), ("osm", {"slices": 32}),
                   ("fom", {"harmonics": 8}), ("dsm", {"tolerance": 0.01}), ("moments", {})]
-#: Settings whose build holds O(segments) host memory or sorts in superlinear time (DSM needs
-#: about 360 bytes per segment; sort=True ranks every segment against its texel's on the
-#: device, ``count^2`` per texel, or lexsorts on the host beyond ``DEVICE_SORT_WORK``):
+#: Settings whose build is slow per segment (DSM compresses on the host, about 1 us of CPU
+#: per segment; its peak memory is ~2x its output since the chunked build) or sorts in
+#: superlinear time (sort=True: sorting networks per texel on the device, a block merge for
+#: texels over 64 segments, the rank / host lexsort fallbacks for ties and float64):
 #: skipped, with a note, on larger maps.
 HEAVY = ("dsm", "sort")
 HEAVY_MAX_SEGMENTS = 8_000_000
