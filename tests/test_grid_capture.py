@@ -255,12 +255,12 @@ def test_corner_table_and_gathers_give_the_same_segments(monkeypatch):
     """The packet load of a dual cell's 8 corners from the corner table reads the same values
     as 8 gathers from the padded window (the fallback for windows above the table budget);
     packed slot buffers (one packet store per segment) give the same segments as three."""
-    from avsm_dr.capture import dda
+    from avsm_dr.capture import dual_cells
     from avsm_dr.capture import grid as G
     d = small_grid()
     out = []
-    for cells, packet in ((dda.CORNER_TABLE_CELLS, True), (0, True), (dda.CORNER_TABLE_CELLS, False)):
-        monkeypatch.setattr(dda, "CORNER_TABLE_CELLS", cells)
+    for cells, packet in ((dual_cells.CORNER_TABLE_CELLS, True), (0, True), (dual_cells.CORNER_TABLE_CELLS, False)):
+        monkeypatch.setattr(dual_cells, "CORNER_TABLE_CELLS", cells)
         monkeypatch.setattr(G, "PACKET_SLOTS", packet)
         g = GridVolume.prepare(d, BBOX)
         tex, z0, z1, tau, _ = traverse(g, _camera(g, LIGHTS["spot"]), 1e-4)

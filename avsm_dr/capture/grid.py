@@ -26,7 +26,7 @@ its own slots (a bound of its segments: steps plus block faces crossed), then
 :data:`MARCH_SLOT_BUDGET` or a lane fills them, the loop runs twice instead, first
 counting segments per lane, then writing them at the prefix-sum offsets.  The two
 samples of a step read their 8 voxels with one packet load each from the table of
-corners per dual cell (:func:`~avsm_dr.capture.dda.corner_table`).  When the
+corners per dual cell (:func:`~avsm_dr.capture.dual_cells.corner_table`).  When the
 density is a Dr.Jit array with gradients enabled, the optical depths are then
 recomputed per segment (one lane per segment, no loop) from differentiable
 gathers, so gradients flow to the voxels; segment boundaries and counts are not
@@ -50,6 +50,7 @@ from .. import _arrays as A
 from .. import backend
 from ..io import read_vol
 from .assembly import TexelRuns
+from .dual_cells import corner_table
 
 
 # --------------------------------------------------------------------- host prep
@@ -274,7 +275,7 @@ class _Kernel:
 
     def trilinear_table(self, table, x, y, z, active=True):
         """:meth:`trilinear` with the 8 voxels read by one packet load from the dual cell's
-        entry of :func:`~avsm_dr.capture.dda.corner_table` (the table's edge padding repeats
+        entry of :func:`~avsm_dr.capture.dual_cells.corner_table` (the table's edge padding repeats
         the edge voxels, which is the clamp): the same values, the same arithmetic."""
         Float, Int32, UInt32 = self.Float, self.Int32, self.UInt32
         cell, w = [], []
@@ -467,7 +468,7 @@ def compact_slots(bufs, slot, counts, n_segments: int):
 #: Most output slots of the march's one-pass layout (a bound of each lane's segments: 3.4x
 #: the segments on the plume at 1024^2); above it, or when a lane fills its slots, two passes.
 MARCH_SLOT_BUDGET = 1 << 25
-#: The march reads voxels from :func:`~avsm_dr.capture.dda.corner_table` (False: 8 gathers per sample).
+#: The march reads voxels from :func:`~avsm_dr.capture.dual_cells.corner_table` (False: 8 gathers per sample).
 MARCH_CORNER_TABLE = True
 #: Grid capture methods: 'exact' integrates each dual-cell crossing exactly (:mod:`.dda`),
 #: 'march' takes Simpson steps of a given length (this module).
@@ -568,7 +569,6 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     tau_max = dr.opaque(Float, float(-np.log(epsilon)))
     it_max = dr.opaque(UInt32, max_iter)
 
-    from .dda import corner_table
     table = corner_table(grid) if MARCH_CORNER_TABLE else None
 
     def sigma(tt, active):

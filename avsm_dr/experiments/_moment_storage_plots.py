@@ -8,25 +8,24 @@ STYLE = {("inline", "default"): ("o", "C0", True), ("inline", "tuned"): ("o", "C
          ("separate", "default"): ("s", "C0", False), ("separate", "tuned"): ("s", "C1", False)}
 
 
-def plot_ratios(res, summary: dict) -> None:
-    """``storage_ratio.png``: one panel per scene, x = variant (with its bytes per texel),
-    y = RMSE / float32's (linear, per panel), error bars = the claim's 95 % interval."""
+def plot_ratios(res, summary: dict, labs: list[str], tags: tuple[str, ...], reference: str) -> None:
+    """``storage_ratio.png``: one panel per scene, x = variant ``labs`` (with its bytes per
+    texel), y = RMSE / ``reference``'s (linear, per panel), one series per alpha choice in
+    ``tags``, error bars = the claim's 95 % interval."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from .moment_storage import REFERENCE, TAGS, VARIANTS, label
     claims, nbytes = summary["claims"], summary["bytes_per_texel"]
     scenes = list(claims)
-    labs = [label(*v) for v in VARIANTS]
     fig, axes = plt.subplots(1, len(scenes), figsize=(5.0 * len(scenes), 3.8), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
         modes = list(claims[scene])
-        slots = [(m, t) for m in modes for t in TAGS]
+        slots = [(m, t) for m in modes for t in tags]
         width = 0.7 / len(slots)
         for j, (mode, tag) in enumerate(slots):
             xs, ys, lo, hi = [], [], [], []
             for i, lab in enumerate(labs):
-                key = f"{lab}/{tag} vs {REFERENCE}"
+                key = f"{lab}/{tag} vs {reference}"
                 c = claims[scene][mode].get(key)
                 if c is None:                      # float32 tuned is the reference itself
                     continue
@@ -44,7 +43,7 @@ def plot_ratios(res, summary: dict) -> None:
         ax.ticklabel_format(axis="y", useOffset=False)         # own scale per scene: ratios span 1.0003 .. 3
         ax.set_title(scene, fontsize=9)
         ax.grid(True, axis="y", which="both", alpha=0.3)
-    axes[0][0].set_ylabel(f"RMSE / {REFERENCE}'s (tuned alpha, same capture)", fontsize=8)
+    axes[0][0].set_ylabel(f"RMSE / {reference}'s (tuned alpha, same capture)", fontsize=8)
     axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.suptitle("4 power moments: 16-bit storage vs float32 (pooled over seeds x lights, 95 % interval)",
                  fontsize=9)

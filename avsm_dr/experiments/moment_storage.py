@@ -199,6 +199,6 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
     summary = findings(errs, nbytes, best, n_boot=P["n_boot"])
     (res.dir / "findings.json").write_text(json.dumps(summary, indent=1))
     from ._moment_storage_plots import plot_ratios
-    plot_ratios(res, summary)
+    plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
     res.write_meta({"best_alpha": best, "bytes_per_texel": nbytes})
     return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
