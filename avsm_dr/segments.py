@@ -29,7 +29,7 @@ import numpy as np
 
 from . import _arrays as A
 from . import backend
-from .texel_sort import TIE, UNSORTED, sort_texels
+from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels_view
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -41,11 +41,12 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: then made NaN slopes and segfaulted).  Such lengths only occur within ~1e-279 of depth
 #: 0 in float64 storage; they are stored as zero-length steps at z0.
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: Where equal z0 leave z1 to decide, :meth:`Segments.sorted` ranks on the device while
-#: ``sum count^2 <= DEVICE_SORT_WORK * S`` (mean count weighted by segments <= 256): ranking
-#: costs ``count`` comparisons per segment.
+#: :meth:`Segments.sorted` ranks float64 segments, and orders float32 ones with equal z0 in a
+#: texel (:func:`~avsm_dr.texel_sort.break_ties`), on the device while ``sum count^2 <=
+#: DEVICE_SORT_WORK * S`` (mean count weighted by segments <= 256; both cost up to ``count``
+#: comparisons per segment), else by a host lexsort.
 DEVICE_SORT_WORK = 256
-_TIES = object()        # :meth:`Segments._network_order`: equal z0 in a texel, z1 decides
+_TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
 
 
 _HINT = {"float32": " or use dtype='float64'", "float64": ""}
@@ -272,7 +273,10 @@ class Segments:
             k = dr.arange(UInt32, 1, self.n_texels)
             at = dr.gather(UInt32, starts, k)
             flag = dr.zeros(UInt32, n)
-            dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), at, at < n)
+            # S opaque and mode Local (the default, Expand on LLVM, puts S in the kernel as a
+            # literal): no compile per segment count
+            dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), at, at < dr.opaque(UInt32, n),
+                              mode=dr.ReduceMode.Local)
             self._cache["texel_of"] = dr.cumsum(flag)
         return self._cache["texel_of"]
 
@@ -314,21 +318,37 @@ class Segments:
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
         lexsort); gradients follow the permutation.
 
-        On the device (:meth:`depth_order`); where equal z0 inside a texel leave z1 to decide
-        and the per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment,
-        a host lexsort (same order)."""
+        On the device (:meth:`depth_order`); for float64, or equal z0 in a texel, where the
+        per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment, a host
+        lexsort (same order)."""
         if self.sorted_by_depth or self.n_segments == 0:
             return self if self.sorted_by_depth else self._reordered(None)
         idx = self._network_order()
-        if idx is _TIES:
-            c = self.counts.astype(np.float64)
-            if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
-                idx = self._rank_order()
-            else:
-                h = self.numpy()
-                tex = np.repeat(np.arange(self.n_texels), self.counts)
-                idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
-        return self._reordered(idx)
+        return self._reordered(self._exact_order() if idx is _TIES else idx)
+
+    def _exact_order(self):
+        """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host
+        lexsort where the per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment."""
+        c = self.counts.astype(np.float64)
+        if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
+            return self._rank_order()
+        h = self.numpy()
+        tex = np.repeat(np.arange(self.n_texels), self.counts)
+        return A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
+
+    def depth_view(self):
+        """The order of :meth:`sorted` without sorted copies: None when every texel is already
+        in order, else ``(index, start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in
+        (z0, z1) order is segment ``index[start[t] + r]``.  A consumer walking each texel
+        (e.g. the AVSM build) reads through it: one gather per segment instead of a
+        permutation and three gathered arrays."""
+        if self.sorted_by_depth or self.n_segments < 2:
+            return None
+        view = self._network_view()
+        if view is _TIES:
+            idx = self._exact_order()
+            return None if idx is None else (backend.types().UInt32(idx), self.offsets_dr())
+        return view
 
     def _reordered(self, idx) -> "Segments":
         """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the
@@ -346,13 +366,25 @@ class Segments:
 
         float32: by z0 alone with :func:`~avsm_dr.texel_sort.sort_texels` (sorting networks in
         registers, one lane per texel), the words ``key(z0) << 32 | position`` making the
-        order stable; where a texel holds equal z0 (z1 must decide), and for float64, by rank:
-        :meth:`_rank_order`."""
+        order stable; where a texel holds equal z0, z1 then position decide
+        (:func:`~avsm_dr.texel_sort.break_ties`); float64: by rank, :meth:`_rank_order`."""
         idx = self._network_order()
         return self._rank_order() if idx is _TIES else idx
 
     def _network_order(self):
-        """Permutation, None (already in order) or ``_TIES`` (equal z0 in a texel, or float64)."""
+        """Permutation, None (already in order) or ``_TIES`` (float64)."""
+        view = self._network_view()
+        if view is None or view is _TIES:
+            return view
+        UInt32 = backend.types().UInt32
+        pay, start = view
+        tex = self.texel_of_segment()
+        local = dr.arange(UInt32, self.n_segments) - dr.gather(UInt32, self.offsets_dr(), tex)
+        return dr.gather(UInt32, pay, dr.gather(UInt32, start, tex) + local)
+
+    def _network_view(self):
+        """:meth:`depth_view` by the sorting networks (equal z0: :func:`~avsm_dr.texel_sort.break_ties`),
+        or ``_TIES``: float64, or equal z0 where ``sum count^2 > DEVICE_SORT_WORK * S``."""
         if self.n_segments < 2:
             return None
         if self.dtype != "float32":
@@ -360,11 +392,17 @@ class Segments:
         z0 = dr.detached_t(self.Float)(dr.detach(self.z0))      # words key(z0) << 32 | position
         if "sort_plan" not in self._cache:
             self._cache["sort_plan"] = sort_plan(self.counts, self.offsets_dr())
-        perm, flags = sort_texels(self.counts, self.offsets_dr(), self.texel_of_segment(), "float", (z0,),
-                                  layout=self._cache["sort_plan"])
-        if flags & TIE:
-            return _TIES
-        return backend.types().UInt32(perm) if flags & UNSORTED else None
+        pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
+                                             layout=self._cache["sort_plan"])
+        if flags & TIE:                                         # equal z0: z1, then position decide
+            c = self.counts.astype(np.float64)                  # runs of r equal z0 cost r^2: bounded
+            if float(c @ c) > DEVICE_SORT_WORK * self.n_segments:
+                return _TIES                                    # by sum count^2, else the host lexsort
+            z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
+            pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
+            dr.eval(pay)
+        UInt32 = backend.types().UInt32
+        return (UInt32(pay), UInt32(start)) if flags & (UNSORTED | TIE) else None
 
     def _rank_order(self):
         """:meth:`depth_order` by rank, any dtype and ties.

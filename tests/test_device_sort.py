@@ -10,7 +10,6 @@ import pytest
 
 import avsm_dr as ad
 import drjit as dr
-from avsm_dr import segments as S
 from avsm_dr import texel_sort as TS
 
 
@@ -51,9 +50,11 @@ def _segments(counts, z0, rng, z1=None):
 
 
 def _check(seg, network: bool):
-    """sorted() equals the host lexsort; ``network``: the order came from the networks
-    (distinct z0 in every texel), not from the rank fallback."""
-    assert (seg._network_order() is not S._TIES) == network
+    """sorted() equals the host lexsort; ``network``: the networks saw distinct z0 in every
+    texel (else equal z0 were flagged and :func:`TS.break_ties` ordered them by z1)."""
+    z0 = dr.detached_t(seg.Float)(dr.detach(seg.z0))
+    flags = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,))[2]
+    assert bool(flags & TS.TIE) != network
     got = seg.sorted()
     assert got.sorted_by_depth and np.array_equal(got.offsets, seg.offsets)
     want = _host(seg)
@@ -128,3 +129,66 @@ def test_gradients_follow_the_permutation(backend, rng):
     want = np.zeros(7)
     want[perm] = np.arange(7)
     assert np.array_equal(np.asarray(dr.grad(seg.optical_depth)), want)
+
+
+def _map(rng, counts, ties=False):
+    """Random-order segments with texels ``counts`` and light optical depths (compression
+    runs); ``ties``: z0 on a grid of 1 and z1 of 0.5, so equal z0 and equal (z0, z1) in most
+    texels (:func:`TS.break_ties` decides, by z1 then position)."""
+    n = int(np.sum(counts))
+    z0 = _distinct(rng, n)
+    z1 = z0 + rng.uniform(0.0, 1.0, n)
+    if ties:
+        z0 = np.round(z0)
+        z1 = z0 + rng.integers(0, 3, n) * 0.5
+    return ad.Segments.from_arrays(np.concatenate([[0], np.cumsum(counts)]), z0, z1,
+                                   optical_depth=rng.uniform(0.0, 0.2, n))
+
+
+@pytest.mark.parametrize("ties", [False, True])
+def test_depth_view_is_the_order_of_sorted(backend, rng, ties):
+    """Texel t's r-th segment by (z0, z1, position) is ``index[start[t] + r]``: packets of
+    the size classes, and texels beyond 64 (three merge passes for 300) after them."""
+    counts = np.array([4, 0, 64, 65, 300, 1, 17, 129, 40])
+    seg = _map(rng, counts, ties)
+    h = seg.numpy()
+    perm = np.lexsort((h["z1"], h["z0"], np.repeat(np.arange(counts.size), counts)))
+    idx, start = (np.asarray(a) for a in seg.depth_view())
+    off = seg.offsets
+    for t, c in enumerate(counts):
+        assert np.array_equal(idx[start[t]:start[t] + c], perm[off[t]:off[t + 1]]), t
+
+
+@pytest.mark.parametrize("ties", [False, True])
+def test_sorted_avsm_reads_the_order_bit_for_bit(backend, rng, ties):
+    """AVSM with sort=True reads through :meth:`Segments.depth_view` (no sorted copies): its
+    nodes, used counts and stats equal those built from ``sorted()`` bit for bit."""
+    seg = _map(rng, np.array([0, 3, 9, 33, 64, 65, 129, 300, 2]), ties)
+    for nodes in (4, 8):
+        got, want = (ad.build("avsm", s, nodes=nodes, sort=True) for s in (seg, seg.sorted()))
+        for a, b in zip(got.nodes_numpy(), want.nodes_numpy()):
+            assert a.tobytes() == b.tobytes()
+        assert np.array_equal(got.used, want.used) and got.stats == want.stats
+
+
+def test_new_counts_compile_nothing(backend, rng):
+    """A second random-order map with other texel counts (other merge passes, other sizes)
+    sorts and builds sorted AVSM-8 without compiling a kernel, equal depths or not: sizes
+    are not literals."""
+    def run(counts):
+        out = []
+        for ties in (False, True):
+            seg = _map(rng, counts, ties)
+            s = seg.sorted()
+            out += [s.z0, s.z1, s.optical_depth, *ad.build("avsm", seg, nodes=8, sort=True).depths]
+        return out
+
+    def compiled(fn):
+        dr.kernel_history_clear()
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.eval(fn())
+            hist = dr.kernel_history()
+        return sum(1 for k in hist if k["type"] == dr.KernelType.JIT and not k["cache_hit"])
+
+    run(np.array([3, 70, 0, 64, 200, 5]))
+    assert compiled(lambda: run(np.array([9, 0, 90, 64, 300, 2, 130, 31]))) == 0

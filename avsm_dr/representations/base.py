@@ -212,6 +212,9 @@ class Representation(metaclass=_Built):
         width = None if width is None else check_size(width, "width")
         height = None if height is None else check_size(height, "height")
         radius = check_radius(radius, width, height)
+        if filter == "point" and (out := DC.host_point_lookup(self._eval_texels, texel, depth, self.n_texels,
+                                                               self.segments.dtype, Float)) is not None:
+            return out                      # NumPy input checked by min / max, read as it is
 
         # Dr.Jit input is validated on the device (one flag read back, no copy of the arrays),
         # NumPy integer texels by their min / max and NumPy float depths once converted
