@@ -265,3 +265,18 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
 
 
 __all__ = ["MCAgreement", "mc_agreement", "GradientCheck", "check_gradients"]
+
+
+def compiled_kernels(fn: Callable, *, disk_hits_are_new: bool = False) -> int:
+    """Number of JIT kernels compiled (kernel cache misses) while ``fn()`` runs and its result
+    is evaluated: the check that a second call with new sizes or data reuses the kernels of
+    the first (a literal size or a misaligned mapped input in the kernel hash recompiles).
+    ``disk_hits_are_new``: also count kernels loaded from Dr.Jit's disk cache (after a warm-up
+    in the same process, such a kernel was not in memory, i.e. it is new to this call)."""
+    dr.kernel_history_clear()
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.eval(fn())
+        dr.sync_thread()
+        hist = dr.kernel_history()
+    return sum(1 for k in hist if k["type"] == dr.KernelType.JIT
+               and (not k["cache_hit"] or (disk_hits_are_new and k.get("cache_disk", False))))

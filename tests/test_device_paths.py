@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
+from avsm_dr.testing import compiled_kernels
 import drjit as dr
 
 
@@ -20,11 +21,7 @@ def _segments(rng, w=24, h=20, max_count=6):
 
 def _compiled(fn):
     """Number of JIT kernels ``fn`` compiled (kernel cache misses) while running."""
-    dr.kernel_history_clear()
-    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-        dr.eval(fn())
-        hist = dr.kernel_history()
-    return sum(1 for k in hist if k["type"] == dr.KernelType.JIT and not k["cache_hit"])
+    return compiled_kernels(fn)
 
 
 @pytest.mark.parametrize("filt", ["point", "bilinear", "box", "gaussian"])

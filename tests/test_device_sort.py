@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
+from avsm_dr.testing import compiled_kernels
 import drjit as dr
 from avsm_dr import texel_sort as TS
 
@@ -183,12 +184,5 @@ def test_new_counts_compile_nothing(backend, rng):
             out += [s.z0, s.z1, s.optical_depth, *ad.build("avsm", seg, nodes=8, sort=True).depths]
         return out
 
-    def compiled(fn):
-        dr.kernel_history_clear()
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.eval(fn())
-            hist = dr.kernel_history()
-        return sum(1 for k in hist if k["type"] == dr.KernelType.JIT and not k["cache_hit"])
-
     run(np.array([3, 70, 0, 64, 200, 5]))
-    assert compiled(lambda: run(np.array([9, 0, 90, 64, 300, 2, 130, 31]))) == 0
+    assert compiled_kernels(lambda: run(np.array([9, 0, 90, 64, 300, 2, 130, 31]))) == 0

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
+from avsm_dr.testing import compiled_kernels
 import drjit as dr
 from avsm_dr.capture import GridVolume
 from avsm_dr.capture.camera import make_camera
@@ -279,13 +280,8 @@ def test_capture_at_a_new_resolution_compiles_nothing(method):
     sc = grid_scene(LIGHTS["directional"])
 
     def compiled(**kw):
-        dr.kernel_history_clear()
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.eval(ad.capture(sc, method=method, **kw).segments.z0)
-            dr.sync_thread()
-            hist = dr.kernel_history()
         # a kernel not in memory after the warm-up is new (compiled now, or earlier to disk)
-        return sum(1 for k in hist if k["type"] == dr.KernelType.JIT and (not k["cache_hit"] or k["cache_disk"]))
+        return compiled_kernels(lambda: ad.capture(sc, method=method, **kw).segments.z0, disk_hits_are_new=True)
 
     compiled(resolution=64)
     assert [compiled(resolution=r) for r in (67, 71)] == [0, 0]
