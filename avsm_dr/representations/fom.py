@@ -26,9 +26,12 @@ from __future__ import annotations
 import math
 
 import drjit as dr
+import numpy as np
 
+from .. import _arrays as A
+from .. import backend
 from .registry import register
-from .basis import Basis, BasisRepresentation, register_basis, sinc, sincos_pi
+from .basis import Basis, BasisRepresentation, clip_segment, register_basis, sinc, sincos_pi
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 
@@ -108,6 +111,12 @@ class FourierBasis(Basis):
         return dr.select(j == 0, 2.0, w * dr.select(is_b, s, c))
 
 
+#: Most harmonics built by the one-lane-per-texel recurrence (its loop body is unrolled
+#: over k, so the kernel grows with n; beyond it the per-coefficient lanes, whose kernel
+#: does not).
+RECURRENCE_HARMONICS = 16
+
+
 @register("fom")
 class FourierOpacityMap(BasisRepresentation):
     """Fourier opacity map: ``harmonics`` n >= 1 (default 3, the paper's 7 coefficients),
@@ -130,6 +139,65 @@ class FourierOpacityMap(BasisRepresentation):
 
     def _make_basis(self):
         return FourierBasis(self.params["harmonics"])
+
+    def _project_texels(self):
+        """Float32 segments: one lane per non-empty texel, its 2n + 1 sums in registers.  Per
+        segment (midpoint m, width du, angles a = 2 pi m, h = pi du) the float64 sincos of a
+        and h (exact argument reduction, :func:`sincos_pi`) are rounded to float32 once, then
+        float32 recurrences over k = 1..n (angle addition; Chebyshev U for sin(k h) / sin(h)):
+
+            e^{ika} = e^{i(k-1)a} e^{ia},   q_k = q_{k-1} cos h + cos((k-1) h),
+            cos(k h) = cos((k-1) h) cos h - q_{k-1} sin(h)^2,   sinc(k h) = q_k sinc(h) / k
+
+        (q_k = sin(k h) / sin(h), finite at h = 0; sinc(h) in float64, :func:`sinc`).
+        Contract: each complex product rounds by at most sqrt(2) gamma_2 (Higham 2002, sec.
+        3.6) and the base carries eps/2 per component, so cos(k a), sin(k a) are within
+        ~3.6 k eps (plus k times the error of m), below the 2 pi k eps of rounding 2 k m in
+        the per-coefficient form; sinc(k h) within ~3 k eps + 3 eps (q_k's terms are
+        positive while k h <= pi/2, beyond it 1/(k h) < 2/pi).  Float64 segments keep the
+        per-(texel, coefficient) lanes of the base class, and so do more than
+        :data:`RECURRENCE_HARMONICS` harmonics (the unrolled body grows with n)."""
+        seg = self.segments
+        if seg.Float is not backend.types().Float32 or self.basis.n > RECURRENCE_HARMONICS:
+            return super()._project_texels()
+        Float, UInt32 = seg.Float, backend.types().UInt32
+        Float64 = dr.float64_array_t(Float)
+        T, n = seg.n_texels, self.basis.n
+        K = 2 * n + 1
+        flat = dr.zeros(Float, T * K)
+        lanes_np = np.nonzero(seg.counts > 0)[0]
+        texel = A.to_uint32(lanes_np)
+        offsets = seg.offsets_dr()
+        stop = dr.gather(UInt32, offsets, texel + 1)
+        z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
+        near, span = self._range(texel if self._per_texel else None)
+
+        def body(i, *acc):
+            c0, c1, t_in, t_front = clip_segment(dr.gather(Float, z0, i), dr.gather(Float, z1, i),
+                                                 dr.gather(Float, tau, i), near, span)
+            du = Float64(c1 - c0)
+            sa, ca = (Float(x) for x in sincos_pi(Float64(c0 + c1)))      # a = 2 pi m
+            sh, ch = (Float(x) for x in sincos_pi(du))                   # h = pi du
+            sinc_h = Float(sinc(math.pi * du))
+            sh2 = sh * sh
+            w_in, w_front = 2 * t_in, 2 * t_front
+            out = [acc[0] + (w_in + w_front)]
+            ck, sk, qk, chk = ca, sa, Float(1), ch              # k = 1: e^{ia}, q_1 = 1, cos h
+            for k in range(1, n + 1):
+                w = w_in * (sinc_h * qk) * (1 / k)
+                out += [acc[2 * k - 1] + (w * ck + w_front), acc[2 * k] + w * sk]
+                if k < n:
+                    ck, sk = ck * ca - sk * sa, sk * ca + ck * sa
+                    qk, chk = qk * ch + chk, chk * ch - qk * sh2
+            return (i + 1, *out)
+
+        state = (dr.gather(UInt32, offsets, texel), *[dr.zeros(Float, lanes_np.size) for _ in range(K)])
+        _, *acc = dr.while_loop(state, lambda i, *acc: i < stop, body, label="fom_project")
+        dr.eval(*acc)       # one loop kernel (each scatter into flat would otherwise re-run it)
+        for k in range(K):
+            dr.scatter(flat, acc[k], texel * K + k)
+        dr.eval(flat)
+        return flat
 
     @property
     def a(self) -> list:
