@@ -138,8 +138,9 @@ def test_bench_quick_writes_its_tables(tmp_path):
 
 def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
     """``machine.kernel_ops`` (the per-kind operation counts of ``machine.json``): for AVSM the
-    loop with the most operations is its compress loop (the count the AVSM limit uses);
-    for a linear kind (no loop) every vector operation of the kernel is counted."""
+    loop with the most operations is its compress loop (the count the AVSM limit uses); FOM's
+    projection loops over each texel's segments (``fom_project``); for a kind without a loop
+    (moments) every vector operation of the kernel is counted."""
     import drjit as dr
     from avsm_dr.experiments._common import _jit_kernels
     from avsm_dr.experiments.bench import machine
@@ -147,7 +148,7 @@ def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
     seg = counts_map(8, 10)
     irs = {}
     with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-        for kind, p in (("avsm", {"nodes": 4}), ("fom", {"harmonics": 4})):
+        for kind, p in (("avsm", {"nodes": 4}), ("fom", {"harmonics": 4}), ("moments", {})):
             dr.kernel_history()
             ad.build(kind, seg, **p)
             irs[kind] = [k["ir"].getvalue() for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
@@ -155,5 +156,6 @@ def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
     ops, width, loop = machine.kernel_ops(ir)
     assert loop == "avsm_compress" and width >= 4
     assert ops == machine.loop_ops(ir, "avsm_compress")[0]
-    counted = [machine.kernel_ops(s) for s in irs["fom"]]
+    assert "fom_project" in [machine.kernel_ops(s)[2] for s in irs["fom"]]
+    counted = [machine.kernel_ops(s) for s in irs["moments"]]
     assert all(lab == "" for _, _, lab in counted) and max(sum(o.values()) for o, _, _ in counted) > 10
