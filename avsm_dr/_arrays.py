@@ -58,20 +58,24 @@ def check_finite(arr: np.ndarray, name: str) -> None:
         raise ValueError(f"{name}: contains {bad} NaN or inf value(s)")
 
 
-def aligned(a: np.ndarray) -> np.ndarray:
-    """A C-contiguous copy of ``a`` whose data starts on a 64-byte boundary.
+def aligned(a: np.ndarray, dtype=None) -> np.ndarray:
+    """A C-contiguous copy of ``a`` (cast to ``dtype`` if given, in the same single copy;
+    overflow becomes inf, as in ``astype``) whose data starts on a 64-byte boundary; ``a``
+    itself when it already is one.
 
     Dr.Jit's LLVM backend emits ``align 64`` loads for a NumPy-backed input only when
     its pointer happens to be 64-byte aligned (``align 1`` otherwise), so the same
     kernel gets two hashes and is recompiled at random (measured: ~40 ms per kernel).
     """
     a = np.asarray(a)
-    if a.flags.c_contiguous and a.ctypes.data % 64 == 0:
+    dt = a.dtype if dtype is None else np.dtype(dtype)
+    if a.dtype == dt and a.flags.c_contiguous and a.ctypes.data % 64 == 0:
         return a
-    buf = np.empty(a.size + 64 // a.itemsize, dtype=a.dtype)
-    off = (-buf.ctypes.data % 64) // a.itemsize
+    buf = np.empty(a.size + 64 // dt.itemsize, dtype=dt)
+    off = (-buf.ctypes.data % 64) // dt.itemsize
     out = buf[off:off + a.size].reshape(a.shape)
-    out[...] = a
+    with np.errstate(over="ignore", invalid="ignore"):
+        np.copyto(out, a, casting="unsafe")
     return out
 
 

@@ -89,19 +89,6 @@ def _plain(x, kinds: str) -> bool:
             and x.dtype.kind in kinds)
 
 
-def _aligned_as(a: np.ndarray, dt: np.dtype) -> np.ndarray:
-    """``a`` as dtype ``dt`` in a 64-byte aligned buffer (see :func:`avsm_dr._arrays.aligned`):
-    ``a`` itself when it already is one, else one casting copy (no intermediate ``astype``)."""
-    if a.dtype == dt and a.flags.c_contiguous and a.ctypes.data % 64 == 0:
-        return a
-    buf = np.empty(a.size + 64 // dt.itemsize, dt)
-    off = (-buf.ctypes.data % 64) // dt.itemsize
-    out = buf[off:off + a.size]
-    with np.errstate(over="ignore", invalid="ignore"):      # an overflow becomes inf: refused later
-        np.copyto(out, a, casting="unsafe")
-    return out
-
-
 def host_point_lookup(eval_texels, texel, depth, n_texels: int, dtype: str, Float):
     """T of a point lookup of NumPy texels and depths that need no per-lane check, or None.
 
@@ -121,12 +108,12 @@ def host_point_lookup(eval_texels, texel, depth, n_texels: int, dtype: str, Floa
         return None
     ft = np.dtype(np.float32 if dtype == "float32" else np.float64)
     info = np.finfo(ft)
-    d_h = _aligned_as(depth, ft)
+    d_h = A.aligned(depth, ft)
     lo, hi = float(d_h.min()), float(d_h.max())                   # NaN fails every comparison below
     if not (-float(info.max) <= lo and hi <= float(info.max) and (lo > float(info.tiny) or hi < -float(info.tiny))):
         return None
     UInt32 = backend.types().UInt32
-    tex, d = UInt32(_aligned_as(texel, np.dtype(np.uint32))), Float(d_h)
+    tex, d = UInt32(A.aligned(texel, np.uint32)), Float(d_h)
     n = max(texel.size, depth.size)
     if texel.size != n:
         tex = tex + dr.zeros(UInt32, n)

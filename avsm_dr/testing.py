@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Sequence
 
 import drjit as dr
@@ -280,3 +281,12 @@ def compiled_kernels(fn: Callable, *, disk_hits_are_new: bool = False) -> int:
         hist = dr.kernel_history()
     return sum(1 for k in hist if k["type"] == dr.KernelType.JIT
                and (not k["cache_hit"] or (disk_hits_are_new and k.get("cache_disk", False))))
+
+
+def quick_cli_run(name: str, out) -> Path:
+    """``python -m avsm_dr NAME --quick --out OUT`` in this process, as a user runs it: checks
+    that the CLI discovers the experiment and exits 0; returns its result folder ``OUT/NAME``."""
+    from . import cli
+    assert name in cli.experiment_names(), name
+    assert cli.main([name, "--quick", "--out", str(out)]) == 0, name
+    return Path(out) / name

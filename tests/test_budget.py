@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr import cli
+from avsm_dr.testing import quick_cli_run
 from avsm_dr.experiments import _common, budget, images
 
 
@@ -63,9 +63,7 @@ def test_quadrature_light_is_the_groundtruth_raymarch():
 
 
 def test_quick_budget_run(tmp_path):
-    assert "budget" in cli.experiment_names()
-    assert cli.main(["budget", "--quick", "--out", str(tmp_path)]) == 0
-    out = tmp_path / "budget"
+    out = quick_cli_run("budget", tmp_path)
     rows = _common.read_csv(out / "data.csv")
     assert {r["kind"] for r in rows} >= {"exact", "avsm", "fom", "osm", "moments"}
     assert {r["receivers"] for r in rows} == {"all", "volume", "surface"}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr import cli
+from avsm_dr.testing import quick_cli_run
 from avsm_dr.builtin_scenes import SCENES
 from avsm_dr.experiments import _common, frame
 from avsm_dr.io import write_vol
@@ -22,10 +22,7 @@ def _f(v):
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
-    out = tmp_path_factory.mktemp("results")
-    assert "frame" in cli.experiment_names()
-    assert cli.main(["frame", "--quick", "--out", str(out)]) == 0
-    return out / "frame"
+    return quick_cli_run("frame", tmp_path_factory.mktemp("results"))
 
 
 def test_quick_frame_covers_every_scene_method_and_kind(quick):

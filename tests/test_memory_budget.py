@@ -9,7 +9,7 @@ import math
 import pytest
 
 import avsm_dr as ad
-from avsm_dr import cli
+from avsm_dr.testing import quick_cli_run
 from avsm_dr.experiments import _common, memory_budget as MB
 from cases import random_segments, to_segments
 
@@ -38,10 +38,7 @@ def test_dsm_at_bytes_stays_below_the_target(rng):
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
-    out = tmp_path_factory.mktemp("results")
-    assert "memory_budget" in cli.experiment_names()
-    assert cli.main(["memory_budget", "--quick", "--out", str(out)]) == 0
-    return out / "memory_budget"
+    return quick_cli_run("memory_budget", tmp_path_factory.mktemp("results"))
 
 
 def test_quick_run_compares_at_equal_bytes(quick):

@@ -9,16 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from avsm_dr import cli
+from avsm_dr.testing import quick_cli_run
 from avsm_dr.experiments import _common, moment_storage as MS
 
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
-    out = tmp_path_factory.mktemp("results")
-    assert "moment_storage" in cli.experiment_names()
-    assert cli.main(["moment_storage", "--quick", "--out", str(out)]) == 0
-    return out / "moment_storage"
+    return quick_cli_run("moment_storage", tmp_path_factory.mktemp("results"))
 
 
 def _rmse(rows, **match):

@@ -309,6 +309,16 @@ def _log_receivers(near, span, tex, u, warp):
     return near[tex] * np.exp(u * np.log((near[tex] + span[tex]) / near[tex]))
 
 
+def _bounds_on_receivers(rep, hc, warp, k=23):
+    """23 receivers per texel, uniform in the warped depth: (texels, depths, their warped u,
+    the representation's lower and upper bounds there)."""
+    near, span = R.ranges(hc)
+    tex, u = np.repeat(np.arange(rep.n_texels), k), np.tile((np.arange(k) + 0.37) / k, rep.n_texels)
+    d = _log_receivers(near, span, tex, u, warp)
+    lo, up = (np.asarray(v) for v in rep.bounds(uint32(tex), ad.backend.types().Float64(d)))
+    return tex, d, M.warped_u(d, near[tex], span[tex], warp), lo, up
+
+
 @pytest.mark.parametrize("n", [4, 6, 8])
 @pytest.mark.parametrize("warp", ["linear", "log"])
 def test_moments_and_bounds_match_reference(n, warp, rng):
@@ -329,12 +339,7 @@ def test_moments_and_bounds_match_reference(n, warp, rng):
     alpha, beta = rep.params["bias"], 0.25
     rep = ad.build("moments", seg, moments=n, warp=warp, overestimation=beta)
     b = coefficient_array(rep)
-    near, span = R.ranges(hc)
-    k = 23
-    tex, u = np.repeat(np.arange(seg.n_texels), k), np.tile((np.arange(k) + 0.37) / k, seg.n_texels)
-    d = _log_receivers(near, span, tex, u, warp)
-    lo, up = (np.asarray(v) for v in rep.bounds(uint32(tex), ad.backend.types().Float64(d)))
-    uu = M.warped_u(d, near[tex], span[tex], warp)
+    tex, d, uu, lo, up = _bounds_on_receivers(rep, hc, warp)
     ref = np.array([M.bounds(b[t], 2 * x - 1, alpha) for t, x in zip(tex, uu)])
     ne = b[tex, 0] > 0
     tol = 1e-7 if n == 4 else 1e-6
@@ -437,12 +442,7 @@ def test_trigonometric_moments_and_bounds_match_reference(n, warp, rng):
     tol = EPS["float64"] * (16 + (64 if warp == "log" else 0) + counts) * total
     assert np.all(np.abs(b - M.trig_moments(hc, n, warp)) <= tol[:, None] + 1e-300)
     assert rep.nbytes_per_texel == (2 * n + 1) * 8
-    near, span = R.ranges(hc)
-    k = 23
-    tex, u = np.repeat(np.arange(seg.n_texels), k), np.tile((np.arange(k) + 0.37) / k, seg.n_texels)
-    d = _log_receivers(near, span, tex, u, warp)
-    lo, up = (np.asarray(v) for v in rep.bounds(uint32(tex), ad.backend.types().Float64(d)))
-    uu = M.warped_u(d, near[tex], span[tex], warp)
+    tex, d, uu, lo, up = _bounds_on_receivers(rep, hc, warp)
     ref = np.array([M.trig_bounds(b[t], 2 * x - 1, rep.params["bias"]) for t, x in zip(tex, uu)])
     ne = b[tex, 0] > 0
     np.testing.assert_allclose(lo[ne], ref[ne, 0], rtol=0, atol=1e-6)

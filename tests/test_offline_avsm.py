@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr import cli
+from avsm_dr.testing import quick_cli_run
 from avsm_dr.experiments import _common
 from avsm_dr.representations import optimal as optimal_mod
 from reference import offline_ref as ref
@@ -182,9 +182,7 @@ def test_bad_parameters(kind, params, name):
 
 # -------------------------------------------------------------------- experiment
 def test_avsm_gap_quick(tmp_path):
-    assert "avsm_gap" in cli.experiment_names()
-    assert cli.main(["avsm_gap", "--quick", "--out", str(tmp_path)]) == 0
-    out = tmp_path / "avsm_gap"
+    out = quick_cli_run("avsm_gap", tmp_path)
     rows = _common.read_csv(out / "data.csv")
     assert {r["method"] for r in rows} >= {"avsm", "greedy", "optimal_subset", "optimal", "optimal_linf",
                                            "avsm_march", "beer"}

@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from avsm_dr import cli, fluid
+from avsm_dr import fluid
+from avsm_dr.testing import quick_cli_run
 from avsm_dr.experiments import _common
 from avsm_dr.experiments import _temporal_metrics as M
 from avsm_dr.experiments import _temporal_scenes as S
@@ -94,9 +95,7 @@ def test_camera_receivers_stay_in_the_box_and_move():
 # -------------------------------------------------------------------- the run
 def test_quick_temporal_run(tmp_path, monkeypatch):
     monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
-    assert "temporal" in cli.experiment_names()
-    assert cli.main(["temporal", "--quick", "--out", str(tmp_path)]) == 0
-    out = tmp_path / "temporal"
+    out = quick_cli_run("temporal", tmp_path)
     for name in ("data.csv", "findings.json", "meta.json", "error_flicker_per_frame.png", "flicker_vs_error.png",
                  "shadow_smoke.gif"):
         assert (out / name).stat().st_size > 0, name
