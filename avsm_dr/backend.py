@@ -2,7 +2,8 @@
 
 ``set_backend("llvm" | "cuda")`` chooses (``with use_backend(name):`` for a block);
 ``types()`` returns the Dr.Jit AD module (``drjit.llvm.ad`` or ``drjit.cuda.ad``) whose
-``Float``, ``UInt32``... every kernel uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice.
+``Float``, ``UInt32``... every kernel uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice
+(``llvm`` or ``cuda``; anything else is a ValueError naming the variable).
 """
 from __future__ import annotations
 
@@ -35,6 +36,9 @@ def default_backend() -> str:
     """``$AVSM_DR_BACKEND`` if set, else ``cuda`` when a GPU is usable, else ``llvm``."""
     env = os.environ.get("AVSM_DR_BACKEND")
     if env:
+        if env not in _BACKENDS:
+            raise ValueError(f"AVSM_DR_BACKEND: expected one of {_BACKENDS} (or unset: cuda when a GPU "
+                             f"is usable, else llvm), got {env!r}")
         return env
     return "cuda" if "cuda" in available_backends() else "llvm"  # llvm raises the install hint
 
@@ -54,7 +58,13 @@ def set_backend(name: str) -> None:
 def get_backend() -> str:
     """Name of the backend in use (chosen lazily on first use)."""
     if _current is None:
-        set_backend(default_backend())
+        name = default_backend()
+        try:
+            set_backend(name)
+        except RuntimeError as exc:
+            if os.environ.get("AVSM_DR_BACKEND"):
+                raise RuntimeError(f"AVSM_DR_BACKEND={name!r}: {exc}") from None
+            raise
     return _current  # type: ignore[return-value]
 
 

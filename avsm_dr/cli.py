@@ -5,8 +5,9 @@ Each experiment is a module (or package) ``avsm_dr.experiments.<name>`` exposing
 number and a ``meta.json`` (parameters, versions, git commit, machine) into its own folder
 ``<DIR>/<name>/`` (default ``results/<name>/``), so experiments sharing ``--out`` never
 overwrite each other.  Results whose parameters, package source and library versions
-match are reused unless ``--force``.  A bad ``--out`` (empty, a file, not writable) is
-reported in one line with exit status 2.
+match are reused unless ``--force``.  A bad option (``--out`` empty, a file or not
+writable; ``--workers`` / ``--address`` Ray cannot use), a bad ``AVSM_DR_BACKEND`` and
+any other ``ValueError`` are reported in one line with exit status 2.
 """
 from __future__ import annotations
 
@@ -73,18 +74,31 @@ def output_folder(out: str, name: str) -> Path:
     return folder
 
 
+#: Messages starting with these argument names are the command line's own options.
+OPTIONS = ("out:", "workers:", "address:", "backend:")
+
+
+def _error(exc: BaseException) -> int:
+    """Print ``exc`` as one line on stderr (``--option: ...`` when it names an option); status 2."""
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    print(f"avsm_dr: error: {'--' if msg.startswith(OPTIONS) else ''}{msg}", file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Parse the command line and run one experiment; returns the exit status (2: bad
-    output folder, reported in one line on stderr)."""
+    """Parse the command line and run one experiment; returns the exit status (2: a bad
+    option, environment variable or argument - any ValueError - reported in one line on
+    stderr, no traceback)."""
     args = parser().parse_args(argv)
-    try:
+    try:                                              # checked before anything is written
+        from . import backend, sweep
+        if args.backend:
+            backend.set_backend(args.backend)
+        backend.get_backend()                         # $AVSM_DR_BACKEND
+        sweep.check_workers(args.workers, args.address)
         out = output_folder(args.out, args.experiment)
-    except ValueError as exc:
-        print(f"avsm_dr: error: {exc}", file=sys.stderr)
-        return 2
-    if args.backend:
-        from . import backend
-        backend.set_backend(args.backend)
+    except (ValueError, RuntimeError) as exc:         # RuntimeError: the backend is not available
+        return _error(exc)
     module = importlib.import_module(f"avsm_dr.experiments.{args.experiment}")
     extra = {k: v for k, v in (("workers", args.workers), ("address", args.address)) if v is not None}
     if extra and not all(k in inspect.signature(module.run).parameters for k in extra):
@@ -94,10 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = module.run(quick=args.quick, out=out, force=args.force, **extra)
     except ValueError as exc:
-        if not str(exc).startswith(("out:", "workers:", "address:")):
-            raise
-        print(f"avsm_dr: error: --{exc}", file=sys.stderr)
-        return 2
+        return _error(exc)
     for key, value in (result or {}).items():
         if key in ("csv", "out", "summary", "figures", "cached"):
             print(f"{key}: {value}")

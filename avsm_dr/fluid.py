@@ -38,6 +38,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from pathlib import Path
 
 import drjit as dr
@@ -160,7 +161,7 @@ class StableFluids:
     # ================================================================ state
     def set_density(self, density) -> None:
         """Replace ``d`` by a (nz, ny, nx) array."""
-        a = V.array(density, "density", np.float32)
+        a = V.density_grid(density, "density", np.float32)
         if a.shape != self.shape:
             raise ValueError(f"density: expected shape {self.shape}, got {a.shape}")
         self.d = self.m.Float(np.ascontiguousarray(a).ravel())
@@ -355,6 +356,25 @@ def _save_cached(path: Path | None, out: np.ndarray) -> None:
         os.replace(tmp, path)
 
 
+def _load_cached(path: Path | None, shape: tuple) -> np.ndarray | None:
+    """The cached float32 array of ``shape`` at ``path``, or None (no cache, no file, or a file
+    that is not such an array: warned about by name, then recomputed and overwritten)."""
+    if path is None or not path.exists():
+        return None
+    try:
+        out = np.load(path, allow_pickle=False)
+        if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != tuple(shape):
+            raise ValueError(f"holds {getattr(out, 'dtype', type(out).__name__)} "
+                             f"{getattr(out, 'shape', '')}, expected float32 {tuple(shape)}")
+        if not np.all(np.isfinite(out)) or (out.size and out.min() < 0):
+            raise ValueError("holds NaN, inf or negative densities")
+    except Exception as exc:                      # unreadable, truncated, pickled or wrong array
+        warnings.warn(f"fluid: ignoring the cached plume {str(path)!r} ({exc}); recomputing",
+                      RuntimeWarning, stacklevel=3)
+        return None
+    return out
+
+
 def _cache_key(params: dict) -> str:
     h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
     h.update(Path(__file__).read_bytes())
@@ -391,8 +411,8 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
                   wobble=float(wobble), iterations=int(iterations), backend=backend.get_backend(),
                   version=_VERSION)
     path = _cache_file(cache, f"plume_{_cache_key(params)}.npy")
-    if path is not None and path.exists():
-        return np.load(path)
+    if (hit := _load_cached(path, shape)) is not None:
+        return hit
     sim = StableFluids(shape, buoyancy=buoyancy, vorticity=vorticity, iterations=iterations)
     rng = np.random.default_rng(seed)
     centre = np.array([nx / 2, nz / 2], np.float64)
@@ -471,8 +491,8 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     params = dict(_plume_params(shape, seed, **solver), frames=int(frames), start=int(start), stride=int(stride),
                   backend=backend.get_backend(), version=_VERSION)
     path = _cache_file(cache, f"plume_seq_{_cache_key(params)}.npy")
-    if path is not None and path.exists():
-        return np.load(path)
+    if (hit := _load_cached(path, (frames, *params["shape"]))) is not None:
+        return hit
     out = np.empty((frames, *params["shape"]), np.float32)
     last = start + (frames - 1) * stride
     gen = plume_frames(shape, seed, **solver)

@@ -24,11 +24,12 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend
+from . import validation as V
 from .capture import RESOLUTION_RANGE, capture
 from .capture.grid import METHODS as CAPTURE_METHODS
 from .filtering import FILTERS
 from .groundtruth.media import mitsuba as _mitsuba_with_variant, sample_grid
-from .representations import REGISTRY, build
+from .representations import REGISTRY, build, describe
 from .scene import DirectionalLight, PointLight, Scene, SpotLight
 
 NAME = "avsm_single_scatter"
@@ -39,6 +40,9 @@ MAX_NULL_INTERFACES = 2
 #: Properties of the plugin itself; every other property is a parameter of the representation.
 OWN_PROPERTIES = ("representation", "resolution", "filter", "max_depth", "march_steps", "capture_method",
                   "hide_emitters", "samples_per_pass", "timeout")
+#: Parameters every kind takes in :func:`avsm_dr.build` besides its schema's (storage precision,
+#: reverse-mode strategy, checkpoint chunk); passed on to the build.
+BUILD_PARAMETERS = ("precision", "reverse", "chunk")
 
 
 # ===================================================================== scene reading
@@ -129,8 +133,18 @@ def _check_properties(props) -> dict:
     if opts["capture_method"] not in CAPTURE_METHODS:
         raise ValueError(f"capture_method: expected one of {CAPTURE_METHODS}, got {opts['capture_method']!r}")
     given = {k: props[k] for k in props.keys() if k not in OWN_PROPERTIES}
-    extra = {k: given.pop(k) for k in ("reverse", "chunk") if k in given}
-    REGISTRY[kind].schema.validate(kind, given)          # unknown name or bad value -> ValueError
+    extra = {k: given.pop(k) for k in BUILD_PARAMETERS if k in given}
+    schema = REGISTRY[kind].schema
+    unknown = sorted(set(given) - set(schema.names()))
+    if unknown:                                          # private (``_``) switches are accepted, not listed
+        public = [n for n in schema.names() if not n.startswith("_")] + list(BUILD_PARAMETERS)
+        raise ValueError(f"{unknown[0]}: unknown parameter of {kind!r}; known: {public}")
+    precisions = describe(kind)["precisions"]
+    if extra.get("precision") is not None and extra["precision"] not in precisions:
+        raise ValueError(f"precision: kind {kind!r} accepts None or {precisions}, got {extra['precision']!r}"
+                         if precisions else f"precision: kind {kind!r} accepts only None, "
+                         f"got {extra['precision']!r}")
+    schema.validate(kind, given)                         # bad value or constraint -> ValueError
     opts["params"] = {**given, **extra}
     return opts
 
@@ -154,7 +168,8 @@ def _make_class():
            * - *(kind parameters)*
              - as the kind
              - Every other property goes to :func:`avsm_dr.build` (e.g. ``nodes`` of
-               ``avsm``), checked by the kind's schema: an unknown name raises ValueError.
+               ``avsm``; ``precision``, ``reverse`` and ``chunk`` as for every kind), checked
+               by the kind's schema: an unknown name raises ValueError.
            * - resolution
              - integer
              - Shadow-map texels per side, 64..1024 (default: 256; point lights: a cube map).
@@ -219,6 +234,8 @@ def _make_class():
             light = light_of(emitters[0])
             medium, lo, hi = scene_medium(scene)
             density = medium_density(medium)
+            # the grid rule of every entry point (NaN, inf, negative: named here, not as a to_world mismatch)
+            V.density_grid(density, "scene: the medium's sigma_t grid (scale * data)")
             with dr.suspend_grad():
                 check_box(medium, density, lo, hi)
             with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):

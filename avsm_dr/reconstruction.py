@@ -103,9 +103,7 @@ def density_tensor(density, dtype: str = "float32", grad: bool = True):
     """A Dr.Jit 3-D tensor (``TensorXf`` / ``TensorXf64``) of ``density`` (z, y, x), with
     gradients enabled when ``grad``."""
     t = backend.types()
-    arr = np.asarray(density, np.float64 if dtype == "float64" else np.float32)
-    if arr.ndim != 3:
-        raise ValueError(f"density: expected a 3-D (z, y, x) array, got shape {arr.shape}")
+    arr = V.density_grid(density, "density", np.float64 if dtype == "float64" else np.float32)
     x = (t.TensorXf64 if dtype == "float64" else t.TensorXf)(arr)
     if grad:
         dr.enable_grad(x)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional, Union
 
+import drjit as dr
 import numpy as np
 
 from . import validation as V
@@ -103,7 +104,8 @@ class OpaquePlane:
 class Scene:
     """Everything a shadow needs: content, light, receivers.
 
-    density: (nz, ny, nx) float32 extinction per world unit, or None for non-grid content.
+    density: (nz, ny, nx) float32 extinction per world unit, or None for non-grid content
+        (floating point: integer and boolean grids are refused, :func:`avsm_dr.validation.grid_dtype`).
     bbox: (min_xyz, max_xyz) of the grid, or None.
     receivers: (K, 3) world points where shadows are evaluated.
     receiver_plane: (point, normal, half_size) of the plane used for images, or None.
@@ -118,3 +120,97 @@ class Scene:
     blockers: list = field(default_factory=list)
     receiver_plane: Optional[tuple] = None
     meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        # integer / bool grids refused here, at construction (the full rule,
+        # validation.density_grid, runs where the grid is read: capture, ground truth)
+        if isinstance(self.density, (np.ndarray, list, tuple)) or dr.is_array_v(self.density):
+            V.grid_dtype(self.density, "density")
+
+    @classmethod
+    def from_grid(cls, grid_or_path, bbox=None, density_scale: float = 1.0, light=None, name=None,
+                  receivers=None) -> "Scene":
+        """A scene holding one density grid: your own volume.
+
+        grid_or_path: (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per
+            world unit before ``density_scale``, or the path of a ``.npy`` or a Mitsuba
+            ``.vol`` file (:func:`avsm_dr.io.read_vol`, one channel).
+        bbox: (min_xyz, max_xyz) world box of the whole grid.  Default: the ``.vol`` header's
+            box, else voxels of side 1 centred at the origin, ``-+ (nx, ny, nz) / 2`` (the
+            grid's own aspect ratio, never stretched).  An explicit box is used as given.
+        density_scale: factor > 0 the grid is multiplied by (extinction = density_scale x
+            value); nothing else rescales the density.
+        light: DirectionalLight, SpotLight or PointLight; default a directional light from
+            above, ``DirectionalLight((0, -1, 0))``.
+        name: the scene's name (default: the file's stem, or 'grid').
+        receivers: (K, 3) world points, a count K, or None (1024): K points drawn uniformly
+            in the voxels with density > 0 (anywhere in the box for an all-zero grid), seed 0.
+        No receiver plane (so no 'surface' receiver set).  ``meta`` records the source, the
+        shape, the density scale and where the box came from.
+        """
+        import os
+        from numbers import Integral
+        source, box_from, file_box = "array", "argument", None
+        if isinstance(grid_or_path, (str, os.PathLike)):
+            source = os.fspath(grid_or_path)
+            grid, file_box = _read_grid(source)
+            name = os.path.splitext(os.path.basename(source))[0] if name is None else name
+        else:
+            grid = grid_or_path
+        grid = V.density_grid(grid, "grid_or_path", np.float64)
+        scale = V.real(density_scale, "density_scale", 0.0, open_min=True)
+        dens = V.density_grid(grid * scale, "density_scale", np.float32)
+        nz, ny, nx = dens.shape
+        if bbox is None and file_box is not None:
+            bbox, box_from = file_box, "vol header"
+        if bbox is None:
+            half = 0.5 * np.array([nx, ny, nz], np.float64)
+            lo, hi, box_from = -half, half, "unit voxels"
+        else:
+            try:
+                lo, hi = bbox
+            except (TypeError, ValueError):
+                raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
+            lo, hi = V.vec3(lo, "bbox"), V.vec3(hi, "bbox")
+            if np.any(hi <= lo):
+                raise ValueError(f"bbox: expected max > min on every axis, got {lo.tolist()} .. {hi.tolist()}")
+        if light is None:
+            light = DirectionalLight(direction=(0.0, -1.0, 0.0))
+        elif not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
+            raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+        name = "grid" if name is None else name
+        if not (isinstance(name, str) and name):
+            raise ValueError(f"name: expected a non-empty string, got {name!r}")
+        if receivers is None or (isinstance(receivers, Integral) and not isinstance(receivers, bool)):
+            k = V.integer(1024 if receivers is None else receivers, "receivers", 1)
+            occ = np.flatnonzero(dens.ravel() > 0)
+            occ = np.arange(dens.size) if occ.size == 0 else occ
+            rng = np.random.default_rng(0)
+            pick = rng.choice(occ, size=k, replace=occ.size < k)
+            kz, rem = np.divmod(pick, ny * nx)
+            ky, kx = np.divmod(rem, nx)
+            pts = lo + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * (hi - lo) / np.array([nx, ny, nz])
+        else:
+            pts = V.points(receivers, "receivers")
+        return cls(name, light, pts, density=dens, bbox=(lo, hi),
+                   meta={"source": source, "shape": (nz, ny, nx), "density_scale": scale, "bbox_from": box_from})
+
+
+def _read_grid(path: str):
+    """(grid, box or None) of a ``.npy`` or ``.vol`` file; ValueError naming ``grid_or_path``."""
+    ext = path.lower().rsplit(".", 1)[-1] if "." in path else ""
+    try:
+        if ext == "npy":
+            return np.load(path, allow_pickle=False), None
+        if ext == "vol":
+            from .io import read_vol
+            grid, box = read_vol(path, with_bbox=True)
+            if grid.ndim != 3:
+                raise ValueError(f"{path!r} has {grid.shape[-1]} channels, expected 1")
+            return grid, box
+    except OSError as exc:
+        raise ValueError(f"grid_or_path: cannot read {path!r} ({exc})") from None
+    except ValueError as exc:
+        msg = str(exc)
+        raise ValueError(f"grid_or_path: {msg[6:] if msg.startswith('path: ') else msg}") from None
+    raise ValueError(f"grid_or_path: expected a .npy or .vol file, got {path!r}")

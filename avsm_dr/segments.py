@@ -46,6 +46,7 @@ MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
 #: DEVICE_SORT_WORK * S`` (mean count weighted by segments <= 256; both cost up to ``count``
 #: comparisons per segment), else by a host lexsort.
 DEVICE_SORT_WORK = 256
+_FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 _TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
 
 
@@ -80,12 +81,64 @@ def check_tiny(arr: np.ndarray, dtype: str) -> np.ndarray:
     return np.where(np.abs(arr) < tiny, 0.0, arr) if arr.size else arr
 
 
+def has_subnormal(host_arr: np.ndarray, dtype: str) -> bool:
+    """True when ``host_arr`` holds a nonzero value below the smallest normal of ``dtype``."""
+    tiny = float(np.finfo(_np_dtype(dtype)).tiny)
+    return bool(host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)))
+
+
 def flush_subnormal(x, host_arr: np.ndarray, dtype: str):
     """Dr.Jit ``x`` (type Float) with its subnormal values set to 0 (AD graph kept)."""
+    return _flushed(x, dtype) if has_subnormal(host_arr, dtype) else x
+
+
+def _flushed(x, dtype: str):
     tiny = float(np.finfo(_np_dtype(dtype)).tiny)
-    if host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)):
-        return dr.select(dr.abs(x) < tiny, 0.0, x)
-    return x
+    return dr.select(dr.abs(x) < tiny, 0.0, x)
+
+
+def _recipe(src, Float, dtype: str, flush: bool, clamp: bool = False):
+    """``fn()``: ``src`` (Dr.Jit or host) as ``Float``, clamped to OPAQUE_OPTICAL_DEPTH when
+    ``clamp``, subnormals set to 0 when ``flush``; ``src`` itself when it needs neither."""
+    def fn():
+        x = A.to_float(src, Float)
+        if clamp:
+            x = dr.minimum(x, OPAQUE_OPTICAL_DEPTH)
+        return _flushed(x, dtype) if flush else x
+    return fn
+
+
+class _Linked:
+    """A :class:`Segments` array attribute (``z0``, ``z1``, ``optical_depth``) that stays
+    linked to the caller's grad-enabled arrays across ``dr.backward``.
+
+    Reverse mode frees the graph edges it traverses, so an array *derived* from a caller's
+    leaf (a clamp, a cast, ``-ln`` of a transmittance, a gather of :meth:`Segments.sorted`)
+    would pass no gradient to it in a second build.  Such a field carries a recipe
+    (:meth:`Segments._link`): every read outside a symbolic region re-derives all linked
+    fields of the object from the caller's arrays (new, lazy nodes; nothing is copied);
+    inside one (a loop body, where a new array could not be gathered from) the arrays of
+    the last such read are returned.  Fields without a recipe (the caller's own arrays, or
+    arrays without gradients) are plain attributes."""
+
+    def __set_name__(self, owner, name):
+        self.name, self.slot = name, "_" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            raise AttributeError(self.name)         # a dataclass field without a default
+        d = obj.__dict__
+        links = d.get("_links")
+        if links and not dr.flag(dr.JitFlag.SymbolicScope):
+            for name, fn in links.items():
+                d["_" + name] = fn()
+        return d[self.slot]
+
+    def __set__(self, obj, value):
+        obj.__dict__[self.slot] = value
+        links = obj.__dict__.get("_links")
+        if links and self.name in links:        # a new dict: copies of obj keep theirs
+            obj.__dict__["_links"] = {k: fn for k, fn in links.items() if k != self.name}
 
 
 def rank_in_ranges(lo, hi, keys, ids=None):
@@ -118,12 +171,17 @@ class Segments:
 
     Attributes: ``offsets`` (T+1,) int64 NumPy; ``z0``, ``z1``, ``optical_depth``
     Dr.Jit float arrays of length S (AD graphs kept); ``dtype`` 'float32'|'float64'.
+
+    Reusable under reverse mode: arrays that :meth:`from_arrays`, :meth:`sorted` and
+    :meth:`select_texels` derive from grad-enabled input are re-derived from the caller's
+    arrays when read (:class:`_Linked`), so ``dr.backward`` after one build leaves the next
+    build's gradients intact.
     """
 
     offsets: np.ndarray
-    z0: Any
-    z1: Any
-    optical_depth: Any
+    z0: Any = _Linked()
+    z1: Any = _Linked()
+    optical_depth: Any = _Linked()
     dtype: str = "float32"
     sorted_by_depth: bool = False
     _cache: dict = field(default_factory=dict, repr=False)
@@ -177,14 +235,22 @@ class Segments:
                                  f"overflows the {dtype} storage; rescale the scene{_HINT[dtype]}")
         if (transmittance is None) == (optical_depth is None):
             raise ValueError("transmittance: pass exactly one of transmittance= or optical_depth=")
-        z0d = flush_subnormal(A.to_float(z0 if A.is_drjit(z0) else z0f, Float), z0h, dtype)
-        z1d = flush_subnormal(A.to_float(z1 if A.is_drjit(z1) else z1f, Float), z1h, dtype)
+        # Each stored array comes from a recipe over the caller's arrays: a grad-enabled Dr.Jit
+        # input of the storage type that needs no change is kept itself, anything derived keeps
+        # its recipe (re-derived on reads, so dr.backward cannot orphan it: class _Linked).
+        z0_of = _recipe(z0 if A.is_drjit(z0) else z0f, Float, dtype, has_subnormal(z0h, dtype))
+        z1_raw = _recipe(z1 if A.is_drjit(z1) else z1f, Float, dtype, has_subnormal(z1h, dtype))
+        z1_of = z1_raw
         if n:   # lengths whose density tau / length overflows float64 become steps (docstring)
             ft = _np_dtype(dtype)
             length = z1f.astype(ft) - z0f.astype(ft)
             short = (length > 0) & (length < MIN_LENGTH)
             if short.any():
-                z1d = dr.select(backend.types().Bool(short), z0d, z1d)
+                short_d = backend.types().Bool(short)
+
+                def z1_of():
+                    return dr.select(short_d, z0_of(), z1_raw())
+        z0d, z1d = z0_of(), z1_of()
         if transmittance is not None:
             th = A.host_1d(transmittance, "transmittance")
             if th.size != n:
@@ -194,13 +260,15 @@ class Segments:
                 raise ValueError("transmittance: values must lie in [0, 1] (opacity above 1 or negative)")
             if n == 0:  # no blockers at all: every texel is empty (T = 1 everywhere)
                 return cls(off, Float(), Float(), Float(), dtype)
-            t = A.to_float(transmittance, Float)
             tiny = float(np.exp(-OPAQUE_OPTICAL_DEPTH)) if dtype == "float64" else 0.0
-            # -ln t, with t = 0 (opaque) mapped to OPAQUE_OPTICAL_DEPTH without an
-            # infinite derivative leaking into the AD graph.
-            safe = dr.maximum(t, 1e-300 if dtype == "float64" else 1e-38)
-            tau = dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH),
-                            OPAQUE_OPTICAL_DEPTH)
+
+            def tau_of():
+                # -ln t, with t = 0 (opaque) mapped to OPAQUE_OPTICAL_DEPTH without an
+                # infinite derivative leaking into the AD graph.
+                t = A.to_float(transmittance, Float)
+                safe = dr.maximum(t, 1e-300 if dtype == "float64" else 1e-38)
+                return dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH),
+                                 OPAQUE_OPTICAL_DEPTH)
         else:
             oh = A.host_1d(optical_depth, "optical_depth")
             if oh.size != n:
@@ -210,11 +278,23 @@ class Segments:
                 raise ValueError("optical_depth: values must be >= 0 (negative density)")
             if n == 0:
                 return cls(off, Float(), Float(), Float(), dtype)
-            # clamped on the host first: a value beyond the dtype's range must not become inf
-            tau = A.to_float(optical_depth if A.is_drjit(optical_depth)
-                             else np.minimum(check_tiny(oh, dtype), OPAQUE_OPTICAL_DEPTH), Float)
-            tau = flush_subnormal(dr.minimum(tau, OPAQUE_OPTICAL_DEPTH), oh, dtype)
-        return cls(off, z0d, z1d, tau, dtype)
+            if A.is_drjit(optical_depth):   # clamped and flushed only where needed (recipe)
+                tau_of = _recipe(optical_depth, Float, dtype, has_subnormal(oh, dtype),
+                                 clamp=bool(np.any(oh > OPAQUE_OPTICAL_DEPTH)))
+            else:   # clamped on the host first: a value beyond the dtype's range must not become inf
+                tau_of = _recipe(np.minimum(check_tiny(oh, dtype), OPAQUE_OPTICAL_DEPTH), Float, dtype, False)
+        caller = {"z0": z0, "z1": z1, "optical_depth": optical_depth}
+        seg = cls(off, z0d, z1d, tau_of(), dtype)
+        return seg._link(**{k: fn for k, fn in (("z0", z0_of), ("z1", z1_of), ("optical_depth", tau_of))
+                            if seg.__dict__["_" + k] is not caller[k]})
+
+    def _link(self, **recipes) -> "Segments":
+        """Attach recipes ``name=fn`` (``fn()`` derives the field from the caller's arrays, see
+        :class:`_Linked`) to the fields whose current array carries gradients; returns self."""
+        live = {k: fn for k, fn in recipes.items() if dr.grad_enabled(self.__dict__["_" + k])}
+        if live:
+            self.__dict__["_links"] = {**self.__dict__.get("_links", {}), **live}
+        return self
 
     # ------------------------------------------------------------ properties
     @property
@@ -354,11 +434,22 @@ class Segments:
         """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the
         device copies of offsets, texels and the sort layout carry over."""
         cache = {k: v for k, v in self._cache.items() if k in ("offsets", "texel_of", "sort_plan")}
-        if idx is None:
-            return Segments(self.offsets, self.z0, self.z1, self.optical_depth, self.dtype, True, cache)
+        return self._gathered(self.offsets, idx, True, cache)
+
+    def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None) -> "Segments":
+        """Segments over ``offsets`` holding segments ``idx`` (Dr.Jit UInt32; None: all, in
+        order); fields with gradients keep recipes over this object's (:class:`_Linked`)."""
         Float = self.Float
-        return Segments(self.offsets, dr.gather(Float, self.z0, idx), dr.gather(Float, self.z1, idx),
-                        dr.gather(Float, self.optical_depth, idx), self.dtype, True, cache)
+
+        def recipe(name):
+            if idx is None:
+                return lambda: getattr(self, name)
+            return lambda: dr.gather(Float, getattr(self, name), idx)
+
+        fns = {k: recipe(k) for k in _FIELDS}
+        out = Segments(offsets, *(fns[k]() for k in _FIELDS), self.dtype, sorted_by_depth,
+                       {} if cache is None else cache)
+        return out._link(**fns)
 
     def depth_order(self):
         """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
@@ -477,10 +568,7 @@ class Segments:
         if idx.size == 0:
             Float = self.Float
             return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth)
-        i = A.to_uint32(idx)
-        Float = self.Float
-        return Segments(off, dr.gather(Float, self.z0, i), dr.gather(Float, self.z1, i),
-                        dr.gather(Float, self.optical_depth, i), self.dtype, self.sorted_by_depth)
+        return self._gathered(off, A.to_uint32(idx), self.sorted_by_depth)
 
     def __repr__(self) -> str:
         return (f"Segments(texels={self.n_texels}, segments={self.n_segments}, "

@@ -15,9 +15,11 @@ The rule (the same as the representations' parameter schema):
 from __future__ import annotations
 
 import math
+import os
 from numbers import Integral, Real
-from typing import Any
+from typing import Any, Callable
 
+import drjit as dr
 import numpy as np
 
 from . import _arrays as A
@@ -143,3 +145,136 @@ def one_of(value: Any, name: str, choices) -> Any:
     if not (isinstance(value, str) and value in choices):
         raise ValueError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
     return value
+
+
+def _grid_kind(value) -> tuple[str, str]:
+    """(NumPy dtype kind, dtype name) of a grid without copying NumPy input."""
+    if A.is_drjit(value):
+        vt = dr.type_v(value)
+        if vt in (dr.VarType.Float16, dr.VarType.Float32, dr.VarType.Float64):
+            return "f", str(vt).split(".")[-1].lower()
+        return ("b" if vt == dr.VarType.Bool else "i"), str(vt).split(".")[-1].lower()
+    dt = value.dtype if isinstance(value, np.ndarray) else np.asarray(value).dtype
+    return dt.kind, dt.name
+
+
+def grid_dtype(value: Any, name: str = "density") -> None:
+    """Refuse a density grid that is not floating point (NumPy, nested lists or Dr.Jit).
+
+    A grid holds extinction per world unit; an integer or boolean grid (e.g. uint8 voxels
+    0..255) has no unit, so it is refused rather than read as extinction 0..255: convert it
+    with an explicit scale.
+    """
+    try:
+        kind, dname = _grid_kind(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: expected a floating-point (z, y, x) array ({exc})") from None
+    if kind in "iub":
+        if kind == "b":
+            how = "np.where(grid, sigma, 0).astype(np.float32)"
+        elif np.dtype(dname).itemsize <= 2:                   # voxel formats: 0..max stands for 0..sigma_max
+            how = f"grid.astype(np.float32) * (sigma_max / {np.iinfo(dname).max})"
+        else:
+            how = "grid.astype(np.float32) * scale"
+        raise ValueError(f"{name}: {'boolean' if kind == 'b' else 'integer'} grid (dtype {dname}) refused: a "
+                         f"density grid holds extinction per world unit as floating point; convert it "
+                         f"with an explicit scale, e.g. {how}")
+    if kind != "f":
+        raise ValueError(f"{name}: expected a floating-point (z, y, x) array, got dtype {dname}")
+
+
+def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndarray:
+    """(nz, ny, nx) NumPy copy of a density grid (extinction per world unit) as ``dtype``.
+
+    The one rule every entry point taking a grid applies (scenes, capture, ground truth,
+    Mitsuba media, the fluid solver): floating-point input (:func:`grid_dtype`: integer and
+    boolean grids are refused), 3-D, non-empty, finite in ``dtype``, >= 0.
+    """
+    grid_dtype(value, name)
+    if A.is_drjit(value):
+        if not dr.is_tensor_v(value):
+            raise ValueError(f"{name}: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
+        dr.eval(value)
+        raw = np.asarray(dr.detach(value).numpy())
+    else:
+        raw = np.asarray(value)
+    if raw.ndim != 3:
+        raise ValueError(f"{name}: expected a 3-D (z, y, x) array, got shape {raw.shape}")
+    if min(raw.shape) < 1:
+        raise ValueError(f"{name}: empty grid of shape {raw.shape}")
+    A.check_finite(raw, name)
+    with np.errstate(over="ignore"):
+        out = raw.astype(dtype)
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name}: values beyond the {np.dtype(dtype).name} range "
+                         f"(largest {np.finfo(dtype).max:.3g}), got {float(np.max(raw)):.3g}")
+    lo = float(out.min())
+    if lo < 0:
+        raise ValueError(f"{name}: negative extinction {lo:g} (densities must be >= 0)")
+    return out
+
+
+# ---------------------------------------------------------------------------- memory
+#: Bytes one build may allocate; None (default): :data:`MEMORY_FRACTION` of the smaller of
+#: the physical memory (``os.sysconf``) and the process' address-space limit
+#: (``RLIMIT_AS``), a number that depends on the machine, not on its load.
+MEMORY_BUDGET_BYTES: int | None = None
+#: Share of that memory a build's estimate may take (the rest: the caller's data, the
+#: segments, Dr.Jit's caches, the lookups).
+MEMORY_FRACTION = 0.75
+
+
+def memory_budget() -> int:
+    """The bytes one build may allocate (:data:`MEMORY_BUDGET_BYTES`, or its default)."""
+    if MEMORY_BUDGET_BYTES is not None:
+        return int(MEMORY_BUDGET_BYTES)
+    total = math.inf
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):       # not POSIX: only the limit below
+        pass
+    try:
+        import resource
+        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if limit != resource.RLIM_INFINITY:
+            total = min(total, limit)
+    except (ImportError, ValueError, OSError):
+        pass
+    return int(MEMORY_FRACTION * total) if math.isfinite(total) else 2**62
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.3g} GiB"
+
+
+def check_memory(name: str, value, need: Callable[[Any], float], lo=None, what: str = "",
+                 allowed: Callable[[Any], bool] | None = None) -> None:
+    """ValueError naming ``name`` when ``need(value)`` (estimated peak bytes of a build)
+    exceeds :func:`memory_budget`, saying which value fits: the largest in ``[lo, value]``
+    (bisection; ``need`` non-decreasing in the value; integers for an integer value, the
+    largest one ``allowed`` accepts), or that none does.  ``lo`` None: no value is
+    searched (the message asks for less input)."""
+    budget, bytes_ = memory_budget(), float(need(value))
+    if bytes_ <= budget:
+        return
+    where = (f"MEMORY_FRACTION = {MEMORY_FRACTION:g} of min(physical memory, RLIMIT_AS)"
+             if MEMORY_BUDGET_BYTES is None else "set")
+    head = (f"{name}: {value!r}{' ' + what if what else ''} needs ~{_gib(bytes_)} to build (estimate), above "
+            f"the {_gib(budget)} budget (avsm_dr.validation.MEMORY_BUDGET_BYTES: {where}); ")
+    fit = None
+    if lo is not None and float(need(lo)) <= budget:
+        a, b = lo, value                                  # need(a) fits, need(b) does not
+        integral = isinstance(value, Integral)
+        for _ in range(200):
+            if (b - a <= 1) if integral else (b - a <= 1e-6 * abs(b)):
+                break
+            m = (a + b) // 2 if integral else 0.5 * (a + b)
+            a, b = (m, b) if float(need(m)) <= budget else (a, m)
+        fit = a
+        while integral and allowed is not None and fit >= lo and not allowed(fit):
+            fit -= 1
+        fit = fit if fit >= lo else None
+    shown = fit if fit is None or isinstance(fit, Integral) else float(f"{fit:.6g}")
+    tail = (f"{name} <= {shown!r} fits" if fit is not None else
+            "no value fits: build fewer texels at a time (Segments.select_texels) or raise the budget")
+    raise ValueError(head + tail)

@@ -113,7 +113,12 @@ class DepthWarp:
         Float = type(self.theta)
         kk = A.to_uint32(k)
         c = Float(self.near + k.astype(np.float64) * self.h)
-        return dr.gather(Float, self.W, kk) + dr.gather(Float, self.d, kk) * ((z - c) * (1.0 / self.h))
+        w = dr.gather(Float, self.W, kk) + dr.gather(Float, self.d, kk) * ((z - c) * (1.0 / self.h))
+        # w maps [near, far] into [0, 1]; the rounded sums can leave it by an ulp (W_K = 1 +
+        # 2e-16), which an explicit range [0, 1] refuses (representations/base.py): snap
+        # those to the bound (a select, so in-range values keep their gradients)
+        inside = (z >= self.near) & (z <= self.far)
+        return dr.select(inside & (w > 1), 1.0, dr.select(inside & (w < 0), 0.0, w))
 
     def __call__(self, z):
         """w(z) for depths ``z`` (scalar or 1-D, NumPy or Dr.Jit); a Dr.Jit Float of the

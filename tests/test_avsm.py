@@ -132,7 +132,7 @@ def test_thousands_of_segments_per_texel(rng):
 @pytest.mark.parametrize("bad, name", [
     (dict(nodes=1), "nodes"), (dict(nodes=65), "nodes"), (dict(nodes=4.5), "nodes"),
     (dict(interpolation="cubic"), "interpolation"), (dict(far=0.2), "far"),
-    (dict(near=0.5, far=0.4), "far"), (dict(sort="yes"), "sort"),
+    (dict(near=0.5, far=0.4), "^near:"), (dict(sort="yes"), "sort"),       # content [0.3, 0.4]
 ])
 def test_bad_parameters(bad, name):
     seg = ad.Segments.from_arrays([0, 1], [0.3], [0.4], transmittance=[0.5])

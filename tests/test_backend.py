@@ -1,6 +1,7 @@
 """libLLVM discovery, import order (drjit before or after avsm_dr) and backend choice."""
 import glob
 import os
+import re
 import subprocess
 import sys
 
@@ -111,6 +112,25 @@ def test_set_backend_validates_name():
         ad.set_backend("metal")
     ad.set_backend("llvm")
     assert ad.get_backend() == "llvm"
+
+
+@pytest.mark.parametrize("value, msg", [
+    ("garbage", r"ValueError: AVSM_DR_BACKEND: expected one of \('llvm', 'cuda'\) \(or unset.*got 'garbage'"),
+    ("LLVM", r"ValueError: AVSM_DR_BACKEND: .*got 'LLVM'")])
+def test_backend_variable_is_named_in_its_error(value, msg):
+    """A bad ``AVSM_DR_BACKEND`` names the variable (it read "backend: ..." before)."""
+    code = "import avsm_dr as ad; ad.get_backend()"
+    env = dict(os.environ, AVSM_DR_BACKEND=value)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 1 and re.search(msg, out.stderr.strip().splitlines()[-1]), out.stderr
+
+
+def test_unavailable_backend_variable_is_named(monkeypatch):
+    monkeypatch.setenv("AVSM_DR_BACKEND", "cuda")
+    monkeypatch.setattr(backend_mod, "available_backends", lambda: ["llvm"])
+    with backend_mod.use_backend(None):
+        with pytest.raises(RuntimeError, match=r"^AVSM_DR_BACKEND='cuda': backend 'cuda' is not available"):
+            backend_mod.get_backend()
 
 
 def test_use_backend_restores_the_previous_choice():

@@ -145,6 +145,71 @@ def test_results_refuse_another_experiments_folder(tmp_path):
         _common.Results("second", res.dir / "data.csv", True, {})
 
 
+def test_meta_records_each_file_and_is_written_last(tmp_path):
+    res = _common.Results("toy", tmp_path / "toy", quick=True, params={"n": 3})
+    res.write_csv([{"x": 1.0}, {"x": 2.0}])
+    res.write_json("findings.json", {"a": 1})
+    res.write_npz("arrays.npz", a=[1.0, 2.0])
+    assert not (res.dir / "meta.json").exists() and res.cached() is None      # no meta yet: not a result
+    res.write_meta()
+    files = json.loads((res.dir / "meta.json").read_text())["files"]
+    assert set(files) == {"data.csv", "findings.json", "arrays.npz"} and files["data.csv"]["rows"] == 2
+    assert files["data.csv"]["sha256"] == _common.file_sha256(res.dir / "data.csv")
+    assert sorted(p.name for p in res.dir.iterdir()) == ["arrays.npz", "data.csv", "findings.json", "meta.json"]
+    assert res.cached() is not None
+
+
+@pytest.mark.parametrize("damage", ["truncated_csv", "csv_rewritten", "findings_changed", "npz_removed",
+                                    "meta_without_files"])
+def test_damaged_results_are_recomputed(tmp_path, damage):
+    """A table cut short (an interrupted --force run), replaced, or a recorded file changed or
+    gone: the folder is not served as cached."""
+    res = _common.Results("toy", tmp_path / "toy", quick=True, params={"n": 3})
+    res.write_csv([{"x": float(i)} for i in range(50)])
+    res.write_json("findings.json", {"a": 1})
+    res.write_npz("arrays.npz", a=[1.0])
+    res.write_meta()
+    assert res.cached() is not None
+    csv_path = res.dir / "data.csv"
+    if damage == "truncated_csv":
+        csv_path.write_bytes(csv_path.read_bytes()[: len(csv_path.read_bytes()) // 2])
+    elif damage == "csv_rewritten":                # a --force run that wrote its table, then died
+        _common.Results("toy", res.dir, True, {"n": 3}).write_csv([{"x": 9.0}])
+    elif damage == "findings_changed":
+        (res.dir / "findings.json").write_text('{"a": 2}')
+    elif damage == "npz_removed":
+        (res.dir / "arrays.npz").unlink()
+    elif damage == "meta_without_files":           # a meta.json of the old format
+        meta = json.loads((res.dir / "meta.json").read_text())
+        del meta["files"]
+        (res.dir / "meta.json").write_text(json.dumps(meta))
+    assert _common.Results("toy", res.dir, True, {"n": 3}).cached() is None
+
+
+def test_interrupted_write_keeps_the_old_file(tmp_path):
+    """A write that fails half-way leaves the previous file whole and no temporary file."""
+    res = _common.Results("toy", tmp_path / "toy", quick=True, params={})
+    res.write_csv([{"x": 1.0}])
+    before = (res.dir / "data.csv").read_bytes()
+
+    class Crash(Exception):
+        pass
+
+    def rows():
+        yield {"x": 2.0}
+        raise Crash
+    with pytest.raises(Crash):
+        res.write_csv(rows())
+
+    def half(tmp):
+        tmp.write_text("x\n3.0\n")
+        raise Crash
+    with pytest.raises(Crash):
+        res.write_file("data.csv", half)
+    assert (res.dir / "data.csv").read_bytes() == before
+    assert sorted(p.name for p in res.dir.iterdir()) == ["data.csv"]
+
+
 # ------------------------------------------------------------------------- CLI
 def test_experiments_sharing_out_keep_their_own_folders(tmp_path, monkeypatch, capsys):
     """Two experiments into one --out: each writes <out>/<name>/, neither touches the other."""
@@ -198,6 +263,43 @@ def test_bad_out_is_a_one_line_error(tmp_path, case):
     assert "Traceback" not in p.stderr and p.stderr.count("\n") == 1, p.stderr
     assert p.stderr.startswith("avsm_dr: error: --out"), p.stderr
     assert f.read_text() == "keep" and sorted(x.name for x in tmp_path.iterdir()) == ["a_file"]
+
+
+@pytest.mark.parametrize("case", ["backend_env", "address", "workers", "unavailable_backend_env"])
+def test_bad_environment_and_ray_options_are_one_line_errors(tmp_path, case):
+    """AVSM_DR_BACKEND=garbage, --address garbage, --workers 1000000000: one line naming the
+    variable or option, exit status 2, no traceback, before any work."""
+    import os
+    env = dict(os.environ)
+    args = ["error_curves", "--quick", "--out", str(tmp_path)]
+    if case == "backend_env":
+        env["AVSM_DR_BACKEND"], want = "garbage", "avsm_dr: error: AVSM_DR_BACKEND: expected one of"
+    elif case == "unavailable_backend_env":
+        import avsm_dr as ad
+        if "cuda" in ad.available_backends():
+            pytest.skip("CUDA is available here")
+        env["AVSM_DR_BACKEND"], want = "cuda", "avsm_dr: error: AVSM_DR_BACKEND='cuda': backend 'cuda' is not"
+    elif case == "address":
+        args, want = args + ["--address", "garbage"], "avsm_dr: error: --address: expected a Ray address"
+    else:
+        args, want = args + ["--workers", "1000000000"], "avsm_dr: error: --workers: expected an integer in [1, "
+    p = subprocess.run([sys.executable, "-m", "avsm_dr", *args], capture_output=True, text=True, timeout=300,
+                       cwd=ROOT, env=env)
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and p.stderr.count("\n") == 1 and p.stderr.startswith(want), p.stderr
+    assert not any(tmp_path.iterdir())                                        # nothing written
+
+
+def test_value_errors_of_a_run_are_one_line(tmp_path, monkeypatch, capsys):
+    """Any ValueError an experiment raises (a bad argument deep inside) is printed as one
+    line, exit status 2; other exceptions still propagate."""
+    def run(quick=False, out=None, force=False):
+        raise ValueError("nodes: expected an integer in [2, 64],\n got 1")
+    monkeypatch.setitem(sys.modules, "avsm_dr.experiments.toy_bad", types.SimpleNamespace(run=run))
+    monkeypatch.setattr(cli, "experiment_names", lambda: ["toy_bad"])
+    assert cli.main(["toy_bad", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err == "avsm_dr: error: nodes: expected an integer in [2, 64], got 1\n"
 
 
 # ---------------------------------------------------------------------- recipes

@@ -323,12 +323,13 @@ def test_trace_does_not_grow_with_size(kind, arg, rng):
 
 
 @pytest.mark.parametrize("config", LINEAR, ids=lin_id)
-def test_clipping_to_explicit_range(config, rng):
-    """Segments cut by an explicit [near, far]: the part in front of near is a delta at
-    u = 0, the part behind far is dropped (basis.py module docstring)."""
+def test_explicit_range_wider_than_content(config, rng):
+    """An explicit [near, far] around the content (tight on one side, loose on both) matches
+    the reference; one that cuts the content is refused (tests/test_depth_range.py)."""
     kind, params = config
-    case = random_segments(rng, texels=16, max_count=10, opaque_fraction=0.0)
-    check_against_reference(kind, params, case, "float64", near=0.25, far=0.7)
+    case = random_segments(rng, texels=16, max_count=10, opaque_fraction=0.0, depth_range=(0.3, 0.6))
+    lo = float(np.min(case["z0"]))
+    check_against_reference(kind, params, case, "float64", near=lo, far=0.7)
     check_against_reference(kind, params, case, "float32", near=-0.5, far=2.0)
 
 
@@ -360,27 +361,31 @@ def test_osm_coefficients_are_slice_optical_depths():
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_deltas_on_slice_boundaries_near_and_far(dtype):
     """Zero-length segments exactly on slice boundaries go to the slice starting there,
-    one at far to the last slice (closed), one behind far is dropped, one in front of
-    near is counted at near; exact in any precision (u = k/4 is exact)."""
-    d = np.array([-0.5, 0.0, 0.25, 0.5, 0.75, 1.0, 1.5])
-    tau = np.array([0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
-    seg = ad.Segments.from_arrays([0, 7], d, d, optical_depth=tau, dtype=dtype)
+    one at far to the last slice (closed), one at near to the first; exact in any
+    precision (u = k/4 is exact).  A delta outside [near, far] is refused (base.py's
+    depth-range rule), not clipped."""
+    d = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+    tau = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    seg = ad.Segments.from_arrays([0, 5], d, d, optical_depth=tau, dtype=dtype)
     osm = ad.build("osm", seg, slices=4, near=0.0, far=1.0)
-    np.testing.assert_array_equal(coefficient_array(osm)[0], [1.5, 2.0, 3.0, 9.0])
+    np.testing.assert_array_equal(coefficient_array(osm)[0], [1.0, 2.0, 3.0, 9.0])
     T = np.asarray(osm.eval([0] * 3, [-1.0, 1.0, 2.0]), np.float64)
-    Tfar = np.float64(np.exp(np.float64(-15.5)).astype(dtype))
+    Tfar = np.float64(np.exp(np.float64(-15.0)).astype(dtype))
     np.testing.assert_allclose(T, [1.0, Tfar, Tfar], rtol=4 * EPS[dtype])
     fom = ad.build("fom", seg, harmonics=2, near=0.0, far=1.0)
-    ref = 2 * np.array([[np.cos(2 * np.pi * k * u), np.sin(2 * np.pi * k * u)] for k in (1, 2)
-                        for u in (0, 0, 0.25, 0.5, 0.75, 1.0)])   # front delta counted at u = 0
-    w = np.array([0.5, 1.0, 2.0, 3.0, 4.0, 5.0] * 2)
-    a = np.array([ref[i, 0] for i in range(12)]) * w
-    b = np.array([ref[i, 1] for i in range(12)]) * w
-    expect = [2 * 15.5, a[:6].sum(), b[:6].sum(), a[6:].sum(), b[6:].sum()]
+    ref = 2 * np.array([[np.cos(2 * np.pi * k * u), np.sin(2 * np.pi * k * u)] for k in (1, 2) for u in d])
+    w = np.tile(tau, 2)
+    a, b = ref[:, 0] * w, ref[:, 1] * w
+    expect = [2 * 15.0, a[:5].sum(), b[:5].sum(), a[5:].sum(), b[5:].sum()]
     np.testing.assert_allclose(coefficient_array(fom)[0], expect, rtol=0,
-                               atol=64 * EPS[dtype] * 2 * 15.5)
+                               atol=64 * EPS[dtype] * 2 * 15.0)
     np.testing.assert_allclose(np.asarray(fom.eval([0, 0], [0.0, 1.0]), np.float64),
                                [1.0, Tfar], rtol=8 * EPS[dtype])
+    outside = ad.Segments.from_arrays([0, 7], np.r_[-0.5, d, 1.5], np.r_[-0.5, d, 1.5],
+                                      optical_depth=np.r_[0.5, tau, 6.0], dtype=dtype)
+    for kind, p in (("osm", {"slices": 4}), ("fom", {"harmonics": 2})):
+        with pytest.raises(ValueError, match=r"^near: 0\.0 .* and far: 1\.0 "):
+            ad.build(kind, outside, near=0.0, far=1.0, **p)
 
 
 # ----------------------------------------------------------------------------

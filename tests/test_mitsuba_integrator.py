@@ -165,6 +165,42 @@ def test_scene_errors(mi):
         assert re.match(msg, str(err.value.__cause__))
 
 
+def test_build_parameters_pass_and_messages_list_public_names(mi):
+    """``precision`` (and ``reverse``/``chunk``), which ``ad.build`` takes for every kind, pass
+    through the integrator; an unknown name lists the public parameters, never the private
+    ablation switches (``_compact``, ...)."""
+    integ = mi.load_dict(ours(representation="avsm", nodes=4, precision="float16", resolution=64))
+    assert integ.params == {"nodes": 4, "precision": "float16"}
+    scene = mi.load_dict(scene_dict(mi, ours(resolution=64), size=8))
+    _, rep, _, _ = integ.prepare_shadow(scene)
+    assert rep.precision == "float16"
+    for props, msg in (({"representation": "avsm", "nodez": 4},
+                        r"nodez: unknown parameter of 'avsm'; known: \['nodes', .*'precision', 'reverse', 'chunk'\]$"),
+                       ({"representation": "fom", "precision": "float64"}, "precision: kind 'fom' accepts None or"),
+                       ({"representation": "exact", "precision": "float16"},
+                        "precision: kind 'exact' accepts only None")):
+        p = mi.Properties(am.NAME)
+        for k, v in props.items():
+            p[k] = v
+        with pytest.raises(ValueError, match="^" + msg) as err:
+            am.integrator_class()(p)
+        assert "_compact" not in str(err.value) and "_split" not in str(err.value)
+
+
+@pytest.mark.parametrize("bad, msg", [(np.nan, "contains 1 NaN or inf"), (np.inf, "contains 1 NaN or inf"),
+                                      (-1.0, "negative extinction -1")])
+def test_bad_density_grid_is_named_not_blamed_on_to_world(mi, bad, msg):
+    scene = mi.load_dict(scene_dict(mi, ours(resolution=64), size=8))
+    params = mi.traverse(scene)
+    g = np.array(params[KEY], np.float32)
+    g[3, 4, 5, 0] = bad
+    params[KEY] = mi.TensorXf(g)
+    params.update()
+    with pytest.raises(ValueError, match=r"^scene: the medium's sigma_t grid \(scale \* data\): " + msg) as err:
+        scene.integrator().render(scene, spp=1)
+    assert "to_world" not in str(err.value)
+
+
 SPOT = {"type": "spot", "cutoff_angle": 35.0, "intensity": 12.0,
         "to_world": None}        # set in the test (needs mi for the transform)
 

@@ -78,11 +78,13 @@ def test_numba_avsm_matches_numpy_peer(rng):
 
 
 @pytest.mark.parametrize("harmonics", [1, 4, 8])
-@pytest.mark.parametrize("bounds", [None, (0.2, 0.8)])
-def test_numba_fom_matches_kernel(rng, harmonics, bounds):
-    """Global range from the segments, and an explicit range that clips segments."""
+@pytest.mark.parametrize("margin", [None, 0.3])
+def test_numba_fom_matches_kernel(rng, harmonics, margin):
+    """Global range from the segments, and an explicit range wider than the content (a range
+    that cuts the content is refused: tests/test_depth_range.py)."""
     seg = adversarial(rng)
-    kw = {} if bounds is None else dict(near=bounds[0], far=bounds[1])
+    lo, hi = seg.bounds()
+    kw = {} if margin is None else dict(near=lo - margin, far=hi + margin)
     rep = ad.build("fom", seg, harmonics=harmonics, **kw)
     h = seg.numpy()
     C = numba_fom.build(h["offsets"], h["z0"], h["z1"], h["optical_depth"], harmonics, rep.near, rep.far)
@@ -139,8 +141,9 @@ def test_bench_quick_writes_its_tables(tmp_path):
 def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
     """``machine.kernel_ops`` (the per-kind operation counts of ``machine.json``): for AVSM the
     loop with the most operations is its compress loop (the count the AVSM limit uses); FOM's
-    projection loops over each texel's segments (``fom_project``); for a kind without a loop
-    (moments) every vector operation of the kernel is counted."""
+    and moments' projections loop over each texel's segments (``fom_project``,
+    ``basis_project``); for a kernel without a loop (a plain elementwise one) every vector
+    operation of the kernel is counted."""
     import drjit as dr
     from avsm_dr.experiments._common import _jit_kernels
     from avsm_dr.experiments.bench import machine
@@ -152,10 +155,15 @@ def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
             dr.kernel_history()
             ad.build(kind, seg, **p)
             irs[kind] = [k["ir"].getvalue() for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
+        dr.kernel_history()
+        x = seg.z0 * 1.5 + seg.z1
+        dr.eval(dr.exp(-x * seg.optical_depth) * dr.sin(x) + dr.sqrt(x * x + 1) / (x + 2))
+        irs["plain"] = [k["ir"].getvalue() for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
     ir = next(s for s in irs["avsm"] if "avsm_compress" in s)
     ops, width, loop = machine.kernel_ops(ir)
     assert loop == "avsm_compress" and width >= 4
     assert ops == machine.loop_ops(ir, "avsm_compress")[0]
     assert "fom_project" in [machine.kernel_ops(s)[2] for s in irs["fom"]]
-    counted = [machine.kernel_ops(s) for s in irs["moments"]]
+    assert "basis_project" in [machine.kernel_ops(s)[2] for s in irs["moments"]]
+    counted = [machine.kernel_ops(s) for s in irs["plain"]]
     assert all(lab == "" for _, _, lab in counted) and max(sum(o.values()) for o, _, _ in counted) > 10

@@ -236,35 +236,98 @@ def test_basis_kinds(seg, kind, precision):
     assert np.all(np.abs(T - T0) <= bound[tex] * g_sum + T_SLACK)
 
 
-@pytest.mark.parametrize("precision", ["float32", "float16"])
+@pytest.mark.parametrize("precision", PRECISIONS)
 @pytest.mark.parametrize("variant", ["cloud", "two_node"])
 def test_beer(variant, precision):
-    """Stored depths = reference decoding over one global range (empty texels, whose T is 1
-    whatever their bounds, take the global bounds: they must not widen it); T within the
-    window bound, with sigma_mean, tau_max (cloud) or T behind (two_node) of relative error
-    <= 2^-11 (float16), so |dT| <= 2^-11 (T od <= 1).  Depths offset by 100: a range
-    anchored at 0 would be caught."""
+    """Stored fronts = reference decoding over one global range (empty texels, whose T is 1
+    whatever their bounds, take the global front: they must not widen it), extents = the
+    non-negative coefficient code over the largest extent, tau_max = the scalar code
+    (:func:`scalar_ref`), T behind = the transmittance code; T within the window bound
+    (the ramp's ends move by <= delta_front + delta_extent) plus eps: tau_max relative
+    error r - 1 gives |dT| <= (r - 1) / e; T behind errs by the transmittance bound.
+    Depths offset by 100: a range anchored at 0 would be caught."""
     data = random_segments(np.random.default_rng(17), texels=24, max_count=12)
     seg = to_segments(dict(data, z0=data["z0"] + 100, z1=data["z1"] + 100))
     native = ad.build("beer", seg, variant=variant)
     rep = ad.build("beer", seg, variant=variant, precision=precision)
     empty = seg.counts == 0
-    delta = 0.0
-    for name, fill in (("front", seg.bounds()[0]), ("back", seg.bounds()[1])):
-        if variant == "cloud" and name == "back":
-            continue
-        d = np.where(empty, fill, np.asarray(native.__dict__[name].numpy(), np.float64))
-        want, bound = ref.depths(d, precision)
-        np.testing.assert_array_equal(np.asarray(rep.__dict__[name].numpy()), want.astype(np.float32))
-        delta = max(delta, bound)
+    front = np.where(empty, seg.bounds()[0], np.asarray(native.front.numpy(), np.float64))
+    want, d_front = ref.depths(front, precision)
+    np.testing.assert_array_equal(np.asarray(rep.front.numpy()), want.astype(np.float32))
+    ext = np.asarray(native.extent.numpy(), np.float64)
+    assert np.all(ext[empty] == 0)
+    want, d_ext = ref.coefficients(ext, precision, signed=False)
+    np.testing.assert_array_equal(np.asarray(rep.extent.numpy()), want.astype(np.float32))
+    if variant == "cloud":
+        tau = np.asarray(native.tau_max.numpy(), np.float64)
+        want, r1, _, floor = scalar_ref(tau, precision)
+        np.testing.assert_array_equal(np.asarray(rep.tau_max.numpy()), want.astype(np.float32))
+        eps = r1 / math.e + floor
+    else:
+        want, eps = ref.transmittances(np.asarray(native.t_back.numpy(), np.float64), precision)
+        np.testing.assert_array_equal(np.asarray(rep.t_back.numpy()), want.astype(np.float32))
+        if precision == "unorm8":
+            eps += math.exp(-ref.TAU_CAP)              # relative bound + the cap's floor, T <= 1
     tex, x = receivers(seg)
     T = np.asarray(rep.eval(tex, x), np.float64)
     assert np.all(np.isfinite(T)) and np.all((T >= 0) & (T <= 1))
-    dl = delta + 4 * np.spacing(np.float32(np.abs(x).max() + 1))
+    dl = d_front + d_ext + 4 * np.spacing(np.float32(np.abs(x).max() + 1))
     lo = np.asarray(native.eval(tex, (x + dl).astype(np.float32)), np.float64)
     hi = np.asarray(native.eval(tex, (x - dl).astype(np.float32)), np.float64)
-    eps = (2.0**-11 if precision == "float16" else 2.0**-23) + T_SLACK
-    assert np.all((T >= lo - eps) & (T <= hi + eps))
+    slack = eps + T_SLACK
+    assert np.all((T >= lo - slack) & (T <= hi + slack))
+
+
+def scalar_ref(x, precision):
+    """Reference of the ``scalar`` code (beer's tau_max), one global scale: (decoded,
+    r - 1 with x^ / x in [1/r, r] for x >= the floor, the floor, the absolute error below it).
+    float16: fp16(x / 2^p) 2^p, 2^p the smallest power of two keeping max x / 2^p <= 65504;
+    unorm: codes 1..M of ln x over [lo, hi] (M - 1 steps), 0 for zero, the nearer of 0 and
+    lo below lo."""
+    x = np.asarray(x, np.float64)
+    if precision == "float32":
+        return x.astype(np.float32).astype(np.float64), 2.0**-24, 0.0, 0.0
+    top = x.max(initial=0.0)
+    if precision == "float16":
+        p = 0
+        while top / 2.0**p > 65504:
+            p += 1
+        return ref.half(x / 2.0**p) * 2.0**p, 2.0**-11 / (1 - 2.0**-11), 2.0 ** (p - 14), 2.0 ** (p - 25)
+    M, octaves = ref.UNORM_MAX[precision], P.LOG_OCTAVES[precision]
+    if top == 0:
+        return np.zeros_like(x), 0.0, 0.0, 0.0
+    hi = ref.f32_up(top)
+    lo = max(ref.f32_down(x[x > 0].min()), ref.f32_up(hi / 2.0**octaves))
+    L = math.log(hi / lo)
+    out = []
+    for v in x:
+        if v >= lo:
+            c = round((M - 1) * math.log(v / lo) / L) if L > 0 else 0
+            out.append(min(lo * math.exp(L * c / (M - 1)), hi))
+        else:
+            out.append(lo if v >= lo / 2 else 0.0)
+    return np.array(out), math.expm1(L / (2 * (M - 1))) * (1 + 1e-12), lo, lo / 2
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_scalar_encoder(precision):
+    """The ``scalar`` code against :func:`scalar_ref` (the encoder's decoded values bit for
+    bit) and its bound: x^ / x within [1/r, r] at and above the floor, r - 1 <= 2^-11
+    (float16), exp(ln 2^octaves / (2 (M - 1))) - 1 (unorm: 3.3 % unorm8, 3.4e-4 unorm16),
+    below it within lo / 2; 0 stays 0; monotone.  Values from 1e-12 to 1e6: a linear code
+    over the largest one would zero every thin texel, saturating float16 at 65504 would
+    flatten the ramp of the 1e6 one."""
+    x = np.array([0.0, 1e-12, 3e-9, 1e-6, 1e-3, 0.02, 0.5, 1.0, 2.3, 17.0, 1e4, 7e4, 1e6])
+    got = P.encode("scalar", x, None, x.size, precision)[0]
+    want, r1, lo, floor = scalar_ref(x, precision)
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
+    assert got[0] == 0 and np.all(np.diff(got) >= 0)
+    if precision in P.UNORM_MAX:
+        assert r1 <= math.expm1(P.LOG_OCTAVES[precision] * math.log(2) / (2 * (P.UNORM_MAX[precision] - 1))) * 1.001
+    big = (x >= lo) & (x > 0)
+    ratio = got[big] / x[big]
+    assert np.all((ratio <= 1 + r1) & (ratio >= 1 / (1 + r1))), ratio
+    assert np.all(np.abs(got[~big] - x[~big]) <= floor * (1 + 1e-9))
 
 
 @pytest.mark.parametrize("precision", ["unorm8", "unorm16"])
@@ -394,14 +457,14 @@ def test_straight_through_gradient(kind):
 
 
 def test_refusals(seg):
-    for kind, p in (("exact", "float16"), ("exact", "float32"), ("beer", "unorm8"), ("beer", "unorm16"),
-                    ("avsm", "half"), ("avsm", 16)):
+    for kind, p in (("exact", "float16"), ("exact", "float32"), ("beer", "half"), ("avsm", "half"),
+                    ("avsm", 16)):
         with pytest.raises(ValueError, match="^precision:"):
             ad.build(kind, seg, precision=p)
     far = ad.Segments.from_arrays([0, 1], [0.0], [1e39], optical_depth=[1.0], dtype="float64")
     with pytest.raises(ValueError, match="^precision:.*float32's range"):
         ad.build("avsm", far, precision="float16")        # a float32 range cannot hold 1e39
-    assert ad.describe("beer")["precisions"] == ["float32", "float16"]
+    assert ad.describe("beer")["precisions"] == PRECISIONS
     assert ad.describe("exact")["precisions"] == []
     assert ad.describe("avsm")["precisions"] == PRECISIONS
 

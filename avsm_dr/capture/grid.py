@@ -48,6 +48,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 from ..io import read_vol
 from .assembly import TexelRuns
 from .dual_cells import corner_table
@@ -160,28 +161,16 @@ class GridVolume:
         if A.is_drjit(density):
             if not dr.is_tensor_v(density) or density.ndim != 3:
                 raise ValueError("density: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
-            shape = tuple(int(s) for s in density.shape)
+            V.grid_dtype(density, "density")
             flat = density.array
             if dtype is None:
                 dtype = A.dtype_of(flat)
-            host = np.asarray(dr.detach(flat).numpy()).reshape(shape)
             data = A.to_float(flat, A.float_type(dtype))
         else:
-            try:
-                host = np.asarray(density, dtype=np.float64 if dtype == "float64" else np.float32)
-            except (TypeError, ValueError):
-                raise ValueError(f"density: cannot convert {type(density).__name__} to a float array") from None
-            if host.ndim != 3:
-                raise ValueError(f"density: expected a 3-D (z, y, x) array, got shape {host.shape}")
-            shape = host.shape
             dtype = dtype or "float32"
-        if min(shape) < 1:
-            raise ValueError(f"density: empty grid of shape {shape}")
-        lo_val = float(np.min(host))
-        if np.isnan(lo_val) or not np.isfinite(float(np.max(host))):
-            raise ValueError("density: contains NaN or inf values")
-        if lo_val < 0:
-            raise ValueError(f"density: negative extinction {lo_val} (densities must be >= 0)")
+        # one rule for every grid entry point: float input, 3-D, non-empty, finite, >= 0
+        host = V.density_grid(density, "density", np.float64 if dtype == "float64" else np.float32)
+        shape = host.shape
 
         n = np.array(shape[::-1], np.int64)                        # (nx, ny, nz)
         if skip_empty:

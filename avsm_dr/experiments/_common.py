@@ -1,24 +1,24 @@
 """Shared plumbing for experiments: the output folder and its cache, CSV/JSON writers, the
-timer (:func:`measure`, :func:`timed`) and the memory meter (:class:`Meter`).
+timer (:func:`measure`, :func:`timed`) and the memory meter (:class:`Meter`), re-exported
+from :mod:`avsm_dr.evaluation.timing`.
 
 Cache: an experiment reuses ``<out>/data.csv`` when ``meta.json`` there records the same
 parameters *and* the same :func:`cache_key` (hash of the package source, Dr.Jit / Mitsuba /
-NumPy versions, backend), so results never survive a code or version change.
+NumPy versions, backend), so results never survive a code or version change, and when every
+file meta records still has its SHA-256 (and tables their row count).  Every file is written
+atomically (a temporary file, then ``os.replace``) and meta.json last.
 """
 from __future__ import annotations
 
 import csv
 import functools
-import gc
 import hashlib
 import json
 import os
 import platform
-import statistics
 import subprocess
-import time
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Iterable
 
 import drjit as dr
 import numpy as np
@@ -97,6 +97,8 @@ class Results:
         self.quick = quick
         self.params = dict(params, quick=quick)
         self.figures: list[str] = []
+        #: file name -> {"sha256", "bytes"[, "rows"]} of what this run wrote (recorded in meta.json)
+        self.files: dict[str, dict] = {}
 
     def _meta(self) -> dict:
         try:
@@ -107,12 +109,31 @@ class Results:
 
     def exists(self, csv_name: str = "data.csv") -> bool:
         """True when ``csv_name`` and a ``meta.json`` with the same parameters and the same
-        :func:`cache_key` are there."""
+        :func:`cache_key` are there, and every file that meta records (``csv_name`` among
+        them) still has its recorded SHA-256 and, for tables, row count: a table left
+        truncated or replaced by an interrupted run is never reused."""
         if not (self.dir / csv_name).exists():
             return False
         meta = self._meta()
         same = json.loads(json.dumps(self.params, default=str))
-        return bool(meta) and meta.get("params") == same and meta.get("cache_key") == cache_key()
+        if not (meta and meta.get("params") == same and meta.get("cache_key") == cache_key()):
+            return False
+        files = meta.get("files")
+        if not isinstance(files, dict) or csv_name not in files:
+            return False
+        return all(self._intact(name, rec) for name, rec in files.items())
+
+    def _intact(self, name, rec) -> bool:
+        """``name`` (a plain file name in this folder) matches its meta record."""
+        if not (isinstance(name, str) and isinstance(rec, dict) and Path(name).name == name):
+            return False
+        path = self.dir / name
+        try:
+            if path.stat().st_size != rec.get("bytes") or file_sha256(path) != rec.get("sha256"):
+                return False
+            return "rows" not in rec or len(read_csv(path)) == rec["rows"]
+        except (OSError, ValueError, csv.Error):
+            return False
 
     def cached(self, force: bool = False, csv_name: str = "data.csv") -> dict | None:
         """The result of an earlier identical run (``{'csv', 'out', 'cached': True}``), or
@@ -124,37 +145,69 @@ class Results:
     def write_csv(self, rows: Iterable[dict], csv_name: str = "data.csv") -> Path:
         """Rows (dicts; columns in order of first appearance) as ``csv_name``."""
         rows = list(rows)
-        path = self.dir / csv_name
         fields: list[str] = []
         for r in rows:
             for k in r:
                 if k not in fields:
                     fields.append(k)
-        with path.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=fields)
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: _fmt(v) for k, v in r.items()})
+        def write(tmp):
+            with tmp.open("w", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=fields)
+                w.writeheader()
+                for r in rows:
+                    w.writerow({k: _fmt(v) for k, v in r.items()})
+        return self.write_file(csv_name, write, rows=len(rows))
+
+    def write_file(self, filename: str, write, **extra) -> Path:
+        """Write ``filename`` atomically (``write(tmp)``, then ``os.replace``) and record its
+        checksum for meta.json."""
+        path = self.dir / filename
+        atomic_write(path, write)
+        self.record(filename, **extra)
         return path
 
-    def save_figure(self, fig, filename: str) -> Path:
-        """Save a Matplotlib figure as ``filename`` and close it."""
+    def record(self, filename: str, **extra) -> None:
+        """Record the SHA-256 and size of ``filename`` (written by this run) for meta.json."""
         path = self.dir / filename
-        fig.savefig(path, dpi=110, bbox_inches="tight")
+        self.files[filename] = {"sha256": file_sha256(path), "bytes": path.stat().st_size, **extra}
+
+    def write_text(self, filename: str, text: str) -> Path:
+        """``text`` as ``filename`` (atomic, recorded)."""
+        return self.write_file(filename, lambda tmp: tmp.write_text(text))
+
+    def write_json(self, filename: str, obj, **dumps) -> Path:
+        """``json.dumps(obj, **dumps)`` as ``filename`` (atomic, recorded)."""
+        return self.write_text(filename, json.dumps(obj, **dumps))
+
+    def write_npz(self, filename: str, compressed: bool = True, **arrays) -> Path:
+        """NumPy arrays as ``filename`` (``np.savez[_compressed]``; atomic, recorded)."""
+        save = np.savez_compressed if compressed else np.savez
+
+        def write(tmp):
+            with tmp.open("wb") as fh:            # a file object: NumPy adds no second suffix
+                save(fh, **arrays)
+        return self.write_file(filename, write)
+
+    def save_figure(self, fig, filename: str) -> Path:
+        """Save a Matplotlib figure as ``filename`` (atomic, recorded) and close it."""
+        fmt = Path(filename).suffix.lstrip(".") or None
+        path = self.write_file(filename, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format=fmt))
         import matplotlib.pyplot as plt
         plt.close(fig)
         self.figures.append(str(path))
         return path
 
     def write_meta(self, summary: dict | None = None) -> Path:
-        """``meta.json``: parameters, summary, figures, cache key, git commit, versions,
-        backend and machine."""
+        """``meta.json``: parameters, summary, figures, the files this run wrote (SHA-256,
+        bytes, rows of tables), cache key, git commit, versions, backend and machine.
+        Written last, atomically: it is what makes the folder a cached result."""
         from .. import backend
         meta = {
             "experiment": self.name,
             "params": self.params,
             "summary": summary or {},
             "figures": [Path(f).name for f in self.figures],
+            "files": self.files,
             "cache_key": cache_key(),
             "git_commit": git_commit(),
             **versions(),
@@ -164,8 +217,30 @@ class Results:
             "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         }
         path = self.dir / "meta.json"
-        path.write_text(json.dumps(meta, indent=2, default=str))
+        text = json.dumps(meta, indent=2, default=str)
+        atomic_write(path, lambda tmp: tmp.write_text(text))
         return path
+
+
+def atomic_write(path: Path, write) -> None:
+    """``write(tmp)`` to a temporary file beside ``path`` (same suffix), then ``os.replace``:
+    readers see the old file or the whole new one, never a part (removed on failure)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with Path(path).open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_csv(path: str | Path) -> list[dict]:
@@ -180,151 +255,7 @@ def _fmt(v):
     return v
 
 
-# ========================================================================= timing
-def sync(out=None):
-    """Evaluate ``out`` (if it holds Dr.Jit arrays) and wait for the active backend's
-    queued kernels (``dr.sync_thread``: CPU worker threads or the CUDA stream)."""
-    if out is not None:
-        try:
-            dr.eval(out)
-        except Exception:                 # not a Dr.Jit PyTree (NumPy, plain objects)
-            pass
-    dr.sync_thread()
-
-
-def _jit_kernels(hist):
-    return [k for k in hist if k["type"] == dr.KernelType.JIT]
-
-
-def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
-    """Time each callable in ``fns`` (name -> fn): a first call (JIT compile included),
-    ``warmup - 1`` more, then ``repeats`` rounds run interleaved across ``fns`` (so load
-    from other processes hits each alike).  Every call is followed by :func:`sync`.
-
-    Returns name -> dict(wall_s, cpu_s (process CPU time, all threads), kernel_s (Dr.Jit
-    kernel execution from ``dr.kernel_history``), first_s, first_cpu_s, jit_s (codegen +
-    backend compile of the first call), compiled, from_disk, kernels (JIT launches per
-    call), out (last result)); medians over the repeats (``repeats=0``: the first call)."""
-    flag = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    res = {}
-    try:
-        for name, fn in fns.items():
-            dr.kernel_history()                                   # clear
-            c0, t0 = time.process_time(), time.perf_counter()
-            out = fn()
-            sync(out)
-            first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
-            jit = _jit_kernels(dr.kernel_history())
-            res[name] = dict(first_s=first, first_cpu_s=first_cpu, out=out, wall=[], cpu=[], kern=[], kernels=0,
-                             jit_s=sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in jit) / 1e3,
-                             compiled=sum(1 for k in jit if not k.get("cache_hit")),
-                             from_disk=sum(1 for k in jit if k.get("cache_disk")))
-            for _ in range(max(warmup - 1, 0)):
-                sync(fn())
-        for _ in range(repeats):
-            for name, fn in fns.items():
-                dr.kernel_history()
-                c0, t0 = time.process_time(), time.perf_counter()
-                out = fn()
-                sync(out)
-                w, c = time.perf_counter() - t0, time.process_time() - c0
-                jit = _jit_kernels(dr.kernel_history())
-                r = res[name]
-                r["wall"].append(w)
-                r["cpu"].append(c)
-                r["kern"].append(sum(k.get("execution_time", 0) for k in jit) / 1e3)
-                r["kernels"] = len(jit)
-                r["out"] = out
-    finally:
-        dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, flag)
-    for r in res.values():
-        r["wall_s"] = statistics.median(r.pop("wall")) if repeats else r["first_s"]
-        r["cpu_s"] = statistics.median(r.pop("cpu")) if repeats else r["first_cpu_s"]
-        r["kernel_s"] = statistics.median(r.pop("kern")) if repeats else float("nan")
-    return res
-
-
-def timed(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> tuple[float, float, Any]:
-    """(median wall seconds after warm-up, first-call seconds incl. JIT compile, last
-    result) of :func:`measure` for one callable."""
-    r = measure({"fn": fn}, repeats, warmup)["fn"]
-    return r["wall_s"], r["first_s"], r["out"]
-
-
-# ================================================================== memory meter
-def _status_kb() -> dict:
-    """``VmRSS`` / ``VmHWM`` of this process in KiB (Linux; empty elsewhere)."""
-    out = {}
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(("VmRSS:", "VmHWM:")):
-                    key, val = line.split(":")
-                    out[key] = int(val.split()[0])
-    except OSError:
-        pass
-    return out
-
-
-def _jit_backend():
-    from .. import backend
-    return dr.JitBackend.CUDA if backend.get_backend() == "cuda" else dr.JitBackend.LLVM
-
-
-class Meter:
-    """Time and peak memory of a block, for the active backend::
-
-        with Meter() as m:
-            out = fn(); dr.eval(out)
-        m.seconds, m.cpu_seconds, m.heap_bytes, m.rss_bytes
-
-    On entry: garbage collected, device synchronised, Dr.Jit's allocation cache freed and
-    its statistics reset.  On exit (after ``dr.sync_thread``): ``heap_bytes`` = growth of
-    Dr.Jit's allocator watermark (``dr.detail.malloc_watermark`` of the active backend:
-    host buffers on LLVM, device memory on CUDA); ``rss_bytes`` = growth of the process's
-    peak resident set above its size at entry (Linux ``VmHWM`` reset through
-    ``/proc/self/clear_refs``; NaN where that is unavailable; includes NumPy, temporaries
-    and kernel stacks).  Evaluate the block's results inside it."""
-
-    def __enter__(self):
-        gc.collect()
-        dr.sync_thread()
-        dr.flush_malloc_cache()
-        dr.detail.malloc_clear_statistics()
-        self._backend = _jit_backend()
-        self._heap0 = dr.detail.malloc_watermark(self._backend)
-        try:
-            with open("/proc/self/clear_refs", "w") as fh:
-                fh.write("5")                     # reset VmHWM to the current RSS
-            self._rss0 = _status_kb().get("VmRSS")
-        except OSError:
-            self._rss0 = None
-        self._c0, self._t0 = time.process_time(), time.perf_counter()
-        return self
-
-    def __exit__(self, *exc):
-        dr.sync_thread()
-        self.seconds = time.perf_counter() - self._t0
-        self.cpu_seconds = time.process_time() - self._c0
-        self.heap_bytes = float(dr.detail.malloc_watermark(self._backend) - self._heap0)
-        hwm = _status_kb().get("VmHWM")
-        self.rss_bytes = float((hwm - self._rss0) * 1024) if self._rss0 is not None and hwm is not None \
-            else float("nan")
-        return False
-
-    @property
-    def heap_mb(self) -> float:
-        """``heap_bytes`` in MB (1e6 bytes)."""
-        return self.heap_bytes / 1e6
-
-    @property
-    def rss_mb(self) -> float:
-        """``rss_bytes`` in MB (1e6 bytes)."""
-        return self.rss_bytes / 1e6
-
-    @property
-    def peak_bytes(self) -> float:
-        """The larger of the two measures (they overlap: Dr.Jit's host buffers are in RSS)."""
-        return max(self.heap_bytes, self.rss_bytes) if self.rss_bytes == self.rss_bytes else self.heap_bytes
+# ================================================================ timing, memory
+# The timer and the memory meter live in the public harness; re-exported for the studies.
+from ..evaluation.timing import Meter, measure, sync, timed  # noqa: E402,F401
+from ..evaluation.timing import jit_kernels as _jit_kernels  # noqa: E402,F401

@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..representations.avsm import area_metric, curve_value, insert_segment, interpolate
+from ..representations.avsm import area_metric, curve_at, insert_segment, interpolate
 
 
 def _remove(d, t, beta, temperature):
@@ -84,10 +84,11 @@ def avsm_nodes(seg, N: int, beta, temperature=None):
         a = dr.gather(Float, seg.z0, i)
         b = dr.gather(Float, seg.z1, i)
         ts = dr.exp(-dr.gather(Float, seg.optical_depth, i))
-        nd, nt = insert_segment(d, t, used, a, b, ts)
+        ta, zero = curve_at(d, t, a)
+        nd, nt = insert_segment(d, t, used, a, b, ts, ta=ta)
         full = used + 2 > N
         rd, rt = _remove(*_remove(nd, nt, beta, temperature), beta, temperature)
-        skip = ~active | (curve_value(d, t, a) == 0)           # the kind's rule: nothing behind T = 0
+        skip = ~active | zero                                   # the kind's rule: nothing behind T = 0
         d = [dr.select(skip, d[k], dr.select(full, rd[k], nd[k])) for k in range(N)]
         t = [dr.select(skip, t[k], dr.select(full, rt[k], nt[k])) for k in range(N)]
         used = dr.select(skip | full, used, used + 2)

@@ -149,7 +149,6 @@ def _gif(res, setting, images, labels, n):
         return [im, stamp]
 
     anim = FuncAnimation(fig, update, frames=F, blit=False)
-    path = res.dir / f"shadow_{setting}.gif"
-    anim.save(path, writer=PillowWriter(fps=8), dpi=100)
+    path = res.write_file(f"shadow_{setting}.gif", lambda tmp: anim.save(tmp, writer=PillowWriter(fps=8), dpi=100))
     plt.close(fig)
     res.figures.append(str(path))

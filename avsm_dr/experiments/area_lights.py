@@ -131,8 +131,8 @@ def run(quick: bool = False, out: str | Path | None = "results/area_lights", for
     csv_written = res.write_csv(rows)
 
     fig_path = _figure(res, images, gt, p)
-    np.savez_compressed(res.dir / "images.npz", mitsuba=gt, mitsuba_stderr=se, dense=dense,
-                        **{f"{m}_R{R or 'exact'}_K{K}": im for (m, R, K), im in images.items()})
+    res.write_npz("images.npz", mitsuba=gt, mitsuba_stderr=se, dense=dense,
+                  **{f"{m}_R{R or 'exact'}_K{K}": im for (m, R, K), im in images.items()})
     K_max = max(p["vpls"])
     imp = next(r for r in rows if r["method"] == "imperfect" and r["vpls"] == K_max)
     nv = next(r for r in rows if r["method"] == "naive_voxel" and r["resolution"] == p["r_coarse"]

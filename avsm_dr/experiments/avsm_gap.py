@@ -33,7 +33,6 @@ with seed 1; quick mode the first only) by :func:`avsm_dr.stats.claim`.
 """
 from __future__ import annotations
 
-import json
 import time
 
 import numpy as np
@@ -252,7 +251,7 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
         _scene_rows(name, P, rows, quick, seed, light, texel_errors)
     csv = res.write_csv(rows)
     summary = findings(rows, texel_errors, n_boot=200 if quick else 1000)
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1))
+    res.write_json("findings.json", summary, indent=1)
     first = {}
     for r in rows:
         first.setdefault(r["scene"], r["config"])

@@ -22,7 +22,6 @@ wall time including host work and any recompilation (``lookup_wall_ns``).
 from __future__ import annotations
 
 import functools
-import json
 
 import numpy as np
 from tqdm import tqdm
@@ -180,8 +179,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     summary = _summarise(rows, errors, params, bootstrap_ci, claim)
     csv = res.write_csv(rows)
     _plot(res, rows, params, summary)
+    res.write_json("findings.json", summary, indent=2, default=str)
     res.write_meta(summary)
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=2, default=str))
     return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
 
 

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import json
 import shutil
 import time
 
@@ -366,7 +365,7 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None, kinds=N
     summary.update(run_seconds=elapsed, slow_kinds=slow,
                    whole_map_kinds={n: w for n, w in whole.items() if w},
                    subset_max_difference={k: v for c in base for k, v in c["subset_check"].items()})
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1, default=float))
+    res.write_json("findings.json", summary, indent=1, default=float)
     from . import _error_plots
     _error_plots.plot_all(res, rows, names)
     verdicts = {k: v.get("verdict") for k, v in summary.get("claims", {}).items()}

@@ -318,8 +318,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         summary[f"{name}_ranking_rmse"] = order_rmse
         summary[f"{name}_ranking_flip"] = order_flip
         _figure(plt, res, name, params, ref, imgs, scored, white, zoom, crops, check)
-        np.savez_compressed(res.dir / f"images_{name}.npz", reference=ref,
-                            **{k.replace("-", "_").replace(".", "p"): v for k, v in imgs.items()})
+        res.write_npz(f"images_{name}.npz", reference=ref,
+                      **{k.replace("-", "_").replace(".", "p"): v for k, v in imgs.items()})
     _ranking_figure(plt, res, rows, names)
     csv = res.write_csv(rows)
     res.write_meta(summary)

@@ -213,7 +213,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                                   beta_best_in_sweep=min(sweep, key=lambda r: r["train_rmse"])["beta"]
                                   if sweep else None,
                                   evaluated_with="the hard algorithm (equal to the avsm kind at beta = 0)")
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1))
+    res.write_json("findings.json", summary, indent=1)
     from ._learned_warp_plots import plot, plot_metric
     plot(res, rows, loss_rows, warp_rows)
     plot_metric(res, metric_loss, sweep)

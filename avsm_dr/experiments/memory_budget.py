@@ -40,7 +40,6 @@ configurations with a bootstrap interval (:func:`avsm_dr.stats.bootstrap_ci`); t
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 
 import numpy as np
@@ -315,7 +314,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         _config_rows(name, seed, light, P, rows, errors, heat)
     csv = res.write_csv(rows)
     summary = findings(rows, errors, P["n_boot"])
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1))
+    res.write_json("findings.json", summary, indent=1)
     from ._memory_budget_plots import plot_curves, plot_heat
     plot_curves(res, rows, P["scenes"])
     plot_heat(res, heat)

@@ -29,7 +29,6 @@ scene, opaque mode, configuration, variant and alpha choice (RMSE, max and mean 
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 from tqdm import tqdm
@@ -197,7 +196,7 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict
     csv = res.write_csv(rows)
     res.write_csv(tune_rows, "tuning.csv")
     summary = findings(errs, nbytes, best, n_boot=P["n_boot"])
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1))
+    res.write_json("findings.json", summary, indent=1)
     from ._moment_storage_plots import plot_ratios
     plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
     res.write_meta({"best_alpha": best, "bytes_per_texel": nbytes})

@@ -33,7 +33,6 @@ paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM) by
 from __future__ import annotations
 
 import copy
-import json
 import time
 
 import numpy as np
@@ -200,7 +199,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     summary = findings(series, ms, P)
     summary["run_seconds"] = time.perf_counter() - t0
     csv = res.write_csv(rows)
-    (res.dir / "findings.json").write_text(json.dumps(summary, indent=1, default=float))
+    res.write_json("findings.json", summary, indent=1, default=float)
     from . import _temporal_plots
     _temporal_plots.plot_all(res, rows, summary, series, P, _gif_labels(ms))
     res.write_meta({k: summary[k] for k in ("headline", "run_seconds")})

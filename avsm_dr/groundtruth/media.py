@@ -35,18 +35,10 @@ def check_grid(density, bbox):
     """(grid float32 (nz, ny, nx), lo (3,), hi (3,)) after checks; ValueError names the field."""
     if density is None:
         raise ValueError("density: the scene has no density grid")
-    g = V.array(density, "density")
-    if g.ndim != 3 or min(g.shape) < 1:
-        raise ValueError(f"density: expected a (nz, ny, nx) array, got shape {g.shape}")
-    if np.any(g < 0):
-        raise ValueError("density: negative density")
+    g32 = V.density_grid(density, "density", np.float32)      # Mitsuba's grid is float32
     if bbox is None:
         raise ValueError("bbox: a density grid needs bbox = (min_xyz, max_xyz)")
     lo, hi = check_bbox(bbox)
-    g32 = g.astype(np.float32)
-    if not np.all(np.isfinite(g32)):
-        raise ValueError(f"density: values beyond the float32 range of Mitsuba's grid "
-                         f"(largest {float(g.max()):.3g})")
     return g32, lo, hi
 
 

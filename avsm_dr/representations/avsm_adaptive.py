@@ -52,8 +52,8 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .avsm import AVSM, INTERPOLATIONS, interpolate, node_range
-from .base import Representation
+from .avsm import AVSM, INTERPOLATIONS, interpolate
+from .base import Representation, depth_range, node_build_bytes
 from .registry import register
 from .schema import Param, Schema, far_param, near_param
 
@@ -61,6 +61,8 @@ from .schema import Param, Schema, far_param, near_param
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
 #: Bytes of one CSR offset (uint32).
 OFFSET_BYTES = 4
+#: Largest ``bytes_per_texel``: the most one texel can store, 64 float64 nodes and its offset.
+MAX_BYTES_PER_TEXEL = float(OFFSET_BYTES + 2 * 8 * LADDER[-1])
 SCORES = ("complexity", "count", "uniform")
 
 
@@ -172,7 +174,7 @@ class AVSMAdaptive(Representation):
     schema = Schema(
         params=(
             Param("bytes_per_texel", "float", 64.0, "memory budget: mean bytes per texel over the whole map "
-                  "(offsets included; total = bytes_per_texel x texels)", min=8.0),
+                  "(offsets included; total = bytes_per_texel x texels)", min=8.0, max=MAX_BYTES_PER_TEXEL),
             Param("max_nodes", "int", 32, "cap on the nodes of one texel", min=2, max=64),
             Param("sort", "bool", False, "insert segments sorted by depth per texel (as AVSM)"),
             Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp'",
@@ -193,10 +195,15 @@ class AVSMAdaptive(Representation):
     def __init__(self, segments, **params):
         super().__init__(segments, **params)
         P = self.params
-        P.update(zip(("near", "far"), node_range(segments, P["near"], P["far"])))
+        P.update(zip(("near", "far"), depth_range(segments, P["near"], P["far"])))
         self._score = P.pop("_score")
         T, item = segments.n_texels, segments.itemsize
         counts = segments.counts
+        # the host allocation holds ~10 (T, options) int64 / float64 arrays, the AVSM groups
+        # at most every non-empty texel at max_nodes (node_build_bytes)
+        n_nz = int(np.count_nonzero(counts))
+        self._check_build_memory(lambda m: node_build_bytes(n_nz, m, item) + 80.0 * (ladder(m).size + 1) * T,
+                                 name="max_nodes")
         self.budget_nodes = int((P["bytes_per_texel"] * T - OFFSET_BYTES * (T + 1)) // (2 * item))
         least = int(2 * np.count_nonzero(counts))
         if self.budget_nodes < least:

@@ -45,7 +45,7 @@ from .. import _arrays as A
 from .. import backend
 from . import _curve
 from .avsm import INTERPOLATIONS, remove_smallest
-from .base import Representation
+from .base import Representation, node_build_bytes
 from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
@@ -159,6 +159,7 @@ class AVSMMarch(Representation):
         super().__init__(segments, **params)
         P = self.params
         self.cap = P["nodes"]
+        self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
         pts = _curve.cached(segments, "curve_points", lambda: _curve.curve_points(segments))
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
         self.node_counts = counts

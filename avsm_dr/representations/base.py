@@ -12,6 +12,15 @@ Contract (stated once here; subclasses document only what differs):
   (for variable-size forms such as DSM: the mean over texels).
 * Gradients flow from ``T`` back to the segments' ``optical_depth`` (and
   ``z0``/``z1``) wherever the representation is differentiable.
+
+Depth range (every kind with ``near``/``far``, one rule: :func:`depth_range`): None means
+the segments' global bounds ``[min z0, max z1]``; an explicit range must contain every
+segment, ``near <= min z0`` and ``max z1 <= far`` compared in the storage dtype (the values
+the kernels use), and ``far - near`` must be finite there.  A range that cuts the content
+raises ``ValueError`` naming ``near`` (the content starts before it), ``far`` (it ends after
+it) or both, with the values and the content's span.  Receivers outside the range follow
+the kind's ``eval`` convention (T = 1 in front of the first blocker / at ``u = 0``, the
+total transmittance behind ``far``).
 """
 from __future__ import annotations
 
@@ -24,11 +33,47 @@ import numpy as np
 from .. import _arrays as A
 from .. import _device_checks as DC
 from .. import backend
+from .. import validation as V
 from ..filtering import FILTERS, check_radius, check_size, filtered_eval
 from ..segments import Segments, flush_subnormal
 from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk, trajectory_words
 from ._precision import check_precision, quantise
 from .schema import Param, Schema
+
+
+def depth_range(segments: Segments, near, far, open_range: bool = False) -> tuple[float, float]:
+    """(near, far) of a kind's depth range by the module docstring's rule: the given values
+    (None: the segments' bounds), finite in the storage dtype with a finite span, and
+    containing every segment; ``open_range``: an explicit range also needs ``near < far``
+    (the basis kinds divide by the span).  ValueError names the argument at fault."""
+    lo, hi = segments.bounds()
+    given = near is not None or far is not None
+    near, far = segments.check_depth_range(lo if near is None else near, hi if far is None else far)
+    ft = np.dtype(segments.dtype).type                   # compare the values the kernels store
+    cut_near = segments.n_segments > 0 and float(ft(near)) > lo
+    cut_far = segments.n_segments > 0 and float(ft(far)) < hi
+    if cut_near or cut_far:
+        a, b = str(ft(lo)), str(ft(hi))                 # shortest digits in the storage dtype
+        where = [f"near: {near!r} is after the content's start {a}"] if cut_near else []
+        where += [f"far: {far!r} is before the content's end {b}"] if cut_far else []
+        need = ", ".join(([f"near <= {a}"] if cut_near else []) + ([f"far >= {b}"] if cut_far else []))
+        raise ValueError(f"{' and '.join(where)}; the segments span [{a}, {b}] and an explicit "
+                         f"[near, far] must contain every segment ({need}; None: the segments' bounds)")
+    if near > far or (open_range and given and not near < far):
+        raise ValueError(f"near: need near {'<' if open_range else '<='} far, got near={near!r}, far={far!r}")
+    return near, far
+
+
+def node_build_bytes(n_texels: int, nodes: int, itemsize: int) -> float:
+    """Estimated peak bytes of a node-list build (AVSM and its kin): per texel its ``2N + 5``
+    loop-state words read, written and compacted, ``3 (2N + 5) itemsize`` (measured: AVSM-64,
+    float32, 4 M texels, one segment each: 1300 bytes per texel of RSS, this gives 1596)."""
+    return 3.0 * (2 * int(nodes) + 5) * int(itemsize) * int(n_texels)
+
+
+#: Largest ``chunk`` (iterations per checkpoint): Dr.Jit's ``max_iterations`` limit; a
+#: chunk whose trajectory exceeds the budget is refused when the build runs.
+MAX_CHUNK = 65536
 
 
 class _Built(abc.ABCMeta):
@@ -80,10 +125,24 @@ class Representation(metaclass=_Built):
         if reverse not in REVERSE_MODES:
             raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
         if chunk is not None:
-            chunk = Param("chunk", "int", min=1).validate(chunk)
+            chunk = Param("chunk", "int", min=1, max=MAX_CHUNK).validate(chunk)
         self.segments = segments
         self.reverse, self._chunk = reverse, chunk
         self.params: dict[str, Any] = self.schema.validate(self.kind, params)
+
+    # --------------------------------------------------------------- memory
+    def _check_build_memory(self, need, name: str | None = None, search: bool = True) -> None:
+        """Before allocating: ValueError naming ``name`` (default: the schema's size
+        parameter) when ``need(v)``, the build's estimated peak bytes at that parameter's
+        value v, exceeds :func:`avsm_dr.validation.memory_budget`; the message names the
+        largest value that fits (``search``) or asks for fewer texels."""
+        name = name or self.schema.size
+        p = self.schema.param(name)
+        lo = p.min if search and p.min is not None and not p.open_min else None
+        lo = int(lo) if lo is not None and p.type == "int" else lo
+        rule = self.schema.constraint                     # e.g. moments: 4, 6 or 8 power moments
+        V.check_memory(name, self.params[name], need, lo=lo, what=f"over {self.n_texels} texels",
+                       allowed=None if rule is None else lambda v: not rule({**self.params, name: v}))
 
     # -------------------------------------------------------------- storage
     #: Why some precisions are refused (appended to the ValueError).
@@ -160,6 +219,13 @@ class Representation(metaclass=_Built):
                     "per-lane trajectory survives; use reverse='auto' or 'checkpoint'")
             return None
         if self.reverse == "checkpoint" or traj > TRAJECTORY_BUDGET_WORDS:
+            run = min(self.chunk, seg.max_count) * words          # one chunk's trajectory
+            if run > TRAJECTORY_BUDGET_WORDS:
+                raise ValueError(
+                    f"chunk: {self.chunk} iterations per checkpoint keep {run} words per lane "
+                    f"({words} state words each), above the budget of {TRAJECTORY_BUDGET_WORDS} that "
+                    f"Dr.Jit's per-lane trajectory survives; chunk <= {safe_chunk(words)} fits "
+                    "(or leave chunk=None)")
             return self.chunk
         return None
 

@@ -12,26 +12,37 @@ Per texel, with ``a`` = first entry (min z0), ``b`` = last exit (max z1) and
       T(d) = exp(-min(tau_max, sigma_mean * max(0, d - a)))
 
   exact for one uniform segment.  A texel whose content has no extent (``b = a``: only
-  zero-length segments at one depth) stores ``sigma_mean = 0`` and is a step at ``a``
+  zero-length segments at one depth) has ``sigma_mean = 0`` and is a step at ``a``
   (``T(a) = exp(-tau_max)``: a receiver at a step is behind it, as in :mod:`.exact`).
 * ``variant='two_node'``: nodes ``(a, 1)`` and ``(b, exp(-tau_max))`` (depth and T at the
-  entry and exit of the texel's content) stored as ``a, b, exp(-tau_max)``, *linear*
+  entry and exit of the texel's content) stored as ``a, b - a, exp(-tau_max)``, *linear*
   interpolation between them (with exponential interpolation it would be the cloud
   variant), ``T = 1`` in front, ``exp(-tau_max)`` behind.
 
-Storage: 3 floats per texel in the segments' dtype (``nbytes_per_texel = 3 itemsize``);
-``precision='float32'|'float16'`` stores them in that format, depths relative to one
-global range (:mod:`._precision`); the unorm formats are refused.
-Gradients flow to the optical depths (``tau_max`` is a scatter-add); ``a`` and ``b`` are
-taken from the segments' depths without gradients.
+Stored per texel: ``a``, the extent ``e = b - a`` and ``tau_max`` ('cloud') or
+``exp(-tau_max)`` ('two_node'); the mean extinction ``sigma_mean = tau_max / e`` is
+formed at lookup (``T(d) = exp(-tau_max clamp((d - a) / e, 0, 1))``), so no stored value
+carries the texel's depth units: a stored extinction underflows float16 for long texels and
+saturates it for thin ones.  3 floats per texel in the segments' dtype
+(``nbytes_per_texel = 3 itemsize``); ``precision=`` (:mod:`._precision`) stores 3 codes
+(``3 x`` the code bytes): ``a`` relative to one global depth range, ``e`` over the map's
+largest extent (non-negative ``coefficient``), ``tau_max`` as a ``scalar`` (float16 /
+logarithmic unorm code, relative error, one global scale), ``exp(-tau_max)`` as a
+``transmittance``; the global range and scales count no bytes per texel.
+Gradients flow to the optical depths (``tau_max`` is a sum of them); ``a`` and ``e`` are
+taken from the segments' depths without gradients.  Without gradients ``tau_max`` is summed
+per texel in CSR order (:func:`._loops.texel_sums`: the same bits every run), with them by
+``dr.scatter_reduce`` (float atomics: the last bits vary between runs).
 """
 from __future__ import annotations
 
 import drjit as dr
+import numpy as np
 
 from .. import _arrays as A
 from .base import Representation
-from ._precision import Stored
+from ._loops import texel_sums
+from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
 
@@ -40,13 +51,14 @@ VARIANTS = ("cloud", "two_node")
 
 @register("beer")
 class BeerShadowMap(Representation):
-    """Beer shadow map: front depth, mean extinction and maximum optical depth per texel
-    (``variant='cloud'``), or two (depth, T) nodes with linear interpolation
-    (``variant='two_node'``); see the module docstring.
+    """Beer shadow map: front depth, extent and maximum optical depth per texel
+    (``variant='cloud'``: the mean extinction over the extent), or two (depth, T) nodes
+    with linear interpolation (``variant='two_node'``); see the module docstring.
 
-    Attributes: ``front``, ``back`` (Dr.Jit, texel content bounds), ``tau_max`` (total
-    optical depth per texel), ``sigma_mean`` (``tau_max / (back - front)``, 0 where
-    ``back = front``).
+    Attributes (Dr.Jit, one value per texel): ``front`` (first entry), ``extent``
+    (last exit - first entry), ``tau_max`` (total optical depth), ``t_back``
+    (``exp(-tau_max)``); properties ``back`` (``front + extent``) and ``sigma_mean``
+    (``tau_max / extent``, 0 where the extent is 0).
     """
 
     schema = Schema(
@@ -63,40 +75,49 @@ class BeerShadowMap(Representation):
         super().__init__(segments, **params)
         Float = segments.Float
         lo, hi = segments.texel_bounds()
+        empty = segments.counts == 0
         if self.precision is not None and segments.n_segments:
             # empty texels (T = 1 whatever their bounds) must not widen the global depth range
-            empty = segments.counts == 0
-            lo[empty], hi[empty] = segments.bounds()
-        self.front, self.back = Float(A.aligned(lo)), Float(A.aligned(hi))
-        # tau_max: total optical depth of the texel (one lane per segment, scatter-add)
+            lo[empty] = segments.bounds()[0]
+        ext = np.where(empty, 0.0, hi - lo)
+        self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(ext))
+        # tau_max: total optical depth of the texel
         self.tau_max = dr.zeros(Float, segments.n_texels)
-        if segments.n_segments:
+        if segments.n_segments and segments.requires_grad:
             dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth,
                               segments.texel_of_segment())
-        span = self.back - self.front
-        safe = dr.select(span > 0, span, 1)
-        self.sigma_mean = dr.select(span > 0, self.tau_max / safe, 0)
+        elif segments.n_segments:                 # CSR order: the same bits every run
+            tau = segments.optical_depth
+            texel, (total,) = texel_sums(segments, lambda i, _t: [dr.gather(Float, tau, i)], 1, label="beer_tau")
+            dr.scatter(self.tau_max, total, texel)
         self.t_back = dr.exp(-self.tau_max)
-        dr.eval(self.tau_max, self.sigma_mean, self.t_back)
+        dr.eval(self.tau_max, self.t_back)
 
     @property
     def variant(self) -> str:
         """'cloud' or 'two_node'."""
         return self.params["variant"]
 
-    # precision: floating formats only (see _precision_note)
-    precisions = ("float32", "float16")
-    _precision_note = ("; beer's mean extinction and optical depth are unbounded per-texel scalars, and a "
-                       "fixed-point code would need a per-texel scale as large as the value itself")
+    precisions = PRECISIONS
+
+    @property
+    def back(self):
+        """Last exit ``front + extent`` per texel (Dr.Jit)."""
+        return self.front + self.extent
+
+    @property
+    def sigma_mean(self):
+        """Mean extinction ``tau_max / extent`` per texel (0 where the extent is 0)."""
+        e = self.extent
+        return dr.select(e > 0, self.tau_max / dr.select(e > 0, e, 1), 0)
 
     def _stored(self):
-        """Depths relative to one global range; 'cloud': sigma_mean, tau_max (float16
-        saturates at 65504, where T = 0 anyway); 'two_node': T behind."""
-        if self.variant == "cloud":
-            return (Stored("front", "depth", "texel"), Stored("sigma_mean", "scalar", "texel"),
-                    Stored("tau_max", "scalar", "texel"))
-        return (Stored("front", "depth", "texel"), Stored("back", "depth", "texel"),
-                Stored("t_back", "transmittance", "texel"))
+        """``front`` relative to one global depth range, ``extent`` over the largest
+        extent, then ``tau_max`` (a relative code) or ``t_back`` (module docstring)."""
+        third = (Stored("tau_max", "scalar", "texel") if self.variant == "cloud"
+                 else Stored("t_back", "transmittance", "texel"))
+        return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False),
+                third)
 
     @property
     def nbytes_per_texel(self) -> float:
@@ -107,16 +128,12 @@ class BeerShadowMap(Representation):
     def _eval_texels(self, texel, depth):
         Float = self.Float
         a = dr.gather(Float, self.front, texel)
+        e = dr.gather(Float, self.extent, texel)
+        # fraction of the extent in front of the receiver; a step at a where e = 0
+        # (content without extent: a receiver at a step is behind it)
+        w = dr.clip((depth - a) / dr.select(e > 0, e, 1), 0, 1)
+        w = dr.select(e > 0, w, dr.select(depth >= a, 1, 0))
         if self.variant == "cloud":
-            sigma = dr.gather(Float, self.sigma_mean, texel)
-            tau_max = dr.gather(Float, self.tau_max, texel)
-            x = dr.maximum(depth - a, 0)
-            # sigma = 0 with tau_max > 0 only for content without extent: a step at a
-            od = dr.select(sigma > 0, dr.minimum(tau_max, sigma * x), dr.select(depth >= a, tau_max, 0))
-            return dr.exp(-od)
-        b = dr.gather(Float, self.back, texel)
+            return dr.exp(-dr.gather(Float, self.tau_max, texel) * w)
         tb = dr.gather(Float, self.t_back, texel)
-        span = b - a
-        w = dr.clip((depth - a) / dr.select(span > 0, span, 1), 0, 1)
-        w = dr.select(span > 0, w, dr.select(depth >= a, 1, 0))
         return 1 + w * (tb - 1)

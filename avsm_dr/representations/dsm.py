@@ -84,6 +84,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 from .registry import register
 from .base import Representation
 from ._precision import PRECISIONS, Stored
@@ -306,24 +307,27 @@ def next_up(z, dtype: str):
 def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p: float,
                         partial: bool = False) -> None:
     """ValueError (naming ``tolerance``) when the polyline's upper bound of
-    ``2 B + crossings`` vertices exceeds :data:`MEMORY_BUDGET_BYTES` (B breakpoints and
+    ``2 B + crossings`` vertices exceeds :data:`MEMORY_BUDGET_BYTES` or the budget of every
+    build, :func:`avsm_dr.validation.memory_budget`, whichever is less (B breakpoints and
     crossings of the first ``n_tex`` texels, all of them unless ``partial``).  The level
     part grows as ``1 / sqrt(tolerance)`` (e.g. 44,727 levels at 1e-9: ~2.9 MB per opaque
     texel, ~190 GB for a 256^2 map), so the message names the tolerance that would fit
     (those texels; the rest of a ``partial`` map needs more)."""
     bound = 2 * int(n_breakpoints) + int(n_crossings)
     need = bound * BYTES_PER_VERTEX
-    if need <= MEMORY_BUDGET_BYTES:
+    budget = min(MEMORY_BUDGET_BYTES, V.memory_budget())   # and the budget of every build
+    if need <= budget:
         return
     tol = eps_p / POLYLINE_SHARE
-    room = MEMORY_BUDGET_BYTES // BYTES_PER_VERTEX - 2 * int(n_breakpoints)
+    room = budget // BYTES_PER_VERTEX - 2 * int(n_breakpoints)
     fit = "no tolerance fits: fewer texels or segments" if room <= 0 else \
         f"tolerance >= {tol * (n_crossings / room) ** 2:.2g} fits"
     raise ValueError(
         f"tolerance: {tol:g} needs a polyline of up to {bound:,} vertices over "
         f"{'the first ' if partial else ''}{n_tex} texels "
-        f"({need / 2**30:.1f} GiB > the {MEMORY_BUDGET_BYTES / 2**30:g} GiB of "
-        f"avsm_dr.representations.dsm.MEMORY_BUDGET_BYTES); {fit} (vertices grow as 1/sqrt(tolerance))")
+        f"({need / 2**30:.3g} GiB > the {budget / 2**30:.3g} GiB of "
+        f"avsm_dr.representations.dsm.MEMORY_BUDGET_BYTES or avsm_dr.validation.memory_budget()); {fit} "
+        "(vertices grow as 1/sqrt(tolerance))")
 
 
 def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", before=(0, 0, 0)):

@@ -31,7 +31,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .registry import register
-from .basis import Basis, BasisRepresentation, clip_segment, register_basis, sinc, sincos_pi
+from .basis import MAX_COEFFICIENTS, Basis, BasisRepresentation, clip_segment, register_basis, sinc, sincos_pi
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 
@@ -127,7 +127,7 @@ class FourierOpacityMap(BasisRepresentation):
     schema = Schema(
         params=(
             Param("harmonics", "int", 3, "n harmonics: 2n + 1 coefficients per texel (the paper's 7: n = 3)",
-                  min=1),
+                  min=1, max=(MAX_COEFFICIENTS - 1) // 2),
             near_param(), far_param(), depth_range_param(),
         ),
         size="harmonics", sweep=(1, 2, 3, 4, 6, 8, 12, 16), quick_sweep=(1, 4, 8, 16),
@@ -139,6 +139,15 @@ class FourierOpacityMap(BasisRepresentation):
 
     def _make_basis(self):
         return FourierBasis(self.params["harmonics"])
+
+    def _build_bytes(self, K: int) -> float:
+        """The recurrence path (:meth:`_project_texels`, float32, no gradients, up to
+        :data:`RECURRENCE_HARMONICS`): K sums per texel lane and the store, ``3 T K``
+        words (measured 2.58); otherwise the base class' estimate."""
+        seg = self.segments
+        if seg.Float is backend.types().Float32 and not seg.requires_grad and (K - 1) // 2 <= RECURRENCE_HARMONICS:
+            return 3.0 * seg.itemsize * seg.n_texels * K
+        return super()._build_bytes(K)
 
     def _project_texels(self):
         """Float32 segments: one lane per non-empty texel, its 2n + 1 sums in registers.  Per

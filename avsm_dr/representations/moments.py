@@ -96,7 +96,7 @@ from . import _moment_quantization as QZ
 from . import _trig_moments as TM
 from ._moment_bounds import hankel_bound, hankel_pivots
 from ._precision import quantise
-from .basis import MIN_SPAN_REL, Basis, BasisRepresentation, register_basis
+from .basis import MIN_SPAN_REL, Basis, BasisRepresentation, clip_segment, register_basis
 from .registry import register
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
@@ -379,7 +379,8 @@ class MomentShadowMap(BasisRepresentation):
 
     def _project(self):
         """Linear warp: the basis projection.  Log warp: per segment the clipped range in
-        warped x and :func:`log_warp_means`, scatter-added like the basis."""
+        warped x and :func:`log_warp_means`, summed per texel like the basis (in CSR order
+        without gradients, scatter-added with them)."""
         if not self._log:
             return super()._project()             # the basis' average: power or trigonometric
         self._check_log_range()
@@ -390,24 +391,34 @@ class MomentShadowMap(BasisRepresentation):
         flat = dr.zeros(Float, T * K)
         if S == 0:
             return flat
-        texel, _, _, tau_in, tau_front = self._clipped_segments()
-        sel = texel if self._per_texel else None
-        near, span = self._range(sel)
-        far = near + span
-        ln_near, ls = self._log_range(sel)
-        w0 = (dr.log(dr.clip(seg.z0, near, far)) - ln_near) / ls
-        w1 = (dr.log(dr.clip(seg.z1, near, far)) - ln_near) / ls
-        x0, x1 = dr.clip(2 * w0 - 1, -1, 1), dr.clip(2 * w1 - 1, -1, 1)
-        x1 = dr.maximum(x1, x0)
         if self._trig:
-            means = TM.trig_means(x0, x1, self.basis.n, 0.5 * ls)
             at_near = TM.delta_values(-1.0, self.basis.n)
         else:
-            means = log_warp_means(x0, x1, 0.5 * ls, K - 1, seg.dtype)
-            at_near = [(-1.0) ** k for k in range(K)]
+            at_near = [(-1.0) ** k for k in range(K)]      # f_k at x = -1: the part in front of near
+
+        def terms(z0, z1, tau, texel):
+            sel = texel if self._per_texel else None
+            near, span = self._range(sel)
+            _, _, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
+            far = near + span
+            ln_near, ls = self._log_range(sel)
+            w0 = (dr.log(dr.clip(z0, near, far)) - ln_near) / ls
+            w1 = (dr.log(dr.clip(z1, near, far)) - ln_near) / ls
+            x0, x1 = dr.clip(2 * w0 - 1, -1, 1), dr.clip(2 * w1 - 1, -1, 1)
+            x1 = dr.maximum(x1, x0)
+            if self._trig:
+                means = TM.trig_means(x0, x1, self.basis.n, 0.5 * ls)
+            else:
+                means = log_warp_means(x0, x1, 0.5 * ls, K - 1, seg.dtype)
+            return [tau_in * means[k] + tau_front * at_near[k] for k in range(K)]
+
+        if not seg.requires_grad:                   # per texel in CSR order: the same bits every run
+            return self._sum_per_texel(terms)
+        texel = seg.texel_of_segment()
+        every = terms(seg.z0, seg.z1, seg.optical_depth, texel)
         base = texel * K
-        for k in range(K):                          # f_k at x = -1: the part in front of near
-            dr.scatter_reduce(dr.ReduceOp.Add, flat, tau_in * means[k] + tau_front * at_near[k], base + k)
+        for k in range(K):
+            dr.scatter_reduce(dr.ReduceOp.Add, flat, every[k], base + k)
         dr.eval(flat)
         return flat
 

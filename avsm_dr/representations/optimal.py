@@ -2,10 +2,14 @@
 points ("best breakpoint subset"), by dynamic programming.
 
 The candidate nodes are the texel's exact-curve points (:mod:`._curve`: segment ends
-with the exact curve's values, two points at a step); the first and the last point are
-always kept.  Between chosen points ``i < j`` the curve is the chord of the lookup's
-interpolation (``interpolation='linear'``: AVSM's eq. 2; ``'exp'``: ``T_i (T_j /
-T_i)^w``, linear where a value is 0), and its cost ``C(i, j)`` on ``[z_i, z_j]``:
+with the exact curve's values, two points at a step); the last point is always kept.
+In front of the first node the lookup gives 1: starting at point j costs the error of
+``T = 1`` on ``[z_0, z_j)`` (:func:`start_costs`; nothing at the right point of a
+leading step, whose left point would be a wasted node).  Between chosen points
+``i < j`` the curve is the chord of the lookup's interpolation
+(``interpolation='linear'``: AVSM's eq. 2; ``'exp'``: ``T_i (T_j / T_i)^w``, linear
+where a value is 0; :func:`exp_stored_values`), and its cost ``C(i, j)`` on
+``[z_i, z_j]``:
 
 * ``norm='l2'``: ``int (T - chord)^2 dz``.  Linear chords: O(1) per pair from prefix
   sums of ``int T``, ``int z T`` and ``int T^2`` (each interval between points is one
@@ -17,8 +21,11 @@ T_i)^w``, linear where a value is 0), and its cost ``C(i, j)`` on ``[z_i, z_j]``
   difference of an exponential and a line or an exponential: one critical point, in
   closed form).  O(K) per pair.
 
-DP over "at most m intervals": ``D_m(j) = min(D_{m-1}(j), min_{i<j} D_{m-1}(i) (+|max)
-C(i, j))``, m = 1..N-1, O(N K^2) per texel; the answer is ``D_{N-1}(K-1)``, backtracked.
+DP over "at most n nodes": ``D_1(j) = S(j)`` (the start cost), ``D_n(j) =
+min(D_{n-1}(j), min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, n = 2..N, O(N K^2) per texel;
+the answer is ``D_N(K-1)``, backtracked.  Costs are formed in log space from the optical
+depths (finite for any input: denormal and zero values, opaque segments); a non-finite
+one raises RuntimeError rather than enter the DP.
 This is exact for nodes carrying the exact curve's values.  With ``norm='l2'`` and
 linear interpolation the chosen nodes' values are then refitted by least squares (the
 normal equations of the hat functions: tridiagonal, solved by the Thomas algorithm) with
@@ -41,6 +48,7 @@ import numpy as np
 
 from . import _curve
 from .avsm import INTERPOLATIONS, NodeList
+from .base import node_build_bytes
 from .registry import register
 from .schema import Param, Schema
 
@@ -73,15 +81,25 @@ def phi2(z):
     return np.where(small, series, direct)
 
 
-def prefix_integrals(x, v, s):
+def piece_exponents(x, tau):
+    """(B, K) optical depth across the piece after each point, ``tau_{k+1} - tau_k`` (0 for a
+    zero-width piece: a step, padding, after the last point).  The pieces' ``s_k h_k``
+    without forming the slope in normalised units, which can overflow (thin opaque
+    segments in a wide texel)."""
+    h = np.diff(x, axis=1)
+    a = np.where(h > 0, np.maximum(np.diff(tau, axis=1), 0.0), 0.0)
+    return np.concatenate([a, np.zeros((x.shape[0], 1))], 1)
+
+
+def prefix_integrals(x, v, a):
     """Prefix sums over a (B, K) block of points: ``P0 = int T``, ``P1 = int x T``,
     ``P2 = int T^2`` from the first point to each point (the piece after point k is
-    ``v_k exp(-s_k (x - x_k))`` up to ``x_{k+1}``)."""
+    ``v_k exp(-a_k (x - x_k) / h_k)`` up to ``x_{k+1}``, ``a`` from :func:`piece_exponents`)."""
     h = np.diff(x, axis=1)
-    vk, sk, xk = v[:, :-1], s[:, :-1], x[:, :-1]
-    i0 = vk * h * phi1(sk * h)
-    i1 = xk * i0 + vk * h * h * phi2(sk * h)
-    i2 = vk * vk * h * phi1(2 * sk * h)
+    vk, ak, xk = v[:, :-1], a[:, :-1], x[:, :-1]
+    i0 = vk * h * phi1(ak)
+    i1 = xk * i0 + vk * h * h * phi2(ak)
+    i2 = vk * vk * h * phi1(2 * ak)
     z = np.zeros((x.shape[0], 1))
     return (np.concatenate([z, np.cumsum(i0, 1)], 1), np.concatenate([z, np.cumsum(i1, 1)], 1),
             np.concatenate([z, np.cumsum(i2, 1)], 1))
@@ -100,81 +118,143 @@ def linear_chord_l2(a0, a1, q, xa, xb, va, vb):
 # ----------------------------------------------------------------------------
 # Pair costs C(i, j) for a (B, K) block
 # ----------------------------------------------------------------------------
-def pair_costs(x, v, s, count, norm: str, interp: str):
-    """(B, K, K) costs of the chord from point i to point j (i < j < count; inf else)."""
+def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
+    """(B, K, K) costs of the chord from point i to point j (i < j < count; inf else), from
+    the points' depths ``x`` (normalised), optical depths ``tau`` and piece exponents ``a``
+    (:func:`piece_exponents`); ``store``: the dtype the node values are stored in.
+
+    The chord is the one the lookup (:func:`.avsm.interpolate`) evaluates on the stored
+    values (:func:`exp_stored_values` for ``interp='exp'``): a line in log space between
+    two positive ones, a line in T where one is 0 (an opaque point, or one below
+    ``store``'s range).  Everything is formed from ``tau``, log values of normal numbers
+    and ratios in [0, 1] (never ``T_i / T_j`` or a normalised slope), so every valid cost
+    is finite; a non-finite one raises RuntimeError (a bug, not an input error)."""
     B, K = x.shape
+    v = np.exp(-tau)
     ii = np.arange(K)[None, :, None]
     jj = np.arange(K)[None, None, :]
     valid = (ii < jj) & (jj < count[:, None, None])
     if norm == "l2" and interp == "linear":
-        P0, P1, P2 = prefix_integrals(x, v, s)
-        c = linear_chord_l2(P0[:, None, :] - P0[:, :, None], P1[:, None, :] - P1[:, :, None],
+        P0, P1, P2 = prefix_integrals(x, v, a)
+        C = linear_chord_l2(P0[:, None, :] - P0[:, :, None], P1[:, None, :] - P1[:, :, None],
                             P2[:, None, :] - P2[:, :, None], x[:, :, None], x[:, None, :],
                             v[:, :, None], v[:, None, :])
-        return np.where(valid, c, np.inf)
+        C = np.where(valid, C, np.inf)
+        _check_finite(C, valid)
+        return C
     C = np.full((B, K, K), np.inf)
-    P = prefix_integrals(x, v, s) if norm == "l2" else None
+    P = prefix_integrals(x, v, a) if norm == "l2" else None
     h = np.diff(x, axis=1, append=x[:, -1:])          # piece after point k (0 after the last)
+    # the chord's end values as stored; exp: exponential between two positive ones
+    vn = exp_stored_values(v, store) if interp == "exp" else v
+    expo = vn > 0 if interp == "exp" else np.zeros((B, K), bool)
+    lv = np.log(np.where(expo, vn, 1.0))               # >= ln(tiny): finite
     for i in range(K - 1):
         # rows: j in (i, K); columns: k in [i, K) (points / pieces between i and j)
-        xj, vj = x[:, i + 1:, None], v[:, i + 1:, None]
-        xi, vi = x[:, i, None, None], v[:, i, None, None]
-        xk, vk, sk, hk = x[:, None, i:], v[:, None, i:], s[:, None, i:], h[:, None, i:]
+        xj, vj, lj, ej = (m[:, i + 1:, None] for m in (x, vn, lv, expo))
+        xi, vi, li, ei = (m[:, i, None, None] for m in (x, vn, lv, expo))
+        xk, vk, tk, ak, hk = (m[:, None, i:] for m in (x, v, tau, a, h))
         kidx = np.arange(i, K)[None, None, :]
         jidx = np.arange(i + 1, K)[None, :, None]
         d = xj - xi
         dd = np.where(d > 0, d, 1.0)
-        use_exp = (interp == "exp") & (vi > 0) & (vj > 0)
-        rate = np.where(use_exp, np.log(np.where(use_exp, vi, 1.0) / np.where(use_exp, vj, 1.0)) / dd, 0.0)
-        slope = (vj - vi) / dd                              # linear chord's slope
-        # chord value at point k and at the start of piece k
-        ck = np.where(use_exp, vi * np.exp(-rate * (xk - xi)), vi + slope * (xk - xi))
+        f = np.clip((xk - xi) / dd, 0.0, 1.0)          # where point k sits in the chord
+        g = np.clip(hk / dd, 0.0, 1.0)                 # piece k's share of the chord
+        use_exp = ei & ej
+        drop = np.where(use_exp, li - lj, 0.0)         # log decrease over the chord (exp)
+        lc = li - drop * f                             # log chord at point k (exp)
+        R = drop * g                                   # its decrease over piece k (exp)
+        rise = vj - vi                                 # change over the chord (linear)
+        cl = vi + rise * f                             # linear chord at point k
+        S = rise * g
+        ck = np.where(use_exp, np.exp(lc), cl)
+        inside = kidx < jidx                           # pieces k in [i, j)
         if norm == "l2":
-            inside = (kidx < jidx)                          # pieces k in [i, j)
-            # int T chord over piece k: exponential chord in closed form; linear via prefix sums
-            te = np.where(inside, vk * ck * hk * phi1((sk + rate) * hk), 0.0).sum(axis=2)
-            q = (P[2][:, i + 1:] - P[2][:, i, None])
-            ee = vi[:, :, 0] ** 2 * d[:, :, 0] * phi1(2 * rate[:, :, 0] * d[:, :, 0])
-            c_exp = np.maximum(q - 2 * te + ee, 0.0)
-            c_lin = linear_chord_l2(P[0][:, i + 1:] - P[0][:, i, None], P[1][:, i + 1:] - P[1][:, i, None],
-                                    q, x[:, i, None], x[:, i + 1:], v[:, i, None], v[:, i + 1:])
-            c = np.where(use_exp[:, :, 0], c_exp, c_lin)
+            q = P[2][:, i + 1:] - P[2][:, i, None]
+            c = linear_chord_l2(P[0][:, i + 1:] - P[0][:, i, None], P[1][:, i + 1:] - P[1][:, i, None],
+                                q, x[:, i, None], x[:, i + 1:], vn[:, i, None], vn[:, i + 1:])
+            if interp == "exp":
+                # int T chord per piece, both exponentials: h_k e^{-tau_k + lc_k} phi1(a_k + R_k)
+                te = np.where(inside, np.exp(lc - tk) * hk * phi1(ak + R), 0.0).sum(axis=2)
+                ee = d[:, :, 0] * np.exp(2 * li[:, :, 0]) * phi1(2 * drop[:, :, 0])   # int chord^2
+                c = np.where(use_exp[:, :, 0], np.maximum(q - 2 * te + ee, 0.0), c)
             c = np.where(d[:, :, 0] > 0, c, 0.0)
         else:
             at_pts = np.where(kidx <= jidx, np.abs(vk - ck), 0.0).max(axis=2)
-            # interior extremum of T - chord on piece k (k < j), y* in (0, h_k)
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                # linear chord: -s v e^{-s y} = slope -> y* = ln(-s v / slope) / s
-                arg_l = np.where((sk > 0) & (slope < 0), -sk * vk / np.where(slope < 0, slope, -1.0), 0.0)
-                y_l = np.where(arg_l > 1, np.log(np.where(arg_l > 1, arg_l, 1.0)) / np.where(sk > 0, sk, 1.0), -1.0)
-                # exponential chord: s v e^{-s y} = r c e^{-r y} -> y* = ln(s v / (r c)) / (s - r)
-                den = sk - rate
-                arg_e = np.where((sk > 0) & (rate > 0) & (ck > 0) & (vk > 0) & (den != 0),
-                                 sk * vk / np.where(rate * ck > 0, rate * ck, 1.0), 1.0)
-                y_e = np.log(np.where(arg_e > 0, arg_e, 1.0)) / np.where(den != 0, den, 1.0)
-                y = np.where(use_exp, y_e, y_l)
-                ok = (kidx < jidx) & (y > 0) & (y < hk) & np.isfinite(y)
-                yy = np.where(ok, y, 0.0)
-                chord_y = np.where(use_exp, ck * np.exp(-rate * yy), ck + slope * yy)
-                dev = np.where(ok, np.abs(vk * np.exp(-sk * yy) - chord_y), 0.0).max(axis=2)
+            # the one critical point of T - chord on piece k, at t* of its width:
+            # exp chord: a e^{-tau - a t} = R e^{lc - R t}; linear: a e^{-tau - a t} = -S
+            la = np.log(np.where(ak > 0, ak, 1.0))
+            ok_e = use_exp & (ak > 0) & (R > 0) & (ak != R)
+            ok_l = ~use_exp & (ak > 0) & (S < 0)
+            num = np.where(use_exp, la - tk - np.log(np.where(R > 0, R, 1.0)) - lc,
+                           la - tk - np.log(np.where(S < 0, -S, 1.0)))
+            den = np.where(ok_e, ak - R, np.where(ok_l, ak, 1.0))
+            with np.errstate(over="ignore"):           # t* far outside (0, 1): dropped below
+                t = num / den
+            ok = inside & np.where(use_exp, ok_e, ok_l) & (t > 0) & (t < 1)
+            t = np.where(ok, t, 0.0)
+            chord_t = np.where(use_exp, np.exp(lc - R * t), cl + S * t)
+            dev = np.where(ok, np.abs(np.exp(-tk - ak * t) - chord_t), 0.0).max(axis=2)
             c = np.where(d[:, :, 0] > 0, np.maximum(at_pts, dev), 0.0)   # two points at one depth: a step
-        m = valid[:, i, i + 1:]
-        C[:, i, i + 1:] = np.where(m, c, np.inf)
+        C[:, i, i + 1:] = np.where(valid[:, i, i + 1:], c, np.inf)
+    _check_finite(C, valid)
     return C
+
+
+def exp_stored_values(v, store):
+    """Node values as the offline kinds store them for exponential interpolation: 0 where
+    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least the smallest
+    normal ``tiny`` of ``store`` (changes a value by < ``tiny``).  The lookup's
+    ``exp(w (log t_r - log t_l))`` then never takes the log of a denormal (Dr.Jit's LLVM
+    log returns about ``ln(tiny / 2)`` for any, so a chord towards T = 1e-318 would bend
+    by up to ~1e-2 of ``t_l``), and the DP's chords are the lookup's exactly."""
+    v = np.asarray(v, np.float64)
+    return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
+
+
+def _check_finite(C, valid):
+    """Every valid pair cost is finite (the DP would otherwise skip or pick it silently)."""
+    bad = valid & ~np.isfinite(C)
+    if bad.any():
+        b, i, j = (int(u[0]) for u in np.nonzero(bad))
+        raise RuntimeError(f"optimal: non-finite pair cost {C[b, i, j]} (row {b}, points {i} -> {j}); "
+                           "a bug in avsm_dr.representations.optimal.pair_costs")
 
 
 # ----------------------------------------------------------------------------
 # DP and refit
 # ----------------------------------------------------------------------------
-def best_subset(C, count, N: int, norm: str):
-    """(B, K) bool mask of the chosen points (at most N, first and last included) and
-    the (B,) optimal cost, from the (B, K, K) pair costs ``C``."""
+def start_costs(x, tau, a, count, norm: str):
+    """(B, K) cost of starting the node list at point j: the lookup gives 1 in front of the
+    first node, so ``[x_0, x_j)`` costs ``int (1 - T)^2`` (l2) or ``1 - T(x_j^-)`` (linf,
+    T non-increasing); 0 at j = 0 and at the right point of a leading step (its left
+    point, T = 1, is then no node's business); inf for padding."""
+    B, K = x.shape
+    if norm == "l2":
+        P0, _, P2 = prefix_integrals(x, np.exp(-tau), a)
+        S = np.maximum(x - x[:, :1] - 2 * P0 + P2, 0.0)
+    else:
+        step = np.zeros((B, K), bool)
+        step[:, 1:] = x[:, 1:] == x[:, :-1]           # point j is the right side of a step
+        left = np.where(step, np.roll(tau, 1, axis=1), tau)
+        S = -np.expm1(-left)
+    S[:, 0] = 0.0
+    valid = np.arange(K)[None, :] < count[:, None]
+    S = np.where(valid, S, np.inf)
+    _check_finite(S, valid)
+    return S
+
+
+def best_subset(C, S, count, N: int, norm: str):
+    """(B, K) bool mask of the chosen points (at most N, the last included) and the (B,)
+    optimal cost, from the (B, K, K) pair costs ``C`` and the (B, K) start costs ``S``
+    (:func:`start_costs`).  ``D_1(j) = S(j)``, ``D_n(j) = min(D_{n-1}(j), min_i D_{n-1}(i)
+    (+|max) C(i, j))``; ties keep fewer nodes."""
     B, K = C.shape[:2]
     rows = np.arange(B)
-    dp = C[:, 0, :].copy()
-    dp[:, 0] = 0.0
+    dp = S.copy()
     parents = []
-    for _ in range(2, N):
+    for _ in range(1, N):
         cand = (np.maximum(dp[:, :, None], C) if norm == "linf" else dp[:, :, None] + C)
         arg = np.argmin(cand, axis=1)
         best = cand.min(axis=1)
@@ -184,7 +264,6 @@ def best_subset(C, count, N: int, norm: str):
     last = count - 1
     cost = dp[rows, last]
     chosen = np.zeros((B, K), bool)
-    chosen[rows, 0] = True
     chosen[rows, last] = True
     j = last.copy()
     for par in reversed(parents):
@@ -195,12 +274,12 @@ def best_subset(C, count, N: int, norm: str):
     return chosen, cost
 
 
-def refit_l2(x, v, s, chosen, count):
+def refit_l2(x, v, a, chosen, count):
     """Least-squares values of the chosen nodes (linear interpolation, first and last value
     pinned), clipped to [0, 1], where they lower the L2 error; returns (values (B, M), L2
     error (B,)) over the chosen nodes in order (M = max chosen per row, padded)."""
     B, K = x.shape
-    P = prefix_integrals(x, v, s)
+    P = prefix_integrals(x, v, a)
     n = chosen.sum(axis=1)
     M = int(n.max())
     order = np.argsort(~chosen, axis=1, kind="stable")[:, :M]         # chosen indices first, in order
@@ -209,6 +288,8 @@ def refit_l2(x, v, s, chosen, count):
     idx = np.where(real, order, order[np.arange(B), n - 1][:, None])   # pad: repeat the last node
     X = np.take_along_axis(x, idx, 1)
     V0 = np.take_along_axis(v, idx, 1)
+    if M == 1:                                                         # one node each: no interval
+        return V0, np.zeros(B), idx, real
     rows = np.arange(B)[:, None]
     P0, P1 = P[0], P[1]
     h = np.diff(X, axis=1)                                             # (B, M-1)
@@ -318,20 +399,38 @@ class OptimalSubset(NodeList):
         super().__init__(segments, **params)
         P = self.params
         self.N, self.norm, self.interp = P["nodes"], P["norm"], P["interpolation"]
+        self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
         pts = _curve.cached(segments, "curve_points", lambda: _curve.curve_points(segments))
         off = pts["off"]
         counts = np.diff(off)
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
-            raise ValueError(f"segments: texel {t} has {int(counts[t])} exact-curve points, above the "
-                             f"{MAX_POINTS} that 'optimal' accepts (avsm_dr.representations.optimal.MAX_POINTS)")
+            raise ValueError(f"segments: texel {t} has {int(counts[t])} exact-curve points (segment ends, two "
+                             f"at a step), above the {MAX_POINTS} per texel that 'optimal' accepts "
+                             f"(avsm_dr.representations.optimal.MAX_POINTS: a K x K float64 cost block per "
+                             f"texel); {int(np.sum(counts > MAX_POINTS))} texels exceed it; 'greedy' has no "
+                             "such limit")
         work = work_units(counts, self.N, self.norm, self.interp)
         if work > MAX_WORK:
-            raise ValueError(f"segments: 'optimal' (nodes={self.N}, norm={self.norm!r}, interpolation="
-                             f"{self.interp!r}) needs {work:.3g} work units (sum over texels of N K^2"
-                             f"{'' if self.norm == 'l2' and self.interp == 'linear' else ' + 3 K^3'}), above "
-                             f"MAX_WORK = {MAX_WORK:.3g}; use fewer texels, a coarser capture or 'greedy'")
+            raise ValueError(self._work_message(counts, work))
         self._build(pts)
+
+    def _work_message(self, counts, work: float) -> str:
+        """Why a build is refused above :data:`MAX_WORK`, and what fits."""
+        k2 = float(np.sum(counts.astype(np.float64) ** 2))
+        cubic = work - self.N * k2
+        fits = []
+        n_fit = int(min(self.N - 1, (MAX_WORK - cubic) // k2)) if k2 > 0 else 0
+        if n_fit >= 2:
+            fits.append(f"nodes={n_fit}")
+        fits.append(f"about {max(MAX_WORK / work, 0.0):.1%} of the texels (a tile) at nodes={self.N}")
+        if cubic > 0 and work_units(counts, self.N, "l2", "linear") <= MAX_WORK:
+            fits.append("norm='l2' with interpolation='linear' (no K^3 term)")
+        return (f"segments: 'optimal' (nodes={self.N}, norm={self.norm!r}, interpolation={self.interp!r}) "
+                f"needs {work:.3g} work units (sum over texels of N K^2{' + 3 K^3' if cubic > 0 else ''}, "
+                f"K = exact-curve points per texel, largest {int(counts.max())}), above MAX_WORK = "
+                f"{MAX_WORK:.3g} (avsm_dr.representations.optimal.MAX_WORK); fits: "
+                f"{'; '.join(fits)}; or use 'greedy' (O(K log K), no limit)")
 
     @property
     def monotone(self) -> bool:
@@ -355,23 +454,26 @@ class OptimalSubset(NodeList):
         seg = self.segments
         T, N = seg.n_texels, self.N
         off = pts["off"]
+        store = np.float32 if seg.dtype == "float32" else np.float64
         self.objective = np.zeros(T)
         sel_tex, sel_pt, slot, vals = [], [], [], []
         for tex, kmax in _curve.buckets(off, power=2, max_elems=1 << 21):
-            count, (z, v, s) = _curve.padded(off, tex, kmax, pts["z"], pts["v"], pts["slope"])
+            count, (z, v, tau) = _curve.padded(off, tex, kmax, pts["z"], pts["v"], pts["tau"])
             lo = z[:, 0]
             span = z[np.arange(tex.size), count - 1] - lo
             span = np.where(span > 0, span, 1.0)
             x = (z - lo[:, None]) / span[:, None]              # depths normalised to [0, 1]
-            sn = s * span[:, None]
+            a = piece_exponents(x, tau)
             if kmax == 1:
                 chosen = np.ones((tex.size, 1), bool)
                 cost = np.zeros(tex.size)
             else:
-                C = pair_costs(x, v, sn, count, self.norm, self.interp)
-                chosen, cost = best_subset(C, count, N, self.norm)
+                C = pair_costs(x, tau, a, count, self.norm, self.interp, store=store)
+                S = start_costs(x, tau, a, count, self.norm)
+                chosen, cost = best_subset(C, S, count, N, self.norm)
             if self._refit and kmax > 1:
-                V, cost, idx, real = refit_l2(x, v, sn, chosen, count)
+                V, cost, idx, real = refit_l2(x, v, a, chosen, count)
+                cost = cost + S[np.arange(tex.size), idx[:, 0]]     # the refit keeps the first node
             else:
                 n = chosen.sum(axis=1)
                 M = int(n.max())
@@ -400,4 +502,6 @@ class OptimalSubset(NodeList):
                 value[k, nz[fill]] = lastv[fill]
             self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value)
         else:
+            if self.interp == "exp":
+                pts = {**pts, "v": exp_stored_values(pts["v"], store)}
             self.depths, self.values = _curve.store_nodes(seg, src, pts)

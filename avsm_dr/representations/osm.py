@@ -30,8 +30,9 @@ import drjit as dr
 
 from .. import backend
 from .registry import register
+from ._loops import texel_lanes
 from ._precision import Stored
-from .basis import Basis, BasisRepresentation, register_basis
+from .basis import MAX_COEFFICIENTS, Basis, BasisRepresentation, clip_segment, register_basis
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 
@@ -100,7 +101,7 @@ class OpacityShadowMap(BasisRepresentation):
 
     schema = Schema(
         params=(
-            Param("slices", "int", 16, "n uniform slices over [near, far]", min=1),
+            Param("slices", "int", 16, "n uniform slices over [near, far]", min=1, max=MAX_COEFFICIENTS),
             near_param(), far_param(), depth_range_param(),
         ),
         size="slices", sweep=(4, 8, 16, 32, 64), quick_sweep=(4, 16, 32),
@@ -112,6 +113,14 @@ class OpacityShadowMap(BasisRepresentation):
 
     def _make_basis(self):
         return PiecewiseConstantBasis(self.params["slices"])
+
+    def _build_bytes(self, K: int) -> float:
+        """Peak of the four-scatter projection and the cumulative sums: the parts P, the
+        difference array R, their float64 prefix sums and the store, ``8 itemsize + 32``
+        bytes per (texel, slice) (measured 38 - 60: float32, float64, float32 with
+        gradients), and ~12 words per segment of scatter terms."""
+        seg = self.segments
+        return (8.0 * seg.itemsize + 32.0) * seg.n_texels * K + 12.0 * seg.itemsize * seg.n_segments
 
     def __init__(self, segments, **params):
         super().__init__(segments, **params)
@@ -141,8 +150,11 @@ class OpacityShadowMap(BasisRepresentation):
         # stay in one cache line or two (j * T + texel was 3x slower, cache misses)
         P = dr.zeros(Float, n * T)                  # end-slice parts
         Rd = dr.zeros(Float, n * T)                 # difference array of full-slice rates
-        if seg.n_segments:
-            texel, c0, c1, tau_in, tau_front = self._clipped_segments()
+        add = dr.ReduceOp.Add
+
+        def scatter(z0, z1, tau, texel, mode=dr.ReduceMode.Auto):
+            near, span = self._range(texel if self._per_texel else None)
+            c0, c1, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
             t0, t1 = n * c0, n * c1                 # segment in slice units
             j0 = dr.minimum(dr.floor(t0), n - 1)    # first slice (the last one is closed)
             j1 = dr.minimum(dr.floor(t1), n - 1)    # last slice
@@ -150,17 +162,32 @@ class OpacityShadowMap(BasisRepresentation):
             dt = t1 - t0
             rate = tau_in / dr.select(dt > 0, dt, 1)
             i0, i1 = texel * n + UInt32(j0), texel * n + UInt32(j1)
-            add = dr.ReduceOp.Add
-            dr.scatter_reduce(add, P, dr.select(same, tau_in, rate * (j0 + 1 - t0)), i0)
-            dr.scatter_reduce(add, P, rate * (t1 - j1), i1, active=~same)
+            dr.scatter_reduce(add, P, dr.select(same, tau_in, rate * (j0 + 1 - t0)), i0, mode=mode)
+            dr.scatter_reduce(add, P, rate * (t1 - j1), i1, active=~same, mode=mode)
             full = j1 > j0 + 1
-            dr.scatter_reduce(add, Rd, rate, i0 + 1, active=full)
-            dr.scatter_reduce(add, Rd, -rate, i1, active=full)
-            dr.scatter_reduce(add, P, tau_front, texel * n, active=tau_front > 0)
+            dr.scatter_reduce(add, Rd, rate, i0 + 1, active=full, mode=mode)
+            dr.scatter_reduce(add, Rd, -rate, i1, active=full, mode=mode)
+            dr.scatter_reduce(add, P, tau_front, texel * n, active=tau_front > 0, mode=mode)
+
+        if seg.n_segments and seg.requires_grad:     # reverse mode: no symbolic loop
+            scatter(seg.z0, seg.z1, seg.optical_depth, seg.texel_of_segment())
+        elif seg.n_segments:
+            # one lane per texel adds its segments' parts in CSR order into its own row: no
+            # two lanes add to one slot (so no atomics: NoConflicts), and the sums have the
+            # same bits every run (concurrent float atomics add in the order threads arrive)
+            texel, first, stop = texel_lanes(seg)
+            z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
+
+            def body(i):
+                scatter(dr.gather(Float, z0, i), dr.gather(Float, z1, i), dr.gather(Float, tau, i), texel,
+                        mode=dr.ReduceMode.NoConflicts)
+                return (i + 1,)
+
+            dr.while_loop((first,), lambda i: i < stop, body, label="osm_project")
         # a_j = P_j + sum_{i <= j} R_i: a prefix sum inside each texel's block of n, in
         # float64 (a float32 running sum over 1e6 slices drifted by 8e-4)
         a = P + Float(dr.block_prefix_sum(backend.types().Float64(Rd), n, exclusive=False))
-        # R's +r / -r pairs are scattered in the storage dtype in any order, so a slice no
+        # R's +r / -r pairs are added in the storage dtype (in any order under AD), so a slice no
         # segment covers can keep a rounding residual; a negative one (-1.5e-8 found in
         # float32) made D decrease: clamp it (a select, so a_k = 0 keeps its gradient)
         a = dr.select(a < 0, 0, a)

@@ -51,7 +51,6 @@ from ``dr.kernel_history()`` (codegen + LLVM; 0 when Dr.Jit's on-disk cache serv
 """
 from __future__ import annotations
 
-import json
 import time
 
 from tqdm import tqdm
@@ -97,7 +96,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     res.write_csv(skip, "skipping.csv")
     res.write_csv(mem, "memory.csv")
     res.write_csv(report.machine_rows(data, machine), "machine.csv")
-    (res.dir / "machine.json").write_text(json.dumps(machine, indent=2, default=str))
+    res.write_json("machine.json", machine, indent=2, default=str)
     throughput.plot(res, data)
     peers.plot(res, peer)
     scaling.plot(res, scal)

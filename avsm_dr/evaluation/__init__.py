@@ -1,0 +1,31 @@
+"""The evaluation harness: how wrong is a representation, against the true transmittance,
+where it matters, and at what cost.  For example::
+
+    import avsm_dr as ad
+    methods = {"avsm-8": ("avsm", {"nodes": 8}), "fom-4": ("fom", {"harmonics": 4})}
+    table = ad.evaluation.evaluate(methods, ["plume"],
+                                   ad.evaluation.configurations(seeds=4, lights=("dir_a", "spot")))
+    print(ad.evaluation.compare(table, "avsm-8", "fom-4"))
+
+* :func:`evaluate` (:mod:`.harness`): methods x scenes x configurations -> a :class:`Table`.
+* :func:`compare` (:mod:`.comparison`): a ratio with an interval over configurations.
+* :class:`Configuration`, :func:`configurations` (:mod:`.configuration`): seed x light.
+* :class:`Probe`, :class:`SubsetBuilder`, :func:`truth` (:mod:`.probe`): the error
+  decomposition (compression / capture / spatial) at a receiver set.
+* :func:`depth_l2` (:mod:`.curves`): the depth-uniform L2 of a whole curve.
+* :func:`light_variants` (:mod:`.lights`), :func:`with_faint_segments` (:mod:`.perturb`).
+* :func:`measure`, :func:`timed`, :class:`Meter` (:mod:`.timing`): time and memory.
+"""
+from .comparison import Comparison, compare
+from .configuration import LIGHTS, Configuration, configurations
+from .curves import curve_values, depth_l2
+from .harness import METRICS, RECEIVER_SETS, evaluate
+from .lights import light_variants
+from .perturb import with_faint_segments
+from .probe import Built, Probe, SubsetBuilder, truth
+from .table import Table
+from .timing import Meter, measure, sync, timed
+
+__all__ = ["Built", "Comparison", "Configuration", "LIGHTS", "METRICS", "Meter", "Probe", "RECEIVER_SETS",
+           "SubsetBuilder", "Table", "compare", "configurations", "curve_values", "depth_l2", "evaluate",
+           "light_variants", "measure", "sync", "timed", "truth", "with_faint_segments"]

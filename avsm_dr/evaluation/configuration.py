@@ -1,0 +1,90 @@
+"""Configurations of an evaluation: a seed and a light, the unit of every interval.
+
+A built-in scene is regenerated per seed (its noise) and its receivers are drawn with that
+seed; a :class:`~avsm_dr.Scene` object keeps its content and only its receivers are drawn
+per seed.  The light is a name of :func:`~avsm_dr.evaluation.lights.light_variants`
+('dir_a': the scene's own light, 'dir_b': it tilted by 25 degrees, 'spot': a spot light on
+its axis) or a light object.
+"""
+from __future__ import annotations
+
+import dataclasses
+from numbers import Integral
+
+import numpy as np
+
+from .. import validation as V
+from ..scene import DirectionalLight, PointLight, SpotLight
+
+#: Light names a configuration takes (:func:`~avsm_dr.evaluation.lights.light_variants`).
+LIGHTS = ("dir_a", "dir_b", "spot")
+_LIGHT_TYPES = (DirectionalLight, SpotLight, PointLight)
+
+
+def _light_label(light) -> str:
+    """Short text naming a light object: its type and direction or position."""
+    def fmt(v):
+        return "(" + ", ".join(f"{x:.3g}" for x in np.asarray(v, np.float64)) + ")"
+    if isinstance(light, DirectionalLight):
+        return f"directional{fmt(light.direction)}"
+    if isinstance(light, SpotLight):
+        return f"spot{fmt(light.position)}->{fmt(light.direction)}"
+    return f"point{fmt(light.position)}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Configuration:
+    """One configuration: ``seed`` (integer >= 0) and ``light`` (a name of :data:`LIGHTS`
+    or a DirectionalLight / SpotLight / PointLight); :attr:`label` names it in tables."""
+    seed: int = 0
+    light: object = "dir_a"
+
+    def __post_init__(self):
+        object.__setattr__(self, "seed", V.integer(self.seed, "seed", 0))
+        if isinstance(self.light, str):
+            V.one_of(self.light, "light", LIGHTS)
+        elif not isinstance(self.light, _LIGHT_TYPES):
+            raise ValueError(f"light: expected one of {LIGHTS} or a DirectionalLight, SpotLight or PointLight, "
+                             f"got {self.light!r}")
+
+    @property
+    def light_label(self) -> str:
+        """The light's name, or a short description of a light object."""
+        return self.light if isinstance(self.light, str) else _light_label(self.light)
+
+    @property
+    def label(self) -> str:
+        """``s<seed>-<light>``, e.g. ``s0-dir_a`` (the labels of ``error_curves``)."""
+        return f"s{self.seed}-{self.light_label}"
+
+    def light_for(self, scene):
+        """The light object of this configuration for ``scene``: 'dir_a' is the scene's own
+        light (of any type); 'dir_b' and 'spot' need a directional one."""
+        if not isinstance(self.light, str):
+            return self.light
+        if self.light == "dir_a":
+            return scene.light
+        from .lights import light_variants
+        return light_variants(scene)[self.light]
+
+
+def configurations(seeds=1, lights=("dir_a",)) -> list[Configuration]:
+    """Every seed x light, seeds outermost: ``seeds`` an integer n (seeds 0..n-1) or a
+    sequence of seeds; ``lights`` a sequence of names of :data:`LIGHTS` and light objects
+    (or one of them)."""
+    if isinstance(seeds, Integral) and not isinstance(seeds, bool):
+        seeds = range(V.integer(seeds, "seeds", 1))
+    elif isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
+        raise ValueError(f"seeds: expected a count or a sequence of seeds, got {seeds!r}")
+    if isinstance(lights, (str, *_LIGHT_TYPES)):
+        lights = [lights]
+    seeds, lights = list(seeds), list(lights)
+    if not seeds:
+        raise ValueError("seeds: no seed given")
+    if not lights:
+        raise ValueError("lights: no light given")
+    out = [Configuration(s, li) for s in seeds for li in lights]
+    labels = [c.label for c in out]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"seeds: repeated configurations {sorted(x for x in labels if labels.count(x) > 1)}")
+    return out

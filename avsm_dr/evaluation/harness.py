@@ -1,0 +1,335 @@
+"""``evaluate``: methods x scenes x configurations x receiver sets -> one tidy :class:`Table`.
+
+Per scene and configuration (one cell of the progress bar) the steps of ``error_curves``:
+the scene (a built-in one regenerated with the seed) lit by the configuration's light;
+receiver sets drawn with the seed (:mod:`avsm_dr.receivers`); ``ad.capture`` at each
+resolution and insertion order; a :class:`~.probe.Probe` per receiver set (bilinear taps,
+float64 truth); every method built on the captured segments and looked up through the
+probes.  The columns of a row:
+
+=========================================  ==========================================================
+method, kind                               the label given, the registered kind (or the class name)
+params                                     the parameters given
+scene, seed, light                         the configuration (light: its name or a description)
+receivers, n_receivers                     the receiver set and its size
+n_decomp                                   the receivers of the capture / spatial terms
+order, resolution, opaque                  the capture: insertion order, texels per side, blockers
+                                           'inline' or 'separate' (in their own depth map)
+rmse                                       RMS of ``T_rep - T`` at the receivers (T: float64 truth)
+compression_rms, capture_rms, spatial_rms  RMS of the terms of :mod:`.probe`: vs the exact curve,
+                                           and capture / spatial on the first ``n_decomp`` receivers
+signed_mean                                mean of ``T_rep - T`` (> 0: light leaking)
+leak_share, dark_share                     shares of receivers with ``T_rep - T`` above
+                                           ``+threshold`` / below ``-threshold`` (0.02,
+                                           :data:`avsm_dr.metrics.THRESHOLD`)
+p99, p99_9, max                            99th / 99.9th percentile and maximum of ``|T_rep - T|``
+nonfinite                                  receivers with a NaN or inf estimate (left out above)
+depth_l2                                   :func:`~.curves.depth_l2` over the map's non-empty texels
+bytes                                      ``nbytes_per_texel``
+build_s, lookup_s                          wall seconds of the build and of the row's lookups, median
+                                           after one warm-up call (:func:`~.timing.measure`)
+build_first_s                              the first build, JIT compilation included
+=========================================  ==========================================================
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from numbers import Integral
+
+import drjit as dr
+import numpy as np
+
+from .. import validation as V
+from ..capture.opaque_map import compose
+from ..metrics import THRESHOLD, error_stats
+from ..representations import REGISTRY, Representation, describe
+from ..scene import Scene
+from .configuration import Configuration
+from .configuration import configurations as _configurations
+from .curves import DEPTHS, curve_values, depth_l2
+from .probe import Built, Probe, SubsetBuilder
+from .table import Table
+from .timing import measure
+
+#: Optional metric groups: the receiver statistics are always computed (every row is about
+#: a receiver set); without 'depth_l2' or 'timing' that work is skipped and the columns are NaN.
+METRICS = ("receiver_rmse", "depth_l2", "timing")
+#: Receiver sets (:mod:`avsm_dr.receivers`): by contribution inside the medium, on the
+#: receiver plane, the scene's own points.
+RECEIVER_SETS = ("in_volume", "surface", "uniform")
+OPAQUE_MODES = ("inline", "separate")
+#: Receivers and taps of ``error_curves``' full mode (its quick mode: 512, 256, 128).
+N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
+#: Timed repeats of each lookup (after one warm-up call).
+LOOKUP_REPEATS = 3
+
+
+@dataclasses.dataclass
+class _Method:
+    label: str
+    cls: type
+    params: dict
+    kind: str
+
+
+def _methods(methods) -> list[_Method]:
+    if not isinstance(methods, dict) or not methods:
+        raise ValueError(f"methods: expected a non-empty dict {{label: (kind, params)}}, got {methods!r}")
+    from ..segments import Segments
+    toy = Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
+    out = []
+    for label, spec in methods.items():
+        if not isinstance(label, str) or not label:
+            raise ValueError(f"methods: labels must be non-empty strings, got {label!r}")
+        if isinstance(spec, (str, type)):
+            kind, params = spec, {}
+        elif isinstance(spec, (tuple, list)) and len(spec) == 2:
+            kind, params = spec
+        else:
+            kind, params = None, None
+        if not isinstance(params, dict):
+            raise ValueError(f"methods[{label!r}]: expected (kind, params dict), got {spec!r}")
+        if isinstance(kind, str):
+            try:
+                describe(kind)
+            except ValueError as exc:
+                raise ValueError(f"methods[{label!r}]: {exc}") from None
+            cls, name = REGISTRY[kind], kind
+        elif isinstance(kind, type) and issubclass(kind, Representation) and not inspect.isabstract(kind):
+            cls = kind
+            name = cls.kind if REGISTRY.get(cls.kind) is cls else cls.__name__
+        else:
+            raise ValueError(f"methods[{label!r}]: expected a kind name or a Representation subclass "
+                             f"(with _eval_texels and nbytes_per_texel), got {kind!r}")
+        try:
+            cls(toy, **params)                               # parameters checked before any capture
+        except ValueError as exc:
+            raise ValueError(f"methods[{label!r}]: {exc}") from None
+        out.append(_Method(label, cls, dict(params), name))
+    return out
+
+
+def _scenes(scenes) -> list[tuple[str, object]]:
+    from .. import builtin_scenes
+    if isinstance(scenes, (str, Scene)):
+        scenes = [scenes]
+    if not isinstance(scenes, (list, tuple)):
+        raise ValueError(f"scenes: expected a list of built-in scene names and Scene objects, got {scenes!r}")
+    known = getattr(builtin_scenes, "SCENES", {})
+    out = []
+    for s in scenes:
+        if isinstance(s, str):
+            if s not in known:
+                raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}")
+            out.append((s, s))
+        elif isinstance(s, Scene):
+            out.append((s.name, s))
+        else:
+            raise ValueError(f"scenes: expected built-in scene names or Scene objects, got {s!r}")
+    if not out:
+        raise ValueError("scenes: no scene given")
+    names = [n for n, _ in out]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scenes: two scenes share a name in {names} (give Scene objects distinct names)")
+    return out
+
+
+def _configs(configurations) -> list[Configuration]:
+    if configurations is None:
+        return _configurations()
+    if isinstance(configurations, Configuration):
+        configurations = [configurations]
+    out = []
+    for c in configurations:
+        if isinstance(c, Configuration):
+            out.append(c)
+        elif isinstance(c, (tuple, list)) and len(c) == 2:
+            out.append(Configuration(*c))
+        else:
+            raise ValueError(f"configurations: expected Configuration or (seed, light) items, got {c!r}")
+    if not out:
+        raise ValueError("configurations: none given")
+    return out
+
+
+def _names(value, name, choices=None) -> list:
+    vals = [value] if isinstance(value, (str, Integral)) or value is None else list(value)
+    if not vals:
+        raise ValueError(f"{name}: none given")
+    if choices is not None:
+        for v in vals:
+            V.one_of(v, name, choices)
+    return vals
+
+
+# ====================================================================== steps
+def _scene_for(spec, cfg: Configuration) -> Scene:
+    """The cell's scene: a built-in one regenerated with the seed; lit by the configuration."""
+    from .. import builtin_scenes
+    scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec
+    return dataclasses.replace(scene, light=cfg.light_for(scene))
+
+
+def _receiver_points(scene, receivers, cfg, n_volume, n_surface) -> dict:
+    from .. import receivers as R
+    if isinstance(receivers, dict):
+        return {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()}
+    make = {"in_volume": lambda: R.in_volume(scene, n_volume, cfg.seed),
+            "surface": lambda: R.surface(scene, n_surface, cfg.seed),
+            "uniform": lambda: V.points(scene.receivers, "receivers", allow_empty=True)}
+    sets = {k: make[k]() for k in receivers}
+    return {k: v for k, v in sets.items() if v.shape[0] > 0}      # e.g. no receiver plane: no surface set
+
+
+def _capture(scene, resolution, order, opaque):
+    from .. import capture
+    kw = dict(resolution=resolution, opaque=opaque)
+    if order is not None:
+        if "order" not in inspect.signature(capture).parameters:
+            raise ValueError(f"order: this version of ad.capture takes no insertion order (got {order!r})")
+        kw["order"] = order
+    cap = capture(scene, **kw)
+    if order is None:                       # the capture's default: recorded as it is
+        order = getattr(cap, "order", None) or inspect.signature(capture).parameters.get("order")
+        order = getattr(order, "default", order) or "depth"    # today's capture: sorted front to back
+    return cap, order
+
+
+def _synced_build(cls, segments, params):
+    """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
+    rep = cls(segments, **params)
+    arrays = []
+    for v in vars(rep).values():
+        if dr.is_array_v(v):
+            arrays.append(v)
+        elif isinstance(v, (list, tuple)):
+            arrays += [x for x in v if dr.is_array_v(x)]
+    if arrays:
+        dr.eval(*arrays)
+    return rep
+
+
+def _rms(x) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+
+
+def _stats(probe, est, exact) -> dict:
+    t = probe.terms(est, exact)
+    s = error_stats(est, probe.truth, THRESHOLD)
+    return dict(rmse=s["rmse"], compression_rms=_rms(t["compression"]), capture_rms=_rms(t["capture"]),
+                spatial_rms=_rms(t["spatial"]), signed_mean=s["mean_error"], leak_share=s["leak_fraction"],
+                dark_share=s["dark_fraction"], p99=s["p99_error"], p99_9=s["p999_error"], max=s["max_error"],
+                nonfinite=s["nan_count"] + s["inf_count"])
+
+
+# ====================================================================== public
+def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surface"), metrics=METRICS,
+             resolution: int = 256, order=None, *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
+             n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
+             build_repeats: int = 1, progress: bool = True) -> Table:
+    """Measure ``methods`` on ``scenes`` in ``configurations``: one row per method x scene x
+    configuration x resolution x order x opaque mode x receiver set (columns: module docstring).
+
+    methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
+        :class:`~avsm_dr.Representation` subclass, registered or not (built directly);
+        ``label: kind`` alone means default parameters.
+    scenes: built-in scene names (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.
+    configurations: :class:`~.configuration.Configuration` items or (seed, light) pairs
+        (default ``configurations()``: seed 0, the scene's own light).
+    receivers: names of :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface'
+        without a receiver plane, are left out), or {name: (K, 3) points} for fixed ones.
+    metrics: names of :data:`METRICS`.
+    resolution: texels per side of the light map (or a sequence: a row per value).
+    order: the capture's insertion order (None: its default, recorded; or a sequence).
+    n_volume, n_surface: receivers per set; n_decomp: receivers of the capture / spatial terms.
+    opaque: 'inline' | 'separate' (or both): blockers in the map or in their own depth map;
+        'separate' runs only for scenes with blockers.
+    subset: build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`,
+        faster at high resolution): the lookups of a whole-map build for kinds that work
+        per texel, given the map's global depth range (``error_curves`` checks every
+        built-in kind); ``bytes`` and ``depth_l2`` then cover those texels.
+    n_depths: depths per texel of ``depth_l2``; build_repeats: timed builds after the first.
+    """
+    meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
+    if not isinstance(receivers, dict):
+        receivers = _names(receivers, "receivers", RECEIVER_SETS)
+    metrics = _names(metrics, "metrics", METRICS)
+    resolutions = [V.integer(r, "resolution", 1) for r in _names(resolution, "resolution")]
+    orders = _names(order, "order")
+    modes = _names(opaque, "opaque", OPAQUE_MODES)
+    for v, name in ((n_volume, "n_volume"), (n_surface, "n_surface"), (n_decomp, "n_decomp")):
+        V.integer(v, name, 0)
+    V.integer(n_depths, "n_depths", 1)
+    V.integer(build_repeats, "build_repeats", 1)
+    want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
+
+    from tqdm import tqdm
+    rows: list[dict] = []
+    cells = [(s, c) for s in scs for c in cfgs]
+    for (label, spec), cfg in tqdm(cells, desc="evaluate", unit="cell", disable=not progress):
+        scene = _scene_for(spec, cfg)
+        points = _receiver_points(scene, receivers, cfg, n_volume, n_surface)
+        if not points:
+            raise ValueError(f"receivers: scene {label!r} has none of the receiver sets {list(receivers)}")
+        truth = {}
+        for res in resolutions:
+            probes = None
+            for o in orders:
+                for mode in modes:
+                    if mode == "separate" and not scene.blockers:
+                        continue
+                    cap, order_label = _capture(scene, res, o, mode)
+                    if probes is None:           # taps and truth of the first capture, shared
+                        probes = {s: Probe(cap, scene, p, n_decomp, truth.get(s)) for s, p in points.items()}
+                        truth = {s: p.truth for s, p in probes.items()}
+                    pr = {s: p.with_capture(cap) for s, p in probes.items()}
+                    head = dict(scene=label, seed=cfg.seed, light=cfg.light_label, order=order_label,
+                                resolution=res, opaque=mode)
+                    rows += _run_capture(meths, cap, pr, head, subset, want_l2, want_time, n_depths,
+                                         build_repeats)
+    return Table(rows)
+
+
+def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths, build_repeats) -> list[dict]:
+    """The rows of every method on one capture."""
+    from ..representations import build
+    if subset:
+        sub = SubsetBuilder(cap.segments, np.concatenate([p.tex.ravel() for p in probes.values()]),
+                            cap.opaque_depth)
+        segs, od = sub.segments, sub.opaque_depth
+        exact = sub.build("exact", {})
+        exact_rep = compose(exact.rep, od)
+    else:
+        segs, od = cap.segments, cap.opaque_depth
+        exact = build("exact", segs)
+        exact_rep = compose(exact, od)
+    ex = {s: p.lookup(exact) for s, p in probes.items()}
+    ex_curve = curve_values(exact_rep, segs, n_depths) if want_l2 else None
+    rows = []
+    for m in meths:
+        params = sub.params(m.cls, m.params) if subset else m.params
+
+        def make(m=m, params=params):
+            return _synced_build(m.cls, segs, params)
+        if want_time:
+            t = measure({"build": make}, repeats=build_repeats, warmup=1)["build"]
+            rep, build_s, first_s = t["out"], t["wall_s"], t["first_s"]
+        else:
+            rep, build_s, first_s = make(), float("nan"), float("nan")
+        target = Built(rep, sub.remap, od) if subset else rep
+        l2 = depth_l2(compose(rep, od), segs, exact=ex_curve, n_depths=n_depths) if want_l2 else float("nan")
+        for s, p in probes.items():
+            if want_time:
+                t = measure({"lookup": lambda p=p: p.lookup(target)}, repeats=LOOKUP_REPEATS, warmup=1)["lookup"]
+                est, lookup_s = t["out"], t["wall_s"]
+            else:
+                est, lookup_s = p.lookup(target), float("nan")
+            row = dict(method=m.label, kind=m.kind, params=dict(m.params), scene=head["scene"], seed=head["seed"],
+                       light=head["light"], receivers=s, **{k: head[k] for k in ("order", "resolution", "opaque")},
+                       n_receivers=p.k, n_decomp=p.n_decomp)
+            row.update(_stats(p, est, ex[s]))
+            row.update(depth_l2=l2, bytes=float(rep.nbytes_per_texel), build_s=build_s, lookup_s=lookup_s,
+                       build_first_s=first_s)
+            rows.append(row)
+    return rows
