@@ -1,4 +1,21 @@
-from .cli import main
+"""``python -m experiments``: the studies moved to the repository's ``experiments/`` folder.
+
+From a checkout, ``python -m experiments <name> ...`` still runs ``python -m experiments <name> ...``
+(the same command line); an installed copy without the repository says where the studies are.
+"""
+import sys
+
+
+def main(argv=None) -> int:
+    """Forward to ``experiments._cli.main`` when the repository's studies are importable."""
+    try:
+        from experiments._cli import main as run
+    except ImportError:
+        print("avsm_dr: the studies are not part of the installed package; from a clone of the "
+              "repository run `python -m experiments --help`", file=sys.stderr)
+        return 2
+    return run(argv)
+
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())

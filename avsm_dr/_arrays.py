@@ -32,17 +32,39 @@ def dtype_of(x: Any) -> str:
     return "float64" if dr.type_v(x) == dr.VarType.Float64 else "float32"
 
 
+#: Dr.Jit element types a numeric argument may have (never Bool, pointers or classes).
+NUMERIC_VARTYPES = (dr.VarType.Int8, dr.VarType.UInt8, dr.VarType.Int16, dr.VarType.UInt16,
+                    dr.VarType.Int32, dr.VarType.UInt32, dr.VarType.Int64, dr.VarType.UInt64,
+                    dr.VarType.Float16, dr.VarType.Float32, dr.VarType.Float64)
+
+
 def host(x: Any, name: str, dtype=np.float64) -> np.ndarray:
-    """A NumPy copy of ``x`` (NumPy, list, scalar or Dr.Jit array) for validation."""
+    """A NumPy copy of ``x`` (NumPy, list, scalar or Dr.Jit array) as ``dtype``, for
+    validation.  Only numbers are read: boolean, complex, string and object input
+    (NumPy ``astype`` would turn ``True`` into 1, drop an imaginary part, parse ``'0.5'``)
+    and Dr.Jit ``Bool`` arrays raise ``ValueError`` naming ``name``."""
     if is_drjit(x):
+        if dr.type_v(x) not in NUMERIC_VARTYPES:
+            raise ValueError(f"{name}: expected a numeric (integer or float) array, got {type(x).__name__}")
         dr.eval(x)
         arr = np.asarray(dr.detach(x).numpy(), dtype=dtype)
     else:
         try:
-            arr = np.asarray(x, dtype=dtype)
-        except (TypeError, ValueError) as exc:
+            raw = np.asarray(x)
+        except (TypeError, ValueError) as exc:                # ragged nesting
             raise ValueError(f"{name}: cannot convert to a numeric array ({exc})") from None
+        if raw.dtype.kind not in "iuf":
+            raise ValueError(f"{name}: expected a numeric (integer or float) array, got dtype {raw.dtype}")
+        with np.errstate(over="ignore", invalid="ignore"):
+            arr = raw.astype(dtype, copy=False)
     return arr
+
+
+def flat_array(x: Any):
+    """``x`` itself, or for a Dr.Jit tensor its flat storage ``x.array`` (the same variable,
+    AD graph kept).  Dr.Jit 1.5 trap: constructing a flat array from a tensor
+    (``Float(TensorXf(...))``) corrupts the tensor (a segfault at its next read)."""
+    return x.array if dr.is_tensor_v(x) else x
 
 
 def host_1d(x: Any, name: str, dtype=np.float64) -> np.ndarray:
@@ -82,6 +104,7 @@ def aligned(a: np.ndarray, dtype=None) -> np.ndarray:
 def to_float(x: Any, Float) -> Any:
     """``x`` as the Dr.Jit type ``Float``; Dr.Jit input keeps its AD graph."""
     if is_drjit(x):
+        x = flat_array(x)
         return x if type(x) is Float else Float(x)
     dt = np.float64 if dr.type_v(Float) == dr.VarType.Float64 else np.float32
     return Float(aligned(np.asarray(x, dtype=dt).ravel()))
@@ -90,5 +113,6 @@ def to_float(x: Any, Float) -> Any:
 def to_uint32(x: Any) -> Any:
     UInt32 = backend.types().UInt32
     if is_drjit(x):
+        x = flat_array(x)
         return x if type(x) is UInt32 else UInt32(x)
     return UInt32(aligned(np.asarray(x, dtype=np.uint32).ravel()))

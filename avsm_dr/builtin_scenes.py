@@ -84,7 +84,7 @@ def _grid_shape(bmin, bmax, size: int):
     return int(nz), int(ny), int(nx)
 
 
-def _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, center, u, v, half) -> np.ndarray:
+def half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, center, u, v, half) -> np.ndarray:
     """Receivers: half inside the density (:func:`_volume_points`), the rest on a square
     surface (:func:`_wall_points`: ``center``, axes ``u``, ``v``, half size ``half``)."""
     k_vol = n_receivers // 2
@@ -146,7 +146,7 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
     dens = dens.astype(np.float32)
     light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
+    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
     return Scene("plume", light, rec, density=dens, bbox=(bmin, bmax),
                  receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
@@ -173,7 +173,7 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
     dens = (dens * density_scale).astype(np.float32)
     light = DirectionalLight(direction=(1.0, -0.12, 0.08)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (1.8, 0.5, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
+    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (1.8, 0.5, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
     return Scene("three_columns", light, rec, density=dens, bbox=(bmin, bmax),
                  receiver_plane=(np.array([1.8, 0.5, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
@@ -208,7 +208,7 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
     hair = Hair(strands=strands, radius=hair_radius, opacity=hair_opacity)
     light = DirectionalLight(direction=(1.0, -0.2, 0.1)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.0, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
+    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.0, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
     return Scene("hair_and_smoke", light, rec, density=dens, bbox=(bmin, bmax), hair=hair,
                  receiver_plane=(np.array([0.8, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
                  meta={"seed": seed, "size": size, "tfx_path": None if tfx_path is None else str(tfx_path)})
@@ -254,7 +254,7 @@ def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0,
     light = DirectionalLight(direction=(0.3, -1.0, 0.2)) if light is None else light
     table = OpaqueBox(min=np.array([-1.0, -0.05, -1.0]), max=np.array([1.0, 0.0, 1.0]))
     rng = np.random.default_rng(seed + 1)
-    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.0, 0.0, 0.0), (1, 0, 0), (0, 0, 1), 0.9)
+    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.0, 0.0, 0.0), (1, 0, 0), (0, 0, 1), 0.9)
     return Scene("smoke_over_table", light, rec, density=dens, bbox=(bmin, bmax), blockers=[table],
                  receiver_plane=(np.array([0.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 1.0),
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
@@ -267,7 +267,7 @@ SCENES = {"plume": plume, "three_columns": three_columns, "hair_and_smoke": hair
 def get(name: str, **kwargs) -> Scene:
     """Scene by name (see :data:`SCENES`)."""
     if not (isinstance(name, str) and name in SCENES):
-        raise ValueError(f"name: unknown scene {name!r}; known: {sorted(SCENES)}")
+        raise ValueError(f"name: unknown scene {name!r}; known: {sorted(SCENES)}{V.did_you_mean(name, SCENES)}")
     return SCENES[name](**kwargs)
 
 
@@ -289,7 +289,7 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
     dens = (simulate_plume(shape, steps=steps, seed=seed) * density_scale).astype(np.float32)
     light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
     rng = np.random.default_rng(seed + 1)
-    rec = _half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
+    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
     return Scene("simulated_plume", light, rec, density=dens, bbox=(bmin, bmax),
                  receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
                  meta={"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})

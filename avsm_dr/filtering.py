@@ -41,6 +41,9 @@ from . import _arrays as A
 FILTERS = ("point", "bilinear", "box", "gaussian")
 #: (receiver, tap) lanes evaluated per batch (bounds the temporary memory: ~50 bytes/lane).
 LANES_PER_BATCH = 1 << 22
+#: Largest gaussian ``1 / (2 sigma^2)`` used: finite in float32 also times a squared
+#: distance of the support (<= 2 (r + 1)^2 for r <= 1: below 1e8).
+GAUSSIAN_INV2S2_MAX = 1e30
 
 
 def check_size(value, name: str) -> int:
@@ -107,7 +110,10 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
     ix, iy, fx, fy = split_coordinates(coords, width, height, margin=r)
     ix_d, iy_d = Int32(A.aligned(ix.astype(np.int32))), Int32(A.aligned(iy.astype(np.int32)))
     fx_d, fy_d = A.to_float(fx, Float), A.to_float(fy, Float)
-    inv2s2 = 1.0 / (2.0 * (radius / 2.0) ** 2)
+    # 1 / (2 sigma^2), capped where it would overflow float32 (radius < ~1e-19): an inf
+    # times the own texel's exponent 0 made every weight NaN; at the cap the other taps'
+    # weights are 0 and ties 1, the limit of the formula (the point filter).
+    inv2s2 = min(1.0 / (2.0 * (radius / 2.0) ** 2), GAUSSIAN_INV2S2_MAX)
     num, den = dr.zeros(Float, k), dr.zeros(Float, k)
     per = max(1, min(m, LANES_PER_BATCH // max(k, 1)))     # taps per batch
     for j0 in range(0, m, per):

@@ -28,8 +28,10 @@ from . import validation as V
 from .capture import RESOLUTION_RANGE, capture
 from .capture.grid import METHODS as CAPTURE_METHODS
 from .filtering import FILTERS
+from .geometry import ray_box_dr
 from .groundtruth.media import mitsuba as _mitsuba_with_variant, sample_grid
 from .representations import REGISTRY, build, describe
+from .representations.schema import BASE_PARAMETERS
 from .scene import DirectionalLight, PointLight, Scene, SpotLight
 
 NAME = "avsm_single_scatter"
@@ -42,7 +44,7 @@ OWN_PROPERTIES = ("representation", "resolution", "filter", "max_depth", "march_
                   "hide_emitters", "samples_per_pass", "timeout")
 #: Parameters every kind takes in :func:`avsm_dr.build` besides its schema's (storage precision,
 #: reverse-mode strategy, checkpoint chunk); passed on to the build.
-BUILD_PARAMETERS = ("precision", "reverse", "chunk")
+BUILD_PARAMETERS = BASE_PARAMETERS
 
 
 # ===================================================================== scene reading
@@ -110,7 +112,8 @@ def _check_properties(props) -> dict:
     """Plugin options and the representation's parameters (schema-validated); ValueError names one."""
     kind = props.get("representation", "exact")
     if kind not in REGISTRY:
-        raise ValueError(f"representation: unknown kind {kind!r}; known: {sorted(REGISTRY)}")
+        raise ValueError(f"representation: unknown kind {kind!r}; known: {sorted(REGISTRY)}"
+                         f"{V.did_you_mean(kind, REGISTRY)}")
     opts = {"kind": kind,
             "resolution": props.get("resolution", 256),
             "filter": props.get("filter", "bilinear"),
@@ -137,8 +140,7 @@ def _check_properties(props) -> dict:
     schema = REGISTRY[kind].schema
     unknown = sorted(set(given) - set(schema.names()))
     if unknown:                                          # private (``_``) switches are accepted, not listed
-        public = [n for n in schema.names() if not n.startswith("_")] + list(BUILD_PARAMETERS)
-        raise ValueError(f"{unknown[0]}: unknown parameter of {kind!r}; known: {public}")
+        raise ValueError(schema.unknown_message(kind, unknown[0]))
     precisions = describe(kind)["precisions"]
     if extra.get("precision") is not None and extra["precision"] not in precisions:
         raise ValueError(f"precision: kind {kind!r} accepts None or {precisions}, got {extra['precision']!r}"
@@ -240,7 +242,8 @@ def _make_class():
                 check_box(medium, density, lo, hi)
             with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
                 av = Scene(NAME, light, np.zeros((0, 3)), density=density, bbox=(lo, hi))
-                cap = capture(av, resolution=self.resolution, density=density, method=self.capture_method)
+                cap = capture(av, resolution=self.resolution, density=density, method=self.capture_method,
+                              order="depth")
                 rep = build(self.kind, cap.segments, **self.params)
             self.shadow = (cap, rep, medium, mi.ScalarBoundingBox3f(lo.tolist(), hi.tolist()))
             return self.shadow
@@ -309,7 +312,7 @@ def _make_class():
             # ---- camera ray: first surface and the stretch [a, b] inside the medium's box
             si, on_surface = self.first_surface(scene, ray, active)
             t_surf = dr.select(on_surface, dr.dot(si.p - ray.o, d), dr.inf)
-            mint, maxt = self._slabs(box, ray.o, d)
+            mint, maxt, _ = ray_box_dr(ray.o, d, box.min, box.max)
             hit = maxt >= mint
             a = dr.maximum(mint, 0.0)
             b = dr.minimum(maxt, t_surf)
@@ -369,17 +372,6 @@ def _make_class():
             f = bsdf.eval(mi.BSDFContext(), si, si.to_local(ds_s.d), vis_s)
             L += dr.select(vis_s, dr.exp(-tau_b) * f * Le_s * T_s, 0.0)
             return L, active, []
-
-        @staticmethod
-        def _slabs(box, o, d):
-            """(t_enter, t_exit) of rays o + t d with the box (slab test)."""
-            t_enter, t_exit = mi.Float(-dr.inf), mi.Float(dr.inf)
-            for i in range(3):
-                inv = dr.rcp(d[i])
-                t0, t1 = (box.min[i] - o[i]) * inv, (box.max[i] - o[i]) * inv
-                t_enter = dr.maximum(t_enter, dr.minimum(t0, t1))
-                t_exit = dr.minimum(t_exit, dr.maximum(t0, t1))
-            return t_enter, t_exit
 
         @staticmethod
         def _sigma_t(medium, p, active):

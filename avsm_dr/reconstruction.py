@@ -53,10 +53,10 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .capture import capture as _capture
-from .capture.camera import orthonormal_basis
+from .geometry import orthonormal_basis
 from .representations import build, differentiable_configuration, kinds
 from .scene import DirectionalLight, Scene
-from .testing import check_gradients
+from .checks import check_gradients
 
 
 
@@ -139,7 +139,7 @@ def shadow(scene: Scene, density, points=None, light=None, kind: str = "fom", pa
         raise ValueError(f"kind: {kind!r} has no differentiable configuration")
     sc = scene if light is None else with_light(scene, light)
     cap = _capture(sc, resolution=resolution, step=step, epsilon=epsilon, density=density, keep_zero=True,
-                   method="march")
+                   method="march", order="depth")
     rep = build(kind, cap.segments, reverse=reverse, **p)
     if not rep.differentiable:
         raise ValueError(f"params: {kind} with {p} is not differentiable (see ad.describe({kind!r}))")
@@ -242,7 +242,7 @@ def gradient_check(loss_fn: Callable, x, rng=None, rtol: float = 1e-4, atol: flo
     Reverse mode gives ``g = dL/dx``; forward mode along a random direction ``v`` gives
     ``dL/dx . v`` without any loop-bound hint, so a mismatch exposes a reverse-mode
     path that is silently wrong (e.g. a symbolic loop with a too-small
-    ``max_iterations``).  :func:`avsm_dr.testing.check_gradients` without finite
+    ``max_iterations``).  :func:`avsm_dr.checks.check_gradients` without finite
     differences; returns dict(reverse, forward, error, ok).
     """
     chk = check_gradients(loss_fn, x, fd=0, rtol=rtol, atol=atol, rng=rng)

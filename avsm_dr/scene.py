@@ -70,6 +70,28 @@ class Particles:
     radii: np.ndarray
     density: np.ndarray
 
+    def validate(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Host float64 copies (centers (P, 3), radii (P,), density (P,)) after checks;
+        ValueError names ``particles.<field>``.  At least one particle (an empty cloud is
+        ``Scene.particles = None``), radii > 0, density >= 0."""
+        c = V.array(self.centers, "particles.centers")
+        r = V.array(self.radii, "particles.radii").reshape(-1)
+        s = V.array(self.density, "particles.density").reshape(-1)
+        if c.ndim != 2 or c.shape[1] != 3:
+            raise ValueError(f"particles.centers: expected shape (P, 3), got {c.shape}")
+        P = c.shape[0]
+        if P == 0:
+            raise ValueError("particles.centers: no particles (P = 0); leave Scene.particles = None "
+                             "for a scene without particles")
+        for name, a in (("particles.radii", r), ("particles.density", s)):
+            if a.size != P:
+                raise ValueError(f"{name}: expected {P} values (one per particle), got {a.size}")
+        if np.any(r <= 0):
+            raise ValueError("particles.radii: radii must be > 0")
+        if np.any(s < 0):
+            raise ValueError("particles.density: negative density")
+        return c, r, s
+
 
 @dataclass
 class Hair:
@@ -79,17 +101,39 @@ class Hair:
     radius: float
     opacity: float = 0.3
 
+    def validate(self) -> tuple[np.ndarray, float, float]:
+        """(strands (S, V, 3) float64, radius > 0, opacity in [0, 1]) after checks, S >= 1,
+        V >= 2; ValueError names ``hair.<field>``."""
+        s = V.array(self.strands, "hair.strands")
+        if s.ndim != 3 or s.shape[2] != 3 or s.shape[1] < 2 or s.shape[0] < 1:
+            raise ValueError(f"hair.strands: expected shape (S, V, 3) with S >= 1, V >= 2, got {s.shape}")
+        r = V.real(self.radius, "hair.radius", 0.0, open_min=True)
+        op = V.real(self.opacity, "hair.opacity", 0.0, 1.0)
+        return s, r, op
+
 
 @dataclass
 class OpaqueSphere:
     center: np.ndarray
     radius: float
 
+    def validate(self, name: str = "blocker") -> "OpaqueSphere":
+        """A checked float64 copy (radius > 0); ValueError names ``<name>.<field>``."""
+        return OpaqueSphere(V.vec3(self.center, f"{name}.center"),
+                            V.real(self.radius, f"{name}.radius", 0.0, open_min=True))
+
 
 @dataclass
 class OpaqueBox:
     min: np.ndarray
     max: np.ndarray
+
+    def validate(self, name: str = "blocker") -> "OpaqueBox":
+        """A checked float64 copy (max > min on every axis); ValueError names ``<name>.<field>``."""
+        lo, hi = V.vec3(self.min, f"{name}.min"), V.vec3(self.max, f"{name}.max")
+        if np.any(hi <= lo):
+            raise ValueError(f"{name}.max: zero-size box (max must exceed min on every axis)")
+        return OpaqueBox(lo, hi)
 
 
 @dataclass
@@ -98,6 +142,29 @@ class OpaquePlane:
     point: np.ndarray
     normal: np.ndarray
     extent: float = 1.0
+
+    def validate(self, name: str = "blocker") -> "OpaquePlane":
+        """A checked float64 copy (unit normal, extent > 0); ValueError names ``<name>.<field>``."""
+        return OpaquePlane(V.vec3(self.point, f"{name}.point"), V.unit_vector(self.normal, f"{name}.normal"),
+                           V.real(self.extent, f"{name}.extent", 0.0, open_min=True))
+
+
+#: The opaque blocker types (:func:`validate_blockers`).
+BLOCKERS = (OpaqueSphere, OpaqueBox, OpaquePlane)
+
+
+def validate_blockers(blockers) -> list:
+    """Checked copies of a list of blockers (each its type's ``validate``); ValueError names
+    ``blockers[i].field``."""
+    if not isinstance(blockers, (list, tuple)):
+        raise ValueError(f"blockers: expected a list, got {type(blockers).__name__}")
+    out = []
+    for i, b in enumerate(blockers):
+        if not isinstance(b, BLOCKERS):
+            raise ValueError(f"blockers[{i}]: expected OpaqueSphere, OpaqueBox or OpaquePlane, "
+                             f"got {type(b).__name__}")
+        out.append(b.validate(f"blockers[{i}]"))
+    return out
 
 
 @dataclass
@@ -183,6 +250,7 @@ class Scene:
             raise ValueError(f"name: expected a non-empty string, got {name!r}")
         if receivers is None or (isinstance(receivers, Integral) and not isinstance(receivers, bool)):
             k = V.integer(1024 if receivers is None else receivers, "receivers", 1)
+            V.check_memory("receivers", k, lambda m: float(m) * RECEIVER_BYTES, lo=1, what="points")
             occ = np.flatnonzero(dens.ravel() > 0)
             occ = np.arange(dens.size) if occ.size == 0 else occ
             rng = np.random.default_rng(0)
@@ -196,12 +264,30 @@ class Scene:
                    meta={"source": source, "shape": (nz, ny, nx), "density_scale": scale, "bbox_from": box_from})
 
 
+#: Host bytes per receiver point that :meth:`Scene.from_grid` draws (indices, jitter and the
+#: points, float64), checked before drawing (receivers=10**9 used to end in a MemoryError).
+RECEIVER_BYTES = 128
+
+
 def _read_grid(path: str):
     """(grid, box or None) of a ``.npy`` or ``.vol`` file; ValueError naming ``grid_or_path``."""
     ext = path.lower().rsplit(".", 1)[-1] if "." in path else ""
     try:
         if ext == "npy":
-            return np.load(path, allow_pickle=False), None
+            # memory-mapped first: a header announcing more data than the file holds is a
+            # ValueError before anything is allocated (np.load allocated the announced size:
+            # a MemoryError), then copied; object arrays are refused (never unpickled)
+            try:
+                mm = np.load(path, mmap_mode="r", allow_pickle=False)
+            except OSError:
+                raise
+            except ValueError as exc:
+                why = ("truncated, or its header announces more data than it holds"
+                       if "greater than file size" in str(exc) else str(exc))
+                raise ValueError(f"{path!r} is not a readable .npy grid ({why})") from None
+            except Exception as exc:                   # a malformed header (SyntaxError, TokenError)
+                raise ValueError(f"{path!r} is not a readable .npy file ({type(exc).__name__}: {exc})") from None
+            return np.array(mm), None
         if ext == "vol":
             from .io import read_vol
             grid, box = read_vol(path, with_bbox=True)

@@ -29,7 +29,8 @@ import numpy as np
 
 from . import _arrays as A
 from . import backend
-from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels_view
+from . import validation as V
+from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels, sort_texels_view
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -47,6 +48,12 @@ MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
 #: comparisons per segment), else by a host lexsort.
 DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
+#: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
+#: Segments: front to back, back to front, a seeded shuffle (:func:`shuffle_key`).
+REORDERS = ("depth", "reverse_depth", "random")
+#: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
+#: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
+ORDERS = REORDERS + ("submission", "unknown")
 _TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
 
 
@@ -141,6 +148,41 @@ class _Linked:
             obj.__dict__["_links"] = {k: fn for k, fn in links.items() if k != self.name}
 
 
+def _mix32(x, c1, c2):
+    """Chris Wellons' "lowbias32" integer hash (x ^= x >> 16; x *= c1; x ^= x >> 15; x *= c2;
+    x ^= x >> 16) on uint32 NumPy or Dr.Jit UInt32 arrays (products modulo 2^32)."""
+    x = x ^ (x >> 16)
+    x = x * c1
+    x = x ^ (x >> 15)
+    x = x * c2
+    return x ^ (x >> 16)
+
+
+_MIX = (0x7FEB352D, 0x846CA68B)
+
+
+def _seed_word(seed: int) -> int:
+    """``lowbias32(seed)`` as a Python int (the seed's share of :func:`shuffle_key`)."""
+    return int(_mix32(np.array([seed], np.uint32), *(np.uint32(c) for c in _MIX))[0])
+
+
+def shuffle_key(seed: int, texel, rank):
+    """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
+    ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
+    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: uint32
+    NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
+    opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
+    (seed, texel, its segment count) only, not on threads or on the order it came in."""
+    if isinstance(texel, np.ndarray):
+        c1, c2 = (np.uint32(c) for c in _MIX)
+        s = np.uint32(_seed_word(seed))
+        with np.errstate(over="ignore"):
+            return _mix32(_mix32(texel.astype(np.uint32) + s, c1, c2) + rank.astype(np.uint32), c1, c2)
+    UInt32 = type(texel)
+    s = dr.opaque(UInt32, _seed_word(seed))
+    return _mix32(_mix32(texel + s, *_MIX) + rank, *_MIX)
+
+
 def rank_in_ranges(lo, hi, keys, ids=None):
     """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
     contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., ids_j) < (keys[0]_i, ..., ids_i)}``,
@@ -170,7 +212,11 @@ class Segments:
     """Segments of all texels (CSR).  Build with :meth:`from_arrays`.
 
     Attributes: ``offsets`` (T+1,) int64 NumPy; ``z0``, ``z1``, ``optical_depth``
-    Dr.Jit float arrays of length S (AD graphs kept); ``dtype`` 'float32'|'float64'.
+    Dr.Jit float arrays of length S (AD graphs kept); ``dtype`` 'float32'|'float64';
+    ``order`` the insertion order the segments of each texel are stored in, one of
+    :data:`ORDERS` ('unknown' unless given or made by :meth:`sorted` / :meth:`in_order` /
+    ``ad.capture``; 'depth' when built with ``sorted_by_depth=True``), kept by
+    :meth:`select_texels`, so a study can record it.
 
     Reusable under reverse mode: arrays that :meth:`from_arrays`, :meth:`sorted` and
     :meth:`select_texels` derive from grad-enabled input are re-derived from the caller's
@@ -185,11 +231,16 @@ class Segments:
     dtype: str = "float32"
     sorted_by_depth: bool = False
     _cache: dict = field(default_factory=dict, repr=False)
+    order: str = "unknown"
+
+    def __post_init__(self):
+        if self.order == "unknown" and self.sorted_by_depth:
+            self.order = "depth"
 
     # ------------------------------------------------------------------ build
     @classmethod
     def from_arrays(cls, offsets, z0, z1, transmittance=None, optical_depth=None,
-                    dtype: str | None = None) -> "Segments":
+                    dtype: str | None = None, order: str = "unknown") -> "Segments":
         """Validate and pack segments.
 
         offsets: (T+1,) non-decreasing integers, offsets[0] = 0, offsets[-1] = S.
@@ -197,7 +248,11 @@ class Segments:
         transmittance: (S,) exit transmittance in [0, 1] (0 = opaque), or
         optical_depth: (S,) tau >= 0 finite (values above OPAQUE_OPTICAL_DEPTH are clamped).
         dtype: 'float32' (default) or 'float64'; default follows Dr.Jit float64 input.
+        order: the insertion order the arrays are in, one of :data:`ORDERS` (a label recorded
+            as :attr:`order`, not checked against the depths).
         """
+        if not (isinstance(order, str) and order in ORDERS):
+            raise ValueError(f"order: expected one of {ORDERS}, got {order!r}")
         off = A.host(offsets, "offsets", np.float64)
         if off.ndim != 1 or off.size < 2:
             raise ValueError(f"offsets: expected a 1-D array of T+1 >= 2 entries, got shape {off.shape}")
@@ -259,7 +314,7 @@ class Segments:
             if np.any((th < 0) | (th > 1)):
                 raise ValueError("transmittance: values must lie in [0, 1] (opacity above 1 or negative)")
             if n == 0:  # no blockers at all: every texel is empty (T = 1 everywhere)
-                return cls(off, Float(), Float(), Float(), dtype)
+                return cls(off, Float(), Float(), Float(), dtype, order=order)
             tiny = float(np.exp(-OPAQUE_OPTICAL_DEPTH)) if dtype == "float64" else 0.0
 
             def tau_of():
@@ -277,14 +332,14 @@ class Segments:
             if np.any(oh < 0):
                 raise ValueError("optical_depth: values must be >= 0 (negative density)")
             if n == 0:
-                return cls(off, Float(), Float(), Float(), dtype)
+                return cls(off, Float(), Float(), Float(), dtype, order=order)
             if A.is_drjit(optical_depth):   # clamped and flushed only where needed (recipe)
                 tau_of = _recipe(optical_depth, Float, dtype, has_subnormal(oh, dtype),
                                  clamp=bool(np.any(oh > OPAQUE_OPTICAL_DEPTH)))
             else:   # clamped on the host first: a value beyond the dtype's range must not become inf
                 tau_of = _recipe(np.minimum(check_tiny(oh, dtype), OPAQUE_OPTICAL_DEPTH), Float, dtype, False)
         caller = {"z0": z0, "z1": z1, "optical_depth": optical_depth}
-        seg = cls(off, z0d, z1d, tau_of(), dtype)
+        seg = cls(off, z0d, z1d, tau_of(), dtype, order=order)
         return seg._link(**{k: fn for k, fn in (("z0", z0_of), ("z1", z1_of), ("optical_depth", tau_of))
                             if seg.__dict__["_" + k] is not caller[k]})
 
@@ -433,12 +488,62 @@ class Segments:
     def _reordered(self, idx) -> "Segments":
         """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the
         device copies of offsets, texels and the sort layout carry over."""
-        cache = {k: v for k, v in self._cache.items() if k in ("offsets", "texel_of", "sort_plan")}
-        return self._gathered(self.offsets, idx, True, cache)
+        return self._gathered(self.offsets, idx, True, self._layout_cache(), "depth")
 
-    def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None) -> "Segments":
+    def _layout_cache(self) -> dict:
+        """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""
+        return {k: v for k, v in self._cache.items() if k in ("offsets", "texel_of", "sort_plan")}
+
+    def in_order(self, order: str, seed: int | None = None) -> "Segments":
+        """The segments of every texel in insertion order ``order`` (same offsets; gradients
+        follow the permutation), recorded as :attr:`order`:
+
+        * ``'depth'``: front to back, :meth:`sorted` (by (z0, z1), ties in stored order);
+        * ``'reverse_depth'``: back to front, each texel's ``'depth'`` order reversed;
+        * ``'random'``: a seeded shuffle of each texel's ``'depth'`` order, by the keys
+          :func:`shuffle_key` ``(seed, texel, rank)`` (ties by rank): the same seed gives the
+          same order, whatever the thread count or the order the segments came in.
+
+        seed: integer in [0, 2^32) of ``'random'`` (default 0; ValueError naming ``seed``
+        when given with another order)."""
+        if not (isinstance(order, str) and order in REORDERS):
+            raise ValueError(f"order: expected one of {REORDERS}, got {order!r}")
+        if seed is not None and order != "random":
+            raise ValueError(f"seed: only the 'random' order takes a seed, got seed={seed!r} with order={order!r}")
+        seed = V.integer(0 if seed is None else seed, "seed", 0, 2**32 - 1)
+        base = self.sorted()
+        if order == "depth":
+            return base
+        n = base.n_segments
+        if n < 2:
+            return base._gathered(base.offsets, None, False, base._layout_cache(), order)
+        UInt32 = backend.types().UInt32
+        tex = base.texel_of_segment()
+        off = base.offsets_dr()
+        i = dr.arange(UInt32, n)
+        if order == "reverse_depth":     # slot r of texel t <- slot count_t - 1 - r
+            idx = dr.gather(UInt32, off, tex + 1) - 1 - (i - dr.gather(UInt32, off, tex))
+        else:
+            c = base.counts.astype(np.float64)
+            if float(c @ c) > DEVICE_SORT_WORK * n:             # host: the same keys, np.lexsort
+                tex_h = np.repeat(np.arange(base.n_texels, dtype=np.int64), base.counts)
+                rank = np.arange(n, dtype=np.int64) - base.offsets[tex_h]
+                key = shuffle_key(seed, tex_h.astype(np.uint32), rank.astype(np.uint32))
+                idx = A.to_uint32(np.lexsort((rank, key, tex_h)).astype(np.uint32))
+            else:                                               # words key << 32 | position
+                key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
+                if "sort_plan" not in base._cache:
+                    base._cache["sort_plan"] = sort_plan(base.counts, off)
+                U32 = dr.detached_t(UInt32)
+                perm, _ = sort_texels(base.counts, off, tex, "index", (U32(i), U32(key)), ties=False,
+                                      layout=base._cache["sort_plan"])
+                idx = UInt32(perm)
+        return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
+
+    def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None, order: str | None = None) -> "Segments":
         """Segments over ``offsets`` holding segments ``idx`` (Dr.Jit UInt32; None: all, in
-        order); fields with gradients keep recipes over this object's (:class:`_Linked`)."""
+        order), labelled ``order`` (default: this object's); fields with gradients keep
+        recipes over this object's (:class:`_Linked`)."""
         Float = self.Float
 
         def recipe(name):
@@ -448,7 +553,7 @@ class Segments:
 
         fns = {k: recipe(k) for k in _FIELDS}
         out = Segments(offsets, *(fns[k]() for k in _FIELDS), self.dtype, sorted_by_depth,
-                       {} if cache is None else cache)
+                       {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
 
     def depth_order(self):
@@ -567,9 +672,9 @@ class Segments:
             if texels.size else np.zeros(0, np.int64)
         if idx.size == 0:
             Float = self.Float
-            return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth)
+            return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth, order=self.order)
         return self._gathered(off, A.to_uint32(idx), self.sorted_by_depth)
 
     def __repr__(self) -> str:
         return (f"Segments(texels={self.n_texels}, segments={self.n_segments}, "
-                f"max_per_texel={self.max_count}, dtype={self.dtype})")
+                f"max_per_texel={self.max_count}, dtype={self.dtype}, order={self.order})")

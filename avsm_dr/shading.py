@@ -34,8 +34,8 @@ import math
 import numpy as np
 
 from . import validation as V
-from .capture.camera import orthonormal_basis
-from .groundtruth.content import check_scene, particles_tau, ray_box, ray_sphere, to_light
+from .geometry import orthonormal_basis, ray_box, ray_sphere
+from .groundtruth.content import check_scene, particles_tau, to_light
 from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for, spot_beam_width
 from .groundtruth.tracking import default_step, march, transmittance as gt_transmittance
 from .scene import DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight, Scene, SpotLight
@@ -129,7 +129,7 @@ def _hit_blockers(o, d, blockers):
             th = np.where(t0 > 0, t0, t1)
             t = np.where(hit & (th > 0), np.minimum(t, th), t)
         elif isinstance(b, OpaqueBox):
-            t0, t1 = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
+            t0, t1, _ = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
             th = np.where(t0 > 0, t0, t1)
             t = np.where((t0 <= t1) & (th > 0), np.minimum(t, th), t)
         elif isinstance(b, OpaquePlane):
@@ -259,28 +259,3 @@ def compare_images(a, b) -> dict:
     scale = float(np.mean(np.abs(a)))
     return {"rmse": rmse, "max_abs": float(np.abs(diff).max()), "mean_abs": float(np.mean(np.abs(diff))),
             "rel_rmse": rmse / scale if scale > 0 else float("inf"), "diff4x": 4 * np.abs(diff)}
-
-
-def plot_comparison(reference, ours, path=None, titles=("Mitsuba reference", "ours", "4x |difference|"),
-                    vmax: float | None = None, dpi: int = 100):
-    """Reference / ours / 4x |difference| side by side (same grey scale); saved as PNG at ``path``.
-
-    Returns the matplotlib Figure (no pyplot state is touched).
-    """
-    from matplotlib.figure import Figure
-    cmp = compare_images(reference, ours)
-    ref = np.asarray(reference, np.float64)
-    if vmax is None:
-        vmax = float(np.percentile(ref, 99.5)) or 1.0
-    fig = Figure(figsize=(12, 4.2), dpi=dpi)
-    axes = fig.subplots(1, 3)
-    for ax, img, title in zip(axes, (ref, np.asarray(ours, np.float64), cmp["diff4x"]), titles):
-        im = ax.imshow(img, cmap="gray", vmin=0.0, vmax=vmax, interpolation="nearest")
-        ax.set_title(title)
-        ax.set_axis_off()
-    fig.colorbar(im, ax=axes, fraction=0.02)
-    fig.suptitle(f"RMSE {cmp['rmse']:.4g}   max |diff| {cmp['max_abs']:.4g}   "
-                 f"relative RMSE {cmp['rel_rmse']:.3%}")
-    if path is not None:
-        fig.savefig(path)
-    return fig

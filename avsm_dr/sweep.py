@@ -29,7 +29,7 @@ cell, an unknown schema, a malformed tree, arrays larger than the file) is repor
 
 Pointing it at a cluster: start Ray on the head node (``ray start --head``) and workers
 (``ray start --address=HEAD:6379``), install ``avsm_dr`` on every node, then run
-``python -m avsm_dr error_curves --address ray://HEAD:10001`` from the driver.
+``python -m experiments error_curves --address ray://HEAD:10001`` from the driver.
 """
 from __future__ import annotations
 

@@ -36,6 +36,8 @@ were not already increasing in CSR order (always set when a texel exceeds 64).
 from __future__ import annotations
 
 import gc
+import os
+import threading
 from functools import lru_cache
 
 import drjit as dr
@@ -152,8 +154,47 @@ def _sort_lanes_traced(kind: str, sources, start, count, packet, out, sizes: tup
 
 #: The sorting kernel, frozen (:func:`drjit.freeze`): its trace (thousands of operations for
 #: the 64-input network: ~5-10 ms of Python per call, more than the kernel at 64^2) is
-#: replayed for new data of any size; one recording per (kind, size classes, ties).
+#: replayed for new data of any size.  One recording per (kind, size classes, ties): the
+#: inputs are evaluated arrays (``out`` made opaque: an undefined ``dr.empty`` is a literal
+#: whose size re-recorded every new texel count) whose widths never coincide or equal 1
+#: (:func:`plan` pads them: freeze re-records when the groups of equal-width inputs change).
 _sort_lanes_frozen = dr.freeze(_sort_lanes_traced, warn_after=64)
+
+#: Held by every call of :data:`_sort_lanes_frozen` and by every garbage collection.  A
+#: frozen function is not safe to enter from two threads: sorters recording at once made
+#: extra recordings and corrupted Dr.Jit's variables (``jit_var(): unknown variable``,
+#: ``jit_var_dec_ref(): variable has no references``), and the process hung while Dr.Jit
+#: reported it (writing the message under its lock, waiting for the GIL).  A collection
+#: during a recording frees arrays that map NumPy memory through a host callback, which
+#: cannot be recorded (it aborted the process); ``gc.disable()`` stops automatic collections
+#: only, not an explicit ``gc.collect()`` in another thread: the callback below makes that wait.
+_FREEZE_LOCK = threading.RLock()
+_collecting = threading.local()       # per thread: the lock its running collection holds
+
+
+def _collections_wait_for_sorts(phase: str, info) -> None:
+    """:data:`gc.callbacks` hook: a collection starts only when no frozen sort runs, and no
+    frozen sort starts until it ends (the collecting thread itself re-enters: an ``RLock``)."""
+    state = _collecting
+    if state is None:                                 # interpreter shutdown
+        return
+    if phase == "start":
+        lock = _FREEZE_LOCK
+        lock.acquire()
+        state.lock = lock
+    elif getattr(state, "lock", None) is not None:    # "stop" of a collection holding the lock
+        lock, state.lock = state.lock, None
+        lock.release()
+
+
+def _new_lock_in_child() -> None:
+    """After ``fork()``: a lock held by another thread of the parent would stay held for ever
+    (and with it every collection of the child)."""
+    global _FREEZE_LOCK, _collecting
+    _FREEZE_LOCK, _collecting = threading.RLock(), threading.local()
+
+
+os.register_at_fork(after_in_child=_new_lock_in_child)
 
 
 def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
@@ -161,19 +202,26 @@ def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
     chain of symbolic conditionals picks the network of each lane's size class ``sizes``
     (ascending); SIMD packets whose lanes share a class run one network.  Returns the
     lanes' flags summed (UInt64, width 1; see :func:`_network_branch`)."""
+    dr.make_opaque(out)                               # allocated, not a literal (no kernel)
     args = (kind, tuple(sources), start, count, packet, out, tuple(sizes), ties)
-    if not FREEZE:
-        return _sort_lanes_traced(*args)
-    # no garbage collection while a recording may run: a collected array that maps NumPy
-    # memory releases it through a host callback, which aborts the process mid-recording
-    # ("enqueue_host_func(): this function cannot be recorded")
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        return _sort_lanes_frozen(*args)
-    finally:
-        if enabled:
-            gc.enable()
+    if not FREEZE or dr.width(sources[0]) == 1:       # one segment: a scalar input records anew
+        counter = _sort_lanes_traced(*args)
+    else:
+        with _FREEZE_LOCK:                            # one frozen call at a time, no collection
+            if _collections_wait_for_sorts not in gc.callbacks:     # from the first frozen sort on
+                gc.callbacks.append(_collections_wait_for_sorts)    # (measured 2-7 us per collection)
+            enabled = gc.isenabled()
+            gc.disable()
+            try:
+                counter = _sort_lanes_frozen(*args)
+            finally:
+                if enabled:
+                    gc.enable()
+    # a recording traces symbolic conditionals, each of which opens a new scope, a replay
+    # none: without a scope here, the caller's next kernel merged equal expressions (the
+    # default mask of a gather and an arange) after a replay only, and was compiled anew
+    dr.detail.new_scope(dr.backend_v(start))
+    return counter
 
 
 def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
@@ -222,12 +270,22 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             lanes.append(sel)
             packets.append(pos // sizes[c] + np.arange(sel.size))
             pos += sel.size * sizes[c]
+    n = int(counts.sum())
+    real = sum(sel.size for sel in lanes)
+    pad = 0                                           # empty lanes (a pair of pad slots each):
+    while real and real + pad in (1, n):              # the lanes' width is never 1 nor the segments'
+        pad += 1                                      # (both would re-record the frozen kernel)
+    if pad:
+        lanes.append(np.zeros(pad, np.int64))
+        packets.append(pos // sizes[0] + np.arange(pad))
+        pos += pad * sizes[0]
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
-    out = dict(off=off, n=int(counts.sum()), sizes=sizes, slots=slots, big=None)
+    out = dict(off=off, n=n, sizes=sizes, slots=slots, big=None)
     if lanes:
         lane_t = _u32(np.concatenate(lanes))
         out["start"] = dr.gather(UInt32, off, lane_t)
-        out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
+        real_lane = dr.arange(UInt32, real + pad) < dr.opaque(UInt32, real)
+        out["count"] = dr.select(real_lane, dr.gather(UInt32, off, lane_t + 1) - out["start"], 0)
         out["packet"] = _u32(np.concatenate(packets))
     big_t = np.flatnonzero(counts > MAX_NETWORK)
     out["total"] = slots
@@ -256,9 +314,11 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             # lanes in texel order: sequential memory (measured 8 % faster than longest first)
             passes.append(dict(a0=_u32(a0), mid=_u32(mid), end=_u32(end), final=final, n=_u32(n), dst=_u32(dst)))
             w *= 2
+        size = int(region[-1])
         out["big"] = dict(
             start=start, count=_u32(blk_n), packet=_u32(dest // np.asarray(sizes)[blk_c]),
-            size=int(region[-1]), passes=passes)
+            size=size + MAX_NETWORK * (size == out["n"]), passes=passes)   # widths as for the lanes
+    out["total"] += MAX_NETWORK * (out["total"] == out["n"])                # never the segments' width
     out["base"] = _u32(base)
     dr.eval({k: v for k, v in out.items() if dr.is_array_v(v)}, out["big"])
     return out

@@ -14,6 +14,7 @@ The rule (the same as the representations' parameter schema):
 """
 from __future__ import annotations
 
+import difflib
 import math
 import os
 from numbers import Integral, Real
@@ -138,6 +139,15 @@ def points(value: Any, name: str = "points", allow_empty: bool = False) -> np.nd
     if p.shape[0] == 0 and not allow_empty:
         raise ValueError(f"{name}: no points given (empty array)")
     return p
+
+
+def did_you_mean(value: Any, known) -> str:
+    """``"; did you mean 'x'?"`` naming the closest of ``known`` to a misspelt string
+    ``value`` (:func:`difflib.get_close_matches`, cutoff 0.6), else ``""``."""
+    if not isinstance(value, str):
+        return ""
+    close = difflib.get_close_matches(value, [str(k) for k in known], n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 def one_of(value: Any, name: str, choices) -> Any:

@@ -6,7 +6,7 @@ build the representation on the warped segments and look receivers up at ``w(z)`
 moment-based OIT paper warps depth logarithmically by hand (Muenstermann, Krumpen, Klein
 and Peters 2018, "Moment-Based Order-Independent Transparency", sec. 5); here ``w`` is
 piecewise linear with ``K`` knot intervals and its parameters are learned by gradient
-descent (:mod:`avsm_dr.experiments.learned_warp`).
+descent (:mod:`experiments.learned_warp`).
 
 Parameterisation: ``K`` uniform knot intervals ``[c_k, c_{k+1}]``, ``c_k = near + k h``,
 ``h = (far - near) / K``; logits ``theta`` (K,) give positive increments

@@ -39,7 +39,7 @@ for kind in ['exact', 'avsm']:
 
 # %%
 scene = ad.scenes.plume()
-cap = ad.capture(scene, resolution=RES)
+cap = ad.capture(scene, resolution=RES, order="depth")
 print(cap.segments)
 reps = {
     'exact': ad.build('exact', cap.segments),

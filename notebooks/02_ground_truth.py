@@ -29,7 +29,7 @@ SPP = 64 if SMALL else 512
 
 # %%
 scene = ad.scenes.plume()
-cap = ad.capture(scene, resolution=RES)
+cap = ad.capture(scene, resolution=RES, order="depth")
 exact = ad.build('exact', cap.segments)
 points = np.asarray(scene.receivers)
 mean, stderr = groundtruth.transmittance(scene, points, spp=SPP)
@@ -53,7 +53,7 @@ plt.show()
 
 # %%
 for res in ([64, 96] if SMALL else [64, 128, 256, 512]):
-    c = ad.capture(scene, resolution=res)
+    c = ad.capture(scene, resolution=res, order="depth")
     t, d = c.lookup(points)
     o = np.asarray(ad.build('exact', c.segments).eval(t, d))
     print(f'{res:4d}^2: rmse vs Mitsuba {np.sqrt(np.mean((o - mean)**2)):.4f}')

@@ -13,7 +13,7 @@
 #
 # Draws error against bytes per texel for every registered representation on the built-in scenes,
 # and what the measurements say about the papers' claims. It only reads: the output of
-# `python -m avsm_dr error_curves` (the README's main job) when `results/error_curves/` holds it,
+# `python -m experiments error_curves` (the README's main job) when `results/error_curves/` holds it,
 # otherwise the measurements committed with the docs (`docs/data/`, made by the command named in
 # `docs/data/README.md`).
 
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import avsm_dr as ad  # first: picks Dr.Jit's libLLVM
 import matplotlib.pyplot as plt
-from avsm_dr.experiments._common import read_csv
+from avsm_dr.evaluation import read_csv
 
 results = Path(os.environ.get('AVSM_DR_RESULTS', 'results')) / 'error_curves'
 docs_data = Path(ad.__file__).resolve().parents[1] / 'docs' / 'data'

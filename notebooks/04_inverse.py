@@ -25,7 +25,7 @@ import matplotlib.pyplot as plt
 import drjit as dr
 from avsm_dr import reconstruction as inv, groundtruth as gt
 from avsm_dr.representations import _loops as ck
-from avsm_dr.experiments.inverse import probe_lattice
+from avsm_dr.receivers import lattice
 # The test suite runs these notebooks with AVSM_DR_NOTEBOOK_SMALL=1 (small sizes, fast).
 SMALL = os.environ.get('AVSM_DR_NOTEBOOK_SMALL') == '1'
 SIZE, ITERS, RES, IMG = (6, 15, 64, 14) if SMALL else (10, 120, 96, 32)
@@ -89,7 +89,7 @@ print('reverse vs forward check:', inv.gradient_check(
 
 # %%
 lights = [inv.light_from_angles(a, 20) for a in (180, 300, 60)]
-probes = probe_lattice(scene.bbox, (4, 6, 4))
+probes = lattice(scene.bbox, (4, 6, 4))
 receivers = [np.concatenate([inv.receiver_grid(scene.bbox, l, IMG), probes]) for l in lights]
 targets = [gt.transmittance(inv.with_light(scene, l), r, method='raymarch')[0]
            for l, r in zip(lights, receivers)]
@@ -140,7 +140,7 @@ plt.show()
 # (AVSM: 2N + 5 words per iteration). The exact curve's loop is a sum loop that reverse mode
 # recomputes (no trajectory), and
 # `ad.build(kind, seg, reverse='auto')` checkpoints AVSM's loop in chunks when the trajectory would be
-# large; forward mode needs no trajectory at all. `python -m avsm_dr backward_cost` measures time and memory.
+# large; forward mode needs no trajectory at all. `python -m experiments backward_cost` measures time and memory.
 
 # %%
 seg = sh.capture.segments

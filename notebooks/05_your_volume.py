@@ -80,7 +80,7 @@ plt.show()
 # truth at them is a float64 ray march of the grid, independent of the capture.
 
 # %%
-cap = ad.capture(scene, resolution=RES)
+cap = ad.capture(scene, resolution=RES, order="depth")
 print(cap.segments)
 points = receivers.in_volume(scene, N_RECEIVERS, seed=0)
 truth = groundtruth.transmittance(scene, points, method='raymarch')[0]

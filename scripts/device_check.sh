@@ -53,12 +53,12 @@ else
 fi
 
 if [ "$SMOKE" = 1 ]; then
-    step frame "$PY" -c "import sys; from avsm_dr.experiments import frame; \
+    step frame "$PY" -c "import sys; from experiments import frame; \
 frame.run(quick=True, out=sys.argv[1], force=True, scenes=['plume'], resolutions=[64], methods=('march',), repeats=1)" \
         "$OUT/frame"
 else
-    step bench "$PY" -m avsm_dr bench --quick --force --backend "$BACKEND" --out "$OUT"
-    step frame "$PY" -m avsm_dr frame --quick --force --backend "$BACKEND" --out "$OUT"
+    step bench "$PY" -m experiments bench --quick --force --backend "$BACKEND" --out "$OUT"
+    step frame "$PY" -m experiments frame --quick --force --backend "$BACKEND" --out "$OUT"
 fi
 
 "$PY" scripts/device_table.py "$OUT" > "$OUT/device_check.md"

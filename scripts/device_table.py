@@ -3,7 +3,7 @@
     python scripts/device_table.py OUT > OUT/device_check.md
 
 Reads ``OUT/steps.tsv`` (step, backend, seconds, exit status), ``OUT/frame/data.csv``
-(``python -m avsm_dr frame``) and ``OUT/bench/data.csv`` (``python -m avsm_dr bench``) where
+(``python -m experiments frame``) and ``OUT/bench/data.csv`` (``python -m experiments bench``) where
 present, and prints three tables: the steps; per kind, the frame at the largest resolution
 of each scene (capture / build / lookup in ms, the frame's stage shares); per bench setting,
 build (M insertions/s) and lookup (M receivers/s) rates and the ratio to the Numba peer.
@@ -86,8 +86,8 @@ def main(argv: list[str]) -> int:
     out = Path(argv[0])
     print("# Device check\n")
     print("## Steps\n\n" + steps_table(out) + "\n")
-    print("## Frame (python -m avsm_dr frame --quick)\n\n" + frame_table(out) + "\n")
-    print("## Bench (python -m avsm_dr bench --quick)\n\n" + bench_table(out))
+    print("## Frame (python -m experiments frame --quick)\n\n" + frame_table(out) + "\n")
+    print("## Bench (python -m experiments bench --quick)\n\n" + bench_table(out))
     return 0
 
 

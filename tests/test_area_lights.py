@@ -310,8 +310,8 @@ def test_experiment_writes_table_images_and_meta(tmp_path, monkeypatch):
     existing results unless forced."""
     import json
 
-    from avsm_dr.experiments import _common
-    from avsm_dr.experiments import area_lights as exp
+    from experiments import _common
+    from experiments import area_lights as exp
     monkeypatch.setattr(exp, "QUICK", dict(width=12, height=10, steps=16, vpls=[1, 4], r_coarse=8,
                                            r_high=16, spp=64, k_dense=16, repeats=1))
     out = exp.run(quick=True, out=tmp_path / "al")

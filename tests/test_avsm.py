@@ -157,7 +157,7 @@ def test_property_matches_reference_and_bounds(seed, nodes, sort):
 
 def test_vectorised_numpy_peer_agrees(rng):
     """The NumPy peer used by the benchmark runs the same algorithm (float64)."""
-    from avsm_dr.peers import numpy_avsm
+    from experiments.bench.peer_kernels import numpy_avsm
     seg = to_segments(random_segments(rng, texels=150, max_count=25), "float64")
     h = seg.numpy()
     for nodes in (3, 8):

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from avsm_dr.experiments.bench import report, throughput
+from experiments.bench import report, throughput
 
 
 def _machine():

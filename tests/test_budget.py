@@ -1,4 +1,4 @@
-"""The spatial-vs-depth budget experiment (``python -m avsm_dr budget``) and the reference
+"""The spatial-vs-depth budget experiment (``python -m experiments budget``) and the reference
 transmittance it and ``images`` are measured against."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.testing import quick_cli_run
-from avsm_dr.experiments import _common, budget, images
+from helpers import quick_cli_run
+from experiments import _common, budget, images
 
 
 def test_fit_spends_the_budget_on_the_size_parameter():

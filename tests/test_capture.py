@@ -104,7 +104,7 @@ def test_grid_capture_matches_reference_march(light):
     midpoint march (4000 steps per unit).  Measured max error 1e-5 (Simpson's O(h^2) at the
     lattice planes where the trilinear field's derivative jumps); bound 5e-5 on tau <= ~5."""
     lt = LIGHTS.get(light, DirectionalLight((0.0, 0.0, 1.0)))     # axis-aligned: zero direction components
-    cap = ad.capture(grid_scene(lt), resolution=64, step=0.1 / 32, epsilon=1e-12)
+    cap = ad.capture(grid_scene(lt), resolution=64, step=0.1 / 32, epsilon=1e-12, order="depth")
     if light == "point":
         assert (cap.width, cap.height) == (64, 6 * 64)
     err = cumulative_errors(cap, small_grid())
@@ -117,7 +117,7 @@ def test_capture_error_shrinks_with_step():
     halving of the step (Simpson's rule with kinks: O(h^2), i.e. ~4x)."""
     rms = []
     for step in (0.1, 0.05, 0.025, 0.0125):
-        cap = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, step=step, epsilon=1e-12)
+        cap = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, step=step, epsilon=1e-12, order="depth")
         rms.append(np.sqrt(np.mean(cumulative_errors(cap, small_grid()) ** 2)))
     ratios = np.array(rms[1:]) / np.array(rms[:-1])
     assert np.all(ratios < 0.5), (rms, ratios)
@@ -132,7 +132,7 @@ def test_exact_from_capture_matches_fine_march_at_receivers(step, tol_volume, to
     remains; inside it the exact curve also interpolates tau linearly within a segment (O(h)
     in tau for steep density).  Bounds: about twice the measured errors."""
     sc = ad.scenes.plume(size=16, n_receivers=400)
-    cap = ad.capture(sc, resolution=64, step=step, epsilon=1e-6)
+    cap = ad.capture(sc, resolution=64, step=step, epsilon=1e-6, order="depth")
     texel, depth = cap.lookup(sc.receivers)
     T = np.asarray(ad.build("exact", cap.segments).eval(texel, depth))
     o, d = cap.camera.rays(texel)
@@ -149,8 +149,8 @@ def test_epsilon_stops_the_march():
     eps = 0.05
     dens = small_grid() * 4
     sc = grid_scene(LIGHTS["directional"], dens)
-    fine = ad.capture(sc, resolution=64, step=0.01, epsilon=1e-12)
-    cut = ad.capture(sc, resolution=64, step=0.01, epsilon=eps)
+    fine = ad.capture(sc, resolution=64, step=0.01, epsilon=1e-12, order="depth")
+    cut = ad.capture(sc, resolution=64, step=0.01, epsilon=eps, order="depth")
     assert cut.segments.n_segments < fine.segments.n_segments
     texels = np.arange(fine.segments.n_texels)
     far = np.full(texels.size, 100.0)
@@ -178,7 +178,8 @@ def test_empty_space_does_not_change_the_result():
     results = []
     for dens, bb, skip in ((d, BBOX, True), (big, bb2, True), (d, BBOX, False)):
         sc = Scene("t", light, rec, density=dens, bbox=bb)
-        cap = ad.capture(sc, resolution=64, step=0.1 / 8, density=GridVolume.prepare(dens, bb, skip_empty=skip))
+        cap = ad.capture(sc, resolution=64, step=0.1 / 8, density=GridVolume.prepare(dens, bb, skip_empty=skip),
+                         order="depth")
         results.append(np.asarray(cap.transmittance(ad.build("exact", cap.segments), rec)))
     assert results[0].min() < 0.5
     for other in results[1:]:
@@ -194,8 +195,8 @@ def test_vol_file_density_and_roundtrip(tmp_path):
     assert back.dtype == np.float32 and np.array_equal(back, d)
     np.testing.assert_allclose(bb[0], BBOX[0], atol=1e-7)
     sc = Scene("t", LIGHTS["directional"], np.zeros((1, 3)), density=str(path), bbox=None)
-    a = ad.capture(sc, resolution=64)
-    b = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64)
+    a = ad.capture(sc, resolution=64, order="depth")
+    b = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, order="depth")
     assert a.segments.n_segments == b.segments.n_segments
     np.testing.assert_allclose(a.segments.numpy()["optical_depth"], b.segments.numpy()["optical_depth"], atol=1e-6)
     (tmp_path / "bad.vol").write_bytes(b"NOPE" + bytes(60))
@@ -240,7 +241,8 @@ def test_trilinear_convention_matches_mitsuba_gridvolume():
 
 # ------------------------------------------------------------------ gradients
 def _loss(density_tensor, scene, method=None):
-    cap = ad.capture(scene, resolution=64, density=density_tensor, epsilon=1e-12, bounds=BBOX, method=method)
+    cap = ad.capture(scene, resolution=64, density=density_tensor, epsilon=1e-12, bounds=BBOX, method=method,
+                     order="depth")
     T = cap.transmittance(ad.build("exact", cap.segments), scene.receivers)
     return dr.sum(T), cap
 
@@ -280,7 +282,8 @@ def test_float32_gradient_flows_to_optical_depth():
     d = small_grid()
     x = TensorXf(d)
     dr.enable_grad(x)
-    cap = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, density=x, epsilon=1e-12, bounds=BBOX)
+    cap = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, density=x, epsilon=1e-12, bounds=BBOX,
+                     order="depth")
     s = dr.sum(cap.segments.optical_depth)
     dr.backward(s)
     g = dr.grad(x).numpy()
@@ -293,7 +296,7 @@ def test_float32_gradient_flows_to_optical_depth():
     x2 = TensorXf(d)
     dr.enable_grad(x2)
     cap2 = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, density=x2, epsilon=1e-12,
-                      keep_zero=True, bounds=BBOX)             # same map (not fitted to the content)
+                      keep_zero=True, bounds=BBOX, order="depth")             # same map (not fitted to the content)
     assert cap2.segments.n_segments > cap.segments.n_segments
     dr.backward(dr.sum(cap2.segments.optical_depth))
     g2 = dr.grad(x2).numpy()
@@ -311,7 +314,7 @@ def test_particle_chords_are_exact(light):
     r = np.array([0.25, 0.1])
     s = np.array([4.0, 9.0])
     sc = Scene("p", LIGHTS[light], np.zeros((1, 3)), particles=Particles(c, r, s))
-    cap = ad.capture(sc, resolution=64)
+    cap = ad.capture(sc, resolution=64, order="depth")
     h = cap.segments.numpy()
     o, d = cap.camera.rays()
     hits = 0
@@ -336,7 +339,7 @@ def test_particle_density_gradient():
     dens = Float([2.0, 3.0])
     dr.enable_grad(dens)
     sc = Scene("p", DirectionalLight((0, 0, 1)), np.zeros((1, 3)), particles=Particles(c, r, dens))
-    cap = ad.capture(sc, resolution=128)
+    cap = ad.capture(sc, resolution=128, order="depth")
     dr.backward(dr.sum(cap.segments.optical_depth))
     h = cap.segments.numpy()
     length = h["z1"] - h["z0"]
@@ -357,7 +360,7 @@ def test_opaque_blocker_zero_behind_one_in_front(blocker, light):
     lt = (DirectionalLight((0.3, -1.0, 0.2)) if light == "directional"
           else SpotLight((0.6, 2.0, 0.4), (-0.3, -1.0, -0.2), 40))
     sc = Scene("o", lt, np.zeros((1, 3)), blockers=[blocker])
-    cap = ad.capture(sc, resolution=64)
+    cap = ad.capture(sc, resolution=64, order="depth")
     assert cap.segments.n_segments > 50
     rep = ad.build("exact", cap.segments)
     o, d = cap.camera.rays()
@@ -389,7 +392,7 @@ def _lit_surface_points(blocker, light_pos_or_dir, directional, n, rng):
             nrm = np.zeros((4 * n, 3))
             nrm[np.arange(4 * n), ax] = np.where(side, 1.0, -1.0)
         else:
-            from avsm_dr.capture import orthonormal_basis
+            from avsm_dr.geometry import orthonormal_basis
             u, v, w = orthonormal_basis(blocker.normal)
             a, b = rng.uniform(-blocker.extent, blocker.extent, (2, 4 * n))
             p = blocker.point + a[:, None] * u + b[:, None] * v
@@ -417,7 +420,7 @@ def test_receivers_on_a_lit_surface_are_not_self_shadowed(blocker, light, filter
           "spot": SpotLight((0.6, 2.0, 0.4), (-0.3, -1.0, -0.2), 40),
           "point": PointLight((0.6, 2.0, 0.4))}[light]
     sc = Scene("o", lt, np.zeros((1, 3)), blockers=[blocker])
-    cap = ad.capture(sc, resolution=64)
+    cap = ad.capture(sc, resolution=64, order="depth")
     rng = np.random.default_rng(8)
     directional = light == "directional"
     pts = _lit_surface_points(blocker, lt.direction if directional else lt.position, directional, 400, rng)
@@ -437,7 +440,8 @@ def test_hair_single_straight_strand():
     caps = []
     for strands in (two, many):
         sc = Scene("h", light, np.zeros((1, 3)), hair=Hair(strands, r, op))
-        caps.append(ad.capture(sc, resolution=128, bounds=(np.array([-0.6, -0.1, -0.6]), np.array([0.6, 0.1, 0.6]))))
+        caps.append(ad.capture(sc, resolution=128, bounds=(np.array([-0.6, -0.1, -0.6]), np.array([0.6, 0.1, 0.6])),
+                               order="depth"))
     a, b = (c.segments.numpy() for c in caps)
     assert np.array_equal(a["offsets"], b["offsets"])
     np.testing.assert_allclose(a["z0"], b["z0"], atol=1e-6)
@@ -527,7 +531,7 @@ def test_combined_content_is_product_of_parts():
     rec = rng.uniform(-0.6, 0.8, (500, 3))
     light = LIGHTS["spot"]
     full = Scene("all", light, rec, density=small_grid(), bbox=BBOX, hair=hair, particles=parts, blockers=[box])
-    cap = ad.capture(full, resolution=64)
+    cap = ad.capture(full, resolution=64, order="depth")
     h = cap.segments.numpy()
     tex = np.repeat(np.arange(cap.segments.n_texels), cap.segments.counts)
     same = tex[1:] == tex[:-1]
@@ -535,7 +539,7 @@ def test_combined_content_is_product_of_parts():
     T = np.asarray(cap.transmittance(ad.build("exact", cap.segments), rec))
     prod = np.ones(rec.shape[0])
     for kw in ({"density": small_grid(), "bbox": BBOX}, {"hair": hair}, {"particles": parts}, {"blockers": [box]}):
-        c = ad.capture(Scene("p", light, rec, **kw), resolution=64)
+        c = ad.capture(Scene("p", light, rec, **kw), resolution=64, order="depth")
         prod *= np.asarray(c.transmittance(ad.build("exact", c.segments), rec))
     assert T.min() == 0.0 and T.max() == 1.0 and np.any((T > 0.05) & (T < 0.95))
     np.testing.assert_allclose(T, prod, rtol=1e-5, atol=1e-6)
@@ -543,7 +547,7 @@ def test_combined_content_is_product_of_parts():
 
 @pytest.mark.parametrize("light", list(LIGHTS))
 def test_lookup_returns_the_texel_and_depth_of_its_ray(light):
-    cap = ad.capture(grid_scene(LIGHTS[light]), resolution=64)
+    cap = ad.capture(grid_scene(LIGHTS[light]), resolution=64, order="depth")
     rng = np.random.default_rng(7)
     tex = rng.integers(0, cap.segments.n_texels, 500)
     if light == "point":                        # include texels on every cube-face edge
@@ -569,7 +573,7 @@ def test_lookup_returns_the_texel_and_depth_of_its_ray(light):
 def test_directional_map_has_empty_margin():
     """The fitted orthographic map keeps its edge texels empty, so lookups clamped from
     outside the map read T = 1."""
-    cap = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64)
+    cap = ad.capture(grid_scene(LIGHTS["directional"]), resolution=64, order="depth")
     c = cap.segments.counts.reshape(64, 64)
     assert c[0].sum() == c[-1].sum() == c[:, 0].sum() == c[:, -1].sum() == 0
     rows, cols = np.flatnonzero(c.any(axis=1)), np.flatnonzero(c.any(axis=0))
@@ -578,7 +582,8 @@ def test_directional_map_has_empty_margin():
 
 def test_capture_is_deterministic():
     sc = grid_scene(LIGHTS["point"])
-    a, b = ad.capture(sc, resolution=64).segments.numpy(), ad.capture(sc, resolution=64).segments.numpy()
+    a, b = (ad.capture(sc, resolution=64, order="depth").segments.numpy(),
+            ad.capture(sc, resolution=64, order="depth").segments.numpy())
     for k in a:
         assert np.array_equal(a[k], b[k])
 
@@ -622,7 +627,7 @@ def test_bad_input_raises_value_error_naming_the_argument(kwargs, capture_kw, na
 
 
 def test_bad_lookup_points():
-    cap = ad.capture(_scene(), resolution=64)
+    cap = ad.capture(_scene(), resolution=64, order="depth")
     with pytest.raises(ValueError, match="^points"):
         cap.lookup(np.zeros((3, 2)))
     with pytest.raises(ValueError, match="^points"):

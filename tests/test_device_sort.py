@@ -4,12 +4,15 @@ a stable host lexsort by (texel, z0, z1)."""
 from __future__ import annotations
 
 import itertools
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.testing import compiled_kernels
+from helpers import compiled_kernels
 import drjit as dr
 from avsm_dr import texel_sort as TS
 
@@ -184,5 +187,100 @@ def test_new_counts_compile_nothing(backend, rng):
             out += [s.z0, s.z1, s.optical_depth, *ad.build("avsm", seg, nodes=8, sort=True).depths]
         return out
 
-    run(np.array([3, 70, 0, 64, 200, 5]))
-    assert compiled_kernels(lambda: run(np.array([9, 0, 90, 64, 300, 2, 130, 31]))) == 0
+    dr.eval(run(np.array([3, 70, 0, 64, 200, 5])))
+    # twice: the first counted call records the frozen sort anew (KernelHistory is part of
+    # its key), the second replays it
+    assert [compiled_kernels(lambda: run(np.array(c))) for c in
+            ([9, 0, 90, 64, 300, 2, 130, 31], [64, 5, 77, 0, 1, 260, 40])] == [0, 0]
+
+
+@pytest.mark.parametrize("group", ["classes_2_to_8", "class_2", "blocks"])
+def test_one_recording_per_size_classes(backend, rng, group):
+    """Sorts of other texel counts with the same size classes replay one recording of the
+    frozen sort (issue 21, item 10: 10 sorts made 10 recordings, and Dr.Jit warns on every
+    call after 64): its output buffer was an undefined ``dr.empty``, a literal whose size
+    re-recorded; freeze also re-records when the groups of equal-width inputs change, so
+    lanes equal in number to the segments (texels of one segment), one lane, and an output
+    as wide as the segments (16 texels of 8 in 128 slots; a texel of 128 in two blocks) are
+    padded.  Every sort still equals the host lexsort."""
+    maps = {"classes_2_to_8": [np.r_[8, rng.integers(0, 9, int(rng.integers(20, 400)))] for _ in range(8)]
+            + [np.full(16, 8), np.array([5, 0, 1]), np.array([8])],
+            "class_2": [np.ones(50, np.int64), np.ones(77, np.int64), np.array([2]), np.array([0, 2, 0]),
+                        np.array([1, 1]), np.array([0, 1, 0])],
+            "blocks": [np.array([300, 5, 0, 64, 1]), np.array([65, 63]), np.array([200, 2, 70]),
+                       np.array([128, 1]), np.array([64, 64, 200])]}[group]
+    recordings = []
+    for counts in maps:
+        _check(_segments(counts, _distinct(rng, int(counts.sum())), rng), network=True)
+        recordings.append(TS._sort_lanes_frozen.n_recordings)
+    assert recordings[1:] == recordings[:1] * (len(maps) - 1), recordings
+
+
+_CONCURRENT_SORTS = textwrap.dedent("""
+    import faulthandler, gc, sys, threading
+    import numpy as np
+    import avsm_dr as ad
+    import drjit as dr
+    from avsm_dr import texel_sort as TS
+
+    faulthandler.dump_traceback_later(float(sys.argv[1]), exit=True)   # a hang: stacks, exit 1
+    Float = ad.backend.types().Float
+    KEYS = [(top, ties) for top in (2, 4, 8, 16, 32) for ties in (False, True)]
+    THREADS, errors, stop = 3, [], threading.Event()
+    barrier = threading.Barrier(THREADS)
+
+    def sorter(seed):
+        rng = np.random.default_rng(seed)
+        try:
+            for top, ties in KEYS:
+                counts = np.r_[top, rng.integers(0, top + 1, int(rng.integers(30, 300)))]
+                n = int(counts.sum())
+                seg = ad.Segments.from_arrays(np.r_[0, np.cumsum(counts)], rng.uniform(-1, 1, n),
+                                              rng.uniform(1, 2, n), optical_depth=np.ones(n))
+                z0 = dr.detached_t(seg.Float)(seg.z0)
+                barrier.wait()                        # the threads record each key at once
+                pay, base, _ = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,), ties)
+                pay, base, h = np.asarray(pay), np.asarray(base), seg.numpy()["z0"].astype(np.float32)
+                for t in np.flatnonzero(counts):
+                    o, c = seg.offsets[t], counts[t]
+                    if not np.array_equal(pay[base[t]:base[t] + c], o + np.argsort(h[o:o + c], kind="stable")):
+                        errors.append(("wrong order", seed, top, ties, t))
+                        break
+        except Exception as exc:
+            errors.append(repr(exc))
+            barrier.abort()
+
+    def collector():                                  # explicit collections of NumPy-mapped cycles
+        while not stop.is_set():
+            junk = [Float(np.ones(500 + k, np.float32)) for k in range(10)]
+            junk.append(junk)
+            del junk
+            gc.collect()
+
+    c = threading.Thread(target=collector, daemon=True)
+    c.start()
+    for r in range(3):
+        ts = [threading.Thread(target=sorter, args=(10 * r + s,)) for s in range(THREADS)]
+        [t.start() for t in ts]
+        [t.join() for t in ts]
+    stop.set()
+    c.join()
+    print("recordings", TS._sort_lanes_frozen.n_recordings, "of", len(KEYS), "errors", errors)
+    sys.exit(0 if not errors and TS._sort_lanes_frozen.n_recordings == len(KEYS) else 2)
+""")
+
+
+def test_concurrent_sorts_with_collections_finish(tmp_path):
+    """Three threads sort (each size-class key at once, so their recordings overlap) while a
+    fourth runs ``gc.collect()`` on cycles of NumPy-mapped arrays (issue 21, item 10).  With
+    the frozen call not serialised, 4 of 4 runs of this script failed (11-12 recordings of 10
+    keys, or an abort on ``jit_var(): unknown variable``), and the code before this issue's
+    fix hung in 2 of 2.  In a subprocess with a timeout: every sort is right and each key is
+    recorded once."""
+    script = tmp_path / "concurrent_sorts.py"
+    script.write_text(_CONCURRENT_SORTS)
+    try:
+        r = subprocess.run([sys.executable, str(script), "150"], capture_output=True, text=True, timeout=200)
+    except subprocess.TimeoutExpired as exc:
+        pytest.fail(f"concurrent sorts hung: {exc.stdout!r} {exc.stderr!r}")
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]

@@ -1,7 +1,13 @@
 """The docs' generated parts: README's kinds table is current, every public object has a docstring,
-and the build-time generator writes a page per kind from the registry and the committed data.
+and the build-time generator writes a page per kind from the registry and the committed data; every
+```python block of a user page runs (or is marked as an excerpt of a file that exists).
 (The Sphinx build itself runs in CI: README's test command, warnings as errors.)"""
 import importlib.util
+import os
+import re
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -69,3 +75,145 @@ def test_plain_docstrings_become_valid_rst():
     assert messages == []
     doc = publish_doctree("\n".join(lines), settings_overrides={"halt_level": 5, "warning_stream": False})
     assert [m for m in doc.findall() if isinstance(m, system_message) and m["level"] >= 2], "the raw text warns"
+
+
+# ===================================================================== code blocks of the user pages
+#: A block preceded by this comment (blank lines between allowed) is an excerpt of FILE (a path
+#: from the repository root), which must exist; every other ```python block must run by itself.
+EXCERPT = re.compile(r"<!--\s*excerpt:\s*see\s+(\S+)\s*-->")
+#: A block preceded by this comment runs after the block above it on the same page (its names).
+CONTINUES = re.compile(r"<!--\s*continues the block above\s*-->")
+FENCE = re.compile(r"^([ \t]*)```(?:python|py|python3)[ \t]*\n(.*?)^\1```[ \t]*$", re.S | re.M)
+
+
+def _user_pages():
+    """(page, text): docs/*.md, docs/research/*.md and README.md's Quick start section."""
+    pages = sorted((ROOT / "docs").glob("*.md")) + sorted((ROOT / "docs" / "research").glob("*.md"))
+    out = [(str(p.relative_to(ROOT)), p.read_text()) for p in pages]
+    readme = (ROOT / "README.md").read_text()
+    quick = re.search(r"^## Quick start\n(.*?)(?=^## |\Z)", readme, re.S | re.M)
+    assert quick, "README.md has no '## Quick start' section"
+    return out + [("README.md#quick-start", quick.group(1))]
+
+
+def code_blocks():
+    """(id, code, excerpt_of) of every ```python block of the user pages, in page order."""
+    blocks = []
+    for page, text in _user_pages():
+        previous = None
+        for m in FENCE.finditer(text):
+            before = text[:m.start()].rstrip().rsplit("\n", 1)[-1]
+            ex = EXCERPT.search(before)
+            line = text[:m.start()].count("\n") + 1
+            code = textwrap.dedent(m.group(2))
+            if CONTINUES.search(before):
+                assert previous is not None, f"{page}:{line} continues a block, but none is above it"
+                code = previous + "\n" + code
+            blocks.append((f"{page}:{line}", code, ex.group(1) if ex else None))
+            previous = code
+    return blocks
+
+
+def test_code_blocks_are_found():
+    """The extraction sees the blocks (a changed fence syntax would silently test nothing)."""
+    ids = [b[0] for b in code_blocks()]
+    fences = sum(len(re.findall(r"^[ \t]*```(?:python|py|python3)[ \t]*$", t, re.M)) for _, t in _user_pages())
+    assert len(ids) == fences, "a ```python fence the extraction does not see"
+    assert any(i.startswith("docs/mitsuba.md") for i in ids) and any(i.startswith("docs/gradients.md") for i in ids)
+    assert any(i.startswith("README.md#quick-start") for i in ids)
+    assert EXCERPT.search("<!-- excerpt: see tests/toy_kind.py -->").group(1) == "tests/toy_kind.py"
+    # a continued block runs with the one above it (the Mitsuba page's gradient needs its scene)
+    mitsuba = [code for i, code, _ in code_blocks() if i.startswith("docs/mitsuba.md")]
+    assert len(mitsuba) == 2 and mitsuba[1].startswith(mitsuba[0])
+
+
+@pytest.mark.parametrize("block_id, code, excerpt", code_blocks(), ids=[b[0] for b in code_blocks()])
+def test_docs_code_block_runs(block_id, code, excerpt, tmp_path):
+    """A user page's code runs as written, in a fresh interpreter (its own Mitsuba variant and
+    JIT state) in an empty folder; an excerpt names a file that exists."""
+    if excerpt is not None:
+        assert (ROOT / excerpt).is_file(), f"{block_id}: excerpt of {excerpt!r}, which does not exist"
+        return
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+               MPLBACKEND="Agg")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, f"{block_id} failed:\n{r.stderr[-3000:]}"
+
+
+# ===================================================================== the built HTML
+#: The built site (``python -m sphinx -W -b html docs docs/_build/html``), or AVSM_DOCS_HTML.
+HTML = Path(os.environ.get("AVSM_DOCS_HTML", ROOT / "docs" / "_build" / "html"))
+
+
+def _quote_blocks(markdown: str) -> int:
+    """Number of Markdown block quotes (runs of lines starting with '>') outside code fences."""
+    n, fenced, inside = 0, False, False
+    for line in markdown.splitlines():
+        if line.lstrip().startswith(("```", "~~~")):
+            fenced = not fenced
+        quote = not fenced and line.lstrip().startswith(">")
+        n += quote and not inside
+        inside = quote
+    return n
+
+
+def html_defects(root: Path) -> list[str]:
+    """Rendering defects of a built site: block quotes a page's Markdown source does not write
+    (docstring indentation that RST turns into a quote), and table cells whose text outside
+    code holds a backtick (a '|' inside a code span splits the cell)."""
+    from html.parser import HTMLParser
+
+    class Page(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.quotes, self.cell, self.code, self.text, self.broken = 0, 0, 0, "", []
+
+        def handle_starttag(self, tag, attrs):
+            self.quotes += tag == "blockquote"
+            self.code += tag == "code"
+            if tag in ("td", "th"):
+                self.cell, self.text = self.cell + 1, ""
+
+        def handle_endtag(self, tag):
+            self.code -= tag == "code" and self.code > 0
+            if tag in ("td", "th") and self.cell:
+                self.cell -= 1
+                if "`" in self.text:
+                    self.broken.append(self.text.strip()[:60])
+
+        def handle_data(self, data):
+            if self.cell and not self.code:
+                self.text += data
+
+    out = []
+    for path in sorted(root.rglob("*.html")):
+        rel = path.relative_to(root)
+        if rel.parts[0] in ("_static", "_sources", "genindex.html", "search.html", "py-modindex.html"):
+            continue
+        page = Page()
+        page.feed(path.read_text(errors="replace"))
+        sources = [root / "_sources" / rel.with_suffix(s) for s in (".md.txt", ".ipynb.txt", ".rst.txt")]
+        src = next((p.read_text(errors="replace") for p in sources if p.exists()), "")
+        if page.quotes > _quote_blocks(src):
+            out.append(f"{rel}: {page.quotes - _quote_blocks(src)} stray block quote(s)")
+        out += [f"{rel}: broken table cell {t!r}" for t in page.broken]
+    return out
+
+
+def test_html_checker_finds_defects(tmp_path):
+    """The checker itself, on a tiny site: a docstring-made quote and a split code cell."""
+    (tmp_path / "_sources").mkdir()
+    (tmp_path / "_sources" / "a.md.txt").write_text("# A\n\n> a real quote\n\n```\n> not a quote\n```\n")
+    (tmp_path / "a.html").write_text("<blockquote><div>quote</div></blockquote>"
+                                     "<table><tr><td><code>a</code></td><td><code>x</code> `</td></tr></table>")
+    (tmp_path / "b.html").write_text("<dd><blockquote><div>T(d) = exp(-tau)</div></blockquote></dd>")
+    assert html_defects(tmp_path) == ["a.html: broken table cell '`'", "b.html: 1 stray block quote(s)"]
+
+
+def test_built_html_has_no_stray_quotes_or_broken_cells():
+    """The built site (when present: build it first, see ``HTML``) renders without stray block
+    quotes and broken table cells."""
+    if not (HTML / "index.html").exists():
+        pytest.skip(f"no built site at {HTML} (python -m sphinx -W -b html docs docs/_build/html)")
+    assert html_defects(HTML) == []

@@ -91,8 +91,8 @@ def test_build_peak_within_4x_of_the_output():
     """The issue-14 target on the benchmark's memory map at its quick size (64^2 texels,
     ~0.4 M segments; 76x in one piece): peak = the larger of process RSS growth and Dr.Jit's
     allocator watermark growth (:class:`Meter`), over nbytes_per_texel x texels."""
-    from avsm_dr.experiments._common import Meter
-    from avsm_dr.experiments.bench.settings import counts_map
+    from experiments._common import Meter
+    from experiments.bench.settings import counts_map
     seg = counts_map(64, 100)
     dr.eval(seg.z0, seg.z1, seg.optical_depth)
     ad.build("dsm", counts_map(4, 100), tolerance=0.01)       # compile outside the measurement

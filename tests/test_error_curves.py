@@ -9,9 +9,9 @@ import pytest
 import avsm_dr as ad
 from avsm_dr import receivers, stats
 from avsm_dr.capture.opaque_map import OpaqueComposite
-from avsm_dr.experiments import _error_findings as F
-from avsm_dr.experiments import error_curves as E
-from avsm_dr.experiments._error_terms import Probe, SubsetBuilder, light_variants, with_faint_segments
+from experiments.error_curves import findings as F
+from experiments import error_curves as E
+from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants, with_faint_segments
 from avsm_dr.groundtruth import sample_density
 
 
@@ -23,12 +23,13 @@ def plume():
 @pytest.fixture(scope="module")
 def table():
     sc = ad.scenes.get("smoke_over_table", size=16)
-    return sc, ad.capture(sc, resolution=64), ad.capture(sc, resolution=64, opaque="separate")
+    return (sc, ad.capture(sc, resolution=64, order="depth"),
+            ad.capture(sc, resolution=64, opaque="separate", order="depth"))
 
 
 # ------------------------------------------------------------------ decomposition
 def test_terms_add_up_and_probe_is_the_bilinear_filter(plume):
-    cap = ad.capture(plume, resolution=64)
+    cap = ad.capture(plume, resolution=64, order="depth")
     pts = receivers.in_volume(plume, 300, seed=1)
     probe = Probe(cap, plume, pts, n_decomp=300)
     rep, exact = ad.build("avsm", cap.segments, nodes=4), ad.build("exact", cap.segments)
@@ -52,7 +53,7 @@ def test_receivers_on_texel_rays_have_only_a_capture_term(plume):
     at the midpoint rule's O(step^2) (and float32) level."""
     lo, hi = plume.bbox
     voxel = float(np.min((hi - lo) / np.array(plume.density.shape[::-1])))
-    cap = ad.capture(plume, resolution=64, step=voxel / 8)
+    cap = ad.capture(plume, resolution=64, step=voxel / 8, order="depth")
     near, far = cap.segments.bounds()
     tex = np.nonzero(cap.segments.counts > 0)[0][::7][:200]
     o, d = cap.camera.rays(tex)
@@ -140,7 +141,7 @@ def test_opaque_composite_storage_and_checks(table):
 @pytest.mark.parametrize("kind, params", [("avsm", dict(nodes=8)), ("fom", dict(harmonics=8)),
                                           ("osm", dict(slices=16)), ("dsm", dict(tolerance=0.02))])
 def test_subset_build_equals_whole_map(plume, kind, params):
-    cap = ad.capture(plume, resolution=64)
+    cap = ad.capture(plume, resolution=64, order="depth")
     probe = Probe(cap, plume, receivers.in_volume(plume, 200, seed=0), n_decomp=0)
     sub = SubsetBuilder(cap.segments, probe.tex.ravel())
     assert sub.texels.size < cap.segments.n_texels
@@ -149,7 +150,7 @@ def test_subset_build_equals_whole_map(plume, kind, params):
 
 
 def test_faint_segments_leave_the_curve_in_front_unchanged(plume):
-    seg = ad.capture(plume, resolution=64).segments
+    seg = ad.capture(plume, resolution=64, order="depth").segments
     f = with_faint_segments(seg, 8.0)
     nz = seg.counts > 0
     assert np.array_equal(f.counts, seg.counts + nz)
@@ -166,7 +167,7 @@ def test_light_variants(plume):
     lv = light_variants(plume)
     d0, d1 = lv["dir_a"].direction, lv["dir_b"].direction
     assert np.degrees(np.arccos(np.clip(d0 @ d1, -1, 1))) == pytest.approx(25.0, abs=1e-6)
-    cap = ad.capture(E.dataclasses.replace(plume, light=lv["spot"]), resolution=64)
+    cap = ad.capture(E.dataclasses.replace(plume, light=lv["spot"]), resolution=64, order="depth")
     assert cap.covers(receivers.in_volume(plume, 200, seed=0)).all()
 
 

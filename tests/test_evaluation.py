@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 QUICK = dict(resolution=64, n_volume=512, n_surface=256, n_decomp=128, progress=False)
 COLUMNS = ["method", "kind", "params", "scene", "seed", "light", "receivers", "order", "resolution", "opaque",
            "n_receivers", "n_decomp", "rmse", "compression_rms", "capture_rms", "spatial_rms", "signed_mean",
-           "leak_share", "dark_share", "p99", "p99_9", "max", "nonfinite", "depth_l2", "bytes", "build_s",
-           "lookup_s", "build_first_s"]
+           "leak_share", "dark_share", "p99", "p99_9", "max", "nonfinite", "depth_l2", "bytes", "bytes_dense",
+           "build_s", "lookup_s", "build_first_s"]
 
 
 class Beer(ad.Representation):
@@ -66,7 +66,7 @@ def test_docs_example_runs_as_written():
     table = ns["table"]
     assert len(table) == 2 * 4 and set(table.column("kind")) == {"Slab", "avsm"}
     assert "Slab" not in ad.kinds()                                  # never registered
-    assert all(np.isfinite(table.column("rmse"))) and set(table.column("bytes")) == {12.0, 64.0}
+    assert all(np.isfinite(table.column("rmse"))) and set(table.column("bytes_dense")) == {12.0, 64.0}
 
 
 # ------------------------------------------------------------------------- the table
@@ -78,12 +78,16 @@ def test_table_columns_and_rows(small):
     r = small.where(method="avsm-8", light="spot", receivers="in_volume")[0]
     assert r["kind"] == "avsm" and r["params"] == {"nodes": 8} and r["n_receivers"] == 512
     assert r["resolution"] == 64 and r["opaque"] == "inline" and r["n_decomp"] == 128
-    assert r["bytes"] == 64.0 and r["build_s"] > 0 and r["lookup_s"] > 0 and r["build_first_s"] > 0
+    # bytes: the sparse layout (1/8 per texel + 64 per non-empty texel), bytes_dense: 2 N x 4
+    n_texels = 64 * 64
+    filled = (r["bytes"] - 1 / 8) * n_texels / 64          # non-empty texels (float64 rounding only)
+    assert r["bytes_dense"] == 64.0 and abs(filled - round(filled)) < 1e-6 and 0 < filled < n_texels
+    assert r["build_s"] > 0 and r["lookup_s"] > 0 and r["build_first_s"] > 0
     assert 0 < r["compression_rms"] and 0 < r["depth_l2"] < 1 and 0 <= r["leak_share"] <= 1
     assert r["p99"] <= r["p99_9"] <= r["max"]
-    # the capture's insertion order is recorded (its default when none is given)
-    default = inspect.signature(ad.capture).parameters.get("order")
-    assert set(small.column("order")) == {default.default if default else "depth"}
+    # the capture's insertion order is recorded: evaluate's default, front to back
+    assert inspect.signature(evaluate).parameters["order"].default == "depth"
+    assert set(small.column("order")) == {"depth"}
 
 
 def test_table_where_csv_and_text(small, tmp_path):
@@ -97,14 +101,14 @@ def test_table_where_csv_and_text(small, tmp_path):
     text = repr(small)
     assert text.splitlines()[0].split() == ["method", "scene", "seed", "light", "receivers", "rmse", "depth_l2",
                                             "bytes"]
-    assert "(8 rows x 28 columns)" in text
+    assert "(8 rows x 29 columns)" in text
     assert len(Table([])) == 0
 
 
 def test_numbers_agree_with_error_curves():
     """One error_curves configuration (the quick spot-light one: subset builds) and the same
     measured through evaluate: identical float64 numbers (the same code paths)."""
-    from avsm_dr.experiments import error_curves as E
+    from experiments import error_curves as E
     P = dict(n_volume=512, n_surface=256, resolution=64, n_decomp=128, spp=32, kinds=["avsm"])
     cell = E._cell(dict(scene="plume", seed=1, light="spot", base=False, quick=True, P=P, whole_map=[]))
     ref = {r["receivers"]: r for r in cell["rows"] if r.get("setting") == "avsm-8" and r["study"] == "main"}
@@ -125,6 +129,28 @@ def test_separate_opaque_rows():
                    metrics=("receiver_rmse",), **QUICK)
     assert sorted(set(tab.column("opaque"))) == ["inline", "separate"] and len(tab) == 4
     assert all(math.isnan(v) for v in tab.column("depth_l2") + tab.column("build_s"))
+
+
+def test_orders_are_captured_and_recorded():
+    """order= reaches ad.capture and the order column: the receivers and truth are shared,
+    sorted AVSM is the same in every order, unsorted AVSM is not; 'random' is shuffled with
+    the configuration's seed; a bad order names the argument."""
+    orders = ("depth", "reverse_depth", "random", "submission")
+    methods = {"avsm-4": ("avsm", {"nodes": 4}), "sorted-4": ("avsm", {"nodes": 4, "sort": True})}
+    tab = evaluate(methods, ["plume"], [Configuration(3, "dir_a")], receivers=("in_volume",), order=orders,
+                   metrics=("receiver_rmse",), **QUICK)
+    assert tab.column("order") == [o for o in orders for _ in methods]
+    rows = {(r["order"], r["method"]): r for r in tab}
+    assert len({rows[o, "sorted-4"]["rmse"] for o in orders}) == 1
+    assert len({rows[o, "avsm-4"]["rmse"] for o in orders}) == len(orders)
+    sc = ad.scenes.get("plume", seed=3)                            # 'dir_a': the scene's own light
+    want = ad.capture(sc, resolution=64, order="random", order_seed=3).segments.numpy()["z0"]
+    got = {s: ad.capture(sc, resolution=64, order="random", order_seed=s).segments.numpy()["z0"] for s in (0, 3)}
+    assert np.array_equal(got[3], want) and not np.array_equal(got[0], want)
+    import avsm_dr.evaluation.harness as H
+    assert np.array_equal(H._capture(sc, 64, "random", "inline", 3)[0].segments.numpy()["z0"], want)
+    with pytest.raises(ValueError, match="^order: "):
+        evaluate(methods, ["plume"], order="sorted", **QUICK)
 
 
 # --------------------------------------------------------------------------- compare
@@ -243,6 +269,22 @@ def test_user_defined_kind_is_built_directly():
         evaluate({"x": "exact"}, [scene], receivers=("surface",), **QUICK)
 
 
+def test_a_method_at_its_preset():
+    """("fom", "preset") is the kind at describe(kind)["preset"]: the same rows as the preset's
+    parameters given explicitly, recorded in params; a user kind's PRESET too."""
+    scene = ad.Scene.from_grid(np.pad(np.full((6, 6, 6), 2.0), 2), name="cube")
+    kw = dict(QUICK, receivers=("in_volume",), metrics=("receiver_rmse",))
+    tab = evaluate({"fom": ("fom", "preset"), "fom-texel": ("fom", {"depth_range": "texel"}),
+                    "avsm": ("avsm", "preset"), "beer": (Beer, "preset")}, [scene], **kw)
+    fom, explicit = tab.where(method="fom")[0], tab.where(method="fom-texel")[0]
+    assert fom["params"] == ad.describe("fom")["preset"] == {"depth_range": "texel"}
+    assert (fom["rmse"], fom["bytes"]) == (explicit["rmse"], explicit["bytes"])
+    assert tab.where(method="avsm")[0]["params"] == {"interpolation": "exp"}
+    assert tab.where(method="beer")[0]["params"] == {}                # Representation.PRESET: defaults
+    with pytest.raises(ValueError, match=r"methods\['fom'\]: expected \(kind, params dict or 'preset'\)"):
+        evaluate({"fom": ("fom", "best")}, [scene], **kw)
+
+
 def test_configurations():
     cs = configurations(seeds=2, lights=("dir_a", "spot"))
     assert [c.label for c in cs] == ["s0-dir_a", "s0-spot", "s1-dir_a", "s1-spot"]
@@ -256,11 +298,11 @@ def test_configurations():
         Configuration(-1)
 
 
-def test_moved_names_are_re_exported():
+def test_moved_names_are_public():
     from avsm_dr import evaluation
-    from avsm_dr.experiments import _common, _error_terms
+    from experiments import _common
     for name in ("truth", "Probe", "Built", "SubsetBuilder", "light_variants", "with_faint_segments"):
-        assert getattr(_error_terms, name) is getattr(evaluation, name)
+        assert callable(getattr(evaluation, name))
     for name in ("measure", "timed", "Meter", "sync"):
         assert getattr(_common, name) is getattr(evaluation, name)
     assert {"Scene", "DirectionalLight", "SpotLight", "PointLight", "evaluation"} <= set(ad.__all__)
@@ -295,7 +337,7 @@ def test_from_grid_box_and_scale(tmp_path):
     w = ad.Scene.from_grid(str(tmp_path / "v.vol"), bbox=((0, 0, 0), (2, 2, 2)), receivers=pts)
     assert w.bbox[1].tolist() == [2, 2, 2] and np.array_equal(w.receivers, pts)
     # a scene from a grid is captured and measured like a built-in one
-    cap = ad.capture(s, resolution=64)
+    cap = ad.capture(s, resolution=64, order="depth")
     assert cap.segments.n_segments > 0
 
 

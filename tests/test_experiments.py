@@ -4,7 +4,7 @@ results cache is keyed on parameters, package source and versions; the CLI repor
 ``--out`` in one line; the recipes in ``experiments/`` call existing experiments."""
 import json
 import re
-import shlex
+import os
 import subprocess
 import sys
 import types
@@ -13,8 +13,8 @@ from pathlib import Path
 import drjit as dr
 import pytest
 
-from avsm_dr import cli
-from avsm_dr.experiments import _common
+from experiments import _cli as cli
+from experiments import _common
 
 ROOT = Path(__file__).resolve().parents[1]
 ERROR_COLUMNS = {"scene", "method", "param", "bytes_per_texel", "rmse", "max_error"}
@@ -44,6 +44,9 @@ def test_quick_experiment_writes_results(name, shared_out):
     assert meta["drjit"] == dr.__version__ and meta["numpy"] and meta["backend"] and meta["machine"]
     assert "git_commit" in meta and meta["cache_key"] == _common.cache_key()
     assert list(out.glob("*.png")), "no figure written"
+    # every figure also as a vector PDF beside it (paper-ready; avsm_dr.plotstyle), both recorded
+    assert [p.name for p in out.glob("*.png") if not p.with_suffix(".pdf").is_file()] == []
+    assert all({p.name, p.with_suffix(".pdf").name} <= set(meta["files"]) for p in out.glob("*.png"))
     # experiments sharing --out keep to their own folders
     assert not [p for p in shared_out.iterdir() if p.is_file()]
     for sub in shared_out.iterdir():
@@ -69,7 +72,7 @@ def test_quick_experiment_writes_results(name, shared_out):
         assert float(rows[0]["ratio_capture"]) == 1.0
         assert all(int(r["segments"]) > 0 and float(r["capture_s"]) > 0 for r in rows)
     # a second run with the same parameters reuses the results
-    again = __import__(f"avsm_dr.experiments.{name}", fromlist=["run"]).run(quick=True, out=out)
+    again = __import__(f"experiments.{name}", fromlist=["run"]).run(quick=True, out=out)
     assert again.get("cached") is True
 
 
@@ -102,10 +105,11 @@ def test_cache_key_includes_source_and_versions(tmp_path, monkeypatch):
     assert _common.Results("toy", res.dir, True, {"n": 3}).cached() is not None
 
 
-def test_source_hash_covers_the_package():
+def test_source_hash_covers_the_package_and_the_studies():
     h = _common.source_hash()
     assert re.fullmatch(r"[0-9a-f]{16}", h) and h == _common.source_hash()
-    assert (_common.PACKAGE_DIR / "experiments" / "_common.py").exists()
+    assert (_common.PACKAGE_DIR / "segments.py").exists()
+    assert (_common.STUDIES_DIR / "_common.py").exists()
 
 
 def test_meta_records_provenance(tmp_path):
@@ -119,14 +123,14 @@ def test_meta_records_provenance(tmp_path):
 
 
 def test_versions_do_not_import_mitsuba():
-    code = ("import avsm_dr, sys; from avsm_dr.experiments._common import versions; v = versions(); "
+    code = ("import avsm_dr, sys; from experiments._common import versions; v = versions(); "
             "print('mitsuba' in sys.modules, v['mitsuba'] is not None)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
     assert out.stdout.split() == ["False", "True"]
 
 
 def test_git_commit_fails_gracefully(monkeypatch, tmp_path):
-    monkeypatch.setattr(_common, "PACKAGE_DIR", tmp_path)                 # not a git checkout
+    monkeypatch.setattr(_common, "STUDIES_DIR", tmp_path)                 # not a git checkout
     assert _common.git_commit() is None
 
     def no_git(*a, **k):
@@ -228,7 +232,7 @@ def test_experiments_sharing_out_keep_their_own_folders(tmp_path, monkeypatch, c
         return types.SimpleNamespace(run=run)
 
     for name, value in (("toy_a", 1), ("toy_b", 2)):
-        monkeypatch.setitem(sys.modules, f"avsm_dr.experiments.{name}", make(name, value))
+        monkeypatch.setitem(sys.modules, f"experiments.{name}", make(name, value))
     monkeypatch.setattr(cli, "experiment_names", lambda: ["toy_a", "toy_b"])
     assert cli.main(["toy_a", "--out", str(tmp_path)]) == 0
     assert cli.main(["toy_b", "--out", str(tmp_path)]) == 0
@@ -236,6 +240,7 @@ def test_experiments_sharing_out_keep_their_own_folders(tmp_path, monkeypatch, c
     assert _rows(tmp_path / "toy_b" / "data.csv") == [{"value": "2"}]
     assert sorted(p.name for p in (tmp_path / "toy_a").glob("*.png")) == ["toy_a.png"]
     assert sorted(p.name for p in (tmp_path / "toy_b").glob("*.png")) == ["toy_b.png"]
+    assert sorted(p.name for p in (tmp_path / "toy_a").glob("*.pdf")) == ["toy_a.pdf"]   # vector beside PNG
     assert sorted(p.name for p in tmp_path.iterdir()) == ["toy_a", "toy_b"]
     # a folder holding another experiment's results is refused in one line (exit 2)
     (tmp_path / "toy_a" / "toy_b").mkdir()
@@ -243,11 +248,11 @@ def test_experiments_sharing_out_keep_their_own_folders(tmp_path, monkeypatch, c
     capsys.readouterr()
     assert cli.main(["toy_b", "--out", str(tmp_path / "toy_a")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("avsm_dr: error: --out:")
+    assert err.count("\n") == 1 and err.startswith("experiments: error: --out:")
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "avsm_dr", *args], capture_output=True, text=True, timeout=300,
+    return subprocess.run([sys.executable, "-m", "experiments", *args], capture_output=True, text=True, timeout=300,
                           cwd=ROOT)
 
 
@@ -261,7 +266,7 @@ def test_bad_out_is_a_one_line_error(tmp_path, case):
     p = _cli("curves", "--quick", "--out", out)
     assert p.returncode == 2, p.stderr
     assert "Traceback" not in p.stderr and p.stderr.count("\n") == 1, p.stderr
-    assert p.stderr.startswith("avsm_dr: error: --out"), p.stderr
+    assert p.stderr.startswith("experiments: error: --out"), p.stderr
     assert f.read_text() == "keep" and sorted(x.name for x in tmp_path.iterdir()) == ["a_file"]
 
 
@@ -273,17 +278,17 @@ def test_bad_environment_and_ray_options_are_one_line_errors(tmp_path, case):
     env = dict(os.environ)
     args = ["error_curves", "--quick", "--out", str(tmp_path)]
     if case == "backend_env":
-        env["AVSM_DR_BACKEND"], want = "garbage", "avsm_dr: error: AVSM_DR_BACKEND: expected one of"
+        env["AVSM_DR_BACKEND"], want = "garbage", "experiments: error: AVSM_DR_BACKEND: expected one of"
     elif case == "unavailable_backend_env":
         import avsm_dr as ad
         if "cuda" in ad.available_backends():
             pytest.skip("CUDA is available here")
-        env["AVSM_DR_BACKEND"], want = "cuda", "avsm_dr: error: AVSM_DR_BACKEND='cuda': backend 'cuda' is not"
+        env["AVSM_DR_BACKEND"], want = "cuda", "experiments: error: AVSM_DR_BACKEND='cuda': backend 'cuda' is not"
     elif case == "address":
-        args, want = args + ["--address", "garbage"], "avsm_dr: error: --address: expected a Ray address"
+        args, want = args + ["--address", "garbage"], "experiments: error: --address: expected a Ray address"
     else:
-        args, want = args + ["--workers", "1000000000"], "avsm_dr: error: --workers: expected an integer in [1, "
-    p = subprocess.run([sys.executable, "-m", "avsm_dr", *args], capture_output=True, text=True, timeout=300,
+        args, want = args + ["--workers", "1000000000"], "experiments: error: --workers: expected an integer in [1, "
+    p = subprocess.run([sys.executable, "-m", "experiments", *args], capture_output=True, text=True, timeout=300,
                        cwd=ROOT, env=env)
     assert p.returncode == 2, p.stderr
     assert "Traceback" not in p.stderr and p.stderr.count("\n") == 1 and p.stderr.startswith(want), p.stderr
@@ -295,32 +300,57 @@ def test_value_errors_of_a_run_are_one_line(tmp_path, monkeypatch, capsys):
     line, exit status 2; other exceptions still propagate."""
     def run(quick=False, out=None, force=False):
         raise ValueError("nodes: expected an integer in [2, 64],\n got 1")
-    monkeypatch.setitem(sys.modules, "avsm_dr.experiments.toy_bad", types.SimpleNamespace(run=run))
+    monkeypatch.setitem(sys.modules, "experiments.toy_bad", types.SimpleNamespace(run=run))
     monkeypatch.setattr(cli, "experiment_names", lambda: ["toy_bad"])
     assert cli.main(["toy_bad", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err == "avsm_dr: error: nodes: expected an integer in [2, 64], got 1\n"
+    assert err == "experiments: error: nodes: expected an integer in [2, 64], got 1\n"
 
 
 # ---------------------------------------------------------------------- recipes
-def _recipe_calls():
-    calls = []
-    for script in sorted((ROOT / "experiments").glob("*.sh")):
-        for line in script.read_text().splitlines():
-            if line.startswith("python -m avsm_dr "):
-                calls.append((script.name, [a for a in shlex.split(line)[3:] if a != "$@"]))
-    return calls
+def test_every_study_says_what_it_reproduces_and_describes_itself(capsys):
+    """Each study carries its recipe (REPRODUCES), and ``<study> --help`` prints its own
+    description, options and what it writes (plain text: no reST roles or double back-quotes)."""
+    names = cli.experiment_names()
+    assert "error_curves" in names and "bench" in names
+    for name in names:
+        module = __import__(f"experiments.{name}", fromlist=["run"])
+        assert isinstance(getattr(module, "REPRODUCES", None), str) and module.REPRODUCES.strip(), name
+        with pytest.raises(SystemExit) as exc:
+            cli.main([name, "--help"])
+        assert exc.value.code == 0
+        text = capsys.readouterr().out
+        assert f"python -m experiments {name}" in text and "--quick" in text and f"DIR/{name}/" in text, name
+        assert ":mod:`" not in text and "``" not in text, name
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    listing = capsys.readouterr().out
+    assert all(f"  {n} " in listing for n in names)
+    assert not list((ROOT / "experiments").glob("*.sh")), "recipes live in the studies (REPRODUCES)"
 
 
-def test_recipes_call_existing_experiments():
-    """Each recipe line parses with the CLI's own parser, and every experiment has a recipe."""
-    calls = _recipe_calls()
-    assert calls
-    parser = cli.parser()
-    used = set()
-    for script, args in calls:
-        ns = parser.parse_args(args)
-        assert ns.out == "${OUT:-results}", script
-        used.add(ns.experiment)
-    assert used == set(cli.experiment_names())
-    assert not list((ROOT / "experiments").glob("*.py")), "recipes call the CLI, they do not wrap it"
+def test_run_ends_with_a_short_human_summary(tmp_path):
+    """A run ends with where its files are and at most SUMMARY_LINES headline lines, never a dict."""
+    (tmp_path / "toy").mkdir()
+    (tmp_path / "toy" / "findings.json").write_text("{}")
+    summary = {f"claim_{i}": "holds in every configuration" for i in range(30)} | {"ratio": 1.23456789}
+    text = cli.summary_text("toy", {"out": str(tmp_path / "toy"), "summary": summary}, tmp_path / "toy")
+    lines = text.splitlines()
+    assert lines[0].startswith("toy: wrote ") and "findings.json" in lines[0]
+    assert len(lines) == 1 + cli.SUMMARY_LINES + 1 and lines[-1] == "  ... and 19 more in findings.json"
+    assert "{" not in text and all(len(ln) < 160 for ln in lines)
+
+
+def test_installed_package_imports_no_study(tmp_path):
+    """Outside the repository (no ``experiments`` importable) ``avsm_dr`` imports and works, and
+    ``python -m avsm_dr`` says where the studies are instead of failing with a traceback."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    code = ("import sys, avsm_dr as ad; seg = ad.Segments.from_arrays([0, 1], z0=[0.1], z1=[0.2], "
+            "transmittance=[0.5]); ad.build('avsm', seg, nodes=4); "
+            "print(any(m == 'experiments' or m.startswith('experiments.') for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]
+    out = subprocess.run([sys.executable, "-m", "avsm_dr", "error_curves"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "python -m experiments" in out.stderr and "Traceback" not in out.stderr

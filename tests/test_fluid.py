@@ -131,7 +131,7 @@ def test_simulated_plume_scene_casts_shadows(tmp_path, monkeypatch):
     sc = ad.scenes.get("simulated_plume", size=16)
     assert sc.name == "simulated_plume" and sc.density.shape == SHAPE and sc.density.dtype == np.float32
     assert sc.receivers.shape == (1024, 3)
-    cap = ad.capture(sc, resolution=64)
+    cap = ad.capture(sc, resolution=64, order="depth")
     T = np.asarray(cap.transmittance(ad.build("exact", cap.segments), sc.receivers))
     wall = T[512:]
     assert T.min() < 0.5 and wall.min() < 0.5 and wall.max() > 0.99

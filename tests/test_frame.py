@@ -1,4 +1,4 @@
-"""The frame benchmark (``python -m avsm_dr frame --quick``): every built-in scene, both grid
+"""The frame benchmark (``python -m experiments frame --quick``): every built-in scene, both grid
 capture methods and every registered kind get a frame row with per-stage times, rates and
 shares, first-call times, a stacked-bar figure and the capture/build ratio in meta.json."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.testing import quick_cli_run
+from helpers import quick_cli_run
 from avsm_dr.builtin_scenes import SCENES
-from avsm_dr.experiments import _common, frame
+from experiments import _common, frame
 from avsm_dr.io import write_vol
 
 

@@ -17,7 +17,7 @@ import pytest
 import avsm_dr as ad
 import drjit as dr
 from avsm_dr import backend, reconstruction as inv
-from avsm_dr.testing import check_gradients
+from avsm_dr.checks import check_gradients
 from avsm_dr.representations import _loops as ck
 from avsm_dr.representations.exact import Exact
 from avsm_dr.scene import DirectionalLight, Particles, Scene
@@ -53,7 +53,7 @@ def _tensor(d, grad=False):
 @pytest.mark.parametrize("kind", KINDS)
 def test_grid_gradients_match_finite_differences(kind):
     """Reverse mode against central differences (4 largest |g| + 4 random voxels) and
-    against forward mode along a random direction (avsm_dr.testing.check_gradients)."""
+    against forward mode along a random direction (avsm_dr.checks.check_gradients)."""
     rng = np.random.default_rng(7)
     scene, dens = _scene(rng)
     w = rng.normal(size=scene.receivers.shape[0])
@@ -116,7 +116,7 @@ def test_particle_density_gradients_match_finite_differences():
     for kind, params in (("exact", {}), ("avsm", {"nodes": 8})):
         def loss(sd):
             scene = Scene("p", DirectionalLight((0.3, -1.0, 0.2)), rec, particles=Particles(c, r, sd))
-            cap = ad.capture(scene, resolution=64, dtype="float64")
+            cap = ad.capture(scene, resolution=64, dtype="float64", order="depth")
             T = cap.transmittance(ad.build(kind, cap.segments, **params), rec)
             return dr.sum(T * T64.Float64(w))
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.testing import compiled_kernels
+from helpers import compiled_kernels
 import drjit as dr
 from avsm_dr.capture import GridVolume
 from avsm_dr.capture.camera import make_camera
@@ -153,8 +153,8 @@ def test_exact_capture_takes_fewer_samples_than_the_half_voxel_march():
     """Density evaluations (two per iteration in both) and voxel reads per ray: one iteration
     per dual cell crossed (|d_x| + |d_y| + |d_z| per voxel of path) vs two steps per voxel."""
     sc = ad.scenes.plume(size=16)
-    a = ad.capture(sc, resolution=64, method="march").stats["grid"]
-    b = ad.capture(sc, resolution=64, method="exact").stats["grid"]
+    a = ad.capture(sc, resolution=64, method="march", order="depth").stats["grid"]
+    b = ad.capture(sc, resolution=64, method="exact", order="depth").stats["grid"]
     assert a["lanes"] == b["lanes"] > 1000
     assert b["iterations"] < 0.8 * a["iterations"]
     assert b["segments"] < a["segments"]
@@ -188,8 +188,8 @@ def _grazing_rays(g):
         o.append(centre + np.array([0.0, 0.5, 0.5]) * h - 3 * diag)       # through dual-cell edges
         d.append(diag)
     o, d = np.array(o), np.array(d)
-    from avsm_dr.capture.grid import clip_rays
-    t0, t1, hit = clip_rays(o, d, *g.occupied)
+    from avsm_dr.geometry import ray_box
+    t0, t1, hit = ray_box(o, d, *g.occupied, t_min=0.0)
     assert hit.all()
     return np.arange(len(o)), o, d, t0, t1
 
@@ -234,7 +234,8 @@ def test_rounds_give_the_same_segments_as_one_round(keep_zero):
 def test_device_ray_setup_matches_the_host_bit_for_bit(light):
     """Rays, slab clipping and candidate texels made on the device in float64 (no host round
     trip: 0.45 s of a 1.2 s plume capture at 1024^2 was host ray setup) equal the host's."""
-    from avsm_dr.capture.grid import candidate_texels, clip_rays, clip_rays_device
+    from avsm_dr.capture.grid import candidate_texels
+    from avsm_dr.geometry import ray_box, ray_box_dr
     g = GridVolume.prepare(small_grid(), BBOX)
     cam = _camera(g, LIGHTS[light], res=48)
     lo, hi = g.occupied
@@ -245,8 +246,8 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
     for a in range(3):
         assert np.array_equal(np.asarray(od[a].numpy()), o[:, a])
         assert np.array_equal(np.asarray(dd[a].numpy()), d[:, a])
-    t0, t1, hit = clip_rays(o, d, lo, hi)
-    t0d, t1d, hitd = clip_rays_device(od, dd, lo, hi)
+    t0, t1, hit = ray_box(o, d, lo, hi, t_min=0.0)
+    t0d, t1d, hitd = ray_box_dr(od, dd, lo, hi, t_min=0.0)
     assert np.array_equal(np.asarray(hitd.numpy()), hit) and 0 < hit.sum() < hit.size
     for x, y in ((t0d, t0), (t1d, t1)):
         assert np.array_equal(np.asarray(x.numpy())[hit], y[hit])
@@ -281,7 +282,8 @@ def test_capture_at_a_new_resolution_compiles_nothing(method):
 
     def compiled(**kw):
         # a kernel not in memory after the warm-up is new (compiled now, or earlier to disk)
-        return compiled_kernels(lambda: ad.capture(sc, method=method, **kw).segments.z0, disk_hits_are_new=True)
+        return compiled_kernels(lambda: ad.capture(sc, method=method, **kw, order="depth").segments.z0,
+                                disk_hits_are_new=True)
 
     compiled(resolution=64)
     assert [compiled(resolution=r) for r in (67, 71)] == [0, 0]
@@ -315,7 +317,7 @@ def test_light_that_misses_the_grid_gives_no_segments():
     for light in (SpotLight((-2.0, 1.5, -1.0), (-2.0, 1.5, -1.0), 30.0),       # facing away
                   SpotLight((-2.0, 0.2, 0.0), (0.0, 0.0, -1.0), 30.0)):        # box across its plane: all miss
         for method in ("exact", "march"):
-            cap = ad.capture(grid_scene(light), resolution=64, method=method)
+            cap = ad.capture(grid_scene(light), resolution=64, method=method, order="depth")
             assert cap.segments.n_segments == 0 and cap.stats["grid"]["lanes"] == 0
 
 
@@ -335,7 +337,7 @@ def test_padding_with_empty_space_changes_nothing():
     out = []
     for dens, bb in ((d, BBOX), (big, bb2)):
         sc = Scene("t", LIGHTS["spot"], rec, density=dens, bbox=bb)
-        cap = ad.capture(sc, resolution=64, method="exact")
+        cap = ad.capture(sc, resolution=64, method="exact", order="depth")
         out.append(np.asarray(cap.transmittance(ad.build("exact", cap.segments), rec)))
     assert out[0].min() < 0.5
     np.testing.assert_allclose(out[1], out[0], rtol=0, atol=1e-6)
@@ -343,8 +345,8 @@ def test_padding_with_empty_space_changes_nothing():
 
 def test_exact_default_march_and_method_errors():
     sc = grid_scene(LIGHTS["directional"])
-    assert "crossings" not in ad.capture(sc, resolution=64).stats["grid"]          # default: the march
-    assert "crossings" in ad.capture(sc, resolution=64, method="exact").stats["grid"]
+    assert "crossings" not in ad.capture(sc, resolution=64, order="depth").stats["grid"]          # default: the march
+    assert "crossings" in ad.capture(sc, resolution=64, method="exact", order="depth").stats["grid"]
     with pytest.raises(ValueError, match="^method"):
         ad.capture(sc, resolution=64, method="simpson")
     with pytest.raises(ValueError, match="^step"):
@@ -353,7 +355,7 @@ def test_exact_default_march_and_method_errors():
 
 # ------------------------------------------------------------------ gradients
 def _loss(x, scene, **kw):
-    cap = ad.capture(scene, resolution=64, density=x, epsilon=1e-12, bounds=BBOX, method="exact", **kw)
+    cap = ad.capture(scene, resolution=64, density=x, epsilon=1e-12, bounds=BBOX, method="exact", **kw, order="depth")
     return dr.sum(cap.transmittance(ad.build("exact", cap.segments), scene.receivers)), cap
 
 
@@ -368,7 +370,7 @@ def test_exact_capture_gradient_reaches_zero_voxels_with_keep_zero():
         x = TensorXf(d)
         dr.enable_grad(x)
         cap = ad.capture(sc, resolution=64, density=x, epsilon=1e-12, keep_zero=keep, bounds=BBOX,
-                         method="exact")
+                         method="exact", order="depth")
         s = dr.sum(cap.segments.optical_depth)
         dr.backward(s)
         sums.append(float(s[0]))

@@ -1,6 +1,6 @@
 """Mitsuba ground truth: grid convention, ratio tracking, ray march, analytic content.
 
-Monte Carlo tolerances (avsm_dr.testing.mc_agreement): a receiver passes when
+Monte Carlo tolerances (avsm_dr.checks.mc_agreement): a receiver passes when
 |estimate - truth| <= 3 standard errors (the estimator's own sample standard error).
 Ratio-tracking weights are skewed, so a few receivers in a thousand fall outside 3 SE
 even for an exact estimator (measured 0.25-0.65 %); we require 98 % (99 % with thousands
@@ -17,11 +17,11 @@ import pytest
 import avsm_dr as ad
 from avsm_dr import builtin_scenes as scenes
 from avsm_dr import groundtruth as gt
-from avsm_dr.capture import camera
+from avsm_dr import geometry
 from avsm_dr.groundtruth import tracking
 from avsm_dr.scene import (DirectionalLight, Hair, OpaqueBox, OpaquePlane, OpaqueSphere, Particles,
                            PointLight, Scene, SpotLight)
-from avsm_dr.testing import mc_agreement
+from avsm_dr.checks import mc_agreement
 
 pytestmark = pytest.mark.mitsuba
 
@@ -435,7 +435,7 @@ def test_orthonormal_basis_is_the_one_frame(rng):
     # right-handed and orthonormal, third axis n / |n|, u = normalize(up x n) with up = +y
     # unless n is within ~8 degrees of +-y (then +x).  Float64 rounding: 1e-15.
     for n in np.concatenate([rng.normal(size=(20, 3)), [[0, 1, 0], [0, -1, 0], [0, 0.995, 0.1]]]):
-        u, v, w = camera.orthonormal_basis(n)
+        u, v, w = geometry.orthonormal_basis(n)
         m = np.stack([u, v, w])
         np.testing.assert_allclose(m @ m.T, np.eye(3), atol=1e-15)
         np.testing.assert_allclose(np.cross(u, v), w, atol=1e-15)
@@ -468,7 +468,7 @@ CAPTURE_FLOOR = 1e-4
 
 
 def capture_vs_mitsuba(scene, rng, k, spp, resolution=64, frac=0.99):
-    cap = ad.capture(scene, resolution=resolution, step=voxel_size(scene) / 32, epsilon=1e-9)
+    cap = ad.capture(scene, resolution=resolution, step=voxel_size(scene) / 32, epsilon=1e-9, order="depth")
     tex, t, p = texel_ray_receivers(cap, rng, k)
     texel, depth = cap.lookup(p)
     np.testing.assert_array_equal(texel, tex)
@@ -498,12 +498,12 @@ def test_exact_capture_agrees_with_ratio_tracking_slow(rng, name, light):
 def test_capture_error_shrinks_with_march_step(rng):
     scene = scenes.plume()
     vox = voxel_size(scene)
-    base = ad.capture(scene, resolution=64, step=vox / 4, epsilon=1e-9)
+    base = ad.capture(scene, resolution=64, step=vox / 4, epsilon=1e-9, order="depth")
     _, _, p = texel_ray_receivers(base, rng, 800)
     ref, _ = gt.transmittance(scene, p, method="raymarch", step=vox / 64)  # float64, err ~1e-5
     errs = []
     for div in (1, 2, 4, 8):
-        cap = ad.capture(scene, resolution=64, step=vox / div, epsilon=1e-9)
+        cap = ad.capture(scene, resolution=64, step=vox / div, epsilon=1e-9, order="depth")
         T = np.asarray(ad.build("exact", cap.segments).eval(*cap.lookup(p)), np.float64)
         errs.append((np.abs(T - ref).max(), math.sqrt(np.mean((T - ref) ** 2))))
     errs = np.array(errs)
@@ -520,7 +520,7 @@ def test_capture_of_analytic_content_agrees_with_groundtruth(rng, name):
     scene = scenes.get(name, n_receivers=16) if name != "particles" else scenes.particles(n=60)
     kw = {"step": voxel_size(scene) / 32} if scene.density is not None else {}
     bias = 1e-3
-    cap = ad.capture(scene, resolution=64, epsilon=1e-9, opaque_bias=bias, **kw)
+    cap = ad.capture(scene, resolution=64, epsilon=1e-9, opaque_bias=bias, **kw, order="depth")
     tex, t, p = texel_ray_receivers(cap, rng, 1000)
     if scene.blockers:
         # Drop receivers between a blocker's surface and the capture's opaque segment, which
@@ -534,7 +534,7 @@ def test_capture_of_analytic_content_agrees_with_groundtruth(rng, name):
         o, d = cap.camera.rays(tex)
         keep = np.ones(len(p), bool)
         for b in scene.blockers:
-            t0, t1 = gt.ray_box(o, d, np.asarray(b.min, float), np.asarray(b.max, float))
+            t0, t1, _ = geometry.ray_box(o, d, np.asarray(b.min, float), np.asarray(b.max, float))
             keep &= ~((t0 <= t1) & (t > t0 - 1e-6) & (t < z1_op[tex] + 1e-6))
         assert keep.mean() > 0.5
         p = p[keep]

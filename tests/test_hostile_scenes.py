@@ -40,7 +40,7 @@ def test_points_behind_or_beside_a_spot_light_are_lit():
     # behind the light and one outside the cone are not shadowed (their paths miss the
     # slab; ground truth 1); before the fix they read a clamped edge texel's shadow.
     scene = slab_scene(SpotLight((-3.0, 0.0, 0.0), (1.0, 0.0, 0.0), fov=60.0))
-    cap = ad.capture(scene, resolution=64)
+    cap = ad.capture(scene, resolution=64, order="depth")
     pts = np.array([[-6.0, 0.0, 0.0], [-2.5, 3.0, 0.0], [-6.0, 2.0, 1.0], [1.0, 0.0, 0.0]])
     truth = gt.transmittance(scene, pts, method="raymarch")[0]
     np.testing.assert_array_equal(truth[:3], 1.0)
@@ -62,21 +62,21 @@ def test_directional_map_outside_its_window():
     # Default fit: points beside the content are off the map and lit (ground truth 1).
     scene = slab_scene(DirectionalLight((1.0, 0.0, 0.0)))
     pts = np.array([[3.0, 9.0, 0.0], [3.0, 0.0, -20.0], [3.0, 0.0, 0.0]])
-    cap = ad.capture(scene, resolution=64)
+    cap = ad.capture(scene, resolution=64, order="depth")
     np.testing.assert_array_equal(cap.covers(pts), [False, False, True])
     T = np.asarray(cap.transmittance(ad.build("exact", cap.segments), pts))
     truth = gt.transmittance(scene, pts, method="raymarch")[0]
     np.testing.assert_allclose(T, truth, atol=1e-5)     # float32 depths
     # A map fitted to user bounds smaller than the content does not see the rest: points
     # outside its window are lit by the border convention (documented), not clamped.
-    cap = ad.capture(scene, resolution=64, bounds=([-2, -1, -1], [2, 1, 1]))
+    cap = ad.capture(scene, resolution=64, bounds=([-2, -1, -1], [2, 1, 1]), order="depth")
     assert not cap.covers(pts[:1])[0]
     assert float(np.asarray(cap.transmittance(ad.build("exact", cap.segments), pts[:1]))[0]) == 1.0
 
 
 def test_cube_map_covers_every_direction():
     scene = slab_scene(PointLight((-3.0, 0.0, 0.0)))
-    cap = ad.capture(scene, resolution=64)
+    cap = ad.capture(scene, resolution=64, order="depth")
     rng = np.random.default_rng(5)
     u = rng.normal(size=(400, 3))
     pts = np.array([-3.0, 0.0, 0.0]) + 0.8 * u / np.linalg.norm(u, axis=1, keepdims=True)
@@ -171,7 +171,7 @@ def test_light_direction_whose_norm_overflows_just_works(make):
     a, b = make((1e300, 1e-300, 0.0)), make((1.0, 0.0, 0.0))
     np.testing.assert_array_equal(a.direction, b.direction)
     scene = Scene("box", a, np.zeros((1, 3)), density=np.full((4, 4, 4), 2.0, np.float32), bbox=UNIT)
-    cap = ad.capture(scene, 64)
+    cap = ad.capture(scene, 64, order="depth")
     pts = np.array([[1.5, 0.5, 0.5], [0.5, 0.4, 0.6]])
     T = np.asarray(cap.transmittance(ad.build("exact", cap.segments), pts))
     assert np.all(np.isfinite(T)) and T[0] < 0.2
@@ -276,7 +276,7 @@ def test_coordinates_beyond_the_storage_dtype():
                particles=Particles(np.array([[1e38, 0.0, 0.0]]), [1.0], [1.0]))
     with pytest.raises(ValueError, match="^scene: content or light coordinates reach 1e\\+38.*float64"):
         ad.capture(sc, 64)
-    cap = ad.capture(sc, 64, dtype="float64")
+    cap = ad.capture(sc, 64, dtype="float64", order="depth")
     p = np.array([[1e38, -5.0, 0.0]])
     T = np.asarray(cap.transmittance(ad.build("exact", cap.segments), p))
     o, d = cap.camera.rays(cap.lookup(p)[0])       # the texel's ray passes b off the centre

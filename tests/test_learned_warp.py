@@ -1,4 +1,4 @@
-"""The learned depth warp experiment (``python -m avsm_dr learned_warp``): a quick run
+"""The learned depth warp experiment (``python -m experiments learned_warp``): a quick run
 through the CLI writes its tables, findings with intervals and figures; training lowers the
 training loss; ``findings`` on hand-made rows."""
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from avsm_dr import cli
-from avsm_dr.experiments import _common, learned_warp
+from experiments import _cli as cli
+from experiments import _common, learned_warp
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +77,7 @@ def test_blended_metric_avsm_at_beta_0_is_the_avsm_kind():
     the avsm kind's nodes bit for bit (same operations in the same order); beta > 0 moves
     them, and the surrogate (softmin) stays finite."""
     import avsm_dr as ad
-    from avsm_dr.experiments._learned_warp_avsm import _opaque, avsm_nodes
+    from experiments.learned_warp.avsm import _opaque, avsm_nodes
     from cases import random_segments, to_segments
     N = 5                                    # odd: the texel fills up with one clear node left
     seg = to_segments(random_segments(np.random.default_rng(3), texels=48, max_count=12))

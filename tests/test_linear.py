@@ -134,7 +134,7 @@ class Model:
 
 def host_case(seg):
     h = seg.numpy()
-    return dict(offsets=h["offsets"], z0=h["z0"], z1=h["z1"], tau=h["optical_depth"])
+    return dict(offsets=h["offsets"], z0=h["z0"], z1=h["z1"], tau=h["optical_depth"], dtype=seg.dtype)
 
 
 def coefficient_array(rep):
@@ -565,14 +565,14 @@ def test_property_osm_non_increasing(case, slices, depth_range):
        depth_range=st.sampled_from(["global", "texel"]))
 def test_property_fom_exact_at_near_and_far(case, harmonics, depth_range):
     """T(near) = 1 and T(far) = exp(-sum tau).  A degenerate range (all of a texel's
-    segments zero-length at one depth) is widened to 1e-6 |near| + 1e-30, shorter than
+    segments zero-length at one depth) is widened to 1e-6 |near| + 1.2e-38, shorter than
     float32 resolves there, so its far end is probed at near + 2 span (clamped to u = 1)."""
     seg = to_segments(case)
     hc = host_case(seg)
     rep = ad.build("fom", seg, harmonics=harmonics, depth_range=depth_range)
     near, span = R.ranges(hc, depth_range=depth_range)
     T = seg.n_texels
-    degenerate = span <= (R.MIN_SPAN_REL * np.abs(near) + R.MIN_SPAN_ABS) * (1 + 1e-9)
+    degenerate = span <= (R.MIN_SPAN_REL["float32"] * np.abs(near) + R.MIN_SPAN_ABS["float32"]) * (1 + 1e-9)
     far = np.where(degenerate, near + 2 * span, near + span)
     tex = np.arange(T)
     assert np.all(np.asarray(rep.eval(tex, near.astype(np.float32))) == 1.0)

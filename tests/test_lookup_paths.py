@@ -11,7 +11,7 @@ import avsm_dr as ad
 import drjit as dr
 from avsm_dr import _device_checks as DC
 from avsm_dr.representations.avsm import NodeList
-from avsm_dr.synthetic import random_map
+from experiments.bench.synthetic import random_map
 
 
 def _general(rep, tex, depth, monkeypatch):

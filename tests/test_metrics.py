@@ -73,7 +73,7 @@ def test_bad_input_names_the_argument(call, name):
 def test_image_metrics_signed_split_psnr_and_flip():
     """The images experiment's metrics: a uniformly brighter image leaks by exactly c,
     PSNR = 10 log10(S^2 / c^2); identical images have FLIP 0, a visibly different one > 0."""
-    from avsm_dr.experiments.images import image_metrics
+    from experiments.images import image_metrics
     ref = np.linspace(0.0, 1.0, 32 * 40).reshape(32, 40)
     same, fmap = image_metrics(ref, ref, 1.0)
     assert same["rmse"] == 0 and same["flip"] == 0 and fmap.shape == (32, 40)

@@ -175,7 +175,8 @@ def test_build_parameters_pass_and_messages_list_public_names(mi):
     _, rep, _, _ = integ.prepare_shadow(scene)
     assert rep.precision == "float16"
     for props, msg in (({"representation": "avsm", "nodez": 4},
-                        r"nodez: unknown parameter of 'avsm'; known: \['nodes', .*'precision', 'reverse', 'chunk'\]$"),
+                        r"nodez: unknown parameter of 'avsm'; known: \['nodes', .*'precision', 'reverse', 'chunk'\]; "
+                        r"did you mean 'nodes'\?$"),
                        ({"representation": "fom", "precision": "float64"}, "precision: kind 'fom' accepts None or"),
                        ({"representation": "exact", "precision": "float16"},
                         "precision: kind 'exact' accepts only None")):

@@ -1,4 +1,4 @@
-"""The moment-storage experiment (``python -m avsm_dr moment_storage``): one quick run
+"""The moment-storage experiment (``python -m experiments moment_storage``): one quick run
 through the CLI (rows per variant and alpha choice, tuning on a held-out seed, claims with
 intervals that match the CSV, bytes per texel, figure, cache)."""
 from __future__ import annotations
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from avsm_dr.testing import quick_cli_run
-from avsm_dr.experiments import _common, moment_storage as MS
+from helpers import quick_cli_run
+from experiments import _common, moment_storage as MS
 
 
 @pytest.fixture(scope="module")

@@ -38,7 +38,7 @@ EPS = {"float32": 2.0 ** -24, "float64": 2.0 ** -53}
 
 def host_case(seg):
     h = seg.numpy()
-    return dict(offsets=h["offsets"], z0=h["z0"], z1=h["z1"], tau=h["optical_depth"])
+    return dict(offsets=h["offsets"], z0=h["z0"], z1=h["z1"], tau=h["optical_depth"], dtype=seg.dtype)
 
 
 def coefficient_array(rep):

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.testing import quick_cli_run
-from avsm_dr.experiments import _common
+from helpers import quick_cli_run
+from experiments import _common
 from avsm_dr.representations import optimal as optimal_mod
 from reference import offline_ref as ref
 

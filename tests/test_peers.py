@@ -10,6 +10,11 @@ and one proves that the modules import without it.  Tolerances:
   sin/cos: Dr.Jit's polynomial per harmonic vs libm + angle-addition recurrence, a few
   ulp each); transmittance to 1e-10 (exp of an optical depth wrong by <= 1e-13 x 2e4
   for opaque texels, where T is 0 anyway).
+The Warp peers (warp-lang, also in both extras; absent, these tests fail too) run the
+Numba peers' float64 expressions in the same order: AVSM node depths equal to Numba's and
+the kernel's, values and lookups to the same 1e-13 (Warp's Clang may contract a
+multiply-add where Numba's LLVM does not); FOM coefficients within the bound above of
+the kernel's, lookups to 1e-10 as above.
 """
 import csv
 import json
@@ -18,7 +23,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.peers import numba_avsm, numba_fom, numpy_avsm
+from experiments.bench.peer_kernels import numba_avsm, numba_fom, numpy_avsm, warp_avsm, warp_fom
 from cases import random_segments, to_segments
 
 
@@ -45,6 +50,73 @@ def test_peers_import_without_numba(monkeypatch):
         numba_avsm.build([0, 1], [0.1], [0.2], [0.5], 4, 1.0)
     with pytest.raises(ImportError, match="bench"):
         numba_fom.build([0, 1], [0.1], [0.2], [0.5], 2, 0.0, 1.0)
+
+
+def test_warp_peers_import_without_warp(monkeypatch):
+    """Importing needs no Warp; calling without it raises an ImportError naming the extra."""
+    for mod in (warp_avsm, warp_fom):
+        monkeypatch.setattr(mod, "wp", None)
+        monkeypatch.setattr(mod, "_KERNELS", {})
+        assert not mod.available()
+    with pytest.raises(ImportError, match="bench"):
+        warp_avsm.build([0, 1], [0.1], [0.2], [0.5], 4, 1.0)
+    with pytest.raises(ImportError, match="bench"):
+        warp_fom.build([0, 1], [0.1], [0.2], [0.5], 2, 0.0, 1.0)
+
+
+def test_warp_peers_refuse_bad_arguments():
+    with pytest.raises(ValueError, match="nodes"):
+        warp_avsm.build([0, 1], [0.1], [0.2], [0.5], 1, 1.0)
+    with pytest.raises(ValueError, match="harmonics"):
+        warp_fom.build([0, 1], [0.1], [0.2], [0.5], 0, 0.0, 1.0)
+    with pytest.raises(ValueError, match="texel"):          # Warp's loop counters are 32-bit
+        warp_avsm.lookup(np.ones((1, 2)), np.ones((1, 2)), [2 ** 31], [0.5])
+
+
+@pytest.mark.parametrize("nodes", [2, 3, 8])
+@pytest.mark.parametrize("sort", [False, True])
+def test_warp_avsm_matches_kernel_and_numba(rng, nodes, sort):
+    seg = adversarial(rng)
+    rep = ad.build("avsm", seg, nodes=nodes, sort=sort)
+    h = (seg.sorted() if sort else seg).numpy()
+    args = (h["offsets"], h["z0"], h["z1"], h["optical_depth"], nodes, rep.params["far"])
+    D, V, used, stats = warp_avsm.build(*args, sort=sort)
+    Dn, Vn, used_n, stats_n = numba_avsm.build(*args, sort=sort)
+    Dk, Vk = rep.nodes_numpy()
+    np.testing.assert_array_equal(D, Dk)
+    np.testing.assert_array_equal(D, Dn)
+    np.testing.assert_allclose(V, Vk, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(V, Vn, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(used, rep.used)
+    assert stats == stats_n == {"skipped": rep.stats["skipped"], "compressed": rep.stats["compressed"]}
+    assert stats["compressed"] > 0 and stats["skipped"] > 0       # both paths exercised
+    tex = rng.integers(0, seg.n_texels, 3000)
+    depth = np.concatenate([rng.uniform(-0.2, 1.2, 2000), D[tex[2000:], rng.integers(0, nodes, 1000)]])
+    got = warp_avsm.lookup(D, V, tex, depth)
+    np.testing.assert_allclose(got, numba_avsm.lookup(Dn, Vn, tex, depth), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(got, np.asarray(rep.eval(tex, depth)), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("harmonics", [1, 8])
+@pytest.mark.parametrize("margin", [None, 0.3])
+def test_warp_fom_matches_kernel_and_numba(rng, harmonics, margin):
+    seg = adversarial(rng)
+    lo, hi = seg.bounds()
+    kw = {} if margin is None else dict(near=lo - margin, far=hi + margin)
+    rep = ad.build("fom", seg, harmonics=harmonics, **kw)
+    h = seg.numpy()
+    args = (h["offsets"], h["z0"], h["z1"], h["optical_depth"], harmonics, rep.near, rep.far)
+    C, Cn = warp_fom.build(*args), numba_fom.build(*args)
+    Ck = np.stack([np.asarray(c) for c in rep.coefficients], axis=1)
+    scale = 2 * np.add.reduceat(np.append(h["optical_depth"], 0), h["offsets"][:-1])
+    scale[np.diff(h["offsets"]) == 0] = 0
+    for ref in (Ck, Cn):
+        assert np.all(np.abs(C - ref) <= 1e-13 * scale[:, None] + 1e-15)
+    tex = rng.integers(0, seg.n_texels, 3000)
+    depth = rng.uniform(-0.2, 1.2, 3000)
+    got = warp_fom.lookup(C, rep.near, rep.far, tex, depth)
+    np.testing.assert_allclose(got, numba_fom.lookup(Cn, rep.near, rep.far, tex, depth), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(got, np.asarray(rep.eval(tex, depth)), rtol=0, atol=1e-10)
 
 
 @pytest.mark.parametrize("nodes", [2, 3, 8])
@@ -124,8 +196,8 @@ def test_avsm_ablations_compute_the_same_nodes(rng, sort):
 
 @pytest.mark.slow
 def test_bench_quick_writes_its_tables(tmp_path):
-    """``python -m avsm_dr bench --quick`` end to end (about a minute on 2 shared cores)."""
-    from avsm_dr.experiments import bench
+    """``python -m experiments bench --quick`` end to end (about a minute on 2 shared cores)."""
+    from experiments import bench
     out = bench.run(quick=True, out=tmp_path, force=True)
     for name in ("data.csv", "peers.csv", "scaling.csv", "skipping.csv", "memory.csv", "scenes.csv",
                  "meta.json", "throughput.png", "scaling.png", "machine.csv"):
@@ -145,20 +217,20 @@ def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
     ``basis_project``); for a kernel without a loop (a plain elementwise one) every vector
     operation of the kernel is counted."""
     import drjit as dr
-    from avsm_dr.experiments._common import _jit_kernels
-    from avsm_dr.experiments.bench import machine
-    from avsm_dr.experiments.bench.settings import counts_map
+    from avsm_dr.evaluation.timing import jit_kernels
+    from experiments.bench import machine
+    from experiments.bench.settings import counts_map
     seg = counts_map(8, 10)
     irs = {}
     with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         for kind, p in (("avsm", {"nodes": 4}), ("fom", {"harmonics": 4}), ("moments", {})):
             dr.kernel_history()
             ad.build(kind, seg, **p)
-            irs[kind] = [k["ir"].getvalue() for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
+            irs[kind] = [k["ir"].getvalue() for k in jit_kernels(dr.kernel_history()) if "ir" in k]
         dr.kernel_history()
         x = seg.z0 * 1.5 + seg.z1
         dr.eval(dr.exp(-x * seg.optical_depth) * dr.sin(x) + dr.sqrt(x * x + 1) / (x + 2))
-        irs["plain"] = [k["ir"].getvalue() for k in _jit_kernels(dr.kernel_history()) if "ir" in k]
+        irs["plain"] = [k["ir"].getvalue() for k in jit_kernels(dr.kernel_history()) if "ir" in k]
     ir = next(s for s in irs["avsm"] if "avsm_compress" in s)
     ops, width, loop = machine.kernel_ops(ir)
     assert loop == "avsm_compress" and width >= 4

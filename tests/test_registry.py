@@ -35,7 +35,7 @@ def test_every_kind_module_is_registered():
     misspelt or unimported module cannot silently drop out of tests and benchmarks."""
     modules = {cls.__module__.rsplit(".", 1)[-1] for cls in ad.REGISTRY.values()}
     files = {p.stem for p in (PKG / "representations").glob("*.py")
-             if not p.stem.startswith("_") and p.stem not in ("base", "schema", "registry")}
+             if not p.stem.startswith("_") and p.stem not in ("base", "schema", "registry", "opaque_composite")}
     assert files <= modules, files - modules
 
 
@@ -46,14 +46,16 @@ def test_toy_kind_joins_the_contract_tests():
 
 
 def test_toy_kind_joins_a_quick_sweep(tmp_path):
-    from avsm_dr.experiments.error_curves import sweep_rows
+    """The studies' sweeps are registry-driven (``ad.kinds()`` x ``ad.configurations``): a kind
+    registered at run time is built and looked up like the built-in ones."""
     seg = ad.Segments.from_arrays([0, 1, 3], [0.2, 0.1, 0.5], [0.4, 0.3, 0.6], optical_depth=[1.0, 0.5, 2.0])
     texel, depth = np.array([0, 1, 1]), np.array([0.3, 0.2, 0.9])
     truth = np.asarray(ad.build("exact", seg).eval(texel, depth))
-    rows = sweep_rows(seg, lambda rep: np.asarray(rep.eval(texel, depth)), truth, quick=True)
-    toy = [r for r in rows if r["method"] == "toy_beer"]
-    assert len(toy) == 1 and toy[0]["rmse"] < 0.2
-    assert {r["method"] for r in rows} >= set(ad.kinds())
+    rows = [(kind, float(np.sqrt(np.mean((np.asarray(ad.build(kind, seg, **p).eval(texel, depth)) - truth) ** 2))))
+            for kind in ad.kinds() for p in ad.configurations(kind, True)]
+    toy = [r for r in rows if r[0] == "toy_beer"]
+    assert len(toy) == 1 and toy[0][1] < 0.2
+    assert {r[0] for r in rows} >= set(ad.kinds())
 
 
 def test_toy_kind_is_exact_for_one_uniform_segment():
@@ -162,3 +164,161 @@ def test_import_graph_has_no_cycle():
     for m in sorted(graph):
         if m not in state:
             visit(m)
+
+
+#: The layers, bottom first: a module may import its own layer and those below, never above
+#: (DESIGN.md: studies -> evaluation / shading / ground truth / reconstruction / integrator ->
+#: representations / capture -> segments -> backend).  The longest matching prefix decides.
+LAYERS = [
+    ["avsm_dr._llvm", "avsm_dr.backend", "avsm_dr._arrays", "avsm_dr.validation", "avsm_dr.geometry",
+     "avsm_dr._device_checks"],
+    ["avsm_dr.segments", "avsm_dr.texel_sort", "avsm_dr.filtering", "avsm_dr.stats", "avsm_dr.metrics",
+     "avsm_dr.scene", "avsm_dr.io"],
+    ["avsm_dr.representations", "avsm_dr.capture", "avsm_dr.fluid", "avsm_dr.warp"],
+    ["avsm_dr.builtin_scenes"],
+    ["avsm_dr.groundtruth", "avsm_dr.receivers", "avsm_dr.shading", "avsm_dr.reconstruction", "avsm_dr.mitsuba",
+     "avsm_dr.area_lights", "avsm_dr.checks", "avsm_dr.sweep", "avsm_dr.evaluation",
+     "avsm_dr.plotstyle"],
+    ["avsm_dr"],
+]
+
+
+def _layer(module: str):
+    best = None
+    for i, prefixes in enumerate(LAYERS):
+        for p in prefixes:
+            if (module == p or module.startswith(p + ".")) and (best is None or len(p) > best[1]):
+                best = (i, len(p))
+    return None if best is None else best[0]
+
+
+def _package_graph():
+    graph = {}
+    for path in PKG.rglob("*.py"):
+        parts = list(path.relative_to(PKG.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        mod = ".".join(parts)
+        graph[mod] = ({m for m in _imports(path, mod) if m != mod and _module_path(m)}, path)
+    return graph
+
+
+def test_imports_point_down_the_layers():
+    """No module imports a layer above its own (between different top-level subpackages), and
+    every module of the package has a layer."""
+    graph = _package_graph()
+    unassigned = sorted(m for m in graph if _layer(m) is None)
+    assert not unassigned, f"give these modules a layer in LAYERS: {unassigned}"
+    top = lambda m: ".".join(m.split(".")[:2])   # noqa: E731
+    upward = [f"{m} -> {n}" for m, (deps, _) in sorted(graph.items()) for n in sorted(deps)
+              if _layer(n) > _layer(m) and top(m) != top(n)]
+    assert not upward, "imports pointing up the layers: " + "; ".join(upward)
+
+
+def test_ground_truth_never_imports_capture():
+    """The oracle does not lean on the code it checks: no module of ``avsm_dr.groundtruth``
+    imports ``avsm_dr.capture`` (shared geometry and validation live below both)."""
+    bad = [f"{m} -> {n}" for m, (deps, _) in sorted(_package_graph().items())
+           if m == "avsm_dr.groundtruth" or m.startswith("avsm_dr.groundtruth.")
+           for n in sorted(deps) if n == "avsm_dr.capture" or n.startswith("avsm_dr.capture.")]
+    assert not bad, "; ".join(bad)
+
+
+def _private_imports(root: Path, package: str):
+    """``(module, imported)`` for every ``from X import _name`` in ``root`` where ``_name`` is a
+    private name (not a private submodule) of another module."""
+    found = []
+    for path in root.rglob("*.py"):
+        parts = list(path.relative_to(root.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        mod = ".".join(parts)
+        pkg_parts = mod.split(".") if path.name == "__init__.py" else mod.split(".")[:-1]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            if node.level:
+                base = ".".join(pkg_parts[:len(pkg_parts) - node.level + 1])
+                target = f"{base}.{node.module}" if node.module else base
+            else:
+                target = node.module or ""
+            if not target.startswith(("avsm_dr", package)):
+                continue
+            for a in node.names:
+                sub = (root.parent / Path(*f"{target}.{a.name}".split("."))).with_suffix(".py")
+                if a.name.startswith("_") and not a.name.startswith("__") and not sub.exists() \
+                        and not (sub.with_suffix("") / "__init__.py").exists():
+                    found.append(f"{mod} imports {target}.{a.name}")
+    return found
+
+
+def test_no_private_name_crosses_modules():
+    """Neither the package nor the studies import another module's private names (private
+    modules such as ``_loops`` are shared on purpose; their names are public within them)."""
+    found = _private_imports(PKG, "avsm_dr") + _private_imports(PKG.parent / "experiments", "experiments")
+    assert not found, "; ".join(found)
+
+
+def test_the_package_never_imports_the_studies():
+    """``avsm_dr`` works installed without the repository: no import of ``experiments``."""
+    bad = [str(path.relative_to(PKG.parent)) for path in PKG.rglob("*.py")
+           for node in ast.walk(ast.parse(path.read_text()))
+           if isinstance(node, (ast.Import, ast.ImportFrom))
+           and any((n or "").split(".")[0] == "experiments"
+                   for n in ([a.name for a in node.names] if isinstance(node, ast.Import) else [node.module]))]
+    assert bad == ["avsm_dr/__main__.py"], bad      # the forwarder, which says where the studies are
+
+
+# ------------------------------------------------------------- the build template
+def test_kinds_fill_the_build_template_instead_of_the_constructor():
+    """One template in the base class, no metaclass: every registered kind (and the opaque
+    composite) builds through ``Representation.__init__`` -> _validate -> _resolve -> _build
+    -> _apply_precision; none overrides ``__init__`` (was: 12 overrides and a metaclass
+    running the precision step)."""
+    import abc
+    import inspect
+
+    from avsm_dr.representations.base import Representation
+    from avsm_dr.representations.opaque_composite import OpaqueComposite
+    assert type(Representation) is abc.ABCMeta          # abstract methods only, no custom __call__
+    for kind in ad.kinds():
+        cls = ad.REGISTRY[kind]
+        own = [c.__name__ for c in cls.__mro__[:cls.__mro__.index(Representation)] if "__init__" in c.__dict__]
+        assert not own, f"{kind}: __init__ overridden in {own}"
+    src = inspect.getsource(Representation.eval).splitlines()
+    assert len(src) <= 40, f"eval is {len(src)} lines (argument handling belongs in _lookup_args)"
+    assert OpaqueComposite.__module__ == "avsm_dr.representations.opaque_composite"
+    from avsm_dr.capture import opaque_map
+    assert opaque_map.OpaqueComposite is OpaqueComposite
+
+
+def test_build_template_runs_its_steps_in_order():
+    """validate -> resolve -> build -> store at the precision, for a kind filling only hooks;
+    the precision step sees the built buffers (AVSM, unorm16: quantised nodes)."""
+    calls = []
+
+    class Traced(ad.REGISTRY["avsm"]):
+        def _validate(self, segments, params):
+            calls.append("validate")
+            super()._validate(segments, params)
+
+        def _resolve(self):
+            calls.append("resolve")
+            super()._resolve()
+
+        def _build(self):
+            calls.append("build")
+            super()._build()
+
+        def _apply_precision(self):
+            calls.append(("precision", len(self.depths)))
+            super()._apply_precision()
+
+    seg = ad.Segments.from_arrays([0, 2], [0.1, 0.5], [0.3, 0.9], optical_depth=[0.5, 1.0])
+    rep = Traced(seg, nodes=4, precision="unorm16")
+    assert calls == ["validate", "resolve", "build", ("precision", 4)]
+    ref = ad.build("avsm", seg, nodes=4, precision="unorm16")
+    assert rep.nbytes_per_texel == ref.nbytes_per_texel
+    d = np.array([0.0, 0.2, 0.6, 1.0])
+    np.testing.assert_array_equal(np.asarray(rep.eval(np.zeros(4, np.int64), d)),
+                                  np.asarray(ref.eval(np.zeros(4, np.int64), d)))

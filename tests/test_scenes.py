@@ -17,7 +17,7 @@ SMALL = {
 
 
 def exact_T(scene, resolution=128, **kw):
-    cap = ad.capture(scene, resolution=resolution, **kw)
+    cap = ad.capture(scene, resolution=resolution, **kw, order="depth")
     return np.asarray(cap.transmittance(ad.build("exact", cap.segments), scene.receivers)), cap
 
 
@@ -64,7 +64,7 @@ def test_three_columns_cast_on_each_other():
     """A light ray through the middle of the map crosses three separate smoke columns:
     its segments fall into three depth clusters separated by empty gaps > 0.3."""
     sc = ad.scenes.three_columns(size=12)
-    cap = ad.capture(sc, resolution=64)
+    cap = ad.capture(sc, resolution=64, order="depth")
     h = cap.segments.numpy()
     found = 0
     for t in np.argsort(cap.segments.counts)[::-1][:50]:

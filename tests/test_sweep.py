@@ -6,8 +6,9 @@ import json
 
 import pytest
 
-from avsm_dr import cli, sweep
-from avsm_dr.experiments import _common, error_curves
+from avsm_dr import sweep
+from experiments import _cli as cli
+from experiments import _common, error_curves
 
 
 def _square(cell):

@@ -1,4 +1,4 @@
-"""The ``temporal`` experiment (``python -m avsm_dr temporal``): the flicker definition on
+"""The ``temporal`` experiment (``python -m experiments temporal``): the flicker definition on
 synthetic errors with known answers, the cached plume animation, the moving-camera
 receivers, and a quick run through the CLI."""
 from __future__ import annotations
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from avsm_dr import fluid
-from avsm_dr.testing import quick_cli_run
-from avsm_dr.experiments import _common
-from avsm_dr.experiments import _temporal_metrics as M
-from avsm_dr.experiments import _temporal_scenes as S
+from helpers import quick_cli_run
+from experiments import _common
+from experiments.temporal import metrics as M
+from experiments.temporal import scenes as S
 
 
 # ------------------------------------------------------------------ definition

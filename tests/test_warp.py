@@ -8,7 +8,7 @@ import pytest
 
 import avsm_dr as ad
 import drjit as dr
-from avsm_dr.testing import check_gradients
+from avsm_dr.checks import check_gradients
 from avsm_dr.warp import DepthWarp, log_values
 
 from cases import random_segments, to_segments

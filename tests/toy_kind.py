@@ -27,8 +27,8 @@ class ToyBeer(Representation):
         paper="-",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    def _build(self):
+        segments = self.segments
         Float = segments.Float
         lo, hi = segments.texel_bounds()
         self.front, self.back = Float(lo), Float(hi)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from ..geometry import ray_box_dr, ray_sphere_dr
 from .area_scene import AreaLightScene, Sphere
 
 #: Surface kinds returned by :func:`camera_hits`.
@@ -51,27 +52,9 @@ def kit(dtype: str = "float32") -> Kit:
 
 
 def safe_dir(d):
-    """Replace exact zero components by a tiny value so 1 / d stays finite-signed."""
+    """Replace exact zero components by a tiny value so 1 / d stays finite-signed (the
+    slab test of every ray then takes the same, non-parallel branch)."""
     return type(d)(*[dr.select(c == 0, 1e-20, c) for c in (d.x, d.y, d.z)])
-
-
-def ray_sphere(o, d, center, radius):
-    """(hit, t0, t1) of the unit-direction ray o + t d with a sphere (t0 <= t1)."""
-    oc = o - center
-    b = dr.dot(oc, d)
-    c = dr.dot(oc, oc) - radius * radius
-    disc = b * b - c
-    sq = dr.sqrt(dr.maximum(disc, 0))
-    return disc > 0, -b - sq, -b + sq
-
-
-def ray_box(o, inv_d, lo, hi):
-    """(hit, t0, t1) of the ray with the slab box [lo, hi]; ``inv_d = 1 / d``."""
-    a = (lo - o) * inv_d
-    b = (hi - o) * inv_d
-    tmin = dr.maximum(dr.maximum(dr.minimum(a.x, b.x), dr.minimum(a.y, b.y)), dr.minimum(a.z, b.z))
-    tmax = dr.minimum(dr.minimum(dr.maximum(a.x, b.x), dr.maximum(a.y, b.y)), dr.maximum(a.z, b.z))
-    return tmax > tmin, tmin, tmax
 
 
 def box_normal(x, lo, hi, Vec3):
@@ -89,13 +72,13 @@ def box_normal(x, lo, hi, Vec3):
 
 def occluder_hits(scene: AreaLightScene, k: Kit, o, d):
     """Per occluder: (hit, t0, t1, occluder) for unit-direction rays o + t d."""
-    inv = 1.0 / safe_dir(d)
+    ds = safe_dir(d)
     out = []
     for occ in scene.occluders:
         if isinstance(occ, Sphere):
-            h, t0, t1 = ray_sphere(o, d, k.vec(occ.center), float(occ.radius))
+            t0, t1, h = ray_sphere_dr(o, d, k.vec(occ.center), float(occ.radius))
         else:
-            h, t0, t1 = ray_box(o, inv, k.vec(occ.min), k.vec(occ.max))
+            t0, t1, h = ray_box_dr(o, ds, k.vec(occ.min), k.vec(occ.max))
         out.append((h, t0, t1, occ))
     return out
 
@@ -129,12 +112,11 @@ def camera_hits(scene: AreaLightScene, k: Kit) -> CameraHits:
     o = k.vec(cam.origin)
     d = k.vec_array(cam.rays())
     n_pix = dr.width(d)
-    inv = 1.0 / safe_dir(d)
     lo, hi = scene.bounds
     Float, Vec3 = k.Float, k.Vec3
 
     # -- medium box exit (the camera is inside) ------------------------------------
-    _, _, t_exit = ray_box(o, inv, k.vec(lo), k.vec(hi))
+    _, t_exit, _ = ray_box_dr(o, safe_dir(d), k.vec(lo), k.vec(hi))
     t_best = t_exit
     kind = dr.full(k.UInt32, EXIT, n_pix)
     nrm = Vec3(0, 1, 0) + dr.zeros(Vec3, n_pix)

@@ -10,8 +10,11 @@ by ray marching (:mod:`.grid`), particles as chords (:mod:`.particles`), hair st
 as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
 (:mod:`.camera`) fits a directional light's orthographic map to the content's
 bounds (the non-zero part of a grid, with one empty texel of margin), uses the
-spot cone for a spot light and a cube of six faces for a point light.  Segments
-of a texel are sorted by depth.
+spot cone for a spot light and a cube of six faces for a point light.
+
+Insertion order (``order=``, recorded as ``Segments.order``): the order in which each
+texel's segments are stored, hence inserted by an order-dependent build such as AVSM.
+The default, ``"submission"``, is what a GPU rasteriser delivers (:data:`ORDERS`).
 """
 from __future__ import annotations
 
@@ -25,19 +28,38 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
-from ..scene import DirectionalLight, PointLight, Scene, SpotLight
+from ..scene import DirectionalLight, PointLight, Scene, SpotLight, validate_blockers
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
 from . import opaque as _opaque
 from . import opaque_map as _opaque_map
+from . import grid as _grid
 from . import particles as _particles
 from .assembly import combine
-from .camera import CubeCamera, LightCamera, OrthoCamera, PerspectiveCamera, make_camera, orthonormal_basis
+from .camera import CubeCamera, LightCamera, OrthoCamera, PerspectiveCamera, make_camera
 from .dda import traverse
 from .grid import GridVolume, check_method, march
 from .hair import load_tfx, procedural_strands
 
 RESOLUTION_RANGE = (64, 1024)
+#: Insertion orders of :func:`capture` (``order=``), the default first:
+#:
+#: * ``"submission"``: the draw order of a renderer, primitive by primitive: opaque blockers
+#:   first, in the scene's list order (an engine's opaque pass precedes its transparent
+#:   ones); then the density grid brick by brick, bricks of 8^3 voxels
+#:   (:data:`~.grid.SUBMISSION_BRICK`) in memory order (x fastest), each brick's segments
+#:   along the ray front to back (:func:`~.grid.brick_keys`); then the particles, in
+#:   list order (``submission="list"``) or sorted back to front as for alpha blending
+#:   (``submission="back_to_front"``, :func:`~.particles.draw_ranks`); then the hair strands
+#:   in list order, a strand's crossings in vertex order.
+#: * ``"depth"``: front to back (z0 quantised to 32 bits over the depth range; equal values in
+#:   content order: grid, particles, hair, blockers).
+#: * ``"reverse_depth"``: back to front, each texel's ``"depth"`` order reversed.
+#: * ``"random"``: a seeded shuffle of each texel's ``"depth"`` order (``order_seed``,
+#:   :meth:`~avsm_dr.segments.Segments.in_order`): the same seed, the same order.
+ORDERS = ("submission", "depth", "reverse_depth", "random")
+#: Particle draw orders of ``order="submission"`` (``submission=``), the default first.
+SUBMISSIONS = ("list", "back_to_front")
 #: Depth that :meth:`Capture.lookup` gives points the map does not cover: the light's own
 #: position (spot/point) or reference plane (directional), in front of every segment
 #: (segments lie at ray parameters >= 0), so every representation returns T = 1 there.
@@ -67,6 +89,11 @@ class Capture:
     epsilon: float
     stats: dict = field(default_factory=dict)
     opaque_depth: Any = None
+
+    @property
+    def order(self) -> str:
+        """The insertion order of the segments (``segments.order``; :data:`ORDERS`)."""
+        return self.segments.order
 
     @property
     def width(self) -> int:
@@ -134,6 +161,21 @@ def _points(points) -> np.ndarray:
     return V.points(points, "points", allow_empty=True)
 
 
+def _check_order(order, submission, order_seed) -> tuple[str, str, int | None]:
+    """(order, submission, seed) after checks; ValueError names the argument."""
+    V.one_of(order, "order", ORDERS)
+    if submission is not None and order != "submission":
+        raise ValueError(f"submission: only order='submission' takes a particle draw order, got "
+                         f"submission={submission!r} with order={order!r}")
+    if order_seed is not None and order != "random":
+        raise ValueError(f"order_seed: only order='random' takes a seed, got order_seed={order_seed!r} "
+                         f"with order={order!r}")
+    submission = V.one_of(SUBMISSIONS[0] if submission is None else submission, "submission", SUBMISSIONS)
+    seed = None if order != "random" else V.integer(0 if order_seed is None else order_seed,
+                                                    "order_seed", 0, 2**32 - 1)
+    return order, submission, seed
+
+
 def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
     V.integer(resolution, "resolution", *RESOLUTION_RANGE)
     if step is not None:
@@ -159,7 +201,8 @@ def validate_scene(scene: Scene) -> None:
 def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
             density=None, block: int = 8, keep_zero: bool = False, dtype: str | None = None,
             opaque_bias: float | None = None, opaque_slope_bias: float = 2.0, bounds=None,
-            method: str | None = None, opaque: str = "inline") -> Capture:
+            method: str | None = None, opaque: str = "inline", order: str = "submission",
+            submission: str | None = None, order_seed: int | None = None) -> Capture:
     """Segments of every shadow-map texel for ``scene`` seen from ``scene.light``.
 
     resolution: texels per side, 64..1024 (a point light's cube map is resolution x 6 resolution).
@@ -180,9 +223,18 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         segment per dual-cell crossing, integrated exactly, no step: :mod:`.dda`).
     opaque: 'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
         depth map, ``Capture.opaque_depth``, composed at lookup; see :mod:`.opaque_map`).
+    order: the insertion order of each texel's segments (:data:`ORDERS`, recorded as
+        ``Segments.order`` and ``Capture.order``): 'submission' (default: a renderer's draw
+        order, primitive by primitive), 'depth' (front to back), 'reverse_depth' (back to
+        front) or 'random' (a seeded shuffle).
+    submission: particles' draw order with ``order='submission'``: 'list' (default, the
+        scene's list order) or 'back_to_front' (sorted by depth, farthest first).
+    order_seed: seed of ``order='random'``, an integer in [0, 2^32) (default 0).
     """
     validate_scene(scene)
     _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias)
+    order, submission, order_seed = _check_order(order, submission, order_seed)
+    drawn = order == "submission"          # pieces carry a draw key per segment
     method = check_method(method, step)
     V.one_of(opaque, "opaque", _opaque_map.OPAQUE_MODES)
     stats: dict = {}
@@ -198,15 +250,15 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     Float = A.float_type(dtype)
     if grid is not None and grid.dtype != dtype:
         raise ValueError(f"dtype: {dtype!r} differs from the prepared grid's {grid.dtype!r}")
-    blockers = _opaque.validate(scene.blockers)
+    blockers = validate_blockers(scene.blockers)
     boxes = []
     if grid is not None and grid.occupied is not None:
         boxes.append(grid.occupied)
     if scene.particles is not None:
-        c, r, _ = _particles.validate(scene.particles)
+        c, r, _ = scene.particles.validate()
         boxes.append(((c - r[:, None]).min(0), (c + r[:, None]).max(0)))
     if scene.hair is not None:
-        s, r, _ = _hair.validate(scene.hair)
+        s, r, _ = scene.hair.validate()
         pts = s.reshape(-1, 3)
         boxes.append((pts.min(0) - r, pts.max(0) + r))
     for b in blockers:
@@ -249,7 +301,8 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     stats["setup_s"] = time.perf_counter() - t_start
 
     # ---- segments of every content kind
-    pieces = []                                            # (texel, z0, z1, tau)
+    pieces = []                                            # (texel, z0, z1, tau[, draw key])
+    bases = _draw_bases(blockers, grid, scene) if drawn else None
     if grid is not None:
         t0 = time.perf_counter()
         if method == "exact":
@@ -259,35 +312,61 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
                                          runs=True)
         stats["grid"] = dict(st, seconds=time.perf_counter() - t0)
         if tex.size:
-            pieces.append((tex, z0, z1, tau))
+            key = (dr.opaque(backend.types().UInt32, bases["grid"]) + _grid.brick_keys(grid, camera, tex, z0, z1),) \
+                if drawn else ()
+            pieces.append((tex, z0, z1, tau) + key)
     if scene.particles is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau = _particles.capture_particles(camera, scene.particles, Float)
+        tex, z0, z1, tau, pid = _particles.capture_particles(camera, scene.particles, Float, ids=True)
         stats["particles"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
         if tex.size:
-            pieces.append((tex, z0, z1, tau))
+            key = (bases["particles"] + _particles.draw_ranks(camera, scene.particles, submission)[pid],) \
+                if drawn else ()
+            pieces.append((tex, z0, z1, tau) + key)
     if scene.hair is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau = _hair.capture_hair(camera, scene.hair)
+        tex, z0, z1, tau, cid = _hair.capture_hair(camera, scene.hair, ids=True)
         stats["hair"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
         if tex.size:
-            pieces.append((tex, z0, z1, tau))
+            pieces.append((tex, z0, z1, tau) + ((bases["hair"] + cid,) if drawn else ()))
     opaque_depth = None
     if blockers:
         bias = 1e-4 * diag if opaque_bias is None else float(opaque_bias)
-        tex, z0, z1 = _opaque.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias)
+        tex, z0, z1, bid = _opaque.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias, ids=True)
         stats["opaque"] = {"segments": int(tex.size)}
         if opaque == "separate":
             opaque_depth = _opaque_map.depth_map(tex, z0, camera.n_texels)
             pieces = _opaque_map.clip_pieces(pieces, opaque_depth, Float)
         elif tex.size:
-            pieces.append((tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)))
+            pieces.append((tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)) + ((bid,) if drawn else ()))
 
     t0 = time.perf_counter()
-    seg = combine(pieces, camera.n_texels, Float)
+    seg = combine([p[:4] for p in pieces], camera.n_texels, Float, order,
+                  keys=[p[4] for p in pieces] if drawn else None, seed=order_seed)
+    stats["order"] = {"order": order, **({"submission": submission} if drawn else {}),
+                      **({"order_seed": order_seed} if order == "random" else {})}
     stats["combine_s"] = time.perf_counter() - t0
     stats["total_s"] = time.perf_counter() - t_start
     return Capture(seg, camera, light, int(resolution), step, float(epsilon), stats, opaque_depth)
+
+
+def _draw_bases(blockers, grid, scene) -> dict:
+    """First draw key of each content kind in the ``'submission'`` order (:data:`ORDERS`):
+    blockers, then the grid's bricks, then particles, then hair capsules; ValueError naming
+    ``order`` when the keys exceed 32 bits."""
+    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // _grid.SUBMISSION_BRICK)))
+    n_particles = 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size)
+    n_capsules = 0
+    if scene.hair is not None:
+        S, Vn = np.shape(scene.hair.strands)[:2]
+        n_capsules = S * (Vn - 1)
+    bases = {"opaque": 0, "grid": len(blockers)}
+    bases["particles"] = bases["grid"] + n_bricks
+    bases["hair"] = bases["particles"] + n_particles
+    if bases["hair"] + n_capsules > 2**32:
+        raise ValueError(f"order: 'submission' numbers {bases['hair'] + n_capsules} primitives "
+                         f"(blockers, bricks, particles, hair capsules), more than 2^32")
+    return bases
 
 
 def _check_range(bmin, bmax, position, dtype: str) -> None:
@@ -308,5 +387,5 @@ def _check_range(bmin, bmax, position, dtype: str) -> None:
 
 
 __all__ = ["capture", "Capture", "GridVolume", "validate_scene", "load_tfx", "procedural_strands",
-           "LightCamera", "OrthoCamera", "PerspectiveCamera", "CubeCamera", "orthonormal_basis",
-           "RESOLUTION_RANGE", "OUTSIDE_DEPTH", "MIN_STEP_FRACTION"]
+           "LightCamera", "OrthoCamera", "PerspectiveCamera", "CubeCamera",
+           "RESOLUTION_RANGE", "OUTSIDE_DEPTH", "MIN_STEP_FRACTION", "ORDERS", "SUBMISSIONS"]

@@ -15,6 +15,11 @@ ray), depths and optical depth (Dr.Jit or NumPy).  :func:`combine` orders them b
   registers): the same order as the host's stable argsort of ``texel << 32 | zq``, which
   stays the fallback when the per-texel work ``sum count^2`` exceeds
   :data:`~avsm_dr.segments.DEVICE_SORT_WORK` per segment.
+
+That is the ``"depth"`` order.  ``"submission"`` orders each texel by the pieces' draw keys
+instead (:func:`texel_key_order`: words ``key << 32 | concatenation index``, the same sort);
+``"reverse_depth"`` and ``"random"`` reorder the depth order
+(:meth:`~avsm_dr.segments.Segments.in_order`).
 """
 from __future__ import annotations
 
@@ -71,20 +76,31 @@ def _dtype(Float) -> str:
     return "float64" if dr.type_v(Float) == dr.VarType.Float64 else "float32"
 
 
-def combine(pieces, n_texels: int, Float) -> Segments:
-    """CSR Segments from ``(texel, z0, z1, tau)`` pieces, each texel's segments ordered by
-    ``(z0 quantised to 32 bits over the depth range, piece order)`` (module docstring)."""
+def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed: int | None = None) -> Segments:
+    """CSR Segments from ``(texel, z0, z1, tau)`` pieces in insertion order ``order``
+    (recorded as ``Segments.order``):
+
+    * ``'depth'``: each texel's segments by ``(z0 quantised to 32 bits over the depth range,
+      piece order)`` (module docstring);
+    * ``'submission'``: by ``(keys, piece order)``, ``keys`` a list with one draw key per
+      segment of each piece (uint32 NumPy or Dr.Jit UInt32, ``< 2^32``);
+    * ``'reverse_depth'``, ``'random'`` (``seed``): the depth order reordered by
+      :meth:`~avsm_dr.segments.Segments.in_order`."""
     dtype = _dtype(Float)
     if not pieces:
         return Segments.from_arrays(np.zeros(n_texels + 1, np.int64), Float(), Float(),
-                                    optical_depth=Float(), dtype=dtype)
+                                    optical_depth=Float(), dtype=dtype, order=order)
     z0 = _cat([A.to_float(p[1], Float) for p in pieces])
     z1 = _cat([A.to_float(p[2], Float) for p in pieces])
     tau = _cat([A.to_float(p[3], Float) for p in pieces])
     offsets = np.zeros(n_texels + 1, np.int64)
-    if len(pieces) == 1 and isinstance(pieces[0][0], TexelRuns):      # one grid: in order already
+    if order == "submission":
+        key = _cat([A.to_uint32(np.asarray(k, np.uint32)) if isinstance(k, np.ndarray) else k for k in keys])
+        offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels)
+        z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
+    elif len(pieces) == 1 and isinstance(pieces[0][0], TexelRuns):    # one grid: in order already
         np.cumsum(pieces[0][0].texel_counts(n_texels), out=offsets[1:])
-    elif len(pieces) == 1 and np.all(np.diff(pieces[0][0]) >= 0):     # a piece in texel order
+    elif len(pieces) == 1 and _texel_depth_sorted(pieces[0][0], pieces[0][1]):   # one piece in order
         np.cumsum(np.bincount(np.asarray(pieces[0][0], np.int64), minlength=n_texels), out=offsets[1:])
     else:
         offsets, perm = texel_depth_order([p[0] for p in pieces], z0, n_texels)
@@ -92,7 +108,20 @@ def combine(pieces, n_texels: int, Float) -> Segments:
     # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
     # build the CSR directly (Segments.from_arrays would copy everything to the host again)
     tau = dr.minimum(tau, OPAQUE_OPTICAL_DEPTH)
-    return Segments(offsets, z0, z1, tau, dtype, sorted_by_depth=True)
+    if order == "submission":
+        return Segments(offsets, z0, z1, tau, dtype, order="submission")
+    seg = Segments(offsets, z0, z1, tau, dtype, sorted_by_depth=True)
+    return seg if order == "depth" else seg.in_order(order, seed)
+
+
+def _texel_depth_sorted(texel, z0) -> bool:
+    """True when a host piece is in (texel, z0) order: texels non-decreasing, and z0
+    non-decreasing inside each texel (a hair piece comes by texel, then strand)."""
+    tex = np.asarray(texel, np.int64)
+    if not np.all(np.diff(tex) >= 0):
+        return False
+    z = A.host(z0, "z0")          # float64 of the stored float32 / float64 depths
+    return bool(np.all((np.diff(z) >= 0) | (np.diff(tex) > 0)))
 
 
 def _device_texels(texels) -> object:
@@ -124,27 +153,47 @@ def texel_depth_order(texels, z0, n_texels: int):
     """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
     the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by (texel, quantised
     z0, concatenation index), on the device unless the per-texel work is too large."""
+    return texel_key_order(texels, None, n_texels, z0=z0)
+
+
+def texel_key_order(texels, key, n_texels: int, z0=None):
+    """:func:`texel_depth_order` by ``(texel, key, concatenation index)``: ``key`` a Dr.Jit
+    UInt32 (S,) per concatenated segment (None: ``z0`` quantised, the depth order)."""
     UInt32 = backend.types().UInt32
     tex = _device_texels(texels)
     n = dr.width(tex)
-    cnt = dr.zeros(UInt32, n_texels)
-    slot = dr.scatter_inc(cnt, tex)                        # arbitrary order inside a texel
-    dr.eval(cnt, slot)
-    counts = np.asarray(cnt.numpy(), np.int64)
+    one = texels[0] if len(texels) == 1 else None         # one piece in texel order: grouped already
+    if isinstance(one, TexelRuns):
+        counts = one.texel_counts(n_texels)
+    elif one is not None and np.all(np.diff(np.asarray(one, np.int64)) >= 0):
+        counts = np.bincount(np.asarray(one, np.int64), minlength=n_texels)
+    else:
+        one = None
+        cnt = dr.zeros(UInt32, n_texels)
+        slot = dr.scatter_inc(cnt, tex)                    # arbitrary order inside a texel
+        dr.eval(cnt, slot)
+        counts = np.asarray(cnt.numpy(), np.int64)
     offsets = np.zeros(n_texels + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     c = counts.astype(np.float64)
     if float(c @ c) > DEVICE_SORT_WORK * max(n, 1):
         tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
+        if key is not None:
+            k = np.asarray(key.numpy(), np.uint64)
+            return offsets, A.to_uint32(np.argsort((tex_h.astype(np.uint64) << np.uint64(32)) | k,
+                                                   kind="stable").astype(np.uint32))
         return offsets, A.to_uint32(host_order(tex_h, A.host(z0, "z0")).astype(np.uint32))
     off = A.to_uint32(offsets)
     # ---- group by texel (slots from the atomic counter), then sort inside each texel
-    pos = dr.gather(UInt32, off, tex) + slot
-    gid = dr.zeros(UInt32, n)
-    dr.scatter(gid, dr.arange(UInt32, n), pos)             # concatenation index at its group slot
-    gtex = dr.gather(UInt32, tex, gid)
+    if one is not None:
+        gid, gtex = dr.arange(UInt32, n), tex
+    else:
+        pos = dr.gather(UInt32, off, tex) + slot
+        gid = dr.zeros(UInt32, n)
+        dr.scatter(gid, dr.arange(UInt32, n), pos)         # concatenation index at its group slot
+        gtex = dr.gather(UInt32, tex, gid)
     U32 = dr.detached_t(UInt32)
-    zq = U32(quantised_depth(z0))                          # < 2^32: words zq << 32 | index
+    zq = U32(quantised_depth(z0) if key is None else key)  # < 2^32: words zq << 32 | index
     perm, _ = sort_texels(counts, off, gtex, "index", (U32(gid), zq), ties=False)
     return offsets, UInt32(perm)
 

@@ -28,23 +28,7 @@ import math
 import drjit as dr
 import numpy as np
 
-from .. import validation as V
-
-
-def orthonormal_basis(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(u, v, w): right-handed orthonormal frame whose third axis is ``w`` (normalised).
-
-    u = normalize(up x w) with up = +y unless w is within ~8 degrees of +-y (then +x);
-    v = w x u.  Deterministic; the one frame of the package: every light camera, the
-    squares of :class:`~avsm_dr.scene.OpaquePlane` and the receiver plane (ground truth,
-    shading), the inverse problem's receiver grid.
-    """
-    w = V.unit_vector(w, "w")
-    up = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.99 else np.array([1.0, 0.0, 0.0])
-    u = np.cross(up, w)
-    u /= np.linalg.norm(u)
-    v = np.cross(w, u)
-    return u, v, w
+from ..geometry import orthonormal_basis
 
 
 def _rect_from_coords(x, y, res):

@@ -60,7 +60,7 @@ from .. import _arrays as A
 from .. import backend
 from .assembly import TexelRuns
 from .dual_cells import corner_table, dual_block_max, dual_grid  # noqa: F401 (dual_block_max: API)
-from .grid import _Kernel, compact_slots, hit_lanes, new_slots, read_slots, write_slots
+from .grid import MarchKernel, compact_slots, hit_lanes, new_slots, read_slots, write_slots
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
 _FAR = 1e30
@@ -346,7 +346,7 @@ def differentiable_tau(grid, o, d, counts, z0, z1):
     segments per lane, in lane order) from differentiable gathers of ``grid.data``: exact
     when every segment lies in one dual cell, and gradients flow to the voxels."""
     Float = grid.Float
-    kern = _Kernel(grid)
+    kern = MarchKernel(grid)
     lane = A.to_uint32(np.repeat(np.arange(counts.size, dtype=np.uint32), counts))
     gx, gy, gz = (dr.gather(Float, A.to_float(np.ascontiguousarray(o[:, i]), Float), lane) for i in range(3))
     ex, ey, ez = (dr.gather(Float, A.to_float(np.ascontiguousarray(d[:, i]), Float), lane) for i in range(3))

@@ -49,6 +49,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
+from ..geometry import check_bbox, ray_box, ray_box_dr
 from ..io import read_vol
 from .assembly import TexelRuns
 from .dual_cells import corner_table
@@ -78,21 +79,6 @@ def block_max(density: np.ndarray, block: int) -> np.ndarray:
             res[tuple(dst)] = out[tuple(src)].max(axis=axis)
         out = res
     return out
-
-
-def check_bbox(bbox) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) float64 corners of a finite, non-empty box; ValueError naming ``bbox``."""
-    try:
-        lo, hi = bbox
-        lo = np.asarray(lo, np.float64).reshape(3)
-        hi = np.asarray(hi, np.float64).reshape(3)
-    except (TypeError, ValueError):
-        raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise ValueError("bbox: contains NaN or inf")
-    if np.any(hi <= lo):
-        raise ValueError(f"bbox: zero-size or inverted box {lo.tolist()} .. {hi.tolist()}")
-    return lo, hi
 
 
 @dataclass(eq=False)
@@ -217,12 +203,12 @@ class GridVolume:
         whi = wlo + np.array(self.window_shape[::-1]) * h
         inside = np.all((p >= self.bmin) & (p <= self.bmax) & (p >= wlo) & (p <= whi), axis=1)
         x, y, z = (A.to_float(p[:, i], Float) for i in range(3))
-        k = _Kernel(self)
+        k = MarchKernel(self)
         val = k.trilinear(dr.detach(self.data), x, y, z, A.to_float(inside.astype(np.float64), Float) > 0)
         return np.where(inside, np.asarray(val.numpy(), np.float64), 0.0)
 
 
-class _Kernel:
+class MarchKernel:
     """Grid constants as opaque Dr.Jit scalars (one compiled kernel for all grids)."""
 
     def __init__(self, grid: GridVolume):
@@ -287,61 +273,14 @@ class _Kernel:
 
 
 # --------------------------------------------------------------------- clipping
-def clip_rays(o: np.ndarray, d: np.ndarray, lo, hi, t_min: float = 0.0):
-    """Slab test: (t_enter, t_exit, hit) of rays o + t d against the box [lo, hi], t >= t_min.
-
-    A ray parallel to a slab (d = 0 on that axis) is inside it when ``lo <= o <= hi``
-    and misses the box otherwise.  One axis at a time on contiguous columns (reductions
-    over a length-3 last axis were the slow part of this on 10^6 rays)."""
-    o = np.asarray(o, np.float64)
-    d = np.asarray(d, np.float64)
-    lo = np.asarray(lo, np.float64).reshape(3)
-    hi = np.asarray(hi, np.float64).reshape(3)
-    t0 = np.full(o.shape[0], float(t_min))
-    t1 = np.full(o.shape[0], np.inf)
-    for a in range(3):
-        oa, da = np.ascontiguousarray(o[:, a]), np.ascontiguousarray(d[:, a])
-        par = da == 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / da
-            ta = (lo[a] - oa) * inv
-            tb = (hi[a] - oa) * inv
-        if par.any():
-            inside = (oa >= lo[a]) & (oa <= hi[a])
-            ta = np.where(par, np.where(inside, -np.inf, np.inf), ta)     # outside: enters at +inf
-            tb = np.where(par, np.inf, tb)
-        np.maximum(t0, np.minimum(ta, tb), out=t0)
-        np.minimum(t1, np.maximum(ta, tb), out=t1)
-    return t0, t1, t1 > t0
-
-
 def lane_rays(grid: GridVolume, camera):
     """Texels whose ray meets the occupied part of ``grid`` (ascending) and their rays, clipped:
     (texels (L,) int64, origins (L, 3), unit directions (L, 3), t_in (L,), t_out (L,)), float64."""
     lo_occ, hi_occ = grid.occupied
     _, cand = camera.footprint(lo_occ[None], hi_occ[None])     # one box: distinct, ascending texels
     o, d = camera.rays(cand)
-    t_in, t_out, hit = clip_rays(o, d, lo_occ, hi_occ)
+    t_in, t_out, hit = ray_box(o, d, lo_occ, hi_occ, t_min=0.0)
     return cand[hit], o[hit], d[hit], t_in[hit], t_out[hit]
-
-
-def clip_rays_device(o, d, lo, hi):
-    """:func:`clip_rays` on the device (t_min = 0): o, d lists of three Dr.Jit Float64 arrays,
-    box corners as host (3,) arrays -> (t_enter, t_exit, hit), the same float64 formulas."""
-    F64 = type(o[0])
-    t0 = dr.zeros(F64, dr.width(o[0]))
-    t1 = t0 + np.inf
-    for a in range(3):
-        lo_a, hi_a = dr.opaque(F64, float(lo[a])), dr.opaque(F64, float(hi[a]))
-        par = d[a] == 0
-        inv = 1.0 / d[a]
-        ta, tb = (lo_a - o[a]) * inv, (hi_a - o[a]) * inv
-        inside = (o[a] >= lo_a) & (o[a] <= hi_a)
-        ta = dr.select(par, dr.select(inside, -np.inf, np.inf), ta)
-        tb = dr.select(par, np.inf, tb)
-        t0 = dr.maximum(t0, dr.minimum(ta, tb))
-        t1 = dr.minimum(t1, dr.maximum(ta, tb))
-    return t0, t1, t1 > t0
 
 
 def candidate_texels(camera, lo, hi):
@@ -374,7 +313,9 @@ def hit_lanes(grid: GridVolume, camera, per_lane=None):
     if dr.width(cand) == 0:
         return cand, None, None, None, None, None
     o, d = camera.rays_device(cand)
-    t_in, t_out, hit = clip_rays_device(o, d, lo, hi)
+    F64 = type(o[0])
+    box = [[dr.opaque(F64, float(x)) for x in corner] for corner in (lo, hi)]   # one kernel for any box
+    t_in, t_out, hit = ray_box_dr(o, d, *box, t_min=0.0)
     extra = dr.select(hit, per_lane(o, d, t_in, t_out), 0) if per_lane is not None else None
     dr.eval(cand, hit, extra)
     sel = dr.compress(hit)
@@ -384,8 +325,34 @@ def hit_lanes(grid: GridVolume, camera, per_lane=None):
     extra = dr.gather(UInt32, extra, sel) if extra is not None else None
     dr.eval(lanes, extra)                                   # one kernel
     o, d = camera.rays_device(lanes)
-    t_in, t_out, _ = clip_rays_device(o, d, lo, hi)
+    t_in, t_out, _ = ray_box_dr(o, d, *box, t_min=0.0)
     return lanes, o, d, t_in, t_out, extra
+
+
+#: Bricks of the ``"submission"`` order (:func:`brick_keys`): voxels per side.
+SUBMISSION_BRICK = 8
+
+
+def brick_keys(grid: GridVolume, camera, texels, z0, z1, brick: int = SUBMISSION_BRICK):
+    """Draw position of every grid segment in the ``"submission"`` order: the index
+    ``(b_z n_y + b_y) n_x + b_x`` (x fastest, the grid's memory order) of the ``brick^3``-voxel
+    brick of the whole grid that holds the segment's midpoint ``o + (z0 + z1) / 2 d`` (clamped
+    into the grid), as a renderer draws a bricked volume brick by brick, each brick marching
+    its stretch of the ray front to back.  texels: (S,) :class:`~.assembly.TexelRuns` or int64
+    NumPy; z0, z1: Dr.Jit (S,).  Returns a Dr.Jit UInt32 (S,)."""
+    t = backend.types()
+    F64, UInt32 = t.Float64, t.UInt32
+    tex = texels.device() if isinstance(texels, TexelRuns) else A.to_uint32(np.asarray(texels, np.int64))
+    o, d = camera.rays_device(tex)
+    zm = 0.5 * (F64(dr.detach(z0)) + F64(dr.detach(z1)))
+    nb = -(-np.array(grid.shape[::-1], np.int64) // int(brick))          # bricks along (x, y, z)
+    side = grid.voxel * int(brick)
+    key = dr.zeros(UInt32, dr.width(tex))
+    for a in (2, 1, 0):                                                   # z slowest, x fastest
+        lo_a, side_a = dr.opaque(F64, float(grid.bmin[a])), dr.opaque(F64, float(side[a]))
+        b = dr.clip(dr.floor((o[a] + d[a] * zm - lo_a) / side_a), 0, dr.opaque(F64, float(nb[a] - 1)))
+        key = key * dr.opaque(UInt32, int(nb[a])) + UInt32(b)
+    return key
 
 
 #: Slot buffers hold 4 floats per slot (z0, z1, tau, unused): one packet store per segment in
@@ -457,8 +424,6 @@ def compact_slots(bufs, slot, counts, n_segments: int):
 #: Most output slots of the march's one-pass layout (a bound of each lane's segments: 3.4x
 #: the segments on the plume at 1024^2); above it, or when a lane fills its slots, two passes.
 MARCH_SLOT_BUDGET = 1 << 25
-#: The march reads voxels from :func:`~avsm_dr.capture.dual_cells.corner_table` (False: 8 gathers per sample).
-MARCH_CORNER_TABLE = True
 #: Grid capture methods: 'exact' integrates each dual-cell crossing exactly (:mod:`.dda`),
 #: 'march' takes Simpson steps of a given length (this module).
 METHODS = ("exact", "march")
@@ -551,19 +516,16 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     sx, sy, sz = sgn
     occ = A.to_uint32((grid.occupancy > 0).ravel())
     nbx, nby, nbz = (dr.opaque(Int32, int(v)) for v in nb)
-    kern = _Kernel(grid)
-    data = dr.detach(grid.data)
+    kern = MarchKernel(grid)
     h = dr.opaque(Float, float(step))
     snap = dr.opaque(Float, 1e-3 * float(step))
     tau_max = dr.opaque(Float, float(-np.log(epsilon)))
     it_max = dr.opaque(UInt32, max_iter)
 
-    table = corner_table(grid) if MARCH_CORNER_TABLE else None
+    table = corner_table(grid)                      # one load for a dual cell's 8 corners
 
     def sigma(tt, active):
-        if table is not None:
-            return kern.trilinear_table(table, ox + dx * tt, oy + dy * tt, oz + dz * tt, active)
-        return kern.trilinear(data, ox + dx * tt, oy + dy * tt, oz + dz * tt, active)
+        return kern.trilinear_table(table, ox + dx * tt, oy + dy * tt, oz + dz * tt, active)
 
     def run(write, stop: bool = False):
         """One pass of the march; ``write`` = (base, cap, buffers) or None; with

@@ -109,16 +109,6 @@ def fit_strands(strands: np.ndarray, bmin, bmax, fill: float = 0.8) -> np.ndarra
 
 
 # --------------------------------------------------------------------- geometry
-def validate(hair):
-    """(strands (S, V, 3) float64, radius, opacity) after checks."""
-    s = V.array(hair.strands, "hair.strands")
-    if s.ndim != 3 or s.shape[2] != 3 or s.shape[1] < 2 or s.shape[0] < 1:
-        raise ValueError(f"hair.strands: expected shape (S, V, 3) with S >= 1, V >= 2, got {s.shape}")
-    r = V.real(hair.radius, "hair.radius", 0.0, open_min=True)
-    op = V.real(hair.opacity, "hair.opacity", 0.0, 1.0)
-    return s, r, op
-
-
 def ray_capsule(o, d, pa, pb, r):
     """(t_in, t_out, hit) of unit rays (o, d) (K, 3) through capsules (pa, pb (K, 3), radius r), float64."""
     ba = pb - pa
@@ -164,13 +154,15 @@ def ray_capsule(o, d, pa, pb, r):
     return t_in, t_out, t_out > t_in
 
 
-def merge_crossings(texel, strand, t_in, t_out):
-    """Merge overlapping intervals of the same (texel, strand); returns the merged arrays."""
+def merge_crossings(texel, strand, t_in, t_out, capsule=None):
+    """Merge overlapping intervals of the same (texel, strand); returns the merged arrays
+    (by texel, strand, t_in), and with ``capsule`` (an id per interval) also the smallest
+    id of each merged crossing."""
     order = np.lexsort((t_in, strand, texel))
     texel, strand, t_in, t_out = texel[order], strand[order], t_in[order], t_out[order]
     n = texel.size
     if n == 0:
-        return texel, strand, t_in, t_out
+        return (texel, strand, t_in, t_out) + (() if capsule is None else (capsule[order],))
     group_start = np.ones(n, bool)
     group_start[1:] = (texel[1:] != texel[:-1]) | (strand[1:] != strand[:-1])
     group = np.cumsum(group_start) - 1
@@ -183,13 +175,15 @@ def merge_crossings(texel, strand, t_in, t_out):
     new = group_start.copy()
     new[1:] |= r_in[1:] > run[:-1]
     starts = np.flatnonzero(new)
-    return (texel[starts], strand[starts], t_in[starts],
-            np.maximum.reduceat(t_out, starts))
+    out = (texel[starts], strand[starts], t_in[starts], np.maximum.reduceat(t_out, starts))
+    return out if capsule is None else out + (np.minimum.reduceat(capsule[order], starts),)
 
 
-def capture_hair(camera, hair):
-    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand."""
-    s, r, op = validate(hair)
+def capture_hair(camera, hair, ids: bool = False):
+    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand;
+    with ``ids`` also the (S,) int64 draw position of each crossing: its first capsule's index
+    ``strand * (V - 1) + j`` (strands in list order, a strand's capsules in vertex order)."""
+    s, r, op = hair.validate()
     S, V, _ = s.shape
     pa = s[:, :-1].reshape(-1, 3)
     pb = s[:, 1:].reshape(-1, 3)
@@ -197,7 +191,7 @@ def capture_hair(camera, hair):
     bmin = np.minimum(pa, pb) - r
     bmax = np.maximum(pa, pb) + r
     check_candidates(camera, bmin, bmax, "hair", MAX_CANDIDATES)
-    tex, sid, ti, to = [], [], [], []
+    tex, sid, ti, to, cid = [], [], [], [], []
     for start in range(0, pa.shape[0], CHUNK):
         sl = slice(start, start + CHUNK)
         for item, texel in camera.footprint_chunks(bmin[sl], bmax[sl]):
@@ -208,9 +202,10 @@ def capture_hair(camera, hair):
             sid.append(strand_of[item[hit]])
             ti.append(t_in[hit])
             to.append(t_out[hit])
+            cid.append(item[hit])
     if not tex:
         z = np.zeros(0)
-        return np.zeros(0, np.int64), z, z, z
-    texel, _, z0, z1 = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to)))
+        return (np.zeros(0, np.int64), z, z, z) + ((np.zeros(0, np.int64),) if ids else ())
+    texel, _, z0, z1, first = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to, cid)))
     tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
-    return texel, z0, z1, np.full(texel.size, tau)
+    return (texel, z0, z1, np.full(texel.size, tau)) + ((first,) if ids else ())

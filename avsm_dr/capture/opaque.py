@@ -19,41 +19,15 @@ face within a texel of an edge can still self-shadow (their texel may see anothe
 
 OpaqueSphere: first root of |o + t d - c| = r.  OpaqueBox: slab entry.
 OpaquePlane: the square ``|(p - point) . u| <= extent``, ``|(p - point) . v| <= extent``
-with (u, v, normal) = :func:`~avsm_dr.capture.camera.orthonormal_basis` (normal),
+with (u, v, normal) = :func:`~avsm_dr.geometry.orthonormal_basis` (normal),
 blocking from both sides.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .. import validation as V
-from ..scene import OpaqueBox, OpaquePlane, OpaqueSphere
-from .camera import orthonormal_basis
-from .grid import clip_rays
-from .particles import chords
-
-
-def validate(blockers) -> list:
-    """Check every blocker; ValueError names ``blockers[i].field``."""
-    if not isinstance(blockers, (list, tuple)):
-        raise ValueError(f"blockers: expected a list, got {type(blockers).__name__}")
-    out = []
-    for i, b in enumerate(blockers):
-        name = f"blockers[{i}]"
-        if isinstance(b, OpaqueSphere):
-            out.append(OpaqueSphere(V.vec3(b.center, f"{name}.center"),
-                                    V.real(b.radius, f"{name}.radius", 0.0, open_min=True)))
-        elif isinstance(b, OpaqueBox):
-            lo, hi = V.vec3(b.min, f"{name}.min"), V.vec3(b.max, f"{name}.max")
-            if np.any(hi <= lo):
-                raise ValueError(f"{name}.max: zero-size box (max must exceed min on every axis)")
-            out.append(OpaqueBox(lo, hi))
-        elif isinstance(b, OpaquePlane):
-            out.append(OpaquePlane(V.vec3(b.point, f"{name}.point"), V.unit_vector(b.normal, f"{name}.normal"),
-                                   V.real(b.extent, f"{name}.extent", 0.0, open_min=True)))
-        else:
-            raise ValueError(f"{name}: expected OpaqueSphere, OpaqueBox or OpaquePlane, got {type(b).__name__}")
-    return out
+from ..geometry import orthonormal_basis, ray_box, ray_sphere
+from ..scene import OpaqueBox, OpaqueSphere
 
 
 def bounds(b) -> tuple[np.ndarray, np.ndarray]:
@@ -81,11 +55,11 @@ def first_hit(b, o, d):
     cos = |d . n| with n the surface normal at the hit."""
     if isinstance(b, OpaqueSphere):
         c = np.broadcast_to(b.center, o.shape)
-        t0, _, hit = chords(o, d, c, np.full(o.shape[0], b.radius))
+        t0, _, hit = ray_sphere(o, d, c, np.full(o.shape[0], b.radius), t_min=0.0)
         n = (o + t0[:, None] * d - c) / b.radius
         return t0, hit, np.abs(np.einsum("ij,ij->i", n, d))
     if isinstance(b, OpaqueBox):
-        t0, _, hit = clip_rays(o, d, b.min, b.max)
+        t0, _, hit = ray_box(o, d, b.min, b.max, t_min=0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
             ta = (b.min - o) / d
             tb = (b.max - o) / d
@@ -101,10 +75,11 @@ def first_hit(b, o, d):
     return t, hit, np.abs(dn)
 
 
-def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float = 2.0):
-    """(texel, z0, z1) float64 NumPy for every (texel, blocker) hit; tau is OPAQUE_OPTICAL_DEPTH."""
-    tex, z0 = [], []
-    for b in blockers:
+def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float = 2.0, ids: bool = False):
+    """(texel, z0, z1) float64 NumPy for every (texel, blocker) hit; tau is OPAQUE_OPTICAL_DEPTH;
+    with ``ids`` also the (S,) int64 index of each segment's blocker in the list."""
+    tex, z0, bid = [], [], []
+    for i, b in enumerate(blockers):
         lo, hi = bounds(b)
         for _, texel in camera.footprint_chunks(lo[None], hi[None]):
             o, d = camera.rays(texel)
@@ -113,7 +88,8 @@ def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float
             tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)
             tex.append(texel)
             z0.append(t + bias + slope * camera.texel_width(texel, t) * (tan + 0.5))
+            bid.append(np.full(texel.size, i, np.int64))
     if not tex:
-        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        return (np.zeros(0, np.int64), np.zeros(0), np.zeros(0)) + ((np.zeros(0, np.int64),) if ids else ())
     tex, z0 = np.concatenate(tex), np.concatenate(z0)
-    return tex, z0, z0 + thickness
+    return (tex, z0, z0 + thickness) + ((np.concatenate(bid),) if ids else ())

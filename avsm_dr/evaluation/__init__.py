@@ -23,9 +23,9 @@ from .harness import METRICS, RECEIVER_SETS, evaluate
 from .lights import light_variants
 from .perturb import with_faint_segments
 from .probe import Built, Probe, SubsetBuilder, truth
-from .table import Table
+from .table import Table, read_csv
 from .timing import Meter, measure, sync, timed
 
 __all__ = ["Built", "Comparison", "Configuration", "LIGHTS", "METRICS", "Meter", "Probe", "RECEIVER_SETS",
            "SubsetBuilder", "Table", "compare", "configurations", "curve_values", "depth_l2", "evaluate",
-           "light_variants", "measure", "sync", "timed", "truth", "with_faint_segments"]
+           "light_variants", "measure", "read_csv", "sync", "timed", "truth", "with_faint_segments"]

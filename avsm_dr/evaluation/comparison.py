@@ -66,7 +66,14 @@ def _pick(table, method, metric, name):
         raise ValueError(f"{name}: no rows of method {method!r}; methods: {sorted(set(table.column('method')))}")
     by = {}
     for r in rows:
+        if missing := [k for k in UNIT if k not in r]:
+            raise ValueError(f"table: rows of {method!r} lack the configuration column(s) {missing}")
         key = tuple(r[k] for k in UNIT)
+        try:
+            hash(key)
+        except TypeError:
+            raise ValueError(f"table: the configuration columns {UNIT} of {method!r} hold unhashable values "
+                             f"{key!r}") from None
         if key in by:
             differ = [k for k in r if k not in UNIT and _differs(by[key][0].get(k), r.get(k))
                       and k in ("receivers", "order", "resolution", "opaque", "params", "kind")]
@@ -93,6 +100,7 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     n_boot, level, seed: the bootstrap's replicates, interval level and seed.
     """
     V.integer(n_boot, "n_boot", 100)
+    V.integer(seed, "seed", 0)
     V.real(level, "level", 0.0, 1.0, open_min=True, open_max=True)
     if not hasattr(table, "where") or not len(table):
         raise ValueError("table: expected a non-empty table of avsm_dr.evaluation.evaluate")
@@ -110,6 +118,12 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     if scene is not None:
         filt["scene"] = [scene] if isinstance(scene, str) else list(scene)
     t = table.where(**filt)
+    if not len(t):                                   # name the filter that left nothing
+        for k, v in filt.items():
+            if not len(table.where(**{k: v})):
+                known = sorted({str(x) for x in table.column(k)})
+                raise ValueError(f"{k}: no rows with {k}={v!r}; values: {known}")
+        raise ValueError(f"where: no rows match {filt} together")
     ra, rb = _pick(t, a, metric, "a"), _pick(t, b, metric, "b")
     if set(ra) != set(rb):
         only = sorted(set(ra) ^ set(rb))
@@ -117,18 +131,22 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     per = []
     for key in ra:
         va, vb = ra[key][1], rb[key][1]
+        if isinstance(va, (bool, np.bool_)) or isinstance(vb, (bool, np.bool_)):
+            raise ValueError(f"metric: {metric!r} is not numeric ({va!r}, {vb!r})")
         try:
             va, vb = float(va), float(vb)
         except (TypeError, ValueError):
             raise ValueError(f"metric: {metric!r} is not numeric ({va!r}, {vb!r})") from None
         if not (np.isfinite(va) and np.isfinite(vb)):
             raise ValueError(f"metric: {metric!r} is {va!r} / {vb!r} in configuration {key} "
-                             "(NaN: not computed - see evaluate's metrics)")
+                             "(NaN: not computed - see evaluate's metrics - or no finite estimate: see the "
+                             "nonfinite column)")
         if va <= 0 or vb <= 0:
             raise ValueError(f"metric: {metric!r} is {va:g} / {vb:g} in configuration {key}: a ratio needs "
                              "positive values")
         per.append(dict(zip(UNIT, key), a=va, b=vb, ratio=va / vb))
-    logs = np.log([p["ratio"] for p in per])
+    # ln a - ln b: the quotient itself under- or overflows for far apart metrics (1e-300 / 1e300)
+    logs = np.array([math.log(p["a"]) - math.log(p["b"]) for p in per])
     if logs.size >= 2:
         ci = stats.bootstrap_ci(logs, "mean", n_boot=n_boot, level=level, seed=seed)
         ratio, low, high = math.exp(ci["estimate"]), math.exp(ci["low"]), math.exp(ci["high"])

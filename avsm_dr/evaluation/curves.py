@@ -23,6 +23,34 @@ DEPTHS = 64
 CHUNK_LANES = 1 << 22
 
 
+#: Host bytes per (texel, depth) of :func:`depth_l2` (the float64 curves of the kind and of
+#: the reference, and the depth grid of one chunk), checked before allocating.
+BYTES_PER_DEPTH = 24
+
+
+def _check(rep, segments, n_depths, texels):
+    """The validated arguments shared by :func:`curve_values` and :func:`depth_l2`:
+    (n_depths, texels as int64 or None); ValueError naming the argument."""
+    from ..segments import Segments
+    if not isinstance(segments, Segments):
+        raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
+    if not callable(getattr(rep, "eval", None)):
+        raise ValueError(f"rep: expected a representation (an object with eval(texel, depth)), "
+                         f"got {type(rep).__name__}")
+    if getattr(rep, "n_texels", segments.n_texels) != segments.n_texels:
+        raise ValueError(f"rep: built on {rep.n_texels} texels, the segments have {segments.n_texels}")
+    n = V.integer(n_depths, "n_depths", 1)
+    if texels is not None:
+        t = V.array(texels, "texels")
+        if t.ndim != 1 or np.any(t != np.round(t)) or np.any(t < 0) or np.any(t >= segments.n_texels):
+            raise ValueError(f"texels: expected a 1-D array of texel indices in [0, {segments.n_texels})")
+        texels = t.astype(np.int64)
+    rows = int(np.count_nonzero(segments.counts > 0)) if texels is None else int(np.unique(texels).size)
+    V.check_memory("n_depths", n, lambda m: float(m) * max(rows, 1) * BYTES_PER_DEPTH, lo=1,
+                   what=f"depths on {rows} texels")
+    return n, texels
+
+
 def _nonempty(segments, texels=None):
     """(texels, a, b): the non-empty texels (all, or of ``texels``) and their depth ranges."""
     nz = np.flatnonzero(segments.counts > 0)
@@ -37,7 +65,7 @@ def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarr
     module docstring, for the T' non-empty texels of ``segments`` (or of ``texels``, in
     increasing order); ``rep`` is any object with ``eval(texel, depth)`` built on
     ``segments`` (e.g. composed with an opaque depth map)."""
-    n = V.integer(n_depths, "n_depths", 1)
+    n, texels = _check(rep, segments, n_depths, texels)
     tex, a, b = _nonempty(segments, texels)
     out = np.empty((tex.size, n))
     frac = (np.arange(n) + 0.5) / n
@@ -46,7 +74,10 @@ def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarr
         e = min(tex.size, s + per)
         depth = a[s:e, None] + frac[None, :] * (b[s:e] - a[s:e])[:, None]
         t = np.repeat(tex[s:e], n).astype(np.uint32)
-        out[s:e] = np.asarray(rep.eval(t, depth.ravel()), np.float64).reshape(e - s, n)
+        got = np.asarray(rep.eval(t, depth.ravel()), np.float64).ravel()
+        if got.size != t.size:
+            raise ValueError(f"rep: eval returned {got.size} values for {t.size} receivers")
+        out[s:e] = got.reshape(e - s, n)
     return out
 
 
@@ -61,11 +92,14 @@ def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per
     Returns the float RMS over non-empty texels (NaN when there is none), or with
     ``per_texel`` the (T',) array of ``L2_t``.
     """
-    n = V.integer(n_depths, "n_depths", 1)
+    n, texels = _check(rep, segments, n_depths, texels)
     if exact is None:
         from ..representations import build
         exact = build("exact", segments)
-    ref = exact if isinstance(exact, np.ndarray) else curve_values(exact, segments, n, texels)
+    if callable(getattr(exact, "eval", None)):
+        ref = curve_values(exact, segments, n, texels)
+    else:                               # curve values: finite numbers, checked below for shape
+        ref = V.array(exact, "exact")
     est = curve_values(rep, segments, n, texels)
     if ref.shape != est.shape:
         raise ValueError(f"exact: expected curve values of shape {est.shape}, got {ref.shape}")

@@ -25,7 +25,10 @@ leak_share, dark_share                     shares of receivers with ``T_rep - T`
 p99, p99_9, max                            99th / 99.9th percentile and maximum of ``|T_rep - T|``
 nonfinite                                  receivers with a NaN or inf estimate (left out above)
 depth_l2                                   :func:`~.curves.depth_l2` over the map's non-empty texels
-bytes                                      ``nbytes_per_texel``
+bytes                                      ``nbytes_sparse_per_texel``: the sparse layout (an
+                                           occupancy bit per texel, each non-empty texel's payload
+                                           and CSR offset), the same rule for every kind
+bytes_dense                                ``nbytes_per_texel`` (dense: every texel stored)
 build_s, lookup_s                          wall seconds of the build and of the row's lookups, median
                                            after one warm-up call (:func:`~.timing.measure`)
 build_first_s                              the first build, JIT compilation included
@@ -41,8 +44,10 @@ import drjit as dr
 import numpy as np
 
 from .. import validation as V
+from ..capture import ORDERS as CAPTURE_ORDERS
 from ..capture.opaque_map import compose
 from ..metrics import THRESHOLD, error_stats
+from ..receivers import BYTES_PER_POINT
 from ..representations import REGISTRY, Representation, describe
 from ..scene import Scene
 from .configuration import Configuration
@@ -88,8 +93,11 @@ def _methods(methods) -> list[_Method]:
             kind, params = spec
         else:
             kind, params = None, None
+        preset = isinstance(params, str) and params == "preset"
+        if preset:
+            params = {}
         if not isinstance(params, dict):
-            raise ValueError(f"methods[{label!r}]: expected (kind, params dict), got {spec!r}")
+            raise ValueError(f"methods[{label!r}]: expected (kind, params dict or 'preset'), got {spec!r}")
         if isinstance(kind, str):
             try:
                 describe(kind)
@@ -102,6 +110,8 @@ def _methods(methods) -> list[_Method]:
         else:
             raise ValueError(f"methods[{label!r}]: expected a kind name or a Representation subclass "
                              f"(with _eval_texels and nbytes_per_texel), got {kind!r}")
+        if preset:                                           # the kind's best practice (describe)
+            params = dict(cls.PRESET)
         try:
             cls(toy, **params)                               # parameters checked before any capture
         except ValueError as exc:
@@ -121,7 +131,8 @@ def _scenes(scenes) -> list[tuple[str, object]]:
     for s in scenes:
         if isinstance(s, str):
             if s not in known:
-                raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}")
+                raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
+                                 f"{V.did_you_mean(s, known)}")
             out.append((s, s))
         elif isinstance(s, Scene):
             out.append((s.name, s))
@@ -140,6 +151,9 @@ def _configs(configurations) -> list[Configuration]:
         return _configurations()
     if isinstance(configurations, Configuration):
         configurations = [configurations]
+    if isinstance(configurations, (str, bytes)) or not hasattr(configurations, "__iter__"):
+        raise ValueError(f"configurations: expected a list of Configuration or (seed, light) items, "
+                         f"got {configurations!r}")
     out = []
     for c in configurations:
         if isinstance(c, Configuration):
@@ -154,7 +168,8 @@ def _configs(configurations) -> list[Configuration]:
 
 
 def _names(value, name, choices=None) -> list:
-    vals = [value] if isinstance(value, (str, Integral)) or value is None else list(value)
+    one = isinstance(value, (str, bytes, Integral)) or value is None or not hasattr(value, "__iter__")
+    vals = [value] if one else list(value)
     if not vals:
         raise ValueError(f"{name}: none given")
     if choices is not None:
@@ -182,18 +197,13 @@ def _receiver_points(scene, receivers, cfg, n_volume, n_surface) -> dict:
     return {k: v for k, v in sets.items() if v.shape[0] > 0}      # e.g. no receiver plane: no surface set
 
 
-def _capture(scene, resolution, order, opaque):
+def _capture(scene, resolution, order, opaque, seed):
+    """``ad.capture`` in insertion order ``order`` ('random': shuffled with the configuration's
+    seed) -> (capture, the order recorded by its segments)."""
     from .. import capture
-    kw = dict(resolution=resolution, opaque=opaque)
-    if order is not None:
-        if "order" not in inspect.signature(capture).parameters:
-            raise ValueError(f"order: this version of ad.capture takes no insertion order (got {order!r})")
-        kw["order"] = order
-    cap = capture(scene, **kw)
-    if order is None:                       # the capture's default: recorded as it is
-        order = getattr(cap, "order", None) or inspect.signature(capture).parameters.get("order")
-        order = getattr(order, "default", order) or "depth"    # today's capture: sorted front to back
-    return cap, order
+    cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
+                  **({"order_seed": seed} if order == "random" else {}))
+    return cap, cap.order
 
 
 def _synced_build(cls, segments, params):
@@ -225,7 +235,7 @@ def _stats(probe, est, exact) -> dict:
 
 # ====================================================================== public
 def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surface"), metrics=METRICS,
-             resolution: int = 256, order=None, *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
+             resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
              build_repeats: int = 1, progress: bool = True) -> Table:
     """Measure ``methods`` on ``scenes`` in ``configurations``: one row per method x scene x
@@ -233,7 +243,9 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
 
     methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
         :class:`~avsm_dr.Representation` subclass, registered or not (built directly);
-        ``label: kind`` alone means default parameters.
+        ``label: kind`` alone means default parameters, ``(kind, "preset")`` the kind's
+        best-practice parameters (``describe(kind)["preset"]``, recorded in ``params``; its
+        ``preset_capture``, e.g. ``opaque='separate'``, is the caller's ``opaque=``).
     scenes: built-in scene names (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.
     configurations: :class:`~.configuration.Configuration` items or (seed, light) pairs
         (default ``configurations()``: seed 0, the scene's own light).
@@ -241,7 +253,10 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
         without a receiver plane, are left out), or {name: (K, 3) points} for fixed ones.
     metrics: names of :data:`METRICS`.
     resolution: texels per side of the light map (or a sequence: a row per value).
-    order: the capture's insertion order (None: its default, recorded; or a sequence).
+    order: the capture's insertion order, 'depth' | 'reverse_depth' | 'random' | 'submission'
+        (``avsm_dr.capture.ORDERS``; or a sequence: a row per value); default 'depth' (front to
+        back), not ad.capture's own default 'submission'; 'random' shuffles with the
+        configuration's seed (``order_seed=seed``).
     n_volume, n_surface: receivers per set; n_decomp: receivers of the capture / spatial terms.
     opaque: 'inline' | 'separate' (or both): blockers in the map or in their own depth map;
         'separate' runs only for scenes with blockers.
@@ -256,10 +271,11 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
         receivers = _names(receivers, "receivers", RECEIVER_SETS)
     metrics = _names(metrics, "metrics", METRICS)
     resolutions = [V.integer(r, "resolution", 1) for r in _names(resolution, "resolution")]
-    orders = _names(order, "order")
+    orders = _names(order, "order", CAPTURE_ORDERS)
     modes = _names(opaque, "opaque", OPAQUE_MODES)
     for v, name in ((n_volume, "n_volume"), (n_surface, "n_surface"), (n_decomp, "n_decomp")):
         V.integer(v, name, 0)
+        V.check_memory(name, int(v), lambda m: float(m) * BYTES_PER_POINT, lo=0, what="receivers")
     V.integer(n_depths, "n_depths", 1)
     V.integer(build_repeats, "build_repeats", 1)
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
@@ -279,7 +295,7 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
                 for mode in modes:
                     if mode == "separate" and not scene.blockers:
                         continue
-                    cap, order_label = _capture(scene, res, o, mode)
+                    cap, order_label = _capture(scene, res, o, mode, cfg.seed)
                     if probes is None:           # taps and truth of the first capture, shared
                         probes = {s: Probe(cap, scene, p, n_decomp, truth.get(s)) for s, p in points.items()}
                         truth = {s: p.truth for s, p in probes.items()}
@@ -329,7 +345,8 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
                        light=head["light"], receivers=s, **{k: head[k] for k in ("order", "resolution", "opaque")},
                        n_receivers=p.k, n_decomp=p.n_decomp)
             row.update(_stats(p, est, ex[s]))
-            row.update(depth_l2=l2, bytes=float(rep.nbytes_per_texel), build_s=build_s, lookup_s=lookup_s,
+            row.update(depth_l2=l2, bytes=float(rep.nbytes_sparse_per_texel),
+                       bytes_dense=float(rep.nbytes_per_texel), build_s=build_s, lookup_s=lookup_s,
                        build_first_s=first_s)
             rows.append(row)
     return rows

@@ -28,6 +28,8 @@ class Table:
     """
 
     def __init__(self, rows=()):
+        if isinstance(rows, (str, bytes, dict)) or not hasattr(rows, "__iter__"):
+            raise ValueError(f"rows: expected an iterable of dicts, got {type(rows).__name__}")
         rows = list(rows)
         if not all(isinstance(r, dict) for r in rows):
             raise ValueError("rows: expected dicts")
@@ -102,3 +104,9 @@ class Table:
         return "\n".join(lines)
 
     __str__ = __repr__
+
+
+def read_csv(path: str | Path) -> list[dict]:
+    """Rows of a CSV file (a study's ``data.csv``, :meth:`Table.to_csv`), values as strings."""
+    with Path(path).open(newline="") as fh:
+        return list(csv.DictReader(fh))

@@ -24,12 +24,9 @@ from typing import Any
 import numpy as np
 
 from .. import validation as V
-from ..capture.camera import orthonormal_basis
-from ..capture.hair import validate as validate_hair
-from ..capture.opaque import validate as validate_blockers
-from ..capture.particles import validate as validate_particles
+from ..geometry import orthonormal_basis, ray_box, ray_sphere
 from ..scene import (DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight, Scene,
-                     SpotLight)
+                     SpotLight, validate_blockers)
 from .media import check_grid
 
 #: Upper bound on NumPy (receiver, particle) pair tests per chunk (host memory).
@@ -52,8 +49,8 @@ def check_scene(scene) -> dict:
                          f"got {type(scene.light).__name__}")
     out: dict[str, Any] = {
         "grid": None,
-        "particles": None if scene.particles is None else validate_particles(scene.particles),
-        "hair": None if scene.hair is None else validate_hair(scene.hair),
+        "particles": None if scene.particles is None else scene.particles.validate(),
+        "hair": None if scene.hair is None else scene.hair.validate(),
     }
     if scene.density is not None:
         out["grid"] = check_grid(scene.density, scene.bbox)
@@ -143,32 +140,6 @@ def scene_scale(content, scene, p) -> float:
     return max(m, 1.0)
 
 
-def ray_box(o, d, lo, hi):
-    """Slab test: (t_near, t_far) of rays o + t d with the box [lo, hi]; t_near > t_far = miss."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - o) * inv
-        t2 = (hi - o) * inv
-    tmin = np.minimum(t1, t2)
-    tmax = np.maximum(t1, t2)
-    par = d == 0                                    # parallel to a slab: inside it or miss
-    inside = (o >= lo) & (o <= hi)
-    tmin = np.where(par, np.where(inside, -np.inf, np.inf), tmin)
-    tmax = np.where(par, np.where(inside, np.inf, -np.inf), tmax)
-    return tmin.max(axis=1), tmax.min(axis=1)
-
-
-def ray_sphere(o, d, c, r):
-    """(t_near, t_far, hit) of rays (unit d) with spheres c (K or 1, 3), r (K or 1,)."""
-    oc = c - o
-    b = np.einsum("ij,ij->i", oc, d) if oc.ndim == 2 else oc @ d
-    perp = oc - b[..., None] * d
-    h2 = r * r - np.einsum("...j,...j->...", perp, perp)
-    hit = h2 > 0
-    s = np.sqrt(np.where(hit, h2, 0.0))
-    return b - s, b + s, hit
-
-
 # ======================================================================= blockers
 def blocked(scene: Scene, points) -> np.ndarray:
     """(K,) True where an opaque blocker lies between the light and the point."""
@@ -187,7 +158,7 @@ def blocked_paths(blockers, o, d, L, eps):
             t0, t1, hit = ray_sphere(o, d, np.asarray(b.center, np.float64), float(b.radius))
             out |= hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
         elif isinstance(b, OpaqueBox):
-            t0, t1 = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
+            t0, t1, _ = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
             out |= (t0 <= t1) & (np.maximum(t0, 0.0) < np.minimum(t1, far))
         elif isinstance(b, OpaquePlane):
             u, v, n = orthonormal_basis(b.normal)
@@ -280,7 +251,7 @@ def hair_tau(hair, o, d, L):
     lo = st.min(axis=1) - r                                         # strand boxes for culling
     hi = st.max(axis=1) + r
     for s in range(S):
-        tb0, tb1 = ray_box(o, d, lo[s], hi[s])
+        tb0, tb1, _ = ray_box(o, d, lo[s], hi[s])
         cand = np.nonzero((tb0 <= tb1) & (tb1 >= 0) & (tb0 <= L))[0]
         if cand.size == 0:
             continue

@@ -13,10 +13,9 @@ from typing import Any
 import numpy as np
 
 from .. import validation as V
-from ..capture.camera import orthonormal_basis
-from ..capture.grid import check_bbox
+from ..geometry import check_bbox, orthonormal_basis, ray_box
 from ..scene import DirectionalLight, OpaqueBox, OpaqueSphere, Scene, SpotLight
-from .content import check_scene, ray_box, to_light
+from .content import check_scene, to_light
 from .media import check_grid, medium_dict, mitsuba
 from .tracking import default_step, march
 
@@ -63,7 +62,7 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
         if dist is None:
             dist = 1.15 * half / math.tan(math.radians(f) / 2) + half * abs(v @ n - 1)
             if grid is not None:
-                t0, t1 = ray_box(c[None], v[None], grid[1], grid[2])
+                t0, t1, _ = ray_box(c[None], v[None], grid[1], grid[2])
                 if t0[0] <= t1[0] and t0[0] <= dist <= t1[0]:
                     dist = float(t1[0]) + 0.1 * half
                     f = min(f, 2 * math.degrees(math.atan(1.15 * half / dist)))
@@ -228,7 +227,7 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
     """Mitsuba ``volpath`` image (height, width) float64 of the volume and the receiver plane.
 
     Receiver plane: a two-sided diffuse square (``reflectance``) of ``scene.receiver_plane``
-    oriented by :func:`~avsm_dr.capture.camera.orthonormal_basis`; volume: the heterogeneous medium of ``scene.density``
+    oriented by :func:`~avsm_dr.geometry.orthonormal_basis`; volume: the heterogeneous medium of ``scene.density``
     with single-scattering ``albedo`` (0 = purely absorbing) inside a null-BSDF cube on
     ``scene.bbox``; blockers: black (reflectance 0) spheres, cubes and rectangles, so they
     cast shadows but reflect nothing.  Light: 'directional' / 'spot' / 'point' with the

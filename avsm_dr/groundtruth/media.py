@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import backend
 from .. import validation as V
-from ..capture.grid import check_bbox
+from ..geometry import check_bbox
 
 
 def mitsuba():

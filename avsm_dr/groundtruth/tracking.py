@@ -29,9 +29,9 @@ import math
 import numpy as np
 
 from .. import validation as V
+from ..geometry import ray_box
 from ..scene import Scene
-from .content import (EPS_REL, blocked_paths, check_scene, hair_tau, particles_tau, paths, ray_box,
-                      scene_scale)
+from .content import EPS_REL, blocked_paths, check_scene, hair_tau, particles_tau, paths, scene_scale
 from .media import check_grid, medium_dict, mitsuba, sample_grid
 
 METHODS = ("ratio_tracking", "raymarch")
@@ -77,7 +77,7 @@ def march(g, lo, hi, o, d, L, step: float, integrand=None):
     ``integrand`` receives (N, 3), (N,), (N,), (N,) arrays and returns (N,) values.
     """
     K = o.shape[0]
-    t0, t1 = ray_box(o, d, lo, hi)
+    t0, t1, _ = ray_box(o, d, lo, hi)
     t0 = np.maximum(t0, 0.0)
     t1 = np.minimum(t1, L)
     length = np.where(t1 > t0, t1 - t0, 0.0)
@@ -145,7 +145,7 @@ def ratio_tracking(grid, lo, hi, o, d, L, spp: int, seed: int, f: float):
     se = np.zeros(K)
     if float(grid.max()) == 0.0:
         return mean, se
-    t0, t1 = ray_box(o, d, lo, hi)
+    t0, t1, _ = ray_box(o, d, lo, hi)
     todo = np.nonzero((t0 <= t1) & (t1 > 0) & (t0 < L) & (L > 0))[0]
     if todo.size == 0:
         return mean, se

@@ -20,7 +20,7 @@ import drjit as dr
 import numpy as np
 
 from .. import backend
-from .dsm import _breakpoints, _prefix_optical_depth
+from .dsm import breakpoints, prefix_optical_depth
 from .exact import exact_values  # noqa: F401  (re-exported: the kinds choosing nodes use it)
 
 
@@ -38,8 +38,8 @@ def curve_points(segments) -> dict:
         e = np.zeros(0)
         return dict(off=np.zeros(n_tex + 1, np.int64), z=e, tau=e, v=e, slope=e,
                     left=np.zeros(0, bool), texel=np.zeros(0, np.int64))
-    bp = _breakpoints(h["offsets"], h["z0"], h["z1"], h["optical_depth"])
-    tl, tr, slope = (np.asarray(x.numpy(), np.float64) for x in _prefix_optical_depth(bp))
+    bp = breakpoints(h["offsets"], h["z0"], h["z1"], h["optical_depth"])
+    tl, tr, slope = (np.asarray(x.numpy(), np.float64) for x in prefix_optical_depth(bp))
     step = bp["jump"] > 0
     per_bp = 1 + step.astype(np.int64)
     first = np.concatenate([[0], np.cumsum(per_bp)])[:-1]      # slot of each breakpoint's first point

@@ -1,7 +1,7 @@
 """Reverse mode through per-texel loops: the trajectory budget and checkpointed loops.
 
 What reverse mode costs (measured with drjit 1.5 on the LLVM backend, see
-``python -m avsm_dr backward_cost``): a symbolic ``dr.while_loop`` differentiated in
+``python -m experiments backward_cost``): a symbolic ``dr.while_loop`` differentiated in
 reverse mode with ``max_iterations=M`` keeps its **trajectory in a per-lane local array
 of M x (state words)** inside the kernel.  On the CPU that array lives on the worker's
 stack, so it grows as ``segments per texel x loop state``: AVSM-8 (21 state words)
@@ -47,11 +47,6 @@ def trajectory_words(state_words: int, max_count: int) -> int:
 def safe_chunk(state_words: int, budget: int = TRAJECTORY_BUDGET_WORDS) -> int:
     """Largest chunk length C whose trajectory ``C x state_words`` fits ``budget``."""
     return max(1, int(budget) // max(1, int(state_words)))
-
-
-def any_grad(arrays) -> bool:
-    """True when any of ``arrays`` carries gradients (reverse mode may run through it)."""
-    return any(dr.grad_enabled(x) for x in arrays)
 
 
 def _run_chunk(state, params, cond, body, chunk: int):

@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from ._precision import _device, _host, round_unit
+from ._precision import to_device, to_host, round_unit
 
 #: The published transform (Peters and Klein 2015, sec. 5), row-vector convention q = mu @ M + c.
 MSM_MATRIX = np.array([[-2.07224649, 13.7948857237, 0.105877704, 9.7924062118],
@@ -100,6 +100,6 @@ def quantise_store(rep, attr: str, precision: str) -> int:
     """Replace ``rep``'s flat (T x 5) moment store ``attr`` by its MSM-decoded values
     (straight-through gradient, as in :mod:`._precision`); returns its bytes per texel."""
     buf = getattr(rep, attr)
-    b = _host(buf).reshape(-1, 5)
-    setattr(rep, attr, _device(rep, buf, encode_msm(b, precision).ravel()))
+    b = to_host(buf).reshape(-1, 5)
+    setattr(rep, attr, to_device(rep, buf, encode_msm(b, precision).ravel()))
     return MSM_BYTES

@@ -11,7 +11,9 @@ dtype: decoding is an elementwise function of the code and the texel's stored ra
 this is bit for bit what decoding at lookup returns (computed in float64, rounded once),
 and every lookup kernel stays as it is.  ``nbytes_per_texel`` counts the codes plus the
 per-texel ranges and scales, which are stored in float32 (4 bytes each); float64 data
-beyond float32's range is refused (ValueError naming ``precision``).
+beyond float32's range is refused (ValueError naming ``precision``), and so are float64
+depths (and lengths) that all lie below float32's smallest normal number (no float32 range
+or scale holds them: they would decode to 0).
 
 Encodings by meaning (``q`` the value quantised, in [0, 1] or [-1, 1]):
 
@@ -116,6 +118,9 @@ LOG_OCTAVES = {"unorm16": 64, "unorm8": 24}
 #: Largest finite float16 / float32.
 HALF_MAX = 65504.0
 FLOAT_MAX = float(np.finfo(np.float32).max)
+#: Smallest normal float32: float64 depths whose whole buffer lies below it (a scene at depth
+#: scale 1e-150) have no float32 range or scale (they flush to 0 or become subnormal).
+FLOAT_TINY = float(np.finfo(np.float32).tiny)
 #: Steps of the 8-bit optical-depth code (code 255 is reserved for T = 0).
 T8_STEPS = 254
 #: Smallest positive decoded T per format (float32: smallest normal, since Dr.Jit's worker
@@ -139,12 +144,15 @@ class Stored:
     Layouts: ``'nodes'`` a list of N arrays of length T (``[node][texel]``); ``'flat'`` one
     texel-major array of K values per texel; ``'csr'`` one array grouped by texel with the
     kind's ``node_counts`` (T,) per texel; ``'texel'`` one value per texel.
-    ``signed``: coefficients may be negative (else non-negative, a [0, 1] code)."""
+    ``signed``: coefficients may be negative (else non-negative, a [0, 1] code).
+    ``length``: the values are in depth units although not depths (beer's extent): checked
+    as depths are (:func:`quantise`)."""
 
     attr: str
     meaning: str
     layout: str
     signed: bool = True
+    length: bool = False
 
     def __post_init__(self):
         if self.meaning not in MEANINGS:
@@ -313,11 +321,12 @@ def code_bytes(meaning: str, precision: str) -> int:
 # ----------------------------------------------------------------------------
 # Applying it to a representation
 # ----------------------------------------------------------------------------
-def _host(x) -> np.ndarray:
+def to_host(x) -> np.ndarray:
+    """``x`` (a Dr.Jit array) detached, as a float64 NumPy array."""
     return np.asarray(dr.detach(x).numpy(), np.float64)
 
 
-def _device(rep, orig, dec: np.ndarray):
+def to_device(rep, orig, dec: np.ndarray):
     """Decoded values as the kind's Float, carrying the gradient of ``orig`` (straight
     through)."""
     Float = rep.Float
@@ -337,31 +346,38 @@ def quantise(rep, fields) -> float:
         buf = getattr(rep, f.attr)
         if f.layout == "nodes":
             N = len(buf)
-            x = np.concatenate([_host(b) for b in buf]) if N else np.zeros(0)
+            x = np.concatenate([to_host(b) for b in buf]) if N else np.zeros(0)
             tex = np.tile(np.arange(T), N)
             per_texel = float(N)
         elif f.layout == "flat":
-            x = _host(buf)
+            x = to_host(buf)
             K = x.size // max(T, 1)
             tex = np.repeat(np.arange(T), K)
             per_texel = float(K)
         elif f.layout == "csr":
-            x = _host(buf)
+            x = to_host(buf)
             counts = np.asarray(rep.node_counts, np.int64)
             tex = np.repeat(np.arange(T), counts)
             per_texel = float(counts.mean()) if counts.size else 0.0
         else:   # texel
-            x = _host(buf)
+            x = to_host(buf)
             tex = None
             per_texel = 1.0
         if f.meaning != "scalar" and x.size and np.abs(x).max() > FLOAT_MAX:
             raise ValueError(f"precision: {rep.kind!r} stores {f.attr} values up to {np.abs(x).max():.3g}, "
                              "beyond float32's range (codes, ranges and scales are float32 at most); "
                              "keep precision=None for such float64 data")
+        if (f.meaning in ("depth", "range") or f.length) and x.size and 0 < np.abs(x).max() < FLOAT_TINY:
+            # measured: float64 segments at depth scale 1e-150, precision='float32' (any code):
+            # every depth decoded to 0 (T = 0.0044 where the exact T is 1)
+            raise ValueError(f"precision: {rep.kind!r} stores {f.attr} values (depth units) of at most "
+                             f"{np.abs(x).max():.3g}, below float32's smallest normal number {FLOAT_TINY:.3g} "
+                             "(depth ranges and scales are float32): they would decode to 0; rescale the depths "
+                             "or keep precision=None for such float64 data")
         dec, extra = encode(f.meaning, x, tex, T, precision, f.signed)
         total += per_texel * code_bytes(f.meaning, precision) + extra
         if f.layout == "nodes":
-            setattr(rep, f.attr, [_device(rep, b, dec[k * T:(k + 1) * T]) for k, b in enumerate(buf)])
+            setattr(rep, f.attr, [to_device(rep, b, dec[k * T:(k + 1) * T]) for k, b in enumerate(buf)])
         else:
-            setattr(rep, f.attr, _device(rep, buf, dec))
+            setattr(rep, f.attr, to_device(rep, buf, dec))
     return total

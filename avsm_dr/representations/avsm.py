@@ -281,6 +281,9 @@ class AVSM(NodeList):
     gradients every ``reverse`` mode builds the same kernel.
     """
 
+    # Both interpolations are reported (neither wins on every content): exp as the preset.
+    PRESET = {"interpolation": "exp"}
+    PRESET_VARIANTS = {"linear": {"interpolation": "linear"}, "exp": {"interpolation": "exp"}}
     schema = Schema(
         params=(
             Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
@@ -302,14 +305,12 @@ class AVSM(NodeList):
         paper="Salvi et al. 2010",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
-        P = self.params
-        P.update(zip(("near", "far"), depth_range(segments, P["near"], P["far"])))
+    def _resolve(self):
+        P, seg = self.params, self.segments
+        P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         self.N = P["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
+        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
-        self._build()
 
     @property
     def loop_state_words(self) -> int:

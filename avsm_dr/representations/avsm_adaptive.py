@@ -192,9 +192,8 @@ class AVSMAdaptive(Representation):
         paper="Salvi et al. 2010 (budgeted variant)",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
-        P = self.params
+    def _resolve(self):
+        P, segments = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(segments, P["near"], P["far"])))
         self._score = P.pop("_score")
         T, item = segments.n_texels, segments.itemsize
@@ -210,10 +209,6 @@ class AVSMAdaptive(Representation):
             need = (OFFSET_BYTES * (T + 1) + 2 * item * least) / T
             raise ValueError(f"bytes_per_texel: {P['bytes_per_texel']:g} is below the least storage of this map, "
                              f"{need:.6g} (offsets and 2 nodes of {2 * item} bytes per non-empty texel)")
-        self.allocated = allocate(counts, complexity(segments, self._score), self.budget_nodes, P["max_nodes"],
-                                  uniform=self._score == "uniform")
-        self.kernel = kernel_nodes(self.allocated, counts, P["max_nodes"])
-        self._build()
 
     @property
     def loop_state_words(self) -> int:
@@ -223,6 +218,9 @@ class AVSMAdaptive(Representation):
     # ------------------------------------------------------------------ build
     def _build(self):
         seg, P = self.segments, self.params
+        self.allocated = allocate(seg.counts, complexity(seg, self._score), self.budget_nodes, P["max_nodes"],
+                                  uniform=self._score == "uniform")
+        self.kernel = kernel_nodes(self.allocated, seg.counts, P["max_nodes"])
         Float, UInt32 = seg.Float, backend.types().UInt32
         T = seg.n_texels
         K = 2 * seg.counts
@@ -259,6 +257,12 @@ class AVSMAdaptive(Representation):
         dr.eval(self.node_depth, self.node_value)
         self._offsets_dr = UInt32(self.node_offsets.astype(np.uint32))
         self._max_nodes = int(stored.max(initial=0))
+
+    variable_size = True
+
+    def texel_payload_bytes(self):
+        """Sparse layout: a texel's stored (depth, value) nodes."""
+        return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
 
     @property
     def nbytes_per_texel(self) -> float:

@@ -155,18 +155,20 @@ class AVSMMarch(Representation):
         paper="Salvi et al. 2010 (engine-style variant)",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
-        P = self.params
-        self.cap = P["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
-        pts = _curve.cached(segments, "curve_points", lambda: _curve.curve_points(segments))
+    def _resolve(self):
+        seg = self.segments
+        self.cap = self.params["nodes"]
+        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
+
+    def _build(self):
+        seg, P = self.segments, self.params
+        pts = _curve.cached(seg, "curve_points", lambda: _curve.curve_points(seg))
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
         self.node_counts = counts
         self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._store(pts, src)
+        self._store_nodes(pts, src)
 
-    def _store(self, pts, src):
+    def _store_nodes(self, pts, src):
         seg = self.segments
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
@@ -196,6 +198,13 @@ class AVSMMarch(Representation):
     def _stored(self):
         return (Stored("node_q", "unit", "csr"), Stored("node_value", "transmittance", "csr"),
                 Stored("range_lo", "range", "texel"), Stored("range_hi", "range", "texel"))
+
+    variable_size = True
+
+    def texel_payload_bytes(self):
+        """Sparse layout: a texel's depth range and its (2-byte depth, value) nodes."""
+        item = self.segments.itemsize
+        return self._csr_payload(self.node_counts, 2 + item, 2 * item)
 
     @property
     def nbytes_per_texel(self) -> float:

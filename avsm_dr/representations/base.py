@@ -9,7 +9,13 @@ Contract (stated once here; subclasses document only what differs):
   (exact, AVSM, DSM), up to their depth resolution for basis methods (OSM, FOM);
   representations with ``monotone = True`` guarantee ``T`` non-increasing in depth.
 * ``nbytes_per_texel`` is the exact storage of the compressed form
-  (for variable-size forms such as DSM: the mean over texels).
+  (for variable-size forms such as DSM: the mean over texels): the *dense* layout.
+* ``nbytes_sparse`` (total) / ``nbytes_sparse_per_texel``: the *sparse* layout, the same
+  rule for every kind: one occupancy bit per texel (``T / 8`` bytes), then per non-empty
+  texel (one with segments) its payload (``texel_payload_bytes``: a fixed-size kind's
+  ``nbytes_per_texel``, a variable-size kind's own entries) plus, for variable-size kinds
+  (``variable_size``: DSM, avsm_march, avsm_adaptive, exact), a 4-byte CSR offset.  An
+  all-empty map costs 1/8 byte per texel; sparse <= dense + 1/8 per texel.
 * Gradients flow from ``T`` back to the segments' ``optical_depth`` (and
   ``z0``/``z1``) wherever the representation is differentiable.
 
@@ -27,18 +33,16 @@ from __future__ import annotations
 import abc
 from typing import Any
 
-import drjit as dr
 import numpy as np
 
-from .. import _arrays as A
-from .. import _device_checks as DC
 from .. import backend
 from .. import validation as V
-from ..filtering import FILTERS, check_radius, check_size, filtered_eval
-from ..segments import Segments, flush_subnormal
+from ..filtering import filtered_eval
+from ..segments import Segments
 from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk, trajectory_words
-from ._precision import check_precision, quantise
+from ._precision import check_precision, code_bytes, quantise
 from .schema import Param, Schema
+from ._lookup_args import lookup_args
 
 
 def depth_range(segments: Segments, near, far, open_range: bool = False) -> tuple[float, float]:
@@ -71,22 +75,15 @@ def node_build_bytes(n_texels: int, nodes: int, itemsize: int) -> float:
     return 3.0 * (2 * int(nodes) + 5) * int(itemsize) * int(n_texels)
 
 
+#: Bytes of one CSR offset in the sparse layout (:attr:`Representation.nbytes_sparse`).
+SPARSE_OFFSET_BYTES = 4
+
 #: Largest ``chunk`` (iterations per checkpoint): Dr.Jit's ``max_iterations`` limit; a
 #: chunk whose trajectory exceeds the budget is refused when the build runs.
 MAX_CHUNK = 65536
 
 
-class _Built(abc.ABCMeta):
-    """Metaclass running the shared post-build step once the whole constructor (the
-    subclass' build included) has run: storage quantisation (``precision``)."""
-
-    def __call__(cls, *args, **kwargs):
-        obj = super().__call__(*args, **kwargs)
-        obj._apply_precision()
-        return obj
-
-
-class Representation(metaclass=_Built):
+class Representation(abc.ABC):
     """Base class: parameter schema, traits, reverse-mode policy, validation, filtering
     and dispatch to the per-texel kernel.
 
@@ -94,6 +91,13 @@ class Representation(metaclass=_Built):
     defaults and ranges, the size parameter and its sweep) registered with
     ``@register("name")``; it implements ``_eval_texels`` and ``nbytes_per_texel`` and
     reads its validated parameters from ``self.params``.
+
+    The build is one template, run by ``__init__(segments, **params)`` in this order:
+    :meth:`_validate` (the segments, the base parameters, the schema: ``self.params``),
+    :meth:`_resolve` (the kind's derived parameters, once: depth range, defaults that
+    depend on others, memory checks), :meth:`_build` (the compressed form) and
+    :meth:`_apply_precision` (the stored buffers at ``precision``).  A kind fills the hooks
+    it needs and does not override ``__init__``.
 
     Every kind also accepts ``reverse`` ('auto' | 'trajectory' | 'checkpoint') and
     ``chunk`` (iterations per checkpoint): how reverse mode stores the build loops of
@@ -114,6 +118,15 @@ class Representation(metaclass=_Built):
     precisions: tuple = ()
 
     def __init__(self, segments: Segments, **params: Any):
+        self._validate(segments, params)
+        self._resolve()
+        self._build()
+        self._apply_precision()
+
+    # ------------------------------------------------------- build template
+    def _validate(self, segments: Segments, params: dict) -> None:
+        """Check ``segments`` and the base parameters (``reverse``, ``chunk``, ``precision``),
+        then the kind's against its schema into ``self.params`` (ValueError naming them)."""
         if not isinstance(segments, Segments):
             raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
         reverse = params.pop("reverse", "auto")
@@ -129,6 +142,15 @@ class Representation(metaclass=_Built):
         self.segments = segments
         self.reverse, self._chunk = reverse, chunk
         self.params: dict[str, Any] = self.schema.validate(self.kind, params)
+
+    def _resolve(self) -> None:
+        """The kind's derived parameters, resolved once from ``self.params`` and the segments
+        (e.g. ``near``/``far`` by :func:`depth_range`), and its checks before allocating
+        (:meth:`_check_build_memory`).  Default: nothing."""
+
+    def _build(self) -> None:
+        """Build the compressed form from ``self.segments`` (its buffers, declared for
+        ``precision`` in :meth:`_stored`).  Default: nothing (the kind reads the segments)."""
 
     # --------------------------------------------------------------- memory
     def _check_build_memory(self, need, name: str | None = None, search: bool = True) -> None:
@@ -157,6 +179,51 @@ class Representation(metaclass=_Built):
         None); ``_stored_nbytes`` then holds their bytes per texel."""
         if self.precision is not None:
             self._stored_nbytes = quantise(self, self._stored())
+
+    # ------------------------------------------------- sparse bytes, presets
+    #: Sparse layout (:attr:`nbytes_sparse`): True for variable-size kinds, which keep a
+    #: CSR offset (:data:`SPARSE_OFFSET_BYTES`) per non-empty texel.
+    variable_size: bool = False
+    #: Best-practice configuration (``describe(kind)["preset"]``): parameters over the defaults.
+    PRESET: dict = {}
+    #: Capture options the preset assumes (``describe(kind)["preset_capture"]``).
+    PRESET_CAPTURE: dict = {}
+    #: Configurations reported beside the preset, {label: params} (``"preset_variants"``).
+    PRESET_VARIANTS: dict = {}
+    #: None: the preset is best practice; else why it is not yet tuned (``"preset_tuned"`` False).
+    PRESET_UNTUNED: str | None = None
+
+    def texel_payload_bytes(self):
+        """Bytes one non-empty texel stores in the sparse layout, offset excluded: a number
+        (fixed-size kinds; default: :attr:`nbytes_per_texel`) or a (T,) float64 array
+        (variable-size kinds; only the non-empty texels' entries are counted)."""
+        return self.nbytes_per_texel
+
+    def _csr_payload(self, counts, entry_bytes: float, texel_bytes: float = 0.0) -> np.ndarray:
+        """Payload per texel of a variable-size kind, ``texel_bytes + counts entry_bytes``
+        (precision None); with a ``precision``: the mean quantised bytes per texel plus
+        ``(counts - mean) x`` the code bytes of the kind's ``'csr'`` buffers."""
+        counts = np.asarray(counts, np.float64)
+        if self.precision is None:
+            return texel_bytes + counts * entry_bytes
+        code = sum(code_bytes(f.meaning, self.precision) for f in self._stored() if f.layout == "csr")
+        return self._stored_nbytes + (counts - (counts.mean() if counts.size else 0.0)) * code
+
+    @property
+    def nbytes_sparse(self) -> float:
+        """Total bytes of the sparse layout: one occupancy bit per texel (``T / 8``), then for
+        each non-empty texel (one with segments) its payload (:meth:`texel_payload_bytes`)
+        and, for ``variable_size`` kinds, a 4-byte CSR offset."""
+        occupied = self.segments.counts > 0
+        n = int(np.count_nonzero(occupied))
+        pay = self.texel_payload_bytes()
+        body = float(np.asarray(pay, np.float64)[occupied].sum()) if np.ndim(pay) else n * float(pay)
+        return self.n_texels / 8 + body + (SPARSE_OFFSET_BYTES * n if self.variable_size else 0)
+
+    @property
+    def nbytes_sparse_per_texel(self) -> float:
+        """:attr:`nbytes_sparse` / T (<= ``nbytes_per_texel + 1/8``)."""
+        return self.nbytes_sparse / max(self.n_texels, 1)
 
     # --------------------------------------------------------------- traits
     @property
@@ -264,114 +331,16 @@ class Representation(metaclass=_Built):
             a coefficient texture does (see the kind's ``_prefiltered_eval``).
         Returns a Dr.Jit Float of length K (``np.asarray`` works; AD graph kept).
         """
-        t = backend.types()
-        Float, UInt32, Int32 = self.Float, t.UInt32, t.Int32
-        if filter not in FILTERS:
-            raise ValueError(f"filter: expected one of {FILTERS}, got {filter!r}")
-        if not isinstance(prefilter, (bool, np.bool_)):
-            raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
-        if prefilter and not self.prefilterable:
-            raise ValueError(f"prefilter: kind {self.kind!r} is not linear in a stored map "
-                             "(prefilterable = False); filter its T instead (prefilter=False)")
-        if prefilter and filter == "point":
-            raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
-        width = None if width is None else check_size(width, "width")
-        height = None if height is None else check_size(height, "height")
-        radius = check_radius(radius, width, height)
-        if filter == "point" and (out := DC.host_point_lookup(self._eval_texels, texel, depth, self.n_texels,
-                                                               self.segments.dtype, Float)) is not None:
-            return out                      # NumPy input checked by min / max, read as it is
-
-        # Dr.Jit input is validated on the device (one flag read back, no copy of the arrays),
-        # NumPy integer texels by their min / max and NumPy float depths once converted
-        # (:mod:`avsm_dr._device_checks`); what those sufficient checks do not accept takes
-        # the host checks below, which raise the messages.
-        tex_dev = texel if filter == "point" and DC.flat(texel) else None
-        tex_np = filter == "point" and tex_dev is None and (tex_dev := DC.host_texels(texel, self.n_texels)) is not None
-        dep_dev = depth if DC.flat(depth) else DC.host_depth(depth, Float)
-        if tex_dev is not None and dep_dev is not None and (
-                dr.width(tex_dev) == dr.width(dep_dev) or 1 in (dr.width(tex_dev), dr.width(dep_dev))):
-            out = DC.point_lookup(self._eval_texels, tex_dev, tex_np, dep_dev, dep_dev is not depth,
-                                  self.n_texels, self.segments.dtype, Float)
-            if out is not None:
-                return out
-            tex_dev = dep_dev = None                          # the host checks raise below
-        masks = ([DC.texel_mask(tex_dev, self.n_texels)] if tex_dev is not None and not tex_np else []) + \
-            ([DC.depth_mask(dep_dev, self.segments.dtype, strict=dep_dev is not depth)] if dep_dev is not None else [])
-        if masks and not DC.all_true(*masks):
-            tex_dev = dep_dev = None
-        dev_t, dev_d = tex_dev is not None, dep_dev is not None
-
-        coords = None
-        if dev_t:
-            k = dr.width(tex_dev)
-        else:
-            if A.is_drjit(texel):
-                tex_h = A.host(texel, "texel", np.float64)
-            else:
-                tex_h = np.asarray(texel)
-                if tex_h.dtype.kind not in "iuf":
-                    raise ValueError(f"texel: expected a numeric array, got dtype {tex_h.dtype}")
-                tex_h = tex_h.astype(np.float64)
-            if tex_h.ndim == 2:
-                if tex_h.shape[1] != 2:
-                    raise ValueError(f"texel: continuous coordinates must have shape (K, 2), got {tex_h.shape}")
-                if width is None or height is None:
-                    raise ValueError("width: continuous texel coordinates need width= and height=")
-                coords = tex_h
-                k = tex_h.shape[0]
-            elif tex_h.ndim <= 1:
-                tex_h = np.atleast_1d(tex_h)
-                k = tex_h.size
-            else:
-                raise ValueError(f"texel: expected shape (K,) or (K, 2), got {tex_h.shape}")
-            A.check_finite(tex_h, "texel")
-
-        if dev_d:
-            depth_dr, d_size = A.to_float(dep_dev, Float), dr.width(dep_dev)
-        else:
-            if A.is_drjit(depth):
-                d_h = A.host(depth, "depth")
-                depth_dr = flush_subnormal(A.to_float(depth, Float), d_h, self.segments.dtype)
-            else:
-                d_h = np.atleast_1d(np.asarray(depth, dtype=np.float64))
-                depth_dr = None
-            if d_h.ndim > 1:
-                raise ValueError(f"depth: expected shape (K,), got {d_h.shape}")
-            d_h = self.segments.check_depth(d_h, "depth")   # finite in the storage dtype
-            d_size = d_h.size
-        if d_size not in (1, k) and k != 1:
-            raise ValueError(f"depth: length {d_size} does not match {k} texels")
-        if k == 0 or d_size == 0:
-            raise ValueError("texel: no receivers given (empty array)")
-        n = max(k, d_size)
-        if depth_dr is None:
-            depth_dr = A.to_float(np.broadcast_to(d_h, (n,)), Float)
-        elif d_size == 1 and n > 1:
-            depth_dr = dr.repeat(depth_dr, n) if hasattr(dr, "repeat") else depth_dr + dr.zeros(Float, n)
-        if dev_t:
-            tex_d = A.to_uint32(dr.detach(tex_dev))
-            return self._eval_texels(tex_d + dr.zeros(UInt32, n) if k == 1 and n > 1 else tex_d, depth_dr)
-
-        if coords is None:
-            if np.any(tex_h != np.round(tex_h)) or np.any(tex_h < 0) or np.any(tex_h >= self.n_texels):
-                raise ValueError(f"texel: indices must be integers in [0, {self.n_texels})")
-            tex_h = np.broadcast_to(tex_h, (n,)) if tex_h.size == 1 else tex_h
-            if filter == "point":
-                return self._eval_texels(A.to_uint32(tex_h.astype(np.uint32)), depth_dr)
-            if width is None or height is None:
-                raise ValueError(f"width: filter {filter!r} needs the shadow map's width= and height=")
-            ti = tex_h.astype(np.int64)
-            coords = np.stack([ti % width + 0.5, ti // width + 0.5], axis=1)
-        if width * height != self.n_texels:
-            raise ValueError(f"width: width*height = {width * height} does not match {self.n_texels} texels")
-        if coords.shape[0] == 1 and n > 1:
-            coords = np.broadcast_to(coords, (n, 2))
+        a = lookup_args(self, self._eval_texels, texel, depth, filter, width, height, radius, prefilter)
+        if a.T is not None:                       # a point lookup checked in its own kernel
+            return a.T
+        if a.coords is None:
+            return self._eval_texels(a.texel, a.depth)
         if prefilter:
-            return self._prefiltered_eval(np.asarray(coords, np.float64), depth_dr, width, height,
-                                          filter, radius)
-        return filtered_eval(self._eval_texels, np.asarray(coords, np.float64), depth_dr, width, height,
-                             filter, radius, Float, UInt32, Int32)
+            return self._prefiltered_eval(a.coords, a.depth, a.width, a.height, filter, a.radius)
+        t = backend.types()
+        return filtered_eval(self._eval_texels, a.coords, a.depth, a.width, a.height, filter, a.radius,
+                             self.Float, t.UInt32, t.Int32)
 
     def __repr__(self) -> str:
         p = ", ".join(f"{k}={v!r}" for k, v in self.params.items())

@@ -39,7 +39,8 @@ Depth range (``depth_range=``):
   (2 floats, counted in ``nbytes_per_texel``); ``near=``/``far=`` must not be given.
   Bounds are constants of the build: gradients w.r.t. ``z0``/``z1`` hold them fixed.
 A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` (e.g. all segments of a
-texel zero-length at one depth) is widened to that length.
+texel zero-length at one depth; 1e-6 relative in float32, 1e-14 in float64, plus the dtype's
+smallest normal number) is widened to that length.
 
 Storage precision (``precision=``, :mod:`avsm_dr.representations._precision`): the stored
 map is quantised per texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted),
@@ -95,10 +96,13 @@ from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 SQRT2 = math.sqrt(2.0)
-#: Shortest depth range: MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS (float32 resolves
-#: ~6e-8 relative; the absolute term only keeps near = far = 0 from dividing by 0).
-MIN_SPAN_REL = 1e-6
-MIN_SPAN_ABS = 1e-30
+#: Shortest depth range, per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
+#: MIN_SPAN_ABS[dtype] (float32 resolves ~6e-8 relative, float64 ~1.1e-16; the absolute term,
+#: the dtype's smallest normal number, only keeps near = far = 0 from dividing by 0).  One
+#: float32 floor for both (1e-6 relative + 1e-30) widened float64 content at depth 1e7 with
+#: span 1, and any range shorter than 1e-30, to many times its length: T = 1 almost everywhere.
+MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
+MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
 DEPTH_RANGES = ("global", "texel")
 #: Segment length (in u) below which Basis.average integrates f by quadrature instead of
 #: differencing F (balances eps / du against the quadrature error for ~12 cosines).
@@ -378,6 +382,11 @@ class BasisRepresentation(Representation):
     ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
     """
 
+    # Best practice for every basis kind (FOM, OSM, moments inherit it): a tight per-texel
+    # depth range, and opaque blockers in their own depth map (capture ``opaque='separate'``),
+    # so that the basis spends its resolution on the medium alone.
+    PRESET = {"depth_range": "texel"}
+    PRESET_CAPTURE = {"opaque": "separate"}
     schema = Schema(
         params=(
             Param("basis", "object", "legendre", f"a Basis instance or a registered name {sorted(BASES)}"),
@@ -392,11 +401,10 @@ class BasisRepresentation(Representation):
         paper="Jansen & Bavoil 2010, sec. 5",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    def _resolve(self):
         self.basis = self._make_basis()
         self._check_coefficients()
-        P = self.params
+        P, segments = self.params, self.segments
         mode, near, far = P["depth_range"], P["near"], P["far"]
         Float = segments.Float
         if mode == "texel":
@@ -410,6 +418,8 @@ class BasisRepresentation(Representation):
             self.near, self.far = depth_range(segments, near, far, open_range=True)   # base.py's rule
             self._per_texel = False
             P.update(near=self.near, far=self.far)
+
+    def _build(self):
         self._coef = self._project()      # flat [texel * K + k]; ``coefficients`` lists it
 
     def _make_basis(self) -> Basis:
@@ -517,7 +527,8 @@ class BasisRepresentation(Representation):
         else:
             # opaque: a new near/far does not recompile the kernels
             near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
-        floor = MIN_SPAN_REL * dr.maximum(dr.abs(near), dr.abs(far)) + MIN_SPAN_ABS
+        dt = self.segments.dtype
+        floor = MIN_SPAN_REL[dt] * dr.maximum(dr.abs(near), dr.abs(far)) + MIN_SPAN_ABS[dt]
         return near, dr.maximum(far - near, floor)
 
     @property

@@ -71,8 +71,8 @@ class BeerShadowMap(Representation):
         paper="Hillaire 2016",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    def _build(self):
+        segments = self.segments
         Float = segments.Float
         lo, hi = segments.texel_bounds()
         empty = segments.counts == 0
@@ -116,7 +116,7 @@ class BeerShadowMap(Representation):
         extent, then ``tau_max`` (a relative code) or ``t_back`` (module docstring)."""
         third = (Stored("tau_max", "scalar", "texel") if self.variant == "cloud"
                  else Stored("t_back", "transmittance", "texel"))
-        return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False),
+        return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False, length=True),
                 third)
 
     @property

@@ -164,7 +164,7 @@ def sort_within_texels(off: np.ndarray, values: np.ndarray) -> np.ndarray:
     return order
 
 
-def _breakpoints(offsets, z0, z1, tau):
+def breakpoints(offsets, z0, z1, tau):
     """Sorted unique segment ends per texel and what happens at each (float64 NumPy).
 
     Returns dict: ``off`` (T+1,) CSR over breakpoints, ``z`` depths, ``jump`` summed
@@ -226,7 +226,7 @@ def _lanes_by_length(off: np.ndarray) -> np.ndarray:
     return lanes[np.argsort(counts[lanes], kind="stable")]
 
 
-def _prefix_optical_depth(bp):
+def prefix_optical_depth(bp):
     """``tau`` just before (``left``) and at (``right``) every breakpoint, and the slope
     ``d tau / dz`` on the interval after it.  Dr.Jit, one float64 lane per texel.
 
@@ -348,8 +348,8 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
     n_tex = offsets.size - 1
     if z0.size == 0:
         return dict(off=np.zeros(n_tex + 1, np.int64), z=F64(), tau=F64(), v=F64(), left=Bool(), bound=(0, 0))
-    bp = _breakpoints(offsets, z0, z1, tau)
-    tl, tr, slope = _prefix_optical_depth(bp)
+    bp = breakpoints(offsets, z0, z1, tau)
+    tl, tr, slope = prefix_optical_depth(bp)
     nb = bp["z"].size
     last = np.zeros(nb, dtype=bool)
     last[bp["off"][1:][np.diff(bp["off"]) > 0] - 1] = True          # last breakpoint of a texel
@@ -640,11 +640,9 @@ class DeepShadowMap(Representation):
         paper="Lokovic & Veach 2000",
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    def _resolve(self):
         self.tolerance = self.params["tolerance"]
         self.placement = self.params["placement"]
-        self._build()
 
     @property
     def differentiable(self) -> bool:
@@ -709,6 +707,12 @@ class DeepShadowMap(Representation):
 
     def _stored(self):
         return (Stored("node_depth", "depth", "csr"), Stored("node_value", "transmittance", "csr"))
+
+    variable_size = True
+
+    def texel_payload_bytes(self):
+        """Sparse layout: a texel's (depth, value) pairs."""
+        return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
 
     @property
     def nbytes_per_texel(self) -> float:

@@ -40,6 +40,12 @@ class Exact(Representation):
     _precision_note = ("; 'exact' is the uncompressed ground truth and reads the segments in their own "
                        "dtype (build the Segments in the dtype wanted)")
 
+    variable_size = True
+
+    def texel_payload_bytes(self):
+        """Sparse layout: a texel's segments (z0, z1, tau)."""
+        return self._csr_payload(self.segments.counts, 3 * self.segments.itemsize)
+
     @property
     def nbytes_per_texel(self) -> float:
         mean = self.segments.n_segments / max(self.segments.n_texels, 1)

@@ -187,10 +187,12 @@ class GreedyVW(NodeList):
         paper="Visvalingam & Whyatt 1993", offline=True,
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    def _resolve(self):
         self.N = self.params["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
+        self._check_build_memory(lambda n: node_build_bytes(self.n_texels, n, self.segments.itemsize))
+
+    def _build(self):
+        segments = self.segments
         pts, rank = removal_ranks(segments)
         off = pts["off"]
         count = np.diff(off)[pts["texel"]]

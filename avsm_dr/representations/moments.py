@@ -252,6 +252,9 @@ class MomentShadowMap(BasisRepresentation):
     (alpha), ``bias_target``, ``overestimation`` (beta, default 0.25), ``near``/``far``,
     ``depth_range`` 'global' | 'texel'."""
 
+    # The basis preset (per-texel range, opaque separate) with transparency's beta and bias.
+    PRESET_UNTUNED = ("beta (overestimation 0.25) and the bias targets are MBOIT's values for transparency, "
+                      "not yet tuned for participating media (issue 23, item 6)")
     schema = Schema(
         params=(
             Param("moments", "int", 4, "power: 4, 6 or 8 real moments; trigonometric: 2, 3 or 4 complex "
@@ -284,37 +287,41 @@ class MomentShadowMap(BasisRepresentation):
     )
 
     def _make_basis(self):
+        n = self.params["moments"]        # one the family takes (schema constraint)
+        return TrigMomentBasis(n) if self._trig else PowerMomentBasis(n)
+
+    def _resolve(self):
+        """Every derived parameter, in this one place: ``quantization``; the bias target
+        (power: ``bias_target`` or MBOIT's, with its Hankel pivots; trigonometric: the
+        uniform distribution, through the Cayley transform); the basis, its memory check and
+        the depth range (the base class'); ``near > 0`` for the log warp; ``bias`` (None:
+        MBOIT's value for the storage precision and moment count, or Peters and Klein's
+        for 'msm')."""
         P = self.params
-        allowed = FAMILIES[P["family"]]
-        if P["moments"] not in allowed:
-            raise ValueError(f"moments: family {P['family']!r} takes {allowed}, got {P['moments']}")
         n = P["moments"]
         self._check_quantization()
-        if P["family"] == "trigonometric":
+        if self._trig:
             if P["bias_target"] is not None:
                 raise ValueError("bias_target: the trigonometric family biases toward the uniform "
                                  "distribution on the circle (no other target)")
             self._cayley, self._pivots = TM.cayley_matrix(n), TM.uniform_pivots(n)
-            return TrigMomentBasis(n)
-        target = MBOIT_TARGET[n] if P["bias_target"] is None else P["bias_target"]
-        try:
-            target = tuple(float(v) for v in target)
-        except (TypeError, ValueError):
-            raise ValueError(f"bias_target: expected {n} real numbers, got {target!r}") from None
-        if len(target) != n or not all(math.isfinite(v) for v in target):
-            raise ValueError(f"bias_target: expected {n} finite real numbers, got {target!r}")
-        self._target, self._floors = target, hankel_pivots(target)
-        return PowerMomentBasis(n)
-
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
-        if self.params["bias"] is None and self.params["quantization"] == "msm" \
-                and self.precision == MSM_DEFAULT_PRECISION:
-            self.params["bias"] = MSM_UNORM16_BIAS
-        if self.params["bias"] is None:
-            store = getattr(self, "precision", None) or segments.dtype
+        else:
+            target = MBOIT_TARGET[n] if P["bias_target"] is None else P["bias_target"]
+            try:
+                target = tuple(float(v) for v in target)
+            except (TypeError, ValueError):
+                raise ValueError(f"bias_target: expected {n} real numbers, got {target!r}") from None
+            if len(target) != n or not all(math.isfinite(v) for v in target):
+                raise ValueError(f"bias_target: expected {n} finite real numbers, got {target!r}")
+            self._target, self._floors = target, hankel_pivots(target)
+        super()._resolve()
+        if self._log:
+            self._check_log_range()
+        if P["bias"] is None and P["quantization"] == "msm" and self.precision == MSM_DEFAULT_PRECISION:
+            P["bias"] = MSM_UNORM16_BIAS
+        elif P["bias"] is None:
             table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
-            self.params["bias"] = table[self.params["moments"]][store]
+            P["bias"] = table[n][self.precision or self.segments.dtype]
 
     # ------------------------------------------------------------- storage
     def _check_quantization(self):
@@ -360,14 +367,14 @@ class MomentShadowMap(BasisRepresentation):
             raise ValueError(f"near: warp='log' needs near > 0, got near={self.near:g}")
 
     def _log_range(self, texel=None):
-        """(ln near, ln far - ln near floored at MIN_SPAN_REL) for the texels, or global."""
+        """(ln near, ln far - ln near floored at MIN_SPAN_REL[dtype]) for the texels, or global."""
         Float = self.Float
         if self._per_texel:
             near, far = dr.gather(Float, self.near, texel), dr.gather(Float, self.far, texel)
         else:
             near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
         ln_near = dr.log(near)
-        return ln_near, dr.maximum(dr.log(far) - ln_near, MIN_SPAN_REL)
+        return ln_near, dr.maximum(dr.log(far) - ln_near, MIN_SPAN_REL[self.segments.dtype])
 
     def normalized_depth(self, texel, depth):
         """u in [0, 1] of each receiver under the warp (linear: the basis' u)."""
@@ -383,7 +390,6 @@ class MomentShadowMap(BasisRepresentation):
         without gradients, scatter-added with them)."""
         if not self._log:
             return super()._project()             # the basis' average: power or trigonometric
-        self._check_log_range()
         seg = self.segments
         Float = seg.Float
         T, K, S = seg.n_texels, self.basis.n_coefficients, seg.n_segments

@@ -395,14 +395,11 @@ class OptimalSubset(NodeList):
         paper="-", offline=True,
     )
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
-        P = self.params
+    def _resolve(self):
+        P, segments = self.params, self.segments
         self.N, self.norm, self.interp = P["nodes"], P["norm"], P["interpolation"]
         self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
-        pts = _curve.cached(segments, "curve_points", lambda: _curve.curve_points(segments))
-        off = pts["off"]
-        counts = np.diff(off)
+        counts = np.diff(self._points()["off"])
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
             raise ValueError(f"segments: texel {t} has {int(counts[t])} exact-curve points (segment ends, two "
@@ -413,7 +410,10 @@ class OptimalSubset(NodeList):
         work = work_units(counts, self.N, self.norm, self.interp)
         if work > MAX_WORK:
             raise ValueError(self._work_message(counts, work))
-        self._build(pts)
+
+    def _points(self) -> dict:
+        """The exact curve's points (:func:`._curve.curve_points`, cached on the segments)."""
+        return _curve.cached(self.segments, "curve_points", lambda: _curve.curve_points(self.segments))
 
     def _work_message(self, counts, work: float) -> str:
         """Why a build is refused above :data:`MAX_WORK`, and what fits."""
@@ -450,8 +450,8 @@ class OptimalSubset(NodeList):
         P = self.params
         return P["norm"] == "l2" and P["interpolation"] == "linear" and P["_refit"]
 
-    def _build(self, pts):
-        seg = self.segments
+    def _build(self):
+        seg, pts = self.segments, self._points()
         T, N = seg.n_texels, self.N
         off = pts["off"]
         store = np.float32 if seg.dtype == "float32" else np.float64

@@ -122,8 +122,8 @@ class OpacityShadowMap(BasisRepresentation):
         seg = self.segments
         return (8.0 * seg.itemsize + 32.0) * seg.n_texels * K + 12.0 * seg.itemsize * seg.n_segments
 
-    def __init__(self, segments, **params):
-        super().__init__(segments, **params)
+    def _build(self):
+        super()._build()
         # ---- stored form: C_{j+1} = sum_{k<=j} a_k, flat texel-major [texel * n + j]
         F64 = backend.types().Float64        # summed in float64 whatever the storage
         self._cum = self.Float(dr.block_prefix_sum(F64(self._coef), self.basis.n, exclusive=False))

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from ..segments import Segments
 from .base import Representation
-from .schema import Schema
+from ..validation import did_you_mean
+from .schema import BASE_PARAMETERS, Schema
 
 REGISTRY: dict[str, type[Representation]] = {}
 
@@ -29,7 +30,8 @@ def unregister(kind: str) -> None:
 
 def _check_kind(kind) -> type[Representation]:
     if not isinstance(kind, str) or kind not in REGISTRY:
-        raise ValueError(f"kind: unknown representation {kind!r}; known: {sorted(REGISTRY)}")
+        raise ValueError(f"kind: unknown representation {kind!r}; known: {sorted(REGISTRY)}"
+                         f"{did_you_mean(kind, REGISTRY)}")
     return REGISTRY[kind]
 
 
@@ -52,13 +54,30 @@ def describe(kind: str) -> dict:
     nullable])), ``size`` (the size parameter's name, or None), ``sweep`` /
     ``quick_sweep`` (its values in the experiments), ``examples`` (parameter sets the
     contract tests run), ``headline`` (the configuration of benchmarks), ``summary``,
-    ``paper``, ``doc`` (the class docstring's first paragraph) and ``precisions`` (the
-    storage precisions the base parameter ``precision`` accepts besides None)."""
+    ``paper``, ``doc`` (the class docstring's first paragraph), ``precisions`` (the
+    storage precisions the base parameter ``precision`` accepts besides None) and the
+    best practice (:func:`presets`): ``preset`` (parameters over the defaults; ``{}``: the
+    defaults), ``preset_capture`` (capture options it assumes, e.g. ``{'opaque':
+    'separate'}``), ``preset_variants`` ({label: params} reported beside it),
+    ``preset_tuned`` (False: not yet tuned, ``preset_note`` says why)."""
     cls = _check_kind(kind)
     out = cls.schema.describe()
     out["kind"] = kind
     out["precisions"] = list(cls.precisions)     # base parameter ``precision``: None or one of these
     out["doc"] = (cls.__doc__ or "").strip().split("\n\n")[0]
+    out.update(presets(cls))
+    return out
+
+
+def presets(cls: type[Representation]) -> dict:
+    """The best-practice keys of ``describe``, from the class attributes ``PRESET``,
+    ``PRESET_CAPTURE``, ``PRESET_VARIANTS`` and ``PRESET_UNTUNED``; ``preset_note`` only
+    when ``preset_tuned`` is False."""
+    out = {"preset": dict(cls.PRESET), "preset_capture": dict(cls.PRESET_CAPTURE),
+           "preset_variants": {k: dict(v) for k, v in cls.PRESET_VARIANTS.items()},
+           "preset_tuned": cls.PRESET_UNTUNED is None}
+    if cls.PRESET_UNTUNED is not None:
+        out["preset_note"] = cls.PRESET_UNTUNED
     return out
 
 
@@ -76,7 +95,7 @@ def configurations(kind: str, quick: bool = False) -> list[dict]:
 def allows(kind: str, params: dict) -> bool:
     """True when ``params`` are valid for ``kind`` (every parameter rule and the schema's
     cross-parameter ``constraint``, e.g. moments: 6 power moments but no 6 trigonometric)."""
-    return _check_kind(kind).schema.allows(kind, {k: v for k, v in params.items() if k != "precision"})
+    return _check_kind(kind).schema.allows(kind, {k: v for k, v in params.items() if k not in BASE_PARAMETERS})
 
 
 def differentiable_configuration(kind: str) -> dict | None:

@@ -23,7 +23,12 @@ from typing import Any
 
 import numpy as np
 
+from ..validation import did_you_mean
+
 KINDS = ("int", "float", "bool", "choice", "object")
+
+#: Parameters every kind takes besides its schema's (read by ``Representation`` itself).
+BASE_PARAMETERS = ("precision", "reverse", "chunk")
 
 
 @dataclass(frozen=True)
@@ -147,11 +152,22 @@ class Schema:
     def names(self) -> list[str]:
         return [p.name for p in self.params]
 
+    def public_names(self) -> list[str]:
+        """The parameters a message lists: the schema's public ones (private ``_`` switches
+        are accepted, not listed), then :data:`BASE_PARAMETERS`."""
+        return [n for n in self.names() if not n.startswith("_")] + list(BASE_PARAMETERS)
+
+    def unknown_message(self, kind: str, name: str) -> str:
+        """``"<name>: unknown parameter of <kind>; known: [...]"`` (public names), with a
+        "did you mean" for a misspelling."""
+        known = self.public_names()
+        return f"{name}: unknown parameter of {kind!r}; known: {known}{did_you_mean(name, known)}"
+
     def validate(self, kind: str, given: dict) -> dict:
         """Defaults filled in and every value checked; unknown names raise ValueError."""
         unknown = sorted(set(given) - set(self.names()))
         if unknown:
-            raise ValueError(f"{unknown[0]}: unknown parameter of {kind!r}; known: {self.names()}")
+            raise ValueError(self.unknown_message(kind, unknown[0]))
         out = {p.name: p.validate(given.get(p.name, p.default)) for p in self.params}
         if self.constraint is not None and (msg := self.constraint(out)):
             raise ValueError(msg)

@@ -12,7 +12,7 @@ the text changed so incremental builds stay incremental):
 * ``fragments/experiments_table.md`` - every experiment of the command line, from its module docstring;
 * ``fragments/integrations_toctree.md``, ``fragments/research_toctree.md`` - the pages others add (mitsuba, research);
 * ``api.md`` - autodoc of every public module (:func:`public_modules`);
-* ``recipes.md`` - every reproduction recipe ``experiments/*.sh`` with its header comment;
+* ``recipes.md`` - every study of ``experiments/`` with what it reproduces (its ``REPRODUCES``);
 * ``notebooks/*.ipynb`` - the jupytext ``py:percent`` sources ``notebooks/*.py`` converted
   (myst-nb executes them during the build).
 
@@ -376,7 +376,7 @@ def _describe(kind):
 def _label_of(kind: str, params: dict, d: dict) -> str:
     """The experiments' setting label of ``params`` (``avsm-8``, ``beer``, ``dsm-0.01``)."""
     try:
-        from avsm_dr.experiments._error_labels import label
+        from experiments.error_curves.labels import label
         return label(kind, params)
     except Exception:                               # noqa: BLE001  (label scheme of older trees)
         size = d.get("size")
@@ -455,10 +455,10 @@ def choosing_table(sweep=None) -> str:
 # ================================================================ experiments
 def experiments_table() -> str:
     """Every CLI experiment (``python -m avsm_dr <name>``) with its module docstring's first sentence."""
-    from avsm_dr import cli
+    from experiments import _cli as cli
     out = ["| name | what it measures |", "| --- | --- |"]
     for name in cli.experiment_names():
-        doc = inspect.getdoc(importlib.import_module(f"avsm_dr.experiments.{name}")) or ""
+        doc = inspect.getdoc(importlib.import_module(f"experiments.{name}")) or ""
         first = re.split(r"(?<=\.)\s+(?=[A-Z])", " ".join(doc.split("\n\n")[0].split()))[0]
         out.append(f"| `{name}` | {first.replace('|', '/')} |")
     return "\n".join(out)
@@ -466,18 +466,14 @@ def experiments_table() -> str:
 
 # ==================================================================== recipes
 def recipes_page() -> str:
-    """Every ``experiments/*.sh`` with its header comment and commands."""
+    """Every study with what it reproduces (its ``REPRODUCES`` line) and its command."""
+    from experiments import _cli as cli
     out = ["# Reproduction recipes", "",
-           "```{include} ../../experiments/README.md", ":start-line: 2", "```", "", "## The recipes", ""]
-    for sh in sorted((ROOT / "experiments").glob("*.sh")):
-        lines = sh.read_text().splitlines()
-        comment = [ln[1:].strip() for ln in lines[1:] if ln.startswith("#")]
-        commands = [ln for ln in lines if ln.strip() and not ln.startswith("#") and not ln.startswith("set ")]
-        out += [f"### `{sh.name}`", "", " ".join(c for c in comment if not c.startswith(("Usage:", "Writes"))), "",
-                "```bash", *commands, "```", ""]
-        usage = [c for c in comment if c.startswith(("Usage:", "Writes"))]
-        if usage:
-            out += [" ".join(usage).replace("${OUT:-results}", "`$OUT` (default `results`)"), ""]
+           "```{include} ../../experiments/README.md", ":start-line: 2", "```", "", "## The studies", ""]
+    for name in cli.experiment_names():
+        module = importlib.import_module(f"experiments.{name}")
+        out += [f"### `{name}`", "", getattr(module, "REPRODUCES", cli.about(name)), "",
+                "```bash", f"python -m experiments {name} --out results", "```", ""]
     return "\n".join(out)
 
 

@@ -3,7 +3,8 @@ texel and one segment at a time, written from Jansen and Bavoil 2010,
 "Fourier Opacity Mapping", eqs. 1-3 and secs. 5 / 5.1.
 
 Conventions mirrored from avsm_dr/representations/basis.py (documented there):
-u = (z - near) / span, span = max(far - near, 1e-6 max(|near|, |far|) + 1e-30); the part of a
+u = (z - near) / span, span = max(far - near, r max(|near|, |far|) + tiny) (r = 1e-6 in float32,
+1e-14 in float64; tiny: the dtype's smallest normal number); the part of a
 segment in front of near is a delta at u = 0, the part behind far is dropped; a
 zero-length segment is a delta at its depth; receivers clamp to u in [0, 1].
 Projections are computed independently of the kernels: closed-form antiderivative
@@ -16,8 +17,9 @@ import math
 
 import numpy as np
 
-MIN_SPAN_REL = 1e-6
-MIN_SPAN_ABS = 1e-30
+#: Span floor per storage dtype: MIN_SPAN_REL[dtype] max(|lo|, |hi|) + MIN_SPAN_ABS[dtype].
+MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
+MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
 LD = np.longdouble                      # 80-bit on x86: the Fourier difference quotients
 PI_LD = np.arccos(LD(-1))               # lose digits for short segments (eps / du)
 GL_X, GL_W = np.polynomial.legendre.leggauss(64)
@@ -25,7 +27,8 @@ GL_X, GL_W = np.polynomial.legendre.leggauss(64)
 
 # ----------------------------------------------------------------- ranges
 def ranges(case, near=None, far=None, depth_range="global"):
-    """(near, span) per texel as float64 arrays."""
+    """(near, span) per texel as float64 arrays (the floor of ``case['dtype']``, default
+    float32)."""
     off, z0, z1 = case["offsets"], case["z0"], case["z1"]
     T = len(off) - 1
     lo = np.zeros(T)
@@ -41,7 +44,8 @@ def ranges(case, near=None, far=None, depth_range="global"):
         if far is None:
             far = max(z1) if len(z1) else 1.0
         lo[:], hi[:] = near, far
-    span = np.maximum(hi - lo, MIN_SPAN_REL * np.maximum(abs(lo), abs(hi)) + MIN_SPAN_ABS)
+    dt = case.get("dtype", "float32")
+    span = np.maximum(hi - lo, MIN_SPAN_REL[dt] * np.maximum(abs(lo), abs(hi)) + MIN_SPAN_ABS[dt])
     return lo, span
 
 

@@ -1,1 +1,0 @@
-"""Experiments: one module per figure or table (see avsm_dr.cli)."""

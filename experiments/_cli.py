@@ -1,0 +1,200 @@
+"""Command line: ``python -m experiments <study> [--quick] [--out DIR] [--force] [--backend B]``.
+
+Each study is a module (or package) ``experiments.<name>`` (this folder of the repository;
+not installed with the package) exposing
+``run(quick=False, out=None, force=False) -> dict``; it writes PNG figures, a CSV of every
+number and a ``meta.json`` (parameters, versions, git commit, machine) into its own folder
+``<DIR>/<name>/`` (default ``results/<name>/``), so experiments sharing ``--out`` never
+overwrite each other.  Results whose parameters, package source and library versions
+match are reused unless ``--force``.  A bad option (``--out`` empty, a file or not
+writable; ``--workers`` / ``--address`` Ray cannot use), a bad ``AVSM_DR_BACKEND`` and
+any other ``ValueError`` are reported in one line with exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import inspect
+import pkgutil
+import re
+import sys
+import tempfile
+from pathlib import Path
+
+
+def experiment_names() -> list[str]:
+    """Names of the experiment modules and packages in experiments."""
+    import experiments
+    return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
+
+
+def sweep_experiments() -> list[str]:
+    """Experiments whose ``run`` takes ``workers``/``address`` (cells through :mod:`avsm_dr.sweep`)."""
+    out = []
+    for n in experiment_names():
+        run = getattr(importlib.import_module(f"experiments.{n}"), "run", None)
+        if run is not None and "workers" in inspect.signature(run).parameters:
+            out.append(n)
+    return out
+
+
+_ROLES = re.compile(r":(?:mod|func|class|meth|attr|data|obj):`~?\.?([^`]+)`")
+
+
+def plain(doc: str) -> str:
+    """A docstring as terminal text: reST roles and double back-quotes dropped."""
+    return _ROLES.sub(lambda m: m.group(1), doc or "").replace("``", "")
+
+
+def about(name: str) -> str:
+    """The first sentence of study ``name``'s docstring, as plain text."""
+    doc = inspect.getdoc(importlib.import_module(f"experiments.{name}")) or ""
+    first = " ".join(plain(doc).split("\n\n")[0].split())
+    first = re.split(r"(?<=[.:])\s+(?=[A-Z(])", first)[0].rstrip(".:")
+    if len(first) > 90:                               # a listing line: cut at a clause
+        cut = [k for k in (first.find(" ("), first.find(": "), first.find("; ")) if 20 < k <= 90]
+        first = first[:min(cut)] if cut else first[:87].rsplit(" ", 1)[0] + " ..."
+    return first
+
+
+def _study_help(name: str) -> tuple[str, str]:
+    """(description, epilog) of ``python -m experiments NAME --help``: the study's docstring,
+    what it reproduces, and what it writes."""
+    module = importlib.import_module(f"experiments.{name}")
+    desc = plain(inspect.getdoc(module) or name)
+    reproduces = getattr(module, "REPRODUCES", None)
+    if reproduces:
+        desc += f"\n\nReproduces: {reproduces}"
+    epilog = (f"Writes DIR/{name}/ (DIR from --out, default results/): data.csv (every number), meta.json "
+              f"(parameters, versions, git commit, machine, checksums of the files) and the figures (PNG); "
+              f"an identical earlier run is reused unless --force.")
+    return desc, epilog
+
+
+def parser(names: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's argument parser: one sub-command per study (``names``: the studies
+    offered), each with its own ``--help``."""
+    names = experiment_names() if names is None else names
+    sweeps = set(sweep_experiments()) & set(names)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quick", action="store_true", help="small sizes (a minute or two on 2 cores)")
+    common.add_argument("--out", default="results", metavar="DIR",
+                        help="parent folder; the study writes into DIR/<study>/ (default results/)")
+    common.add_argument("--force", action="store_true", help="recompute even if identical results exist")
+    common.add_argument("--backend", default=None, choices=("llvm", "cuda"), help="Dr.Jit backend")
+    listing = "\n".join(f"  {n:<18} {about(n)}" for n in names)
+    p = argparse.ArgumentParser(
+        prog="python -m experiments", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run one study of avsm_dr from the repository root; each writes DIR/<study>/.\n\n"
+                    "studies:\n" + listing,
+        epilog="`python -m experiments <study> --help` describes a study, its options and what it writes.")
+    sub = p.add_subparsers(dest="experiment", metavar="<study>", required=True)
+    for n in names:
+        desc, epilog = _study_help(n)
+        sp = sub.add_parser(n, parents=[common], help=about(n), description=desc, epilog=epilog,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+        where = "" if n in sweeps else " (sweep studies only: this one runs serially)"
+        sp.add_argument("--workers", type=int, default=None, metavar="N",
+                        help=f"run the sweep's cells on a local Ray instance with N workers{where}")
+        sp.add_argument("--address", default=None, metavar="ADDR",
+                        help=f"run the sweep's cells on the Ray cluster at ADDR (ray://head:10001 or auto){where}")
+    return p
+
+
+def output_folder(out: str, name: str) -> Path:
+    """``<out>/<name>/``, created and checked writable; ValueError naming ``--out``
+    (empty, a file, or a folder that cannot be created or written)."""
+    if not str(out).strip():
+        raise ValueError(f"--out: expected a folder, got {out!r}")
+    base = Path(out)
+    if base.exists() and not base.is_dir():
+        raise ValueError(f"--out: {out!r} is a file, expected a folder")
+    folder = base / name
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"--out: {str(folder)!r} is a file, expected a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise ValueError(f"--out: cannot write into {str(folder)!r}: {exc.strerror or exc}") from None
+    return folder
+
+
+#: Messages starting with these argument names are the command line's own options.
+OPTIONS = ("out:", "workers:", "address:", "backend:")
+
+
+def _error(exc: BaseException) -> int:
+    """Print ``exc`` as one line on stderr (``--option: ...`` when it names an option); status 2."""
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    print(f"experiments: error: {'--' if msg.startswith(OPTIONS) else ''}{msg}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse the command line and run one experiment; returns the exit status (2: a bad
+    option, environment variable or argument - any ValueError - reported in one line on
+    stderr, no traceback)."""
+    args = parser().parse_args(argv)
+    try:                                              # checked before anything is written
+        from avsm_dr import backend, sweep
+        if args.backend:
+            backend.set_backend(args.backend)
+        backend.get_backend()                         # $AVSM_DR_BACKEND
+        sweep.check_workers(args.workers, args.address)
+        out = output_folder(args.out, args.experiment)
+    except (ValueError, RuntimeError) as exc:         # RuntimeError: the backend is not available
+        return _error(exc)
+    module = importlib.import_module(f"experiments.{args.experiment}")
+    extra = {k: v for k, v in (("workers", args.workers), ("address", args.address)) if v is not None}
+    if extra and not all(k in inspect.signature(module.run).parameters for k in extra):
+        print(f"experiments: error: --{next(iter(extra))}: experiment {args.experiment!r} runs serially only "
+              f"(sweeps over cells: {', '.join(n for n in sweep_experiments())})", file=sys.stderr)
+        return 2
+    try:
+        result = module.run(quick=args.quick, out=out, force=args.force, **extra)
+    except ValueError as exc:
+        return _error(exc)
+    print(summary_text(args.experiment, result or {}, out))
+    return 0
+
+
+#: At most this many headline lines of a run's summary are printed (the rest are in its files).
+SUMMARY_LINES = 12
+
+
+def summary_text(name: str, result: dict, out: Path) -> str:
+    """The few lines a run ends with: where its files are, the headline numbers (the first
+    :data:`SUMMARY_LINES` entries of its ``summary``, one per line) and how many more there are."""
+    folder = Path(result.get("out", out))
+    files = sorted(p.name for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
+    lines = [f"{name}: {'reused cached results in' if result.get('cached') else 'wrote'} {folder}/"
+             + (f" ({', '.join(files[:8])}{', ...' if len(files) > 8 else ''})" if files else "")]
+    summary = result.get("summary")
+    if isinstance(summary, dict) and summary:
+        items = list(summary.items())
+        width = min(48, max(len(str(k)) for k, _ in items[:SUMMARY_LINES]))
+        lines += [f"  {str(k):<{width}}  {_short(v)}" for k, v in items[:SUMMARY_LINES]]
+        if len(items) > SUMMARY_LINES:
+            where = "findings.json" if (folder / "findings.json").exists() else "data.csv"
+            lines.append(f"  ... and {len(items) - SUMMARY_LINES} more in {where}")
+    elif summary:
+        lines.append(f"  {_short(summary)}")
+    return "\n".join(lines)
+
+
+def _short(value, width: int = 100) -> str:
+    """One value on one line of at most ``width`` characters (floats to 4 significant digits)."""
+    if isinstance(value, float):
+        text = f"{value:.4g}"
+    elif isinstance(value, dict):
+        text = ", ".join(f"{k}={_short(v, 30)}" for k, v in value.items())
+    else:
+        text = str(value)
+    text = " ".join(text.split())
+    return text if len(text) <= width else text[:width - 4] + " ..."
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,265 @@
+"""Shared plumbing for experiments: the output folder and its cache, CSV/JSON writers, the
+timer (:func:`measure`, :func:`timed`) and the memory meter (:class:`Meter`), re-exported
+from :mod:`avsm_dr.evaluation.timing`.
+
+Cache: an experiment reuses ``<out>/data.csv`` when ``meta.json`` there records the same
+parameters *and* the same :func:`cache_key` (hash of the package source, Dr.Jit / Mitsuba /
+NumPy versions, backend), so results never survive a code or version change, and when every
+file meta records still has its SHA-256 (and tables their row count).  Every file is written
+atomically (a temporary file, then ``os.replace``) and meta.json last.
+"""
+from __future__ import annotations
+
+import csv
+import functools
+import hashlib
+import json
+import os
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any, Iterable
+
+import avsm_dr
+import drjit as dr
+import numpy as np
+
+#: The installed package's folder (``avsm_dr/``) and the studies' folder (``experiments/``):
+#: their ``*.py`` files make the source hash.
+PACKAGE_DIR = Path(avsm_dr.__file__).resolve().parent
+STUDIES_DIR = Path(__file__).resolve().parent
+
+
+# =============================================================== reproducibility
+@functools.lru_cache(maxsize=None)
+def source_hash() -> str:
+    """SHA-256 (hex, first 16 digits) of every ``avsm_dr/**/*.py`` and ``experiments/**/*.py``
+    file, names and contents, computed once per process (the code that runs is the code
+    imported at start-up)."""
+    h = hashlib.sha256()
+    for root in (PACKAGE_DIR, STUDIES_DIR):
+        for path in sorted(root.rglob("*.py")):
+            h.update(f"{root.name}/{path.relative_to(root).as_posix()}".encode())
+            h.update(b"\0")
+            h.update(path.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+def _dist_version(name: str) -> str | None:
+    """Installed version of distribution ``name`` (metadata only: nothing is imported)."""
+    from importlib import metadata
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def versions() -> dict:
+    """Versions of the libraries results depend on (Mitsuba read lazily, never imported)."""
+    return {"drjit": dr.__version__, "mitsuba": _dist_version("mitsuba"), "numpy": np.__version__}
+
+
+def git_commit() -> str | None:
+    """``git rev-parse HEAD`` of the checkout holding the package, or None (no git, not a
+    checkout, or an installed copy)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=STUDIES_DIR, capture_output=True, text=True,
+                             timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    sha = out.stdout.strip()
+    return sha if out.returncode == 0 and sha else None
+
+
+def cache_key() -> dict:
+    """What, besides the parameters, must match for cached results to be reused:
+    source hash, library versions and the Dr.Jit backend."""
+    from avsm_dr import backend
+    return {"source": source_hash(), **versions(), "backend": backend.get_backend()}
+
+
+# ======================================================================== results
+class Results:
+    """``<out>/`` (default ``results/<name>/``) with ``data.csv``, ``meta.json`` and figures.
+
+    ``out`` is the experiment's own folder; one holding another experiment's results is
+    refused (``ValueError``), so two experiments never mix their files (the CLI passes
+    ``<--out>/<name>/``)."""
+
+    def __init__(self, name: str, out: str | Path | None, quick: bool, params: dict[str, Any]):
+        if out is not None and not str(out).strip():
+            raise ValueError(f"out: expected a folder, got {str(out)!r}")
+        self.name = name
+        self.dir = Path(out) if out is not None else Path("results") / name
+        if self.dir.exists() and not self.dir.is_dir():
+            raise ValueError(f"out: {str(self.dir)!r} is a file, expected a folder")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        other = self._meta().get("experiment")
+        if other not in (None, name):
+            raise ValueError(f"out: {str(self.dir)!r} holds the results of experiment {other!r}; "
+                             f"give {name!r} its own folder")
+        self.quick = quick
+        self.params = dict(params, quick=quick)
+        self.figures: list[str] = []
+        #: file name -> {"sha256", "bytes"[, "rows"]} of what this run wrote (recorded in meta.json)
+        self.files: dict[str, dict] = {}
+
+    def _meta(self) -> dict:
+        try:
+            meta = json.loads((self.dir / "meta.json").read_text())
+        except (OSError, ValueError):
+            return {}
+        return meta if isinstance(meta, dict) else {}
+
+    def exists(self, csv_name: str = "data.csv") -> bool:
+        """True when ``csv_name`` and a ``meta.json`` with the same parameters and the same
+        :func:`cache_key` are there, and every file that meta records (``csv_name`` among
+        them) still has its recorded SHA-256 and, for tables, row count: a table left
+        truncated or replaced by an interrupted run is never reused."""
+        if not (self.dir / csv_name).exists():
+            return False
+        meta = self._meta()
+        same = json.loads(json.dumps(self.params, default=str))
+        if not (meta and meta.get("params") == same and meta.get("cache_key") == cache_key()):
+            return False
+        files = meta.get("files")
+        if not isinstance(files, dict) or csv_name not in files:
+            return False
+        return all(self._intact(name, rec) for name, rec in files.items())
+
+    def _intact(self, name, rec) -> bool:
+        """``name`` (a plain file name in this folder) matches its meta record."""
+        if not (isinstance(name, str) and isinstance(rec, dict) and Path(name).name == name):
+            return False
+        path = self.dir / name
+        try:
+            if path.stat().st_size != rec.get("bytes") or file_sha256(path) != rec.get("sha256"):
+                return False
+            return "rows" not in rec or len(read_csv(path)) == rec["rows"]
+        except (OSError, ValueError, csv.Error):
+            return False
+
+    def cached(self, force: bool = False, csv_name: str = "data.csv") -> dict | None:
+        """The result of an earlier identical run (``{'csv', 'out', 'cached': True}``), or
+        None when the experiment must run (``force``, or nothing reusable)."""
+        if force or not self.exists(csv_name):
+            return None
+        return {"csv": str(self.dir / csv_name), "out": str(self.dir), "cached": True}
+
+    def write_csv(self, rows: Iterable[dict], csv_name: str = "data.csv") -> Path:
+        """Rows (dicts; columns in order of first appearance) as ``csv_name``."""
+        rows = list(rows)
+        fields: list[str] = []
+        for r in rows:
+            for k in r:
+                if k not in fields:
+                    fields.append(k)
+        def write(tmp):
+            with tmp.open("w", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=fields)
+                w.writeheader()
+                for r in rows:
+                    w.writerow({k: _fmt(v) for k, v in r.items()})
+        return self.write_file(csv_name, write, rows=len(rows))
+
+    def write_file(self, filename: str, write, **extra) -> Path:
+        """Write ``filename`` atomically (``write(tmp)``, then ``os.replace``) and record its
+        checksum for meta.json."""
+        path = self.dir / filename
+        atomic_write(path, write)
+        self.record(filename, **extra)
+        return path
+
+    def record(self, filename: str, **extra) -> None:
+        """Record the SHA-256 and size of ``filename`` (written by this run) for meta.json."""
+        path = self.dir / filename
+        self.files[filename] = {"sha256": file_sha256(path), "bytes": path.stat().st_size, **extra}
+
+    def write_text(self, filename: str, text: str) -> Path:
+        """``text`` as ``filename`` (atomic, recorded)."""
+        return self.write_file(filename, lambda tmp: tmp.write_text(text))
+
+    def write_json(self, filename: str, obj, **dumps) -> Path:
+        """``json.dumps(obj, **dumps)`` as ``filename`` (atomic, recorded)."""
+        return self.write_text(filename, json.dumps(obj, **dumps))
+
+    def write_npz(self, filename: str, compressed: bool = True, **arrays) -> Path:
+        """NumPy arrays as ``filename`` (``np.savez[_compressed]``; atomic, recorded)."""
+        save = np.savez_compressed if compressed else np.savez
+
+        def write(tmp):
+            with tmp.open("wb") as fh:            # a file object: NumPy adds no second suffix
+                save(fh, **arrays)
+        return self.write_file(filename, write)
+
+    def save_figure(self, fig, filename: str) -> Path:
+        """Save a Matplotlib figure as ``filename`` (a ``.png``) and, for print, as the vector
+        PDF beside it (``avsm_dr.plotstyle.render``: fixed metadata; atomic, both recorded),
+        then close it."""
+        from avsm_dr import plotstyle
+        if Path(filename).suffix != ".png":
+            raise ValueError(f"filename: expected a .png name (a .pdf is written beside it), got {filename!r}")
+        path = self.write_file(filename, lambda tmp: plotstyle.render(fig, tmp, "png"))
+        self.write_file(str(Path(filename).with_suffix(".pdf")), lambda tmp: plotstyle.render(fig, tmp, "pdf"))
+        import matplotlib.pyplot as plt
+        plt.close(fig)
+        self.figures.append(str(path))
+        return path
+
+    def write_meta(self, summary: dict | None = None) -> Path:
+        """``meta.json``: parameters, summary, figures, the files this run wrote (SHA-256,
+        bytes, rows of tables), cache key, git commit, versions, backend and machine.
+        Written last, atomically: it is what makes the folder a cached result."""
+        from avsm_dr import backend
+        meta = {
+            "experiment": self.name,
+            "params": self.params,
+            "summary": summary or {},
+            "figures": [Path(f).name for f in self.figures],
+            "files": self.files,
+            "cache_key": cache_key(),
+            "git_commit": git_commit(),
+            **versions(),
+            "backend": backend.get_backend(),
+            "machine": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        }
+        path = self.dir / "meta.json"
+        text = json.dumps(meta, indent=2, default=str)
+        atomic_write(path, lambda tmp: tmp.write_text(text))
+        return path
+
+
+def atomic_write(path: Path, write) -> None:
+    """``write(tmp)`` to a temporary file beside ``path`` (same suffix), then ``os.replace``:
+    readers see the old file or the whole new one, never a part (removed on failure)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with Path(path).open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return f"{v:.9g}"
+    return v
+
+
+# ================================================================ timing, memory
+# The timer and the memory meter live in the public harness; re-exported for the studies.
+from avsm_dr.evaluation.timing import Meter, measure, sync, timed  # noqa: E402,F401
+from avsm_dr.evaluation.table import read_csv  # noqa: E402,F401

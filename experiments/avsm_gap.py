@@ -1,0 +1,312 @@
+"""AVSM's distance from the best N-node curve: streaming AVSM against offline greedy
+(``greedy``: Visvalingam-Whyatt on the whole exact curve, AVSM's metric) and the best
+breakpoint subset (``optimal``: DP; ``optimal_subset`` keeps the subset's exact values,
+``optimal`` refits them by least squares, ``optimal_linf`` minimises the max error), per
+built-in scene and node count N, all with linear interpolation; the engine-style
+``avsm_march`` (cap N, exponential interpolation) and the Beer shadow map (3 floats) for
+context.  AVSM -> greedy is the cost of streaming, greedy -> optimal_subset that of
+greedy removal, optimal_subset -> optimal that of keeping on-curve values.
+
+Two measures of each representation against the exact curve of the same segments:
+
+* **the oracle's own objective**: per texel, uniform in depth over the texel's content
+  ``[first entry, last exit]``: ``MSE_t = int (T_rep - T)^2 dz / (b - a)`` and
+  ``max_t = max |T_rep - T|``, by Gauss-Legendre quadrature (6 points) on every piece
+  between the texel's segment ends and the representation's node depths (both curves
+  are smooth there); the max over those points, 16 evenly spaced ones per piece and the
+  piece ends (a lower bound of the continuous max: ``optimal``'s own ``objective``
+  is exact and is reported beside it).  Reported:
+  ``depth_rms = sqrt(mean_t MSE_t)``, ``depth_max`` (max over texels of max_t),
+  ``depth_mean_texel_max`` over the non-empty texels, and for AVSM the shares of texels
+  where its RMS is below optimal_subset's and optimal's by more than ``BEATS_MARGIN``
+  (AVSM's nodes may leave the curve, the subset's may not);
+* **at the evaluation's receivers** (:func:`avsm_dr.receivers.receiver_sets`:
+  in-volume by contribution, surface, the scene's uniform set), bilinear lookups through
+  the capture: RMSE / max / mean signed error against the exact curve's lookups.
+
+``findings.json``: per scene and N, AVSM / greedy / optimal ``depth_rms`` and the
+ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise (first
+configuration), and under ``intervals`` the depth-RMS ratios to optimal with 95 %
+bootstrap intervals: per configuration over texels (paired), pooled over the
+configurations (seed x light: the scene's light with seed 0, the tilted light ``dir_b``
+with seed 1; quick mode the first only) by :func:`avsm_dr.stats.claim`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from avsm_dr import build, kinds
+from avsm_dr.metrics import error_stats
+from ._common import Results
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    'AVSM\'s distance from the best N-node curve (issue "Beyond the seeds"): streaming AVSM '
+    'against offline greedy Visvalingam-Whyatt and the best breakpoint subset (refitted), per '
+    "scene and N, on the oracle's own objective and at in-volume receivers."
+)
+
+
+SCENES = ["plume", "three_columns", "hair_and_smoke"]
+#: Gauss-Legendre points per smooth piece of the uniform-in-depth objective.
+GAUSS_POINTS = 6
+#: A texel's RMS counts as lower than another's only below it by more than this.
+BEATS_MARGIN = 1e-6
+#: Evenly spaced points per piece (and its ends) where the max error is also looked for.
+MAX_POINTS = 16
+
+
+def methods(n: int) -> list[tuple[str, str, dict]]:
+    """(label, kind, parameters) compared at node count ``n``."""
+    return [("avsm", "avsm", {"nodes": n}), ("greedy", "greedy", {"nodes": n}),
+            ("optimal_subset", "optimal", {"nodes": n, "_refit": False}), ("optimal", "optimal", {"nodes": n}),
+            ("optimal_linf", "optimal", {"nodes": n, "norm": "linf"}),
+            ("avsm_march", "avsm_march", {"nodes": n})]
+
+
+def node_depths(rep) -> tuple[np.ndarray, np.ndarray]:
+    """(texel, depth) of every node of ``rep`` where its curve may kink (empty when the
+    kind has none besides the segment ends)."""
+    if hasattr(rep, "nodes_numpy") and rep.kind in ("avsm", "greedy", "optimal"):
+        d, _ = rep.nodes_numpy()
+        return np.repeat(np.arange(d.shape[0]), d.shape[1]), d.ravel()
+    if rep.kind in ("avsm_march", "avsm_adaptive"):
+        return np.repeat(np.arange(rep.n_texels), rep.node_counts), rep.node_depths()
+    return np.zeros(0, np.int64), np.zeros(0)
+
+
+class UniformObjective:
+    """Quadrature of the per-texel uniform-in-depth error of any representation on the
+    segments ``seg`` (see the module docstring)."""
+
+    def __init__(self, seg):
+        h = seg.numpy()
+        self.seg = seg
+        off = h["offsets"]
+        self.tex_seg = np.repeat(np.arange(seg.n_texels), np.diff(off))
+        self.ends = np.r_[h["z0"], h["z1"]]
+        self.ends_tex = np.r_[self.tex_seg, self.tex_seg]
+        self.lo, self.hi = seg.texel_bounds()
+        nz = np.diff(off) > 0
+        self.texels = np.flatnonzero(nz & (self.hi > self.lo))
+        self.exact = build("exact", seg)
+
+    def measure(self, rep) -> dict:
+        """depth_rms, depth_max, depth_mean_texel_max and the per-texel RMS (T,)."""
+        nt, nd = node_depths(rep)
+        tex = np.r_[self.ends_tex, nt]
+        z = np.r_[self.ends, nd]
+        keep = (z >= self.lo[tex]) & (z <= self.hi[tex])
+        tex, z = tex[keep], z[keep]
+        order = np.lexsort((z, tex))
+        tex, z = tex[order], z[order]
+        same = np.r_[False, (tex[1:] == tex[:-1])]
+        piece = np.flatnonzero(same & np.r_[False, z[1:] > z[:-1]])     # piece [z[i-1], z[i]] of texel tex[i]
+        a, b, pt = z[piece - 1], z[piece], tex[piece]
+        gx, gw = np.polynomial.legendre.leggauss(GAUSS_POINTS)
+        x = (0.5 * (a + b))[:, None] + (0.5 * (b - a))[:, None] * gx[None, :]
+        w = (0.5 * (b - a))[:, None] * gw[None, :]
+        qt = np.repeat(pt, GAUSS_POINTS)
+        u = (np.arange(MAX_POINTS) + 0.5) / MAX_POINTS
+        # quadrature points, then evenly spaced points and every cut (for the max)
+        at = np.r_[qt, np.repeat(pt, MAX_POINTS), tex]
+        ax = np.r_[x.ravel(), (a[:, None] + (b - a)[:, None] * u[None, :]).ravel(), z]
+        est = np.asarray(rep.eval(at, ax), np.float64)
+        ref = np.asarray(self.exact.eval(at, ax), np.float64)
+        err = est - ref
+        nq = qt.size
+        T = self.seg.n_texels
+        span = np.where(self.hi > self.lo, self.hi - self.lo, 1.0)
+        mse = np.bincount(qt, weights=w.ravel() * err[:nq] ** 2, minlength=T) / span
+        mx = np.zeros(T)
+        np.maximum.at(mx, at, np.abs(err))
+        sel = self.texels
+        return {"depth_rms": float(np.sqrt(mse[sel].mean())) if sel.size else 0.0,
+                "depth_max": float(mx[sel].max()) if sel.size else 0.0,
+                "depth_mean_texel_max": float(mx[sel].mean()) if sel.size else 0.0,
+                "_texel_rms": np.sqrt(mse)}
+
+
+def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
+    """Rows of one configuration (scene, seed, light); per-texel RMS of every method into
+    ``texel_errors[(scene, config, N, method)]`` (for the intervals)."""
+    import dataclasses
+    from avsm_dr import capture, receivers
+    from avsm_dr import scenes as scene_lib
+    from avsm_dr.evaluation import light_variants
+    sc0 = scene_lib.get(name, seed=seed)
+    scene = dataclasses.replace(sc0, light=light_variants(sc0)[light])
+    config = f"s{seed}-{light}"
+    cap = capture(scene, resolution=P["resolution"], order="depth")
+    seg = cap.segments
+    sets = receivers.receiver_sets(scene, P["n_volume"], P["n_surface"], seed=seed)
+    exact = build("exact", seg)
+    ex = {s: np.asarray(cap.transmittance(exact, p, filter="bilinear"), np.float64) for s, p in sets.items()}
+    obj = UniformObjective(seg)
+    head = dict(scene=name, config=config, resolution=P["resolution"], texels=int(obj.texels.size),
+                max_segments=int(seg.max_count))
+
+    def row(label, kind, params, n):
+        t0 = time.perf_counter()
+        rep = build(kind, seg, **params)
+        build_s = time.perf_counter() - t0
+        m = obj.measure(rep)
+        r = dict(head, method=label, kind=kind, nodes=n, bytes_per_texel=rep.nbytes_per_texel,
+                 bytes_sparse=rep.nbytes_sparse_per_texel, build_s=build_s,
+                 **{k: v for k, v in m.items() if not k.startswith("_")})
+        for s, p in sets.items():
+            st = error_stats(np.asarray(cap.transmittance(rep, p, filter="bilinear"), np.float64), ex[s])
+            r.update({f"rmse_{s}": st["rmse"], f"max_{s}": st["max_error"], f"mean_{s}": st["mean_error"]})
+        if kind == "optimal":
+            r["objective_analytic"] = float(np.sqrt(np.mean(rep.objective[obj.texels] ** 2))) \
+                if params.get("norm", "l2") == "l2" else float(rep.objective[obj.texels].max())
+        rows.append(r)
+        return r, m["_texel_rms"]
+
+    for n in P["nodes"]:
+        texel_rms = {}
+        for label, kind, params in methods(n):
+            if kind not in kinds():
+                continue
+            r, texel_rms[label] = row(label, kind, params, n)
+        sel = obj.texels
+        if texel_errors is not None:
+            for label, v in texel_rms.items():
+                texel_errors[(name, config, n, label)] = v[sel]
+        for other in ("optimal_subset", "optimal"):
+            if "avsm" in texel_rms and other in texel_rms and sel.size:
+                # lower by more than float32 lookup noise (~1e-7 in a texel's RMS)
+                rows[-len(texel_rms)][f"avsm_beats_{other}_texels"] = float(
+                    np.mean(texel_rms["avsm"][sel] < texel_rms[other][sel] - BEATS_MARGIN))
+    if "beer" in kinds():
+        row("beer", "beer", {}, 0)
+
+
+def intervals(texel_errors: dict, n_boot: int = 1000) -> dict:
+    """Per scene and N: AVSM / greedy / optimal_subset uniform-depth RMS over optimal's,
+    the per-texel RMS paired, with :func:`avsm_dr.stats.claim`'s intervals (per
+    configuration: bootstrap over texels; pooled: configurations, then texels)."""
+    from avsm_dr import stats
+    out: dict = {}
+    keys = sorted({(k[0], k[2]) for k in texel_errors})
+    for scene, n in keys:
+        configs = sorted({k[1] for k in texel_errors if k[0] == scene and k[2] == n})
+        for m in ("avsm", "greedy", "optimal_subset"):
+            used = [c for c in configs if (scene, c, n, m) in texel_errors and (scene, c, n, "optimal") in texel_errors
+                    and np.any(texel_errors[(scene, c, n, "optimal")] > 0)]
+            if not used:
+                continue
+            r = stats.claim([texel_errors[(scene, c, n, m)] for c in used],
+                            [texel_errors[(scene, c, n, "optimal")] for c in used], statistic="rmse",
+                            compare="ratio", below=1.0, configs=used, n_boot=n_boot)
+            out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{m}_over_optimal"] = dict(
+                estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
+                per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})
+    return out
+
+
+def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict:
+    """Per scene and N (the first configuration): AVSM / greedy / optimal uniform-depth RMS
+    and in-volume RMSE, and the ratios to optimal; with ``texel_errors``, the ratios'
+    intervals over every configuration under ``"intervals"``."""
+    out = {}
+    first = {}
+    for r in rows:
+        first.setdefault(r["scene"], r.get("config"))
+    for r in rows:
+        if r["method"] not in ("avsm", "greedy", "optimal_subset", "optimal") or r.get("config") != first[r["scene"]]:
+            continue
+        d = out.setdefault(r["scene"], {}).setdefault(f"N={r['nodes']}", {})
+        d[f"{r['method']}_depth_rms"] = r["depth_rms"]
+        if "rmse_in_volume" in r:
+            d[f"{r['method']}_rmse_in_volume"] = r["rmse_in_volume"]
+        for k in ("avsm_beats_optimal_subset_texels", "avsm_beats_optimal_texels"):
+            if k in r:
+                d[k] = r[k]
+    for scene in out.values():
+        for d in scene.values():
+            opt = d.get("optimal_depth_rms")
+            for m in ("avsm", "greedy", "optimal_subset"):
+                if opt and f"{m}_depth_rms" in d:
+                    d[f"{m}_over_optimal"] = d[f"{m}_depth_rms"] / opt
+            oi = d.get("optimal_rmse_in_volume")
+            for m in ("avsm", "greedy", "optimal_subset"):
+                if oi and f"{m}_rmse_in_volume" in d:
+                    d[f"{m}_over_optimal_in_volume"] = d[f"{m}_rmse_in_volume"] / oi
+    if texel_errors:
+        out["intervals"] = intervals(texel_errors, n_boot)
+    return out
+
+
+def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
+    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json into
+    ``out`` (default ``results/avsm_gap/``); ``quick`` = small sizes, ``force`` = recompute."""
+    names = list(scenes or SCENES)
+    P = dict(scenes=names, resolution=64 if quick else 128, nodes=[4, 8] if quick else [2, 4, 8, 16, 32],
+             configs=[[0, "dir_a"]] if quick else [[0, "dir_a"], [1, "dir_b"]],
+             n_volume=256 if quick else 4096, n_surface=128 if quick else 1024, gauss_points=GAUSS_POINTS,
+             max_points=MAX_POINTS,
+             filter="bilinear", methods=[m[0] for m in methods(0)] + ["beer"])
+    res = Results("avsm_gap", out, quick, P)
+    if (hit := res.cached(force)) is not None:
+        return hit
+    rows: list[dict] = []
+    texel_errors: dict = {}
+    jobs = [(name, seed, light) for name in names for seed, light in P["configs"]]
+    for name, seed, light in tqdm(jobs, desc="avsm_gap", unit="config"):
+        _scene_rows(name, P, rows, quick, seed, light, texel_errors)
+    csv = res.write_csv(rows)
+    summary = findings(rows, texel_errors, n_boot=200 if quick else 1000)
+    res.write_json("findings.json", summary, indent=1)
+    first = {}
+    for r in rows:
+        first.setdefault(r["scene"], r["config"])
+    _plot(res, [r for r in rows if r["config"] == first[r["scene"]]], names)
+    res.write_meta(summary)
+    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+
+
+def _style(label: str) -> dict:
+    """Plot keywords of a compared method: its kind's style (``avsm_dr.plotstyle``); the two
+    other variants of ``optimal`` hollow, the L-infinity one dotted."""
+    from avsm_dr import plotstyle
+    if label == "optimal_subset":
+        return plotstyle.variant_style("optimal")
+    if label == "optimal_linf":
+        return dict(plotstyle.variant_style("optimal"), linestyle=":")
+    return plotstyle.style(dict((m[0], m[1]) for m in methods(0)).get(label, label))
+
+
+def _plot(res, rows, names):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.ticker
+    from avsm_dr import plotstyle
+    labels = [m[0] for m in methods(0)]
+    for key, fname, ylabel in (("depth_rms", "gap_depth.png", "RMS error of T, uniform in depth per texel"),
+                               ("rmse_in_volume", "gap_receivers.png", "RMSE of T at in-volume receivers")):
+        with plotstyle.context():
+            fig, axes = plotstyle.grid(1, len(names), panel=(2.8, 2.4), sharex=False)
+            for ax, name in zip(axes[0], names):
+                for lab in labels:
+                    rs = [r for r in rows if r["scene"] == name and r["method"] == lab and key in r]
+                    if rs:
+                        ax.plot([r["nodes"] for r in rs], [max(r[key], 1e-7) for r in rs], **_style(lab), label=lab)
+                beer = [r for r in rows if r["scene"] == name and r["method"] == "beer" and key in r]
+                if beer:
+                    ax.axhline(max(beer[0][key], 1e-7), color="k", linestyle=":", linewidth=0.8,
+                               label="beer (3 floats)")
+                ax.set_title(name)
+                ax.set_xlabel("nodes N")
+                ax.set_xscale("log", base=2)
+                ax.set_yscale("log")
+                ns = sorted({r["nodes"] for r in rows if r["nodes"]})
+                ax.set_xticks(ns, [str(n) for n in ns])
+                ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            axes[0][0].set_ylabel(ylabel)
+            plotstyle.legend_below(fig, axes[0], ncol=7)
+            res.save_figure(fig, fname)

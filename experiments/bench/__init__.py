@@ -1,0 +1,122 @@
+"""Performance suite (issue 7): throughput of capture, build and lookup for every
+representation and setting, peers measured in the same run, the machine's limit,
+scaling, skipping and memory.
+
+    python -m experiments bench [--quick] [--out DIR] [--force]
+
+Writes into ``results/bench/`` (or ``<--out>/bench/``); one module per table:
+
+* ``data.csv`` / ``throughput.png`` - build (segment insertions/s) and lookup (receivers/s)
+  of every setting on synthetic maps (256^2 and 1024^2 texels with about 10, 100 and 1000
+  segments per texel; quick: 64^2 / 32^2), next to the peers on the same map: the
+  vectorised NumPy AVSM (:mod:`experiments.bench.peer_kernels.numpy_avsm`, on a subset of texels, rates
+  per insertion) and the Numba ``parallel=True`` AVSM and FOM
+  (:mod:`.peer_kernels.numba_avsm`, :mod:`.peer_kernels.numba_fom`; skipped with a note
+  when Numba is absent), and the same two in NVIDIA Warp on its ``cpu`` device
+  (:mod:`.peer_kernels.warp_avsm`, :mod:`.peer_kernels.warp_fom`; skipped with a note when
+  warp-lang is absent; Warp runs a CPU launch on one thread, so its wall ratio carries the
+  idle cores and ``cpu_build_ratio`` compares like with like; its module compile, or load
+  from ``~/.cache/warp``, is the row's ``jit_s``, outside the medians).  Numba and Warp
+  peers run in float64 on host arrays (the copy is not timed), our kernels in float32.
+* ``scenes.csv`` - capture, build and lookup on the built-in scenes (``ad.scenes``).
+* ``peers.csv`` / ``peers.png`` - ratios against each peer, and Mitsuba ratio tracking at
+  equal error: the spp at which its noise (RMSE against a deterministic fine ray march of
+  the same medium, ``noise^2 = v / spp`` fitted) equals a representation's compression
+  error (RMSE against our exact curve), and the time that takes against ours (capture +
+  build + lookup).  RMSE against our exact curve is also given: it has a floor, the
+  shadow map's own discretisation (exact vs ray march), that no spp removes.
+* ``machine.json`` - the machine's limit for AVSM insertion: vector operations per
+  insertion counted in the kernel's LLVM IR (``dr.kernel_history()``), the best vector
+  operation rate this CPU reaches in a Dr.Jit loop of the same kind of operations
+  (compare / select / multiply, measured in CPU time) and the nominal one (clock x
+  issue width), times SIMD lanes, per core; our measured insertions per CPU-second as a
+  fraction of it; ``machine.csv`` has the same figures for every setting (also columns of
+  ``data.csv``), with the fraction from the median and from the fastest repeat.
+* ``scaling.csv`` / ``scaling.png`` - build and lookup time against texels, segments per
+  texel and N (stored floats per texel), with fitted log-log slopes.
+* ``skipping.csv`` / ``skipping.png`` - each kind of skipped work as a measured saving:
+  empty texels (compacted lanes vs all texels as lanes), lanes grouped by segment count,
+  texels with room (no compression work), segments behind an opaque point (sorted AVSM and
+  exact lookups stop), capture rays stopping below the transmittance epsilon, and capture
+  of a map that is mostly empty.  Ablations run the shipped AVSM kernel with one skip
+  switched off (its private ``_compact`` / ``_group`` / ``_split`` arguments; the nodes are
+  the same, ``tests/test_peers.py``).
+* ``memory.csv`` / ``memory.png`` - peak memory of build and lookup per representation
+  against ``nbytes_per_texel x texels``: process RSS growth (Linux ``VmHWM`` reset through
+  ``/proc/self/clear_refs``, after ``dr.flush_malloc_cache()``, with glibc told to mmap
+  allocations >= 64 KiB; includes Dr.Jit's host buffers, NumPy and temporaries) and the growth
+  of Dr.Jit's allocator watermark (its buffers of any size); peak = the larger.
+
+Timing: median of ``repeats`` calls after one warm-up call; peers that are compared run
+interleaved (ours, peer, ours, peer, ...) so load from other processes hits both alike.
+Wall time and process CPU time (all threads, ``time.process_time``) are both recorded;
+the first call (JIT compile included) is reported separately with the compile seconds
+from ``dr.kernel_history()`` (codegen + LLVM; 0 when Dr.Jit's on-disk cache served it).
+"""
+
+from __future__ import annotations
+
+import time
+
+from tqdm import tqdm
+
+from .peer_kernels import numba_avsm, warp_avsm
+from .._common import Results
+from . import memory, peers, report, scaling, skipping, throughput
+from .machine import machine_limit
+from .settings import SCENE_SETTINGS, SETTINGS, params, settings
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    "The guide's Performance section: throughput, peers (NumPy, Numba, Warp, Mitsuba at equal error), "
+    "the machine's limit, scaling, skipped work and memory; capture cost against the bounding "
+    'box; the whole frame (capture -> build -> lookups) per stage on the built-in scenes.'
+)
+
+
+def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the benchmark; write CSVs, figures, ``machine.json`` and ``meta.json`` into
+    ``out`` (default ``results/bench/``); ``quick`` = small sizes, ``force`` = recompute."""
+    P = params(quick)
+    res = Results("bench", out, quick, dict(P))
+    if (hit := res.cached(force)) is not None:
+        return hit
+    notes = []
+    if not numba_avsm.available():
+        notes.append("numba not installed: Numba peers skipped (pip install 'avsm_dr[bench]')")
+    if not warp_avsm.available():
+        notes.append("warp-lang not installed: Warp peers skipped (pip install 'avsm_dr[bench]')")
+    t_start = time.perf_counter()
+    n_steps = (len(P["maps"]) * len(settings(SETTINGS)) + 5 + len(P["scale_texels"])
+               + len(P["scale_counts"]) + len(P["scale_nodes"]) + 5 + len(SCENE_SETTINGS) + 2)
+    tqdm.monitor_interval = 0                         # no monitor thread in timed code
+    with tqdm(total=n_steps, desc="bench", unit="step") as progress:
+        data = throughput.throughput(P, notes, progress)
+        scene_rows, caps = throughput.scenes(P, progress)
+        peer = peers.peer_rows(data)
+        try:
+            peer += peers.mitsuba_equal_error(P, caps)
+        except Exception as exc:                      # Mitsuba missing or failing: say so
+            notes.append(f"Mitsuba comparison skipped: {type(exc).__name__}: {exc}")
+        machine = machine_limit(P, data)
+        report.annotate(data, machine)                # machine figures as columns of our rows
+        scal = scaling.scaling(P, progress)
+        skip = skipping.skipping(P, progress)
+        mem = memory.memory(P, progress)
+    csv = res.write_csv(data)
+    res.write_csv(scene_rows, "scenes.csv")
+    res.write_csv(peer, "peers.csv")
+    res.write_csv(scal, "scaling.csv")
+    res.write_csv(skip, "skipping.csv")
+    res.write_csv(mem, "memory.csv")
+    res.write_csv(report.machine_rows(data, machine), "machine.csv")
+    res.write_json("machine.json", machine, indent=2, default=str)
+    throughput.plot(res, data)
+    peers.plot(res, peer)
+    scaling.plot(res, scal)
+    skipping.plot(res, skip)
+    memory.plot(res, mem)
+    summary = report.summary(data, peer, machine, scal, skip, notes, time.perf_counter() - t_start)
+    res.write_meta(summary)
+    report.print_report(data, peer, machine, skip, mem, summary)
+    return {"csv": str(csv), "out": str(res.dir), "summary": summary}

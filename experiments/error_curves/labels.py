@@ -1,0 +1,53 @@
+"""Names and tuning values of the builds ``error_curves`` runs (shared with its plots and
+findings, so that they need not import the experiment itself)."""
+from __future__ import annotations
+
+from avsm_dr import describe
+
+#: Values swept for tuning parameters that are not choices (moments' overestimation beta).
+TUNING = {"overestimation": (0.0, 0.25, 1.0)}
+#: Choice parameters not crossed with the rest: moments' ``warp='log'`` needs every depth
+#: > 0, which scenes with the light inside the depth range violate (the learned_warp
+#: experiment compares warps); moments' ``quantization`` applies to 16-bit storage only.
+UNTUNED = {"warp", "quantization"}
+#: Storage precisions built at each kind's headline size (fp16 vs fp32 in findings.json).
+PRECISIONS = ("float16", "unorm8")
+
+
+def tuned(kind: str) -> dict:
+    """Tuning parameters of ``kind`` and their values: every choice parameter's choices and
+    the :data:`TUNING` values of the parameters its schema has (never the size)."""
+    d = describe(kind)
+    out = {}
+    for name, p in d["params"].items():
+        if name == d["size"] or name in UNTUNED:
+            continue
+        if p.get("type") == "choice" and p.get("choices"):
+            out[name] = tuple(p["choices"])
+        elif name in TUNING:
+            out[name] = TUNING[name]
+    return out
+
+
+def label(kind: str, params: dict) -> str:
+    """Readable name of a build: ``kind-size`` plus ``/name=value`` for every tuning value
+    that differs from the kind's default, e.g. ``fom-16/depth_range=texel``, and the storage
+    ``/precision=...`` when one is given."""
+    d = describe(kind)
+    size = d["size"]
+    s = kind + (f"-{params[size]}" if size and size in params else "")
+    for name in sorted(tuned(kind)):
+        default = d["headline"].get(name, d["params"][name]["default"])
+        if name in params and params[name] != default:
+            s += f"/{name}={params[name]}"
+    if params.get("precision") is not None:
+        s += f"/precision={params['precision']}"
+    return s
+
+
+def with_size(kind, value):
+    d = describe(kind)
+    base = dict(d["headline"])
+    if d["size"] is not None and value is not None:
+        base[d["size"]] = value
+    return base

@@ -1,0 +1,287 @@
+"""A depth warp learned by gradient descent, tested on held-out scenes (issue "Research
+results no one has published", part 2).
+
+The linear kinds (OSM, FOM, moments) spend their resolution uniformly over the global depth
+range ``[near, far]`` of the map.  :class:`avsm_dr.warp.DepthWarp` re-spends it with a
+monotone piecewise-linear warp ``w`` of the normalised depth (``K`` knot intervals, softmax
+increments), shared by every texel and every scene; the warp itself is ``K`` floats per
+map, so the bytes per texel do not change (comparisons are at equal bytes).
+
+Per kind (at its size, the same for every warp):
+
+* **training** (Adam, :class:`~avsm_dr.reconstruction.ProjectedAdam` without projection):
+  minimise the mean over training scenes of the mean squared error of ``T`` against the
+  exact curve at receivers **uniform in depth per texel** (``R`` stratified depths over each
+  non-empty texel's content ``[first entry, last exit]``, point lookups), starting from
+  the identity warp; the loss of every iteration is recorded;
+* **baselines**: no warp (the identity: the kind as registered) and the logarithmic warp
+  ``ln(1 + (r - 1) u) / ln r`` (:func:`avsm_dr.warp.log_values`, the form of Muenstermann
+  et al. 2018, sec. 5), its ratio ``r`` the best of ``LOG_RATIOS`` on the training set;
+* **evaluation**: RMSE at other receivers (another seed, same rule) on the training scenes
+  and on held-out scenes: the same generator (procedural plume) with other seeds and a light
+  not seen in training, the simulated plume (other smoke), and other scene types (hair in
+  smoke, three columns, particles) to see whether a warp learned on smoke transfers.
+
+  Where the kind has its own exact log warp (the moments kind's ``warp='log'``), it is a
+  third baseline (``kind_log``).
+
+Second part, AVSM's removal metric (:mod:`.avsm`): the blend
+``(1 - beta) area + beta depth-gap`` learned through a softmin surrogate of the removal
+(temperature annealed), then evaluated with the hard algorithm (the avsm kind's own steps,
+equal to it at ``beta = 0``) against the paper's metric (``beta = 0``), AVSM-8 at 64 bytes;
+a sweep of the hard algorithm over ``beta`` on the training scenes checks the surrogate.
+
+``findings.json``: per kind and held-out group, the mean RMSE per method and the ratio
+learned / each baseline (means of per-scene RMSEs) with a paired bootstrap 95 % interval
+over the group's scenes (:func:`avsm_dr.stats.paired_bootstrap`, statistic 'mean');
+``avsm_metric`` likewise for the learned beta vs the paper's metric.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from tqdm import tqdm
+
+from avsm_dr import build
+from avsm_dr.stats import paired_bootstrap
+from avsm_dr.warp import DepthWarp, log_values
+from .._common import Results
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    'A monotone depth warp learned by gradient descent for OSM, FOM and moments, trained on '
+    'procedural smoke and tested on held-out seeds, a new light and other scene types (issue '
+    '"Research results no one has published", part 2; no paper reports it).'
+)
+
+
+#: (kind, parameters) learned for, about 20-36 bytes per texel each (float32).
+KINDS = [("osm", {"slices": 8}), ("fom", {"harmonics": 3}), ("moments", {})]
+#: Ratios tried for the logarithmic baseline (the best on the training set is kept).
+LOG_RATIOS = (3.0, 10.0, 30.0, 100.0)
+#: Light directions as (azimuth, elevation) degrees; the last is never used in training.
+LIGHTS = [(-165.0, 17.0), (-140.0, 30.0), (170.0, 10.0)]
+#: AVSM removal-metric learning (see :mod:`.avsm`): nodes, Adam step on
+#: phi, finite-difference step, temperature (first, last), start phi (beta = 0.2).
+METRIC = dict(metric_nodes=8, metric_lr=0.3, metric_fd=0.05, metric_tau=[0.1, 0.01],
+              metric_phi0=float(np.log(0.2 / 0.8)))
+
+
+def plan(quick: bool) -> dict:
+    """Scenes and sizes: train / held-out lists of (group, scene, seed, light index)."""
+    if quick:
+        train = [("smoke", "plume", s, 0) for s in (0, 1)]
+        held = [("smoke_new_seeds", "plume", s, 2) for s in (10, 11)] + \
+               [("hair_and_smoke", "hair_and_smoke", s, 0) for s in (0, 1)]
+        return dict(train=train, held=held, size=10, resolution=64, knots=8, iterations=12, lr=0.1,
+                    receivers_per_texel=4, **METRIC, metric_iterations=3, metric_sweep=[])
+    train = [("smoke", "plume", s, li) for s in (0, 1, 2, 3) for li in (0, 1)]
+    held = [("smoke_new_seeds", "plume", s, 2) for s in (10, 11, 12, 13, 14, 15)] + \
+           [("simulated_plume", "simulated_plume", s, li) for s in (0, 1) for li in (0, 2)] + \
+           [("hair_and_smoke", "hair_and_smoke", s, li) for s in (0, 1, 2) for li in (0, 2)] + \
+           [("three_columns", "three_columns", s, li) for s in (0, 1, 2) for li in (0, 2)] + \
+           [("particles", "particles", s, li) for s in (0, 1, 2) for li in (0, 2)]
+    return dict(train=train, held=held, size=20, resolution=64, knots=16, iterations=80, lr=0.05,
+                receivers_per_texel=8, **METRIC, metric_iterations=15,
+                metric_sweep=[0.0, 0.003, 0.01, 0.03, 0.1, 0.3, 0.6, 0.9])
+
+
+class SceneData:
+    """One captured scene: segments, training and evaluation receivers (uniform in depth
+    per non-empty texel, stratified) and the exact T at both."""
+
+    def __init__(self, group, name, seed, light, P):
+        from avsm_dr import builtin_scenes, capture
+        from avsm_dr.reconstruction import light_from_angles
+        kw = {} if name == "particles" else {"size": P["size"]}
+        scene = getattr(builtin_scenes, name)(seed=seed, light=light_from_angles(*LIGHTS[light]), **kw)
+        self.group, self.name, self.seed, self.light = group, name, seed, light
+        self.seg = capture(scene, resolution=P["resolution"], order="depth").segments
+        exact = build("exact", self.seg)
+        lo, hi = self.seg.texel_bounds()
+        tex = np.flatnonzero((self.seg.counts > 0) & (hi > lo))
+        R = P["receivers_per_texel"]
+        self.sets = {}
+        for key, rs in (("train", seed), ("eval", seed + 1000)):
+            rng = np.random.default_rng(rs)
+            t = np.repeat(tex, R)
+            z = lo[t] + (hi[t] - lo[t]) * (np.tile(np.arange(R), tex.size) + rng.random(t.size)) / R
+            self.sets[key] = (t, z, exact.eval(t, z))
+
+    def label(self) -> str:
+        """scene/seed/light."""
+        return f"{self.name}/s{self.seed}/l{self.light}"
+
+
+def kind_log_params(kind, params) -> dict | None:
+    """The kind's own logarithmic depth warp (``warp='log'``, the moments kind's option
+    when it has one: Muenstermann et al. 2018, sec. 5), or None."""
+    from avsm_dr import describe
+    return dict(params, warp="log") if "warp" in describe(kind)["params"] else None
+
+
+def _warped_eval(data: SceneData, kind, params, theta, key):
+    """T of ``kind`` built on the warped segments at the warped receivers (AD kept);
+    ``theta`` None: no warp; a dict: the kind's own parameters instead (no warp here)."""
+    t, z, _ = data.sets[key]
+    if theta is None or isinstance(theta, dict):
+        return build(kind, data.seg, **(theta or params)).eval(t, z)
+    w = DepthWarp.for_segments(data.seg, theta=theta)
+    return build(kind, w.segments(data.seg), near=0.0, far=1.0, **params).eval(t, w(z))
+
+
+def _mse(data, kind, params, theta, key):
+    import drjit as dr
+    T = _warped_eval(data, kind, params, theta, key)
+    return dr.mean(dr.square(T - data.sets[key][2]))
+
+
+def errors(data, kind, params, theta, key="eval") -> dict:
+    """RMSE and max |error| of ``kind`` under the warp ``theta`` (None: no warp)."""
+    import drjit as dr
+    T = np.asarray(dr.detach(_warped_eval(data, kind, params, theta, key)), np.float64)
+    e = T - np.asarray(data.sets[key][2], np.float64)
+    return {"rmse": float(np.sqrt(np.mean(e * e))), "max_error": float(np.abs(e).max())}
+
+
+def train(scenes, kind, params, P, progress=None):
+    """Learn the logits (K,) from the identity; returns (theta as NumPy, loss per iteration)."""
+    import drjit as dr
+    from avsm_dr import backend
+    from avsm_dr.reconstruction import ProjectedAdam
+    Float = backend.types().Float
+    opt = ProjectedAdam(lr=P["lr"], lower=None)
+    opt["theta"] = Float(np.zeros(P["knots"]))
+    losses = []
+    for _ in range(P["iterations"]):
+        L = sum((_mse(d, kind, params, opt["theta"], "train") for d in scenes), Float(0)) / len(scenes)
+        dr.backward(L)
+        losses.append(float(np.asarray(dr.detach(L))[0]))
+        opt.step()
+        if progress is not None:
+            progress.update(1)
+    return np.asarray(dr.detach(opt["theta"]), np.float64), losses
+
+
+def _mean_rmse(scenes, kind, params, theta, key):
+    return float(np.mean([errors(d, kind, params, theta, key)["rmse"] for d in scenes]))
+
+
+def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write ``data.csv`` (one row per scene, kind and warp),
+    ``losses.csv``, ``warps.csv``, ``findings.json``, figures and ``meta.json`` into ``out``
+    (default ``results/learned_warp/``); ``quick`` = small sizes, ``force`` = recompute."""
+    P = plan(quick)
+    P["kinds"] = [[k, p] for k, p in KINDS]
+    P["log_ratios"] = list(LOG_RATIOS)
+    P["lights"] = LIGHTS
+    P["loss_receivers"] = "uniform in depth per non-empty texel (stratified), point lookups"
+    res = Results("learned_warp", out, quick, P)
+    if (hit := res.cached(force)) is not None:
+        return hit
+    train_s = [SceneData(*s, P) for s in tqdm(P["train"], desc="learned_warp: train scenes", unit="scene")]
+    held_s = [SceneData(*s, P) for s in tqdm(P["held"], desc="learned_warp: held-out scenes", unit="scene")]
+    rows, loss_rows, warp_rows, warps = [], [], [], {}
+    bar = tqdm(total=len(KINDS) * P["iterations"], desc="learned_warp: Adam", unit="it")
+    for kind, params in KINDS:
+        # ---- baselines: identity (no warp) and the best log ratio on the training set
+        best_r = min(LOG_RATIOS, key=lambda r: _mean_rmse(
+            train_s, kind, params, DepthWarp.logits_for(log_values(P["knots"], r)), "train"))
+        theta_log = DepthWarp.logits_for(log_values(P["knots"], best_r))
+        theta, losses = train(train_s, kind, params, P, bar)
+        warps[kind] = {"identity": None, "log": theta_log, "learned": theta}
+        if (own := kind_log_params(kind, params)) is not None:
+            warps[kind]["kind_log"] = own          # the kind's own exact log warp (no knots)
+        loss_rows += [{"kind": kind, "iteration": i, "train_mse": v} for i, v in enumerate(losses)]
+        for method, th in (("log", theta_log), ("learned", theta)):
+            for k, v in enumerate(DepthWarp(0.0, 1.0, theta=th, dtype="float64").knot_values()):
+                warp_rows.append({"kind": kind, "method": method, "knot": k, "u": k / P["knots"], "w": v,
+                                  "log_ratio": best_r if method == "log" else ""})
+        bpt = build(kind, train_s[0].seg, **params).nbytes_per_texel
+        for split, scenes in (("train", train_s), ("held_out", held_s)):
+            for d in scenes:
+                for method, th in warps[kind].items():
+                    rows.append(dict(split=split, group=d.group, scene=d.name, seed=d.seed, light=d.light, kind=kind,
+                                     params=json.dumps(params), bytes_per_texel=bpt, method=method,
+                                     log_ratio=best_r if method == "log" else "", knots=P["knots"],
+                                     **errors(d, kind, params, th)))
+    bar.close()
+    metric_rows, metric_loss, sweep = _avsm_metric(train_s, held_s, P)
+    csv = res.write_csv(rows)
+    res.write_csv(loss_rows, "losses.csv")
+    res.write_csv(warp_rows, "warps.csv")
+    res.write_csv(metric_rows, "avsm_metric.csv")
+    res.write_csv(metric_loss, "avsm_metric_loss.csv")
+    if sweep:
+        res.write_csv(sweep, "avsm_metric_sweep.csv")
+    summary = findings(rows)
+    summary["avsm_metric"] = dict(findings(metric_rows)["avsm"], nodes=P["metric_nodes"],
+                                  beta_learned=metric_loss[-1]["beta_next"],
+                                  beta_best_in_sweep=min(sweep, key=lambda r: r["train_rmse"])["beta"]
+                                  if sweep else None,
+                                  evaluated_with="the hard algorithm (equal to the avsm kind at beta = 0)")
+    res.write_json("findings.json", summary, indent=1)
+    from .plots import plot, plot_metric
+    plot(res, rows, loss_rows, warp_rows)
+    plot_metric(res, metric_loss, sweep)
+    res.write_meta(summary)
+    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+
+
+def _avsm_metric(train_s, held_s, P):
+    """Learn the blend beta of AVSM's removal metric on the surrogate, sweep the hard
+    algorithm over beta on the training scenes, evaluate paper (beta = 0) vs learned."""
+    from .avsm import rmse, sigmoid, train_metric
+    N = P["metric_nodes"]
+    bar = tqdm(total=P["metric_iterations"], desc="learned_warp: AVSM metric", unit="it")
+    phi, loss_rows = train_metric(train_s, N, P, bar)
+    bar.close()
+    beta = float(sigmoid(phi))
+    loss_rows[-1]["beta_next"] = beta
+    sweep = [{"beta": b, "train_rmse": float(np.mean([rmse(d, N, b) for d in train_s]))}
+             for b in tqdm(P["metric_sweep"], desc="learned_warp: AVSM metric sweep", unit="beta")]
+    rows = []
+    for split, scenes in (("train", train_s), ("held_out", held_s)):
+        for d in scenes:
+            for method, b in (("paper", 0.0), ("learned", beta)):
+                rows.append(dict(split=split, group=d.group, scene=d.name, seed=d.seed,
+                                 light=d.light, kind="avsm", nodes=N, bytes_per_texel=2 * N * d.seg.itemsize,
+                                 method=method, beta=b, rmse=rmse(d, N, b)))
+    return rows, loss_rows, sweep
+
+
+def findings(rows) -> dict:
+    """Per kind and group (train, each held-out group, all held-out): mean RMSE per method,
+    ratios learned / each other method (identity and log for the warps, the paper's metric
+    for AVSM) with paired bootstrap 95 % intervals over the group's scenes (needs >= 2)."""
+    out = {}
+    kinds = list(dict.fromkeys(r["kind"] for r in rows))
+    for kind in kinds:
+        mine = [r for r in rows if r["kind"] == kind]
+        groups = {"train": [r for r in mine if r["split"] == "train"],
+                  "held_out_all": [r for r in mine if r["split"] == "held_out"]}
+        other = [r for r in mine if r["split"] == "held_out" and r["group"] not in ("smoke_new_seeds",
+                                                                                      "simulated_plume")]
+        if other:
+            groups["held_out_other_types"] = other
+        for g in dict.fromkeys(r["group"] for r in mine if r["split"] == "held_out"):
+            groups[g] = [r for r in mine if r["split"] == "held_out" and r["group"] == g]
+        d = out.setdefault(kind, {"bytes_per_texel": mine[0]["bytes_per_texel"]})
+        methods = list(dict.fromkeys(r["method"] for r in mine))
+        for g, rs in groups.items():
+            by = {m: np.array([r["rmse"] for r in rs if r["method"] == m]) for m in methods}
+            e = {"n_scenes": int(by["learned"].size)}
+            e.update({f"{m}_rmse": float(v.mean()) for m, v in by.items()})
+            for base in (m for m in methods if m != "learned"):
+                if by["learned"].size >= 2:
+                    ci = paired_bootstrap(by["learned"], by[base], statistic="mean", compare="ratio")
+                    e[f"learned_over_{base}"] = {"ratio": ci["estimate"], "low": ci["low"], "high": ci["high"],
+                                                 "p_learned_smaller": ci["p_a_smaller"]}
+            d[g] = e
+    return out
+
+
+__all__ = ["run", "findings", "train", "errors", "plan", "kind_log_params", "SceneData", "KINDS", "LOG_RATIOS",
+           "LIGHTS", "METRIC"]

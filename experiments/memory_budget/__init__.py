@@ -1,0 +1,345 @@
+"""A memory budget instead of a node count: adaptive AVSM (``avsm_adaptive``: per-texel
+node counts by complexity water-filling, CSR storage) against fixed-N AVSM, DSM and the
+best breakpoint subset (``optimal``, fixed N) at equal total bytes, per built-in scene
+over seeds and lights.
+
+Per configuration (scene, seed, light: the scene's directional light ``dir_a`` and its
+25-degree tilt ``dir_b``, :func:`avsm_dr.evaluation.light_variants`) and per node count N of
+fixed AVSM (``bytes = 2 N itemsize`` per texel, float32 captures: 8 N):
+
+* ``avsm``: AVSM-N, N in ``nodes`` (up to 64: fixed AVSM's error-vs-bytes curve);
+  at each budget N in ``budgets``: ``adaptive``: ``avsm_adaptive`` with
+  ``bytes_per_texel = 8 N`` (stored bytes, offsets included, at most that);
+  ``adaptive_uniform``: the same CSR storage with one node count for every non-empty
+  texel (``_score='uniform'``: what skipping empty and small texels alone saves);
+  ``adaptive_count``: allocation by the segment count only (``_score='count'``; full
+  mode: first configuration of each scene);
+* ``dsm``: deep shadow map whose tolerance is searched (regula falsi, Illinois, on log
+  bytes against log tolerance in [1e-6, 0.5], :data:`DSM_STEPS` builds) so that its mean
+  bytes per texel come closest to 8 N from below;
+* ``optimal``: the best N-node breakpoint subset (L2, refitted; offline: N <=
+  :data:`OPTIMAL_MAX_N`, and in full mode the first configuration of each scene only).
+
+Errors against the exact curve of the same segments (the compression error: the
+allocation changes nothing else): at in-volume receivers
+(:func:`avsm_dr.receivers.in_volume`, bilinear lookups through the capture, depths
+normalised to [0, 1]: :class:`NormalisedLookup`) the RMSE,
+and uniform in depth per texel (:class:`.avsm_gap.UniformObjective`, ``depth_rms``).
+
+Findings (``findings.json``), per scene: the RMSE ratio adaptive / fixed AVSM at equal
+bytes per N (paired bootstrap over receivers per configuration, pooled over
+configurations by a two-stage bootstrap: :func:`avsm_dr.stats.claim`), likewise adaptive
+/ DSM and adaptive / optimal; and **bytes saved at equal error**: per configuration and
+budget, the bytes fixed AVSM needs to match adaptive AVSM's error, by linear
+interpolation of log error against log bytes between fixed AVSM's neighbouring N (a
+budget whose adaptive error lies below fixed AVSM's at the largest N is *censored* and
+counted, not interpolated); saving = ``1 - bytes_adaptive / bytes_fixed``, mean over
+configurations with a bootstrap interval (:func:`avsm_dr.stats.bootstrap_ci`); the same for
+``adaptive_uniform`` separates what compaction alone saves.
+
+Bytes of the savings: the **sparse** layout on both sides (``bytes_sparse``,
+``nbytes_sparse_per_texel``: an occupancy bit per texel, then fixed AVSM-N's ``8 N`` per
+non-empty texel, adaptive AVSM's nodes plus a 4-byte CSR offset per non-empty texel), so the
+baseline is sparse fixed-N AVSM and the saving is the allocation's, not the compaction of
+empty texels.  ``bytes_saved_at_equal_rmse_dense_baseline`` keeps the former dense baseline
+(``bytes_per_texel``, fixed AVSM charged 8 N for empty texels too) for comparison.  The budgets
+themselves (and so the RMSE ratios "at equal bytes") are still dense: ``8 N`` bytes per texel.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from avsm_dr import build
+from avsm_dr.stats import bootstrap_ci, claim
+from .._common import Results
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    'A memory budget instead of a node count (issue "Research results no one has published", '
+    'part 3): adaptive AVSM (per-texel node counts by complexity water-filling, CSR storage) '
+    'against fixed-N AVSM, DSM at the same bytes and the best breakpoint subset, per built-in '
+    'scene over seeds and lights; bytes saved at equal error.'
+)
+
+
+SCENES = ["plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table", "simulated_plume"]
+QUICK_SCENES = ["plume"]
+#: Bisection steps for the DSM tolerance matching a byte target.
+DSM_STEPS = 4
+#: Largest N at which the offline optimum is run.
+OPTIMAL_MAX_N = 8
+#: Methods compared at each byte budget (label, kind, extra parameters).
+ADAPTIVE = (("adaptive", {}), ("adaptive_uniform", {"_score": "uniform"}), ("adaptive_count", {"_score": "count"}))
+
+
+def dsm_at_bytes(seg, target: float, steps: int = DSM_STEPS, cache: dict | None = None):
+    """DSM whose ``nbytes_per_texel`` is the largest found <= ``target``: regula falsi
+    with the Illinois modification on ``log bytes - log target`` as a function of log
+    tolerance, bracketed by [1e-6, 0.5] (``steps`` builds after the two ends, which
+    ``cache`` keeps between targets; None when even tolerance 0.5 exceeds the target)."""
+    cache = {} if cache is None else cache
+
+    def at(x):
+        if x not in cache:
+            cache[x] = build("dsm", seg, tolerance=float(np.exp(x)))
+        rep = cache[x]
+        return rep, float(np.log(rep.nbytes_per_texel) - np.log(target))
+    xa, xb = float(np.log(1e-6)), float(np.log(0.5))   # small tolerance: many bytes (f > 0); large: few
+    rb, fb = at(xb)
+    if fb > 0:
+        return None
+    best = rb
+    ra, fa = at(xa)
+    if fa <= 0:
+        return ra
+    side = 0
+    for _ in range(steps):
+        x = (xa * fb - xb * fa) / (fb - fa)
+        rep, f = at(x)
+        if f <= 0:
+            if rep.nbytes_per_texel > best.nbytes_per_texel:
+                best = rep
+            xb, fb = x, f
+            if side == -1:
+                fa /= 2
+            side = -1
+        else:
+            xa, fa = x, f
+            if side == 1:
+                fb /= 2
+            side = 1
+        if abs(f) < 1e-3:
+            break
+    return best
+
+
+def bytes_to_match(bytes_fixed, err_fixed, err) -> float:
+    """Bytes at which fixed AVSM's error (log-log interpolation between its neighbouring
+    budgets, ``err_fixed`` decreasing in ``bytes_fixed``) equals ``err``; NaN when ``err``
+    is below its error at the largest budget (censored); the smallest budget when above."""
+    order = np.argsort(np.asarray(bytes_fixed, float))
+    raw = np.asarray(bytes_fixed, float)[order]
+    b = np.log(raw)
+    # the best error reached with at most those bytes
+    e = np.minimum.accumulate(np.log(np.maximum(np.asarray(err_fixed, float)[order], 1e-300)))
+    x = np.log(max(err, 1e-300))
+    if x < e[-1]:
+        return float("nan")
+    if x >= e[0]:
+        return float(raw[0])
+    k = int(np.flatnonzero(e <= x)[0])                    # first budget reaching the error
+    if e[k] == x or e[k] == e[k - 1]:
+        return float(raw[k])
+    w = (x - e[k - 1]) / (e[k] - e[k - 1])
+    return float(np.exp(b[k - 1] + w * (b[k] - b[k - 1])))
+
+
+class NormalisedLookup:
+    """A capture's segments with depths mapped to [0, 1] (``(z - near) / (far - near)``,
+    global bounds; float32) and bilinear lookups at fixed receivers through them.
+
+    Every kind sees the same affine image of the content, so errors in T are those of the
+    original depths up to float32 rounding; the point: AVSM bakes its far depth into its
+    kernels as a literal (measured: a recompile of several seconds per kind and N for
+    every new capture), and with far = 1 every configuration reuses the compiled kernels.
+    Receivers the map does not cover get T = 1 (:meth:`avsm_dr.capture.Capture.lookup`)."""
+
+    def __init__(self, cap, points):
+        from avsm_dr.segments import Segments
+        h = cap.segments.numpy()
+        self.lo, hi = cap.segments.bounds()
+        self.span = (hi - self.lo) if hi > self.lo else 1.0
+        self.segments = Segments.from_arrays(h["offsets"], (h["z0"] - self.lo) / self.span,
+                                             (h["z1"] - self.lo) / self.span, optical_depth=h["optical_depth"],
+                                             dtype="float32")
+        self.coords, depth = cap.lookup(points, continuous=True)
+        self.inside = cap.covers(points)
+        self.depth = np.where(self.inside, (depth - self.lo) / self.span, -1.0)
+        od = cap.opaque_depth
+        self.opaque = None if od is None else (np.asarray(od, np.float64) - self.lo) / self.span
+        self.width, self.height = cap.width, cap.height
+
+    def __call__(self, rep) -> np.ndarray:
+        """(K,) float64 bilinear T of ``rep`` (built on :attr:`segments`) at the receivers."""
+        from avsm_dr.capture.opaque_map import compose
+        T = compose(rep, self.opaque).eval(self.coords, self.depth, filter="bilinear", width=self.width,
+                                           height=self.height)
+        return np.where(self.inside, np.asarray(T, np.float64), 1.0)
+
+
+def _configs(P):
+    return [(s, seed, light) for s in P["scenes"] for seed in P["seeds"] for light in P["lights"]]
+
+
+def _config_rows(name, seed, light, P, rows, errors, heat):
+    from avsm_dr import builtin_scenes, capture, receivers
+    from avsm_dr.evaluation import light_variants
+    from ..avsm_gap import UniformObjective
+    scene = builtin_scenes.get(name, seed=seed)
+    scene = dataclasses.replace(scene, light=light_variants(scene)[light])
+    cap = capture(scene, resolution=P["resolution"], order="depth")
+    look = NormalisedLookup(cap, receivers.in_volume(scene, P["n_volume"], seed=seed))
+    seg = look.segments
+    exact = look(build("exact", seg))
+    obj = UniformObjective(seg)
+    cfg = f"{name}/s{seed}/{light}"
+    first = seed == P["seeds"][0] and light == P["lights"][0]
+    head = dict(scene=name, seed=seed, light=light, config=cfg, resolution=P["resolution"],
+                texels=seg.n_texels, nonempty=int(np.count_nonzero(seg.counts)), max_segments=seg.max_count)
+
+    def row(method, n, rep, build_s, budget):
+        err = look(rep) - exact
+        m = obj.measure(rep)
+        errors[(cfg, method, n)] = err
+        r = dict(head, method=method, nodes=n, budget_bytes_per_texel=budget, bytes_per_texel=rep.nbytes_per_texel,
+                 bytes_sparse=rep.nbytes_sparse_per_texel, total_bytes=rep.nbytes_per_texel * seg.n_texels,
+                 rmse=float(np.sqrt(np.mean(err ** 2))),
+                 max_error=float(np.max(np.abs(err))), depth_rms=m["depth_rms"], build_s=build_s)
+        rows.append(r)
+        return r
+
+    def timed_build(kind, **p):
+        t0 = time.perf_counter()
+        rep = build(kind, seg, **p)
+        return rep, time.perf_counter() - t0
+
+    dsm_cache: dict = {}
+    for n in P["nodes"]:
+        rep, t = timed_build("avsm", nodes=n)
+        target = rep.nbytes_per_texel
+        row("avsm", n, rep, t, target)
+        if n not in P["budgets"]:
+            continue
+        for label, extra in ADAPTIVE:
+            if label == "adaptive_count" and not (first or P["ablations_everywhere"]):
+                continue
+            rep, t = timed_build("avsm_adaptive", bytes_per_texel=target, **extra)
+            row(label, n, rep, t, target)
+            if label == "adaptive" and first and n == P["heat_nodes"]:
+                heat[name] = (rep.allocated.reshape(cap.height, cap.width), target)
+        t0 = time.perf_counter()
+        dsm = dsm_at_bytes(seg, target, P["dsm_steps"], dsm_cache)
+        if dsm is not None:
+            row("dsm", n, dsm, time.perf_counter() - t0, target)
+        if n <= P["optimal_max_n"] and (first or not P["optimal_first_only"]):
+            rep, t = timed_build("optimal", nodes=n)
+            row("optimal", n, rep, t, target)
+
+
+# ==================================================================== findings
+def savings(rows, metric: str = "rmse", method: str = "adaptive", key: str = "bytes_sparse") -> dict:
+    """Per scene and budget: bytes fixed AVSM needs for ``method``'s error (module
+    docstring), ``saving = 1 - bytes_adaptive / bytes_fixed`` per configuration, its mean
+    over the uncensored configurations with a 95% bootstrap interval, the censored count
+    and, for those, the least saving (against fixed AVSM's largest budget).  ``key``: the
+    bytes column of both sides, ``'bytes_sparse'`` (the sparse layout, the headline) or
+    ``'bytes_per_texel'`` (dense: fixed AVSM charged 8 N for its empty texels too)."""
+    out = {}
+    for scene in sorted({r["scene"] for r in rows}):
+        cfgs = sorted({r["config"] for r in rows if r["scene"] == scene})
+        per_n: dict = {}
+        for cfg in cfgs:
+            fx = sorted((r for r in rows if r["config"] == cfg and r["method"] == "avsm"), key=lambda r: r["nodes"])
+            bf, ef = [r[key] for r in fx], [r[metric] for r in fx]
+            for r in rows:
+                if r["config"] == cfg and r["method"] == method:
+                    need = bytes_to_match(bf, ef, r[metric])
+                    # censored: fixed AVSM never reaches the error; the saving is at least
+                    # that against its largest budget
+                    per_n.setdefault((r["nodes"], r["budget_bytes_per_texel"]), []).append(
+                        (1 - r[key] / need, False) if np.isfinite(need)
+                        else (1 - r[key] / max(bf), True))
+        d = {}
+        for (n, budget), vals in sorted(per_n.items()):
+            v = np.array([x for x, c in vals if not c])
+            cens = [x for x, c in vals if c]
+            e = {"budget_bytes_per_texel": budget, "configs": len(vals), "censored": len(cens)}
+            if cens:
+                e["censored_saving_at_least"] = float(min(cens))
+            if v.size >= 2:
+                ci = bootstrap_ci(v, "mean", n_boot=2000)
+                e.update(saving=ci["estimate"], low=ci["low"], high=ci["high"])
+            elif v.size == 1:
+                e.update(saving=float(v[0]))
+            d[f"N={n}"] = e
+        out[scene] = d
+    return out
+
+
+def ratios(rows, errors, a: str, b: str, n_boot: int) -> dict:
+    """Per scene and N: RMSE(a) / RMSE(b) at the same receivers, per configuration and
+    pooled (:func:`avsm_dr.stats.claim`)."""
+    out = {}
+    for scene in sorted({r["scene"] for r in rows}):
+        for n in sorted({r["nodes"] for r in rows if r["scene"] == scene}):
+            cfgs = sorted({c for (c, m, k) in errors if k == n and m == a and c.startswith(scene + "/")
+                           and (c, b, n) in errors})
+            if not cfgs:
+                continue
+            xa = [errors[(c, a, n)] for c in cfgs]
+            xb = [errors[(c, b, n)] for c in cfgs]
+            if any(np.sqrt(np.mean(x ** 2)) == 0 for x in xb):
+                continue
+            if len(cfgs) == 1:
+                from avsm_dr.stats import paired_bootstrap
+                r = paired_bootstrap(xa[0], xb[0], "rmse", "ratio", n_boot=n_boot)
+                e = dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=1)
+            else:
+                r = claim(xa, xb, "rmse", "ratio", configs=cfgs, n_boot=n_boot)
+                e = dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=r["n_configs"],
+                         below_1_in_every_config=r["holds_in_every_configuration"])
+            out.setdefault(scene, {})[f"N={n}"] = e
+    return out
+
+
+def findings(rows, errors, n_boot: int) -> dict:
+    """``findings.json``: savings at equal error (receivers and uniform in depth) and the
+    RMSE ratios of adaptive AVSM to the others at equal bytes."""
+    return {
+        "bytes_saved_at_equal_rmse": savings(rows, "rmse"),
+        "bytes_saved_at_equal_depth_rms": savings(rows, "depth_rms"),
+        # compaction alone (one node count for all non-empty texels): what skipping saves
+        "bytes_saved_at_equal_rmse_uniform_allocation": savings(rows, "rmse", "adaptive_uniform"),
+        # the former baseline: both sides dense (fixed AVSM pays 8 N bytes for an empty texel)
+        "bytes_saved_at_equal_rmse_dense_baseline": savings(rows, "rmse", key="bytes_per_texel"),
+        "rmse_ratio_adaptive_over_avsm": ratios(rows, errors, "adaptive", "avsm", n_boot),
+        "rmse_ratio_adaptive_over_adaptive_uniform": ratios(rows, errors, "adaptive", "adaptive_uniform", n_boot),
+        "rmse_ratio_adaptive_over_dsm": ratios(rows, errors, "adaptive", "dsm", n_boot),
+        "rmse_ratio_adaptive_over_optimal": ratios(rows, errors, "adaptive", "optimal", n_boot),
+        "rmse_ratio_optimal_over_avsm": ratios(rows, errors, "optimal", "avsm", n_boot),
+    }
+
+
+# ========================================================================= run
+def run(quick: bool = False, out=None, force: bool = False) -> dict:
+    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json
+    into ``out`` (default ``results/memory_budget/``); ``quick`` = small sizes (the
+    plume, one configuration), ``force`` = recompute."""
+    P = dict(scenes=QUICK_SCENES if quick else SCENES, seeds=[0] if quick else [0, 1],
+             lights=["dir_a"] if quick else ["dir_a", "dir_b"], resolution=64,
+             nodes=[2, 4, 8, 16, 32] if quick else [2, 4, 8, 16, 32, 64],
+             budgets=[2, 4, 8] if quick else [2, 4, 8, 16, 32], n_volume=512 if quick else 2048,
+             optimal_max_n=4 if quick else OPTIMAL_MAX_N, optimal_first_only=not quick, heat_nodes=4,
+             ablations_everywhere=quick,
+             dsm_steps=2 if quick else DSM_STEPS, n_boot=500 if quick else 2000, filter="bilinear")
+    res = Results("memory_budget", out, quick, P)
+    if (hit := res.cached(force)) is not None:
+        return hit
+    rows: list[dict] = []
+    errors: dict = {}
+    heat: dict = {}
+    for name, seed, light in tqdm(_configs(P), desc="memory_budget", unit="config"):
+        _config_rows(name, seed, light, P, rows, errors, heat)
+    csv = res.write_csv(rows)
+    summary = findings(rows, errors, P["n_boot"])
+    res.write_json("findings.json", summary, indent=1)
+    from .plots import plot_curves, plot_heat
+    plot_curves(res, rows, P["scenes"])
+    plot_heat(res, heat)
+    res.write_meta(summary)
+    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}

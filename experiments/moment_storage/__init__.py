@@ -1,0 +1,214 @@
+"""16-bit storage of 4 power moments: the optimised quantisation of Peters and Klein,
+"Moment Shadow Mapping", I3D 2015, sec. 5 (``quantization='msm'``: 4 codes of the
+transformed moments, ``b_0`` in float32, 12 bytes) against per-texel scaling
+(``'scaled'``: 5 codes over a float32 scale, 14 bytes), in 'float16' and 'unorm16', with
+float32 storage (20 bytes) as the reference; per built-in scene over seeds and lights.
+
+Error: the compression error at in-volume receivers (:func:`avsm_dr.receivers.receiver_sets`),
+bilinear lookups through the capture, ``T_variant - T_exact`` against the exact curve of
+the same segments (capture error cancels).  Every variant is measured twice: with its
+default bias alpha and with alpha tuned per variant on a held-out seed (``tune_seed``, never
+evaluated; lights ``tune_lights``): the alpha of ``alphas`` minimising the squared error
+summed over the scenes.  On scenes with opaque blockers the same is repeated with
+``capture(..., opaque='separate')`` (blockers in a depth map, not in the moments; tuned
+apart), the control separating what the inline blocker's step costs the 16-bit codes.
+
+``findings.json``, per scene and opaque mode, from :func:`avsm_dr.stats.claim` (RMSE ratio
+over the configurations seed x light, paired per receiver; pooled estimate = geometric
+mean of the per-configuration ratios, 95 % two-stage bootstrap interval):
+
+* ``<variant>/<default|tuned> vs float32``: each 16-bit variant against float32 at its
+  tuned alpha (float32's best configuration), and float32 at its default alpha;
+* ``<precision> msm vs scaled (<default|tuned>)``: the transform against scaling at equal
+  precision (``holds_in_every_configuration``: msm lower in every configuration's interval);
+
+with ``bytes_per_texel`` per variant and the tuned alphas.  ``data.csv``: one row per
+scene, opaque mode, configuration, variant and alpha choice (RMSE, max and mean error);
+``tuning.csv``: the held-out seed's RMSE per alpha.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from tqdm import tqdm
+
+from avsm_dr import build
+from .._common import Results
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    '16-bit storage of 4 power moments (no paper reports it): the optimised quantisation of '
+    'Peters and Klein, "Moment Shadow Mapping", I3D 2015, sec. 5 (\'msm\', 12 bytes) against '
+    "per-texel scaling ('scaled', 14 bytes) in float16 and unorm16, vs float32 (20 bytes); "
+    'alpha tuned per variant on a held-out seed, RMSE ratios with 95 % intervals over seeds x '
+    "lights, and the opaque='separate' capture as the control for the inline blocker."
+)
+
+
+SCENES = ["plume", "hair_and_smoke", "smoke_over_table"]
+#: (precision, quantization) of 4 power moments; float32 is the reference.
+VARIANTS = (("float32", None), ("float16", "scaled"), ("float16", "msm"), ("unorm16", "scaled"),
+            ("unorm16", "msm"))
+REFERENCE = "float32"
+#: Bias alphas the tuning tries.
+ALPHAS = (5e-7, 2e-6, 5e-6, 1e-5, 2e-5, 4e-5, 6e-5, 1e-4, 2e-4, 4e-4, 1e-3)
+TAGS = ("default", "tuned")
+
+
+def label(precision: str, quantization: str | None) -> str:
+    """'float32', 'float16/scaled', 'unorm16/msm', ..."""
+    return precision if quantization is None else f"{precision}/{quantization}"
+
+
+def build_variant(segments, precision: str, quantization: str | None, alpha: float | None = None):
+    """4 power moments of ``segments`` stored as (``precision``, ``quantization``); ``alpha``
+    None = the kind's default bias.  float32 = the segments' own dtype (no requantisation)."""
+    kw = {} if quantization is None else dict(precision=precision, quantization=quantization)
+    if alpha is not None:
+        kw["bias"] = float(alpha)
+    return build("moments", segments, moments=4, **kw)
+
+
+@dataclasses.dataclass
+class _View:
+    """One capture seen at the receivers: probe and the exact curve's lookups."""
+    probe: object
+    segments: object
+    exact: np.ndarray
+
+    def error(self, precision, quantization, alpha=None):
+        """(signed per-receiver compression error (K,), representation)."""
+        rep = build_variant(self.segments, precision, quantization, alpha)
+        return self.probe.lookup(rep) - self.exact, rep
+
+
+def views(name: str, seed: int, light: str, P: dict) -> dict:
+    """{'inline': _View, 'separate': _View (scenes with blockers, when ``P['separate']``)} of
+    one configuration (scene, seed, light)."""
+    from avsm_dr import capture, receivers
+    from avsm_dr import scenes as scene_lib
+    from avsm_dr.evaluation import Probe, light_variants
+    sc0 = scene_lib.get(name, seed=seed)
+    scene = dataclasses.replace(sc0, light=light_variants(sc0)[light])
+    pts = receivers.receiver_sets(scene, P["n_volume"], 16, seed=seed)["in_volume"]
+    caps = {"inline": capture(scene, resolution=P["resolution"], order="depth")}
+    if P["separate"] and scene.blockers:
+        caps["separate"] = capture(scene, resolution=P["resolution"], opaque="separate", order="depth")
+    probe = Probe(caps["inline"], scene, pts, 0, truth_at_points=np.zeros(len(pts)))  # truth unused
+    out = {}
+    for mode, cap in caps.items():
+        pr = probe.with_capture(cap)
+        out[mode] = _View(pr, cap.segments, pr.lookup(build("exact", cap.segments)))
+    return out
+
+
+def tune(P: dict, progress: bool = True) -> tuple[dict, list]:
+    """Best alpha per opaque mode and variant on the held-out seed: ``({mode: {label:
+    alpha}}, tuning rows)``; criterion: mean squared error summed over scenes and lights."""
+    sse: dict = {}
+    rows = []
+    jobs = [(n, li) for n in P["scenes"] for li in P["tune_lights"]]
+    for name, light in tqdm(jobs, desc="moment_storage tune", unit="config", disable=not progress):
+        for mode, v in views(name, P["tune_seed"], light, P).items():
+            for prec, q in VARIANTS:
+                for i, a in enumerate(P["alphas"]):
+                    e, _ = v.error(prec, q, a)
+                    mse = float(np.mean(e ** 2))
+                    sse.setdefault(mode, {}).setdefault(label(prec, q), np.zeros(len(P["alphas"])))[i] += mse
+                    rows.append(dict(scene=name, opaque=mode, seed=P["tune_seed"], light=light,
+                                     variant=label(prec, q), alpha=a, rmse=float(np.sqrt(mse))))
+    best = {mode: {lab: float(P["alphas"][int(np.argmin(s))]) for lab, s in d.items()} for mode, d in sse.items()}
+    return best, rows
+
+
+def evaluate(P: dict, best: dict, progress: bool = True) -> tuple[list, dict, dict]:
+    """(rows, errors {(scene, mode, config, variant, tag): (K,) signed errors}, bytes per
+    texel {variant: bytes}) over the evaluation configurations."""
+    rows, errs, nbytes = [], {}, {}
+    jobs = [(n, s, li) for n in P["scenes"] for s, li in P["configs"]]
+    for name, seed, light in tqdm(jobs, desc="moment_storage", unit="config", disable=not progress):
+        config = f"s{seed}-{light}"
+        for mode, v in views(name, seed, light, P).items():
+            for prec, q in VARIANTS:
+                lab = label(prec, q)
+                for tag in TAGS:
+                    e, rep = v.error(prec, q, best[mode][lab] if tag == "tuned" else None)
+                    errs[(name, mode, config, lab, tag)] = e
+                    nbytes[lab] = float(rep.nbytes_per_texel)
+                    rows.append(dict(scene=name, opaque=mode, config=config, seed=seed, light=light, variant=lab,
+                                     precision=prec, quantization=q or "", tag=tag,
+                                     alpha=float(rep.params["bias"]), bytes_per_texel=float(rep.nbytes_per_texel),
+                                     n=int(e.size), rmse=float(np.sqrt(np.mean(e ** 2))),
+                                     max_error=float(np.max(np.abs(e))), mean_error=float(np.mean(e))))
+    return rows, errs, nbytes
+
+
+def _claim(a, b, configs, n_boot) -> dict:
+    from avsm_dr import stats
+    r = stats.claim(a, b, statistic="rmse", compare="ratio", configs=configs, n_boot=n_boot)
+    return dict(estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
+                holds_in_every_configuration=r["holds_in_every_configuration"],
+                point_holds_in_every_configuration=r["point_holds_in_every_configuration"],
+                holds_pooled=r["holds_pooled"],
+                per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})
+
+
+def findings(errs: dict, nbytes: dict, best: dict, n_boot: int = 1000) -> dict:
+    """Claims per scene and opaque mode (module docstring), bytes and tuned alphas."""
+    out: dict = {"bytes_per_texel": nbytes, "best_alpha": best, "claims": {}}
+    keys = sorted({(k[0], k[1]) for k in errs})
+    for scene, mode in keys:
+        configs = sorted({k[2] for k in errs if k[:2] == (scene, mode)})
+
+        def side(lab, tag):
+            return [errs[(scene, mode, c, lab, tag)] for c in configs]
+        ref = side(REFERENCE, "tuned")
+        d = out["claims"].setdefault(scene, {}).setdefault(mode, {})
+        d[f"{REFERENCE}/default vs {REFERENCE}"] = _claim(side(REFERENCE, "default"), ref, configs, n_boot)
+        for prec, q in VARIANTS:
+            if q is None:
+                continue
+            for tag in TAGS:
+                d[f"{label(prec, q)}/{tag} vs {REFERENCE}"] = _claim(side(label(prec, q), tag), ref, configs, n_boot)
+        for prec in sorted({p for p, q in VARIANTS if q == "msm"}):
+            for tag in TAGS:
+                d[f"{prec} msm vs scaled ({tag})"] = _claim(side(f"{prec}/msm", tag), side(f"{prec}/scaled", tag),
+                                                            configs, n_boot)
+    return out
+
+
+def params(quick: bool, scenes=None) -> dict:
+    """The run's parameters (quick: one scene with a blocker, 64^2 (the least capture resolution), 256 receivers, 2
+    configurations, 3 alphas)."""
+    if quick:
+        return dict(scenes=list(scenes or ["smoke_over_table"]), resolution=64, n_volume=256,
+                    configs=[[0, "dir_a"], [1, "dir_b"]], tune_seed=4, tune_lights=["dir_a"],
+                    alphas=[5e-7, 6e-5, 1e-3], separate=True, n_boot=200)
+    configs = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
+    return dict(scenes=list(scenes or SCENES), resolution=64, n_volume=2048, configs=configs, tune_seed=4,
+                tune_lights=["dir_a", "spot"], alphas=list(ALPHAS), separate=True, n_boot=1000)
+
+
+def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
+    """Run the experiment; write ``data.csv``, ``tuning.csv``, ``findings.json``, the figure
+    and meta.json into ``out`` (default ``results/moment_storage/``); ``quick`` = small
+    sizes, ``force`` = recompute."""
+    P = params(quick, scenes)
+    if P["tune_seed"] in {s for s, _ in P["configs"]}:
+        raise ValueError(f"tune_seed: {P['tune_seed']} is also evaluated; the tuning seed must be held out")
+    P["variants"] = [label(*v) for v in VARIANTS]
+    res = Results("moment_storage", out, quick, P)
+    if (hit := res.cached(force)) is not None:
+        return hit
+    best, tune_rows = tune(P)
+    rows, errs, nbytes = evaluate(P, best)
+    csv = res.write_csv(rows)
+    res.write_csv(tune_rows, "tuning.csv")
+    summary = findings(errs, nbytes, best, n_boot=P["n_boot"])
+    res.write_json("findings.json", summary, indent=1)
+    from .plots import plot_ratios
+    plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
+    res.write_meta({"best_alpha": best, "bytes_per_texel": nbytes})
+    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}

@@ -1,0 +1,164 @@
+"""Figures of the ``temporal`` experiment: error and flicker per frame, flicker against mean
+error, and animated GIFs (Matplotlib's Pillow writer) of the light's T on a slice of the content."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _log(ax, x: bool = False):
+    """Log axes with a few plain '1e-02' labels and no minor ticks (Matplotlib's default
+    log ticks and mathtext labels cost most of the figures' drawing time)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullLocator
+    fmt = FuncFormatter(lambda v, _: f"{v:.0e}")
+    for axis, on in ((ax.yaxis, True), (ax.xaxis, x)):
+        if on:
+            axis.set_major_locator(LogLocator(subs=(1.0, 3.0), numticks=8))
+            axis.set_major_formatter(fmt)
+            axis.set_minor_locator(NullLocator())
+
+
+def _series(rows, setting, method, vs, key):
+    """Per frame, the RMS over configurations of ``key``."""
+    sel = [r for r in rows if r["setting"] == setting and r["method"] == method and r["vs"] == vs]
+    frames = sorted({r["frame"] for r in sel})
+    y = [np.sqrt(np.mean([r[key] ** 2 for r in sel if r["frame"] == t])) for t in frames]
+    return np.array(frames), np.array(y)
+
+
+def _style(label: str) -> dict:
+    """Plot keywords of a build label such as ``avsm-8 sorted``: its kind's style
+    (``avsm_dr.plotstyle``), hollow for the ``sorted`` variant."""
+    import re
+    from avsm_dr import plotstyle
+    kind = re.match(r"[A-Za-z0-9_]+", label).group(0)
+    st = plotstyle.variant_style(kind) if re.search(r"(?<!un)sorted", label) else plotstyle.style(kind)
+    return dict(st, markersize=3.5)
+
+
+def plot_all(res, rows, summary, series, P, gif_labels):
+    """Write ``error_flicker_per_frame.png``, ``flicker_vs_error.png`` and one
+    ``shadow_<setting>.gif`` per animation with slice images (first configuration)."""
+    from matplotlib.ticker import MaxNLocator
+    from avsm_dr import plotstyle
+    _plt()                        # the Agg backend
+    settings = list(summary["per_setting"])
+    labels = list(summary["per_setting"][settings[0]]["exact"])
+    with plotstyle.context():
+        fig, axes = plotstyle.grid(len(settings), 2, panel=(3.6, 1.9), sharey=False)
+        for i, s in enumerate(settings):
+            for m in labels:
+                if m.startswith("exact"):
+                    continue
+                f, e = _series(rows, s, m, "exact", "error_rms")
+                axes[i][0].plot(f, e, **_style(m), label=m)
+                f, fl = _series(rows, s, m, "exact", "flicker_rms")
+                axes[i][1].plot(f[1:], fl[1:], **_style(m), label=m)
+            f, c = _series(rows, s, labels[0], "exact", "content_rms")
+            axes[i][1].plot(f[1:], c[1:], ":", color="k", linewidth=1.2, label="content change (exact)")
+            for ax in axes[i]:
+                ax.set_yscale("log")
+                _log(ax)
+                ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            axes[i][0].set_ylabel(f"{s}\nRMS over receivers (T)")
+        axes[0][0].set_title("error vs exact curve, per frame")
+        axes[0][1].set_title("flicker |e_t - e_(t-1)| (RMS), per frame")
+        for ax in axes[-1]:
+            ax.set_xlabel("frame")
+        plotstyle.legend_below(fig, ncol=4)
+        res.save_figure(fig, "error_flicker_per_frame.png")
+
+        fig, axes = plotstyle.grid(1, len(settings), panel=(3.0, 2.8), sharex=False, sharey=False)
+        for ax, s in zip(axes[0], settings):
+            blk = summary["per_setting"][s]["exact"]
+            lo_hi = []
+            for m in labels:
+                v = blk[m]
+                x, y = v["error"], v["flicker"]
+                if x["estimate"] <= 0:
+                    continue
+                st = _style(m)
+                ax.errorbar(x["estimate"], y["estimate"],
+                            xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
+                            yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
+                            color=st["color"], marker=st["marker"], markerfacecolor=st.get("markerfacecolor"),
+                            markersize=5, capsize=2, elinewidth=0.8, label=m)
+                lo_hi += [x["estimate"], y["estimate"]]
+            if lo_hi:
+                g = np.geomspace(min(lo_hi) / 2, max(lo_hi) * 2, 10)
+                ax.plot(g, np.sqrt(2) * g, "k:", linewidth=1, label="sqrt(2) x error (uncorrelated frames)")
+            content = summary["headline"][s]["content_change"]
+            ax.axhline(content, color="grey", linewidth=0.8, linestyle="--", label="content change (exact)")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            _log(ax, x=True)
+            ax.set_xlabel("RMS error of T vs exact (pooled)")
+            ax.set_title(s)
+        axes[0][0].set_ylabel("flicker (RMS change of the error\nbetween frames)")
+        plotstyle.legend_below(fig, ncol=4)
+        res.save_figure(fig, "flicker_vs_error.png")
+
+    cfg0 = "s{}-{}".format(*P["configs"][0])
+    for s in P["gif_settings"]:
+        images = series.get((s, cfg0), {}).get("image")
+        if images:
+            _gif(res, s, images, gif_labels, P["image"])
+
+
+def _rgb(x, cmap, lo, hi):
+    """(n, n) values -> (n, n, 3) uint8 through a Matplotlib colormap on [lo, hi], rows flipped
+    (row 0 at the bottom, as the slice's vertical axis)."""
+    import matplotlib
+    c = matplotlib.colormaps[cmap](np.clip((x - lo) / (hi - lo), 0.0, 1.0))[..., :3]
+    return (255 * c[::-1]).astype(np.uint8)
+
+
+def _gif(res, setting, images, labels, n):
+    """Animated GIF (Pillow writer): top row the exact shadow and each method's on the box's
+    mid-depth slice (light mostly from the left);
+    bottom row the exact shadow's change since the last frame, then each method's signed
+    error vs exact (blue-red, symmetric range in the title).  One image per frame (panels
+    side by side on a mosaic), so a frame costs one draw."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    plt = _plt()
+    cols = ["exact"] + [m for m in labels if m in images[0]]
+    F = len(images)
+    grid = {m: np.stack([im[m] for im in images]).reshape(F, n, n) for m in cols}
+    err = {m: grid[m] - grid["exact"] for m in cols}
+    err["exact"] = np.concatenate([np.zeros((1, n, n)), np.diff(grid["exact"], axis=0)])
+    vmax = {m: max(1e-6, float(np.max(np.abs(err[m])))) for m in cols}
+    vmax.update({m: max([1e-6] + [vmax[c] for c in cols[1:]]) for m in cols[1:]})      # one scale for the methods
+    g = max(1, n // 16)
+    gap = np.full((n, g, 3), 96, np.uint8)
+
+    def mosaic(t):
+        top = [_rgb(grid[m][t], "gray", 0.0, 1.0) for m in cols]
+        bot = [_rgb(err[m][t], "RdBu", -vmax[m], vmax[m]) for m in cols]
+        row = lambda panels: np.concatenate(sum(([p, gap] for p in panels), [])[:-1], axis=1)  # noqa: E731
+        return np.concatenate([row(top), np.full((g, row(top).shape[1], 3), 96, np.uint8), row(bot)], axis=0)
+
+    first = mosaic(0)
+    fig = plt.figure(figsize=(1.6 * len(cols), 3.6), facecolor=(0.85, 0.85, 0.85))
+    ax = fig.add_axes([0.0, 0.0, 1.0, 0.8])
+    ax.set_axis_off()
+    im = ax.imshow(first, interpolation="nearest")
+    fig.text(0.01, 0.97, f"{setting}:  " + " | ".join(cols), fontsize=6, va="top")
+    fig.text(0.01, 0.89, f"top: T on the slice z = 0 (white 1, black 0); bottom, blue-red: exact change since the last "
+             f"frame (+-{vmax['exact']:.2g}), then error vs exact (+-{vmax[cols[-1]]:.2g})", fontsize=5, va="top")
+    stamp = fig.text(0.99, 0.97, "frame 0", fontsize=6, va="top", ha="right")
+
+    def update(t):
+        im.set_data(mosaic(t))
+        stamp.set_text(f"frame {t}")
+        return [im, stamp]
+
+    anim = FuncAnimation(fig, update, frames=F, blit=False)
+    path = res.write_file(f"shadow_{setting}.gif", lambda tmp: anim.save(tmp, writer=PillowWriter(fps=8), dpi=100))
+    plt.close(fig)
+    res.figures.append(str(path))

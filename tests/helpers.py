@@ -1,0 +1,36 @@
+"""Helpers of the test suite (not part of the package): the kernel-reuse counter and the
+in-process quick run of a study."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import avsm_dr  # noqa: F401  (selects a working libLLVM before drjit loads)
+import drjit as dr
+
+
+def compiled_kernels(fn: Callable, *, disk_hits_are_new: bool = True) -> int:
+    """Number of JIT kernels new to this process (not in Dr.Jit's in-memory kernel cache)
+    while ``fn()`` runs and its result is evaluated: the check that a second call with new
+    sizes or data reuses the kernels of the first (a literal size or a misaligned mapped
+    input in the kernel hash recompiles).  ``disk_hits_are_new`` (default): a kernel loaded
+    from Dr.Jit's disk cache (``~/.drjit``) counts as new, since on a machine whose disk
+    cache lacks it (a fresh one) it is compiled: otherwise the count depends on what earlier
+    runs left on disk (a test passed after any run that had compiled the kernel, and failed
+    on a fresh machine).  Warm up by evaluating ``fn()`` once, as this count does."""
+    dr.kernel_history_clear()
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.eval(fn())
+        dr.sync_thread()
+        hist = dr.kernel_history()
+    return sum(1 for k in hist if k["type"] == dr.KernelType.JIT
+               and (not k["cache_hit"] or (disk_hits_are_new and k.get("cache_disk", False))))
+
+
+def quick_cli_run(name: str, out) -> Path:
+    """``python -m experiments NAME --quick --out OUT`` in this process, as a user runs it: checks
+    that the CLI discovers the experiment and exits 0; returns its result folder ``OUT/NAME``."""
+    from experiments import _cli as cli
+    assert name in cli.experiment_names(), name
+    assert cli.main([name, "--quick", "--out", str(out)]) == 0, name
+    return Path(out) / name

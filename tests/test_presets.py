@@ -1,0 +1,39 @@
+"""Best-practice presets in the registry (``ad.describe(kind)["preset"]``): declared for every
+kind, valid, buildable, with the capture options, variants and tuning status they state."""
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+from cases import random_segments, to_segments
+
+KEYS = {"preset", "preset_capture", "preset_variants", "preset_tuned"}
+
+
+@pytest.mark.parametrize("kind", ad.kinds())
+def test_every_preset_is_allowed_and_builds(kind, rng):
+    d = ad.describe(kind)
+    assert KEYS <= set(d) and isinstance(d["preset"], dict)
+    assert ad.allows(kind, d["preset"])
+    seg = to_segments(random_segments(rng, texels=16, max_count=4))
+    for params in [d["preset"], *({**d["preset"], **v} for v in d["preset_variants"].values())]:
+        assert ad.allows(kind, params)
+        rep = ad.build(kind, seg, **params)
+        T = np.asarray(rep.eval(np.arange(16), np.full(16, 0.5)))
+        assert np.all((T >= 0) & (T <= 1))
+    assert set(d["preset_capture"]) <= {"opaque"}
+    assert d["preset_tuned"] == ("preset_note" not in d)
+
+
+def test_the_presets_issue_23_names():
+    for kind in ("fom", "osm", "moments", "basis"):
+        d = ad.describe(kind)
+        assert d["preset"]["depth_range"] == "texel" and d["preset_capture"] == {"opaque": "separate"}
+    avsm = ad.describe("avsm")
+    assert avsm["preset"] == {"interpolation": "exp"}
+    assert {v["interpolation"] for v in avsm["preset_variants"].values()} == {"linear", "exp"}
+    moments = ad.describe("moments")
+    assert moments["preset_tuned"] is False and "media" in moments["preset_note"]
+    # moments keep transparency's beta and bias until they are tuned (issue 23, item 6)
+    assert not {"overestimation", "bias", "bias_target"} & set(moments["preset"])
+    for kind in ("dsm", "beer", "exact", "greedy", "optimal", "avsm_adaptive", "avsm_march"):
+        assert ad.describe(kind)["preset"] == {} and ad.describe(kind)["preset_tuned"]
