@@ -18,6 +18,7 @@ import struct
 import numpy as np
 
 from .. import validation as V
+from ..geometry import ray_sphere
 from ..segments import OPAQUE_OPTICAL_DEPTH
 from .particles import MAX_CANDIDATES, check_candidates
 
@@ -142,14 +143,9 @@ def ray_capsule(o, d, pa, pb, r):
 
     # end spheres
     for p in (pa, pb):
-        oc = p - o
-        bb = np.einsum("ij,ij->i", oc, d)
-        perp = oc - bb[:, None] * d
-        h2 = r * r - np.einsum("ij,ij->i", perp, perp)
-        hs = h2 > 0
-        s = np.sqrt(np.where(hs, h2, 0.0))
-        t_in = np.where(hs, np.minimum(t_in, bb - s), t_in)
-        t_out = np.where(hs, np.maximum(t_out, bb + s), t_out)
+        t0, t1, hs = ray_sphere(o, d, p, r)
+        t_in = np.where(hs, np.minimum(t_in, t0), t_in)
+        t_out = np.where(hs, np.maximum(t_out, t1), t_out)
     t_in = np.maximum(t_in, 0.0)
     return t_in, t_out, t_out > t_in
 
