@@ -12,22 +12,17 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
   and their applications", AFIPS 1968, section 2), comparators on pads pruned: no memory
   traffic besides one gather per segment and one packet store per texel.  All classes run
   in one kernel, a chain of symbolic conditionals (lanes grouped by class, so a SIMD
-  packet runs one network), whose trace is recorded once and replayed (:func:`drjit.freeze`).
-  Measured on random-order captures (2 shared cores, kernel time): 1 ms vs 11 ms at 64^2,
-  4 ms vs 40 ms at 128^2 (three_columns, up to 60 segments per texel) for ranking every
-  segment against every other of its texel (``k`` gathers per segment).
+  packet runs one network).
 * Longer texels: blocks of 64 (a texel's last block by the network of its size class),
   then bottom-up merges of pairs of sorted runs, one lane per pair walking both runs with
   their heads in registers (one gather and one store per word), the last merge writing the
-  payloads to their place and checking neighbours for equal keys.  On the 48-voxel plume at
-  1024^2 (41.6 M segments, 35 M of them in texels of 65-111; 2 shared cores, kernel time) the
-  blocks take 0.23-0.33 s and the merge 0.22-0.33 s, where full 64-networks on every block
-  and a binary search per word (merge path: O. Green, R. McColl, D. A. Bader, "GPU merge
-  path", ICS 2012) took 0.8-0.95 s and 1.4-1.6 s, plus 0.2-0.3 s for a separate tie check.
+  payloads to their place and checking neighbours for equal keys.
 * :func:`sort_texels_view` leaves the payloads in that layout (texel ``t`` from
   ``base[t]``): a consumer walking each texel reads through it, no permutation is formed.
 * Equal keys (:func:`break_ties`): one lane per segment scans its run of equal keys and
-  ranks itself by a second key, then position (0.2 s on 28.6 M segments).
+  ranks itself by a second key, then position.
+
+Timings against the alternatives tried (ranking, full networks, merge path): docs/performance.md.
 
 Flags (counted on the device, read back once): :data:`TIE` when two words of a texel share
 their key (the caller may need a finer order), :data:`UNSORTED` when some texel's words
@@ -35,9 +30,6 @@ were not already increasing in CSR order (always set when a texel exceeds 64).
 """
 from __future__ import annotations
 
-import gc
-import os
-import threading
 from functools import lru_cache
 
 import drjit as dr
@@ -51,8 +43,6 @@ MAX_NETWORK = 64
 #: Flag bits returned by :func:`sort_texels`.
 TIE, UNSORTED = 1, 2
 _PAD = 0xFFFFFFFFFFFFFFFF
-#: Replay the recorded sorting kernel (:data:`_sort_lanes_frozen`) instead of tracing it anew.
-FREEZE = True
 
 
 @lru_cache(maxsize=None)
@@ -152,76 +142,12 @@ def _sort_lanes_traced(kind: str, sources, start, count, packet, out, sizes: tup
     return counter
 
 
-#: The sorting kernel, frozen (:func:`drjit.freeze`): its trace (thousands of operations for
-#: the 64-input network: ~5-10 ms of Python per call, more than the kernel at 64^2) is
-#: replayed for new data of any size.  One recording per (kind, size classes, ties): the
-#: inputs are evaluated arrays (``out`` made opaque: an undefined ``dr.empty`` is a literal
-#: whose size re-recorded every new texel count) whose widths never coincide or equal 1
-#: (:func:`plan` pads them: freeze re-records when the groups of equal-width inputs change).
-_sort_lanes_frozen = dr.freeze(_sort_lanes_traced, warn_after=64)
-
-#: Held by every call of :data:`_sort_lanes_frozen` and by every garbage collection.  A
-#: frozen function is not safe to enter from two threads: sorters recording at once made
-#: extra recordings and corrupted Dr.Jit's variables (``jit_var(): unknown variable``,
-#: ``jit_var_dec_ref(): variable has no references``), and the process hung while Dr.Jit
-#: reported it (writing the message under its lock, waiting for the GIL).  A collection
-#: during a recording frees arrays that map NumPy memory through a host callback, which
-#: cannot be recorded (it aborted the process); ``gc.disable()`` stops automatic collections
-#: only, not an explicit ``gc.collect()`` in another thread: the callback below makes that wait.
-_FREEZE_LOCK = threading.RLock()
-_collecting = threading.local()       # per thread: the lock its running collection holds
-
-
-def _collections_wait_for_sorts(phase: str, info) -> None:
-    """:data:`gc.callbacks` hook: a collection starts only when no frozen sort runs, and no
-    frozen sort starts until it ends (the collecting thread itself re-enters: an ``RLock``)."""
-    state = _collecting
-    if state is None:                                 # interpreter shutdown
-        return
-    if phase == "start":
-        lock = _FREEZE_LOCK
-        lock.acquire()
-        state.lock = lock
-    elif getattr(state, "lock", None) is not None:    # "stop" of a collection holding the lock
-        lock, state.lock = state.lock, None
-        lock.release()
-
-
-def _new_lock_in_child() -> None:
-    """After ``fork()``: a lock held by another thread of the parent would stay held for ever
-    (and with it every collection of the child)."""
-    global _FREEZE_LOCK, _collecting
-    _FREEZE_LOCK, _collecting = threading.RLock(), threading.local()
-
-
-os.register_at_fork(after_in_child=_new_lock_in_child)
-
-
 def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
     """Sort the runs of all lanes (lanes ordered by decreasing size class) in one kernel: a
     chain of symbolic conditionals picks the network of each lane's size class ``sizes``
     (ascending); SIMD packets whose lanes share a class run one network.  Returns the
     lanes' flags summed (UInt64, width 1; see :func:`_network_branch`)."""
-    dr.make_opaque(out)                               # allocated, not a literal (no kernel)
-    args = (kind, tuple(sources), start, count, packet, out, tuple(sizes), ties)
-    if not FREEZE or dr.width(sources[0]) == 1:       # one segment: a scalar input records anew
-        counter = _sort_lanes_traced(*args)
-    else:
-        with _FREEZE_LOCK:                            # one frozen call at a time, no collection
-            if _collections_wait_for_sorts not in gc.callbacks:     # from the first frozen sort on
-                gc.callbacks.append(_collections_wait_for_sorts)    # (measured 2-7 us per collection)
-            enabled = gc.isenabled()
-            gc.disable()
-            try:
-                counter = _sort_lanes_frozen(*args)
-            finally:
-                if enabled:
-                    gc.enable()
-    # a recording traces symbolic conditionals, each of which opens a new scope, a replay
-    # none: without a scope here, the caller's next kernel merged equal expressions (the
-    # default mask of a gather and an arange) after a replay only, and was compiled anew
-    dr.detail.new_scope(dr.backend_v(start))
-    return counter
+    return _sort_lanes_traced(kind, tuple(sources), start, count, packet, out, tuple(sizes), ties)
 
 
 def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
@@ -271,21 +197,12 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             packets.append(pos // sizes[c] + np.arange(sel.size))
             pos += sel.size * sizes[c]
     n = int(counts.sum())
-    real = sum(sel.size for sel in lanes)
-    pad = 0                                           # empty lanes (a pair of pad slots each):
-    while real and real + pad in (1, n):              # the lanes' width is never 1 nor the segments'
-        pad += 1                                      # (both would re-record the frozen kernel)
-    if pad:
-        lanes.append(np.zeros(pad, np.int64))
-        packets.append(pos // sizes[0] + np.arange(pad))
-        pos += pad * sizes[0]
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
     out = dict(off=off, n=n, sizes=sizes, slots=slots, big=None)
     if lanes:
         lane_t = _u32(np.concatenate(lanes))
         out["start"] = dr.gather(UInt32, off, lane_t)
-        real_lane = dr.arange(UInt32, real + pad) < dr.opaque(UInt32, real)
-        out["count"] = dr.select(real_lane, dr.gather(UInt32, off, lane_t + 1) - out["start"], 0)
+        out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
         out["packet"] = _u32(np.concatenate(packets))
     big_t = np.flatnonzero(counts > MAX_NETWORK)
     out["total"] = slots
@@ -311,7 +228,7 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             mid, end = np.minimum(a0 + w, rend), np.minimum(a0 + 2 * w, rend)
             final = 2 * w >= widest                   # one lane per texel: the whole texel
             n, dst = (cb[t], base[big_t][t]) if final else (end - a0, a0)
-            # lanes in texel order: sequential memory (measured 8 % faster than longest first)
+            # lanes in texel order: sequential memory (faster than longest first)
             passes.append(dict(a0=_u32(a0), mid=_u32(mid), end=_u32(end), final=final, n=_u32(n), dst=_u32(dst)))
             w *= 2
         size = int(region[-1])
