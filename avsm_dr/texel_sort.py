@@ -127,7 +127,11 @@ def word_function(kind: str, sources):
     return at
 
 
-def _sort_lanes_traced(kind: str, sources, start, count, packet, out, sizes: tuple, ties: bool):
+def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
+    """Sort the runs of all lanes (lanes ordered by decreasing size class) in one kernel: a
+    chain of symbolic conditionals picks the network of each lane's size class ``sizes``
+    (ascending); SIMD packets whose lanes share a class run one network.  Returns the
+    lanes' flags summed (UInt64, width 1; see :func:`_network_branch`)."""
     UInt32, UInt64, _, _ = _types()
     word_at = word_function(kind, sources)
 
@@ -140,14 +144,6 @@ def _sort_lanes_traced(kind: str, sources, start, count, packet, out, sizes: tup
     counter = dr.zeros(UInt64, 1)             # one atomic add per SIMD packet
     dr.scatter_reduce(dr.ReduceOp.Add, counter, flags, UInt32(0), flags != 0, mode=dr.ReduceMode.Local)
     return counter
-
-
-def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
-    """Sort the runs of all lanes (lanes ordered by decreasing size class) in one kernel: a
-    chain of symbolic conditionals picks the network of each lane's size class ``sizes``
-    (ascending); SIMD packets whose lanes share a class run one network.  Returns the
-    lanes' flags summed (UInt64, width 1; see :func:`_network_branch`)."""
-    return _sort_lanes_traced(kind, tuple(sources), start, count, packet, out, tuple(sizes), ties)
 
 
 def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):

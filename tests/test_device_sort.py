@@ -197,9 +197,10 @@ def test_sorts_right_under_debug_and_kernel_history_flags(backend, rng):
     ``KernelHistory`` flags on (a user debugging, the timers): each equals the host stable
     argsort.  The sort used to replay a recording (``dr.freeze``) of its kernel; under these
     flags the 128^2 replays put other texels' or uninitialised payloads in texels of one and
-    two segments, and the consumers' gathers read out of bounds (the random-order segfault of
-    the suite, seed 2026: ``Debug`` showed 263 out-of-bounds reads in ``experiments frame
-    --quick`` with the recording, none without it).  Tolerance: none, orders are exact."""
+    two segments, and the consumers' gathers read out of bounds (``Debug`` showed 263
+    out-of-bounds reads in ``experiments frame --quick`` with the recording, none without it;
+    found while chasing the suite's random-order segfault, which has a cause still open).
+    Tolerance: none, orders are exact."""
     with dr.scoped_set_flag(dr.JitFlag.Debug, True), dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         for texels in (4096, 4096, 16384, 16384):
             counts = np.r_[19, rng.integers(0, 8, texels - 1)]
