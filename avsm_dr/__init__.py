@@ -1,5 +1,7 @@
 """avsm_dr: differentiable volumetric shadow representations on Dr.Jit.
 
+Example::
+
     import avsm_dr as ad
     seg = ad.Segments.from_arrays(offsets, z0, z1, transmittance=t_exit)
     rep = ad.build("avsm", seg, nodes=8)

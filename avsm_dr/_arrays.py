@@ -87,7 +87,7 @@ def aligned(a: np.ndarray, dtype=None) -> np.ndarray:
 
     Dr.Jit's LLVM backend emits ``align 64`` loads for a NumPy-backed input only when
     its pointer happens to be 64-byte aligned (``align 1`` otherwise), so the same
-    kernel gets two hashes and is recompiled at random (measured: ~40 ms per kernel).
+    kernel gets two hashes and is recompiled at random.
     """
     a = np.asarray(a)
     dt = a.dtype if dtype is None else np.dtype(dtype)

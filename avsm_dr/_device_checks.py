@@ -1,15 +1,12 @@
 """Lookup arguments validated on the device (Dr.Jit arrays, and NumPy depths once converted).
 
-``Representation.eval`` used to copy every Dr.Jit texel / depth array to the host to check
-it (NumPy ``isfinite`` and ranges over float64 copies: ~6 ms per 1 M receivers measured,
-more than the AVSM-8 lookup itself).  Here the same rules reduce to one boolean per
-argument with ``dr.all`` (measured 0.45 ms per 1 M) and one readback of that flag; point
-lookups go further and check inside the lookup's own kernel (:func:`point_lookup`: one
-launch and a 4-byte readback, no separate reduction).
+The host checks' rules (NumPy ``isfinite`` and ranges) reduce to one boolean per argument
+with ``dr.all`` and one readback of that flag, instead of a host copy of every texel / depth
+array; point lookups go further and check inside the lookup's own kernel
+(:func:`point_lookup`: one launch and a 4-byte readback, no separate reduction).
 
-NumPy lookups gain too (the bench's 200 k receivers: 8-10 ms of host checks and float64
-copies per call before, for a 2-4 ms kernel): integer texels are checked by their min and
-max, float depths converted once to the storage type and checked there.  Plain NumPy
+NumPy lookups: integer texels are checked by their min and max, float depths converted once
+to the storage type and checked there.  Plain NumPy
 point lookups whose extremes already prove them valid skip the device flag altogether
 (:func:`host_point_lookup`: one launch, no readback).
 
@@ -162,8 +159,6 @@ def point_lookup(eval_texels, texel, texel_checked: bool, depth, strict: bool, n
     dr.eval(T, bad)
     # Wait for the kernel before the inputs can be released: a NumPy-backed input (the
     # caller's converted texels / depths) freed while its kernel is still queued is released
-    # by a host task on the worker threads, which the next lookup can wait behind (measured
-    # on 2 loaded cores, 200 k AVSM-8 lookups: median 12-23 ms without this wait, 2.4-3.6 ms
-    # with it).
+    # by a host task on the worker threads, which the next lookup can wait behind.
     dr.sync_thread()
     return T if int(bad[0]) == 0 else None

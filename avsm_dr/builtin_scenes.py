@@ -17,9 +17,13 @@ Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps", EGSR 20
 """
 from __future__ import annotations
 
+from collections.abc import Callable, MutableMapping
+from dataclasses import dataclass
+
 import numpy as np
 
-from . import validation as V
+from . import procedural, validation as V
+from .procedural import value_noise  # noqa: F401  (re-exported: the noise lives there)
 from .scene import DirectionalLight, Hair, OpaqueBox, Particles, PointLight, Scene, SpotLight
 
 #: Largest ``size`` (voxels per unit; the plume's grid is then 256 x 384 x 256 and its
@@ -30,40 +34,9 @@ MAX_POINTS = 1 << 22
 
 
 # --------------------------------------------------------------------- noise
-def value_noise(shape, cells: int, rng: np.random.Generator) -> np.ndarray:
-    """Smooth value noise in [0, 1] on a (nz, ny, nx) grid: random values on a lattice of
-    ``cells`` cells along the longest axis, interpolated with smoothstep weights."""
-    shape = tuple(int(s) for s in shape)
-    nmax = max(shape)
-    axes = []
-    for n in shape:
-        c = max(1, int(np.ceil(cells * n / nmax)))
-        u = (np.arange(n) + 0.5) / n * c
-        i0 = np.minimum(np.floor(u).astype(np.int64), c - 1)
-        f = u - i0
-        axes.append((i0, f * f * (3 - 2 * f), c))
-    lat = rng.random(tuple(a[2] + 1 for a in axes))
-    (iz, wz, _), (iy, wy, _), (ix, wx, _) = axes
-    out = np.zeros(shape)
-    for dz in (0, 1):
-        for dy in (0, 1):
-            for dx in (0, 1):
-                w = ((wz if dz else 1 - wz)[:, None, None] * (wy if dy else 1 - wy)[None, :, None]
-                     * (wx if dx else 1 - wx)[None, None, :])
-                out += w * lat[np.ix_(iz + dz, iy + dy, ix + dx)]
-    return out
-
-
 def fbm(shape, seed: int, octaves: int = 4, cells: int = 3) -> np.ndarray:
-    """Fractal (fBm) value noise in [0, 1]: octaves at doubling frequency, halving amplitude."""
-    rng = np.random.default_rng(seed)
-    out = np.zeros(tuple(shape))
-    total = 0.0
-    for o in range(octaves):
-        amp = 0.5 ** o
-        out += amp * value_noise(shape, cells * 2 ** o, rng)
-        total += amp
-    return out / total
+    """Fractal (fBm) value noise in [0, 1], seeded: :func:`avsm_dr.procedural.fbm`."""
+    return procedural.fbm(shape, np.random.default_rng(seed), octaves, cells)
 
 
 def _centres(shape, bmin, bmax):
@@ -123,7 +96,97 @@ def _check(seed, light, n_receivers, density_scale=1.0):
                          f"got {type(light).__name__}")
 
 
+# --------------------------------------------------------------------- registry
+@dataclass(frozen=True)
+class SceneEntry:
+    """One registered scene: ``factory(**kwargs) -> Scene``, a one-line ``description``,
+    the ``content`` it holds (tags of :data:`CONTENT`) and free ``tags``."""
+    name: str
+    factory: Callable[..., Scene]
+    description: str = ""
+    content: tuple = ()
+    tags: tuple = ()
+
+
+#: Content tags of :attr:`SceneEntry.content`.
+CONTENT = ("grid", "particles", "hair", "blockers")
+
+
+class SceneRegistry(MutableMapping):
+    """The built-in scenes by name: a mapping ``name -> factory`` (registration order) that
+    also keeps each scene's :class:`SceneEntry`.  ``SCENES[name] = factory`` and
+    ``SCENES.update({...})`` register with no tags; :meth:`register` (also a decorator,
+    :func:`register_scene`) takes the description, content and tags."""
+
+    def __init__(self):
+        self._entries: dict[str, SceneEntry] = {}
+
+    def register(self, factory=None, *, name: str | None = None, description: str | None = None,
+                 content=(), tags=()):
+        """Register ``factory`` (default name: its ``__name__``; description: the first line
+        of its docstring); used bare or with keywords as a decorator.  Returns the factory."""
+        def add(fn):
+            if not callable(fn):
+                raise ValueError(f"factory: expected a callable returning a Scene, got {fn!r}")
+            key = fn.__name__ if name is None else name
+            if not (isinstance(key, str) and key):
+                raise ValueError(f"name: expected a non-empty string, got {key!r}")
+            bad = [c for c in content if c not in CONTENT]
+            if bad:
+                raise ValueError(f"content: unknown content tags {bad}; known: {list(CONTENT)}")
+            doc = (description if description is not None
+                   else (fn.__doc__ or "").strip().split("\n")[0])
+            self._entries[key] = SceneEntry(key, fn, doc, tuple(content), tuple(tags))
+            return fn
+        return add if factory is None else add(factory)
+
+    def __getitem__(self, name):
+        return self._entries[name].factory
+
+    def __setitem__(self, name, factory):
+        self.register(factory, name=name)
+
+    def __delitem__(self, name):
+        del self._entries[name]
+
+    def __iter__(self):
+        return iter(self._entries)
+
+    def __len__(self):
+        return len(self._entries)
+
+    def entry(self, name: str) -> SceneEntry:
+        """The :class:`SceneEntry` of ``name``; ValueError for an unknown name."""
+        self._check(name)
+        return self._entries[name]
+
+    def names(self, tag: str | None = None, content: str | None = None) -> tuple:
+        """Names in registration order, those with ``tag`` in their tags and ``content`` in
+        their content when given."""
+        return tuple(n for n, e in self._entries.items()
+                     if (tag is None or tag in e.tags) and (content is None or content in e.content))
+
+    def build(self, name: str, **kwargs) -> Scene:
+        """The scene ``name`` built with ``kwargs``; ValueError for an unknown name."""
+        self._check(name)
+        return self._entries[name].factory(**kwargs)
+
+    def _check(self, name) -> None:
+        if not (isinstance(name, str) and name in self._entries):
+            raise ValueError(f"name: unknown scene {name!r}; known: {sorted(self)}{V.did_you_mean(name, self)}")
+
+    def __repr__(self) -> str:
+        return f"SceneRegistry({list(self)})"
+
+
+#: Every built-in scene (:class:`SceneRegistry`); tag ``'core'``: the six scenes the
+#: studies sweep (``error_curves``, ``memory_budget``).
+SCENES = SceneRegistry()
+register_scene = SCENES.register
+
+
 # --------------------------------------------------------------------- scenes
+@register_scene(content=("grid",), tags=("core",))
 def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None,
           n_receivers: int = 1024) -> Scene:
     """A smoke plume rising from y = 0 and widening with height, in the box
@@ -152,6 +215,7 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
 
 
+@register_scene(content=("grid",), tags=("core",))
 def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, light=None,
                   n_receivers: int = 1024) -> Scene:
     """Three vertical smoke columns at x = -1, 0, 1 in the box [-1.5, 1.5] x [0, 1] x [-0.5, 0.5],
@@ -179,6 +243,7 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
 
 
+@register_scene(content=("grid", "hair",), tags=("core",))
 def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int = 300,
                    hair_radius: float = 0.002, hair_opacity: float = 0.3,
                    density_scale: float = 8.0, light=None, n_receivers: int = 1024) -> Scene:
@@ -214,6 +279,7 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
                  meta={"seed": seed, "size": size, "tfx_path": None if tfx_path is None else str(tfx_path)})
 
 
+@register_scene(content=("particles",), tags=("core",))
 def particles(n: int = 200, seed: int = 0, light=None, n_receivers: int = 1024) -> Scene:
     """A cloud of ``n`` spherical particles (radius 0.03..0.1, extinction 5..20 per unit)
     around (0, 0.3, 0); light from above (directional, mostly -y).  Receivers: half inside
@@ -238,6 +304,7 @@ def particles(n: int = 200, seed: int = 0, light=None, n_receivers: int = 1024) 
                  meta={"seed": seed, "n": n})
 
 
+@register_scene(content=("grid", "blockers",), tags=("core",))
 def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0, light=None,
                      n_receivers: int = 1024) -> Scene:
     """A smoke puff in [-0.4, 0.4] x [0.1, 0.9] x [-0.4, 0.4] above an opaque table top
@@ -260,17 +327,12 @@ def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0,
                  meta={"seed": seed, "size": size, "density_scale": density_scale})
 
 
-SCENES = {"plume": plume, "three_columns": three_columns, "hair_and_smoke": hair_and_smoke,
-          "particles": particles, "smoke_over_table": smoke_over_table}
-
-
 def get(name: str, **kwargs) -> Scene:
     """Scene by name (see :data:`SCENES`)."""
-    if not (isinstance(name, str) and name in SCENES):
-        raise ValueError(f"name: unknown scene {name!r}; known: {sorted(SCENES)}{V.did_you_mean(name, SCENES)}")
-    return SCENES[name](**kwargs)
+    return SCENES.build(name, **kwargs)
 
 
+@register_scene(content=("grid",), tags=("core",))
 def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, density_scale: float = 40.0,
                     light=None, n_receivers: int = 1024) -> Scene:
     """A buoyant smoke plume simulated by stable fluids (:func:`avsm_dr.fluid.simulate_plume`:
@@ -295,4 +357,4 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
                  meta={"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
 
 
-SCENES["simulated_plume"] = simulated_plume
+SCENES.update(procedural.SCENES)

@@ -393,8 +393,7 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     (default nx / 8) on the floor, whose centre and horizontal velocity wander by
     ``wobble`` (seeded random walk), then :meth:`StableFluids.step` with ``dt``: advection
     (MacCormack for the density), forces (``buoyancy`` per unit density, vorticity
-    confinement ``vorticity``), projection (``iterations`` SOR sweeps).  Measured on 2 shared cores:
-    32 x 48 x 32, 40 steps in 4-8 s.
+    confinement ``vorticity``), projection (``iterations`` SOR sweeps).
     cache: True (the folder :data:`CACHE_DIR`), a folder, or False: results are stored as
     ``plume_<key>.npy``, key = hash of the parameters, the backend and this module's source.
     """
@@ -477,7 +476,6 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     (dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations).
     cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``, key = hash of the
     parameters, backend and this module's source).  progress: a tqdm bar over the steps.
-    Measured on 2 shared cores: 32 x 48 x 32, 40 + 47 steps in about 15 s.
     """
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)

@@ -1,5 +1,7 @@
 """Mitsuba 3 integrator ``avsm_single_scatter``: single scattering with shadow-map transmittance.
 
+Example::
+
     import avsm_dr.mitsuba                     # registers the plugin for the current variant
     scene = mi.load_dict({..., "integrator": {"type": "avsm_single_scatter",
                                               "representation": "avsm", "nodes": 8}})

@@ -25,7 +25,7 @@ Pipeline (every step differentiable with respect to the voxel densities ``sigma`
   ``reverse='auto'`` (checkpointed where the reverse-mode trajectory, segments x
   loop state, would be too large), ``'trajectory'`` or ``'checkpoint'``.
 
-Inverse problem (:func:`recover`): minimise over ``sigma >= 0``
+Inverse problem (:func:`recover`): minimise over ``sigma >= 0`` ::
 
     E(sigma) = 1/|lights| sum_l mean_k (T_l,k(sigma) - T*_l,k)^2 + lambda sum_(v,w) (sigma_v - sigma_w)^2 / n_pairs
 

@@ -21,6 +21,7 @@ import drjit as dr
 import numpy as np
 
 from . import validation as V
+from .geometry import orthonormal_basis, ray_box, ray_sphere
 
 
 @dataclass
@@ -112,8 +113,54 @@ class Hair:
         return s, r, op
 
 
+class Blocker:
+    """An opaque blocker: a subclass (a dataclass) carries everything capture, ground truth,
+    shading and Mitsuba need, so a new shape is one class.  Methods take a validated copy
+    (:meth:`validate`) and float64 rays ``o``, ``d`` (K, 3), ``|d| = 1``.
+
+    * :meth:`bounds`: world AABB (lo, hi);  :meth:`contains`: p inside the solid;
+    * :meth:`first_hit`: ``(t, hit, cos)`` of the first surface at ``t >= 0``, ``cos = |d . n|``
+      (capture: :mod:`avsm_dr.capture.opaque`);
+    * :meth:`blocks`: (K,) the blocker meets the open path ``(0, far)`` (ground truth);
+    * :meth:`surface_hit`: (K,) nearest surface crossing at ``t > 0``, inf = none (view rays);
+    * :meth:`to_mitsuba`: the Mitsuba shape dict with ``bsdf``.
+    """
+    def validate(self, name: str = "blocker") -> "Blocker":
+        raise NotImplementedError
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def contains(self, p) -> bool:
+        return False
+
+    def first_hit(self, o, d):
+        raise NotImplementedError
+
+    def blocks(self, o, d, far) -> np.ndarray:
+        raise NotImplementedError
+
+    def surface_hit(self, o, d) -> np.ndarray:
+        raise NotImplementedError
+
+    def to_mitsuba(self, mi, bsdf: dict) -> dict:
+        raise NotImplementedError
+
+
+def _solid_blocks(t0, t1, hit, far):
+    """A solid's chord [t0, t1] meets the open path (0, far)."""
+    return hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
+
+
+def _solid_surface(t0, t1, hit):
+    """Nearest surface crossing t > 0 of a solid's chord [t0, t1] (inf = none)."""
+    th = np.where(t0 > 0, t0, t1)
+    return np.where(hit & (th > 0), th, np.inf)
+
+
 @dataclass
-class OpaqueSphere:
+class OpaqueSphere(Blocker):
+    """Solid sphere; first hit: the first root of ``|o + t d - c| = r``."""
     center: np.ndarray
     radius: float
 
@@ -122,9 +169,35 @@ class OpaqueSphere:
         return OpaqueSphere(V.vec3(self.center, f"{name}.center"),
                             V.real(self.radius, f"{name}.radius", 0.0, open_min=True))
 
+    def bounds(self):
+        return self.center - self.radius, self.center + self.radius
+
+    def contains(self, p) -> bool:
+        return bool(np.linalg.norm(p - self.center) < self.radius)
+
+    def first_hit(self, o, d):
+        c = np.broadcast_to(self.center, o.shape)
+        t0, _, hit = ray_sphere(o, d, c, np.full(o.shape[0], self.radius), t_min=0.0)
+        n = (o + t0[:, None] * d - c) / self.radius
+        return t0, hit, np.abs(np.einsum("ij,ij->i", n, d))
+
+    def _chord(self, o, d):
+        return ray_sphere(o, d, np.asarray(self.center, np.float64), float(self.radius))
+
+    def blocks(self, o, d, far):
+        return _solid_blocks(*self._chord(o, d), far)
+
+    def surface_hit(self, o, d):
+        return _solid_surface(*self._chord(o, d))
+
+    def to_mitsuba(self, mi, bsdf):
+        return {"type": "sphere", "center": np.asarray(self.center, float).tolist(),
+                "radius": float(self.radius), "bsdf": bsdf}
+
 
 @dataclass
-class OpaqueBox:
+class OpaqueBox(Blocker):
+    """Solid axis-aligned box [min, max]; first hit: the slab entry."""
     min: np.ndarray
     max: np.ndarray
 
@@ -135,10 +208,43 @@ class OpaqueBox:
             raise ValueError(f"{name}.max: zero-size box (max must exceed min on every axis)")
         return OpaqueBox(lo, hi)
 
+    def bounds(self):
+        return self.min, self.max
+
+    def contains(self, p) -> bool:
+        return bool(np.all((p > self.min) & (p < self.max)))
+
+    def first_hit(self, o, d):
+        t0, _, hit = ray_box(o, d, self.min, self.max, t_min=0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (self.min - o) / d
+            tb = (self.max - o) / d
+        entry = np.where(np.isnan(ta), -np.inf, np.minimum(ta, tb))
+        axis = np.argmax(entry, axis=1)                  # the face the ray enters through
+        return t0, hit, np.abs(d[np.arange(d.shape[0]), axis])
+
+    def _chord(self, o, d):
+        t0, t1, _ = ray_box(o, d, np.asarray(self.min, np.float64), np.asarray(self.max, np.float64))
+        return t0, t1, t0 <= t1
+
+    def blocks(self, o, d, far):
+        return _solid_blocks(*self._chord(o, d), far)
+
+    def surface_hit(self, o, d):
+        return _solid_surface(*self._chord(o, d))
+
+    def to_mitsuba(self, mi, bsdf):
+        lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
+        return {"type": "cube", "bsdf": bsdf, "to_world": (
+            mi.ScalarTransform4f().translate(((lo + hi) / 2).tolist())
+            @ mi.ScalarTransform4f().scale(((hi - lo) / 2).tolist()))}
+
 
 @dataclass
-class OpaquePlane:
-    """Finite square of half-size ``extent`` centred at ``point`` with normal ``normal``."""
+class OpaquePlane(Blocker):
+    """Finite square of half-size ``extent`` centred at ``point`` with normal ``normal``:
+    ``|(p - point) . u| <= extent``, ``|(p - point) . v| <= extent`` with (u, v, normal) =
+    :func:`~avsm_dr.geometry.orthonormal_basis` (normal); blocks from both sides."""
     point: np.ndarray
     normal: np.ndarray
     extent: float = 1.0
@@ -148,9 +254,52 @@ class OpaquePlane:
         return OpaquePlane(V.vec3(self.point, f"{name}.point"), V.unit_vector(self.normal, f"{name}.normal"),
                            V.real(self.extent, f"{name}.extent", 0.0, open_min=True))
 
+    def bounds(self):
+        u, v, _ = orthonormal_basis(self.normal)
+        half = self.extent * (np.abs(u) + np.abs(v))
+        return self.point - half, self.point + half
 
-#: The opaque blocker types (:func:`validate_blockers`).
-BLOCKERS = (OpaqueSphere, OpaqueBox, OpaquePlane)
+    def first_hit(self, o, d):
+        u, v, n = orthonormal_basis(self.normal)
+        dn = d @ n
+        ok = np.abs(dn) > 1e-12
+        t = np.where(ok, ((self.point - o) @ n) / np.where(ok, dn, 1.0), -1.0)
+        q = o + t[:, None] * d - self.point
+        hit = ok & (t >= 0) & (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent)
+        return t, hit, np.abs(dn)
+
+    def blocks(self, o, d, far):
+        u, v, n = orthonormal_basis(self.normal)
+        c = np.asarray(self.point, np.float64)
+        den = d @ n
+        ok = den != 0
+        t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), -1.0)
+        q = o + t[:, None] * d - c
+        inside = (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent)
+        return ok & inside & (t > 0) & (t < far)
+
+    def surface_hit(self, o, d):
+        u, v, n = orthonormal_basis(self.normal)
+        c, half = np.asarray(self.point, np.float64), float(self.extent)
+        den = d @ n
+        ok = np.abs(den) > 1e-300
+        t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), np.inf)
+        q = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d - c
+        ok &= (t > 0) & (np.abs(q @ u) <= half) & (np.abs(q @ v) <= half)
+        return np.where(ok, t, np.inf)
+
+    def to_mitsuba(self, mi, bsdf):
+        return {"type": "rectangle", "bsdf": {"type": "twosided", "bsdf": bsdf},
+                "to_world": mi.ScalarTransform4f(square_to_world(self.point, self.normal, self.extent))}
+
+
+def square_to_world(c, n, half) -> np.ndarray:
+    """4 x 4 matrix taking Mitsuba's rectangle [-1, 1]^2 (z = 0) onto the square centred at
+    ``c`` with normal ``n`` and half size ``half``, axes of :func:`~avsm_dr.geometry.orthonormal_basis`."""
+    u, v, n = orthonormal_basis(n)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = u * half, v * half, n, np.asarray(c, float)
+    return m
 
 
 def validate_blockers(blockers) -> list:
@@ -160,9 +309,9 @@ def validate_blockers(blockers) -> list:
         raise ValueError(f"blockers: expected a list, got {type(blockers).__name__}")
     out = []
     for i, b in enumerate(blockers):
-        if not isinstance(b, BLOCKERS):
-            raise ValueError(f"blockers[{i}]: expected OpaqueSphere, OpaqueBox or OpaquePlane, "
-                             f"got {type(b).__name__}")
+        if not isinstance(b, Blocker):
+            kinds = ", ".join(t.__name__ for t in Blocker.__subclasses__())
+            raise ValueError(f"blockers[{i}]: expected a Blocker ({kinds}), got {type(b).__name__}")
         out.append(b.validate(f"blockers[{i}]"))
     return out
 
@@ -171,11 +320,29 @@ def validate_blockers(blockers) -> list:
 class Scene:
     """Everything a shadow needs: content, light, receivers.
 
-    density: (nz, ny, nx) float32 extinction per world unit, or None for non-grid content
+    Attributes
+    ----------
+    name
+        the scene's name (figures, tables).
+    light
+        DirectionalLight, SpotLight or PointLight.
+    density
+        (nz, ny, nx) float32 extinction per world unit, or None for non-grid content
         (floating point: integer and boolean grids are refused, :func:`avsm_dr.validation.grid_dtype`).
-    bbox: (min_xyz, max_xyz) of the grid, or None.
-    receivers: (K, 3) world points where shadows are evaluated.
-    receiver_plane: (point, normal, half_size) of the plane used for images, or None.
+    bbox
+        (min_xyz, max_xyz) of the grid, or None.
+    receivers
+        (K, 3) world points where shadows are evaluated.
+    particles
+        :class:`Particles`, or None.
+    hair
+        :class:`Hair`, or None.
+    blockers
+        a list of opaque blockers.
+    receiver_plane
+        (point, normal, half_size) of the plane used for images, or None.
+    meta
+        free-form provenance (source file, scale, ...).
     """
     name: str
     light: Light
@@ -199,21 +366,30 @@ class Scene:
                   receivers=None) -> "Scene":
         """A scene holding one density grid: your own volume.
 
-        grid_or_path: (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per
-            world unit before ``density_scale``, or the path of a ``.npy`` or a Mitsuba
-            ``.vol`` file (:func:`avsm_dr.io.read_vol`, one channel).
-        bbox: (min_xyz, max_xyz) world box of the whole grid.  Default: the ``.vol`` header's
-            box, else voxels of side 1 centred at the origin, ``-+ (nx, ny, nz) / 2`` (the
-            grid's own aspect ratio, never stretched).  An explicit box is used as given.
-        density_scale: factor > 0 the grid is multiplied by (extinction = density_scale x
-            value); nothing else rescales the density.
-        light: DirectionalLight, SpotLight or PointLight; default a directional light from
-            above, ``DirectionalLight((0, -1, 0))``.
-        name: the scene's name (default: the file's stem, or 'grid').
-        receivers: (K, 3) world points, a count K, or None (1024): K points drawn uniformly
-            in the voxels with density > 0 (anywhere in the box for an all-zero grid), seed 0.
         No receiver plane (so no 'surface' receiver set).  ``meta`` records the source, the
         shape, the density scale and where the box came from.
+
+        Parameters
+        ----------
+        grid_or_path
+            (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per
+            world unit before ``density_scale``, or the path of a ``.npy`` or a Mitsuba
+            ``.vol`` file (:func:`avsm_dr.io.read_vol`, one channel).
+        bbox
+            (min_xyz, max_xyz) world box of the whole grid.  Default: the ``.vol`` header's
+            box, else voxels of side 1 centred at the origin, ``-+ (nx, ny, nz) / 2`` (the
+            grid's own aspect ratio, never stretched).  An explicit box is used as given.
+        density_scale
+            factor > 0 the grid is multiplied by (extinction = density_scale x
+            value); nothing else rescales the density.
+        light
+            DirectionalLight, SpotLight or PointLight; default a directional light from
+            above, ``DirectionalLight((0, -1, 0))``.
+        name
+            the scene's name (default: the file's stem, or 'grid').
+        receivers
+            (K, 3) world points, a count K, or None (1024): K points drawn uniformly
+            in the voxels with density > 0 (anywhere in the box for an all-zero grid), seed 0.
         """
         import os
         from numbers import Integral

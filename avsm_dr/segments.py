@@ -30,6 +30,9 @@ import numpy as np
 from . import _arrays as A
 from . import backend
 from . import validation as V
+from .segment_dtype import (  # noqa: F401  (re-exported from their old home)
+    OVERFLOW_HINT, check_in_dtype, check_tiny, flush_subnormal, flushed, has_subnormal, np_dtype)
+from .segment_keys import rank_in_ranges, shuffle_key  # noqa: F401  (re-exported)
 from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels, sort_texels_view
 from .texel_sort import plan as sort_plan
 
@@ -57,53 +60,6 @@ ORDERS = REORDERS + ("submission", "unknown")
 _TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
 
 
-_HINT = {"float32": " or use dtype='float64'", "float64": ""}
-
-
-def _np_dtype(dtype: str):
-    return np.float32 if dtype == "float32" else np.float64
-
-
-def check_in_dtype(arr: np.ndarray, name: str, dtype: str) -> np.ndarray:
-    """``arr`` (float64 host values, finite) checked to be finite once stored in
-    ``dtype``; returns it with subnormal values (in ``dtype``) set to 0."""
-    info = np.finfo(_np_dtype(dtype))
-    if arr.size:
-        with np.errstate(over="ignore"):
-            bad = ~np.isfinite(arr.astype(info.dtype))
-        if bad.any():
-            what = (f"{float(arr[0]):g} overflows" if arr.size == 1 else
-                    f"{int(np.count_nonzero(bad))} value(s) overflow (e.g. {float(arr[bad][0]):g})")
-            raise ValueError(f"{name}: {what} the {dtype} storage (|x| <= {float(info.max):.6g}); "
-                             f"rescale the scene{_HINT[dtype]}")
-        tiny = np.abs(arr) < float(info.tiny)
-        if tiny.any():
-            arr = np.where(tiny, 0.0, arr)
-    return arr
-
-
-def check_tiny(arr: np.ndarray, dtype: str) -> np.ndarray:
-    """``arr`` with values below the smallest normal number of ``dtype`` set to 0."""
-    tiny = float(np.finfo(_np_dtype(dtype)).tiny)
-    return np.where(np.abs(arr) < tiny, 0.0, arr) if arr.size else arr
-
-
-def has_subnormal(host_arr: np.ndarray, dtype: str) -> bool:
-    """True when ``host_arr`` holds a nonzero value below the smallest normal of ``dtype``."""
-    tiny = float(np.finfo(_np_dtype(dtype)).tiny)
-    return bool(host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)))
-
-
-def flush_subnormal(x, host_arr: np.ndarray, dtype: str):
-    """Dr.Jit ``x`` (type Float) with its subnormal values set to 0 (AD graph kept)."""
-    return _flushed(x, dtype) if has_subnormal(host_arr, dtype) else x
-
-
-def _flushed(x, dtype: str):
-    tiny = float(np.finfo(_np_dtype(dtype)).tiny)
-    return dr.select(dr.abs(x) < tiny, 0.0, x)
-
-
 def _recipe(src, Float, dtype: str, flush: bool, clamp: bool = False):
     """``fn()``: ``src`` (Dr.Jit or host) as ``Float``, clamped to OPAQUE_OPTICAL_DEPTH when
     ``clamp``, subnormals set to 0 when ``flush``; ``src`` itself when it needs neither."""
@@ -111,7 +67,7 @@ def _recipe(src, Float, dtype: str, flush: bool, clamp: bool = False):
         x = A.to_float(src, Float)
         if clamp:
             x = dr.minimum(x, OPAQUE_OPTICAL_DEPTH)
-        return _flushed(x, dtype) if flush else x
+        return flushed(x, dtype) if flush else x
     return fn
 
 
@@ -146,65 +102,6 @@ class _Linked:
         links = obj.__dict__.get("_links")
         if links and self.name in links:        # a new dict: copies of obj keep theirs
             obj.__dict__["_links"] = {k: fn for k, fn in links.items() if k != self.name}
-
-
-def _mix32(x, c1, c2):
-    """Chris Wellons' "lowbias32" integer hash (x ^= x >> 16; x *= c1; x ^= x >> 15; x *= c2;
-    x ^= x >> 16) on uint32 NumPy or Dr.Jit UInt32 arrays (products modulo 2^32)."""
-    x = x ^ (x >> 16)
-    x = x * c1
-    x = x ^ (x >> 15)
-    x = x * c2
-    return x ^ (x >> 16)
-
-
-_MIX = (0x7FEB352D, 0x846CA68B)
-
-
-def _seed_word(seed: int) -> int:
-    """``lowbias32(seed)`` as a Python int (the seed's share of :func:`shuffle_key`)."""
-    return int(_mix32(np.array([seed], np.uint32), *(np.uint32(c) for c in _MIX))[0])
-
-
-def shuffle_key(seed: int, texel, rank):
-    """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
-    ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
-    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: uint32
-    NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
-    opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
-    (seed, texel, its segment count) only, not on threads or on the order it came in."""
-    if isinstance(texel, np.ndarray):
-        c1, c2 = (np.uint32(c) for c in _MIX)
-        s = np.uint32(_seed_word(seed))
-        with np.errstate(over="ignore"):
-            return _mix32(_mix32(texel.astype(np.uint32) + s, c1, c2) + rank.astype(np.uint32), c1, c2)
-    UInt32 = type(texel)
-    s = dr.opaque(UInt32, _seed_word(seed))
-    return _mix32(_mix32(texel + s, *_MIX) + rank, *_MIX)
-
-
-def rank_in_ranges(lo, hi, keys, ids=None):
-    """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
-    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., ids_j) < (keys[0]_i, ..., ids_i)}``,
-    lexicographic, on the device (one lane per element, ``hi - lo`` gathers each).
-
-    keys: Dr.Jit arrays (S,) compared in order; ids: distinct tie-breakers (S,) (default:
-    the lane index, so equal keys keep their stored order, a stable sort).  Within each
-    range the ranks are a permutation of ``0 .. hi - lo - 1``."""
-    UInt32 = backend.types().UInt32
-    i = dr.arange(UInt32, dr.width(lo))
-
-    def cond(j, rank):
-        return j < hi
-
-    def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
-        before = j < i if ids is None else dr.gather(type(ids), ids, j) < ids
-        for k in reversed(keys):
-            kj = dr.gather(type(k), k, j)
-            before = (kj < k) | ((kj == k) & before)
-        return j + 1, rank + dr.select(before, 1, 0)
-
-    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), cond, body, labels=("j", "rank"))[1]
 
 
 @dataclass(eq=False)
@@ -243,12 +140,20 @@ class Segments:
                     dtype: str | None = None, order: str = "unknown") -> "Segments":
         """Validate and pack segments.
 
-        offsets: (T+1,) non-decreasing integers, offsets[0] = 0, offsets[-1] = S.
-        z0, z1: (S,) light-space entry/exit depths, z0 <= z1, finite.
-        transmittance: (S,) exit transmittance in [0, 1] (0 = opaque), or
-        optical_depth: (S,) tau >= 0 finite (values above OPAQUE_OPTICAL_DEPTH are clamped).
-        dtype: 'float32' (default) or 'float64'; default follows Dr.Jit float64 input.
-        order: the insertion order the arrays are in, one of :data:`ORDERS` (a label recorded
+        Parameters
+        ----------
+        offsets
+            (T+1,) non-decreasing integers, offsets[0] = 0, offsets[-1] = S.
+        z0, z1
+            (S,) light-space entry/exit depths, z0 <= z1, finite.
+        transmittance
+            (S,) exit transmittance in [0, 1] (0 = opaque); give this or ``optical_depth``.
+        optical_depth
+            (S,) tau >= 0 finite (values above OPAQUE_OPTICAL_DEPTH are clamped).
+        dtype
+            'float32' (default) or 'float64'; default follows Dr.Jit float64 input.
+        order
+            the insertion order the arrays are in, one of :data:`ORDERS` (a label recorded
             as :attr:`order`, not checked against the depths).
         """
         if not (isinstance(order, str) and order in ORDERS):
@@ -282,12 +187,12 @@ class Segments:
         if np.any(z1h < z0h):
             raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
         if n:   # the depth range (basis spans), hence every length, must be finite in dtype too
-            ft = _np_dtype(dtype)
+            ft = np_dtype(dtype)
             with np.errstate(over="ignore"):
                 span = ft(z1f.max()) - ft(z0f.min())
             if not np.isfinite(span):
                 raise ValueError(f"z1: the depth range max(z1) - min(z0) = {z1f.max() - z0f.min():.6g} "
-                                 f"overflows the {dtype} storage; rescale the scene{_HINT[dtype]}")
+                                 f"overflows the {dtype} storage; rescale the scene{OVERFLOW_HINT[dtype]}")
         if (transmittance is None) == (optical_depth is None):
             raise ValueError("transmittance: pass exactly one of transmittance= or optical_depth=")
         # Each stored array comes from a recipe over the caller's arrays: a grad-enabled Dr.Jit
@@ -297,7 +202,7 @@ class Segments:
         z1_raw = _recipe(z1 if A.is_drjit(z1) else z1f, Float, dtype, has_subnormal(z1h, dtype))
         z1_of = z1_raw
         if n:   # lengths whose density tau / length overflows float64 become steps (docstring)
-            ft = _np_dtype(dtype)
+            ft = np_dtype(dtype)
             length = z1f.astype(ft) - z0f.astype(ft)
             short = (length > 0) & (length < MIN_LENGTH)
             if short.any():

@@ -13,7 +13,7 @@ and ``l`` the unit direction to the light.
 :func:`render_plane` draws the receiver plane of a scene from the same camera
 and with the same conventions as :func:`avsm_dr.groundtruth.render_reference`
 (two-sided diffuse square, black blockers, black background, box pixel filter,
-rays from Mitsuba's own sensor), so the two images are comparable pixel by pixel:
+rays from Mitsuba's own sensor), so the two images are comparable pixel by pixel::
 
     pixel = mean over s x s sub-pixel rays of  T_view(cam -> x) * L_o(x)   [+ L_ss]
 
@@ -34,11 +34,10 @@ import math
 import numpy as np
 
 from . import validation as V
-from .geometry import orthonormal_basis, ray_box, ray_sphere
 from .groundtruth.content import check_scene, particles_tau, to_light
 from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for, spot_beam_width
 from .groundtruth.tracking import default_step, march, transmittance as gt_transmittance
-from .scene import DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight, Scene, SpotLight
+from .scene import DirectionalLight, OpaquePlane, PointLight, Scene, SpotLight
 
 #: Points per call of a light-transmittance callable (host memory bound; the ground truth
 #: marches at most ``groundtruth.MAX_SAMPLES`` = 2^28 samples per call, ~1000 per point).
@@ -109,31 +108,11 @@ def shade_receivers(scene: Scene, transmittance, points=None, normals=None,
 
 
 # ================================================================ ray casting
-def _hit_plane(o, d, c, n, half):
-    """t (N,) of rays with the square (c, n, half) oriented by orthonormal_basis; inf = miss."""
-    u, v, n = orthonormal_basis(n)
-    den = d @ n
-    ok = np.abs(den) > 1e-300
-    t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), np.inf)
-    q = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d - c
-    ok &= (t > 0) & (np.abs(q @ u) <= half) & (np.abs(q @ v) <= half)
-    return np.where(ok, t, np.inf)
-
-
 def _hit_blockers(o, d, blockers):
     """Nearest t > 0 of rays with any opaque blocker (inf = none)."""
     t = np.full(o.shape[0], np.inf)
     for b in blockers:
-        if isinstance(b, OpaqueSphere):
-            t0, t1, hit = ray_sphere(o, d, np.asarray(b.center, np.float64), float(b.radius))
-            th = np.where(t0 > 0, t0, t1)
-            t = np.where(hit & (th > 0), np.minimum(t, th), t)
-        elif isinstance(b, OpaqueBox):
-            t0, t1, _ = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
-            th = np.where(t0 > 0, t0, t1)
-            t = np.where((t0 <= t1) & (th > 0), np.minimum(t, th), t)
-        elif isinstance(b, OpaquePlane):
-            t = np.minimum(t, _hit_plane(o, d, np.asarray(b.point, np.float64), b.normal, float(b.extent)))
+        t = np.minimum(t, b.surface_hit(o, d))
     return t
 
 
@@ -168,7 +147,7 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
     s = V.integer(supersample, "supersample", 1)
     o, d = camera_rays(scene, width, height, cam, s)
     N = o.shape[0]
-    t_plane = _hit_plane(o, d, c, n, half)
+    t_plane = OpaquePlane(c, n, half).surface_hit(o, d)     # the receiver square, the same test
     t_block = _hit_blockers(o, d, content["blockers"])
     on_plane = np.isfinite(t_plane) & (t_plane < t_block)
     t_end = np.minimum(t_plane, t_block)

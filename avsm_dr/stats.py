@@ -14,6 +14,13 @@ matrix) and seeded, so the same call gives the same interval.
   by a two-stage bootstrap: configurations, then receivers within each) and whether the
   claim holds in every configuration.
 
+Samples with spatial correlation (texels of one map, receivers looked up through it) take
+``blocks``: a block label per value (:func:`texel_blocks`: tiles of 8 x 8 texels).  A
+replicate then draws as many blocks as there are, with replacement, and keeps every value
+of each drawn block (the moving-block idea of Kuensch 1989 on fixed, non-overlapping tiles:
+Lahiri, "Resampling Methods for Dependent Data", 2003, sec. 2.6), so the interval keeps the
+correlation within a tile; with one value per block it is the ordinary bootstrap, draw for draw.
+
 Statistics are names (``'mean'``, ``'median'``, ``'rmse'``, ``'mean_abs'``, ``'p99'``,
 ``'max'``) or callables ``f(x, axis) -> array`` reducing along ``axis``.
 """
@@ -72,6 +79,51 @@ def _replicates(fn: Callable, n: int, n_boot: int, rng) -> np.ndarray:
     return out
 
 
+#: Side in texels of the square tiles of :func:`texel_blocks`.
+BLOCK_TEXELS = 8
+
+
+def texel_blocks(texels, width: int, size: int = BLOCK_TEXELS) -> np.ndarray:
+    """(n,) int64 block label of each texel index (row-major, ``y * width + x``): the tile
+    ``(y // size, x // size)`` of ``size`` x ``size`` texels, numbered row-major."""
+    t = V.array(texels, "texels").ravel()
+    width, size = V.integer(width, "width", 1), V.integer(size, "size", 1)
+    if np.any(t < 0) or np.any(t != np.round(t)):
+        raise ValueError("texels: expected non-negative integer texel indices")
+    t = t.astype(np.int64)
+    y, x = t // width, t % width
+    return (y // size) * (-(-width // size)) + x // size
+
+
+def _check_blocks(blocks, n: int, name: str = "blocks"):
+    """(members, starts, counts) of the block labels ``blocks`` (n,): the value indices
+    sorted by block (stable), each block's start in ``members`` and size; None passes."""
+    if blocks is None:
+        return None
+    b = np.asarray(blocks).ravel()
+    if b.size != n:
+        raise ValueError(f"{name}: expected {n} block labels (one per value), got {b.size}")
+    _, inv, counts = np.unique(b, return_inverse=True, return_counts=True)
+    members = np.argsort(inv, kind="stable")
+    return members, np.r_[0, np.cumsum(counts)[:-1]], counts
+
+
+def _block_replicates(fn: Callable, layout, n_boot: int, rng) -> np.ndarray:
+    """(n_boot,) values of ``fn(idx[None, :])`` where each replicate's ``idx`` is the
+    members of G blocks drawn with replacement (G = number of blocks), concatenated in the
+    order drawn; draws ``rng.integers(0, G, size=(n_boot, G))``, as :func:`_replicates`
+    draws value indices."""
+    members, starts, counts = layout
+    G = counts.size
+    picks = rng.integers(0, G, size=(n_boot, G))
+    out = np.empty(n_boot)
+    for r in range(n_boot):
+        lens = counts[picks[r]]
+        first = np.repeat(starts[picks[r]] - np.r_[0, np.cumsum(lens)[:-1]], lens)
+        out[r] = fn(members[first + np.arange(lens.sum())][None, :])[0]
+    return out
+
+
 def _jackknife(fn: Callable, n: int) -> np.ndarray:
     """(n,) leave-one-out values of ``fn(idx)`` (rows of the (n, n - 1) index matrix)."""
     out = np.empty(n)
@@ -112,17 +164,20 @@ def _result(theta, boot, level, method, jack, **extra) -> dict:
 
 # ===================================================================== public
 def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, method: str = "percentile",
-                 seed: int = 0) -> dict:
+                 seed: int = 0, blocks=None) -> dict:
     """Bootstrap ``level`` interval for ``statistic`` of the sample ``x`` (1-D, >= 2 values).
 
     Returns dict(estimate (the statistic of x), low, high, level, method, n_boot, n,
-    std_error (of the replicates)).  method: 'percentile' or 'bca'.
+    std_error (of the replicates)).  method: 'percentile' or 'bca'.  blocks: a block label
+    per value (module docstring; percentile intervals only).
     """
     a = _sample(x, "x")
     _check(n_boot, level, method)
+    layout = _blocks_for(blocks, a.size, method)
     f = _stat(statistic)
     rng = np.random.default_rng(seed)
-    boot = _replicates(lambda idx: f(a[idx], axis=1), a.size, n_boot, rng)
+    fn = lambda idx: f(a[idx], axis=1)  # noqa: E731
+    boot = _replicates(fn, a.size, n_boot, rng) if layout is None else _block_replicates(fn, layout, n_boot, rng)
     return _result(f(a[None, :], axis=1)[0], boot, level, method,
                    lambda: _jackknife(lambda idx: f(a[idx], axis=1), a.size), n=int(a.size))
 
@@ -135,13 +190,14 @@ def _compare(sa, sb, compare):
 
 
 def paired_bootstrap(a, b, statistic="rmse", compare: str = "ratio", n_boot: int = 2000,
-                     level: float = 0.95, method: str = "percentile", seed: int = 0) -> dict:
+                     level: float = 0.95, method: str = "percentile", seed: int = 0, blocks=None) -> dict:
     """Interval for ``stat(a) - stat(b)`` (compare='difference') or ``stat(a) / stat(b)``
     ('ratio') where a[i] and b[i] belong to the same receiver i (e.g. the errors of two
     methods); each replicate resamples receivers once for both.
 
     Returns the keys of :func:`bootstrap_ci` plus ``a`` and ``b`` (the two statistics)
-    and ``p_a_smaller``: the share of replicates with stat(a) < stat(b).
+    and ``p_a_smaller``: the share of replicates with stat(a) < stat(b).  blocks: a block
+    label per receiver (module docstring; percentile intervals only).
     """
     x, y = _sample(a, "a"), _sample(b, "b")
     if x.size != y.size:
@@ -149,11 +205,20 @@ def paired_bootstrap(a, b, statistic="rmse", compare: str = "ratio", n_boot: int
     if compare not in ("difference", "ratio"):
         raise ValueError(f"compare: expected 'difference' or 'ratio', got {compare!r}")
     _check(n_boot, level, method)
-    return _paired(x, y, _stat(statistic), compare, n_boot, level, method, seed)[0]
+    layout = _blocks_for(blocks, x.size, method)
+    return _paired(x, y, _stat(statistic), compare, n_boot, level, method, seed, layout)[0]
 
 
-def _paired(x, y, f, compare, n_boot, level, method, seed):
-    """(result dict of :func:`paired_bootstrap`, (n_boot,) replicates); inputs checked."""
+def _blocks_for(blocks, n, method, name="blocks"):
+    """:func:`_check_blocks` of ``blocks``; ValueError for BCa with blocks."""
+    if blocks is not None and method != "percentile":
+        raise ValueError(f"method: block bootstrap intervals are percentile intervals, got method={method!r}")
+    return _check_blocks(blocks, n, name)
+
+
+def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
+    """(result dict of :func:`paired_bootstrap`, (n_boot,) replicates); inputs checked;
+    ``layout``: :func:`_check_blocks` of block labels, or None (values resampled)."""
     rng = np.random.default_rng(seed)
     smaller = []
 
@@ -161,7 +226,7 @@ def _paired(x, y, f, compare, n_boot, level, method, seed):
         sa, sb = f(x[idx], axis=1), f(y[idx], axis=1)
         smaller.append(np.count_nonzero(sa < sb))
         return _compare(sa, sb, compare)
-    boot = _replicates(rep, x.size, n_boot, rng)
+    boot = _replicates(rep, x.size, n_boot, rng) if layout is None else _block_replicates(rep, layout, n_boot, rng)
     sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])
     jack = lambda: _jackknife(lambda idx: _compare(f(x[idx], axis=1), f(y[idx], axis=1), compare),  # noqa: E731
                               x.size)
@@ -171,21 +236,25 @@ def _paired(x, y, f, compare, n_boot, level, method, seed):
 
 
 def claim(a_by_config, b_by_config, statistic="rmse", compare: str = "ratio", below: float | None = None,
-          configs=None, n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> dict:
+          configs=None, n_boot: int = 2000, level: float = 0.95, seed: int = 0, blocks_by_config=None) -> dict:
     """Does ``stat(a) / stat(b) < below`` (compare='ratio', default below = 1) or
     ``stat(a) - stat(b) < below`` ('difference', default 0) hold, per configuration and
     pooled?  ``a_by_config`` / ``b_by_config``: sequences (one per configuration, e.g.
     seed x light) of paired per-receiver values (e.g. |errors| of methods a and b).
+    blocks_by_config: None, or per configuration the block labels of its values (module
+    docstring): each configuration's replicates then resample blocks.
 
-    Returns dict(
-      per_config: [paired_bootstrap result + config + holds (the whole interval below
-          ``below``) + point_holds (the estimate below it)],
-      estimate, low, high: the pooled effect - geometric mean of the per-configuration
-          ratios (mean of differences) - and its interval from a two-stage bootstrap
-          (configurations resampled, then receivers within each, replicate by replicate),
-      holds_in_every_configuration (every per-config interval below ``below``),
-      point_holds_in_every_configuration, holds_pooled (the pooled interval below it),
-      n_configs, below, compare, statistic (its name)).
+    Returns
+    -------
+    dict
+        ``per_config``: [paired_bootstrap result + config + holds (the whole interval below
+        ``below``) + point_holds (the estimate below it)]; ``estimate``, ``low``, ``high``:
+        the pooled effect - geometric mean of the per-configuration ratios (mean of
+        differences) - and its interval from a two-stage bootstrap (configurations
+        resampled, then receivers within each, replicate by replicate);
+        ``holds_in_every_configuration`` (every per-config interval below ``below``),
+        ``point_holds_in_every_configuration``, ``holds_pooled`` (the pooled interval below
+        it), ``n_configs``, ``below``, ``compare``, ``statistic`` (its name).
     """
     if len(a_by_config) != len(b_by_config) or len(a_by_config) == 0:
         raise ValueError(f"b_by_config: expected {len(a_by_config)} configurations (as a_by_config), "
@@ -200,12 +269,16 @@ def claim(a_by_config, b_by_config, statistic="rmse", compare: str = "ratio", be
         raise ValueError(f"configs: expected {C} labels, got {len(configs)}")
     f = _stat(statistic)
     log = compare == "ratio"
+    if blocks_by_config is not None and len(blocks_by_config) != C:
+        raise ValueError(f"blocks_by_config: expected {C} configurations (as a_by_config), got {len(blocks_by_config)}")
     per, reps = [], np.empty((C, n_boot))
     for c in range(C):
         x, y = _sample(a_by_config[c], f"a_by_config[{c}]"), _sample(b_by_config[c], f"b_by_config[{c}]")
         if x.size != y.size:
             raise ValueError(f"b_by_config[{c}]: expected {x.size} values (paired), got {y.size}")
-        r, reps[c] = _paired(x, y, f, compare, n_boot, level, "percentile", seed + c)
+        layout = None if blocks_by_config is None else _check_blocks(blocks_by_config[c], x.size,
+                                                                      f"blocks_by_config[{c}]")
+        r, reps[c] = _paired(x, y, f, compare, n_boot, level, "percentile", seed + c, layout)
         r.update(config=configs[c], holds=bool(r["high"] < below), point_holds=bool(r["estimate"] < below))
         per.append(r)
     pick = np.random.default_rng(seed + C).integers(0, C, size=(n_boot, C))

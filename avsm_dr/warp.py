@@ -10,7 +10,7 @@ descent (:mod:`experiments.learned_warp`).
 
 Parameterisation: ``K`` uniform knot intervals ``[c_k, c_{k+1}]``, ``c_k = near + k h``,
 ``h = (far - near) / K``; logits ``theta`` (K,) give positive increments
-``d = softmax(theta)`` (``sum d = 1``) and knot values ``W_k = sum_{j<k} d_j``, so
+``d = softmax(theta)`` (``sum d = 1``) and knot values ``W_k = sum_{j<k} d_j``, so ::
 
     w(z) = W_k + d_k (z - c_k) / h,   k = clamp(floor((z - near) / h), 0, K - 1)
 
@@ -44,10 +44,15 @@ MAX_KNOTS = 4096
 class DepthWarp:
     """Monotone piecewise-linear depth warp (module docstring).
 
-    near, far: the depth range mapped to [0, 1] (finite, near < far).
-    theta: (K,) logits of the knot increments (NumPy or Dr.Jit; a Dr.Jit array keeps its
+    Parameters
+    ----------
+    near, far
+        the depth range mapped to [0, 1] (finite, near < far).
+    theta
+        (K,) logits of the knot increments (NumPy or Dr.Jit; a Dr.Jit array keeps its
         AD graph, so gradients reach it), or None with ``knots=K`` for the identity.
-    dtype: 'float32' | 'float64' (default: the segments' dtype when built by
+    dtype
+        'float32' | 'float64' (default: the segments' dtype when built by
         :meth:`for_segments`, else float32).
     """
 

@@ -52,6 +52,7 @@ autodoc_typehints = "description"
 autodoc_default_options = {"undoc-members": False}
 napoleon_google_docstring = True
 napoleon_numpy_docstring = True
+napoleon_use_ivar = True                        # Attributes sections as fields (dataclass fields are no duplicates)
 
 # ------------------------------------------------------------------ HTML
 html_theme = "furo"

@@ -1,9 +1,10 @@
 """Command line: ``python -m experiments <study> [--quick] [--out DIR] [--force] [--backend B]``.
 
 Each study is a module (or package) ``experiments.<name>`` (this folder of the repository;
-not installed with the package) exposing
-``run(quick=False, out=None, force=False) -> dict``; it writes PNG figures, a CSV of every
-number and a ``meta.json`` (parameters, versions, git commit, machine) into its own folder
+not installed with the package) declaring ``STUDY`` (an :class:`experiments._study.Study`:
+its description, full and quick parameters, options and files; ``run = STUDY.run``); it
+writes PNG figures, a CSV of every number and a ``meta.json`` (parameters, versions, git
+commit, machine) into its own folder
 ``<DIR>/<name>/`` (default ``results/<name>/``), so experiments sharing ``--out`` never
 overwrite each other.  Results whose parameters, package source and library versions
 match are reused unless ``--force``.  A bad option (``--out`` empty, a file or not
@@ -21,6 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from ._study import Study
+
 
 def experiment_names() -> list[str]:
     """Names of the experiment modules and packages in experiments."""
@@ -28,14 +31,17 @@ def experiment_names() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(experiments.__path__) if not m.name.startswith("_"))
 
 
+def study(name: str) -> Study:
+    """The declared :class:`~experiments._study.Study` of ``experiments.<name>`` (its ``STUDY``)."""
+    declared = getattr(importlib.import_module(f"experiments.{name}"), "STUDY", None)
+    if not isinstance(declared, Study):
+        raise TypeError(f"experiments.{name} declares no STUDY (an experiments._study.Study)")
+    return declared
+
+
 def sweep_experiments() -> list[str]:
-    """Experiments whose ``run`` takes ``workers``/``address`` (cells through :mod:`avsm_dr.sweep`)."""
-    out = []
-    for n in experiment_names():
-        run = getattr(importlib.import_module(f"experiments.{n}"), "run", None)
-        if run is not None and "workers" in inspect.signature(run).parameters:
-            out.append(n)
-    return out
+    """Experiments declared ``sweep=True`` (``workers``/``address``: cells through :mod:`avsm_dr.sweep`)."""
+    return [n for n in experiment_names() if study(n).sweep]
 
 
 _ROLES = re.compile(r":(?:mod|func|class|meth|attr|data|obj):`~?\.?([^`]+)`")
@@ -47,35 +53,21 @@ def plain(doc: str) -> str:
 
 
 def about(name: str) -> str:
-    """The first sentence of study ``name``'s docstring, as plain text."""
-    doc = inspect.getdoc(importlib.import_module(f"experiments.{name}")) or ""
-    first = " ".join(plain(doc).split("\n\n")[0].split())
-    first = re.split(r"(?<=[.:])\s+(?=[A-Z(])", first)[0].rstrip(".:")
-    if len(first) > 90:                               # a listing line: cut at a clause
-        cut = [k for k in (first.find(" ("), first.find(": "), first.find("; ")) if 20 < k <= 90]
-        first = first[:min(cut)] if cut else first[:87].rsplit(" ", 1)[0] + " ..."
-    return first
+    """Study ``name``'s one-line description (its declared ``about``)."""
+    return study(name).about
 
 
 def _study_help(name: str) -> tuple[str, str]:
     """(description, epilog) of ``python -m experiments NAME --help``: the study's docstring,
-    what it reproduces, and what it writes."""
-    module = importlib.import_module(f"experiments.{name}")
-    desc = plain(inspect.getdoc(module) or name)
-    reproduces = getattr(module, "REPRODUCES", None)
-    if reproduces:
-        desc += f"\n\nReproduces: {reproduces}"
-    epilog = (f"Writes DIR/{name}/ (DIR from --out, default results/): data.csv (every number), meta.json "
-              f"(parameters, versions, git commit, machine, checksums of the files) and the figures (PNG); "
-              f"an identical earlier run is reused unless --force.")
-    return desc, epilog
+    what it reproduces, its parameters and what it writes."""
+    doc = inspect.getdoc(importlib.import_module(f"experiments.{name}")) or ""
+    return study(name).help_text(plain, doc)
 
 
 def parser(names: list[str] | None = None) -> argparse.ArgumentParser:
     """The command line's argument parser: one sub-command per study (``names``: the studies
-    offered), each with its own ``--help``."""
+    offered), each with its own ``--help`` and the options its :class:`Study` declares."""
     names = experiment_names() if names is None else names
-    sweeps = set(sweep_experiments()) & set(names)
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--quick", action="store_true", help="small sizes (a minute or two on 2 cores)")
     common.add_argument("--out", default="results", metavar="DIR",
@@ -90,10 +82,14 @@ def parser(names: list[str] | None = None) -> argparse.ArgumentParser:
         epilog="`python -m experiments <study> --help` describes a study, its options and what it writes.")
     sub = p.add_subparsers(dest="experiment", metavar="<study>", required=True)
     for n in names:
+        s = study(n)
         desc, epilog = _study_help(n)
-        sp = sub.add_parser(n, parents=[common], help=about(n), description=desc, epilog=epilog,
+        sp = sub.add_parser(n, parents=[common], help=s.about, description=desc, epilog=epilog,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-        where = "" if n in sweeps else " (sweep studies only: this one runs serially)"
+        for o in s.options:
+            sp.add_argument(f"--{o.name.replace('_', '-')}", dest=o.name, type=o.type, nargs=o.nargs,
+                            default=None, metavar=o.metavar, help=o.help)
+        where = "" if s.sweep else " (sweep studies only: this one runs serially)"
         sp.add_argument("--workers", type=int, default=None, metavar="N",
                         help=f"run the sweep's cells on a local Ray instance with N workers{where}")
         sp.add_argument("--address", default=None, metavar="ADDR",
@@ -146,14 +142,15 @@ def main(argv: list[str] | None = None) -> int:
         out = output_folder(args.out, args.experiment)
     except (ValueError, RuntimeError) as exc:         # RuntimeError: the backend is not available
         return _error(exc)
-    module = importlib.import_module(f"experiments.{args.experiment}")
+    s = study(args.experiment)
     extra = {k: v for k, v in (("workers", args.workers), ("address", args.address)) if v is not None}
-    if extra and not all(k in inspect.signature(module.run).parameters for k in extra):
+    if extra and not s.sweep:
         print(f"experiments: error: --{next(iter(extra))}: experiment {args.experiment!r} runs serially only "
               f"(sweeps over cells: {', '.join(n for n in sweep_experiments())})", file=sys.stderr)
         return 2
+    extra.update({o.name: getattr(args, o.name) for o in s.options if getattr(args, o.name) is not None})
     try:
-        result = module.run(quick=args.quick, out=out, force=args.force, **extra)
+        result = s.run(quick=args.quick, out=out, force=args.force, **extra)
     except ValueError as exc:
         return _error(exc)
     print(summary_text(args.experiment, result or {}, out))

@@ -95,17 +95,20 @@ class Results:
         if self.dir.exists() and not self.dir.is_dir():
             raise ValueError(f"out: {str(self.dir)!r} is a file, expected a folder")
         self.dir.mkdir(parents=True, exist_ok=True)
-        other = self._meta().get("experiment")
+        other = self.meta().get("experiment")
         if other not in (None, name):
             raise ValueError(f"out: {str(self.dir)!r} holds the results of experiment {other!r}; "
                              f"give {name!r} its own folder")
         self.quick = quick
+        #: recompute requested (``force``; set by :meth:`Study.run <experiments._study.Study.run>`)
+        self.force = False
         self.params = dict(params, quick=quick)
         self.figures: list[str] = []
         #: file name -> {"sha256", "bytes"[, "rows"]} of what this run wrote (recorded in meta.json)
         self.files: dict[str, dict] = {}
 
-    def _meta(self) -> dict:
+    def meta(self) -> dict:
+        """The folder's ``meta.json`` as a dict (empty when missing or unreadable)."""
         try:
             meta = json.loads((self.dir / "meta.json").read_text())
         except (OSError, ValueError):
@@ -119,7 +122,7 @@ class Results:
         truncated or replaced by an interrupted run is never reused."""
         if not (self.dir / csv_name).exists():
             return False
-        meta = self._meta()
+        meta = self.meta()
         same = json.loads(json.dumps(self.params, default=str))
         if not (meta and meta.get("params") == same and meta.get("cache_key") == cache_key()):
             return False

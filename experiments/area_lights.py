@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from avsm_dr import area_lights as al
 from ._common import Results
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -87,17 +88,17 @@ def _timed_render(scene, cfg: dict, steps: int, repeats: int):
     return best, t_jit, t_cold
 
 
-def run(quick: bool = False, out: str | Path | None = "results/area_lights", force: bool = False) -> dict:
-    """Run the area-light table; returns {'csv', 'out', 'figures', 'summary'}."""
-    p = dict(QUICK if quick else FULL)
+def _resolve(p: dict, quick: bool) -> dict:
+    """The scene's description (recorded with the parameters)."""
     scene = al.default_scene(p["width"], p["height"])
-    params = dict(p, scene=scene.name, medium=vars(scene.medium), light_size=float(scene.light.area) ** 0.5,
-                  occluders=len(scene.occluders), mitsuba_max_depth=2, interpolation_default="boundary",
-                  points_per_vpl="4 R^2", splat_coverage=1.5)
-    res = Results("area_lights", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return dict(hit, figures=[str(res.dir / "images.png")], summary="exists (use force=True to recompute)")
+    return dict(p, scene=scene.name, medium=vars(scene.medium), light_size=float(scene.light.area) ** 0.5,
+                occluders=len(scene.occluders), mitsuba_max_depth=2, interpolation_default="boundary",
+                points_per_vpl="4 R^2", splat_coverage=1.5)
 
+
+def _compute(res: Results, p: dict) -> dict:
+    """The area-light table: every method against Mitsuba and a dense reference."""
+    scene = al.default_scene(p["width"], p["height"])
     configs = _configs(p)
     flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -137,9 +138,7 @@ def run(quick: bool = False, out: str | Path | None = "results/area_lights", for
                 and r["vpls"] == 1)
     for r in rows:
         r["cost_vs_hard"] = r["t_total"] / hard["t_total"]
-    csv_written = res.write_csv(rows)
-
-    fig_path = _figure(res, images, gt, p)
+    _figure(res, images, gt, p)
     res.write_npz("images.npz", mitsuba=gt, mitsuba_stderr=se, dense=dense,
                   **{f"{m}_R{R or 'exact'}_K{K}": im for (m, R, K), im in images.items()})
     K_max = max(p["vpls"])
@@ -159,10 +158,7 @@ def run(quick: bool = False, out: str | Path | None = "results/area_lights", for
         wall_seconds=time.perf_counter() - t_start,
         note="CPU (LLVM) timings on a shared machine; seconds are wall clock around dr.eval "
              "+ dr.sync_thread after one warm-up call, best of `repeats`.")
-    res.figures.append(str(fig_path))
-    res.write_meta(summary)
-    return {"csv": str(csv_written), "out": str(res.dir), "figures": [str(fig_path)], "summary": summary,
-            "rows": rows}
+    return dict(rows=rows, summary=summary, result={"rows": rows})
 
 
 def _figure(res: Results, images: dict, gt: np.ndarray, p: dict) -> Path:
@@ -190,3 +186,8 @@ def _figure(res: Results, images: dict, gt: np.ndarray, p: dict) -> Path:
             show(axes[row, c + 1], im, f"{m} {'exact' if R is None else f'{R}^3'}\nK={K}  rmse {e:.2e}")
     fig.suptitle("Area light in a single-scattering medium: imperfect VSVs vs naive per-VPL", fontsize=9)
     return res.save_figure(fig, "images.png")
+
+
+STUDY = Study("area_lights", "Area lights: imperfect voxelized shadow volumes vs naive per-VPL VSVs", REPRODUCES,
+              FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "images.npz"))
+run = STUDY.run

@@ -41,11 +41,11 @@ from tqdm import tqdm
 
 from avsm_dr import build, kinds
 from avsm_dr.metrics import error_stats
-from ._common import Results
+from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
-    'AVSM\'s distance from the best N-node curve (issue "Beyond the seeds"): streaming AVSM '
+    'AVSM\'s distance from the best N-node curve: streaming AVSM '
     'against offline greedy Visvalingam-Whyatt and the best breakpoint subset (refitted), per '
     "scene and N, on the oracle's own objective and at in-volume receivers."
 )
@@ -58,6 +58,12 @@ GAUSS_POINTS = 6
 BEATS_MARGIN = 1e-6
 #: Evenly spaced points per piece (and its ends) where the max error is also looked for.
 MAX_POINTS = 16
+
+#: Parameters of the full and the quick run (``scenes``: an option; ``methods`` filled in).
+FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=[[0, "dir_a"], [1, "dir_b"]],
+            n_volume=4096, n_surface=1024, gauss_points=GAUSS_POINTS, max_points=MAX_POINTS, filter="bilinear",
+            methods=None, n_boot=1000)
+QUICK = dict(FULL, resolution=64, nodes=[4, 8], configs=[[0, "dir_a"]], n_volume=256, n_surface=128, n_boot=200)
 
 
 def methods(n: int) -> list[tuple[str, str, dict]]:
@@ -242,32 +248,27 @@ def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict
     return out
 
 
-def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
-    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json into
-    ``out`` (default ``results/avsm_gap/``); ``quick`` = small sizes, ``force`` = recompute."""
-    names = list(scenes or SCENES)
-    P = dict(scenes=names, resolution=64 if quick else 128, nodes=[4, 8] if quick else [2, 4, 8, 16, 32],
-             configs=[[0, "dir_a"]] if quick else [[0, "dir_a"], [1, "dir_b"]],
-             n_volume=256 if quick else 4096, n_surface=128 if quick else 1024, gauss_points=GAUSS_POINTS,
-             max_points=MAX_POINTS,
-             filter="bilinear", methods=[m[0] for m in methods(0)] + ["beer"])
-    res = Results("avsm_gap", out, quick, P)
-    if (hit := res.cached(force)) is not None:
-        return hit
+def _resolve(P: dict, quick: bool) -> dict:
+    """The scenes as a list and the compared methods."""
+    P["scenes"] = list(P["scenes"])
+    P["methods"] = [m[0] for m in methods(0)] + ["beer"]
+    return P
+
+
+def _compute(res, P: dict) -> dict:
+    """Every configuration's rows, the findings and the figure."""
+    quick, names = res.quick, P["scenes"]
     rows: list[dict] = []
     texel_errors: dict = {}
     jobs = [(name, seed, light) for name in names for seed, light in P["configs"]]
     for name, seed, light in tqdm(jobs, desc="avsm_gap", unit="config"):
         _scene_rows(name, P, rows, quick, seed, light, texel_errors)
-    csv = res.write_csv(rows)
-    summary = findings(rows, texel_errors, n_boot=200 if quick else 1000)
-    res.write_json("findings.json", summary, indent=1)
+    summary = findings(rows, texel_errors, n_boot=P["n_boot"])
     first = {}
     for r in rows:
         first.setdefault(r["scene"], r["config"])
     _plot(res, [r for r in rows if r["config"] == first[r["scene"]]], names)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    return dict(rows=rows, findings=summary, summary=summary)
 
 
 def _style(label: str) -> dict:
@@ -310,3 +311,10 @@ def _plot(res, rows, names):
             axes[0][0].set_ylabel(ylabel)
             plotstyle.legend_below(fig, axes[0], ncol=7)
             res.save_figure(fig, fname)
+
+
+STUDY = Study(
+    "avsm_gap", "AVSM's distance from the best N-node curve: streaming AVSM against offline greedy and optimal",
+    REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
+    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),))
+run = STUDY.run

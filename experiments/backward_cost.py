@@ -40,7 +40,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._common import Meter as _Meter
-from ._common import Results
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -50,6 +50,11 @@ REPRODUCES = (
 
 
 MODES = ["forward", "forward_ad", "reverse", "forward_mode", "reverse_cheap"]
+
+#: Parameters of the full and the quick run (``kinds``: every differentiable kind, filled in).
+FULL = dict(size=16, density_scale=20.0, resolution=128, step_fractions=[0.5, 0.25, 0.125, 0.0625], repeats=3,
+            kinds=None, stack_cases=[(8, 1000), (8, 4000), (32, 500), (32, 2000)])
+QUICK = dict(FULL, size=12, resolution=64, step_fractions=[0.5, 0.125], repeats=2, stack_cases=[(8, 4000)])
 
 _STACK_SCRIPT = r"""
 import sys, time
@@ -102,22 +107,18 @@ def _stack_limit(n_nodes: int, segments: int, mode: str, texels: int = 64) -> di
                                           min(segments, safe_chunk(2 * n_nodes + 5))) * (2 * n_nodes + 5)}
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the benchmark; write CSV, figures and meta.json into ``out``
-    (default ``results/backward_cost/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _resolve(params: dict, quick: bool) -> dict:
+    return dict(params, kinds=[k for k, _ in differentiable_kinds()])
+
+
+def _compute(res, params: dict) -> dict:
+    """The forward and backward timings and memory, per kind and step, and the stack limits."""
     import drjit as dr
     from avsm_dr import backend, builtin_scenes as scene_lib, reconstruction as inv
     from avsm_dr import build
     KINDS = differentiable_kinds()
     from avsm_dr.capture import capture
     from avsm_dr.segments import Segments
-    params = dict(size=12 if quick else 16, density_scale=20.0, resolution=64 if quick else 128,
-                  step_fractions=[0.5, 0.125] if quick else [0.5, 0.25, 0.125, 0.0625],
-                  repeats=2 if quick else 3, kinds=[k for k, _ in KINDS],
-                  stack_cases=[(8, 4000)] if quick else [(8, 1000), (8, 4000), (32, 500), (32, 2000)])
-    res = Results("backward_cost", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -291,6 +292,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
             summary[f"{table}/{kind}"] = s
     summary["stack_limit"] = [{k: r[k] for k in ("mode", "nodes", "max_count", "outcome")}
                               for r in rows if r["table"] == "stack_limit"]
-    csv = res.write_csv(rows)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary=summary)
+
+
+STUDY = Study("backward_cost", "Cost of gradients: the backward pass against the forward pass, per representation",
+              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve)
+run = STUDY.run

@@ -28,7 +28,8 @@ import dataclasses
 
 import numpy as np
 
-from ._common import Results, measure
+from ._common import measure
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -40,6 +41,10 @@ REPRODUCES = (
 
 #: (case name, zero-padding factor per axis); the first case is the reference.
 CASES = (("tight", 1.0), ("4x per axis", 4.0), ("4x volume", 4.0 ** (1 / 3)))
+
+#: Parameters of the full and the quick run.
+FULL = dict(size=48, resolution=256, repeats=7, cases=[c for c, _ in CASES])
+QUICK = dict(FULL, size=16, resolution=64, repeats=2)
 
 
 def embed(scene, factor_per_axis: float):
@@ -57,16 +62,10 @@ def embed(scene, factor_per_axis: float):
                                bbox=(lo_new, hi_new))
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figure and meta.json into ``out`` (default
-    ``results/bench_capture/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _compute(res, params: dict) -> dict:
+    """Capture time, plain and with a prepared grid, per bounding box."""
     from avsm_dr import builtin_scenes as scene_lib
     from avsm_dr.capture import GridVolume, capture
-    params = dict(size=16 if quick else 48, resolution=64 if quick else 256, repeats=2 if quick else 7,
-                  cases=[c for c, _ in CASES])
-    res = Results("bench_capture", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
 
     tight = scene_lib.plume(size=params["size"])
     scenes = [(name, tight if f == 1.0 else embed(tight, f)) for name, f in CASES]
@@ -96,8 +95,6 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
             "ratio_prepared": p["wall_s"] / ref["prepared"]["wall_s"],
             "ratio_kernels": p["kernel_s"] / ref["prepared"]["kernel_s"],
         })
-    csv = res.write_csv(rows)
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -117,11 +114,15 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     summary = {row["case"]: {k: row[k] for k in ("ratio_capture", "ratio_prepared", "ratio_kernels")}
                for row in rows}
     summary["within_bar"] = all(row["ratio_prepared"] < 1.5 for row in rows)
-    res.write_meta(summary)
     for row in rows:
         print(f"{row['case']:12s} {row['shape']:>13s} voxels={row['voxels']:>9d} segments={row['segments']:>7d} "
               f"first={row['first_call_s'] * 1e3:6.1f} ms (jit {row['first_call_jit_s'] * 1e3:5.1f} ms) | "
               f"capture={row['capture_s'] * 1e3:6.1f} ms (x{row['ratio_capture']:.2f}) "
               f"prepared={row['prepared_s'] * 1e3:6.1f} ms (x{row['ratio_prepared']:.2f}) "
               f"kernels={row['kernels_s'] * 1e3:5.1f} ms (x{row['ratio_kernels']:.2f})")
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary=summary)
+
+
+STUDY = Study("bench_capture", "Capture cost against the bounding box: a plume in its tight box and in larger, "
+              "empty boxes", REPRODUCES, FULL, QUICK, _compute)
+run = STUDY.run

@@ -12,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build, kinds
-from ._common import Results
+from ._study import Study
 from .error_curves import march_step
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -27,15 +27,15 @@ METHODS = [("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 12
            ("fom", {"harmonics": 16}), ("osm", {"slices": 32}), ("dsm", {"tolerance": 0.01})]
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+#: Parameters of the full and the quick run.
+FULL = dict(scenes=["hair_and_smoke", "three_columns"], resolution=256, samples=2000, step_fraction=0.125)
+QUICK = dict(FULL, resolution=64, samples=400)
+
+
+def _compute(res, params: dict) -> dict:
+    """The curves of the texel with the most segments, per scene and representation."""
     from avsm_dr import builtin_scenes as scene_lib, capture
-    names = ["hair_and_smoke", "three_columns"]
-    params = dict(scenes=names, resolution=64 if quick else 256, samples=400 if quick else 2000, step_fraction=0.125)
-    res = Results("curves", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
+    names = params["scenes"]
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -74,6 +74,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         ax.set_ylim(-0.05, 1.05)
         ax.legend(fontsize=7)
     res.save_figure(fig, "curves.png")
-    csv = res.write_csv(rows)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary=summary)
+
+
+STUDY = Study("curves", "Transmittance along single texels: every representation against the exact curve",
+              REPRODUCES, FULL, QUICK, _compute)
+run = STUDY.run

@@ -21,7 +21,7 @@ load from other processes hits them alike; medians.  A kind whose build is predi
 longer than ``build_budget_s`` is skipped at that size with a note.  Resolutions above the capture's limit are skipped
 with a note.
 
-The ratios the issue asks about (``meta.json`` summary, wall and process-CPU time): capture
+The headline ratios (``meta.json`` summary, wall and process-CPU time): capture
 of the plume at the largest resolution over the AVSM-8 build on its output, per capture
 method; and sorted over unsorted AVSM-8 end to end (``build(..., sort=True)``, which sorts
 each texel on the device, vs ``sort=False``) on the capture's segments shuffled inside every
@@ -49,6 +49,7 @@ from tqdm import tqdm
 from avsm_dr import _arrays as A
 from avsm_dr import backend
 from ._common import Results, measure
+from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -71,6 +72,13 @@ BUILD_BUDGET_S = {"quick": 1.0, "full": 60.0}
 #: A capture with more than 8x this many segments and no earlier size to predict a kind's
 #: build time from is probed on about 1x and 4x this many segments first.
 PROBE_SEGMENTS = 20000
+
+#: Parameters of the full and the quick run (``scenes`` None: every built-in scene; ``kinds``:
+#: the registry's, filled in).
+FULL = dict(scenes=None, resolutions=list(RESOLUTIONS), methods=list(METHODS), size=SIZES["full"], lookups=LOOKUPS,
+            repeats=3, kinds=None, build_budget_s=BUILD_BUDGET_S["full"])
+QUICK = dict(FULL, resolutions=list(QUICK_RESOLUTIONS), size=SIZES["quick"], lookups=QUICK_LOOKUPS, repeats=1,
+             build_budget_s=BUILD_BUDGET_S["quick"])
 
 
 # ------------------------------------------------------------------ scenes
@@ -294,35 +302,31 @@ def plot(rows, res: Results, kinds) -> None:
 
 
 # ------------------------------------------------------------------ run
-def run(quick: bool = False, out=None, force: bool = False, grid=None, scenes=None, resolutions=None,
-        methods=METHODS, repeats: int | None = None) -> dict:
-    """Run the experiment; write CSV, figure and meta.json into ``out`` (default
-    ``results/frame/``); ``quick`` = 64^2 / 128^2, small grids, 2^16 lookups; ``force`` =
-    recompute.  grid: also time this grid (a ``.vol`` path or a Scene); scenes: names of
-    the built-in scenes to time (default all); resolutions / methods / repeats override
-    the mode's defaults."""
+def _resolve(params: dict, quick: bool, grid=None) -> dict:
+    """The options checked (``ValueError`` naming the argument); ``scenes`` None: every
+    built-in scene; the registry's kinds; ``grid``: the user's grid's name."""
     from avsm_dr import kinds as all_kinds
-    from avsm_dr.capture import RESOLUTION_RANGE
-    mode = "quick" if quick else "full"
-    reso = tuple(QUICK_RESOLUTIONS if quick else RESOLUTIONS) if resolutions is None else tuple(resolutions)
-    for m in methods:
-        if m not in METHODS:
-            raise ValueError(f"methods: expected a subset of {METHODS}, got {methods!r}")
-    kinds = list(all_kinds())
     from avsm_dr.builtin_scenes import SCENES
-    names = list(SCENES) if scenes is None else list(scenes)
-    for n in names:
+    params["methods"] = list(params["methods"])
+    for m in params["methods"]:
+        if m not in METHODS:
+            raise ValueError(f"methods: expected a subset of {METHODS}, got {tuple(params['methods'])!r}")
+    params["scenes"] = list(SCENES) if params["scenes"] is None else list(params["scenes"])
+    for n in params["scenes"]:
         if n not in SCENES:
             raise ValueError(f"scenes: unknown scene {n!r}; known: {sorted(SCENES)}")
-    user = grid_scene(grid) if grid is not None else None
-    params = dict(scenes=names, resolutions=list(reso), methods=list(methods), size=SIZES[mode],
-                  lookups=QUICK_LOOKUPS if quick else LOOKUPS, repeats=(1 if quick else 3) if repeats is None
-                  else int(repeats), kinds=kinds, build_budget_s=BUILD_BUDGET_S[mode],
-                  grid=None if grid is None else str(getattr(grid, "name", grid)))
-    res = Results("frame", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
+    if grid is not None:
+        grid_scene(grid)
+    return dict(params, resolutions=list(params["resolutions"]), repeats=int(params["repeats"]),
+                kinds=list(all_kinds()), grid=None if grid is None else str(getattr(grid, "name", grid)))
 
+
+def _compute(res, params: dict, grid=None) -> dict:
+    """Every scene at every resolution: capture, build and lookups per stage and kind;
+    ``grid``: also this grid (a ``.vol`` path or a Scene)."""
+    from avsm_dr.capture import RESOLUTION_RANGE
+    reso, methods, kinds = params["resolutions"], params["methods"], params["kinds"]
+    user = grid_scene(grid) if grid is not None else None
     scenes = builtin_scenes(params["size"], params["scenes"])
     if user is not None:
         scenes[user.name] = user
@@ -336,7 +340,6 @@ def run(quick: bool = False, out=None, force: bool = False, grid=None, scenes=No
             continue
         rows += frame_rows(name, scenes[name], r, list(methods), kinds, params["lookups"], params["repeats"],
                            predicted.setdefault(name, {}), params["build_budget_s"], rng)
-    csv = res.write_csv(rows)
     plot(rows, res, kinds)
 
     summary = {"skipped": skipped + [f"{r['scene']} {r['resolution']}^2 {r['method']} {r['kind']}: {r['note']}"
@@ -356,9 +359,19 @@ def run(quick: bool = False, out=None, force: bool = False, grid=None, scenes=No
                                                                      / r["random_unsorted_cpu_s"])
                 summary[key + "_capture_s"] = r["capture_s"]
                 summary[key + "_segments"] = r["segments"]
-    res.write_meta(summary)
     for key, v in summary.items():
         if key.endswith(("_build", "_build_cpu", "_random", "_random_cpu")):
             print(f"{key}: {v:.2f}")
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary=summary)
 
+
+STUDY = Study(
+    "frame", "The whole frame: capture -> build -> lookups, per stage, for every built-in scene", REPRODUCES,
+    FULL, QUICK, _compute, resolve=_resolve,
+    options=(Option("grid", "also time this grid (a .vol file)", metavar="VOL"),
+             Option("scenes", "built-in scenes to time (default: all)", nargs="+", metavar="SCENE"),
+             Option("resolutions", "shadow-map resolutions (default: the mode's)", type=int, nargs="+",
+                    metavar="R"),
+             Option("methods", f"capture methods, a subset of {METHODS}", nargs="+", metavar="METHOD"),
+             Option("repeats", "timing repeats (default: the mode's)", type=int, metavar="N")))
+run = STUDY.run

@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import backend, build, kinds
-from ._common import Results
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -67,6 +67,14 @@ PIXEL_THRESHOLD = 0.02
 
 def _label(kind, p):
     return kind if not p else f"{kind}-{next(iter(p.values()))}"
+
+
+#: Parameters of the full and the quick run.
+FULL = dict(scenes=["three_columns", "hair_and_smoke", "smoke_over_table", "simulated_plume"], resolution=256,
+            image=160, supersample=2, crop=32, crop_spp=32768, crop_seeds=8, filter="bilinear", albedo=1.0,
+            reflectance=0.25, light_step=LIGHT_STEP, view_step=VIEW_STEP, methods=[_label(k, p) for k, p in METHODS])
+QUICK = dict(FULL, scenes=["three_columns"], resolution=64, image=48, supersample=1, crop=16, crop_spp=4096,
+             crop_seeds=4)
 
 
 # ============================================================ reference light T
@@ -224,11 +232,15 @@ def _interior_pixels(scene, cam, crop, s: int = 4):
     off, the receiver plane (s x s sub-rays, blockers in front counted): away from the
     silhouettes, where Mitsuba's random in-pixel positions and our stratified ones
     integrate a step edge differently (measured up to 50 % of a pixel's value)."""
-    from avsm_dr import groundtruth, shading
+    from avsm_dr import groundtruth
+    from avsm_dr.scene import OpaquePlane
     o, d = groundtruth.camera_rays(scene, crop, crop, cam, s)
     c, n, half = groundtruth.receiver_plane_for(scene, groundtruth.check_camera(scene, cam))
-    tp = shading._hit_plane(o, d, c, n, half)
-    seen = np.isfinite(tp) & (tp < shading._hit_blockers(o, d, scene.blockers or []))
+    tp = OpaquePlane(c, n, half).surface_hit(o, d)
+    tb = np.full(tp.shape, np.inf)
+    for b in scene.blockers or []:
+        tb = np.minimum(tb, b.surface_hit(o, d))
+    seen = np.isfinite(tp) & (tp < tb)
     cov = seen.reshape(crop, crop, s * s).mean(axis=2)
     out = np.zeros((crop, crop), bool)
     for full in (cov == 1, cov == 0):
@@ -271,20 +283,10 @@ def _resolved(order, imgs, scored, eps):
     return out
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _compute(res, params: dict) -> dict:
+    """Each scene's images per representation against the reference, the crops and the ranking."""
     from avsm_dr import capture, scenes as scene_lib, shading
-    names = ["three_columns"] if quick else ["three_columns", "hair_and_smoke", "smoke_over_table",
-                                             "simulated_plume"]
-    params = dict(scenes=names, resolution=64 if quick else 256, image=48 if quick else 160,
-                  supersample=1 if quick else 2, crop=16 if quick else 32,
-                  crop_spp=4096 if quick else 32768, crop_seeds=4 if quick else 8,
-                  filter="bilinear", albedo=1.0, reflectance=0.25,
-                  light_step=LIGHT_STEP, view_step=VIEW_STEP, methods=[_label(k, p) for k, p in METHODS])
-    res = Results("images", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
+    names = params["scenes"]
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -330,9 +332,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         res.write_npz(f"images_{name}.npz", reference=ref,
                       **{k.replace("-", "_").replace(".", "p"): v for k, v in imgs.items()})
     _ranking_figure(plt, res, rows, names)
-    csv = res.write_csv(rows)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    return dict(rows=rows, summary=summary)
 
 
 # ====================================================================== figures
@@ -412,3 +412,8 @@ def _ranking_figure(plt, res, rows, names):
     axes[0][0].set_ylabel("signed image error (radiance)")
     fig.tight_layout()
     res.save_figure(fig, "ranking.png")
+
+
+STUDY = Study("images", "Shadowed images per representation against a converged, deterministic reference",
+              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "images_<scene>.npz"))
+run = STUDY.run

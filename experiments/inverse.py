@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from avsm_dr.receivers import lattice
 
-from ._common import Results
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -38,26 +38,22 @@ MODELS = [("exact", {}), ("fom", {"harmonics": 4}), ("avsm", {"nodes": 8})]
 TRAIN = [(180.0, 20.0), (300.0, 20.0), (60.0, 20.0)]      # (azimuth, elevation) degrees
 HELD_OUT = (120.0, 35.0)
 
+#: Parameters of the full and the quick run.
+FULL = dict(size=12, density_scale=20.0, resolution=96, image=32, probes=[6, 9, 6], iterations=200, lr=0.5,
+            smooth=0.0, filter="bilinear", inits=["empty", "uniform"], uniform_value=1.0, train=TRAIN,
+            held_out=HELD_OUT, spp=512, models=[m[0] for m in MODELS], target="raymarch")
+QUICK = dict(FULL, size=8, resolution=64, image=20, probes=[4, 6, 4], iterations=40, inits=["empty"], spp=64)
+
 
 def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2)))
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/inverse/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _compute(res, params: dict) -> dict:
+    """Each model fitted to the training shadows; loss curves, recovered density, held-out view."""
     from avsm_dr import builtin_scenes as scene_lib
     from avsm_dr import groundtruth as gt
     from avsm_dr import reconstruction as inv
-    params = dict(size=8 if quick else 12, density_scale=20.0, resolution=64 if quick else 96,
-                  image=20 if quick else 32, probes=[4, 6, 4] if quick else [6, 9, 6],
-                  iterations=40 if quick else 200, lr=0.5, smooth=0.0, filter="bilinear",
-                  inits=["empty"] if quick else ["empty", "uniform"], uniform_value=1.0,
-                  train=TRAIN, held_out=HELD_OUT, spp=64 if quick else 512,
-                  models=[m[0] for m in MODELS], target="raymarch")
-    res = Results("inverse", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -155,9 +151,12 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         ax.axis("off")
     res.save_figure(fig, "held_out.png")
 
-    csv = res.write_csv(rows)
     summary["gradient_checks"] = checks
     summary["note"] = ("targets: float64 ray march of the true grid; held-out: Mitsuba ratio tracking "
                        f"({spp} spp) on the recovered and the true grid")
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary=summary)
+
+
+STUDY = Study("inverse", "Inverse problem: recover a smoke plume's density grid from its shadows", REPRODUCES,
+              FULL, QUICK, _compute)
+run = STUDY.run

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from avsm_dr import build
 from avsm_dr.metrics import error_stats
 from avsm_dr.segments import Segments
-from ._common import Results
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -30,16 +30,16 @@ def shuffled(seg: Segments, rng) -> Segments:
                                 dtype=seg.dtype)
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+#: Parameters of the full and the quick run.
+FULL = dict(scenes=["three_columns", "hair_and_smoke", "plume"], resolution=128, orders=8, nodes=[4, 8, 12, 16])
+QUICK = dict(FULL, scenes=["three_columns"], resolution=64, orders=3)
+
+
+def _compute(res, params: dict) -> dict:
+    """AVSM's error and frame-to-frame flicker over shuffled insertion orders, sorted or not."""
     from avsm_dr import builtin_scenes as scene_lib
     from avsm_dr import capture
-    names = ["three_columns"] if quick else ["three_columns", "hair_and_smoke", "plume"]
-    params = dict(scenes=names, resolution=64 if quick else 128, orders=3 if quick else 8, nodes=[4, 8, 12, 16])
-    res = Results("ordering", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
+    names = params["scenes"]
     rng = np.random.default_rng(3)
     rows = []
     for name in tqdm(names, desc="ordering", unit="scene"):
@@ -59,7 +59,6 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                                  flicker_rms=float(np.sqrt(np.mean(np.square(flicker)))),
                                  flicker_max=float(np.max(flicker)),
                                  flicker_texels_over_1pct=float(np.mean(np.stack(flicker) > 0.01))))
-    csv = res.write_csv(rows)
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -78,5 +77,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     res.save_figure(fig, "ordering.png")
     summary = {f"{r['scene']}_N{r['param']}_{'sorted' if r['sorted'] else 'unsorted'}_flicker_rms": r["flicker_rms"]
                for r in rows}
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary=summary)
+
+
+STUDY = Study("ordering", "Effect of insertion order on AVSM: error and flicker, sorted against unsorted",
+              REPRODUCES, FULL, QUICK, _compute)
+run = STUDY.run

@@ -12,7 +12,8 @@ from tqdm import tqdm
 
 from avsm_dr import build, configurations, describe, kinds
 from avsm_dr.metrics import error_stats
-from ._common import Results, timed
+from ._common import timed
+from ._study import Study
 from .error_curves import SCENES
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -21,6 +22,10 @@ REPRODUCES = (
     'sections 3-5: error of AVSM, FOM, OSM, DSM, moments against node / coefficient count and '
     'bytes per texel on the built-in scenes, the depth-range sweep, and findings.json.'
 )
+
+#: Parameters of the full and the quick run (``sweeps``: every kind's settings, filled in).
+FULL = dict(scenes=SCENES, resolution=256, repeats=7, lookups_per_receiver=1, sweeps=None)
+QUICK = dict(FULL, scenes=SCENES[:2], resolution=64, repeats=3)
 
 
 def pareto(points):
@@ -32,18 +37,16 @@ def pareto(points):
     return idx
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _resolve(params: dict, quick: bool) -> dict:
+    """Every registered kind's size sweep (``ad.configurations``)."""
+    return dict(params, sweeps={k: configurations(k, quick) for k in kinds() if k != "exact"})
+
+
+def _compute(res, params: dict) -> dict:
+    """Build and lookup time and error of every setting, per scene, and the Pareto fronts."""
     from avsm_dr import builtin_scenes as scene_lib
     from avsm_dr import capture
-    names = SCENES[:2] if quick else SCENES
-    params = dict(scenes=names, resolution=64 if quick else 256, repeats=3 if quick else 7,
-                  lookups_per_receiver=1,
-                  sweeps={k: configurations(k, quick) for k in kinds() if k != "exact"})
-    res = Results("runtime_vs_error", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
+    names = params["scenes"]
     rows = []
     for name in tqdm(names, desc="runtime_vs_error", unit="scene"):
         scene = getattr(scene_lib, name)()
@@ -71,8 +74,6 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         front = pareto([(r["build_s"] + r["lookup_s"], r["rmse"]) for r in rs])
         for i, r in enumerate(rs):
             r["pareto"] = i in front
-    csv = res.write_csv(rows)
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -98,5 +99,9 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     res.save_figure(fig, "runtime_vs_error.png")
     summary = {name: [f"{r['method']}-{r['param']}" for r in rows if r["scene"] == name and r.get("pareto")]
                for name in names}
-    res.write_meta({"pareto_front": summary})
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, summary={"pareto_front": summary}, result={"summary": summary})
+
+
+STUDY = Study("runtime_vs_error", "Build and lookup time against error for every representation and setting",
+              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve)
+run = STUDY.run

@@ -190,24 +190,79 @@ def test_variants_are_read_from_the_registry():
                                                       E.variants("avsm", quick=False, sweep=False)}
 
 
-def test_claims_report_intervals_per_configuration():
+def _claim_store(n_configs, orders=("depth",), l2_scale=None):
+    """Errors of AVSM-12 (a tenth of FOM-16's on every receiver, plus 1 % noise) in
+    ``n_configs`` configurations; per-texel L2 where AVSM-12's is ``l2_scale`` x FOM-16's."""
     rng = np.random.default_rng(0)
-    store = {}
-    for c in range(4):
+    store, l2, blocks = {}, {}, {}
+    for c in range(n_configs):
         cfg = f"s{c}-dir_a"
         base = rng.standard_normal(500)
+        tex = rng.standard_normal(300) ** 2 + 0.1
+        blocks[(F.H, cfg, "inline", F.C)] = rng.integers(0, 40, 500)
+        blocks[(F.H, cfg, "inline")] = rng.integers(0, 20, 300)
         for v, scale in (("avsm-12", 0.1), ("fom-16", 1.0)):
-            e = np.float32(scale * base + 0.01 * rng.standard_normal(500))
-            store[(F.H, cfg, v, "inline", F.C, "main")] = (e, e)
+            for o in (orders if v.startswith("avsm") else ("depth",)):
+                e = np.float32(scale * base + 0.01 * rng.standard_normal(500))
+                store[(F.H, cfg, v, "inline", F.C, "main", o)] = (e, e)
+                if l2_scale is not None:
+                    k = l2_scale if v.startswith("avsm") else 1.0
+                    l2[(F.H, cfg, v, "inline", o)] = np.float32(k * tex * (1 + 0.01 * rng.standard_normal(300)))
+    return store, l2, blocks
+
+
+def test_claims_report_intervals_per_configuration():
+    store, _, _ = _claim_store(8)
     spec = next(s for s in F._claims() if s["id"] == "avsm12_vs_fom16_hair_smoke_compression")
     r = F.evaluate(spec, store, sorted({k[1] for k in store}), n_boot=200)
-    assert r["n_configs"] == 4 and len(r["per_config"]) == 4
+    assert r["n_configs"] == 8 and len(r["per_config"]) == 8
     assert r["low"] <= r["estimate"] <= r["high"] < 1
     assert all(p["low"] <= p["estimate"] <= p["high"] for p in r["per_config"])
-    assert r["verdict"] == "holds in every configuration"
+    assert r["verdict"] == "holds in every configuration" and r["indicative"] is False
+    assert r["order"] == "depth" and r["preset"] == {"a": False, "b": False}   # AVSM's preset: exp; FOM's: texel range
     swapped = dict(spec, a=spec["b"], b=spec["a"])
     assert F.evaluate(swapped, store, sorted({k[1] for k in store}), n_boot=200)["verdict"] == "does not hold"
     json.dumps(r)                                                      # serialisable as findings.json
+
+
+@pytest.mark.parametrize("n, verdict, indicative", [(4, "holds pooled", False), (3, "holds pooled", True)])
+def test_every_configuration_needs_eight_and_few_are_indicative(n, verdict, indicative):
+    """Every per-configuration interval below 1, but fewer than 8 configurations: only
+    'holds pooled'; below 4 configurations the claim is indicative."""
+    store, _, _ = _claim_store(n)
+    spec = next(s for s in F._claims() if s["id"] == "avsm12_vs_fom16_hair_smoke_compression")
+    r = F.evaluate(spec, store, sorted({k[1] for k in store}), n_boot=200)
+    assert r["holds_in_every_configuration"] and r["verdict"] == verdict and r["indicative"] is indicative
+    assert r["metrics"]["receiver_rmse"]["indicative"] is indicative
+
+
+def test_claims_carry_both_metrics_blocks_and_orders():
+    """With per-texel L2 in the same direction the claim holds on both metrics (block
+    bootstrap within configurations); with AVSM's L2 3x FOM's the metrics disagree and
+    the verdict is 'metric-dependent'; the AVSM side is re-evaluated in every other order."""
+    orders = ("depth", "reverse_depth", "random", "submission")
+    store, l2, blocks = _claim_store(8, orders, l2_scale=0.5)
+    spec = next(s for s in F._claims() if s["id"] == "avsm12_vs_fom16_hair_smoke_compression")
+    cfgs = sorted({k[1] for k in store})
+    r = F.evaluate(spec, store, cfgs, n_boot=200, l2=l2, blocks=blocks)
+    m = r["metrics"]["depth_l2"]
+    assert m["low"] <= 0.5 <= m["high"] < 1 and not r["metric_dependent"]
+    assert r["within_configuration"] == "8x8 texel blocks"
+    assert set(r["by_order"]) == set(orders[1:]) and all(v["high"] < 1 for v in r["by_order"].values())
+    assert {"mean_signed_error", "leak_share"} <= set(r["sides"]["a"])
+    store, l2, blocks = _claim_store(8, orders, l2_scale=3.0)
+    r = F.evaluate(spec, store, cfgs, n_boot=200, l2=l2, blocks=blocks)
+    assert r["metrics"]["depth_l2"]["low"] > 1 and r["high"] < 1
+    assert r["metric_dependent"] and r["verdict"] == "metric-dependent"
+    assert r["metrics"]["receiver_rmse"]["verdict"] == "holds in every configuration"
+    o = F.orders(store, cfgs, n_boot=200, l2=l2, blocks=blocks)
+    assert set(o[F.H]["avsm-12"]) == set(orders[1:])
+    json.dumps(r)
+
+
+def test_order_dependent_kinds_are_the_streaming_insertions():
+    assert [k for k in ad.kinds() if E.order_dependent(k)] == ["avsm", "avsm_adaptive"]
+    assert E.ORDERS[0] == "depth" and set(E.ORDERS) == {"depth", "reverse_depth", "random", "submission"}
 
 
 @pytest.mark.slow
@@ -217,6 +272,21 @@ def test_quick_run_writes_findings_with_intervals(tmp_path):
     assert f["claims"] and all({"low", "high", "estimate", "verdict", "per_config"} <= set(c)
                                for c in f["claims"].values())
     assert set(out["summary"]) == set(f["claims"])
+    assert all({"order", "preset", "metrics", "indicative", "sides"} <= set(c) for c in f["claims"].values())
+    import csv
+    rows = list(csv.DictReader((tmp_path / "ec" / "data.csv").open()))
+    by = {}
+    for r in rows:
+        if r["study"] == "main" and r["method"] in ("avsm", "avsm_adaptive"):
+            by.setdefault((r["config"], r["setting"], r["receivers"], r["opaque"]), set()).add(r["order"])
+    # the headlines under every order, on the same receivers; order-independent kinds: '-'
+    assert {E.ORDERS} <= {tuple(sorted(v, key=E.ORDERS.index)) for v in by.values()}
+    assert {r["order"] for r in rows if r["method"] == "fom"} == {"-"}
+    main = [r for r in rows if r["method"] not in ("truth_vs_mitsuba",)]
+    assert all(float(r["bytes"]) == float(r["bytes_sparse"]) and r["bytes_dense"] == r["bytes_per_texel"]
+               for r in main)
+    assert all(float(r["depth_l2"]) >= 0 for r in main if r["study"] == "main")
+    assert set(f["orders"]["plume"]["avsm-8"]) == set(E.ORDERS[1:])
 
 
 def test_share_interval_is_the_bootstrap_of_a_proportion():

@@ -111,7 +111,8 @@ def test_numbers_agree_with_error_curves():
     from experiments import error_curves as E
     P = dict(n_volume=512, n_surface=256, resolution=64, n_decomp=128, spp=32, kinds=["avsm"])
     cell = E._cell(dict(scene="plume", seed=1, light="spot", base=False, quick=True, P=P, whole_map=[]))
-    ref = {r["receivers"]: r for r in cell["rows"] if r.get("setting") == "avsm-8" and r["study"] == "main"}
+    ref = {r["receivers"]: r for r in cell["rows"]             # evaluate's default order: front to back
+           if r.get("setting") == "avsm-8" and r["study"] == "main" and r["order"] == "depth"}
     assert set(ref) == {"in_volume", "surface"}
     for subset in (False, True):
         tab = evaluate({"avsm-8": ("avsm", {"nodes": 8})}, ["plume"], [Configuration(1, "spot")], subset=subset,
@@ -203,20 +204,27 @@ def test_compare_refuses_ambiguous_or_unpaired_rows(small):
 
 # --------------------------------------------------------------------------- depth_l2
 def _reference_depth_l2(rep, offsets, z0, z1, tau, n):
-    """Slow float64 reference: a Python loop over texels, the exact curve of exact.py's formula."""
+    """Slow float64 reference: a Python loop over texels, the exact curve of exact.py's formula;
+    opaque segments end a texel's range at their front face and their interiors do not count."""
     sq = []
     for t in range(len(offsets) - 1):
         s, e = offsets[t], offsets[t + 1]
         if s == e:
             continue
-        a, b = z0[s:e].min(), z1[s:e].max()
+        opaque = tau[s:e] >= ad.OPAQUE_OPTICAL_DEPTH
+        a, b = z0[s:e].min(), np.where(opaque, z0[s:e], z1[s:e]).max()
+        if b <= a:
+            continue                                     # only opaque faces: not counted
         z = a + (np.arange(n) + 0.5) / n * (b - a)
         f = np.zeros(n)
+        keep = np.ones(n, bool)
         for i in range(s, e):
             ln = z1[i] - z0[i]
             f += tau[i] * (np.clip((z - z0[i]) / ln, 0, 1) if ln > 0 else (z >= z0[i]).astype(float))
+            if tau[i] >= ad.OPAQUE_OPTICAL_DEPTH:
+                keep &= ~((z > z0[i]) & (z < z1[i]))
         t_rep = np.asarray(rep.eval(np.full(n, t), z), np.float64)
-        sq.append(np.mean((t_rep - np.exp(-f)) ** 2))
+        sq.append(np.mean(((t_rep - np.exp(-f)) ** 2)[keep]))
     return math.sqrt(np.mean(sq))
 
 
@@ -224,10 +232,13 @@ def test_depth_l2_matches_a_numpy_reference():
     rng = np.random.default_rng(7)
     counts = rng.integers(0, 7, 40)
     counts[[3, 10]] = 0                                                   # empty texels do not count
+    counts[5] = 1                                                         # one opaque slab alone
     offsets = np.concatenate([[0], np.cumsum(counts)])
     z0 = rng.uniform(0, 1, offsets[-1])
     z1 = z0 + rng.uniform(0, 0.3, z0.size) * (rng.random(z0.size) > 0.1)    # some zero-length segments
     tau = rng.uniform(0, 1.5, z0.size)
+    tau[rng.random(z0.size) < 0.15] = ad.OPAQUE_OPTICAL_DEPTH             # blockers' slabs
+    tau[offsets[5]], z1[offsets[5]] = ad.OPAQUE_OPTICAL_DEPTH, z0[offsets[5]] + 0.01
     seg = ad.Segments.from_arrays(offsets, z0, z1, optical_depth=tau)
     h = seg.numpy()                      # the float32-stored depths the kernels see
     rep = ad.build("avsm", seg, nodes=2)
@@ -236,7 +247,10 @@ def test_depth_l2_matches_a_numpy_reference():
     assert depth_l2(rep, seg, n_depths=16) == pytest.approx(ref, abs=1e-7)
     assert ref > 1e-3
     per = depth_l2(rep, seg, n_depths=16, per_texel=True)
-    assert per.shape == (np.count_nonzero(counts),)
+    faces_only = [t for t in range(40) if counts[t] and
+                  np.all(h["optical_depth"][offsets[t]:offsets[t + 1]] >= ad.OPAQUE_OPTICAL_DEPTH) and
+                  np.ptp(h["z0"][offsets[t]:offsets[t + 1]]) == 0]
+    assert 5 in faces_only and per.shape == (np.count_nonzero(counts) - len(faces_only),)
     assert depth_l2(ad.build("exact", seg), seg) == 0.0
     with pytest.raises(ValueError, match="n_depths"):
         depth_l2(rep, seg, n_depths=0)

@@ -15,6 +15,7 @@ import pytest
 
 from experiments import _cli as cli
 from experiments import _common
+from experiments._study import Study
 
 ROOT = Path(__file__).resolve().parents[1]
 ERROR_COLUMNS = {"scene", "method", "param", "bytes_per_texel", "rmse", "max_error"}
@@ -218,18 +219,14 @@ def test_interrupted_write_keeps_the_old_file(tmp_path):
 def test_experiments_sharing_out_keep_their_own_folders(tmp_path, monkeypatch, capsys):
     """Two experiments into one --out: each writes <out>/<name>/, neither touches the other."""
     def make(name, value):
-        def run(quick=False, out=None, force=False):
-            res = _common.Results(name, out, quick, {})
-            if (hit := res.cached(force)) is not None:
-                return hit
-            csv = res.write_csv([{"value": value}])
+        def compute(res, P):
             import matplotlib
             matplotlib.use("Agg")
             import matplotlib.pyplot as plt
             res.save_figure(plt.figure(), f"{name}.png")
-            res.write_meta()
-            return {"csv": str(csv), "out": str(res.dir)}
-        return types.SimpleNamespace(run=run)
+            return dict(rows=[{"value": value}], summary={})
+        study = Study(name, f"toy {name}", "nothing", {}, {}, compute)
+        return types.SimpleNamespace(STUDY=study, run=study.run)
 
     for name, value in (("toy_a", 1), ("toy_b", 2)):
         monkeypatch.setitem(sys.modules, f"experiments.{name}", make(name, value))
@@ -298,9 +295,10 @@ def test_bad_environment_and_ray_options_are_one_line_errors(tmp_path, case):
 def test_value_errors_of_a_run_are_one_line(tmp_path, monkeypatch, capsys):
     """Any ValueError an experiment raises (a bad argument deep inside) is printed as one
     line, exit status 2; other exceptions still propagate."""
-    def run(quick=False, out=None, force=False):
+    def compute(res, P):
         raise ValueError("nodes: expected an integer in [2, 64],\n got 1")
-    monkeypatch.setitem(sys.modules, "experiments.toy_bad", types.SimpleNamespace(run=run))
+    study = Study("toy_bad", "toy", "nothing", {}, {}, compute)
+    monkeypatch.setitem(sys.modules, "experiments.toy_bad", types.SimpleNamespace(STUDY=study, run=study.run))
     monkeypatch.setattr(cli, "experiment_names", lambda: ["toy_bad"])
     assert cli.main(["toy_bad", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
@@ -354,3 +352,33 @@ def test_installed_package_imports_no_study(tmp_path):
     out = subprocess.run([sys.executable, "-m", "avsm_dr", "error_curves"], cwd=tmp_path, env=env,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and "python -m experiments" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_study_declares_parameters_options_and_files(tmp_path, capsys):
+    """A Study's quick / full parameters, its declared options (on the command line and as
+    keywords of run; anything else refused) and its files: the CLI reads them, sniffs nothing."""
+    calls = []
+
+    def compute(res, P, extra=None):
+        calls.append((dict(P), extra))
+        return dict(rows=[{"n": P["n"]}], tables={"more.csv": [{"m": 1}]}, findings={"f": 1}, summary={"s": P["n"]})
+    from experiments._study import Option
+    study = Study("toy_decl", "toy", "nothing", {"n": 3, "k": [1]}, {"n": 1, "k": [1]}, compute,
+                  options=(Option("k", "k values", type=int, nargs="+"), Option("extra", "not a parameter")))
+    assert study.params(True) == ({"n": 1, "k": [1]}, {})
+    assert study.params(False, k=[2, 5], extra="x") == ({"n": 3, "k": [2, 5]}, {"extra": "x"})
+    with pytest.raises(TypeError, match="workers"):
+        study.run(quick=True, out=tmp_path / "t", workers=2)             # not a sweep study
+    out = study.run(quick=True, out=tmp_path / "t", k=[4])
+    assert calls == [({"n": 1, "k": [4]}, None)] and out["summary"] == {"s": 1}
+    assert sorted(p.name for p in (tmp_path / "t").iterdir()) == ["data.csv", "findings.json", "meta.json", "more.csv"]
+    again = study.run(quick=True, out=tmp_path / "t", k=[4])
+    assert again["cached"] is True and again["summary"] == {"s": 1} and len(calls) == 1
+    assert study.run(quick=True, out=tmp_path / "t", k=[5]).get("cached") is None and len(calls) == 2
+    # the real studies: declared options reach the command line
+    assert cli.study("error_curves").sweep and "error_curves" in cli.sweep_experiments()
+    assert "ordering" not in cli.sweep_experiments()
+    with pytest.raises(SystemExit):
+        cli.main(["frame", "--help"])
+    text = capsys.readouterr().out
+    assert "--resolutions" in text and "--scenes" in text and "Parameters" in text

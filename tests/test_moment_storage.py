@@ -83,8 +83,6 @@ def test_quick_run_claims_match_the_csv(quick):
 
 
 def test_tuning_seed_must_be_held_out(monkeypatch, tmp_path):
-    P = MS.params(True)
-    P["configs"] = P["configs"] + [[P["tune_seed"], "dir_a"]]
-    monkeypatch.setattr(MS, "params", lambda quick, scenes=None: P)
+    monkeypatch.setitem(MS.QUICK, "configs", MS.QUICK["configs"] + [[MS.QUICK["tune_seed"], "dir_a"]])
     with pytest.raises(ValueError, match="^tune_seed"):
         MS.run(quick=True, out=tmp_path)

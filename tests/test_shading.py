@@ -21,7 +21,7 @@ from avsm_dr import groundtruth as gt
 from avsm_dr.groundtruth.content import to_light
 from avsm_dr.groundtruth.images import receiver_plane
 from avsm_dr import shading as sh
-from avsm_dr.scene import (DirectionalLight, OpaqueSphere, Particles, PointLight, Scene,
+from avsm_dr.scene import (DirectionalLight, OpaquePlane, OpaqueSphere, Particles, PointLight, Scene,
                            SpotLight)
 from avsm_dr.checks import mc_agreement
 
@@ -53,7 +53,7 @@ def coverage(scene, width, height, s=4, camera=None):
     cam = gt.check_camera(scene, camera)
     c, n, half = gt.receiver_plane_for(scene, cam)
     o, d = gt.camera_rays(scene, width, height, cam, s)
-    tp = sh._hit_plane(o, d, c, n, half)
+    tp = OpaquePlane(c, n, half).surface_hit(o, d)
     tb = sh._hit_blockers(o, d, scene.blockers)
     return (np.isfinite(tp) & (tp < tb)).reshape(height, width, s * s).mean(axis=2)
 

@@ -7,6 +7,8 @@ extruded into shadow volumes by one parallel scan along light rays, and the in-s
 light is gathered along camera rays by a Riemann sum that interpolates only at shadow
 boundaries.
 
+Example::
+
     from avsm_dr import area_lights as al
     scene = al.default_scene(64, 64)
     out = al.render(scene, "imperfect", vpls=64, resolution=128)

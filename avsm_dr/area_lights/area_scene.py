@@ -24,10 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import validation as V
+from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
 from ..scene import OpaqueBox, OpaqueSphere
-
-#: Largest image side of a :class:`PinholeCamera` (pixels).
-MAX_SIDE = 1 << 14
 
 def _albedo(v, name: str = "albedo") -> float:
     return V.real(v, name, 0.0, 1.0)
@@ -135,48 +133,6 @@ class Box:
     def area(self) -> float:
         e = self.max - self.min
         return float(2 * (e[0] * e[1] + e[1] * e[2] + e[0] * e[2]))
-
-
-@dataclass
-class PinholeCamera:
-    """Pinhole camera at ``origin`` looking at ``target``; ``fov`` is the horizontal
-    field of view in degrees (Mitsuba's default ``fov_axis='x'``, as the camera dicts of
-    :mod:`avsm_dr.groundtruth.images`); one ray per pixel centre, pixel (row j, column i)
-    = image[j, i], row 0 at the top."""
-    origin: np.ndarray
-    target: np.ndarray
-    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
-    fov: float = 60.0
-    width: int = 32
-    height: int = 32
-
-    def __post_init__(self):
-        self.origin = V.vec3(self.origin, "origin")
-        self.target = V.vec3(self.target, "target")
-        self.up = V.vec3(self.up, "up")
-        self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
-        self.width = V.integer(self.width, "width", 1, MAX_SIDE)
-        self.height = V.integer(self.height, "height", 1, MAX_SIDE)
-        fwd = self.target - self.origin
-        if np.linalg.norm(fwd) == 0:
-            raise ValueError("target: must differ from origin")
-        if np.linalg.norm(np.cross(fwd, self.up)) <= 1e-9 * np.linalg.norm(fwd) * np.linalg.norm(self.up):
-            raise ValueError("up: must not be parallel to the viewing direction")
-
-    def rays(self) -> np.ndarray:
-        """(H*W, 3) float64 unit directions through the pixel centres, row-major from the top."""
-        fwd = self.target - self.origin
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross(fwd, self.up)
-        right /= np.linalg.norm(right)
-        up = np.cross(right, fwd)
-        tx = math.tan(math.radians(self.fov) / 2)
-        ty = tx * self.height / self.width
-        i = (np.arange(self.width) + 0.5) / self.width * 2 - 1
-        j = 1 - (np.arange(self.height) + 0.5) / self.height * 2
-        X, Y = np.meshgrid(i * tx, j * ty)
-        d = fwd[None] + X.reshape(-1, 1) * right[None] + Y.reshape(-1, 1) * up[None]
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def _as_occluder(o):

@@ -4,14 +4,14 @@
 For a camera ray ``x(t) = o + t d`` ending at ``t_end`` (first surface or medium
 boundary) and VPL k at ``p_k`` with intensity ``I_k(w) = I max(0, n . w)``,
 ``I = L_e A / K``, the airlight is the midpoint Riemann sum over N steps,
-``dt = t_end / N``, ``t_j = (j + 1/2) dt``:
+``dt = t_end / N``, ``t_j = (j + 1/2) dt``::
 
     L_k = sum_j V_k(x_j) sigma_s p(cos theta_j) I max(0, n . w_j) / r_j^2
                  exp(-sigma_t (t_j + r_j)) dt,
 
 ``r_j = |x_j - p_k|``, ``w_j = (x_j - p_k) / r_j``, ``cos theta_j = -w_j . d`` (angle
 between the light's and the scattered light's directions of travel), plus the lit
-surface at ``x_s = x(t_end)`` with normal ``n_s`` and albedo ``rho``:
+surface at ``x_s = x(t_end)`` with normal ``n_s`` and albedo ``rho``::
 
     exp(-sigma_t t_end) rho / pi I max(0, n . w_s) max(0, -n_s . w_s) / r_s^2
         exp(-sigma_t r_s) V_k(x_s + bias n_s).

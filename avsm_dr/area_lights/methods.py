@@ -95,24 +95,34 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
            jitter: bool = False, seed: int = 0, dtype: str = "float32") -> AreaLightRender:
     """Single-scattering image of ``scene`` lit by ``vpls`` = K VPLs on its quad light.
 
-    resolution: R, texels per side and depth bins of each VPL's grid (R^3 voxels; ignored
+    Parameters
+    ----------
+    resolution
+        R, texels per side and depth bins of each VPL's grid (R^3 voxels; ignored
         by ``naive_exact``), >= 2.
-    steps: N, Riemann steps per camera ray.
-    interpolation: 'none' (nearest voxel), 'boundary' (bilinear only where the boundary
+    steps
+        N, Riemann steps per camera ray.
+    interpolation
+        'none' (nearest voxel), 'boundary' (bilinear only where the boundary
         mask is set; the default of ``imperfect``) or 'full' (bilinear at every step, the
         slow reference that 'boundary' must equal).
-    voxelization: 'points' (imperfect splats; default of ``imperfect``) or 'rays' (exact
+    voxelization
+        'points' (imperfect splats; default of ``imperfect``) or 'rays' (exact
         texel rays; the only choice of ``naive_voxel``; ``imperfect`` with 'rays' isolates
         the effect of the splats).
-    points_per_vpl: M, surface points splatted per VPL (default 4 R^2).
-    splat_coverage: c, splat discs cover c times the occluder area (see
+    points_per_vpl
+        M, surface points splatted per VPL (default 4 R^2).
+    splat_coverage
+        c, splat discs cover c times the occluder area (see
         :func:`~.visibility.splat_radius`), > 0.  Defaults c = 1.5, M = 4 R^2 were the
         lowest RMSE against a dense exact render on the default scene among
         c in {1, 1.5, 2, 3} x M in {1, 2, 4, 8} R^2 at R = 64 and 128 (c = 1 leaves holes,
         larger c dilates silhouettes).
-    surface_bias: offset along the surface normal for surface shadow lookups
+    surface_bias
+        offset along the surface normal for surface shadow lookups
         (default: one depth bin for voxel methods, 1e-4 x scene size for exact).
-    jitter, seed: jittered VPL strata; seed of the random surface points.
+    jitter, seed
+        jittered VPL strata; seed of the random surface points.
     """
     if voxelization is None:
         voxelization = "points" if method == "imperfect" else "rays"
@@ -267,7 +277,7 @@ def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bia
 
     def lane_info(lane):
         # VPL-major lanes: a SIMD packet holds neighbouring pixels of one VPL, so its voxel
-        # gathers stay within one grid (pixel-major lanes measured 4x slower at K = 256)
+        # gathers stay within one grid (pixel-major lanes are slower)
         vpl = lane // n_pix
         pix = lane - vpl * n_pix
         return pix, vpl, dr.gather(k.Vec3, P, vpl)

@@ -225,8 +225,8 @@ def boundary_mask(S, grid: LightGrid, k: Kit):
 def interleave(S, E, k: Kit):
     """One buffer with S and E of each word side by side (``SE[2 w] = S[w]``,
     ``SE[2 w + 1] = E[w]``), so that the boundary flag read at every Riemann step shares
-    the cache line of the visibility word (measured: a separate E array made the gather
-    about 1.5x slower, the interleaved one costs about as much as the plain lookup)."""
+    the cache line of the visibility word (about the cost of the plain lookup; a separate
+    E array is slower)."""
     n = dr.width(S)
     SE = dr.zeros(k.UInt32, 2 * n)
     idx = dr.arange(k.UInt32, n) * 2

@@ -1,7 +1,7 @@
 """Virtual point lights (VPLs) on the quad light, and the light-space grid they share.
 
 Area light as K point lights (Wyman and Dai 2013, "Imperfect Voxelized Shadow
-Volumes", sec. 1, after Heckbert and Herf 1997):
+Volumes", sec. 1, after Heckbert and Herf 1997)::
 
     L_in(x) = sum_k  L_e (A / K) max(0, n . w_k) / r_k^2,   w_k = (x - p_k) / r_k,
 

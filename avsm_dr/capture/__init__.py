@@ -1,5 +1,7 @@
 """Light-view capture: scene content -> occluder segments along one light ray per texel.
 
+Example::
+
     cap = ad.capture(scene, resolution=256)     # cap.segments: Segments of every texel
     texel, depth = cap.lookup(points)           # world points -> (texel, light-space depth)
     T = ad.build("exact", cap.segments).eval(texel, depth)
@@ -74,11 +76,25 @@ MIN_STEP_FRACTION = 1.0 / 1024
 class Capture:
     """Result of :func:`capture`.
 
-    segments: :class:`~avsm_dr.Segments` over ``width * height`` texels (row-major,
+    Attributes
+    ----------
+    segments
+        :class:`~avsm_dr.Segments` over ``width * height`` texels (row-major,
         texel ``y * width + x``; cube maps stack their six faces vertically).
-    camera: the light camera (rays and projection); light, resolution, step, epsilon: the inputs.
-    stats: counts and host/kernel timings of the capture.
-    opaque_depth: (texels,) float64 opaque depth map of ``capture(..., opaque='separate')``
+    camera
+        the light camera (rays and projection).
+    light
+        the light (``scene.light``).
+    resolution
+        texels per side (the input of :func:`capture`).
+    step
+        the grid march step (None for the exact capture).
+    epsilon
+        the transmittance below which a grid ray stops.
+    stats
+        counts and host/kernel timings of the capture.
+    opaque_depth
+        (texels,) float64 opaque depth map of ``capture(..., opaque='separate')``
         (+inf: no blocker), composed with every representation at lookup; None when inline.
     """
     segments: Segments
@@ -205,31 +221,55 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
             submission: str | None = None, order_seed: int | None = None) -> Capture:
     """Segments of every shadow-map texel for ``scene`` seen from ``scene.light``.
 
-    resolution: texels per side, 64..1024 (a point light's cube map is resolution x 6 resolution).
-    step: grid march step in world units (method 'march'; default half the smallest voxel side).
-    epsilon: a grid ray stops once its transmittance falls below ``epsilon``.
-    density: overrides ``scene.density`` - a (z, y, x) NumPy array, a 3-D Dr.Jit tensor
+    Parameters
+    ----------
+    scene
+        the content (density grid, particles, hair, blockers) and the light.
+    resolution
+        texels per side, 64..1024 (a point light's cube map is resolution x 6 resolution).
+    step
+        grid march step in world units (method 'march'; default half the smallest voxel side).
+    epsilon
+        a grid ray stops once its transmittance falls below ``epsilon``.
+    density
+        overrides ``scene.density`` - a (z, y, x) NumPy array, a 3-D Dr.Jit tensor
         (``TensorXf``/``TensorXf64``, e.g. with ``dr.enable_grad``: gradients flow to
         ``segments.optical_depth``), a ``.vol`` path or a prepared :class:`GridVolume`.
-    block: empty-space-skipping block size in voxels.
-    keep_zero: emit zero-density steps inside occupied blocks (see :func:`.grid.march`).
-    dtype: 'float32' (default) | 'float64' (default for float64 Dr.Jit densities).
-    opaque_bias: constant depth offset (and thickness) of opaque blocker segments
+    block
+        empty-space-skipping block size in voxels.
+    keep_zero
+        emit zero-density steps inside occupied blocks (see :func:`.grid.march`).
+    dtype
+        'float32' (default) | 'float64' (default for float64 Dr.Jit densities).
+    opaque_bias
+        constant depth offset (and thickness) of opaque blocker segments
         (default 1e-4 x the content's diagonal).
-    opaque_slope_bias: extra offset in texel widths x tan(angle of incidence), so receivers
+    opaque_slope_bias
+        extra offset in texel widths x tan(angle of incidence), so receivers
         on a blocker's lit surface are not shadowed by it (see :mod:`.opaque`).
-    bounds: (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
-    method: grid capture - 'march' (default: Simpson steps of ``step``) or 'exact' (one
+    bounds
+        (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
+    method
+        grid capture - 'march' (default: Simpson steps of ``step``) or 'exact' (one
         segment per dual-cell crossing, integrated exactly, no step: :mod:`.dda`).
-    opaque: 'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
+    opaque
+        'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
         depth map, ``Capture.opaque_depth``, composed at lookup; see :mod:`.opaque_map`).
-    order: the insertion order of each texel's segments (:data:`ORDERS`, recorded as
+    order
+        the insertion order of each texel's segments (:data:`ORDERS`, recorded as
         ``Segments.order`` and ``Capture.order``): 'submission' (default: a renderer's draw
         order, primitive by primitive), 'depth' (front to back), 'reverse_depth' (back to
         front) or 'random' (a seeded shuffle).
-    submission: particles' draw order with ``order='submission'``: 'list' (default, the
+    submission
+        particles' draw order with ``order='submission'``: 'list' (default, the
         scene's list order) or 'back_to_front' (sorted by depth, farthest first).
-    order_seed: seed of ``order='random'``, an integer in [0, 2^32) (default 0).
+    order_seed
+        seed of ``order='random'``, an integer in [0, 2^32) (default 0).
+
+    Returns
+    -------
+    Capture
+        the segments, the light camera and the capture's statistics.
     """
     validate_scene(scene)
     _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias)
@@ -262,7 +302,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         pts = s.reshape(-1, 3)
         boxes.append((pts.min(0) - r, pts.max(0) + r))
     for b in blockers:
-        boxes.append(_opaque.bounds(b))
+        boxes.append(b.bounds())
     if not boxes and grid is not None:
         boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
     if bounds is not None:
@@ -287,7 +327,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
             raise ValueError("light: a spot/point light inside the density grid's bbox is not supported "
                              "(move it outside the volume)")
         for i, b in enumerate(blockers):
-            if _opaque.contains(b, pos):
+            if b.contains(pos):
                 raise ValueError(f"light: the light lies inside blockers[{i}]")
     camera = make_camera(light, int(resolution), bmin, bmax)
     if grid is not None and method == "march":

@@ -5,7 +5,7 @@ centres.  In the *dual grid* - cells whose corners are 8 neighbouring voxel cent
 the half-voxel band at the box's edge where the lookup clamps (there the 8 corners repeat
 the edge voxels) - ``sigma`` is one trilinear polynomial, so along a ray ``o + t d``
 inside one dual cell it is a cubic in ``t`` and Simpson's rule over the crossing
-``[t_a, t_b]``
+``[t_a, t_b]`` ::
 
     tau = (t_b - t_a) / 6 * (sigma(t_a) + 4 sigma((t_a + t_b) / 2) + sigma(t_b))
 
@@ -39,10 +39,6 @@ the slots exceed :data:`SLOT_BUDGET`, in rounds: every unfinished lane writes up
 the next round from their saved state.  The lanes' rays and constants are made on the
 device in float64 (:func:`lane_constants`), a crossing's 8 corners come from one packet
 load (:func:`~avsm_dr.capture.dual_cells.corner_table`), so the host touches one value per ray (its texel and count).
-Measured on the plume (48 x 72 x 48 grid) at 1024^2 with the frame benchmark's timing (median
-of 5 interleaved calls, 2 loaded cores): capture 0.48 s, 1.06x the AVSM-8 build on its
-output, against 0.96 s and 2.14x with host ray setup (0.1-0.4 s), 8 gathers per crossing
-and a ``dr.compress`` over every slot.
 
 Gradients by recomputing each segment's Simpson sum from differentiable gathers (exact
 too: a segment lies in one dual cell).  The old half-voxel march costs 16 voxel reads
@@ -116,15 +112,24 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
 
     Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of
     ``grid.dtype``, stats dict) like :func:`~avsm_dr.capture.grid.march`.
-    keep_zero: also emit crossings of positive length with tau = 0 inside occupied blocks.
-    differentiable: recompute tau from differentiable gathers (default: when the grid's
+
+    Parameters
+    ----------
+    keep_zero
+        also emit crossings of positive length with tau = 0 inside occupied blocks.
+    differentiable
+        recompute tau from differentiable gathers (default: when the grid's
         data has gradients enabled).
-    lanes_rays: host (texels, o, d, t_in, t_out) as :func:`~avsm_dr.capture.grid.lane_rays`
+    lanes_rays
+        host (texels, o, d, t_in, t_out) as :func:`~avsm_dr.capture.grid.lane_rays`
         gives; default: the rays are made, clipped and compacted on the device
         (:func:`~avsm_dr.capture.grid.hit_lanes`).
-    capacity: segments a lane writes per round (see :data:`ROUND_CAPACITY`).
-    slot_budget: most slots of the one-round layout (see :data:`SLOT_BUDGET`); 0 forces rounds.
-    runs: return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
+    capacity
+        segments a lane writes per round (see :data:`ROUND_CAPACITY`).
+    slot_budget
+        most slots of the one-round layout (see :data:`SLOT_BUDGET`); 0 forces rounds.
+    runs
+        return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
         count), not expanded to one per segment on the host.
     """
     t = backend.types()

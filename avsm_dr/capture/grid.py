@@ -9,7 +9,7 @@ the ray walks the coarse block grid (``block^3`` voxels per block) with a 3-D DD
 [Amanatides & Woo 1987].  An empty block (max of every voxel that influences it
 is 0) is crossed in one iteration; in an occupied block the ray takes steps of
 length ``h = step`` (the last one up to the block's exit), and each step
-``[t_a, t_b]`` becomes one segment whose optical depth is Simpson's rule
+``[t_a, t_b]`` becomes one segment whose optical depth is Simpson's rule ::
 
     tau = (t_b - t_a) / 6 * (sigma(t_a) + 4 sigma((t_a + t_b) / 2) + sigma(t_b))
 
@@ -121,12 +121,19 @@ class GridVolume:
                 skip_empty: bool = True) -> "GridVolume":
         """Validate and prepare ``density``.
 
-        density: (z, y, x) NumPy array, a 3-D Dr.Jit tensor (``TensorXf``/``TensorXf64``;
+        Parameters
+        ----------
+        density
+            (z, y, x) NumPy array, a 3-D Dr.Jit tensor (``TensorXf``/``TensorXf64``;
             gradients kept), a path to a Mitsuba ``.vol`` file, or a GridVolume (returned).
-        bbox: (min_xyz, max_xyz); for ``.vol`` files default the header's box.
-        block: voxels per side of an empty-space-skipping block (>= 1).
-        dtype: 'float32' | 'float64'; default float32, or float64 for TensorXf64 input.
-        skip_empty: False marks every block occupied (no empty-space skipping).
+        bbox
+            (min_xyz, max_xyz); for ``.vol`` files default the header's box.
+        block
+            voxels per side of an empty-space-skipping block (>= 1).
+        dtype
+            'float32' | 'float64'; default float32, or float64 for TensorXf64 input.
+        skip_empty
+            False marks every block occupied (no empty-space skipping).
         """
         if isinstance(density, GridVolume):
             return density
@@ -397,9 +404,7 @@ def compact_slots(bufs, slot, counts, n_segments: int):
     built without a per-segment lookup of the lane: a ``scatter_add`` at every lane's
     offset of the change of shift from the previous lane (``cap - count`` of that lane,
     ``cap`` = the slot gap), then an inclusive prefix sum (modulo 2^32), so the kernel over
-    the segments only reads the values (one packet load with :data:`PACKET_SLOTS`; measured
-    on the plume's march at 1024^2, 7.25 M segments from 24.6 M slots, 2 shared cores: that
-    kernel 128-148 ms against 176-312 ms with 3 gathers, minimum-median of 5 calls)."""
+    the segments only reads the values (one packet load with :data:`PACKET_SLOTS`)."""
     UInt32 = type(counts)
     Float = type(bufs[0])
     if n_segments == 0:
@@ -454,14 +459,21 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
 
     Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``,
     stats dict).  Segments of one texel are in depth order.
-    method: 'march' only (Simpson steps of length ``step``); the 'exact' capture (one
+
+    Parameters
+    ----------
+    method
+        'march' only (Simpson steps of length ``step``); the 'exact' capture (one
         segment per dual-cell crossing) is :func:`.dda.traverse`, dispatched by ``capture``.
-    keep_zero: also emit steps with tau = 0 (gradients can then reach voxels that are
+    keep_zero
+        also emit steps with tau = 0 (gradients can then reach voxels that are
         still 0 inside occupied blocks; use ``GridVolume.prepare(..., skip_empty=False)``
         to reach every voxel).
-    differentiable: recompute tau from differentiable gathers (default: when the grid's
+    differentiable
+        recompute tau from differentiable gathers (default: when the grid's
         data has gradients enabled).
-    runs: return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
+    runs
+        return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
         count), not expanded to one per segment on the host.
     """
     if method != "march":

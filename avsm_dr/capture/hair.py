@@ -6,7 +6,7 @@ polyline of capsules (radius ``r`` around each of its line segments). A texel ra
 passage through one capsule is the interval hull of its chords through the finite
 cylinder and the two end spheres (a capsule is convex); passages through consecutive
 capsules of the same strand that overlap (at the joints) are merged, so one crossing of
-a strand is one segment ``[t_in, t_out]`` whatever the tessellation, with
+a strand is one segment ``[t_in, t_out]`` whatever the tessellation, with ::
 
     T_exit = 1 - opacity,      tau = -ln(1 - opacity)      (opacity per crossing).
 """

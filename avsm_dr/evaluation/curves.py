@@ -1,21 +1,32 @@
 """The depth-uniform L2 error of a whole transmittance curve against the exact curve.
 
-For each non-empty texel t with depth range ``[a_t, b_t]`` (its first entry ``min z0`` and
-last exit ``max z1``) and ``n`` midpoints ``z_tj = a_t + (j + 1/2) (b_t - a_t) / n``::
+For each texel t with content, its depth range ``[a_t, b_t]`` runs from its first entry
+``min z0`` to its last *visible* exit: ``max z1`` over its segments, where an opaque segment
+(optical depth >= ``OPAQUE_OPTICAL_DEPTH``: a blocker's slab) counts with its front face
+``z0``.  With ``n`` midpoints ``z_tj = a_t + (j + 1/2) (b_t - a_t) / n`` and ``D_t`` those not
+strictly inside an opaque segment::
 
-    L2_t     = sqrt( (1/n) sum_j (T_rep(t, z_tj) - T_exact(t, z_tj))^2 )
-    depth_l2 = sqrt( mean_t L2_t^2 )       (RMS over the non-empty texels)
+    L2_t     = sqrt( (1/|D_t|) sum_{j in D_t} (T_rep(t, z_tj) - T_exact(t, z_tj))^2 )
+    depth_l2 = sqrt( mean_t L2_t^2 )       (RMS over the texels counted)
 
-i.e. the midpoint rule of ``(1 / (b - a)) int_a^b (T_rep - T_exact)^2 dz`` per texel.  Unlike
-the receiver RMSE it weighs every depth of a texel's range alike, wherever the receivers
-are: per texel, the cost ``norm='l2'`` of the ``optimal`` kind minimises (up to the
-normalisation by the range).  Empty texels (T = 1 for every kind) do not count.
+i.e. the midpoint rule of ``(1 / |D|) int_D (T_rep - T_exact)^2 dz`` per texel.  Unlike the
+receiver RMSE it weighs every depth of a texel's range alike, wherever the receivers are:
+per texel, the cost ``norm='l2'`` of the ``optimal`` kind minimises (up to the
+normalisation by the range).  Not counted: empty texels (T = 1 for every kind) and texels
+whose range is a single depth (only opaque faces, e.g. a table top without smoke: a step
+whose depth-uniform error has zero measure; the receiver RMSE covers them).
+
+Why the opaque interiors are left out: a blocker is captured as a thin slab (a table top
+3e-4 deep) of optical depth 1e4, inside which no receiver can be.  Counted, it made the
+metric measure how a kind interpolates inside a solid: linear AVSM-8 gave 0.544 on
+``smoke_over_table`` (64^2, the RMS of ``1 - x`` over the slab) against OSM-16's 0.052.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from .. import validation as V
+from ..segments import OPAQUE_OPTICAL_DEPTH
 
 #: Midpoints per texel of :func:`depth_l2`.
 DEPTHS = 64
@@ -51,28 +62,62 @@ def _check(rep, segments, n_depths, texels):
     return n, texels
 
 
-def _nonempty(segments, texels=None):
-    """(texels, a, b): the non-empty texels (all, or of ``texels``) and their depth ranges."""
-    nz = np.flatnonzero(segments.counts > 0)
+def _opaque(segments):
+    """(texel, z0, z1) float64 of the opaque segments (optical depth >= OPAQUE_OPTICAL_DEPTH)."""
+    h = segments.numpy()
+    op = h["optical_depth"] >= OPAQUE_OPTICAL_DEPTH
+    tex = np.repeat(np.arange(segments.n_texels), segments.counts)[op]
+    return tex, h["z0"][op].astype(np.float64), h["z1"][op].astype(np.float64)
+
+
+def _domain(segments, texels=None):
+    """(texels, a, b): the texels counted (module docstring; all, or of ``texels``, in
+    increasing order) and their depth ranges, opaque segments cut to their front face."""
+    c = segments.counts
+    nz = c > 0
+    a, _ = segments.texel_bounds()
+    b = np.full(segments.n_texels, -np.inf)
+    if nz.any():
+        h = segments.numpy()
+        visible = np.where(h["optical_depth"] >= OPAQUE_OPTICAL_DEPTH, h["z0"], h["z1"]).astype(np.float64)
+        b[nz] = np.maximum.reduceat(visible, segments.offsets[:-1][nz])
+    keep = np.flatnonzero(nz & (b > a))
     if texels is not None:
-        nz = np.intersect1d(nz, np.asarray(texels, np.int64))
-    a, b = segments.texel_bounds()
-    return nz, a[nz], b[nz]
+        keep = np.intersect1d(keep, np.asarray(texels, np.int64))
+    return keep, a[keep], b[keep]
+
+
+def _grid(a, b, n):
+    """(T', n) midpoints of ``[a, b]`` per row."""
+    return a[:, None] + ((np.arange(n) + 0.5) / n)[None, :] * (b - a)[:, None]
+
+
+def _counted(segments, tex, a, b, n) -> np.ndarray:
+    """(T', n) bool: the midpoints of :func:`_grid` not strictly inside an opaque segment."""
+    keep = np.ones((tex.size, n), bool)
+    ot, o0, o1 = _opaque(segments)
+    row = np.searchsorted(tex, ot)
+    hit = (row < tex.size) & (tex[np.minimum(row, tex.size - 1)] == ot) if tex.size else row < 0
+    if hit.any():
+        row, o0, o1 = row[hit], o0[hit], o1[hit]
+        z = _grid(a[row], b[row], n)
+        inside = (z > o0[:, None]) & (z < o1[:, None])
+        np.logical_and.at(keep, row, ~inside)
+    return keep
 
 
 def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarray:
     """(T', n_depths) float64 values ``rep.eval(t, z_tj)`` on the midpoint grid of the
-    module docstring, for the T' non-empty texels of ``segments`` (or of ``texels``, in
+    module docstring, for the T' texels counted (of ``segments``, or of ``texels``, in
     increasing order); ``rep`` is any object with ``eval(texel, depth)`` built on
     ``segments`` (e.g. composed with an opaque depth map)."""
     n, texels = _check(rep, segments, n_depths, texels)
-    tex, a, b = _nonempty(segments, texels)
+    tex, a, b = _domain(segments, texels)
     out = np.empty((tex.size, n))
-    frac = (np.arange(n) + 0.5) / n
     per = max(1, CHUNK_LANES // n)
     for s in range(0, tex.size, per):
         e = min(tex.size, s + per)
-        depth = a[s:e, None] + frac[None, :] * (b[s:e] - a[s:e])[:, None]
+        depth = _grid(a[s:e], b[s:e], n)
         t = np.repeat(tex[s:e], n).astype(np.uint32)
         got = np.asarray(rep.eval(t, depth.ravel()), np.float64).ravel()
         if got.size != t.size:
@@ -84,13 +129,27 @@ def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarr
 def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per_texel: bool = False):
     """Depth-uniform L2 of ``rep``'s curve against the exact one (module docstring).
 
-    rep: a representation built on ``segments`` (anything with ``eval(texel, depth)``).
-    exact: the reference - None (``build('exact', segments)``), a representation, or its
+    Parameters
+    ----------
+    rep
+        a representation built on ``segments`` (anything with ``eval(texel, depth)``).
+    segments
+        the segments ``rep`` was built on.
+    exact
+        the reference - None (``build('exact', segments)``), a representation, or its
         :func:`curve_values` on the same grid (reused across many ``rep``).
-    n_depths: midpoints per texel (default :data:`DEPTHS`).
-    texels: restrict to these texels (default: every non-empty one).
-    Returns the float RMS over non-empty texels (NaN when there is none), or with
-    ``per_texel`` the (T',) array of ``L2_t``.
+    n_depths
+        midpoints per texel (default :data:`DEPTHS`).
+    texels
+        restrict to these texels (default: every non-empty one).
+    per_texel
+        return the per-texel values instead of their RMS.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        the RMS over the texels counted (NaN when there is none), or with ``per_texel``
+        the (T',) array of ``L2_t``.
     """
     n, texels = _check(rep, segments, n_depths, texels)
     if exact is None:
@@ -103,7 +162,9 @@ def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per
     est = curve_values(rep, segments, n, texels)
     if ref.shape != est.shape:
         raise ValueError(f"exact: expected curve values of shape {est.shape}, got {ref.shape}")
-    l2 = np.sqrt(np.mean(np.square(est - ref), axis=1))
+    tex, a, b = _domain(segments, texels)
+    keep = _counted(segments, tex, a, b, n)
+    l2 = np.sqrt(np.sum(np.square(est - ref) * keep, axis=1) / np.maximum(keep.sum(axis=1), 1))
     if per_texel:
         return l2
     return float(np.sqrt(np.mean(np.square(l2)))) if l2.size else float("nan")

@@ -241,30 +241,55 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     """Measure ``methods`` on ``scenes`` in ``configurations``: one row per method x scene x
     configuration x resolution x order x opaque mode x receiver set (columns: module docstring).
 
-    methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
+    Parameters
+    ----------
+    methods
+        {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
         :class:`~avsm_dr.Representation` subclass, registered or not (built directly);
         ``label: kind`` alone means default parameters, ``(kind, "preset")`` the kind's
         best-practice parameters (``describe(kind)["preset"]``, recorded in ``params``; its
         ``preset_capture``, e.g. ``opaque='separate'``, is the caller's ``opaque=``).
-    scenes: built-in scene names (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.
-    configurations: :class:`~.configuration.Configuration` items or (seed, light) pairs
+    scenes
+        built-in scene names (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.
+    configurations
+        :class:`~.configuration.Configuration` items or (seed, light) pairs
         (default ``configurations()``: seed 0, the scene's own light).
-    receivers: names of :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface'
+    receivers
+        names of :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface'
         without a receiver plane, are left out), or {name: (K, 3) points} for fixed ones.
-    metrics: names of :data:`METRICS`.
-    resolution: texels per side of the light map (or a sequence: a row per value).
-    order: the capture's insertion order, 'depth' | 'reverse_depth' | 'random' | 'submission'
+    metrics
+        names of :data:`METRICS`.
+    resolution
+        texels per side of the light map (or a sequence: a row per value).
+    order
+        the capture's insertion order, 'depth' | 'reverse_depth' | 'random' | 'submission'
         (``avsm_dr.capture.ORDERS``; or a sequence: a row per value); default 'depth' (front to
         back), not ad.capture's own default 'submission'; 'random' shuffles with the
         configuration's seed (``order_seed=seed``).
-    n_volume, n_surface: receivers per set; n_decomp: receivers of the capture / spatial terms.
-    opaque: 'inline' | 'separate' (or both): blockers in the map or in their own depth map;
+    n_volume, n_surface
+        receivers per set.
+    n_decomp
+        receivers of the capture / spatial terms.
+    opaque
+        'inline' | 'separate' (or both): blockers in the map or in their own depth map;
         'separate' runs only for scenes with blockers.
-    subset: build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`,
+    subset
+        build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`,
         faster at high resolution): the lookups of a whole-map build for kinds that work
         per texel, given the map's global depth range (``error_curves`` checks every
         built-in kind); ``bytes`` and ``depth_l2`` then cover those texels.
-    n_depths: depths per texel of ``depth_l2``; build_repeats: timed builds after the first.
+    n_depths
+        depths per texel of ``depth_l2``.
+    build_repeats
+        timed builds after the first.
+    progress
+        a progress bar over the rows.
+
+    Returns
+    -------
+    Table
+        one row per method x scene x configuration x resolution x order x opaque mode x
+        receiver set.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
     if not isinstance(receivers, dict):

@@ -24,9 +24,8 @@ from typing import Any
 import numpy as np
 
 from .. import validation as V
-from ..geometry import orthonormal_basis, ray_box, ray_sphere
-from ..scene import (DirectionalLight, OpaqueBox, OpaquePlane, OpaqueSphere, PointLight, Scene,
-                     SpotLight, validate_blockers)
+from ..geometry import ray_box
+from ..scene import DirectionalLight, PointLight, Scene, SpotLight, validate_blockers
 from .media import check_grid
 
 #: Upper bound on NumPy (receiver, particle) pair tests per chunk (host memory).
@@ -78,18 +77,9 @@ def content_sphere(content) -> tuple[np.ndarray, float]:
         lo.append(pts.min(0) - rad)
         hi.append(pts.max(0) + rad)
     for b in content["blockers"]:
-        if isinstance(b, OpaqueSphere):
-            c = np.asarray(b.center, np.float64)
-            lo.append(c - b.radius)
-            hi.append(c + b.radius)
-        elif isinstance(b, OpaqueBox):
-            lo.append(np.asarray(b.min, np.float64))
-            hi.append(np.asarray(b.max, np.float64))
-        else:
-            c = np.asarray(b.point, np.float64)
-            e = float(b.extent) * math.sqrt(2.0)
-            lo.append(c - e)
-            hi.append(c + e)
+        b_lo, b_hi = b.bounds()
+        lo.append(b_lo)
+        hi.append(b_hi)
     lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
     return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
@@ -154,21 +144,7 @@ def blocked_paths(blockers, o, d, L, eps):
     out = np.zeros(o.shape[0], bool)
     far = L - eps
     for b in blockers:
-        if isinstance(b, OpaqueSphere):
-            t0, t1, hit = ray_sphere(o, d, np.asarray(b.center, np.float64), float(b.radius))
-            out |= hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
-        elif isinstance(b, OpaqueBox):
-            t0, t1, _ = ray_box(o, d, np.asarray(b.min, np.float64), np.asarray(b.max, np.float64))
-            out |= (t0 <= t1) & (np.maximum(t0, 0.0) < np.minimum(t1, far))
-        elif isinstance(b, OpaquePlane):
-            u, v, n = orthonormal_basis(b.normal)
-            c = np.asarray(b.point, np.float64)
-            den = d @ n
-            ok = den != 0
-            t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), -1.0)
-            q = o + t[:, None] * d - c
-            inside = (np.abs(q @ u) <= b.extent) & (np.abs(q @ v) <= b.extent)
-            out |= ok & inside & (t > 0) & (t < far)
+        out |= b.blocks(o, d, far)
     return out
 
 

@@ -13,14 +13,13 @@ from typing import Any
 import numpy as np
 
 from .. import validation as V
+from ..camera import MAX_SIDE, PinholeCamera
 from ..geometry import check_bbox, orthonormal_basis, ray_box
-from ..scene import DirectionalLight, OpaqueBox, OpaqueSphere, Scene, SpotLight
+from ..scene import DirectionalLight, Scene, SpotLight, square_to_world
 from .content import check_scene, to_light
 from .media import check_grid, medium_dict, mitsuba
 from .tracking import default_step, march
 
-#: Largest image side (pixels) of :func:`render_reference` and :func:`camera_rays`.
-MAX_SIDE = 1 << 14
 #: Most samples (pixels x spp) of one Mitsuba render: every sample is a lane of one
 #: wavefront (hundreds of bytes each); average renders with several seeds for more.
 MAX_RENDER_SAMPLES = 1 << 26
@@ -131,18 +130,10 @@ def receiver_plane_for(scene: Scene, camera: dict) -> tuple[np.ndarray, np.ndarr
 
 
 def check_camera(scene, camera) -> dict:
-    """Validated camera dict (origin, target, up, fov); the default view when ``camera`` is None."""
-    if camera is not None and not isinstance(camera, dict):
-        raise ValueError(f"camera: expected a dict (origin, target, up, fov), got {type(camera).__name__}")
-    cam = default_camera(scene) if camera is None else dict(camera)
-    for key in ("origin", "target", "up"):
-        if key not in cam:
-            raise ValueError(f"camera: missing {key!r} (expected origin, target, up, fov)")
-        cam[key] = V.vec3(cam[key], f"camera.{key}")
-    cam["fov"] = V.real(cam.get("fov", 40.0), "camera.fov", 0.0, 180.0, open_min=True, open_max=True)
-    fwd = cam["target"] - cam["origin"]
-    if np.linalg.norm(fwd) == 0 or np.linalg.norm(np.cross(fwd, cam["up"])) == 0:
-        raise ValueError("camera: origin == target or up parallel to the view direction")
+    """Validated camera dict (origin, target, up, fov) of ``camera`` (a dict or a
+    :class:`~avsm_dr.camera.PinholeCamera`; fov 40 when a dict has none); the default view
+    when ``camera`` is None.  ValueError names ``camera`` or ``camera.<field>``."""
+    cam = PinholeCamera.of(default_camera(scene) if camera is None else camera).as_dict()
     if scene.density is not None and scene.bbox is not None:
         lo, hi = check_bbox(scene.bbox)
         if np.all(cam["origin"] >= lo) and np.all(cam["origin"] <= hi):
@@ -151,18 +142,8 @@ def check_camera(scene, camera) -> dict:
 
 
 def _sensor_dict(mi, cam, width, height, spp):
-    """Mitsuba ``perspective`` sensor of a checked camera (box filter, independent sampler)."""
-    return {
-        "type": "perspective",
-        "fov": cam["fov"],
-        "fov_axis": "x",
-        "to_world": mi.ScalarTransform4f().look_at(origin=cam["origin"].tolist(),
-                                                   target=cam["target"].tolist(),
-                                                   up=cam["up"].tolist()),
-        "film": {"type": "hdrfilm", "width": int(width), "height": int(height),
-                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-        "sampler": {"type": "independent", "sample_count": int(spp)},
-    }
+    """Mitsuba ``perspective`` sensor of a checked camera (:meth:`PinholeCamera.sensor_dict`)."""
+    return PinholeCamera.of(cam, width=width, height=height).sensor_dict(mi, spp)
 
 
 def camera_rays(scene: Scene, width: int, height: int, camera=None, supersample: int = 1):
@@ -213,14 +194,6 @@ def spot_beam_width(light: SpotLight) -> float:
     return 0.75 * light.fov / 2
 
 
-def _rect_to_world(mi, c, n, half):
-    """Transform of Mitsuba's rectangle [-1, 1]^2 onto the square (c, n, half)."""
-    u, v, n = orthonormal_basis(n)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = u * half, v * half, n, c
-    return mi.ScalarTransform4f(m)
-
-
 def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int = 64,
                      camera: dict | None = None, albedo: float = 0.0, reflectance: float = 1.0,
                      max_depth: int = 2, seed: int = 0) -> np.ndarray:
@@ -259,7 +232,7 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
         "integrator": {"type": "volpath", "max_depth": int(max_depth)},
         "sensor": _sensor_dict(mi, cam, width, height, spp),
         "light": _emitter_dict(mi, scene.light),
-        "plane": {"type": "rectangle", "to_world": _rect_to_world(mi, c, n, half),
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f(square_to_world(c, n, half)),
                   "bsdf": {"type": "twosided", "bsdf": {
                       "type": "diffuse", "reflectance": {"type": "rgb", "value": [float(reflectance)] * 3}}}},
     }
@@ -273,17 +246,6 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
             "interior": medium_dict(mi, grid, lo, hi, albedo),
         }
     for i, b in enumerate(content["blockers"]):
-        if isinstance(b, OpaqueSphere):
-            d[f"blocker{i}"] = {"type": "sphere", "center": np.asarray(b.center, float).tolist(),
-                                "radius": float(b.radius), "bsdf": black}
-        elif isinstance(b, OpaqueBox):
-            lo_b, hi_b = np.asarray(b.min, float), np.asarray(b.max, float)
-            d[f"blocker{i}"] = {"type": "cube", "bsdf": black, "to_world": (
-                mi.ScalarTransform4f().translate(((lo_b + hi_b) / 2).tolist())
-                @ mi.ScalarTransform4f().scale(((hi_b - lo_b) / 2).tolist()))}
-        else:
-            d[f"blocker{i}"] = {"type": "rectangle", "bsdf": {"type": "twosided", "bsdf": black},
-                                "to_world": _rect_to_world(mi, np.asarray(b.point, float), b.normal,
-                                                           float(b.extent))}
+        d[f"blocker{i}"] = b.to_mitsuba(mi, black)
     img = mi.render(mi.load_dict(d), spp=int(spp), seed=int(seed))
     return np.asarray(img, np.float64)[..., 0]

@@ -41,8 +41,7 @@ METHODS = ("ratio_tracking", "raymarch")
 MAX_LANES = 1 << 22
 #: Ray-march samples per chunk (host memory: ~150 bytes per sample, 600 MB).
 MAX_CHUNK = 1 << 22
-#: Most ray-march samples one call evaluates (2^28; measured ~0.7 us per sample on one
-#: shared core: about 3 minutes).
+#: Most ray-march samples one call evaluates (2^28: minutes on one core).
 MAX_SAMPLES = 1 << 28
 
 

@@ -1,14 +1,13 @@
 """Reverse mode through per-texel loops: the trajectory budget and checkpointed loops.
 
-What reverse mode costs (measured with drjit 1.5 on the LLVM backend, see
-``python -m experiments backward_cost``): a symbolic ``dr.while_loop`` differentiated in
-reverse mode with ``max_iterations=M`` keeps its **trajectory in a per-lane local array
-of M x (state words)** inside the kernel.  On the CPU that array lives on the worker's
-stack, so it grows as ``segments per texel x loop state``: AVSM-8 (21 state words)
-segfaulted at 4000 segments per texel (1000 was fine), AVSM-32 at 2000 (500 fine);
-``max_iterations > 65536`` raises.  On a GPU the same trajectory is per-thread local
-memory.  A bound below the true iteration count gives silently wrong gradients; a larger
-one only costs trajectory space.
+What reverse mode costs (drjit 1.5, LLVM backend; ``python -m experiments backward_cost``
+measures it): a symbolic ``dr.while_loop`` differentiated in reverse mode with
+``max_iterations=M`` keeps its **trajectory in a per-lane local array of M x (state words)**
+inside the kernel.  On the CPU that array lives on the worker's stack, so it grows as
+``segments per texel x loop state`` and overflows it (a segfault) for long texels
+(the limits found: docs/performance.md); ``max_iterations > 65536`` raises.  On a GPU the
+same trajectory is per-thread local memory.  A bound below the true iteration count gives
+silently wrong gradients; a larger one only costs trajectory space.
 
 * A *sum loop* (the increment does not read the accumulator) runs with
   ``max_iterations=-1``: reverse mode re-runs the loop and stores no trajectory
@@ -31,8 +30,8 @@ from .. import _arrays as A
 from .. import backend
 
 #: Trajectory words per lane a single reverse-differentiated loop may hold
-#: (M x state words).  Measured safe: 21 k (AVSM-8, M = 1000) and 34.5 k (AVSM-32,
-#: M = 500); measured crashing: 84 k and 138 k.  16 k words = 64 KiB per lane.
+#: (M x state words), below the stack sizes that crashed (docs/performance.md).  16 k words
+#: = 64 KiB per lane.
 TRAJECTORY_BUDGET_WORDS = 16384
 #: Reverse-mode strategies accepted by every representation (``reverse=``).
 REVERSE_MODES = ("auto", "trajectory", "checkpoint")
@@ -162,7 +161,7 @@ def texel_lanes(segments):
     """(texel, first, stop) of the non-empty texels (UInt32 each): the texel index and its
     CSR range ``[first, stop)`` of segments, one lane per texel in texel order (neighbouring
     lanes read neighbouring segments; ordering lanes by count to even out a SIMD packet's
-    loop length measured 1.5-2.5x slower, cache misses)."""
+    loop length was slower: cache misses)."""
     UInt32 = backend.types().UInt32
     texel = A.to_uint32(np.nonzero(segments.counts > 0)[0])
     offsets = segments.offsets_dr()

@@ -43,7 +43,7 @@ import drjit as dr
 import numpy as np
 
 from ._moment_bounds import BIG, kernel_polynomial, real_roots
-from .basis import sinc as _sinc
+from .basis_functions import sinc as _sinc
 
 #: Below this argument ``q - 1`` and ``sinc w - cos w`` use their series.
 SERIES_BELOW = 0.1

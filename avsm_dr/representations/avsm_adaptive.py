@@ -8,7 +8,7 @@ segments needs at most ``K = 2 c`` nodes: AVSM with ``N >= 2c`` never compresses
 keeps every entry and exit node).  Its options are the node counts of the ladder
 :data:`LADDER` below ``K`` (and at most ``max_nodes``) and ``K`` itself when
 ``K <= max_nodes``; empty texels get 0 nodes, every other texel at least 2 (the first and
-the last node are kept).  The squared error of ``n`` nodes is modelled as
+the last node are kept).  The squared error of ``n`` nodes is modelled as ::
 
     ``e(n) = span (1 - exp(-tau))^2 (1/n^2 - 1/K^2)^+``
 

@@ -272,7 +272,7 @@ class Representation(abc.ABC):
         (``reverse='checkpoint'``) or when 'auto' finds the trajectory
         ``max_count x loop_state_words`` above :data:`TRAJECTORY_BUDGET_WORDS`;
         ``reverse='trajectory'`` beyond the budget raises ValueError (the CPU worker
-        stack would overflow: a segfault, measured at ~4 x the budget)."""
+        stack would overflow: a segfault)."""
         seg = segments if segments is not None else self.segments
         words = self.loop_state_words
         if words == 0 or not seg.requires_grad:
@@ -321,15 +321,29 @@ class Representation(abc.ABC):
              height: int | None = None, radius: float = 1.0, prefilter: bool = False):
         """Transmittance at receivers.
 
-        texel: (K,) integer texel indices, or (K, 2) float continuous shadow-map
+        Parameters
+        ----------
+        texel
+            (K,) integer texel indices, or (K, 2) float continuous shadow-map
             coordinates (x, y) in texel units (needs ``width``/``height``).
-        depth: (K,) light-space receiver depths (or a scalar), NumPy or Dr.Jit.
-        filter: 'point' | 'bilinear' | 'box' | 'gaussian' (see :mod:`avsm_dr.filtering`).
-        prefilter: False (default): filter the reconstructed T, ``sum_j w_j T_j``.  True
+        depth
+            (K,) light-space receiver depths (or a scalar), NumPy or Dr.Jit.
+        filter
+            'point' | 'bilinear' | 'box' | 'gaussian' (see :mod:`avsm_dr.filtering`).
+        width, height
+            the shadow map's size in texels, for continuous coordinates.
+        radius
+            the filter's radius in texels (box, gaussian).
+        prefilter
+            False (default): filter the reconstructed T, ``sum_j w_j T_j``.  True
             (kinds with ``prefilterable``, a non-point filter): filter the stored map,
             ``a = sum_j w_j a[tex_j]``, and reconstruct T once, as hardware filtering of
             a coefficient texture does (see the kind's ``_prefiltered_eval``).
-        Returns a Dr.Jit Float of length K (``np.asarray`` works; AD graph kept).
+
+        Returns
+        -------
+        Float
+            Dr.Jit array of length K (``np.asarray`` works; AD graph kept).
         """
         a = lookup_args(self, self._eval_texels, texel, depth, filter, width, height, radius, prefilter)
         if a.T is not None:                       # a point lookup checked in its own kernel

@@ -3,7 +3,7 @@
 
 Depth is normalised per range ``u = (z - near) / (far - near)`` in [0, 1].  The
 absorption ``sigma(u)`` of a texel is projected onto projection functions ``f_k``
-and rebuilt from reconstruction integrals ``g_k``:
+and rebuilt from reconstruction integrals ``g_k``::
 
     a_k  = int_0^1 sigma(u) f_k(u) du                       (coefficient map, sec. 5)
     D(u) = sum_k a_k g_k(u),   T(u) = clamp(exp(-D(u)), 0, 1)
@@ -11,7 +11,7 @@ and rebuilt from reconstruction integrals ``g_k``:
 For an orthonormal basis ``g_k(u) = F_k(u) = int_0^u f_k``; scaled pairs (the
 paper's Fourier ``a'_k``, the simplified piecewise-constant form of sec. 5.1)
 override ``g``.  Segments are integrated analytically, not as points: a segment
-``[u0, u1]`` with optical depth ``tau`` (uniform density ``tau / (u1 - u0)``) adds
+``[u0, u1]`` with optical depth ``tau`` (uniform density ``tau / (u1 - u0)``) adds ::
 
     a_k += tau * (F_k(u1) - F_k(u0)) / (u1 - u0)            (``Basis.average``)
 
@@ -21,17 +21,8 @@ digits for short segments, so the default ``average`` switches to 3-point
 Gauss-Legendre on ``f`` below a length of ``2e-2`` (float32) / ``2e-3`` (float64); the Fourier
 and piecewise-constant bases override it with cancellation-free formulas.
 
-Adding a basis is a few lines (an orthonormal one needs ``n_coefficients``, ``f``
-and ``F``; lists of Dr.Jit arrays, one per coefficient)::
-
-    @register_basis("cosine")
-    class CosineBasis(Basis):
-        def f(self, u):   # 1, sqrt(2) cos(pi k u)
-            return [1 + 0 * u] + [SQRT2 * cos_pi(k * u) for k in range(1, self.n)]
-        def F(self, u):   # u, sqrt(2) sin(pi k u) / (pi k)
-            return [u] + [SQRT2 * sin_pi(k * u) / (math.pi * k) for k in range(1, self.n)]
-
-    rep = ad.build("basis", seg, basis="cosine", n=8)    # or basis=CosineBasis(8)
+The bases themselves (the :class:`~.basis_functions.Basis` interface, cosine, Legendre,
+``register_basis``) live in :mod:`.basis_functions`.
 
 Depth range (``depth_range=``):
 * ``"global"``: one ``[near, far]`` for all texels (default: ``Segments.bounds()``).
@@ -66,22 +57,14 @@ float32, up to 16 harmonics).  Bases in list form (Legendre, power and trigonome
 moments, user bases) without gradients: one lane per texel summing each segment's K
 terms in CSR order (:meth:`BasisRepresentation._sum_per_texel`, no atomics either), so
 every linear kind's build has the same bits whatever ran before it, the thread count or
-the load (the scatter-add changed moments-8 by 1e-8..2e-7 between such builds; measured
-cost on 128^2 maps, 2 loaded cores, min CPU time of 80 interleaved builds: 0.9-1.4x the
-scatter-add on the plume and smoke-over-table captures, 1.2-1.8x on 264 k random
-segments).  Reconstruction runs one lane
-per (receiver, coefficient) and ``dr.block_sum``: kernels whose size does not depend on
-K, cost linear in K (measured, 64 texels x 40 segments, 2048 receivers, warm kernel
-cache: fom harmonics=1000 0.3 s; the Python-unrolled lists took 25 s at 100 and 350 s at
-400 on a cold cache, compile-bound).  Other bases (a recurrence such as Legendre, user
-bases) keep the list form, evaluated in chunks (``LIST_CHUNK``): linear, 1.5 s for
-legendre n=1000 warm.  Gradients w.r.t. ``optical_depth``, ``z0`` and ``z1`` flow
+the load (the scatter-add changed moments-8 by 1e-8..2e-7 between such builds).
+Reconstruction runs one lane per (receiver, coefficient) and ``dr.block_sum``: kernels
+whose size does not depend on K, cost linear in K.  Other bases (a recurrence such as
+Legendre, user bases) keep the list form, evaluated in chunks (``LIST_CHUNK``): linear in K
+too.  Gradients w.r.t. ``optical_depth``, ``z0`` and ``z1`` flow
 through the scatters and the gathers.
 """
 from __future__ import annotations
-
-import math
-from numbers import Integral
 
 import drjit as dr
 import numpy as np
@@ -93,9 +76,11 @@ from .registry import register
 from .base import Representation, depth_range
 from ._loops import texel_sums
 from ._precision import PRECISIONS, Stored
+from .basis_functions import (  # noqa: F401  (the bases: re-exported from their old home)
+    BASES, LIST_CHUNK, LIST_UNROLL, PROJECTION_ONLY, SHORT, SQRT2, Basis, CosineBasis, LegendreBasis,
+    check_count, clip_segment, cos_pi, make_basis, register_basis, sin_pi, sinc, sincos_pi)
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
-SQRT2 = math.sqrt(2.0)
 #: Shortest depth range, per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
 #: MIN_SPAN_ABS[dtype] (float32 resolves ~6e-8 relative, float64 ~1.1e-16; the absolute term,
 #: the dtype's smallest normal number, only keeps near = far = 0 from dividing by 0).  One
@@ -104,267 +89,14 @@ SQRT2 = math.sqrt(2.0)
 MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
 MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
 DEPTH_RANGES = ("global", "texel")
-#: Segment length (in u) below which Basis.average integrates f by quadrature instead of
-#: differencing F (balances eps / du against the quadrature error for ~12 cosines).
-SHORT = {"float32": 2e-2, "float64": 2e-3}
-#: List path (bases without indexed forms) beyond LIST_UNROLL coefficients: the per-k
-#: Python loop is evaluated every LIST_CHUNK coefficients with per-k constants as opaque
-#: scalars, so every chunk is the same kernel (compiled once) and no kernel grows with K.
-#: One kernel for all K made the compile time quadratic (measured, cold kernel cache:
-#: legendre n=100 7.8 s, n=400 115 s); chunks of 8 compiled fastest (8 / 16 / 32 tried).
-LIST_UNROLL = 32
-LIST_CHUNK = 8
 #: (item, coefficient) lanes per kernel on the indexed path.
 LANES_PER_BATCH = 1 << 22
 #: Most coefficients per texel, the bound of every size parameter (n, harmonics, slices):
 #: 2^16 (256 KiB per texel in float32); the memory budget bounds texels x coefficients.
 MAX_COEFFICIENTS = 1 << 16
 #: Most coefficients of a basis in list form (no indexed forms: Legendre, user bases): it
-#: runs ~K / LIST_CHUNK kernels per build and lookup batch (legendre n = 65536 on 1000
-#: texels took 46 s to build, n = 4096 a few seconds).
+#: runs ~K / LIST_CHUNK kernels per build and lookup batch.
 MAX_LIST_COEFFICIENTS = 1 << 12
-
-BASES: dict[str, type] = {}
-
-
-def register_basis(name: str):
-    """Class decorator adding a :class:`Basis` under ``name`` (for ``basis="name"``)."""
-    def deco(cls):
-        cls.name = name
-        BASES[name] = cls
-        return cls
-    return deco
-
-
-def check_count(value, name: str, lo: int = 1, hi: int | None = None) -> int:
-    """``value`` as an int in [lo, hi], else ValueError naming ``name``."""
-    ok = isinstance(value, Integral) and not isinstance(value, bool)
-    if ok:
-        value = int(value)
-        ok = value >= lo and (hi is None or value <= hi)
-    if not ok:
-        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ValueError(f"{name}: expected an integer {rng}, got {value!r}")
-    return value
-
-
-# ----------------------------------------------------------------------------
-# Exactly periodic trigonometry: the argument is reduced before the multiply by
-# pi, so integer arguments give sin = 0 exactly (T exact at far, Jansen and Bavoil 2010, eq. 3).
-# ----------------------------------------------------------------------------
-def sincos_pi(y):
-    """(sin(pi y), cos(pi y)) with y reduced to r = y - floor(y) in [0, 1) first."""
-    n = dr.floor(y)
-    r = y - n
-    sign = 1 - 2 * (n - 2 * dr.floor(0.5 * n))    # (-1)^n
-    s, c = dr.sincos(math.pi * r)
-    return sign * s, sign * c
-
-
-def sin_pi(y):
-    """sin(pi y) with exact argument reduction (see :func:`sincos_pi`)."""
-    return sincos_pi(y)[0]
-
-
-def cos_pi(y):
-    """cos(pi y) with exact argument reduction (see :func:`sincos_pi`)."""
-    return sincos_pi(y)[1]
-
-
-def sinc(x):
-    """sin(x) / x for x >= 0; Taylor series to x^12 below 0.1 (error < x^14/15! ~ 1e-26)
-    so that neither the value nor its derivative cancels."""
-    x2 = x * x
-    taylor = 1.0
-    for j in (13, 11, 9, 7, 5, 3):      # 1 - x^2/3! + x^4/5! - ... + x^12/13!
-        taylor = 1 - x2 * taylor / (j * (j - 1))
-    safe = dr.select(x > 0.1, x, 1)
-    return dr.select(x > 0.1, dr.sin(safe) / safe, taylor)
-
-
-# ----------------------------------------------------------------------------
-# The basis interface
-# ----------------------------------------------------------------------------
-class Basis:
-    """A set of ``n_coefficients`` projection functions on [0, 1].
-
-    Subclasses give ``f(u)`` and ``F(u)`` (lists of arrays, one per coefficient),
-    and override ``g`` when the reconstruction is not ``F`` (non-orthonormal scaling)
-    and ``average`` when a cancellation-free segment mean is known.
-    ``n`` is the basis' size parameter (harmonics, slices, functions).  Below LIST_UNROLL
-    coefficients ``f`` and ``average`` are traced inside the projection's per-texel loop
-    (:meth:`BasisRepresentation._sum_per_texel`): they must not call ``dr.eval`` there.
-    """
-
-    name = "base"
-    #: True when every a_k >= 0 for tau >= 0 and every g_k is non-decreasing (T monotone).
-    monotone = False
-    #: True when the subclass gives the indexed forms ``f_at`` / ``F_at`` (closed forms in
-    #: the coefficient index): projection and reconstruction then run over (item,
-    #: coefficient) lanes, a trace whose size does not depend on K (module docstring).
-    indexed = False
-
-    def __init__(self, n: int, arg: str = "n"):
-        self.n = check_count(n, arg)
-
-    @property
-    def n_coefficients(self) -> int:
-        return self.n
-
-    def f(self, u) -> list:
-        """Projection functions f_k(u)."""
-        raise NotImplementedError
-
-    def F(self, u) -> list:
-        """Antiderivatives F_k(u) = int_0^u f_k."""
-        raise NotImplementedError
-
-    def g(self, u) -> list:
-        """Reconstruction integrals: D(u) = sum_k a_k g_k(u).  Orthonormal: g = F."""
-        return self.F(u)
-
-    def average(self, u0, u1) -> list:
-        """Mean of f_k over [u0, u1] (u0 <= u1): (F_k(u1) - F_k(u0)) / (u1 - u0), or, for
-        segments shorter than SHORT (where the quotient loses eps / du), 3-point
-        Gauss-Legendre on f (error ~ du^6 f^(6) / 2e6; = f(u0) when u1 = u0, the delta)."""
-        du = u1 - u0
-        big = du > (SHORT["float32"] if dr.type_v(du) == dr.VarType.Float32 else SHORT["float64"])
-        safe = dr.select(big, du, 1)
-        F0, F1 = self.F(u0), self.F(u1)
-        m, h = 0.5 * (u0 + u1), (0.5 * math.sqrt(0.6)) * du
-        fl, fm, fr = self.f(m - h), self.f(m), self.f(m + h)
-        return [dr.select(big, (b - a) / safe, (5 * p + 8 * q + 5 * r) * (1 / 18))
-                for a, b, p, q, r in zip(F0, F1, fl, fm, fr)]
-
-    # ---- indexed forms: ``j`` a UInt32 array of coefficient indices, one per lane of u
-    def f_at(self, j, u):
-        """f_j(u), lane by lane (indexed bases only)."""
-        raise NotImplementedError
-
-    def F_at(self, j, u):
-        """F_j(u), lane by lane (indexed bases only)."""
-        raise NotImplementedError
-
-    def g_at(self, j, u):
-        """g_j(u), lane by lane (default F_j)."""
-        return self.F_at(j, u)
-
-    def average_at(self, j, u0, u1):
-        """Mean of f_j over [u0, u1], lane by lane: the formula of :meth:`average`."""
-        du = u1 - u0
-        big = du > (SHORT["float32"] if dr.type_v(du) == dr.VarType.Float32 else SHORT["float64"])
-        safe = dr.select(big, du, 1)
-        m, h = 0.5 * (u0 + u1), (0.5 * math.sqrt(0.6)) * du
-        quad = (5 * self.f_at(j, m - h) + 8 * self.f_at(j, m) + 5 * self.f_at(j, m + h)) * (1 / 18)
-        return dr.select(big, (self.F_at(j, u1) - self.F_at(j, u0)) / safe, quad)
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.n})"
-
-
-@register_basis("cosine")
-class CosineBasis(Basis):
-    """Cosine (DCT-like) basis, orthonormal on [0, 1]: f_0 = 1, f_k = sqrt(2) cos(pi k u),
-    k < n.  F_k(1) = 0 for k >= 1, so T(far) = exp(-total tau) exactly."""
-
-    def f(self, u):
-        return [1 + 0 * u] + [SQRT2 * cos_pi(k * u) for k in range(1, self.n)]
-
-    def F(self, u):
-        return [u + 0] + [SQRT2 / (math.pi * k) * sin_pi(k * u) for k in range(1, self.n)]
-
-    indexed = True
-
-    def f_at(self, j, u):
-        k = type(u)(j)
-        return dr.select(j == 0, 1.0, SQRT2 * cos_pi(k * u))
-
-    def F_at(self, j, u):
-        k = type(u)(j)
-        return dr.select(j == 0, u, (SQRT2 / math.pi) / dr.maximum(k, 1) * sin_pi(k * u))
-
-
-@register_basis("legendre")
-class LegendreBasis(Basis):
-    """Shifted Legendre polynomials, orthonormal on [0, 1]: f_k = sqrt(2k+1) P_k(2u - 1),
-    k < n;  F_k = (P_{k+1}(x) - P_{k-1}(x)) / (2 sqrt(2k+1)) (k >= 1), F_0 = u.
-    P_k(+-1) = (+-1)^k exactly, so T(near) = 1 and T(far) = exp(-total tau)."""
-
-    def _const(self, u):
-        """Per-k constants as literals, or, beyond LIST_UNROLL coefficients, as opaque
-        scalars: every chunk of the recurrence is then the same kernel (compiled once)."""
-        if self.n + 1 > LIST_UNROLL:
-            return lambda v: dr.opaque(type(u), v)
-        return lambda v: v
-
-    def _legendre(self, u, m):
-        x = 2 * u - 1
-        c = self._const(u)
-        p = [1 + 0 * x, x + 0]
-        for k in range(1, m - 1):       # (k+1) P_{k+1} = (2k+1) x P_k - k P_{k-1}
-            p.append((c(2 * k + 1) * x * p[k] - c(k) * p[k - 1]) * c(1 / (k + 1)))
-            if m > LIST_UNROLL and k % LIST_CHUNK == 0:
-                dr.eval(p[k], p[k + 1])   # bounded kernels: the chain is not recomputed
-        return p[:m]
-
-    def f(self, u):
-        p, c = self._legendre(u, self.n), self._const(u)
-        return [c(math.sqrt(2 * k + 1)) * p[k] for k in range(self.n)]
-
-    def F(self, u):
-        p, c = self._legendre(u, self.n + 1), self._const(u)
-        return [u + 0] + [(p[k + 1] - p[k - 1]) * c(0.5 / math.sqrt(2 * k + 1))
-                          for k in range(1, self.n)]
-
-
-#: Registered projection-only bases (no reconstruction integrals) and the build that uses them.
-PROJECTION_ONLY = {"trigonometric_moments": "build('moments', segments, family='trigonometric', moments=n)"}
-
-
-def _reconstructs(cls) -> bool:
-    """True when ``cls`` has the reconstruction integrals (``g``/``F``) the ``basis`` kind needs."""
-    return cls.indexed or cls.F is not Basis.F or cls.g is not Basis.g
-
-
-def _check_reconstructs(cls, what: str) -> None:
-    if not _reconstructs(cls):
-        use = PROJECTION_ONLY.get(getattr(cls, "name", ""), "the kind that defines it")
-        raise ValueError(f"basis: {what} has projection functions only (no reconstruction integrals F), "
-                         f"so the basis kind cannot use it; use {use}")
-
-
-def make_basis(basis, n=None) -> Basis:
-    """A Basis from an instance, or a registered name with size ``n``."""
-    usable = sorted(k for k, c in BASES.items() if _reconstructs(c))
-    if isinstance(basis, Basis):
-        if n is not None:
-            raise ValueError("n: give n= only with a basis name, not with a Basis instance")
-        _check_reconstructs(type(basis), type(basis).__name__)
-        return basis
-    if isinstance(basis, str):
-        if basis not in BASES:
-            raise ValueError(f"basis: unknown basis {basis!r}; known: {usable}")
-        _check_reconstructs(BASES[basis], repr(basis))
-        if n is None:
-            raise ValueError(f"n: basis {basis!r} needs its size n=")
-        return BASES[basis](n)
-    raise ValueError(f"basis: expected a Basis instance or one of {usable}, got {basis!r}")
-
-
-def clip_segment(z0, z1, tau, near, span):
-    """(c0, c1, tau_in, tau_front) of segments [z0, z1] with optical depth tau against the
-    range [near, near + span]: normalised depths clipped to [0, 1], the optical depth inside
-    the range and in front of near (behind far: dropped).  Both projection paths call it,
-    so their contributions are the same float operations."""
-    u0 = (z0 - near) / span                     # normalised entry depth
-    u1 = (z1 - near) / span                     # normalised exit depth
-    c0, c1 = dr.clip(u0, 0, 1), dr.clip(u1, 0, 1)
-    du = u1 - u0
-    safe = dr.select(du > 0, du, 1)
-    inside = dr.select(du > 0, (c1 - c0) / safe, dr.select((u0 >= 0) & (u0 <= 1), 1, 0))
-    front = dr.select(du > 0, (dr.minimum(u1, 0) - dr.minimum(u0, 0)) / safe,
-                      dr.select(u0 < 0, 1, 0))
-    return c0, c1, tau * inside, tau * front
 
 
 # ----------------------------------------------------------------------------
@@ -632,7 +364,7 @@ class BasisRepresentation(Representation):
         texel)`` (K values per segment), deterministic (:func:`._loops.texel_sums`: one lane
         per texel adds its segments in CSR order; no float atomics, whose order follows the
         threads).  Below LIST_UNROLL coefficients the terms are computed inside that loop
-        (fastest measured: nothing stored per segment; so a list basis' ``f`` / ``average``
+        (nothing stored per segment; so a list basis' ``f`` / ``average``
         must not ``dr.eval`` there); from it on, where a list basis may evaluate its own
         chunks (Legendre's recurrence does beyond LIST_UNROLL terms of ``F``), for every
         segment first, then summed LIST_CHUNK coefficients at a time."""
@@ -669,9 +401,8 @@ class BasisRepresentation(Representation):
         run.  Each contribution is the same float expression as in :meth:`_project_scatter`
         (:func:`clip_segment`, ``average_at``, ``f_at``); only the summation order differs
         (the texel's segments in CSR order here).  A texel's K lanes are adjacent, so a SIMD
-        packet runs one loop length.  Measured faster than keeping the K sums of a texel in
-        registers of one lane (65536 texels x 0-40 segments, 2 cores, K = 3 / 5 / 17:
-        34 / 68 / 140 ms against 40 / 76 / 276 ms; scatter-add 44 / 80 / 222 ms)."""
+        packet runs one loop length (faster than the K sums of a texel in the registers of
+        one lane)."""
         seg, basis = self.segments, self.basis
         Float, UInt32 = seg.Float, backend.types().UInt32
         T, K = seg.n_texels, basis.n_coefficients

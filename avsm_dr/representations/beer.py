@@ -7,7 +7,7 @@ Per texel, with ``a`` = first entry (min z0), ``b`` = last exit (max z1) and
 
 * ``variant='cloud'`` (the paper's): front depth ``a``, mean extinction
   ``sigma_mean = tau_max / (b - a)`` (the total optical depth spread uniformly over the
-  texel's content, empty gaps included) and ``tau_max``;
+  texel's content, empty gaps included) and ``tau_max``; ::
 
       T(d) = exp(-min(tau_max, sigma_mean * max(0, d - a)))
 

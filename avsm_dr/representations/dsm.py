@@ -3,7 +3,7 @@
 
 Each texel stores a variable number of nodes ``(z_i, V_i)`` (depth, transmittance)
 that reproduce the texel's exact visibility function ``V(z)`` within a user tolerance
-``epsilon`` everywhere:
+``epsilon`` everywhere::
 
     |DSM(z) - V(z)| <= epsilon   for every depth z        (Lokovic-Veach error bound)
 
@@ -17,7 +17,7 @@ Pipeline (one build, three phases):
    are already sorted and disjoint) and a prefix sum (one Dr.Jit lane per texel; the
    slope is a compensated sum so that short dense segments do not wipe out small
    ones).  Between breakpoints ``V`` is exactly exponential; the polyline adds vertices
-   where ``V`` crosses a fixed table of levels ``L_0 = 1 > L_1 > ... > L_N`` with
+   where ``V`` crosses a fixed table of levels ``L_0 = 1 > L_1 > ... > L_N`` with ::
 
        L_{n+1} = L_n exp(-kappa_n),  kappa_n = sqrt(8 eps_p / L_n),  L_N <= eps_p,
 
@@ -72,8 +72,8 @@ Memory: phases A and B hold ~``TEMP_BYTES_PER_SEGMENT`` bytes per segment (float
 events, device prefix sums, polyline, node buffers), so they run on chunks of texels
 sized from the output built so far (:func:`next_chunk_segments`); each chunk's nodes are
 kept in the storage dtype.  The build's peak stays within a few times the output's size
-(peak / output 1.9x at 6.5 M segments of the benchmark's memory map; 70x in one piece).  Texels are
-independent, so the nodes do not depend on the chunking.
+(in one piece it was tens of times).  Texels are independent, so the nodes do not depend on
+the chunking.
 """
 from __future__ import annotations
 
@@ -114,7 +114,7 @@ BYTES_PER_VERTEX = 64
 #: segments as ``estimated output bytes / TEMP_BYTES_PER_SEGMENT`` (the first chunk
 #: ``MIN_CHUNK_SEGMENTS``, then extrapolated from the chunks built), clamped to
 #: [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS]: below the minimum the kernel launches of a
-#: chunk (~4 ms) would dominate.
+#: chunk would dominate.
 TEMP_BYTES_PER_SEGMENT = 400
 MIN_CHUNK_SEGMENTS = 1 << 13
 MAX_CHUNK_SEGMENTS = 1 << 18
@@ -143,7 +143,7 @@ def sort_within_texels(off: np.ndarray, values: np.ndarray) -> np.ndarray:
 
     Texels are bucketed by count (powers of two), each bucket padded with +inf to a
     (texels, width) block and sorted along rows: O(n log n) per texel with NumPy's
-    row sorts, several times faster than a global ``lexsort`` on (texel, value).
+    row sorts, instead of a global ``lexsort`` on (texel, value).
     """
     counts = np.diff(off)
     order = np.arange(values.size)
@@ -608,14 +608,16 @@ def _concatenate(parts: list, k: int) -> np.ndarray:
 class DeepShadowMap(Representation):
     """Deep shadow map with error bound ``tolerance`` (see the module docstring).
 
-    tolerance: epsilon, the bound on |DSM(z) - V(z)|, in [1e-9, inf) (default 0.01, the
-        value of Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", table 1).
-    placement: 'midslope' (Lokovic-Veach, not differentiable) or 'curve' (nodes on the
-        exact curve; gradients w.r.t. optical depth with the node depths held fixed).
-    Attributes: ``node_counts`` (T,) int64 NumPy; ``node_depth``, ``node_value`` Dr.Jit
-    arrays in CSR order; ``node_offsets`` (T+1,) int64 NumPy; ``node_left`` (bool NumPy)
-    the node's polyline vertex is the value just before a step at its depth;
-    ``n_polyline_vertices`` (T,) size of the phase-A polyline.
+    Parameters (of ``ad.build("dsm", segments, ...)``): ``tolerance``, epsilon, the bound on
+    ``|DSM(z) - V(z)|``, in [1e-9, inf) (default 0.01, the value of Salvi et al. 2010,
+    "Adaptive Volumetric Shadow Maps", table 1); ``placement``, 'midslope' (Lokovic-Veach,
+    not differentiable) or 'curve' (nodes on the exact curve; gradients w.r.t. optical depth
+    with the node depths held fixed).
+
+    Attributes after the build: ``node_counts`` (T,) int64 NumPy; ``node_depth``,
+    ``node_value`` Dr.Jit arrays in CSR order; ``node_offsets`` (T+1,) int64 NumPy;
+    ``node_left`` (bool NumPy) the node's polyline vertex is the value just before a step at
+    its depth; ``n_polyline_vertices`` (T,) size of the phase-A polyline.
 
     Limit: the build holds the phase-A polyline, up to ``2 B + N`` vertices per texel
     (B breakpoints, N ~ sqrt(2 / tolerance) levels for a texel that goes opaque: 15 at

@@ -1,5 +1,7 @@
 """Uncompressed (exact) transmittance: the in-package ground truth.
 
+The transmittance at depth ``d`` of a texel's segments::
+
     T(d) = prod_i exp(-tau_i * f_i(d)),   f_i(d) = clamp((d - z0_i) / (z1_i - z0_i), 0, 1)
 
 with f_i(d) = [d >= z0_i] for zero-length segments (uniform density inside a

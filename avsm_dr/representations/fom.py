@@ -1,7 +1,7 @@
 """Fourier opacity maps (Jansen and Bavoil 2010, "Fourier Opacity Mapping", I3D, eqs. 1-6).
 
 With ``n`` harmonics a texel stores ``2n + 1`` coefficients, in the paper's
-packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (Jansen and Bavoil 2010, fig. 2):
+packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (Jansen and Bavoil 2010, fig. 2)::
 
     a'_k = 2 int_0^1 sigma(u) cos(2 pi k u) du                                   (1)
     b'_k = 2 int_0^1 sigma(u) sin(2 pi k u) du                                   (2)
@@ -9,13 +9,13 @@ packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (Jansen and Bavoil 2010, f
     T(u) = clamp(exp(-D(u)), 0, 1)                                               (sec. 7.3)
 
 Segments are integrated analytically, not as points (eqs. 5, 6 are the
-zero-length limit): a segment ``[u0, u1]`` with optical depth ``tau`` adds
+zero-length limit): a segment ``[u0, u1]`` with optical depth ``tau`` adds ::
 
     a'_k += 2 tau cos(2 pi k m) sinc(pi k du),   b'_k += 2 tau sin(2 pi k m) sinc(pi k du)
 
 with ``m = (u0 + u1) / 2``, ``du = u1 - u0`` (the segment mean of ``2 cos(2 pi k u)``
 written without cancellation).  Every angle is reduced before it is multiplied by pi
-(:func:`~avsm_dr.representations.basis.sincos_pi`), so ``T(near) = 1`` and
+(:func:`~avsm_dr.representations.basis_functions.sincos_pi`), so ``T(near) = 1`` and
 ``T(far) = exp(-a'_0 / 2) = exp(-sum tau)`` hold to float rounding of the sum.
 
 Reconstruction rings (``monotone = False``) and is clamped to [0, 1].  Depth range,

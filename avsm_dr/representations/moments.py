@@ -8,7 +8,7 @@ Transparency" (MBOIT), sec. 3-4, applied to optical depth as in the latter).
 Depth warp (``warp=``): ``u = (z - near) / (far - near)`` ('linear') or
 ``u = (ln z - ln near) / (ln far - ln near)`` ('log', MBOIT's logarithmic depth warp;
 needs ``near > 0``), same ranges and clipping as :mod:`avsm_dr.representations.basis`;
-then ``x = 2 u - 1`` in [-1, 1].  A texel stores ``2n + 1`` values (``moments = 2n``)
+then ``x = 2 u - 1`` in [-1, 1].  A texel stores ``2n + 1`` values (``moments = 2n``) ::
 
     b_0 = sum_i tau_i,    b_k = sum_i tau_i E_i[x^k]  (k = 1..2n),
 
@@ -254,7 +254,7 @@ class MomentShadowMap(BasisRepresentation):
 
     # The basis preset (per-texel range, opaque separate) with transparency's beta and bias.
     PRESET_UNTUNED = ("beta (overestimation 0.25) and the bias targets are MBOIT's values for transparency, "
-                      "not yet tuned for participating media (issue 23, item 6)")
+                      "not yet tuned for participating media")
     schema = Schema(
         params=(
             Param("moments", "int", 4, "power: 4, 6 or 8 real moments; trigonometric: 2, 3 or 4 complex "

@@ -1,7 +1,7 @@
 """Opacity shadow maps (Kim and Neumann 2001) as the piecewise-constant basis of
 Jansen and Bavoil 2010, "Fourier Opacity Mapping", sec. 5.1.
 
-``n`` uniform slices over ``[near, far]``, in the simplified form of sec. 5.1:
+``n`` uniform slices over ``[near, far]``, in the simplified form of sec. 5.1::
 
     f_k(u) = H(u - k/n) - H(u - (k+1)/n)          (slice indicator, the last slice closed)
     g_k(u) = n [(u - k/n) H(u - k/n) - (u - (k+1)/n) H(u - (k+1)/n)] = clamp(n u - k, 0, 1)
@@ -147,7 +147,7 @@ class OpacityShadowMap(BasisRepresentation):
         Float, UInt32, T = seg.Float, backend.types().UInt32, seg.n_texels
         self._check_index_range(T, n)
         # texel-major [texel * n + j]: a texel's segments are contiguous, so its scatters
-        # stay in one cache line or two (j * T + texel was 3x slower, cache misses)
+        # stay in one cache line or two (slice-major j * T + texel: cache misses)
         P = dr.zeros(Float, n * T)                  # end-slice parts
         Rd = dr.zeros(Float, n * T)                 # difference array of full-slice rates
         add = dr.ReduceOp.Add

@@ -11,7 +11,8 @@ the text changed so incremental builds stay incremental):
   read from the committed CSVs in ``docs/data/`` (and a figure drawn from them);
 * ``fragments/experiments_table.md`` - every experiment of the command line, from its module docstring;
 * ``fragments/integrations_toctree.md``, ``fragments/research_toctree.md`` - the pages others add (mitsuba, research);
-* ``api.md`` - autodoc of every public module (:func:`public_modules`);
+* ``api.md`` and ``api/<module>.md`` - the API reference: an index of every public module
+  (:func:`public_modules`) and one autodoc page per module;
 * ``recipes.md`` - every study of ``experiments/`` with what it reproduces (its ``REPRODUCES``);
 * ``notebooks/*.ipynb`` - the jupytext ``py:percent`` sources ``notebooks/*.py`` converted
   (myst-nb executes them during the build).
@@ -80,17 +81,24 @@ def missing_docstrings() -> list[str]:
     return missing
 
 
-def api_page() -> str:
-    """The API reference: one ``automodule`` per public module (members defined there)."""
-    out = ["# API reference", "",
-           "Generated from the docstrings of every public module (`docs/_ext/avsm_docs.py`); the test "
-           "suite fails on a public object without one. Start with the top-level names: "
-           "`ad.build`, `ad.describe`, `ad.kinds`, `ad.capture`, `ad.Segments`.", ""]
-    for module in public_modules():
-        name = module.__name__
-        out += [f"## `{name}`", "", "```{eval-rst}", f".. automodule:: {name}", "   :members:",
-                "   :ignore-module-all:", "   :show-inheritance:", "```", ""]
-    return "\n".join(out)
+def api_pages() -> dict[str, str]:
+    """The API reference: ``{path: Markdown}`` of the index (``api.md``: every public module
+    with its docstring's first line) and one page per module (``api/<module>.md``: its
+    ``automodule``, members defined there)."""
+    modules = [(m.__name__, (inspect.getdoc(m) or "").split("\n")[0]) for m in public_modules()]
+    index = ["# API reference", "",
+             "Generated from the docstrings of every public module (`docs/_ext/avsm_docs.py`); the test "
+             "suite fails on a public object without one. Start with the top-level names: "
+             "`ad.build`, `ad.describe`, `ad.kinds`, `ad.capture`, `ad.Segments`.", "",
+             "| module | what it holds |", "| --- | --- |"]
+    index += [f"| [`{name}`](api/{name}.md) | {summary.replace('|', '/')} |" for name, summary in modules]
+    index += ["", "```{toctree}", ":hidden:", ":maxdepth: 1", "", *[f"api/{name}" for name, _ in modules], "```"]
+    pages = {"api.md": "\n".join(index)}
+    for name, _ in modules:
+        pages[f"api/{name}.md"] = "\n".join([f"# `{name}`", "", "```{eval-rst}", f".. automodule:: {name}",
+                                             "   :members:", "   :ignore-module-all:", "   :show-inheritance:",
+                                             "```"])
+    return pages
 
 
 # ===================================================================== kinds table
@@ -310,7 +318,7 @@ def _measured_section(kind: str, d: dict, sweep: list[dict], settings: list[dict
     meta_path = DATA / "error_curves_meta.json"
     meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
     params = meta.get("params", {})
-    source = (f"`python -m avsm_dr error_curves` ({params.get('resolution', '?')}^2 maps, "
+    source = (f"`python -m experiments error_curves` ({params.get('resolution', '?')}^2 maps, "
               f"{len(params.get('scenes', [])) or '?'} scenes, {params.get('n_volume', '?')} in-volume receivers "
               "per configuration; the command and files: [the data](../../data.md))")
     mine = [r for r in settings if r["method"] == kind]
@@ -345,9 +353,9 @@ def _measured_section(kind: str, d: dict, sweep: list[dict], settings: list[dict
     out += ["## Measured speed", ""]
     mine = [r for r in bench if r.get("method") == kind and r.get("impl", "drjit") == "drjit"]
     if not mine:
-        out += [f"No throughput of `{kind}` in `docs/data/bench.csv` (`python -m avsm_dr bench`).", ""]
+        out += [f"No throughput of `{kind}` in `docs/data/bench.csv` (`python -m experiments bench`).", ""]
     else:
-        out += ["From `python -m avsm_dr bench` (`docs/data/bench.csv`, the size recorded in "
+        out += ["From `python -m experiments bench` (`docs/data/bench.csv`, the size recorded in "
                 "`docs/data/README.md`): synthetic maps (texels x segments per texel), medians after a "
                 "warm-up call, wall clock on the shared 2-core machine; build = segment insertions/s, "
                 "lookup = receivers/s; first call = the first build including JIT compilation. Rates on "
@@ -454,7 +462,7 @@ def choosing_table(sweep=None) -> str:
 
 # ================================================================ experiments
 def experiments_table() -> str:
-    """Every CLI experiment (``python -m avsm_dr <name>``) with its module docstring's first sentence."""
+    """Every CLI experiment (``python -m experiments <name>``) with its module docstring's first sentence."""
     from experiments import _cli as cli
     out = ["| name | what it measures |", "| --- | --- |"]
     for name in cli.experiment_names():
@@ -536,14 +544,16 @@ def generate(gen: Path = GEN) -> list[str]:
     integrations, research = joined_pages_toctrees()
     _write(gen / "fragments" / "integrations_toctree.md", integrations + "\n")
     _write(gen / "fragments" / "research_toctree.md", research + "\n")
-    _write(gen / "api.md", api_page() + "\n")
+    api = api_pages()
+    for path, text in api.items():
+        _write(gen / path, text + "\n")
     _write(gen / "recipes.md", recipes_page() + "\n")
     written = {gen / "representations" / "error_figures.stamp", *convert_notebooks(gen / "notebooks"),
                *(gen / "representations" / f"{k}_error.png" for k in figures),
                *(gen / "representations" / f"{k}.md" for k in kinds),
                *(gen / "fragments" / f"{n}.md" for n in ("kinds_table", "choosing_table", "experiments_table",
                                                          "integrations_toctree", "research_toctree")),
-               gen / "api.md", gen / "recipes.md"}
+               *(gen / path for path in api), gen / "recipes.md"}
     for stale in [p for p in gen.rglob("*") if p.is_file() and p not in written]:
         stale.unlink()                            # a kind, notebook or page that no longer exists
     return kinds

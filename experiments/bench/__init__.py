@@ -1,4 +1,4 @@
-"""Performance suite (issue 7): throughput of capture, build and lookup for every
+"""Performance suite: throughput of capture, build and lookup for every
 representation and setting, peers measured in the same run, the machine's limit,
 scaling, skipping and memory.
 
@@ -61,10 +61,10 @@ import time
 from tqdm import tqdm
 
 from .peer_kernels import numba_avsm, warp_avsm
-from .._common import Results
+from .._study import Study
 from . import memory, peers, report, scaling, skipping, throughput
 from .machine import machine_limit
-from .settings import SCENE_SETTINGS, SETTINGS, params, settings
+from .settings import SCENE_SETTINGS, SETTINGS, settings
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -73,14 +73,26 @@ REPRODUCES = (
     'box; the whole frame (capture -> build -> lookups) per stage on the built-in scenes.'
 )
 
+#: Sizes of every table: full, and quick (about a minute on 2 cores).
+FULL = dict(maps=[(256, 10), (256, 100), (256, 1000), (1024, 10), (1024, 100)], lookups=1_000_000,
+            numpy_segments=8_000_000, repeats=5, big_repeats=1, scene_resolution=256, scene_repeats=5,
+            mitsuba_spp=[16, 64, 256], mitsuba_cap=16384,
+            mitsuba_reps=[("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 16}),
+                          ("fom", {"harmonics": 4}), ("fom", {"harmonics": 8}), ("osm", {"slices": 32})],
+            scale_texels=[32, 64, 128, 256, 512], scale_counts=[10, 30, 100, 300, 1000], scale_side=128,
+            scale_nodes=[2, 4, 8, 16, 32, 64], scale_repeats=3, skip_side=256, memory_side=256,
+            dense_plume=48, skip_resolution=256, peak_iters=8000)
+QUICK = dict(maps=[(64, 10), (64, 100), (32, 1000)], lookups=200_000, numpy_segments=500_000,
+             repeats=3, big_repeats=1, scene_resolution=64, scene_repeats=3,
+             mitsuba_spp=[4, 16, 64], mitsuba_cap=2048,
+             mitsuba_reps=[("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("fom", {"harmonics": 4})],
+             scale_texels=[16, 32, 64, 128], scale_counts=[10, 30, 100, 300, 1000], scale_side=32,
+             scale_nodes=[2, 4, 8, 16, 32], scale_repeats=2, skip_side=64, memory_side=64,
+             dense_plume=48, skip_resolution=128, peak_iters=2000)
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the benchmark; write CSVs, figures, ``machine.json`` and ``meta.json`` into
-    ``out`` (default ``results/bench/``); ``quick`` = small sizes, ``force`` = recompute."""
-    P = params(quick)
-    res = Results("bench", out, quick, dict(P))
-    if (hit := res.cached(force)) is not None:
-        return hit
+
+def _compute(res, P: dict) -> dict:
+    """Every table of the suite, ``machine.json`` and the figures."""
     notes = []
     if not numba_avsm.available():
         notes.append("numba not installed: Numba peers skipped (pip install 'avsm_dr[bench]')")
@@ -103,13 +115,6 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
         scal = scaling.scaling(P, progress)
         skip = skipping.skipping(P, progress)
         mem = memory.memory(P, progress)
-    csv = res.write_csv(data)
-    res.write_csv(scene_rows, "scenes.csv")
-    res.write_csv(peer, "peers.csv")
-    res.write_csv(scal, "scaling.csv")
-    res.write_csv(skip, "skipping.csv")
-    res.write_csv(mem, "memory.csv")
-    res.write_csv(report.machine_rows(data, machine), "machine.csv")
     res.write_json("machine.json", machine, indent=2, default=str)
     throughput.plot(res, data)
     peers.plot(res, peer)
@@ -117,6 +122,14 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     skipping.plot(res, skip)
     memory.plot(res, mem)
     summary = report.summary(data, peer, machine, scal, skip, notes, time.perf_counter() - t_start)
-    res.write_meta(summary)
     report.print_report(data, peer, machine, skip, mem, summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    tables = {"scenes.csv": scene_rows, "peers.csv": peer, "scaling.csv": scal, "skipping.csv": skip,
+              "memory.csv": mem, "machine.csv": report.machine_rows(data, machine)}
+    return dict(rows=data, tables=tables, summary=summary)
+
+
+STUDY = Study("bench", "Performance suite: throughput of capture, build and lookup for every representation",
+              REPRODUCES, FULL, QUICK, _compute,
+              writes=("data.csv (throughput)", "scenes.csv", "peers.csv", "scaling.csv", "skipping.csv",
+                      "memory.csv", "machine.csv", "machine.json"))
+run = STUDY.run

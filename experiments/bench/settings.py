@@ -32,26 +32,6 @@ HEAVY_MAX_SEGMENTS = 8_000_000
 OFFLINE_MAX_SEGMENTS = 200_000
 
 
-def params(quick: bool) -> dict:
-    """Sizes of every table: full, or small (``quick``: about a minute on 2 cores)."""
-    if quick:
-        return dict(maps=[(64, 10), (64, 100), (32, 1000)], lookups=200_000, numpy_segments=500_000,
-                    repeats=3, big_repeats=1, scene_resolution=64, scene_repeats=3,
-                    mitsuba_spp=[4, 16, 64], mitsuba_cap=2048,
-                    mitsuba_reps=[("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("fom", {"harmonics": 4})],
-                    scale_texels=[16, 32, 64, 128], scale_counts=[10, 30, 100, 300, 1000], scale_side=32,
-                    scale_nodes=[2, 4, 8, 16, 32], scale_repeats=2, skip_side=64, memory_side=64,
-                    dense_plume=48, skip_resolution=128, peak_iters=2000)
-    return dict(maps=[(256, 10), (256, 100), (256, 1000), (1024, 10), (1024, 100)], lookups=1_000_000,
-                numpy_segments=8_000_000, repeats=5, big_repeats=1, scene_resolution=256, scene_repeats=5,
-                mitsuba_spp=[16, 64, 256], mitsuba_cap=16384,
-                mitsuba_reps=[("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("avsm", {"nodes": 16}),
-                              ("fom", {"harmonics": 4}), ("fom", {"harmonics": 8}), ("osm", {"slices": 32})],
-                scale_texels=[32, 64, 128, 256, 512], scale_counts=[10, 30, 100, 300, 1000], scale_side=128,
-                scale_nodes=[2, 4, 8, 16, 32, 64], scale_repeats=3, skip_side=256, memory_side=256,
-                dense_plume=48, skip_resolution=256, peak_iters=8000)
-
-
 def one(fn, repeats=3, warmup=1) -> dict:
     """:func:`~experiments._common.measure` of a single callable."""
     return measure({"x": fn}, repeats, warmup)["x"]

@@ -42,9 +42,10 @@ from avsm_dr import allows, build, configurations, describe
 from avsm_dr import kinds as all_kinds
 from avsm_dr.metrics import error_stats, optical_depth_error
 from . import findings as F
-from .._common import Results
-from .labels import PRECISIONS, TUNING, with_size, label, tuned  # noqa: F401  (re-exported)
-from avsm_dr.evaluation import Built, Probe, SubsetBuilder, light_variants, with_faint_segments
+from .._study import Option, Study
+from .labels import ORDERS, PRECISIONS, TUNING, with_size, label, order_dependent, tuned  # noqa: F401  (re-exported)
+from avsm_dr.evaluation import Built, Probe, SubsetBuilder, curve_values, depth_l2, light_variants, with_faint_segments
+from avsm_dr.stats import texel_blocks
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -75,6 +76,16 @@ MITSUBA_FLOOR = 1e-6
 #: Largest |T| difference between a build on the probes' texels and one on the whole map
 #: (float32 kernels on the same segments: rounding only).
 SUBSET_TOLERANCE = 1e-5
+
+#: Parameters of the full and the quick run (``scenes`` / ``kinds``: options; ``kinds`` None:
+#: every registered kind; ``variants`` is filled in from the kinds).
+FULL = dict(scenes=SCENES, resolution=256,
+            configs=[[s, li] for s in range(4) for li in LIGHTS if li != "spot" or s < SPOT_SEEDS], kinds=None,
+            n_volume=4096, n_surface=1024, n_decomp=512, spp=256, filter="bilinear",
+            truth="raymarch, step 1/8 voxel, float64", tuning={k: list(v) for k, v in TUNING.items()},
+            variants=None, range_stretch=list(RANGE_STRETCH), faint_stretch=list(FAINT_STRETCH), n_boot=1000)
+QUICK = dict(FULL, scenes=QUICK_SCENES, resolution=64, configs=[[0, "dir_a"], [1, "spot"]], n_volume=512,
+             n_surface=256, n_decomp=128, spp=32, n_boot=200)
 
 
 def march_step(scene, fraction):
@@ -198,44 +209,87 @@ def _run_config(cfg: _Config, P: dict, rows: list, store: dict, quick: bool, sta
                             cap.opaque_depth)
         exact_rep = build("exact", cap.segments)
         ex = {s: p.lookup(exact_rep) for s, p in pr.items()}
+        # depth-uniform L2 on the non-empty texels built (the probes' texels), 8 x 8 tiles
+        ex_curve = curve_values(build("exact", sub.segments), sub.segments)
+        l2_texels = sub.texels[sub.segments.counts > 0]
+        state["blocks"][(cfg.scene_name, cfg.label, mode)] = texel_blocks(l2_texels, cap.width)
         for s, p in pr.items():
+            nearest = p.tex[np.argmax(p.weights, axis=0), np.arange(p.k)]
+            state["blocks"][(cfg.scene_name, cfg.label, mode, s)] = texel_blocks(nearest, cap.width)
             if s in mitsuba and mode == "inline":
-                rows.append(_reference_row(dict(head0, receivers=s, n=p.k, opaque=mode), p, mitsuba[s]))
+                rows.append(_reference_row(dict(head0, receivers=s, n=p.k, opaque=mode, order="-"), p,
+                                           mitsuba[s]))
         base = cfg.base and mode == "inline"
-        for kind in P["kinds"]:
+
+        def one(kind, i, params, whole, order, segments, subb):
+            """Build one variant on ``segments`` (insertion order ``order``), its rows and errors."""
             size = describe(kind)["size"]
+            name = label(kind, params)
+            whole = whole or kind in state["whole_map"]
+            c0 = time.process_time()
+            rep = exact_rep if kind == "exact" else build(kind, segments, **params) if whole \
+                else subb.build(kind, params)
+            est = {s: p.lookup(rep) for s, p in pr.items()}
+            cpu = time.process_time() - c0
+            if order == "depth":
+                if cpu > SLOW_BUILD_CPU_S:
+                    state["slow"][kind] = max(cpu, state["slow"].get(kind, 0.0))
+                elif base and i == 0 and kind != "exact":
+                    _check_subset(kind, params, est, subb, pr, cfg.scene_name, state)
+            brep = rep.rep if isinstance(rep, Built) else rep
+            l2 = depth_l2(brep, subb.segments, exact=ex_curve, per_texel=True) if isinstance(rep, Built) else \
+                depth_l2(rep, segments, exact=ex_curve, texels=subb.texels, per_texel=True)
+            head = dict(head0, method=kind, param=params.get(size, "") if size else "", setting=name,
+                        opaque=mode, precision=params.get("precision") or "native",
+                        bytes_per_texel=brep.nbytes_per_texel,
+                        bytes_sparse=sparse_bytes(brep, segments), build_lookup_cpu_s=cpu,
+                        texels_built=brep.n_texels,
+                        **{_column(k): params.get(k, "") for k in _tuning_columns(P["kinds"])})
+            head.update(order=order if order_dependent(kind) else "-", bytes=head["bytes_sparse"],
+                        bytes_dense=head["bytes_per_texel"], depth_l2=_rms(l2))
+            curve = base and whole and order == "depth" and name == label(kind, with_size(kind, params.get(size)))
+            for s, p in pr.items():
+                rows.append(_row(dict(head, receivers=s, n=p.k, curve=curve and s == "in_volume"),
+                                 p, est[s], ex[s], mitsuba.get(s) if mode == "inline" else None))
+                if s != "uniform":
+                    store[(cfg.scene_name, cfg.label, name, mode, s, "main", order)] = \
+                        (np.float32(est[s] - ex[s]), np.float32(est[s] - p.truth))
+            state["l2"][(cfg.scene_name, cfg.label, name, mode, order)] = np.float32(l2)
+
+        for kind in P["kinds"]:
             if describe(kind)["offline"] and not base:
                 continue                                   # offline references: base configuration only
             for i, (params, whole) in enumerate(variants(kind, quick, sweep=base)):
                 if kind in state["slow"] and not (base and i == 0):
                     continue                               # slow kinds: headline, base configuration only
-                name = label(kind, params)
-                whole = whole or kind in state["whole_map"]
-                c0 = time.process_time()
-                rep = exact_rep if kind == "exact" else build(kind, cap.segments, **params) if whole \
-                    else sub.build(kind, params)
-                est = {s: p.lookup(rep) for s, p in pr.items()}
-                cpu = time.process_time() - c0
-                if cpu > SLOW_BUILD_CPU_S:
-                    state["slow"][kind] = max(cpu, state["slow"].get(kind, 0.0))
-                elif base and i == 0 and kind != "exact":
-                    _check_subset(kind, params, est, sub, pr, cfg.scene_name, state)
-                brep = rep.rep if isinstance(rep, Built) else rep
-                head = dict(head0, method=kind, param=params.get(size, "") if size else "", setting=name,
-                            opaque=mode, precision=params.get("precision") or "native",
-                            bytes_per_texel=brep.nbytes_per_texel,
-                            bytes_sparse=sparse_bytes(brep, cap.segments), build_lookup_cpu_s=cpu,
-                            texels_built=brep.n_texels,
-                            **{_column(k): params.get(k, "") for k in _tuning_columns(P["kinds"])})
-                curve = base and whole and name == label(kind, with_size(kind, params.get(size)))
-                for s, p in pr.items():
-                    rows.append(_row(dict(head, receivers=s, n=p.k, curve=curve and s == "in_volume"),
-                                     p, est[s], ex[s], mitsuba.get(s) if mode == "inline" else None))
-                    if s != "uniform":
-                        store[(cfg.scene_name, cfg.label, name, mode, s, "main")] = \
-                            (np.float32(est[s] - ex[s]), np.float32(est[s] - p.truth))
+                one(kind, i, params, whole, "depth", cap.segments, sub)
+        dependent = [k for k in P["kinds"] if order_dependent(k) and k not in state["slow"]
+                     and not (describe(k)["offline"] and not base)]
+        for order in ORDERS[1:] if dependent else ():
+            segs = _in_order(cap, order, scene, P["resolution"], mode, seed, cfg, state)
+            subb = SubsetBuilder(segs, sub.texels, cap.opaque_depth)
+            for kind in dependent:
+                for i, (params, whole) in enumerate(variants(kind, quick, sweep=base)):
+                    if (i == 0 or not quick) and params.get("precision") is None:
+                        one(kind, i, params, whole, order, segs, subb)
         if cfg.scene_name == RANGE_SCENE and mode == "inline" and "in_volume" in pr:
             _depth_range(cap, sub, pr["in_volume"], ex["in_volume"], head0, rows, store, cfg, P["kinds"])
+
+
+def _in_order(cap, order, scene, resolution, mode, seed, cfg, state):
+    """The segments of ``cap`` in insertion order ``order`` (:data:`ORDERS`): reordered, or
+    for 'submission' captured again in draw order; its segments per texel must be those of
+    ``cap`` (the largest depth difference after sorting goes into ``state``)."""
+    from avsm_dr import capture
+    if order != "submission":
+        return cap.segments.in_order(order, seed=seed if order == "random" else None)
+    segs = capture(scene, resolution=resolution, opaque=mode, order="submission").segments
+    if not np.array_equal(segs.counts, cap.segments.counts):
+        raise RuntimeError(f"{cfg.scene_name}/{cfg.label}: the submission-order capture has other segment counts")
+    a, b = cap.segments.sorted().numpy(), segs.sorted().numpy()
+    state.setdefault("submission_check", {})[f"{cfg.scene_name}/{cfg.label}/{mode}"] = max(
+        (float(np.max(np.abs(a[k] - b[k]))) if a[k].size else 0.0) for k in ("z0", "z1", "optical_depth"))
+    return segs
 
 
 def sparse_bytes(rep, segments) -> float:
@@ -262,7 +316,7 @@ def _check_subset(kind, params, est, sub, probes, scene_name, state):
 #: Row columns of the experiment itself; a tuning parameter of the same name becomes ``param_<name>``.
 RESERVED = {"scene", "config", "seed", "light", "base", "resolution", "study", "method", "param", "setting",
             "opaque", "precision", "bytes_per_texel", "bytes_sparse", "build_lookup_cpu_s", "texels_built", "receivers",
-            "n", "curve", "stretch"}
+            "n", "curve", "stretch", "order", "bytes", "bytes_dense", "depth_l2"}
 
 
 def _column(name: str) -> str:
@@ -287,8 +341,7 @@ def _depth_range(cap, sub, probe, exact, head0, rows, store, cfg, kind_names):
     for stretch in RANGE_STRETCH:
         for kind, v in todo:
             p = dict(with_size(kind, v), near=near, far=near + (far - near) * stretch)
-            _range_row(kind, p, sub.build(kind, p), probe, exact, head0, rows, store, cfg, "global_range", stretch,
-                       cap.segments)
+            _range_row(kind, p, sub, probe, exact, head0, rows, store, cfg, "global_range", stretch, cap.segments)
     for stretch in FAINT_STRETCH:
         faint = with_faint_segments(cap.segments, stretch)
         sub_f = SubsetBuilder(faint, sub.texels)
@@ -297,20 +350,24 @@ def _depth_range(cap, sub, probe, exact, head0, rows, store, cfg, kind_names):
             ranges = ["global", "texel"] if "depth_range" in describe(kind)["params"] else [None]
             for dr_ in ranges:
                 p = with_size(kind, v) if dr_ is None else dict(with_size(kind, v), depth_range=dr_)
-                _range_row(kind, p, sub_f.build(kind, p), probe, ex_f, head0, rows, store, cfg, "faint_segment",
-                           stretch, faint)
+                _range_row(kind, p, sub_f, probe, ex_f, head0, rows, store, cfg, "faint_segment", stretch, faint)
 
 
-def _range_row(kind, p, rep, probe, exact, head0, rows, store, cfg, study, stretch, whole):
+def _range_row(kind, p, subb, probe, exact, head0, rows, store, cfg, study, stretch, whole):
+    """One row of the depth-range study: ``kind`` with ``p`` built by ``subb`` (a
+    :class:`SubsetBuilder` of the segments ``whole``), in depth order."""
+    rep = subb.build(kind, p)
     est = probe.lookup(rep)
     name = label(kind, p)
     size = describe(kind)["size"]
     r = dict(head0, study=study, stretch=stretch, method=kind, param=p.get(size, ""), setting=name,
              opaque="inline", receivers="in_volume", n=probe.k, bytes_per_texel=rep.rep.nbytes_per_texel,
              bytes_sparse=sparse_bytes(rep.rep, whole), depth_range=p.get("depth_range", ""))
+    r.update(order="depth" if order_dependent(kind) else "-", bytes=r["bytes_sparse"], bytes_dense=r["bytes_per_texel"],
+             depth_l2=depth_l2(rep.rep, subb.segments))
     r.update(error_stats(est, exact))
     rows.append(r)
-    store[(cfg.scene_name, cfg.label, name, "inline", "in_volume", f"{study}_x{stretch}")] = \
+    store[(cfg.scene_name, cfg.label, name, "inline", "in_volume", f"{study}_x{stretch}", "depth")] = \
         (np.float32(est - exact), np.float32(est - probe.truth))
 
 
@@ -325,42 +382,38 @@ def _cell(job: dict) -> dict:
     cfg = _Config(job["scene"], scene, f"s{job['seed']}-{job['light']}", job["base"])
     rows: list[dict] = []
     store: dict = {}
-    state = {"slow": {}, "whole_map": set(job["whole_map"]), "subset_check": {}}
+    state = {"slow": {}, "whole_map": set(job["whole_map"]), "subset_check": {}, "l2": {}, "blocks": {},
+             "submission_check": {}}
     _run_config(cfg, P, rows, store, job["quick"], state)
     return dict(rows=rows, store=store, slow=state["slow"], whole_map=sorted(state["whole_map"]),
-                subset_check=state["subset_check"])
+                subset_check=state["subset_check"], l2=state["l2"], blocks=state["blocks"],
+                submission_check=state["submission_check"])
 
 
-def run(quick: bool = False, out=None, force: bool = False, scenes=None, kinds=None, workers=None,
-        address=None) -> dict:
-    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json into
-    ``out`` (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute.
-    scenes / kinds: subsets (default: the mode's scenes, every registered kind).  workers /
-    address: run the configurations as cells through Ray (:mod:`avsm_dr.sweep`; results
-    equal the serial run's); finished cells are cached under ``<out>/cells/`` so an
-    interrupted run resumes."""
+def _resolve(P: dict, quick: bool, **_) -> dict:
+    """The scenes and kinds checked (kinds None: every registered kind), the variant labels."""
     from avsm_dr import scenes as scene_lib
-    from avsm_dr import sweep
-    from .._common import cache_key
-    sweep.check_workers(workers, address)
     known = getattr(scene_lib, "SCENES", {})
-    names = list(scenes or [n for n in (QUICK_SCENES if quick else SCENES) if n in known])
-    kind_names = list(all_kinds()) if kinds is None else list(kinds)
-    for k in kind_names:
+    P["scenes"] = list(P["scenes"])
+    for n in P["scenes"]:
+        if n not in known:
+            raise ValueError(f"scenes: unknown scene {n!r}; known: {sorted(known)}")
+    P["kinds"] = list(all_kinds()) if P["kinds"] is None else list(P["kinds"])
+    for k in P["kinds"]:
         if k not in all_kinds():
             raise ValueError(f"kinds: unknown kind {k!r}; known: {all_kinds()}")
-    configs = [[0, "dir_a"], [1, "spot"]] if quick else \
-        [[s, li] for s in range(4) for li in LIGHTS if li != "spot" or s < SPOT_SEEDS]
-    P = dict(scenes=names, resolution=64 if quick else 256, configs=configs, kinds=kind_names,
-             n_volume=512 if quick else 4096, n_surface=256 if quick else 1024,
-             n_decomp=128 if quick else 512, spp=32 if quick else 256, filter="bilinear",
-             truth="raymarch, step 1/8 voxel, float64", tuning={k: list(v) for k, v in TUNING.items()},
-             variants={k: [label(k, p) for p, _ in variants(k, quick, True)] for k in kind_names},
-             range_stretch=list(RANGE_STRETCH), faint_stretch=list(FAINT_STRETCH))
-    res = Results("error_curves", out, quick, P)
-    if (hit := res.cached(force)) is not None:
-        return hit
-    if force:
+    P["variants"] = {k: [label(k, p) for p, _ in variants(k, quick, True)] for k in P["kinds"]}
+    return P
+
+
+def _compute(res, P: dict, workers=None, address=None) -> dict:
+    """The configurations as cells (through Ray with ``workers`` / ``address``, results equal
+    the serial run's; finished cells cached under ``<out>/cells/`` so an interrupted run
+    resumes), their rows, ``findings.json`` and the figures."""
+    from avsm_dr import sweep
+    from .._common import cache_key
+    quick, names, configs = res.quick, P["scenes"], P["configs"]
+    if res.force:
         shutil.rmtree(res.dir / "cells", ignore_errors=True)
     t0 = time.perf_counter()
     jobs = [dict(scene=n, seed=s, light=li, base=[s, li] == configs[0], quick=quick, P=P)
@@ -378,20 +431,30 @@ def run(quick: bool = False, out=None, force: bool = False, scenes=None, kinds=N
     cells = [next(it_base) if j["base"] else next(it_rest) for j in jobs]
     rows = [r for c in cells for r in c["rows"]]
     store = {k: v for c in cells for k, v in c["store"].items()}
+    l2 = {k: v for c in cells for k, v in c["l2"].items()}
+    blocks = {k: v for c in cells for k, v in c["blocks"].items()}
     slow: dict = {}
     for c in cells:
         for k, v in c["slow"].items():
             slow[k] = max(v, slow.get(k, 0.0))
     elapsed = time.perf_counter() - t0
-    csv = res.write_csv(rows)
-    summary = F.findings(store, rows, n_boot=200 if quick else 1000)
+    summary = F.findings(store, rows, n_boot=P["n_boot"], l2=l2, blocks=blocks)
     summary.update(run_seconds=elapsed, slow_kinds=slow,
+                   submission_max_difference={k: v for c in cells for k, v in c["submission_check"].items()},
                    whole_map_kinds={n: w for n, w in whole.items() if w},
                    subset_max_difference={k: v for c in base for k, v in c["subset_check"].items()})
-    res.write_json("findings.json", summary, indent=1, default=float)
     from . import plots as _error_plots
     _error_plots.plot_all(res, rows, names)
     verdicts = {k: v.get("verdict") for k, v in summary.get("claims", {}).items()}
-    res.write_meta(verdicts)
     shutil.rmtree(res.dir / "cells", ignore_errors=True)     # complete: nothing left to resume
-    return {"csv": str(csv), "out": str(res.dir), "summary": verdicts, "figures": res.figures}
+    return dict(rows=rows, findings=summary, summary=verdicts)
+
+
+STUDY = Study(
+    "error_curves", "Error of every representation against the true transmittance, decomposed, per scene",
+    REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, sweep=True,
+    writes=("data.csv (one row per scene, configuration, receiver set and variant)", "findings.json (the claims)"),
+    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
+             Option("kinds", "representation kinds to build (default: every registered one)", nargs="+",
+                    metavar="KIND")))
+run = STUDY.run

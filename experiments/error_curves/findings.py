@@ -4,12 +4,27 @@ Each claim compares two arrays of per-receiver signed errors, paired (same recei
 in every configuration (seed x light) where both exist, with
 :func:`avsm_dr.stats.claim`: the per-configuration bootstrap intervals, the pooled
 effect (geometric mean of ratios, or mean of differences) with its two-stage interval,
-and whether it holds in every configuration.  Verdicts:
+and whether it holds in every configuration.  The unit of every pooled interval is the
+configuration (scene seed x light); within a configuration receivers are resampled in tiles
+of 8 x 8 texels of the map they are looked up in (:func:`avsm_dr.stats.texel_blocks`), as
+are the texels of the depth-uniform L2.  Verdicts:
 
-* ``holds in every configuration``: every per-configuration 95 % interval is below the bound;
-* ``holds pooled``: the pooled interval is below it, not every configuration's;
+* ``holds in every configuration``: every per-configuration 95 % interval is below the
+  bound, in at least :data:`MIN_EVERY` configurations;
+* ``holds pooled``: the pooled interval is below it (not every configuration's, or fewer
+  than :data:`MIN_EVERY` of them);
 * ``does not hold``: the pooled interval is entirely above it (the opposite holds);
-* ``inconclusive``: otherwise.
+* ``inconclusive``: otherwise;
+* ``metric-dependent``: the receiver RMSE and the depth-uniform L2 of the curve
+  (:func:`avsm_dr.evaluation.depth_l2`) point in opposite directions (their pooled
+  intervals entirely on opposite sides of the bound); each metric's own verdict is kept
+  under ``metrics``.
+
+Every claim records its insertion order (``order``: the AVSM family's is 'depth'; under
+``by_order`` the claim again with the AVSM side built in each other order, on the same
+receivers), whether each side is its kind's preset (``preset``), both metrics, the signed
+mean and leak share of each side, and ``indicative``: true when it rests on fewer than
+:data:`MIN_CONFIDENT` configurations.
 
 The AVSM paper: Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps",
 EGSR 2010 (sec. 5: AVSM-12 against FOM-16 and OSM-32 on hair and smoke, and the claim of
@@ -20,10 +35,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from avsm_dr import stats
+from avsm_dr import describe, kinds, stats
+from avsm_dr.builtin_scenes import SCENES
+from .labels import ORDERS, order_dependent
 
 #: Every scene ``error_curves`` can run (claims about scenes not run are left out).
-SCENE_NAMES = ("plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table", "simulated_plume")
+SCENE_NAMES = SCENES.names(tag="core")      # the scenes of the study, registration order
 #: Moment variants and the FOM of the same bytes (float32): 5, 7 and 9 stored floats.
 MOMENTS_VS_FOM = (("moments-4", "fom-2"), ("moments-2/family=trigonometric", "fom-2"),
                   ("moments-6", "fom-3"), ("moments-3/family=trigonometric", "fom-3"),
@@ -33,13 +50,20 @@ PRECISION_SETTINGS = ("avsm-8", "fom-4", "moments-4", "osm-32", "dsm-0.01")
 #: A storage precision "costs nothing" when the RMSE ratio to float32 stays below this.
 PRECISION_BOUND = 1.01
 
+#: Configurations needed before "holds in every configuration" is claimed.
+MIN_EVERY = 8
+#: Below this many configurations a claim is ``indicative``.
+MIN_CONFIDENT = 4
+#: Errors above this (in T) count as leaking light (:data:`avsm_dr.metrics.THRESHOLD`).
+LEAK = 0.02
+
 #: (kind, size) of the depth-range study (the AVSM paper's comparison).
 RANGE_KINDS = (("avsm", 8), ("fom", 8), ("osm", 32))
 H, P, T, S, C = "hair_and_smoke", "plume", "smoke_over_table", "surface", "in_volume"
 
 
-def _side(variant, term="compression", opaque="inline", rset=C, study="main"):
-    return dict(variant=variant, term=term, opaque=opaque, set=rset, study=study)
+def _side(variant, term="compression", opaque="inline", rset=C, study="main", order="depth"):
+    return dict(variant=variant, term=term, opaque=opaque, set=rset, study=study, order=order)
 
 
 def _claims() -> list[dict]:
@@ -91,7 +115,7 @@ def _claims() -> list[dict]:
                         statement=f"4 power moments (beta = {beta or '0.25'}) "
                                   + ("leak light: mean signed error > 0" if sign == "leak"
                                      else "over-darken: mean signed error < 0")))
-    for sc in SCENE_NAMES:                                 # today's representations (issue 13)
+    for sc in SCENE_NAMES:                                 # today's representations
         for v, b in (("beer", "12 B"), ("beer/variant=two_node", "16 B")):
             out.append(dict(id=f"avsm8_vs_{v.replace('/variant=', '_')}_{sc}", scene=sc, a=_side("avsm-8"),
                             b=_side(v), statement=f"AVSM-8 (64 B) compresses better than the Beer shadow map "
@@ -130,7 +154,7 @@ def claim_settings() -> set:
 
 
 def _errors(store, scene, cfg, side):
-    v = store.get((scene, cfg, side["variant"], side["opaque"], side["set"], side["study"]))
+    v = store.get((scene, cfg, side["variant"], side["opaque"], side["set"], side["study"], side.get("order", "depth")))
     if v is None:
         return None
     if side["term"] == "zero":
@@ -139,7 +163,7 @@ def _errors(store, scene, cfg, side):
 
 
 def _verdict(r) -> str:
-    if r["holds_in_every_configuration"]:
+    if r["holds_in_every_configuration"] and r["n_configs"] >= MIN_EVERY:
         return "holds in every configuration"
     if r["holds_pooled"]:
         return "holds pooled"
@@ -148,9 +172,56 @@ def _verdict(r) -> str:
     return "inconclusive"
 
 
-def evaluate(spec, store, configs, n_boot: int = 1000) -> dict | None:
-    """One claim over the configurations where both sides were measured (None if none)."""
-    a_all, b_all, used = [], [], []
+def _kind(variant: str) -> str:
+    return variant.split("/")[0].split("-")[0]
+
+
+def _is_preset(side) -> bool:
+    """Whether the side's setting is its kind's preset (``describe(kind)['preset']``, and
+    the capture's opaque mode of ``preset_capture``), whatever its size."""
+    kind = _kind(side["variant"])
+    if kind not in kinds():
+        return False
+    d = describe(kind)
+    given = dict(x.split("=", 1) for x in side["variant"].split("/")[1:])
+    for k, v in d["preset"].items():
+        if given.get(k, str(d["headline"].get(k, d["params"][k]["default"]))) != str(v):
+            return False
+    return d["preset_capture"].get("opaque", side["opaque"]) == side["opaque"]
+
+
+def _order(side) -> str:
+    kind = _kind(side["variant"])
+    return side.get("order", "depth") if kind in kinds() and order_dependent(kind) else "-"
+
+
+def _side_summary(errors) -> dict:
+    """Signed mean and leak share (> :data:`LEAK`) of one side's errors, pooled over configurations."""
+    e = np.concatenate(errors)
+    return dict(mean_signed_error=float(np.mean(e)), leak_share=float(np.mean(e > LEAK)))
+
+
+def _direction(m, below) -> str | None:
+    """'below' / 'above' when the pooled interval of metric ``m`` lies entirely on one side
+    of ``below``, else None (no direction established)."""
+    if m is None:
+        return None
+    return "below" if m["high"] < below else "above" if m["low"] > below else None
+
+
+def _metric(r) -> dict:
+    return dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=r["n_configs"], verdict=_verdict(r),
+                indicative=r["n_configs"] < MIN_CONFIDENT)
+
+
+def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_order: bool = True) -> dict | None:
+    """One claim over the configurations where both sides were measured (None if none).
+
+    l2: {(scene, config, setting, opaque, order): per-texel depth-uniform L2} (the second
+    metric); blocks: {(scene, config, opaque[, receiver set]): 8 x 8 texel tile of each
+    texel / receiver} (the within-configuration block bootstrap); by_order: also the claim
+    with the order-dependent sides in every other order of :data:`ORDERS`."""
+    a_all, b_all, used, blk = [], [], [], []
     for cfg in configs:
         a, b = _errors(store, spec["scene"], cfg, spec["a"]), _errors(store, spec["scene"], cfg, spec["b"])
         if a is None or b is None or a.size < 2:
@@ -160,16 +231,62 @@ def evaluate(spec, store, configs, n_boot: int = 1000) -> dict | None:
         a_all.append(a)
         b_all.append(b)
         used.append(cfg)
+        blk.append((blocks or {}).get((spec["scene"], cfg, spec["a"]["opaque"], spec["a"]["set"])))
     if not used:
         return None
+    blk = None if any(x is None or x.size != a.size for x, a in zip(blk, a_all)) else blk
     r = stats.claim(a_all, b_all, statistic=spec.get("statistic", "rmse"), compare=spec.get("compare", "ratio"),
-                    below=spec.get("below"), configs=used, n_boot=n_boot)
+                    below=spec.get("below"), configs=used, n_boot=n_boot, blocks_by_config=blk)
     per = [{k: pc[k] for k in ("config", "estimate", "low", "high", "a", "b", "holds")} for pc in r["per_config"]]
     out = {k: r[k] for k in ("estimate", "low", "high", "level", "below", "compare", "statistic", "n_configs",
                              "holds_in_every_configuration", "holds_pooled")}
     out.update(statement=spec["statement"], scene=spec["scene"], a=spec["a"], b=spec["b"], per_config=per,
-               receivers_per_config=int(np.median([x.size for x in a_all])), verdict=_verdict(r))
+               receivers_per_config=int(np.median([x.size for x in a_all])), verdict=_verdict(r),
+               indicative=r["n_configs"] < MIN_CONFIDENT, interval_unit="configuration",
+               within_configuration="8x8 texel blocks" if blk is not None else "receivers",
+               order=next((o for o in (_order(spec["a"]), _order(spec["b"])) if o != "-"), "-"),
+               preset={"a": _is_preset(spec["a"]), "b": _is_preset(spec["b"])},
+               sides={"a": _side_summary(a_all), "b": _side_summary(b_all)})
+    out["metrics"] = {"receiver_rmse": _metric(r), "depth_l2": _depth_l2_claim(spec, l2, blocks, configs, n_boot)}
+    d1, d2 = (_direction(m, r["below"]) for m in out["metrics"].values())
+    out["metric_dependent"] = bool(d1 and d2 and d1 != d2)
+    if out["metric_dependent"]:
+        out["verdict"] = "metric-dependent"
+    if by_order and out["order"] != "-":
+        out["by_order"] = {}
+        for o in ORDERS[1:]:
+            s2 = dict(spec, **{k: dict(spec[k], order=o) if _order(spec[k]) != "-" else spec[k] for k in ("a", "b")})
+            r2 = evaluate(s2, store, configs, n_boot, l2, blocks, by_order=False)
+            if r2 is not None:
+                out["by_order"][o] = {k: r2[k] for k in ("estimate", "low", "high", "n_configs", "verdict",
+                                                         "indicative", "metric_dependent", "sides")}
+                out["by_order"][o]["depth_l2"] = r2["metrics"]["depth_l2"]
     return out
+
+
+def _depth_l2_claim(spec, l2, blocks, configs, n_boot) -> dict | None:
+    """The claim on the depth-uniform L2 of the two curves (per-texel L2 paired, RMS ratio;
+    None for difference claims, other studies, the zero side, or no data)."""
+    if l2 is None or spec.get("compare", "ratio") != "ratio" or spec.get("statistic", "rmse") != "rmse":
+        return None
+    sides = (spec["a"], spec["b"])
+    if any(s["study"] != "main" or s["term"] == "zero" for s in sides):
+        return None
+    xa, xb, used, blk = [], [], [], []
+    for cfg in configs:
+        a, b = (l2.get((spec["scene"], cfg, s["variant"], s["opaque"], s.get("order", "depth"))) for s in sides)
+        if a is None or b is None or a.size != b.size or a.size < 2 or not (np.any(a > 0) and np.any(b > 0)):
+            continue
+        xa.append(np.asarray(a, np.float64))
+        xb.append(np.asarray(b, np.float64))
+        used.append(cfg)
+        blk.append((blocks or {}).get((spec["scene"], cfg, spec["a"]["opaque"])))
+    if not used:
+        return None
+    blk = None if any(x is None or x.size != a.size for x, a in zip(blk, xa)) else blk
+    r = stats.claim(xa, xb, "rmse", "ratio", below=spec.get("below"), configs=used, n_boot=n_boot,
+                    blocks_by_config=blk)
+    return _metric(r)
 
 
 def _dilution(store, configs, n_boot) -> dict:
@@ -240,14 +357,35 @@ def _leak_table(store, configs, n_boot) -> dict:
     return out
 
 
-def findings(store: dict, rows: list[dict], n_boot: int = 1000) -> dict:
+def orders(store, configs, n_boot: int = 1000, l2=None, blocks=None) -> dict:
+    """Per scene and order-dependent setting (in-volume receivers, opaque inline): each
+    other insertion order of :data:`ORDERS` against 'depth' on the same receivers and
+    texels, the RMSE ratio (compression, vs the exact curve) and the depth-uniform L2
+    ratio, with configuration-level intervals (:func:`evaluate`), and each order's signed
+    mean and leak share."""
+    out: dict = {}
+    found = sorted({(k[0], k[2]) for k in store if k[6] != "depth" and k[5] == "main"})
+    for scene, v in found:
+        d = out.setdefault(scene, {}).setdefault(v, {})
+        for o in ORDERS[1:]:
+            spec = dict(scene=scene, a=_side(v, order=o), b=_side(v), statement=f"{v}: {o} order vs depth order")
+            r = evaluate(spec, store, configs, n_boot, l2, blocks, by_order=False)
+            if r is not None:
+                d[o] = dict(rmse_ratio=[r["estimate"], r["low"], r["high"]], n_configs=r["n_configs"],
+                            indicative=r["indicative"], depth_l2_ratio=r["metrics"]["depth_l2"],
+                            metric_dependent=r["metric_dependent"], sides=r["sides"])
+    return out
+
+
+def findings(store: dict, rows: list[dict], n_boot: int = 1000, l2=None, blocks=None) -> dict:
     """``findings.json``: claims with intervals and verdicts, dilution by surface receivers,
-    leak / dark shares, the decomposition and the best tuning per scene, and the check of
-    the truth against Mitsuba."""
+    leak / dark shares, the decomposition and the best tuning per scene, the check of
+    the truth against Mitsuba, and the AVSM family under every insertion order
+    (:func:`orders`).  l2, blocks: as :func:`evaluate`."""
     configs = sorted({k[1] for k in store})
     claims = {}
     for spec in _claims():
-        r = evaluate(spec, store, configs, n_boot)
+        r = evaluate(spec, store, configs, n_boot, l2, blocks)
         if r is not None:
             claims[spec["id"]] = r
     # the map's own error against compression, every scene
@@ -257,12 +395,13 @@ def findings(store: dict, rows: list[dict], n_boot: int = 1000) -> dict:
                         b=_side("exact", "total"),
                         statement=f"{v.upper()}'s compression error is below the exact map's own error vs "
                                   f"the truth (the spatial + capture floor dominates)")
-            r = evaluate(spec, store, configs, n_boot)
+            r = evaluate(spec, store, configs, n_boot, l2, blocks)
             if r is not None:
                 claims[spec["id"]] = r
-    main = lambda r: r.get("study") == "main" and r.get("opaque") == "inline" and r.get("receivers") == C  # noqa: E731
+    main = lambda r: (r.get("study") == "main" and r.get("opaque") == "inline" and r.get("receivers") == C  # noqa: E731
+                      and r.get("order", "-") in ("depth", "-"))
     decomposition = {}
-    for col in ("rmse", "total_rmse", "capture_rms", "spatial_rms", "total_p999_error", "total_max_error",
+    for col in ("rmse", "depth_l2", "total_rmse", "capture_rms", "spatial_rms", "total_p999_error", "total_max_error",
                 "tau_rmse"):
         med = _median_by(rows, lambda r: (r["scene"], r.get("setting")), col, main)
         for (sc, v), x in med.items():
@@ -281,6 +420,7 @@ def findings(store: dict, rows: list[dict], n_boot: int = 1000) -> dict:
         if r.get("method") == "truth_vs_mitsuba":
             reference[f"{r['scene']}/{r['receivers']}"] = {k: r[k] for k in
                                                            ("rmse", "reference_se_rms", "within_3_stderr", "n")}
-    return dict(configurations=configs, claims=claims, surface_dilution=_dilution(store, configs, n_boot),
+    return dict(configurations=configs, claims=claims, orders=orders(store, configs, n_boot, l2, blocks),
+                surface_dilution=_dilution(store, configs, n_boot),
                 leak_dark=_leak_table(store, configs, n_boot), decomposition=decomposition, best_tuning=best,
                 truth_vs_mitsuba=reference)

@@ -10,6 +10,14 @@ TUNING = {"overestimation": (0.0, 0.25, 1.0)}
 #: > 0, which scenes with the light inside the depth range violate (the learned_warp
 #: experiment compares warps); moments' ``quantization`` applies to 16-bit storage only.
 UNTUNED = {"warp", "quantization"}
+#: Insertion orders of each texel's segments that the order-dependent kinds
+#: (:func:`order_dependent`: AVSM and adaptive AVSM) are built under, on the same
+#: receivers and the same capture (``Segments.in_order``; 'random' seeded with the
+#: configuration's seed; 'submission' from ``capture(order='submission')``, whose segments
+#: per texel are checked to be the same): the headline in quick mode, every variant but the
+#: storage precisions in full mode.  'depth' (first) is the order every other row is built
+#: in; order-independent kinds record order '-'.
+ORDERS = ("depth", "reverse_depth", "random", "submission")
 #: Storage precisions built at each kind's headline size (fp16 vs fp32 in findings.json).
 PRECISIONS = ("float16", "unorm8")
 
@@ -51,3 +59,10 @@ def with_size(kind, value):
     if d["size"] is not None and value is not None:
         base[d["size"]] = value
     return base
+
+
+def order_dependent(kind: str) -> bool:
+    """Whether ``kind``'s build depends on the order of each texel's segments: the kinds
+    inserting segments one at a time in their stored order (streaming insertion; the
+    schema's ``sort`` parameter, default False, sorts them first instead)."""
+    return "sort" in describe(kind)["params"]

@@ -15,7 +15,9 @@ def _f(x) -> float:
 
 
 def _main(r, rset="in_volume") -> bool:
-    return r.get("study") == "main" and r.get("opaque") == "inline" and r.get("receivers") == rset
+    """Rows of the main study, opaque inline, at ``rset``, in the depth order (or order-independent)."""
+    return (r.get("study") == "main" and r.get("opaque") == "inline" and r.get("receivers") == rset
+            and r.get("order", "-") in ("depth", "-"))
 
 
 def _headline(kind) -> str:
@@ -100,8 +102,8 @@ def plot_all(res, rows, names):
     matplotlib.use("Agg")
     methods = [k for k in kinds() if k != "exact"]
     with plotstyle.context():
-        _curve_figure(res, rows, names, methods, "bytes_per_texel", "error_vs_memory.png",
-                      "memory (bytes per texel)")
+        _curve_figure(res, rows, names, methods, "bytes", "error_vs_memory.png",
+                      "memory (bytes per texel, sparse layout)")
         _curve_figure(res, rows, names, methods, "param", "error_vs_count.png", None)
         _decomposition(res, rows, names, methods)
         _signed(res, rows, names, methods)

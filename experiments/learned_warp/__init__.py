@@ -1,5 +1,5 @@
-"""A depth warp learned by gradient descent, tested on held-out scenes (issue "Research
-results no one has published", part 2).
+"""A depth warp learned by gradient descent, tested on held-out scenes (a new result: no paper
+reports it).
 
 The linear kinds (OSM, FOM, moments) spend their resolution uniformly over the global depth
 range ``[near, far]`` of the map.  :class:`avsm_dr.warp.DepthWarp` re-spends it with a
@@ -47,13 +47,13 @@ from tqdm import tqdm
 from avsm_dr import build
 from avsm_dr.stats import paired_bootstrap
 from avsm_dr.warp import DepthWarp, log_values
-from .._common import Results
+from .._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
     'A monotone depth warp learned by gradient descent for OSM, FOM and moments, trained on '
-    'procedural smoke and tested on held-out seeds, a new light and other scene types (issue '
-    '"Research results no one has published", part 2; no paper reports it).'
+    'procedural smoke and tested on held-out seeds, a new light and other scene types (no paper '
+    'reports it).'
 )
 
 
@@ -67,25 +67,24 @@ LIGHTS = [(-165.0, 17.0), (-140.0, 30.0), (170.0, 10.0)]
 #: phi, finite-difference step, temperature (first, last), start phi (beta = 0.2).
 METRIC = dict(metric_nodes=8, metric_lr=0.3, metric_fd=0.05, metric_tau=[0.1, 0.01],
               metric_phi0=float(np.log(0.2 / 0.8)))
+_COMMON = dict(kinds=[[k, p] for k, p in KINDS], log_ratios=list(LOG_RATIOS), lights=LIGHTS,
+               loss_receivers="uniform in depth per non-empty texel (stratified), point lookups")
 
-
-def plan(quick: bool) -> dict:
-    """Scenes and sizes: train / held-out lists of (group, scene, seed, light index)."""
-    if quick:
-        train = [("smoke", "plume", s, 0) for s in (0, 1)]
-        held = [("smoke_new_seeds", "plume", s, 2) for s in (10, 11)] + \
-               [("hair_and_smoke", "hair_and_smoke", s, 0) for s in (0, 1)]
-        return dict(train=train, held=held, size=10, resolution=64, knots=8, iterations=12, lr=0.1,
-                    receivers_per_texel=4, **METRIC, metric_iterations=3, metric_sweep=[])
-    train = [("smoke", "plume", s, li) for s in (0, 1, 2, 3) for li in (0, 1)]
-    held = [("smoke_new_seeds", "plume", s, 2) for s in (10, 11, 12, 13, 14, 15)] + \
-           [("simulated_plume", "simulated_plume", s, li) for s in (0, 1) for li in (0, 2)] + \
-           [("hair_and_smoke", "hair_and_smoke", s, li) for s in (0, 1, 2) for li in (0, 2)] + \
-           [("three_columns", "three_columns", s, li) for s in (0, 1, 2) for li in (0, 2)] + \
-           [("particles", "particles", s, li) for s in (0, 1, 2) for li in (0, 2)]
-    return dict(train=train, held=held, size=20, resolution=64, knots=16, iterations=80, lr=0.05,
-                receivers_per_texel=8, **METRIC, metric_iterations=15,
-                metric_sweep=[0.0, 0.003, 0.01, 0.03, 0.1, 0.3, 0.6, 0.9])
+#: Parameters of the full and the quick run; train / held-out: lists of (group, scene, seed,
+#: light index).
+FULL = dict(train=[("smoke", "plume", s, li) for s in (0, 1, 2, 3) for li in (0, 1)],
+            held=[("smoke_new_seeds", "plume", s, 2) for s in (10, 11, 12, 13, 14, 15)]
+            + [("simulated_plume", "simulated_plume", s, li) for s in (0, 1) for li in (0, 2)]
+            + [("hair_and_smoke", "hair_and_smoke", s, li) for s in (0, 1, 2) for li in (0, 2)]
+            + [("three_columns", "three_columns", s, li) for s in (0, 1, 2) for li in (0, 2)]
+            + [("particles", "particles", s, li) for s in (0, 1, 2) for li in (0, 2)],
+            size=20, resolution=64, knots=16, iterations=80, lr=0.05, receivers_per_texel=8, **METRIC,
+            metric_iterations=15, metric_sweep=[0.0, 0.003, 0.01, 0.03, 0.1, 0.3, 0.6, 0.9], **_COMMON)
+QUICK = dict(train=[("smoke", "plume", s, 0) for s in (0, 1)],
+             held=[("smoke_new_seeds", "plume", s, 2) for s in (10, 11)]
+             + [("hair_and_smoke", "hair_and_smoke", s, 0) for s in (0, 1)],
+             size=10, resolution=64, knots=8, iterations=12, lr=0.1, receivers_per_texel=4, **METRIC,
+             metric_iterations=3, metric_sweep=[], **_COMMON)
 
 
 class SceneData:
@@ -169,18 +168,9 @@ def _mean_rmse(scenes, kind, params, theta, key):
     return float(np.mean([errors(d, kind, params, theta, key)["rmse"] for d in scenes]))
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write ``data.csv`` (one row per scene, kind and warp),
-    ``losses.csv``, ``warps.csv``, ``findings.json``, figures and ``meta.json`` into ``out``
-    (default ``results/learned_warp/``); ``quick`` = small sizes, ``force`` = recompute."""
-    P = plan(quick)
-    P["kinds"] = [[k, p] for k, p in KINDS]
-    P["log_ratios"] = list(LOG_RATIOS)
-    P["lights"] = LIGHTS
-    P["loss_receivers"] = "uniform in depth per non-empty texel (stratified), point lookups"
-    res = Results("learned_warp", out, quick, P)
-    if (hit := res.cached(force)) is not None:
-        return hit
+def _compute(res, P: dict) -> dict:
+    """The warps trained per kind, their errors on the training and held-out scenes, and the
+    AVSM removal metric."""
     train_s = [SceneData(*s, P) for s in tqdm(P["train"], desc="learned_warp: train scenes", unit="scene")]
     held_s = [SceneData(*s, P) for s in tqdm(P["held"], desc="learned_warp: held-out scenes", unit="scene")]
     rows, loss_rows, warp_rows, warps = [], [], [], {}
@@ -209,25 +199,18 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                                      **errors(d, kind, params, th)))
     bar.close()
     metric_rows, metric_loss, sweep = _avsm_metric(train_s, held_s, P)
-    csv = res.write_csv(rows)
-    res.write_csv(loss_rows, "losses.csv")
-    res.write_csv(warp_rows, "warps.csv")
-    res.write_csv(metric_rows, "avsm_metric.csv")
-    res.write_csv(metric_loss, "avsm_metric_loss.csv")
-    if sweep:
-        res.write_csv(sweep, "avsm_metric_sweep.csv")
     summary = findings(rows)
     summary["avsm_metric"] = dict(findings(metric_rows)["avsm"], nodes=P["metric_nodes"],
                                   beta_learned=metric_loss[-1]["beta_next"],
                                   beta_best_in_sweep=min(sweep, key=lambda r: r["train_rmse"])["beta"]
                                   if sweep else None,
                                   evaluated_with="the hard algorithm (equal to the avsm kind at beta = 0)")
-    res.write_json("findings.json", summary, indent=1)
     from .plots import plot, plot_metric
     plot(res, rows, loss_rows, warp_rows)
     plot_metric(res, metric_loss, sweep)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    tables = {"losses.csv": loss_rows, "warps.csv": warp_rows, "avsm_metric.csv": metric_rows,
+              "avsm_metric_loss.csv": metric_loss, **({"avsm_metric_sweep.csv": sweep} if sweep else {})}
+    return dict(rows=rows, tables=tables, findings=summary, summary=summary)
 
 
 def _avsm_metric(train_s, held_s, P):
@@ -285,3 +268,10 @@ def findings(rows) -> dict:
 
 __all__ = ["run", "findings", "train", "errors", "plan", "kind_log_params", "SceneData", "KINDS", "LOG_RATIOS",
            "LIGHTS", "METRIC"]
+
+
+STUDY = Study("learned_warp", "A depth warp learned by gradient descent, tested on held-out scenes", REPRODUCES,
+              FULL, QUICK, _compute,
+              writes=("data.csv (one row per scene, kind and warp)", "losses.csv", "warps.csv", "avsm_metric.csv",
+                      "avsm_metric_loss.csv", "avsm_metric_sweep.csv (full run)", "findings.json"))
+run = STUDY.run

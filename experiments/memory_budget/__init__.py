@@ -56,12 +56,12 @@ from tqdm import tqdm
 
 from avsm_dr import build
 from avsm_dr.stats import bootstrap_ci, claim
-from .._common import Results
+from .._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
-    'A memory budget instead of a node count (issue "Research results no one has published", '
-    'part 3): adaptive AVSM (per-texel node counts by complexity water-filling, CSR storage) '
+    'A memory budget instead of a node count (a new result: no paper reports it): adaptive '
+    'AVSM (per-texel node counts by complexity water-filling, CSR storage) '
     'against fixed-N AVSM, DSM at the same bytes and the best breakpoint subset, per built-in '
     'scene over seeds and lights; bytes saved at equal error.'
 )
@@ -75,6 +75,14 @@ DSM_STEPS = 4
 OPTIMAL_MAX_N = 8
 #: Methods compared at each byte budget (label, kind, extra parameters).
 ADAPTIVE = (("adaptive", {}), ("adaptive_uniform", {"_score": "uniform"}), ("adaptive_count", {"_score": "count"}))
+
+#: Parameters of the full and the quick run (quick: the plume, one configuration).
+FULL = dict(scenes=SCENES, seeds=[0, 1], lights=["dir_a", "dir_b"], resolution=64, nodes=[2, 4, 8, 16, 32, 64],
+            budgets=[2, 4, 8, 16, 32], n_volume=2048, optimal_max_n=OPTIMAL_MAX_N, optimal_first_only=True,
+            heat_nodes=4, ablations_everywhere=False, dsm_steps=DSM_STEPS, n_boot=2000, filter="bilinear")
+QUICK = dict(FULL, scenes=QUICK_SCENES, seeds=[0], lights=["dir_a"], nodes=[2, 4, 8, 16, 32], budgets=[2, 4, 8],
+             n_volume=512, optimal_max_n=4, optimal_first_only=False, ablations_everywhere=True, dsm_steps=2,
+             n_boot=500)
 
 
 def dsm_at_bytes(seg, target: float, steps: int = DSM_STEPS, cache: dict | None = None):
@@ -316,30 +324,20 @@ def findings(rows, errors, n_boot: int) -> dict:
 
 
 # ========================================================================= run
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write ``data.csv``, ``findings.json``, figures and meta.json
-    into ``out`` (default ``results/memory_budget/``); ``quick`` = small sizes (the
-    plume, one configuration), ``force`` = recompute."""
-    P = dict(scenes=QUICK_SCENES if quick else SCENES, seeds=[0] if quick else [0, 1],
-             lights=["dir_a"] if quick else ["dir_a", "dir_b"], resolution=64,
-             nodes=[2, 4, 8, 16, 32] if quick else [2, 4, 8, 16, 32, 64],
-             budgets=[2, 4, 8] if quick else [2, 4, 8, 16, 32], n_volume=512 if quick else 2048,
-             optimal_max_n=4 if quick else OPTIMAL_MAX_N, optimal_first_only=not quick, heat_nodes=4,
-             ablations_everywhere=quick,
-             dsm_steps=2 if quick else DSM_STEPS, n_boot=500 if quick else 2000, filter="bilinear")
-    res = Results("memory_budget", out, quick, P)
-    if (hit := res.cached(force)) is not None:
-        return hit
+def _compute(res, P: dict) -> dict:
+    """Every configuration's rows, the findings and the figures."""
     rows: list[dict] = []
     errors: dict = {}
     heat: dict = {}
     for name, seed, light in tqdm(_configs(P), desc="memory_budget", unit="config"):
         _config_rows(name, seed, light, P, rows, errors, heat)
-    csv = res.write_csv(rows)
     summary = findings(rows, errors, P["n_boot"])
-    res.write_json("findings.json", summary, indent=1)
     from .plots import plot_curves, plot_heat
     plot_curves(res, rows, P["scenes"])
     plot_heat(res, heat)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    return dict(rows=rows, findings=summary, summary=summary)
+
+
+STUDY = Study("memory_budget", "A memory budget instead of a node count: every kind at equal bytes per texel",
+              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "findings.json"))
+run = STUDY.run

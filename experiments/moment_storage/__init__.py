@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build
-from .._common import Results
+from .._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -55,6 +55,14 @@ REFERENCE = "float32"
 #: Bias alphas the tuning tries.
 ALPHAS = (5e-7, 2e-6, 5e-6, 1e-5, 2e-5, 4e-5, 6e-5, 1e-4, 2e-4, 4e-4, 1e-3)
 TAGS = ("default", "tuned")
+
+#: Parameters of the full and the quick run (quick: one scene with a blocker, 64^2 (the least
+#: capture resolution), 256 receivers, 2 configurations, 3 alphas).
+FULL = dict(scenes=SCENES, resolution=64, n_volume=2048,
+            configs=[[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2],
+            tune_seed=4, tune_lights=["dir_a", "spot"], alphas=list(ALPHAS), separate=True, n_boot=1000)
+QUICK = dict(FULL, scenes=["smoke_over_table"], n_volume=256, configs=[[0, "dir_a"], [1, "dir_b"]],
+             tune_lights=["dir_a"], alphas=[5e-7, 6e-5, 1e-3], n_boot=200)
 
 
 def label(precision: str, quantization: str | None) -> str:
@@ -179,36 +187,25 @@ def findings(errs: dict, nbytes: dict, best: dict, n_boot: int = 1000) -> dict:
     return out
 
 
-def params(quick: bool, scenes=None) -> dict:
-    """The run's parameters (quick: one scene with a blocker, 64^2 (the least capture resolution), 256 receivers, 2
-    configurations, 3 alphas)."""
-    if quick:
-        return dict(scenes=list(scenes or ["smoke_over_table"]), resolution=64, n_volume=256,
-                    configs=[[0, "dir_a"], [1, "dir_b"]], tune_seed=4, tune_lights=["dir_a"],
-                    alphas=[5e-7, 6e-5, 1e-3], separate=True, n_boot=200)
-    configs = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
-    return dict(scenes=list(scenes or SCENES), resolution=64, n_volume=2048, configs=configs, tune_seed=4,
-                tune_lights=["dir_a", "spot"], alphas=list(ALPHAS), separate=True, n_boot=1000)
-
-
-def run(quick: bool = False, out=None, force: bool = False, scenes=None) -> dict:
-    """Run the experiment; write ``data.csv``, ``tuning.csv``, ``findings.json``, the figure
-    and meta.json into ``out`` (default ``results/moment_storage/``); ``quick`` = small
-    sizes, ``force`` = recompute."""
-    P = params(quick, scenes)
+def _resolve(P: dict, quick: bool) -> dict:
+    """The tuning seed checked held out; the variants' labels."""
     if P["tune_seed"] in {s for s, _ in P["configs"]}:
         raise ValueError(f"tune_seed: {P['tune_seed']} is also evaluated; the tuning seed must be held out")
-    P["variants"] = [label(*v) for v in VARIANTS]
-    res = Results("moment_storage", out, quick, P)
-    if (hit := res.cached(force)) is not None:
-        return hit
+    return dict(P, scenes=list(P["scenes"]), variants=[label(*v) for v in VARIANTS])
+
+
+def _compute(res, P: dict) -> dict:
+    """The clamping strength tuned on the held-out seed, every variant's errors, the figure."""
     best, tune_rows = tune(P)
     rows, errs, nbytes = evaluate(P, best)
-    csv = res.write_csv(rows)
-    res.write_csv(tune_rows, "tuning.csv")
     summary = findings(errs, nbytes, best, n_boot=P["n_boot"])
-    res.write_json("findings.json", summary, indent=1)
     from .plots import plot_ratios
     plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
-    res.write_meta({"best_alpha": best, "bytes_per_texel": nbytes})
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    return dict(rows=rows, tables={"tuning.csv": tune_rows}, findings=summary,
+                summary={"best_alpha": best, "bytes_per_texel": nbytes}, result={"summary": summary})
+
+
+STUDY = Study("moment_storage", "16-bit storage of 4 power moments against float32", REPRODUCES, FULL, QUICK,
+              _compute, resolve=_resolve, writes=("data.csv", "tuning.csv", "findings.json"),
+              options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),))
+run = STUDY.run

@@ -6,7 +6,7 @@ and shuffled insertion order (AVSM unsorted vs sorted).  Every estimate is compa
 with the float64 exact curve; the CSV counts NaN / inf outputs (must be 0) and bound
 violations, and reports RMSE / max error.
 
-``reliability.csv``: hostile input that must be refused with a ValueError naming the
+``reliability.csv``: adversarial input that must be refused with a ValueError naming the
 argument or answered correctly in bounded time (float32 overflow, huge counts, long
 sums, the DSM bound on sub-ulp opaque segments; see :mod:`.checks`), one row per
 check with its ``failures`` (must be 0).
@@ -27,7 +27,7 @@ from tqdm import tqdm
 from avsm_dr import build, kinds
 from avsm_dr.metrics import error_stats
 from avsm_dr.segments import OPAQUE_OPTICAL_DEPTH, Segments
-from .._common import Results
+from .._study import Study
 from .checks import PRECISION_QUICK_CASES, precision_check, precision_configs, run_checks
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -73,13 +73,14 @@ def cases(quick: bool, rng):
     return out
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
-    params = dict(seed=7)
-    res = Results("stress", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
+#: Parameters of the full and the quick run (quick: fewer cases, see :func:`cases`).
+FULL = dict(seed=7)
+QUICK = dict(FULL)
+
+
+def _compute(res, params: dict) -> dict:
+    """Every method on every adversarial case, in float32 and float64; the reliability checks."""
+    quick = res.quick
     rng = np.random.default_rng(params["seed"])
     rows = []
     todo = cases(quick, rng)
@@ -122,9 +123,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
             est = np.asarray(build("avsm", seg, nodes=8, sort=sort).eval(tex, depth))
             rows.append(dict(case=f"shuffled_order_{trial}", method="avsm", param=8, sorted=sort,
                              dtype="float32", precision="native", **error_stats(est, ref)))
-    csv = res.write_csv(rows)
     checks = run_checks(quick) + [precision_check(rows, t_precision)]
-    res.write_csv(checks, "reliability.csv")
 
     import matplotlib
     matplotlib.use("Agg")
@@ -150,7 +149,11 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                "precision_runs": len(prec),
                "precision_nan_inf_total": sum(r["nan_count"] + r["inf_count"] for r in prec),
                "precision_seconds": round(t_precision, 2)}
-    res.write_meta(summary)
     print(f"stress: {len(rows)} runs, NaN+inf outputs: {bad}, bounds violations: {viol}; "
           f"reliability: {failed} of {len(checks)} checks failed")
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary}
+    return dict(rows=rows, tables={"reliability.csv": checks}, summary=summary)
+
+
+STUDY = Study("stress", "Numerical stability of every representation on adversarial synthetic rays", REPRODUCES,
+              FULL, QUICK, _compute, writes=("data.csv", "reliability.csv (hostile input: refused or right)"))
+run = STUDY.run

@@ -1,7 +1,7 @@
-"""Reliability checks of the stress experiment: hostile input must be refused with a
+"""Reliability checks of the stress experiment: adversarial input must be refused with a
 ``ValueError`` naming the argument, or give the right value in bounded time.
 
-Classes (issue "no crash, no hang, no silent wrong value"): values that overflow the
+Classes (no crash, no hang, no silent wrong value): values that overflow the
 float32 storage, huge counts (DSM polylines, thousands of coefficients, wide filters),
 long optical-depth sums, the DSM error bound on curves that drop within one ulp,
 subnormal depths, out-of-range indices and coordinates, non-differentiable requests.

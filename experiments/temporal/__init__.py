@@ -41,15 +41,15 @@ from tqdm import tqdm
 
 from avsm_dr import builtin_scenes, capture, describe, kinds
 from . import scenes as S
-from .._common import Results
+from .._study import Study
 from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
 from ..ordering import shuffled
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
-    'Temporal stability under animation (issue "Research results no one has published", part '
-    '1): error per frame and flicker of every representation, at fixed receivers, while the '
+    'Temporal stability under animation (a new result: no paper reports it): error per frame '
+    'and flicker of every representation, at fixed receivers, while the '
     'stable-fluids smoke steps, the light turns, the camera orbits and hair sways; unsorted vs '
     'sorted AVSM and the engine-style avsm_march; GIFs of the shadow and its error.'
 )
@@ -100,17 +100,19 @@ def _gif_labels(ms) -> list[str]:
     return out
 
 
-def _params(quick: bool) -> dict:
-    return dict(frames=5 if quick else 48, configs=[[0, "dir_a"]] if quick else [[0, "dir_a"], [1, "dir_b"]],
-                settings=list(SETTINGS), size=16 if quick else 32, hair_size=12 if quick else 24,
-                hair_strands=60 if quick else 300, resolution=64 if quick else 128,
-                n_receivers=256 if quick else 1024, camera_pixels=12 if quick else 24,
-                image=16 if quick else 32, start_steps=20 if quick else 40, density_scale=40.0,
-                light_step=1.0 if quick else 0.25, camera_step=1.0 if quick else 0.5,
-                gif_settings=["smoke"] if quick else ["smoke", "light", "hair"], hair_amplitude=0.06,
-                hair_period=6 if quick else 24, filter="bilinear",
-                truth="raymarch, step 1/8 voxel, float64", n_boot=200 if quick else 1000,
-                methods=[m[0] for m in methods(quick)])
+#: Parameters of the full and the quick run (``methods``: the compared labels, filled in).
+FULL = dict(frames=48, configs=[[0, "dir_a"], [1, "dir_b"]], settings=list(SETTINGS), size=32, hair_size=24,
+            hair_strands=300, resolution=128, n_receivers=1024, camera_pixels=24, image=32, start_steps=40,
+            density_scale=40.0, light_step=0.25, camera_step=0.5, gif_settings=["smoke", "light", "hair"],
+            hair_amplitude=0.06, hair_period=24, filter="bilinear", truth="raymarch, step 1/8 voxel, float64",
+            n_boot=1000, methods=None)
+QUICK = dict(FULL, frames=5, configs=[[0, "dir_a"]], size=16, hair_size=12, hair_strands=60, resolution=64,
+             n_receivers=256, camera_pixels=12, image=16, start_steps=20, light_step=1.0, camera_step=1.0,
+             gif_settings=["smoke"], hair_period=6, n_boot=200)
+
+
+def _resolve(P: dict, quick: bool) -> dict:
+    return dict(P, methods=[m[0] for m in methods(quick)])
 
 
 # ======================================================================= frames
@@ -167,15 +169,9 @@ def _evaluate(frame, P, ms, rng, gif: bool):
 
 
 # ========================================================================== run
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write ``data.csv`` (one row per animation, configuration,
-    method, reference and frame; ``bytes_per_texel`` the mean over the frames of the built
-    texels' mean), ``findings.json``, figures, GIFs and meta.json into
-    ``out`` (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
-    P = _params(quick)
-    res = Results("temporal", out, quick, P)
-    if (hit := res.cached(force)) is not None:
-        return hit
+def _compute(res, P: dict) -> dict:
+    """Every animation, configuration and method, frame by frame; the findings, figures and GIFs."""
+    quick = res.quick
     ms = methods(quick)
     t0 = time.perf_counter()
     F = P["frames"]
@@ -208,12 +204,10 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
     rows = _rows(series, ms)
     summary = findings(series, ms, P)
     summary["run_seconds"] = time.perf_counter() - t0
-    csv = res.write_csv(rows)
-    res.write_json("findings.json", summary, indent=1, default=float)
     from . import plots as _temporal_plots
     _temporal_plots.plot_all(res, rows, summary, series, P, _gif_labels(ms))
-    res.write_meta({k: summary[k] for k in ("headline", "run_seconds")})
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary["headline"], "figures": res.figures}
+    return dict(rows=rows, findings=summary, summary={k: summary[k] for k in ("headline", "run_seconds")},
+                result={"summary": summary["headline"]})
 
 
 def _rows(series, ms) -> list[dict]:
@@ -286,3 +280,10 @@ def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
                          holds_in_every_configuration=cl["holds_in_every_configuration"],
                          holds_pooled=cl["holds_pooled"])
     return out
+
+
+STUDY = Study("temporal", "Temporal stability of every representation under animation: error per frame and flicker",
+              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve,
+              writes=("data.csv (one row per animation, configuration, method, reference and frame)",
+                      "findings.json", "GIFs"))
+run = STUDY.run

@@ -1,4 +1,4 @@
-"""The spatial-vs-depth budget experiment (``python -m experiments budget``) and the reference
+"""The spatial-vs-depth budget experiment (``python -m experiments spatial_budget``) and the reference
 transmittance it and ``images`` are measured against."""
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 
 import avsm_dr as ad
 from helpers import quick_cli_run
-from experiments import _common, budget, images
+from experiments import _common, images
+from experiments import spatial_budget as budget
 
 
 def test_fit_spends_the_budget_on_the_size_parameter():
@@ -62,8 +63,8 @@ def test_quadrature_light_is_the_groundtruth_raymarch():
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
 
-def test_quick_budget_run(tmp_path):
-    out = quick_cli_run("budget", tmp_path)
+def test_quick_spatial_budget_run(tmp_path):
+    out = quick_cli_run("spatial_budget", tmp_path)
     rows = _common.read_csv(out / "data.csv")
     assert {r["kind"] for r in rows} >= {"exact", "avsm", "fom", "osm", "moments"}
     assert {r["receivers"] for r in rows} == {"all", "volume", "surface"}

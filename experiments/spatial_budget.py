@@ -30,7 +30,8 @@ from tqdm import tqdm
 from avsm_dr import allows, build, describe, kinds
 from avsm_dr.metrics import error_stats, optical_depth_error
 from avsm_dr.scene import DirectionalLight
-from ._common import Results, measure
+from ._common import measure
+from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -48,6 +49,13 @@ MAX_SIZE_VALUE = 256
 LIGHTS = [None, (0.6, -0.75, -0.3)]
 #: Receiver groups: scenes put half their receivers in the volume, half on the plane.
 GROUPS = ("all", "volume", "surface")
+
+#: Parameters of the full and the quick run.
+FULL = dict(scenes=["plume", "simulated_plume", "hair_and_smoke"], seeds=[0, 1, 2, 3], lights=LIGHTS,
+            budgets=[1 << 19, 1 << 21], resolutions=[64, 128, 256, 512], n_receivers=4096, step_fraction=0.125,
+            filter="bilinear", lookups=1 << 18, kinds=KINDS)
+QUICK = dict(FULL, scenes=["plume"], seeds=[0], lights=LIGHTS[:1], budgets=[1 << 19], resolutions=[64, 128],
+             n_receivers=1024, lookups=1 << 16)
 
 
 @functools.lru_cache(maxsize=None)
@@ -126,25 +134,15 @@ def _configs(names, seeds, lights, n_receivers):
                 yield name, seed, li, scene_lib.get(name, **kw)
 
 
-def run(quick: bool = False, out=None, force: bool = False) -> dict:
-    """Run the experiment; write CSV, figures and meta.json into ``out``
-    (default ``results/<name>/``); ``quick`` = small sizes, ``force`` = recompute."""
+def _compute(res, params: dict) -> dict:
+    """Every kind at each budget and resolution, per configuration; the findings and figures."""
     from avsm_dr import capture, groundtruth
     from avsm_dr.stats import bootstrap_ci, claim
-    params = dict(scenes=["plume"] if quick else ["plume", "simulated_plume", "hair_and_smoke"],
-                  seeds=[0] if quick else [0, 1, 2, 3], lights=LIGHTS[:1] if quick else LIGHTS,
-                  budgets=[1 << 19] if quick else [1 << 19, 1 << 21],
-                  resolutions=[64, 128] if quick else [64, 128, 256, 512],
-                  n_receivers=1024 if quick else 4096, step_fraction=0.125, filter="bilinear",
-                  lookups=1 << 16 if quick else 1 << 18, kinds=KINDS)
-    res = Results("budget", out, quick, params)
-    if (hit := res.cached(force)) is not None:
-        return hit
     plans = {b: plan(b, params["resolutions"]) for b in params["budgets"]}
     resolutions = sorted({r for p in plans.values() for _, r, _ in p} | set(params["resolutions"]))
     rows, errors = [], {}                     # errors[(scene, budget, kind, res, config)] = signed errors
     configs = list(_configs(params["scenes"], params["seeds"], params["lights"], params["n_receivers"]))
-    for name, seed, li, scene in tqdm(configs, desc="budget", unit="config"):
+    for name, seed, li, scene in tqdm(configs, desc="spatial_budget", unit="config"):
         pts = np.asarray(scene.receivers, np.float64)
         lo, hi = (np.asarray(b, float) for b in scene.bbox)
         step = float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1]))) * params["step_fraction"]
@@ -166,7 +164,7 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                 # the estimates too
                 tm = measure({"lookup": lambda: cap.transmittance(rep, many if timing else pts,
                                                                   filter=params["filter"])},
-                             repeats=(2 if quick else 3) if timing else 0)["lookup"]
+                             repeats=(2 if res.quick else 3) if timing else 0)["lookup"]
                 est = np.asarray(tm["out"], np.float64)[:pts.shape[0]]
                 cost = dict(lookup_ns=tm["kernel_s"] / params["lookups"] * 1e9,
                             lookup_wall_ns=tm["wall_s"] / params["lookups"] * 1e9) if timing else {}
@@ -185,11 +183,8 @@ def run(quick: bool = False, out=None, force: bool = False) -> dict:
                 if kind != "exact":
                     errors[(name, b, kind, r, (seed, li))] = est - truth
     summary = _summarise(rows, errors, params, bootstrap_ci, claim)
-    csv = res.write_csv(rows)
     _plot(res, rows, params, summary)
-    res.write_json("findings.json", summary, indent=2, default=str)
-    res.write_meta(summary)
-    return {"csv": str(csv), "out": str(res.dir), "summary": summary, "figures": res.figures}
+    return dict(rows=rows, findings=summary, summary=summary)
 
 
 def _summarise(rows, errors, params, bootstrap_ci, claim) -> dict:
@@ -281,3 +276,8 @@ def _mean(rows, name, kind, r, budget):
     v = [x["rmse"] for x in rows if x["scene"] == name and x["kind"] == kind and x["resolution"] == r
          and x["receivers"] == "all" and x["budget_bytes"] == budget]
     return float(np.sqrt(np.mean(np.square(v)))) if v else np.nan
+
+
+STUDY = Study("spatial_budget", "Spatial vs depth budget: shadow-map resolution against nodes at equal bytes",
+              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "findings.json"))
+run = STUDY.run

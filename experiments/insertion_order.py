@@ -1,0 +1,247 @@
+"""The order study: AVSM and ``avsm_march`` under the four insertion orders of
+:func:`avsm_dr.capture` (``submission``, ``depth``, ``reverse_depth``, ``random``), against
+the offline references ``greedy`` and ``optimal`` (best breakpoint subset, refitted), per
+scene, configuration and node count N.
+
+One capture per configuration (``order='submission'``); the three other orders are
+:meth:`avsm_dr.segments.Segments.in_order` of its segments (``random``
+seeded with the configuration's seed), so every order sees the same segments and the same
+receivers.  ``greedy`` and ``optimal`` do not depend on the order: they are built once per
+configuration (on the ``depth`` order) and repeated in every order's rows.
+
+Metrics of each representation (in-volume receivers of :func:`avsm_dr.receivers.in_volume`,
+bilinear lookups through :class:`avsm_dr.evaluation.Probe`):
+
+* ``rmse``: receiver RMSE against the exact curve of the same segments; ``rmse_truth``:
+  against the ray-marched ground truth (:func:`avsm_dr.evaluation.truth`);
+* ``depth_l2``: :func:`avsm_dr.evaluation.depth_l2`, the depth-uniform L2 per texel, RMS
+  over the non-empty texels (the cost ``optimal`` minimises per texel over node subsets);
+* ``signed_mean`` (``signed_mean_truth``): mean of ``T_rep - T_exact`` (``- T_true``) at
+  the receivers; > 0 is light leaking through;
+* ``ratio_to_optimal`` (``ratio_to_optimal_rmse``), ``ratio_to_greedy``: ``depth_l2``
+  (receiver ``rmse``) over the reference's in the same configuration;
+  ``beats_optimal_texels``: share of non-empty texels whose depth L2 is below optimal's by
+  more than :data:`BEATS_MARGIN` (AVSM's nodes may leave the exact curve, optimal's may
+  not, so AVSM can beat it on single texels).
+
+``findings.json``: per scene and N, for every kind and order the geometric mean over
+configurations of both ratios to optimal with a 95 % bootstrap interval whose unit is the
+configuration (seed x light; :func:`avsm_dr.stats.bootstrap_ci` of the log ratios), the
+ranking of the kinds by ``depth_l2`` ratio per order and whether the order changes it;
+``indicative`` when fewer than :data:`MIN_CONFIGS` configurations back an interval.
+
+Flicker (the change of T between frames) is not measured here: it needs the temporal
+study's animation (``experiments/temporal``); ``experiments/ordering.py`` measures the change
+between shuffled orders of one frame.
+
+``avsm_march`` builds from the exact curve's points in depth order (:mod:`avsm_dr.representations.avsm_march`),
+so its rows are the same in every order: a check of the study, not a finding.
+"""
+from __future__ import annotations
+
+import numpy as np
+from tqdm import tqdm
+
+from avsm_dr import build
+from ._study import Option, Study
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    'Salvi et al., "Adaptive Volumetric Shadow Maps", EGSR 2010, section 4.1 (insertion order), '
+    "extended: AVSM and avsm_march under submission, depth, reverse-depth and random insertion, "
+    "against offline greedy and the best breakpoint subset, on both error metrics."
+)
+
+#: Insertion orders compared (the capture's own order first).
+ORDERS = ("submission", "depth", "reverse_depth", "random")
+#: Streaming (order-dependent) kinds and the offline references (order-independent).
+STREAMING = ("avsm", "avsm_march")
+REFERENCES = ("greedy", "optimal")
+#: A texel's depth L2 counts as below optimal's only below it by more than this (float32
+#: lookups: ~1e-7 noise in a texel's L2).
+BEATS_MARGIN = 1e-6
+#: Fewer configurations than this make a claim ``indicative``.
+MIN_CONFIGS = 4
+
+#: Scenes per row of the figure's small multiples.
+PANELS_PER_ROW = 5
+
+#: Parameters of the full and the quick run (``scenes=None``: every built-in scene).
+FULL = dict(scenes=None, resolution=128, nodes=[4, 8, 16],
+            configs=[[s, light] for s in range(5) for light in ("dir_a", "dir_b")],
+            n_volume=2048, n_depths=64, n_boot=2000)
+QUICK = dict(FULL, scenes=["three_columns", "plume"], resolution=64, nodes=[8], configs=[[0, "dir_a"], [1, "dir_b"]],
+             n_volume=256, n_boot=500)
+
+
+def _stats(est, ref) -> tuple[float, float]:
+    """(RMSE, signed mean) of ``est - ref``."""
+    d = np.asarray(est, np.float64) - np.asarray(ref, np.float64)
+    return float(np.sqrt(np.mean(d * d))), float(np.mean(d))
+
+
+def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
+    """Rows of one configuration: every kind x N x order."""
+    import dataclasses
+    from avsm_dr import builtin_scenes, capture, receivers
+    from avsm_dr.evaluation import Configuration, Probe, curve_values, depth_l2
+    cfg = Configuration(seed, light)
+    sc0 = builtin_scenes.get(name, seed=seed)
+    scene = dataclasses.replace(sc0, light=cfg.light_for(sc0))
+    cap = capture(scene, resolution=P["resolution"], order="submission")
+    seg = cap.segments
+    segs = {o: seg if o == "submission" else seg.in_order(o, seed=seed if o == "random" else None) for o in ORDERS}
+    points = receivers.in_volume(scene, P["n_volume"], seed)
+    probe = Probe(cap, scene, points, n_decomp=0)
+    base = segs["depth"]
+    exact = build("exact", base)
+    ex_lookup = probe.lookup(exact)
+    n_depths = P["n_depths"]
+    ex_curve = curve_values(exact, base, n_depths)
+    head = dict(scene=name, config=cfg.label, seed=seed, light=light, resolution=P["resolution"],
+                receivers=int(points.shape[0]), max_segments=int(seg.max_count))
+
+    def measure(rep, s):
+        est = probe.lookup(rep)
+        rmse, mean = _stats(est, ex_lookup)
+        rmse_t, mean_t = _stats(est, probe.truth)
+        per = depth_l2(rep, s, exact=ex_curve, n_depths=n_depths, per_texel=True)
+        return dict(rmse=rmse, signed_mean=mean, rmse_truth=rmse_t, signed_mean_truth=mean_t,
+                    depth_l2=float(np.sqrt(np.mean(per ** 2))) if per.size else float("nan")), per
+
+    rows = []
+    for n in P["nodes"]:
+        ref = {k: measure(build(k, base, nodes=n), base) for k in REFERENCES}
+        for order in ORDERS:
+            got = dict(ref)
+            for k in STREAMING:
+                got[k] = measure(build(k, segs[order], nodes=n), segs[order])
+            opt, opt_tex = got["optimal"]
+            gr = got["greedy"][0]
+            for k in STREAMING + REFERENCES:
+                m, per = got[k]
+                rows.append(dict(head, kind=k, nodes=n, order=order, **m,
+                                 ratio_to_optimal=m["depth_l2"] / opt["depth_l2"],
+                                 ratio_to_optimal_rmse=m["rmse"] / opt["rmse"],
+                                 ratio_to_greedy=m["depth_l2"] / gr["depth_l2"],
+                                 beats_optimal_texels=float(np.mean(per < opt_tex - BEATS_MARGIN))))
+    return rows
+
+
+def _interval(ratios, n_boot: int) -> dict:
+    """Geometric mean of per-configuration ratios with a bootstrap interval over the
+    configurations (a point estimate alone when there is one)."""
+    from avsm_dr import stats
+    r = np.asarray(ratios, np.float64)
+    est = float(np.exp(np.mean(np.log(r))))
+    out = dict(estimate=est, n_configs=int(r.size), indicative=bool(r.size < MIN_CONFIGS))
+    if r.size >= 2:
+        ci = stats.bootstrap_ci(np.log(r), "mean", n_boot=n_boot)
+        out.update(low=float(np.exp(ci["low"])), high=float(np.exp(ci["high"])), level=ci["level"])
+    return out
+
+
+def findings(rows: list[dict], n_boot: int = 2000) -> dict:
+    """Per scene and N: every kind's ratios to optimal per order (``depth_l2`` and receiver
+    ``rmse``) with intervals over configurations, the ranking per order and whether the
+    order changes it."""
+    out: dict = {}
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        for n in sorted({r["nodes"] for r in rows if r["scene"] == scene}):
+            d: dict = {}
+            rank = {}
+            for order in ORDERS:
+                sel = [r for r in rows if r["scene"] == scene and r["nodes"] == n and r["order"] == order]
+                per = {}
+                for k in STREAMING + ("greedy",):
+                    rk = sorted((r for r in sel if r["kind"] == k), key=lambda r: r["config"])
+                    per[k] = dict(depth_l2=_interval([r["ratio_to_optimal"] for r in rk], n_boot),
+                                  rmse=_interval([r["ratio_to_optimal_rmse"] for r in rk], n_boot),
+                                  signed_mean=float(np.mean([r["signed_mean"] for r in rk])),
+                                  beats_optimal_texels=float(np.mean([r["beats_optimal_texels"] for r in rk])))
+                d[order] = per
+                rank[order] = sorted(per, key=lambda k: per[k]["depth_l2"]["estimate"])
+            d["ranking_depth_l2"] = rank
+            d["order_changes_ranking"] = len({tuple(v) for v in rank.values()}) > 1
+            avsm = [d[o]["avsm"]["depth_l2"]["estimate"] for o in ORDERS]
+            d["avsm_worst_over_best_order"] = max(avsm) / min(avsm)
+            d["best_avsm_order"] = ORDERS[int(np.argmin(avsm))]
+            out.setdefault(scene, {})[f"N={n}"] = d
+    return out
+
+
+def _resolve(P: dict, quick: bool) -> dict:
+    """Every built-in scene when ``scenes`` is None; checks of the names."""
+    from avsm_dr.builtin_scenes import SCENES
+    P["scenes"] = list(SCENES) if P["scenes"] is None else list(P["scenes"])
+    for s in P["scenes"]:
+        if s not in SCENES:
+            raise ValueError(f"scenes: unknown scene {s!r}; known: {sorted(SCENES)}")
+    return P
+
+
+def _compute(res, P: dict) -> dict:
+    """Every configuration's rows, the findings and the figure."""
+    rows: list[dict] = []
+    jobs = [(name, seed, light) for name in P["scenes"] for seed, light in P["configs"]]
+    for name, seed, light in tqdm(jobs, desc="insertion_order", unit="config"):
+        rows += _config_rows(name, seed, light, P)
+    found = findings(rows, P["n_boot"])
+    _plot(res, found, P["scenes"], P["nodes"])
+    summary = {f"{s}_N{n}_avsm_over_optimal_{o}": found[s][f"N={n}"][o]["avsm"]["depth_l2"]["estimate"]
+               for s in P["scenes"] for n in P["nodes"] for o in ORDERS}
+    return dict(rows=rows, findings=found, summary=summary)
+
+
+def _plot(res, found: dict, names, nodes):
+    """Small multiples: a panel per scene and metric (two rows of panels per :data:`PANELS_PER_ROW`
+    scenes); ratio to optimal against the order."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.ticker
+    from avsm_dr import plotstyle
+    x = np.arange(len(ORDERS))
+    markers = ("o", "s", "^", "D", "v")
+    with plotstyle.context():
+        cols = min(len(names), PANELS_PER_ROW)
+        blocks = -(-len(names) // cols)
+        fig, axes = plotstyle.grid(2 * blocks, cols, panel=(2.9, 2.3), sharex=False, sharey=False)
+        for j in range(len(names) - (blocks - 1) * cols, cols):          # unused panels of the last block
+            axes[-2][j].set_visible(False)
+            axes[-1][j].set_visible(False)
+        for p, name in enumerate(names):
+            b, j = divmod(p, cols)
+            for i, (metric, label) in enumerate((("depth_l2", "depth-uniform L2 / optimal"),
+                                                 ("rmse", "receiver RMSE / optimal"))):
+                ax = axes[2 * b + i][j]
+                for kk, k in enumerate(STREAMING + ("greedy",)):
+                    for m, n in enumerate(nodes):
+                        v = [found[name][f"N={n}"][o][k][metric] for o in ORDERS]
+                        y = np.array([e["estimate"] for e in v])
+                        lo = np.array([e.get("low", e["estimate"]) for e in v])
+                        hi = np.array([e.get("high", e["estimate"]) for e in v])
+                        st = plotstyle.style(k)
+                        ax.errorbar(x + 0.08 * (kk - 1), y, yerr=[y - lo, hi - y], color=st.get("color"),
+                                    marker=markers[m % len(markers)], linestyle=st.get("linestyle", "-"),
+                                    capsize=2, label=f"{k} N={n}")
+                ax.axhline(1.0, color="k", linewidth=0.8, linestyle=":")
+                ax.set_yscale("log")
+                ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+                ax.yaxis.set_minor_locator(matplotlib.ticker.LogLocator(subs=(2.0, 3.0, 5.0)))
+                ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+                ax.set_xticks(x, [o.replace("_", "\n") for o in ORDERS])
+                if j == 0:
+                    ax.set_ylabel(label)
+                if i == 0:
+                    ax.set_title(name)
+        fig.suptitle("ratio to optimal: geometric mean over configurations, 95 % interval", fontsize=9)
+        handles, labels = axes[0][0].get_legend_handles_labels()
+        plotstyle.legend_below(fig, axes[-1], ncol=min(len(labels), 6), handles=handles, labels=labels)
+        res.save_figure(fig, "insertion_order.png")
+
+
+STUDY = Study(
+    "insertion_order", "AVSM and avsm_march under four insertion orders, against greedy and the optimum",
+    REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
+    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),))
+run = STUDY.run
