@@ -195,23 +195,55 @@ def test_cheaper_reverse_paths_give_identical_gradients(plain, cheap):
     np.testing.assert_allclose(f1, f0, rtol=1e-12, atol=1e-14)
 
 
-@pytest.mark.parametrize("name", ["avsm"])
-def test_too_small_loop_bound_is_silently_wrong_and_detected(name, monkeypatch):
-    """A kernel handing ``max_iterations`` below the true iteration count (here: half the
-    largest segment count): primal and forward mode are unchanged, reverse mode is wrong
-    without any error - and the reverse-vs-forward check (``reconstruction.gradient_check``'s
-    principle) catches it."""
+@pytest.mark.parametrize("name", ["avsm", "avsm-sorted", "avsm-checkpointed"])
+def test_too_small_loop_bound_is_refused(name, monkeypatch):
+    """A ``max_iterations`` below the true iteration count (here: half the largest segment
+    count) would make reverse mode write its per-lane trajectory past its end (stack
+    corruption: segfaults later, in random test orders; JitFlag.Debug reports
+    ``drjit.Local.write(): out-of-bounds write``) - the build refuses it before any kernel runs."""
     rng = np.random.default_rng(2)
     data, tex, depth, w = _unequal_counts(rng)
-    v = rng.normal(size=data["tau"].size)
-    make = LOOP_MODELS[name]
-    rev_ok, fwd_ok, l_ok = _reverse_and_forward(data, tex, depth, w, make, v)
     true_max = int(np.diff(data["offsets"]).max())
     monkeypatch.setattr(ad.Segments, "max_count", property(lambda self: true_max // 2))
-    rev_bad, fwd_bad, l_bad = _reverse_and_forward(data, tex, depth, w, make, v)
-    assert l_bad == l_ok and fwd_bad == pytest.approx(fwd_ok, rel=1e-12)
-    assert not np.allclose(rev_bad, rev_ok, rtol=1e-6, atol=1e-9)          # silently wrong
-    assert abs(rev_bad @ v - fwd_bad) > 1e-3 * abs(fwd_bad)               # ... and detected
+    with pytest.raises(ValueError, match="max_iterations"):
+        _segments_loss(data, tex, depth, w, LOOP_MODELS[name])
+
+
+_DEBUG_LOOPS = """
+import sys
+sys.path.insert(0, {tests!r})
+import avsm_dr as ad
+import drjit as dr
+dr.set_flag(dr.JitFlag.Debug, True)
+import numpy as np
+import test_gradients_e2e as t
+rng = np.random.default_rng(2)
+data, tex, depth, w = t._unequal_counts(rng)
+v = rng.normal(size=data["tau"].size)
+for name in ("avsm", "avsm-sorted", "avsm-checkpointed"):
+    t._reverse_and_forward(data, tex, depth, w, t.LOOP_MODELS[name], v)
+true_max = int(np.diff(data["offsets"]).max())
+ad.Segments.max_count = property(lambda self: true_max // 2)
+try:
+    t._reverse_and_forward(data, tex, depth, w, t.LOOP_MODELS["avsm"], v)
+except ValueError as e:
+    print("refused:", e)
+"""
+
+
+def test_reverse_loops_stay_in_bounds_under_jit_debug():
+    """Under JitFlag.Debug (Dr.Jit's bounds checks; a subprocess, since the flag is
+    global) reverse mode through the AVSM loops, right bound or too small, makes no
+    out-of-bounds access: the too-small one is refused instead of overrunning the trajectory."""
+    import pathlib
+    import subprocess
+    import sys
+    tests = str(pathlib.Path(__file__).resolve().parent)
+    proc = subprocess.run([sys.executable, "-c", _DEBUG_LOOPS.format(tests=tests)], capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "out-of-bounds" not in proc.stderr, proc.stderr[-3000:]
+    assert "refused: max_iterations" in proc.stdout, proc.stdout
 
 
 def test_exact_sum_loop_needs_no_bound(monkeypatch):
@@ -281,21 +313,51 @@ def test_checkpointed_avsm_handles_long_texels():
 
 
 @pytest.mark.parametrize("kind", ["avsm"])  # exact: a sum loop, immune (test_exact_sum_loop_needs_no_bound)
-def test_gradient_check_and_recover_flag_a_too_small_bound(kind, monkeypatch):
-    """The pipeline's own guard: with a too-small loop bound patched in, gradient_check
-    reports the mismatch and recover() refuses to start."""
+def test_gradient_check_and_recover_refuse_a_too_small_bound(kind, monkeypatch):
+    """The pipeline with a too-small loop bound patched in: gradient_check and recover()
+    refuse it (ValueError) instead of running reverse mode past the trajectory."""
     rng = np.random.default_rng(6)
     scene, dens = _scene(rng)
     w = rng.normal(size=scene.receivers.shape[0])
     monkeypatch.setattr(ad.Segments, "max_count",
                         property(lambda self: max(1, int(self.counts.max()) // 2) if self.n_texels else 0))
-    chk = inv.gradient_check(lambda xt: _loss(scene, xt, kind, w, reverse="trajectory")[0], _tensor(dens))
+    with pytest.raises(ValueError, match="max_iterations"):
+        inv.gradient_check(lambda xt: _loss(scene, xt, kind, w, reverse="trajectory")[0], _tensor(dens))
+    pts = scene.receivers
+    tgt = np.asarray(inv.shadow(scene, dens, pts, kind="exact").T)
+    with pytest.raises(ValueError, match="max_iterations"):
+        inv.recover(scene, [scene.light], [tgt], [pts], kind=kind, params=None,
+                    iterations=1, init="uniform", init_value=1.0, reverse="trajectory")
+
+
+class _WrongReverse(dr.CustomOp):
+    """Identity whose reverse mode doubles the gradient (forward mode is right): a
+    reverse-only error, as a too-small loop bound would give without the refusal."""
+
+    def eval(self, x):
+        return x
+
+    def forward(self):
+        self.set_grad_out(self.grad_in("x"))
+
+    def backward(self):
+        self.set_grad_in("x", 2 * self.grad_out())
+
+
+def test_gradient_check_and_recover_flag_a_reverse_mode_error(monkeypatch):
+    """gradient_check reports a reverse-only error and recover() refuses to start."""
+    rng = np.random.default_rng(6)
+    scene, dens = _scene(rng)
+    w = rng.normal(size=scene.receivers.shape[0])
+    chk = inv.gradient_check(lambda xt: dr.custom(_WrongReverse, _loss(scene, xt, "avsm", w)[0]), _tensor(dens))
     assert not chk["ok"]
     pts = scene.receivers
     tgt = np.asarray(inv.shadow(scene, dens, pts, kind="exact").T)
+    image_loss = inv.image_loss
+    monkeypatch.setattr(inv, "image_loss", lambda p, t: dr.custom(_WrongReverse, image_loss(p, t)))
     with pytest.raises(RuntimeError, match="gradient check"):
-        inv.recover(scene, [scene.light], [tgt], [pts], kind=kind, params={} if kind == "exact" else None,
-                    iterations=1, init="uniform", init_value=1.0, reverse="trajectory")
+        inv.recover(scene, [scene.light], [tgt], [pts], kind="avsm", params=None,
+                    iterations=1, init="uniform", init_value=1.0)
 
 
 def test_gradient_check_reports_agreement():

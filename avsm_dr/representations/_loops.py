@@ -6,8 +6,10 @@ measures it): a symbolic ``dr.while_loop`` differentiated in reverse mode with
 inside the kernel.  On the CPU that array lives on the worker's stack, so it grows as
 ``segments per texel x loop state`` and overflows it (a segfault) for long texels
 (the limits found: docs/performance.md); ``max_iterations > 65536`` raises.  On a GPU the
-same trajectory is per-thread local memory.  A bound below the true iteration count gives
-silently wrong gradients; a larger one only costs trajectory space.
+same trajectory is per-thread local memory.  A bound below the true iteration count makes
+reverse mode write and read past that array (out of bounds: corrupts the worker's stack,
+later segfaults; Dr.Jit checks it only under ``JitFlag.Debug``), so :func:`run_loop`
+refuses it (ValueError) given the loop's true count; a larger one only costs trajectory space.
 
 * A *sum loop* (the increment does not read the accumulator) runs with
   ``max_iterations=-1``: reverse mode re-runs the loop and stores no trajectory
@@ -144,10 +146,20 @@ def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chun
     return out
 
 
-def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: int | None, label: str):
+def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: int | None, label: str,
+             iterations: int | None = None):
     """Run ``cond``/``body`` over ``state`` (both take ``params`` first): a plain
     ``dr.while_loop`` bounded by ``max_iterations`` when ``checkpoint_chunk`` is None,
-    else :func:`checkpointed_while_loop` in chunks of that many iterations."""
+    else :func:`checkpointed_while_loop` in chunks of that many iterations.
+
+    iterations: the most iterations any lane runs, taken from the data the loop walks
+    (e.g. the longest texel's segment count); ValueError when ``max_iterations`` is below
+    it, before anything runs: reverse mode would write the trajectory past its
+    ``max_iterations`` entries (out of bounds) and return wrong gradients."""
+    if iterations is not None and max_iterations >= 0 and int(iterations) > int(max_iterations):
+        raise ValueError(f"max_iterations: {max_iterations} is below the {int(iterations)} iterations "
+                         f"of loop {label!r} (its reverse mode would write past a {max_iterations}-entry "
+                         "trajectory)")
     if checkpoint_chunk is not None:
         return checkpointed_while_loop(state, params, cond, body, max_iterations, checkpoint_chunk)
     return dr.while_loop(state, lambda *s: cond(params, *s), lambda *s: body(params, *s),

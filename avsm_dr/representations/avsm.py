@@ -348,7 +348,8 @@ class AVSM(NodeList):
             first = dr.gather(UInt32, view[1], lanes)
             end = first + count
         sorted_input = bool(self.params["sort"])
-        max_count = seg.max_count
+        max_count = seg.max_count                         # the loops' bound (trajectory length) ...
+        lane_max = int(counts[lanes_np].max())            # ... checked against the lanes' own counts
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
         def insert(p, i, used, done, d, t, compress):
@@ -400,7 +401,7 @@ class AVSM(NodeList):
         chunk = self.checkpoint_chunk(seg)
 
         def run(state, cond, body, label):
-            return run_loop(state, params, cond, body, max_count, chunk, label)
+            return run_loop(state, params, cond, body, max_count, chunk, label, iterations=lane_max)
 
         state = (first, dr.zeros(UInt32, L), dr.zeros(Bool, L),
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L),
