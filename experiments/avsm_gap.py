@@ -24,6 +24,15 @@ Two measures of each representation against the exact curve of the same segments
   in-volume by contribution, surface, the scene's uniform set), bilinear lookups through
   the capture: RMSE / max / mean signed error against the exact curve's lookups.
 
+**Insertion order.** Streaming AVSM sees each texel's segments in their stored order; the
+offline references see the whole curve.  AVSM is built under every order of ``orders``
+(default all four of :func:`avsm_dr.capture.capture`: ``submission``, the renderer's draw
+order, then ``depth`` front to back, ``reverse_depth`` and a seeded ``random`` shuffle) on the
+same segments and the same receivers; the ``order`` column records it (``-`` for the kinds
+that do not depend on it).  The headline rows (``method == "avsm"`` without a suffix in
+``findings.json``) are front to back, as before; ``avsm_over_optimal_by_order`` gives each
+order's ratio and ``intervals`` each order's interval (``avsm@<order>_over_optimal``).
+
 ``findings.json``: per scene and N, AVSM / greedy / optimal ``depth_rms`` and the
 ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise (first
 configuration), and under ``intervals`` the depth-RMS ratios to optimal with 95 %
@@ -60,9 +69,12 @@ BEATS_MARGIN = 1e-6
 MAX_POINTS = 16
 
 #: Parameters of the full and the quick run (``scenes``: an option; ``methods`` filled in).
+#: Insertion orders AVSM is built under (the first is the headline's: front to back).
+ORDERS = ["depth", "submission", "reverse_depth", "random"]
+
 FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=[[0, "dir_a"], [1, "dir_b"]],
             n_volume=4096, n_surface=1024, gauss_points=GAUSS_POINTS, max_points=MAX_POINTS, filter="bilinear",
-            methods=None, n_boot=1000)
+            methods=None, n_boot=1000, orders=ORDERS)
 QUICK = dict(FULL, resolution=64, nodes=[4, 8], configs=[[0, "dir_a"]], n_volume=256, n_surface=128, n_boot=200)
 
 
@@ -156,12 +168,22 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
     head = dict(scene=name, config=config, resolution=P["resolution"], texels=int(obj.texels.size),
                 max_segments=int(seg.max_count))
 
-    def row(label, kind, params, n):
+    orders = {"depth": seg}
+    for o in P.get("orders", ["depth"]):
+        if o == "submission":
+            sub = capture(scene, resolution=P["resolution"], order="submission").segments
+            if not np.array_equal(sub.counts, seg.counts):
+                raise RuntimeError(f"{name}/{config}: the submission-order capture has other segment counts")
+            orders[o] = sub
+        elif o != "depth":
+            orders[o] = seg.in_order(o, seed=seed if o == "random" else None)
+
+    def row(label, kind, params, n, order="-"):
         t0 = time.perf_counter()
-        rep = build(kind, seg, **params)
+        rep = build(kind, orders.get(order, seg), **params)
         build_s = time.perf_counter() - t0
         m = obj.measure(rep)
-        r = dict(head, method=label, kind=kind, nodes=n, bytes_per_texel=rep.nbytes_per_texel,
+        r = dict(head, method=label, kind=kind, order=order, nodes=n, bytes_per_texel=rep.nbytes_per_texel,
                  bytes_sparse=rep.nbytes_sparse_per_texel, build_s=build_s,
                  **{k: v for k, v in m.items() if not k.startswith("_")})
         for s, p in sets.items():
@@ -178,7 +200,10 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
         for label, kind, params in methods(n):
             if kind not in kinds():
                 continue
-            r, texel_rms[label] = row(label, kind, params, n)
+            r, texel_rms[label] = row(label, kind, params, n, "depth" if kind == "avsm" else "-")
+        for o in orders:
+            if o != "depth" and "avsm" in kinds():
+                _, texel_rms[f"avsm@{o}"] = row("avsm", "avsm", {"nodes": n}, n, o)
         sel = obj.texels
         if texel_errors is not None:
             for label, v in texel_rms.items():
@@ -186,7 +211,7 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
         for other in ("optimal_subset", "optimal"):
             if "avsm" in texel_rms and other in texel_rms and sel.size:
                 # lower by more than float32 lookup noise (~1e-7 in a texel's RMS)
-                rows[-len(texel_rms)][f"avsm_beats_{other}_texels"] = float(
+                rows[-len(texel_rms)][f"avsm_beats_{other}_texels"] = float(  # the front-to-back row
                     np.mean(texel_rms["avsm"][sel] < texel_rms[other][sel] - BEATS_MARGIN))
     if "beer" in kinds():
         row("beer", "beer", {}, 0)
@@ -201,7 +226,8 @@ def intervals(texel_errors: dict, n_boot: int = 1000) -> dict:
     keys = sorted({(k[0], k[2]) for k in texel_errors})
     for scene, n in keys:
         configs = sorted({k[1] for k in texel_errors if k[0] == scene and k[2] == n})
-        for m in ("avsm", "greedy", "optimal_subset"):
+        labels = sorted({k[3] for k in texel_errors if k[0] == scene and k[2] == n and k[3].startswith("avsm@")})
+        for m in ("avsm", "greedy", "optimal_subset", *labels):
             used = [c for c in configs if (scene, c, n, m) in texel_errors and (scene, c, n, "optimal") in texel_errors
                     and np.any(texel_errors[(scene, c, n, "optimal")] > 0)]
             if not used:
@@ -227,6 +253,11 @@ def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict
         if r["method"] not in ("avsm", "greedy", "optimal_subset", "optimal") or r.get("config") != first[r["scene"]]:
             continue
         d = out.setdefault(r["scene"], {}).setdefault(f"N={r['nodes']}", {})
+        if r["method"] == "avsm" and r.get("order", "depth") != "depth":
+            d.setdefault("_avsm_by_order", {})[r["order"]] = r["depth_rms"]
+            continue
+        if r["method"] == "avsm":
+            d["avsm_order"] = "depth"
         d[f"{r['method']}_depth_rms"] = r["depth_rms"]
         if "rmse_in_volume" in r:
             d[f"{r['method']}_rmse_in_volume"] = r["rmse_in_volume"]
@@ -239,6 +270,11 @@ def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict
             for m in ("avsm", "greedy", "optimal_subset"):
                 if opt and f"{m}_depth_rms" in d:
                     d[f"{m}_over_optimal"] = d[f"{m}_depth_rms"] / opt
+            by = d.pop("_avsm_by_order", {})
+            if opt and by:
+                d["avsm_over_optimal_by_order"] = dict(
+                    {"depth": d["avsm_over_optimal"]} if "avsm_over_optimal" in d else {},
+                    **{o: v / opt for o, v in by.items()})
             oi = d.get("optimal_rmse_in_volume")
             for m in ("avsm", "greedy", "optimal_subset"):
                 if oi and f"{m}_rmse_in_volume" in d:
@@ -252,6 +288,11 @@ def _resolve(P: dict, quick: bool) -> dict:
     """The scenes as a list and the compared methods."""
     P["scenes"] = list(P["scenes"])
     P["methods"] = [m[0] for m in methods(0)] + ["beer"]
+    orders = list(P.get("orders") or ["depth"])
+    bad = [o for o in orders if o not in ORDERS]
+    if bad:
+        raise ValueError(f"orders: unknown insertion order {bad[0]!r}; expected some of {ORDERS}")
+    P["orders"] = ["depth"] + [o for o in dict.fromkeys(orders) if o != "depth"]
     return P
 
 
@@ -267,7 +308,7 @@ def _compute(res, P: dict) -> dict:
     first = {}
     for r in rows:
         first.setdefault(r["scene"], r["config"])
-    _plot(res, [r for r in rows if r["config"] == first[r["scene"]]], names)
+    _plot(res, [r for r in rows if r["config"] == first[r["scene"]] and r.get("order") in ("-", "depth")], names)
     return dict(rows=rows, findings=summary, summary=summary)
 
 
@@ -316,5 +357,7 @@ def _plot(res, rows, names):
 STUDY = Study(
     "avsm_gap", "AVSM's distance from the best N-node curve: streaming AVSM against offline greedy and optimal",
     REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
-    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),))
+    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
+             Option("orders", "insertion orders AVSM is built under besides front to back, the headline's "
+                              "(default: submission reverse_depth random)", nargs="+", metavar="ORDER")))
 run = STUDY.run

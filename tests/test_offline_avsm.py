@@ -208,3 +208,19 @@ def test_avsm_gap_quick(tmp_path):
                 if m != "avsm":      # breakpoint subsets are DP candidates: per texel never below optimal
                     assert r["low"] >= 1 - 1e-5
     assert (out / "gap_depth.png").exists() and (out / "gap_receivers.png").exists()
+    # AVSM under every insertion order, on the same segments and receivers; the others once
+    orders = {(r["scene"], r["nodes"]): set() for r in rows if r["method"] == "avsm"}
+    for r in rows:
+        if r["method"] == "avsm":
+            orders[(r["scene"], r["nodes"])].add(r["order"])
+        else:
+            assert r["order"] == "-"
+    assert all(o == {"depth", "submission", "reverse_depth", "random"} for o in orders.values())
+    for scene, per_n in findings.items():
+        for n, d in per_n.items():
+            assert d["avsm_order"] == "depth"
+            by = d["avsm_over_optimal_by_order"]
+            assert set(by) == {"depth", "submission", "reverse_depth", "random"} and by["depth"] == d["avsm_over_optimal"]
+            texels = {r["texels"] for r in rows if r["scene"] == scene and f"N={r['nodes']}" == n}
+            assert len(texels) == 1                                   # one set of texels for every order
+            assert set(intervals[scene][n]) >= {"avsm@random_over_optimal", "avsm@submission_over_optimal"}
