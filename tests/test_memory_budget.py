@@ -55,10 +55,15 @@ def test_quick_run_compares_at_equal_bytes(quick):
             # the sparse baseline: an occupancy bit per texel, 8 N per non-empty texel
             filled = int(r["nonempty"]) / int(r["texels"])
             assert float(r["bytes_sparse"]) == pytest.approx(1 / 8 + 8 * int(r["nodes"]) * filled, rel=1e-12)
+    orders = ["depth", "submission", "reverse_depth", "random"]
+    assert P["orders"] == orders
     for n in P["budgets"]:
-        ad_rows = [r for r in rows if r["method"] == "adaptive" and int(r["nodes"]) == n]
-        fx = [r for r in rows if r["method"] == "avsm" and int(r["nodes"]) == n]
-        assert len(ad_rows) == len(fx) == len(P["scenes"])
+        for o in orders:                        # fixed and adaptive AVSM under every order, same receivers
+            ad_rows = [r for r in rows if r["method"] == "adaptive" and int(r["nodes"]) == n and r["order"] == o]
+            fx = [r for r in rows if r["method"] == "avsm" and int(r["nodes"]) == n and r["order"] == o]
+            assert len(ad_rows) == len(fx) == len(P["scenes"])
+    assert {r["order"] for r in rows if r["method"] in ("dsm", "optimal", "adaptive_uniform")} <= {"-", "depth"}
+    assert {r["order"] for r in rows if r["method"] in ("dsm", "optimal")} == {"-"}
     # the allocation pays off on the plume at the smallest budget (measured: ratio ~0.04)
     f = json.loads((quick / "findings.json").read_text())
     r = f["rmse_ratio_adaptive_over_avsm"]["plume"]["N=2"]
@@ -68,6 +73,8 @@ def test_quick_run_compares_at_equal_bytes(quick):
     # the headline is against sparse fixed-N AVSM: charging its empty texels (dense) saves more
     # (measured on the quick plume: 0.10 sparse, 0.74 dense)
     assert f["bytes_saved_at_equal_rmse_dense_baseline"]["plume"]["N=2"]["saving"] > s["saving"]
+    assert f["avsm_order"] == "depth" and set(f["bytes_saved_at_equal_rmse_by_order"]) == set(orders)
+    assert f["bytes_saved_at_equal_rmse_by_order"]["depth"] == f["bytes_saved_at_equal_rmse"]
     assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
     assert {p.name for p in quick.glob("*.pdf")} == {"error_vs_bytes.pdf", "allocation.pdf"}   # vector beside PNG
     again = MB.run(quick=True, out=quick)

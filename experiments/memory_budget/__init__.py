@@ -37,6 +37,14 @@ counted, not interpolated); saving = ``1 - bytes_adaptive / bytes_fixed``, mean 
 configurations with a bootstrap interval (:func:`avsm_dr.stats.bootstrap_ci`); the same for
 ``adaptive_uniform`` separates what compaction alone saves.
 
+Insertion order: AVSM and adaptive AVSM insert each texel's segments in their stored order.
+The headline rows (``order`` = ``depth``) are built front to back; the same two are built again
+under every other order of ``orders`` (``submission``: the renderer's draw order, captured
+again; ``reverse_depth``; ``random``, seeded by the configuration) on the same segments and
+receivers, with an ``order`` column (``-`` for DSM and ``optimal``, which do not depend on
+it), and ``bytes_saved_at_equal_rmse_by_order`` compares adaptive and fixed AVSM within each
+order.
+
 Bytes of the savings: the **sparse** layout on both sides (``bytes_sparse``,
 ``nbytes_sparse_per_texel``: an occupancy bit per texel, then fixed AVSM-N's ``8 N`` per
 non-empty texel, adaptive AVSM's nodes plus a 4-byte CSR offset per non-empty texel), so the
@@ -56,7 +64,7 @@ from tqdm import tqdm
 
 from avsm_dr import build
 from avsm_dr.stats import bootstrap_ci, claim
-from .._study import Study
+from .._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -77,9 +85,13 @@ OPTIMAL_MAX_N = 8
 ADAPTIVE = (("adaptive", {}), ("adaptive_uniform", {"_score": "uniform"}), ("adaptive_count", {"_score": "count"}))
 
 #: Parameters of the full and the quick run (quick: the plume, one configuration).
+#: Insertion orders of the AVSM rows (the first is the headline's).
+ORDERS = ["depth", "submission", "reverse_depth", "random"]
+
 FULL = dict(scenes=SCENES, seeds=[0, 1], lights=["dir_a", "dir_b"], resolution=64, nodes=[2, 4, 8, 16, 32, 64],
             budgets=[2, 4, 8, 16, 32], n_volume=2048, optimal_max_n=OPTIMAL_MAX_N, optimal_first_only=True,
-            heat_nodes=4, ablations_everywhere=False, dsm_steps=DSM_STEPS, n_boot=2000, filter="bilinear")
+            heat_nodes=4, ablations_everywhere=False, dsm_steps=DSM_STEPS, n_boot=2000, filter="bilinear",
+            orders=ORDERS)
 QUICK = dict(FULL, scenes=QUICK_SCENES, seeds=[0], lights=["dir_a"], nodes=[2, 4, 8, 16, 32], budgets=[2, 4, 8],
              n_volume=512, optimal_max_n=4, optimal_first_only=False, ablations_everywhere=True, dsm_steps=2,
              n_boot=500)
@@ -191,7 +203,8 @@ def _config_rows(name, seed, light, P, rows, errors, heat):
     scene = builtin_scenes.get(name, seed=seed)
     scene = dataclasses.replace(scene, light=light_variants(scene)[light])
     cap = capture(scene, resolution=P["resolution"], order="depth")
-    look = NormalisedLookup(cap, receivers.in_volume(scene, P["n_volume"], seed=seed))
+    points = receivers.in_volume(scene, P["n_volume"], seed=seed)
+    look = NormalisedLookup(cap, points)
     seg = look.segments
     exact = look(build("exact", seg))
     obj = UniformObjective(seg)
@@ -200,34 +213,50 @@ def _config_rows(name, seed, light, P, rows, errors, heat):
     head = dict(scene=name, seed=seed, light=light, config=cfg, resolution=P["resolution"],
                 texels=seg.n_texels, nonempty=int(np.count_nonzero(seg.counts)), max_segments=seg.max_count)
 
-    def row(method, n, rep, build_s, budget):
+    def row(method, n, rep, build_s, budget, order="-"):
         err = look(rep) - exact
         m = obj.measure(rep)
-        errors[(cfg, method, n)] = err
-        r = dict(head, method=method, nodes=n, budget_bytes_per_texel=budget, bytes_per_texel=rep.nbytes_per_texel,
+        errors[(cfg, method if order in ("-", "depth") else f"{method}@{order}", n)] = err
+        r = dict(head, method=method, order=order, nodes=n, budget_bytes_per_texel=budget,
+                 bytes_per_texel=rep.nbytes_per_texel,
                  bytes_sparse=rep.nbytes_sparse_per_texel, total_bytes=rep.nbytes_per_texel * seg.n_texels,
                  rmse=float(np.sqrt(np.mean(err ** 2))),
                  max_error=float(np.max(np.abs(err))), depth_rms=m["depth_rms"], build_s=build_s)
         rows.append(r)
         return r
 
-    def timed_build(kind, **p):
+    def timed_build(kind, segments=seg, **p):
         t0 = time.perf_counter()
-        rep = build(kind, seg, **p)
+        rep = build(kind, segments, **p)
         return rep, time.perf_counter() - t0
+
+    reordered = {}
+    for o in P.get("orders", ["depth"])[1:]:
+        if o == "submission":
+            sub = NormalisedLookup(capture(scene, resolution=P["resolution"], order="submission"), points)
+            if not np.array_equal(sub.segments.counts, seg.counts) or (sub.lo, sub.span) != (look.lo, look.span):
+                raise RuntimeError(f"{cfg}: the submission-order capture holds other segments")
+            reordered[o] = sub.segments
+        else:
+            reordered[o] = seg.in_order(o, seed=seed if o == "random" else None)
 
     dsm_cache: dict = {}
     for n in P["nodes"]:
         rep, t = timed_build("avsm", nodes=n)
         target = rep.nbytes_per_texel
-        row("avsm", n, rep, t, target)
+        row("avsm", n, rep, t, target, "depth")
+        for o, s_o in reordered.items():
+            row("avsm", n, *timed_build("avsm", s_o, nodes=n), target, o)
         if n not in P["budgets"]:
             continue
         for label, extra in ADAPTIVE:
             if label == "adaptive_count" and not (first or P["ablations_everywhere"]):
                 continue
             rep, t = timed_build("avsm_adaptive", bytes_per_texel=target, **extra)
-            row(label, n, rep, t, target)
+            row(label, n, rep, t, target, "depth")
+            if label == "adaptive":
+                for o, s_o in reordered.items():
+                    row(label, n, *timed_build("avsm_adaptive", s_o, bytes_per_texel=target), target, o)
             if label == "adaptive" and first and n == P["heat_nodes"]:
                 heat[name] = (rep.allocated.reshape(cap.height, cap.width), target)
         t0 = time.perf_counter()
@@ -307,8 +336,14 @@ def ratios(rows, errors, a: str, b: str, n_boot: int) -> dict:
 
 def findings(rows, errors, n_boot: int) -> dict:
     """``findings.json``: savings at equal error (receivers and uniform in depth) and the
-    RMSE ratios of adaptive AVSM to the others at equal bytes."""
+    RMSE ratios of adaptive AVSM to the others at equal bytes, front to back; the savings
+    again within each insertion order."""
+    orders = list(dict.fromkeys(r.get("order", "depth") for r in rows if r.get("order", "-") != "-"))
+    by_order = {o: savings([r for r in rows if r.get("order", "-") == o], "rmse") for o in orders}
+    rows = [r for r in rows if r.get("order", "-") in ("-", "depth")]
     return {
+        "avsm_order": "depth",
+        "bytes_saved_at_equal_rmse_by_order": by_order,
         "bytes_saved_at_equal_rmse": savings(rows, "rmse"),
         "bytes_saved_at_equal_depth_rms": savings(rows, "depth_rms"),
         # compaction alone (one node count for all non-empty texels): what skipping saves
@@ -333,11 +368,23 @@ def _compute(res, P: dict) -> dict:
         _config_rows(name, seed, light, P, rows, errors, heat)
     summary = findings(rows, errors, P["n_boot"])
     from .plots import plot_curves, plot_heat
-    plot_curves(res, rows, P["scenes"])
+    plot_curves(res, [r for r in rows if r["order"] in ("-", "depth")], P["scenes"])
     plot_heat(res, heat)
     return dict(rows=rows, findings=summary, summary=summary)
 
 
+def _resolve(P: dict, quick: bool) -> dict:
+    """Orders checked; front to back first (the headline's)."""
+    orders = list(P.get("orders") or ["depth"])
+    bad = [o for o in orders if o not in ORDERS]
+    if bad:
+        raise ValueError(f"orders: unknown insertion order {bad[0]!r}; expected some of {ORDERS}")
+    P["orders"] = ["depth"] + [o for o in dict.fromkeys(orders) if o != "depth"]
+    return P
+
+
 STUDY = Study("memory_budget", "A memory budget instead of a node count: every kind at equal bytes per texel",
-              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "findings.json"))
+              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
+              options=(Option("orders", "insertion orders AVSM is built under besides front to back "
+                                        "(default: submission reverse_depth random)", nargs="+", metavar="ORDER"),))
 run = STUDY.run
