@@ -18,8 +18,28 @@ Importing this module selects a Mitsuba variant only when none is set (``llvm_ad
 or ``cuda_ad_rgb`` on the CUDA backend: :func:`avsm_dr.groundtruth.mitsuba`), and
 re-registers the plugin whenever the variant changes.  The rest of the package imports
 Mitsuba lazily (a GPU host may have Dr.Jit without Mitsuba).
+
+Errors, as the user sees them:
+
+* Under a variant the integrator cannot run in (``scalar_rgb``, ``llvm_rgb``, ...) the name
+  is still registered, with a constructor that raises ``ValueError`` naming the JIT AD
+  variant to set (not Mitsuba's bare ``Plugin "avsm_single_scatter" not found!``).
+* A bad property raises ``ValueError`` from the constructor; an unknown name is reported
+  before any value check, with a "did you mean" over the kind's public parameters and the
+  plugin's own properties.  ``mi.load_dict`` quotes it after its ``failed to instantiate
+  ... plugin`` prefix; the constructor drops the error's traceback so that the quote is
+  ``ValueError: <message>`` and not a Python traceback with the message on its last line.
+* A scene the integrator cannot render raises ``ValueError`` from ``integrator.render``;
+  ``mi.render`` runs the integrator inside a Dr.Jit custom operation, which would replace
+  it by ``RuntimeError: drjit.custom(...): error while performing a custom differentiable
+  operation. (see above).``  This module wraps ``mi.render`` (once, at import) so that,
+  for this integrator only, the ``ValueError`` itself is raised; every other call passes
+  through unchanged.
 """
 from __future__ import annotations
+
+import functools
+import inspect
 
 import drjit as dr
 import mitsuba as mi
@@ -110,12 +130,36 @@ def check_box(medium, density, lo, hi, n: int = 64) -> None:
 
 
 # ======================================================================= integrator
+def _unknown_message(kind: str, name: str) -> str:
+    """``"<name>: unknown parameter of <kind>; known: [...]"`` (the kind's public parameters,
+    never the private ``_`` switches) with a "did you mean" for a misspelt parameter; when
+    none is close, the plugin's own properties are listed and searched too (``resolutoin``
+    -> ``did you mean 'resolution'?``)."""
+    schema = REGISTRY[kind].schema
+    public = schema.public_names()
+    if V.did_you_mean(name, public):
+        return schema.unknown_message(kind, name)
+    return (f"{schema.unknown_message(kind, name)}; {NAME} properties: {list(OWN_PROPERTIES)}"
+            f"{V.did_you_mean(name, OWN_PROPERTIES)}")
+
+
 def _check_properties(props) -> dict:
-    """Plugin options and the representation's parameters (schema-validated); ValueError names one."""
+    """Plugin options and the representation's parameters (schema-validated); ValueError names one.
+
+    Order: the kind, then unknown names (a misspelt name is reported before any value, so
+    ``precison="float16"`` says "did you mean 'precision'?" even next to a bad ``resolution``;
+    among several, one with a "did you mean" first), then the values."""
     kind = props.get("representation", "exact")
-    if kind not in REGISTRY:
+    if not isinstance(kind, str) or kind not in REGISTRY:
         raise ValueError(f"representation: unknown kind {kind!r}; known: {sorted(REGISTRY)}"
                          f"{V.did_you_mean(kind, REGISTRY)}")
+    given = {k: props[k] for k in props.keys() if k not in OWN_PROPERTIES}
+    schema = REGISTRY[kind].schema
+    unknown = sorted(set(given) - set(schema.names()) - set(BUILD_PARAMETERS))
+    if unknown:                                          # private (``_``) switches are accepted, not listed
+        # a misspelling first: ``representaton="avsm", nodes=4`` is about 'representation', not 'nodes'
+        typos = [u for u in unknown if V.did_you_mean(u, schema.public_names() + list(OWN_PROPERTIES))]
+        raise ValueError(_unknown_message(kind, (typos or unknown)[0]))
     opts = {"kind": kind,
             "resolution": props.get("resolution", 256),
             "filter": props.get("filter", "bilinear"),
@@ -137,12 +181,7 @@ def _check_properties(props) -> dict:
         raise ValueError(f"hide_emitters: expected a boolean, got {opts['hide_emitters']!r}")
     if opts["capture_method"] not in CAPTURE_METHODS:
         raise ValueError(f"capture_method: expected one of {CAPTURE_METHODS}, got {opts['capture_method']!r}")
-    given = {k: props[k] for k in props.keys() if k not in OWN_PROPERTIES}
     extra = {k: given.pop(k) for k in BUILD_PARAMETERS if k in given}
-    schema = REGISTRY[kind].schema
-    unknown = sorted(set(given) - set(schema.names()))
-    if unknown:                                          # private (``_``) switches are accepted, not listed
-        raise ValueError(schema.unknown_message(kind, unknown[0]))
     precisions = describe(kind)["precisions"]
     if extra.get("precision") is not None and extra["precision"] not in precisions:
         raise ValueError(f"precision: kind {kind!r} accepts None or {precisions}, got {extra['precision']!r}"
@@ -393,31 +432,112 @@ def _make_class():
 _CLASSES: dict[str, type] = {}
 
 
+def supported_variant(variant) -> bool:
+    """True for the variants the integrator runs in: JIT with AD, ``llvm_ad_*`` / ``cuda_ad_*``."""
+    return isinstance(variant, str) and variant.startswith(("llvm_ad", "cuda_ad"))
+
+
+def variant_message(variant) -> str:
+    """Why ``avsm_single_scatter`` cannot be created under ``variant``, and what to call."""
+    return (f"{NAME} needs a JIT variant of Mitsuba with autodiff (llvm_ad_rgb, or cuda_ad_rgb on an "
+            f"NVIDIA GPU; any llvm_ad_* / cuda_ad_*), the current variant is {variant!r}: call "
+            f"mi.set_variant('llvm_ad_rgb') before building the scene dict and loading it (importing "
+            f"avsm_dr.mitsuba selects it only when no variant is set)")
+
+
 def integrator_class():
-    """The ``avsm_single_scatter`` class of the current Mitsuba variant."""
+    """The ``avsm_single_scatter`` class of the current Mitsuba variant; ValueError under a
+    variant it cannot run in (:func:`variant_message`)."""
     variant = mi.variant()
+    if not supported_variant(variant):
+        raise ValueError(variant_message(variant))
     if variant not in _CLASSES:
         _CLASSES[variant] = _make_class()
     return _CLASSES[variant]
 
 
+def _without_traceback(make):
+    """``make(props)``, a ValueError from it re-raised without its traceback.
+
+    Mitsuba's parser reports a plugin constructor's error as ``At dictionary node "...":
+    failed to instantiate unknown plugin of type "...": `` + the error's C++ text, which for a
+    Python error with a traceback is the whole traceback (and the caller's frames above it)
+    with the message on its last line; without one it is ``ValueError: <message>``.  (The
+    bare ``raise`` keeps the cleared traceback on Python >= 3.11.)"""
+    def factory(props):
+        try:
+            return make(props)
+        except ValueError as err:
+            err.__traceback__ = None
+            raise
+    return factory
+
+
+def _unsupported(props):
+    raise ValueError(variant_message(mi.variant()))
+
+
 def register() -> None:
-    """Register ``avsm_single_scatter`` with Mitsuba for the current variant (a JIT AD variant:
-    ``llvm_ad_*`` / ``cuda_ad_*``); done at import and again after every variant change."""
+    """Register ``avsm_single_scatter`` with Mitsuba for the current variant; done at import and
+    again after every variant change.  Under a JIT AD variant (``llvm_ad_*`` / ``cuda_ad_*``) the
+    integrator; under any other (``scalar_rgb``, ``llvm_rgb``, ...) a constructor that raises
+    ValueError naming the variant to set, so that ``mi.load_dict`` says so instead of
+    ``Plugin "avsm_single_scatter" not found!``."""
     variant = mi.variant()
-    if variant is None or not (variant.startswith("llvm_ad") or variant.startswith("cuda_ad")):
+    if variant is None:
+        return
+    if not supported_variant(variant):
+        mi.register_integrator(NAME, _without_traceback(_unsupported))
         return
     cls = integrator_class()
-    mi.register_integrator(NAME, lambda props: cls(props))
+    mi.register_integrator(NAME, _without_traceback(cls))
 
 
 def _on_variant_change(*_args) -> None:
     register()
 
 
+def _ours(integrator) -> bool:
+    return isinstance(integrator, tuple(_CLASSES.values()))
+
+
+def _integrator_of(signature, args, kwargs):
+    """The integrator an ``mi.render(*args, **kwargs)`` call used (None if it cannot tell)."""
+    try:
+        bound = signature.bind(*args, **kwargs).arguments
+        integrator = bound.get("integrator")
+        return bound["scene"].integrator() if integrator is None else integrator
+    except Exception:
+        return None
+
+
+def _checked_render(render):
+    """``mi.render`` that raises this integrator's own ValueError (a scene it cannot render, a
+    bad density grid, ...) instead of Dr.Jit's ``RuntimeError: drjit.custom(...): error while
+    performing a custom differentiable operation. (see above).`` whose ``__cause__`` it is.
+    Other integrators' errors, and every result, pass through unchanged."""
+    signature = inspect.signature(render)
+
+    @functools.wraps(render)
+    def wrapper(*args, **kwargs):
+        try:
+            return render(*args, **kwargs)
+        except RuntimeError as err:
+            cause = err.__cause__
+            if not (isinstance(cause, ValueError) and _ours(_integrator_of(signature, args, kwargs))):
+                raise
+            cause.__suppress_context__ = True             # Dr.Jit's wrapper is no news
+            raise cause
+    wrapper._avsm_dr_checked = True
+    return wrapper
+
+
 if mi.variant() is None:
     _mitsuba_with_variant()
 register()
 mi.detail.add_variant_callback(_on_variant_change)
+if not getattr(mi.render, "_avsm_dr_checked", False):
+    mi.render = _checked_render(mi.render)
 
-__all__ = ["NAME", "register", "integrator_class", "light_of", "scene_medium", "medium_density"]
+__all__ = ["NAME", "register", "integrator_class", "supported_variant", "variant_message", "light_of",
+           "scene_medium", "medium_density"]

@@ -11,6 +11,8 @@ that a 2 % bias could not hide (measured: AVSM with 2 nodes, 1.5-1.7 % brighter,
 |z| ~ 20).  Our estimator's view transmittance is a 32-piece midpoint rule (O(h^2) bias,
 below the MC error here: 8 pieces still pass) and the shadow map is 256^2 for a 16^3 grid.
 """
+import inspect
+import json
 import re
 import subprocess
 import sys
@@ -138,9 +140,10 @@ def test_load_dict_properties_and_errors(mi):
            ({"filter": "cubic"}, "filter:"),
            ({"march_steps": 0}, "march_steps:")]
     for props, msg in bad:
-        # Mitsuba's parser wraps the plugin's ValueError in a RuntimeError quoting it
-        with pytest.raises(RuntimeError, match="ValueError: " + msg):
+        # Mitsuba's parser wraps the plugin's ValueError in a RuntimeError quoting it (no traceback)
+        with pytest.raises(RuntimeError, match="ValueError: " + msg) as err:
             mi.load_dict(ours(**props))
+        assert "Traceback" not in str(err.value)
         p = mi.Properties(am.NAME)
         for k, v in props.items():
             p[k] = v
@@ -153,16 +156,99 @@ def test_scene_errors(mi):
     two_lights["light2"] = {"type": "point", "position": [0, 3, 0]}
     homogeneous = scene_dict(mi, ours(resolution=64), size=8)
     homogeneous["vol"]["interior"] = {"type": "homogeneous", "sigma_t": 1.0}
-    for d, msg in ((two_lights, "scene: .*exactly one emitter"),
+    for d, msg in ((two_lights, "scene: .*exactly one emitter, found 2$"),
                    (homogeneous, "scene: the medium must be 'heterogeneous'")):
         scene = mi.load_dict(d)
         with pytest.raises(ValueError, match="^" + msg):
             scene.integrator().render(scene, spp=1)
-        # mi.render runs the integrator inside a Dr.Jit custom op, which re-raises as RuntimeError
+        # mi.render runs the integrator inside a Dr.Jit custom op, whose RuntimeError says only
+        # "(see above)"; avsm_dr.mitsuba's mi.render raises the ValueError itself
+        for integrator in (None, scene.integrator()):
+            with pytest.raises(ValueError, match="^" + msg) as err:
+                mi.render(scene, integrator=integrator, spp=1)
+            assert "see above" not in str(err.value)
+
+
+def test_render_passes_other_integrators_errors_through(mi):
+    """The mi.render wrapper re-raises only avsm_single_scatter's errors: another Python
+    integrator's ValueError stays Dr.Jit's RuntimeError, its __cause__ untouched."""
+    class Failing(mi.SamplingIntegrator):
+        def render(self, *args, **kwargs):
+            raise ValueError("failing integrator")
+    assert "integrator" in inspect.signature(mi.render).parameters        # functools.wraps keeps it
+    scene = mi.load_dict(scene_dict(mi, ours(resolution=64), size=8))
+    with pytest.raises(RuntimeError, match="see above") as err:
+        mi.render(scene, integrator=Failing(mi.Properties()), spp=1)
+    assert str(err.value.__cause__) == "failing integrator"
+
+
+def test_property_typo_is_reported_first_and_readably_at_load_dict(mi):
+    """What mi.load_dict says: Mitsuba's prefix, then the plugin's ValueError on one line (no
+    traceback), the unknown name before any bad value, private switches accepted, never listed."""
+    prefix = r'failed to instantiate \w+ plugin of type "avsm_single_scatter": ValueError: '
+    known = r"known: \['nodes', 'sort', 'interpolation', 'near', 'far', 'precision', 'reverse', 'chunk'\]"
+    for props, msg in (
+            ({"representation": "avsm", "precison": "float16", "resolution": 10},   # the typo first
+             r"precison: unknown parameter of 'avsm'; " + known + r"; did you mean 'precision'\?$"),
+            ({"representation": "avsm", "resolutoin": 64},
+             r"resolutoin: unknown parameter of 'avsm'; " + known
+             + r"; avsm_single_scatter properties: \[.*'resolution'.*\]; did you mean 'resolution'\?$"),
+            ({"representaton": "avsm", "nodes": 4},      # kind defaults to 'exact': the typo, not 'nodes'
+             r"representaton: unknown parameter of 'exact'; known: \['precision', 'reverse', 'chunk'\]; "
+             r"avsm_single_scatter properties: \[.*\]; did you mean 'representation'\?$"),
+            ({"representation": "avsm", "_compactt": True},
+             r"_compactt: unknown parameter of 'avsm'; " + known + r"; avsm_single_scatter properties: [^;]*\]$")):
         with pytest.raises(RuntimeError) as err:
-            mi.render(scene, spp=1)
-        assert isinstance(err.value.__cause__, ValueError)
-        assert re.match(msg, str(err.value.__cause__))
+            mi.load_dict({"type": "scene", "integrator": ours(**props)})
+        text = str(err.value)
+        assert re.search(prefix + msg, text), text
+        assert "Traceback" not in text and "\n" not in text
+        assert "_compact'" not in text and "_split" not in text and "_group" not in text
+    integ = mi.load_dict(ours(representation="avsm", nodes=4, _compact=False, resolution=64))
+    assert integ.params == {"nodes": 4, "_compact": False}
+
+
+VARIANT_SCRIPT = r"""
+import json, sys
+import avsm_dr
+import mitsuba as mi
+out = {}
+def load(integrator):
+    try:
+        mi.load_dict({"type": "scene", "integrator": integrator})
+        return "ok"
+    except Exception as e:
+        return type(e).__name__ + ": " + str(e)
+mi.set_variant("scalar_rgb")                   # set before the import: the import registers for it
+import avsm_dr.mitsuba as am
+out["scalar_first"] = load({"type": am.NAME, "representation": "avsm", "nodes": 4})
+try:
+    am.integrator_class()
+except ValueError as e:
+    out["integrator_class"] = str(e)
+mi.set_variant("llvm_ad_rgb")                  # the variant callback registers the integrator
+out["llvm"] = load({"type": am.NAME, "representation": "avsm", "nodes": 4, "resolution": 64})
+mi.set_variant("scalar_spectral")              # a switch after the import: the callback refuses it
+out["scalar_after"] = load({"type": am.NAME})
+print(json.dumps(out))
+"""
+
+
+def test_non_jit_variant_names_the_variant_to_set():
+    """Under a scalar variant mi.load_dict says which variant to set, not Mitsuba's
+    'Plugin "avsm_single_scatter" not found!'.  In a subprocess: the variant switches."""
+    run = subprocess.run([sys.executable, "-c", VARIANT_SCRIPT], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    need = (r"ValueError: avsm_single_scatter needs a JIT variant of Mitsuba with autodiff \(llvm_ad_rgb, or "
+            r"cuda_ad_rgb on an NVIDIA GPU; any llvm_ad_\* / cuda_ad_\*\), the current variant is '{}': call "
+            r"mi.set_variant\('llvm_ad_rgb'\)")
+    for key, variant in (("scalar_first", "scalar_rgb"), ("scalar_after", "scalar_spectral")):
+        text = out[key]
+        assert text.startswith("RuntimeError: ") and re.search(need.format(variant), text), text
+        assert "not found" not in text and "Traceback" not in text
+    assert re.match(need.format("scalar_rgb")[len("ValueError: "):], out["integrator_class"])
+    assert out["llvm"] == "ok"
 
 
 def test_build_parameters_pass_and_messages_list_public_names(mi):
