@@ -32,12 +32,15 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.ticker import NullFormatter
-from avsm_dr import groundtruth, io, receivers, shading
+from avsm_dr import groundtruth, receivers, shading
 
 # The test suite runs the notebooks with AVSM_DR_NOTEBOOK_SMALL=1 (small sizes, fast).
 SMALL = os.environ.get('AVSM_DR_NOTEBOOK_SMALL') == '1'
 VOLUME = os.environ.get('AVSM_DR_VOLUME')     # or a path: VOLUME = 'smoke.vol'
-DENSITY_SCALE = 40.0                           # extinction per world unit where the grid holds 1
+DENSITY_SCALE = 1.0                            # extinction = DENSITY_SCALE x grid value (nothing else rescales it)
+BBOX = None                                    # world box ((x0, y0, z0), (x1, y1, z1)); None: the .vol header's,
+                                               # else voxels of side 1 centred at the origin (never stretched)
+BYTES = 32                                     # the budget: sparse bytes per texel
 KINDS = ['avsm', 'fom', 'osm', 'moments', 'dsm']
 RES = 64 if SMALL else 256                     # shadow map: RES x RES texels
 N_RECEIVERS = 512 if SMALL else 4096           # in-volume receivers for the error curves
@@ -49,23 +52,26 @@ if unknown:
 
 # %% [markdown]
 # ## Load the volume
-# Your grid fills the box of the built-in plume, `[-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5]` (any
-# resolution; cell-centred voxels, trilinear), lit by its directional light, in front of its wall.
-# Scale `DENSITY_SCALE` so that the shadow is neither empty nor black.
+# `ad.Scene.from_grid` reads your grid in its own box and units (`BBOX`, `DENSITY_SCALE`: see
+# the docs page "Measuring a representation"), lit by a directional light from above. A wall
+# behind the volume, facing the light, receives its shadow for the images below. The command-line
+# answer to "which kind at `BYTES` bytes per texel" is `python -m experiments budget --volume
+# my.vol --bytes 32` (docs: "Which kind fits my byte budget").
 
 # %%
 scene = ad.scenes.simulated_plume(size=16 if SMALL else 32)
 if VOLUME:
     path = Path(VOLUME)
-    grid = io.read_vol(path) if path.suffix == '.vol' else np.load(path)
-    grid = np.asarray(grid, np.float32)
-    if grid.ndim == 4:
-        grid = grid[..., 0]                    # first channel of a multi-channel grid
-    if grid.ndim != 3:
-        raise ValueError(f'VOLUME: expected a (z, y, x) grid, got shape {grid.shape}')
-    scene = dataclasses.replace(scene, name=path.stem, density=grid * (DENSITY_SCALE / max(float(grid.max()), 1e-12)),
-                                meta={'path': str(path)})
-print(f'{scene.name}: grid {scene.density.shape} (z, y, x), max extinction {scene.density.max():.1f}')
+    scene = ad.Scene.from_grid(path, bbox=BBOX, density_scale=DENSITY_SCALE)
+    lo, hi = (np.asarray(v, np.float64) for v in scene.bbox)
+    d = np.asarray(scene.light.direction, np.float64)
+    d /= np.linalg.norm(d)
+    reach = 0.5 * float(np.linalg.norm(hi - lo))          # the box's half diagonal
+    wall = (0.5 * (lo + hi) + 1.05 * reach * d, -d, reach)  # centre, normal (towards the light), half side
+    scene = dataclasses.replace(scene, receiver_plane=wall)
+lo, hi = (np.asarray(v, np.float64) for v in scene.bbox)
+print(f'{scene.name}: grid {scene.density.shape} (z, y, x) in the box {lo.round(3).tolist()} .. '
+      f'{hi.round(3).tolist()}, max extinction {scene.density.max():.1f} per world unit')
 fig, axes = plt.subplots(1, 3, figsize=(10, 3.2))
 for ax, axis, title in zip(axes, (0, 1, 2), ('summed along z', 'summed along y', 'summed along x')):
     ax.imshow(scene.density.sum(axis=axis), origin='lower', cmap='magma')
@@ -101,7 +107,8 @@ for kind in KINDS:
         rep = ad.build(kind, cap.segments, **params)
         T = np.asarray(cap.transmittance(rep, points, filter='bilinear'), np.float64)
         curves.setdefault(kind, []).append((rep.nbytes_per_texel, np.sqrt(np.mean((T - exact) ** 2)),
-                                            np.sqrt(np.mean((T - truth) ** 2)), np.mean(T - exact), params))
+                                            np.sqrt(np.mean((T - truth) ** 2)), np.mean(T - exact), params,
+                                            rep.nbytes_sparse_per_texel))
 fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharex=True)
 for kind, pts in curves.items():
     pts = sorted(pts, key=lambda p: p[0])
@@ -116,10 +123,15 @@ for ax in axes:
     ax.xaxis.set_minor_formatter(NullFormatter())
 axes[1].legend(fontsize=8)
 plt.show()
+print(f'the most accurate setting of each kind within {BYTES} sparse bytes per texel (against the truth):')
 for kind, pts in curves.items():
-    best = min(pts, key=lambda p: p[1])
-    print(f'{kind:9s} best {best[4]}: {best[0]:.0f} B/texel, RMSE {best[1]:.4f} vs exact, {best[2]:.4f} vs truth, '
-          f'mean signed {best[3]:+.4f}')
+    fits = [p for p in pts if p[5] <= BYTES]
+    if not fits:
+        print(f'{kind:9s} no setting of the sweep fits (smallest: {min(p[5] for p in pts):.1f} B)')
+        continue
+    best = min(fits, key=lambda p: p[2])
+    print(f'{kind:9s} {best[4]}: {best[5]:.1f} B/texel sparse ({best[0]:.0f} dense), RMSE {best[2]:.4f} vs truth, '
+          f'{best[1]:.4f} vs exact, mean signed {best[3]:+.4f}')
 
 # %% [markdown]
 # ## Shadow images and signed errors
