@@ -34,3 +34,19 @@ def quick_cli_run(name: str, out) -> Path:
     assert name in cli.experiment_names(), name
     assert cli.main([name, "--quick", "--out", str(out)]) == 0, name
     return Path(out) / name
+
+
+def build_peak(kind: str, arrays: Callable, **params):
+    """(rep, peak bytes, output bytes) of ``build(kind, ...)`` on the benchmark's memory map
+    at its quick size (64^2 texels, ~0.4 M segments): peak = the larger of process RSS growth
+    and Dr.Jit's allocator watermark growth (``Meter``), compiled outside the measurement;
+    ``arrays(rep)`` lists the representation's arrays to evaluate inside it."""
+    from experiments._common import Meter
+    from experiments.bench.settings import counts_map
+    seg = counts_map(64, 100)
+    dr.eval(seg.z0, seg.z1, seg.optical_depth)
+    avsm_dr.build(kind, counts_map(4, 100), **params)          # compile outside the measurement
+    with Meter() as m:
+        rep = avsm_dr.build(kind, seg, **params)
+        dr.eval(*arrays(rep))
+    return rep, m, rep.nbytes_per_texel * seg.n_texels

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-import drjit as dr
 from avsm_dr.representations import dsm
 from cases import random_segments
+from helpers import build_peak
 
 ATTRS = ("node_counts", "node_offsets", "node_left", "n_polyline_vertices")
 
@@ -91,13 +91,5 @@ def test_build_peak_within_4x_of_the_output():
     """The issue-14 target on the benchmark's memory map at its quick size (64^2 texels,
     ~0.4 M segments; 76x in one piece): peak = the larger of process RSS growth and Dr.Jit's
     allocator watermark growth (:class:`Meter`), over nbytes_per_texel x texels."""
-    from experiments._common import Meter
-    from experiments.bench.settings import counts_map
-    seg = counts_map(64, 100)
-    dr.eval(seg.z0, seg.z1, seg.optical_depth)
-    ad.build("dsm", counts_map(4, 100), tolerance=0.01)       # compile outside the measurement
-    with Meter() as m:
-        rep = ad.build("dsm", seg, tolerance=0.01)
-        dr.eval(rep.node_depth, rep.node_value)
-    out = rep.nbytes_per_texel * seg.n_texels
+    rep, m, out = build_peak("dsm", lambda r: (r.node_depth, r.node_value), tolerance=0.01)
     assert m.peak_bytes <= 4 * out, (m.rss_bytes, m.heap_bytes, out)

@@ -12,8 +12,8 @@ holding it) and the optical depth ``D(u) = sum_k a_k g_k(u)`` is piecewise linea
 exact at the slice boundaries ``u = j / n``.
 
 Stored form (texel-major, flat ``[texel * n + j - 1]``): the cumulative optical depths
-``C_j = D(j / n) = sum_{k<j} a_k``, ``j = 1..n`` (``n`` floats per texel, one
-``dr.block_prefix_sum`` over the slice coefficients; ``C_0 = 0`` is implicit), so a lookup is two
+``C_j = D(j / n) = sum_{k<j} a_k``, ``j = 1..n`` (``n`` floats per texel, float64 running
+sums over the slice coefficients; ``C_0 = 0`` is implicit), so a lookup is two
 gathers and one interpolation, ``D(u) = min(C_j + (C_{j+1} - C_j)(n u - j), C_{j+1})``
 with ``j = min(floor(n u), n - 1)``.  The ``min`` keeps ``D`` non-decreasing under
 float rounding: ``a_k >= 0`` and ``g_k`` non-decreasing make ``T`` monotone
@@ -22,15 +22,19 @@ the ulp level).
 
 Projection: four scatters per segment whatever ``n`` (see ``_project``: end slices
 directly, the slices fully covered through a difference array), not ``n`` as in the
-generic basis kernel.  Depth range, clipping: see :mod:`avsm_dr.representations.basis`.
+generic basis kernel.  Without gradients the build runs in :data:`BUILD_CHUNKS` chunks of
+texels (``_build_chunked``), so that its peak is the two stored arrays (a_k and C_j) plus
+one chunk's parts: 3.0x the output (it was 7x with every temporary at full size).
+Depth range, clipping: see :mod:`avsm_dr.representations.basis`.
 """
 from __future__ import annotations
 
 import drjit as dr
+import numpy as np
 
+from .. import _arrays as A
 from .. import backend
 from .registry import register
-from ._loops import texel_lanes
 from ._precision import Stored
 from .basis import MAX_COEFFICIENTS, Basis, BasisRepresentation, clip_segment, register_basis
 from .schema import Param, Schema, depth_range_param, far_param, near_param
@@ -90,6 +94,13 @@ class PiecewiseConstantBasis(Basis):
         return out
 
 
+#: Texel chunks of the build without gradients (:meth:`OpacityShadowMap._build_chunked`):
+#: one chunk's parts P and R at a time, 2 / BUILD_CHUNKS of the output's size (peak 3.0x the
+#: output; 4 chunks: 2.5x, but the build 0.64-0.91x as fast, 2: 0.92-0.99x; 256^2 and
+#: 64^2 x 100 segments, 32 slices, 2 loaded cores).
+BUILD_CHUNKS = 2
+
+
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
     """Opacity shadow map: ``slices`` n >= 1 (default 16) uniform over ``near``/``far``
@@ -115,19 +126,88 @@ class OpacityShadowMap(BasisRepresentation):
         return PiecewiseConstantBasis(self.params["slices"])
 
     def _build_bytes(self, K: int) -> float:
-        """Peak of the four-scatter projection and the cumulative sums: the parts P, the
-        difference array R, their float64 prefix sums and the store, ``8 itemsize + 32``
-        bytes per (texel, slice) (measured 38 - 60: float32, float64, float32 with
-        gradients), and ~12 words per segment of scatter terms."""
+        """Without gradients (:meth:`_build_chunked`): a_k, C_j and one chunk's parts,
+        ``(2 + 2 / BUILD_CHUNKS) itemsize`` per (texel, slice) plus 4 bytes per texel
+        (measured 3.00-3.02 itemsize per (texel, slice): float32, float64, 1-256 slices).
+        With gradients (:meth:`_project` at full size): the parts P, the difference array R,
+        their float64 prefix sums and the store, ``8 itemsize + 32`` bytes per (texel,
+        slice) (measured 38 - 60: float32, float64, float32 with gradients), and ~12 words
+        per segment of scatter terms."""
         seg = self.segments
-        return (8.0 * seg.itemsize + 32.0) * seg.n_texels * K + 12.0 * seg.itemsize * seg.n_segments
+        T, it = seg.n_texels, seg.itemsize
+        if not seg.requires_grad:
+            return (2.0 + 2.0 / BUILD_CHUNKS) * it * T * K + 4.0 * T
+        return (8.0 * it + 32.0) * T * K + 12.0 * it * seg.n_segments
 
     def _build(self):
+        if self.segments.n_segments and not self.segments.requires_grad:
+            self._coef, self._cum = self._build_chunked()
+            return
         super()._build()
         # ---- stored form: C_{j+1} = sum_{k<=j} a_k, flat texel-major [texel * n + j]
         F64 = backend.types().Float64        # summed in float64 whatever the storage
         self._cum = self.Float(dr.block_prefix_sum(F64(self._coef), self.basis.n, exclusive=False))
         dr.eval(self._cum)
+
+    def _build_chunked(self):
+        """(a_k, C_j), flat texel-major, without gradients, in :data:`BUILD_CHUNKS` chunks
+        of texels, so that the build's peak is the two results and one chunk's parts (its
+        temporaries at full size made it 7x the output).  Per chunk: one lane per non-empty
+        texel adds its segments' parts in CSR order into its own rows of P and R
+        (:meth:`_add_parts`: no two lanes add to one slot, no atomics, the same bits every
+        run), then one lane per texel walks its slices j in order with float64 running
+        sums, ``a_j = P_j + (sum_{i<=j} R_i)``, clamped at 0, and ``C_{j+1} = sum_{k<=j}
+        a_k``, written into the results: the operations, in the order, of the dense form
+        (:meth:`_project` and ``dr.block_prefix_sum``, a sequential sum per block), so the
+        same bits (tests/test_osm_build.py)."""
+        seg, n = self.segments, self.basis.n
+        T = seg.n_texels
+        self._check_index_range(T, n)
+        a_all, c_all = dr.zeros(seg.Float, T * n), dr.zeros(seg.Float, T * n)
+        lanes = np.nonzero(seg.counts > 0)[0]
+        offsets = seg.offsets_dr()
+        rows = -(-T // BUILD_CHUNKS)
+        for r0 in range(0, T, rows):
+            sel = lanes[np.searchsorted(lanes, r0):np.searchsorted(lanes, min(T, r0 + rows))]
+            if sel.size:
+                self._build_rows(a_all, c_all, r0, min(T, r0 + rows) - r0, A.to_uint32(sel), offsets)
+        return a_all, c_all
+
+    def _build_rows(self, a_all, c_all, r0, m, texel, offsets):
+        """One chunk of :meth:`_build_chunked`: rows r0 .. r0 + m - 1 (texel: its non-empty
+        texels), written into a_all and c_all (in place: scatters)."""
+        seg, n = self.segments, self.basis.n
+        t = backend.types()
+        Float, UInt32, F64 = seg.Float, t.UInt32, t.Float64
+        z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
+        first, stop = dr.gather(UInt32, offsets, texel), dr.gather(UInt32, offsets, texel + 1)
+        row = (texel - dr.opaque(UInt32, r0)) * n          # the texel's first slot in the chunk
+        P, Rd = dr.zeros(Float, m * n), dr.zeros(Float, m * n)
+
+        def body(i):
+            self._add_parts(P, Rd, dr.gather(Float, z0, i), dr.gather(Float, z1, i), dr.gather(Float, tau, i),
+                            texel, row, mode=dr.ReduceMode.NoConflicts)
+            return (i + 1,)
+
+        dr.while_loop((first,), lambda i: i < stop, body, label="osm_project")
+        dr.eval(P, Rd)
+        out = texel * n
+
+        def sums(j, r, c):
+            r = r + F64(dr.gather(Float, Rd, row + j))
+            a = dr.gather(Float, P, row + j) + Float(r)
+            # R's +r / -r pairs can leave a rounding residual in a slice no segment
+            # covers; a negative one (-1.5e-8 found in float32) made D decrease
+            a = dr.select(a < 0, 0, a)
+            c = c + F64(a)
+            dr.scatter(a_all, a, out + j)
+            dr.scatter(c_all, Float(c), out + j)
+            return j + 1, r, c
+
+        w = dr.width(texel)
+        dr.while_loop((dr.zeros(UInt32, w), dr.zeros(F64, w), dr.zeros(F64, w)), lambda j, r, c: j < n, sums,
+                      label="osm_sums")
+        dr.eval(a_all, c_all)
 
     @property
     def cumulative(self) -> list:
@@ -135,6 +215,27 @@ class OpacityShadowMap(BasisRepresentation):
         n, T = self.basis.n, self.n_texels
         idx = dr.arange(backend.types().UInt32, T) * n
         return [dr.gather(self.Float, self._cum, idx + j) for j in range(n)]
+
+    def _add_parts(self, P, Rd, z0, z1, tau, texel, row, mode=dr.ReduceMode.Auto):
+        """Add segments' parts into P (end slices) and Rd (difference array of full-slice
+        rates) at ``row + j`` (row: the texel's first slot); see :meth:`_project`."""
+        n, UInt32 = self.basis.n, backend.types().UInt32
+        near, span = self._range(texel if self._per_texel else None)
+        c0, c1, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
+        t0, t1 = n * c0, n * c1                 # segment in slice units
+        j0 = dr.minimum(dr.floor(t0), n - 1)    # first slice (the last one is closed)
+        j1 = dr.minimum(dr.floor(t1), n - 1)    # last slice
+        same = j0 == j1
+        dt = t1 - t0
+        rate = tau_in / dr.select(dt > 0, dt, 1)
+        i0, i1 = row + UInt32(j0), row + UInt32(j1)
+        add = dr.ReduceOp.Add
+        dr.scatter_reduce(add, P, dr.select(same, tau_in, rate * (j0 + 1 - t0)), i0, mode=mode)
+        dr.scatter_reduce(add, P, rate * (t1 - j1), i1, active=~same, mode=mode)
+        full = j1 > j0 + 1
+        dr.scatter_reduce(add, Rd, rate, i0 + 1, active=full, mode=mode)
+        dr.scatter_reduce(add, Rd, -rate, i1, active=full, mode=mode)
+        dr.scatter_reduce(add, P, tau_front, row, active=tau_front > 0, mode=mode)
 
     def _project(self):
         """a_k with four scatters per segment whatever n (instead of n): in slice units
@@ -144,46 +245,15 @@ class OpacityShadowMap(BasisRepresentation):
         a difference array R (R[j0 + 1] += r, R[j1] -= r, only when j1 > j0 + 1 so that
         r <= tau and the running sum's rounding stays below eps sum tau)."""
         seg, n = self.segments, self.basis.n
-        Float, UInt32, T = seg.Float, backend.types().UInt32, seg.n_texels
+        Float, T = seg.Float, seg.n_texels
         self._check_index_range(T, n)
         # texel-major [texel * n + j]: a texel's segments are contiguous, so its scatters
         # stay in one cache line or two (slice-major j * T + texel: cache misses)
         P = dr.zeros(Float, n * T)                  # end-slice parts
         Rd = dr.zeros(Float, n * T)                 # difference array of full-slice rates
-        add = dr.ReduceOp.Add
-
-        def scatter(z0, z1, tau, texel, mode=dr.ReduceMode.Auto):
-            near, span = self._range(texel if self._per_texel else None)
-            c0, c1, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
-            t0, t1 = n * c0, n * c1                 # segment in slice units
-            j0 = dr.minimum(dr.floor(t0), n - 1)    # first slice (the last one is closed)
-            j1 = dr.minimum(dr.floor(t1), n - 1)    # last slice
-            same = j0 == j1
-            dt = t1 - t0
-            rate = tau_in / dr.select(dt > 0, dt, 1)
-            i0, i1 = texel * n + UInt32(j0), texel * n + UInt32(j1)
-            dr.scatter_reduce(add, P, dr.select(same, tau_in, rate * (j0 + 1 - t0)), i0, mode=mode)
-            dr.scatter_reduce(add, P, rate * (t1 - j1), i1, active=~same, mode=mode)
-            full = j1 > j0 + 1
-            dr.scatter_reduce(add, Rd, rate, i0 + 1, active=full, mode=mode)
-            dr.scatter_reduce(add, Rd, -rate, i1, active=full, mode=mode)
-            dr.scatter_reduce(add, P, tau_front, texel * n, active=tau_front > 0, mode=mode)
-
-        if seg.n_segments and seg.requires_grad:     # reverse mode: no symbolic loop
-            scatter(seg.z0, seg.z1, seg.optical_depth, seg.texel_of_segment())
-        elif seg.n_segments:
-            # one lane per texel adds its segments' parts in CSR order into its own row: no
-            # two lanes add to one slot (so no atomics: NoConflicts), and the sums have the
-            # same bits every run (concurrent float atomics add in the order threads arrive)
-            texel, first, stop = texel_lanes(seg)
-            z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
-
-            def body(i):
-                scatter(dr.gather(Float, z0, i), dr.gather(Float, z1, i), dr.gather(Float, tau, i), texel,
-                        mode=dr.ReduceMode.NoConflicts)
-                return (i + 1,)
-
-            dr.while_loop((first,), lambda i: i < stop, body, label="osm_project")
+        if seg.n_segments:      # with gradients (reverse mode: no symbolic loop); otherwise _build_chunked
+            texel = seg.texel_of_segment()
+            self._add_parts(P, Rd, seg.z0, seg.z1, seg.optical_depth, texel, texel * n)
         # a_j = P_j + sum_{i <= j} R_i: a prefix sum inside each texel's block of n, in
         # float64 (a float32 running sum over 1e6 slices drifted by 8e-4)
         a = P + Float(dr.block_prefix_sum(backend.types().Float64(Rd), n, exclusive=False))

@@ -17,7 +17,7 @@ from .settings import SCENE_SETTINGS, counts_map, label, lookups, pyplot
 
 #: Largest build peak over the output's size that a kind is meant to reach on the memory
 #: map (kinds not listed have no target).
-BUILD_PEAK_TARGETS = {"dsm": 4.0}
+BUILD_PEAK_TARGETS = {"dsm": 4.0, "osm": 4.0}
 
 
 def _malloc_returns_memory():
