@@ -266,3 +266,14 @@ def _fmt(v):
 # The timer and the memory meter live in the public harness; re-exported for the studies.
 from avsm_dr.evaluation.timing import Meter, measure, sync, timed  # noqa: E402,F401
 from avsm_dr.evaluation.table import read_csv  # noqa: E402,F401
+
+
+def front_to_back_first(orders, allowed) -> list[str]:
+    """The insertion orders of a study's ``--orders``: each checked against ``allowed``
+    (ValueError naming ``orders``), duplicates dropped, ``'depth'`` (the headline's, front to
+    back) always first."""
+    orders = list(orders or ["depth"])
+    bad = [o for o in orders if o not in allowed]
+    if bad:
+        raise ValueError(f"orders: unknown insertion order {bad[0]!r}; expected some of {list(allowed)}")
+    return ["depth"] + [o for o in dict.fromkeys(orders) if o != "depth"]

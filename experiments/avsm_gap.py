@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from avsm_dr import build, kinds
 from avsm_dr.metrics import error_stats
+from ._common import front_to_back_first
 from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -288,11 +289,7 @@ def _resolve(P: dict, quick: bool) -> dict:
     """The scenes as a list and the compared methods."""
     P["scenes"] = list(P["scenes"])
     P["methods"] = [m[0] for m in methods(0)] + ["beer"]
-    orders = list(P.get("orders") or ["depth"])
-    bad = [o for o in orders if o not in ORDERS]
-    if bad:
-        raise ValueError(f"orders: unknown insertion order {bad[0]!r}; expected some of {ORDERS}")
-    P["orders"] = ["depth"] + [o for o in dict.fromkeys(orders) if o != "depth"]
+    P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
     return P
 
 

@@ -220,7 +220,8 @@ def test_avsm_gap_quick(tmp_path):
         for n, d in per_n.items():
             assert d["avsm_order"] == "depth"
             by = d["avsm_over_optimal_by_order"]
-            assert set(by) == {"depth", "submission", "reverse_depth", "random"} and by["depth"] == d["avsm_over_optimal"]
+            assert set(by) == {"depth", "submission", "reverse_depth", "random"}
+            assert by["depth"] == d["avsm_over_optimal"]
             texels = {r["texels"] for r in rows if r["scene"] == scene and f"N={r['nodes']}" == n}
             assert len(texels) == 1                                   # one set of texels for every order
             assert set(intervals[scene][n]) >= {"avsm@random_over_optimal", "avsm@submission_over_optimal"}

@@ -64,6 +64,7 @@ from tqdm import tqdm
 
 from avsm_dr import build
 from avsm_dr.stats import bootstrap_ci, claim
+from .._common import front_to_back_first
 from .._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -375,11 +376,7 @@ def _compute(res, P: dict) -> dict:
 
 def _resolve(P: dict, quick: bool) -> dict:
     """Orders checked; front to back first (the headline's)."""
-    orders = list(P.get("orders") or ["depth"])
-    bad = [o for o in orders if o not in ORDERS]
-    if bad:
-        raise ValueError(f"orders: unknown insertion order {bad[0]!r}; expected some of {ORDERS}")
-    P["orders"] = ["depth"] + [o for o in dict.fromkeys(orders) if o != "depth"]
+    P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
     return P
 
 
