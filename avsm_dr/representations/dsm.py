@@ -590,7 +590,7 @@ def _concatenate(parts: list, k: int) -> np.ndarray:
     (:func:`avsm_dr._arrays.aligned`); each part is released once copied."""
     dtype = parts[0][k].dtype if parts else np.float64
     n = sum(p[k].size for p in parts)
-    buf = np.empty(n + 64 // dtype.itemsize, dtype)
+    buf = np.empty(n + (64 + A.TAIL_PAD) // dtype.itemsize, dtype)
     first = (-buf.ctypes.data % 64) // dtype.itemsize
     out = buf[first:first + n]
     at = 0
