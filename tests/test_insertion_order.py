@@ -11,9 +11,9 @@ from helpers import quick_cli_run
 
 COLUMNS = {"scene", "config", "kind", "nodes", "order", "rmse", "rmse_truth", "depth_l2", "signed_mean",
            "signed_mean_truth", "ratio_to_optimal", "ratio_to_optimal_rmse", "ratio_to_greedy",
-           "beats_optimal_texels"}
+           "beats_optimal_texels", "insertion", "build_s", "build_ratio", "kernel_ratio"}
 METRICS = ("rmse", "rmse_truth", "depth_l2", "signed_mean", "signed_mean_truth")
-TEXT = ("scene", "config", "light", "kind", "order")
+TEXT = ("scene", "config", "light", "kind", "order", "insertion")
 
 
 def _typed(row: dict) -> dict:
@@ -64,7 +64,7 @@ def test_ratios_to_optimal(quick):
     for r in rows:
         if r["kind"] == "optimal":
             assert r["ratio_to_optimal"] == 1.0 and r["ratio_to_optimal_rmse"] == 1.0
-        if r["kind"] == "avsm":
+        if r["kind"] in S.INSERTION_METHODS:       # every AVSM insertion: nodes on segment ends
             assert r["ratio_to_optimal"] >= 1 - 1e-6, r
         assert 0.0 <= r["beats_optimal_texels"] <= 1.0
         assert r["depth_l2"] >= 0 and r["rmse"] >= 0 and r["rmse_truth"] >= 0
@@ -90,3 +90,34 @@ def test_findings_per_order_with_intervals(quick):
 def test_bad_scene_names_the_argument():
     with pytest.raises(ValueError, match="scenes"):
         S.run(quick=True, scenes=["no_such_scene"])
+
+
+def test_insertion_methods_rows_and_timing(quick):
+    """Each AVSM insertion method is a row per cell with its ``insertion``; build and kernel
+    times are relative to stream AVSM's on the same segments (exactly 1 for it), positive and
+    finite; the other kinds carry no timing."""
+    rows, _, _ = quick
+    for r in rows:
+        if r["kind"] in S.INSERTION_METHODS:
+            assert r["insertion"] == S.INSERTION_METHODS[r["kind"]]
+            assert r["build_s"] > 0 and 0 < r["build_ratio"] < float("inf") and 0 < r["kernel_ratio"] < float("inf")
+            if r["kind"] == "avsm":
+                assert r["insertion"] == "stream" and r["build_ratio"] == 1.0 and r["kernel_ratio"] == 1.0
+        else:
+            assert r["insertion"] == "" and r["build_ratio"] != r["build_ratio"]      # NaN
+
+
+def test_goal_per_scene(quick):
+    """``goal``: the worst order's ratio is the largest of the per-order estimates, and ``met``
+    is both bounds; the staged least-squares refit is below stream AVSM under every order
+    (the page's finding, deterministic: no timing involved)."""
+    rows, found, _ = quick
+    for scene in {r["scene"] for r in rows}:
+        for n in {r["nodes"] for r in rows}:
+            d = found[scene][f"N={n}"]
+            assert set(d["goal"]) == set(S.INSERTION_METHODS)
+            for k, g in d["goal"].items():
+                assert g["worst_ratio"] == max(d[o][k]["depth_l2"]["estimate"] for o in S.ORDERS)
+                assert g["met"] == (g["worst_ratio"] <= S.GOAL_RATIO and g["build_ratio"] <= S.GOAL_BUILD)
+            for o in S.ORDERS:
+                assert d[o]["avsm_staged_refit_l2"]["depth_l2"]["estimate"] < d[o]["avsm"]["depth_l2"]["estimate"]

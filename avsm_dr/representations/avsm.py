@@ -11,6 +11,9 @@ Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``
   smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|``
   (ties: the deepest such node); the first and last node are never removed and no
   node is ever moved.
+* **Insertion variants** (``insertion``, default ``'stream'``: the above): refitting the
+  removed node's neighbours and compressing only every few segments, see
+  :mod:`._avsm_insertion` (and docs/research/insertion_order.md for what they buy).
 * **Sampling** (sec. 3.3): T = 1 in front of the first node, the last node's value behind
   the last one, and linear (eq. 2) or exponential interpolation in between.
 
@@ -48,6 +51,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .registry import register
+from ._avsm_insertion import INSERTIONS, remove_refit
 from ._loops import run_loop
 from .base import Representation, depth_range, node_build_bytes
 from ._precision import PRECISIONS, Stored
@@ -268,7 +272,8 @@ class NodeList(Representation):
 class AVSM(NodeList):
     """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel.
 
-    Parameters (schema below): nodes N in [2, 64], sort, interpolation, near/far
+    Parameters (schema below): nodes N in [2, 64], sort, interpolation, insertion
+    (``'stream'``, the paper's, or a variant of :mod:`._avsm_insertion`), near/far
     (default: global bounds; nodes are cleared to (far, 1)).  ``nbytes_per_texel`` =
     2 N itemsize.
     Extra attributes: ``depths``/``values`` (lists of N Dr.Jit arrays of length T),
@@ -291,6 +296,11 @@ class AVSM(NodeList):
                   "instead of in the given order"),
             Param("interpolation", "choice", "linear", "between nodes: 'linear' (the paper's eq. 2) or "
                   "'exp' (uniform density)", choices=INTERPOLATIONS),
+            Param("insertion", "choice", "stream", "what an overflow does: 'stream' (the paper's removal), "
+                  "'refit' (area-preserving refit of the removed node's neighbours), 'refit_l2' (L2 "
+                  "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
+                  "every 4 segments); see avsm_dr.representations._avsm_insertion",
+                  choices=tuple(INSERTIONS)),
             near_param(), far_param(),
             # Private ablation switches (benchmarks only; the nodes are the same either way):
             Param("_compact", "bool", True, "private: lanes only for non-empty texels (else one per texel)"),
@@ -311,6 +321,7 @@ class AVSM(NodeList):
         self.N = P["nodes"]
         self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
+        self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
 
     @property
     def loop_state_words(self) -> int:
@@ -352,19 +363,30 @@ class AVSM(NodeList):
         lane_max = int(counts[lanes_np].max())            # ... checked against the lanes' own counts
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
+        refit, metric, stage = self._refit, self._metric, self._stage
+        if refit is None and metric == "area":
+            remove = remove_smallest                      # the paper's removal ('stream', 'staged')
+        else:
+            def remove(d, t):
+                return remove_refit(d, t, refit, metric)
+
+        def segment(p, i, active=True):
+            # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
+            if view is not None:
+                i = dr.gather(UInt32, view[0], i, active)  # the texel's next segment in depth order
+            a = dr.gather(Float, p[0], i, active)
+            b = dr.gather(Float, p[1], i, active)
+            return a, b, dr.exp(-dr.gather(Float, p[2], i, active))
+
         def insert(p, i, used, done, d, t, compress):
             # compress: False (room left), True (full), or a Bool mask (_split=False ablation)
-            if view is not None:
-                i = dr.gather(UInt32, view[0], i)         # the texel's next segment in depth order
-            a = dr.gather(Float, p[0], i)                 # segment entry depth
-            b = dr.gather(Float, p[1], i)                 # segment exit depth
-            ts = dr.exp(-dr.gather(Float, p[2], i))       # segment exit transmittance
+            a, b, ts = segment(p, i)
             ta, skip = curve_at(d, t, a)                  # skip: the stored curve is 0 at a
             nd, nt = insert_segment(d, t, used, a, b, ts, full=compress is True, ta=ta)
             if compress is True:
-                nd, nt = remove_smallest(*remove_smallest(nd, nt))
+                nd, nt = remove(*remove(nd, nt))
             elif compress is not False:
-                cd, ct = remove_smallest(*remove_smallest(nd, nt))
+                cd, ct = remove(*remove(nd, nt))
                 nd = [dr.select(compress, cd[k], nd[k]) for k in range(N)]
                 nt = [dr.select(compress, ct[k], nt[k]) for k in range(N)]
             d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
@@ -398,6 +420,34 @@ class AVSM(NodeList):
             used = dr.select(skip | full, used, used + 2)
             return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip & full), *d, *t)
 
+        # ---- staged variants, once full: STAGE segments into a list of N + 2 STAGE nodes, then
+        # 2 STAGE removals.  A segment not inserted (skipped, or past the texel's end) appends two
+        # copies of the last node instead (real copies iff the last node is real): zero metric and
+        # deepest, so the compression drops them first, and ``used`` (N - 1 or N here) is the same
+        # after the batch as before it.
+        def body_staged(p, i, used, done, skipped, compressed, *dt):
+            d, t = list(dt[:N]), list(dt[N:])
+            grow = used
+            for _ in range(stage):
+                n = len(d)
+                active = (i < end) & ~done
+                a, b, ts = segment(p, i, active)
+                ta, zero = curve_at(d, t, a)
+                nd, nt = insert_segment(d, t, grow, a, b, ts, ta=ta)
+                put = active & ~zero
+                pd, pt = d + [d[-1], d[-1]], t + [t[-1], t[-1]]
+                d = [dr.select(put, nd[k], pd[k]) for k in range(n + 2)]
+                t = [dr.select(put, nt[k], pt[k]) for k in range(n + 2)]
+                grow = dr.select(put | (grow == n), grow + 2, grow)
+                skipped += UInt32(active & zero)
+                compressed += UInt32(put)
+                if sorted_input:
+                    done |= active & zero
+                i = dr.select(active, i + 1, i)
+            for _ in range(2 * stage):
+                d, t = remove(d, t)
+            return (i, used, done, skipped, compressed, *d, *t)
+
         chunk = self.checkpoint_chunk(seg)
 
         def run(state, cond, body, label):
@@ -406,7 +456,10 @@ class AVSM(NodeList):
         state = (first, dr.zeros(UInt32, L), dr.zeros(Bool, L),
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L),
                  *[dr.opaque(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
-        if ablate["_split"]:
+        if stage > 1:                                     # staged: always the two loops
+            state = run(state, cond_room, body_room, "avsm_insert")
+            state = run(state, cond_full, body_staged, "avsm_staged")
+        elif ablate["_split"]:
             state = run(state, cond_room, body_room, "avsm_insert")
             state = run(state, cond_full, body_full, "avsm_compress")
         else:

@@ -1,0 +1,127 @@
+"""AVSM insertion variants (the ``insertion`` parameter of :class:`.avsm.AVSM`): what happens
+when a texel's node list overflows.  Branch-free node-list operations on lists of Dr.Jit
+arrays, like :mod:`.avsm`; the research question and its measurements:
+``docs/research/insertion_order.md`` (``python -m experiments insertion_order --quick``).
+
+* ``stream`` (Salvi et al. 2010, sec. 3.2): each inserted segment adds two nodes, then the
+  interior node of least area metric is removed, twice; no node value ever changes.
+* ``refit``: the same removals, then the removed node's two neighbours are refitted so that
+  the area under the curve is kept (:func:`remove_refit` with ``fit="area"``).
+* ``refit_l2``: the removed node is the one of least squared-L2 loss (``c^2 / w``, see
+  below) and its neighbours are refitted by least squares to the curve before the removal
+  (:func:`remove_refit` with ``fit="l2"``).
+* ``staged`` / ``staged_refit_l2``: once the texel is full, segments are inserted
+  :data:`STAGE` at a time into a list of ``N + 2 STAGE`` nodes and the list is compressed
+  back to N only then (``2 STAGE`` removals; plain, respectively refitting).  No node is
+  removed while a batch is staged, so the batch's order inside it hardly matters (sorting it
+  by depth changed the prototype's ratios by less than 0.001: the kernel does not sort).
+
+Removal of interior node ``i`` with neighbours ``l = i - 1``, ``r = i + 1`` (and ``ll = i - 2``,
+``rr = i + 2`` where they exist); ``c = (d_r - d_l)(t_r - t_i) - (d_r - d_i)(t_r - t_l)`` is
+``(d_r - d_l)`` times the chord's height above ``t_i``, so ``|c|`` is the paper's metric (twice
+the area lost), ``c^2 / (d_r - d_l)`` three times the squared L2 error of the chord, and
+``-c / 2`` the signed area lost.  Refits change ``t_l`` only when ``l`` is not the first node and
+``t_r`` only when ``r`` is not the last (first and last values are kept: the last one is the
+exact total transmittance):
+
+* ``fit="area"``: both movable neighbours move by the same ``delta = -c / w`` with
+  ``w = [l movable](d_r - d_ll) + [r movable](d_rr - d_l)`` (twice the area one unit of shift
+  adds), so the polyline keeps its area;
+* ``fit="l2"``: ``(delta_l, delta_r)`` minimise the L2 distance over ``[d_ll, d_rr]`` between
+  the new polyline and the one before the removal (closed form, 2 x 2 system with
+  ``L0 = d_l - d_ll``, ``L1 = d_r - d_l``, ``L2 = d_rr - d_r``, ``p = (d_i - d_l) / L1``):
+  ``2 (L0 + L1) delta_l + L1 delta_r = -c (2 - p)``, ``L1 delta_l + 2 (L1 + L2) delta_r = -c (1 + p)``;
+  a fixed neighbour's row is replaced by ``delta = 0``.
+
+Then both values are clipped to ``[lo, hi]`` with ``hi = t_ll`` (``t_l`` when ``l`` is first) and
+``lo = t_rr`` (``t_r`` when ``r`` is last), and where they would cross (``t_r' > t_l'``) both take
+their mean: values stay in [0, 1] and non-increasing whenever they were before.
+"""
+from __future__ import annotations
+
+import drjit as dr
+
+from .. import backend
+
+#: insertion name -> (refit: None / "area" / "l2", removal metric: "area" / "l2", segments per batch)
+INSERTIONS = {
+    "stream": (None, "area", 1),
+    "refit": ("area", "area", 1),
+    "refit_l2": ("l2", "l2", 1),
+    "staged": (None, "area", 4),
+    "staged_refit_l2": ("l2", "l2", 4),
+}
+#: Segments per batch of the staged variants (k).
+STAGE = 4
+
+
+def remove_refit(d, t, fit, metric: str = "area"):
+    """Remove the interior node of least ``metric`` (``"area"``: ``|c|``, the paper's; ``"l2"``:
+    ``c^2 / (d_r - d_l)``; ties: the deepest) and refit its neighbours (``fit``: None, ``"area"``
+    or ``"l2"``; module docstring).  Returns the shortened (d, t)."""
+    n = len(d)
+    UInt32 = backend.types().UInt32
+    best = idx = None
+    keep = {}
+    for i in range(1, n - 1):
+        c = (d[i + 1] - d[i - 1]) * (t[i + 1] - t[i]) - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1])
+        if metric == "area":
+            m = dr.abs(c)
+        else:
+            w = d[i + 1] - d[i - 1]
+            m = c * c / dr.select(w > 0, w, 1)
+        # the neighbourhood of node i (ll / rr: the node itself where it does not exist)
+        nb = dict(c=c, dll=d[max(i - 2, 0)], dl=d[i - 1], di=d[i], dr=d[i + 1], drr=d[min(i + 2, n - 1)],
+                  tll=t[max(i - 2, 0)], tl=t[i - 1], tr=t[i + 1], trr=t[min(i + 2, n - 1)])
+        if i == 1:
+            best, idx, keep = m, dr.full(UInt32, 1, dr.width(m)), nb
+            continue
+        take = m <= best
+        best = dr.select(take, m, best)
+        idx = dr.select(take, UInt32(i), idx)
+        if fit is not None:
+            keep = {k: dr.select(take, v, keep[k]) for k, v in nb.items()}
+    out_d = [dr.select(idx <= j, d[j + 1], d[j]) for j in range(n - 1)]
+    out_t = [dr.select(idx <= j, t[j + 1], t[j]) for j in range(n - 1)]
+    if fit is None:
+        return out_d, out_t
+    tl, tr = refit_values(keep, idx >= 2, idx <= n - 3, fit)
+    for j in range(1, n - 2):        # l = idx - 1 >= 1 and r = idx <= n - 3 in the new list
+        out_t[j] = dr.select(idx == j + 1, tl, dr.select(idx == j, tr, out_t[j]))
+    return out_d, out_t
+
+
+def refit_values(nb, move_l, move_r, fit):
+    """New (t_l, t_r) after removing the node whose neighbourhood is ``nb`` (the dict of
+    :func:`remove_refit`); ``move_l`` / ``move_r``: the neighbour is not the first / last node."""
+    c, dll, dl, di, dr_, drr = nb["c"], nb["dll"], nb["dl"], nb["di"], nb["dr"], nb["drr"]
+    tll, tl, tr, trr = nb["tll"], nb["tl"], nb["tr"], nb["trr"]
+    zero = dr.zeros(type(c), dr.width(c))
+    if fit == "area":
+        w = dr.select(move_l, dr_ - dll, zero) + dr.select(move_r, drr - dl, zero)
+        delta = -c / dr.select(w > 0, w, 1)
+        delta = dr.select(w > 0, delta, zero)
+        dlt_l = dr.select(move_l, delta, zero)
+        dlt_r = dr.select(move_r, delta, zero)
+    else:
+        l0, l1, l2 = dl - dll, dr_ - dl, drr - dr_
+        p = (di - dl) / dr.select(l1 > 0, l1, 1)
+        a11 = dr.select(move_l, 2 * (l0 + l1), 1)
+        a22 = dr.select(move_r, 2 * (l1 + l2), 1)
+        a12 = dr.select(move_l & move_r, l1, zero)
+        b1 = dr.select(move_l, -c * (2 - p), zero)
+        b2 = dr.select(move_r, -c * (1 + p), zero)
+        det = a11 * a22 - a12 * a12
+        ok = det > 0
+        inv = 1 / dr.select(ok, det, 1)
+        dlt_l = dr.select(ok, (b1 * a22 - a12 * b2) * inv, zero)
+        dlt_r = dr.select(ok, (a11 * b2 - a12 * b1) * inv, zero)
+    hi = dr.select(move_l, tll, tl)
+    lo = dr.select(move_r, trr, tr)
+    ul = dr.minimum(dr.maximum(tl + dlt_l, lo), hi)
+    ur = dr.minimum(dr.maximum(tr + dlt_r, lo), hi)
+    mean = (ul + ur) * 0.5
+    cross = ur > ul
+    ul = dr.select(move_l, dr.select(cross, mean, ul), tl)
+    ur = dr.select(move_r, dr.select(cross, mean, ur), tr)
+    return ul, ur

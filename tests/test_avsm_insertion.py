@@ -1,0 +1,370 @@
+"""AVSM's ``insertion`` variants (avsm_dr/representations/_avsm_insertion.py) against a slow
+float64 NumPy reference of the same algorithms, written here from the module's docstring
+(one texel at a time, Python lists), and their properties; ``stream`` stays the default and
+bit-identical to it.
+
+Tolerance of the float64 comparisons: node depths must be bit-identical (the reference takes
+the same decisions: the same metric formulas in the same operation order) and values agree
+to ``VALUE_ATOL = 1e-12`` absolute: a value is a product of <= 40 factors and a few refit
+steps (each a handful of float64 operations on numbers <= 1, ~1e-16 each), the kernel's
+``exp`` and the reference's NumPy ``exp`` may differ by an ulp, and node values are <= 1, so
+differences are ~1e-14; 1e-12 leaves margin without hiding a wrong formula (a wrong refit
+moves values by ~1e-3).
+"""
+import math
+
+import numpy as np
+import pytest
+
+import avsm_dr as ad
+import drjit as dr
+from avsm_dr import backend
+from avsm_dr.representations._avsm_insertion import INSERTIONS, remove_refit
+from cases import random_segments, to_segments
+from reference import exact_ref
+
+VARIANTS = [k for k in INSERTIONS if k != "stream"]
+VALUE_ATOL = 1e-12
+
+
+# ----------------------------------------------------------------------------
+# float64 NumPy reference (one texel, Python lists of floats)
+# ----------------------------------------------------------------------------
+def _bracket(d, t, x):
+    dl, tl, dr_, tr = x, 1.0, x, 1.0
+    n = len(d)
+    for k in range(n):
+        if d[k] <= x:
+            nxt = min(k + 1, n - 1)
+            dl, tl, dr_, tr = d[k], t[k], d[nxt], t[nxt]
+    return dl, tl, dr_, tr
+
+
+def _curve_at(d, t, x):
+    """T(x) (cancellation-free form of avsm.curve_at) and whether the stored nodes make it 0."""
+    dl, tl, dr_, tr = _bracket(d, t, x)
+    dd = dr_ - dl
+    w = (dr_ - x) / (dd if dd > 0 else 1.0)
+    value = min(tr + (tl - tr) * w, tl)
+    return value, tl == 0 and (tr == 0 or x == dl)
+
+
+def _insert(d, t, used, a, b, ts, ta, full=False):
+    """The list with segment [a, b] inserted: n + 2 nodes (avsm.insert_segment)."""
+    n = len(d)
+    tb = _curve_at(d, t, b)[0] * ts
+    length = b - a
+    inv_len = 1.0 / (length if length > 0 else 1.0)
+    e, x, scaled = 0, 1, []
+    for k in range(n):
+        ramp = min(ts + (1.0 - ts) * ((b - d[k]) * inv_len), 1.0)
+        inner = (ts if d[k] >= b else ramp) if d[k] > a else 1.0
+        real = (full and k < n - 1) or k < used
+        if real:
+            e += d[k] <= a
+            x += d[k] <= b
+        scaled.append(t[k] * (inner if real else ts))
+    od = d[:e] + [a] + d[e:x - 1] + [b] + d[x - 1:]
+    ot = scaled[:e] + [ta] + scaled[e:x - 1] + [tb] + scaled[x - 1:]
+    return od, ot
+
+
+def _refit(c, dll, dl, di, dr_, drr, tll, tl, tr, trr, move_l, move_r, fit):
+    if fit == "area":
+        w = (dr_ - dll if move_l else 0.0) + (drr - dl if move_r else 0.0)
+        delta = -c / w if w > 0 else 0.0
+        dlt_l, dlt_r = (delta if move_l else 0.0), (delta if move_r else 0.0)
+    else:
+        l0, l1, l2 = dl - dll, dr_ - dl, drr - dr_
+        p = (di - dl) / (l1 if l1 > 0 else 1.0)
+        a11 = 2 * (l0 + l1) if move_l else 1.0
+        a22 = 2 * (l1 + l2) if move_r else 1.0
+        a12 = l1 if move_l and move_r else 0.0
+        b1 = -c * (2 - p) if move_l else 0.0
+        b2 = -c * (1 + p) if move_r else 0.0
+        det = a11 * a22 - a12 * a12
+        inv = 1 / det if det > 0 else 0.0
+        dlt_l, dlt_r = ((b1 * a22 - a12 * b2) * inv, (a11 * b2 - a12 * b1) * inv) if det > 0 else (0.0, 0.0)
+    hi = tll if move_l else tl
+    lo = trr if move_r else tr
+    ul = min(max(tl + dlt_l, lo), hi)
+    ur = min(max(tr + dlt_r, lo), hi)
+    if ur > ul:
+        ul = ur = (ul + ur) * 0.5
+    return (ul if move_l else tl), (ur if move_r else tr)
+
+
+def _remove(d, t, fit, metric):
+    """Remove the interior node of least metric (ties: the deepest), refit its neighbours."""
+    n = len(d)
+    best, idx = None, None
+    for i in range(1, n - 1):
+        c = (d[i + 1] - d[i - 1]) * (t[i + 1] - t[i]) - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1])
+        if metric == "area":
+            m = abs(c)
+        else:
+            w = d[i + 1] - d[i - 1]
+            m = c * c / (w if w > 0 else 1.0)
+        if best is None or m <= best:
+            best, idx, c_best = m, i, c
+    i = idx
+    nd, nt = d[:i] + d[i + 1:], t[:i] + t[i + 1:]
+    if fit is not None:
+        move_l, move_r = i >= 2, i <= n - 3
+        ul, ur = _refit(c_best, d[max(i - 2, 0)], d[i - 1], d[i], d[i + 1], d[min(i + 2, n - 1)],
+                        t[max(i - 2, 0)], t[i - 1], t[i + 1], t[min(i + 2, n - 1)], move_l, move_r, fit)
+        nt[i - 1], nt[i] = ul, ur
+    return nd, nt
+
+
+def reference_texel(z0, z1, tau, N, far, insertion, sort=False):
+    """(depths, values) of one texel: the kernel's two phases, in float64."""
+    fit, metric, stage = INSERTIONS[insertion]
+    order = np.lexsort((z1, z0)) if sort else np.arange(len(z0))
+    segs = [(float(z0[s]), float(z1[s]), float(np.exp(-tau[s]))) for s in order]
+    d, t, used, i, done = [far] * N, [1.0] * N, 0, 0, False
+    while i < len(segs) and used + 2 <= N and not done:          # room left: no compression
+        a, b, ts = segs[i]
+        ta, zero = _curve_at(d, t, a)
+        if not zero:
+            od, ot = _insert(d, t, used, a, b, ts, ta)
+            d, t, used = od[:N], ot[:N], used + 2
+        done = sort and zero
+        i += 1
+    while i < len(segs) and not done:                            # full
+        if stage == 1:
+            a, b, ts = segs[i]
+            ta, zero = _curve_at(d, t, a)
+            if not zero:
+                od, ot = _insert(d, t, used, a, b, ts, ta, full=True)
+                for _ in range(2):
+                    od, ot = _remove(od, ot, fit, metric)
+                d, t = od, ot
+            done = sort and zero
+            i += 1
+            continue
+        grow = used
+        for _ in range(stage):
+            n = len(d)
+            active = i < len(segs) and not done
+            put = False
+            if active:
+                a, b, ts = segs[i]
+                ta, zero = _curve_at(d, t, a)
+                put = not zero
+                done = sort and zero
+                i += 1
+            if put:
+                d, t = _insert(d, t, grow, a, b, ts, ta)
+                grow += 2
+            else:                     # two copies of the last node (real copies iff it is real)
+                d, t = d + [d[-1]] * 2, t + [t[-1]] * 2
+                grow += 2 if grow == n else 0
+        for _ in range(2 * stage):
+            d, t = _remove(d, t, fit, metric)
+    return np.array(d), np.array(t)
+
+
+def reference_nodes(seg, rep):
+    h = seg.numpy()
+    off = h["offsets"]
+    T, N, far = len(off) - 1, rep.N, rep.params["far"]
+    D, V = np.full((T, N), far, np.float64), np.ones((T, N))
+    for k in range(T):
+        s = slice(off[k], off[k + 1])
+        if off[k + 1] > off[k]:
+            D[k], V[k] = reference_texel(h["z0"][s], h["z1"][s], h["optical_depth"][s], N, far,
+                                         rep.params["insertion"], rep.params["sort"])
+    return D, V
+
+
+def _adversarial_segments(dtype="float64"):
+    """Coincident, zero-length, opaque, huge optical depth, duplicate and nested segments;
+    texels of exactly N - 1, N, N + 1 segments for N = 4; a tiny and a huge depth range."""
+    z0 = [0.0, 0.0, 0.5, 0.5, 0.5, 1e-7, 0.9, 1.0, 0.2, 0.2, 0.2, 0.3]
+    z1 = [0.0, 1.0, 0.5, 0.5, 0.6, 2e-7, 1.0, 1.0, 0.4, 0.4, 0.9, 0.35]
+    tr = [0.0, 0.5, 1.0, 0.0, 1e-30, 0.9, 0.0, 0.3, 0.5, 0.5, 0.7, 0.2]
+    texels = [(z0, z1, tr)]
+    rng = np.random.default_rng(7)
+    for count in (3, 4, 5, 9):                                  # around N = 4 and 2 N + 1
+        a = np.sort(rng.uniform(0, 1, count))
+        texels.append((a, a + rng.uniform(0, 0.3, count), rng.uniform(0.2, 0.95, count)))
+    a = np.linspace(0, 1, 12)                                   # contiguous, equal segments
+    texels.append((a[:-1], a[1:], np.full(11, 0.8)))
+    texels.append((a[:-1] * 1e-6, a[1:] * 1e-6, np.full(11, 0.8)))
+    texels.append((a[:-1] * 1e6 + 1e6, a[1:] * 1e6 + 1e6, np.full(11, 0.8)))
+    texels.append(([0.4] * 6, [0.4] * 6, [0.5] * 6))            # all at one depth
+    texels.append(([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], [0.9] * 6, [0.9] * 6))      # nested, common exit
+    z0 = np.concatenate([np.asarray(x[0], float) for x in texels])
+    z1 = np.concatenate([np.asarray(x[1], float) for x in texels])
+    trn = np.concatenate([np.asarray(x[2], float) for x in texels])
+    offsets = np.concatenate([[0], np.cumsum([len(x[0]) for x in texels])])
+    return ad.Segments.from_arrays(offsets, z0, z1, transmittance=trn, dtype=dtype)
+
+
+# ----------------------------------------------------------------------------
+def test_schema_lists_the_insertions():
+    p = ad.describe("avsm")["params"]["insertion"]
+    assert p["type"] == "choice" and p["default"] == "stream"
+    assert p["choices"] == list(INSERTIONS)
+    seg = ad.Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
+    with pytest.raises(ValueError, match="insertion"):
+        ad.build("avsm", seg, insertion="nope")
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_stream_is_bit_identical_to_the_default(rng, dtype):
+    seg = to_segments(random_segments(rng, texels=80, max_count=30), dtype)
+    for kw in ({"nodes": 8}, {"nodes": 5, "sort": True}, {"nodes": 4, "_split": False}, {"nodes": 2}):
+        a = ad.build("avsm", seg, **kw)
+        b = ad.build("avsm", seg, insertion="stream", **kw)
+        for x, y in zip(a.nodes_numpy(), b.nodes_numpy()):
+            np.testing.assert_array_equal(x, y)
+        assert a.stats == b.stats
+
+
+@pytest.mark.parametrize("insertion", list(INSERTIONS))       # 'stream' too: the reference's own check
+@pytest.mark.parametrize("nodes", [2, 3, 4, 8, 13])
+@pytest.mark.parametrize("sort", [False, True])
+def test_variants_match_reference_float64(rng, insertion, nodes, sort):
+    seg = to_segments(random_segments(rng, texels=40, max_count=25), "float64")
+    rep = ad.build("avsm", seg, nodes=nodes, sort=sort, insertion=insertion)
+    D, V = rep.nodes_numpy()
+    Dr, Vr = reference_nodes(seg, rep)
+    np.testing.assert_array_equal(D, Dr)
+    np.testing.assert_allclose(V, Vr, rtol=0, atol=VALUE_ATOL)
+
+
+@pytest.mark.parametrize("insertion", list(INSERTIONS))
+@pytest.mark.parametrize("nodes", [3, 4, 6])
+def test_variants_match_reference_on_adversarial_texels(insertion, nodes):
+    seg = _adversarial_segments()
+    for sort in (False, True):
+        rep = ad.build("avsm", seg, nodes=nodes, sort=sort, insertion=insertion)
+        D, V = rep.nodes_numpy()
+        Dr, Vr = reference_nodes(seg, rep)
+        np.testing.assert_array_equal(D, Dr)
+        np.testing.assert_allclose(V, Vr, rtol=0, atol=VALUE_ATOL)
+        assert np.all(np.isfinite(V)) and np.all((V >= 0) & (V <= 1))
+
+
+@pytest.mark.parametrize("insertion", VARIANTS)
+def test_float32_kernel_agrees_with_the_float64_reference(rng, insertion):
+    """float32 kernel vs float64 reference on float32-representable input: node layouts agree
+    except where near-ties of the metric flip (counted and bounded, as for 'stream' in
+    test_avsm.py); on the texels that agree, values within float32 rounding of products of
+    <= 30 factors and refit steps (5e-6)."""
+    seg = to_segments(random_segments(rng, texels=200, max_count=30), "float32")
+    rep = ad.build("avsm", seg, nodes=8, insertion=insertion)
+    D, V = rep.nodes_numpy()
+    Dr, Vr = reference_nodes(seg, rep)
+    same = np.all(D == Dr, axis=1)
+    assert same.mean() > 0.9
+    np.testing.assert_allclose(V[same], Vr[same], atol=5e-6)
+
+
+@pytest.mark.parametrize("insertion", list(INSERTIONS))
+def test_properties(rng, insertion):
+    """Values in [0, 1], non-increasing, the first one 1 (nothing in front of the first entry),
+    the last one the exact transmittance behind everything (never refitted); the counters
+    add up."""
+    data = random_segments(rng, texels=100, max_count=40)
+    seg = to_segments(data, "float64")
+    for nodes in (2, 5, 8):
+        rep = ad.build("avsm", seg, nodes=nodes, insertion=insertion)
+        D, V = rep.nodes_numpy()
+        assert np.all((V >= 0) & (V <= 1)) and np.all(np.diff(V, axis=1) <= 0)
+        assert np.all(np.diff(D, axis=1) >= 0)
+        nz = np.diff(data["offsets"]) > 0
+        np.testing.assert_array_equal(V[nz, 0], 1.0)
+        behind = exact_ref.evaluate(data["offsets"], data["z0"], data["z1"], data["tau"],
+                                    np.arange(100), np.full(100, rep.params["far"]))
+        np.testing.assert_allclose(V[:, -1], behind, atol=1e-12)
+        s = rep.stats
+        assert s["lanes"] == nz.sum() and s["segments"] == data["z0"].size
+        assert s["skipped"] + s["compressed"] <= s["segments"]
+
+
+def _polyline_area(d, t):
+    return sum(0.5 * (d[k + 1] - d[k]) * (t[k + 1] + t[k]) for k in range(len(d) - 1))
+
+
+def _removal(d, t, fit, metric="area"):
+    F = backend.types().Float64
+    nd, nt = remove_refit([F(x) for x in d], [F(x) for x in t], fit, metric)
+    return [x[0] for x in nd], [x[0] for x in nt]
+
+
+def test_area_refit_keeps_the_area():
+    """One removal with 'area' refit keeps the area under the polyline when no clip binds."""
+    d = [0.0, 1.0, 2.0, 2.5, 4.0, 5.0, 6.0]
+    t = [1.0, 0.8, 0.5, 0.42, 0.3, 0.15, 0.1]
+    nd, nt = _removal(d, t, "area")
+    assert len(nd) == 6 and nd[0] == 0 and nd[-1] == 6 and nt[0] == 1 and nt[-1] == 0.1
+    i = next(k for k, x in enumerate(d) if x not in nd)                # the removed node
+    assert 2 <= i <= len(d) - 3 and nt[i - 1] != t[i - 1] and nt[i] != t[i + 1]   # both neighbours moved
+    assert math.isclose(_polyline_area(nd, nt), _polyline_area(d, t), rel_tol=1e-14)
+
+
+def test_l2_refit_is_the_least_squares_fit():
+    """One removal with 'l2' refit: the neighbours' values minimise the L2 distance to the
+    polyline before the removal over [d_ll, d_rr] (checked against a dense least-squares
+    solve, Simpson's rule on every piece: exact for the quadratic integrands)."""
+    d = [0.0, 1.0, 2.0, 2.6, 4.0, 5.0, 6.5]
+    t = [1.0, 0.95, 0.6, 0.3, 0.25, 0.2, 0.18]
+    nd, nt = _removal(d, t, "l2", "l2")
+    gone = [x for x in d if x not in nd]
+    assert len(gone) == 1
+    i = d.index(gone[0])
+    ll, rr = i - 2, i + 2
+    assert 0 <= ll and rr < len(d)                          # both neighbours movable here
+    xs = sorted(set(d[ll:rr + 1]))
+    pts, wts = [], []
+    for a, b in zip(xs[:-1], xs[1:]):
+        pts += [a, (a + b) / 2, b]
+        wts += [(b - a) / 6, 4 * (b - a) / 6, (b - a) / 6]
+    pts, wts = np.array(pts), np.sqrt(np.array(wts))
+    new_d = d[ll:i] + d[i + 1:rr + 1]
+
+    def hat(j):
+        return np.interp(pts, new_d, np.eye(len(new_d))[j])
+
+    fixed = t[ll] * hat(0) + t[rr] * hat(3)
+    A = np.stack([hat(1), hat(2)], 1) * wts[:, None]
+    rhs = (np.interp(pts, d[ll:rr + 1], t[ll:rr + 1]) - fixed) * wts
+    want = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    np.testing.assert_allclose([nt[i - 1], nt[i]], want, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("insertion", VARIANTS)
+def test_gradients_match_finite_differences(rng, insertion):
+    """d sum(w T) / d optical depth, reverse and forward mode, against central differences
+    (float64, eps = 1e-6 leaves the node layout and the refits' clips unchanged: 1e-6 abs)."""
+    F64 = backend.types().Float64
+    data = random_segments(rng, texels=12, max_count=14, opaque_fraction=0.0, zero_fraction=0.0)
+    tex = np.repeat(np.arange(12), 6)
+    depth = rng.uniform(0, 1, tex.size)
+    w = rng.normal(size=tex.size)
+
+    def loss(tau, grad=False):
+        t = F64(tau)
+        if grad:
+            dr.enable_grad(t)
+        seg = ad.Segments.from_arrays(data["offsets"], data["z0"], data["z1"], optical_depth=t)
+        return t, dr.sum(ad.build("avsm", seg, nodes=4, insertion=insertion).eval(tex, depth) * F64(w))
+
+    t, L = loss(data["tau"], grad=True)
+    dr.backward(L)
+    g = dr.grad(t).numpy()
+    eps = 1e-6
+    for j in rng.choice(data["tau"].size, size=10, replace=False):
+        tp, tm = data["tau"].copy(), data["tau"].copy()
+        tp[j] += eps
+        tm[j] -= eps
+        fd = (loss(tp)[1][0] - loss(tm)[1][0]) / (2 * eps)
+        assert abs(g[j] - fd) < 1e-6, (j, g[j], fd)
+    direction = rng.normal(size=data["tau"].size)
+    t, L = loss(data["tau"], grad=True)
+    dr.set_grad(t, F64(direction))
+    dr.forward_to(L)
+    np.testing.assert_allclose(dr.grad(L)[0], np.dot(g, direction), rtol=1e-9, atol=1e-12)
