@@ -186,7 +186,7 @@ def test_property_typo_is_reported_first_and_readably_at_load_dict(mi):
     """What mi.load_dict says: Mitsuba's prefix, then the plugin's ValueError on one line (no
     traceback), the unknown name before any bad value, private switches accepted, never listed."""
     prefix = r'failed to instantiate \w+ plugin of type "avsm_single_scatter": ValueError: '
-    known = r"known: \['nodes', 'sort', 'interpolation', 'near', 'far', 'precision', 'reverse', 'chunk'\]"
+    known = r"known: \['nodes', 'sort', 'interpolation', 'insertion', 'near', 'far', 'precision', 'reverse', 'chunk'\]"
     for props, msg in (
             ({"representation": "avsm", "precison": "float16", "resolution": 10},   # the typo first
              r"precison: unknown parameter of 'avsm'; " + known + r"; did you mean 'precision'\?$"),
