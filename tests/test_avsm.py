@@ -149,8 +149,20 @@ def test_property_matches_reference_and_bounds(seed, nodes, sort):
     rep = ad.build("avsm", seg, nodes=nodes, sort=sort)
     D, V = rep.nodes_numpy()
     Dr, Vr = reference_nodes(seg, rep)
-    np.testing.assert_array_equal(D, Dr)
-    np.testing.assert_allclose(V, Vr, atol=1e-12)
+    # Node layouts agree except after a removal among collinear nodes: their area metric is
+    # 0 in exact arithmetic and float64 rounding (0 against 2.6e-18, Hypothesis seed 350, 8
+    # nodes, sorted) decides which goes, the kernel and the reference rounding differently;
+    # the next insertion over those nodes can then end in another curve (seed 1071, 12 nodes:
+    # 0.063 apart).  Such a texel must equal one of the reference's tie-broken outcomes.
+    same = np.all(D == Dr, axis=1)
+    np.testing.assert_allclose(V[same], Vr[same], atol=1e-12)
+    h = seg.numpy()
+    for t in np.flatnonzero(~same):
+        s = slice(h["offsets"][t], h["offsets"][t + 1])
+        outs = avsm_ref.texel_outcomes(h["z0"][s], h["z1"][s], h["optical_depth"][s], rep.N,
+                                       rep.params["far"], sort)
+        assert any(np.array_equal(D[t], d) and np.allclose(V[t], v, rtol=0, atol=1e-12) for d, v in outs), \
+            f"texel {t}: none of the reference's {len(outs)} tie-broken layouts"
     assert np.all(np.diff(D, axis=1) >= 0) and np.all((V >= 0) & (V <= 1))
     assert np.all(np.diff(V, axis=1) <= 1e-15)  # non-increasing node values
 

@@ -415,6 +415,32 @@ def test_adversarial_texels_finite(dtype):
                 assert np.all(np.abs(T - np.exp(-Dref))[ok] <= 1e-6 * (1 + b[tex, 0][ok])), (n, beta)
 
 
+
+@pytest.mark.parametrize("fam,n", [("power", 4), ("power", 6), ("power", 8), ("trigonometric", 3),
+                                   ("trigonometric", 4)])
+def test_texels_of_negligible_optical_depth_are_transparent(fam, n):
+    """A texel of the plume (simulated_plume, seed 2, light dir_b, 256^2) whose segments
+    carry optical depths of 1e-38..2e-37, repeated on 2048 texels: a build that large runs
+    on Dr.Jit's worker threads, which flush float32 subnormals to 0, so the higher moments
+    came out 0 (moments of no distribution) and 8 power moments returned NaN between the
+    texel's ends.  Such a texel is empty (``NEGLIGIBLE``): T = 1 exactly, as ``exp(-b_0)``
+    is in float32; bounds finite.  A texel of optical depth 1e-19 (above the threshold)
+    keeps ``D = b_0 frac``: T = 1 there too, bounds finite."""
+    z0 = [1.0250361, 1.0426043, 1.0582293, 1.0738543, 1.0894793, 0.2, 0.4]
+    z1 = [1.0406611, 1.0582293, 1.0738543, 1.0894793, 1.098516, 0.3, 0.5]
+    tau = [1.3026124e-38, 3.1689053e-38, 1.1315636e-37, 1.9486743e-37, 1.1692592e-37, 1e-19, 1e-19]
+    reps = 1024
+    seg = ad.Segments.from_arrays(np.concatenate([[0], np.tile([5, 7], reps) + 7 * np.repeat(np.arange(reps), 2)]),
+                                  np.tile(z0, reps), np.tile(z1, reps), optical_depth=np.tile(tau, reps),
+                                  dtype="float32")
+    rep = ad.build("moments", seg, family=fam, moments=n, near=0.15894191, far=1.4081748)
+    d = np.linspace(0.15, 1.41, 64, dtype=np.float32)
+    for t in (0, 1, 2 * reps - 1):
+        T = np.asarray(rep.eval(np.full(d.size, t, np.int32), d), np.float64)
+        assert np.all(T == 1.0), (t, T)
+        lo, up = (np.asarray(v, np.float64) for v in rep.bounds(uint32(np.full(d.size, t)), rep.Float(d)))
+        assert np.all(np.isfinite(lo) & np.isfinite(up)), t
+
 def _trig_depth(b, u, alpha, beta):
     out = np.zeros(len(u))
     for j, uj in enumerate(u):

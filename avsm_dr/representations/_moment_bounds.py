@@ -52,6 +52,14 @@ BIG = 1e6
 POLISH = 3
 #: Guard of divisions (|den| below it is replaced by it).
 TINY = 1e-30
+#: A texel whose zeroth moment (total optical depth) is at most this is empty (D = 0).  Its
+#: higher moments are smaller still (``|b_k| <= b_0``) and in float32 fall below the smallest
+#: normal number (1.2e-38), which the LLVM backend flushes to 0: e.g. a plume texel of
+#: optical depth 4.7e-37 stored ``b_4 .. b_8 = 0``, moments of no distribution, and 8
+#: moments gave NaN.  Above it the flush changes ``m_k = b_k / b_0`` by at most 1.2e-18,
+#: far below the smallest default bias (1e-9); below it ``T = exp(-b_0)`` is 1 in float32
+#: and float64 alike, so only the (vanishing) gradient of such a texel is lost.
+NEGLIGIBLE = 1e-20
 #: Relative floor of the leading coefficient in the cubic / quartic closed forms
 #: (float32, float64): see :func:`_leading`.
 LEAD = {False: 1e-3, True: 1e-6}
@@ -287,7 +295,7 @@ def hankel_bound(b, xf, alpha, beta, target, floors):
     Returns (D, L, U)."""
     n = (len(b) - 1) // 2
     b0 = b[0]
-    empty = b0 <= 0
+    empty = b0 <= NEGLIGIBLE
     inv = 1 / dr.select(empty, 1, b0)
     m = [None] + [(1 - alpha) * b[k] * inv + alpha * target[k - 1] for k in range(1, 2 * n + 1)]
     _, _, c = kernel_polynomial(m, xf, [None] + [alpha * f for f in floors[1:]])

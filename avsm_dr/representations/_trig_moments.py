@@ -42,7 +42,7 @@ import math
 import drjit as dr
 import numpy as np
 
-from ._moment_bounds import BIG, kernel_polynomial, real_roots
+from ._moment_bounds import BIG, NEGLIGIBLE, kernel_polynomial, real_roots
 from .basis_functions import sinc as _sinc
 
 #: Below this argument ``q - 1`` and ``sinc w - cos w`` use their series.
@@ -142,7 +142,7 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     floats; A: :func:`cayley_matrix`; pivots: :func:`uniform_pivots`.  Returns (D, L, U)."""
     n = (len(b) - 1) // 2
     b0 = b[0]
-    empty = b0 <= 0
+    empty = b0 <= NEGLIGIBLE        # flushed higher moments: _moment_bounds.NEGLIGIBLE
     inv = (1 - alpha) / dr.select(empty, 1, b0)
     r = [1] + [bk * inv for bk in b[1:]]                       # biased t (uniform target: 0)
     M = []

@@ -84,6 +84,51 @@ def build_texel(z0, z1, tau, n, far, sort=False):
     return np.array([p[0] for p in nodes]), np.array([p[1] for p in nodes])
 
 
+
+#: Metrics within this of the smallest count as tied in :func:`texel_outcomes` (float64
+#: rounding of an area that is 0 in exact arithmetic, e.g. collinear nodes, is ~1e-18).
+TIE = 1e-14
+
+
+def _compress_all(nodes, n, tie):
+    """Every layout :func:`compress` could give when metrics within ``tie`` of the
+    smallest are treated as equal (which of them goes is then decided by rounding)."""
+    clear = [i for i, p in enumerate(nodes) if p[2]]
+    if len(nodes) <= n or len(clear) >= len(nodes) - n:
+        return [compress(nodes, n)]
+    ms = [metric(nodes, i) for i in range(1, len(nodes) - 1)]
+    best = min(ms)
+    out = []
+    for i, m in enumerate(ms):
+        if m <= best + tie:
+            out += _compress_all(nodes[:i + 1] + nodes[i + 2:], n, tie)
+    return out
+
+
+def texel_outcomes(z0, z1, tau, n, far, sort=False, tie=TIE, cap=512):
+    """Every (depths, values) :func:`build_texel` can give when removal metrics within
+    ``tie`` of each other are ties broken by rounding: collinear nodes have area 0, and
+    whichever of them float64 rounding removes, the following insertions see different
+    nodes (of the same curve) and may end in different curves.  At most ``cap`` layouts."""
+    order = np.lexsort((z1, z0)) if sort else np.arange(len(z0))
+    states = [([(far, 1.0, True)] * n, False)]
+    for s in order:
+        a, b, ts = float(z0[s]), float(z1[s]), float(np.exp(-tau[s]))
+        nxt, seen = [], set()
+        for nodes, done in states:
+            if done or curve(nodes, a) == 0.0:
+                cand = [(nodes, done or sort)]
+            else:
+                cand = [(c, False) for c in _compress_all(insert(nodes, a, b, ts), n, tie)]
+            for c in cand:
+                key = (tuple(c[0]), c[1])
+                if key not in seen:
+                    seen.add(key)
+                    nxt.append(c)
+        states = nxt[:cap]
+    return [(np.array([p[0] for p in nodes]), np.array([p[1] for p in nodes])) for nodes, _ in states]
+
+
 def build(offsets, z0, z1, tau, n, far, sort=False):
     """(T, n) node depths and values for all texels."""
     T = len(offsets) - 1
