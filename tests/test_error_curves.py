@@ -260,6 +260,38 @@ def test_claims_carry_both_metrics_blocks_and_orders():
     json.dumps(r)
 
 
+
+def test_claims_off_the_presets_name_it_and_have_a_preset_companion():
+    """A claim whose sides are not at their kinds' presets says so in its statement (what
+    differs, e.g. AVSM's linear interpolation, FOM's global depth range); the opaque mode
+    counts only where the scene has opaque content.  Every headline comparison of two kinds
+    has an ``_at_preset`` companion with both sides at their presets."""
+    assert F.at_preset("fom-16") == "fom-16/depth_range=texel"
+    assert F.at_preset("avsm-8") == "avsm-8/interpolation=exp"
+    assert F.at_preset("moments-2/family=trigonometric") == "moments-2/depth_range=texel/family=trigonometric"
+    assert F.at_preset("exact") == "exact" and F.at_preset("beer/variant=two_node") == "beer/variant=two_node"
+    store, _, _ = _claim_store(4)
+    claims = {c["id"]: c for c in F._claims()}
+    cfgs = sorted({k[1] for k in store})
+    r = F.evaluate(claims["avsm12_vs_fom16_hair_smoke_compression"], store, cfgs, n_boot=100)
+    assert "[not at preset: avsm-12 interpolation=linear (preset exp); fom-16 depth_range=global " \
+           "(preset texel)]" in r["statement"] and "opaque" not in r["statement"].split("[")[1]
+    comp = claims["avsm12_vs_fom16_hair_smoke_compression_at_preset"]
+    assert (comp["a"]["variant"], comp["b"]["variant"]) == ("avsm-12/interpolation=exp", "fom-16/depth_range=texel")
+    for v in ("avsm-12/interpolation=exp", "fom-16/depth_range=texel"):    # the same errors as the defaults
+        for c in cfgs:
+            store[(F.H, c, v, "inline", F.C, "main", "depth")] = store[(F.H, c, v.split("/")[0], "inline", F.C,
+                                                                        "main", "depth")]
+    r = F.evaluate(comp, store, cfgs, n_boot=100)        # no separate capture in the store: inline
+    assert r["preset"] == {"a": True, "b": True} and "not at preset" not in r["statement"]
+    assert {c[:-len("_at_preset")] for c in claims if c.endswith("_at_preset")} >= set(F.PRESET_COMPANIONS)
+    assert all(claims[c]["a"]["variant"] != claims[c[:-len("_at_preset")]]["a"]["variant"]
+               or claims[c]["b"]["variant"] != claims[c[:-len("_at_preset")]]["b"]["variant"]
+               for c in claims if c.endswith("_at_preset"))
+    line = F.summary_lines({"claims": {"x": r}})["x"]
+    assert line.startswith(f"{r['estimate']:.3g} [{r['low']:.3g}, {r['high']:.3g}]") and "4 configs" in line
+    assert "\n" not in line and "{" not in line
+
 def test_order_dependent_kinds_are_the_streaming_insertions():
     assert [k for k in ad.kinds() if E.order_dependent(k)] == ["avsm", "avsm_adaptive"]
     assert E.ORDERS[0] == "depth" and set(E.ORDERS) == {"depth", "reverse_depth", "random", "submission"}

@@ -232,10 +232,17 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
             written.append(out / name)
         claims = json.loads((results / "error_curves" / "findings.json").read_text()).get("claims", {})
         with open(out / "error_claims.csv", "w", newline="") as f:
-            fields = ("name", "scene", "statement", "estimate", "low", "high", "n_configs", "verdict")
+            fields = ("name", "scene", "statement", "order", "at_preset", "estimate", "low", "high",
+                      "depth_l2_estimate", "depth_l2_low", "depth_l2_high", "n_configs", "indicative",
+                      "metric_dependent", "verdict")
             w = csv.DictWriter(f, fieldnames=fields)
             w.writeheader()
-            w.writerows({k: (name if k == "name" else c.get(k, "")) for k in fields} for name, c in claims.items())
+            for name, c in claims.items():
+                l2 = (c.get("metrics") or {}).get("depth_l2") or {}
+                row = {k: c.get(k, "") for k in fields}
+                row.update(name=name, at_preset=all((c.get("preset") or {"a": False}).values()),
+                           **{f"depth_l2_{k}": l2.get(k, "") for k in ("estimate", "low", "high")})
+                w.writerow(row)
         written.append(out / "error_claims.csv")
         meta = json.loads((results / "error_curves" / "meta.json").read_text())
         (out / "error_curves_meta.json").write_text(json.dumps(

@@ -37,7 +37,7 @@ import numpy as np
 
 from avsm_dr import describe, kinds, stats
 from avsm_dr.builtin_scenes import SCENES
-from .labels import ORDERS, order_dependent
+from .labels import ORDERS, label, order_dependent, with_size
 
 #: Every scene ``error_curves`` can run (claims about scenes not run are left out).
 SCENE_NAMES = SCENES.names(tag="core")      # the scenes of the study, registration order
@@ -131,6 +131,46 @@ def _claims() -> list[dict]:
                                 a=_side(f"{v}/precision={prec}"), b=_side(v), below=PRECISION_BOUND,
                                 statement=f"{v} stored in {prec} loses under 1 % RMSE against float32 "
                                           f"(ratio < {PRECISION_BOUND})"))
+    return _with_preset_companions(out)
+
+
+#: Claims that compare two kinds and get a companion ``<id>_at_preset`` with both sides at
+#: their kinds' presets (``describe(kind)['preset']``, opaque content as ``preset_capture``
+#: says where the scene has any): the fair form of the comparison.
+PRESET_COMPANIONS = ("avsm12_vs_fom16_hair_smoke_compression", "avsm12_vs_osm32_hair_smoke_compression",
+                     "avsm12_vs_fom16_hair_smoke_total", "fom16_vs_avsm16_three_columns")
+
+
+def at_preset(variant: str) -> str:
+    """``variant`` with its kind's preset applied (same size and other settings), e.g.
+    ``'fom-16'`` -> ``'fom-16/depth_range=texel'``; non-kinds unchanged."""
+    kind = _kind(variant)
+    if kind not in kinds():
+        return variant
+    base, *extra = variant.split("/")
+    d = describe(kind)
+    size = base.split("-", 1)[1] if "-" in base else None
+    value = None if size is None else int(size) if size.isdigit() else float(size)
+    params = dict(with_size(kind, value))
+    for x in extra:
+        k, v = x.split("=", 1)
+        params[k] = v
+    params.update(d["preset"])
+    return label(kind, params)
+
+
+def _with_preset_companions(claims: list[dict]) -> list[dict]:
+    out = list(claims)
+    for c in claims:
+        if c["id"] in PRESET_COMPANIONS or c["id"].startswith("avsm8_vs_beer") \
+                or (c["id"].startswith("moments") and "_vs_fom" in c["id"]):
+            if c.get("statistic", "rmse") != "rmse" or c["a"]["study"] != "main":
+                continue
+            sides = {k: dict(c[k], variant=at_preset(c[k]["variant"]),
+                             opaque=describe(_kind(c[k]["variant"]))["preset_capture"].get("opaque", c[k]["opaque"])
+                             if _kind(c[k]["variant"]) in kinds() else c[k]["opaque"]) for k in ("a", "b")}
+            out.append(dict(c, id=c["id"] + "_at_preset", statement=c["statement"] + " (both at their presets)",
+                            **sides))
     return out
 
 
@@ -176,18 +216,56 @@ def _kind(variant: str) -> str:
     return variant.split("/")[0].split("-")[0]
 
 
-def _is_preset(side) -> bool:
-    """Whether the side's setting is its kind's preset (``describe(kind)['preset']``, and
-    the capture's opaque mode of ``preset_capture``), whatever its size."""
+def preset_differences(side, opaque_matters: bool = True) -> list[str]:
+    """How the side's setting departs from its kind's preset, e.g. ``['interpolation=linear
+    (preset exp)', 'opaque inline (preset separate)']`` (empty at the preset; the exact
+    curve, the truth and non-kinds have none)."""
     kind = _kind(side["variant"])
     if kind not in kinds():
-        return False
+        return []
     d = describe(kind)
     given = dict(x.split("=", 1) for x in side["variant"].split("/")[1:])
+    out = []
     for k, v in d["preset"].items():
-        if given.get(k, str(d["headline"].get(k, d["params"][k]["default"]))) != str(v):
-            return False
-    return d["preset_capture"].get("opaque", side["opaque"]) == side["opaque"]
+        have = given.get(k, str(d["headline"].get(k, d["params"][k]["default"])))
+        if have != str(v):
+            out.append(f"{k}={have} (preset {v})")
+    want = d["preset_capture"].get("opaque", side["opaque"])
+    if opaque_matters and want != side["opaque"]:
+        out.append(f"opaque {side['opaque']} (preset {want})")
+    return out
+
+
+def _preset_note(spec, opaque_matters: bool = True) -> str:
+    """'' when both sides are at their presets, else ' [not at preset: avsm-12 interpolation=linear
+    (preset exp); ...]' (issue: a claim off the presets names it in its statement)."""
+    parts = []
+    for k in ("a", "b"):
+        diff = preset_differences(spec[k], opaque_matters)
+        if diff:
+            parts.append(f"{spec[k]['variant']} " + ", ".join(diff))
+    return f" [not at preset: {'; '.join(parts)}]" if parts else ""
+
+
+def summary_lines(findings: dict) -> dict:
+    """One human line per claim for the end of a run: ``estimate [low, high]`` of the receiver
+    RMSE ratio (or difference), the depth-uniform L2 beside it, the verdict, the number of
+    configurations (``indicative`` below :data:`MIN_CONFIDENT`) and the insertion order."""
+    out = {}
+    for cid, c in findings.get("claims", {}).items():
+        line = f"{c['estimate']:.3g} [{c['low']:.3g}, {c['high']:.3g}]"
+        l2 = (c.get("metrics") or {}).get("depth_l2")
+        if l2:
+            line += f", depth-L2 {l2['estimate']:.3g} [{l2['low']:.3g}, {l2['high']:.3g}]"
+        line += f": {c['verdict']}, {c['n_configs']} configs"
+        if c.get("indicative"):
+            line += " (indicative)"
+        if c.get("order", "-") != "-":
+            line += f", order {c['order']}"
+        if not all(c.get("preset", {}).values()):
+            line += ", not at preset"
+        out[cid] = line
+    return out
 
 
 def _order(side) -> str:
@@ -221,6 +299,9 @@ def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_
     metric); blocks: {(scene, config, opaque[, receiver set]): 8 x 8 texel tile of each
     texel / receiver} (the within-configuration block bootstrap); by_order: also the claim
     with the order-dependent sides in every other order of :data:`ORDERS`."""
+    separate = any(k[0] == spec["scene"] and k[3] == "separate" for k in store)
+    if not separate:            # no opaque content: the separate capture is the inline one
+        spec = dict(spec, **{k: dict(spec[k], opaque="inline") for k in ("a", "b")})
     a_all, b_all, used, blk = [], [], [], []
     for cfg in configs:
         a, b = _errors(store, spec["scene"], cfg, spec["a"]), _errors(store, spec["scene"], cfg, spec["b"])
@@ -240,12 +321,13 @@ def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_
     per = [{k: pc[k] for k in ("config", "estimate", "low", "high", "a", "b", "holds")} for pc in r["per_config"]]
     out = {k: r[k] for k in ("estimate", "low", "high", "level", "below", "compare", "statistic", "n_configs",
                              "holds_in_every_configuration", "holds_pooled")}
-    out.update(statement=spec["statement"], scene=spec["scene"], a=spec["a"], b=spec["b"], per_config=per,
+    out.update(statement=spec["statement"] + _preset_note(spec, separate),
+               scene=spec["scene"], a=spec["a"], b=spec["b"], per_config=per,
                receivers_per_config=int(np.median([x.size for x in a_all])), verdict=_verdict(r),
                indicative=r["n_configs"] < MIN_CONFIDENT, interval_unit="configuration",
                within_configuration="8x8 texel blocks" if blk is not None else "receivers",
                order=next((o for o in (_order(spec["a"]), _order(spec["b"])) if o != "-"), "-"),
-               preset={"a": _is_preset(spec["a"]), "b": _is_preset(spec["b"])},
+               preset={k: not preset_differences(spec[k], separate) for k in ("a", "b")},
                sides={"a": _side_summary(a_all), "b": _side_summary(b_all)})
     out["metrics"] = {"receiver_rmse": _metric(r), "depth_l2": _depth_l2_claim(spec, l2, blocks, configs, n_boot)}
     d1, d2 = (_direction(m, r["below"]) for m in out["metrics"].values())
