@@ -40,7 +40,7 @@ def study(name: str) -> Study:
 
 
 def sweep_experiments() -> list[str]:
-    """Experiments declared ``sweep=True`` (``workers``/``address``: cells through :mod:`avsm_dr.sweep`)."""
+    """Experiments declared ``sweep=True`` (``workers``/``address``: cells through :mod:`experiments._sweep`)."""
     return [n for n in experiment_names() if study(n).sweep]
 
 
@@ -134,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     stderr, no traceback)."""
     args = parser().parse_args(argv)
     try:                                              # checked before anything is written
-        from avsm_dr import backend, sweep
+        from avsm_dr import backend
+        from . import _sweep as sweep
         if args.backend:
             backend.set_backend(args.backend)
         backend.get_backend()                         # $AVSM_DR_BACKEND

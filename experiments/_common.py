@@ -198,9 +198,9 @@ class Results:
 
     def save_figure(self, fig, filename: str) -> Path:
         """Save a Matplotlib figure as ``filename`` (a ``.png``) and, for print, as the vector
-        PDF beside it (``avsm_dr.plotstyle.render``: fixed metadata; atomic, both recorded),
+        PDF beside it (``experiments._plotstyle.render``: fixed metadata; atomic, both recorded),
         then close it."""
-        from avsm_dr import plotstyle
+        from . import _plotstyle as plotstyle
         if Path(filename).suffix != ".png":
             raise ValueError(f"filename: expected a .png name (a .pdf is written beside it), got {filename!r}")
         path = self.write_file(filename, lambda tmp: plotstyle.render(fig, tmp, "png"))

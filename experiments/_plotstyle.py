@@ -1,4 +1,4 @@
-"""One figure style for every plot of the package and its studies.
+"""One figure style for every plot of the studies (not part of the installed package).
 
 Each kind has one colour, one marker and one line style in every figure: a fixed table for
 the built-in kinds (colours from Paul Tol's "muted" scheme, distinguishable under the common
@@ -17,7 +17,7 @@ from __future__ import annotations
 import zlib
 from pathlib import Path
 
-from .representations import REGISTRY, kinds
+from avsm_dr import REGISTRY, kinds
 
 #: Tol's muted colours by name, and black for the reference.
 PALETTE = {"rose": "#CC6677", "indigo": "#332288", "sand": "#DDCC77", "green": "#117733", "cyan": "#88CCEE",

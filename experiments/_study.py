@@ -35,7 +35,7 @@ class Option:
     metavar: str | None = None
 
 
-#: The options of sweep studies: their cells run through Ray (:mod:`avsm_dr.sweep`).
+#: The options of sweep studies: their cells run through Ray (:mod:`experiments._sweep`).
 SWEEP_OPTIONS = ("workers", "address")
 
 
@@ -114,7 +114,7 @@ class Study:
         earlier run unless ``force``; returns ``{'csv', 'out', 'figures', 'summary'}``
         (and ``'cached': True`` for a reused one)."""
         if self.sweep:
-            from avsm_dr import sweep
+            from . import _sweep as sweep
             sweep.check_workers(options.get("workers"), options.get("address"))
         P, runtime = self.params(quick, **options)
         res = Results(self.name, out, quick, P)

@@ -10,8 +10,9 @@ the order of the cells, the same whichever way it ran:
   ``pip install avsm_dr[cluster]``), each cell a Ray task of one CPU whose Dr.Jit uses
   ``cpu_count // N`` threads;
 * ``address="ray://host:10001"`` (or ``"auto"`` on a cluster node): an existing Ray
-  cluster.  The workers need this package installed (same version: the cache key holds the
-  package's source hash) and Dr.Jit's libLLVM (see README); results come back to the driver.
+  cluster.  The workers need this package installed, the repository's ``experiments``
+  importable (same version: the cache key holds the source hash of both) and Dr.Jit's
+  libLLVM (see README); results come back to the driver.
 
 Resuming: with ``cache_dir``, each finished cell's result is written to
 ``cache_dir/<key>-<cell hash>.npz`` as it arrives; a later run with the same ``key`` (the
@@ -28,7 +29,7 @@ cell, an unknown schema, a malformed tree, arrays larger than the file) is repor
 :class:`CellCacheWarning` naming it and recomputed.
 
 Pointing it at a cluster: start Ray on the head node (``ray start --head``) and workers
-(``ray start --address=HEAD:6379``), install ``avsm_dr`` on every node, then run
+(``ray start --address=HEAD:6379``), install ``avsm_dr`` and a clone of this repository on every node, then run
 ``python -m experiments error_curves --address ray://HEAD:10001`` from the driver.
 """
 from __future__ import annotations
@@ -256,7 +257,7 @@ def _store(path: Path, value, digest: str, cell: Any) -> None:
 def _run_with_threads(fn: Callable, cell: Any, threads: int | None):
     """A Ray task: set Dr.Jit's thread count (share of the machine), then run the cell."""
     if threads:
-        from . import backend  # noqa: F401  (libLLVM before drjit)
+        from avsm_dr import backend  # noqa: F401  (libLLVM before drjit)
         import drjit as dr
         dr.set_thread_count(threads)
     return fn(cell)

@@ -310,9 +310,9 @@ def _compute(res, P: dict) -> dict:
 
 
 def _style(label: str) -> dict:
-    """Plot keywords of a compared method: its kind's style (``avsm_dr.plotstyle``); the two
+    """Plot keywords of a compared method: its kind's style (``experiments._plotstyle``); the two
     other variants of ``optimal`` hollow, the L-infinity one dotted."""
-    from avsm_dr import plotstyle
+    from . import _plotstyle as plotstyle
     if label == "optimal_subset":
         return plotstyle.variant_style("optimal")
     if label == "optimal_linf":
@@ -324,7 +324,7 @@ def _plot(res, rows, names):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.ticker
-    from avsm_dr import plotstyle
+    from . import _plotstyle as plotstyle
     labels = [m[0] for m in methods(0)]
     for key, fname, ylabel in (("depth_rms", "gap_depth.png", "RMS error of T, uniform in depth per texel"),
                                ("rmse_in_volume", "gap_receivers.png", "RMSE of T at in-volume receivers")):

@@ -447,7 +447,7 @@ def _plot(res, rows, best, P, name, n_cfg):
     the map floor (horizontal), the chosen setting ringed."""
     import matplotlib
     matplotlib.use("Agg")
-    from avsm_dr import plotstyle
+    from . import _plotstyle as plotstyle
     floor = next(r for r in rows if r["kind"] == "exact")
     fams = {f: ks for f, ks in plotstyle.families(list(dict.fromkeys(r["kind"] for r in rows))).items()
             if ks != ["exact"]}

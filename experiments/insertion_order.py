@@ -284,7 +284,7 @@ def _plot(res, found: dict, names, nodes):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.ticker
-    from avsm_dr import plotstyle
+    from . import _plotstyle as plotstyle
     x = np.arange(len(ORDERS))
     markers = ("o", "s", "^", "D", "v")
     with plotstyle.context():

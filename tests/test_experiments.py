@@ -45,7 +45,7 @@ def test_quick_experiment_writes_results(name, shared_out):
     assert meta["drjit"] == dr.__version__ and meta["numpy"] and meta["backend"] and meta["machine"]
     assert "git_commit" in meta and meta["cache_key"] == _common.cache_key()
     assert list(out.glob("*.png")), "no figure written"
-    # every figure also as a vector PDF beside it (paper-ready; avsm_dr.plotstyle), both recorded
+    # every figure also as a vector PDF beside it (paper-ready; experiments._plotstyle), both recorded
     assert [p.name for p in out.glob("*.png") if not p.with_suffix(".pdf").is_file()] == []
     assert all({p.name, p.with_suffix(".pdf").name} <= set(meta["files"]) for p in out.glob("*.png"))
     # experiments sharing --out keep to their own folders

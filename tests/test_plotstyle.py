@@ -5,7 +5,7 @@ import sys
 import pytest
 
 import avsm_dr as ad
-from avsm_dr import plotstyle
+from experiments import _plotstyle as plotstyle
 
 
 def _builtin():
@@ -34,7 +34,7 @@ def test_user_kinds_get_unused_deterministic_styles():
     assert s == plotstyle.style("my_kind_not_registered")
     assert plotstyle.family("my_kind_not_registered") == plotstyle.USER_FAMILY
     # the same in a fresh process (no dependence on hash seeds or import order)
-    code = "import avsm_dr.plotstyle as p; print(p.style('my_kind_not_registered'))"
+    code = "import experiments._plotstyle as p; print(p.style('my_kind_not_registered'))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == str(s)
     with pytest.raises(ValueError, match="kind"):

@@ -177,11 +177,10 @@ LAYERS = [
     ["avsm_dr.segments", "avsm_dr.segment_dtype", "avsm_dr.segment_keys", "avsm_dr.texel_sort",
      "avsm_dr.filtering", "avsm_dr.stats", "avsm_dr.metrics",
      "avsm_dr.scene", "avsm_dr.io"],
-    ["avsm_dr.representations", "avsm_dr.capture", "avsm_dr.fluid", "avsm_dr.warp"],
+    ["avsm_dr.representations", "avsm_dr.capture", "avsm_dr.fluid"],
     ["avsm_dr.builtin_scenes", "avsm_dr.procedural"],
     ["avsm_dr.groundtruth", "avsm_dr.receivers", "avsm_dr.shading", "avsm_dr.reconstruction", "avsm_dr.mitsuba",
-     "avsm_dr.area_lights", "avsm_dr.checks", "avsm_dr.sweep", "avsm_dr.evaluation",
-     "avsm_dr.plotstyle"],
+     "avsm_dr.area_lights", "avsm_dr.checks", "avsm_dr.evaluation"],
     ["avsm_dr"],
 ]
 

@@ -1,4 +1,4 @@
-"""Sweeps as cells (:mod:`avsm_dr.sweep`): serial order, per-cell cache and resume, argument
+"""Sweeps as cells (:mod:`experiments._sweep`): serial order, per-cell cache and resume, argument
 checks, the CLI's --workers/--address, and a local Ray run equal to the serial one."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from avsm_dr import sweep
+from experiments import _sweep as sweep
 from experiments import _cli as cli
 from experiments import _common, error_curves
 
@@ -260,7 +260,7 @@ def test_crafted_pickle_runs_nothing_in_a_fresh_process(tmp_path):
     import subprocess
     import sys
     key = {"p": 1}
-    code = ("import avsm_dr; from avsm_dr import sweep; "
+    code = ("import avsm_dr; from experiments import _sweep as sweep; "
             f"print(sweep.run_cells(abs, [-2], cache_dir={str(tmp_path)!r}, key={key!r}))")
     _crafted(tmp_path, "pickle_runs_a_command", -2, key)
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

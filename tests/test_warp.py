@@ -9,7 +9,7 @@ import pytest
 import avsm_dr as ad
 import drjit as dr
 from avsm_dr.checks import check_gradients
-from avsm_dr.warp import DepthWarp, log_values
+from experiments.learned_warp.depth_warp import DepthWarp, log_values
 
 from cases import random_segments, to_segments
 from reference import warp_ref

@@ -374,7 +374,7 @@ def _range_row(kind, p, subb, probe, exact, head0, rows, store, cfg, study, stre
 # ======================================================================== run
 def _cell(job: dict) -> dict:
     """One configuration (scene x seed x light) as an independent cell of the sweep
-    (:func:`avsm_dr.sweep.run_cells`): its rows, its error store and its state."""
+    (:func:`experiments._sweep.run_cells`): its rows, its error store and its state."""
     from avsm_dr import scenes as scene_lib
     P = job["P"]
     sc0 = scene_lib.get(job["scene"], seed=job["seed"])
@@ -410,7 +410,7 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
     """The configurations as cells (through Ray with ``workers`` / ``address``, results equal
     the serial run's; finished cells cached under ``<out>/cells/`` so an interrupted run
     resumes), their rows, ``findings.json`` and the figures."""
-    from avsm_dr import sweep
+    from .. import _sweep as sweep
     from .._common import cache_key
     quick, names, configs = res.quick, P["scenes"], P["configs"]
     if res.force:

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from avsm_dr import describe, kinds, plotstyle
+from avsm_dr import describe, kinds
+
+from .. import _plotstyle as plotstyle
 from .labels import with_size, label
 
 

@@ -2,7 +2,7 @@
 reports it).
 
 The linear kinds (OSM, FOM, moments) spend their resolution uniformly over the global depth
-range ``[near, far]`` of the map.  :class:`avsm_dr.warp.DepthWarp` re-spends it with a
+range ``[near, far]`` of the map.  :class:`~experiments.learned_warp.depth_warp.DepthWarp` re-spends it with a
 monotone piecewise-linear warp ``w`` of the normalised depth (``K`` knot intervals, softmax
 increments), shared by every texel and every scene; the warp itself is ``K`` floats per
 map, so the bytes per texel do not change (comparisons are at equal bytes).
@@ -15,7 +15,7 @@ Per kind (at its size, the same for every warp):
   non-empty texel's content ``[first entry, last exit]``, point lookups), starting from
   the identity warp; the loss of every iteration is recorded;
 * **baselines**: no warp (the identity: the kind as registered) and the logarithmic warp
-  ``ln(1 + (r - 1) u) / ln r`` (:func:`avsm_dr.warp.log_values`, the form of Muenstermann
+  ``ln(1 + (r - 1) u) / ln r`` (:func:`~experiments.learned_warp.depth_warp.log_values`, the form of Muenstermann
   et al. 2018, sec. 5), its ratio ``r`` the best of ``LOG_RATIOS`` on the training set;
 * **evaluation**: RMSE at other receivers (another seed, same rule) on the training scenes
   and on held-out scenes: the same generator (procedural plume) with other seeds and a light
@@ -46,8 +46,8 @@ from tqdm import tqdm
 
 from avsm_dr import build
 from avsm_dr.stats import paired_bootstrap
-from avsm_dr.warp import DepthWarp, log_values
 from .._study import Study
+from .depth_warp import DepthWarp, log_values
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (

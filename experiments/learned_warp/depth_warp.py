@@ -6,7 +6,7 @@ build the representation on the warped segments and look receivers up at ``w(z)`
 moment-based OIT paper warps depth logarithmically by hand (Muenstermann, Krumpen, Klein
 and Peters 2018, "Moment-Based Order-Independent Transparency", sec. 5); here ``w`` is
 piecewise linear with ``K`` knot intervals and its parameters are learned by gradient
-descent (:mod:`experiments.learned_warp`).
+descent (:mod:`experiments.learned_warp`, the one study using it; moved out of the package).
 
 Parameterisation: ``K`` uniform knot intervals ``[c_k, c_{k+1}]``, ``c_k = near + k h``,
 ``h = (far - near) / K``; logits ``theta`` (K,) give positive increments
@@ -29,13 +29,13 @@ constant of the warp's knot grid, not of ``theta``.
 """
 from __future__ import annotations
 
+from avsm_dr import _arrays as A   # avsm_dr first: it picks Dr.Jit's libLLVM
+from avsm_dr import backend
+from avsm_dr import validation as V
+from avsm_dr.segments import Segments
+
 import drjit as dr
 import numpy as np
-
-from . import _arrays as A
-from . import backend
-from . import validation as V
-from .segments import Segments
 
 #: Most knot intervals a warp may have (a segment is split into at most K + 2 pieces).
 MAX_KNOTS = 4096

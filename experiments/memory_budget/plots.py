@@ -13,7 +13,7 @@ def plot_curves(res, rows, scenes):
     (bottom) against total bytes, one column per scene."""
     import matplotlib
     matplotlib.use("Agg")
-    from avsm_dr import plotstyle
+    from .. import _plotstyle as plotstyle
     with plotstyle.context():
         fig, axes = plotstyle.grid(2, len(scenes), panel=(3.0, 2.3), sharey="row")
         for j, scene in enumerate(scenes):
@@ -45,9 +45,9 @@ def plot_curves(res, rows, scenes):
 
 
 def _style(method: str) -> dict:
-    """The kind's style (``avsm_dr.plotstyle``); the adaptive allocation's two baselines in its
+    """The kind's style (``experiments._plotstyle``); the adaptive allocation's two baselines in its
     colour, hollow (uniform budget) and hollow dotted (count-proportional)."""
-    from avsm_dr import plotstyle
+    from .. import _plotstyle as plotstyle
     if method == "adaptive_uniform":
         return plotstyle.variant_style("avsm_adaptive")
     if method == "adaptive_count":

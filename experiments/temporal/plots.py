@@ -34,9 +34,9 @@ def _series(rows, setting, method, vs, key):
 
 def _style(label: str) -> dict:
     """Plot keywords of a build label such as ``avsm-8 sorted``: its kind's style
-    (``avsm_dr.plotstyle``), hollow for the ``sorted`` variant."""
+    (``experiments._plotstyle``), hollow for the ``sorted`` variant."""
     import re
-    from avsm_dr import plotstyle
+    from .. import _plotstyle as plotstyle
     kind = re.match(r"[A-Za-z0-9_]+", label).group(0)
     st = plotstyle.variant_style(kind) if re.search(r"(?<!un)sorted", label) else plotstyle.style(kind)
     return dict(st, markersize=3.5)
@@ -46,7 +46,7 @@ def plot_all(res, rows, summary, series, P, gif_labels):
     """Write ``error_flicker_per_frame.png``, ``flicker_vs_error.png`` and one
     ``shadow_<setting>.gif`` per animation with slice images (first configuration)."""
     from matplotlib.ticker import MaxNLocator
-    from avsm_dr import plotstyle
+    from .. import _plotstyle as plotstyle
     _plt()                        # the Agg backend
     settings = list(summary["per_setting"])
     labels = list(summary["per_setting"][settings[0]]["exact"])
