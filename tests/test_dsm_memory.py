@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.representations import dsm
+from avsm_dr.representations import _dsm_chunks, _dsm_polyline, dsm
 from cases import random_segments
 from helpers import build_peak
 
@@ -13,13 +13,13 @@ ATTRS = ("node_counts", "node_offsets", "node_left", "n_polyline_vertices")
 
 
 def _one_piece(monkeypatch):
-    monkeypatch.setattr(dsm, "MIN_CHUNK_SEGMENTS", 1 << 40)
-    monkeypatch.setattr(dsm, "MAX_CHUNK_SEGMENTS", 1 << 40)
+    monkeypatch.setattr(_dsm_chunks, "MIN_CHUNK_SEGMENTS", 1 << 40)
+    monkeypatch.setattr(_dsm_chunks, "MAX_CHUNK_SEGMENTS", 1 << 40)
 
 
 def _chunked(monkeypatch, n):
-    monkeypatch.setattr(dsm, "MIN_CHUNK_SEGMENTS", n)
-    monkeypatch.setattr(dsm, "MAX_CHUNK_SEGMENTS", n)
+    monkeypatch.setattr(_dsm_chunks, "MIN_CHUNK_SEGMENTS", n)
+    monkeypatch.setattr(_dsm_chunks, "MAX_CHUNK_SEGMENTS", n)
 
 
 def _snapshot(rep):
@@ -79,12 +79,12 @@ def test_polyline_budget_is_summed_over_chunks(monkeypatch):
     _one_piece(monkeypatch)
     per_texel = int(ad.build("dsm", seg.select_texels(np.arange(1)), tolerance=1e-4).n_polyline_vertices[0])
     _chunked(monkeypatch, 1)
-    monkeypatch.setattr(dsm, "MEMORY_BUDGET_BYTES", 20 * (per_texel + 2) * dsm.BYTES_PER_VERTEX)
+    monkeypatch.setattr(_dsm_polyline, "MEMORY_BUDGET_BYTES", 20 * (per_texel + 2) * dsm.BYTES_PER_VERTEX)
     with pytest.raises(ValueError, match=r"^tolerance: 0.0001 needs a polyline of up to [\d,]+ vertices over "
                                          r"the first 2\d texels"):
         ad.build("dsm", seg, tolerance=1e-4)
     rep = ad.build("dsm", seg.select_texels(np.arange(10)), tolerance=1e-4)
-    assert rep.n_polyline_vertices.sum() * dsm.BYTES_PER_VERTEX <= dsm.MEMORY_BUDGET_BYTES
+    assert rep.n_polyline_vertices.sum() * dsm.BYTES_PER_VERTEX <= _dsm_polyline.MEMORY_BUDGET_BYTES
 
 
 def test_build_peak_within_4x_of_the_output():

@@ -1,0 +1,244 @@
+"""Density grids: validation, preparation (occupancy blocks, voxel window) and trilinear sampling.
+
+Grid convention (Mitsuba ``gridvolume``, see :mod:`avsm_dr.scene`): a (nz, ny, nx)
+array of extinction ``sigma`` per world unit over ``bbox``; voxel values sit at cell
+centres, ``sigma(p)`` is trilinear in between, clamped to the edge inside the box.
+The marching that reads these grids is :mod:`.grid` (and :mod:`.dda`).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import numpy as np
+
+from .. import _arrays as A
+from .. import backend
+from .. import validation as V
+from ..geometry import check_bbox
+from ..io import read_vol
+
+
+def block_max(density: np.ndarray, block: int) -> np.ndarray:
+    """(nbz, nby, nbx) upper bound of sigma over each block's region.
+
+    Entry b is the max over voxels ``[b*block - 1, (b+1)*block]`` (clipped) along every
+    axis - every voxel whose trilinear support reaches block b - so 0 means sigma = 0
+    on the whole (closed) block.  Separable: z first (whole contiguous slabs, the cheap
+    direction), then y and x on the 1/block-size result.
+    """
+    out = density
+    for axis in (0, 1, 2):
+        n = out.shape[axis]
+        nb = -(-n // block)
+        shape = list(out.shape)
+        shape[axis] = nb
+        res = np.empty(shape, out.dtype)
+        for b in range(nb):
+            src = [slice(None)] * 3
+            src[axis] = slice(max(b * block - 1, 0), min((b + 1) * block + 1, n))
+            dst = [slice(None)] * 3
+            dst[axis] = b
+            res[tuple(dst)] = out[tuple(src)].max(axis=axis)
+        out = res
+    return out
+
+
+@dataclass(eq=False)
+class GridVolume:
+    """A validated density grid ready for marching.
+
+    Build with :meth:`prepare`.  ``shape`` = (nz, ny, nx) and ``bmin``/``bmax`` describe
+    the whole grid; ``occupancy`` is its (nbz, nby, nbx) block max and ``occupied`` =
+    (lo, hi) the world bounds of the non-zero density's support (None if all zero).
+    ``data`` is the flat Dr.Jit Float the kernels read (index ``(k * wy + j) * wx + i``)
+    over the voxel window ``window_lo`` (x, y, z) .. ``+ window_shape`` (z, y, x): the
+    whole grid for Dr.Jit input (AD graph kept), otherwise only the occupied voxels
+    plus one voxel of zeros, so padding a grid with empty space costs no device memory
+    or upload time.  A prepared grid may be stored in ``Scene.density`` (or passed as
+    ``capture(density=...)``) to skip the host preparation on repeated captures.
+    """
+    data: Any
+    shape: tuple
+    bmin: np.ndarray
+    bmax: np.ndarray
+    block: int
+    occupancy: np.ndarray
+    occupied: Any
+    dtype: str
+    window_lo: np.ndarray
+    window_shape: tuple
+
+    @property
+    def voxel(self) -> np.ndarray:
+        """(3,) voxel size (x, y, z) in world units."""
+        nz, ny, nx = self.shape
+        return (self.bmax - self.bmin) / np.array([nx, ny, nz], np.float64)
+
+    @property
+    def Float(self):
+        return type(self.data)
+
+    @classmethod
+    def prepare(cls, density, bbox=None, block: int = 8, dtype: str | None = None,
+                skip_empty: bool = True) -> "GridVolume":
+        """Validate and prepare ``density``.
+
+        Parameters
+        ----------
+        density
+            (z, y, x) NumPy array, a 3-D Dr.Jit tensor (``TensorXf``/``TensorXf64``;
+            gradients kept), a path to a Mitsuba ``.vol`` file, or a GridVolume (returned).
+        bbox
+            (min_xyz, max_xyz); for ``.vol`` files default the header's box.
+        block
+            voxels per side of an empty-space-skipping block (>= 1).
+        dtype
+            'float32' | 'float64'; default float32, or float64 for TensorXf64 input.
+        skip_empty
+            False marks every block occupied (no empty-space skipping).
+        """
+        if isinstance(density, GridVolume):
+            return density
+        if not isinstance(block, (int, np.integer)) or block < 1:
+            raise ValueError(f"block: expected an integer >= 1, got {block!r}")
+        if isinstance(density, (str, os.PathLike)):
+            data, file_bbox = read_vol(density, with_bbox=True)
+            if data.ndim != 3:
+                raise ValueError(f"density: {density!r} has {data.shape[-1]} channels, expected 1")
+            density = data
+            if bbox is None:
+                bbox = file_bbox
+        if bbox is None:
+            raise ValueError("bbox: a density grid needs its world box (min_xyz, max_xyz)")
+        lo, hi = check_bbox(bbox)
+
+        data = None
+        if A.is_drjit(density):
+            if not dr.is_tensor_v(density) or density.ndim != 3:
+                raise ValueError("density: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
+            V.grid_dtype(density, "density")
+            flat = density.array
+            if dtype is None:
+                dtype = A.dtype_of(flat)
+            data = A.to_float(flat, A.float_type(dtype))
+        else:
+            dtype = dtype or "float32"
+        # one rule for every grid entry point: float input, 3-D, non-empty, finite, >= 0
+        host = V.density_grid(density, "density", np.float64 if dtype == "float64" else np.float32)
+        shape = host.shape
+
+        n = np.array(shape[::-1], np.int64)                        # (nx, ny, nz)
+        if skip_empty:
+            occ = block_max(host, block)
+            occupied = None
+            w0, w1 = np.zeros(3, np.int64), np.zeros(3, np.int64)   # voxel window [w0, w1] (x, y, z)
+            if occ.max() > 0:
+                # exact voxel bounds, searched only inside the occupied blocks
+                nzb = [np.flatnonzero(occ.max(axis=ax) > 0) for ax in ((0, 1), (0, 2), (1, 2))]
+                b0 = np.array([a[0] for a in nzb]) * block
+                b1 = np.minimum((np.array([a[-1] for a in nzb]) + 1) * block, n)
+                sub = host[b0[2]:b1[2], b0[1]:b1[1], b0[0]:b1[0]]
+                prof = [sub.max(axis=(0, 1)), sub.max(axis=(0, 2)), sub.max(axis=(1, 2))]
+                imin = b0 + np.array([np.argmax(p > 0) for p in prof])
+                imax = b0 + np.array([p.size - 1 - np.argmax(p[::-1] > 0) for p in prof])
+                h = (hi - lo) / n
+                occupied = (lo + np.maximum(imin - 0.5, 0) * h, lo + np.minimum(imax + 1.5, n) * h)
+                w0, w1 = np.maximum(imin - 1, 0), np.minimum(imax + 1, n - 1)
+        else:
+            nb = [-(-s // block) for s in shape]
+            occ = np.ones(nb, np.float32)
+            occupied = (lo.copy(), hi.copy())
+            w0, w1 = np.zeros(3, np.int64), n - 1
+        Float = A.float_type(dtype)
+        if data is None:
+            win = host[w0[2]:w1[2] + 1, w0[1]:w1[1] + 1, w0[0]:w1[0] + 1]
+            data = A.to_float(win, Float)
+            wshape = win.shape
+        else:
+            w0, wshape = np.zeros(3, np.int64), tuple(shape)
+        return cls(data, tuple(shape), lo, hi, int(block), occ, occupied, dtype, w0, tuple(wshape))
+
+    # ------------------------------------------------------------- sampling
+    def sample(self, points) -> np.ndarray:
+        """sigma at world points (K, 3), float64 NumPy; 0 outside the box (Mitsuba's convention)."""
+        p = np.asarray(points, np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"points: expected shape (K, 3), got {p.shape}")
+        if self.occupied is None or p.shape[0] == 0:
+            return np.zeros(p.shape[0])
+        Float = self.Float
+        h = self.voxel
+        wlo = self.bmin + self.window_lo * h
+        whi = wlo + np.array(self.window_shape[::-1]) * h
+        inside = np.all((p >= self.bmin) & (p <= self.bmax) & (p >= wlo) & (p <= whi), axis=1)
+        x, y, z = (A.to_float(p[:, i], Float) for i in range(3))
+        k = MarchKernel(self)
+        val = k.trilinear(dr.detach(self.data), x, y, z, A.to_float(inside.astype(np.float64), Float) > 0)
+        return np.where(inside, np.asarray(val.numpy(), np.float64), 0.0)
+
+
+class MarchKernel:
+    """Grid constants as opaque Dr.Jit scalars (one compiled kernel for all grids)."""
+
+    def __init__(self, grid: GridVolume):
+        t = backend.types()
+        self.Float, self.UInt32, self.Int32 = grid.Float, t.UInt32, t.Int32
+        Float, Int32 = self.Float, self.Int32
+        wz, wy, wx = grid.window_shape
+        h = grid.voxel
+        wlo = grid.bmin + grid.window_lo * h
+        self.lo = [dr.opaque(Float, float(v)) for v in wlo]
+        self.scale = [dr.opaque(Float, float(v)) for v in 1.0 / h]
+        self.nmax = [dr.opaque(Int32, int(v) - 1) for v in (wx, wy, wz)]
+        self.nx = dr.opaque(Int32, wx)
+        self.ny = dr.opaque(Int32, wy)
+
+    def trilinear(self, data, x, y, z, active=True):
+        """sigma(x, y, z) by trilinear interpolation of cell-centred voxels, clamped to the
+        edge of the window (equal to the whole grid's clamping: the window's own edge
+        voxels are zero wherever it is smaller than the grid)."""
+        Float, Int32, UInt32 = self.Float, self.Int32, self.UInt32
+        idx, w = [], []
+        for c, lo, s, nm in zip((x, y, z), self.lo, self.scale, self.nmax):
+            u = (c - lo) * s - 0.5
+            f = dr.floor(u)
+            i0 = Int32(f)
+            w.append(u - f)
+            idx.append((dr.clip(i0, 0, nm), dr.clip(i0 + 1, 0, nm)))
+        (x0, x1), (y0, y1), (z0, z1) = idx
+        wx, wy, wz = w
+
+        def g(i, j, k):
+            return dr.gather(Float, data, UInt32((k * self.ny + j) * self.nx + i), active)
+
+        c00 = dr.lerp(g(x0, y0, z0), g(x1, y0, z0), wx)
+        c10 = dr.lerp(g(x0, y1, z0), g(x1, y1, z0), wx)
+        c01 = dr.lerp(g(x0, y0, z1), g(x1, y0, z1), wx)
+        c11 = dr.lerp(g(x0, y1, z1), g(x1, y1, z1), wx)
+        return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
+
+    def trilinear_table(self, table, x, y, z, active=True):
+        """:meth:`trilinear` with the 8 voxels read by one packet load from the dual cell's
+        entry of :func:`~avsm_dr.capture.dual_cells.corner_table` (the table's edge padding repeats
+        the edge voxels, which is the clamp): the same values, the same arithmetic."""
+        Float, Int32, UInt32 = self.Float, self.Int32, self.UInt32
+        cell, w = [], []
+        for c, lo, s, nm in zip((x, y, z), self.lo, self.scale, self.nmax):
+            u = (c - lo) * s - 0.5
+            f = dr.floor(u)
+            w.append(u - f)
+            cell.append(dr.clip(Int32(f), -1, nm) + 1)
+        cx, cy, cz = cell
+        wx, wy, wz = w
+        t = backend.types()
+        ArrX = t.ArrayXf if Float is t.Float else t.ArrayXf64
+        v = dr.gather(ArrX, table, UInt32((cz * (self.ny + 1) + cy) * (self.nx + 1) + cx), active,
+                      shape=(8, dr.width(cx)))
+        c00 = dr.lerp(v[0], v[1], wx)
+        c10 = dr.lerp(v[2], v[3], wx)
+        c01 = dr.lerp(v[4], v[5], wx)
+        c11 = dr.lerp(v[6], v[7], wx)
+        return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
