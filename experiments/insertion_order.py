@@ -33,7 +33,11 @@ bilinear lookups through :class:`avsm_dr.evaluation.Probe`):
   (receiver ``rmse``) over the reference's in the same configuration;
   ``beats_optimal_texels``: share of non-empty texels whose depth L2 is below optimal's by
   more than :data:`BEATS_MARGIN` (AVSM's nodes may leave the exact curve, optimal's may
-  not, so AVSM can beat it on single texels).
+  not, so AVSM can beat it on single texels);
+* ``ratio_to_free``: depth L2 (RMS over ``free_texels`` texels sampled per configuration
+  and N, seeded) over the free-vertex optimum's on the same texels (:mod:`._free_vertex`:
+  N nodes free in depth and value, refined from optimal's; a local optimum, float64), so
+  optimal's own row gives the best subset's gap to the free-vertex optimum.
 
 ``findings.json``: per scene and N, for every kind and order the geometric mean over
 configurations of both ratios to optimal with a 95 % bootstrap interval whose unit is the
@@ -54,6 +58,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build
+from ._free_vertex import free_vertex_l2
 from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -87,9 +92,9 @@ PANELS_PER_ROW = 5
 #: Parameters of the full and the quick run (``scenes=None``: every built-in scene).
 FULL = dict(scenes=None, resolution=128, nodes=[4, 8, 16],
             configs=[[s, light] for s in range(5) for light in ("dir_a", "dir_b")],
-            n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7)
+            n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7, free_texels=48)
 QUICK = dict(FULL, scenes=["three_columns", "plume"], resolution=64, nodes=[8], configs=[[0, "dir_a"], [1, "dir_b"]],
-             n_volume=256, n_boot=500)
+             n_volume=256, n_boot=500, free_texels=12)
 #: Default interleaved builds per AVSM insertion method, order and N (the least time counts).
 TIMING_REPEATS = 7
 
@@ -169,7 +174,14 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
     rows = []
     nan = float("nan")
     for n in P["nodes"]:
-        ref = {k: measure(build(k, base, nodes=n), base) for k in REFERENCES}
+        ref_reps = {k: build(k, base, nodes=n) for k in REFERENCES}
+        ref = {k: measure(rep, base) for k, rep in ref_reps.items()}
+        # the free-vertex optimum on a sample of the texels counted (module docstring)
+        rng = np.random.default_rng([seed, n])
+        n_rows = ref["optimal"][1].size
+        sample = np.sort(rng.choice(n_rows, min(P["free_texels"], n_rows), replace=False))
+        free = free_vertex_l2(base, ex_curve, ref_reps["optimal"], sample, n_depths)
+        free_rms = float(np.sqrt(np.mean(free ** 2))) if free.size else nan
         for order in ORDERS:
             got = dict(ref)
             timed = _timed_avsm_builds(segs[order], n, P["timing_repeats"])
@@ -188,6 +200,8 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
                                  ratio_to_optimal=m["depth_l2"] / opt["depth_l2"],
                                  ratio_to_optimal_rmse=m["rmse"] / opt["rmse"],
                                  ratio_to_greedy=m["depth_l2"] / gr["depth_l2"],
+                                 ratio_to_free=float(np.sqrt(np.mean(per[sample] ** 2))) / free_rms
+                                 if free_rms > 0 else nan, free_texels=int(sample.size),
                                  beats_optimal_texels=float(np.mean(per < opt_tex - BEATS_MARGIN))))
     return rows
 
@@ -222,9 +236,13 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
                     per[k] = dict(depth_l2=_interval([r["ratio_to_optimal"] for r in rk], n_boot),
                                   rmse=_interval([r["ratio_to_optimal_rmse"] for r in rk], n_boot),
                                   signed_mean=float(np.mean([r["signed_mean"] for r in rk])),
-                                  beats_optimal_texels=float(np.mean([r["beats_optimal_texels"] for r in rk])))
+                                  beats_optimal_texels=float(np.mean([r["beats_optimal_texels"] for r in rk])),
+                                  free_vertex=_free_interval(rk, n_boot))
                 d[order] = per
                 rank[order] = sorted(per, key=lambda k: per[k]["depth_l2"]["estimate"])
+            d["optimal_over_free_vertex"] = _free_interval(
+                sorted((r for r in rows if r["scene"] == scene and r["nodes"] == n and r["order"] == "depth"
+                        and r["kind"] == "optimal"), key=lambda r: r["config"]), n_boot)
             d["ranking_depth_l2"] = rank
             d["order_changes_ranking"] = len({tuple(v) for v in rank.values()}) > 1
             avsm = [d[o]["avsm"]["depth_l2"]["estimate"] for o in ORDERS]
@@ -233,6 +251,12 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
             d["goal"] = _goal(d, [r for r in rows if r["scene"] == scene and r["nodes"] == n])
             out.setdefault(scene, {})[f"N={n}"] = d
     return out
+
+
+def _free_interval(rows, n_boot: int) -> dict | None:
+    """The depth-L2 ratio to the free-vertex optimum on the sampled texels, over configurations."""
+    r = [x["ratio_to_free"] for x in rows if np.isfinite(x.get("ratio_to_free", np.nan))]
+    return _interval(r, n_boot) if r else None
 
 
 def _goal(d: dict, rows: list[dict]) -> dict:
@@ -275,6 +299,9 @@ def _compute(res, P: dict) -> dict:
                for s in P["scenes"] for n in P["nodes"] for o in ORDERS}
     summary.update({f"{s}_N{n}_{k}_worst_order_over_optimal": found[s][f"N={n}"]["goal"][k]["worst_ratio"]
                     for s in P["scenes"] for n in P["nodes"] for k in INSERTION_METHODS})
+    summary.update({f"{s}_N{n}_optimal_over_free_vertex": (found[s][f"N={n}"]["optimal_over_free_vertex"]
+                                                            or {}).get("estimate")
+                    for s in P["scenes"] for n in P["nodes"]})
     return dict(rows=rows, findings=found, summary=summary)
 
 

@@ -12,13 +12,14 @@ where it matters, and at what cost.  For example::
 * :class:`Configuration`, :func:`configurations` (:mod:`.configuration`): seed x light.
 * :class:`Probe`, :class:`SubsetBuilder`, :func:`truth` (:mod:`.probe`): the error
   decomposition (compression / capture / spatial) at a receiver set.
-* :func:`depth_l2` (:mod:`.curves`): the depth-uniform L2 of a whole curve.
+* :func:`depth_l2` (:mod:`.curves`): the depth-uniform L2 of a whole curve (on the
+  midpoints of :func:`depth_grid`).
 * :func:`light_variants` (:mod:`.lights`), :func:`with_faint_segments` (:mod:`.perturb`).
 * :func:`measure`, :func:`timed`, :class:`Meter` (:mod:`.timing`): time and memory.
 """
 from .comparison import Comparison, compare
 from .configuration import LIGHTS, Configuration, configurations
-from .curves import curve_values, depth_l2
+from .curves import curve_values, depth_grid, depth_l2
 from .harness import METRICS, RECEIVER_SETS, evaluate
 from .lights import light_variants
 from .perturb import with_faint_segments
@@ -27,5 +28,5 @@ from .table import Table, read_csv
 from .timing import Meter, measure, sync, timed
 
 __all__ = ["Built", "Comparison", "Configuration", "LIGHTS", "METRICS", "Meter", "Probe", "RECEIVER_SETS",
-           "SubsetBuilder", "Table", "compare", "configurations", "curve_values", "depth_l2", "evaluate",
+           "SubsetBuilder", "Table", "compare", "configurations", "curve_values", "depth_grid", "depth_l2", "evaluate",
            "light_variants", "measure", "read_csv", "sync", "timed", "truth", "with_faint_segments"]

@@ -51,15 +51,21 @@ def _check(rep, segments, n_depths, texels):
     if getattr(rep, "n_texels", segments.n_texels) != segments.n_texels:
         raise ValueError(f"rep: built on {rep.n_texels} texels, the segments have {segments.n_texels}")
     n = V.integer(n_depths, "n_depths", 1)
-    if texels is not None:
-        t = V.array(texels, "texels")
-        if t.ndim != 1 or np.any(t != np.round(t)) or np.any(t < 0) or np.any(t >= segments.n_texels):
-            raise ValueError(f"texels: expected a 1-D array of texel indices in [0, {segments.n_texels})")
-        texels = t.astype(np.int64)
+    texels = _check_texels(segments, texels)
     rows = int(np.count_nonzero(segments.counts > 0)) if texels is None else int(np.unique(texels).size)
     V.check_memory("n_depths", n, lambda m: float(m) * max(rows, 1) * BYTES_PER_DEPTH, lo=1,
                    what=f"depths on {rows} texels")
     return n, texels
+
+
+def _check_texels(segments, texels):
+    """``texels`` as int64 indices of ``segments`` (None stays None); ValueError naming it."""
+    if texels is None:
+        return None
+    t = V.array(texels, "texels")
+    if t.ndim != 1 or np.any(t != np.round(t)) or np.any(t < 0) or np.any(t >= segments.n_texels):
+        raise ValueError(f"texels: expected a 1-D array of texel indices in [0, {segments.n_texels})")
+    return t.astype(np.int64)
 
 
 def _opaque(segments):
@@ -105,6 +111,19 @@ def _counted(segments, tex, a, b, n) -> np.ndarray:
         np.logical_and.at(keep, row, ~inside)
     return keep
 
+
+
+def depth_grid(segments, n_depths: int = DEPTHS, texels=None):
+    """The grid :func:`depth_l2` measures on: ``(texels, depths, counted)`` with the T'
+    texels counted (increasing), their (T', n_depths) midpoints ``z_tj`` and the (T',
+    n_depths) bool mask of the midpoints counted (not strictly inside an opaque segment);
+    rows in the order of :func:`curve_values` and of ``depth_l2(..., per_texel=True)``."""
+    from ..segments import Segments
+    if not isinstance(segments, Segments):
+        raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
+    n = V.integer(n_depths, "n_depths", 1)
+    tex, a, b = _domain(segments, _check_texels(segments, texels))
+    return tex, _grid(a, b, n), _counted(segments, tex, a, b, n)
 
 def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarray:
     """(T', n_depths) float64 values ``rep.eval(t, z_tj)`` on the midpoint grid of the

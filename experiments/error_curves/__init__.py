@@ -445,7 +445,7 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
                    subset_max_difference={k: v for c in base for k, v in c["subset_check"].items()})
     from . import plots as _error_plots
     _error_plots.plot_all(res, rows, names)
-    verdicts = {k: v.get("verdict") for k, v in summary.get("claims", {}).items()}
+    verdicts = F.summary_lines(summary)
     shutil.rmtree(res.dir / "cells", ignore_errors=True)     # complete: nothing left to resume
     return dict(rows=rows, findings=summary, summary=verdicts)
 
