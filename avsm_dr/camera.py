@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import drjit as dr
 import numpy as np
 
 from . import validation as V
@@ -87,11 +86,6 @@ class PinholeCamera:
                 raise
             raise ValueError(f"camera.{e}") from None
 
-    def as_dict(self) -> dict:
-        """``{origin, target, up, fov}`` (float64 arrays, fov a float)."""
-        return {"origin": self.origin.copy(), "target": self.target.copy(), "up": self.up.copy(),
-                "fov": self.fov}
-
     def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(forward f, right r, up u) unit vectors, float64."""
         fwd = self.target - self.origin
@@ -113,26 +107,6 @@ class PinholeCamera:
         X, Y = np.meshgrid(i * tx, j * ty)
         d = fwd[None] + X.reshape(-1, 1) * right[None] + Y.reshape(-1, 1) * up[None]
         return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-    def rays_dr(self, Float=None) -> list:
-        """:meth:`rays` on the device: three Dr.Jit arrays (x, y, z components) of type
-        ``Float`` (default: the backend's Float64), computed in Float64 with the same
-        formula; they agree with :meth:`rays` to float64 rounding (measured: at most
-        1 ulp, 2.2e-16; the JIT may fuse multiply-adds); other types are the rounded values."""
-        from . import backend
-        t = backend.types()
-        F64 = t.Float64
-        fwd, right, up = ([dr.opaque(F64, float(c)) for c in v] for v in self.frame())
-        tx, ty = (dr.opaque(F64, v) for v in self._tangents())
-        w, h = self.width, self.height
-        k = dr.arange(t.UInt32, w * h)
-        i = (F64(k % w) + 0.5) / w * 2 - 1
-        j = 1 - (F64(k // w) + 0.5) / h * 2
-        X, Y = i * tx, j * ty
-        d = [(fwd[a] + X * right[a]) + Y * up[a] for a in range(3)]
-        norm = dr.sqrt((d[0] * d[0] + d[1] * d[1]) + d[2] * d[2])
-        out = [c / norm for c in d]
-        return out if Float is None or Float is F64 else [Float(c) for c in out]
 
     def sensor_dict(self, mi, spp: int = 1) -> dict:
         """Mitsuba ``perspective`` sensor of this camera (``mi``: the mitsuba module with a

@@ -32,8 +32,6 @@ import numpy as np
 from . import validation as V
 from .scene import PointLight, Scene
 
-#: Names of the sets :func:`receiver_sets` returns, in order.
-SETS = ("in_volume", "surface", "uniform")
 #: Candidates drawn per kept in-volume receiver (sampling-importance-resampling).
 CANDIDATES_PER_POINT = 4
 #: Estimated host bytes per drawn point (measured: 2.5 KB marginal per point of
