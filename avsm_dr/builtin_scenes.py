@@ -24,7 +24,7 @@ import numpy as np
 
 from . import procedural, validation as V
 from .procedural import value_noise  # noqa: F401  (re-exported: the noise lives there)
-from .scene import DirectionalLight, Hair, OpaqueBox, Particles, PointLight, Scene, SpotLight
+from .scene import DirectionalLight, Hair, OpaqueBox, Particles, Scene
 
 #: Largest ``size`` (voxels per unit; the plume's grid is then 256 x 384 x 256 and its
 #: float64 noise work arrays take ~1.5 GB).
@@ -84,16 +84,6 @@ def _volume_points(density, bmin, bmax, k: int, rng) -> np.ndarray:
     ky, kx = np.divmod(rem, nx)
     h = (np.asarray(bmax) - np.asarray(bmin)) / np.array([nx, ny, nz])
     return np.asarray(bmin) + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * h
-
-
-def _check(seed, light, n_receivers, density_scale=1.0):
-    """The arguments every scene shares, checked (ValueError names the argument)."""
-    V.integer(seed, "seed", 0)
-    V.integer(n_receivers, "n_receivers", 1, MAX_POINTS)
-    V.real(density_scale, "density_scale", 0.0)
-    if light is not None and not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
-        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, "
-                         f"got {type(light).__name__}")
 
 
 # --------------------------------------------------------------------- registry
@@ -194,7 +184,7 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
     breaks it into puffs.  Light: directional, mostly along +x, slightly down.
     Receivers: half in the smoke, half on the wall x = 0.8 behind it (the receiver plane).
     """
-    _check(seed, light, n_receivers, density_scale)
+    procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
@@ -223,7 +213,7 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
     a translucent one nearest the light, a dense one, then a medium one (the AVSM paper's figures 4 and 7).
     Receivers: half in the columns, half on the wall x = 1.8 behind them.
     """
-    _check(seed, light, n_receivers, density_scale)
+    procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-1.5, 0.0, -0.5]), np.array([1.5, 1.0, 0.5])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
@@ -255,7 +245,7 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
     (+x).  Receivers: half in the smoke/hair, half on the wall x = 0.8 behind it.
     """
     from .capture.hair import fit_strands, load_tfx, procedural_strands
-    _check(seed, light, n_receivers, density_scale)
+    procedural.check_args(seed, light, n_receivers, density_scale)
     hair_radius = V.real(hair_radius, "hair_radius", 0.0, open_min=True)
     hair_opacity = V.real(hair_opacity, "hair_opacity", 0.0, 1.0)
     bmin, bmax = np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5])
@@ -285,7 +275,7 @@ def particles(n: int = 200, seed: int = 0, light=None, n_receivers: int = 1024) 
     around (0, 0.3, 0); light from above (directional, mostly -y).  Receivers: half inside
     the cloud, half on the ground y = -0.5 (the receiver plane)."""
     V.integer(n, "n", 1, MAX_POINTS)
-    _check(seed, light, n_receivers)
+    procedural.check_args(seed, light, n_receivers)
     rng = np.random.default_rng(seed)
     centers = np.array([0.0, 0.3, 0.0]) + 0.2 * rng.standard_normal((n, 3))
     radii = rng.uniform(0.03, 0.1, n)
@@ -311,7 +301,7 @@ def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0,
     (the box [-1, 1] x [-0.05, 0] x [-1, 1], an :class:`OpaqueBox` blocker); light from
     above.  Receivers: half in the smoke, half on the table's top face y = 0 (the receiver
     plane; lit except where the smoke shadows it)."""
-    _check(seed, light, n_receivers, density_scale)
+    procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.4, 0.1, -0.4]), np.array([0.4, 0.9, 0.4])
     shape = _grid_shape(bmin, bmax, size)
     X, Y, Z = _centres(shape, bmin, bmax)
@@ -344,7 +334,7 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
     Light, receivers and receiver plane as in :func:`plume`.
     """
     from .fluid import simulate_plume
-    _check(seed, light, n_receivers, density_scale)
+    procedural.check_args(seed, light, n_receivers, density_scale)
     steps = int(round(1.25 * size)) if steps is None else V.integer(steps, "steps", 1)
     bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
     shape = _grid_shape(bmin, bmax, size)

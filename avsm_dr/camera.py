@@ -11,7 +11,7 @@ Mitsuba's ``perspective`` sensor with ``look_at(origin, target, up)`` (:meth:`se
 its rays agree with :meth:`rays` up to float32 rounding).
 
 A camera dict ``{origin, target, up, fov}`` (the ground-truth functions' ``camera=``
-argument) is this class's keyword arguments (:meth:`PinholeCamera.of`).
+argument, still accepted) is this class's keyword arguments (:meth:`PinholeCamera.of`).
 """
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from . import validation as V
-from .scene import DirectionalLight, Particles, PointLight, Scene, SpotLight
+from .scene import DirectionalLight, Particles, Scene, check_light
 
 #: Largest ``size`` and most receivers, as in :mod:`avsm_dr.builtin_scenes`.
 MAX_SIZE, MAX_POINTS = 256, 1 << 22
@@ -101,12 +101,13 @@ def _box(bmin, bmax, size):
     return (int(n[2]), int(n[1]), int(n[0])), X, Y, Z
 
 
-def _args(seed, light, n_receivers, density_scale):
+def check_args(seed, light, n_receivers, density_scale=1.0):
+    """The arguments every scene shares, checked (ValueError names the argument)."""
     V.integer(seed, "seed", 0)
     V.integer(n_receivers, "n_receivers", 1, MAX_POINTS)
     V.real(density_scale, "density_scale", 0.0)
-    if light is not None and not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
-        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+    if light is not None:
+        check_light(light)
 
 
 def _square(center, u, v, half, k):
@@ -145,7 +146,7 @@ def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=Non
     depth spans the cloud's 4-unit length.
     Receivers: half in the cloud, half on the ground y = 0 (the receiver plane).
     """
-    _args(seed, light, n_receivers, density_scale)
+    check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = (-2.0, 0.0, -1.0), (2.0, 1.6, 1.0)
     shape, X, Y, Z = _box(bmin, bmax, size)
     rng = np.random.default_rng(seed)
@@ -174,7 +175,7 @@ def fog_bank(size: int = 24, seed: int = 0, density_scale: float = 5.0, light=No
     (directional, (0.35, -1, 0.2)).  Receivers: half in the fog, half on the ground y = 0
     (the receiver plane).
     """
-    _args(seed, light, n_receivers, density_scale)
+    check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = (-1.5, 0.0, -1.5), (1.5, 0.8, 1.5)
     shape, X, Y, Z = _box(bmin, bmax, size)
     rng = np.random.default_rng(seed)
@@ -201,7 +202,7 @@ def gaussian_blobs(n: int = 60, seed: int = 0, density_scale: float = 4.0, light
     in the blobs, half on the ground y = -0.1 (the receiver plane).
     """
     V.integer(n, "n", 1, (1 << 20))
-    _args(seed, light, n_receivers, density_scale)
+    check_args(seed, light, n_receivers, density_scale)
     rng = np.random.default_rng(seed)
     t = np.arange(n) / n
     ang = 4.0 * np.pi * t + rng.uniform(0, 2 * np.pi)
@@ -239,7 +240,7 @@ def tall_column(size: int = 40, seed: int = 0, steps: int | None = None, density
     half on the wall x = 0.8 behind it (the receiver plane).
     """
     from .fluid import simulate_plume
-    _args(seed, light, n_receivers, density_scale)
+    check_args(seed, light, n_receivers, density_scale)
     steps = 3 * V.integer(size, "size", 4) if steps is None else V.integer(steps, "steps", 1)
     bmin, bmax = (-0.5, 0.0, -0.5), (0.5, 3.0, 0.5)
     shape = _box(bmin, bmax, size)[0]

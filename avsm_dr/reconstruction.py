@@ -157,11 +157,7 @@ def radiance_weights(light, points, normal=None, albedo: float = 1.0) -> np.ndar
     cos = np.ones(p.shape[0])
     if normal is not None:
         n = np.asarray(normal, np.float64).reshape(3)
-        if isinstance(light, DirectionalLight):
-            l = np.broadcast_to(-light.direction, p.shape)
-        else:
-            l = light.position - p
-            l = l / np.linalg.norm(l, axis=1, keepdims=True)
+        l = light.directions_to(p)
         cos = np.maximum(l @ (n / np.linalg.norm(n)), 0.0)
     return albedo / math.pi * irradiance(light, p) * cos
 

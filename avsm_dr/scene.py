@@ -14,8 +14,9 @@ Conventions shared by capture, ground truth and shading:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import Optional, Union
+from typing import Optional
 
 import drjit as dr
 import numpy as np
@@ -24,8 +25,31 @@ from . import validation as V
 from .geometry import orthonormal_basis, ray_box, ray_sphere
 
 
+class Light:
+    """A light: a subclass (a dataclass) carries what capture, ground truth, shading and Mitsuba
+    need, so a new light is one class (and a name in :func:`check_light`).  Points: float64 (K, 3).
+
+    * ``directions_to(p)``: (K, 3) unit directions towards the light (read-only);
+    * ``paths(p, center, radius)``: origins, unit directions and lengths of the light's paths to
+      ``p`` (ground truth; directional: from the light side of the content's bounding sphere);
+    * ``irradiance_at(p)``: (K,) unshadowed irradiance on a surface facing the light (shading);
+    * ``shadow_camera(cameras, res, bmin, bmax)``: the shadow-map camera from the module
+      :mod:`avsm_dr.capture.camera` (passed in: a layer above), fitted to content boxes (N, 3);
+    * ``to_mitsuba(mi)``: the emitter dict;  ``label()``: a short text.  A light at a point
+      (spot, point) has a ``position``, a directional light none.
+    """
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{x:.3g}" for x in np.asarray(v, np.float64)) + ")"
+
+
+def _rgb(value) -> dict:
+    return {"type": "rgb", "value": [float(value)] * 3}
+
+
 @dataclass
-class DirectionalLight:
+class DirectionalLight(Light):
     """Parallel light travelling along ``direction``; irradiance ``irradiance`` (W/m^2)."""
     direction: np.ndarray
     irradiance: float = 1.0
@@ -34,9 +58,48 @@ class DirectionalLight:
         self.direction = V.unit_vector(self.direction, "direction")
         self.irradiance = V.real(self.irradiance, "irradiance", 0.0)
 
+    def directions_to(self, p):
+        return np.broadcast_to(-self.direction, p.shape)
+
+    def paths(self, p, center, radius):            # L back to the sphere's light-side tangent plane
+        w = self.direction
+        L = np.maximum((p - center) @ w + radius, 0.0) * (1 + 1e-9) + 1e-9 * (1 + radius)
+        d = np.broadcast_to(w, p.shape).copy()
+        return p - L[:, None] * d, d, L
+
+    def irradiance_at(self, p):
+        return np.full(p.shape[0], float(self.irradiance))
+
+    def shadow_camera(self, cameras, res, bmin, bmax):
+        return cameras.OrthoCamera.fit(self.direction, bmin, bmax, res)
+
+    def to_mitsuba(self, mi):
+        return {"type": "directional", "direction": self.direction.tolist(), "irradiance": _rgb(self.irradiance)}
+
+    def label(self):
+        return f"directional{_fmt(self.direction)}"
+
+
+class _LightAt(Light):
+    """A light at ``position`` (spot, point): paths start there; inverse-square irradiance."""
+    def directions_to(self, p):
+        v = self.position - p
+        return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+
+    def paths(self, p, center, radius):            # a spot's cone does not limit T (shading applies it)
+        o = np.broadcast_to(self.position, p.shape).astype(np.float64)
+        v = p - o
+        L = np.linalg.norm(v, axis=1)
+        d = np.where(L[:, None] > 0, v / np.where(L > 0, L, 1.0)[:, None], np.array([0.0, 0.0, 1.0]))
+        return o, d, L
+
+    def irradiance_at(self, p):
+        r2 = np.sum((p - self.position) ** 2, axis=1)
+        return float(self.intensity) / np.maximum(r2, 1e-300)
+
 
 @dataclass
-class SpotLight:
+class SpotLight(_LightAt):
     """Spot light at ``position`` pointing along ``direction`` with full cone angle ``fov`` degrees."""
     position: np.ndarray
     direction: np.ndarray
@@ -49,9 +112,42 @@ class SpotLight:
         self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
         self.intensity = V.real(self.intensity, "intensity", 0.0)
 
+    @property
+    def beam_width(self) -> float:
+        """Full-intensity half angle (degrees): 3/4 of the cutoff fov / 2 (Mitsuba's default)."""
+        return 0.75 * self.fov / 2
+
+    def falloff(self, p) -> np.ndarray:
+        """(K,) Mitsuba ``spot`` profile in [0, 1] at ``p``."""
+        v = p - self.position
+        r = np.linalg.norm(v, axis=1)
+        cos = np.where(r > 0, (v @ self.direction) / np.where(r > 0, r, 1.0), 1.0)
+        cutoff = math.radians(self.fov / 2)
+        beam = math.radians(self.beam_width)
+        ang = np.arccos(np.clip(cos, -1.0, 1.0))
+        prof = np.where(cos >= math.cos(beam), 1.0, (cutoff - ang) / (cutoff - beam))
+        return np.where(cos > math.cos(cutoff), prof, 0.0)
+
+    def irradiance_at(self, p):
+        return super().irradiance_at(p) * self.falloff(p)
+
+    def shadow_camera(self, cameras, res, bmin, bmax):
+        return cameras.PerspectiveCamera(self.position, self.direction, self.fov, res)
+
+    def to_mitsuba(self, mi):
+        pos = self.position
+        up = orthonormal_basis(self.direction)[1]
+        return {"type": "spot", "cutoff_angle": self.fov / 2, "beam_width": self.beam_width,
+                "intensity": _rgb(self.intensity),
+                "to_world": mi.ScalarTransform4f().look_at(origin=pos.tolist(), target=(pos + self.direction).tolist(),
+                                                           up=up.tolist())}
+
+    def label(self):
+        return f"spot{_fmt(self.position)}->{_fmt(self.direction)}"
+
 
 @dataclass
-class PointLight:
+class PointLight(_LightAt):
     """Isotropic point light at ``position`` (captured as a cube of six shadow maps)."""
     position: np.ndarray
     intensity: float = 1.0
@@ -60,8 +156,21 @@ class PointLight:
         self.position = V.vec3(self.position, "position")
         self.intensity = V.real(self.intensity, "intensity", 0.0)
 
+    def shadow_camera(self, cameras, res, bmin, bmax):
+        return cameras.CubeCamera(self.position, res)
 
-Light = Union[DirectionalLight, SpotLight, PointLight]
+    def to_mitsuba(self, mi):
+        return {"type": "point", "position": self.position.tolist(), "intensity": _rgb(self.intensity)}
+
+    def label(self):
+        return f"point{_fmt(self.position)}"
+
+
+def check_light(light, name: str = "light") -> Light:
+    """``light`` if it is a :class:`Light`; ValueError naming ``name`` otherwise."""
+    if not isinstance(light, Light):
+        raise ValueError(f"{name}: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+    return light
 
 
 @dataclass
@@ -115,36 +224,19 @@ class Hair:
 
 class Blocker:
     """An opaque blocker: a subclass (a dataclass) carries everything capture, ground truth,
-    shading and Mitsuba need, so a new shape is one class.  Methods take a validated copy
-    (:meth:`validate`) and float64 rays ``o``, ``d`` (K, 3), ``|d| = 1``.
+    shading and Mitsuba need, so a new shape is one class.  ``validate(name)`` returns a checked
+    copy (ValueError names ``<name>.<field>``); the others take float64 rays ``o``, ``d`` (K, 3),
+    ``|d| = 1``.
 
-    * :meth:`bounds`: world AABB (lo, hi);  :meth:`contains`: p inside the solid;
-    * :meth:`first_hit`: ``(t, hit, cos)`` of the first surface at ``t >= 0``, ``cos = |d . n|``
+    * ``bounds()``: world AABB (lo, hi);  ``contains(p)``: p inside the solid (default: never);
+    * ``first_hit(o, d)``: ``(t, hit, cos)`` of the first surface at ``t >= 0``, ``cos = |d . n|``
       (capture: :mod:`avsm_dr.capture.opaque`);
-    * :meth:`blocks`: (K,) the blocker meets the open path ``(0, far)`` (ground truth);
-    * :meth:`surface_hit`: (K,) nearest surface crossing at ``t > 0``, inf = none (view rays);
-    * :meth:`to_mitsuba`: the Mitsuba shape dict with ``bsdf``.
+    * ``blocks(o, d, far)``: (K,) the blocker meets the open path ``(0, far)`` (ground truth);
+    * ``surface_hit(o, d)``: (K,) nearest surface crossing at ``t > 0``, inf = none (view rays);
+    * ``to_mitsuba(mi, bsdf)``: the Mitsuba shape dict with ``bsdf``.
     """
-    def validate(self, name: str = "blocker") -> "Blocker":
-        raise NotImplementedError
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
     def contains(self, p) -> bool:
         return False
-
-    def first_hit(self, o, d):
-        raise NotImplementedError
-
-    def blocks(self, o, d, far) -> np.ndarray:
-        raise NotImplementedError
-
-    def surface_hit(self, o, d) -> np.ndarray:
-        raise NotImplementedError
-
-    def to_mitsuba(self, mi, bsdf: dict) -> dict:
-        raise NotImplementedError
 
 
 def _solid_blocks(t0, t1, hit, far):
@@ -417,10 +509,7 @@ class Scene:
             lo, hi = V.vec3(lo, "bbox"), V.vec3(hi, "bbox")
             if np.any(hi <= lo):
                 raise ValueError(f"bbox: expected max > min on every axis, got {lo.tolist()} .. {hi.tolist()}")
-        if light is None:
-            light = DirectionalLight(direction=(0.0, -1.0, 0.0))
-        elif not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
-            raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+        light = DirectionalLight(direction=(0.0, -1.0, 0.0)) if light is None else check_light(light)
         name = "grid" if name is None else name
         if not (isinstance(name, str) and name):
             raise ValueError(f"name: expected a non-empty string, got {name!r}")

@@ -35,9 +35,9 @@ import numpy as np
 
 from . import validation as V
 from .groundtruth.content import check_scene, particles_tau, to_light
-from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for, spot_beam_width
+from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for
 from .groundtruth.tracking import default_step, march, transmittance as gt_transmittance
-from .scene import DirectionalLight, OpaquePlane, PointLight, Scene, SpotLight
+from .scene import OpaquePlane, Scene, SpotLight, check_light
 
 #: Points per call of a light-transmittance callable (host memory bound; the ground truth
 #: marches at most ``groundtruth.MAX_SAMPLES`` = 2^28 samples per call, ~1000 per point).
@@ -49,29 +49,13 @@ def spot_falloff(light: SpotLight, points) -> np.ndarray:
     """(K,) Mitsuba ``spot`` profile in [0, 1] at ``points`` (K, 3)."""
     if not isinstance(light, SpotLight):
         raise ValueError(f"light: expected a SpotLight, got {type(light).__name__}")
-    p = V.points(points, allow_empty=True)
-    v = p - light.position
-    r = np.linalg.norm(v, axis=1)
-    cos = np.where(r > 0, (v @ light.direction) / np.where(r > 0, r, 1.0), 1.0)
-    cutoff = math.radians(light.fov / 2)
-    beam = math.radians(spot_beam_width(light))
-    ang = np.arccos(np.clip(cos, -1.0, 1.0))
-    prof = np.where(cos >= math.cos(beam), 1.0, (cutoff - ang) / (cutoff - beam))
-    return np.where(cos > math.cos(cutoff), prof, 0.0)
+    return light.falloff(V.points(points, allow_empty=True))
 
 
 def irradiance(light, points) -> np.ndarray:
-    """(K,) unshadowed irradiance E on a surface facing the light at ``points``."""
-    if not isinstance(light, (DirectionalLight, SpotLight, PointLight)):
-        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
-    p = V.points(points, allow_empty=True)
-    if isinstance(light, DirectionalLight):
-        return np.full(p.shape[0], float(light.irradiance))
-    r2 = np.sum((p - light.position) ** 2, axis=1)
-    e = float(light.intensity) / np.maximum(r2, 1e-300)
-    if isinstance(light, SpotLight):
-        e = e * spot_falloff(light, p)
-    return e
+    """(K,) unshadowed irradiance E on a surface facing the light at ``points``
+    (:meth:`~avsm_dr.scene.Light.irradiance_at`)."""
+    return check_light(light).irradiance_at(V.points(points, allow_empty=True))
 
 
 def shade_receivers(scene: Scene, transmittance, points=None, normals=None,
@@ -125,7 +109,7 @@ def _chunked(fn, x):
 
 # ==================================================================== images
 def render_plane(scene: Scene, light_transmittance, width: int = 128, height: int = 128,
-                 camera: dict | None = None, supersample: int = 2, reflectance: float = 1.0,
+                 camera=None, supersample: int = 2, reflectance: float = 1.0,
                  albedo: float = 0.0, step: float | None = None) -> np.ndarray:
     """(height, width) float64 image of the receiver plane lit through ``light_transmittance``.
 
@@ -200,7 +184,7 @@ def _single_scattering(scene, content, o, d, t_end, light_T, albedo, step):
 
 
 def shade_plane(scene: Scene, rep, capture, width: int = 128, height: int = 128,
-                camera: dict | None = None, filter: str = "point", radius: float = 1.0,
+                camera=None, filter: str = "point", radius: float = 1.0,
                 **kw) -> np.ndarray:
     """The :func:`render_plane` image with shadows from representation ``rep``.
 
@@ -213,7 +197,7 @@ def shade_plane(scene: Scene, rep, capture, width: int = 128, height: int = 128,
     return render_plane(scene, light_T, width, height, camera, **kw)
 
 
-def groundtruth_plane(scene: Scene, width: int = 128, height: int = 128, camera: dict | None = None,
+def groundtruth_plane(scene: Scene, width: int = 128, height: int = 128, camera=None,
                       step: float | None = None, **kw) -> np.ndarray:
     """:func:`render_plane` with the deterministic ground-truth transmittance (ray march)."""
     def light_T(points):

@@ -271,6 +271,87 @@ def test_the_package_never_imports_the_studies():
     assert bad == ["avsm_dr/__main__.py"], bad      # the forwarder, which says where the studies are
 
 
+# ----------------------------------------------------------- one home per concept
+#: isinstance checks on a concrete blocker / light / occluder type outside the module defining
+#: it, allowed because they validate an argument (the ValueError names it) rather than
+#: dispatch behaviour: (file, enclosing function, type) -> reason.
+TYPE_CHECKS_ALLOWED = {
+    ("avsm_dr/shading.py", "spot_falloff", "SpotLight"):
+        "argument check: the Mitsuba spot profile exists for spot lights only ('light: expected a SpotLight')",
+    ("avsm_dr/reconstruction.py", "receiver_grid", "DirectionalLight"):
+        "argument check: the radiograph plane is orthogonal to a parallel light ('light: expected ...')",
+    ("avsm_dr/evaluation/lights.py", "light_variants", "DirectionalLight"):
+        "argument check: the variants tilt a directional light ('scene: light_variants needs ...')",
+}
+
+
+def _concrete_content_types() -> dict:
+    """{name: defining module} of every concrete blocker, light and area-light occluder type."""
+    from avsm_dr import scene
+    from avsm_dr.area_lights import area_scene
+    out, todo = {}, [scene.Blocker, scene.Light, area_scene.Occluder]
+    while todo:
+        for sub in todo.pop().__subclasses__():
+            if sub.__module__.startswith("avsm_dr."):
+                out[sub.__name__] = sub.__module__
+            todo.append(sub)
+    out["QuadLight"] = area_scene.QuadLight.__module__
+    return out
+
+
+def _type_checks(path: Path, names):
+    """(enclosing function, type name) of every ``isinstance`` / ``issubclass`` call and every
+    ``type(x) is / == T`` comparison in ``path`` naming one of ``names``."""
+    def named(node):
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return [n for e in node.elts for n in named(e)]
+        if isinstance(node, ast.Starred):
+            return named(node.value)
+        name = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else None
+        return [name] if name in names else []
+
+    found = []
+
+    def visit(node, func):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            func = node.name
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) \
+                and node.func.id in ("isinstance", "issubclass") and len(node.args) == 2:
+            found.extend((func, n) for n in named(node.args[1]))
+        if isinstance(node, ast.Compare) and isinstance(node.left, ast.Call) \
+                and isinstance(node.left.func, ast.Name) and node.left.func.id == "type":
+            found.extend((func, n) for c in node.comparators for n in named(c))
+        for child in ast.iter_child_nodes(node):
+            visit(child, func)
+
+    visit(ast.parse(path.read_text()), "<module>")
+    return found
+
+
+def test_content_types_carry_their_behaviour():
+    """Blockers, lights and area-light occluders carry their behaviour (bounds, hits, paths,
+    cameras, Mitsuba dicts) as methods: outside the module defining a concrete type no code
+    dispatches on it with isinstance / type(...) is.  A new shape or light is one class in
+    one file; argument checks are listed in TYPE_CHECKS_ALLOWED with a reason."""
+    types = _concrete_content_types()
+    assert {"OpaqueSphere", "OpaqueBox", "OpaquePlane", "DirectionalLight", "SpotLight", "PointLight",
+            "Sphere", "Box"} <= set(types)
+    bad, seen = [], set()
+    for path in sorted(PKG.rglob("*.py")):
+        rel = str(path.relative_to(PKG.parent))
+        mod = ".".join(path.relative_to(PKG.parent).with_suffix("").parts)
+        for func, name in _type_checks(path, types):
+            if types[name] == mod:
+                continue
+            if (rel, func, name) in TYPE_CHECKS_ALLOWED:
+                seen.add((rel, func, name))
+            else:
+                bad.append(f"{rel}:{func} checks isinstance(..., {name})")
+    assert not bad, "dispatch on a concrete type outside its module (give the class a method): " + "; ".join(bad)
+    stale = set(TYPE_CHECKS_ALLOWED) - seen
+    assert not stale, f"TYPE_CHECKS_ALLOWED lists sites that no longer exist: {sorted(stale)}"
+
+
 # ------------------------------------------------------------- the build template
 def test_kinds_fill_the_build_template_instead_of_the_constructor():
     """One template in the base class, no metaclass: every registered kind (and the opaque

@@ -13,18 +13,24 @@ Conventions (shared by every method and by the Mitsuba reference):
   ``n = normalize(edge_u x edge_v)`` only (Mitsuba's one-sided ``area`` emitter);
   its back side is black.
 * Occluders are opaque diffuse spheres and axis-aligned boxes that lie strictly in
-  front of the light plane (``(x - c) . n > 0`` for every point of the occluder).
+  front of the light plane (``(x - c) . n > 0`` for every point of the occluder).  Each
+  occluder type is one :class:`Occluder` subclass carrying everything the renderers and the
+  Mitsuba reference need (ray hits, normals, surface samples, light-frame extents, the
+  Mitsuba shape), so a new shape is one class here.
 * Radiance is grey (one channel); lengths in world units, ``sigma`` per unit.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import drjit as dr
 import numpy as np
 
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
+from ..geometry import ray_box_dr, ray_sphere_dr
 from ..scene import OpaqueBox, OpaqueSphere
 
 def _albedo(v, name: str = "albedo") -> float:
@@ -92,11 +98,39 @@ class QuadLight:
                          for a in (-0.5, 0.5) for b in (-0.5, 0.5)])
 
 
+def safe_dir(d):
+    """Replace exact zero components by a tiny value so 1 / d stays finite-signed (the
+    slab test of every ray then takes the same, non-parallel branch)."""
+    return type(d)(*[dr.select(c == 0, 1e-20, c) for c in (d.x, d.y, d.z)])
+
+
+def box_normal(x, lo, hi, Vec3):
+    """Outward normal of the box face nearest to the surface point x."""
+    c = (lo + hi) * 0.5
+    h = (hi - lo) * 0.5
+    q = (x - c) / h
+    ax, ay, az = dr.abs(q.x), dr.abs(q.y), dr.abs(q.z)
+    isx = (ax >= ay) & (ax >= az)
+    isy = ~isx & (ay >= az)
+    isz = ~isx & ~isy
+    return Vec3(dr.select(isx, dr.sign(q.x), 0), dr.select(isy, dr.sign(q.y), 0),
+                dr.select(isz, dr.sign(q.z), 0))
+
+
+class Occluder:
+    """An opaque diffuse occluder: a subclass (a dataclass) is one shape, a package blocker
+    (:class:`avsm_dr.scene.Blocker`: ``bounds()``, ``to_mitsuba(mi, bsdf)``) with an ``albedo``
+    and an ``area``; ``k`` is the :class:`~avsm_dr.area_lights.geometry.Kit`, rays have unit ``d``:
+    ``hit_dr(k, o, d)``: ``(t0, t1, hit)`` of the chord;  ``normal_dr(k, x)``: the outward normal;
+    ``sample_dr(k, u1, u2, u3)``: surface points uniform by area;  ``light_frame_extent(vpls,
+    frame)``: per VPL (x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, r_lo, r_hi) in the light frame
+    (e_u, e_v, n) centred at the VPL (exact for spheres per axis).
+    """
+
+
 @dataclass
-class Sphere:
+class Sphere(OpaqueSphere, Occluder):
     """Opaque diffuse sphere."""
-    center: np.ndarray
-    radius: float
     albedo: float = 0.5
 
     def __post_init__(self):
@@ -104,19 +138,34 @@ class Sphere:
         self.radius = V.real(self.radius, "radius", 0.0, open_min=True)
         self.albedo = _albedo(self.albedo)
 
-    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.center - self.radius, self.center + self.radius
-
     @property
     def area(self) -> float:
         return 4.0 * math.pi * self.radius ** 2
 
+    def hit_dr(self, k, o, d):
+        return ray_sphere_dr(o, d, k.vec(self.center), float(self.radius))
+
+    def normal_dr(self, k, x):
+        return (x - k.vec(self.center)) / float(self.radius)
+
+    def sample_dr(self, k, u1, u2, u3):
+        z = 1 - 2 * u1
+        sxy = dr.safe_sqrt(1 - z * z)
+        phi = 2 * np.pi * u2
+        return k.vec(self.center) + float(self.radius) * k.Vec3(sxy * dr.cos(phi), sxy * dr.sin(phi), z)
+
+    def light_frame_extent(self, vpls, frame):
+        eu, ev, n = frame
+        d = self.center[None] - vpls
+        cx, cy, cz = d @ eu, d @ ev, d @ n
+        dist = np.linalg.norm(d, axis=1)
+        r = self.radius
+        return cx - r, cx + r, cy - r, cy + r, cz - r, cz + r, np.maximum(dist - r, 0), dist + r
+
 
 @dataclass
-class Box:
+class Box(OpaqueBox, Occluder):
     """Opaque diffuse axis-aligned box ``[min, max]``."""
-    min: np.ndarray
-    max: np.ndarray
     albedo: float = 0.5
 
     def __post_init__(self):
@@ -126,23 +175,56 @@ class Box:
             raise ValueError(f"max: must exceed min on every axis, got min={self.min}, max={self.max}")
         self.albedo = _albedo(self.albedo)
 
-    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.min.copy(), self.max.copy()
-
     @property
     def area(self) -> float:
         e = self.max - self.min
         return float(2 * (e[0] * e[1] + e[1] * e[2] + e[0] * e[2]))
 
+    def hit_dr(self, k, o, d):
+        return ray_box_dr(o, safe_dir(d), k.vec(self.min), k.vec(self.max))
+
+    def normal_dr(self, k, x):
+        return box_normal(x, k.vec(self.min), k.vec(self.max), k.Vec3)
+
+    def sample_dr(self, k, u1, u2, u3):
+        e = self.max - self.min
+        fa = np.array([e[1] * e[2], e[0] * e[2], e[0] * e[1]])
+        fc = np.cumsum(fa) / fa.sum()                # which axis is fixed: x, y or z
+        side = u3 * 2
+        hi_side = side >= 1
+        side = dr.select(hi_side, side - 1, side)    # reuse u3 for the axis choice
+        ax_x = side < fc[0]
+        ax_y = ~ax_x & (side < fc[1])
+        fixed = dr.select(hi_side, 1.0, 0.0)
+        # coordinates in [0, 1]^3: the fixed axis at 0 or 1, the other two from (u1, u2)
+        cx = dr.select(ax_x, fixed, u1)
+        cy = dr.select(ax_x, u1, dr.select(ax_y, fixed, u2))
+        cz = dr.select(ax_x | ax_y, u2, fixed)
+        return k.vec(self.min) + k.Vec3(cx * e[0], cy * e[1], cz * e[2])
+
+    def light_frame_extent(self, vpls, frame):
+        eu, ev, n = frame
+        a, b = self.bounds()
+        corners = np.array([[x, y, z] for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
+        d = corners[None, :, :] - vpls[:, None, :]                      # (K, 8, 3)
+        x, y, z = d @ eu, d @ ev, d @ n
+        r_lo = np.linalg.norm(np.maximum(np.maximum(a[None] - vpls, 0), vpls - b[None]), axis=1)   # to the box
+        return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)
+
+    def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = np.diag((self.max - self.min) / 2), (self.max + self.min) / 2
+        return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
+
 
 def _as_occluder(o):
-    """Accept our Sphere/Box and the package's avsm_dr.scene.OpaqueSphere/OpaqueBox."""
-    if isinstance(o, (Sphere, Box)):
+    """Accept our occluders, and the package blockers they extend (OpaqueSphere, OpaqueBox:
+    the default albedo)."""
+    if isinstance(o, Occluder):
         return o
-    if isinstance(o, OpaqueSphere):
-        return Sphere(o.center, o.radius)
-    if isinstance(o, OpaqueBox):
-        return Box(o.min, o.max)
+    for kind in Occluder.__subclasses__():
+        if type(o) in kind.__bases__:
+            return kind(*dataclasses.astuple(o))
     raise ValueError(f"occluders: expected Sphere or Box entries, got {type(o).__name__}")
 
 
@@ -184,15 +266,10 @@ class AreaLightScene:
             raise ValueError("light: the quad must lie strictly inside bounds")
         c, n = self.light.center, self.light.normal
         for i, o in enumerate(self.occluders):
-            a, b = o.aabb()
+            a, b = o.bounds()
             if not (inside(a, False) and inside(b, False)):
                 raise ValueError(f"occluders: occluder {i} extends outside bounds")
-            corners = np.array([[x, y, z] for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
-            if isinstance(o, Sphere):
-                lowest = float(np.dot(o.center - c, n)) - o.radius
-            else:
-                lowest = float(np.min((corners - c) @ n))
-            if lowest <= 0:
+            if o.light_frame_extent(c[None], (n, n, n))[4][0] <= 0:       # z_lo: lowest above the plane
                 raise ValueError(f"occluders: occluder {i} must lie strictly in front of the light plane")
 
     @property

@@ -12,8 +12,8 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..geometry import ray_box_dr, ray_sphere_dr
-from .area_scene import AreaLightScene, Sphere
+from ..geometry import ray_box_dr
+from .area_scene import AreaLightScene, safe_dir
 
 #: Surface kinds returned by :func:`camera_hits`.
 EXIT, DIFFUSE, LIGHT_FRONT, LIGHT_BACK = 0, 1, 2, 3
@@ -51,34 +51,11 @@ def kit(dtype: str = "float32") -> Kit:
     return Kit(dtype, Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
 
 
-def safe_dir(d):
-    """Replace exact zero components by a tiny value so 1 / d stays finite-signed (the
-    slab test of every ray then takes the same, non-parallel branch)."""
-    return type(d)(*[dr.select(c == 0, 1e-20, c) for c in (d.x, d.y, d.z)])
-
-
-def box_normal(x, lo, hi, Vec3):
-    """Outward normal of the box face nearest to the surface point x."""
-    c = (lo + hi) * 0.5
-    h = (hi - lo) * 0.5
-    q = (x - c) / h
-    ax, ay, az = dr.abs(q.x), dr.abs(q.y), dr.abs(q.z)
-    isx = (ax >= ay) & (ax >= az)
-    isy = ~isx & (ay >= az)
-    isz = ~isx & ~isy
-    return Vec3(dr.select(isx, dr.sign(q.x), 0), dr.select(isy, dr.sign(q.y), 0),
-                dr.select(isz, dr.sign(q.z), 0))
-
-
 def occluder_hits(scene: AreaLightScene, k: Kit, o, d):
     """Per occluder: (hit, t0, t1, occluder) for unit-direction rays o + t d."""
-    ds = safe_dir(d)
     out = []
     for occ in scene.occluders:
-        if isinstance(occ, Sphere):
-            t0, t1, h = ray_sphere_dr(o, d, k.vec(occ.center), float(occ.radius))
-        else:
-            t0, t1, h = ray_box_dr(o, ds, k.vec(occ.min), k.vec(occ.max))
+        t0, t1, h = occ.hit_dr(k, o, d)
         out.append((h, t0, t1, occ))
     return out
 
@@ -137,12 +114,7 @@ def camera_hits(scene: AreaLightScene, k: Kit) -> CameraHits:
         t_best = dr.select(m, t0, t_best)
         kind = dr.select(m, DIFFUSE, kind)
         alb = dr.select(m, float(occ.albedo), alb)
-        x = o + t0 * d
-        if isinstance(occ, Sphere):
-            nn = (x - k.vec(occ.center)) / float(occ.radius)
-        else:
-            nn = box_normal(x, k.vec(occ.min), k.vec(occ.max), Vec3)
-        nrm = dr.select(m, nn, nrm)
+        nrm = dr.select(m, occ.normal_dr(k, o + t0 * d), nrm)
 
     # -- the light quad: front side emits, back side is black ---------------------------
     L = scene.light

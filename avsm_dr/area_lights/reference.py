@@ -18,7 +18,7 @@ import math
 import drjit as dr
 import numpy as np
 
-from .area_scene import AreaLightScene, Sphere
+from .area_scene import AreaLightScene
 from ..validation import integer as check_count
 
 VARIANT = "llvm_ad_rgb"
@@ -73,13 +73,7 @@ def scene_dict(scene: AreaLightScene) -> dict:
         },
     }
     for i, o in enumerate(scene.occluders):
-        bsdf = {"type": "diffuse", "reflectance": float(o.albedo)}
-        if isinstance(o, Sphere):
-            d[f"occluder_{i}"] = {"type": "sphere", "center": o.center.tolist(), "radius": float(o.radius),
-                                  "bsdf": bsdf}
-        else:
-            d[f"occluder_{i}"] = {"type": "cube", "to_world": _affine(mi, np.diag((o.max - o.min) / 2),
-                                                                        (o.max + o.min) / 2), "bsdf": bsdf}
+        d[f"occluder_{i}"] = o.to_mitsuba(mi, {"type": "diffuse", "reflectance": float(o.albedo)})
     return d
 
 

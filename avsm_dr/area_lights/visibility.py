@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import backend
 from .geometry import Kit, occluder_hits
-from .area_scene import AreaLightScene, Sphere
+from .area_scene import AreaLightScene
 from .vpl import LightGrid
 
 FULL = 0xFFFFFFFF
@@ -112,27 +112,7 @@ def surface_points(scene: AreaLightScene, k: Kit, n: int, seed: int):
     lo_c = 0.0
     for occ, hi_c in zip(scene.occluders, cdf):
         sel = (u0 >= lo_c) & (u0 < hi_c) if hi_c < 1 else (u0 >= lo_c)
-        if isinstance(occ, Sphere):
-            z = 1 - 2 * u1
-            sxy = dr.safe_sqrt(1 - z * z)
-            phi = 2 * np.pi * u2
-            q = k.vec(occ.center) + float(occ.radius) * k.Vec3(sxy * dr.cos(phi), sxy * dr.sin(phi), z)
-        else:
-            e = occ.max - occ.min
-            fa = np.array([e[1] * e[2], e[0] * e[2], e[0] * e[1]])
-            fc = np.cumsum(fa) / fa.sum()                # which axis is fixed: x, y or z
-            side = u3 * 2
-            hi_side = side >= 1
-            side = dr.select(hi_side, side - 1, side)    # reuse u3 for the axis choice
-            ax_x = side < fc[0]
-            ax_y = ~ax_x & (side < fc[1])
-            fixed = dr.select(hi_side, 1.0, 0.0)
-            # coordinates in [0, 1]^3: the fixed axis at 0 or 1, the other two from (u1, u2)
-            cx = dr.select(ax_x, fixed, u1)
-            cy = dr.select(ax_x, u1, dr.select(ax_y, fixed, u2))
-            cz = dr.select(ax_x | ax_y, u2, fixed)
-            q = k.vec(occ.min) + k.Vec3(cx * e[0], cy * e[1], cz * e[2])
-        x = dr.select(sel, q, x)
+        x = dr.select(sel, occ.sample_dr(k, u1, u2, u3), x)
         lo_c = hi_c
     return x
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..validation import integer as check_count
-from .area_scene import AreaLightScene, QuadLight, Sphere
+from .area_scene import AreaLightScene, QuadLight
 
 
 def _radical_inverse2(i: np.ndarray) -> np.ndarray:
@@ -60,12 +60,6 @@ def sample_vpls(light: QuadLight, K: int, jitter: bool = False, seed: int = 0) -
     return light.center[None] + uv[:, :1] * light.edge_u[None] + uv[:, 1:] * light.edge_v[None]
 
 
-def _point_aabb_distance(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Distance from points (K, 3) to the box [lo, hi]."""
-    d = np.maximum(np.maximum(lo[None] - p, 0), p - hi[None])
-    return np.linalg.norm(d, axis=1)
-
-
 @dataclass(frozen=True)
 class LightGrid:
     """Per-VPL light-space grid shared by all VPLs (see the module docstring).
@@ -97,24 +91,6 @@ class LightGrid:
         return self.R * self.R
 
 
-def _light_frame_extent(o, vpls: np.ndarray, frame) -> tuple[np.ndarray, ...]:
-    """Per VPL: (x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, r_lo, r_hi) of occluder ``o`` in
-    the light frame centred at the VPL (bounds, exact for spheres along each axis)."""
-    eu, ev, n = frame
-    if isinstance(o, Sphere):
-        d = o.center[None] - vpls
-        cx, cy, cz = d @ eu, d @ ev, d @ n
-        dist = np.linalg.norm(d, axis=1)
-        r = o.radius
-        return cx - r, cx + r, cy - r, cy + r, cz - r, cz + r, np.maximum(dist - r, 0), dist + r
-    a, b = o.aabb()
-    corners = np.array([[x, y, z] for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
-    d = corners[None, :, :] - vpls[:, None, :]                         # (K, 8, 3)
-    x, y, z = d @ eu, d @ ev, d @ n
-    return (x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1),
-            _point_aabb_distance(vpls, a, b), np.linalg.norm(d, axis=2).max(axis=1))
-
-
 def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
     """Fit the frustum and depth range of every VPL's grid around all occluders.
 
@@ -129,7 +105,7 @@ def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
         return LightGrid(R, -1.0, 1.0, -1.0, 1.0, 0.0, 1.0, empty=True)
     s_lo, s_hi, t_lo, t_hi, r_lo, r_hi, z_lo = [], [], [], [], [], [], []
     for o in scene.occluders:
-        x0, x1, y0, y1, z0, z1, rl, rh = _light_frame_extent(o, vpls, frame)
+        x0, x1, y0, y1, z0, z1, rl, rh = o.light_frame_extent(vpls, frame)
         s_lo.append(np.minimum(x0 / z0, x0 / z1))
         s_hi.append(np.maximum(x1 / z0, x1 / z1))
         t_lo.append(np.minimum(y0 / z0, y0 / z1))

@@ -30,7 +30,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
-from ..scene import DirectionalLight, PointLight, Scene, SpotLight, validate_blockers
+from ..scene import Scene, check_light, validate_blockers
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
 from . import opaque as _opaque
@@ -206,8 +206,7 @@ def validate_scene(scene: Scene) -> None:
     """Checks shared by capture and ground truth; ValueError names the field."""
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
-    if not isinstance(scene.light, (DirectionalLight, SpotLight, PointLight)):
-        raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(scene.light).__name__}")
+    check_light(scene.light)
     V.points(scene.receivers, "receivers", allow_empty=True)
     if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
         raise ValueError("scene: no content (density, particles, hair or blockers)")
@@ -317,12 +316,12 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     bmin = np.array([b[0] for b in boxes])
     bmax = np.array([b[1] for b in boxes])
     light = scene.light
-    _check_range(bmin, bmax, getattr(light, "position", None), dtype)
+    pos = getattr(light, "position", None)                 # a light at a point (spot, point)
+    _check_range(bmin, bmax, pos, dtype)
     diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0
 
     # ---- the light
-    if isinstance(light, (SpotLight, PointLight)):
-        pos = light.position
+    if pos is not None:
         if grid is not None and np.all((pos >= grid.bmin) & (pos <= grid.bmax)):
             raise ValueError("light: a spot/point light inside the density grid's bbox is not supported "
                              "(move it outside the volume)")

@@ -24,6 +24,7 @@ as lit.
 from __future__ import annotations
 
 import math
+import sys
 
 import drjit as dr
 import numpy as np
@@ -404,13 +405,7 @@ def _perspective_rays(t, res: int, tan_half: float, u, v, w, position):
 
 
 def make_camera(light, res: int, bmin=None, bmax=None) -> LightCamera:
-    """The camera of ``light``: ortho fitted to boxes (N, 3) ``bmin``/``bmax`` for a
-    directional light, perspective for a spot light, a cube for a point light."""
-    from ..scene import DirectionalLight, PointLight, SpotLight
-    if isinstance(light, DirectionalLight):
-        return OrthoCamera.fit(light.direction, bmin, bmax, res)
-    if isinstance(light, SpotLight):
-        return PerspectiveCamera(light.position, light.direction, light.fov, res)
-    if isinstance(light, PointLight):
-        return CubeCamera(light.position, res)
-    raise ValueError(f"light: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+    """The camera of ``light`` (``Light.shadow_camera``): ortho fitted to boxes (N, 3)
+    ``bmin``/``bmax`` (directional), perspective (spot), a cube (point)."""
+    from ..scene import check_light
+    return check_light(light).shadow_camera(sys.modules[__name__], res, bmin, bmax)

@@ -11,28 +11,14 @@ from __future__ import annotations
 import dataclasses
 from numbers import Integral
 
-import numpy as np
-
 from .. import validation as V
-from ..scene import DirectionalLight, PointLight, SpotLight
+from ..scene import Light
 
 #: Light names a configuration takes (:func:`~avsm_dr.evaluation.lights.light_variants`).
 LIGHTS = ("dir_a", "dir_b", "spot")
 #: Host bytes per configuration while :func:`configurations` builds them (measured peak: 268),
 #: checked before allocating (seeds=10**9 used to end in a MemoryError).
 BYTES_PER_CONFIGURATION = 300
-_LIGHT_TYPES = (DirectionalLight, SpotLight, PointLight)
-
-
-def _light_label(light) -> str:
-    """Short text naming a light object: its type and direction or position."""
-    def fmt(v):
-        return "(" + ", ".join(f"{x:.3g}" for x in np.asarray(v, np.float64)) + ")"
-    if isinstance(light, DirectionalLight):
-        return f"directional{fmt(light.direction)}"
-    if isinstance(light, SpotLight):
-        return f"spot{fmt(light.position)}->{fmt(light.direction)}"
-    return f"point{fmt(light.position)}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,14 +32,14 @@ class Configuration:
         object.__setattr__(self, "seed", V.integer(self.seed, "seed", 0))
         if isinstance(self.light, str):
             V.one_of(self.light, "light", LIGHTS)
-        elif not isinstance(self.light, _LIGHT_TYPES):
+        elif not isinstance(self.light, Light):
             raise ValueError(f"light: expected one of {LIGHTS} or a DirectionalLight, SpotLight or PointLight, "
                              f"got {self.light!r}")
 
     @property
     def light_label(self) -> str:
         """The light's name, or a short description of a light object."""
-        return self.light if isinstance(self.light, str) else _light_label(self.light)
+        return self.light if isinstance(self.light, str) else self.light.label()
 
     @property
     def label(self) -> str:
@@ -77,12 +63,12 @@ def configurations(seeds=1, lights=("dir_a",)) -> list[Configuration]:
     (or one of them)."""
     if isinstance(seeds, Integral) and not isinstance(seeds, bool):
         seeds = range(V.integer(seeds, "seeds", 1))
-        n_lights = 1 if isinstance(lights, (str, *_LIGHT_TYPES)) else len(lights) if hasattr(lights, "__len__") else 1
+        n_lights = 1 if isinstance(lights, (str, Light)) else len(lights) if hasattr(lights, "__len__") else 1
         V.check_memory("seeds", len(seeds), lambda n: float(n) * max(n_lights, 1) * BYTES_PER_CONFIGURATION,
                        lo=1, what="configurations")
     elif isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
         raise ValueError(f"seeds: expected a count or a sequence of seeds, got {seeds!r}")
-    if isinstance(lights, (str, *_LIGHT_TYPES)):
+    if isinstance(lights, (str, Light)):
         lights = [lights]
     seeds, lights = list(seeds), list(lights)
     if not seeds:

@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import validation as V
 from ..geometry import ray_box
-from ..scene import DirectionalLight, PointLight, Scene, SpotLight, validate_blockers
+from ..scene import Scene, check_light, validate_blockers
 from .media import check_grid
 
 #: Upper bound on NumPy (receiver, particle) pair tests per chunk (host memory).
@@ -43,9 +43,7 @@ def check_scene(scene) -> dict:
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
-    if not isinstance(scene.light, (DirectionalLight, SpotLight, PointLight)):
-        raise ValueError(f"scene.light: expected DirectionalLight, SpotLight or PointLight, "
-                         f"got {type(scene.light).__name__}")
+    check_light(scene.light, "scene.light")
     out: dict[str, Any] = {
         "grid": None,
         "particles": None if scene.particles is None else scene.particles.validate(),
@@ -92,32 +90,13 @@ def light_paths(scene: Scene, points) -> tuple[np.ndarray, np.ndarray, np.ndarra
     light side of the content's bounding sphere (L = 0 when x is beyond it).
     """
     content = check_scene(scene)
-    return paths(scene, V.points(points), content)
-
-
-def paths(scene, p, content):
-    """:func:`light_paths` for checked points ``p`` and content."""
-    light = scene.light
-    if isinstance(light, DirectionalLight):
-        w = light.direction
-        c, R = content_sphere(content)
-        L = np.maximum((p - c) @ w + R, 0.0) * (1 + 1e-9) + 1e-9 * (1 + R)
-        d = np.broadcast_to(w, p.shape).copy()
-        o = p - L[:, None] * d
-    else:
-        o = np.broadcast_to(light.position, p.shape).astype(np.float64)
-        v = p - o
-        L = np.linalg.norm(v, axis=1)
-        d = np.where(L[:, None] > 0, v / np.where(L > 0, L, 1.0)[:, None], np.array([0.0, 0.0, 1.0]))
-    return o, d, L
+    return scene.light.paths(V.points(points), *content_sphere(content))
 
 
 def to_light(light, p):
-    """(K, 3) unit directions from points ``p`` (K, 3) towards the light."""
-    if isinstance(light, DirectionalLight):
-        return np.broadcast_to(-light.direction, p.shape).copy()
-    v = light.position - p
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+    """(K, 3) unit directions from points ``p`` (K, 3) towards the light (a new C-contiguous
+    array: NumPy's products then take the same path for every light)."""
+    return np.ascontiguousarray(light.directions_to(p))
 
 
 def scene_scale(content, scene, p) -> float:
@@ -135,7 +114,7 @@ def blocked(scene: Scene, points) -> np.ndarray:
     """(K,) True where an opaque blocker lies between the light and the point."""
     content = check_scene(scene)
     p = V.points(points)
-    o, d, L = paths(scene, p, content)
+    o, d, L = scene.light.paths(p, *content_sphere(content))
     return blocked_paths(content["blockers"], o, d, L, EPS_REL * scene_scale(content, scene, p))
 
 

@@ -2,8 +2,10 @@
 
 :func:`render_reference` renders with ``volpath``; :mod:`avsm_dr.shading` draws the same
 plane from the same camera (:func:`camera_rays`, Mitsuba's own sensor) with shadows
-from any representation, so the two images compare pixel by pixel.  A camera is a dict
-``(origin, target, up, fov)`` (fov in degrees along x); :func:`default_camera` picks one.
+from any representation, so the two images compare pixel by pixel.  A camera is an
+:class:`avsm_dr.camera.PinholeCamera` (the package's one camera model) or, as before, a dict
+``(origin, target, up, fov)`` (fov in degrees along x, :meth:`PinholeCamera.of`);
+:func:`default_camera` picks one.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import numpy as np
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera
 from ..geometry import check_bbox, orthonormal_basis, ray_box
-from ..scene import DirectionalLight, Scene, SpotLight, square_to_world
+from ..scene import Scene, square_to_world
 from .content import check_scene, to_light
 from .media import check_grid, medium_dict, mitsuba
 from .tracking import default_step, march
@@ -39,7 +41,8 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
     0.05 per radian away from v0 (prefer frontal views).  The distance frames the square
     with a 15 % margin (``distance`` overrides); a camera inside the volume's box is
     moved out along v with the fov narrowed to keep the framing.
-    Returns dict(origin, target, up, fov) (fov in degrees along x).
+    Returns dict(origin, target, up, fov) (fov in degrees along x): the keyword arguments of
+    a :class:`~avsm_dr.camera.PinholeCamera` (:meth:`~avsm_dr.camera.PinholeCamera.of`).
     """
     fov = V.real(fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
     if distance is not None:
@@ -120,30 +123,26 @@ def receiver_plane(scene) -> tuple[np.ndarray, np.ndarray, float]:
 PLANE_OFFSET = 1e-5
 
 
-def receiver_plane_for(scene: Scene, camera: dict) -> tuple[np.ndarray, np.ndarray, float]:
+def receiver_plane_for(scene: Scene, camera) -> tuple[np.ndarray, np.ndarray, float]:
     """(centre, normal facing the camera, half size) of the receiver plane as both renderers
-    draw it: moved ``PLANE_OFFSET * max(1, half)`` towards the camera."""
+    draw it: moved ``PLANE_OFFSET * max(1, half)`` towards the camera (a
+    :class:`~avsm_dr.camera.PinholeCamera` or a camera dict)."""
     c, n, half = receiver_plane(scene)
-    if (camera["origin"] - c) @ n < 0:
+    if (PinholeCamera.of(camera).origin - c) @ n < 0:
         n = -n
     return c + PLANE_OFFSET * max(1.0, half) * n, n, half
 
 
-def check_camera(scene, camera) -> dict:
-    """Validated camera dict (origin, target, up, fov) of ``camera`` (a dict or a
-    :class:`~avsm_dr.camera.PinholeCamera`; fov 40 when a dict has none); the default view
-    when ``camera`` is None.  ValueError names ``camera`` or ``camera.<field>``."""
-    cam = PinholeCamera.of(default_camera(scene) if camera is None else camera).as_dict()
+def check_camera(scene, camera, width: int = 32, height: int = 32) -> PinholeCamera:
+    """The :class:`~avsm_dr.camera.PinholeCamera` of ``camera`` (a PinholeCamera or a dict
+    (origin, target, up[, fov]), fov 40 when a dict has none; the default view when None) with
+    ``width x height`` pixels, checked.  ValueError names ``camera`` or ``camera.<field>``."""
+    cam = PinholeCamera.of(default_camera(scene) if camera is None else camera, width=width, height=height)
     if scene.density is not None and scene.bbox is not None:
         lo, hi = check_bbox(scene.bbox)
-        if np.all(cam["origin"] >= lo) and np.all(cam["origin"] <= hi):
+        if np.all(cam.origin >= lo) and np.all(cam.origin <= hi):
             raise ValueError("camera: origin lies inside the volume's box (unsupported)")
     return cam
-
-
-def _sensor_dict(mi, cam, width, height, spp):
-    """Mitsuba ``perspective`` sensor of a checked camera (:meth:`PinholeCamera.sensor_dict`)."""
-    return PinholeCamera.of(cam, width=width, height=height).sensor_dict(mi, spp)
 
 
 def camera_rays(scene: Scene, width: int, height: int, camera=None, supersample: int = 1):
@@ -153,9 +152,8 @@ def camera_rays(scene: Scene, width: int, height: int, camera=None, supersample:
     s = V.integer(supersample, "supersample", 1)
     if width * height * s * s > MAX_RAYS:
         raise ValueError(f"supersample: {width} x {height} pixels x {s}^2 rays exceed {MAX_RAYS} (2^24)")
-    cam = check_camera(scene, camera)
     mi = mitsuba()
-    sensor = mi.load_dict(_sensor_dict(mi, cam, width, height, 1))
+    sensor = mi.load_dict(check_camera(scene, camera, width, height).sensor_dict(mi, 1))
     y, x, sy, sx = np.meshgrid(np.arange(height), np.arange(width), np.arange(s), np.arange(s),
                                indexing="ij")
     u = ((x + (sx + 0.5) / s) / width).ravel()
@@ -173,29 +171,8 @@ def check_size(width, height) -> tuple[int, int]:
     return V.integer(width, "width", 1, MAX_SIDE), V.integer(height, "height", 1, MAX_SIDE)
 
 
-def _emitter_dict(mi, light):
-    if isinstance(light, DirectionalLight):
-        return {"type": "directional", "direction": light.direction.tolist(),
-                "irradiance": {"type": "rgb", "value": [float(light.irradiance)] * 3}}
-    if isinstance(light, SpotLight):
-        pos = light.position
-        up = orthonormal_basis(light.direction)[1]
-        return {"type": "spot", "cutoff_angle": light.fov / 2, "beam_width": spot_beam_width(light),
-                "intensity": {"type": "rgb", "value": [float(light.intensity)] * 3},
-                "to_world": mi.ScalarTransform4f().look_at(origin=pos.tolist(),
-                                                           target=(pos + light.direction).tolist(),
-                                                           up=up.tolist())}
-    return {"type": "point", "position": light.position.tolist(),
-            "intensity": {"type": "rgb", "value": [float(light.intensity)] * 3}}
-
-
-def spot_beam_width(light: SpotLight) -> float:
-    """Full-intensity half angle (degrees) of a spot: 3/4 of the cutoff fov / 2 (Mitsuba's default)."""
-    return 0.75 * light.fov / 2
-
-
 def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int = 64,
-                     camera: dict | None = None, albedo: float = 0.0, reflectance: float = 1.0,
+                     camera=None, albedo: float = 0.0, reflectance: float = 1.0,
                      max_depth: int = 2, seed: int = 0) -> np.ndarray:
     """Mitsuba ``volpath`` image (height, width) float64 of the volume and the receiver plane.
 
@@ -205,10 +182,10 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
     ``scene.bbox``; blockers: black (reflectance 0) spheres, cubes and rectangles, so they
     cast shadows but reflect nothing.  Light: 'directional' / 'spot' / 'point' with the
     scene light's irradiance / intensity.  Camera: :func:`default_camera` unless given
-    (dict origin, target, up, fov).  Box pixel filter; ``max_depth = 2`` is direct
-    lighting (single scattering in the medium when albedo > 0).  Returns the red channel
-    (all channels are equal: everything is grey).  Particles and hair are not rendered
-    (ValueError).
+    (a :class:`~avsm_dr.camera.PinholeCamera` or a dict origin, target, up, fov).  Box pixel
+    filter; ``max_depth = 2`` is direct lighting (single scattering in the medium when
+    albedo > 0).  Returns the red channel (all channels are equal: everything is grey).
+    Particles and hair are not rendered (ValueError).
     """
     content = check_scene(scene)
     width, height = check_size(width, height)
@@ -223,15 +200,15 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
     reflectance = V.real(reflectance, "reflectance", 0.0)
     max_depth = V.integer(max_depth, "max_depth", 1)
     seed = V.integer(seed, "seed", 0)
-    cam = check_camera(scene, camera)
+    cam = check_camera(scene, camera, width, height)
     mi = mitsuba()
     c, n, half = receiver_plane_for(scene, cam)
     black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
     d: dict[str, Any] = {
         "type": "scene",
         "integrator": {"type": "volpath", "max_depth": int(max_depth)},
-        "sensor": _sensor_dict(mi, cam, width, height, spp),
-        "light": _emitter_dict(mi, scene.light),
+        "sensor": cam.sensor_dict(mi, spp),
+        "light": scene.light.to_mitsuba(mi),
         "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f(square_to_world(c, n, half)),
                   "bsdf": {"type": "twosided", "bsdf": {
                       "type": "diffuse", "reflectance": {"type": "rgb", "value": [float(reflectance)] * 3}}}},

@@ -31,7 +31,7 @@ import numpy as np
 from .. import validation as V
 from ..geometry import ray_box
 from ..scene import Scene
-from .content import EPS_REL, blocked_paths, check_scene, hair_tau, particles_tau, paths, scene_scale
+from .content import EPS_REL, blocked_paths, check_scene, content_sphere, hair_tau, particles_tau, scene_scale
 from .media import check_grid, medium_dict, mitsuba, sample_grid
 
 METHODS = ("ratio_tracking", "raymarch")
@@ -219,7 +219,7 @@ def transmittance(scene: Scene, points, spp: int = 256, seed: int = 0, method: s
     f = V.real(majorant_factor, "majorant_factor", 1.0)
     if step is not None:
         step = V.real(step, "step", 0.0, open_min=True)
-    o, d, L = paths(scene, p, content)
+    o, d, L = scene.light.paths(p, *content_sphere(content))
     K = p.shape[0]
     mean, se = np.ones(K), np.zeros(K)
     if content["grid"] is not None:
