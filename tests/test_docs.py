@@ -230,3 +230,31 @@ def test_built_html_has_no_stray_quotes_or_broken_cells():
     sizes = {str(p.relative_to(HTML)): p.stat().st_size for p in HTML.rglob("*.html")}
     big = {p: n for p, n in sizes.items() if n > MAX_PAGE_BYTES}
     assert not big, f"pages above {MAX_PAGE_BYTES} bytes: {big}"
+
+
+def test_numbers_on_pages_come_from_the_committed_data():
+    """The ``{claim}``, ``{measured}`` and ``{runtime}`` roles read docs/data: a claim gives its
+    estimate and interval (receiver RMSE or depth L2), an unknown claim or setting fails the
+    build instead of printing a stale number; the claims table lists every claim with its
+    order, preset and both metrics."""
+    ext = _ext()
+    rows = [dict(name="c1", scene="plume", statement="A | B", order="depth", at_preset="False", estimate="0.1812",
+                 low="0.17", high="0.193", depth_l2_estimate="0.5", depth_l2_low="0.4", depth_l2_high="0.61",
+                 n_configs="10", indicative="False", metric_dependent="False", verdict="holds pooled")]
+    claims = {r["name"]: r for r in rows}
+    assert ext.claim_text("c1", claims) == "0.18 [0.17, 0.19]"
+    assert ext.claim_text("c1:depth_l2", claims) == "0.5 [0.4, 0.61]"
+    assert ext.claim_text("c1:configs", claims) == "10" and ext.claim_text("c1:verdict", claims) == "holds pooled"
+    for bad in ("c2", "c1:nonsense"):
+        with pytest.raises(KeyError):
+            ext.claim_text(bad, claims)
+    table = ext.claims_table(rows)
+    assert "| A / B (`c1`) | plume | depth | no | 0.18 [0.17, 0.19] | 0.5 [0.4, 0.61] | 10 | holds pooled |" in table
+    settings = [dict(scene="plume", setting="avsm-8", rmse="0.01234")]
+    assert ext.measured_text("plume:avsm-8:rmse", settings) == "0.012"
+    with pytest.raises(KeyError):
+        ext.measured_text("plume:avsm-9:rmse", settings)
+    committed = {r["name"] for r in ext.read_rows("error_claims.csv")}
+    pages = "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
+    quoted = set(re.findall(r"\{claim\}`([^`:]+)", pages))
+    assert quoted <= committed, sorted(quoted - committed)

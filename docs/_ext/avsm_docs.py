@@ -245,9 +245,11 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
                 w.writerow(row)
         written.append(out / "error_claims.csv")
         meta = json.loads((results / "error_curves" / "meta.json").read_text())
-        (out / "error_curves_meta.json").write_text(json.dumps(
-            {k: meta[k] for k in ("experiment", "params", "git_commit", "drjit", "mitsuba", "numpy", "backend",
-                                  "machine", "processor", "cpus") if k in meta}, indent=1, default=str) + "\n")
+        kept = {k: meta[k] for k in ("experiment", "params", "git_commit", "drjit", "mitsuba", "numpy", "backend",
+                                     "machine", "processor", "cpus") if k in meta}
+        found = json.loads((results / "error_curves" / "findings.json").read_text())
+        kept["run_seconds"] = found.get("run_seconds")
+        (out / "error_curves_meta.json").write_text(json.dumps(kept, indent=1, default=str) + "\n")
         written.append(out / "error_curves_meta.json")
     src = results / "bench" / "data.csv"
     if src.exists():
@@ -547,6 +549,7 @@ def generate(gen: Path = GEN) -> list[str]:
         _write(gen / "representations" / f"{kind}.md",
                kind_page(kind, sweep, settings, bench, f"{kind}_error.png" if kind in figures else None) + "\n")
     _write(gen / "fragments" / "choosing_table.md", choosing_table(sweep) + "\n")
+    _write(gen / "fragments" / "claims_table.md", claims_table() + "\n")
     _write(gen / "fragments" / "experiments_table.md", experiments_table() + "\n")
     integrations, research = joined_pages_toctrees()
     _write(gen / "fragments" / "integrations_toctree.md", integrations + "\n")
@@ -558,7 +561,8 @@ def generate(gen: Path = GEN) -> list[str]:
     written = {gen / "representations" / "error_figures.stamp", *convert_notebooks(gen / "notebooks"),
                *(gen / "representations" / f"{k}_error.png" for k in figures),
                *(gen / "representations" / f"{k}.md" for k in kinds),
-               *(gen / "fragments" / f"{n}.md" for n in ("kinds_table", "choosing_table", "experiments_table",
+               *(gen / "fragments" / f"{n}.md" for n in ("kinds_table", "choosing_table", "claims_table",
+                                                         "experiments_table",
                                                          "integrations_toctree", "research_toctree")),
                *(gen / path for path in api), gen / "recipes.md"}
     for stale in [p for p in gen.rglob("*") if p.is_file() and p not in written]:
@@ -596,6 +600,85 @@ def plain_docstring_to_rst(lines: list[str]) -> list[str]:
     return out
 
 
+# ============================================================ numbers from the data
+def claim_text(spec: str, claims=None) -> str:
+    """The text of the ``{claim}`` role: ``ID`` -> ``0.18 [0.17, 0.19]`` (receiver RMSE ratio or
+    difference, 95 % interval over configurations), ``ID:depth_l2`` the same on the
+    depth-uniform L2, ``ID:verdict``, ``ID:configs`` (number of configurations), ``ID:a`` /
+    ``ID:b`` nothing else.  KeyError for an unknown claim or field (the build fails: no page
+    quotes a number that is not in ``docs/data/error_claims.csv``)."""
+    claims = {r["name"]: r for r in read_rows("error_claims.csv")} if claims is None else claims
+    cid, _, field = spec.partition(":")
+    if cid not in claims:
+        raise KeyError(f"claim {cid!r} is not in docs/data/error_claims.csv")
+    c = claims[cid]
+    if field in ("", "depth_l2"):
+        pre = "" if not field else "depth_l2_"
+        est, lo, hi = (_num(c[f"{pre}{k}"]) for k in ("estimate", "low", "high"))
+        if not math.isfinite(est):
+            raise KeyError(f"claim {cid!r} has no {field or 'receiver RMSE'} estimate")
+        return f"{est:.2g} [{lo:.2g}, {hi:.2g}]" if math.isfinite(lo) else f"{est:.2g}"
+    if field == "verdict":
+        return c["verdict"]
+    if field == "configs":
+        return c["n_configs"]
+    raise KeyError(f"claim {cid!r}: unknown field {field!r} (depth_l2, verdict, configs)")
+
+
+def measured_text(spec: str, settings=None) -> str:
+    """The text of the ``{measured}`` role: ``scene:setting:column`` -> the median over
+    configurations in ``docs/data/error_settings.csv`` (2 significant digits)."""
+    settings = read_rows("error_settings.csv") if settings is None else settings
+    scene, setting, column = spec.split(":")
+    for r in settings:
+        if r["scene"] == scene and r["setting"] == setting:
+            return _g(_num(r[column]))
+    raise KeyError(f"no setting {setting!r} on {scene!r} in docs/data/error_settings.csv")
+
+
+def runtime_text(spec: str) -> str:
+    """The text of the ``{runtime}`` role: ``error_curves`` -> the committed run's time
+    (``run_seconds`` of ``docs/data/error_curves_meta.json``), e.g. ``23 min``, and its mode."""
+    path = DATA / f"{spec}_meta.json"
+    if not path.exists():
+        raise KeyError(f"no docs/data/{spec}_meta.json")
+    meta = json.loads(path.read_text())
+    sec = meta.get("run_seconds")
+    if not sec:
+        raise KeyError(f"docs/data/{spec}_meta.json records no run_seconds")
+    return f"{sec / 60:.0f} min" if sec >= 90 else f"{sec:.0f} s"
+
+
+def _data_role(fn):
+    def role(name, rawtext, text, lineno, inliner, options=None, content=()):
+        from docutils import nodes
+        try:
+            return [nodes.Text(fn(text))], []
+        except (KeyError, ValueError) as exc:
+            msg = inliner.reporter.error(f"{name}: {exc}", line=lineno)
+            return [inliner.problematic(rawtext, rawtext, msg)], [msg]
+    return role
+
+
+def claims_table(rows=None) -> str:
+    """Markdown table of every claim in ``docs/data/error_claims.csv``: statement, order, whether
+    both sides are at their presets, both metrics with intervals, configurations, verdict."""
+    rows = read_rows("error_claims.csv") if rows is None else rows
+    if not rows:
+        return "*(no claims in `docs/data/error_claims.csv`)*"
+    out = ["| claim | scene | order | at presets | receiver RMSE ratio [95 %] | depth-L2 ratio [95 %] "
+           "| configs | verdict |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    claims = {r["name"]: r for r in rows}
+    for r in rows:
+        l2 = claim_text(r["name"] + ":depth_l2", claims) if math.isfinite(_num(r.get("depth_l2_estimate"))) else "-"
+        est = claim_text(r["name"], claims) if math.isfinite(_num(r["estimate"])) else "-"
+        statement = r["statement"].replace("|", "/")
+        out.append(f"| {statement} (`{r['name']}`) | {r['scene']} | {r.get('order', '-')} | "
+                   f"{'yes' if r.get('at_preset') == 'True' else 'no'} | {est} | {l2} | {r['n_configs']} "
+                   f"| {r['verdict']} |")
+    return "\n".join(out)
+
+
 def _on_docstring(app, what, name, obj, options, lines):
     lines[:] = plain_docstring_to_rst(lines)
 
@@ -607,6 +690,9 @@ def _on_builder_inited(app):
 def setup(app):
     """Sphinx entry point."""
     app.connect("builder-inited", _on_builder_inited)
+    app.add_role("claim", _data_role(claim_text))
+    app.add_role("measured", _data_role(measured_text))
+    app.add_role("runtime", _data_role(runtime_text))
     app.connect("autodoc-process-docstring", _on_docstring, priority=600)   # after napoleon (500)
     return {"version": "1", "parallel_read_safe": True, "parallel_write_safe": True}
 
