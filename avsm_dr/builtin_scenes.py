@@ -347,4 +347,9 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
                  meta={"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
 
 
-SCENES.update(procedural.SCENES)
+#: Content of the procedural scenes (:mod:`.procedural`): Gaussian blobs are particles (nested
+#: spheres in draw order), the others density grids.
+PROCEDURAL_CONTENT = {"cumulus": ("grid",), "fog_bank": ("grid",), "gaussian_blobs": ("particles",),
+                      "tall_column": ("grid",)}
+for _name, _factory in procedural.SCENES.items():
+    SCENES.register(_factory, name=_name, content=PROCEDURAL_CONTENT[_name])

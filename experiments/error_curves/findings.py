@@ -40,7 +40,9 @@ from avsm_dr.builtin_scenes import SCENES
 from .labels import ORDERS, label, order_dependent, with_size
 
 #: Every scene ``error_curves`` can run (claims about scenes not run are left out).
-SCENE_NAMES = SCENES.names(tag="core")      # the scenes of the study, registration order
+#: The scenes of the study, registration order: every built-in scene (the six core ones and
+#: the new content types: cumulus, fog bank, Gaussian blobs, tall smoke column).
+SCENE_NAMES = SCENES.names()
 #: Moment variants and the FOM of the same bytes (float32): 5, 7 and 9 stored floats.
 MOMENTS_VS_FOM = (("moments-4", "fom-2"), ("moments-2/family=trigonometric", "fom-2"),
                   ("moments-6", "fom-3"), ("moments-3/family=trigonometric", "fom-3"),
@@ -268,6 +270,12 @@ def summary_lines(findings: dict) -> dict:
     return out
 
 
+def _content(scene: str) -> list[str]:
+    """The scene's content types (``SCENES.entry(name).content``: grid, particles, hair,
+    blockers); empty for a scene that is not registered."""
+    return list(SCENES.entry(scene).content) if scene in SCENES else []
+
+
 def _order(side) -> str:
     kind = _kind(side["variant"])
     return side.get("order", "depth") if kind in kinds() and order_dependent(kind) else "-"
@@ -322,7 +330,7 @@ def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_
     out = {k: r[k] for k in ("estimate", "low", "high", "level", "below", "compare", "statistic", "n_configs",
                              "holds_in_every_configuration", "holds_pooled")}
     out.update(statement=spec["statement"] + _preset_note(spec, separate),
-               scene=spec["scene"], a=spec["a"], b=spec["b"], per_config=per,
+               scene=spec["scene"], content=_content(spec["scene"]), a=spec["a"], b=spec["b"], per_config=per,
                receivers_per_config=int(np.median([x.size for x in a_all])), verdict=_verdict(r),
                indicative=r["n_configs"] < MIN_CONFIDENT, interval_unit="configuration",
                within_configuration="8x8 texel blocks" if blk is not None else "receivers",
