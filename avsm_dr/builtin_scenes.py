@@ -347,9 +347,5 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
                  meta={"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
 
 
-#: Content of the procedural scenes (:mod:`.procedural`): Gaussian blobs are particles (nested
-#: spheres in draw order), the others density grids.
-PROCEDURAL_CONTENT = {"cumulus": ("grid",), "fog_bank": ("grid",), "gaussian_blobs": ("particles",),
-                      "tall_column": ("grid",)}
-for _name, _factory in procedural.SCENES.items():
-    SCENES.register(_factory, name=_name, content=PROCEDURAL_CONTENT[_name])
+for _name, _factory in procedural.SCENES.items():    # grids; Gaussian blobs are particles (nested spheres)
+    SCENES.register(_factory, name=_name, content=("particles",) if _name == "gaussian_blobs" else ("grid",))

@@ -41,6 +41,9 @@ STATISTICS: dict[str, Callable] = {
     "p99": lambda x, axis: np.percentile(np.abs(x), 99.0, axis=axis),
     "max": lambda x, axis: np.max(np.abs(x), axis=axis),
 }
+#: Statistics ``post(mean(pre(x)))``: block-bootstrap replicates from per-block sums.
+_MEAN_OF = {STATISTICS["mean"]: (None, None), STATISTICS["rmse"]: (np.square, np.sqrt),
+            STATISTICS["mean_abs"]: (np.abs, None)}
 METHODS = ("percentile", "bca")
 #: Bound on the entries of one (replicates x samples) index block (host memory).
 _BLOCK = 1 << 24
@@ -122,6 +125,17 @@ def _block_replicates(fn: Callable, layout, n_boot: int, rng) -> np.ndarray:
         first = np.repeat(starts[picks[r]] - np.r_[0, np.cumsum(lens)[:-1]], lens)
         out[r] = fn(members[first + np.arange(lens.sum())][None, :])[0]
     return out
+
+
+def _block_mean_replicates(x, y, pre_post, compare, layout, n_boot: int, rng):
+    """(replicates, how many have stat(a) < stat(b)) of :func:`_block_replicates` (same draws)
+    for ``post(mean(pre(v)))``, from per-block sums instead of each replicate's indices."""
+    (pre, post), (members, starts, counts) = pre_post, layout
+    picks = rng.integers(0, counts.size, size=(n_boot, counts.size))
+    n = counts[picks].sum(axis=1).astype(np.float64)
+    m = [np.add.reduceat((v if pre is None else pre(v))[members], starts)[picks].sum(axis=1) / n for v in (x, y)]
+    sa, sb = m if post is None else (post(m[0]), post(m[1]))
+    return _compare(sa, sb, compare), int(np.count_nonzero(sa < sb))
 
 
 def _jackknife(fn: Callable, n: int) -> np.ndarray:
@@ -226,7 +240,11 @@ def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
         sa, sb = f(x[idx], axis=1), f(y[idx], axis=1)
         smaller.append(np.count_nonzero(sa < sb))
         return _compare(sa, sb, compare)
-    boot = _replicates(rep, x.size, n_boot, rng) if layout is None else _block_replicates(rep, layout, n_boot, rng)
+    if layout is not None and f in _MEAN_OF:
+        boot, count = _block_mean_replicates(x, y, _MEAN_OF[f], compare, layout, n_boot, rng)
+        smaller.append(count)
+    else:
+        boot = _replicates(rep, x.size, n_boot, rng) if layout is None else _block_replicates(rep, layout, n_boot, rng)
     sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])
     jack = lambda: _jackknife(lambda idx: _compare(f(x[idx], axis=1), f(y[idx], axis=1), compare),  # noqa: E731
                               x.size)

@@ -1,6 +1,5 @@
 """Texel rays of a grid capture: the rays of a light's camera that meet a grid's occupied box
-(host :func:`lane_rays`, device :func:`hit_lanes`) and the brick keys of the ``"submission"``
-order (:func:`brick_keys`).
+(:func:`hit_lanes`) and the brick keys of the ``"submission"`` order (:func:`brick_keys`).
 """
 from __future__ import annotations
 
@@ -9,19 +8,9 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..geometry import ray_box, ray_box_dr
+from ..geometry import ray_box_dr
 from .assembly import TexelRuns
 from ._grid_volume import GridVolume
-
-
-def lane_rays(grid: GridVolume, camera):
-    """Texels whose ray meets the occupied part of ``grid`` (ascending) and their rays, clipped:
-    (texels (L,) int64, origins (L, 3), unit directions (L, 3), t_in (L,), t_out (L,)), float64."""
-    lo_occ, hi_occ = grid.occupied
-    _, cand = camera.footprint(lo_occ[None], hi_occ[None])     # one box: distinct, ascending texels
-    o, d = camera.rays(cand)
-    t_in, t_out, hit = ray_box(o, d, lo_occ, hi_occ, t_min=0.0)
-    return cand[hit], o[hit], d[hit], t_in[hit], t_out[hit]
 
 
 def candidate_texels(camera, lo, hi):
@@ -41,7 +30,7 @@ def candidate_texels(camera, lo, hi):
 
 
 def hit_lanes(grid: GridVolume, camera, per_lane=None):
-    """The lanes of :func:`lane_rays` on the device: (texels UInt32 ascending, origins,
+    """The texels whose ray meets the occupied box: (texels UInt32 ascending, origins,
     directions (lists of three Float64), t_in, t_out (Float64), extra) of the rays that meet
     the occupied box.  One kernel makes, clips and tests every candidate ray (and evaluates
     ``per_lane(o, d, t_in, t_out)``, a UInt32 per ray, returned as ``extra`` for the hit

@@ -121,8 +121,8 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         recompute tau from differentiable gathers (default: when the grid's
         data has gradients enabled).
     lanes_rays
-        host (texels, o, d, t_in, t_out) as :func:`~avsm_dr.capture.grid.lane_rays`
-        gives; default: the rays are made, clipped and compacted on the device
+        host (texels, o, d, t_in, t_out) float64 arrays of the rays meeting the box;
+        default: the rays are made, clipped and compacted on the device
         (:func:`~avsm_dr.capture.grid.hit_lanes`).
     capacity
         segments a lane writes per round (see :data:`ROUND_CAPACITY`).

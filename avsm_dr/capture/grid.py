@@ -19,9 +19,8 @@ emit nothing.  A ray stops once its accumulated optical depth exceeds
 ``-ln(epsilon)`` (transmittance below ``epsilon``).
 
 Rays: made, clipped to the occupied box and compacted to the hitting lanes on the device
-in float64 (:func:`hit_lanes`; the same formulas as the host's :func:`lane_rays`, no
-per-ray host array).  Variable output per lane: one pass writes each lane's segments into
-its own slots (a bound of its segments: steps plus block faces crossed), then
+in float64 (:func:`hit_lanes`, no per-ray host array).  Variable output per lane: one pass
+writes each lane's segments into its own slots (a bound of its segments: steps plus block faces crossed), then
 :func:`compact_slots` gathers the filled slots into CSR order; if the slots would exceed
 :data:`MARCH_SLOT_BUDGET` or a lane fills them, the loop runs twice instead, first
 counting segments per lane, then writing them at the prefix-sum offsets.  The two
@@ -54,7 +53,7 @@ from .dual_cells import corner_table
 # the grid, the texel rays and the slot buffers live in private modules; their public names
 # are re-exported here, their old home
 from ._grid_volume import GridVolume, MarchKernel, block_max  # noqa: F401
-from ._grid_rays import SUBMISSION_BRICK, brick_keys, candidate_texels, hit_lanes, lane_rays  # noqa: F401
+from ._grid_rays import SUBMISSION_BRICK, brick_keys, candidate_texels, hit_lanes  # noqa: F401
 from ._grid_slots import PACKET_SLOTS, compact_slots, new_slots, read_slots, write_slots  # noqa: F401
 
 

@@ -114,10 +114,9 @@ def _counted(segments, tex, a, b, n) -> np.ndarray:
 
 
 def depth_grid(segments, n_depths: int = DEPTHS, texels=None):
-    """The grid :func:`depth_l2` measures on: ``(texels, depths, counted)`` with the T'
-    texels counted (increasing), their (T', n_depths) midpoints ``z_tj`` and the (T',
-    n_depths) bool mask of the midpoints counted (not strictly inside an opaque segment);
-    rows in the order of :func:`curve_values` and of ``depth_l2(..., per_texel=True)``."""
+    """The grid :func:`depth_l2` measures on: ``(texels, depths, counted)``, the T' texels
+    counted (increasing, the rows of :func:`curve_values` and ``depth_l2(per_texel=True)``),
+    their (T', n_depths) midpoints and the bool mask of those not inside an opaque segment."""
     from ..segments import Segments
     if not isinstance(segments, Segments):
         raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")

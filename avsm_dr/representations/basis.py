@@ -88,7 +88,6 @@ from .schema import Param, Schema, depth_range_param, far_param, near_param
 #: span 1, and any range shorter than 1e-30, to many times its length: T = 1 almost everywhere.
 MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
 MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
-DEPTH_RANGES = ("global", "texel")
 #: (item, coefficient) lanes per kernel on the indexed path.
 LANES_PER_BATCH = 1 << 22
 #: Most coefficients per texel, the bound of every size parameter (n, harmonics, slices):
