@@ -37,7 +37,8 @@ bilinear lookups through :class:`avsm_dr.evaluation.Probe`):
 * ``ratio_to_free``: depth L2 (RMS over ``free_texels`` texels sampled per configuration
   and N, seeded) over the free-vertex optimum's on the same texels (:mod:`._free_vertex`:
   N nodes free in depth and value, refined from optimal's; a local optimum, float64), so
-  optimal's own row gives the best subset's gap to the free-vertex optimum.
+  optimal's own row gives the best subset's gap to the free-vertex optimum (for N in
+  ``free_nodes`` only: about 0.5 s per texel; NaN otherwise).
 
 ``findings.json``: per scene and N, for every kind and order the geometric mean over
 configurations of both ratios to optimal with a 95 % bootstrap interval whose unit is the
@@ -92,7 +93,7 @@ PANELS_PER_ROW = 5
 #: Parameters of the full and the quick run (``scenes=None``: every built-in scene).
 FULL = dict(scenes=None, resolution=128, nodes=[4, 8, 16],
             configs=[[s, light] for s in range(5) for light in ("dir_a", "dir_b")],
-            n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7, free_texels=48)
+            n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7, free_texels=16, free_nodes=[8])
 QUICK = dict(FULL, scenes=["three_columns", "plume"], resolution=64, nodes=[8], configs=[[0, "dir_a"], [1, "dir_b"]],
              n_volume=256, n_boot=500, free_texels=12)
 #: Default interleaved builds per AVSM insertion method, order and N (the least time counts).
@@ -180,6 +181,8 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
         rng = np.random.default_rng([seed, n])
         n_rows = ref["optimal"][1].size
         sample = np.sort(rng.choice(n_rows, min(P["free_texels"], n_rows), replace=False))
+        if n not in P["free_nodes"]:
+            sample = sample[:0]
         free = free_vertex_l2(base, ex_curve, ref_reps["optimal"], sample, n_depths)
         free_rms = float(np.sqrt(np.mean(free ** 2))) if free.size else nan
         for order in ORDERS:
