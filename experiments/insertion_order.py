@@ -77,7 +77,7 @@ INSERTION_METHODS = {"avsm": "stream", "avsm_refit": "refit", "avsm_refit_l2": "
 #: Streaming (order-dependent) methods and the offline references (order-independent).
 STREAMING = tuple(INSERTION_METHODS) + ("avsm_march",)
 REFERENCES = ("greedy", "optimal")
-#: The open issue's goal: depth L2 within this factor of optimal's under every order ...
+#: The goal: depth L2 within this factor of optimal's under every order ...
 GOAL_RATIO = 1.5
 #: ... at most this factor of stream AVSM's build time.
 GOAL_BUILD = 1.3

@@ -240,7 +240,7 @@ def preset_differences(side, opaque_matters: bool = True) -> list[str]:
 
 def _preset_note(spec, opaque_matters: bool = True) -> str:
     """'' when both sides are at their presets, else ' [not at preset: avsm-12 interpolation=linear
-    (preset exp); ...]' (issue: a claim off the presets names it in its statement)."""
+    (preset exp); ...]': a claim off the presets names it in its statement."""
     parts = []
     for k in ("a", "b"):
         diff = preset_differences(spec[k], opaque_matters)
