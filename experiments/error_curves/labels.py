@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from avsm_dr import describe
 
-#: Values swept for tuning parameters that are not choices (moments' overestimation beta).
-TUNING = {"overestimation": (0.0, 0.25, 1.0)}
+#: Values swept for tuning parameters that are not choices: moments' overestimation beta at 0,
+#: MBOIT's 0.25 (the default), 1 and the kind's preset (tuned by the moment_tuning study).
+_PRESET_BETA = float(describe("moments")["preset"].get("overestimation", 0.25))
+TUNING = {"overestimation": tuple(sorted({0.0, 0.25, 1.0, _PRESET_BETA}))}
 #: Choice parameters not crossed with the rest: moments' ``warp='log'`` needs every depth
 #: > 0, which scenes with the light inside the depth range violate (the learned_warp
 #: experiment compares warps); moments' ``quantization`` applies to 16-bit storage only.
