@@ -1,0 +1,365 @@
+"""How many bytes per texel a viewer needs, judged on rendered images.  Single-scattering
+images rendered with the Mitsuba integrator ``avsm_single_scatter`` for every kind at its
+preset, across byte budgets and shadow-map resolutions, on frames of the temporal study's
+animations, against a converged ``volpath`` reference; per animation and resolution the
+smallest budget beyond which compression is no longer visible, and the cheapest kind reaching it.
+
+Frames (:mod:`experiments.temporal.scenes`): ``smoke``, the stable-fluids plume stepping with
+the light fixed; ``light``, its last frame with the light turning about the vertical axis.
+Scene, camera and tonemap: :mod:`.render`.
+
+Configurations: each kind of ``kinds`` at its preset (``describe(kind)['preset']``) merged
+with its size parameter (``describe(kind)['size']``); the candidate sizes are the kind's sweep
+(budget kinds, sized in bytes per texel: the budgets themselves; tolerance-sized kinds: the
+sweep and :data:`EXTRA_SIZES`), each built on frame 0's capture at each resolution (whole map,
+as the integrator builds it) to read ``nbytes_per_texel``; at budget B a kind takes its
+candidate with the most bytes <= B (``fits``), or, when none is within B, its cheapest
+candidate (rendered, ``fits`` False, never chosen for that budget).  ``exact`` is the
+compression baseline and a candidate where its bytes fit.  Every configuration is rendered
+in every frame; ``bytes_per_texel`` in the table is what that frame's map stored.
+
+Per frame and resolution (display white S fixed per animation, :mod:`.render`):
+
+* ``flip``: FLIP of the render against the reference (the mean of two independent
+  ``volpath`` renders, max_depth 2, ``reference_spp`` each);
+* ``flip_compression``: FLIP of the render against ``exact``'s at the same resolution and
+  seed (the camera samples are the same: the difference is the shadow map's representation
+  alone; 0 for ``exact``);
+* ``flip_spatial``: FLIP of ``exact`` at this resolution against the reference (the map's
+  spatial sampling and capture, plus the render's own Monte Carlo noise at ``spp``);
+  ``flip_resolution``: ``exact`` here against ``exact`` at the finest resolution, same seed
+  (the map's resolution alone);
+* ``flip_render_noise``: ``exact`` against ``exact`` with another seed (the renders' noise);
+  ``flip_reference_noise``: FLIP between the reference's two halves (its noise; the mean of
+  the halves has half that standard deviation), and ``reference_se``: the RMS over pixels
+  of the reference's per-pixel standard error ``|a - b| / 2``, over S;
+* flicker (frames t >= 1): ``flicker`` = mean over pixels of ``|e_t - e_{t-1}|`` / S with
+  ``e`` = render - reference; ``flicker_compression`` the same with ``e`` = render - exact
+  (every render of every frame uses the same seed, so the camera noise is a fixed pattern
+  and cancels from the compression term).
+
+Answer (:mod:`.analysis`): a kind's compression is invisible at a budget when its mean
+compression FLIP over frames is below the mean reference-noise FLIP; the map (``map.csv``)
+gives per (animation, resolution, budget) the cheapest invisible kind, or the least visible
+one; ``findings.json`` the threshold budget per animation and resolution with a bootstrap
+interval over frames (``indicative`` with fewer than :data:`MIN_FRAMES` frames), and the
+same against the renders' own noise (``flip_render_noise``) instead of the reference's.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from avsm_dr import capture, describe, kinds as registered_kinds
+from avsm_dr.capture import RESOLUTION_RANGE
+from avsm_dr.scene import DirectionalLight, Scene
+from . import analysis as A
+from . import render as R
+from .._study import Option, Study
+from ..temporal import scenes as S
+
+#: What this study reproduces (a paper's figure or table, or the guide's section).
+REPRODUCES = (
+    "How many bytes per texel a viewer needs (a new result): Mitsuba single-scattering images of every kind "
+    "across byte budgets and shadow-map resolutions on the temporal study's animated plume, FLIP against a "
+    "converged volpath reference, split into compression, spatial and Monte Carlo error; the budget map."
+)
+
+#: Animations rendered (the temporal study's with a density grid only: Mitsuba's medium holds no hair,
+#: and the orbiting camera leaves the shadow map unchanged).
+SETTINGS = ("smoke", "light")
+#: Left out of the default kinds: the offline references, no real-time methods, and the costliest
+#: builds: the best-subset oracle (1-5 s per build at 128^2-256^2 on 2 cores) and greedy
+#: Visvalingam-Whyatt (measured: 28 s of a 256^2 frame's 70 s for its 5 sizes, renders included).
+SKIP_KINDS = ("optimal", "greedy")
+#: Candidate sizes beyond a kind's sweep, by size parameter (finer tolerances reach larger budgets).
+EXTRA_SIZES = {"tolerance": (0.001, 0.0005, 0.0002, 0.0001)}
+#: The temporal study's light (its animations' frame 0).
+LIGHT = (1.0, -0.3, 0.25)
+#: Fewer frames than this make a threshold ``indicative``.
+MIN_FRAMES = 4
+
+#: Parameters of the full and the quick run (``kinds`` None: every registered kind but
+#: :data:`SKIP_KINDS`, filled in; ``exact`` always first).
+FULL = dict(settings=list(SETTINGS), seed=0, frames=6, size=32, start_steps=40, density_scale=40.0,
+            light_step=1.0, image=48, spp=32, march_steps=32, reference_spp=1024, render_seed=0,
+            resolutions=[64, 128, 256], budgets=[16, 32, 64, 128, 256], kinds=None, n_boot=1000)
+QUICK = dict(FULL, settings=["smoke"], frames=2, size=16, start_steps=20, image=32, spp=16, reference_spp=256,
+             resolutions=[64], budgets=[16, 32, 64], kinds=["avsm", "fom", "moments", "beer"], n_boot=200)
+
+
+def _resolve(P: dict, quick: bool) -> dict:
+    """Kinds filled in (``exact`` first), and the parameters checked."""
+    known = registered_kinds()
+    ks = [k for k in known if k not in SKIP_KINDS] if P["kinds"] is None else list(P["kinds"])
+    bad = [k for k in ks if k not in known]
+    if bad:
+        raise ValueError(f"kinds: unknown kind {bad[0]!r}; known: {known}")
+    lo, hi = RESOLUTION_RANGE
+    if not P["resolutions"] or any(type(r) is not int or not lo <= r <= hi for r in P["resolutions"]):
+        raise ValueError(f"resolutions: expected integers in [{lo}, {hi}], got {P['resolutions']!r}")
+    if not P["budgets"] or any(not float(b) > 0 for b in P["budgets"]):
+        raise ValueError(f"budgets: expected positive bytes per texel, got {P['budgets']!r}")
+    if not P["settings"] or any(s not in SETTINGS for s in P["settings"]):
+        raise ValueError(f"settings: expected some of {list(SETTINGS)}, got {P['settings']!r}")
+    if P["frames"] < 2:
+        raise ValueError(f"frames: expected at least 2 (flicker and the interval need them), got {P['frames']!r}")
+    return dict(P, kinds=["exact"] + [k for k in ks if k != "exact"], resolutions=sorted(P["resolutions"]),
+                budgets=sorted(float(b) for b in P["budgets"]))
+
+
+# ================================================================ configurations
+def candidates(kind: str, budgets) -> list[tuple[object, dict]]:
+    """(size value or None, build parameters) of each candidate configuration of ``kind``:
+    its preset merged with each size (module docstring)."""
+    d = describe(kind)
+    size, preset = d["size"], dict(d["preset"])
+    if size is None:
+        return [(None, preset)]
+    if size == "bytes_per_texel":
+        values = [float(b) for b in budgets]
+    else:
+        values = list(d["sweep"]) + [v for v in EXTRA_SIZES.get(size, ()) if v not in d["sweep"]]
+    return [(v, dict(preset, **{size: v})) for v in values]
+
+
+def label(kind: str, value) -> str:
+    """``kind-<size>`` (``kind`` alone for kinds without a size)."""
+    return kind if value is None else f"{kind}-{value:g}"
+
+
+def calibrate(kind: str, segments, budgets) -> list[tuple[object, dict, float]]:
+    """(size, parameters, bytes per texel) of every candidate that builds on ``segments``
+    (a candidate the kind refuses there, e.g. a budget below two nodes per texel, is dropped)."""
+    from avsm_dr import build
+    out = []
+    for value, params in candidates(kind, budgets):
+        try:
+            rep = build(kind, segments, **params)
+        except ValueError:
+            continue
+        out.append((value, params, float(rep.nbytes_per_texel)))
+    if not out:
+        raise ValueError(f"kinds: {kind!r} builds at none of its candidate sizes")
+    return out
+
+
+def choose(calibrated, budget: float) -> tuple[object, dict, float, bool]:
+    """(size, parameters, calibrated bytes, fits) of a kind at ``budget``: its candidate with
+    the most bytes within the budget, else its cheapest (``fits`` False)."""
+    within = [c for c in calibrated if c[2] <= budget]
+    if within:
+        return (*max(within, key=lambda c: c[2]), True)
+    return (*min(calibrated, key=lambda c: c[2]), False)
+
+
+def plume_shape(size: int) -> tuple[int, int, int]:
+    """(nz, ny, nx) of the plume grid over :data:`experiments.temporal.scenes.PLUME_BOX` with
+    ``size`` voxels per unit length (the temporal study's grid)."""
+    lo, hi = S.PLUME_BOX
+    nx, ny, nz = np.maximum(np.round((np.asarray(hi) - np.asarray(lo)) * size).astype(int), 2)
+    return int(nz), int(ny), int(nx)
+
+
+def animations(P) -> dict:
+    """{setting: frame function} of the temporal study's plume animations for ``P``."""
+    from avsm_dr.fluid import simulate_plume_sequence
+    seq = simulate_plume_sequence(plume_shape(P["size"]), frames=P["frames"], start=P["start_steps"],
+                                  seed=P["seed"]) * np.float32(P["density_scale"])
+    base = S.plume_scene(seq.max(axis=0), DirectionalLight(direction=LIGHT), 2, P["seed"])
+    anim = {"smoke": lambda: S.smoke(base, seq, 0), "light": lambda: S.light(base, seq[-1], P["light_step"], 0)}
+    return {s: anim[s]() for s in P["settings"]}
+
+
+# ========================================================================== run
+def _render_setting(mi, cls, frame_fn, P, bar):
+    """Every configuration in every frame of one animation: images, bytes, times, choices."""
+    F, budgets = P["frames"], P["budgets"]
+    f0 = frame_fn(0)
+    choices, configs = {}, {}          # res -> {kind: [choice per budget]}, res -> {label: (kind, params)}
+    for res in P["resolutions"]:
+        sc = Scene("calibration", f0.scene.light, np.zeros((0, 3)), density=f0.scene.density, bbox=S.PLUME_BOX)
+        seg = capture(sc, resolution=res, method="march", order="depth").segments
+        choices[res], configs[res] = {}, {}
+        for kind in P["kinds"]:
+            cal = calibrate(kind, seg, budgets)
+            choices[res][kind] = [choose(cal, b) for b in budgets]
+            for value, params, _, _ in choices[res][kind]:
+                configs[res].setdefault(label(kind, value), (kind, params))
+    bar.total += F * (1 + sum(len(c) + 1 for c in configs.values()))
+    bar.refresh()
+    integs = {(res, lab): R.integrator(mi, cls, kind, params, res, P["march_steps"])
+              for res in P["resolutions"] for lab, (kind, params) in configs[res].items()}
+    noise_integ = {res: R.integrator(mi, cls, "exact", {}, res, P["march_steps"]) for res in P["resolutions"]}
+    imgs, nbytes, secs, refs = {}, {}, {}, []
+    for t in range(F):
+        frame = frame_fn(t)
+        scene = R.load_scene(mi, frame, P["image"])
+        a, b = R.reference_halves(mi, scene, P["reference_spp"], (10_000 + 2 * t, 10_001 + 2 * t))
+        refs.append((a, b))
+        bar.update(1)
+        for res in P["resolutions"]:
+            for lab in configs[res]:
+                integ = integs[(res, lab)]
+                t0 = time.perf_counter()
+                imgs[(t, res, lab)] = R.render(mi, scene, integ, P["spp"], P["render_seed"])
+                secs[(t, res, lab)] = time.perf_counter() - t0
+                nbytes[(t, res, lab)] = integ.bytes_per_texel
+                bar.update(1)
+            imgs[(t, res, "exact@seed2")] = R.render(mi, scene, noise_integ[res], P["spp"], P["render_seed"] + 1)
+            bar.update(1)
+    return dict(choices=choices, configs=configs, imgs=imgs, nbytes=nbytes, secs=secs, refs=refs)
+
+
+def _rows(setting, out, P):
+    """data.csv rows of one animation (module docstring) and its display white."""
+    F, budgets, resolutions = P["frames"], P["budgets"], P["resolutions"]
+    imgs, refs = out["imgs"], out["refs"]
+    ref = [0.5 * (a + b) for a, b in refs]
+    white = R.white(ref[0])
+    finest = resolutions[-1]
+    noise = [R.flip(a, b, white) for a, b in refs]
+    se = [float(np.sqrt(np.mean(((a - b) / 2) ** 2)) / white) for a, b in refs]
+    flips = {}
+
+    def f(key_a, img_a, key_b, img_b):
+        k = (key_a, key_b)
+        if k not in flips:
+            flips[k] = R.flip(img_a, img_b, white)
+        return flips[k]
+    rows = []
+    for t in range(F):
+        for res in resolutions:
+            ex = imgs[(t, res, "exact")]
+            spatial = f(("ref", t), ref[t], (t, res, "exact"), ex)
+            resolution = f((t, finest, "exact"), imgs[(t, finest, "exact")], (t, res, "exact"), ex)
+            rnoise = f((t, res, "exact"), ex, (t, res, "exact@seed2"), imgs[(t, res, "exact@seed2")])
+            for bi, budget in enumerate(budgets):
+                for kind in P["kinds"]:
+                    value, params, cal_bytes, fits = out["choices"][res][kind][bi]
+                    lab = label(kind, value)
+                    img = imgs[(t, res, lab)]
+                    row = dict(setting=setting, frame=t, resolution=res, budget=budget, kind=kind, label=lab,
+                               size_param=describe(kind)["size"] or "", size=value if value is not None else "",
+                               fits=fits, calibrated_bytes=cal_bytes, bytes_per_texel=out["nbytes"][(t, res, lab)],
+                               flip=f(("ref", t), ref[t], (t, res, lab), img),
+                               flip_compression=f((t, res, "exact"), ex, (t, res, lab), img),
+                               flip_spatial=spatial, flip_resolution=resolution, flip_render_noise=rnoise,
+                               flip_reference_noise=noise[t], reference_se=se[t],
+                               mean_signed_compression=float(np.mean(img - ex) / white))
+                    if t == 0:
+                        row.update(flicker=float("nan"), flicker_compression=float("nan"))
+                    else:
+                        prev, prev_ex = imgs[(t - 1, res, lab)], imgs[(t - 1, res, "exact")]
+                        row.update(flicker=float(np.mean(np.abs((img - ref[t]) - (prev - ref[t - 1]))) / white),
+                                   flicker_compression=float(np.mean(np.abs((img - ex) - (prev - prev_ex)))) / white)
+                    row["render_s"] = out["secs"][(t, res, lab)]
+                    rows.append(row)
+    return rows, white
+
+
+def findings(rows, P, whites) -> tuple[dict, list[dict]]:
+    """findings.json and map.csv's rows from data.csv's rows (:mod:`.analysis`)."""
+    budgets, ks = P["budgets"], P["kinds"]
+    out = {"definition": ("compression invisible at a budget: mean over frames of FLIP(render with the kind, render "
+                          "with exact; same resolution and seed) below the mean FLIP between the reference's two "
+                          "independent halves; threshold: the smallest budget at which some kind is invisible there "
+                          "and at every larger budget of the grid, and the cheapest such kind (least stored bytes)"),
+           "tonemap": f"sRGB(min(I / S, 1)), S = the {R.WHITE_PERCENTILE}th percentile of frame 0's reference per "
+                      f"animation; FLIP LDR, 67 pixels per degree",
+           "reference": {}, "thresholds": {}, "thresholds_vs_render_noise": {}, "flicker": {}}
+    cells = []
+    for setting in P["settings"]:
+        sel = [r for r in rows if r["setting"] == setting]
+        first = [r for r in sel if r["kind"] == "exact" and r["budget"] == budgets[0]
+                 and r["resolution"] == P["resolutions"][0]]                     # one row per frame
+        ref_noise = np.array([r["flip_reference_noise"] for r in first])
+        ref_se = np.array([r["reference_se"] for r in first])
+        out["reference"][setting] = dict(
+            integrator="volpath, max_depth 2", spp_per_half=P["reference_spp"], white=whites[setting],
+            noise_flip_mean=float(ref_noise.mean()), noise_flip_per_frame=ref_noise.tolist(),
+            se_rms_over_white=float(ref_se.mean()))
+        out["thresholds"][setting], out["thresholds_vs_render_noise"][setting], out["flicker"][setting] = {}, {}, {}
+        for res in P["resolutions"]:
+            rr = [r for r in sel if r["resolution"] == res]
+            idx = {(r["kind"], r["budget"], r["frame"]): r for r in rr}
+            T = P["frames"]
+            comp = np.array([[[idx[(k, b, t)]["flip_compression"] for t in range(T)] for b in budgets] for k in ks])
+            nb = np.array([[[idx[(k, b, t)]["bytes_per_texel"] for t in range(T)] for b in budgets] for k in ks])
+            fits = np.array([[idx[(k, b, 0)]["fits"] for b in budgets] for k in ks], bool)
+            labels = [[idx[(k, b, 0)]["label"] for b in budgets] for k in ks]
+            noise = np.array([idx[(ks[0], budgets[0], t)]["flip_reference_noise"] for t in range(T)])
+            rnoise = np.array([idx[(ks[0], budgets[0], t)]["flip_render_noise"] for t in range(T)])
+            s = A.summarise(comp, nb, fits, noise, budgets, ks, labels, P["n_boot"], MIN_FRAMES)
+            out["thresholds"][setting][str(res)] = s["threshold"]
+            out["thresholds_vs_render_noise"][setting][str(res)] = A.summarise(
+                comp, nb, fits, rnoise, budgets, ks, labels, P["n_boot"], MIN_FRAMES)["threshold"]
+            fl = {}
+            for k, kind in enumerate(ks):
+                for b, budget in enumerate(budgets):
+                    lab = labels[k][b]
+                    if lab not in fl:
+                        v = [idx[(kind, budget, t)]["flicker_compression"] for t in range(1, T)]
+                        fl[lab] = float(np.mean(v))
+            out["flicker"][setting][str(res)] = fl
+            for c in s["cells"]:
+                flick = fl.get(c["best_label"], float("nan"))
+                cells.append(dict(setting=setting, resolution=res, **c, best_flicker_compression=flick,
+                                  threshold=c["budget"] == s["threshold"]["bytes"]))
+    out["map"] = cells
+    out["headline"] = {f"{s} {res}^2": _headline(out["thresholds"][s][str(res)])
+                       for s in P["settings"] for res in P["resolutions"]}
+    return out, cells
+
+
+def _headline(thr: dict) -> str:
+    ci = thr["interval"]
+
+    def b(v):
+        return "beyond the grid" if v is None else f"{v:g}"
+    note = ", indicative" if thr["indicative"] else ""
+    if not thr["reached"]:
+        return f"compression visible at every budget (interval [{b(ci['low'])}, {b(ci['high'])}]{note})"
+    return (f"{thr['bytes']:g} B/texel, {thr['label']} ({thr['stored_bytes']:.1f} B stored) "
+            f"[{b(ci['low'])}, {b(ci['high'])}]{note}")
+
+
+def _compute(res, P: dict) -> dict:
+    t_start = time.perf_counter()
+    mi = R.mitsuba()
+    cls = R.recording_class(mi)
+    anims = animations(P)
+    rows, whites, frames0 = [], {}, {}
+    bar = tqdm(total=0, desc="image_budget", unit="render")     # grows as each animation's configurations are known
+    for setting in P["settings"]:
+        out = _render_setting(mi, cls, anims[setting], P, bar)
+        r, whites[setting] = _rows(setting, out, P)
+        rows += r
+        finest = P["resolutions"][-1]
+        frames0[setting] = dict(reference=0.5 * (out["refs"][0][0] + out["refs"][0][1]),
+                                images={lab: out["imgs"][(0, finest, lab)] for lab in out["configs"][finest]})
+    bar.close()
+    found, cells = findings(rows, P, whites)
+    found["run_seconds"] = time.perf_counter() - t_start
+    res.write_npz("frame0.npz", **{f"{s}__{k}": v.astype(np.float32) for s, d in frames0.items()
+                                   for k, v in [("reference", d["reference"])] + list(d["images"].items())})
+    from . import plots
+    plots.plot_all(res, rows, found, cells, frames0, whites, P)
+    found["run_seconds"] = time.perf_counter() - t_start
+    summary = dict(found["headline"], reference_noise_flip={s: round(v["noise_flip_mean"], 4)
+                                                           for s, v in found["reference"].items()},
+                   run_seconds=round(found["run_seconds"], 1))
+    return dict(rows=rows, tables={"map.csv": cells}, findings=found, summary=summary)
+
+
+STUDY = Study("image_budget", "How many bytes per texel a viewer needs: Mitsuba images per kind, budget and "
+              "resolution against a converged reference, FLIP and flicker", REPRODUCES, FULL, QUICK, _compute,
+              resolve=_resolve,
+              writes=("data.csv (one row per animation, frame, resolution, budget and kind)",
+                      "map.csv (best kind per animation, resolution and budget)", "findings.json", "frame0.npz"),
+              options=(Option("kinds", "kinds compared (exact is always added)", nargs="+", metavar="KIND"),
+                       Option("resolutions", "shadow-map resolutions", type=int, nargs="+", metavar="N"),
+                       Option("settings", "animations: smoke, light", nargs="+", metavar="NAME")))
+run = STUDY.run

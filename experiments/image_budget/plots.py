@@ -1,0 +1,172 @@
+"""Figures of the ``image_budget`` study: the budget map (resolution x bytes per texel, each cell
+coloured by its best kind), compression FLIP against bytes per kind, and frame 0's images."""
+from __future__ import annotations
+
+import numpy as np
+
+#: Compression FLIPs below this are drawn at it on the log axis (exact agreement gives 0).
+FLIP_FLOOR = 1e-4
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _text_colour(hex_colour: str) -> str:
+    """Black or white, whichever reads on ``hex_colour`` (relative luminance)."""
+    r, g, b = (int(hex_colour[i:i + 2], 16) / 255 for i in (1, 3, 5))
+    return "white" if 0.2126 * r + 0.7152 * g + 0.0722 * b < 0.45 else "black"
+
+
+def budget_map(res, cells, P):
+    """``budget_map.png``: one panel per animation; rows = shadow-map resolutions, columns =
+    budgets; a cell is filled with its best kind's colour, solid where compression is
+    invisible, pale where even the best kind within the budget is visible; the threshold
+    cell is outlined."""
+    from matplotlib.patches import Patch, Rectangle
+    from .. import _plotstyle as plotstyle
+    _plt()
+    settings, resolutions, budgets = P["settings"], P["resolutions"], P["budgets"]
+    with plotstyle.context():
+        fig, axes = plotstyle.grid(1, len(settings), panel=(max(0.95 * len(budgets) + 0.9, 4.2),
+                                                            max(0.62 * len(resolutions) + 0.9, 2.3)),
+                                   sharex=False, sharey=False)
+        shown = []
+        for j, setting in enumerate(settings):
+            ax = axes[0][j]
+            for c in (c for c in cells if c["setting"] == setting):
+                x, y = budgets.index(c["budget"]), resolutions.index(c["resolution"])
+                if not c["best_kind"]:
+                    ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, facecolor="white", edgecolor="0.7", lw=0.5))
+                    ax.text(x, y, "none fits", ha="center", va="center", fontsize=6, color="0.4")
+                    continue
+                colour = plotstyle.style(c["best_kind"])["color"]
+                if c["best_kind"] not in shown:
+                    shown.append(c["best_kind"])
+                ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, facecolor=colour, alpha=1.0 if c["invisible"] else 0.3,
+                                       edgecolor="white", lw=1.0))
+                if c["threshold"]:
+                    ax.add_patch(Rectangle((x - 0.46, y - 0.46), 0.92, 0.92, facecolor="none", edgecolor="black",
+                                           lw=2.0))
+                ratio = c["best_flip_compression"] / c["noise_flip"] if c["noise_flip"] > 0 else float("nan")
+                tc = _text_colour(colour) if c["invisible"] else "black"
+                ax.text(x, y + 0.13, c["best_label"], ha="center", va="center", fontsize=6.5, color=tc)
+                ax.text(x, y - 0.2, f"{ratio:.2g}x noise", ha="center", va="center", fontsize=5.5, color=tc)
+            ax.set_xlim(-0.5, len(budgets) - 0.5)
+            ax.set_ylim(-0.5, len(resolutions) - 0.5)
+            ax.set_xticks(range(len(budgets)), [f"{b:g}" for b in budgets])
+            ax.set_yticks(range(len(resolutions)), [f"{r}$^2$" for r in resolutions])
+            ax.grid(False)
+            ax.set_xlabel("budget (bytes per texel)")
+            if j == 0:
+                ax.set_ylabel("map resolution")
+            ax.set_title(f"{setting}: best kind per budget")
+        handles = [Patch(facecolor=plotstyle.style(k)["color"], label=k) for k in shown]
+        handles += [Patch(facecolor="0.45", label="solid: compression invisible (FLIP to exact < reference noise)"),
+                    Patch(facecolor="0.45", alpha=0.3, label="pale: visible; least-visible kind within budget"),
+                    Patch(facecolor="none", edgecolor="black", lw=2.0,
+                          label="outline: threshold (invisible from here on)")]
+        fig.legend(handles=handles, loc="outside lower center", ncol=2 if len(settings) == 1 else 3, fontsize=6.5)
+        fig.suptitle("Cheapest kind whose compression is invisible, else the least visible\n"
+                     "cell text: configuration; its compression FLIP / the reference-noise FLIP", fontsize=7.5)
+        res.save_figure(fig, "budget_map.png")
+
+
+def _distinct(rows, setting, resolution):
+    """{kind: [(mean bytes, mean compression FLIP, label)]} over frames, one entry per configuration."""
+    acc = {}
+    for r in rows:
+        if r["setting"] == setting and r["resolution"] == resolution:          # a configuration's rows agree
+            acc.setdefault((r["kind"], r["label"]), {})[r["frame"]] = (r["bytes_per_texel"], r["flip_compression"])
+    out = {}
+    for (kind, lab), by_frame in acc.items():
+        v = np.array(list(by_frame.values()))
+        out.setdefault(kind, []).append((float(v[:, 0].mean()), float(v[:, 1].mean()), lab))
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def flip_vs_bytes(res, rows, found, P):
+    """``flip_vs_bytes.png``: rows = animations, columns = resolutions; compression FLIP (mean
+    over frames) against stored bytes per texel, one line per kind, with the reference's and
+    the renders' noise FLIP as horizontal lines."""
+    from .. import _plotstyle as plotstyle
+    _plt()
+    settings, resolutions = P["settings"], P["resolutions"]
+    with plotstyle.context():
+        fig, axes = plotstyle.grid(len(settings), len(resolutions), panel=(2.7, 2.2))
+        for i, setting in enumerate(settings):
+            for j, resolution in enumerate(resolutions):
+                ax = axes[i][j]
+                d = _distinct(rows, setting, resolution)
+                for kind in P["kinds"]:
+                    if kind == "exact" or kind not in d:
+                        continue
+                    x = [p[0] for p in d[kind]]
+                    y = [max(p[1], FLIP_FLOOR) for p in d[kind]]
+                    ax.plot(x, y, **plotstyle.style(kind), label=kind)
+                sel = [r for r in rows if r["setting"] == setting and r["resolution"] == resolution
+                       and r["kind"] == "exact" and r["budget"] == P["budgets"][0]]
+                ax.axhline(np.mean([r["flip_reference_noise"] for r in sel]), color="black", ls="--", lw=0.9,
+                           label="reference noise (FLIP between halves)")
+                ax.axhline(np.mean([r["flip_render_noise"] for r in sel]), color="0.5", ls=":", lw=0.9,
+                           label=f"render noise ({P['spp']} spp, two seeds)")
+                if "exact" in d:
+                    ax.axvline(d["exact"][0][0], color="black", ls=(0, (1, 1)), lw=0.8, label="exact's bytes")
+                ax.set_xscale("log", base=2)
+                ax.set_yscale("log")
+                ax.set_title(f"{setting}, {resolution}$^2$ map")
+                if i == len(settings) - 1:
+                    ax.set_xlabel("stored bytes per texel")
+        fig.supylabel("compression FLIP: FLIP(kind, exact), mean over frames", fontsize=8)
+        plotstyle.legend_below(fig, ncol=5)
+        res.save_figure(fig, "flip_vs_bytes.png")
+
+
+def frame_images(res, found, frames0, whites, P):
+    """``frames.png``: frame 0 of each animation at the finest resolution: the reference, exact,
+    the threshold configuration (or the least visible at the largest budget) and the best at
+    the smallest budget, tonemapped as measured, with each one's compression FLIP."""
+    from . import render as R
+    _plt()
+    from .. import _plotstyle as plotstyle
+    finest = str(P["resolutions"][-1])
+    with plotstyle.context():
+        fig, axes = plotstyle.grid(len(P["settings"]), 5, panel=(1.55, 1.75), sharex=True, sharey=True)
+        for i, setting in enumerate(P["settings"]):
+            imgs = frames0[setting]["images"]
+            ref, s = frames0[setting]["reference"], whites[setting]
+            cells = [c for c in found["map"] if c["setting"] == setting and str(c["resolution"]) == finest]
+            thr = found["thresholds"][setting][finest]
+            low = cells[0]["best_label"] or "exact"
+            high = thr["label"] if thr["reached"] else (cells[-1]["best_label"] or "exact")
+            panels = [("reference", ref), ("exact", imgs["exact"]), (high, imgs[high]), (low, imgs[low])]
+            for j, (name, img) in enumerate(panels):
+                ax = axes[i][j]
+                ax.imshow(R.tonemap(img, s), interpolation="nearest")
+                note = "" if j < 2 else f"\nFLIP to exact {R.flip(imgs['exact'], img, s):.3f}"
+                tag = " (threshold)" if j == 2 and thr["reached"] else ""
+                ax.set_title(f"{name}{tag}{note}", fontsize=6.5)
+            diff = (imgs[low] - imgs["exact"]) / s
+            lim = max(float(np.abs(diff).max()), 1e-6)
+            im = axes[i][4].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+            axes[i][4].set_title(f"({low} - exact) / S", fontsize=6.5)
+            fig.colorbar(im, ax=axes[i][4], shrink=0.7)
+            axes[i][0].set_ylabel(setting)
+            for ax in axes[i]:
+                ax.set_xticks([])
+                ax.set_yticks([])
+                ax.grid(False)
+                for spine in ax.spines.values():
+                    spine.set_visible(False)
+        fig.suptitle(f"Frame 0, {finest}$^2$ map: the reference, exact, and two budgets' best kinds", fontsize=7.5)
+        res.save_figure(fig, "frames.png")
+
+
+def plot_all(res, rows, found, cells, frames0, whites, P):
+    """Write the three figures."""
+    budget_map(res, cells, P)
+    flip_vs_bytes(res, rows, found, P)
+    frame_images(res, found, frames0, whites, P)

@@ -1,0 +1,184 @@
+"""The image-budget study (experiments/image_budget): one quick run through the command line,
+its tables' structure, the map and thresholds re-derived from data.csv, and the answer's rules
+on synthetic arrays."""
+import itertools
+import json
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from avsm_dr.evaluation import read_csv
+from experiments import image_budget as S
+from experiments.image_budget import analysis as A
+from helpers import quick_cli_run
+
+pytestmark = pytest.mark.mitsuba
+
+TEXT = {"setting", "kind", "label", "size_param", "size", "best_kind", "best_label"}
+BOOL = {"fits", "invisible", "threshold"}
+FLIPS = ("flip", "flip_compression", "flip_spatial", "flip_resolution", "flip_render_noise", "flip_reference_noise")
+
+
+def _typed(row: dict) -> dict:
+    out = {}
+    for k, v in row.items():
+        out[k] = (v if k in TEXT else (v == "True") if k in BOOL
+                  else int(v) if k in ("frame", "resolution") else float(v))
+    return out
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    out = quick_cli_run("image_budget", tmp_path_factory.mktemp("image_budget"))
+    P, _ = S.STUDY.params(quick=True)
+    rows = [_typed(r) for r in read_csv(out / "data.csv")]
+    cells = [_typed(r) for r in read_csv(out / "map.csv")]
+    return rows, cells, json.loads((out / "findings.json").read_text()), P, out
+
+
+def test_every_kind_budget_resolution_and_frame_is_present(quick):
+    rows, _, _, P, out = quick
+    keys = [(r["setting"], r["kind"], r["budget"], r["resolution"], r["frame"]) for r in rows]
+    assert len(keys) == len(set(keys))
+    want = set(itertools.product(P["settings"], P["kinds"], P["budgets"], P["resolutions"], range(P["frames"])))
+    assert set(keys) == want and P["kinds"][0] == "exact" and len(P["kinds"]) >= 4
+    for name in ("budget_map", "flip_vs_bytes", "frames"):
+        assert (out / f"{name}.png").is_file() and (out / f"{name}.pdf").is_file()
+    # every kind has a configuration within the largest budget; a configuration within a budget
+    # is the one with the most (calibrated) bytes that fit
+    for kind in P["kinds"][1:]:
+        assert any(r["fits"] for r in rows if r["kind"] == kind and r["budget"] == max(P["budgets"]))
+    for r in rows:
+        assert r["fits"] == (r["calibrated_bytes"] <= r["budget"]), r
+        assert r["bytes_per_texel"] > 0
+
+
+def test_flips_and_the_error_split(quick):
+    rows, _, _, _, _ = quick
+    for r in rows:
+        for k in FLIPS:
+            assert 0.0 <= r[k] <= 1.0, (k, r)
+        assert r["flip_reference_noise"] > 0 and r["flip_render_noise"] > 0       # independent seeds differ
+        if r["kind"] == "exact":
+            assert r["flip_compression"] == 0.0 and r["mean_signed_compression"] == 0.0
+            assert r["flip"] == r["flip_spatial"]
+            assert r["frame"] == 0 or r["flicker_compression"] == 0.0
+        elif r["frame"] > 0:
+            assert r["flicker_compression"] >= 0 and r["flicker"] >= 0
+    # a configuration is rendered once per frame and resolution: its rows agree at every budget
+    by = defaultdict(set)
+    for r in rows:
+        by[(r["setting"], r["frame"], r["resolution"], r["label"])].add((r["flip"], r["flip_compression"],
+                                                                         r["bytes_per_texel"]))
+    assert all(len(v) == 1 for v in by.values())
+    # the smallest AVSM loses to its largest (the study resolves compression)
+    avsm = {r["label"]: r["flip_compression"] for r in rows if r["kind"] == "avsm" and r["frame"] == 0}
+    assert len(avsm) >= 2 and avsm["avsm-2"] > avsm[max(avsm, key=lambda s: int(s.split("-")[1]))]
+
+
+def _means(rows, setting, res, budget):
+    """{label: (mean compression FLIP, mean bytes, kind)} of the configurations within budget, and the noise."""
+    sel = [r for r in rows if (r["setting"], r["resolution"], r["budget"]) == (setting, res, budget)]
+    acc = defaultdict(list)
+    for r in sel:
+        if r["fits"]:
+            acc[(r["label"], r["kind"])].append((r["flip_compression"], r["bytes_per_texel"]))
+    noise = np.mean([r["flip_reference_noise"] for r in sel if r["kind"] == "exact"])
+    return {lab: (*np.mean(v, axis=0), kind) for (lab, kind), v in acc.items()}, noise
+
+
+def test_map_is_the_cheapest_invisible_or_least_visible_kind(quick):
+    rows, cells, found, P, _ = quick
+    assert len(cells) == len(P["settings"]) * len(P["resolutions"]) * len(P["budgets"])
+    for c in cells:
+        m, noise = _means(rows, c["setting"], c["resolution"], c["budget"])
+        assert c["noise_flip"] == pytest.approx(noise)
+        if not m:
+            assert c["best_kind"] == ""
+            continue
+        comp, nbytes, kind = m[c["best_label"]]
+        assert kind == c["best_kind"] and c["best_flip_compression"] == pytest.approx(comp)
+        invisible = {lab: v for lab, v in m.items() if v[0] < noise}
+        assert c["invisible"] == bool(invisible)
+        if invisible:
+            assert comp < noise and nbytes == min(v[1] for v in invisible.values())
+        else:
+            least = min(v[0] for v in m.values())
+            assert comp <= least * (1 + A.TIE)
+            assert nbytes == min(v[1] for v in m.values() if v[0] <= least * (1 + A.TIE))
+    assert [c for c in cells if c["threshold"]] == [c for c in cells if c["budget"] == found["thresholds"][
+        c["setting"]][str(c["resolution"])]["bytes"]]
+
+
+def test_thresholds_and_their_intervals(quick):
+    rows, cells, found, P, _ = quick
+    assert set(found["thresholds"]) == set(P["settings"])
+    for setting in P["settings"]:
+        ref = found["reference"][setting]
+        assert 0 < ref["noise_flip_mean"] < 0.1 and 0 < ref["se_rms_over_white"] < 0.05
+        for res in P["resolutions"]:
+            for key in ("thresholds", "thresholds_vs_render_noise"):
+                thr = found[key][setting][str(res)]
+                ci = thr["interval"]
+                assert thr["indicative"] is (P["frames"] < S.MIN_FRAMES) and ci["unit"] == "frame"
+                assert ci["n"] == P["frames"]
+                if ci["low"] is not None and ci["high"] is not None:
+                    assert ci["low"] <= ci["high"]
+                if thr["reached"]:
+                    assert thr["bytes"] in P["budgets"] and ci["estimate"] == thr["bytes"]
+                    assert (ci["low"] is None or ci["low"] <= thr["bytes"]) and \
+                           (ci["high"] is None or thr["bytes"] <= ci["high"])
+                    assert thr["flip_compression"] < thr["noise_flip"] and thr["stored_bytes"] <= thr["bytes"]
+            thr = found["thresholds"][setting][str(res)]
+            inv = {b: {v[2] for v in m.values() if v[0] < noise}
+                   for b in P["budgets"] for m, noise in [_means(rows, setting, res, b)]}
+            stays = [b for b in P["budgets"] if set.intersection(*[inv[b2] for b2 in P["budgets"] if b2 >= b])]
+            # the threshold: the smallest budget from which some kind is invisible at every larger budget
+            assert thr["bytes"] == (min(stays) if stays else None)
+            if thr["reached"]:
+                assert all(thr["kind"] in inv[b] for b in P["budgets"] if b >= thr["bytes"])
+
+
+# ------------------------------------------------------------------ the rules, synthetic
+def test_threshold_needs_invisibility_at_every_larger_budget():
+    fits = np.ones((2, 4), bool)
+    nbytes = np.array([[16, 32, 64, 128], [12, 30, 60, 100]], float)
+    # kind 0 invisible at 32 but visible again at 64; kind 1 invisible from 64 on
+    comp = np.array([[0.5, 0.05, 0.2, 0.05], [0.5, 0.3, 0.05, 0.01]])
+    assert A.threshold_index(comp, nbytes, fits, 0.1) == (2, 1)
+    # both invisible from 64: the cheaper wins
+    comp[0] = [0.5, 0.3, 0.05, 0.05]
+    nbytes[1, 2] = 70.0
+    assert A.threshold_index(comp, nbytes, fits, 0.1) == (2, 0)
+    # a kind that does not fit at 128 cannot hold the threshold beyond it
+    fits[0, 3] = False
+    assert A.threshold_index(comp, nbytes, fits, 0.1) == (2, 1)
+    assert A.threshold_index(comp, nbytes, fits, 0.001) == (None, None)
+
+
+def test_cell_rules_and_ties():
+    comp = np.array([0.30, 0.301, 0.2, 0.05])
+    nbytes = np.array([12.0, 16.0, 20.0, 200.0])
+    fits = np.array([True, True, False, False])
+    assert A.best_in_cell(comp, nbytes, fits, 0.1) == (0, False)            # tie within TIE: the cheaper
+    fits[2] = True
+    assert A.best_in_cell(comp, nbytes, fits, 0.1) == (2, False)            # the least visible
+    fits[3] = True
+    assert A.best_in_cell(comp, nbytes, fits, 0.1) == (3, True)             # the only invisible one
+    assert A.best_in_cell(comp, nbytes, fits, 0.5) == (0, True)             # all invisible: the cheapest
+    assert A.best_in_cell(comp, nbytes, np.zeros(4, bool), 0.5) == (None, False)
+
+
+def test_interval_over_frames():
+    """Frames disagree: the bootstrap interval spans the budgets they point to."""
+    rng = np.random.default_rng(0)
+    T = 8
+    base = np.array([[0.3, 0.2, 0.05, 0.01]])[..., None]
+    comp = base * np.exp(rng.normal(0, 0.8, (1, 4, T)))
+    ci = A.threshold_ci(comp, np.ones((1, 4, T)), np.ones((1, 4), bool), np.full(T, 0.1), [16, 32, 64, 128], n_boot=300)
+    assert ci["unit"] == "frame" and ci["n"] == T
+    lo = ci["low"] if ci["low"] is not None else 256
+    hi = ci["high"] if ci["high"] is not None else 256
+    est = ci["estimate"] if ci["estimate"] is not None else 256
+    assert lo <= est <= hi
