@@ -201,7 +201,8 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
     * ``error_sweep.csv`` - base configuration, in-volume receivers, every kind's size sweep
       (``curve`` rows): error against the exact curve (``rmse``) and the truth (``total_rmse``);
     * ``error_settings.csv`` - every setting measured in every configuration (in-volume
-      receivers, opaque content inline, main study): medians over configurations;
+      receivers, opaque content inline, main study, order-dependent kinds front to back):
+      medians over configurations;
     * ``error_claims.csv`` - the papers' claims of ``findings.json`` (pooled estimate, interval, verdict);
     * ``bench.csv`` - the throughput table of ``bench`` as written (it is small).
     """
@@ -214,7 +215,8 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
         sweep = [dict({k: r.get(k, "") for k in ERROR_COLUMNS}, curve="True") for r in rows if r.get("curve") == "True"]
         groups: dict = {}
         for r in rows:
-            if r["receivers"] == "in_volume" and r["study"] == "main" and r["opaque"] == "inline" and r["setting"]:
+            if r["receivers"] == "in_volume" and r["study"] == "main" and r["opaque"] == "inline" and r["setting"] \
+                    and r.get("order", "-") in ("depth", "-"):          # the AVSM family front to back
                 groups.setdefault((r["scene"], r["method"], r["setting"]), []).append(r)
         settings = []
         for (scene, method, setting), rs in sorted(groups.items()):

@@ -445,6 +445,8 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
                    subset_max_difference={k: v for c in base for k, v in c["subset_check"].items()})
     from . import plots as _error_plots
     _error_plots.plot_all(res, rows, names)
+    # the whole computation: cells, findings and figures (cells_seconds: the cells alone)
+    summary.update(cells_seconds=elapsed, run_seconds=time.perf_counter() - t0)
     verdicts = F.summary_lines(summary)
     shutil.rmtree(res.dir / "cells", ignore_errors=True)     # complete: nothing left to resume
     return dict(rows=rows, findings=summary, summary=verdicts)
