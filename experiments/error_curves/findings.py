@@ -161,6 +161,13 @@ def at_preset(variant: str) -> str:
     return label(kind, params)
 
 
+def _at_preset_side(side) -> dict:
+    """``side`` with its variant at its kind's preset and the capture's opaque mode the preset's."""
+    kind = _kind(side["variant"])
+    opaque = describe(kind)["preset_capture"].get("opaque", side["opaque"]) if kind in kinds() else side["opaque"]
+    return dict(side, variant=at_preset(side["variant"]), opaque=opaque)
+
+
 def _with_preset_companions(claims: list[dict]) -> list[dict]:
     out = list(claims)
     for c in claims:
@@ -168,11 +175,8 @@ def _with_preset_companions(claims: list[dict]) -> list[dict]:
                 or (c["id"].startswith("moments") and "_vs_fom" in c["id"]):
             if c.get("statistic", "rmse") != "rmse" or c["a"]["study"] != "main":
                 continue
-            sides = {k: dict(c[k], variant=at_preset(c[k]["variant"]),
-                             opaque=describe(_kind(c[k]["variant"]))["preset_capture"].get("opaque", c[k]["opaque"])
-                             if _kind(c[k]["variant"]) in kinds() else c[k]["opaque"]) for k in ("a", "b")}
             out.append(dict(c, id=c["id"] + "_at_preset", statement=c["statement"] + " (both at their presets)",
-                            **sides))
+                            a=_at_preset_side(c["a"]), b=_at_preset_side(c["b"])))
     return out
 
 
@@ -300,14 +304,16 @@ def _metric(r) -> dict:
                 indicative=r["n_configs"] < MIN_CONFIDENT)
 
 
-def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_order: bool = True) -> dict | None:
+def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_order: bool = True,
+             separate_scenes=None) -> dict | None:
     """One claim over the configurations where both sides were measured (None if none).
 
     l2: {(scene, config, setting, opaque, order): per-texel depth-uniform L2} (the second
     metric); blocks: {(scene, config, opaque[, receiver set]): 8 x 8 texel tile of each
     texel / receiver} (the within-configuration block bootstrap); by_order: also the claim
-    with the order-dependent sides in every other order of :data:`ORDERS`."""
-    separate = any(k[0] == spec["scene"] and k[3] == "separate" for k in store)
+    with the order-dependent sides in every other order of :data:`ORDERS`; separate_scenes:
+    :func:`separate_scenes` of ``store`` (None: found here, a pass over the store)."""
+    separate = spec["scene"] in (separate_scenes_of(store) if separate_scenes is None else separate_scenes)
     if not separate:            # no opaque content: the separate capture is the inline one
         spec = dict(spec, **{k: dict(spec[k], opaque="inline") for k in ("a", "b")})
     a_all, b_all, used, blk = [], [], [], []
@@ -346,7 +352,8 @@ def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_
         out["by_order"] = {}
         for o in ORDERS[1:]:
             s2 = dict(spec, **{k: dict(spec[k], order=o) if _order(spec[k]) != "-" else spec[k] for k in ("a", "b")})
-            r2 = evaluate(s2, store, configs, n_boot, l2, blocks, by_order=False)
+            r2 = evaluate(s2, store, configs, n_boot, l2, blocks, by_order=False, separate_scenes={spec["scene"]}
+                          if separate else set())
             if r2 is not None:
                 out["by_order"][o] = {k: r2[k] for k in ("estimate", "low", "high", "n_configs", "verdict",
                                                          "indicative", "metric_dependent", "sides")}
@@ -455,7 +462,12 @@ def _leak_table(store, configs, n_boot) -> dict:
     return out
 
 
-def orders(store, configs, n_boot: int = 1000, l2=None, blocks=None) -> dict:
+def separate_scenes_of(store) -> set:
+    """Scenes of ``store`` with a separate opaque capture (those with opaque content)."""
+    return {k[0] for k in store if k[3] == "separate"}
+
+
+def orders(store, configs, n_boot: int = 1000, l2=None, blocks=None, separate_scenes=None) -> dict:
     """Per scene and order-dependent setting (in-volume receivers, opaque inline): each
     other insertion order of :data:`ORDERS` against 'depth' on the same receivers and
     texels, the RMSE ratio (compression, vs the exact curve) and the depth-uniform L2
@@ -467,7 +479,7 @@ def orders(store, configs, n_boot: int = 1000, l2=None, blocks=None) -> dict:
         d = out.setdefault(scene, {}).setdefault(v, {})
         for o in ORDERS[1:]:
             spec = dict(scene=scene, a=_side(v, order=o), b=_side(v), statement=f"{v}: {o} order vs depth order")
-            r = evaluate(spec, store, configs, n_boot, l2, blocks, by_order=False)
+            r = evaluate(spec, store, configs, n_boot, l2, blocks, by_order=False, separate_scenes=separate_scenes)
             if r is not None:
                 d[o] = dict(rmse_ratio=[r["estimate"], r["low"], r["high"]], n_configs=r["n_configs"],
                             indicative=r["indicative"], depth_l2_ratio=r["metrics"]["depth_l2"],
@@ -481,9 +493,10 @@ def findings(store: dict, rows: list[dict], n_boot: int = 1000, l2=None, blocks=
     the truth against Mitsuba, and the AVSM family under every insertion order
     (:func:`orders`).  l2, blocks: as :func:`evaluate`."""
     configs = sorted({k[1] for k in store})
+    sep = separate_scenes_of(store)
     claims = {}
     for spec in _claims():
-        r = evaluate(spec, store, configs, n_boot, l2, blocks)
+        r = evaluate(spec, store, configs, n_boot, l2, blocks, separate_scenes=sep)
         if r is not None:
             claims[spec["id"]] = r
     # the map's own error against compression, every scene
@@ -493,7 +506,7 @@ def findings(store: dict, rows: list[dict], n_boot: int = 1000, l2=None, blocks=
                         b=_side("exact", "total"),
                         statement=f"{v.upper()}'s compression error is below the exact map's own error vs "
                                   f"the truth (the spatial + capture floor dominates)")
-            r = evaluate(spec, store, configs, n_boot, l2, blocks)
+            r = evaluate(spec, store, configs, n_boot, l2, blocks, separate_scenes=sep)
             if r is not None:
                 claims[spec["id"]] = r
     main = lambda r: (r.get("study") == "main" and r.get("opaque") == "inline" and r.get("receivers") == C  # noqa: E731
@@ -518,7 +531,7 @@ def findings(store: dict, rows: list[dict], n_boot: int = 1000, l2=None, blocks=
         if r.get("method") == "truth_vs_mitsuba":
             reference[f"{r['scene']}/{r['receivers']}"] = {k: r[k] for k in
                                                            ("rmse", "reference_se_rms", "within_3_stderr", "n")}
-    return dict(configurations=configs, claims=claims, orders=orders(store, configs, n_boot, l2, blocks),
+    return dict(configurations=configs, claims=claims, orders=orders(store, configs, n_boot, l2, blocks, sep),
                 surface_dilution=_dilution(store, configs, n_boot),
                 leak_dark=_leak_table(store, configs, n_boot), decomposition=decomposition, best_tuning=best,
                 truth_vs_mitsuba=reference)
