@@ -23,7 +23,11 @@ def test_quick_run_writes_results(quick_run):
     rows = _common.read_csv(quick_run / "data.csv")
     kinds = [k for k, _ in learned_warp.KINDS]
     assert {r["kind"] for r in rows} == set(kinds)
-    assert {"identity", "log", "learned"} <= {r["method"] for r in rows} <= {"identity", "log", "learned", "kind_log"}
+    assert {"identity", "log", "learned"} <= {r["method"] for r in rows} <= {"identity", "log", "learned", "kind_log",
+                                                                            "preset"}
+    for kind in ("osm", "fom"):              # the per-texel-range preset is a baseline at equal bytes
+        pre = [json.loads(r["params"]) for r in rows if r["kind"] == kind and r["method"] == "preset"]
+        assert pre and all(p["depth_range"] == "texel" for p in pre), kind
     assert {r["split"] for r in rows} == {"train", "held_out"}
     assert {"rmse", "max_error", "bytes_per_texel", "group", "seed", "light"} <= set(rows[0])
     for kind in kinds:                       # equal bytes: one size per kind whatever the warp
@@ -51,6 +55,11 @@ def test_training_lowers_the_loss(quick_run):
         for g, e in f[kind].items():
             for c in (v for k, v in (e.items() if isinstance(e, dict) else ()) if k.startswith("learned_over_")):
                 assert c["low"] <= c["ratio"] <= c["high"], (kind, g)
+    for kind in ("osm", "fom"):
+        e = f[kind]["held_out_all"]
+        assert {"preset_rmse", "learned_over_preset"} <= set(e) and e["indicative"] is False
+        assert 0 <= e["learned_over_preset"]["learned_smaller_in"] <= e["n_scenes"]
+    assert "preset_rmse" not in f["moments"]["train"]   # no moment count fits 20 B with a range
     m = f["avsm_metric"]
     assert 0 < m["beta_learned"] < 1 and m["bytes_per_texel"] == 64
     assert {"paper_rmse", "learned_rmse", "learned_over_paper"} <= set(m["held_out_all"])
@@ -70,6 +79,27 @@ def test_findings_on_hand_made_rows():
     assert f["train"]["learned_over_identity"]["ratio"] == pytest.approx(0.5)
     assert f["train"]["learned_over_log"]["ratio"] == pytest.approx(0.25)
     assert f["train"]["identity_rmse"] == pytest.approx(0.4)
+
+
+def test_preset_params_at_equal_bytes():
+    """OSM and FOM at their per-texel-range preset lower the size to the same bytes; moments
+    (fewest moments + range > 20 B) get none."""
+    import avsm_dr as ad
+    from cases import random_segments, to_segments
+    seg = to_segments(random_segments(np.random.default_rng(0), texels=8, max_count=4))
+    osm = learned_warp.preset_params("osm", {"slices": 8}, seg)
+    assert osm == {"slices": 6, "depth_range": "texel"}
+    assert ad.build("osm", seg, **osm).nbytes_per_texel == ad.build("osm", seg, slices=8).nbytes_per_texel
+    assert learned_warp.preset_params("fom", {"harmonics": 3}, seg) == {"harmonics": 2, "depth_range": "texel"}
+    assert learned_warp.preset_params("moments", {}, seg) is None
+
+
+def test_findings_flags_few_configurations():
+    """Fewer than MIN_CONFIGS configurations: indicative; learned_smaller_in counts them."""
+    rows = [dict(split="train", group="smoke", kind="osm", bytes_per_texel=32, method=m, rmse=v + 0.01 * s)
+            for s in range(3) for m, v in (("preset", 0.2), ("learned", 0.1 if s else 0.3))]
+    e = learned_warp.findings(rows)["osm"]["train"]
+    assert e["indicative"] is True and e["learned_over_preset"]["learned_smaller_in"] == 2
 
 
 def test_blended_metric_avsm_at_beta_0_is_the_avsm_kind():

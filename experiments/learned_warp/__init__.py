@@ -24,6 +24,16 @@ Per kind (at its size, the same for every warp):
 
   Where the kind has its own exact log warp (the moments kind's ``warp='log'``), it is a
   third baseline (``kind_log``).
+* **the kind at its preset** (``preset``, :func:`preset_params`): no warp, the registry's
+  best-practice configuration (``describe(kind)['preset']``: OSM's and FOM's per-texel depth
+  range, 2 floats per texel) with the size lowered to the same bytes per texel (OSM 6 slices
+  + range = 32 B, FOM 2 harmonics + range = 28 B); absent where no size fits (moments: 4
+  moments at the preset take 28 B, not 20).
+
+The metric is the depth-uniform one (receivers uniform in depth over each texel's content,
+the stratified form of :func:`avsm_dr.evaluation.depth_l2`); the receiver RMSE at receivers
+by contribution is not measured here.  Captures are front to back (``order='depth'``; the
+linear kinds do not depend on the order).
 
 Second part, AVSM's removal metric (:mod:`.avsm`): the blend
 ``(1 - beta) area + beta depth-gap`` learned through a softmin surrogate of the removal
@@ -33,8 +43,10 @@ a sweep of the hard algorithm over ``beta`` on the training scenes checks the su
 
 ``findings.json``: per kind and held-out group, the mean RMSE per method and the ratio
 learned / each baseline (means of per-scene RMSEs) with a paired bootstrap 95 % interval
-over the group's scenes (:func:`avsm_dr.stats.paired_bootstrap`, statistic 'mean');
-``avsm_metric`` likewise for the learned beta vs the paper's metric.
+whose unit is the configuration (scene seed x light: :func:`avsm_dr.stats.paired_bootstrap`
+over the group's configurations, statistic 'mean'), the number of configurations where the
+learned warp is the smaller, and ``indicative`` (fewer than :data:`MIN_CONFIGS`
+configurations); ``avsm_metric`` likewise for the learned beta vs the paper's metric.
 """
 
 from __future__ import annotations
@@ -44,7 +56,7 @@ import json
 import numpy as np
 from tqdm import tqdm
 
-from avsm_dr import build
+from avsm_dr import allows, build, describe
 from avsm_dr.stats import paired_bootstrap
 from .._study import Study
 from .depth_warp import DepthWarp, log_values
@@ -59,6 +71,8 @@ REPRODUCES = (
 
 #: (kind, parameters) learned for, about 20-36 bytes per texel each (float32).
 KINDS = [("osm", {"slices": 8}), ("fom", {"harmonics": 3}), ("moments", {})]
+#: Fewer configurations than this make a group's intervals ``indicative``.
+MIN_CONFIGS = 4
 #: Ratios tried for the logarithmic baseline (the best on the training set is kept).
 LOG_RATIOS = (3.0, 10.0, 30.0, 100.0)
 #: Light directions as (azimuth, elevation) degrees; the last is never used in training.
@@ -117,8 +131,28 @@ class SceneData:
 def kind_log_params(kind, params) -> dict | None:
     """The kind's own logarithmic depth warp (``warp='log'``, the moments kind's option
     when it has one: Muenstermann et al. 2018, sec. 5), or None."""
-    from avsm_dr import describe
     return dict(params, warp="log") if "warp" in describe(kind)["params"] else None
+
+
+def preset_params(kind, params, seg) -> dict | None:
+    """``kind`` at its registry preset (``describe(kind)['preset']``) with its size parameter
+    lowered until ``nbytes_per_texel`` on ``seg`` equals that of ``params`` (equal bytes), or
+    None when no size does (e.g. moments: the per-texel range adds 8 B to the fewest moments)."""
+    d = describe(kind)
+    target = build(kind, seg, **params).nbytes_per_texel
+    base = {**params, **d["preset"]}
+    size = d["size"]
+    start = base.get(size, d["params"][size]["default"])
+    for n in range(int(start), int(d["params"][size]["min"] or 1) - 1, -1):
+        p = {**base, size: n}
+        if not allows(kind, p):
+            continue
+        got = build(kind, seg, **p).nbytes_per_texel
+        if got == target:
+            return p
+        if got < target:
+            return None
+    return None
 
 
 def _warped_eval(data: SceneData, kind, params, theta, key):
@@ -184,6 +218,8 @@ def _compute(res, P: dict) -> dict:
         warps[kind] = {"identity": None, "log": theta_log, "learned": theta}
         if (own := kind_log_params(kind, params)) is not None:
             warps[kind]["kind_log"] = own          # the kind's own exact log warp (no knots)
+        if (pre := preset_params(kind, params, train_s[0].seg)) is not None:
+            warps[kind]["preset"] = pre            # the kind at its preset, at equal bytes (no warp)
         loss_rows += [{"kind": kind, "iteration": i, "train_mse": v} for i, v in enumerate(losses)]
         for method, th in (("log", theta_log), ("learned", theta)):
             for k, v in enumerate(DepthWarp(0.0, 1.0, theta=th, dtype="float64").knot_values()):
@@ -194,7 +230,8 @@ def _compute(res, P: dict) -> dict:
             for d in scenes:
                 for method, th in warps[kind].items():
                     rows.append(dict(split=split, group=d.group, scene=d.name, seed=d.seed, light=d.light, kind=kind,
-                                     params=json.dumps(params), bytes_per_texel=bpt, method=method,
+                                     params=json.dumps(th if isinstance(th, dict) else params),
+                                     bytes_per_texel=bpt, method=method,
                                      log_ratio=best_r if method == "log" else "", knots=P["knots"],
                                      **errors(d, kind, params, th)))
     bar.close()
@@ -237,8 +274,10 @@ def _avsm_metric(train_s, held_s, P):
 
 def findings(rows) -> dict:
     """Per kind and group (train, each held-out group, all held-out): mean RMSE per method,
-    ratios learned / each other method (identity and log for the warps, the paper's metric
-    for AVSM) with paired bootstrap 95 % intervals over the group's scenes (needs >= 2)."""
+    ratios learned / each other method (identity, log, kind_log and preset for the warps, the
+    paper's metric for AVSM) with paired bootstrap 95 % intervals over the group's
+    configurations (needs >= 2), the configurations where learned is the smaller, and
+    ``indicative`` (fewer than :data:`MIN_CONFIGS` configurations)."""
     out = {}
     kinds = list(dict.fromkeys(r["kind"] for r in rows))
     for kind in kinds:
@@ -253,21 +292,23 @@ def findings(rows) -> dict:
             groups[g] = [r for r in mine if r["split"] == "held_out" and r["group"] == g]
         d = out.setdefault(kind, {"bytes_per_texel": mine[0]["bytes_per_texel"]})
         methods = list(dict.fromkeys(r["method"] for r in mine))
-        for g, rs in groups.items():
+        for g, rs in ((g, rs) for g, rs in groups.items() if rs):
             by = {m: np.array([r["rmse"] for r in rs if r["method"] == m]) for m in methods}
-            e = {"n_scenes": int(by["learned"].size)}
+            n = int(by["learned"].size)
+            e = {"n_scenes": n, "indicative": n < MIN_CONFIGS}
             e.update({f"{m}_rmse": float(v.mean()) for m, v in by.items()})
             for base in (m for m in methods if m != "learned"):
-                if by["learned"].size >= 2:
+                if n >= 2:
                     ci = paired_bootstrap(by["learned"], by[base], statistic="mean", compare="ratio")
                     e[f"learned_over_{base}"] = {"ratio": ci["estimate"], "low": ci["low"], "high": ci["high"],
-                                                 "p_learned_smaller": ci["p_a_smaller"]}
+                                                 "p_learned_smaller": ci["p_a_smaller"],
+                                                 "learned_smaller_in": int(np.sum(by["learned"] < by[base]))}
             d[g] = e
     return out
 
 
-__all__ = ["run", "findings", "train", "errors", "plan", "kind_log_params", "SceneData", "KINDS", "LOG_RATIOS",
-           "LIGHTS", "METRIC"]
+__all__ = ["run", "findings", "train", "errors", "plan", "kind_log_params", "preset_params", "SceneData", "KINDS",
+           "LOG_RATIOS", "LIGHTS", "METRIC", "MIN_CONFIGS"]
 
 
 STUDY = Study("learned_warp", "A depth warp learned by gradient descent, tested on held-out scenes", REPRODUCES,

@@ -1,5 +1,5 @@
-"""Figures of the ``learned_warp`` experiment: warp curves, error per scene before and
-after, training loss."""
+"""Figures of the ``learned_warp`` experiment: warp curves, error per scene against no warp
+and against the kind at its preset, training loss."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +10,6 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import matplotlib.ticker
     kinds = list(dict.fromkeys(r["kind"] for r in rows))
 
     # ---- learned warp curves
@@ -28,35 +27,24 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     axes[0][0].legend(fontsize=8)
     res.save_figure(fig, "warps.png")
 
-    # ---- RMSE per scene: identity vs learned (and log), train and held-out
+    # ---- RMSE per scene: learned vs no warp (top) and vs the kind at its preset (bottom, where it has one)
     groups = list(dict.fromkeys(r["group"] for r in rows))
-    fig, axes = plt.subplots(1, len(kinds), figsize=(4.2 * len(kinds), 4.0), squeeze=False)
-    for ax, kind in zip(axes[0], kinds):
-        lo, hi = np.inf, 0.0
-        for gi, g in enumerate(groups):
-            base = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "identity"]
-            lrn = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "learned"]
-            x = np.array([r["rmse"] for r in base])
-            y = np.array([r["rmse"] for r in lrn])
-            ax.scatter(x, y, s=16, color=f"C{gi}", marker="o" if base[0]["split"] == "train" else "^",
-                       label=f"{g} ({base[0]['split']})")
-            lo, hi = min(lo, x.min(), y.min()), max(hi, x.max(), y.max())
-        lim = (lo / 1.2, hi * 1.2)
-        ax.plot(lim, lim, "k:", lw=0.8)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlim(lim)
-        ax.set_ylim(lim)
-        for axis in (ax.xaxis, ax.yaxis):
-            axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
-            axis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
-        ax.tick_params(axis="x", which="both", labelrotation=60, labelsize=7)
-        ax.tick_params(axis="y", which="both", labelsize=7)
-        ax.set_title(kind)
-        ax.set_xlabel("RMSE without warp")
-    axes[0][0].set_ylabel("RMSE with learned warp")
+    bases = [b for b in ("identity", "preset") if any(r["method"] == b for r in rows)]
+    fig, axes = plt.subplots(len(bases), len(kinds), figsize=(4.2 * len(kinds), 4.0 * len(bases)), squeeze=False)
+    fig.subplots_adjust(hspace=0.45)
+    for row, b in zip(axes, bases):
+        for ax, kind in zip(row, kinds):
+            if not any(r["kind"] == kind and r["method"] == b for r in rows):
+                ax.set_axis_off()
+                ax.text(0.5, 0.5, f"{kind}: no preset\nat equal bytes", ha="center", va="center",
+                        transform=ax.transAxes, fontsize=9)
+                continue
+            _scatter(ax, rows, kind, b, groups)
+            ax.set_title(kind)
+            ax.set_xlabel("RMSE without warp" if b == "identity" else "RMSE at the preset (per-texel range)")
+            ax.set_ylabel("RMSE with learned warp")
     handles, labs = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labs, loc="upper center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, -0.02))
+    fig.legend(handles, labs, loc="upper center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, 0.0))
     res.save_figure(fig, "error_per_scene.png")
 
     # ---- training loss
@@ -69,6 +57,31 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     ax.set_ylabel("training MSE / MSE of the identity warp")
     ax.legend(fontsize=8)
     res.save_figure(fig, "loss.png")
+
+
+def _scatter(ax, rows, kind, base_method, groups) -> None:
+    """Per scene: RMSE of ``base_method`` (x) against the learned warp's (y), log axes, y = x dotted."""
+    import matplotlib.ticker
+    lo, hi = np.inf, 0.0
+    for gi, g in enumerate(groups):
+        base = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == base_method]
+        lrn = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "learned"]
+        x = np.array([r["rmse"] for r in base])
+        y = np.array([r["rmse"] for r in lrn])
+        ax.scatter(x, y, s=16, color=f"C{gi}", marker="o" if base[0]["split"] == "train" else "^",
+                   label=f"{g} ({base[0]['split']})")
+        lo, hi = min(lo, x.min(), y.min()), max(hi, x.max(), y.max())
+    lim = (lo / 1.2, hi * 1.2)
+    ax.plot(lim, lim, "k:", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(lim)
+    ax.set_ylim(lim)
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+        axis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+    ax.tick_params(axis="x", which="both", labelrotation=60, labelsize=7)
+    ax.tick_params(axis="y", which="both", labelsize=7)
 
 
 def plot_metric(res, loss_rows, sweep) -> None:
