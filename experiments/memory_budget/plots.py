@@ -1,6 +1,6 @@
-"""Figures of the ``memory_budget`` experiment: error against total bytes per scene
-(geometric mean over configurations, min-max band) and the adaptive allocation's node
-count per texel."""
+"""Figures of the ``memory_budget`` experiment: error against total bytes per scene in the
+sparse layout, the headline's (geometric mean over configurations, min-max band), and the
+adaptive allocation's node count per texel."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +10,8 @@ METHODS = ("avsm", "adaptive", "adaptive_uniform", "adaptive_count", "dsm", "opt
 
 def plot_curves(res, rows, scenes):
     """``error_vs_bytes.png``: RMSE at in-volume receivers (top) and uniform-in-depth RMS
-    (bottom) against total bytes, one column per scene."""
+    (bottom) against the map's total bytes in the sparse layout (``bytes_sparse`` x texels:
+    the layout the savings count), one column per scene."""
     import matplotlib
     matplotlib.use("Agg")
     from .. import _plotstyle as plotstyle
@@ -25,7 +26,8 @@ def plot_curves(res, rows, scenes):
                     ns = sorted({r["nodes"] for r in rs})
                     if not ns:
                         continue
-                    xb = [np.mean([r["total_bytes"] for r in rs if r["nodes"] == n]) / 1024 for n in ns]
+                    xb = [np.mean([r["bytes_sparse"] * r["texels"] for r in rs if r["nodes"] == n]) / 1024
+                          for n in ns]
                     ys = [np.array([max(r[key], 1e-7) for r in rs if r["nodes"] == n]) for n in ns]
                     gm = [float(np.exp(np.mean(np.log(y)))) for y in ys]
                     st = _style(m)
@@ -37,7 +39,7 @@ def plot_curves(res, rows, scenes):
                 if i == 0:
                     ax.set_title(scene)
                 else:
-                    ax.set_xlabel("total bytes of the map (KiB)")
+                    ax.set_xlabel("total bytes of the map, sparse (KiB)")
                 if j == 0:
                     ax.set_ylabel(ylab)
         plotstyle.legend_below(fig, axes[0], ncol=min(len(METHODS), 3 * len(scenes)))
