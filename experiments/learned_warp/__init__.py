@@ -307,7 +307,7 @@ def findings(rows) -> dict:
     return out
 
 
-__all__ = ["run", "findings", "train", "errors", "plan", "kind_log_params", "preset_params", "SceneData", "KINDS",
+__all__ = ["run", "findings", "train", "errors", "kind_log_params", "preset_params", "SceneData", "KINDS",
            "LOG_RATIOS", "LIGHTS", "METRIC", "MIN_CONFIGS"]
 
 
