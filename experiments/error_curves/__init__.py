@@ -451,6 +451,11 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
     shutil.rmtree(res.dir / "cells", ignore_errors=True)     # complete: nothing left to resume
     return dict(rows=rows, findings=summary, summary=verdicts)
 
+def _headline(s: dict) -> list[str]:
+    """One line per claim (findings.summary_lines): receiver-RMSE ratio ``estimate [low,
+    high]``, depth-uniform L2 beside it, verdict, configurations and order; ids as in findings.json."""
+    return [f"{cid}: {line}" for cid, line in s.items()]
+
 
 STUDY = Study(
     "error_curves", "Error of every representation against the true transmittance, decomposed, per scene",
@@ -458,5 +463,5 @@ STUDY = Study(
     writes=("data.csv (one row per scene, configuration, receiver set and variant)", "findings.json (the claims)"),
     options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
              Option("kinds", "representation kinds to build (default: every registered one)", nargs="+",
-                    metavar="KIND")))
+                    metavar="KIND")), headline=_headline)
 run = STUDY.run
