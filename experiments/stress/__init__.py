@@ -157,8 +157,8 @@ def _compute(res, params: dict) -> dict:
 def _headline(s: dict) -> list[str]:
     """NaN / Inf and bound violations over every adversarial case, the hostile-input checks
     and the reduced-precision runs."""
-    return [f"{s['rows']} adversarial cases: {s['nan_inf_total']} NaN/Inf, {s['bounds_violations_total']} "
-            f"values outside [0, 1] or rising",
+    return [f"{s['rows']} adversarial runs (case x representation): {s['nan_inf_total']} NaN/Inf outputs, "
+            f"{s['bounds_violations_total']} values outside [0, 1]",
             f"hostile input: {s['reliability_failures']} of {s['reliability_checks']} checks failed",
             f"reduced precision: {s['precision_runs']} runs, {s['precision_nan_inf_total']} NaN/Inf "
             f"({num(s['precision_seconds'])} s)"]
