@@ -394,6 +394,22 @@ def test_a_declared_headline_ends_fresh_and_reused_runs_alike(tmp_path, monkeypa
     assert text[2] == "  ratio: 0.5 [0.25, 0.75]"
 
 
+def test_error_curves_headline_counts_the_verdicts():
+    """error_curves ends with how many claims got each verdict, then its claims' own lines
+    (``findings.summary_lines``), ids as in findings.json."""
+    from experiments.error_curves import findings as F
+
+    def claim(verdict, est):
+        return dict(estimate=est, low=est * 0.9, high=est * 1.1, verdict=verdict, n_configs=10, preset={"a": True})
+    lines = F.summary_lines({"claims": {"a": claim("holds in every configuration", 0.5), "b": claim("does not hold", 2.0),
+                                        "c": claim("holds in every configuration", 0.25)}})
+    head = cli.study("error_curves").headline_lines(lines)
+    assert head[0].startswith("3 claims: 2 holds in every configuration, 1 does not hold; per claim: ")
+    assert head[1:] == ["a: 0.5 [0.45, 0.55]: holds in every configuration, 10 configs",
+                        "b: 2 [1.8, 2.2]: does not hold, 10 configs",
+                        "c: 0.25 [0.225, 0.275]: holds in every configuration, 10 configs"]
+
+
 def test_installed_package_imports_no_study(tmp_path):
     """Outside the repository (no ``experiments`` importable) ``avsm_dr`` imports and works, and
     ``python -m avsm_dr`` says where the studies are instead of failing with a traceback."""

@@ -452,9 +452,16 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
     return dict(rows=rows, findings=summary, summary=verdicts)
 
 def _headline(s: dict) -> list[str]:
-    """One line per claim (findings.summary_lines): receiver-RMSE ratio ``estimate [low,
-    high]``, depth-uniform L2 beside it, verdict, configurations and order; ids as in findings.json."""
-    return [f"{cid}: {line}" for cid, line in s.items()]
+    """How many claims got each verdict, then one line per claim (findings.summary_lines):
+    receiver-RMSE ratio ``estimate [low, high]``, depth-uniform L2 beside it, verdict,
+    configurations and order; ids as in findings.json."""
+    import collections
+    import re
+    verdicts = collections.Counter(m[1] for line in s.values()
+                                   if (m := re.search(r": ([^:,]+), \d+ configs", line)))
+    tally = ", ".join(f"{n} {v}" for v, n in verdicts.most_common())
+    return ([f"{len(s)} claims: {tally}; per claim: receiver-RMSE ratio [95 % interval], depth-uniform L2, verdict"]
+            + [f"{cid}: {line}" for cid, line in s.items()])
 
 
 STUDY = Study(
