@@ -16,12 +16,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import inspect
+import json
 import pkgutil
 import re
 import sys
 import tempfile
 from pathlib import Path
 
+from ._headline import generic
 from ._study import Study
 
 
@@ -154,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         result = s.run(quick=args.quick, out=out, force=args.force, **extra)
     except ValueError as exc:
         return _error(exc)
-    print(summary_text(args.experiment, result or {}, out))
+    print(summary_text(args.experiment, result or {}, out, s))
     return 0
 
 
@@ -162,36 +164,36 @@ def main(argv: list[str] | None = None) -> int:
 SUMMARY_LINES = 12
 
 
-def summary_text(name: str, result: dict, out: Path) -> str:
-    """The few lines a run ends with: where its files are, the headline numbers (the first
-    :data:`SUMMARY_LINES` entries of its ``summary``, one per line) and how many more there are."""
+def summary_text(name: str, result: dict, out: Path, declared: Study | None = None) -> str:
+    """The few lines a run ends with: what the study measured (its ``about``), its headline
+    numbers (:meth:`Study.headline_lines <experiments._study.Study.headline_lines>`, at most
+    :data:`SUMMARY_LINES`) and where its files are; never a dict.  ``declared``: the study
+    (default: ``experiments.<name>``'s ``STUDY``, or the generic lines when there is none)."""
+    if declared is None:
+        try:
+            declared = study(name)
+        except (ImportError, TypeError):
+            declared = None
     folder = Path(result.get("out", out))
     files = sorted(p.name for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
-    lines = [f"{name}: {'reused cached results in' if result.get('cached') else 'wrote'} {folder}/"
-             + (f" ({', '.join(files[:8])}{', ...' if len(files) > 8 else ''})" if files else "")]
+    lines = [f"{name}: {declared.about}" if declared else f"{name}:"]
     summary = result.get("summary")
-    if isinstance(summary, dict) and summary:
-        items = list(summary.items())
-        width = min(48, max(len(str(k)) for k, _ in items[:SUMMARY_LINES]))
-        lines += [f"  {str(k):<{width}}  {_short(v)}" for k, v in items[:SUMMARY_LINES]]
-        if len(items) > SUMMARY_LINES:
-            where = "findings.json" if (folder / "findings.json").exists() else "data.csv"
-            lines.append(f"  ... and {len(items) - SUMMARY_LINES} more in {where}")
-    elif summary:
-        lines.append(f"  {_short(summary)}")
+    try:                                              # the recorded summary: fresh and reused runs alike
+        summary = json.loads((folder / "meta.json").read_text())["summary"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    try:
+        heads = declared.headline_lines(summary) if declared else generic(summary)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:   # the files are written: never fail here
+        heads = [f"(the study's headline failed: {type(exc).__name__}: {exc}; its summary follows)"] + generic(summary)
+    lines += [f"  {h}" for h in heads[:SUMMARY_LINES]]
+    if len(heads) > SUMMARY_LINES:
+        where = "findings.json" if (folder / "findings.json").exists() else "meta.json"
+        lines.append(f"  ... and {len(heads) - SUMMARY_LINES} more in {where}")
+    shown = ", ".join(files[:8]) + (", ..." if len(files) > 8 else "")
+    lines.append(f"{'reused cached results in' if result.get('cached') else 'wrote'} {folder}/"
+                 + (f" ({shown})" if files else ""))
     return "\n".join(lines)
-
-
-def _short(value, width: int = 100) -> str:
-    """One value on one line of at most ``width`` characters (floats to 4 significant digits)."""
-    if isinstance(value, float):
-        text = f"{value:.4g}"
-    elif isinstance(value, dict):
-        text = ", ".join(f"{k}={_short(v, 30)}" for k, v in value.items())
-    else:
-        text = str(value)
-    text = " ".join(text.split())
-    return text if len(text) <= width else text[:width - 4] + " ..."
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ._common import Results
+from ._headline import generic
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +76,10 @@ class Study:
         ``resolve(P, quick, **runtime) -> P``: defaults that depend on the registry or an
         option, and checks of the parameters (``ValueError`` naming the argument), before
         the cache is consulted.
+    headline
+        ``headline(summary) -> list[str]``: the few human lines a run ends with (what was
+        measured, the headline numbers with their intervals), read from the recorded
+        ``summary`` (JSON types); ``None``: :func:`experiments._headline.generic`.
     """
     name: str
     about: str
@@ -86,6 +91,7 @@ class Study:
     options: tuple[Option, ...] = ()
     sweep: bool = False
     resolve: Callable[..., dict] | None = None
+    headline: Callable[[dict], list[str]] | None = None
 
     def keywords(self) -> tuple[str, ...]:
         """The keywords ``run`` takes besides ``quick``, ``out`` and ``force``."""
@@ -132,6 +138,12 @@ class Study:
         res.write_meta(output["summary"])
         return {"csv": str(csv), "out": str(res.dir), "figures": list(res.figures), "summary": output["summary"],
                 **output.get("result", {})}
+
+    def headline_lines(self, summary) -> list[str]:
+        """The run's headline lines: its declared :attr:`headline` of ``summary`` as recorded
+        in ``meta.json`` (a fresh and a reused run print the same), else the generic lines."""
+        summary = json.loads(json.dumps(summary, default=_json_default))
+        return (self.headline or generic)(summary) if summary else []
 
     def help_text(self, plain: Callable[[str], str] = str, doc: str = "") -> tuple[str, str]:
         """(description, epilog) of ``python -m experiments <name> --help``: ``doc`` (the

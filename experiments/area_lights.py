@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from avsm_dr import area_lights as al
 from ._common import Results
+from ._headline import num
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -187,7 +188,17 @@ def _figure(res: Results, images: dict, gt: np.ndarray, p: dict) -> Path:
     fig.suptitle("Area light in a single-scattering medium: imperfect VSVs vs naive per-VPL", fontsize=9)
     return res.save_figure(fig, "images.png")
 
+def _headline(s: dict) -> list[str]:
+    """Imperfect voxelized shadow volumes: their cost against a hard shadow and against naive
+    per-VPL volumes, and the dense reference against Mitsuba."""
+    return [f"{s['K_max']} VPLs: imperfect VSVs cost {num(s['imperfect_cost_vs_hard'])}x a hard shadow "
+            f"({num(s['hard_shadow_seconds'] * 1e3)} ms) and run {num(s['speedup_imperfect_vs_naive_coarse'])}x "
+            f"faster than naive coarse, {num(s['speedup_imperfect_vs_naive_high'])}x than naive fine volumes",
+            f"dense reference vs Mitsuba: RMSE {num(s['dense_vs_mitsuba_rmse'])} (Mitsuba noise "
+            f"{num(s['mitsuba_noise_rmse'])}), mean ratio {num(s['dense_vs_mitsuba_mean_ratio'])}",
+            f"wall time {num(s['wall_seconds'])} s (CPU timings on a shared machine)"]
+
 
 STUDY = Study("area_lights", "Area lights: imperfect voxelized shadow volumes vs naive per-VPL VSVs", REPRODUCES,
-              FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "images.npz"))
+              FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "images.npz"), headline=_headline)
 run = STUDY.run

@@ -51,6 +51,7 @@ from tqdm import tqdm
 from avsm_dr import build, kinds
 from avsm_dr.metrics import error_stats
 from ._common import front_to_back_first
+from ._headline import interval
 from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -350,11 +351,28 @@ def _plot(res, rows, names):
             plotstyle.legend_below(fig, axes[0], ncol=7)
             res.save_figure(fig, fname)
 
+def _headline(s: dict) -> list[str]:
+    """Per scene and N: AVSM's and greedy's uniform-in-depth RMS over the optimal N-node
+    curve's (the interval over configurations where recorded), AVSM's worst insertion order."""
+    ivs, out = s.get("intervals", {}), []
+    for scene, per_n in s.items():
+        for n, d in per_n.items() if scene != "intervals" else ():
+            iv = ivs.get(scene, {}).get(n, {})
+            by = d.get("avsm_over_optimal_by_order", {})
+            worst = max(by, key=by.get) if by else None
+            out.append(f"{scene} {n}: depth-uniform RMS over the optimum: AVSM "
+                       f"{interval(iv.get('avsm_over_optimal', d.get('avsm_over_optimal')))}, greedy "
+                       f"{interval(iv.get('greedy_over_optimal', d.get('greedy_over_optimal')))}"
+                       + (f"; worst order {worst} {interval(iv.get(f'avsm@{worst}_over_optimal', by[worst]))}"
+                          if worst and worst != "depth" else ""))
+    return out
+
 
 STUDY = Study(
     "avsm_gap", "AVSM's distance from the best N-node curve: streaming AVSM against offline greedy and optimal",
     REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
     options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
              Option("orders", "insertion orders AVSM is built under besides front to back, the headline's "
-                              "(default: submission reverse_depth random)", nargs="+", metavar="ORDER")))
+                              "(default: submission reverse_depth random)", nargs="+", metavar="ORDER")),
+    headline=_headline)
 run = STUDY.run

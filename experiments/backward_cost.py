@@ -40,6 +40,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._common import Meter as _Meter
+from ._headline import num, wrap
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -294,7 +295,20 @@ def _compute(res, params: dict) -> dict:
                               for r in rows if r["table"] == "stack_limit"]
     return dict(rows=rows, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Per table: the reverse pass's time over the forward AD pass's, per kind (finest step),
+    and what happened past the worker stack's limit."""
+    out = []
+    for table in ("representation", "pipeline"):
+        items = [f"{k.split('/', 1)[1]} {num(v['reverse_over_forward_ad'])}x" for k, v in s.items()
+                 if k.startswith(table + "/")]
+        out += wrap(f"{table}: reverse / forward-AD time: ", items)
+    if s.get("stack_limit"):
+        out += wrap("past the stack limit: ", [f"{r['mode']} N={r['nodes']} at {r['max_count']} segments "
+                                               f"{r['outcome']}" for r in s["stack_limit"]])
+    return out
+
 
 STUDY = Study("backward_cost", "Cost of gradients: the backward pass against the forward pass, per representation",
-              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve)
+              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, headline=_headline)
 run = STUDY.run

@@ -29,6 +29,7 @@ import dataclasses
 import numpy as np
 
 from ._common import measure
+from ._headline import num
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -122,7 +123,13 @@ def _compute(res, params: dict) -> dict:
               f"kernels={row['kernels_s'] * 1e3:5.1f} ms (x{row['ratio_kernels']:.2f})")
     return dict(rows=rows, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Capture time in each larger, empty box over the tight box's, and the 1.5x bar."""
+    out = [f"{case}: capture {num(r['ratio_capture'])}x the tight box's (prepared {num(r['ratio_prepared'])}x, "
+           f"kernels {num(r['ratio_kernels'])}x)" for case, r in s.items() if isinstance(r, dict)]
+    return out + [f"prepared capture within 1.5x of the tight box's in every case: {num(s.get('within_bar'))}"]
+
 
 STUDY = Study("bench_capture", "Capture cost against the bounding box: a plume in its tight box and in larger, "
-              "empty boxes", REPRODUCES, FULL, QUICK, _compute)
+              "empty boxes", REPRODUCES, FULL, QUICK, _compute, headline=_headline)
 run = STUDY.run

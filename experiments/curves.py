@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build, kinds
+from ._headline import num, wrap
 from ._study import Study
 from .error_curves import march_step
 
@@ -76,7 +77,15 @@ def _compute(res, params: dict) -> dict:
     res.save_figure(fig, "curves.png")
     return dict(rows=rows, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Per scene: the texel drawn and each representation's largest |T - T_exact| along it."""
+    out = []
+    for scene, d in s.items():
+        errs = [f"{k[:-len('_max_error')]} {num(v)}" for k, v in d.items() if k.endswith("_max_error")]
+        out += wrap(f"{scene} texel {d['texel']} ({d['segments']} segments), max |T - exact|: ", errs)
+    return out
+
 
 STUDY = Study("curves", "Transmittance along single texels: every representation against the exact curve",
-              REPRODUCES, FULL, QUICK, _compute)
+              REPRODUCES, FULL, QUICK, _compute, headline=_headline)
 run = STUDY.run

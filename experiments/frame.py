@@ -49,6 +49,7 @@ from tqdm import tqdm
 from avsm_dr import _arrays as A
 from avsm_dr import backend
 from ._common import Results, measure
+from ._headline import num
 from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -364,6 +365,22 @@ def _compute(res, params: dict, grid=None) -> dict:
             print(f"{key}: {v:.2f}")
     return dict(rows=rows, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Per scene and capture method at its largest resolution: the capture's time (and
+    segments) against AVSM-8's build, sorted against unsorted random-order builds."""
+    out = []
+    for key, v in s.items():
+        if key.endswith("_capture_s"):
+            base = key[:-len("_capture_s")]
+            scene, res, method = base.rsplit("_", 2)
+            out.append(f"{scene} {res}^2 {method}: capture {num(v * 1e3)} ms ({num(s[base + '_segments'])} "
+                       f"segments) = {num(s[base + '_capture_over_avsm8_build'])}x the AVSM-8 build "
+                       f"(CPU {num(s[base + '_capture_over_avsm8_build_cpu'])}x); sorted build "
+                       f"{num(s[base + '_sorted_over_unsorted_random'])}x unsorted")
+    if s.get("skipped"):
+        out.append(f"skipped: {len(s['skipped'])} (listed in meta.json)")
+    return out
+
 
 STUDY = Study(
     "frame", "The whole frame: capture -> build -> lookups, per stage, for every built-in scene", REPRODUCES,
@@ -373,5 +390,5 @@ STUDY = Study(
              Option("resolutions", "shadow-map resolutions (default: the mode's)", type=int, nargs="+",
                     metavar="R"),
              Option("methods", f"capture methods, a subset of {METHODS}", nargs="+", metavar="METHOD"),
-             Option("repeats", "timing repeats (default: the mode's)", type=int, metavar="N")))
+             Option("repeats", "timing repeats (default: the mode's)", type=int, metavar="N")), headline=_headline)
 run = STUDY.run

@@ -35,6 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import backend, build, kinds
+from ._headline import listing, num
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -413,7 +414,20 @@ def _ranking_figure(plt, res, rows, names):
     fig.tight_layout()
     res.save_figure(fig, "ranking.png")
 
+def _headline(s: dict) -> list[str]:
+    """Per scene: the ranking by image RMSE and by FLIP, and the reference's check against Mitsuba."""
+    out = []
+    for key, v in s.items():
+        if key.endswith("_ranking_rmse"):
+            scene = key[:-len("_ranking_rmse")]
+            out.append(f"{scene}, best to worst by RMSE: {listing(v, 10)}")
+            out.append(f"{scene}, best to worst by FLIP: {listing(s.get(scene + '_ranking_flip', []), 10)}")
+        elif key.endswith("_reference_check"):
+            out.append(f"{key[:-len('_reference_check')]} reference vs Mitsuba: RMSE {num(v['vs_mitsuba_rmse'])} "
+                       f"= {num(v['rmse_over_stderr'])}x its standard error, bias bound {num(v['bias_bound'])}")
+    return out
+
 
 STUDY = Study("images", "Shadowed images per representation against a converged, deterministic reference",
-              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "images_<scene>.npz"))
+              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "images_<scene>.npz"), headline=_headline)
 run = STUDY.run

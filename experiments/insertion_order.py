@@ -60,6 +60,7 @@ from tqdm import tqdm
 
 from avsm_dr import build
 from ._free_vertex import free_vertex_l2
+from ._headline import num, wrap
 from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -354,9 +355,31 @@ def _plot(res, found: dict, names, nodes):
         plotstyle.legend_below(fig, axes[-1], ncol=min(len(labels), 6), handles=handles, labels=labels)
         res.save_figure(fig, "insertion_order.png")
 
+def _headline(s: dict) -> list[str]:
+    """Per scene and N: AVSM's depth-uniform L2 over the optimum per insertion order, each
+    method's worst order over the optimum, and the optimum over the free-vertex fit."""
+    import re
+    groups: dict = {}
+    for key, v in s.items():
+        m = re.match(r"(.+)_N(\d+)_(.+)$", key)
+        if m:
+            groups.setdefault(f"{m[1]} N={m[2]}", {})[m[3]] = v
+    out = []
+    for head, d in groups.items():
+        orders = [f"{k[len('avsm_over_optimal_'):]} {num(v)}" for k, v in d.items()
+                  if k.startswith("avsm_over_optimal_")]
+        worst = [f"{k[:-len('_worst_order_over_optimal')]} {num(v)}" for k, v in d.items()
+                 if k.endswith("_worst_order_over_optimal")]
+        out += wrap(f"{head}: AVSM over the optimum by order: ", orders)
+        out += wrap(f"{head}: worst order over the optimum: ", worst)
+        if "optimal_over_free_vertex" in d:
+            out.append(f"{head}: optimum over the free-vertex fit: {num(d['optimal_over_free_vertex'])}")
+    return out
+
 
 STUDY = Study(
     "insertion_order", "AVSM and avsm_march under four insertion orders, against greedy and the optimum",
     REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
-    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),))
+    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),),
+    headline=_headline)
 run = STUDY.run

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from avsm_dr.receivers import lattice
 
+from ._headline import num
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -156,7 +157,28 @@ def _compute(res, params: dict) -> dict:
                        f"({spp} spp) on the recovered and the true grid")
     return dict(rows=rows, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Per model and start: the recovered density's error, the data loss before and after,
+    the held-out light's RMSE (recovered and empty grid against the truth), the gradient check."""
+    out = []
+    for label, d in s.items():
+        if not isinstance(d, dict) or "density_rmse" not in d:
+            continue
+        line = (f"{label}: density RMSE {num(d['density_rmse'])} (relative L2 {num(d['density_rel_l2'])}), "
+                f"data loss {num(d['data_loss_first'])} -> {num(d['data_loss_last'])} in {num(d['seconds'])} s")
+        if "rmse_recovered_vs_truth" in d:
+            line += (f"; held-out light RMSE {num(d['rmse_recovered_vs_truth'])} "
+                     f"(empty grid {num(d['rmse_empty_vs_truth'])})")
+        out.append(line)
+    checks = s.get("gradient_checks", {})
+    bad = [k for k, c in checks.items() if not c.get("ok")]
+    if checks:
+        worst = max(c.get("error", 0.0) for c in checks.values())
+        out.append(f"gradient checks (reverse vs forward mode): {len(checks) - len(bad)} of {len(checks)} agree, "
+                   f"largest difference {num(worst)}" + (f"; failed: {', '.join(bad)}" if bad else ""))
+    return out
+
 
 STUDY = Study("inverse", "Inverse problem: recover a smoke plume's density grid from its shadows", REPRODUCES,
-              FULL, QUICK, _compute)
+              FULL, QUICK, _compute, headline=_headline)
 run = STUDY.run

@@ -12,6 +12,7 @@ from tqdm import tqdm
 from avsm_dr import build
 from avsm_dr.metrics import error_stats
 from avsm_dr.segments import Segments
+from ._headline import num, wrap
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -79,7 +80,19 @@ def _compute(res, params: dict) -> dict:
                for r in rows}
     return dict(rows=rows, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Per scene: the flicker RMS of AVSM-N built unsorted, against sorted (0: no flicker)."""
+    import re
+    groups: dict = {}
+    for key, v in s.items():
+        m = re.match(r"(.+)_N(\d+)_(sorted|unsorted)_flicker_rms$", key)
+        if m:
+            groups.setdefault(m[1], {}).setdefault(int(m[2]), {})[m[3]] = v
+    return [line for scene, per_n in groups.items() for line in wrap(
+        f"{scene}, flicker RMS unsorted / sorted: ",
+        [f"N={n} {num(d.get('unsorted'))} / {num(d.get('sorted'))}" for n, d in sorted(per_n.items())])]
+
 
 STUDY = Study("ordering", "Effect of insertion order on AVSM: error and flicker, sorted against unsorted",
-              REPRODUCES, FULL, QUICK, _compute)
+              REPRODUCES, FULL, QUICK, _compute, headline=_headline)
 run = STUDY.run

@@ -13,6 +13,7 @@ from tqdm import tqdm
 from avsm_dr import build, configurations, describe, kinds
 from avsm_dr.metrics import error_stats
 from ._common import timed
+from ._headline import wrap
 from ._study import Study
 from .error_curves import SCENES
 
@@ -101,7 +102,12 @@ def _compute(res, params: dict) -> dict:
                for name in names}
     return dict(rows=rows, summary={"pareto_front": summary}, result={"summary": summary})
 
+def _headline(s: dict) -> list[str]:
+    """Per scene: the settings on the time-error Pareto front."""
+    return [line for scene, front in s.get("pareto_front", {}).items()
+            for line in wrap(f"{scene}, on the time-error Pareto front: ", [str(x).rstrip("-") for x in front])]
+
 
 STUDY = Study("runtime_vs_error", "Build and lookup time against error for every representation and setting",
-              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve)
+              REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, headline=_headline)
 run = STUDY.run

@@ -23,6 +23,7 @@ wall time including host work and any recompilation (``lookup_wall_ns``).
 from __future__ import annotations
 
 import functools
+import re
 
 import numpy as np
 from tqdm import tqdm
@@ -31,6 +32,7 @@ from avsm_dr import allows, build, describe, kinds
 from avsm_dr.metrics import error_stats, optical_depth_error
 from avsm_dr.scene import DirectionalLight
 from ._common import measure
+from ._headline import interval, num
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -277,7 +279,25 @@ def _mean(rows, name, kind, r, budget):
          and x["receivers"] == "all" and x["budget_bytes"] == budget]
     return float(np.sqrt(np.mean(np.square(v)))) if v else np.nan
 
+def _headline(s: dict) -> list[str]:
+    """Per scene, budget and kind: the best shadow-map resolution at equal total bytes, its
+    RMSE, and its RMSE over the runner-up's."""
+    out = []
+    for key, d in s.items():
+        if not isinstance(d, dict) or "best_resolution" not in d:
+            continue
+        scene, nbytes, kind = re.match(r"(.+)_(\d+)B_(.+)$", key).groups()
+        best = str(d["best_resolution"])
+        r = d["per_resolution"][best]
+        line = f"{scene}, {kind} in {num(int(nbytes))} B: best at {best}^2 (param {r['param']}), RMSE {interval(r)}"
+        v = d.get("vs_runner_up")
+        if v:
+            line += (f"; RMSE over {v['runner_up']}^2's {interval(v)}"
+                     + (" in every configuration" if v.get("holds_in_every_configuration") else ""))
+        out.append(line)
+    return out
+
 
 STUDY = Study("spatial_budget", "Spatial vs depth budget: shadow-map resolution against nodes at equal bytes",
-              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "findings.json"))
+              REPRODUCES, FULL, QUICK, _compute, writes=("data.csv", "findings.json"), headline=_headline)
 run = STUDY.run

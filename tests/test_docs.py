@@ -250,11 +250,13 @@ def test_numbers_on_pages_come_from_the_committed_data():
             ext.claim_text(bad, claims)
     table = ext.claims_table(rows)
     assert "| A / B (`c1`) | plume | depth | no | 0.18 [0.17, 0.19] | 0.5 [0.4, 0.61] | 10 | holds pooled |" in table
-    settings = [dict(scene="plume", setting="avsm-8", rmse="0.01234")]
+    settings = [dict(scene="plume", setting="avsm-8", rmse="0.01234", bytes_per_texel="136.0")]
     assert ext.measured_text("plume:avsm-8:rmse", settings) == "0.012"
+    assert ext.measured_text("plume:avsm-8:bytes_per_texel", settings) == "136"      # not 1.4e+02
     with pytest.raises(KeyError):
         ext.measured_text("plume:avsm-9:rmse", settings)
     committed = {r["name"] for r in ext.read_rows("error_claims.csv")}
-    pages = "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
+    pages = "".join(p.read_text() for p in [*(ROOT / "docs").glob("*.md"),
+                                            *(ROOT / "docs" / "representations" / "notes").glob("*.md")])
     quoted = set(re.findall(r"\{claim\}`([^`:]+)", pages))
     assert quoted <= committed, sorted(quoted - committed)

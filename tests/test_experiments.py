@@ -2,6 +2,7 @@
 documented columns), figures and meta.json into its own ``<--out>/<name>/`` folder; the
 results cache is keyed on parameters, package source and versions; the CLI reports a bad
 ``--out`` in one line; the recipes in ``experiments/`` call existing experiments."""
+import dataclasses
 import json
 import re
 import os
@@ -15,6 +16,7 @@ import pytest
 
 from experiments import _cli as cli
 from experiments import _common
+from experiments._headline import generic, interval
 from experiments._study import Study
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,11 +35,27 @@ def shared_out(tmp_path_factory):
     return tmp_path_factory.mktemp("results")
 
 
+#: The old end of a run: ``  <key padded>  <value>`` lines and ``key_name=value`` dumps of nested dicts.
+RAW_LINE, RAW_DICT = re.compile(r"^  \S+\s{2,}\S"), re.compile(r"\w_\w+=[-\d]")
+
+
+def _end_of_run(name: str, stdout: str) -> list[str]:
+    """The lines a run printed last: from ``<name>: <about>`` to ``wrote <folder>/ (...)``."""
+    lines = stdout.splitlines()
+    start = max(i for i, ln in enumerate(lines) if ln == f"{name}: {cli.study(name).about}")
+    return lines[start:]
+
+
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_quick_experiment_writes_results(name, shared_out):
+def test_quick_experiment_writes_results(name, shared_out, capsys):
     assert name in cli.experiment_names()
     assert cli.main([name, "--quick", "--out", str(shared_out)]) == 0
     out = shared_out / name
+    # it ends with what was measured, a few human headline lines and where the files are
+    end = _end_of_run(name, capsys.readouterr().out)
+    assert end[-1].startswith(f"wrote {out}/ (") and "data.csv" in end[-1], end
+    assert 3 <= len(end) <= cli.SUMMARY_LINES + 3, end
+    assert not [ln for ln in end if RAW_LINE.match(ln) or RAW_DICT.search(ln) or "{" in ln], end
     rows = _rows(out / "data.csv")
     assert rows, "empty CSV"
     meta = json.loads((out / "meta.json").read_text())
@@ -328,15 +346,68 @@ def test_every_study_says_what_it_reproduces_and_describes_itself(capsys):
 
 
 def test_run_ends_with_a_short_human_summary(tmp_path):
-    """A run ends with where its files are and at most SUMMARY_LINES headline lines, never a dict."""
+    """A run ends with what was measured, at most SUMMARY_LINES headline lines and where its
+    files are, never a dict."""
     (tmp_path / "toy").mkdir()
     (tmp_path / "toy" / "findings.json").write_text("{}")
     summary = {f"claim_{i}": "holds in every configuration" for i in range(30)} | {"ratio": 1.23456789}
     text = cli.summary_text("toy", {"out": str(tmp_path / "toy"), "summary": summary}, tmp_path / "toy")
     lines = text.splitlines()
-    assert lines[0].startswith("toy: wrote ") and "findings.json" in lines[0]
-    assert len(lines) == 1 + cli.SUMMARY_LINES + 1 and lines[-1] == "  ... and 19 more in findings.json"
+    assert lines[0] == "toy:" and lines[1] == "  claim 0: holds in every configuration"
+    assert lines[-1].startswith("wrote ") and "findings.json" in lines[-1]
+    assert len(lines) == 1 + cli.SUMMARY_LINES + 2 and lines[-2] == "  ... and 19 more in findings.json"
     assert "{" not in text and all(len(ln) < 160 for ln in lines)
+
+
+def test_generic_headline_formats_numbers_and_intervals():
+    """A study without its own headline: one line per leaf, keys as words, numbers to 3
+    significant digits, intervals as ``estimate [low, high]``, never a dict's repr."""
+    summary = {"run_seconds": 12.345, "order": ["depth", "random"], "rate": 25980927.5, "ok": True,
+               "plume": {"N=8": {"avsm_over_optimal": {"estimate": 2.90213, "low": 2.8312, "high": 2.9871,
+                                                       "per_config": {"s0": [2.9, 2.8, 3.0]}},
+                                 "texels": 4096},
+                         "timing": {"build_s": 0.01234, "lookup_s": 0.5}}}
+    assert generic(summary) == ["run seconds: 12.3", "order: depth, random", "rate: 26 M", "ok: yes",
+                                "plume / N=8 / avsm over optimal: 2.9 [2.83, 2.99]", "plume / N=8 / texels: 4096",
+                                "plume / timing: build s 0.0123, lookup s 0.5"]
+
+
+def test_a_declared_headline_ends_fresh_and_reused_runs_alike(tmp_path, monkeypatch, capsys):
+    """``Study.headline`` reads the recorded summary: a fresh run and a reused one print the
+    same lines (between what was measured and where the files are); a headline that fails on
+    the summary says so and falls back to the generic lines instead of failing the run."""
+    def compute(res, P):
+        return dict(rows=[{"x": 1}], summary={"ratio": {"estimate": 0.5, "low": 0.25, "high": 0.75}})
+    study = Study("toy_head", "toy about", "nothing", {}, {}, compute,
+                  headline=lambda s: [f"a over b: {interval(s['ratio'])}"])
+    monkeypatch.setitem(sys.modules, "experiments.toy_head", types.SimpleNamespace(STUDY=study, run=study.run))
+    monkeypatch.setattr(cli, "experiment_names", lambda: ["toy_head"])
+    runs = []
+    for _ in range(2):
+        assert cli.main(["toy_head", "--out", str(tmp_path)]) == 0
+        runs.append(capsys.readouterr().out.splitlines())
+    assert runs[0][:2] == runs[1][:2] == ["toy_head: toy about", "  a over b: 0.5 [0.25, 0.75]"]
+    assert runs[0][2].startswith("wrote ") and runs[1][2].startswith("reused cached results in ")
+    broken = dataclasses.replace(study, headline=lambda s: [s["missing"]])
+    text = cli.summary_text("toy_head", {"out": str(tmp_path / "toy_head")}, tmp_path, broken).splitlines()
+    assert text[1] == "  (the study's headline failed: KeyError: 'missing'; its summary follows)"
+    assert text[2] == "  ratio: 0.5 [0.25, 0.75]"
+
+
+def test_error_curves_headline_counts_the_verdicts():
+    """error_curves ends with how many claims got each verdict, then its claims' own lines
+    (``findings.summary_lines``), ids as in findings.json."""
+    from experiments.error_curves import findings as F
+
+    def claim(verdict, est):
+        return dict(estimate=est, low=est * 0.9, high=est * 1.1, verdict=verdict, n_configs=10, preset={"a": True})
+    lines = F.summary_lines({"claims": {"a": claim("holds in every configuration", 0.5), "b": claim("does not hold", 2.0),
+                                        "c": claim("holds in every configuration", 0.25)}})
+    head = cli.study("error_curves").headline_lines(lines)
+    assert head[0].startswith("3 claims: 2 holds in every configuration, 1 does not hold; per claim: ")
+    assert head[1:] == ["a: 0.5 [0.45, 0.55]: holds in every configuration, 10 configs",
+                        "b: 2 [1.8, 2.2]: does not hold, 10 configs",
+                        "c: 0.25 [0.225, 0.275]: holds in every configuration, 10 configs"]
 
 
 def test_installed_package_imports_no_study(tmp_path):

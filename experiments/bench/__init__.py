@@ -61,6 +61,7 @@ import time
 from tqdm import tqdm
 
 from .peer_kernels import numba_avsm, warp_avsm
+from .._headline import num
 from .._study import Study
 from . import memory, peers, report, scaling, skipping, throughput
 from .machine import machine_limit
@@ -127,9 +128,21 @@ def _compute(res, P: dict) -> dict:
               "memory.csv": mem, "machine.csv": report.machine_rows(data, machine)}
     return dict(rows=data, tables=tables, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """AVSM-8's rates on the ~100 segments per texel map, its speed-ups over the peers and its
+    share of the machine's limit; the run's time."""
+    return [f"AVSM-8: {num(s['avsm8_insertions_per_s'])} insertions/s ({num(s['avsm8_insertions_per_cpu_s'])} per "
+            f"CPU-second), {num(s['avsm8_lookups_per_s'])} lookups/s",
+            f"AVSM-8 speed-up over NumPy {num(s['avsm8_speedup_vs_numpy'])}x, Numba "
+            f"{num(s['avsm8_speedup_vs_numba'])}x, Warp {num(s['avsm8_speedup_vs_warp'])}x; FOM-8 over Numba "
+            f"{num(s['fom8_speedup_vs_numba'])}x, Warp {num(s['fom8_speedup_vs_warp'])}x",
+            f"AVSM-8 at {num(s['machine_fraction_avsm8'])} of the machine's limit (best map "
+            f"{num(s['machine_fraction_avsm8_best'])})",
+            f"run time {num(s['seconds'])} s; {len(s.get('notes') or [])} settings skipped (notes in meta.json)"]
+
 
 STUDY = Study("bench", "Performance suite: throughput of capture, build and lookup for every representation",
               REPRODUCES, FULL, QUICK, _compute,
               writes=("data.csv (throughput)", "scenes.csv", "peers.csv", "scaling.csv", "skipping.csv",
-                      "memory.csv", "machine.csv", "machine.json"))
+                      "memory.csv", "machine.csv", "machine.json"), headline=_headline)
 run = STUDY.run

@@ -451,6 +451,18 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
     shutil.rmtree(res.dir / "cells", ignore_errors=True)     # complete: nothing left to resume
     return dict(rows=rows, findings=summary, summary=verdicts)
 
+def _headline(s: dict) -> list[str]:
+    """How many claims got each verdict, then one line per claim (findings.summary_lines):
+    receiver-RMSE ratio ``estimate [low, high]``, depth-uniform L2 beside it, verdict,
+    configurations and order; ids as in findings.json."""
+    import collections
+    import re
+    verdicts = collections.Counter(m[1] for line in s.values()
+                                   if (m := re.search(r": ([^:,]+), \d+ configs", line)))
+    tally = ", ".join(f"{n} {v}" for v, n in verdicts.most_common())
+    return ([f"{len(s)} claims: {tally}; per claim: receiver-RMSE ratio [95 % interval], depth-uniform L2, verdict"]
+            + [f"{cid}: {line}" for cid, line in s.items()])
+
 
 STUDY = Study(
     "error_curves", "Error of every representation against the true transmittance, decomposed, per scene",
@@ -458,5 +470,5 @@ STUDY = Study(
     writes=("data.csv (one row per scene, configuration, receiver set and variant)", "findings.json (the claims)"),
     options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
              Option("kinds", "representation kinds to build (default: every registered one)", nargs="+",
-                    metavar="KIND")))
+                    metavar="KIND")), headline=_headline)
 run = STUDY.run

@@ -57,6 +57,7 @@ from avsm_dr.capture import RESOLUTION_RANGE
 from avsm_dr.scene import DirectionalLight, Scene
 from . import analysis as A
 from . import render as R
+from .._headline import num
 from .._study import Option, Study
 from ..temporal import scenes as S
 
@@ -353,6 +354,16 @@ def _compute(res, P: dict) -> dict:
                    run_seconds=round(found["run_seconds"], 1))
     return dict(rows=rows, tables={"map.csv": cells}, findings=found, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """Per animation and resolution: the budget from which compression is not visible (FLIP
+    within the reference's noise) with its interval; the reference's own noise."""
+    out = [f"{k}: compression invisible from {v}" if "B/texel" in v else f"{k}: {v}"
+           for k, v in s.items() if isinstance(v, str)]
+    noise = s.get("reference_noise_flip", {})
+    if noise:
+        out.append("reference noise (FLIP): " + ", ".join(f"{k} {num(v)}" for k, v in noise.items()))
+    return out + [f"run time {num(s.get('run_seconds'))} s"]
+
 
 STUDY = Study("image_budget", "How many bytes per texel a viewer needs: Mitsuba images per kind, budget and "
               "resolution against a converged reference, FLIP and flicker", REPRODUCES, FULL, QUICK, _compute,
@@ -361,5 +372,5 @@ STUDY = Study("image_budget", "How many bytes per texel a viewer needs: Mitsuba 
                       "map.csv (best kind per animation, resolution and budget)", "findings.json", "frame0.npz"),
               options=(Option("kinds", "kinds compared (exact is always added)", nargs="+", metavar="KIND"),
                        Option("resolutions", "shadow-map resolutions", type=int, nargs="+", metavar="N"),
-                       Option("settings", "animations: smoke, light", nargs="+", metavar="NAME")))
+                       Option("settings", "animations: smoke, light", nargs="+", metavar="NAME")), headline=_headline)
 run = STUDY.run

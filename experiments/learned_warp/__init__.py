@@ -58,6 +58,7 @@ from tqdm import tqdm
 
 from avsm_dr import allows, build, describe
 from avsm_dr.stats import paired_bootstrap
+from .._headline import interval
 from .._study import Study
 from .depth_warp import DepthWarp, log_values
 
@@ -310,9 +311,23 @@ def findings(rows) -> dict:
 __all__ = ["run", "findings", "train", "errors", "kind_log_params", "preset_params", "SceneData", "KINDS",
            "LOG_RATIOS", "LIGHTS", "METRIC", "MIN_CONFIGS"]
 
+def _headline(s: dict) -> list[str]:
+    """Per kind on the held-out scenes: the learned warp's RMSE over the identity's and the
+    log warp's (ratio [interval]); the learned AVSM metric over the paper's."""
+    out = []
+    for kind, d in s.items():
+        h = d.get("held_out_all", {})
+        ratios = [f"{k[len('learned_over_'):]} {interval(v)}" for k, v in h.items() if k.startswith("learned_over_")]
+        if ratios:
+            where = f" at {d['bytes_per_texel']} B/texel" if "bytes_per_texel" in d else ""
+            name = f"avsm-{d['nodes']} metric" if kind == "avsm_metric" and "nodes" in d else kind
+            out.append(f"{name}{where}, {h.get('n_scenes', '?')} held-out scenes, learned RMSE over "
+                       + ", ".join(ratios))
+    return out
+
 
 STUDY = Study("learned_warp", "A depth warp learned by gradient descent, tested on held-out scenes", REPRODUCES,
               FULL, QUICK, _compute,
               writes=("data.csv (one row per scene, kind and warp)", "losses.csv", "warps.csv", "avsm_metric.csv",
-                      "avsm_metric_loss.csv", "avsm_metric_sweep.csv (full run)", "findings.json"))
+                      "avsm_metric_loss.csv", "avsm_metric_sweep.csv (full run)", "findings.json"), headline=_headline)
 run = STUDY.run

@@ -65,6 +65,7 @@ from tqdm import tqdm
 from avsm_dr import build
 from avsm_dr.stats import bootstrap_ci, claim
 from .._common import front_to_back_first
+from .._headline import interval, num
 from .._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -379,9 +380,33 @@ def _resolve(P: dict, quick: bool) -> dict:
     P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
     return P
 
+def _headline(s: dict) -> list[str]:
+    """Per scene and budget: adaptive AVSM's RMSE over fixed AVSM's, DSM's and the optimum's
+    at equal bytes (ratio [interval]), and the bytes fixed AVSM needs more at equal RMSE."""
+    out = []
+    for scene, per_n in s.get("rmse_ratio_adaptive_over_avsm", {}).items():
+        for n, r in per_n.items():
+            sv = s.get("bytes_saved_at_equal_rmse", {}).get(scene, {}).get(n, {})
+            line = f"{scene} {n}"
+            if sv:
+                line += f" ({sv['budget_bytes_per_texel']} B/texel)"
+            line += f": adaptive RMSE over AVSM {interval(r)}"
+            for other in ("dsm", "optimal"):
+                o = s.get(f"rmse_ratio_adaptive_over_{other}", {}).get(scene, {}).get(n)
+                if o:
+                    line += f", over {other} {interval(o)}"
+            if sv.get("saving") is not None:
+                pct = {("estimate" if k == "saving" else k): 100 * sv[k] for k in ("saving", "low", "high") if k in sv}
+                line += f"; bytes saved at equal RMSE {interval(pct, 2) if 'low' in pct else num(pct['estimate'], 2)}%"
+            if sv.get("censored"):
+                line += f" ({sv['censored']} of {sv['configs']} configurations censored)"
+            out.append(line)
+    return out
+
 
 STUDY = Study("memory_budget", "A memory budget instead of a node count: every kind at equal bytes per texel",
               REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
               options=(Option("orders", "insertion orders AVSM is built under besides front to back "
-                                        "(default: submission reverse_depth random)", nargs="+", metavar="ORDER"),))
+                                        "(default: submission reverse_depth random)", nargs="+", metavar="ORDER"),),
+              headline=_headline)
 run = STUDY.run

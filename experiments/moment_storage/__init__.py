@@ -35,6 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build
+from .._headline import interval, num, wrap
 from .._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -202,10 +203,28 @@ def _compute(res, P: dict) -> dict:
     from .plots import plot_ratios
     plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
     return dict(rows=rows, tables={"tuning.csv": tune_rows}, findings=summary,
-                summary={"best_alpha": best, "bytes_per_texel": nbytes}, result={"summary": summary})
+                summary={"best_alpha": best, "bytes_per_texel": nbytes, "claims": _intervals(summary["claims"])},
+                result={"summary": summary})
+
+
+def _intervals(claims: dict) -> dict:
+    """The claims' ``{estimate, low, high}`` alone (meta.json's summary, the run's headline)."""
+    return {scene: {mode: {k: {x: c[x] for x in ("estimate", "low", "high")} for k, c in cs.items()}
+                    for mode, cs in modes.items()} for scene, modes in claims.items()}
+
+def _headline(s: dict) -> list[str]:
+    """Bytes per texel of each storage, and per scene and opaque mode each variant's RMSE over
+    float32's (ratio [interval], tuned clamping)."""
+    out = wrap("bytes per texel: ", [f"{k} {num(v)}" for k, v in s.get("bytes_per_texel", {}).items()])
+    for scene, modes in s.get("claims", {}).items():
+        for mode, claims in modes.items():
+            out += wrap(f"{scene} ({mode} opaque), RMSE over float32: ",
+                        [f"{k.split(' vs ')[0]} {interval(v)}" for k, v in claims.items() if "/tuned vs" in k])
+    return out
 
 
 STUDY = Study("moment_storage", "16-bit storage of 4 power moments against float32", REPRODUCES, FULL, QUICK,
               _compute, resolve=_resolve, writes=("data.csv", "tuning.csv", "findings.json"),
-              options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),))
+              options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),),
+              headline=_headline)
 run = STUDY.run

@@ -27,6 +27,7 @@ from tqdm import tqdm
 from avsm_dr import build, kinds
 from avsm_dr.metrics import error_stats
 from avsm_dr.segments import OPAQUE_OPTICAL_DEPTH, Segments
+from .._headline import num
 from .._study import Study
 from .checks import PRECISION_QUICK_CASES, precision_check, precision_configs, run_checks
 
@@ -153,7 +154,17 @@ def _compute(res, params: dict) -> dict:
           f"reliability: {failed} of {len(checks)} checks failed")
     return dict(rows=rows, tables={"reliability.csv": checks}, summary=summary)
 
+def _headline(s: dict) -> list[str]:
+    """NaN / Inf and bound violations over every adversarial case, the hostile-input checks
+    and the reduced-precision runs."""
+    return [f"{s['rows']} adversarial runs (case x representation): {s['nan_inf_total']} NaN/Inf outputs, "
+            f"{s['bounds_violations_total']} values outside [0, 1]",
+            f"hostile input: {s['reliability_failures']} of {s['reliability_checks']} checks failed",
+            f"reduced precision: {s['precision_runs']} runs, {s['precision_nan_inf_total']} NaN/Inf "
+            f"({num(s['precision_seconds'])} s)"]
+
 
 STUDY = Study("stress", "Numerical stability of every representation on adversarial synthetic rays", REPRODUCES,
-              FULL, QUICK, _compute, writes=("data.csv", "reliability.csv (hostile input: refused or right)"))
+              FULL, QUICK, _compute, writes=("data.csv", "reliability.csv (hostile input: refused or right)"),
+              headline=_headline)
 run = STUDY.run

@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from avsm_dr import builtin_scenes, capture, describe, kinds
 from . import scenes as S
+from .._headline import num
 from .._study import Study
 from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
@@ -281,9 +282,17 @@ def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
                          holds_pooled=cl["holds_pooled"])
     return out
 
+def _headline(s: dict) -> list[str]:
+    """Per animation: how much the true shadow changes per frame, the kind that flickers most
+    (absolute, and relative to its error) and the one that flickers least relative to its error."""
+    return [f"{a}: content change {num(h['content_change'])}/frame; most flicker {h['most_flicker']} "
+            f"({num(h['most_flicker_value'])}); relative to error most {h['most_flicker_vs_error']} "
+            f"(index {num(h['most_flicker_index'])}), least {h['least_flicker_vs_error']}"
+            for a, h in s.get("headline", {}).items()] + [f"run time {num(s.get('run_seconds'))} s"]
+
 
 STUDY = Study("temporal", "Temporal stability of every representation under animation: error per frame and flicker",
               REPRODUCES, FULL, QUICK, _compute, resolve=_resolve,
               writes=("data.csv (one row per animation, configuration, method, reference and frame)",
-                      "findings.json", "GIFs"))
+                      "findings.json", "GIFs"), headline=_headline)
 run = STUDY.run
