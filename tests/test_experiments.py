@@ -21,8 +21,20 @@ from experiments._study import Study
 
 ROOT = Path(__file__).resolve().parents[1]
 ERROR_COLUMNS = {"scene", "method", "param", "bytes_per_texel", "rmse", "max_error"}
-EXPERIMENTS = ["error_curves", "runtime_vs_error", "curves", "images", "stress", "ordering", "bench",
-               "bench_capture", "inverse", "backward_cost"]
+#: Studies whose quick run takes minutes on 2 cores: their quick run is a slow test, and the
+#: default run checks them end to end on the tiny parameters of TINY (same code, every table).
+SLOW_QUICK = {"bench", "backward_cost"}
+EXPERIMENTS = [pytest.param(n, marks=pytest.mark.slow) if n in SLOW_QUICK else n
+               for n in ["error_curves", "runtime_vs_error", "curves", "images", "stress", "ordering", "bench",
+                         "bench_capture", "inverse", "backward_cost"]]
+#: Parameters replacing a slow study's quick ones in the default run (the rest as in QUICK).
+TINY = {
+    "bench": dict(maps=[(16, 10), (8, 100)], lookups=4000, numpy_segments=4000, repeats=1, scene_resolution=64,
+                  scene_repeats=1, mitsuba_spp=[4, 8], mitsuba_cap=256, mitsuba_reps=[("avsm", {"nodes": 4})],
+                  scale_texels=[8, 16], scale_counts=[10, 30], scale_side=16, scale_nodes=[2, 4], scale_repeats=1,
+                  skip_side=16, memory_side=16, dense_plume=16, skip_resolution=64, peak_iters=200),
+    "backward_cost": dict(size=8, resolution=64, step_fractions=[0.5], repeats=1, stack_cases=[(8, 200)]),
+}
 
 
 def _rows(path):
@@ -93,6 +105,28 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
     # a second run with the same parameters reuses the results
     again = __import__(f"experiments.{name}", fromlist=["run"]).run(quick=True, out=out)
     assert again.get("cached") is True
+
+
+@pytest.mark.parametrize("name", sorted(TINY))
+def test_slow_study_runs_end_to_end_on_tiny_parameters(name, tmp_path):
+    """The default run's check of a study whose quick run is slow: the same ``compute`` on
+    TINY parameters writes every file it declares, a figure with its PDF, and meta.json."""
+    module = __import__(f"experiments.{name}", fromlist=["STUDY"])
+    study = dataclasses.replace(module.STUDY, quick=dict(module.STUDY.quick, **TINY[name]))
+    result = study.run(quick=True, out=tmp_path / name)
+    out = Path(result["out"])
+    assert _rows(out / "data.csv"), "empty CSV"
+    for declared in study.writes:
+        f = out / declared.split()[0]
+        assert f.is_file() and f.stat().st_size > 0, f"{name} did not write {f.name}"
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["experiment"] == name and meta["params"]["quick"] is True
+    pngs = list(out.glob("*.png"))
+    assert pngs and all(p.with_suffix(".pdf").is_file() for p in pngs)
+    if name == "backward_cost":
+        rows = _rows(out / "data.csv")
+        assert {r["kind"] for r in rows} >= {"avsm", "fom"}
+        assert all(float(r["seconds"]) > 0 for r in rows if r.get("seconds") not in (None, ""))
 
 
 def test_unknown_experiment_is_rejected(capsys):
@@ -401,7 +435,8 @@ def test_error_curves_headline_counts_the_verdicts():
 
     def claim(verdict, est):
         return dict(estimate=est, low=est * 0.9, high=est * 1.1, verdict=verdict, n_configs=10, preset={"a": True})
-    lines = F.summary_lines({"claims": {"a": claim("holds in every configuration", 0.5), "b": claim("does not hold", 2.0),
+    lines = F.summary_lines({"claims": {"a": claim("holds in every configuration", 0.5),
+                                        "b": claim("does not hold", 2.0),
                                         "c": claim("holds in every configuration", 0.25)}})
     head = cli.study("error_curves").headline_lines(lines)
     assert head[0].startswith("3 claims: 2 holds in every configuration, 1 does not hold; per claim: ")
