@@ -54,7 +54,7 @@ from .geometry import ray_box_dr
 from .groundtruth.media import mitsuba as _mitsuba_with_variant, sample_grid
 from .representations import REGISTRY, build, describe
 from .representations.schema import BASE_PARAMETERS
-from .scene import DirectionalLight, PointLight, Scene, SpotLight
+from .scene import Light, Scene
 
 NAME = "avsm_single_scatter"
 #: Null-BSDF interfaces (medium boundaries) a camera or shadow ray crosses before the first
@@ -70,23 +70,9 @@ BUILD_PARAMETERS = BASE_PARAMETERS
 
 
 # ===================================================================== scene reading
-def _host_matrix(transform) -> np.ndarray:
-    """(4, 4) float64 matrix of a (scalar or width-1 JIT) Mitsuba transform."""
-    return np.asarray(transform.matrix, np.float64).reshape(4, 4)
-
-
 def light_of(emitter):
-    """The avsm_dr light of a Mitsuba ``directional`` / ``point`` / ``spot`` emitter."""
-    name = emitter.class_name()
-    params = mi.traverse(emitter)
-    if name == "DirectionalEmitter":
-        return DirectionalLight(_host_matrix(emitter.world_transform())[:3, 2])
-    if name == "PointLight":
-        return PointLight(np.asarray(params["position"], np.float64).reshape(3))
-    if name == "SpotLight":
-        m = _host_matrix(params["to_world"])
-        return SpotLight(m[:3, 3], m[:3, 2], fov=2.0 * float(np.asarray(params["cutoff_angle"]).reshape(-1)[0]))
-    raise ValueError(f"scene: {NAME} supports one 'directional', 'point' or 'spot' emitter, got {name}")
+    """The avsm_dr light of a Mitsuba emitter (:meth:`avsm_dr.scene.Light.of_mitsuba`)."""
+    return Light.of_mitsuba(emitter, mi.traverse(emitter))
 
 
 def scene_medium(scene):

@@ -35,9 +35,33 @@ class Light:
     * ``irradiance_at(p)``: (K,) unshadowed irradiance on a surface facing the light (shading);
     * ``shadow_camera(cameras, res, bmin, bmax)``: the shadow-map camera from the module
       :mod:`avsm_dr.capture.camera` (passed in: a layer above), fitted to content boxes (N, 3);
-    * ``to_mitsuba(mi)``: the emitter dict;  ``label()``: a short text.  A light at a point
-      (spot, point) has a ``position``, a directional light none.
+    * ``to_mitsuba(mi)``: the emitter dict, and back: the classmethod ``from_mitsuba(emitter,
+      params)`` of the Mitsuba class named ``mitsuba_class`` (:meth:`of_mitsuba` dispatches);
+    * ``label()``: a short text.  A light at a point (spot, point) has a ``position``.
     """
+    #: Mitsuba emitter class (``emitter.class_name()``) that :meth:`from_mitsuba` converts.
+    mitsuba_class = ""
+    _by_mitsuba_class: dict = {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.mitsuba_class:
+            Light._by_mitsuba_class[cls.mitsuba_class] = cls
+
+    @staticmethod
+    def of_mitsuba(emitter, params) -> "Light":
+        """The light of a Mitsuba ``emitter`` (``params = mi.traverse(emitter)``): the
+        ``from_mitsuba`` of the class registered for its Mitsuba class; ValueError otherwise."""
+        kind = Light._by_mitsuba_class.get(emitter.class_name())
+        if kind is None:
+            raise ValueError(f"emitter: expected a Mitsuba {' / '.join(Light._by_mitsuba_class)}, "
+                             f"got {emitter.class_name()}")
+        return kind.from_mitsuba(emitter, params)
+
+
+def _matrix(transform) -> np.ndarray:
+    """(4, 4) float64 matrix of a (scalar or width-1 JIT) Mitsuba transform."""
+    return np.asarray(transform.matrix, np.float64).reshape(4, 4)
 
 
 def _fmt(v) -> str:
@@ -53,6 +77,7 @@ class DirectionalLight(Light):
     """Parallel light travelling along ``direction``; irradiance ``irradiance`` (W/m^2)."""
     direction: np.ndarray
     irradiance: float = 1.0
+    mitsuba_class = "DirectionalEmitter"
 
     def __post_init__(self):
         self.direction = V.unit_vector(self.direction, "direction")
@@ -75,6 +100,10 @@ class DirectionalLight(Light):
 
     def to_mitsuba(self, mi):
         return {"type": "directional", "direction": self.direction.tolist(), "irradiance": _rgb(self.irradiance)}
+
+    @classmethod
+    def from_mitsuba(cls, emitter, params):
+        return cls(_matrix(emitter.world_transform())[:3, 2])
 
     def label(self):
         return f"directional{_fmt(self.direction)}"
@@ -105,6 +134,7 @@ class SpotLight(_LightAt):
     direction: np.ndarray
     fov: float = 60.0
     intensity: float = 1.0
+    mitsuba_class = "SpotLight"
 
     def __post_init__(self):
         self.position = V.vec3(self.position, "position")
@@ -142,6 +172,11 @@ class SpotLight(_LightAt):
                 "to_world": mi.ScalarTransform4f().look_at(origin=pos.tolist(), target=(pos + self.direction).tolist(),
                                                            up=up.tolist())}
 
+    @classmethod
+    def from_mitsuba(cls, emitter, params):
+        m = _matrix(params["to_world"])
+        return cls(m[:3, 3], m[:3, 2], fov=2.0 * float(np.asarray(params["cutoff_angle"]).reshape(-1)[0]))
+
     def label(self):
         return f"spot{_fmt(self.position)}->{_fmt(self.direction)}"
 
@@ -151,6 +186,7 @@ class PointLight(_LightAt):
     """Isotropic point light at ``position`` (captured as a cube of six shadow maps)."""
     position: np.ndarray
     intensity: float = 1.0
+    mitsuba_class = "PointLight"
 
     def __post_init__(self):
         self.position = V.vec3(self.position, "position")
@@ -161,6 +197,10 @@ class PointLight(_LightAt):
 
     def to_mitsuba(self, mi):
         return {"type": "point", "position": self.position.tolist(), "intensity": _rgb(self.intensity)}
+
+    @classmethod
+    def from_mitsuba(cls, emitter, params):
+        return cls(np.asarray(params["position"], np.float64).reshape(3))
 
     def label(self):
         return f"point{_fmt(self.position)}"
@@ -202,6 +242,11 @@ class Particles:
             raise ValueError("particles.density: negative density")
         return c, r, s
 
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World AABB (lo, hi) of the checked spheres: ``min / max of centers -+ radii``."""
+        c, r, _ = self.validate()
+        return (c - r[:, None]).min(0), (c + r[:, None]).max(0)
+
 
 @dataclass
 class Hair:
@@ -220,6 +265,12 @@ class Hair:
         r = V.real(self.radius, "hair.radius", 0.0, open_min=True)
         op = V.real(self.opacity, "hair.opacity", 0.0, 1.0)
         return s, r, op
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World AABB (lo, hi) of the checked strands: their vertices' box grown by ``radius``."""
+        s, r, _ = self.validate()
+        pts = s.reshape(-1, 3)
+        return pts.min(0) - r, pts.max(0) + r
 
 
 class Blocker:

@@ -39,7 +39,8 @@ def check_scene(scene) -> dict:
     """Validated host copies of the scene's content; ValueError names the field.
 
     Returns dict(grid=(g, lo, hi) | None, particles=(c, r, s) | None,
-    hair=(strands, radius, opacity) | None, blockers=[...]).
+    hair=(strands, radius, opacity) | None, blockers=[...], boxes=[(lo, hi), ...]) with
+    ``boxes`` the world AABBs of every piece (each content type's ``bounds()``).
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
@@ -53,7 +54,9 @@ def check_scene(scene) -> dict:
         out["grid"] = check_grid(scene.density, scene.bbox)
     blockers = validate_blockers(scene.blockers or [])
     out["blockers"] = blockers
-    if out["grid"] is None and out["particles"] is None and out["hair"] is None and not blockers:
+    out["boxes"] = [] if out["grid"] is None else [out["grid"][1:]]
+    out["boxes"] += [b.bounds() for b in (scene.particles, scene.hair, *blockers) if b is not None]
+    if not out["boxes"]:
         raise ValueError("scene: has no density grid, particles, hair or opaque blockers")
     return out
 
@@ -61,24 +64,8 @@ def check_scene(scene) -> dict:
 # ======================================================================= geometry
 def content_sphere(content) -> tuple[np.ndarray, float]:
     """(centre, radius) of a sphere enclosing every piece of (checked) content."""
-    lo, hi = [], []
-    if content["grid"] is not None:
-        lo.append(content["grid"][1])
-        hi.append(content["grid"][2])
-    if content["particles"] is not None:
-        c, r, _ = content["particles"]
-        lo.append((c - r[:, None]).min(0))
-        hi.append((c + r[:, None]).max(0))
-    if content["hair"] is not None:
-        st, rad, _ = content["hair"]
-        pts = st.reshape(-1, 3)
-        lo.append(pts.min(0) - rad)
-        hi.append(pts.max(0) + rad)
-    for b in content["blockers"]:
-        b_lo, b_hi = b.bounds()
-        lo.append(b_lo)
-        hi.append(b_hi)
-    lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
+    lo = np.min([b[0] for b in content["boxes"]], axis=0)
+    hi = np.max([b[1] for b in content["boxes"]], axis=0)
     return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 

@@ -3,8 +3,7 @@
 :func:`render_reference` renders with ``volpath``; :mod:`avsm_dr.shading` draws the same
 plane from the same camera (:func:`camera_rays`, Mitsuba's own sensor) with shadows
 from any representation, so the two images compare pixel by pixel.  A camera is an
-:class:`avsm_dr.camera.PinholeCamera` (the package's one camera model) or, as before, a dict
-``(origin, target, up, fov)`` (fov in degrees along x, :meth:`PinholeCamera.of`);
+:class:`avsm_dr.camera.PinholeCamera` or a dict of its fields (:meth:`PinholeCamera.of`);
 :func:`default_camera` picks one.
 """
 from __future__ import annotations
@@ -30,7 +29,7 @@ MAX_RAYS = 1 << 24
 
 
 def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = None,
-                   direction=None) -> dict:
+                   direction=None) -> PinholeCamera:
     """A camera looking at the receiver plane's centre from the light's side of the plane.
 
     The view direction v (from the plane centre to the camera) is ``direction`` if given;
@@ -41,8 +40,8 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
     0.05 per radian away from v0 (prefer frontal views).  The distance frames the square
     with a 15 % margin (``distance`` overrides); a camera inside the volume's box is
     moved out along v with the fov narrowed to keep the framing.
-    Returns dict(origin, target, up, fov) (fov in degrees along x): the keyword arguments of
-    a :class:`~avsm_dr.camera.PinholeCamera` (:meth:`~avsm_dr.camera.PinholeCamera.of`).
+    Returns a :class:`~avsm_dr.camera.PinholeCamera` of 32 x 32 pixels (fov in degrees along x;
+    :meth:`~avsm_dr.camera.PinholeCamera.of` resizes it).
     """
     fov = V.real(fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
     if distance is not None:
@@ -100,7 +99,7 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
         v = cands[0]
     origin, f = place(v)
     up = w if abs(w @ v) < 0.9 else u
-    return {"origin": origin, "target": c, "up": up, "fov": float(f)}
+    return PinholeCamera(origin, c, up, float(f))
 
 
 def receiver_plane(scene) -> tuple[np.ndarray, np.ndarray, float]:
