@@ -567,17 +567,25 @@ class Scene:
         if receivers is None or (isinstance(receivers, Integral) and not isinstance(receivers, bool)):
             k = V.integer(1024 if receivers is None else receivers, "receivers", 1)
             V.check_memory("receivers", k, lambda m: float(m) * RECEIVER_BYTES, lo=1, what="points")
-            occ = np.flatnonzero(dens.ravel() > 0)
-            occ = np.arange(dens.size) if occ.size == 0 else occ
-            rng = np.random.default_rng(0)
-            pick = rng.choice(occ, size=k, replace=occ.size < k)
-            kz, rem = np.divmod(pick, ny * nx)
-            ky, kx = np.divmod(rem, nx)
-            pts = lo + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * (hi - lo) / np.array([nx, ny, nz])
+            pts = voxel_coords(dens if np.any(dens > 0) else np.ones(dens.shape), k, np.random.default_rng(0))
+            pts = lo + pts * (hi - lo) / np.array([nx, ny, nz])
         else:
             pts = V.points(receivers, "receivers")
         return cls(name, light, pts, density=dens, bbox=(lo, hi),
                    meta={"source": source, "shape": (nz, ny, nx), "density_scale": scale, "bbox_from": box_from})
+
+
+def voxel_coords(density, k: int, rng) -> np.ndarray:
+    """(k, 3) points (x, y, z) in voxel units, one uniform in each of k voxels drawn among those
+    with density > 0 (with replacement when fewer); (0, 3) when there is none or k = 0."""
+    nz, ny, nx = density.shape
+    idx = np.flatnonzero(density.ravel() > 0)
+    if idx.size == 0 or k == 0:
+        return np.zeros((0, 3))
+    pick = rng.choice(idx, size=k, replace=idx.size < k)
+    kz, rem = np.divmod(pick, ny * nx)
+    ky, kx = np.divmod(rem, nx)
+    return np.stack([kx, ky, kz], 1) + rng.random((k, 3))
 
 
 #: Host bytes per receiver point that :meth:`Scene.from_grid` draws (indices, jitter and the
