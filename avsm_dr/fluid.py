@@ -36,6 +36,7 @@ caches an animation of the same plume (one frame every ``stride`` steps) and
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import os
 import warnings
@@ -397,40 +398,24 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     cache: True (the folder :data:`CACHE_DIR`), a folder, or False: results are stored as
     ``plume_<key>.npy``, key = hash of the parameters, the backend and this module's source.
     """
-    shape = _check_shape(shape)
-    steps, seed = V.integer(steps, "steps", 0), V.integer(seed, "seed", 0)
-    dt = V.real(dt, "dt", 0.0, open_min=True)
-    source_speed = V.real(source_speed, "source_speed", 0.0, open_min=True)
-    wobble = V.real(wobble, "wobble", 0.0)
-    V.integer(iterations, "iterations", 0)
-    nz, ny, nx = shape
-    radius = nx / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
-    params = dict(shape=list(shape), steps=int(steps), seed=int(seed), dt=float(dt), buoyancy=float(buoyancy),
-                  vorticity=float(vorticity), source_speed=float(source_speed), source_radius=radius,
-                  wobble=float(wobble), iterations=int(iterations), backend=backend.get_backend(),
-                  version=_VERSION)
+    solver = dict(dt=dt, buoyancy=buoyancy, vorticity=vorticity, source_speed=source_speed,
+                  source_radius=source_radius, wobble=wobble, iterations=iterations)
+    params = _plume_params(shape, seed, **solver)
+    params.update(steps=V.integer(steps, "steps", 0), backend=backend.get_backend(), version=_VERSION)
+    shape = tuple(params["shape"])
     path = _cache_file(cache, f"plume_{_cache_key(params)}.npy")
     if (hit := _load_cached(path, shape)) is not None:
         return hit
-    sim = StableFluids(shape, buoyancy=buoyancy, vorticity=vorticity, iterations=iterations)
-    rng = np.random.default_rng(seed)
-    centre = np.array([nx / 2, nz / 2], np.float64)
-    kick = np.zeros(2)
-    height = max(2.0, ny / 16)
-    for _ in range(int(steps)):
-        centre = np.clip(centre + wobble * rng.standard_normal(2), nx / 2 - 2 * radius, nx / 2 + 2 * radius)
-        kick = 0.7 * kick + wobble * rng.standard_normal(2)
-        mask = _source_mask(shape, centre, radius, height) * rng.uniform(0.5, 1.0, shape).astype(np.float32)
-        sim.add_source(mask, 1.0, (kick[0], source_speed, kick[1]))
-        sim.step(dt)
-    out = np.maximum(sim.density(), 0.0)
+    out = np.zeros(shape, np.float32)
+    for _, out in zip(range(params["steps"]), plume_frames(shape, seed, **solver)):
+        pass
     _save_cached(path, out)
     return out
 
 
 # ============================================================ an animation
 def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations):
-    """Checked parameters of the plume (as :func:`simulate_plume` checks them), source radius resolved."""
+    """Checked parameters of the plume, source radius resolved."""
     shape = _check_shape(shape)
     seed = V.integer(seed, "seed", 0)
     dt = V.real(dt, "dt", 0.0, open_min=True)
@@ -438,18 +423,17 @@ def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_rad
     wobble = V.real(wobble, "wobble", 0.0)
     V.integer(iterations, "iterations", 0)
     radius = shape[2] / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
-    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=float(buoyancy),
-                vorticity=float(vorticity), source_speed=float(source_speed), source_radius=radius,
-                wobble=float(wobble), iterations=int(iterations))
+    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=V.real(buoyancy, "buoyancy"),
+                vorticity=V.real(vorticity, "vorticity", 0.0), source_speed=float(source_speed),
+                source_radius=radius, wobble=float(wobble), iterations=int(iterations))
 
 
 def plume_frames(shape=(32, 48, 32), seed: int = 0, dt: float = 1.0, buoyancy: float = 0.25,
                  vorticity: float = 0.3, source_speed: float = 1.5, source_radius: float | None = None,
                  wobble: float = 0.35, iterations: int = 40):
     """Generator of the plume of :func:`simulate_plume`, one (nz, ny, nx) float32 density
-    after each step (the k-th yielded array, k = 1, 2, ..., equals ``simulate_plume(steps=k)``
-    with the same arguments bit for bit: the same seeded source walk and solver calls).
-    Endless: the caller stops it."""
+    after each step (the k-th yielded array equals ``simulate_plume(steps=k)``).  Endless:
+    the caller stops it."""
     p = _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations)
     shape, radius = tuple(p["shape"]), p["source_radius"]
     nz, ny, nx = shape
@@ -480,11 +464,10 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)
     stride = V.integer(stride, "stride", 1)
-    allowed = {"dt", "buoyancy", "vorticity", "source_speed", "source_radius", "wobble", "iterations"}
-    if set(kwargs) - allowed:
-        raise ValueError(f"kwargs: unknown solver parameters {sorted(set(kwargs) - allowed)}")
-    defaults = dict(dt=1.0, buoyancy=0.25, vorticity=0.3, source_speed=1.5, source_radius=None, wobble=0.35,
-                    iterations=40)
+    defaults = {k: v.default for k, v in inspect.signature(plume_frames).parameters.items()
+                if k not in ("shape", "seed")}
+    if set(kwargs) - set(defaults):
+        raise ValueError(f"kwargs: unknown solver parameters {sorted(set(kwargs) - set(defaults))}")
     solver = dict(defaults, **kwargs)
     params = dict(_plume_params(shape, seed, **solver), frames=int(frames), start=int(start), stride=int(stride),
                   backend=backend.get_backend(), version=_VERSION)

@@ -19,22 +19,13 @@ or ``cuda_ad_rgb`` on the CUDA backend: :func:`avsm_dr.groundtruth.mitsuba`), an
 re-registers the plugin whenever the variant changes.  The rest of the package imports
 Mitsuba lazily (a GPU host may have Dr.Jit without Mitsuba).
 
-Errors, as the user sees them:
-
-* Under a variant the integrator cannot run in (``scalar_rgb``, ``llvm_rgb``, ...) the name
-  is still registered, with a constructor that raises ``ValueError`` naming the JIT AD
-  variant to set (not Mitsuba's bare ``Plugin "avsm_single_scatter" not found!``).
-* A bad property raises ``ValueError`` from the constructor; an unknown name is reported
-  before any value check, with a "did you mean" over the kind's public parameters and the
-  plugin's own properties.  ``mi.load_dict`` quotes it after its ``failed to instantiate
-  ... plugin`` prefix; the constructor drops the error's traceback so that the quote is
-  ``ValueError: <message>`` and not a Python traceback with the message on its last line.
-* A scene the integrator cannot render raises ``ValueError`` from ``integrator.render``;
-  ``mi.render`` runs the integrator inside a Dr.Jit custom operation, which would replace
-  it by ``RuntimeError: drjit.custom(...): error while performing a custom differentiable
-  operation. (see above).``  This module wraps ``mi.render`` (once, at import) so that,
-  for this integrator only, the ``ValueError`` itself is raised; every other call passes
-  through unchanged.
+Errors are ``ValueError`` naming the property or the scene, as the user sees them: under a
+variant without JIT AD (``scalar_rgb``, ``llvm_rgb``, ...) the registered constructor names
+the variant to set; a bad property is reported by the constructor (an unknown name first,
+with a "did you mean") without its traceback, so that ``mi.load_dict`` quotes
+``ValueError: <message>``; a scene the integrator cannot render raises from ``mi.render``
+itself (wrapped once at import: Dr.Jit's custom operation would replace it by a
+``RuntimeError ... (see above)``; other integrators' calls pass through unchanged).
 """
 from __future__ import annotations
 
@@ -61,12 +52,10 @@ NAME = "avsm_single_scatter"
 #: opaque surface; past that many, a camera ray counts as hitting nothing and a shadow ray as
 #: unblocked (a box medium needs 2).
 MAX_NULL_INTERFACES = 2
-#: Properties of the plugin itself; every other property is a parameter of the representation.
+#: Properties of the plugin itself; every other property is a parameter of the representation
+#: (its schema's, or :data:`~avsm_dr.representations.schema.BASE_PARAMETERS`).
 OWN_PROPERTIES = ("representation", "resolution", "filter", "max_depth", "march_steps", "capture_method",
                   "hide_emitters", "samples_per_pass", "timeout")
-#: Parameters every kind takes in :func:`avsm_dr.build` besides its schema's (storage precision,
-#: reverse-mode strategy, checkpoint chunk); passed on to the build.
-BUILD_PARAMETERS = BASE_PARAMETERS
 
 
 # ===================================================================== scene reading
@@ -116,6 +105,19 @@ def check_box(medium, density, lo, hi, n: int = 64) -> None:
 
 
 # ======================================================================= integrator
+_LO, _HI = RESOLUTION_RANGE
+#: The plugin's own options: name -> (default, test, what a bad value is told).
+_OPTIONS = {
+    "resolution": (256, lambda v: type(v) is int and _LO <= v <= _HI, f"expected an integer in [{_LO}, {_HI}]"),
+    "filter": ("bilinear", lambda v: v in FILTERS, f"expected one of {FILTERS}"),
+    "max_depth": (2, lambda v: type(v) is int and v in (1, 2), f"{NAME} renders paths of at most two segments "
+                  f"(1: emitters seen directly, 2: + single scattering and direct surface light)"),
+    "march_steps": (64, lambda v: type(v) is int and 1 <= v <= 4096, "expected an integer in [1, 4096]"),
+    "hide_emitters": (False, lambda v: isinstance(v, bool), "expected a boolean"),
+    "capture_method": ("march", lambda v: v in CAPTURE_METHODS, f"expected one of {CAPTURE_METHODS}"),
+}
+
+
 def _unknown_message(kind: str, name: str) -> str:
     """``"<name>: unknown parameter of <kind>; known: [...]"`` (the kind's public parameters,
     never the private ``_`` switches) with a "did you mean" for a misspelt parameter; when
@@ -141,33 +143,17 @@ def _check_properties(props) -> dict:
                          f"{V.did_you_mean(kind, REGISTRY)}")
     given = {k: props[k] for k in props.keys() if k not in OWN_PROPERTIES}
     schema = REGISTRY[kind].schema
-    unknown = sorted(set(given) - set(schema.names()) - set(BUILD_PARAMETERS))
+    unknown = sorted(set(given) - set(schema.names()) - set(BASE_PARAMETERS))
     if unknown:                                          # private (``_``) switches are accepted, not listed
         # a misspelling first: ``representaton="avsm", nodes=4`` is about 'representation', not 'nodes'
         typos = [u for u in unknown if V.did_you_mean(u, schema.public_names() + list(OWN_PROPERTIES))]
         raise ValueError(_unknown_message(kind, (typos or unknown)[0]))
-    opts = {"kind": kind,
-            "resolution": props.get("resolution", 256),
-            "filter": props.get("filter", "bilinear"),
-            "max_depth": props.get("max_depth", 2),
-            "march_steps": props.get("march_steps", 64),
-            "capture_method": props.get("capture_method", "march"),
-            "hide_emitters": props.get("hide_emitters", False)}
-    lo, hi = RESOLUTION_RANGE
-    if type(opts["resolution"]) is not int or not lo <= opts["resolution"] <= hi:
-        raise ValueError(f"resolution: expected an integer in [{lo}, {hi}], got {opts['resolution']!r}")
-    if opts["filter"] not in FILTERS:
-        raise ValueError(f"filter: expected one of {FILTERS}, got {opts['filter']!r}")
-    if type(opts["max_depth"]) is not int or opts["max_depth"] not in (1, 2):
-        raise ValueError(f"max_depth: {NAME} renders paths of at most two segments (1: emitters seen "
-                         f"directly, 2: + single scattering and direct surface light), got {opts['max_depth']!r}")
-    if type(opts["march_steps"]) is not int or not 1 <= opts["march_steps"] <= 4096:
-        raise ValueError(f"march_steps: expected an integer in [1, 4096], got {opts['march_steps']!r}")
-    if not isinstance(opts["hide_emitters"], bool):
-        raise ValueError(f"hide_emitters: expected a boolean, got {opts['hide_emitters']!r}")
-    if opts["capture_method"] not in CAPTURE_METHODS:
-        raise ValueError(f"capture_method: expected one of {CAPTURE_METHODS}, got {opts['capture_method']!r}")
-    extra = {k: given.pop(k) for k in BUILD_PARAMETERS if k in given}
+    opts = {"kind": kind}
+    for name, (default, ok, expected) in _OPTIONS.items():
+        opts[name] = value = props.get(name, default)
+        if not ok(value):
+            raise ValueError(f"{name}: {expected}, got {value!r}")
+    extra = {k: given.pop(k) for k in BASE_PARAMETERS if k in given}
     precisions = describe(kind)["precisions"]
     if extra.get("precision") is not None and extra["precision"] not in precisions:
         raise ValueError(f"precision: kind {kind!r} accepts None or {precisions}, got {extra['precision']!r}"
@@ -176,6 +162,11 @@ def _check_properties(props) -> dict:
     schema.validate(kind, given)                         # bad value or constraint -> ValueError
     opts["params"] = {**given, **extra}
     return opts
+
+
+def _variant_backend():
+    """The Dr.Jit backend of the current Mitsuba variant, as a context (``backend.use_backend``)."""
+    return backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm")
 
 
 def _make_class():
@@ -242,13 +233,8 @@ def _make_class():
         def __init__(self, props):
             super().__init__(props)
             opts = _check_properties(props)
-            self.kind = opts["kind"]
-            self.params = opts["params"]
-            self.resolution = opts["resolution"]
-            self.filter = opts["filter"]
-            self.max_depth = opts["max_depth"]
-            self.march_steps = opts["march_steps"]
-            self.capture_method = opts["capture_method"]
+            for name in ("kind", "params", "resolution", "filter", "max_depth", "march_steps", "capture_method"):
+                setattr(self, name, opts[name])
             self.hide_emitters_ = bool(opts["hide_emitters"])
             self.shadow = None
 
@@ -267,7 +253,7 @@ def _make_class():
             V.density_grid(density, "scene: the medium's sigma_t grid (scale * data)")
             with dr.suspend_grad():
                 check_box(medium, density, lo, hi)
-            with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+            with _variant_backend():
                 av = Scene(NAME, light, np.zeros((0, 3)), density=density, bbox=(lo, hi))
                 cap = capture(av, resolution=self.resolution, density=density, method=self.capture_method,
                               order="depth")
@@ -287,7 +273,7 @@ def _make_class():
             """T_light at world points ``p`` (Point3f): the representation's lookup."""
             cap, rep = self.shadow[:2]
             pts = np.stack([np.asarray(dr.detach(p[i]).numpy(), np.float64) for i in range(3)], axis=1)
-            with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+            with _variant_backend():
                 T = cap.transmittance(rep, pts, filter=self.filter)
             return mi.Float(T)
 
@@ -443,13 +429,8 @@ def integrator_class():
 
 
 def _without_traceback(make):
-    """``make(props)``, a ValueError from it re-raised without its traceback.
-
-    Mitsuba's parser reports a plugin constructor's error as ``At dictionary node "...":
-    failed to instantiate unknown plugin of type "...": `` + the error's C++ text, which for a
-    Python error with a traceback is the whole traceback (and the caller's frames above it)
-    with the message on its last line; without one it is ``ValueError: <message>``.  (The
-    bare ``raise`` keeps the cleared traceback on Python >= 3.11.)"""
+    """``make(props)``, a ValueError from it re-raised without its traceback (which Mitsuba's
+    parser would quote whole, the message on its last line)."""
     def factory(props):
         try:
             return make(props)
@@ -477,10 +458,6 @@ def register() -> None:
         return
     cls = integrator_class()
     mi.register_integrator(NAME, _without_traceback(cls))
-
-
-def _on_variant_change(*_args) -> None:
-    register()
 
 
 def _ours(integrator) -> bool:
@@ -521,7 +498,7 @@ def _checked_render(render):
 if mi.variant() is None:
     _mitsuba_with_variant()
 register()
-mi.detail.add_variant_callback(_on_variant_change)
+mi.detail.add_variant_callback(lambda *_args: register())
 if not getattr(mi.render, "_avsm_dr_checked", False):
     mi.render = _checked_render(mi.render)
 
