@@ -440,28 +440,13 @@ def _without_traceback(make):
     return factory
 
 
-def _unsupported(props):
-    raise ValueError(variant_message(mi.variant()))
-
-
 def register() -> None:
-    """Register ``avsm_single_scatter`` with Mitsuba for the current variant; done at import and
-    again after every variant change.  Under a JIT AD variant (``llvm_ad_*`` / ``cuda_ad_*``) the
-    integrator; under any other (``scalar_rgb``, ``llvm_rgb``, ...) a constructor that raises
-    ValueError naming the variant to set, so that ``mi.load_dict`` says so instead of
-    ``Plugin "avsm_single_scatter" not found!``."""
-    variant = mi.variant()
-    if variant is None:
-        return
-    if not supported_variant(variant):
-        mi.register_integrator(NAME, _without_traceback(_unsupported))
-        return
-    cls = integrator_class()
-    mi.register_integrator(NAME, _without_traceback(cls))
-
-
-def _ours(integrator) -> bool:
-    return isinstance(integrator, tuple(_CLASSES.values()))
+    """Register ``avsm_single_scatter`` for the current variant (at import and after every variant
+    change): the integrator under a JIT AD variant, else a constructor raising ValueError that
+    names the variant to set (not Mitsuba's ``Plugin "avsm_single_scatter" not found!``)."""
+    if mi.variant() is not None:
+        mi.register_integrator(NAME, _without_traceback(
+            integrator_class() if supported_variant(mi.variant()) else lambda props: integrator_class()))
 
 
 def _integrator_of(signature, args, kwargs):
@@ -475,10 +460,8 @@ def _integrator_of(signature, args, kwargs):
 
 
 def _checked_render(render):
-    """``mi.render`` that raises this integrator's own ValueError (a scene it cannot render, a
-    bad density grid, ...) instead of Dr.Jit's ``RuntimeError: drjit.custom(...): error while
-    performing a custom differentiable operation. (see above).`` whose ``__cause__`` it is.
-    Other integrators' errors, and every result, pass through unchanged."""
+    """``mi.render`` raising this integrator's own ValueError instead of Dr.Jit's ``RuntimeError
+    ... (see above)`` whose ``__cause__`` it is; anything else passes through unchanged."""
     signature = inspect.signature(render)
 
     @functools.wraps(render)
@@ -487,7 +470,8 @@ def _checked_render(render):
             return render(*args, **kwargs)
         except RuntimeError as err:
             cause = err.__cause__
-            if not (isinstance(cause, ValueError) and _ours(_integrator_of(signature, args, kwargs))):
+            ours = isinstance(_integrator_of(signature, args, kwargs), tuple(_CLASSES.values()))
+            if not (isinstance(cause, ValueError) and ours):
                 raise
             cause.__suppress_context__ = True             # Dr.Jit's wrapper is no news
             raise cause
