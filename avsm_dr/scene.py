@@ -22,7 +22,7 @@ import drjit as dr
 import numpy as np
 
 from . import validation as V
-from .geometry import orthonormal_basis, ray_box, ray_sphere
+from .geometry import check_bbox, orthonormal_basis, ray_box, ray_sphere
 
 
 class Light:
@@ -285,20 +285,21 @@ class Blocker:
     * ``blocks(o, d, far)``: (K,) the blocker meets the open path ``(0, far)`` (ground truth);
     * ``surface_hit(o, d)``: (K,) nearest surface crossing at ``t > 0``, inf = none (view rays);
     * ``to_mitsuba(mi, bsdf)``: the Mitsuba shape dict with ``bsdf``.
+
+    A solid defines ``_chord(o, d)``, its ``(t0, t1, hit)``, and inherits ``blocks`` (the chord
+    meets ``(0, far)``) and ``surface_hit`` (``t0`` if > 0, else ``t1``).
     """
     def contains(self, p) -> bool:
         return False
 
+    def blocks(self, o, d, far):
+        t0, t1, hit = self._chord(o, d)
+        return hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
 
-def _solid_blocks(t0, t1, hit, far):
-    """A solid's chord [t0, t1] meets the open path (0, far)."""
-    return hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
-
-
-def _solid_surface(t0, t1, hit):
-    """Nearest surface crossing t > 0 of a solid's chord [t0, t1] (inf = none)."""
-    th = np.where(t0 > 0, t0, t1)
-    return np.where(hit & (th > 0), th, np.inf)
+    def surface_hit(self, o, d):
+        t0, t1, hit = self._chord(o, d)
+        th = np.where(t0 > 0, t0, t1)
+        return np.where(hit & (th > 0), th, np.inf)
 
 
 @dataclass
@@ -326,12 +327,6 @@ class OpaqueSphere(Blocker):
 
     def _chord(self, o, d):
         return ray_sphere(o, d, np.asarray(self.center, np.float64), float(self.radius))
-
-    def blocks(self, o, d, far):
-        return _solid_blocks(*self._chord(o, d), far)
-
-    def surface_hit(self, o, d):
-        return _solid_surface(*self._chord(o, d))
 
     def to_mitsuba(self, mi, bsdf):
         return {"type": "sphere", "center": np.asarray(self.center, float).tolist(),
@@ -370,12 +365,6 @@ class OpaqueBox(Blocker):
         t0, t1, _ = ray_box(o, d, np.asarray(self.min, np.float64), np.asarray(self.max, np.float64))
         return t0, t1, t0 <= t1
 
-    def blocks(self, o, d, far):
-        return _solid_blocks(*self._chord(o, d), far)
-
-    def surface_hit(self, o, d):
-        return _solid_surface(*self._chord(o, d))
-
     def to_mitsuba(self, mi, bsdf):
         lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
         return {"type": "cube", "bsdf": bsdf, "to_world": (
@@ -402,34 +391,28 @@ class OpaquePlane(Blocker):
         half = self.extent * (np.abs(u) + np.abs(v))
         return self.point - half, self.point + half
 
-    def first_hit(self, o, d):
-        u, v, n = orthonormal_basis(self.normal)
-        dn = d @ n
-        ok = np.abs(dn) > 1e-12
-        t = np.where(ok, ((self.point - o) @ n) / np.where(ok, dn, 1.0), -1.0)
-        q = o + t[:, None] * d - self.point
-        hit = ok & (t >= 0) & (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent)
-        return t, hit, np.abs(dn)
-
-    def blocks(self, o, d, far):
+    def _crossing(self, o, d, tiny: float):
+        """(t, on the square, d . n) of the rays' crossing of the plane; none (t = -1) where
+        ``|d . n| <= tiny``."""
         u, v, n = orthonormal_basis(self.normal)
         c = np.asarray(self.point, np.float64)
-        den = d @ n
-        ok = den != 0
-        t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), -1.0)
+        dn = d @ n
+        ok = np.abs(dn) > tiny
+        t = np.where(ok, ((c - o) @ n) / np.where(ok, dn, 1.0), -1.0)
         q = o + t[:, None] * d - c
-        inside = (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent)
-        return ok & inside & (t > 0) & (t < far)
+        return t, ok & (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent), dn
+
+    def first_hit(self, o, d):
+        t, hit, dn = self._crossing(o, d, 1e-12)
+        return t, hit & (t >= 0), np.abs(dn)
+
+    def blocks(self, o, d, far):
+        t, hit, _ = self._crossing(o, d, 0.0)
+        return hit & (t > 0) & (t < far)
 
     def surface_hit(self, o, d):
-        u, v, n = orthonormal_basis(self.normal)
-        c, half = np.asarray(self.point, np.float64), float(self.extent)
-        den = d @ n
-        ok = np.abs(den) > 1e-300
-        t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), np.inf)
-        q = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d - c
-        ok &= (t > 0) & (np.abs(q @ u) <= half) & (np.abs(q @ v) <= half)
-        return np.where(ok, t, np.inf)
+        t, hit, _ = self._crossing(o, d, 1e-300)
+        return np.where(hit & (t > 0), t, np.inf)
 
     def to_mitsuba(self, mi, bsdf):
         return {"type": "rectangle", "bsdf": {"type": "twosided", "bsdf": bsdf},
@@ -553,13 +536,7 @@ class Scene:
             half = 0.5 * np.array([nx, ny, nz], np.float64)
             lo, hi, box_from = -half, half, "unit voxels"
         else:
-            try:
-                lo, hi = bbox
-            except (TypeError, ValueError):
-                raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
-            lo, hi = V.vec3(lo, "bbox"), V.vec3(hi, "bbox")
-            if np.any(hi <= lo):
-                raise ValueError(f"bbox: expected max > min on every axis, got {lo.tolist()} .. {hi.tolist()}")
+            lo, hi = check_bbox(bbox)
         light = DirectionalLight(direction=(0.0, -1.0, 0.0)) if light is None else check_light(light)
         name = "grid" if name is None else name
         if not (isinstance(name, str) and name):
