@@ -21,17 +21,15 @@ Mitsuba is imported only inside the functions that use it, and the variant
 (``llvm_ad_rgb``, or ``cuda_ad_rgb`` when :func:`avsm_dr.backend.get_backend` is
 ``'cuda'``) is chosen inside each call, never at import time.
 """
-from ..validation import points as check_points
 from .content import EPS_REL, MAX_CHUNK, blocked, light_paths
 from .images import (PLANE_OFFSET, camera_rays, check_camera, default_camera, receiver_plane_for,
                      render_reference)
-from .media import mitsuba, mitsuba_medium, mitsuba_volume, sample_density
+from .media import mitsuba, mitsuba_volume, sample_density
 from .tracking import MAX_LANES, MAX_SAMPLES, METHODS, raymarch_optical_depth, transmittance
 
 __all__ = [
     "transmittance", "render_reference", "raymarch_optical_depth", "sample_density",
-    "light_paths", "blocked", "check_points",
-    "mitsuba", "mitsuba_medium", "mitsuba_volume",
+    "light_paths", "blocked", "mitsuba", "mitsuba_volume",
     "default_camera", "check_camera", "camera_rays", "receiver_plane_for",
     "METHODS", "MAX_LANES", "MAX_SAMPLES", "MAX_CHUNK", "EPS_REL", "PLANE_OFFSET",
 ]

@@ -11,6 +11,8 @@ without Mitsuba); the variant is chosen per call (:func:`mitsuba`), never at imp
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from .. import backend
@@ -49,12 +51,8 @@ def grid_to_world(mi, lo, hi):
 
 
 def _volume_dict(mi, grid, lo, hi) -> dict:
-    return {
-        "type": "gridvolume",
-        "grid": mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32)),
-        "to_world": grid_to_world(mi, lo, hi),
-        "filter_type": "trilinear",
-    }
+    return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32)),
+            "to_world": grid_to_world(mi, lo, hi), "filter_type": "trilinear"}
 
 
 def medium_dict(mi, grid, lo, hi, albedo: float) -> dict:
@@ -64,21 +62,11 @@ def medium_dict(mi, grid, lo, hi, albedo: float) -> dict:
 
 
 def mitsuba_volume(density, bbox):
-    """The ``gridvolume`` for ``density`` (nz, ny, nx) over ``bbox`` (trilinear).
-
-    Mitsuba clamps lookups to the edge even outside the box; the medium built by
-    :func:`mitsuba_medium` is only ever evaluated inside it.
-    """
+    """The ``gridvolume`` for ``density`` (nz, ny, nx) over ``bbox`` (trilinear; Mitsuba clamps
+    lookups to the edge even outside the box, where its media are never evaluated)."""
     mi = mitsuba()
     grid, lo, hi = check_grid(density, bbox)
     return mi.load_dict(_volume_dict(mi, grid, lo, hi))
-
-
-def mitsuba_medium(scene, albedo: float = 0.0):
-    """Mitsuba ``heterogeneous`` medium of ``scene.density`` (sigma_t = density, scale 1)."""
-    mi = mitsuba()
-    grid, lo, hi = check_grid(scene.density, scene.bbox)
-    return mi.load_dict(medium_dict(mi, grid, lo, hi, V.real(albedo, "albedo", 0.0, 1.0)))
 
 
 def sample_density(density, bbox, points) -> np.ndarray:
@@ -103,14 +91,8 @@ def sample_grid(g, lo, hi, p) -> np.ndarray:
     f = u - i0
     i1 = np.minimum(i0 + 1, n.astype(np.int64) - 1)
     out = np.zeros(p.shape[0])
-    for cz in (0, 1):
-        kz = i1[:, 2] if cz else i0[:, 2]
-        wz = f[:, 2] if cz else 1 - f[:, 2]
-        for cy in (0, 1):
-            ky = i1[:, 1] if cy else i0[:, 1]
-            wy = f[:, 1] if cy else 1 - f[:, 1]
-            for cx in (0, 1):
-                kx = i1[:, 0] if cx else i0[:, 0]
-                wx = f[:, 0] if cx else 1 - f[:, 0]
-                out += wz * wy * wx * g[kz, ky, kx]
+    for cz, cy, cx in itertools.product((0, 1), repeat=3):
+        kz, ky, kx = (i1[:, a] if c else i0[:, a] for a, c in ((2, cz), (1, cy), (0, cx)))
+        wz, wy, wx = (f[:, a] if c else 1 - f[:, a] for a, c in ((2, cz), (1, cy), (0, cx)))
+        out += wz * wy * wx * g[kz, ky, kx]
     return np.where(inside, out, 0.0)
