@@ -22,16 +22,13 @@ One step of size ``dt`` (:meth:`StableFluids.step`)::
     project      L p = div u,   u -= grad p          (7-point Laplacian, Neumann walls,
                                                         red-black SOR, warm-started)
 
-``div u`` at a cell is the sum of its face fluxes (u[i+1] - u[i] + ...), ``grad p`` on an
-interior face the difference of its two cells, so ``div(grad p) = L p`` exactly: after
-the solve ``div u`` equals the Poisson residual.  Semi-Lagrangian advection with
-trilinear weights keeps ``d >= 0`` and is unconditionally stable, but it is neither
-exactly conservative nor free of numerical diffusion.
+``div u`` at a cell is the sum of its face fluxes, ``grad p`` on an interior face the
+difference of its two cells, so ``div(grad p) = L p`` exactly (after the solve ``div u`` is
+the Poisson residual).  Semi-Lagrangian advection keeps ``d >= 0`` and is unconditionally
+stable, neither exactly conservative nor free of numerical diffusion.
 
-:func:`simulate_plume` runs a buoyant plume from a seeded, wobbling source and caches the
-density on disk, keyed by its parameters and this module's source; :func:`simulate_plume_sequence`
-caches an animation of the same plume (one frame every ``stride`` steps) and
-:func:`plume_frames` yields it step by step.
+:func:`simulate_plume` (cached on disk), :func:`plume_frames` and :func:`simulate_plume_sequence`
+run a buoyant plume from a seeded, wobbling source.
 """
 from __future__ import annotations
 
@@ -153,10 +150,7 @@ class StableFluids:
             cnt += dr.select(has, 1.0, 0.0)
         self._count = cnt
         self._red = ((C.i + C.j + C.k) & 1) == 0
-        self._interior = [self.U.i > 0, self.V.j > 0, self.W.k > 0]
-        self._interior[0] &= self.U.i < nx
-        self._interior[1] &= self.V.j < ny
-        self._interior[2] &= self.W.k < nz
+        self._interior = [(c > 0) & (c < n) for c, n in ((self.U.i, nx), (self.V.j, ny), (self.W.k, nz))]
         dr.eval(self._count, self._red, self._interior)
 
     # ================================================================ state
@@ -171,8 +165,7 @@ class StableFluids:
         """Replace the face velocities (shapes (nz, ny, nx+1), (nz, ny+1, nx), (nz+1, ny, nx));
         boundary faces are set to 0 (closed box)."""
         out = []
-        for name, a, L, inner in (("u", u, self.U, self._interior[0]), ("v", v, self.V, self._interior[1]),
-                                  ("w", w, self.W, self._interior[2])):
+        for name, a, L, inner in zip("uvw", (u, v, w), self._faces(), self._interior):
             a = V.array(a, name, np.float32)
             if a.shape != L.dims:
                 raise ValueError(f"{name}: expected shape {L.dims}, got {a.shape}")
@@ -205,7 +198,7 @@ class StableFluids:
         mk = self.m.Float(np.ascontiguousarray(np.asarray(mask, np.float32)).ravel())
         self.d = dr.maximum(self.d, amount * mk)
         fields = []
-        for axis, (L, f) in enumerate(((self.U, self.u), (self.V, self.v), (self.W, self.w))):
+        for axis, (L, f) in enumerate(zip(self._faces(), (self.u, self.v, self.w))):
             mf = self._to_faces(mk, L, axis)            # mask averaged over the two cells beside a face
             fields.append(dr.select(self._interior[axis], f + mf * (float(velocity[axis]) - f), 0.0))
         self.u, self.v, self.w = fields
@@ -217,19 +210,17 @@ class StableFluids:
         self.v = dr.select(self._interior[1], self.v + dt * self.buoyancy * db, 0.0)
         if self.vorticity > 0:
             f = self._confinement()
-            self.u = dr.select(self._interior[0], self.u + dt * self._to_faces(f[0], self.U, 0), 0.0)
-            self.v = dr.select(self._interior[1], self.v + dt * self._to_faces(f[1], self.V, 1), 0.0)
-            self.w = dr.select(self._interior[2], self.w + dt * self._to_faces(f[2], self.W, 2), 0.0)
+            self.u, self.v, self.w = (dr.select(self._interior[a], q + dt * self._to_faces(f[a], L, a), 0.0)
+                                      for a, (L, q) in enumerate(zip(self._faces(), (self.u, self.v, self.w))))
         dr.eval(self.u, self.v, self.w)
 
-    def _centre_velocity(self):
-        pos = self.C.pos
-        return [self.U.sample(self.u, *pos), self.V.sample(self.v, *pos), self.W.sample(self.w, *pos)]
+    def _faces(self):
+        return self.U, self.V, self.W
 
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
         C = self.C
-        uc = self._centre_velocity()
+        uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
         dr.eval(uc)
 
         def dd(f, axis):       # central difference along axis (one-sided-ish at walls via clamping)
@@ -282,9 +273,8 @@ class StableFluids:
             vx, vy, vz = U.sample(u, xm, ym, zm), V.sample(v, xm, ym, zm), W.sample(w, xm, ym, zm)
             return x - h * vx, y - h * vy, z - h * vz
 
-        new_u = dr.select(self._interior[0], U.sample(u, *trace(U, dt)), 0.0)
-        new_v = dr.select(self._interior[1], V.sample(v, *trace(V, dt)), 0.0)
-        new_w = dr.select(self._interior[2], W.sample(w, *trace(W, dt)), 0.0)
+        new_u, new_v, new_w = (dr.select(inner, L.sample(q, *trace(L, dt)), 0.0)
+                               for L, q, inner in zip((U, V, W), (u, v, w), self._interior))
         d1, lo, hi = C.sample(self.d, *trace(C, dt), bounds=True)
         if self.maccormack:
             dr.eval(d1, lo, hi)
@@ -312,7 +302,7 @@ class StableFluids:
                 dr.eval(p)
         self.p = p
         fields = []
-        for axis, (L, f) in enumerate(((self.U, self.u), (self.V, self.v), (self.W, self.w))):
+        for axis, (L, f) in enumerate(zip(self._faces(), (self.u, self.v, self.w))):
             lo, hi = self._beside(p, L, axis)
             fields.append(dr.select(self._interior[axis], f - (hi - lo), 0.0))
         self.u, self.v, self.w = fields
