@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import hashlib
 import inspect
+import itertools
 import json
 import os
 import warnings
@@ -70,7 +71,7 @@ class _Layout:
         self.j = (idx // X) % Y
         self.k = idx // (X * Y)
         dr.eval(self.i, self.j, self.k)
-        self.pos = [m.Float(self.i) + offset[0], m.Float(self.j) + offset[1], m.Float(self.k) + offset[2]]
+        self.pos = [m.Float(c) + o for c, o in zip((self.i, self.j, self.k), offset)]
         dr.eval(self.pos)
 
     def index(self, i, j, k):
@@ -101,16 +102,12 @@ class _Layout:
         (i0, j0, k0), (fx, fy, fz) = idx, frac
         out = m.Float(0.0)
         lo = hi = None
-        for dk in (0, 1):
-            wz = fz if dk else 1.0 - fz
-            for dj in (0, 1):
-                wy = fy if dj else 1.0 - fy
-                for di in (0, 1):
-                    wx = fx if di else 1.0 - fx
-                    v = dr.gather(m.Float, field, self.index(i0 + di, j0 + dj, k0 + dk))
-                    out += wz * wy * wx * v
-                    lo = v if lo is None else dr.minimum(lo, v)
-                    hi = v if hi is None else dr.maximum(hi, v)
+        for dk, dj, di in itertools.product((0, 1), repeat=3):
+            wz, wy, wx = (f if c else 1.0 - f for f, c in ((fz, dk), (fy, dj), (fx, di)))
+            v = dr.gather(m.Float, field, self.index(i0 + di, j0 + dj, k0 + dk))
+            out += wz * wy * wx * v
+            lo = v if lo is None else dr.minimum(lo, v)
+            hi = v if hi is None else dr.maximum(hi, v)
         return (out, lo, hi) if bounds else out
 
 
