@@ -27,7 +27,7 @@ from .geometry import check_bbox, orthonormal_basis, ray_box, ray_sphere
 
 class Light:
     """A light: a subclass (a dataclass) carries what capture, ground truth, shading and Mitsuba
-    need, so a new light is one class (and a name in :func:`check_light`).  Points: float64 (K, 3).
+    need, so a new light is one class.  Points: float64 (K, 3).
 
     * ``directions_to(p)``: (K, 3) unit directions towards the light (read-only);
     * ``paths(p, center, radius)``: origins, unit directions and lengths of the light's paths to
@@ -111,6 +111,9 @@ class DirectionalLight(Light):
 
 class _LightAt(Light):
     """A light at ``position`` (spot, point): paths start there; inverse-square irradiance."""
+    def __post_init__(self):
+        self.position = V.vec3(self.position, "position")
+        self.intensity = V.real(self.intensity, "intensity", 0.0)
     def directions_to(self, p):
         v = self.position - p
         return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
@@ -137,10 +140,9 @@ class SpotLight(_LightAt):
     mitsuba_class = "SpotLight"
 
     def __post_init__(self):
-        self.position = V.vec3(self.position, "position")
+        super().__post_init__()
         self.direction = V.unit_vector(self.direction, "direction")
         self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
-        self.intensity = V.real(self.intensity, "intensity", 0.0)
 
     @property
     def beam_width(self) -> float:
@@ -188,10 +190,6 @@ class PointLight(_LightAt):
     intensity: float = 1.0
     mitsuba_class = "PointLight"
 
-    def __post_init__(self):
-        self.position = V.vec3(self.position, "position")
-        self.intensity = V.real(self.intensity, "intensity", 0.0)
-
     def shadow_camera(self, cameras, res, bmin, bmax):
         return cameras.CubeCamera(self.position, res)
 
@@ -209,7 +207,8 @@ class PointLight(_LightAt):
 def check_light(light, name: str = "light") -> Light:
     """``light`` if it is a :class:`Light`; ValueError naming ``name`` otherwise."""
     if not isinstance(light, Light):
-        raise ValueError(f"{name}: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+        kinds = " / ".join(t.__name__ for t in Light._by_mitsuba_class.values())
+        raise ValueError(f"{name}: expected a Light ({kinds}), got {type(light).__name__}")
     return light
 
 
@@ -481,9 +480,7 @@ class Scene:
     receiver_plane: Optional[tuple] = None
     meta: dict = field(default_factory=dict)
 
-    def __post_init__(self):
-        # integer / bool grids refused here, at construction (the full rule,
-        # validation.density_grid, runs where the grid is read: capture, ground truth)
+    def __post_init__(self):      # the dtype only: validation.density_grid runs where the grid is read
         if isinstance(self.density, (np.ndarray, list, tuple)) or dr.is_array_v(self.density):
             V.grid_dtype(self.density, "density")
 
@@ -565,8 +562,7 @@ def voxel_coords(density, k: int, rng) -> np.ndarray:
     return np.stack([kx, ky, kz], 1) + rng.random((k, 3))
 
 
-#: Host bytes per receiver point that :meth:`Scene.from_grid` draws (indices, jitter and the
-#: points, float64), checked before drawing (receivers=10**9 used to end in a MemoryError).
+#: Host bytes per receiver point that :meth:`Scene.from_grid` draws (indices, jitter, points), checked first.
 RECEIVER_BYTES = 128
 
 
@@ -575,9 +571,8 @@ def _read_grid(path: str):
     ext = path.lower().rsplit(".", 1)[-1] if "." in path else ""
     try:
         if ext == "npy":
-            # memory-mapped first: a header announcing more data than the file holds is a
-            # ValueError before anything is allocated (np.load allocated the announced size:
-            # a MemoryError), then copied; object arrays are refused (never unpickled)
+            # memory-mapped, then copied: a header announcing more data than the file holds is a
+            # ValueError before any allocation; object arrays are refused (never unpickled)
             try:
                 mm = np.load(path, mmap_mode="r", allow_pickle=False)
             except OSError:

@@ -9,7 +9,7 @@ emitter and one scattering event (medium or surface) with next-event estimation,
 single scattering; Russian roulette is off.  Rays are the same pixel-centre rays as
 :meth:`PinholeCamera.rays` (no pixel filter), started inside the medium.
 
-The variant (``llvm_ad_rgb``) is set when a function is called, never at import.
+The variant is set when a function is called (:func:`avsm_dr.groundtruth.mitsuba`), never at import.
 """
 from __future__ import annotations
 
@@ -19,16 +19,8 @@ import drjit as dr
 import numpy as np
 
 from .area_scene import AreaLightScene
+from ..groundtruth.media import mitsuba as _mi
 from ..validation import integer as check_count
-
-VARIANT = "llvm_ad_rgb"
-
-
-def _mi():
-    import mitsuba as mi
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
-    return mi
 
 
 def _affine(mi, cols: list, origin) -> object:
