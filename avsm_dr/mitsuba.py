@@ -175,40 +175,12 @@ def _make_class():
     class AVSMSingleScatterIntegrator(mi.SamplingIntegrator):
         r"""Single scattering in a heterogeneous medium, light transmittance from a shadow map.
 
-        .. list-table::
-           :header-rows: 1
-
-           * - Property
-             - Type
-             - Description
-           * - representation
-             - string
-             - Kind of :func:`avsm_dr.kinds` storing the light's transmittance (default:
-               ``exact``, the segments themselves: equals ``volpath``).
-           * - *(kind parameters)*
-             - as the kind
-             - Every other property goes to :func:`avsm_dr.build` (e.g. ``nodes`` of
-               ``avsm``; ``precision``, ``reverse`` and ``chunk`` as for every kind), checked
-               by the kind's schema: an unknown name raises ValueError.
-           * - resolution
-             - integer
-             - Shadow-map texels per side, 64..1024 (default: 256; point lights: a cube map).
-           * - filter
-             - string
-             - Shadow-map lookup, ``point | bilinear | box | gaussian`` (default: ``bilinear``).
-           * - capture_method
-             - string
-             - Grid capture, ``march`` (Simpson steps of half a voxel) or ``exact`` (default: ``march``).
-           * - max_depth
-             - integer
-             - Longest path in segments, as ``volpath`` counts them: 1 = emitters seen directly,
-               2 = plus single scattering and direct light on surfaces (default: 2; nothing else).
-           * - march_steps
-             - integer
-             - Midpoint pieces along each camera ray's stretch inside the medium (default: 64).
-           * - hide_emitters
-             - boolean
-             - Hide directly visible area emitters (default: false).
+        Properties (described in the Mitsuba page of the docs): ``representation``, a kind of
+        :func:`avsm_dr.kinds` (default ``exact``: equals ``volpath``); the kind's parameters,
+        passed to :func:`avsm_dr.build` and checked by its schema; and the plugin's options with
+        their defaults (:data:`_OPTIONS`): ``resolution`` 256 (64..1024), ``filter`` bilinear,
+        ``max_depth`` 2 (1 or 2), ``march_steps`` 64, ``hide_emitters`` false, ``capture_method``
+        march.
 
         Per camera sample, with ``[a, b]`` the ray's stretch inside the medium's box (cut at
         the first surface), ``t* ~ U[a, b]`` and ``x* = o + t* d``::
