@@ -2,15 +2,12 @@
 
 Stam, "Stable Fluids", SIGGRAPH 1999 (sec. 2-3), on a staggered (MAC) grid with the
 smoke forces of Fedkiw, Stam and Jensen, "Visual Simulation of Smoke", SIGGRAPH 2001
-(sec. 3: buoyancy, vorticity confinement).  Grid units throughout: cell side h = 1,
-velocities in cells per time unit; one lane per sample, every kernel a gather.
-
-Layout, grid of (nz, ny, nx) cells, cell (k, j, i) centred at (i + 1/2, j + 1/2, k + 1/2):
-
-* density ``d`` and pressure ``p``: cell centres, (nz, ny, nx);
-* ``u`` on x-faces (nz, ny, nx + 1) at (i, j + 1/2, k + 1/2); ``v`` on y-faces
-  (nz, ny + 1, nx); ``w`` on z-faces (nz + 1, ny, nx).  The box is closed: faces on
-  the boundary carry zero normal velocity (solid walls), so no mass leaves it.
+(sec. 3: buoyancy, vorticity confinement).  Grid units: cell side h = 1, velocities in
+cells per time unit; one lane per sample, every kernel a gather.  Cell (k, j, i) of the
+(nz, ny, nx) grid is centred at (i + 1/2, j + 1/2, k + 1/2) and holds density ``d`` and
+pressure ``p``; ``u`` lies on x-faces (nz, ny, nx + 1) at (i, j + 1/2, k + 1/2), ``v`` on
+y-faces (nz, ny + 1, nx), ``w`` on z-faces (nz + 1, ny, nx).  The box is closed: boundary
+faces carry zero normal velocity (solid walls).
 
 One step of size ``dt`` (:meth:`StableFluids.step`)::
 

@@ -7,25 +7,19 @@ Example::
                                               "representation": "avsm", "nodes": 8}})
     img = mi.render(scene, spp=64)
 
-The image a game engine would show with a volumetric shadow map: the camera ray's own
-attenuation and the in-scattering integral are computed from Mitsuba's medium, and only
-the light's transmittance to each shading point comes from an avsm_dr representation
-built from a light-view capture of the same density grid (Salvi et al., "Adaptive
-Volumetric Shadow Maps", EGSR 2010, sec. 3; :mod:`avsm_dr.capture`).  With
-``representation='exact'`` this is Mitsuba's ``volpath`` with ``max_depth = 2``.
+The image a game engine would show: the camera ray's attenuation and the in-scattering come
+from Mitsuba's medium, only the light's transmittance to each shading point from an avsm_dr
+representation of a light-view capture of the same grid (Salvi et al., "Adaptive Volumetric
+Shadow Maps", EGSR 2010, sec. 3).  With ``representation='exact'`` this is ``volpath`` with
+``max_depth = 2``.
 
-Importing this module selects a Mitsuba variant only when none is set (``llvm_ad_rgb``,
-or ``cuda_ad_rgb`` on the CUDA backend: :func:`avsm_dr.groundtruth.mitsuba`), and
-re-registers the plugin whenever the variant changes.  The rest of the package imports
-Mitsuba lazily (a GPU host may have Dr.Jit without Mitsuba).
-
-Errors are ``ValueError`` naming the property or the scene, as the user sees them: under a
-variant without JIT AD (``scalar_rgb``, ``llvm_rgb``, ...) the registered constructor names
-the variant to set; a bad property is reported by the constructor (an unknown name first,
-with a "did you mean") without its traceback, so that ``mi.load_dict`` quotes
-``ValueError: <message>``; a scene the integrator cannot render raises from ``mi.render``
-itself (wrapped once at import: Dr.Jit's custom operation would replace it by a
-``RuntimeError ... (see above)``; other integrators' calls pass through unchanged).
+Importing this module selects a variant only when none is set (``llvm_ad_rgb``, or
+``cuda_ad_rgb`` on the CUDA backend) and re-registers the plugin on every variant change; the
+rest of the package imports Mitsuba lazily.  Errors are ValueErrors naming the property or the
+scene: under a variant without JIT AD the constructor names the variant to set; a bad property
+(an unknown name first, with a "did you mean") is raised without its traceback, so that
+``mi.load_dict`` quotes ``ValueError: <message>``; ``mi.render`` (wrapped once at import)
+raises this integrator's ValueError, not Dr.Jit's ``RuntimeError ... (see above)``.
 """
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ import numpy as np
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera
 from ..geometry import check_bbox, orthonormal_basis, ray_box
-from ..scene import Scene, square_to_world
+from ..scene import OpaqueBox, Scene, square_to_world
 from .content import check_scene, to_light
 from .media import check_grid, medium_dict, mitsuba
 from .tracking import default_step, march
@@ -214,13 +214,8 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
     }
     if content["grid"] is not None:
         grid, lo, hi = content["grid"]
-        d["volume"] = {
-            "type": "cube",
-            "to_world": (mi.ScalarTransform4f().translate(((lo + hi) / 2).tolist())
-                         @ mi.ScalarTransform4f().scale(((hi - lo) / 2).tolist())),
-            "bsdf": {"type": "null"},
-            "interior": medium_dict(mi, grid, lo, hi, albedo),
-        }
+        d["volume"] = dict(OpaqueBox(lo, hi).to_mitsuba(mi, {"type": "null"}),
+                           interior=medium_dict(mi, grid, lo, hi, albedo))
     for i, b in enumerate(content["blockers"]):
         d[f"blocker{i}"] = b.to_mitsuba(mi, black)
     img = mi.render(mi.load_dict(d), spp=int(spp), seed=int(seed))
