@@ -325,45 +325,35 @@ def _source_mask(shape, centre, radius: float, height: float) -> np.ndarray:
     return (np.clip(radius - r + 0.5, 0.0, 1.0) * (y < height)).astype(np.float32)
 
 
-def _cache_file(cache, name: str) -> Path | None:
-    """Where a cached result called ``name`` lives (None: caching off, ``cache=False``)."""
-    if cache is False:
-        return None
-    return (CACHE_DIR if cache is True else Path(cache)) / name
-
-
-def _save_cached(path: Path | None, out: np.ndarray) -> None:
-    """Write ``out`` to ``path`` atomically (a temporary file, then a rename); None: no cache."""
+def _cached(cache, prefix: str, params: dict, shape: tuple, compute) -> np.ndarray:
+    """``compute()``, cached (``cache``: True = :data:`CACHE_DIR`, a folder, or False = off) as
+    ``<prefix>_<key>.npy``, key = hash of ``params`` and this module's source, written atomically
+    (a temporary file, then a rename).  A file that is not a finite, non-negative float32 array of
+    ``shape`` (unreadable, pickled, wrong) is warned about by name, recomputed and overwritten."""
+    path = None
+    if cache is not False:
+        h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
+        h.update(Path(__file__).read_bytes())
+        path = (CACHE_DIR if cache is True else Path(cache)) / f"{prefix}_{h.hexdigest()[:20]}.npy"
+    if path is not None and path.exists():
+        try:
+            out = np.load(path, allow_pickle=False)
+            if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != tuple(shape):
+                raise ValueError(f"holds {getattr(out, 'dtype', type(out).__name__)} "
+                                 f"{getattr(out, 'shape', '')}, expected float32 {tuple(shape)}")
+            if not np.all(np.isfinite(out)) or (out.size and out.min() < 0):
+                raise ValueError("holds NaN, inf or negative densities")
+            return out
+        except Exception as exc:
+            warnings.warn(f"fluid: ignoring the cached plume {str(path)!r} ({exc}); recomputing",
+                          RuntimeWarning, stacklevel=3)
+    out = compute()
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
         np.save(tmp, out)
         os.replace(tmp, path)
-
-
-def _load_cached(path: Path | None, shape: tuple) -> np.ndarray | None:
-    """The cached float32 array of ``shape`` at ``path``, or None (no cache, no file, or a file
-    that is not such an array: warned about by name, then recomputed and overwritten)."""
-    if path is None or not path.exists():
-        return None
-    try:
-        out = np.load(path, allow_pickle=False)
-        if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != tuple(shape):
-            raise ValueError(f"holds {getattr(out, 'dtype', type(out).__name__)} "
-                             f"{getattr(out, 'shape', '')}, expected float32 {tuple(shape)}")
-        if not np.all(np.isfinite(out)) or (out.size and out.min() < 0):
-            raise ValueError("holds NaN, inf or negative densities")
-    except Exception as exc:                      # unreadable, truncated, pickled or wrong array
-        warnings.warn(f"fluid: ignoring the cached plume {str(path)!r} ({exc}); recomputing",
-                      RuntimeWarning, stacklevel=3)
-        return None
     return out
-
-
-def _cache_key(params: dict) -> str:
-    h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
-    h.update(Path(__file__).read_bytes())
-    return h.hexdigest()[:20]
 
 
 def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float = 1.0,
@@ -387,14 +377,13 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     params = _plume_params(shape, seed, **solver)
     params.update(steps=V.integer(steps, "steps", 0), backend=backend.get_backend(), version=_VERSION)
     shape = tuple(params["shape"])
-    path = _cache_file(cache, f"plume_{_cache_key(params)}.npy")
-    if (hit := _load_cached(path, shape)) is not None:
-        return hit
-    out = np.zeros(shape, np.float32)
-    for _, out in zip(range(params["steps"]), plume_frames(shape, seed, **solver)):
-        pass
-    _save_cached(path, out)
-    return out
+
+    def run():
+        out = np.zeros(shape, np.float32)
+        for _, out in zip(range(params["steps"]), plume_frames(shape, seed, **solver)):
+            pass
+        return out
+    return _cached(cache, "plume", params, shape, run)
 
 
 # ============================================================ an animation
@@ -455,20 +444,16 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     solver = dict(defaults, **kwargs)
     params = dict(_plume_params(shape, seed, **solver), frames=int(frames), start=int(start), stride=int(stride),
                   backend=backend.get_backend(), version=_VERSION)
-    path = _cache_file(cache, f"plume_seq_{_cache_key(params)}.npy")
-    if (hit := _load_cached(path, (frames, *params["shape"]))) is not None:
-        return hit
-    out = np.empty((frames, *params["shape"]), np.float32)
-    last = start + (frames - 1) * stride
-    gen = plume_frames(shape, seed, **solver)
-    steps = range(1, last + 1)
-    if progress:
-        from tqdm import tqdm
-        steps = tqdm(steps, desc="plume", unit="step", leave=False)
-    for k in steps:
-        d = next(gen)
-        if k >= start and (k - start) % stride == 0:
-            out[(k - start) // stride] = d
-    gen.close()
-    _save_cached(path, out)
-    return out
+    shape = (frames, *params["shape"])
+
+    def run():
+        out = np.empty(shape, np.float32)
+        steps = range(1, start + (frames - 1) * stride + 1)
+        if progress:
+            from tqdm import tqdm
+            steps = tqdm(steps, desc="plume", unit="step", leave=False)
+        for k, d in zip(steps, plume_frames(params["shape"], seed, **solver)):
+            if k >= start and (k - start) % stride == 0:
+                out[(k - start) // stride] = d
+        return out
+    return _cached(cache, "plume_seq", params, shape, run)

@@ -8,10 +8,9 @@
   splatting per-VPL random surface points, one scan over the whole buffer, one gather over
   (pixel, VPL) lanes with bilinear interpolation only at shadow boundaries.
 
-Phases (seconds, wall clock around ``dr.eval`` + ``dr.sync_thread``): ``t_visibility``
-(voxelize / ray cast), ``t_scan`` (prefix-OR and boundary mask), ``t_gather`` (camera rays
-and Riemann sums).  The first call of a configuration includes JIT compilation; time a
-second call (the experiment does).
+Phases (seconds around ``dr.eval`` + ``dr.sync_thread``): ``t_visibility`` (voxelize / ray
+cast), ``t_scan`` (prefix-OR, boundary mask), ``t_gather`` (camera rays, Riemann sums); a
+configuration's first call includes JIT compilation.
 """
 from __future__ import annotations
 
