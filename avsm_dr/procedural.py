@@ -6,9 +6,9 @@
 * :func:`tall_column`    a simulated smoke column twice the plume's height, at a higher resolution.
 
 Densities are extinction per world unit, deterministic for ``seed``.  Noise: value-noise fBm
-(:func:`fbm`) remapped by Worley cellular noise (Worley 1996, "A cellular
-texture basis function"; the Perlin-Worley remap of Schneider, "The real-time volumetric
-cloudscapes of Horizon Zero Dawn", SIGGRAPH 2015 course).
+(:func:`fbm`) remapped by Worley cellular noise (Worley 1996, "A cellular texture basis function";
+Schneider, "The real-time volumetric cloudscapes of Horizon Zero Dawn", SIGGRAPH 2015 course).
+Also the helpers every built-in scene shares: :func:`grid_box`, :func:`check_args`, :func:`square_points`.
 """
 from __future__ import annotations
 
@@ -73,13 +73,11 @@ def worley(shape, cells: int, rng: np.random.Generator) -> np.ndarray:
     (iz, fz, cz), (iy, fy, cy), (ix, fx, cx) = _axes(shape, cells)
     pts = rng.random((cz + 2, cy + 2, cx + 2, 3))          # feature point per cell, padded by one cell
     best = np.full(shape, np.inf)
-    for dz in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                p = pts[np.ix_(iz + dz + 1, iy + dy + 1, ix + dx + 1)]
-                d2 = ((dz + p[..., 0] - fz[:, None, None]) ** 2 + (dy + p[..., 1] - fy[None, :, None]) ** 2
-                      + (dx + p[..., 2] - fx[None, None, :]) ** 2)
-                np.minimum(best, d2, out=best)
+    for dz, dy, dx in itertools.product((-1, 0, 1), repeat=3):
+        p = pts[np.ix_(iz + dz + 1, iy + dy + 1, ix + dx + 1)]
+        d2 = ((dz + p[..., 0] - fz[:, None, None]) ** 2 + (dy + p[..., 1] - fy[None, :, None]) ** 2
+              + (dx + p[..., 2] - fx[None, None, :]) ** 2)
+        np.minimum(best, d2, out=best)
     return np.minimum(np.sqrt(best), 1.0)
 
 
@@ -119,9 +117,11 @@ def square_points(center, u, v, half, k):
     return np.asarray(center, float) + half * (a * np.asarray(u, float) + b * np.asarray(v, float))
 
 
-def _grid_scene(name, dens, bmin, bmax, light, seed, n_receivers, plane, meta):
-    """A grid scene: half the receivers in voxels with density > 0 (jittered), half on the
-    square ``plane`` (centre, normal, half size; the receiver plane)."""
+def _grid_scene(name, dens, bmin, bmax, light, direction, seed, n_receivers, plane, meta):
+    """A grid scene: ``light`` (default directional along ``direction``), half the receivers in
+    voxels with density > 0 (jittered), half on the square ``plane`` (centre, normal, half size;
+    the receiver plane)."""
+    light = DirectionalLight(direction=direction) if light is None else light
     bmin, bmax = np.asarray(bmin, float), np.asarray(bmax, float)
     vol = voxel_coords(dens, n_receivers // 2, np.random.default_rng(seed + 1))
     vol = bmin + vol * (bmax - bmin) / np.array(dens.shape[::-1])
@@ -158,8 +158,7 @@ def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=Non
     body *= np.clip((Y - 0.3) / 0.06, 0.0, 1.0)                   # flat base
     pw = perlin_worley(shape, seed, cells=6)
     dens = np.clip(2.0 * body - 1.2 * (1.0 - pw), 0.0, 1.0) * density_scale
-    light = DirectionalLight(direction=(1.0, -0.35, 0.15)) if light is None else light
-    return _grid_scene("cumulus", dens.astype(np.float32), bmin, bmax, light, seed, n_receivers,
+    return _grid_scene("cumulus", dens.astype(np.float32), bmin, bmax, light, (1.0, -0.35, 0.15), seed, n_receivers,
                        ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 2.0), {"size": size, "density_scale": density_scale})
 
 
@@ -177,8 +176,7 @@ def fog_bank(size: int = 24, seed: int = 0, density_scale: float = 5.0, light=No
     rng = np.random.default_rng(seed)
     top = 0.3 + 0.25 * fbm((shape[0], 1, shape[2]), rng, octaves=3, cells=3)
     dens = np.where(Y < top, (0.75 + 0.5 * fbm(shape, rng, cells=5)) * density_scale, 0.0)
-    light = DirectionalLight(direction=(0.35, -1.0, 0.2)) if light is None else light
-    return _grid_scene("fog_bank", dens.astype(np.float32), bmin, bmax, light, seed, n_receivers,
+    return _grid_scene("fog_bank", dens.astype(np.float32), bmin, bmax, light, (0.35, -1.0, 0.2), seed, n_receivers,
                        ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 1.5), {"size": size, "density_scale": density_scale})
 
 
@@ -241,8 +239,7 @@ def tall_column(size: int = 40, seed: int = 0, steps: int | None = None, density
     bmin, bmax = (-0.5, 0.0, -0.5), (0.5, 3.0, 0.5)
     shape = grid_box(bmin, bmax, size)[0]
     dens = (simulate_plume(shape, steps=steps, seed=seed) * density_scale).astype(np.float32)
-    light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
-    return _grid_scene("tall_column", dens, bmin, bmax, light, seed, n_receivers,
+    return _grid_scene("tall_column", dens, bmin, bmax, light, (1.0, -0.3, 0.25), seed, n_receivers,
                        ((0.8, 1.5, 0.0), (-1.0, 0.0, 0.0), 1.5),
                        {"size": size, "steps": steps, "density_scale": density_scale})
 
