@@ -112,7 +112,8 @@ class SceneRegistry(MutableMapping):
 
     def entry(self, name: str) -> SceneEntry:
         """The :class:`SceneEntry` of ``name``; ValueError for an unknown name."""
-        self._check(name)
+        if not (isinstance(name, str) and name in self._entries):
+            raise ValueError(f"name: unknown scene {name!r}; known: {sorted(self)}{V.did_you_mean(name, self)}")
         return self._entries[name]
 
     def names(self, tag: str | None = None, content: str | None = None) -> tuple:
@@ -123,12 +124,7 @@ class SceneRegistry(MutableMapping):
 
     def build(self, name: str, **kwargs) -> Scene:
         """The scene ``name`` built with ``kwargs``; ValueError for an unknown name."""
-        self._check(name)
-        return self._entries[name].factory(**kwargs)
-
-    def _check(self, name) -> None:
-        if not (isinstance(name, str) and name in self._entries):
-            raise ValueError(f"name: unknown scene {name!r}; known: {sorted(self)}{V.did_you_mean(name, self)}")
+        return self.entry(name).factory(**kwargs)
 
     def __repr__(self) -> str:
         return f"SceneRegistry({list(self)})"
