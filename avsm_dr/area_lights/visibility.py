@@ -73,16 +73,11 @@ def _set_bin(grid: LightGrid, k: Kit, words, vpl, i, j, r, active) -> None:
     dr.scatter_reduce(dr.ReduceOp.Or, words, bit, _word_index(grid, k, vpl, i, j, b), active)
 
 
-def empty_volume(grid: LightGrid, k: Kit, n_vpl: int):
-    """Zeroed bit-packed occupancy words for ``n_vpl`` VPL grids (n_vpl x texels x words)."""
-    return dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)
-
-
 def voxelize_rays(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_vpl: int):
     """Occupancy by exact ray casting: one ray per texel centre from each VPL,
     marking the entry bin of every occluder it meets.  P: Vec3 positions (width n_vpl).
     Returns UInt32 words (n_vpl R^2 W)."""
-    words = empty_volume(grid, k, n_vpl)
+    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     eu, ev, n = frame
@@ -133,7 +128,7 @@ def voxelize_points(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_
     texels whose centre lies inside its projected ellipse (radii ``rho / (Z ds)``,
     ``rho / (Z dt)`` texels); it marks them at its own distance bin.  No hole filling.
     Lanes are (VPL, point); returns UInt32 words (n_vpl R^2 W)."""
-    words = empty_volume(grid, k, n_vpl)
+    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     M, R = points_per_vpl, grid.R
@@ -221,11 +216,14 @@ def bit_at(k: Kit, S, idx, b, active, stride: int = 1):
     return (w >> (b & 31)) & 1
 
 
+def _nearest_word(grid: LightGrid, k: Kit, vpl, c: GridCoords):
+    i, j = (k.UInt32(dr.clip(f, 0, grid.R - 1)) for f in (c.fs, c.ft))
+    return _word_index(grid, k, vpl, i, j, c.b)
+
+
 def lookup_point(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, stride: int = 1):
     """Visibility from the nearest texel: 1 - S_b (1 outside the grid)."""
-    i = k.UInt32(dr.clip(c.fs, 0, grid.R - 1))
-    j = k.UInt32(dr.clip(c.ft, 0, grid.R - 1))
-    return 1 - k.Float(bit_at(k, S, _word_index(grid, k, vpl, i, j, c.b), c.b, c.inside, stride))
+    return 1 - k.Float(bit_at(k, S, _nearest_word(grid, k, vpl, c), c.b, c.inside, stride))
 
 
 def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, active=True, stride: int = 1):
@@ -251,9 +249,7 @@ def lookup_point_edge(grid: LightGrid, k: Kit, SE, vpl, c: GridCoords):
     interleaved buffer of :func:`interleave`.  Where E is 0 the bilinear visibility equals
     the nearest one (Wyman and Dai 2013: "interpolate at shadow boundaries";
     :func:`~.gather.boundary_correction` adds the difference where E is 1)."""
-    i = k.UInt32(dr.clip(c.fs, 0, grid.R - 1))
-    j = k.UInt32(dr.clip(c.ft, 0, grid.R - 1))
-    idx = _word_index(grid, k, vpl, i, j, c.b) * 2
+    idx = _nearest_word(grid, k, vpl, c) * 2
     s = bit_at(k, SE, idx, c.b, c.inside)
     e = bit_at(k, SE, idx + 1, c.b, c.inside) != 0
     return 1 - k.Float(s), e
