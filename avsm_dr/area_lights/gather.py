@@ -115,17 +115,11 @@ def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, 
 
 def boundary_correction(scene: AreaLightScene, k: Kit, hits: CameraHits, steps: int, intensity,
                         flags: list, lane_info, vis_delta):
-    """Second gather pass over the boundary steps only (Wyman and Dai 2013's interpolation).
-
-    The Riemann sum with interpolated visibility differs from the nearest-voxel one only
-    where they disagree, which the boundary mask bounds: L = L_point + sum over flagged
-    steps of (V_bilinear - V_point) f_j dt.  The flagged (lane, word) pairs are compacted
-    with ``dr.compress``; each lane then walks the set bits of its word (``tzcnt``), so
-    the work is proportional to the number of boundary crossings, not to N.
-
-    lane_info(lane) -> (pix, vpl, p); vis_delta(x, vpl, p) -> V_bilinear - V_point.
-    Returns the correction per lane (Float, width of the flag arrays).
-    """
+    """Second gather pass over the boundary steps only (Wyman and Dai 2013's interpolation):
+    ``L = L_point + sum over flagged steps of (V_bilinear - V_point) f_j dt``.  The flagged
+    (lane, word) pairs are compacted (``dr.compress``) and each walks its set bits (``tzcnt``):
+    work ~ boundary crossings, not N.  lane_info(lane) -> (pix, vpl, p); vis_delta(x, vpl, p) ->
+    V_bilinear - V_point.  Returns the correction per lane (Float, width of the flag arrays)."""
     n_words = len(flags)
     n_lanes = dr.width(flags[0])
     F = dr.zeros(k.UInt32, n_lanes * n_words)

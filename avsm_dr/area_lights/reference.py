@@ -1,13 +1,10 @@
 """Mitsuba 3 ground truth for area-light scenes: ``volpath`` with single scattering.
 
-The same scene as a Mitsuba scene: a ``homogeneous`` medium (albedo sigma_s / sigma_t,
-``isotropic`` or ``hg`` phase) inside a ``cube`` with a ``null`` BSDF (extended slightly
-below the floor so the floor lies strictly inside), a diffuse ``rectangle`` floor,
-diffuse ``sphere``/``cube`` occluders and a one-sided ``rectangle`` with an ``area``
-emitter (black back side).  ``volpath`` with ``max_depth = 2`` keeps the directly seen
-emitter and one scattering event (medium or surface) with next-event estimation, i.e.
-single scattering; Russian roulette is off.  Rays are the same pixel-centre rays as
-:meth:`PinholeCamera.rays` (no pixel filter), started inside the medium.
+The same scene in Mitsuba: a ``homogeneous`` medium (albedo sigma_s / sigma_t, ``isotropic`` or
+``hg`` phase) in a null-BSDF ``cube`` reaching slightly below the diffuse ``rectangle`` floor,
+diffuse occluders and a one-sided ``rectangle`` ``area`` emitter.  ``volpath`` with
+``max_depth = 2`` (Russian roulette off) is single scattering with next-event estimation; rays
+are the pixel-centre rays of :meth:`PinholeCamera.rays` (no pixel filter), started in the medium.
 
 The variant is set when a function is called (:func:`avsm_dr.groundtruth.mitsuba`), never at import.
 """
@@ -73,11 +70,9 @@ def render_mitsuba(scene: AreaLightScene, spp: int = 256, seed: int = 0, max_lan
                    max_depth: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth image (H, W) by Mitsuba ``volpath``, and its per-pixel standard error.
 
-    spp: samples per pixel (>= 16), split into >= 16 independent passes; the standard
-    error is the spread of the pass means / sqrt(passes) (with 16 passes the z-scores
-    follow a t distribution with 15 degrees of freedom, rms 1.07).
-    max_depth: 2 = single scattering (3 adds double scattering: measured +57 % on the
-    default scene).
+    spp: samples per pixel (>= 16), split into >= 16 independent passes; the standard error is
+    the spread of the pass means / sqrt(passes) (t-distributed z-scores, 15 dof at 16 passes).
+    max_depth: 2 = single scattering (3 adds double scattering).
     """
     if not isinstance(scene, AreaLightScene):
         raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")

@@ -1,21 +1,17 @@
 """Per-VPL voxel visibility: voxelize, scan into shadow volumes, look up (Wyman and Dai 2013,
 "Imperfect Voxelized Shadow Volumes", HPG, sec. 2).
 
-Storage.  VPL ``k``'s grid (:class:`~.vpl.LightGrid`, R x R texels x R depth bins) is a
-bit volume: texel ray ``ray = k R^2 + j R + i`` owns ``W = ceil(R / 32)`` consecutive
-UInt32 words, bit ``b & 31`` of word ``ray W + (b >> 5)`` is depth bin ``b``.  All VPLs
-of a batch live in one buffer (the paper's "single render target").
+Storage: VPL ``k``'s grid (:class:`~.vpl.LightGrid`) is a bit volume; texel ray ``k R^2 + j R +
+i`` owns ``W = ceil(R / 32)`` UInt32 words, bit ``b & 31`` of its word ``b >> 5`` is depth bin
+``b``; all VPLs of a batch share one buffer (the paper's "single render target").
 
-1. *Voxelize* (occupancy ``O``): set the bin of each occluder surface seen along a
-   texel ray.  ``voxelize_rays`` casts the exact texel-centre ray from the VPL
-   (the naive VSV population); ``voxelize_points`` splats random occluder surface
-   points, a different set per VPL (imperfect shadow maps, Ritschel et al. 2008).
-2. *Scan* along light rays, in parallel over rays and bit-parallel within a word:
-   ``S_b = O_0 | ... | O_{b-1}`` (exclusive prefix-OR), so bin ``b`` is in shadow iff
-   an occluder surface lies in an earlier bin (a surface never shadows its own bin).
-3. *Boundary mask* for the interpolation: ``E = OR_3x3(S) & ~AND_3x3(S)`` over the
-   texel's 3 x 3 neighbourhood at the same bin: where ``E`` is 0, every bilinear tap
-   agrees and the bilinear visibility equals the nearest-texel one.
+1. *Voxelize* (occupancy ``O``): the bin of each occluder surface seen along a texel ray, by the
+   exact texel-centre ray (``voxelize_rays``, naive VSVs) or by splatting random occluder surface
+   points, a different set per VPL (``voxelize_points``; imperfect shadow maps, Ritschel et al. 2008).
+2. *Scan* along light rays (bit-parallel within a word): ``S_b = O_0 | ... | O_{b-1}``, an
+   exclusive prefix-OR: bin ``b`` is in shadow iff an occluder lies in an earlier bin.
+3. *Boundary mask* ``E = OR_3x3(S) & ~AND_3x3(S)`` (3 x 3 texels, same bin): where ``E`` is 0
+   the bilinear visibility equals the nearest-texel one.
 
 Lookup of a point x for VPL p: light frame ``(X, Y, Z) = ((x-p).e_u, (x-p).e_v, (x-p).n)``,
 texel coordinates ``f_s = (X/Z - s_min) / (s_max - s_min) R`` (same for t), bin

@@ -8,13 +8,11 @@ Volumes", sec. 1, after Heckbert and Herf 1997)::
 with p_k stratified on the quad: cell centres of a sqrt(K) x sqrt(K) grid when K is a
 square (optionally jittered inside each cell), Hammersley points otherwise.
 
-Every VPL k gets a grid of R x R x R voxels in its own light space (Wyman and Dai 2013, sec. 2):
-texel (i, j) is the perspective direction ``e_u s + e_v t + n`` with
-``(s, t)`` in ``[s_min, s_max] x [t_min, t_max]`` (a frustum fitted around all occluders,
-shared by all VPLs), depth bin ``b`` the distance ``r`` to the VPL, binned linearly with
-bins 0 .. R-2 covering the occluders' range ``[r_near, r_far]`` and bin R-1 everything
-beyond.  A point outside the frustum or nearer than ``r_near`` has no occluder between
-it and the VPL (the frustum is a cone containing every occluder), so it is visible.
+Every VPL k gets R x R x R voxels in its own light space (Wyman and Dai 2013, sec. 2): texel
+(i, j) is the direction ``e_u s + e_v t + n``, ``(s, t)`` in ``[s_min, s_max] x [t_min, t_max]``
+(one frustum around all occluders, shared by all VPLs); depth bins 0 .. R-2 split the occluders'
+distance range ``[r_near, r_far]`` linearly, bin R-1 holds everything beyond.  A point outside
+the frustum or nearer than ``r_near`` has no occluder before the VPL: it is visible.
 """
 from __future__ import annotations
 
