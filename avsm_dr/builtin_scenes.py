@@ -1,19 +1,13 @@
-"""Built-in scenes: each function returns a :class:`~avsm_dr.scene.Scene` (content, light,
-receivers in and behind the volume, a receiver plane for images).
+"""Built-in scenes and their registry :data:`SCENES`: each function returns a
+:class:`~avsm_dr.scene.Scene` (content, light, receivers in and behind the volume, a receiver
+plane for images): :func:`plume`, :func:`three_columns`, :func:`hair_and_smoke`,
+:func:`particles`, :func:`smoke_over_table`, :func:`simulated_plume`, and those of
+:mod:`avsm_dr.procedural`.
 
-``size`` sets the grid resolution (voxels per world unit along the scene's unit length;
-small by default so tests stay fast); densities are deterministic for a given ``seed``.
-
-* :func:`plume`            a rising, widening smoke plume (procedural fBm noise).
-* :func:`three_columns`    three smoke columns one behind the other along the light,
-                           light / dense / medium (the AVSM paper's figures 4 and 7).
-* :func:`hair_and_smoke`   hair strands inside a smoke puff (the AVSM paper's figures 5-6);
-                           procedural strands, or a TressFX file when ``tfx_path`` is given.
-* :func:`particles`        a cloud of spherical particles.
-* :func:`smoke_over_table` a smoke puff above an opaque table top that receives its shadow.
-
-Every scene takes ``light=`` to replace its default directional light.  The AVSM paper:
-Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps", EGSR 2010.
+``size`` sets the grid resolution (voxels per world unit; small by default so tests stay fast);
+densities are deterministic for a given ``seed``; ``light=`` replaces the default directional
+light.  The AVSM paper: Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps",
+EGSR 2010.
 """
 from __future__ import annotations
 
