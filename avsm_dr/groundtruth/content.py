@@ -46,16 +46,13 @@ def check_scene(scene) -> dict:
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
     check_light(scene.light, "scene.light")
     out: dict[str, Any] = {
-        "grid": None,
         "particles": None if scene.particles is None else scene.particles.validate(),
         "hair": None if scene.hair is None else scene.hair.validate(),
+        "grid": None if scene.density is None else check_grid(scene.density, scene.bbox),
+        "blockers": validate_blockers(scene.blockers or []),
     }
-    if scene.density is not None:
-        out["grid"] = check_grid(scene.density, scene.bbox)
-    blockers = validate_blockers(scene.blockers or [])
-    out["blockers"] = blockers
     out["boxes"] = [] if out["grid"] is None else [out["grid"][1:]]
-    out["boxes"] += [b.bounds() for b in (scene.particles, scene.hair, *blockers) if b is not None]
+    out["boxes"] += [b.bounds() for b in (scene.particles, scene.hair, *out["blockers"]) if b is not None]
     if not out["boxes"]:
         raise ValueError("scene: has no density grid, particles, hair or opaque blockers")
     return out
