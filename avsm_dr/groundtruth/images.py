@@ -70,33 +70,27 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
         return c + dist * v, f
 
     v0 = 2 * n + l
-    v0 /= np.linalg.norm(v0)
+    v = v0 = v0 / np.linalg.norm(v0)
     if direction is not None:
-        cands = [direction]
-    elif grid is None:
-        cands = [v0]
-    else:
-        cands = [v0] + [math.cos(a) * n + math.sin(a) * (math.cos(p) * u + math.sin(p) * w)
-                        for a in np.radians([25.0, 40.0, 50.0, 60.0])
-                        for p in np.radians(np.arange(0.0, 360.0, 45.0))]
-    best = None
-    if len(cands) > 1:
+        v = direction
+    elif grid is not None:                 # the candidate whose view of the plane is least hidden
         g, lo, hi = grid
         a, b = np.meshgrid(np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5))
         targets = c + half * (a.reshape(-1, 1) * u + b.reshape(-1, 1) * w)
         step = default_step(g, lo, hi, 1 / 2)
-        for v in cands:
-            origin, f = place(v)
+        best = None
+        for cand in [v0] + [math.cos(a) * n + math.sin(a) * (math.cos(p) * u + math.sin(p) * w)
+                            for a in np.radians([25.0, 40.0, 50.0, 60.0])
+                            for p in np.radians(np.arange(0.0, 360.0, 45.0))]:
+            origin, f = place(cand)
             dv = targets - origin
             L = np.linalg.norm(dv, axis=1)
             tau, _ = march(g.astype(np.float64), lo, hi, np.broadcast_to(origin, dv.shape),
                            dv / L[:, None], L, step)
-            score = float(np.mean(1 - np.exp(-tau))) + 0.05 * math.acos(np.clip(v @ v0, -1, 1))
+            score = float(np.mean(1 - np.exp(-tau))) + 0.05 * math.acos(np.clip(cand @ v0, -1, 1))
             if best is None or score < best[0] - 1e-12:
-                best = (score, v)
+                best = (score, cand)
         v = best[1]
-    else:
-        v = cands[0]
     origin, f = place(v)
     up = w if abs(w @ v) < 0.9 else u
     return PinholeCamera(origin, c, up, float(f))
