@@ -1,20 +1,13 @@
 """Light paths and the analytic part of the ground truth: particles, hair, opaque blockers.
 
-Paths: a point or spot light at ``P`` gives ``o = P``, ``L = |x - P|`` (the spot
-cone does not limit transmittance; shading applies it).  A directional light
-travelling along ``w`` gives ``o = x - L w`` with ``o`` outside every piece of
-content (light side), so the path crosses the whole volume in front of ``x``.
-
-Particles (``scene.particles``): exact analytic chords (uniform extinction in each
-sphere; overlapping spheres add).  Hair (``scene.hair``): the strand model of
-:mod:`avsm_dr.capture.hair` stated analytically: each strand is a chain of
-capsules (radius ``r`` around each polyline segment), one *crossing* is a
-maximal interval of the path inside the union of one strand's capsules, and a
-crossing ``[a, b]`` absorbs ``tau_c = -ln(1 - opacity)`` spread uniformly over it
-(partial when ``a < L < b``).  Cost O(receivers x capsules).
-Opaque blockers: ``T = 0`` when the open path ``(0, L - eps)`` passes through the
-blocker, ``eps = 1e-6 * scene scale``: a receiver lying on a blocker's lit
-surface stays lit, one on the far side is dark.
+Paths: :func:`light_paths` (a spot's cone does not limit transmittance; shading applies it).
+Particles: exact chords (uniform extinction per sphere; overlapping spheres add).  Hair: the
+strand model of :mod:`avsm_dr.capture.hair` stated analytically: a strand is a chain of capsules
+(radius ``r`` around each polyline segment), a *crossing* a maximal interval of the path inside
+one strand's capsules, absorbing ``tau_c = -ln(1 - opacity)`` spread uniformly over it (partial
+when ``a < L < b``); cost O(receivers x capsules).  Opaque blockers: ``T = 0`` when the open
+path ``(0, L - eps)`` meets one, ``eps = 1e-6 * scene scale`` (a receiver on a blocker's lit
+surface stays lit).
 """
 from __future__ import annotations
 
