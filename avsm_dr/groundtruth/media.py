@@ -1,13 +1,9 @@
 """Mitsuba media of a density grid, and the NumPy statement of their lookup convention.
 
-The grid the capture marches becomes a Mitsuba ``heterogeneous`` medium whose ``sigma_t``
-is a ``gridvolume`` (``mi.VolumeGrid`` of the (z, y, x) float32 array, ``to_world``
-mapping the unit cube onto ``bbox``, ``filter_type='trilinear'``, ``scale = 1``).
-:func:`sample_density` states that convention in NumPy (cell-centred, trilinear,
-clamped to the edge inside the box, 0 outside); the tests check it against Mitsuba.
-
-Mitsuba is imported inside the functions that need it (a GPU host may have Dr.Jit
-without Mitsuba); the variant is chosen per call (:func:`mitsuba`), never at import.
+The grid becomes a ``heterogeneous`` medium whose ``sigma_t`` is a ``gridvolume`` (the (z, y, x)
+float32 array, ``to_world`` mapping the unit cube onto ``bbox``, trilinear, ``scale = 1``): the
+convention of :mod:`avsm_dr.scene`, which :func:`sample_density` states in NumPy (the tests check
+it against Mitsuba).  Mitsuba is imported, and the variant chosen (:func:`mitsuba`), per call.
 """
 from __future__ import annotations
 
@@ -70,12 +66,9 @@ def mitsuba_volume(density, bbox):
 
 
 def sample_density(density, bbox, points) -> np.ndarray:
-    """sigma_t at world ``points`` (K, 3): (K,) float64.
-
-    Voxel (k, j, i) sits at ``lo + ((i, j, k) + 0.5) * (hi - lo) / (nx, ny, nz)``;
-    trilinear in between, clamped to the edge inside the box, 0 outside it
-    (the Mitsuba ``gridvolume`` convention, see :mod:`avsm_dr.scene`).
-    """
+    """sigma_t at world ``points`` (K, 3): (K,) float64, voxel (k, j, i) at ``lo + ((i, j, k) +
+    0.5) * (hi - lo) / (nx, ny, nz)``, trilinear between, clamped to the edge inside the box, 0
+    outside (:mod:`avsm_dr.scene`)."""
     g, lo, hi = check_grid(density, bbox)
     return sample_grid(g.astype(np.float64), lo, hi, V.points(points))
 
