@@ -369,8 +369,8 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     ``wobble`` (seeded random walk), then :meth:`StableFluids.step` with ``dt``: advection
     (MacCormack for the density), forces (``buoyancy`` per unit density, vorticity
     confinement ``vorticity``), projection (``iterations`` SOR sweeps).
-    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: results are stored as
-    ``plume_<key>.npy``, key = hash of the parameters, the backend and this module's source.
+    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_<key>.npy``,
+    key = hash of the parameters, the backend and this module's source.
     """
     solver = dict(dt=dt, buoyancy=buoyancy, vorticity=vorticity, source_speed=source_speed,
                   source_radius=source_radius, wobble=wobble, iterations=iterations)
@@ -429,10 +429,8 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
                             **kwargs) -> np.ndarray:
     """Animation of the plume of :func:`simulate_plume`: (frames, nz, ny, nx) float32, frame f
     the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
-    one solver run for all frames.  kwargs: the solver parameters of :func:`simulate_plume`
-    (dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations).
-    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``, key = hash of the
-    parameters, backend and this module's source).  progress: a tqdm bar over the steps.
+    one solver run for all frames.  kwargs: the solver parameters of :func:`plume_frames`.
+    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``).  progress: a tqdm bar.
     """
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)

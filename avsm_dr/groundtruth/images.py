@@ -169,16 +169,12 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
                      max_depth: int = 2, seed: int = 0) -> np.ndarray:
     """Mitsuba ``volpath`` image (height, width) float64 of the volume and the receiver plane.
 
-    Receiver plane: a two-sided diffuse square (``reflectance``) of ``scene.receiver_plane``
-    oriented by :func:`~avsm_dr.geometry.orthonormal_basis`; volume: the heterogeneous medium of ``scene.density``
-    with single-scattering ``albedo`` (0 = purely absorbing) inside a null-BSDF cube on
-    ``scene.bbox``; blockers: black (reflectance 0) spheres, cubes and rectangles, so they
-    cast shadows but reflect nothing.  Light: 'directional' / 'spot' / 'point' with the
-    scene light's irradiance / intensity.  Camera: :func:`default_camera` unless given
-    (a :class:`~avsm_dr.camera.PinholeCamera` or a dict origin, target, up, fov).  Box pixel
-    filter; ``max_depth = 2`` is direct lighting (single scattering in the medium when
-    albedo > 0).  Returns the red channel (all channels are equal: everything is grey).
-    Particles and hair are not rendered (ValueError).
+    The receiver plane is a two-sided diffuse square (``reflectance``, axes of
+    :func:`~avsm_dr.geometry.orthonormal_basis`); the volume the medium of ``scene.density``
+    (single-scattering ``albedo``, 0 = absorbing) in a null-BSDF cube on ``scene.bbox``; blockers
+    are black (they cast shadows, reflect nothing); the light is ``scene.light.to_mitsuba``; the
+    camera :func:`default_camera` unless given.  Box pixel filter; ``max_depth = 2`` is direct
+    lighting.  Returns the red channel (everything is grey).  Particles and hair: ValueError.
     """
     content = check_scene(scene)
     width, height = check_size(width, height)
