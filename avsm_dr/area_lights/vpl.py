@@ -101,21 +101,13 @@ def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
     frame = scene.light.frame()
     if not scene.occluders:
         return LightGrid(R, -1.0, 1.0, -1.0, 1.0, 0.0, 1.0, empty=True)
-    s_lo, s_hi, t_lo, t_hi, r_lo, r_hi, z_lo = [], [], [], [], [], [], []
-    for o in scene.occluders:
-        x0, x1, y0, y1, z0, z1, rl, rh = o.light_frame_extent(vpls, frame)
-        s_lo.append(np.minimum(x0 / z0, x0 / z1))
-        s_hi.append(np.maximum(x1 / z0, x1 / z1))
-        t_lo.append(np.minimum(y0 / z0, y0 / z1))
-        t_hi.append(np.maximum(y1 / z0, y1 / z1))
-        r_lo.append(rl)
-        r_hi.append(rh)
-        z_lo.append(z0)
-    s_min, s_max = float(np.min(s_lo)), float(np.max(s_hi))
-    t_min, t_max = float(np.min(t_lo)), float(np.max(t_hi))
+    ext = np.array([o.light_frame_extent(vpls, frame) for o in scene.occluders])    # (occluder, 8, K)
+    x0, x1, y0, y1, z0, z1, r_lo, r_hi = (ext[:, i] for i in range(8))
+    s_min, s_max = float(np.min(np.minimum(x0 / z0, x0 / z1))), float(np.max(np.maximum(x1 / z0, x1 / z1)))
+    t_min, t_max = float(np.min(np.minimum(y0 / z0, y0 / z1))), float(np.max(np.maximum(y1 / z0, y1 / z1)))
     ps = 0.5 * (s_max - s_min) / R + 1e-6
     pt = 0.5 * (t_max - t_min) / R + 1e-6
     r_near, r_far = float(np.min(r_lo)), float(np.max(r_hi))
     pad = 1e-4 * (r_far - r_near) + 1e-7
     return LightGrid(R, s_min - ps, s_max + ps, t_min - pt, t_max + pt,
-                     max(r_near - pad, 0.0), r_far + pad, z_near=float(np.min(z_lo)))
+                     max(r_near - pad, 0.0), r_far + pad, z_near=float(np.min(z0)))
