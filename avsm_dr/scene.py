@@ -495,19 +495,16 @@ class Scene:
         Parameters
         ----------
         grid_or_path
-            (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per
-            world unit before ``density_scale``, or the path of a ``.npy`` or a Mitsuba
-            ``.vol`` file (:func:`avsm_dr.io.read_vol`, one channel).
+            (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per world unit
+            before ``density_scale``, or a ``.npy`` or Mitsuba ``.vol`` file (one channel).
         bbox
             (min_xyz, max_xyz) world box of the whole grid.  Default: the ``.vol`` header's
             box, else voxels of side 1 centred at the origin, ``-+ (nx, ny, nz) / 2`` (the
             grid's own aspect ratio, never stretched).  An explicit box is used as given.
         density_scale
-            factor > 0 the grid is multiplied by (extinction = density_scale x
-            value); nothing else rescales the density.
+            factor > 0: extinction = density_scale x value (nothing else rescales it).
         light
-            DirectionalLight, SpotLight or PointLight; default a directional light from
-            above, ``DirectionalLight((0, -1, 0))``.
+            a :class:`Light`; default from above, ``DirectionalLight((0, -1, 0))``.
         name
             the scene's name (default: the file's stem, or 'grid').
         receivers
