@@ -214,14 +214,12 @@ class StableFluids:
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
         C = self.C
-        uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
+        ux, uy, uz = uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
         dr.eval(uc)
 
         def dd(f, axis):       # central difference along axis (one-sided-ish at walls via clamping)
-            s = [0, 0, 0]
-            s[axis] = 1
+            s = [int(a == axis) for a in range(3)]
             return 0.5 * (C.neighbour(f, *s) - C.neighbour(f, *[-x for x in s]))
-        ux, uy, uz = uc
         om = [dd(uz, 1) - dd(uy, 2), dd(ux, 2) - dd(uz, 0), dd(uy, 0) - dd(ux, 1)]
         dr.eval(om)
         mag = dr.sqrt(om[0] ** 2 + om[1] ** 2 + om[2] ** 2)
