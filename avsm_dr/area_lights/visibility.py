@@ -194,10 +194,8 @@ def boundary_mask(S, grid: LightGrid, k: Kit):
 
 
 def interleave(S, E, k: Kit):
-    """One buffer with S and E of each word side by side (``SE[2 w] = S[w]``,
-    ``SE[2 w + 1] = E[w]``), so that the boundary flag read at every Riemann step shares
-    the cache line of the visibility word (about the cost of the plain lookup; a separate
-    E array is slower)."""
+    """One buffer with S and E of each word side by side (``SE[2 w] = S[w]``, ``SE[2 w + 1] =
+    E[w]``): the boundary flag read at every Riemann step shares the visibility word's cache line."""
     n = dr.width(S)
     SE = dr.zeros(k.UInt32, 2 * n)
     idx = dr.arange(k.UInt32, n) * 2
