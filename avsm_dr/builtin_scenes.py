@@ -262,13 +262,10 @@ def get(name: str, **kwargs) -> Scene:
 @register_scene(content=("grid",), tags=("core",))
 def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, density_scale: float = 40.0,
                     light=None, n_receivers: int = 1024) -> Scene:
-    """A buoyant smoke plume simulated by stable fluids (:func:`avsm_dr.fluid.simulate_plume`:
-    Stam 1999 with buoyancy, vorticity confinement and MacCormack density advection), in the
-    box [-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5] of the procedural :func:`plume`: sharp fronts,
-    curled sheets and holes that fBm noise lacks.  ``steps`` (default 1.25 x size) from a
-    seeded, wandering source on the floor; the density (peak ~1) is scaled by
-    ``density_scale``.  Cached on disk per parameters (a 32 x 48 x 32 run: seconds).
-    Light, receivers and receiver plane as in :func:`plume`.
+    """A buoyant smoke plume simulated by :func:`avsm_dr.fluid.simulate_plume` (``steps``,
+    default 1.25 x size; cached on disk) in the box of :func:`plume`: sharp fronts, curled sheets
+    and holes that fBm noise lacks.  Density (peak ~1) times ``density_scale``; light, receivers
+    and receiver plane as in :func:`plume`.
     """
     from .fluid import simulate_plume
     procedural.check_args(seed, light, n_receivers, density_scale)

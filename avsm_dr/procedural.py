@@ -226,12 +226,11 @@ def gaussian_blobs(n: int = 60, seed: int = 0, density_scale: float = 4.0, light
 
 def tall_column(size: int = 40, seed: int = 0, steps: int | None = None, density_scale: float = 10.0,
                 light=None, n_receivers: int = 1024) -> Scene:
-    """A smoke column simulated by :func:`avsm_dr.fluid.simulate_plume` in the box
-    [-0.5, 0.5] x [0, 3] x [-0.5, 0.5] (twice the height of the simulated plume, default
-    40 voxels per unit: 40 x 120 x 40), ``steps`` (default 3 x size) so the column reaches
-    near the top; density (peak ~1) times ``density_scale`` = extinction per unit.  Cached on
-    disk per parameters.  Light: directional, (1, -0.3, 0.25).  Receivers: half in the smoke,
-    half on the wall x = 0.8 behind it (the receiver plane).
+    """A smoke column simulated by :func:`avsm_dr.fluid.simulate_plume` in the box [-0.5, 0.5] x
+    [0, 3] x [-0.5, 0.5] (twice the simulated plume's height; 40 x 120 x 40 voxels by default),
+    ``steps`` (default 3 x size) so that it reaches near the top; extinction per unit = density
+    (peak ~1) x ``density_scale``.  Light: directional, (1, -0.3, 0.25).  Receivers: half in the
+    smoke, half on the wall x = 0.8 behind it (the receiver plane).
     """
     from .fluid import simulate_plume
     check_args(seed, light, n_receivers, density_scale)
