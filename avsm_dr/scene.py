@@ -59,11 +59,6 @@ class Light:
         return kind.from_mitsuba(emitter, params)
 
 
-def _matrix(transform) -> np.ndarray:
-    """(4, 4) float64 matrix of a (scalar or width-1 JIT) Mitsuba transform."""
-    return np.asarray(transform.matrix, np.float64).reshape(4, 4)
-
-
 def _fmt(v) -> str:
     return "(" + ", ".join(f"{x:.3g}" for x in np.asarray(v, np.float64)) + ")"
 
@@ -103,7 +98,7 @@ class DirectionalLight(Light):
 
     @classmethod
     def from_mitsuba(cls, emitter, params):
-        return cls(_matrix(emitter.world_transform())[:3, 2])
+        return cls(np.asarray(emitter.world_transform().matrix, np.float64).reshape(4, 4)[:3, 2])
 
     def label(self):
         return f"directional{_fmt(self.direction)}"
@@ -176,7 +171,7 @@ class SpotLight(_LightAt):
 
     @classmethod
     def from_mitsuba(cls, emitter, params):
-        m = _matrix(params["to_world"])
+        m = np.asarray(params["to_world"].matrix, np.float64).reshape(4, 4)
         return cls(m[:3, 3], m[:3, 2], fov=2.0 * float(np.asarray(params["cutoff_angle"]).reshape(-1)[0]))
 
     def label(self):
@@ -418,13 +413,18 @@ class OpaquePlane(Blocker):
                 "to_world": mi.ScalarTransform4f(square_to_world(self.point, self.normal, self.extent))}
 
 
+def affine(cols, origin) -> np.ndarray:
+    """4 x 4 matrix whose columns are ``cols`` (the images of the x, y, z axes) and ``origin``."""
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = np.transpose(cols), origin
+    return m
+
+
 def square_to_world(c, n, half) -> np.ndarray:
     """4 x 4 matrix taking Mitsuba's rectangle [-1, 1]^2 (z = 0) onto the square centred at
     ``c`` with normal ``n`` and half size ``half``, axes of :func:`~avsm_dr.geometry.orthonormal_basis`."""
     u, v, n = orthonormal_basis(n)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = u * half, v * half, n, np.asarray(c, float)
-    return m
+    return affine([u * half, v * half, n], np.asarray(c, float))
 
 
 def validate_blockers(blockers) -> list:

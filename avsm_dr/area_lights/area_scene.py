@@ -28,7 +28,7 @@ import numpy as np
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
 from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
-from ..scene import OpaqueBox, OpaqueSphere
+from ..scene import OpaqueBox, OpaqueSphere, affine
 
 def _albedo(v, name: str = "albedo") -> float:
     return V.real(v, name, 0.0, 1.0)
@@ -205,8 +205,7 @@ class Box(OpaqueBox, Occluder):
         return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)
 
     def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = np.diag((self.max - self.min) / 2), (self.max + self.min) / 2
+        m = affine(np.diag((self.max - self.min) / 2), (self.max + self.min) / 2)
         return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
 
 

@@ -17,16 +17,12 @@ import numpy as np
 
 from .area_scene import AreaLightScene
 from ..groundtruth.media import mitsuba as _mi
+from ..scene import affine
 from ..validation import integer as check_count
 
 
-def _affine(mi, cols: list, origin) -> object:
-    """to_world with columns (x, y, z) images of the local axes and translation origin."""
-    m = np.eye(4)
-    for c in range(3):
-        m[:3, c] = cols[c]
-    m[:3, 3] = origin
-    return mi.ScalarTransform4f(m.tolist())
+def _to_world(mi, cols, origin):
+    return mi.ScalarTransform4f(affine(cols, origin).tolist())
 
 
 def scene_dict(scene: AreaLightScene) -> dict:
@@ -42,20 +38,20 @@ def scene_dict(scene: AreaLightScene) -> dict:
     d = {
         "type": "scene",
         "medium_box": {
-            "type": "cube", "to_world": _affine(mi, np.diag(half), centre),
+            "type": "cube", "to_world": _to_world(mi, np.diag(half), centre),
             "bsdf": {"type": "null"},
             "interior": {"type": "homogeneous", "albedo": float(albedo), "sigma_t": float(med.sigma_t),
                          "phase": phase},
         },
         "floor": {
             "type": "rectangle",
-            "to_world": _affine(mi, [[(hi[0] - lo[0]) / 2, 0, 0], [0, 0, -(hi[2] - lo[2]) / 2], [0, 1, 0]],
+            "to_world": _to_world(mi, [[(hi[0] - lo[0]) / 2, 0, 0], [0, 0, -(hi[2] - lo[2]) / 2], [0, 1, 0]],
                                 [(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2]),
             "bsdf": {"type": "diffuse", "reflectance": float(scene.floor_albedo)},
         },
         "light": {
             "type": "rectangle",
-            "to_world": _affine(mi, [scene.light.edge_u / 2, scene.light.edge_v / 2, scene.light.normal],
+            "to_world": _to_world(mi, [scene.light.edge_u / 2, scene.light.edge_v / 2, scene.light.normal],
                                 scene.light.center),
             "emitter": {"type": "area", "radiance": float(scene.light.radiance)},
             "bsdf": {"type": "diffuse", "reflectance": 0.0},
