@@ -113,10 +113,8 @@ _OPTIONS = {
 
 
 def _unknown_message(kind: str, name: str) -> str:
-    """``"<name>: unknown parameter of <kind>; known: [...]"`` (the kind's public parameters,
-    never the private ``_`` switches) with a "did you mean" for a misspelt parameter; when
-    none is close, the plugin's own properties are listed and searched too (``resolutoin``
-    -> ``did you mean 'resolution'?``)."""
+    """The schema's unknown-parameter message, followed, when no kind parameter is close, by the
+    plugin's own properties and their "did you mean" (``resolutoin`` -> ``'resolution'``)."""
     schema = REGISTRY[kind].schema
     public = schema.public_names()
     if V.did_you_mean(name, public):
@@ -126,11 +124,8 @@ def _unknown_message(kind: str, name: str) -> str:
 
 
 def _check_properties(props) -> dict:
-    """Plugin options and the representation's parameters (schema-validated); ValueError names one.
-
-    Order: the kind, then unknown names (a misspelt name is reported before any value, so
-    ``precison="float16"`` says "did you mean 'precision'?" even next to a bad ``resolution``;
-    among several, one with a "did you mean" first), then the values."""
+    """Plugin options and the representation's parameters (schema-validated); ValueError names one:
+    the kind, then unknown names (a misspelt one, with its "did you mean", first), then values."""
     kind = props.get("representation", "exact")
     if not isinstance(kind, str) or kind not in REGISTRY:
         raise ValueError(f"representation: unknown kind {kind!r}; known: {sorted(REGISTRY)}"

@@ -90,13 +90,10 @@ class LightGrid:
 
 
 def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
-    """Fit the frustum and depth range of every VPL's grid around all occluders.
-
-    An occluder with light-frame extents x in [x_lo, x_hi], z in [z_lo, z_hi]
-    (z_lo > 0: in front of the light plane) has slopes x / z within
-    [min(x_lo / z_lo, x_lo / z_hi), max(x_hi / z_lo, x_hi / z_hi)]; the union over all
-    occluders and VPLs, padded by half a texel, is the shared frustum.
-    """
+    """The frustum and depth range of every VPL's grid around all occluders: an occluder with
+    light-frame extents x in [x_lo, x_hi], z in [z_lo, z_hi] (z_lo > 0) has slopes x / z in
+    [min(x_lo / z_lo, x_lo / z_hi), max(x_hi / z_lo, x_hi / z_hi)]; the union over occluders
+    and VPLs, padded by half a texel, is the shared frustum."""
     R = check_count(R, "resolution", 2)
     frame = scene.light.frame()
     if not scene.occluders:
