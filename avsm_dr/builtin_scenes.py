@@ -1,19 +1,13 @@
-"""Built-in scenes: each function returns a :class:`~avsm_dr.scene.Scene` (content, light,
-receivers in and behind the volume, a receiver plane for images).
+"""Built-in scenes and their registry :data:`SCENES`: each function returns a
+:class:`~avsm_dr.scene.Scene` (content, light, receivers in and behind the volume, a receiver
+plane for images): :func:`plume`, :func:`three_columns`, :func:`hair_and_smoke`,
+:func:`particles`, :func:`smoke_over_table`, :func:`simulated_plume`, and those of
+:mod:`avsm_dr.procedural`.
 
-``size`` sets the grid resolution (voxels per world unit along the scene's unit length;
-small by default so tests stay fast); densities are deterministic for a given ``seed``.
-
-* :func:`plume`            a rising, widening smoke plume (procedural fBm noise).
-* :func:`three_columns`    three smoke columns one behind the other along the light,
-                           light / dense / medium (the AVSM paper's figures 4 and 7).
-* :func:`hair_and_smoke`   hair strands inside a smoke puff (the AVSM paper's figures 5-6);
-                           procedural strands, or a TressFX file when ``tfx_path`` is given.
-* :func:`particles`        a cloud of spherical particles.
-* :func:`smoke_over_table` a smoke puff above an opaque table top that receives its shadow.
-
-Every scene takes ``light=`` to replace its default directional light.  The AVSM paper:
-Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps", EGSR 2010.
+``size`` sets the grid resolution (voxels per world unit; small by default so tests stay fast);
+densities are deterministic for a given ``seed``; ``light=`` replaces the default directional
+light.  The AVSM paper: Salvi, Vidimce, Lauritzen and Lefohn, "Adaptive Volumetric Shadow Maps",
+EGSR 2010.
 """
 from __future__ import annotations
 
@@ -23,67 +17,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import procedural, validation as V
-from .procedural import value_noise  # noqa: F401  (re-exported: the noise lives there)
-from .scene import DirectionalLight, Hair, OpaqueBox, Particles, Scene
-
-#: Largest ``size`` (voxels per unit; the plume's grid is then 256 x 384 x 256 and its
-#: float64 noise work arrays take ~1.5 GB).
-MAX_SIZE = 256
-#: Most receivers or particles a built-in scene generates.
-MAX_POINTS = 1 << 22
+from .procedural import MAX_POINTS, MAX_SIZE, grid_box, square_points  # noqa: F401  (MAX_*: re-exported)
+from .scene import DirectionalLight, Hair, OpaqueBox, Particles, Scene, voxel_coords
 
 
-# --------------------------------------------------------------------- noise
-def fbm(shape, seed: int, octaves: int = 4, cells: int = 3) -> np.ndarray:
-    """Fractal (fBm) value noise in [0, 1], seeded: :func:`avsm_dr.procedural.fbm`."""
-    return procedural.fbm(shape, np.random.default_rng(seed), octaves, cells)
-
-
-def _centres(shape, bmin, bmax):
-    """World coordinates (X, Y, Z) of the voxel centres, each (nz, ny, nx)."""
-    nz, ny, nx = shape
-    bmin, bmax = np.asarray(bmin, np.float64), np.asarray(bmax, np.float64)
-    x = bmin[0] + (np.arange(nx) + 0.5) * (bmax[0] - bmin[0]) / nx
-    y = bmin[1] + (np.arange(ny) + 0.5) * (bmax[1] - bmin[1]) / ny
-    z = bmin[2] + (np.arange(nz) + 0.5) * (bmax[2] - bmin[2]) / nz
-    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-    return X, Y, Z
-
-
-def _grid_shape(bmin, bmax, size: int):
-    size = V.integer(size, "size", 4, MAX_SIZE)
-    ext = np.asarray(bmax, np.float64) - np.asarray(bmin, np.float64)
-    nx, ny, nz = np.maximum(np.round(ext * size).astype(int), 2)
-    return int(nz), int(ny), int(nx)
+def _fbm(shape, seed: int, cells: int = 3) -> np.ndarray:
+    return procedural.fbm(shape, np.random.default_rng(seed), 4, cells)
 
 
 def half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, center, u, v, half) -> np.ndarray:
-    """Receivers: half inside the density (:func:`_volume_points`), the rest on a square
-    surface (:func:`_wall_points`: ``center``, axes ``u``, ``v``, half size ``half``)."""
+    """Receivers: n // 2 uniform in voxels with density > 0 (:func:`~avsm_dr.scene.voxel_coords`),
+    the rest on the square ``center`` +- ``half`` along ``u``, ``v`` (:func:`~avsm_dr.procedural.square_points`)."""
     k_vol = n_receivers // 2
-    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
-    surface = _wall_points(center, u, v, half, m)[: n_receivers - k_vol]
-    return np.concatenate([_volume_points(dens, bmin, bmax, k_vol, rng), surface])
+    h = (np.asarray(bmax) - np.asarray(bmin)) / np.array(dens.shape[::-1])
+    vol = np.asarray(bmin) + voxel_coords(dens, k_vol, rng) * h
+    return np.concatenate([vol, square_points(center, u, v, half, n_receivers - k_vol)])
 
 
-def _wall_points(center, u, v, half: float, n: int) -> np.ndarray:
-    """n x n points on the square centre +- half along u and v."""
-    s = (np.arange(n) + 0.5) / n * 2 - 1
-    a, b = np.meshgrid(s, s, indexing="ij")
-    return (np.asarray(center) + half * (a.reshape(-1, 1) * np.asarray(u) + b.reshape(-1, 1) * np.asarray(v)))
-
-
-def _volume_points(density, bmin, bmax, k: int, rng) -> np.ndarray:
-    """k random points in voxels with density > 0 (jittered within the voxel)."""
-    nz, ny, nx = density.shape
-    idx = np.flatnonzero(density.ravel() > 0)
-    if idx.size == 0 or k == 0:
-        return np.zeros((0, 3))
-    pick = rng.choice(idx, size=k, replace=idx.size < k)
-    kz, rem = np.divmod(pick, ny * nx)
-    ky, kx = np.divmod(rem, nx)
-    h = (np.asarray(bmax) - np.asarray(bmin)) / np.array([nx, ny, nz])
-    return np.asarray(bmin) + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * h
+def _smoke(name, dens, bmin, bmax, light, direction, seed, n_receivers, plane, wall, meta, **content):
+    """A grid scene: ``light`` (default directional along ``direction``), receivers half in the
+    smoke and half on the square ``wall`` (u, v, half size) around the centre of ``plane``
+    (centre, normal, half size: the receiver plane)."""
+    light = DirectionalLight(direction=direction) if light is None else light
+    c = np.array(plane[0], np.float64)
+    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, np.random.default_rng(seed + 1), plane[0], *wall)
+    return Scene(name, light, rec, density=dens, bbox=(bmin, bmax), **content,
+                 receiver_plane=(c, np.array(plane[1], np.float64), plane[2]), meta=meta)
 
 
 # --------------------------------------------------------------------- registry
@@ -147,7 +106,8 @@ class SceneRegistry(MutableMapping):
 
     def entry(self, name: str) -> SceneEntry:
         """The :class:`SceneEntry` of ``name``; ValueError for an unknown name."""
-        self._check(name)
+        if not (isinstance(name, str) and name in self._entries):
+            raise ValueError(f"name: unknown scene {name!r}; known: {sorted(self)}{V.did_you_mean(name, self)}")
         return self._entries[name]
 
     def names(self, tag: str | None = None, content: str | None = None) -> tuple:
@@ -158,12 +118,7 @@ class SceneRegistry(MutableMapping):
 
     def build(self, name: str, **kwargs) -> Scene:
         """The scene ``name`` built with ``kwargs``; ValueError for an unknown name."""
-        self._check(name)
-        return self._entries[name].factory(**kwargs)
-
-    def _check(self, name) -> None:
-        if not (isinstance(name, str) and name in self._entries):
-            raise ValueError(f"name: unknown scene {name!r}; known: {sorted(self)}{V.did_you_mean(name, self)}")
+        return self.entry(name).factory(**kwargs)
 
     def __repr__(self) -> str:
         return f"SceneRegistry({list(self)})"
@@ -176,6 +131,10 @@ register_scene = SCENES.register
 
 
 # --------------------------------------------------------------------- scenes
+#: The plumes' receiver plane: the wall x = 0.8 behind them.
+_PLUME_WALL = ((0.8, 0.75, 0.0), (-1.0, 0.0, 0.0), 0.75)
+
+
 @register_scene(content=("grid",), tags=("core",))
 def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None,
           n_receivers: int = 1024) -> Scene:
@@ -186,23 +145,17 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
     """
     procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
-    shape = _grid_shape(bmin, bmax, size)
-    X, Y, Z = _centres(shape, bmin, bmax)
+    shape, X, Y, Z = grid_box(bmin, bmax, size)
     h = Y / 1.5
     cx = 0.07 * np.sin(5.0 * Y + 0.3)
     cz = 0.05 * np.cos(4.0 * Y)
     R = 0.08 + 0.24 * h
     r2 = ((X - cx) ** 2 + (Z - cz) ** 2) / R ** 2
-    n = fbm(shape, seed)
     body = np.exp(-2.0 * r2) * np.clip(6 * h, 0, 1) * np.clip(6 * (1 - h), 0, 1)
-    dens = np.maximum(body * (0.35 + 0.9 * n) - 0.18, 0.0) * density_scale
-    dens = dens.astype(np.float32)
-    light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
-    rng = np.random.default_rng(seed + 1)
-    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
-    return Scene("plume", light, rec, density=dens, bbox=(bmin, bmax),
-                 receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
-                 meta={"seed": seed, "size": size, "density_scale": density_scale})
+    dens = np.maximum(body * (0.35 + 0.9 * _fbm(shape, seed)) - 0.18, 0.0) * density_scale
+    return _smoke("plume", dens.astype(np.float32), bmin, bmax, light, (1.0, -0.3, 0.25), seed, n_receivers,
+                  _PLUME_WALL, ((0, 1, 0), (0, 0, 1), 0.75),
+                  {"seed": seed, "size": size, "density_scale": density_scale})
 
 
 @register_scene(content=("grid",), tags=("core",))
@@ -215,22 +168,17 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
     """
     procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-1.5, 0.0, -0.5]), np.array([1.5, 1.0, 0.5])
-    shape = _grid_shape(bmin, bmax, size)
-    X, Y, Z = _centres(shape, bmin, bmax)
-    n = fbm(shape, seed, cells=4)
+    shape, X, Y, Z = grid_box(bmin, bmax, size)
+    n = _fbm(shape, seed, cells=4)
     dens = np.zeros(shape)
     for x0, z0, radius, weight in ((-1.0, -0.12, 0.22, 0.35), (0.0, 0.0, 0.25, 1.6), (1.0, 0.12, 0.22, 1.0)):
         wob = 0.04 * np.sin(7 * Y + 3 * x0)
         r2 = ((X - x0 - wob) ** 2 + (Z - z0) ** 2) / radius ** 2
         top = np.clip(8 * (0.92 - Y), 0, 1) * np.clip(8 * Y, 0, 1)
         dens += weight * np.maximum(np.exp(-1.5 * r2) * top * (0.4 + 0.8 * n) - 0.2, 0.0)
-    dens = (dens * density_scale).astype(np.float32)
-    light = DirectionalLight(direction=(1.0, -0.12, 0.08)) if light is None else light
-    rng = np.random.default_rng(seed + 1)
-    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (1.8, 0.5, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
-    return Scene("three_columns", light, rec, density=dens, bbox=(bmin, bmax),
-                 receiver_plane=(np.array([1.8, 0.5, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
-                 meta={"seed": seed, "size": size, "density_scale": density_scale})
+    return _smoke("three_columns", (dens * density_scale).astype(np.float32), bmin, bmax, light, (1.0, -0.12, 0.08),
+                  seed, n_receivers, ((1.8, 0.5, 0.0), (-1.0, 0.0, 0.0), 0.5), ((0, 1, 0), (0, 0, 1), 0.5),
+                  {"seed": seed, "size": size, "density_scale": density_scale})
 
 
 @register_scene(content=("grid", "hair",), tags=("core",))
@@ -249,24 +197,19 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
     hair_radius = V.real(hair_radius, "hair_radius", 0.0, open_min=True)
     hair_opacity = V.real(hair_opacity, "hair_opacity", 0.0, 1.0)
     bmin, bmax = np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5])
-    shape = _grid_shape(bmin, bmax, size)
-    X, Y, Z = _centres(shape, bmin, bmax)
-    n = fbm(shape, seed)
+    shape, X, Y, Z = grid_box(bmin, bmax, size)
     r2 = (X ** 2 + (Y + 0.05) ** 2 / 1.3 + Z ** 2) / 0.33 ** 2
-    dens = (np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * n) - 0.15, 0.0) * density_scale).astype(np.float32)
+    dens = np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * _fbm(shape, seed)) - 0.15, 0.0) * density_scale
     if tfx_path is not None:
         strands = fit_strands(load_tfx(tfx_path), bmin, bmax, fill=0.8)
     else:
         V.integer(n_strands, "n_strands", 1)
         strands = procedural_strands(n_strands, 16, root_center=(0.0, -0.35, 0.0), root_radius=0.22,
                                      length=0.7, seed=seed)
-    hair = Hair(strands=strands, radius=hair_radius, opacity=hair_opacity)
-    light = DirectionalLight(direction=(1.0, -0.2, 0.1)) if light is None else light
-    rng = np.random.default_rng(seed + 1)
-    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.0, 0.0), (0, 1, 0), (0, 0, 1), 0.5)
-    return Scene("hair_and_smoke", light, rec, density=dens, bbox=(bmin, bmax), hair=hair,
-                 receiver_plane=(np.array([0.8, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.5),
-                 meta={"seed": seed, "size": size, "tfx_path": None if tfx_path is None else str(tfx_path)})
+    return _smoke("hair_and_smoke", dens.astype(np.float32), bmin, bmax, light, (1.0, -0.2, 0.1), seed, n_receivers,
+                  ((0.8, 0.0, 0.0), (-1.0, 0.0, 0.0), 0.5), ((0, 1, 0), (0, 0, 1), 0.5),
+                  {"seed": seed, "size": size, "tfx_path": None if tfx_path is None else str(tfx_path)},
+                  hair=Hair(strands=strands, radius=hair_radius, opacity=hair_opacity))
 
 
 @register_scene(content=("particles",), tags=("core",))
@@ -286,8 +229,7 @@ def particles(n: int = 200, seed: int = 0, light=None, n_receivers: int = 1024) 
     u = rng.standard_normal((k_vol, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     inside = centers[pick] + u * (radii[pick] * rng.random(k_vol) ** (1 / 3))[:, None]
-    m = int(np.ceil(np.sqrt(n_receivers - k_vol)))
-    ground = _wall_points((0.0, -0.5, 0.0), (1, 0, 0), (0, 0, 1), 0.8, m)[: n_receivers - k_vol]
+    ground = square_points((0.0, -0.5, 0.0), (1, 0, 0), (0, 0, 1), 0.8, n_receivers - k_vol)
     return Scene("particles", light, np.concatenate([inside, ground]),
                  particles=Particles(centers=centers, radii=radii, density=dens),
                  receiver_plane=(np.array([0.0, -0.5, 0.0]), np.array([0.0, 1.0, 0.0]), 0.8),
@@ -303,18 +245,13 @@ def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0,
     plane; lit except where the smoke shadows it)."""
     procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.4, 0.1, -0.4]), np.array([0.4, 0.9, 0.4])
-    shape = _grid_shape(bmin, bmax, size)
-    X, Y, Z = _centres(shape, bmin, bmax)
-    n = fbm(shape, seed)
+    shape, X, Y, Z = grid_box(bmin, bmax, size)
     r2 = (X ** 2 + (Y - 0.5) ** 2 + Z ** 2) / 0.3 ** 2
-    dens = (np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * n) - 0.15, 0.0) * density_scale).astype(np.float32)
-    light = DirectionalLight(direction=(0.3, -1.0, 0.2)) if light is None else light
+    dens = np.maximum(np.exp(-1.5 * r2) * (0.4 + 0.8 * _fbm(shape, seed)) - 0.15, 0.0) * density_scale
     table = OpaqueBox(min=np.array([-1.0, -0.05, -1.0]), max=np.array([1.0, 0.0, 1.0]))
-    rng = np.random.default_rng(seed + 1)
-    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.0, 0.0, 0.0), (1, 0, 0), (0, 0, 1), 0.9)
-    return Scene("smoke_over_table", light, rec, density=dens, bbox=(bmin, bmax), blockers=[table],
-                 receiver_plane=(np.array([0.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 1.0),
-                 meta={"seed": seed, "size": size, "density_scale": density_scale})
+    return _smoke("smoke_over_table", dens.astype(np.float32), bmin, bmax, light, (0.3, -1.0, 0.2), seed, n_receivers,
+                  ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 1.0), ((1, 0, 0), (0, 0, 1), 0.9),
+                  {"seed": seed, "size": size, "density_scale": density_scale}, blockers=[table])
 
 
 def get(name: str, **kwargs) -> Scene:
@@ -325,26 +262,19 @@ def get(name: str, **kwargs) -> Scene:
 @register_scene(content=("grid",), tags=("core",))
 def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, density_scale: float = 40.0,
                     light=None, n_receivers: int = 1024) -> Scene:
-    """A buoyant smoke plume simulated by stable fluids (:func:`avsm_dr.fluid.simulate_plume`:
-    Stam 1999 with buoyancy, vorticity confinement and MacCormack density advection), in the
-    box [-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5] of the procedural :func:`plume`: sharp fronts,
-    curled sheets and holes that fBm noise lacks.  ``steps`` (default 1.25 x size) from a
-    seeded, wandering source on the floor; the density (peak ~1) is scaled by
-    ``density_scale``.  Cached on disk per parameters (a 32 x 48 x 32 run: seconds).
-    Light, receivers and receiver plane as in :func:`plume`.
+    """A buoyant smoke plume simulated by :func:`avsm_dr.fluid.simulate_plume` (``steps``,
+    default 1.25 x size; cached on disk) in the box of :func:`plume`: sharp fronts, curled sheets
+    and holes that fBm noise lacks.  Density (peak ~1) times ``density_scale``; light, receivers
+    and receiver plane as in :func:`plume`.
     """
     from .fluid import simulate_plume
     procedural.check_args(seed, light, n_receivers, density_scale)
     steps = int(round(1.25 * size)) if steps is None else V.integer(steps, "steps", 1)
     bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
-    shape = _grid_shape(bmin, bmax, size)
-    dens = (simulate_plume(shape, steps=steps, seed=seed) * density_scale).astype(np.float32)
-    light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
-    rng = np.random.default_rng(seed + 1)
-    rec = half_volume_half_surface(dens, bmin, bmax, n_receivers, rng, (0.8, 0.75, 0.0), (0, 1, 0), (0, 0, 1), 0.75)
-    return Scene("simulated_plume", light, rec, density=dens, bbox=(bmin, bmax),
-                 receiver_plane=(np.array([0.8, 0.75, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.75),
-                 meta={"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
+    dens = simulate_plume(grid_box(bmin, bmax, size)[0], steps=steps, seed=seed) * density_scale
+    return _smoke("simulated_plume", dens.astype(np.float32), bmin, bmax, light, (1.0, -0.3, 0.25), seed, n_receivers,
+                  _PLUME_WALL, ((0, 1, 0), (0, 0, 1), 0.75),
+                  {"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
 
 
 for _name, _factory in procedural.SCENES.items():    # grids; Gaussian blobs are particles (nested spheres)

@@ -2,15 +2,12 @@
 
 Stam, "Stable Fluids", SIGGRAPH 1999 (sec. 2-3), on a staggered (MAC) grid with the
 smoke forces of Fedkiw, Stam and Jensen, "Visual Simulation of Smoke", SIGGRAPH 2001
-(sec. 3: buoyancy, vorticity confinement).  Grid units throughout: cell side h = 1,
-velocities in cells per time unit; one lane per sample, every kernel a gather.
-
-Layout, grid of (nz, ny, nx) cells, cell (k, j, i) centred at (i + 1/2, j + 1/2, k + 1/2):
-
-* density ``d`` and pressure ``p``: cell centres, (nz, ny, nx);
-* ``u`` on x-faces (nz, ny, nx + 1) at (i, j + 1/2, k + 1/2); ``v`` on y-faces
-  (nz, ny + 1, nx); ``w`` on z-faces (nz + 1, ny, nx).  The box is closed: faces on
-  the boundary carry zero normal velocity (solid walls), so no mass leaves it.
+(sec. 3: buoyancy, vorticity confinement).  Grid units: cell side h = 1, velocities in
+cells per time unit; one lane per sample, every kernel a gather.  Cell (k, j, i) of the
+(nz, ny, nx) grid is centred at (i + 1/2, j + 1/2, k + 1/2) and holds density ``d`` and
+pressure ``p``; ``u`` lies on x-faces (nz, ny, nx + 1) at (i, j + 1/2, k + 1/2), ``v`` on
+y-faces (nz, ny + 1, nx), ``w`` on z-faces (nz + 1, ny, nx).  The box is closed: boundary
+faces carry zero normal velocity (solid walls).
 
 One step of size ``dt`` (:meth:`StableFluids.step`)::
 
@@ -22,20 +19,19 @@ One step of size ``dt`` (:meth:`StableFluids.step`)::
     project      L p = div u,   u -= grad p          (7-point Laplacian, Neumann walls,
                                                         red-black SOR, warm-started)
 
-``div u`` at a cell is the sum of its face fluxes (u[i+1] - u[i] + ...), ``grad p`` on an
-interior face the difference of its two cells, so ``div(grad p) = L p`` exactly: after
-the solve ``div u`` equals the Poisson residual.  Semi-Lagrangian advection with
-trilinear weights keeps ``d >= 0`` and is unconditionally stable, but it is neither
-exactly conservative nor free of numerical diffusion.
+``div u`` at a cell is the sum of its face fluxes, ``grad p`` on an interior face the
+difference of its two cells, so ``div(grad p) = L p`` exactly (after the solve ``div u`` is
+the Poisson residual).  Semi-Lagrangian advection keeps ``d >= 0`` and is unconditionally
+stable, neither exactly conservative nor free of numerical diffusion.
 
-:func:`simulate_plume` runs a buoyant plume from a seeded, wobbling source and caches the
-density on disk, keyed by its parameters and this module's source; :func:`simulate_plume_sequence`
-caches an animation of the same plume (one frame every ``stride`` steps) and
-:func:`plume_frames` yields it step by step.
+:func:`simulate_plume` (cached on disk), :func:`plume_frames` and :func:`simulate_plume_sequence`
+run a buoyant plume from a seeded, wobbling source.
 """
 from __future__ import annotations
 
 import hashlib
+import inspect
+import itertools
 import json
 import os
 import warnings
@@ -72,7 +68,7 @@ class _Layout:
         self.j = (idx // X) % Y
         self.k = idx // (X * Y)
         dr.eval(self.i, self.j, self.k)
-        self.pos = [m.Float(self.i) + offset[0], m.Float(self.j) + offset[1], m.Float(self.k) + offset[2]]
+        self.pos = [m.Float(c) + o for c, o in zip((self.i, self.j, self.k), offset)]
         dr.eval(self.pos)
 
     def index(self, i, j, k):
@@ -103,16 +99,12 @@ class _Layout:
         (i0, j0, k0), (fx, fy, fz) = idx, frac
         out = m.Float(0.0)
         lo = hi = None
-        for dk in (0, 1):
-            wz = fz if dk else 1.0 - fz
-            for dj in (0, 1):
-                wy = fy if dj else 1.0 - fy
-                for di in (0, 1):
-                    wx = fx if di else 1.0 - fx
-                    v = dr.gather(m.Float, field, self.index(i0 + di, j0 + dj, k0 + dk))
-                    out += wz * wy * wx * v
-                    lo = v if lo is None else dr.minimum(lo, v)
-                    hi = v if hi is None else dr.maximum(hi, v)
+        for dk, dj, di in itertools.product((0, 1), repeat=3):
+            wz, wy, wx = (f if c else 1.0 - f for f, c in ((fz, dk), (fy, dj), (fx, di)))
+            v = dr.gather(m.Float, field, self.index(i0 + di, j0 + dj, k0 + dk))
+            out += wz * wy * wx * v
+            lo = v if lo is None else dr.minimum(lo, v)
+            hi = v if hi is None else dr.maximum(hi, v)
         return (out, lo, hi) if bounds else out
 
 
@@ -152,10 +144,7 @@ class StableFluids:
             cnt += dr.select(has, 1.0, 0.0)
         self._count = cnt
         self._red = ((C.i + C.j + C.k) & 1) == 0
-        self._interior = [self.U.i > 0, self.V.j > 0, self.W.k > 0]
-        self._interior[0] &= self.U.i < nx
-        self._interior[1] &= self.V.j < ny
-        self._interior[2] &= self.W.k < nz
+        self._interior = [(c > 0) & (c < n) for c, n in ((self.U.i, nx), (self.V.j, ny), (self.W.k, nz))]
         dr.eval(self._count, self._red, self._interior)
 
     # ================================================================ state
@@ -170,8 +159,7 @@ class StableFluids:
         """Replace the face velocities (shapes (nz, ny, nx+1), (nz, ny+1, nx), (nz+1, ny, nx));
         boundary faces are set to 0 (closed box)."""
         out = []
-        for name, a, L, inner in (("u", u, self.U, self._interior[0]), ("v", v, self.V, self._interior[1]),
-                                  ("w", w, self.W, self._interior[2])):
+        for name, a, L, inner in zip("uvw", (u, v, w), self._faces(), self._interior):
             a = V.array(a, name, np.float32)
             if a.shape != L.dims:
                 raise ValueError(f"{name}: expected shape {L.dims}, got {a.shape}")
@@ -204,7 +192,7 @@ class StableFluids:
         mk = self.m.Float(np.ascontiguousarray(np.asarray(mask, np.float32)).ravel())
         self.d = dr.maximum(self.d, amount * mk)
         fields = []
-        for axis, (L, f) in enumerate(((self.U, self.u), (self.V, self.v), (self.W, self.w))):
+        for axis, (L, f) in enumerate(zip(self._faces(), (self.u, self.v, self.w))):
             mf = self._to_faces(mk, L, axis)            # mask averaged over the two cells beside a face
             fields.append(dr.select(self._interior[axis], f + mf * (float(velocity[axis]) - f), 0.0))
         self.u, self.v, self.w = fields
@@ -216,26 +204,22 @@ class StableFluids:
         self.v = dr.select(self._interior[1], self.v + dt * self.buoyancy * db, 0.0)
         if self.vorticity > 0:
             f = self._confinement()
-            self.u = dr.select(self._interior[0], self.u + dt * self._to_faces(f[0], self.U, 0), 0.0)
-            self.v = dr.select(self._interior[1], self.v + dt * self._to_faces(f[1], self.V, 1), 0.0)
-            self.w = dr.select(self._interior[2], self.w + dt * self._to_faces(f[2], self.W, 2), 0.0)
+            self.u, self.v, self.w = (dr.select(self._interior[a], q + dt * self._to_faces(f[a], L, a), 0.0)
+                                      for a, (L, q) in enumerate(zip(self._faces(), (self.u, self.v, self.w))))
         dr.eval(self.u, self.v, self.w)
 
-    def _centre_velocity(self):
-        pos = self.C.pos
-        return [self.U.sample(self.u, *pos), self.V.sample(self.v, *pos), self.W.sample(self.w, *pos)]
+    def _faces(self):
+        return self.U, self.V, self.W
 
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
         C = self.C
-        uc = self._centre_velocity()
+        ux, uy, uz = uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
         dr.eval(uc)
 
         def dd(f, axis):       # central difference along axis (one-sided-ish at walls via clamping)
-            s = [0, 0, 0]
-            s[axis] = 1
+            s = [int(a == axis) for a in range(3)]
             return 0.5 * (C.neighbour(f, *s) - C.neighbour(f, *[-x for x in s]))
-        ux, uy, uz = uc
         om = [dd(uz, 1) - dd(uy, 2), dd(ux, 2) - dd(uz, 0), dd(uy, 0) - dd(ux, 1)]
         dr.eval(om)
         mag = dr.sqrt(om[0] ** 2 + om[1] ** 2 + om[2] ** 2)
@@ -281,9 +265,8 @@ class StableFluids:
             vx, vy, vz = U.sample(u, xm, ym, zm), V.sample(v, xm, ym, zm), W.sample(w, xm, ym, zm)
             return x - h * vx, y - h * vy, z - h * vz
 
-        new_u = dr.select(self._interior[0], U.sample(u, *trace(U, dt)), 0.0)
-        new_v = dr.select(self._interior[1], V.sample(v, *trace(V, dt)), 0.0)
-        new_w = dr.select(self._interior[2], W.sample(w, *trace(W, dt)), 0.0)
+        new_u, new_v, new_w = (dr.select(inner, L.sample(q, *trace(L, dt)), 0.0)
+                               for L, q, inner in zip((U, V, W), (u, v, w), self._interior))
         d1, lo, hi = C.sample(self.d, *trace(C, dt), bounds=True)
         if self.maccormack:
             dr.eval(d1, lo, hi)
@@ -311,7 +294,7 @@ class StableFluids:
                 dr.eval(p)
         self.p = p
         fields = []
-        for axis, (L, f) in enumerate(((self.U, self.u), (self.V, self.v), (self.W, self.w))):
+        for axis, (L, f) in enumerate(zip(self._faces(), (self.u, self.v, self.w))):
             lo, hi = self._beside(p, L, axis)
             fields.append(dr.select(self._interior[axis], f - (hi - lo), 0.0))
         self.u, self.v, self.w = fields
@@ -340,45 +323,35 @@ def _source_mask(shape, centre, radius: float, height: float) -> np.ndarray:
     return (np.clip(radius - r + 0.5, 0.0, 1.0) * (y < height)).astype(np.float32)
 
 
-def _cache_file(cache, name: str) -> Path | None:
-    """Where a cached result called ``name`` lives (None: caching off, ``cache=False``)."""
-    if cache is False:
-        return None
-    return (CACHE_DIR if cache is True else Path(cache)) / name
-
-
-def _save_cached(path: Path | None, out: np.ndarray) -> None:
-    """Write ``out`` to ``path`` atomically (a temporary file, then a rename); None: no cache."""
+def _cached(cache, prefix: str, params: dict, shape: tuple, compute) -> np.ndarray:
+    """``compute()``, cached (``cache``: True = :data:`CACHE_DIR`, a folder, or False = off) as
+    ``<prefix>_<key>.npy``, key = hash of ``params`` and this module's source, written atomically
+    (a temporary file, then a rename).  A file that is not a finite, non-negative float32 array of
+    ``shape`` (unreadable, pickled, wrong) is warned about by name, recomputed and overwritten."""
+    path = None
+    if cache is not False:
+        h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
+        h.update(Path(__file__).read_bytes())
+        path = (CACHE_DIR if cache is True else Path(cache)) / f"{prefix}_{h.hexdigest()[:20]}.npy"
+    if path is not None and path.exists():
+        try:
+            out = np.load(path, allow_pickle=False)
+            if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != tuple(shape):
+                raise ValueError(f"holds {getattr(out, 'dtype', type(out).__name__)} "
+                                 f"{getattr(out, 'shape', '')}, expected float32 {tuple(shape)}")
+            if not np.all(np.isfinite(out)) or (out.size and out.min() < 0):
+                raise ValueError("holds NaN, inf or negative densities")
+            return out
+        except Exception as exc:
+            warnings.warn(f"fluid: ignoring the cached plume {str(path)!r} ({exc}); recomputing",
+                          RuntimeWarning, stacklevel=3)
+    out = compute()
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
         np.save(tmp, out)
         os.replace(tmp, path)
-
-
-def _load_cached(path: Path | None, shape: tuple) -> np.ndarray | None:
-    """The cached float32 array of ``shape`` at ``path``, or None (no cache, no file, or a file
-    that is not such an array: warned about by name, then recomputed and overwritten)."""
-    if path is None or not path.exists():
-        return None
-    try:
-        out = np.load(path, allow_pickle=False)
-        if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != tuple(shape):
-            raise ValueError(f"holds {getattr(out, 'dtype', type(out).__name__)} "
-                             f"{getattr(out, 'shape', '')}, expected float32 {tuple(shape)}")
-        if not np.all(np.isfinite(out)) or (out.size and out.min() < 0):
-            raise ValueError("holds NaN, inf or negative densities")
-    except Exception as exc:                      # unreadable, truncated, pickled or wrong array
-        warnings.warn(f"fluid: ignoring the cached plume {str(path)!r} ({exc}); recomputing",
-                      RuntimeWarning, stacklevel=3)
-        return None
     return out
-
-
-def _cache_key(params: dict) -> str:
-    h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
-    h.update(Path(__file__).read_bytes())
-    return h.hexdigest()[:20]
 
 
 def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float = 1.0,
@@ -394,43 +367,26 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     ``wobble`` (seeded random walk), then :meth:`StableFluids.step` with ``dt``: advection
     (MacCormack for the density), forces (``buoyancy`` per unit density, vorticity
     confinement ``vorticity``), projection (``iterations`` SOR sweeps).
-    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: results are stored as
-    ``plume_<key>.npy``, key = hash of the parameters, the backend and this module's source.
+    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_<key>.npy``,
+    key = hash of the parameters, the backend and this module's source.
     """
-    shape = _check_shape(shape)
-    steps, seed = V.integer(steps, "steps", 0), V.integer(seed, "seed", 0)
-    dt = V.real(dt, "dt", 0.0, open_min=True)
-    source_speed = V.real(source_speed, "source_speed", 0.0, open_min=True)
-    wobble = V.real(wobble, "wobble", 0.0)
-    V.integer(iterations, "iterations", 0)
-    nz, ny, nx = shape
-    radius = nx / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
-    params = dict(shape=list(shape), steps=int(steps), seed=int(seed), dt=float(dt), buoyancy=float(buoyancy),
-                  vorticity=float(vorticity), source_speed=float(source_speed), source_radius=radius,
-                  wobble=float(wobble), iterations=int(iterations), backend=backend.get_backend(),
-                  version=_VERSION)
-    path = _cache_file(cache, f"plume_{_cache_key(params)}.npy")
-    if (hit := _load_cached(path, shape)) is not None:
-        return hit
-    sim = StableFluids(shape, buoyancy=buoyancy, vorticity=vorticity, iterations=iterations)
-    rng = np.random.default_rng(seed)
-    centre = np.array([nx / 2, nz / 2], np.float64)
-    kick = np.zeros(2)
-    height = max(2.0, ny / 16)
-    for _ in range(int(steps)):
-        centre = np.clip(centre + wobble * rng.standard_normal(2), nx / 2 - 2 * radius, nx / 2 + 2 * radius)
-        kick = 0.7 * kick + wobble * rng.standard_normal(2)
-        mask = _source_mask(shape, centre, radius, height) * rng.uniform(0.5, 1.0, shape).astype(np.float32)
-        sim.add_source(mask, 1.0, (kick[0], source_speed, kick[1]))
-        sim.step(dt)
-    out = np.maximum(sim.density(), 0.0)
-    _save_cached(path, out)
-    return out
+    solver = dict(dt=dt, buoyancy=buoyancy, vorticity=vorticity, source_speed=source_speed,
+                  source_radius=source_radius, wobble=wobble, iterations=iterations)
+    params = _plume_params(shape, seed, **solver)
+    params.update(steps=V.integer(steps, "steps", 0), backend=backend.get_backend(), version=_VERSION)
+    shape = tuple(params["shape"])
+
+    def run():
+        out = np.zeros(shape, np.float32)
+        for _, out in zip(range(params["steps"]), plume_frames(shape, seed, **solver)):
+            pass
+        return out
+    return _cached(cache, "plume", params, shape, run)
 
 
 # ============================================================ an animation
 def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations):
-    """Checked parameters of the plume (as :func:`simulate_plume` checks them), source radius resolved."""
+    """Checked parameters of the plume, source radius resolved."""
     shape = _check_shape(shape)
     seed = V.integer(seed, "seed", 0)
     dt = V.real(dt, "dt", 0.0, open_min=True)
@@ -438,18 +394,17 @@ def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_rad
     wobble = V.real(wobble, "wobble", 0.0)
     V.integer(iterations, "iterations", 0)
     radius = shape[2] / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
-    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=float(buoyancy),
-                vorticity=float(vorticity), source_speed=float(source_speed), source_radius=radius,
-                wobble=float(wobble), iterations=int(iterations))
+    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=V.real(buoyancy, "buoyancy"),
+                vorticity=V.real(vorticity, "vorticity", 0.0), source_speed=float(source_speed),
+                source_radius=radius, wobble=float(wobble), iterations=int(iterations))
 
 
 def plume_frames(shape=(32, 48, 32), seed: int = 0, dt: float = 1.0, buoyancy: float = 0.25,
                  vorticity: float = 0.3, source_speed: float = 1.5, source_radius: float | None = None,
                  wobble: float = 0.35, iterations: int = 40):
     """Generator of the plume of :func:`simulate_plume`, one (nz, ny, nx) float32 density
-    after each step (the k-th yielded array, k = 1, 2, ..., equals ``simulate_plume(steps=k)``
-    with the same arguments bit for bit: the same seeded source walk and solver calls).
-    Endless: the caller stops it."""
+    after each step (the k-th yielded array equals ``simulate_plume(steps=k)``).  Endless:
+    the caller stops it."""
     p = _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations)
     shape, radius = tuple(p["shape"]), p["source_radius"]
     nz, ny, nx = shape
@@ -472,36 +427,29 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
                             **kwargs) -> np.ndarray:
     """Animation of the plume of :func:`simulate_plume`: (frames, nz, ny, nx) float32, frame f
     the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
-    one solver run for all frames.  kwargs: the solver parameters of :func:`simulate_plume`
-    (dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations).
-    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``, key = hash of the
-    parameters, backend and this module's source).  progress: a tqdm bar over the steps.
+    one solver run for all frames.  kwargs: the solver parameters of :func:`plume_frames`.
+    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``).  progress: a tqdm bar.
     """
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)
     stride = V.integer(stride, "stride", 1)
-    allowed = {"dt", "buoyancy", "vorticity", "source_speed", "source_radius", "wobble", "iterations"}
-    if set(kwargs) - allowed:
-        raise ValueError(f"kwargs: unknown solver parameters {sorted(set(kwargs) - allowed)}")
-    defaults = dict(dt=1.0, buoyancy=0.25, vorticity=0.3, source_speed=1.5, source_radius=None, wobble=0.35,
-                    iterations=40)
+    defaults = {k: v.default for k, v in inspect.signature(plume_frames).parameters.items()
+                if k not in ("shape", "seed")}
+    if set(kwargs) - set(defaults):
+        raise ValueError(f"kwargs: unknown solver parameters {sorted(set(kwargs) - set(defaults))}")
     solver = dict(defaults, **kwargs)
     params = dict(_plume_params(shape, seed, **solver), frames=int(frames), start=int(start), stride=int(stride),
                   backend=backend.get_backend(), version=_VERSION)
-    path = _cache_file(cache, f"plume_seq_{_cache_key(params)}.npy")
-    if (hit := _load_cached(path, (frames, *params["shape"]))) is not None:
-        return hit
-    out = np.empty((frames, *params["shape"]), np.float32)
-    last = start + (frames - 1) * stride
-    gen = plume_frames(shape, seed, **solver)
-    steps = range(1, last + 1)
-    if progress:
-        from tqdm import tqdm
-        steps = tqdm(steps, desc="plume", unit="step", leave=False)
-    for k in steps:
-        d = next(gen)
-        if k >= start and (k - start) % stride == 0:
-            out[(k - start) // stride] = d
-    gen.close()
-    _save_cached(path, out)
-    return out
+    shape = (frames, *params["shape"])
+
+    def run():
+        out = np.empty(shape, np.float32)
+        steps = range(1, start + (frames - 1) * stride + 1)
+        if progress:
+            from tqdm import tqdm
+            steps = tqdm(steps, desc="plume", unit="step", leave=False)
+        for k, d in zip(steps, plume_frames(params["shape"], seed, **solver)):
+            if k >= start and (k - start) % stride == 0:
+                out[(k - start) // stride] = d
+        return out
+    return _cached(cache, "plume_seq", params, shape, run)

@@ -7,34 +7,19 @@ Example::
                                               "representation": "avsm", "nodes": 8}})
     img = mi.render(scene, spp=64)
 
-The image a game engine would show with a volumetric shadow map: the camera ray's own
-attenuation and the in-scattering integral are computed from Mitsuba's medium, and only
-the light's transmittance to each shading point comes from an avsm_dr representation
-built from a light-view capture of the same density grid (Salvi et al., "Adaptive
-Volumetric Shadow Maps", EGSR 2010, sec. 3; :mod:`avsm_dr.capture`).  With
-``representation='exact'`` this is Mitsuba's ``volpath`` with ``max_depth = 2``.
+The image a game engine would show: the camera ray's attenuation and the in-scattering come
+from Mitsuba's medium, only the light's transmittance to each shading point from an avsm_dr
+representation of a light-view capture of the same grid (Salvi et al., "Adaptive Volumetric
+Shadow Maps", EGSR 2010, sec. 3).  With ``representation='exact'`` this is ``volpath`` with
+``max_depth = 2``.
 
-Importing this module selects a Mitsuba variant only when none is set (``llvm_ad_rgb``,
-or ``cuda_ad_rgb`` on the CUDA backend: :func:`avsm_dr.groundtruth.mitsuba`), and
-re-registers the plugin whenever the variant changes.  The rest of the package imports
-Mitsuba lazily (a GPU host may have Dr.Jit without Mitsuba).
-
-Errors, as the user sees them:
-
-* Under a variant the integrator cannot run in (``scalar_rgb``, ``llvm_rgb``, ...) the name
-  is still registered, with a constructor that raises ``ValueError`` naming the JIT AD
-  variant to set (not Mitsuba's bare ``Plugin "avsm_single_scatter" not found!``).
-* A bad property raises ``ValueError`` from the constructor; an unknown name is reported
-  before any value check, with a "did you mean" over the kind's public parameters and the
-  plugin's own properties.  ``mi.load_dict`` quotes it after its ``failed to instantiate
-  ... plugin`` prefix; the constructor drops the error's traceback so that the quote is
-  ``ValueError: <message>`` and not a Python traceback with the message on its last line.
-* A scene the integrator cannot render raises ``ValueError`` from ``integrator.render``;
-  ``mi.render`` runs the integrator inside a Dr.Jit custom operation, which would replace
-  it by ``RuntimeError: drjit.custom(...): error while performing a custom differentiable
-  operation. (see above).``  This module wraps ``mi.render`` (once, at import) so that,
-  for this integrator only, the ``ValueError`` itself is raised; every other call passes
-  through unchanged.
+Importing this module selects a variant only when none is set (``llvm_ad_rgb``, or
+``cuda_ad_rgb`` on the CUDA backend) and re-registers the plugin on every variant change; the
+rest of the package imports Mitsuba lazily.  Errors are ValueErrors naming the property or the
+scene: under a variant without JIT AD the constructor names the variant to set; a bad property
+(an unknown name first, with a "did you mean") is raised without its traceback, so that
+``mi.load_dict`` quotes ``ValueError: <message>``; ``mi.render`` (wrapped once at import)
+raises this integrator's ValueError, not Dr.Jit's ``RuntimeError ... (see above)``.
 """
 from __future__ import annotations
 
@@ -54,39 +39,23 @@ from .geometry import ray_box_dr
 from .groundtruth.media import mitsuba as _mitsuba_with_variant, sample_grid
 from .representations import REGISTRY, build, describe
 from .representations.schema import BASE_PARAMETERS
-from .scene import DirectionalLight, PointLight, Scene, SpotLight
+from .scene import Light, Scene
 
 NAME = "avsm_single_scatter"
 #: Null-BSDF interfaces (medium boundaries) a camera or shadow ray crosses before the first
 #: opaque surface; past that many, a camera ray counts as hitting nothing and a shadow ray as
 #: unblocked (a box medium needs 2).
 MAX_NULL_INTERFACES = 2
-#: Properties of the plugin itself; every other property is a parameter of the representation.
+#: Properties of the plugin itself; every other property is a parameter of the representation
+#: (its schema's, or :data:`~avsm_dr.representations.schema.BASE_PARAMETERS`).
 OWN_PROPERTIES = ("representation", "resolution", "filter", "max_depth", "march_steps", "capture_method",
                   "hide_emitters", "samples_per_pass", "timeout")
-#: Parameters every kind takes in :func:`avsm_dr.build` besides its schema's (storage precision,
-#: reverse-mode strategy, checkpoint chunk); passed on to the build.
-BUILD_PARAMETERS = BASE_PARAMETERS
 
 
 # ===================================================================== scene reading
-def _host_matrix(transform) -> np.ndarray:
-    """(4, 4) float64 matrix of a (scalar or width-1 JIT) Mitsuba transform."""
-    return np.asarray(transform.matrix, np.float64).reshape(4, 4)
-
-
 def light_of(emitter):
-    """The avsm_dr light of a Mitsuba ``directional`` / ``point`` / ``spot`` emitter."""
-    name = emitter.class_name()
-    params = mi.traverse(emitter)
-    if name == "DirectionalEmitter":
-        return DirectionalLight(_host_matrix(emitter.world_transform())[:3, 2])
-    if name == "PointLight":
-        return PointLight(np.asarray(params["position"], np.float64).reshape(3))
-    if name == "SpotLight":
-        m = _host_matrix(params["to_world"])
-        return SpotLight(m[:3, 3], m[:3, 2], fov=2.0 * float(np.asarray(params["cutoff_angle"]).reshape(-1)[0]))
-    raise ValueError(f"scene: {NAME} supports one 'directional', 'point' or 'spot' emitter, got {name}")
+    """The avsm_dr light of a Mitsuba emitter (:meth:`avsm_dr.scene.Light.of_mitsuba`)."""
+    return Light.of_mitsuba(emitter, mi.traverse(emitter))
 
 
 def scene_medium(scene):
@@ -130,11 +99,22 @@ def check_box(medium, density, lo, hi, n: int = 64) -> None:
 
 
 # ======================================================================= integrator
+_LO, _HI = RESOLUTION_RANGE
+#: The plugin's own options: name -> (default, test, what a bad value is told).
+_OPTIONS = {
+    "resolution": (256, lambda v: type(v) is int and _LO <= v <= _HI, f"expected an integer in [{_LO}, {_HI}]"),
+    "filter": ("bilinear", lambda v: v in FILTERS, f"expected one of {FILTERS}"),
+    "max_depth": (2, lambda v: type(v) is int and v in (1, 2), f"{NAME} renders paths of at most two segments "
+                  f"(1: emitters seen directly, 2: + single scattering and direct surface light)"),
+    "march_steps": (64, lambda v: type(v) is int and 1 <= v <= 4096, "expected an integer in [1, 4096]"),
+    "hide_emitters": (False, lambda v: isinstance(v, bool), "expected a boolean"),
+    "capture_method": ("march", lambda v: v in CAPTURE_METHODS, f"expected one of {CAPTURE_METHODS}"),
+}
+
+
 def _unknown_message(kind: str, name: str) -> str:
-    """``"<name>: unknown parameter of <kind>; known: [...]"`` (the kind's public parameters,
-    never the private ``_`` switches) with a "did you mean" for a misspelt parameter; when
-    none is close, the plugin's own properties are listed and searched too (``resolutoin``
-    -> ``did you mean 'resolution'?``)."""
+    """The schema's unknown-parameter message, followed, when no kind parameter is close, by the
+    plugin's own properties and their "did you mean" (``resolutoin`` -> ``'resolution'``)."""
     schema = REGISTRY[kind].schema
     public = schema.public_names()
     if V.did_you_mean(name, public):
@@ -144,44 +124,25 @@ def _unknown_message(kind: str, name: str) -> str:
 
 
 def _check_properties(props) -> dict:
-    """Plugin options and the representation's parameters (schema-validated); ValueError names one.
-
-    Order: the kind, then unknown names (a misspelt name is reported before any value, so
-    ``precison="float16"`` says "did you mean 'precision'?" even next to a bad ``resolution``;
-    among several, one with a "did you mean" first), then the values."""
+    """Plugin options and the representation's parameters (schema-validated); ValueError names one:
+    the kind, then unknown names (a misspelt one, with its "did you mean", first), then values."""
     kind = props.get("representation", "exact")
     if not isinstance(kind, str) or kind not in REGISTRY:
         raise ValueError(f"representation: unknown kind {kind!r}; known: {sorted(REGISTRY)}"
                          f"{V.did_you_mean(kind, REGISTRY)}")
     given = {k: props[k] for k in props.keys() if k not in OWN_PROPERTIES}
     schema = REGISTRY[kind].schema
-    unknown = sorted(set(given) - set(schema.names()) - set(BUILD_PARAMETERS))
+    unknown = sorted(set(given) - set(schema.names()) - set(BASE_PARAMETERS))
     if unknown:                                          # private (``_``) switches are accepted, not listed
         # a misspelling first: ``representaton="avsm", nodes=4`` is about 'representation', not 'nodes'
         typos = [u for u in unknown if V.did_you_mean(u, schema.public_names() + list(OWN_PROPERTIES))]
         raise ValueError(_unknown_message(kind, (typos or unknown)[0]))
-    opts = {"kind": kind,
-            "resolution": props.get("resolution", 256),
-            "filter": props.get("filter", "bilinear"),
-            "max_depth": props.get("max_depth", 2),
-            "march_steps": props.get("march_steps", 64),
-            "capture_method": props.get("capture_method", "march"),
-            "hide_emitters": props.get("hide_emitters", False)}
-    lo, hi = RESOLUTION_RANGE
-    if type(opts["resolution"]) is not int or not lo <= opts["resolution"] <= hi:
-        raise ValueError(f"resolution: expected an integer in [{lo}, {hi}], got {opts['resolution']!r}")
-    if opts["filter"] not in FILTERS:
-        raise ValueError(f"filter: expected one of {FILTERS}, got {opts['filter']!r}")
-    if type(opts["max_depth"]) is not int or opts["max_depth"] not in (1, 2):
-        raise ValueError(f"max_depth: {NAME} renders paths of at most two segments (1: emitters seen "
-                         f"directly, 2: + single scattering and direct surface light), got {opts['max_depth']!r}")
-    if type(opts["march_steps"]) is not int or not 1 <= opts["march_steps"] <= 4096:
-        raise ValueError(f"march_steps: expected an integer in [1, 4096], got {opts['march_steps']!r}")
-    if not isinstance(opts["hide_emitters"], bool):
-        raise ValueError(f"hide_emitters: expected a boolean, got {opts['hide_emitters']!r}")
-    if opts["capture_method"] not in CAPTURE_METHODS:
-        raise ValueError(f"capture_method: expected one of {CAPTURE_METHODS}, got {opts['capture_method']!r}")
-    extra = {k: given.pop(k) for k in BUILD_PARAMETERS if k in given}
+    opts = {"kind": kind}
+    for name, (default, ok, expected) in _OPTIONS.items():
+        opts[name] = value = props.get(name, default)
+        if not ok(value):
+            raise ValueError(f"{name}: {expected}, got {value!r}")
+    extra = {k: given.pop(k) for k in BASE_PARAMETERS if k in given}
     precisions = describe(kind)["precisions"]
     if extra.get("precision") is not None and extra["precision"] not in precisions:
         raise ValueError(f"precision: kind {kind!r} accepts None or {precisions}, got {extra['precision']!r}"
@@ -192,46 +153,23 @@ def _check_properties(props) -> dict:
     return opts
 
 
+def _variant_backend():
+    """The Dr.Jit backend of the current Mitsuba variant, as a context (``backend.use_backend``)."""
+    return backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm")
+
+
 def _make_class():
     """The integrator class for the current variant (Mitsuba's base classes are per variant)."""
 
     class AVSMSingleScatterIntegrator(mi.SamplingIntegrator):
         r"""Single scattering in a heterogeneous medium, light transmittance from a shadow map.
 
-        .. list-table::
-           :header-rows: 1
-
-           * - Property
-             - Type
-             - Description
-           * - representation
-             - string
-             - Kind of :func:`avsm_dr.kinds` storing the light's transmittance (default:
-               ``exact``, the segments themselves: equals ``volpath``).
-           * - *(kind parameters)*
-             - as the kind
-             - Every other property goes to :func:`avsm_dr.build` (e.g. ``nodes`` of
-               ``avsm``; ``precision``, ``reverse`` and ``chunk`` as for every kind), checked
-               by the kind's schema: an unknown name raises ValueError.
-           * - resolution
-             - integer
-             - Shadow-map texels per side, 64..1024 (default: 256; point lights: a cube map).
-           * - filter
-             - string
-             - Shadow-map lookup, ``point | bilinear | box | gaussian`` (default: ``bilinear``).
-           * - capture_method
-             - string
-             - Grid capture, ``march`` (Simpson steps of half a voxel) or ``exact`` (default: ``march``).
-           * - max_depth
-             - integer
-             - Longest path in segments, as ``volpath`` counts them: 1 = emitters seen directly,
-               2 = plus single scattering and direct light on surfaces (default: 2; nothing else).
-           * - march_steps
-             - integer
-             - Midpoint pieces along each camera ray's stretch inside the medium (default: 64).
-           * - hide_emitters
-             - boolean
-             - Hide directly visible area emitters (default: false).
+        Properties (described in the Mitsuba page of the docs): ``representation``, a kind of
+        :func:`avsm_dr.kinds` (default ``exact``: equals ``volpath``); the kind's parameters,
+        passed to :func:`avsm_dr.build` and checked by its schema; and the plugin's options with
+        their defaults (:data:`_OPTIONS`): ``resolution`` 256 (64..1024), ``filter`` bilinear,
+        ``max_depth`` 2 (1 or 2), ``march_steps`` 64, ``hide_emitters`` false, ``capture_method``
+        march.
 
         Per camera sample, with ``[a, b]`` the ray's stretch inside the medium's box (cut at
         the first surface), ``t* ~ U[a, b]`` and ``x* = o + t* d``::
@@ -256,13 +194,8 @@ def _make_class():
         def __init__(self, props):
             super().__init__(props)
             opts = _check_properties(props)
-            self.kind = opts["kind"]
-            self.params = opts["params"]
-            self.resolution = opts["resolution"]
-            self.filter = opts["filter"]
-            self.max_depth = opts["max_depth"]
-            self.march_steps = opts["march_steps"]
-            self.capture_method = opts["capture_method"]
+            for name in ("kind", "params", "resolution", "filter", "max_depth", "march_steps", "capture_method"):
+                setattr(self, name, opts[name])
             self.hide_emitters_ = bool(opts["hide_emitters"])
             self.shadow = None
 
@@ -281,7 +214,7 @@ def _make_class():
             V.density_grid(density, "scene: the medium's sigma_t grid (scale * data)")
             with dr.suspend_grad():
                 check_box(medium, density, lo, hi)
-            with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+            with _variant_backend():
                 av = Scene(NAME, light, np.zeros((0, 3)), density=density, bbox=(lo, hi))
                 cap = capture(av, resolution=self.resolution, density=density, method=self.capture_method,
                               order="depth")
@@ -301,7 +234,7 @@ def _make_class():
             """T_light at world points ``p`` (Point3f): the representation's lookup."""
             cap, rep = self.shadow[:2]
             pts = np.stack([np.asarray(dr.detach(p[i]).numpy(), np.float64) for i in range(3)], axis=1)
-            with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+            with _variant_backend():
                 T = cap.transmittance(rep, pts, filter=self.filter)
             return mi.Float(T)
 
@@ -457,13 +390,8 @@ def integrator_class():
 
 
 def _without_traceback(make):
-    """``make(props)``, a ValueError from it re-raised without its traceback.
-
-    Mitsuba's parser reports a plugin constructor's error as ``At dictionary node "...":
-    failed to instantiate unknown plugin of type "...": `` + the error's C++ text, which for a
-    Python error with a traceback is the whole traceback (and the caller's frames above it)
-    with the message on its last line; without one it is ``ValueError: <message>``.  (The
-    bare ``raise`` keeps the cleared traceback on Python >= 3.11.)"""
+    """``make(props)``, a ValueError from it re-raised without its traceback (which Mitsuba's
+    parser would quote whole, the message on its last line)."""
     def factory(props):
         try:
             return make(props)
@@ -473,32 +401,13 @@ def _without_traceback(make):
     return factory
 
 
-def _unsupported(props):
-    raise ValueError(variant_message(mi.variant()))
-
-
 def register() -> None:
-    """Register ``avsm_single_scatter`` with Mitsuba for the current variant; done at import and
-    again after every variant change.  Under a JIT AD variant (``llvm_ad_*`` / ``cuda_ad_*``) the
-    integrator; under any other (``scalar_rgb``, ``llvm_rgb``, ...) a constructor that raises
-    ValueError naming the variant to set, so that ``mi.load_dict`` says so instead of
-    ``Plugin "avsm_single_scatter" not found!``."""
-    variant = mi.variant()
-    if variant is None:
-        return
-    if not supported_variant(variant):
-        mi.register_integrator(NAME, _without_traceback(_unsupported))
-        return
-    cls = integrator_class()
-    mi.register_integrator(NAME, _without_traceback(cls))
-
-
-def _on_variant_change(*_args) -> None:
-    register()
-
-
-def _ours(integrator) -> bool:
-    return isinstance(integrator, tuple(_CLASSES.values()))
+    """Register ``avsm_single_scatter`` for the current variant (at import and after every variant
+    change): the integrator under a JIT AD variant, else a constructor raising ValueError that
+    names the variant to set (not Mitsuba's ``Plugin "avsm_single_scatter" not found!``)."""
+    if mi.variant() is not None:
+        mi.register_integrator(NAME, _without_traceback(
+            integrator_class() if supported_variant(mi.variant()) else lambda props: integrator_class()))
 
 
 def _integrator_of(signature, args, kwargs):
@@ -512,10 +421,8 @@ def _integrator_of(signature, args, kwargs):
 
 
 def _checked_render(render):
-    """``mi.render`` that raises this integrator's own ValueError (a scene it cannot render, a
-    bad density grid, ...) instead of Dr.Jit's ``RuntimeError: drjit.custom(...): error while
-    performing a custom differentiable operation. (see above).`` whose ``__cause__`` it is.
-    Other integrators' errors, and every result, pass through unchanged."""
+    """``mi.render`` raising this integrator's own ValueError instead of Dr.Jit's ``RuntimeError
+    ... (see above)`` whose ``__cause__`` it is; anything else passes through unchanged."""
     signature = inspect.signature(render)
 
     @functools.wraps(render)
@@ -524,7 +431,8 @@ def _checked_render(render):
             return render(*args, **kwargs)
         except RuntimeError as err:
             cause = err.__cause__
-            if not (isinstance(cause, ValueError) and _ours(_integrator_of(signature, args, kwargs))):
+            ours = isinstance(_integrator_of(signature, args, kwargs), tuple(_CLASSES.values()))
+            if not (isinstance(cause, ValueError) and ours):
                 raise
             cause.__suppress_context__ = True             # Dr.Jit's wrapper is no news
             raise cause
@@ -535,7 +443,7 @@ def _checked_render(render):
 if mi.variant() is None:
     _mitsuba_with_variant()
 register()
-mi.detail.add_variant_callback(_on_variant_change)
+mi.detail.add_variant_callback(lambda *_args: register())
 if not getattr(mi.render, "_avsm_dr_checked", False):
     mi.render = _checked_render(mi.render)
 

@@ -6,9 +6,9 @@
 * :func:`tall_column`    a simulated smoke column twice the plume's height, at a higher resolution.
 
 Densities are extinction per world unit, deterministic for ``seed``.  Noise: value-noise fBm
-(:func:`fbm`) remapped by Worley cellular noise (Worley 1996, "A cellular
-texture basis function"; the Perlin-Worley remap of Schneider, "The real-time volumetric
-cloudscapes of Horizon Zero Dawn", SIGGRAPH 2015 course).
+(:func:`fbm`) remapped by Worley cellular noise (Worley 1996, "A cellular texture basis function";
+Schneider, "The real-time volumetric cloudscapes of Horizon Zero Dawn", SIGGRAPH 2015 course).
+Also the helpers every built-in scene shares: :func:`grid_box`, :func:`check_args`, :func:`square_points`.
 """
 from __future__ import annotations
 
@@ -18,9 +18,10 @@ import math
 import numpy as np
 
 from . import validation as V
-from .scene import DirectionalLight, Particles, Scene, check_light
+from .scene import DirectionalLight, Particles, Scene, check_light, voxel_coords
 
-#: Largest ``size`` and most receivers, as in :mod:`avsm_dr.builtin_scenes`.
+#: Largest ``size`` (voxels per unit: the plume's grid is then 256 x 384 x 256, its float64
+#: noise work arrays ~1.5 GB) and most receivers or particles of a built-in scene.
 MAX_SIZE, MAX_POINTS = 256, 1 << 22
 #: Normalised outer radii (units of the blob width w) of the nested spheres of one Gaussian blob.
 BLOB_SHELLS = (0.5, 1.0, 1.5, 2.25)
@@ -72,13 +73,11 @@ def worley(shape, cells: int, rng: np.random.Generator) -> np.ndarray:
     (iz, fz, cz), (iy, fy, cy), (ix, fx, cx) = _axes(shape, cells)
     pts = rng.random((cz + 2, cy + 2, cx + 2, 3))          # feature point per cell, padded by one cell
     best = np.full(shape, np.inf)
-    for dz in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                p = pts[np.ix_(iz + dz + 1, iy + dy + 1, ix + dx + 1)]
-                d2 = ((dz + p[..., 0] - fz[:, None, None]) ** 2 + (dy + p[..., 1] - fy[None, :, None]) ** 2
-                      + (dx + p[..., 2] - fx[None, None, :]) ** 2)
-                np.minimum(best, d2, out=best)
+    for dz, dy, dx in itertools.product((-1, 0, 1), repeat=3):
+        p = pts[np.ix_(iz + dz + 1, iy + dy + 1, ix + dx + 1)]
+        d2 = ((dz + p[..., 0] - fz[:, None, None]) ** 2 + (dy + p[..., 1] - fy[None, :, None]) ** 2
+              + (dx + p[..., 2] - fx[None, None, :]) ** 2)
+        np.minimum(best, d2, out=best)
     return np.minimum(np.sqrt(best), 1.0)
 
 
@@ -91,7 +90,7 @@ def perlin_worley(shape, seed: int, cells: int = 3) -> np.ndarray:
     return np.clip((b + w - 1.0) / np.maximum(w, 1e-6), 0.0, 1.0)
 
 
-def _box(bmin, bmax, size):
+def grid_box(bmin, bmax, size):
     """(shape (nz, ny, nx), X, Y, Z voxel centres) of the box at ``size`` voxels per unit."""
     size = V.integer(size, "size", 4, MAX_SIZE)
     bmin, bmax = np.asarray(bmin, np.float64), np.asarray(bmax, np.float64)
@@ -110,7 +109,7 @@ def check_args(seed, light, n_receivers, density_scale=1.0):
         check_light(light)
 
 
-def _square(center, u, v, half, k):
+def square_points(center, u, v, half, k):
     """k points of a regular grid on the square ``center`` +- ``half`` along ``u`` and ``v``."""
     m = int(np.ceil(np.sqrt(k)))
     g = (np.arange(m) + 0.5) / m * 2 - 1
@@ -118,21 +117,18 @@ def _square(center, u, v, half, k):
     return np.asarray(center, float) + half * (a * np.asarray(u, float) + b * np.asarray(v, float))
 
 
-def _grid_scene(name, dens, bmin, bmax, light, seed, n_receivers, plane, meta):
-    """A grid scene: half the receivers in voxels with density > 0 (jittered), half on the
-    square ``plane`` (centre, normal, half size; the receiver plane)."""
-    rng = np.random.default_rng(seed + 1)
+def _grid_scene(name, dens, bmin, bmax, light, direction, seed, n_receivers, plane, meta):
+    """A grid scene: ``light`` (default directional along ``direction``), half the receivers in
+    voxels with density > 0 (jittered), half on the square ``plane`` (centre, normal, half size;
+    the receiver plane)."""
+    light = DirectionalLight(direction=direction) if light is None else light
     bmin, bmax = np.asarray(bmin, float), np.asarray(bmax, float)
-    idx = np.flatnonzero(dens.ravel() > 0)
-    k = n_receivers // 2 if idx.size else 0
-    pick = rng.choice(idx, size=k, replace=idx.size < k) if k else np.zeros(0, int)
-    kz, rem = np.divmod(pick, dens.shape[1] * dens.shape[2])
-    ky, kx = np.divmod(rem, dens.shape[2])
-    vol = bmin + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * (bmax - bmin) / np.array(dens.shape[::-1])
+    vol = voxel_coords(dens, n_receivers // 2, np.random.default_rng(seed + 1))
+    vol = bmin + vol * (bmax - bmin) / np.array(dens.shape[::-1])
     c, nrm, half = (np.asarray(plane[0], float), np.asarray(plane[1], float), plane[2])
     u = np.cross(nrm, (0.0, 0.0, 1.0) if abs(nrm[2]) < 0.9 else (1.0, 0.0, 0.0))
     u /= np.linalg.norm(u)
-    rec = np.concatenate([vol, _square(c, u, np.cross(nrm, u), half, n_receivers - k)])
+    rec = np.concatenate([vol, square_points(c, u, np.cross(nrm, u), half, n_receivers - len(vol))])
     return Scene(name, light, rec, density=dens, bbox=(bmin, bmax), receiver_plane=(c, nrm, half),
                  meta=dict(meta, seed=seed))
 
@@ -148,7 +144,7 @@ def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=Non
     """
     check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = (-2.0, 0.0, -1.0), (2.0, 1.6, 1.0)
-    shape, X, Y, Z = _box(bmin, bmax, size)
+    shape, X, Y, Z = grid_box(bmin, bmax, size)
     rng = np.random.default_rng(seed)
     k = 16                                                        # puffs, tallest near x = 0
     cx = rng.uniform(-1.6, 1.6, k)
@@ -162,8 +158,7 @@ def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=Non
     body *= np.clip((Y - 0.3) / 0.06, 0.0, 1.0)                   # flat base
     pw = perlin_worley(shape, seed, cells=6)
     dens = np.clip(2.0 * body - 1.2 * (1.0 - pw), 0.0, 1.0) * density_scale
-    light = DirectionalLight(direction=(1.0, -0.35, 0.15)) if light is None else light
-    return _grid_scene("cumulus", dens.astype(np.float32), bmin, bmax, light, seed, n_receivers,
+    return _grid_scene("cumulus", dens.astype(np.float32), bmin, bmax, light, (1.0, -0.35, 0.15), seed, n_receivers,
                        ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 2.0), {"size": size, "density_scale": density_scale})
 
 
@@ -177,12 +172,11 @@ def fog_bank(size: int = 24, seed: int = 0, density_scale: float = 5.0, light=No
     """
     check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = (-1.5, 0.0, -1.5), (1.5, 0.8, 1.5)
-    shape, X, Y, Z = _box(bmin, bmax, size)
+    shape, X, Y, Z = grid_box(bmin, bmax, size)
     rng = np.random.default_rng(seed)
     top = 0.3 + 0.25 * fbm((shape[0], 1, shape[2]), rng, octaves=3, cells=3)
     dens = np.where(Y < top, (0.75 + 0.5 * fbm(shape, rng, cells=5)) * density_scale, 0.0)
-    light = DirectionalLight(direction=(0.35, -1.0, 0.2)) if light is None else light
-    return _grid_scene("fog_bank", dens.astype(np.float32), bmin, bmax, light, seed, n_receivers,
+    return _grid_scene("fog_bank", dens.astype(np.float32), bmin, bmax, light, (0.35, -1.0, 0.2), seed, n_receivers,
                        ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 1.5), {"size": size, "density_scale": density_scale})
 
 
@@ -223,7 +217,7 @@ def gaussian_blobs(n: int = 60, seed: int = 0, density_scale: float = 4.0, light
     k_vol = n_receivers // 2
     pick = rng.integers(0, n, k_vol)
     inside = centers[pick] + w[pick, None] * np.clip(rng.standard_normal((k_vol, 3)), -2.0, 2.0)
-    ground = _square((0.0, -0.1, 0.0), (1, 0, 0), (0, 0, 1), 0.6, n_receivers - k_vol)
+    ground = square_points((0.0, -0.1, 0.0), (1, 0, 0), (0, 0, 1), 0.6, n_receivers - k_vol)
     return Scene("gaussian_blobs", light, np.concatenate([inside, ground]),
                  particles=Particles(centers=np.repeat(centers, m, axis=0), radii=radii, density=dens),
                  receiver_plane=(np.array([0.0, -0.1, 0.0]), np.array([0.0, 1.0, 0.0]), 0.6),
@@ -232,21 +226,19 @@ def gaussian_blobs(n: int = 60, seed: int = 0, density_scale: float = 4.0, light
 
 def tall_column(size: int = 40, seed: int = 0, steps: int | None = None, density_scale: float = 10.0,
                 light=None, n_receivers: int = 1024) -> Scene:
-    """A smoke column simulated by :func:`avsm_dr.fluid.simulate_plume` in the box
-    [-0.5, 0.5] x [0, 3] x [-0.5, 0.5] (twice the height of the simulated plume, default
-    40 voxels per unit: 40 x 120 x 40), ``steps`` (default 3 x size) so the column reaches
-    near the top; density (peak ~1) times ``density_scale`` = extinction per unit.  Cached on
-    disk per parameters.  Light: directional, (1, -0.3, 0.25).  Receivers: half in the smoke,
-    half on the wall x = 0.8 behind it (the receiver plane).
+    """A smoke column simulated by :func:`avsm_dr.fluid.simulate_plume` in the box [-0.5, 0.5] x
+    [0, 3] x [-0.5, 0.5] (twice the simulated plume's height; 40 x 120 x 40 voxels by default),
+    ``steps`` (default 3 x size) so that it reaches near the top; extinction per unit = density
+    (peak ~1) x ``density_scale``.  Light: directional, (1, -0.3, 0.25).  Receivers: half in the
+    smoke, half on the wall x = 0.8 behind it (the receiver plane).
     """
     from .fluid import simulate_plume
     check_args(seed, light, n_receivers, density_scale)
     steps = 3 * V.integer(size, "size", 4) if steps is None else V.integer(steps, "steps", 1)
     bmin, bmax = (-0.5, 0.0, -0.5), (0.5, 3.0, 0.5)
-    shape = _box(bmin, bmax, size)[0]
+    shape = grid_box(bmin, bmax, size)[0]
     dens = (simulate_plume(shape, steps=steps, seed=seed) * density_scale).astype(np.float32)
-    light = DirectionalLight(direction=(1.0, -0.3, 0.25)) if light is None else light
-    return _grid_scene("tall_column", dens, bmin, bmax, light, seed, n_receivers,
+    return _grid_scene("tall_column", dens, bmin, bmax, light, (1.0, -0.3, 0.25), seed, n_receivers,
                        ((0.8, 1.5, 0.0), (-1.0, 0.0, 0.0), 1.5),
                        {"size": size, "steps": steps, "density_scale": density_scale})
 

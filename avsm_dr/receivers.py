@@ -30,6 +30,7 @@ import dataclasses
 import numpy as np
 
 from . import validation as V
+from .camera import PinholeCamera
 from .scene import PointLight, Scene
 
 #: Candidates drawn per kept in-volume receiver (sampling-importance-resampling).
@@ -107,10 +108,10 @@ def lattice(bbox, counts) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
 
 
-def in_volume(scene: Scene, n: int, seed: int = 0, camera: dict | None = None) -> np.ndarray:
+def in_volume(scene: Scene, n: int, seed: int = 0, camera=None) -> np.ndarray:
     """(n, 3) points in the medium, drawn ~ density x T_light x T_view (module docstring).
 
-    camera: dict with ``origin`` (the viewpoint; default
+    camera: a :class:`~avsm_dr.camera.PinholeCamera` or a dict with ``origin`` (the viewpoint; default
     :func:`avsm_dr.groundtruth.default_camera`, or no view term for a scene without a
     receiver plane).  Returns (0, 3) for a scene with neither grid nor particles.
     """
@@ -124,9 +125,11 @@ def in_volume(scene: Scene, n: int, seed: int = 0, camera: dict | None = None) -
         from .groundtruth import default_camera
         camera = default_camera(scene)
     if camera is not None:
-        if not (isinstance(camera, dict) and "origin" in camera):
-            raise ValueError(f"camera: expected a dict with 'origin', got {camera!r}")
-        w = w * visibility(scene, cand, origin=camera["origin"])
+        origin = camera.origin if isinstance(camera, PinholeCamera) else (
+            camera.get("origin") if isinstance(camera, dict) else None)
+        if origin is None:
+            raise ValueError(f"camera: expected a PinholeCamera or a dict with 'origin', got {camera!r}")
+        w = w * visibility(scene, cand, origin=origin)
     if not np.any(w > 0):
         w = np.ones_like(w)
     # keep n of the candidates, without replacement, with probability ~ w
@@ -154,7 +157,7 @@ def surface(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
 
 
 def receiver_sets(scene: Scene, n_volume: int = 4096, n_surface: int = 1024, seed: int = 0,
-                  camera: dict | None = None) -> dict[str, np.ndarray]:
+                  camera=None) -> dict[str, np.ndarray]:
     """{'in_volume': :func:`in_volume`, 'surface': :func:`surface`, 'uniform':
     ``scene.receivers``}; empty sets are left out."""
     out = {"in_volume": in_volume(scene, n_volume, seed, camera),

@@ -22,12 +22,12 @@ import drjit as dr
 import numpy as np
 
 from . import validation as V
-from .geometry import orthonormal_basis, ray_box, ray_sphere
+from .geometry import check_bbox, orthonormal_basis, ray_box, ray_sphere
 
 
 class Light:
     """A light: a subclass (a dataclass) carries what capture, ground truth, shading and Mitsuba
-    need, so a new light is one class (and a name in :func:`check_light`).  Points: float64 (K, 3).
+    need, so a new light is one class.  Points: float64 (K, 3).
 
     * ``directions_to(p)``: (K, 3) unit directions towards the light (read-only);
     * ``paths(p, center, radius)``: origins, unit directions and lengths of the light's paths to
@@ -35,9 +35,28 @@ class Light:
     * ``irradiance_at(p)``: (K,) unshadowed irradiance on a surface facing the light (shading);
     * ``shadow_camera(cameras, res, bmin, bmax)``: the shadow-map camera from the module
       :mod:`avsm_dr.capture.camera` (passed in: a layer above), fitted to content boxes (N, 3);
-    * ``to_mitsuba(mi)``: the emitter dict;  ``label()``: a short text.  A light at a point
-      (spot, point) has a ``position``, a directional light none.
+    * ``to_mitsuba(mi)``: the emitter dict, and back: the classmethod ``from_mitsuba(emitter,
+      params)`` of the Mitsuba class named ``mitsuba_class`` (:meth:`of_mitsuba` dispatches);
+    * ``label()``: a short text.  A light at a point (spot, point) has a ``position``.
     """
+    #: Mitsuba emitter class (``emitter.class_name()``) that :meth:`from_mitsuba` converts.
+    mitsuba_class = ""
+    _by_mitsuba_class: dict = {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.mitsuba_class:
+            Light._by_mitsuba_class[cls.mitsuba_class] = cls
+
+    @staticmethod
+    def of_mitsuba(emitter, params) -> "Light":
+        """The light of a Mitsuba ``emitter`` (``params = mi.traverse(emitter)``): the
+        ``from_mitsuba`` of the class registered for its Mitsuba class; ValueError otherwise."""
+        kind = Light._by_mitsuba_class.get(emitter.class_name())
+        if kind is None:
+            raise ValueError(f"emitter: expected a Mitsuba {' / '.join(Light._by_mitsuba_class)}, "
+                             f"got {emitter.class_name()}")
+        return kind.from_mitsuba(emitter, params)
 
 
 def _fmt(v) -> str:
@@ -53,6 +72,7 @@ class DirectionalLight(Light):
     """Parallel light travelling along ``direction``; irradiance ``irradiance`` (W/m^2)."""
     direction: np.ndarray
     irradiance: float = 1.0
+    mitsuba_class = "DirectionalEmitter"
 
     def __post_init__(self):
         self.direction = V.unit_vector(self.direction, "direction")
@@ -76,12 +96,19 @@ class DirectionalLight(Light):
     def to_mitsuba(self, mi):
         return {"type": "directional", "direction": self.direction.tolist(), "irradiance": _rgb(self.irradiance)}
 
+    @classmethod
+    def from_mitsuba(cls, emitter, params):
+        return cls(np.asarray(emitter.world_transform().matrix, np.float64).reshape(4, 4)[:3, 2])
+
     def label(self):
         return f"directional{_fmt(self.direction)}"
 
 
 class _LightAt(Light):
     """A light at ``position`` (spot, point): paths start there; inverse-square irradiance."""
+    def __post_init__(self):
+        self.position = V.vec3(self.position, "position")
+        self.intensity = V.real(self.intensity, "intensity", 0.0)
     def directions_to(self, p):
         v = self.position - p
         return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
@@ -105,12 +132,12 @@ class SpotLight(_LightAt):
     direction: np.ndarray
     fov: float = 60.0
     intensity: float = 1.0
+    mitsuba_class = "SpotLight"
 
     def __post_init__(self):
-        self.position = V.vec3(self.position, "position")
+        super().__post_init__()
         self.direction = V.unit_vector(self.direction, "direction")
         self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
-        self.intensity = V.real(self.intensity, "intensity", 0.0)
 
     @property
     def beam_width(self) -> float:
@@ -142,6 +169,11 @@ class SpotLight(_LightAt):
                 "to_world": mi.ScalarTransform4f().look_at(origin=pos.tolist(), target=(pos + self.direction).tolist(),
                                                            up=up.tolist())}
 
+    @classmethod
+    def from_mitsuba(cls, emitter, params):
+        m = np.asarray(params["to_world"].matrix, np.float64).reshape(4, 4)
+        return cls(m[:3, 3], m[:3, 2], fov=2.0 * float(np.asarray(params["cutoff_angle"]).reshape(-1)[0]))
+
     def label(self):
         return f"spot{_fmt(self.position)}->{_fmt(self.direction)}"
 
@@ -151,16 +183,17 @@ class PointLight(_LightAt):
     """Isotropic point light at ``position`` (captured as a cube of six shadow maps)."""
     position: np.ndarray
     intensity: float = 1.0
-
-    def __post_init__(self):
-        self.position = V.vec3(self.position, "position")
-        self.intensity = V.real(self.intensity, "intensity", 0.0)
+    mitsuba_class = "PointLight"
 
     def shadow_camera(self, cameras, res, bmin, bmax):
         return cameras.CubeCamera(self.position, res)
 
     def to_mitsuba(self, mi):
         return {"type": "point", "position": self.position.tolist(), "intensity": _rgb(self.intensity)}
+
+    @classmethod
+    def from_mitsuba(cls, emitter, params):
+        return cls(np.asarray(params["position"], np.float64).reshape(3))
 
     def label(self):
         return f"point{_fmt(self.position)}"
@@ -169,7 +202,8 @@ class PointLight(_LightAt):
 def check_light(light, name: str = "light") -> Light:
     """``light`` if it is a :class:`Light`; ValueError naming ``name`` otherwise."""
     if not isinstance(light, Light):
-        raise ValueError(f"{name}: expected DirectionalLight, SpotLight or PointLight, got {type(light).__name__}")
+        kinds = " / ".join(t.__name__ for t in Light._by_mitsuba_class.values())
+        raise ValueError(f"{name}: expected a Light ({kinds}), got {type(light).__name__}")
     return light
 
 
@@ -202,6 +236,11 @@ class Particles:
             raise ValueError("particles.density: negative density")
         return c, r, s
 
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World AABB (lo, hi) of the checked spheres: ``min / max of centers -+ radii``."""
+        c, r, _ = self.validate()
+        return (c - r[:, None]).min(0), (c + r[:, None]).max(0)
+
 
 @dataclass
 class Hair:
@@ -221,6 +260,12 @@ class Hair:
         op = V.real(self.opacity, "hair.opacity", 0.0, 1.0)
         return s, r, op
 
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World AABB (lo, hi) of the checked strands: their vertices' box grown by ``radius``."""
+        s, r, _ = self.validate()
+        pts = s.reshape(-1, 3)
+        return pts.min(0) - r, pts.max(0) + r
+
 
 class Blocker:
     """An opaque blocker: a subclass (a dataclass) carries everything capture, ground truth,
@@ -234,20 +279,21 @@ class Blocker:
     * ``blocks(o, d, far)``: (K,) the blocker meets the open path ``(0, far)`` (ground truth);
     * ``surface_hit(o, d)``: (K,) nearest surface crossing at ``t > 0``, inf = none (view rays);
     * ``to_mitsuba(mi, bsdf)``: the Mitsuba shape dict with ``bsdf``.
+
+    A solid defines ``_chord(o, d)``, its ``(t0, t1, hit)``, and inherits ``blocks`` (the chord
+    meets ``(0, far)``) and ``surface_hit`` (``t0`` if > 0, else ``t1``).
     """
     def contains(self, p) -> bool:
         return False
 
+    def blocks(self, o, d, far):
+        t0, t1, hit = self._chord(o, d)
+        return hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
 
-def _solid_blocks(t0, t1, hit, far):
-    """A solid's chord [t0, t1] meets the open path (0, far)."""
-    return hit & (np.maximum(t0, 0.0) < np.minimum(t1, far))
-
-
-def _solid_surface(t0, t1, hit):
-    """Nearest surface crossing t > 0 of a solid's chord [t0, t1] (inf = none)."""
-    th = np.where(t0 > 0, t0, t1)
-    return np.where(hit & (th > 0), th, np.inf)
+    def surface_hit(self, o, d):
+        t0, t1, hit = self._chord(o, d)
+        th = np.where(t0 > 0, t0, t1)
+        return np.where(hit & (th > 0), th, np.inf)
 
 
 @dataclass
@@ -275,12 +321,6 @@ class OpaqueSphere(Blocker):
 
     def _chord(self, o, d):
         return ray_sphere(o, d, np.asarray(self.center, np.float64), float(self.radius))
-
-    def blocks(self, o, d, far):
-        return _solid_blocks(*self._chord(o, d), far)
-
-    def surface_hit(self, o, d):
-        return _solid_surface(*self._chord(o, d))
 
     def to_mitsuba(self, mi, bsdf):
         return {"type": "sphere", "center": np.asarray(self.center, float).tolist(),
@@ -319,12 +359,6 @@ class OpaqueBox(Blocker):
         t0, t1, _ = ray_box(o, d, np.asarray(self.min, np.float64), np.asarray(self.max, np.float64))
         return t0, t1, t0 <= t1
 
-    def blocks(self, o, d, far):
-        return _solid_blocks(*self._chord(o, d), far)
-
-    def surface_hit(self, o, d):
-        return _solid_surface(*self._chord(o, d))
-
     def to_mitsuba(self, mi, bsdf):
         lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
         return {"type": "cube", "bsdf": bsdf, "to_world": (
@@ -351,47 +385,46 @@ class OpaquePlane(Blocker):
         half = self.extent * (np.abs(u) + np.abs(v))
         return self.point - half, self.point + half
 
-    def first_hit(self, o, d):
-        u, v, n = orthonormal_basis(self.normal)
-        dn = d @ n
-        ok = np.abs(dn) > 1e-12
-        t = np.where(ok, ((self.point - o) @ n) / np.where(ok, dn, 1.0), -1.0)
-        q = o + t[:, None] * d - self.point
-        hit = ok & (t >= 0) & (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent)
-        return t, hit, np.abs(dn)
-
-    def blocks(self, o, d, far):
+    def _crossing(self, o, d, tiny: float):
+        """(t, on the square, d . n) of the rays' crossing of the plane; none (t = -1) where
+        ``|d . n| <= tiny``."""
         u, v, n = orthonormal_basis(self.normal)
         c = np.asarray(self.point, np.float64)
-        den = d @ n
-        ok = den != 0
-        t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), -1.0)
+        dn = d @ n
+        ok = np.abs(dn) > tiny
+        t = np.where(ok, ((c - o) @ n) / np.where(ok, dn, 1.0), -1.0)
         q = o + t[:, None] * d - c
-        inside = (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent)
-        return ok & inside & (t > 0) & (t < far)
+        return t, ok & (np.abs(q @ u) <= self.extent) & (np.abs(q @ v) <= self.extent), dn
+
+    def first_hit(self, o, d):
+        t, hit, dn = self._crossing(o, d, 1e-12)
+        return t, hit & (t >= 0), np.abs(dn)
+
+    def blocks(self, o, d, far):
+        t, hit, _ = self._crossing(o, d, 0.0)
+        return hit & (t > 0) & (t < far)
 
     def surface_hit(self, o, d):
-        u, v, n = orthonormal_basis(self.normal)
-        c, half = np.asarray(self.point, np.float64), float(self.extent)
-        den = d @ n
-        ok = np.abs(den) > 1e-300
-        t = np.where(ok, ((c - o) @ n) / np.where(ok, den, 1.0), np.inf)
-        q = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d - c
-        ok &= (t > 0) & (np.abs(q @ u) <= half) & (np.abs(q @ v) <= half)
-        return np.where(ok, t, np.inf)
+        t, hit, _ = self._crossing(o, d, 1e-300)
+        return np.where(hit & (t > 0), t, np.inf)
 
     def to_mitsuba(self, mi, bsdf):
         return {"type": "rectangle", "bsdf": {"type": "twosided", "bsdf": bsdf},
                 "to_world": mi.ScalarTransform4f(square_to_world(self.point, self.normal, self.extent))}
 
 
+def affine(cols, origin) -> np.ndarray:
+    """4 x 4 matrix whose columns are ``cols`` (the images of the x, y, z axes) and ``origin``."""
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = np.transpose(cols), origin
+    return m
+
+
 def square_to_world(c, n, half) -> np.ndarray:
     """4 x 4 matrix taking Mitsuba's rectangle [-1, 1]^2 (z = 0) onto the square centred at
     ``c`` with normal ``n`` and half size ``half``, axes of :func:`~avsm_dr.geometry.orthonormal_basis`."""
     u, v, n = orthonormal_basis(n)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = u * half, v * half, n, np.asarray(c, float)
-    return m
+    return affine([u * half, v * half, n], np.asarray(c, float))
 
 
 def validate_blockers(blockers) -> list:
@@ -447,9 +480,7 @@ class Scene:
     receiver_plane: Optional[tuple] = None
     meta: dict = field(default_factory=dict)
 
-    def __post_init__(self):
-        # integer / bool grids refused here, at construction (the full rule,
-        # validation.density_grid, runs where the grid is read: capture, ground truth)
+    def __post_init__(self):      # the dtype only: validation.density_grid runs where the grid is read
         if isinstance(self.density, (np.ndarray, list, tuple)) or dr.is_array_v(self.density):
             V.grid_dtype(self.density, "density")
 
@@ -464,19 +495,16 @@ class Scene:
         Parameters
         ----------
         grid_or_path
-            (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per
-            world unit before ``density_scale``, or the path of a ``.npy`` or a Mitsuba
-            ``.vol`` file (:func:`avsm_dr.io.read_vol`, one channel).
+            (nz, ny, nx) floating-point array (NumPy or Dr.Jit) of extinction per world unit
+            before ``density_scale``, or a ``.npy`` or Mitsuba ``.vol`` file (one channel).
         bbox
             (min_xyz, max_xyz) world box of the whole grid.  Default: the ``.vol`` header's
             box, else voxels of side 1 centred at the origin, ``-+ (nx, ny, nz) / 2`` (the
             grid's own aspect ratio, never stretched).  An explicit box is used as given.
         density_scale
-            factor > 0 the grid is multiplied by (extinction = density_scale x
-            value); nothing else rescales the density.
+            factor > 0: extinction = density_scale x value (nothing else rescales it).
         light
-            DirectionalLight, SpotLight or PointLight; default a directional light from
-            above, ``DirectionalLight((0, -1, 0))``.
+            a :class:`Light`; default from above, ``DirectionalLight((0, -1, 0))``.
         name
             the scene's name (default: the file's stem, or 'grid').
         receivers
@@ -502,13 +530,7 @@ class Scene:
             half = 0.5 * np.array([nx, ny, nz], np.float64)
             lo, hi, box_from = -half, half, "unit voxels"
         else:
-            try:
-                lo, hi = bbox
-            except (TypeError, ValueError):
-                raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
-            lo, hi = V.vec3(lo, "bbox"), V.vec3(hi, "bbox")
-            if np.any(hi <= lo):
-                raise ValueError(f"bbox: expected max > min on every axis, got {lo.tolist()} .. {hi.tolist()}")
+            lo, hi = check_bbox(bbox)
         light = DirectionalLight(direction=(0.0, -1.0, 0.0)) if light is None else check_light(light)
         name = "grid" if name is None else name
         if not (isinstance(name, str) and name):
@@ -516,21 +538,28 @@ class Scene:
         if receivers is None or (isinstance(receivers, Integral) and not isinstance(receivers, bool)):
             k = V.integer(1024 if receivers is None else receivers, "receivers", 1)
             V.check_memory("receivers", k, lambda m: float(m) * RECEIVER_BYTES, lo=1, what="points")
-            occ = np.flatnonzero(dens.ravel() > 0)
-            occ = np.arange(dens.size) if occ.size == 0 else occ
-            rng = np.random.default_rng(0)
-            pick = rng.choice(occ, size=k, replace=occ.size < k)
-            kz, rem = np.divmod(pick, ny * nx)
-            ky, kx = np.divmod(rem, nx)
-            pts = lo + (np.stack([kx, ky, kz], 1) + rng.random((k, 3))) * (hi - lo) / np.array([nx, ny, nz])
+            pts = voxel_coords(dens if np.any(dens > 0) else np.ones(dens.shape), k, np.random.default_rng(0))
+            pts = lo + pts * (hi - lo) / np.array([nx, ny, nz])
         else:
             pts = V.points(receivers, "receivers")
         return cls(name, light, pts, density=dens, bbox=(lo, hi),
                    meta={"source": source, "shape": (nz, ny, nx), "density_scale": scale, "bbox_from": box_from})
 
 
-#: Host bytes per receiver point that :meth:`Scene.from_grid` draws (indices, jitter and the
-#: points, float64), checked before drawing (receivers=10**9 used to end in a MemoryError).
+def voxel_coords(density, k: int, rng) -> np.ndarray:
+    """(k, 3) points (x, y, z) in voxel units, one uniform in each of k voxels drawn among those
+    with density > 0 (with replacement when fewer); (0, 3) when there is none or k = 0."""
+    nz, ny, nx = density.shape
+    idx = np.flatnonzero(density.ravel() > 0)
+    if idx.size == 0 or k == 0:
+        return np.zeros((0, 3))
+    pick = rng.choice(idx, size=k, replace=idx.size < k)
+    kz, rem = np.divmod(pick, ny * nx)
+    ky, kx = np.divmod(rem, nx)
+    return np.stack([kx, ky, kz], 1) + rng.random((k, 3))
+
+
+#: Host bytes per receiver point that :meth:`Scene.from_grid` draws (indices, jitter, points), checked first.
 RECEIVER_BYTES = 128
 
 
@@ -539,9 +568,8 @@ def _read_grid(path: str):
     ext = path.lower().rsplit(".", 1)[-1] if "." in path else ""
     try:
         if ext == "npy":
-            # memory-mapped first: a header announcing more data than the file holds is a
-            # ValueError before anything is allocated (np.load allocated the announced size:
-            # a MemoryError), then copied; object arrays are refused (never unpickled)
+            # memory-mapped, then copied: a header announcing more data than the file holds is a
+            # ValueError before any allocation; object arrays are refused (never unpickled)
             try:
                 mm = np.load(path, mmap_mode="r", allow_pickle=False)
             except OSError:

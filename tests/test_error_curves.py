@@ -79,7 +79,7 @@ def test_in_volume_receivers_are_deterministic_inside_and_weighted(plume):
     rng = np.random.default_rng(0)
     cand = receivers._density_candidates(plume, 2000, rng)
     cam = ad.groundtruth.default_camera(plume)
-    vis = lambda p: receivers.visibility(plume, p) * receivers.visibility(plume, p, origin=cam["origin"])  # noqa
+    vis = lambda p: receivers.visibility(plume, p) * receivers.visibility(plume, p, origin=cam.origin)  # noqa
     assert vis(a).mean() > 1.2 * vis(cand).mean()
 
 

@@ -23,6 +23,7 @@ import pytest
 import avsm_dr as ad  # noqa: F401  (sets up libLLVM before drjit)
 import drjit as dr
 from avsm_dr import groundtruth as gt
+from avsm_dr.scene import DirectionalLight, PointLight, SpotLight
 
 pytestmark = pytest.mark.mitsuba
 
@@ -167,6 +168,18 @@ def test_scene_errors(mi):
             with pytest.raises(ValueError, match="^" + msg) as err:
                 mi.render(scene, integrator=integrator, spp=1)
             assert "see above" not in str(err.value)
+
+
+@pytest.mark.parametrize("light", [DirectionalLight((0.3, -1.0, 0.2)), PointLight((0.5, 2.0, -1.0)),
+                                   SpotLight((0.5, 2.0, -1.0), (0.1, -1.0, 0.3), 50.0)])
+def test_light_of_inverts_to_mitsuba(mi, light):
+    back = am.light_of(mi.load_dict(light.to_mitsuba(mi)))
+    assert type(back) is type(light)
+    for f in ("direction", "position", "fov"):
+        if hasattr(light, f):
+            np.testing.assert_allclose(getattr(back, f), getattr(light, f), rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="^emitter: .*got "):
+        am.light_of(mi.load_dict({"type": "constant"}))
 
 
 def test_render_passes_other_integrators_errors_through(mi):

@@ -104,6 +104,18 @@ def test_particles_scene_shadows():
     assert T[:512].mean() < 0.9 and T.min() < 0.2 and T.max() == 1.0
 
 
+def test_content_bounds_enclose_particles_and_hair():
+    p = ad.scenes.particles(**SMALL["particles"]).particles
+    lo, hi = p.bounds()
+    np.testing.assert_array_equal(lo, np.min(p.centers - p.radii[:, None], axis=0))
+    assert np.all(p.centers + p.radii[:, None] <= hi) and np.any(p.centers + p.radii[:, None] == hi)
+    h = ad.scenes.hair_and_smoke(**SMALL["hair_and_smoke"]).hair
+    lo, hi = h.bounds()
+    pts = h.strands.reshape(-1, 3)
+    np.testing.assert_allclose(lo, pts.min(0) - h.radius)
+    np.testing.assert_allclose(hi, pts.max(0) + h.radius)
+
+
 def test_smoke_over_table():
     """Table-top receivers are lit (no self-shadowing through the opaque table), shadowed only
     by the smoke; a point beneath the table is black."""

@@ -10,6 +10,7 @@ difference within 4 sigma / sqrt(pixels) (``max_z = 4``).  No per-pixel band
 (brighter pixels are noisier), and 2.6-4.5 % of the pixels of these unbiased renders lie
 beyond 3 sigma (measured).
 """
+import dataclasses
 import math
 
 import numpy as np
@@ -23,6 +24,7 @@ from avsm_dr.groundtruth.images import receiver_plane
 from avsm_dr import shading as sh
 from avsm_dr.scene import (DirectionalLight, OpaquePlane, OpaqueSphere, Particles, PointLight, Scene,
                            SpotLight)
+from avsm_dr.camera import PinholeCamera
 from avsm_dr.checks import mc_agreement
 
 pytestmark = pytest.mark.mitsuba
@@ -165,8 +167,7 @@ def test_single_scattering_matches_mitsuba():
     # albedo 0.8, volpath max_depth = 2 = single scattering; a side view so the lit smoke
     # is seen against the black background as well as against the plane.
     scene = blob_scene(LIGHTS["directional"])
-    cam = dict(gt.default_camera(scene))
-    cam["origin"] = np.array([2.5, 1.2, 1.5])
+    cam = dataclasses.replace(gt.default_camera(scene), origin=np.array([2.5, 1.2, 1.5]))
     W = H = 24
     ref0, ref1 = image_noise(scene, W, H, spp=128, albedo=0.8, camera=cam)
     # 4x4 sub-pixel rays: with 2x2 the in-pixel aliasing adds ~0.6 sigma(2048 spp) in quadrature
@@ -218,9 +219,10 @@ def test_default_camera_sees_plane_from_light_side_outside_volume():
         c, n, _ = receiver_plane(scene)
         l = to_light(scene.light, c[None])[0]
         lo, hi = scene.bbox
-        assert not np.all((cam["origin"] >= lo) & (cam["origin"] <= hi))
-        assert np.sign((cam["origin"] - c) @ n) == np.sign(l @ n)
-        assert 0 < cam["fov"] <= 40
+        assert isinstance(cam, PinholeCamera)
+        assert not np.all((cam.origin >= lo) & (cam.origin <= hi))
+        assert np.sign((cam.origin - c) @ n) == np.sign(l @ n)
+        assert 0 < cam.fov <= 40
 
 
 def test_render_bad_input():

@@ -15,10 +15,8 @@ Example::
     out.image, out.timings          # (H, W) radiance; seconds per phase
     ref, err = al.render_mitsuba(scene, spp=1024)   # Mitsuba volpath ground truth
 
-Modules: :mod:`.area_scene` (dataclasses, validation), :mod:`.vpl` (VPL sampling, light grid),
-:mod:`.geometry` (ray casting), :mod:`.visibility` (voxelize, scan, lookups),
-:mod:`.gather` (Riemann sum), :mod:`.methods` (the three methods, timings), :mod:`.reference`
-(Mitsuba ground truth).
+Modules: :mod:`.area_scene`, :mod:`.vpl`, :mod:`.geometry`, :mod:`.visibility`, :mod:`.gather`,
+:mod:`.methods` (the three methods, timings), :mod:`.reference` (Mitsuba ground truth).
 """
 from .methods import INTERPOLATIONS, METHODS, AreaLightRender, render
 from .area_scene import AreaLightScene, Box, Medium, PinholeCamera, QuadLight, Sphere, default_scene

@@ -12,11 +12,8 @@ Conventions (shared by every method and by the Mitsuba reference):
   it emits the constant radiance ``L_e`` from the side of
   ``n = normalize(edge_u x edge_v)`` only (Mitsuba's one-sided ``area`` emitter);
   its back side is black.
-* Occluders are opaque diffuse spheres and axis-aligned boxes that lie strictly in
-  front of the light plane (``(x - c) . n > 0`` for every point of the occluder).  Each
-  occluder type is one :class:`Occluder` subclass carrying everything the renderers and the
-  Mitsuba reference need (ray hits, normals, surface samples, light-frame extents, the
-  Mitsuba shape), so a new shape is one class here.
+* Occluders (one :class:`Occluder` subclass per shape: spheres, axis-aligned boxes) are
+  opaque and diffuse and lie strictly in front of the light plane (``(x - c) . n > 0``).
 * Radiance is grey (one channel); lengths in world units, ``sigma`` per unit.
 """
 from __future__ import annotations
@@ -30,8 +27,8 @@ import numpy as np
 
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
-from ..geometry import ray_box_dr, ray_sphere_dr
-from ..scene import OpaqueBox, OpaqueSphere
+from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
+from ..scene import OpaqueBox, OpaqueSphere, affine
 
 def _albedo(v, name: str = "albedo") -> float:
     return V.real(v, name, 0.0, 1.0)
@@ -134,9 +131,8 @@ class Sphere(OpaqueSphere, Occluder):
     albedo: float = 0.5
 
     def __post_init__(self):
-        self.center = V.vec3(self.center, "center")
-        self.radius = V.real(self.radius, "radius", 0.0, open_min=True)
-        self.albedo = _albedo(self.albedo)
+        checked = OpaqueSphere.validate(self, "sphere")
+        self.center, self.radius, self.albedo = checked.center, checked.radius, _albedo(self.albedo)
 
     @property
     def area(self) -> float:
@@ -169,11 +165,8 @@ class Box(OpaqueBox, Occluder):
     albedo: float = 0.5
 
     def __post_init__(self):
-        self.min = V.vec3(self.min, "min")
-        self.max = V.vec3(self.max, "max")
-        if np.any(self.max <= self.min):
-            raise ValueError(f"max: must exceed min on every axis, got min={self.min}, max={self.max}")
-        self.albedo = _albedo(self.albedo)
+        checked = OpaqueBox.validate(self, "box")
+        self.min, self.max, self.albedo = checked.min, checked.max, _albedo(self.albedo)
 
     @property
     def area(self) -> float:
@@ -212,8 +205,7 @@ class Box(OpaqueBox, Occluder):
         return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)
 
     def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = np.diag((self.max - self.min) / 2), (self.max + self.min) / 2
+        m = affine(np.diag((self.max - self.min) / 2), (self.max + self.min) / 2)
         return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
 
 
@@ -240,20 +232,10 @@ class AreaLightScene:
     name: str = "area_light_scene"
 
     def __post_init__(self):
-        if not isinstance(self.medium, Medium):
-            raise ValueError(f"medium: expected Medium, got {type(self.medium).__name__}")
-        if not isinstance(self.light, QuadLight):
-            raise ValueError(f"light: expected QuadLight, got {type(self.light).__name__}")
-        if not isinstance(self.camera, PinholeCamera):
-            raise ValueError(f"camera: expected PinholeCamera, got {type(self.camera).__name__}")
-        try:
-            lo, hi = self.bounds
-        except (TypeError, ValueError):
-            raise ValueError(f"bounds: expected (min_xyz, max_xyz), got {self.bounds!r}") from None
-        lo, hi = V.vec3(lo, "bounds"), V.vec3(hi, "bounds")
-        if np.any(hi <= lo):
-            raise ValueError(f"bounds: max must exceed min on every axis, got {lo}, {hi}")
-        self.bounds = (lo, hi)
+        for name, kind in (("medium", Medium), ("light", QuadLight), ("camera", PinholeCamera)):
+            if not isinstance(getattr(self, name), kind):
+                raise ValueError(f"{name}: expected {kind.__name__}, got {type(getattr(self, name)).__name__}")
+        self.bounds = lo, hi = check_bbox(self.bounds, "bounds")
         self.floor_albedo = _albedo(self.floor_albedo, "floor_albedo")
         self.occluders = [_as_occluder(o) for o in list(self.occluders)]
 

@@ -48,19 +48,25 @@ def light_terms(k: Kit, ln, x, p):
     return w, r, dr.maximum(dr.dot(ln, w), 0) / r2
 
 
+def _step(k: Kit, med, ln, o, d, dt, j, p):
+    """(x_j, f_j) of Riemann step j: its point and ``sigma_s p(cos) max(0, n . w) / r^2
+    exp(-sigma_t (t_j + r_j))`` (the module docstring's sum without ``V`` and ``I dt``)."""
+    t = (k.Float(j) + 0.5) * dt
+    x = o + t * d
+    w, r, falloff = light_terms(k, ln, x, p)
+    return x, med.sigma_s * phase_hg(-dr.dot(w, d), med.g) * falloff * dr.exp(-med.sigma_t * (t + r))
+
+
 def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, intensity,
            vis_medium, vis_surface, bias: float, boundaries: bool = False):
     """Radiance of each (pixel ``pix``, VPL at ``p``) lane, without the emitter itself.
 
     vis_medium(x, j) -> (V, on_boundary Bool or None) at Riemann step j; vis_surface(x) -> V.
-    intensity: I = L_e A / K (Float, opaque so that K does not recompile kernels).
-    boundaries: record the steps where vis_medium reports a boundary.
-    Returns (L Float per lane, flags): ``flags`` is None, or ceil(N / 32) UInt32 arrays
-    whose bit ``j & 31`` of word ``j >> 5`` marks a boundary at step j, for
-    :func:`boundary_correction`.
+    intensity: I = L_e A / K (Float, opaque: K does not recompile kernels).  Returns (L Float
+    per lane, flags): with ``boundaries``, ceil(N / 32) UInt32 arrays whose bit ``j & 31`` of
+    word ``j >> 5`` marks a boundary at step j (for :func:`boundary_correction`), else None.
     """
     med = scene.medium
-    sigma_s, sigma_t, g = med.sigma_s, med.sigma_t, med.g
     ln = k.vec(scene.light.normal)
     o = hits.o
     d = dr.gather(k.Vec3, hits.d, pix)
@@ -80,10 +86,7 @@ def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, 
         return j < steps
 
     def body(j, L, *flags):
-        t = (k.Float(j) + 0.5) * dt
-        x = o + t * d
-        w, r, falloff = light_terms(k, ln, x, p)
-        f = sigma_s * phase_hg(-dr.dot(w, d), g) * falloff * dr.exp(-sigma_t * (t + r))
+        x, f = _step(k, med, ln, o, d, dt, j, p)
         V, on_edge = vis_medium(x, j)
         if boundaries:
             bit = dr.select(on_edge, k.UInt32(1) << (j & 31), 0)
@@ -104,23 +107,17 @@ def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, 
     cos_s = dr.maximum(-dr.dot(ns, w), 0)
     lit = (kind == DIFFUSE) & (cos_s > 0) & (falloff > 0)
     Vs = dr.select(lit, vis_surface(xs + bias * ns), 0)
-    Ls = rho * (1.0 / math.pi) * falloff * cos_s * dr.exp(-sigma_t * (t_end + r)) * Vs
+    Ls = rho * (1.0 / math.pi) * falloff * cos_s * dr.exp(-med.sigma_t * (t_end + r)) * Vs
     return (L + dr.select(lit, Ls, 0)) * intensity, flags
 
 
 def boundary_correction(scene: AreaLightScene, k: Kit, hits: CameraHits, steps: int, intensity,
                         flags: list, lane_info, vis_delta):
-    """Second gather pass over the boundary steps only (Wyman and Dai 2013's interpolation).
-
-    The Riemann sum with interpolated visibility differs from the nearest-voxel one only
-    where they disagree, which the boundary mask bounds: L = L_point + sum over flagged
-    steps of (V_bilinear - V_point) f_j dt.  The flagged (lane, word) pairs are compacted
-    with ``dr.compress``; each lane then walks the set bits of its word (``tzcnt``), so
-    the work is proportional to the number of boundary crossings, not to N.
-
-    lane_info(lane) -> (pix, vpl, p); vis_delta(x, vpl, p) -> V_bilinear - V_point.
-    Returns the correction per lane (Float, width of the flag arrays).
-    """
+    """Second gather pass over the boundary steps only (Wyman and Dai 2013's interpolation):
+    ``L = L_point + sum over flagged steps of (V_bilinear - V_point) f_j dt``.  The flagged
+    (lane, word) pairs are compacted (``dr.compress``) and each walks its set bits (``tzcnt``):
+    work ~ boundary crossings, not N.  lane_info(lane) -> (pix, vpl, p); vis_delta(x, vpl, p) ->
+    V_bilinear - V_point.  Returns the correction per lane (Float, width of the flag arrays)."""
     n_words = len(flags)
     n_lanes = dr.width(flags[0])
     F = dr.zeros(k.UInt32, n_lanes * n_words)
@@ -135,8 +132,6 @@ def boundary_correction(scene: AreaLightScene, k: Kit, hits: CameraHits, steps: 
     lane = idx // n_words
     w = idx - lane * n_words
     pix, vpl, p = lane_info(lane)
-    med = scene.medium
-    sigma_s, sigma_t, g = med.sigma_s, med.sigma_t, med.g
     ln = k.vec(scene.light.normal)
     o = hits.o
     d = dr.gather(k.Vec3, hits.d, pix)
@@ -147,11 +142,7 @@ def boundary_correction(scene: AreaLightScene, k: Kit, hits: CameraHits, steps: 
         return word != 0
 
     def body(word, acc):
-        j = w * 32 + dr.tzcnt(word)
-        t = (k.Float(j) + 0.5) * dt
-        x = o + t * d
-        wl, r, falloff = light_terms(k, ln, x, p)
-        f = sigma_s * phase_hg(-dr.dot(wl, d), g) * falloff * dr.exp(-sigma_t * (t + r))
+        x, f = _step(k, scene.medium, ln, o, d, dt, w * 32 + dr.tzcnt(word), p)
         return word & (word - 1), acc + vis_delta(x, vpl, p) * f
 
     word, acc = dr.while_loop((word, acc), cond, body, max_iterations=32, label="vpl_boundary")

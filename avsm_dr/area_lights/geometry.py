@@ -1,8 +1,5 @@
-"""Vectorised ray geometry (Dr.Jit): camera hits, shadow-ray occlusion, VPL rays.
-
-All functions work on one lane per ray with the Dr.Jit types of :class:`Kit`;
-scene constants enter kernels as literals (they do not change between launches).
-"""
+"""Vectorised ray geometry (Dr.Jit, one lane per ray, the types of :class:`Kit`): camera hits,
+shadow-ray occlusion; scene constants enter kernels as literals."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,9 +28,8 @@ class Kit:
     PCG32: type
 
     def vec(self, v) -> object:
-        """A width-1 Vec3 from 3 numbers, opaque (evaluated): Dr.Jit 1.5 resizes a literal
-        Array3f with a zero component in place when it meets a wider array (measured:
-        ``Array3f(0, 1, 0) * arange(Float, 4)`` leaves the first operand of width 4)."""
+        """A width-1 Vec3 from 3 numbers, opaque: Dr.Jit 1.5 resizes a literal Array3f with a zero
+        component in place when it meets a wider array."""
         v = np.asarray(v, np.float64)
         return self.Vec3(*(dr.opaque(self.Float, float(c)) for c in v))
 

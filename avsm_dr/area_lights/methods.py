@@ -8,10 +8,9 @@
   splatting per-VPL random surface points, one scan over the whole buffer, one gather over
   (pixel, VPL) lanes with bilinear interpolation only at shadow boundaries.
 
-Phases (seconds, wall clock around ``dr.eval`` + ``dr.sync_thread``): ``t_visibility``
-(voxelize / ray cast), ``t_scan`` (prefix-OR and boundary mask), ``t_gather`` (camera rays
-and Riemann sums).  The first call of a configuration includes JIT compilation; time a
-second call (the experiment does).
+Phases (seconds around ``dr.eval`` + ``dr.sync_thread``): ``t_visibility`` (voxelize / ray
+cast), ``t_scan`` (prefix-OR, boundary mask), ``t_gather`` (camera rays, Riemann sums); a
+configuration's first call includes JIT compilation.
 """
 from __future__ import annotations
 
@@ -27,7 +26,7 @@ from .geometry import LIGHT_FRONT, Kit, camera_hits, kit
 from .area_scene import AreaLightScene
 from .visibility import (boundary_mask, interleave, lookup_bilinear, lookup_point, lookup_point_edge,
                          project, scan, voxelize_points, voxelize_rays)
-from ..validation import integer as check_count, real
+from .. import validation as V
 from .vpl import LightGrid, fit_grid, sample_vpls
 
 METHODS = ("naive_exact", "naive_voxel", "imperfect")
@@ -67,24 +66,21 @@ def _validate(scene, method, vpls, resolution, steps, interpolation, voxelizatio
               splat_coverage, surface_bias, dtype):
     if not isinstance(scene, AreaLightScene):
         raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    check_count(vpls, "vpls", 1)
-    check_count(resolution, "resolution", 2)
-    check_count(steps, "steps", 1)
-    if interpolation is not None and interpolation not in INTERPOLATIONS:
-        raise ValueError(f"interpolation: expected one of {INTERPOLATIONS}, got {interpolation!r}")
+    V.one_of(method, "method", METHODS)
+    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
+        V.integer(value, name, lo)
+    if interpolation is not None:
+        V.one_of(interpolation, "interpolation", INTERPOLATIONS)
     if method == "naive_exact" and interpolation not in (None, "none"):
         raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
-    if voxelization not in VOXELIZATIONS:
-        raise ValueError(f"voxelization: expected one of {VOXELIZATIONS}, got {voxelization!r}")
+    V.one_of(voxelization, "voxelization", VOXELIZATIONS)
     if method == "naive_voxel" and voxelization != "rays":
         raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
     if points_per_vpl is not None:
-        check_count(points_per_vpl, "points_per_vpl", 1)
-    real(splat_coverage, "splat_coverage", 0.0, open_min=True)
+        V.integer(points_per_vpl, "points_per_vpl", 1)
+    V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
     if surface_bias is not None:
-        real(surface_bias, "surface_bias", 0.0)
+        V.real(surface_bias, "surface_bias", 0.0)
     A.float_type(dtype)  # raises ValueError naming dtype
 
 
@@ -113,11 +109,7 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
     points_per_vpl
         M, surface points splatted per VPL (default 4 R^2).
     splat_coverage
-        c, splat discs cover c times the occluder area (see
-        :func:`~.visibility.splat_radius`), > 0.  Defaults c = 1.5, M = 4 R^2 were the
-        lowest RMSE against a dense exact render on the default scene among
-        c in {1, 1.5, 2, 3} x M in {1, 2, 4, 8} R^2 at R = 64 and 128 (c = 1 leaves holes,
-        larger c dilates silhouettes).
+        c, splat discs cover c times the occluder area (:func:`~.visibility.splat_radius`), > 0.
     surface_bias
         offset along the surface normal for surface shadow lookups
         (default: one depth bin for voxel methods, 1e-4 x scene size for exact).
@@ -145,17 +137,15 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
         surface_bias = 1e-4 * scene.extent if method == "naive_exact" else grid.dr_bin
     bias = float(surface_bias)
     clock = _Clock()
-    params = dict(method=method, vpls=K, resolution=R if method != "naive_exact" else None, steps=N,
-                  interpolation=interpolation, voxelization=voxelization if method != "naive_exact" else None,
-                  points_per_vpl=M if (method == "imperfect" and voxelization == "points") else None,
-                  splat_coverage=c if (method == "imperfect" and voxelization == "points") else None,
-                  surface_bias=bias, jitter=jitter, seed=seed, dtype=dtype,
-                  width=cam.width, height=cam.height)
+    voxels, splats = method != "naive_exact", method == "imperfect" and voxelization == "points"
+    params = dict(method=method, vpls=K, resolution=R if voxels else None, steps=N, interpolation=interpolation,
+                  voxelization=voxelization if voxels else None, points_per_vpl=M if splats else None,
+                  splat_coverage=c if splats else None, surface_bias=bias, jitter=jitter, seed=seed,
+                  dtype=dtype, width=cam.width, height=cam.height)
 
     hits = clock("t_gather", lambda: camera_hits(scene, k))
-    image = dr.select(hits.kind == LIGHT_FRONT,
-                      scene.light.radiance * dr.exp(-scene.medium.sigma_t * hits.t_end), 0)
-    image = k.Float(image)
+    image = k.Float(dr.select(hits.kind == LIGHT_FRONT,
+                              scene.light.radiance * dr.exp(-scene.medium.sigma_t * hits.t_end), 0))
     boundary = dr.zeros(k.UInt32, 1)
 
     if method == "imperfect":
@@ -171,7 +161,7 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
             image, boundary = clock("t_gather", lambda: _accumulate(k, image, boundary, thunk, 1))
 
     img = np.asarray(image.numpy(), dtype=np.float64).reshape(cam.height, cam.width)
-    stats = dict(grid=grid.__dict__.copy() if method != "naive_exact" else None,
+    stats = dict(grid=grid.__dict__.copy() if voxels else None,
                  boundary_lookups=int(np.asarray(boundary.numpy()).ravel()[0]),
                  lookups=n_pix * K * N)
     return AreaLightRender(img, dict(clock.t), params, stats)
@@ -204,23 +194,17 @@ def _voxel_gather(scene, k: Kit, grid, frame, hits, pix, vpl, p, N, intensity, b
     """Gather with voxel visibility: nearest texel ('none'), bilinear at every step
     ('full'), or nearest plus the compacted boundary pass ('boundary', S interleaved with
     the boundary mask, ``stride`` 2)."""
-    def coords(x, p_):
-        return project(grid, k, frame, x, p_)
+    def vis(x, p_, vpl_, bilinear: bool):
+        return (lookup_bilinear if bilinear else lookup_point)(grid, k, S, vpl_, project(grid, k, frame, x, p_),
+                                                               stride=stride)
 
     def vis_surface(x):
-        c = coords(x, p)
-        return lookup_point(grid, k, S, vpl, c, stride=stride) if interpolation == "none" else \
-            lookup_bilinear(grid, k, S, vpl, c, stride=stride)
+        return vis(x, p, vpl, interpolation != "none")
 
-    if interpolation == "boundary":
-        def vis_medium(x, j):
-            return lookup_point_edge(grid, k, S, vpl, coords(x, p))
-    elif interpolation == "full":
-        def vis_medium(x, j):
-            return lookup_bilinear(grid, k, S, vpl, coords(x, p)), None
-    else:
-        def vis_medium(x, j):
-            return lookup_point(grid, k, S, vpl, coords(x, p)), None
+    def vis_medium(x, j):
+        if interpolation == "boundary":
+            return lookup_point_edge(grid, k, S, vpl, project(grid, k, frame, x, p))
+        return vis(x, p, vpl, interpolation == "full"), None
 
     L, flags = gather(scene, k, hits, pix, p, N, intensity, vis_medium, vis_surface, bias,
                       boundaries=interpolation == "boundary")
@@ -229,9 +213,8 @@ def _voxel_gather(scene, k: Kit, grid, frame, hits, pix, vpl, p, N, intensity, b
     dr.eval(L, *flags)
 
     def vis_delta(x, vpl_, p_):
-        c = coords(x, p_)
-        return lookup_bilinear(grid, k, S, vpl_, c, stride=stride) - \
-            lookup_point(grid, k, S, vpl_, c, stride=stride)
+        c = project(grid, k, frame, x, p_)
+        return lookup_bilinear(grid, k, S, vpl_, c, stride=stride) - lookup_point(grid, k, S, vpl_, c, stride=stride)
 
     corr = boundary_correction(scene, k, hits, N, intensity, flags, lane_info, vis_delta)
     nb = sum((dr.sum(dr.popcnt(f)) for f in flags), k.UInt32(0))

@@ -1,15 +1,12 @@
 """Mitsuba 3 ground truth for area-light scenes: ``volpath`` with single scattering.
 
-The same scene as a Mitsuba scene: a ``homogeneous`` medium (albedo sigma_s / sigma_t,
-``isotropic`` or ``hg`` phase) inside a ``cube`` with a ``null`` BSDF (extended slightly
-below the floor so the floor lies strictly inside), a diffuse ``rectangle`` floor,
-diffuse ``sphere``/``cube`` occluders and a one-sided ``rectangle`` with an ``area``
-emitter (black back side).  ``volpath`` with ``max_depth = 2`` keeps the directly seen
-emitter and one scattering event (medium or surface) with next-event estimation, i.e.
-single scattering; Russian roulette is off.  Rays are the same pixel-centre rays as
-:meth:`PinholeCamera.rays` (no pixel filter), started inside the medium.
+The same scene in Mitsuba: a ``homogeneous`` medium (albedo sigma_s / sigma_t, ``isotropic`` or
+``hg`` phase) in a null-BSDF ``cube`` reaching slightly below the diffuse ``rectangle`` floor,
+diffuse occluders and a one-sided ``rectangle`` ``area`` emitter.  ``volpath`` with
+``max_depth = 2`` (Russian roulette off) is single scattering with next-event estimation; rays
+are the pixel-centre rays of :meth:`PinholeCamera.rays` (no pixel filter), started in the medium.
 
-The variant (``llvm_ad_rgb``) is set when a function is called, never at import.
+The variant is set when a function is called (:func:`avsm_dr.groundtruth.mitsuba`), never at import.
 """
 from __future__ import annotations
 
@@ -19,25 +16,13 @@ import drjit as dr
 import numpy as np
 
 from .area_scene import AreaLightScene
+from ..groundtruth.media import mitsuba as _mi
+from ..scene import affine
 from ..validation import integer as check_count
 
-VARIANT = "llvm_ad_rgb"
 
-
-def _mi():
-    import mitsuba as mi
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
-    return mi
-
-
-def _affine(mi, cols: list, origin) -> object:
-    """to_world with columns (x, y, z) images of the local axes and translation origin."""
-    m = np.eye(4)
-    for c in range(3):
-        m[:3, c] = cols[c]
-    m[:3, 3] = origin
-    return mi.ScalarTransform4f(m.tolist())
+def _to_world(mi, cols, origin):
+    return mi.ScalarTransform4f(affine(cols, origin).tolist())
 
 
 def scene_dict(scene: AreaLightScene) -> dict:
@@ -53,20 +38,20 @@ def scene_dict(scene: AreaLightScene) -> dict:
     d = {
         "type": "scene",
         "medium_box": {
-            "type": "cube", "to_world": _affine(mi, np.diag(half), centre),
+            "type": "cube", "to_world": _to_world(mi, np.diag(half), centre),
             "bsdf": {"type": "null"},
             "interior": {"type": "homogeneous", "albedo": float(albedo), "sigma_t": float(med.sigma_t),
                          "phase": phase},
         },
         "floor": {
             "type": "rectangle",
-            "to_world": _affine(mi, [[(hi[0] - lo[0]) / 2, 0, 0], [0, 0, -(hi[2] - lo[2]) / 2], [0, 1, 0]],
+            "to_world": _to_world(mi, [[(hi[0] - lo[0]) / 2, 0, 0], [0, 0, -(hi[2] - lo[2]) / 2], [0, 1, 0]],
                                 [(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2]),
             "bsdf": {"type": "diffuse", "reflectance": float(scene.floor_albedo)},
         },
         "light": {
             "type": "rectangle",
-            "to_world": _affine(mi, [scene.light.edge_u / 2, scene.light.edge_v / 2, scene.light.normal],
+            "to_world": _to_world(mi, [scene.light.edge_u / 2, scene.light.edge_v / 2, scene.light.normal],
                                 scene.light.center),
             "emitter": {"type": "area", "radiance": float(scene.light.radiance)},
             "bsdf": {"type": "diffuse", "reflectance": 0.0},
@@ -81,11 +66,9 @@ def render_mitsuba(scene: AreaLightScene, spp: int = 256, seed: int = 0, max_lan
                    max_depth: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth image (H, W) by Mitsuba ``volpath``, and its per-pixel standard error.
 
-    spp: samples per pixel (>= 16), split into >= 16 independent passes; the standard
-    error is the spread of the pass means / sqrt(passes) (with 16 passes the z-scores
-    follow a t distribution with 15 degrees of freedom, rms 1.07).
-    max_depth: 2 = single scattering (3 adds double scattering: measured +57 % on the
-    default scene).
+    spp: samples per pixel (>= 16), split into >= 16 independent passes; the standard error is
+    the spread of the pass means / sqrt(passes) (t-distributed z-scores, 15 dof at 16 passes).
+    max_depth: 2 = single scattering (3 adds double scattering).
     """
     if not isinstance(scene, AreaLightScene):
         raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")

@@ -1,21 +1,17 @@
 """Per-VPL voxel visibility: voxelize, scan into shadow volumes, look up (Wyman and Dai 2013,
 "Imperfect Voxelized Shadow Volumes", HPG, sec. 2).
 
-Storage.  VPL ``k``'s grid (:class:`~.vpl.LightGrid`, R x R texels x R depth bins) is a
-bit volume: texel ray ``ray = k R^2 + j R + i`` owns ``W = ceil(R / 32)`` consecutive
-UInt32 words, bit ``b & 31`` of word ``ray W + (b >> 5)`` is depth bin ``b``.  All VPLs
-of a batch live in one buffer (the paper's "single render target").
+Storage: VPL ``k``'s grid (:class:`~.vpl.LightGrid`) is a bit volume; texel ray ``k R^2 + j R +
+i`` owns ``W = ceil(R / 32)`` UInt32 words, bit ``b & 31`` of its word ``b >> 5`` is depth bin
+``b``; all VPLs of a batch share one buffer (the paper's "single render target").
 
-1. *Voxelize* (occupancy ``O``): set the bin of each occluder surface seen along a
-   texel ray.  ``voxelize_rays`` casts the exact texel-centre ray from the VPL
-   (the naive VSV population); ``voxelize_points`` splats random occluder surface
-   points, a different set per VPL (imperfect shadow maps, Ritschel et al. 2008).
-2. *Scan* along light rays, in parallel over rays and bit-parallel within a word:
-   ``S_b = O_0 | ... | O_{b-1}`` (exclusive prefix-OR), so bin ``b`` is in shadow iff
-   an occluder surface lies in an earlier bin (a surface never shadows its own bin).
-3. *Boundary mask* for the interpolation: ``E = OR_3x3(S) & ~AND_3x3(S)`` over the
-   texel's 3 x 3 neighbourhood at the same bin: where ``E`` is 0, every bilinear tap
-   agrees and the bilinear visibility equals the nearest-texel one.
+1. *Voxelize* (occupancy ``O``): the bin of each occluder surface seen along a texel ray, by the
+   exact texel-centre ray (``voxelize_rays``, naive VSVs) or by splatting random occluder surface
+   points, a different set per VPL (``voxelize_points``; imperfect shadow maps, Ritschel et al. 2008).
+2. *Scan* along light rays (bit-parallel within a word): ``S_b = O_0 | ... | O_{b-1}``, an
+   exclusive prefix-OR: bin ``b`` is in shadow iff an occluder lies in an earlier bin.
+3. *Boundary mask* ``E = OR_3x3(S) & ~AND_3x3(S)`` (3 x 3 texels, same bin): where ``E`` is 0
+   the bilinear visibility equals the nearest-texel one.
 
 Lookup of a point x for VPL p: light frame ``(X, Y, Z) = ((x-p).e_u, (x-p).e_v, (x-p).n)``,
 texel coordinates ``f_s = (X/Z - s_min) / (s_max - s_min) R`` (same for t), bin
@@ -73,16 +69,11 @@ def _set_bin(grid: LightGrid, k: Kit, words, vpl, i, j, r, active) -> None:
     dr.scatter_reduce(dr.ReduceOp.Or, words, bit, _word_index(grid, k, vpl, i, j, b), active)
 
 
-def empty_volume(grid: LightGrid, k: Kit, n_vpl: int):
-    """Zeroed bit-packed occupancy words for ``n_vpl`` VPL grids (n_vpl x texels x words)."""
-    return dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)
-
-
 def voxelize_rays(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_vpl: int):
     """Occupancy by exact ray casting: one ray per texel centre from each VPL,
     marking the entry bin of every occluder it meets.  P: Vec3 positions (width n_vpl).
     Returns UInt32 words (n_vpl R^2 W)."""
-    words = empty_volume(grid, k, n_vpl)
+    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     eu, ev, n = frame
@@ -133,7 +124,7 @@ def voxelize_points(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_
     texels whose centre lies inside its projected ellipse (radii ``rho / (Z ds)``,
     ``rho / (Z dt)`` texels); it marks them at its own distance bin.  No hole filling.
     Lanes are (VPL, point); returns UInt32 words (n_vpl R^2 W)."""
-    words = empty_volume(grid, k, n_vpl)
+    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     M, R = points_per_vpl, grid.R
@@ -203,10 +194,8 @@ def boundary_mask(S, grid: LightGrid, k: Kit):
 
 
 def interleave(S, E, k: Kit):
-    """One buffer with S and E of each word side by side (``SE[2 w] = S[w]``,
-    ``SE[2 w + 1] = E[w]``), so that the boundary flag read at every Riemann step shares
-    the cache line of the visibility word (about the cost of the plain lookup; a separate
-    E array is slower)."""
+    """One buffer with S and E of each word side by side (``SE[2 w] = S[w]``, ``SE[2 w + 1] =
+    E[w]``): the boundary flag read at every Riemann step shares the visibility word's cache line."""
     n = dr.width(S)
     SE = dr.zeros(k.UInt32, 2 * n)
     idx = dr.arange(k.UInt32, n) * 2
@@ -221,11 +210,14 @@ def bit_at(k: Kit, S, idx, b, active, stride: int = 1):
     return (w >> (b & 31)) & 1
 
 
+def _nearest_word(grid: LightGrid, k: Kit, vpl, c: GridCoords):
+    i, j = (k.UInt32(dr.clip(f, 0, grid.R - 1)) for f in (c.fs, c.ft))
+    return _word_index(grid, k, vpl, i, j, c.b)
+
+
 def lookup_point(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, stride: int = 1):
     """Visibility from the nearest texel: 1 - S_b (1 outside the grid)."""
-    i = k.UInt32(dr.clip(c.fs, 0, grid.R - 1))
-    j = k.UInt32(dr.clip(c.ft, 0, grid.R - 1))
-    return 1 - k.Float(bit_at(k, S, _word_index(grid, k, vpl, i, j, c.b), c.b, c.inside, stride))
+    return 1 - k.Float(bit_at(k, S, _nearest_word(grid, k, vpl, c), c.b, c.inside, stride))
 
 
 def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, active=True, stride: int = 1):
@@ -251,9 +243,7 @@ def lookup_point_edge(grid: LightGrid, k: Kit, SE, vpl, c: GridCoords):
     interleaved buffer of :func:`interleave`.  Where E is 0 the bilinear visibility equals
     the nearest one (Wyman and Dai 2013: "interpolate at shadow boundaries";
     :func:`~.gather.boundary_correction` adds the difference where E is 1)."""
-    i = k.UInt32(dr.clip(c.fs, 0, grid.R - 1))
-    j = k.UInt32(dr.clip(c.ft, 0, grid.R - 1))
-    idx = _word_index(grid, k, vpl, i, j, c.b) * 2
+    idx = _nearest_word(grid, k, vpl, c) * 2
     s = bit_at(k, SE, idx, c.b, c.inside)
     e = bit_at(k, SE, idx + 1, c.b, c.inside) != 0
     return 1 - k.Float(s), e

@@ -8,13 +8,11 @@ Volumes", sec. 1, after Heckbert and Herf 1997)::
 with p_k stratified on the quad: cell centres of a sqrt(K) x sqrt(K) grid when K is a
 square (optionally jittered inside each cell), Hammersley points otherwise.
 
-Every VPL k gets a grid of R x R x R voxels in its own light space (Wyman and Dai 2013, sec. 2):
-texel (i, j) is the perspective direction ``e_u s + e_v t + n`` with
-``(s, t)`` in ``[s_min, s_max] x [t_min, t_max]`` (a frustum fitted around all occluders,
-shared by all VPLs), depth bin ``b`` the distance ``r`` to the VPL, binned linearly with
-bins 0 .. R-2 covering the occluders' range ``[r_near, r_far]`` and bin R-1 everything
-beyond.  A point outside the frustum or nearer than ``r_near`` has no occluder between
-it and the VPL (the frustum is a cone containing every occluder), so it is visible.
+Every VPL k gets R x R x R voxels in its own light space (Wyman and Dai 2013, sec. 2): texel
+(i, j) is the direction ``e_u s + e_v t + n``, ``(s, t)`` in ``[s_min, s_max] x [t_min, t_max]``
+(one frustum around all occluders, shared by all VPLs); depth bins 0 .. R-2 split the occluders'
+distance range ``[r_near, r_far]`` linearly, bin R-1 holds everything beyond.  A point outside
+the frustum or nearer than ``r_near`` has no occluder before the VPL: it is visible.
 """
 from __future__ import annotations
 
@@ -92,32 +90,21 @@ class LightGrid:
 
 
 def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
-    """Fit the frustum and depth range of every VPL's grid around all occluders.
-
-    An occluder with light-frame extents x in [x_lo, x_hi], z in [z_lo, z_hi]
-    (z_lo > 0: in front of the light plane) has slopes x / z within
-    [min(x_lo / z_lo, x_lo / z_hi), max(x_hi / z_lo, x_hi / z_hi)]; the union over all
-    occluders and VPLs, padded by half a texel, is the shared frustum.
-    """
+    """The frustum and depth range of every VPL's grid around all occluders: an occluder with
+    light-frame extents x in [x_lo, x_hi], z in [z_lo, z_hi] (z_lo > 0) has slopes x / z in
+    [min(x_lo / z_lo, x_lo / z_hi), max(x_hi / z_lo, x_hi / z_hi)]; the union over occluders
+    and VPLs, padded by half a texel, is the shared frustum."""
     R = check_count(R, "resolution", 2)
     frame = scene.light.frame()
     if not scene.occluders:
         return LightGrid(R, -1.0, 1.0, -1.0, 1.0, 0.0, 1.0, empty=True)
-    s_lo, s_hi, t_lo, t_hi, r_lo, r_hi, z_lo = [], [], [], [], [], [], []
-    for o in scene.occluders:
-        x0, x1, y0, y1, z0, z1, rl, rh = o.light_frame_extent(vpls, frame)
-        s_lo.append(np.minimum(x0 / z0, x0 / z1))
-        s_hi.append(np.maximum(x1 / z0, x1 / z1))
-        t_lo.append(np.minimum(y0 / z0, y0 / z1))
-        t_hi.append(np.maximum(y1 / z0, y1 / z1))
-        r_lo.append(rl)
-        r_hi.append(rh)
-        z_lo.append(z0)
-    s_min, s_max = float(np.min(s_lo)), float(np.max(s_hi))
-    t_min, t_max = float(np.min(t_lo)), float(np.max(t_hi))
+    ext = np.array([o.light_frame_extent(vpls, frame) for o in scene.occluders])    # (occluder, 8, K)
+    x0, x1, y0, y1, z0, z1, r_lo, r_hi = (ext[:, i] for i in range(8))
+    s_min, s_max = float(np.min(np.minimum(x0 / z0, x0 / z1))), float(np.max(np.maximum(x1 / z0, x1 / z1)))
+    t_min, t_max = float(np.min(np.minimum(y0 / z0, y0 / z1))), float(np.max(np.maximum(y1 / z0, y1 / z1)))
     ps = 0.5 * (s_max - s_min) / R + 1e-6
     pt = 0.5 * (t_max - t_min) / R + 1e-6
     r_near, r_far = float(np.min(r_lo)), float(np.max(r_hi))
     pad = 1e-4 * (r_far - r_near) + 1e-7
     return LightGrid(R, s_min - ps, s_max + ps, t_min - pt, t_max + pt,
-                     max(r_near - pad, 0.0), r_far + pad, z_near=float(np.min(z_lo)))
+                     max(r_near - pad, 0.0), r_far + pad, z_near=float(np.min(z0)))

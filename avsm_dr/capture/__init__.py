@@ -293,15 +293,9 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     boxes = []
     if grid is not None and grid.occupied is not None:
         boxes.append(grid.occupied)
-    if scene.particles is not None:
-        c, r, _ = scene.particles.validate()
-        boxes.append(((c - r[:, None]).min(0), (c + r[:, None]).max(0)))
-    if scene.hair is not None:
-        s, r, _ = scene.hair.validate()
-        pts = s.reshape(-1, 3)
-        boxes.append((pts.min(0) - r, pts.max(0) + r))
-    for b in blockers:
-        boxes.append(b.bounds())
+    for item in (scene.particles, scene.hair, *blockers):
+        if item is not None:
+            boxes.append(item.bounds())
     if not boxes and grid is not None:
         boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
     if bounds is not None:

@@ -8,30 +8,21 @@ Transmittance from the light to a receiver ``x`` along the light path
          * prod_c f_c                                              hair crossings
          * [no opaque blocker meets (0, L)]                        blockers
 
-Modules, one concern each:
-
-* :mod:`.media`: the density grid as a Mitsuba ``heterogeneous`` medium
-  (``gridvolume``), and :func:`sample_density`, the NumPy statement of its convention;
-* :mod:`.content`: light paths, and the analytic factors (particles, hair, blockers);
-* :mod:`.tracking`: the grid term, by ratio tracking (Mitsuba, unbiased) or the
-  float64 ray march shared with :mod:`avsm_dr.shading`, and :func:`transmittance`;
-* :mod:`.images`: cameras and :func:`render_reference` (Mitsuba ``volpath``).
-
-Mitsuba is imported only inside the functions that use it, and the variant
-(``llvm_ad_rgb``, or ``cuda_ad_rgb`` when :func:`avsm_dr.backend.get_backend` is
-``'cuda'``) is chosen inside each call, never at import time.
+Modules: :mod:`.media` (the grid as a Mitsuba medium; :func:`sample_density`, the NumPy
+statement of its convention), :mod:`.content` (light paths; particles, hair and blockers),
+:mod:`.tracking` (the grid term by ratio tracking or ray march; :func:`transmittance`),
+:mod:`.images` (cameras; :func:`render_reference`).  Mitsuba is imported, and its variant chosen
+(:func:`mitsuba`), inside each call, never at import time.
 """
-from ..validation import points as check_points
 from .content import EPS_REL, MAX_CHUNK, blocked, light_paths
 from .images import (PLANE_OFFSET, camera_rays, check_camera, default_camera, receiver_plane_for,
                      render_reference)
-from .media import mitsuba, mitsuba_medium, mitsuba_volume, sample_density
+from .media import mitsuba, mitsuba_volume, sample_density
 from .tracking import MAX_LANES, MAX_SAMPLES, METHODS, raymarch_optical_depth, transmittance
 
 __all__ = [
     "transmittance", "render_reference", "raymarch_optical_depth", "sample_density",
-    "light_paths", "blocked", "check_points",
-    "mitsuba", "mitsuba_medium", "mitsuba_volume",
+    "light_paths", "blocked", "mitsuba", "mitsuba_volume",
     "default_camera", "check_camera", "camera_rays", "receiver_plane_for",
     "METHODS", "MAX_LANES", "MAX_SAMPLES", "MAX_CHUNK", "EPS_REL", "PLANE_OFFSET",
 ]

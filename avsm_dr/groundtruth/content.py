@@ -1,20 +1,13 @@
 """Light paths and the analytic part of the ground truth: particles, hair, opaque blockers.
 
-Paths: a point or spot light at ``P`` gives ``o = P``, ``L = |x - P|`` (the spot
-cone does not limit transmittance; shading applies it).  A directional light
-travelling along ``w`` gives ``o = x - L w`` with ``o`` outside every piece of
-content (light side), so the path crosses the whole volume in front of ``x``.
-
-Particles (``scene.particles``): exact analytic chords (uniform extinction in each
-sphere; overlapping spheres add).  Hair (``scene.hair``): the strand model of
-:mod:`avsm_dr.capture.hair` stated analytically: each strand is a chain of
-capsules (radius ``r`` around each polyline segment), one *crossing* is a
-maximal interval of the path inside the union of one strand's capsules, and a
-crossing ``[a, b]`` absorbs ``tau_c = -ln(1 - opacity)`` spread uniformly over it
-(partial when ``a < L < b``).  Cost O(receivers x capsules).
-Opaque blockers: ``T = 0`` when the open path ``(0, L - eps)`` passes through the
-blocker, ``eps = 1e-6 * scene scale``: a receiver lying on a blocker's lit
-surface stays lit, one on the far side is dark.
+Paths: :func:`light_paths` (a spot's cone does not limit transmittance; shading applies it).
+Particles: exact chords (uniform extinction per sphere; overlapping spheres add).  Hair: the
+strand model of :mod:`avsm_dr.capture.hair` stated analytically: a strand is a chain of capsules
+(radius ``r`` around each polyline segment), a *crossing* a maximal interval of the path inside
+one strand's capsules, absorbing ``tau_c = -ln(1 - opacity)`` spread uniformly over it (partial
+when ``a < L < b``); cost O(receivers x capsules).  Opaque blockers: ``T = 0`` when the open
+path ``(0, L - eps)`` meets one, ``eps = 1e-6 * scene scale`` (a receiver on a blocker's lit
+surface stays lit).
 """
 from __future__ import annotations
 
@@ -39,21 +32,21 @@ def check_scene(scene) -> dict:
     """Validated host copies of the scene's content; ValueError names the field.
 
     Returns dict(grid=(g, lo, hi) | None, particles=(c, r, s) | None,
-    hair=(strands, radius, opacity) | None, blockers=[...]).
+    hair=(strands, radius, opacity) | None, blockers=[...], boxes=[(lo, hi), ...]) with
+    ``boxes`` the world AABBs of every piece (each content type's ``bounds()``).
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
     check_light(scene.light, "scene.light")
     out: dict[str, Any] = {
-        "grid": None,
         "particles": None if scene.particles is None else scene.particles.validate(),
         "hair": None if scene.hair is None else scene.hair.validate(),
+        "grid": None if scene.density is None else check_grid(scene.density, scene.bbox),
+        "blockers": validate_blockers(scene.blockers or []),
     }
-    if scene.density is not None:
-        out["grid"] = check_grid(scene.density, scene.bbox)
-    blockers = validate_blockers(scene.blockers or [])
-    out["blockers"] = blockers
-    if out["grid"] is None and out["particles"] is None and out["hair"] is None and not blockers:
+    out["boxes"] = [] if out["grid"] is None else [out["grid"][1:]]
+    out["boxes"] += [b.bounds() for b in (scene.particles, scene.hair, *out["blockers"]) if b is not None]
+    if not out["boxes"]:
         raise ValueError("scene: has no density grid, particles, hair or opaque blockers")
     return out
 
@@ -61,24 +54,8 @@ def check_scene(scene) -> dict:
 # ======================================================================= geometry
 def content_sphere(content) -> tuple[np.ndarray, float]:
     """(centre, radius) of a sphere enclosing every piece of (checked) content."""
-    lo, hi = [], []
-    if content["grid"] is not None:
-        lo.append(content["grid"][1])
-        hi.append(content["grid"][2])
-    if content["particles"] is not None:
-        c, r, _ = content["particles"]
-        lo.append((c - r[:, None]).min(0))
-        hi.append((c + r[:, None]).max(0))
-    if content["hair"] is not None:
-        st, rad, _ = content["hair"]
-        pts = st.reshape(-1, 3)
-        lo.append(pts.min(0) - rad)
-        hi.append(pts.max(0) + rad)
-    for b in content["blockers"]:
-        b_lo, b_hi = b.bounds()
-        lo.append(b_lo)
-        hi.append(b_hi)
-    lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
+    lo = np.min([b[0] for b in content["boxes"]], axis=0)
+    hi = np.max([b[1] for b in content["boxes"]], axis=0)
     return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 

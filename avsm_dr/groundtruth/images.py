@@ -3,8 +3,7 @@
 :func:`render_reference` renders with ``volpath``; :mod:`avsm_dr.shading` draws the same
 plane from the same camera (:func:`camera_rays`, Mitsuba's own sensor) with shadows
 from any representation, so the two images compare pixel by pixel.  A camera is an
-:class:`avsm_dr.camera.PinholeCamera` (the package's one camera model) or, as before, a dict
-``(origin, target, up, fov)`` (fov in degrees along x, :meth:`PinholeCamera.of`);
+:class:`avsm_dr.camera.PinholeCamera` or a dict of its fields (:meth:`PinholeCamera.of`);
 :func:`default_camera` picks one.
 """
 from __future__ import annotations
@@ -17,7 +16,7 @@ import numpy as np
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera
 from ..geometry import check_bbox, orthonormal_basis, ray_box
-from ..scene import Scene, square_to_world
+from ..scene import OpaqueBox, Scene, square_to_world
 from .content import check_scene, to_light
 from .media import check_grid, medium_dict, mitsuba
 from .tracking import default_step, march
@@ -30,7 +29,7 @@ MAX_RAYS = 1 << 24
 
 
 def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = None,
-                   direction=None) -> dict:
+                   direction=None) -> PinholeCamera:
     """A camera looking at the receiver plane's centre from the light's side of the plane.
 
     The view direction v (from the plane centre to the camera) is ``direction`` if given;
@@ -41,8 +40,8 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
     0.05 per radian away from v0 (prefer frontal views).  The distance frames the square
     with a 15 % margin (``distance`` overrides); a camera inside the volume's box is
     moved out along v with the fov narrowed to keep the framing.
-    Returns dict(origin, target, up, fov) (fov in degrees along x): the keyword arguments of
-    a :class:`~avsm_dr.camera.PinholeCamera` (:meth:`~avsm_dr.camera.PinholeCamera.of`).
+    Returns a :class:`~avsm_dr.camera.PinholeCamera` of 32 x 32 pixels (fov in degrees along x;
+    :meth:`~avsm_dr.camera.PinholeCamera.of` resizes it).
     """
     fov = V.real(fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
     if distance is not None:
@@ -71,36 +70,30 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
         return c + dist * v, f
 
     v0 = 2 * n + l
-    v0 /= np.linalg.norm(v0)
+    v = v0 = v0 / np.linalg.norm(v0)
     if direction is not None:
-        cands = [direction]
-    elif grid is None:
-        cands = [v0]
-    else:
-        cands = [v0] + [math.cos(a) * n + math.sin(a) * (math.cos(p) * u + math.sin(p) * w)
-                        for a in np.radians([25.0, 40.0, 50.0, 60.0])
-                        for p in np.radians(np.arange(0.0, 360.0, 45.0))]
-    best = None
-    if len(cands) > 1:
+        v = direction
+    elif grid is not None:                 # the candidate whose view of the plane is least hidden
         g, lo, hi = grid
         a, b = np.meshgrid(np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5))
         targets = c + half * (a.reshape(-1, 1) * u + b.reshape(-1, 1) * w)
         step = default_step(g, lo, hi, 1 / 2)
-        for v in cands:
-            origin, f = place(v)
+        best = None
+        for cand in [v0] + [math.cos(a) * n + math.sin(a) * (math.cos(p) * u + math.sin(p) * w)
+                            for a in np.radians([25.0, 40.0, 50.0, 60.0])
+                            for p in np.radians(np.arange(0.0, 360.0, 45.0))]:
+            origin, f = place(cand)
             dv = targets - origin
             L = np.linalg.norm(dv, axis=1)
             tau, _ = march(g.astype(np.float64), lo, hi, np.broadcast_to(origin, dv.shape),
                            dv / L[:, None], L, step)
-            score = float(np.mean(1 - np.exp(-tau))) + 0.05 * math.acos(np.clip(v @ v0, -1, 1))
+            score = float(np.mean(1 - np.exp(-tau))) + 0.05 * math.acos(np.clip(cand @ v0, -1, 1))
             if best is None or score < best[0] - 1e-12:
-                best = (score, v)
+                best = (score, cand)
         v = best[1]
-    else:
-        v = cands[0]
     origin, f = place(v)
     up = w if abs(w @ v) < 0.9 else u
-    return {"origin": origin, "target": c, "up": up, "fov": float(f)}
+    return PinholeCamera(origin, c, up, float(f))
 
 
 def receiver_plane(scene) -> tuple[np.ndarray, np.ndarray, float]:
@@ -176,16 +169,12 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
                      max_depth: int = 2, seed: int = 0) -> np.ndarray:
     """Mitsuba ``volpath`` image (height, width) float64 of the volume and the receiver plane.
 
-    Receiver plane: a two-sided diffuse square (``reflectance``) of ``scene.receiver_plane``
-    oriented by :func:`~avsm_dr.geometry.orthonormal_basis`; volume: the heterogeneous medium of ``scene.density``
-    with single-scattering ``albedo`` (0 = purely absorbing) inside a null-BSDF cube on
-    ``scene.bbox``; blockers: black (reflectance 0) spheres, cubes and rectangles, so they
-    cast shadows but reflect nothing.  Light: 'directional' / 'spot' / 'point' with the
-    scene light's irradiance / intensity.  Camera: :func:`default_camera` unless given
-    (a :class:`~avsm_dr.camera.PinholeCamera` or a dict origin, target, up, fov).  Box pixel
-    filter; ``max_depth = 2`` is direct lighting (single scattering in the medium when
-    albedo > 0).  Returns the red channel (all channels are equal: everything is grey).
-    Particles and hair are not rendered (ValueError).
+    The receiver plane is a two-sided diffuse square (``reflectance``, axes of
+    :func:`~avsm_dr.geometry.orthonormal_basis`); the volume the medium of ``scene.density``
+    (single-scattering ``albedo``, 0 = absorbing) in a null-BSDF cube on ``scene.bbox``; blockers
+    are black (they cast shadows, reflect nothing); the light is ``scene.light.to_mitsuba``; the
+    camera :func:`default_camera` unless given.  Box pixel filter; ``max_depth = 2`` is direct
+    lighting.  Returns the red channel (everything is grey).  Particles and hair: ValueError.
     """
     content = check_scene(scene)
     width, height = check_size(width, height)
@@ -215,13 +204,8 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
     }
     if content["grid"] is not None:
         grid, lo, hi = content["grid"]
-        d["volume"] = {
-            "type": "cube",
-            "to_world": (mi.ScalarTransform4f().translate(((lo + hi) / 2).tolist())
-                         @ mi.ScalarTransform4f().scale(((hi - lo) / 2).tolist())),
-            "bsdf": {"type": "null"},
-            "interior": medium_dict(mi, grid, lo, hi, albedo),
-        }
+        d["volume"] = dict(OpaqueBox(lo, hi).to_mitsuba(mi, {"type": "null"}),
+                           interior=medium_dict(mi, grid, lo, hi, albedo))
     for i, b in enumerate(content["blockers"]):
         d[f"blocker{i}"] = b.to_mitsuba(mi, black)
     img = mi.render(mi.load_dict(d), spp=int(spp), seed=int(seed))

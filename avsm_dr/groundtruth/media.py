@@ -1,15 +1,13 @@
 """Mitsuba media of a density grid, and the NumPy statement of their lookup convention.
 
-The grid the capture marches becomes a Mitsuba ``heterogeneous`` medium whose ``sigma_t``
-is a ``gridvolume`` (``mi.VolumeGrid`` of the (z, y, x) float32 array, ``to_world``
-mapping the unit cube onto ``bbox``, ``filter_type='trilinear'``, ``scale = 1``).
-:func:`sample_density` states that convention in NumPy (cell-centred, trilinear,
-clamped to the edge inside the box, 0 outside); the tests check it against Mitsuba.
-
-Mitsuba is imported inside the functions that need it (a GPU host may have Dr.Jit
-without Mitsuba); the variant is chosen per call (:func:`mitsuba`), never at import.
+The grid becomes a ``heterogeneous`` medium whose ``sigma_t`` is a ``gridvolume`` (the (z, y, x)
+float32 array, ``to_world`` mapping the unit cube onto ``bbox``, trilinear, ``scale = 1``): the
+convention of :mod:`avsm_dr.scene`, which :func:`sample_density` states in NumPy (the tests check
+it against Mitsuba).  Mitsuba is imported, and the variant chosen (:func:`mitsuba`), per call.
 """
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -49,12 +47,8 @@ def grid_to_world(mi, lo, hi):
 
 
 def _volume_dict(mi, grid, lo, hi) -> dict:
-    return {
-        "type": "gridvolume",
-        "grid": mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32)),
-        "to_world": grid_to_world(mi, lo, hi),
-        "filter_type": "trilinear",
-    }
+    return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32)),
+            "to_world": grid_to_world(mi, lo, hi), "filter_type": "trilinear"}
 
 
 def medium_dict(mi, grid, lo, hi, albedo: float) -> dict:
@@ -64,30 +58,17 @@ def medium_dict(mi, grid, lo, hi, albedo: float) -> dict:
 
 
 def mitsuba_volume(density, bbox):
-    """The ``gridvolume`` for ``density`` (nz, ny, nx) over ``bbox`` (trilinear).
-
-    Mitsuba clamps lookups to the edge even outside the box; the medium built by
-    :func:`mitsuba_medium` is only ever evaluated inside it.
-    """
+    """The ``gridvolume`` for ``density`` (nz, ny, nx) over ``bbox`` (trilinear; Mitsuba clamps
+    lookups to the edge even outside the box, where its media are never evaluated)."""
     mi = mitsuba()
     grid, lo, hi = check_grid(density, bbox)
     return mi.load_dict(_volume_dict(mi, grid, lo, hi))
 
 
-def mitsuba_medium(scene, albedo: float = 0.0):
-    """Mitsuba ``heterogeneous`` medium of ``scene.density`` (sigma_t = density, scale 1)."""
-    mi = mitsuba()
-    grid, lo, hi = check_grid(scene.density, scene.bbox)
-    return mi.load_dict(medium_dict(mi, grid, lo, hi, V.real(albedo, "albedo", 0.0, 1.0)))
-
-
 def sample_density(density, bbox, points) -> np.ndarray:
-    """sigma_t at world ``points`` (K, 3): (K,) float64.
-
-    Voxel (k, j, i) sits at ``lo + ((i, j, k) + 0.5) * (hi - lo) / (nx, ny, nz)``;
-    trilinear in between, clamped to the edge inside the box, 0 outside it
-    (the Mitsuba ``gridvolume`` convention, see :mod:`avsm_dr.scene`).
-    """
+    """sigma_t at world ``points`` (K, 3): (K,) float64, voxel (k, j, i) at ``lo + ((i, j, k) +
+    0.5) * (hi - lo) / (nx, ny, nz)``, trilinear between, clamped to the edge inside the box, 0
+    outside (:mod:`avsm_dr.scene`)."""
     g, lo, hi = check_grid(density, bbox)
     return sample_grid(g.astype(np.float64), lo, hi, V.points(points))
 
@@ -103,14 +84,8 @@ def sample_grid(g, lo, hi, p) -> np.ndarray:
     f = u - i0
     i1 = np.minimum(i0 + 1, n.astype(np.int64) - 1)
     out = np.zeros(p.shape[0])
-    for cz in (0, 1):
-        kz = i1[:, 2] if cz else i0[:, 2]
-        wz = f[:, 2] if cz else 1 - f[:, 2]
-        for cy in (0, 1):
-            ky = i1[:, 1] if cy else i0[:, 1]
-            wy = f[:, 1] if cy else 1 - f[:, 1]
-            for cx in (0, 1):
-                kx = i1[:, 0] if cx else i0[:, 0]
-                wx = f[:, 0] if cx else 1 - f[:, 0]
-                out += wz * wy * wx * g[kz, ky, kx]
+    for cz, cy, cx in itertools.product((0, 1), repeat=3):
+        kz, ky, kx = (i1[:, a] if c else i0[:, a] for a, c in ((2, cz), (1, cy), (0, cx)))
+        wz, wy, wx = (f[:, a] if c else 1 - f[:, a] for a, c in ((2, cz), (1, cy), (0, cx)))
+        out += wz * wy * wx * g[kz, ky, kx]
     return np.where(inside, out, 0.0)

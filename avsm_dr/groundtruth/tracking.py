@@ -1,26 +1,20 @@
 """Transmittance along light paths through the density grid: ratio tracking and ray march.
 
-Grid term, ``method='ratio_tracking'`` (Novak, Selle and Jarosz, "Residual ratio
-tracking for estimating attenuation in participating media", 2014, sec. 3):
-tentative collisions ``s_i`` are drawn by Mitsuba's ``Medium.sample_interaction``
-with the constant majorant ``mu = f * max(sigma_t)`` and weighted
-``T_hat = prod_i (1 - sigma_t(s_i) / mu)``; ``E[T_hat] = T`` exactly (unbiased), and the
-standard error is the sample standard deviation over ``spp`` independent paths divided
-by ``sqrt(spp)``.  Mitsuba 3.9.1 uses exactly ``max(sigma_t)`` as majorant (no safety
-factor), so inside uniform regions the weights would be 0 or 1 (delta tracking,
-variance ``T (1 - T)``).  We trace in the ray parameter ``u = f s`` (direction
-``d / f``), which makes Mitsuba's free-flight sampling use ``f * max`` per world unit,
-and weight with ``1 - sigma_t / (f * max)``; ``majorant_factor = f = 2`` by default
-(variance ``T^2 (exp(tau / f) - 1)`` in a homogeneous medium).
+Grid term, ``method='ratio_tracking'`` (Novak, Selle and Jarosz, "Residual ratio tracking for
+estimating attenuation in participating media", 2014, sec. 3): collisions ``s_i`` drawn by
+Mitsuba's ``Medium.sample_interaction`` with the majorant ``mu = f * max(sigma_t)`` weigh
+``T_hat = prod_i (1 - sigma_t(s_i) / mu)``, ``E[T_hat] = T`` (unbiased); stderr = sample std
+over ``spp`` independent paths / ``sqrt(spp)``.  Mitsuba's own majorant is ``max(sigma_t)``
+(delta tracking in uniform regions, variance ``T (1 - T)``), so rays are traced in ``u = f s``
+(direction ``d / f``); ``majorant_factor = f = 2`` by default (variance ``T^2 (exp(tau / f) - 1)``
+in a homogeneous medium).
 
-Grid term, ``method='raymarch'`` (:func:`march`, also the single-scattering integral
-of :mod:`avsm_dr.shading`): deterministic midpoint rule in float64 with step ``h``
-(default one eighth of the smallest voxel side).  The trilinear field is a cubic
-polynomial along the ray inside each lattice cell, so the error in optical depth is
-at most ``L h^2 max|sigma''| / 24`` plus ``h^2 |jump sigma'| / 8`` per lattice plane
-crossed (O(h^2)); ``stderr`` is returned as zeros.  Samples are processed in chunks
-of :data:`MAX_CHUNK` whatever the rays (a chunk may end inside a ray), so memory is
-bounded; a step needing more than :data:`MAX_SAMPLES` samples in one call is refused.
+Grid term, ``method='raymarch'`` (:func:`march`, also the single-scattering integral of
+:mod:`avsm_dr.shading`): float64 midpoint rule with step ``h`` (default: smallest voxel side / 8).
+The trilinear field is cubic along the ray in each lattice cell, so the optical-depth error is at
+most ``L h^2 max|sigma''| / 24`` plus ``h^2 |jump sigma'| / 8`` per lattice plane crossed;
+``stderr`` is zeros.  Samples go in chunks of :data:`MAX_CHUNK` (memory bounded); a step needing
+more than :data:`MAX_SAMPLES` samples in one call is refused.
 """
 from __future__ import annotations
 
@@ -113,12 +107,9 @@ def march(g, lo, hi, o, d, L, step: float, integrand=None):
 
 
 def raymarch_optical_depth(density, bbox, o, d, L, step: float | None = None) -> np.ndarray:
-    """Midpoint-rule optical depth of the grid along rays o + t d, t in [0, L] (float64).
-
-    o, d: (K, 3) origins and directions (normalised here); L: (K,) lengths >= 0.
-    Each ray is clipped to the box and split into ``ceil(length / step)`` equal
-    pieces (<= step); default step = min voxel side / 8.  Error: see the module docstring.
-    """
+    """:func:`march`'s optical depth of the grid along rays o + t d, t in [0, L] (float64): o, d
+    (K, 3) origins and directions (normalised here), L (K,) lengths >= 0; default step = min
+    voxel side / 8."""
     g, lo, hi = check_grid(density, bbox)
     o = V.points(o, "o")
     d = V.points(d, "d")
@@ -203,13 +194,11 @@ def transmittance(scene: Scene, points, spp: int = 256, seed: int = 0, method: s
                   step: float | None = None, majorant_factor: float = 2.0):
     """Transmittance from ``scene.light`` to each point: ``(mean, stderr)``, (K,) float64 NumPy.
 
-    points: (K, 3) world positions.  spp: independent ratio-tracking paths per point
-    (1 .. :data:`MAX_LANES`; ``stderr`` is inf for spp = 1).  seed: integer RNG seed
-    (results are independent of batching).  method: 'ratio_tracking' (Mitsuba, unbiased)
-    or 'raymarch' (deterministic float64 midpoint rule with ``step``; stderr = 0; at most
-    :data:`MAX_SAMPLES` samples).  majorant_factor: f >= 1, the tracking majorant is
-    f * max(density).  Particles, hair and blockers are analytic factors
-    (:mod:`avsm_dr.groundtruth.content`).
+    points: (K, 3) world positions.  spp: ratio-tracking paths per point (1 .. :data:`MAX_LANES`;
+    ``stderr`` is inf for spp = 1).  seed: RNG seed (results do not depend on batching).  method:
+    'ratio_tracking' (unbiased) or 'raymarch' (float64 midpoint rule with ``step``, stderr 0), as
+    the module docstring states.  majorant_factor: f >= 1.  Particles, hair and blockers are
+    analytic factors (:mod:`avsm_dr.groundtruth.content`).
     """
     content = check_scene(scene)
     p = V.points(points)

@@ -39,7 +39,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from avsm_dr import builtin_scenes, capture, describe, kinds
+from avsm_dr import builtin_scenes, capture, describe, kinds, procedural
 from . import scenes as S
 from .._headline import num
 from .._study import Study
@@ -120,7 +120,7 @@ def _resolve(P: dict, quick: bool) -> dict:
 def _animations(P, seed, light_names):
     """{(setting, light name): frame function} for one seed and the named lights."""
     from avsm_dr.fluid import simulate_plume_sequence
-    nz, ny, nx = builtin_scenes._grid_shape(*S.PLUME_BOX, P["size"])
+    nz, ny, nx = procedural.grid_box(*S.PLUME_BOX, P["size"])[0]
     seq = simulate_plume_sequence((nz, ny, nx), frames=P["frames"], start=P["start_steps"], seed=seed,
                                   progress=True) * np.float32(P["density_scale"])
     base0 = S.plume_scene(seq.max(axis=0), builtin_scenes.DirectionalLight(direction=(1.0, -0.3, 0.25)),
