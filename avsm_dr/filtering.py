@@ -16,26 +16,22 @@ to the edge.
   sigma = radius / 2, c_0 the centre of the texel holding p (weight 1, so the sum never
   underflows to 0 however small the radius: a tiny radius becomes the point filter).
 
-Precision: coordinates are split on the host in float64 into an integer texel (int64,
-clamped to the map before it reaches a 32-bit device integer) and the offset inside
-it, so texel selection is exact on any map and coordinates far outside it (>= 2^31)
-clamp to the edge instead of wrapping.
-
-Cost: one texel lookup per tap, ``K (2r+1)^2`` for box / gaussian, evaluated as wide
-batches of (receiver, tap) lanes of at most :data:`LANES_PER_BATCH` lanes: one kernel per
-batch whatever the radius (no trace growing as r^2).  ``radius`` must be a finite number
-``> 0`` and at most ``max(width, height)``: a larger support only re-weights the
-clamped edge texels.
+Coordinates are split on the host in float64 into an integer texel (int64, clamped to the
+map before it reaches a 32-bit device integer) and the offset inside it, so texel selection
+is exact on any map and coordinates far outside it (>= 2^31) clamp to the edge.  Box and
+gaussian evaluate ``K (2r+1)^2`` (receiver, tap) lanes in batches of at most
+:data:`LANES_PER_BATCH` (one kernel per batch whatever the radius).  ``radius``: finite,
+``> 0`` and at most ``max(width, height)`` (a larger support only re-weights edge texels).
 """
 from __future__ import annotations
 
 import math
-from numbers import Integral, Real
 
 import drjit as dr
 import numpy as np
 
 from . import _arrays as A
+from . import validation as V
 
 FILTERS = ("point", "bilinear", "box", "gaussian")
 #: (receiver, tap) lanes evaluated per batch (bounds the temporary memory: ~50 bytes/lane).
@@ -47,18 +43,12 @@ GAUSSIAN_INV2S2_MAX = 1e30
 
 def check_size(value, name: str) -> int:
     """``width`` / ``height``: an integer >= 1 (not bool), else ValueError naming it."""
-    ok = isinstance(value, Integral) and not isinstance(value, (bool, np.bool_)) and int(value) >= 1
-    if not ok:
-        raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
-    return int(value)
+    return V.integer(value, name, 1)
 
 
 def check_radius(radius, width: int | None = None, height: int | None = None) -> float:
     """``radius``: a finite real number > 0 (not bool / str), at most max(width, height)."""
-    ok = isinstance(radius, Real) and not isinstance(radius, (bool, np.bool_))
-    r = float(radius) if ok else math.nan
-    if not (math.isfinite(r) and r > 0):
-        raise ValueError(f"radius: expected a finite real number > 0, got {radius!r}")
+    r = V.real(radius, "radius", 0, open_min=True)
     if width is not None and height is not None and r > max(width, height):
         raise ValueError(f"radius: expected <= max(width, height) = {max(width, height)} (a larger "
                          f"kernel only re-weights the clamped edge texels), got {radius!r}")

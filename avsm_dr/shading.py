@@ -37,7 +37,7 @@ from . import validation as V
 from .groundtruth.content import check_scene, particles_tau, to_light
 from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for
 from .groundtruth.tracking import default_step, march, transmittance as gt_transmittance
-from .scene import OpaquePlane, Scene, SpotLight, check_light
+from .scene import OpaquePlane, Scene, check_light
 
 #: Points per call of a light-transmittance callable (host memory bound; the ground truth
 #: marches at most ``groundtruth.MAX_SAMPLES`` = 2^28 samples per call, ~1000 per point).
@@ -45,13 +45,6 @@ CHUNK = 1 << 18
 
 
 # ================================================================== lighting
-def spot_falloff(light: SpotLight, points) -> np.ndarray:
-    """(K,) Mitsuba ``spot`` profile in [0, 1] at ``points`` (K, 3)."""
-    if not isinstance(light, SpotLight):
-        raise ValueError(f"light: expected a SpotLight, got {type(light).__name__}")
-    return light.falloff(V.points(points, allow_empty=True))
-
-
 def irradiance(light, points) -> np.ndarray:
     """(K,) unshadowed irradiance E on a surface facing the light at ``points``
     (:meth:`~avsm_dr.scene.Light.irradiance_at`)."""

@@ -47,7 +47,7 @@ from .. import validation as V
 from ..capture import ORDERS as CAPTURE_ORDERS
 from ..capture.opaque_map import compose
 from ..metrics import THRESHOLD, error_stats
-from ..receivers import BYTES_PER_POINT
+from ..receivers import BYTES_PER_POINT, NAMES, receiver_sets
 from ..representations import REGISTRY, Representation, describe
 from ..scene import Scene
 from .configuration import Configuration
@@ -62,7 +62,7 @@ from .timing import measure
 METRICS = ("receiver_rmse", "depth_l2", "timing")
 #: Receiver sets (:mod:`avsm_dr.receivers`): by contribution inside the medium, on the
 #: receiver plane, the scene's own points.
-RECEIVER_SETS = ("in_volume", "surface", "uniform")
+RECEIVER_SETS = NAMES
 OPAQUE_MODES = ("inline", "separate")
 #: Receivers and taps of ``error_curves``' full mode (its quick mode: 512, 256, 128).
 N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
@@ -187,23 +187,9 @@ def _scene_for(spec, cfg: Configuration) -> Scene:
 
 
 def _receiver_points(scene, receivers, cfg, n_volume, n_surface) -> dict:
-    from .. import receivers as R
     if isinstance(receivers, dict):
         return {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()}
-    make = {"in_volume": lambda: R.in_volume(scene, n_volume, cfg.seed),
-            "surface": lambda: R.surface(scene, n_surface, cfg.seed),
-            "uniform": lambda: V.points(scene.receivers, "receivers", allow_empty=True)}
-    sets = {k: make[k]() for k in receivers}
-    return {k: v for k, v in sets.items() if v.shape[0] > 0}      # e.g. no receiver plane: no surface set
-
-
-def _capture(scene, resolution, order, opaque, seed):
-    """``ad.capture`` in insertion order ``order`` ('random': shuffled with the configuration's
-    seed) -> (capture, the order recorded by its segments)."""
-    from .. import capture
-    cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
-                  **({"order_seed": seed} if order == "random" else {}))
-    return cap, cap.order
+    return receiver_sets(scene, n_volume, n_surface, cfg.seed, names=receivers)
 
 
 def _synced_build(cls, segments, params):
@@ -218,6 +204,24 @@ def _synced_build(cls, segments, params):
     if arrays:
         dr.eval(*arrays)
     return rep
+
+
+def _capture(scene, resolution, order, opaque, seed):
+    """``ad.capture`` in insertion order ``order`` ('random': shuffled with the configuration's
+    seed) -> (capture, the order recorded by its segments)."""
+    from .. import capture
+    cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
+                  **({"order_seed": seed} if order == "random" else {}))
+    return cap, cap.order
+
+
+def _timed(fn, want: bool, repeats: int):
+    """(result, median wall seconds, first-call seconds) of ``fn`` (:func:`~.timing.measure`,
+    one warm-up call); NaN times and one call when not ``want``."""
+    if not want:
+        return fn(), float("nan"), float("nan")
+    t = measure({"fn": fn}, repeats=repeats, warmup=1)["fn"]
+    return t["out"], t["wall_s"], t["first_s"]
 
 
 def _rms(x) -> float:
@@ -351,21 +355,12 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
     for m in meths:
         params = sub.params(m.cls, m.params) if subset else m.params
 
-        def make(m=m, params=params):
-            return _synced_build(m.cls, segs, params)
-        if want_time:
-            t = measure({"build": make}, repeats=build_repeats, warmup=1)["build"]
-            rep, build_s, first_s = t["out"], t["wall_s"], t["first_s"]
-        else:
-            rep, build_s, first_s = make(), float("nan"), float("nan")
+        rep, build_s, first_s = _timed(lambda m=m, params=params: _synced_build(m.cls, segs, params), want_time,
+                                       build_repeats)
         target = Built(rep, sub.remap, od) if subset else rep
         l2 = depth_l2(compose(rep, od), segs, exact=ex_curve, n_depths=n_depths) if want_l2 else float("nan")
         for s, p in probes.items():
-            if want_time:
-                t = measure({"lookup": lambda p=p: p.lookup(target)}, repeats=LOOKUP_REPEATS, warmup=1)["lookup"]
-                est, lookup_s = t["out"], t["wall_s"]
-            else:
-                est, lookup_s = p.lookup(target), float("nan")
+            est, lookup_s, _ = _timed(lambda p=p: p.lookup(target), want_time, LOOKUP_REPEATS)
             row = dict(method=m.label, kind=m.kind, params=dict(m.params), scene=head["scene"], seed=head["seed"],
                        light=head["light"], receivers=s, **{k: head[k] for k in ("order", "resolution", "opaque")},
                        n_receivers=p.k, n_decomp=p.n_decomp)

@@ -27,21 +27,14 @@ import dataclasses
 
 import numpy as np
 
-from .. import groundtruth
 from ..capture.opaque_map import compose
 from ..filtering import split_coordinates
+from ..receivers import marched
 
 
 def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
     """(K,) float64 true transmittance (module docstring) at world points."""
-    p = np.asarray(points, np.float64)
-    if p.shape[0] == 0:
-        return np.zeros(0)
-    step = None
-    if scene.density is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
-        step = step_fraction * float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1])))
-    return groundtruth.transmittance(scene, p, method="raymarch", step=step)[0]
+    return marched(scene, points, step_fraction)
 
 
 class Probe:
