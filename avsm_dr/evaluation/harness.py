@@ -36,6 +36,7 @@ build_first_s                              the first build, JIT compilation incl
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import inspect
 from numbers import Integral
@@ -70,12 +71,7 @@ N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
 LOOKUP_REPEATS = 3
 
 
-@dataclasses.dataclass
-class _Method:
-    label: str
-    cls: type
-    params: dict
-    kind: str
+_Method = collections.namedtuple("_Method", "label cls params kind")
 
 
 def _methods(methods) -> list[_Method]:
@@ -87,16 +83,10 @@ def _methods(methods) -> list[_Method]:
     for label, spec in methods.items():
         if not isinstance(label, str) or not label:
             raise ValueError(f"methods: labels must be non-empty strings, got {label!r}")
-        if isinstance(spec, (str, type)):
-            kind, params = spec, {}
-        elif isinstance(spec, (tuple, list)) and len(spec) == 2:
-            kind, params = spec
-        else:
-            kind, params = None, None
+        pair = (spec, {}) if isinstance(spec, (str, type)) else spec
+        kind, params = pair if isinstance(pair, (tuple, list)) and len(pair) == 2 else (None, None)
         preset = isinstance(params, str) and params == "preset"
-        if preset:
-            params = {}
-        if not isinstance(params, dict):
+        if not (preset or isinstance(params, dict)):
             raise ValueError(f"methods[{label!r}]: expected (kind, params dict or 'preset'), got {spec!r}")
         if isinstance(kind, str):
             try:
@@ -129,15 +119,12 @@ def _scenes(scenes) -> list[tuple[str, object]]:
     known = getattr(builtin_scenes, "SCENES", {})
     out = []
     for s in scenes:
-        if isinstance(s, str):
-            if s not in known:
-                raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
-                                 f"{V.did_you_mean(s, known)}")
-            out.append((s, s))
-        elif isinstance(s, Scene):
-            out.append((s.name, s))
-        else:
+        if not isinstance(s, (str, Scene)):
             raise ValueError(f"scenes: expected built-in scene names or Scene objects, got {s!r}")
+        if isinstance(s, str) and s not in known:
+            raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
+                             f"{V.did_you_mean(s, known)}")
+        out.append((s, s) if isinstance(s, str) else (s.name, s))
     if not out:
         raise ValueError("scenes: no scene given")
     names = [n for n, _ in out]
@@ -156,12 +143,9 @@ def _configs(configurations) -> list[Configuration]:
                          f"got {configurations!r}")
     out = []
     for c in configurations:
-        if isinstance(c, Configuration):
-            out.append(c)
-        elif isinstance(c, (tuple, list)) and len(c) == 2:
-            out.append(Configuration(*c))
-        else:
+        if not (isinstance(c, Configuration) or isinstance(c, (tuple, list)) and len(c) == 2):
             raise ValueError(f"configurations: expected Configuration or (seed, light) items, got {c!r}")
+        out.append(c if isinstance(c, Configuration) else Configuration(*c))
     if not out:
         raise ValueError("configurations: none given")
     return out
@@ -242,8 +226,9 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
              resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
              build_repeats: int = 1, progress: bool = True) -> Table:
-    """Measure ``methods`` on ``scenes`` in ``configurations``: one row per method x scene x
-    configuration x resolution x order x opaque mode x receiver set (columns: module docstring).
+    """Measure ``methods`` on ``scenes`` in ``configurations``: a :class:`Table` of one row per
+    method x scene x configuration x resolution x order x opaque mode x receiver set (columns:
+    module docstring).
 
     Parameters
     ----------
@@ -278,10 +263,9 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
         'inline' | 'separate' (or both): blockers in the map or in their own depth map;
         'separate' runs only for scenes with blockers.
     subset
-        build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`,
-        faster at high resolution): the lookups of a whole-map build for kinds that work
-        per texel, given the map's global depth range (``error_curves`` checks every
-        built-in kind); ``bytes`` and ``depth_l2`` then cover those texels.
+        build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`: the
+        lookups of a whole-map build for kinds that work per texel); ``bytes`` and
+        ``depth_l2`` then cover those texels.
     n_depths
         depths per texel of ``depth_l2``.
     build_repeats
@@ -292,8 +276,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     Returns
     -------
     Table
-        one row per method x scene x configuration x resolution x order x opaque mode x
-        receiver set.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
     if not isinstance(receivers, dict):

@@ -29,6 +29,16 @@ def jit_kernels(history) -> list:
     return [k for k in history if k["type"] == dr.KernelType.JIT]
 
 
+def _run(fn):
+    """(result, wall seconds, CPU seconds, JIT launches) of one synced call of ``fn``."""
+    dr.kernel_history()                                           # clear
+    c0, t0 = time.process_time(), time.perf_counter()
+    out = fn()
+    sync(out)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return out, wall, cpu, jit_kernels(dr.kernel_history())
+
+
 def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
     """Time each callable in ``fns`` (name -> fn): a first call (JIT compile included),
     ``warmup - 1`` more, then ``repeats`` rounds run interleaved across ``fns`` (so load
@@ -43,12 +53,7 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
     res = {}
     try:
         for name, fn in fns.items():
-            dr.kernel_history()                                   # clear
-            c0, t0 = time.process_time(), time.perf_counter()
-            out = fn()
-            sync(out)
-            first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
-            jit = jit_kernels(dr.kernel_history())
+            out, first, first_cpu, jit = _run(fn)
             res[name] = dict(first_s=first, first_cpu_s=first_cpu, out=out, wall=[], cpu=[], kern=[], kernels=0,
                              jit_s=sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in jit) / 1e3,
                              compiled=sum(1 for k in jit if not k.get("cache_hit")),
@@ -57,12 +62,7 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
                 sync(fn())
         for _ in range(repeats):
             for name, fn in fns.items():
-                dr.kernel_history()
-                c0, t0 = time.process_time(), time.perf_counter()
-                out = fn()
-                sync(out)
-                w, c = time.perf_counter() - t0, time.process_time() - c0
-                jit = jit_kernels(dr.kernel_history())
+                out, w, c, jit = _run(fn)
                 r = res[name]
                 r["wall"].append(w)
                 r["cpu"].append(c)
