@@ -75,14 +75,23 @@ def _pair(a, b, name_a: str, name_b: str):
 
 
 # ==================================================================== kernels
-def _replicates(fn: Callable, n: int, n_boot: int, rng) -> np.ndarray:
-    """(n_boot,) values of ``fn(idx)`` for (B, n) blocks of resampled indices."""
-    out = np.empty(n_boot)
+def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
+    """(count,) values of ``fn(idx)``, ``idx = rows(a, b)`` the index rows a..b-1 of length
+    ~n, in blocks of at most :data:`_BLOCK` entries."""
+    out = np.empty(count)
     per = max(1, _BLOCK // max(n, 1))
-    for a in range(0, n_boot, per):
-        b = min(n_boot, a + per)
-        out[a:b] = fn(rng.integers(0, n, size=(b - a, n)))
+    for a in range(0, count, per):
+        b = min(count, a + per)
+        out[a:b] = fn(rows(a, b))
     return out
+
+
+def _replicates(fn: Callable, n: int, n_boot: int, rng, layout=None) -> np.ndarray:
+    """(n_boot,) values of ``fn(idx)``: ``idx`` (B, n) value indices drawn with replacement,
+    or with ``layout`` (:func:`_layout`) the values of drawn blocks (:func:`_block_replicates`)."""
+    if layout is not None:
+        return _block_replicates(fn, layout, n_boot, rng)
+    return _rows(fn, n, n_boot, lambda a, b: rng.integers(0, n, size=(b - a, n)))
 
 
 #: Side in texels of the square tiles of :func:`texel_blocks`.
@@ -146,14 +155,8 @@ def _block_mean_replicates(x, y, pre_post, compare, layout, n_boot: int, rng):
 
 def _jackknife(fn: Callable, n: int) -> np.ndarray:
     """(n,) leave-one-out values of ``fn(idx)`` (rows of the (n, n - 1) index matrix)."""
-    out = np.empty(n)
-    per = max(1, _BLOCK // max(n, 1))
-    base = np.arange(n - 1)
-    for a in range(0, n, per):
-        rows = np.arange(a, min(n, a + per))
-        idx = base[None, :] + (base[None, :] >= rows[:, None])       # skip index `row`
-        out[a:a + rows.size] = fn(idx)
-    return out
+    base = np.arange(n - 1)[None, :]
+    return _rows(fn, n, n, lambda a, b: base + (base >= np.arange(a, b)[:, None]))     # row r skips index r
 
 
 def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: Callable | None) -> tuple:
@@ -198,7 +201,7 @@ def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, m
     f = _stat(statistic)
     rng = np.random.default_rng(seed)
     fn = lambda idx: f(a[idx], axis=1)  # noqa: E731
-    boot = _replicates(fn, a.size, n_boot, rng) if layout is None else _block_replicates(fn, layout, n_boot, rng)
+    boot = _replicates(fn, a.size, n_boot, rng, layout)
     return _result(f(a[None, :], axis=1)[0], boot, level, method, lambda: _jackknife(fn, a.size), n=int(a.size))
 
 
@@ -238,7 +241,7 @@ def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
         boot, count = _block_mean_replicates(x, y, _MEAN_OF[f], compare, layout, n_boot, rng)
         smaller.append(count)
     else:
-        boot = _replicates(rep, x.size, n_boot, rng) if layout is None else _block_replicates(rep, layout, n_boot, rng)
+        boot = _replicates(rep, x.size, n_boot, rng, layout)
     sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])
     jack = lambda: _jackknife(lambda idx: _compare(f(x[idx], axis=1), f(y[idx], axis=1), compare),  # noqa: E731
                               x.size)
@@ -254,19 +257,15 @@ def claim(a_by_config, b_by_config, statistic="rmse", compare: str = "ratio", be
     pooled?  ``a_by_config`` / ``b_by_config``: sequences (one per configuration, e.g.
     seed x light) of paired per-receiver values (e.g. |errors| of methods a and b).
     blocks_by_config: None, or per configuration the block labels of its values (module
-    docstring): each configuration's replicates then resample blocks.
+    docstring).
 
-    Returns
-    -------
-    dict
-        ``per_config``: [paired_bootstrap result + config + holds (the whole interval below
-        ``below``) + point_holds (the estimate below it)]; ``estimate``, ``low``, ``high``:
-        the pooled effect - geometric mean of the per-configuration ratios (mean of
-        differences) - and its interval from a two-stage bootstrap (configurations
-        resampled, then receivers within each, replicate by replicate);
-        ``holds_in_every_configuration`` (every per-config interval below ``below``),
-        ``point_holds_in_every_configuration``, ``holds_pooled`` (the pooled interval below
-        it), ``n_configs``, ``below``, ``compare``, ``statistic`` (its name).
+    Returns dict(per_config: [:func:`paired_bootstrap` result + config + holds (the whole
+    interval below ``below``) + point_holds (the estimate below it)]; estimate, low, high:
+    the pooled effect, geometric mean of the per-configuration ratios (mean of differences),
+    and its interval from a two-stage bootstrap (configurations resampled, then receivers
+    within each, replicate by replicate); holds_in_every_configuration,
+    point_holds_in_every_configuration, holds_pooled (the pooled interval below ``below``),
+    n_configs, below, compare, statistic (its name)).
     """
     if len(a_by_config) != len(b_by_config) or len(a_by_config) == 0:
         raise ValueError(f"b_by_config: expected {len(a_by_config)} configurations (as a_by_config), "

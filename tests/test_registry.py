@@ -278,7 +278,7 @@ def test_the_package_never_imports_the_studies():
 TYPE_CHECKS_ALLOWED = {
     ("avsm_dr/reconstruction.py", "receiver_grid", "DirectionalLight"):
         "argument check: the radiograph plane is orthogonal to a parallel light ('light: expected ...')",
-    ("avsm_dr/evaluation/lights.py", "light_variants", "DirectionalLight"):
+    ("avsm_dr/evaluation/configuration.py", "light_variants", "DirectionalLight"):
         "argument check: the variants tilt a directional light ('scene: light_variants needs ...')",
 }
 

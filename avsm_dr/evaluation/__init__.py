@@ -14,14 +14,13 @@ where it matters, and at what cost.  For example::
   decomposition (compression / capture / spatial) at a receiver set.
 * :func:`depth_l2` (:mod:`.curves`): the depth-uniform L2 of a whole curve (on the
   midpoints of :func:`depth_grid`).
-* :func:`light_variants` (:mod:`.lights`), :func:`with_faint_segments` (:mod:`.perturb`).
+* :func:`light_variants` (:mod:`.configuration`), :func:`with_faint_segments` (:mod:`.perturb`).
 * :func:`measure`, :func:`timed`, :class:`Meter` (:mod:`.timing`): time and memory.
 """
 from .comparison import Comparison, compare
-from .configuration import LIGHTS, Configuration, configurations
+from .configuration import LIGHTS, Configuration, configurations, light_variants
 from .curves import curve_values, depth_grid, depth_l2
 from .harness import METRICS, RECEIVER_SETS, evaluate
-from .lights import light_variants
 from .perturb import with_faint_segments
 from .probe import Built, Probe, SubsetBuilder, truth
 from .table import Table, read_csv

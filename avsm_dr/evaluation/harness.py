@@ -230,52 +230,27 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     method x scene x configuration x resolution x order x opaque mode x receiver set (columns:
     module docstring).
 
-    Parameters
-    ----------
-    methods
-        {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
-        :class:`~avsm_dr.Representation` subclass, registered or not (built directly);
-        ``label: kind`` alone means default parameters, ``(kind, "preset")`` the kind's
-        best-practice parameters (``describe(kind)["preset"]``, recorded in ``params``; its
-        ``preset_capture``, e.g. ``opaque='separate'``, is the caller's ``opaque=``).
-    scenes
-        built-in scene names (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.
-    configurations
-        :class:`~.configuration.Configuration` items or (seed, light) pairs
-        (default ``configurations()``: seed 0, the scene's own light).
-    receivers
-        names of :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface'
-        without a receiver plane, are left out), or {name: (K, 3) points} for fixed ones.
-    metrics
-        names of :data:`METRICS`.
-    resolution
-        texels per side of the light map (or a sequence: a row per value).
-    order
-        the capture's insertion order, 'depth' | 'reverse_depth' | 'random' | 'submission'
-        (``avsm_dr.capture.ORDERS``; or a sequence: a row per value); default 'depth' (front to
-        back), not ad.capture's own default 'submission'; 'random' shuffles with the
-        configuration's seed (``order_seed=seed``).
-    n_volume, n_surface
-        receivers per set.
-    n_decomp
-        receivers of the capture / spatial terms.
-    opaque
-        'inline' | 'separate' (or both): blockers in the map or in their own depth map;
-        'separate' runs only for scenes with blockers.
-    subset
-        build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`: the
-        lookups of a whole-map build for kinds that work per texel); ``bytes`` and
-        ``depth_l2`` then cover those texels.
-    n_depths
-        depths per texel of ``depth_l2``.
-    build_repeats
-        timed builds after the first.
-    progress
-        a progress bar over the rows.
+    methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
+    :class:`~avsm_dr.Representation` subclass, registered or not; ``label: kind`` alone means
+    default parameters, ``(kind, "preset")`` the kind's best-practice parameters
+    (``describe(kind)["preset"]``, recorded in ``params``; its ``preset_capture``, e.g.
+    ``opaque='separate'``, is the caller's ``opaque=``).  scenes: built-in scene names
+    (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.  configurations:
+    :class:`~.configuration.Configuration` items or (seed, light) pairs (default
+    ``configurations()``: seed 0, the scene's own light).  receivers: names of
+    :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface' without a receiver
+    plane, are left out), or {name: (K, 3) points}.  metrics: names of :data:`METRICS`.
 
-    Returns
-    -------
-    Table
+    resolution, order: texels per side of the light map; the capture's insertion order
+    (``avsm_dr.capture.ORDERS``), default 'depth' (front to back), not ad.capture's own
+    'submission'; 'random' shuffles with the configuration's seed.  Either may be a
+    sequence: a row per value.  n_volume, n_surface: receivers per set; n_decomp: receivers
+    of the capture / spatial terms.  opaque: 'inline' | 'separate' (or both): blockers in
+    the map or in their own depth map ('separate' runs only for scenes with blockers).
+    subset: build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`:
+    the lookups of a whole-map build for kinds that work per texel); ``bytes`` and
+    ``depth_l2`` then cover those texels.  n_depths: depths per texel of ``depth_l2``.
+    build_repeats: timed builds after the first.  progress: a progress bar over the cells.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
     if not isinstance(receivers, dict):

@@ -67,19 +67,9 @@ class Table:
         for k in eq:
             self._check(k)
 
-        def ok(r):
-            for k, v in eq.items():
-                x = r.get(k)
-                if callable(v):
-                    if not v(x):
-                        return False
-                elif isinstance(v, (list, tuple, set, frozenset)):
-                    if x not in v:
-                        return False
-                elif x != v:
-                    return False
-            return True
-        return Table([r for r in self.rows if ok(r)])
+        def match(v, x) -> bool:
+            return v(x) if callable(v) else x in v if isinstance(v, (list, tuple, set, frozenset)) else x == v
+        return Table([r for r in self.rows if all(match(v, r.get(k)) for k, v in eq.items())])
 
     def to_csv(self, path) -> Path:
         """Write the rows as CSV (floats with 9 significant digits, dicts as JSON)."""
