@@ -71,6 +71,15 @@ def _clamped_texel(ix, iy, width: int, height: int):
     return np.clip(iy, 0, height - 1) * width + np.clip(ix, 0, width - 1)
 
 
+def bilinear_taps(coords: np.ndarray, width: int, height: int):
+    """(tex, weights): the (4, K) int64 texels (clamped to the map) and float64 weights
+    ``(1-fx)(1-fy), fx (1-fy), (1-fx) fy, fx fy`` of the bilinear filter at (K, 2) coordinates."""
+    ix, iy, fx, fy = split_coordinates(coords - 0.5, width, height, margin=1)
+    taps = ((0, 0), (1, 0), (0, 1), (1, 1))
+    return (np.stack([_clamped_texel(ix + dx, iy + dy, width, height) for dx, dy in taps]),
+            np.stack([(fx if dx else 1 - fx) * (fy if dy else 1 - fy) for dx, dy in taps]))
+
+
 def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: int, filter: str,
                   radius: float, Float, UInt32, Int32):
     """Filtered transmittance of K receivers (module docstring).
@@ -84,12 +93,9 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
         tex = _clamped_texel(ix, iy, width, height).astype(np.uint32)
         return eval_texels(A.to_uint32(tex), depth)
     if filter == "bilinear":
-        ix, iy, fx, fy = split_coordinates(coords - 0.5, width, height, margin=1)
         total = Float(0)
-        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-            tex = _clamped_texel(ix + dx, iy + dy, width, height).astype(np.uint32)
-            w = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-            total = total + A.to_float(w, Float) * eval_texels(A.to_uint32(tex), depth)
+        for tex, w in zip(*bilinear_taps(coords, width, height)):
+            total = total + A.to_float(w, Float) * eval_texels(A.to_uint32(tex.astype(np.uint32)), depth)
         return total
 
     # box / gaussian: K x m lanes, lane = receiver * m + tap (receiver-major, block sums)
