@@ -254,6 +254,3 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
             out.failures.append(f"reverse . v = {out.reverse:.10g} vs forward mode {out.forward:.10g} "
                                 f"(|diff| {err:.3g})")
     return out
-
-
-__all__ = ["MCAgreement", "mc_agreement", "GradientCheck", "check_gradients"]

@@ -307,8 +307,3 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
             callback(it, rec)
     out.density = np.asarray(dr.detach(opt["sigma"]).numpy(), np.float32)
     return out
-
-
-__all__ = ["light_from_angles", "receiver_grid", "with_light", "density_tensor", "shadow",
-           "Shadow", "radiance_weights", "radiance", "image_loss", "neighbour_pairs", "smoothness", "ProjectedAdam",
-           "gradient_check", "density_error", "Recovery", "recover"]

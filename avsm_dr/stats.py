@@ -62,8 +62,7 @@ def _check(n_boot, level, method, compare="ratio"):
     V.integer(n_boot, "n_boot", 100)
     V.real(level, "level", 0.0, 1.0, open_min=True, open_max=True)
     V.one_of(method, "method", METHODS)
-    if compare not in ("difference", "ratio"):
-        raise ValueError(f"compare: expected 'difference' or 'ratio', got {compare!r}")
+    V.one_of(compare, "compare", ("difference", "ratio"))
 
 
 def _pair(a, b, name_a: str, name_b: str):

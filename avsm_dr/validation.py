@@ -45,11 +45,8 @@ def _range_text(lo, hi, open_lo: bool, open_hi: bool) -> str:
 
 
 def _in_range(x, lo, hi, open_lo: bool, open_hi: bool) -> bool:
-    if lo is not None and (x <= lo if open_lo else x < lo):
-        return False
-    if hi is not None and (x >= hi if open_hi else x > hi):
-        return False
-    return True
+    return ((lo is None or (x > lo if open_lo else x >= lo))
+            and (hi is None or (x < hi if open_hi else x <= hi)))
 
 
 def real(value: Any, name: str, min: float | None = None, max: float | None = None, *,
