@@ -175,11 +175,10 @@ def neighbour_pairs(shape) -> tuple[np.ndarray, np.ndarray]:
 def smoothness(x, pairs=None):
     """Mean squared difference of face-adjacent voxels of the tensor ``x`` (differentiable)."""
     a, b = neighbour_pairs(tuple(x.shape)) if pairs is None else pairs
-    if a.size == 0:
-        return dr.zeros(type(x.array), 1)
     Float = type(x.array)
-    ia, ib = A.to_uint32(a), A.to_uint32(b)
-    return dr.mean(dr.square(dr.gather(Float, x.array, ia) - dr.gather(Float, x.array, ib)))
+    if a.size == 0:
+        return dr.zeros(Float, 1)
+    return dr.mean(dr.square(dr.gather(Float, x.array, A.to_uint32(a)) - dr.gather(Float, x.array, A.to_uint32(b))))
 
 
 # ================================================================ optimisation

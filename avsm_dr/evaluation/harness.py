@@ -179,12 +179,8 @@ def _receiver_points(scene, receivers, cfg, n_volume, n_surface) -> dict:
 def _synced_build(cls, segments, params):
     """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
     rep = cls(segments, **params)
-    arrays = []
-    for v in vars(rep).values():
-        if dr.is_array_v(v):
-            arrays.append(v)
-        elif isinstance(v, (list, tuple)):
-            arrays += [x for x in v if dr.is_array_v(x)]
+    values = [x for v in vars(rep).values() for x in (v if isinstance(v, (list, tuple)) else [v])]
+    arrays = [x for x in values if dr.is_array_v(x)]
     if arrays:
         dr.eval(*arrays)
     return rep
