@@ -163,19 +163,6 @@ def _names(value, name, choices=None) -> list:
 
 
 # ====================================================================== steps
-def _scene_for(spec, cfg: Configuration) -> Scene:
-    """The cell's scene: a built-in one regenerated with the seed; lit by the configuration."""
-    from .. import builtin_scenes
-    scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec
-    return dataclasses.replace(scene, light=cfg.light_for(scene))
-
-
-def _receiver_points(scene, receivers, cfg, n_volume, n_surface) -> dict:
-    if isinstance(receivers, dict):
-        return {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()}
-    return receiver_sets(scene, n_volume, n_surface, cfg.seed, names=receivers)
-
-
 def _synced_build(cls, segments, params):
     """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
     rep = cls(segments, **params)
@@ -249,7 +236,9 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     build_repeats: timed builds after the first.  progress: a progress bar over the cells.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
-    if not isinstance(receivers, dict):
+    fixed = {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()} if isinstance(receivers, dict) \
+        else None
+    if fixed is None:
         receivers = _names(receivers, "receivers", RECEIVER_SETS)
     metrics = _names(metrics, "metrics", METRICS)
     resolutions = [V.integer(r, "resolution", 1) for r in _names(resolution, "resolution")]
@@ -263,11 +252,14 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
 
     from tqdm import tqdm
+
+    from .. import builtin_scenes
     rows: list[dict] = []
     cells = [(s, c) for s in scs for c in cfgs]
     for (label, spec), cfg in tqdm(cells, desc="evaluate", unit="cell", disable=not progress):
-        scene = _scene_for(spec, cfg)
-        points = _receiver_points(scene, receivers, cfg, n_volume, n_surface)
+        scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec   # regenerated with the seed
+        scene = dataclasses.replace(scene, light=cfg.light_for(scene))
+        points = fixed if fixed is not None else receiver_sets(scene, n_volume, n_surface, cfg.seed, names=receivers)
         if not points:
             raise ValueError(f"receivers: scene {label!r} has none of the receiver sets {list(receivers)}")
         truth = {}
