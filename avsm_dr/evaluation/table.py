@@ -38,10 +38,7 @@ class Table:
     @property
     def columns(self) -> list[str]:
         """Column names in order of first appearance."""
-        out: dict[str, None] = {}
-        for r in self.rows:
-            out.update(dict.fromkeys(r))
-        return list(out)
+        return list(dict.fromkeys(k for r in self.rows for k in r))
 
     def __len__(self) -> int:
         return len(self.rows)
