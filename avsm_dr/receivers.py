@@ -101,8 +101,7 @@ def lattice(bbox, counts) -> np.ndarray:
     if len(n) != 3:
         raise ValueError(f"counts: expected 3 cell counts, got {len(n)}")
     axes = [lo[i] + (np.arange(n[i]) + 0.5) / n[i] * (hi[i] - lo[i]) for i in range(3)]
-    X, Y, Z = np.meshgrid(*axes, indexing="ij")
-    return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
 
 
 def in_volume(scene: Scene, n: int, seed: int = 0, camera: dict | None = None) -> np.ndarray:
