@@ -1,20 +1,15 @@
 """Lookup arguments validated on the device (Dr.Jit arrays, and NumPy depths once converted).
 
-The host checks' rules (NumPy ``isfinite`` and ranges) reduce to one boolean per argument
-with ``dr.all`` and one readback of that flag, instead of a host copy of every texel / depth
-array; point lookups go further and check inside the lookup's own kernel
-(:func:`point_lookup`: one launch and a 4-byte readback, no separate reduction).
+The host checks' rules (finite, in range) reduce to one flag per argument (``dr.all``, one
+readback) instead of a host copy of every texel / depth; :func:`point_lookup` checks inside
+the lookup's own kernel, and :func:`host_point_lookup` skips the flag where the extremes of
+NumPy input already prove it valid.  NumPy texels are checked by their min and max, NumPy
+depths once converted to the storage type.
 
-NumPy lookups: integer texels are checked by their min and max, float depths converted once
-to the storage type and checked there.  Plain NumPy
-point lookups whose extremes already prove them valid skip the device flag altogether
-(:func:`host_point_lookup`: one launch, no readback).
-
-The device checks are *sufficient*, not exact: they accept only input the host checks
-accept, and anything they do not accept (including what the host checks would fix up,
-such as subnormal depths, or accept at a boundary, such as a float64 depth just above the
-float32 maximum that still rounds to it) returns ``None`` so the caller reruns the host
-checks, which raise their usual ``ValueError`` or handle the input as before.
+The checks are *sufficient*, not exact: they accept only input the host checks accept;
+anything else (including what the host checks would fix up, such as subnormal depths, or
+accept at a boundary, such as a float64 depth that rounds to the float32 maximum) returns
+``None`` so the caller reruns the host checks, which raise their usual ``ValueError``.
 """
 from __future__ import annotations
 
@@ -89,14 +84,11 @@ def _plain(x, kinds: str) -> bool:
 def host_point_lookup(eval_texels, texel, depth, n_texels: int, dtype: str, Float):
     """T of a point lookup of NumPy texels and depths that need no per-lane check, or None.
 
-    Sufficient checks (like the device checks) by the extremes: integer texels in
-    ``[0, n_texels)`` (one pass: the maximum read as unsigned, so negatives are huge);
-    depths, converted once to the storage dtype (NumPy rounding, as the checked path),
-    finite and all of one sign beyond its smallest normal number (no zero or subnormal to
-    flush).  T is bit for bit that of the checked path, with one launch and no readback:
-    no device flag (a memset, a reduction and a readback per call), two host passes over
-    the texels instead of four.  Lengths equal, or one of them 1.  None for anything else
-    (the caller's checks then run)."""
+    Sufficient checks by the extremes: integer texels in ``[0, n_texels)`` (the maximum
+    read as unsigned, so negatives are huge); depths, converted once to the storage dtype
+    (NumPy rounding, as the checked path), finite and all of one sign beyond its smallest
+    normal number (no zero or subnormal to flush).  T is bit for bit that of the checked
+    path.  Lengths equal, or one of them 1.  None for anything else."""
     if not (_plain(texel, "iu") and _plain(depth, "f")):
         return None
     if texel.size != depth.size and 1 not in (texel.size, depth.size):
@@ -109,17 +101,18 @@ def host_point_lookup(eval_texels, texel, depth, n_texels: int, dtype: str, Floa
     lo, hi = float(d_h.min()), float(d_h.max())                   # NaN fails every comparison below
     if not (-float(info.max) <= lo and hi <= float(info.max) and (lo > float(info.tiny) or hi < -float(info.tiny))):
         return None
-    UInt32 = backend.types().UInt32
-    tex, d = UInt32(A.aligned(texel, np.uint32)), Float(d_h)
-    n = max(texel.size, depth.size)
-    if texel.size != n:
-        tex = tex + dr.zeros(UInt32, n)
-    if depth.size != n:
-        d = d + dr.zeros(Float, n)
+    tex, d = _broadcast(backend.types().UInt32(A.aligned(texel, np.uint32)), Float(d_h))   # alive to the sync
     T = eval_texels(tex, d)
     dr.eval(T)
     dr.sync_thread()       # the inputs may be the caller's memory: released after the kernel (see point_lookup)
     return T
+
+
+def _broadcast(tex, d):
+    """``tex`` and ``d`` (lengths equal, or one of them 1) at their common length."""
+    n = max(dr.width(tex), dr.width(d))
+    return (tex if dr.width(tex) == n else tex + dr.zeros(type(tex), n),
+            d if dr.width(d) == n else d + dr.zeros(type(d), n))
 
 
 def all_true(*masks) -> bool:
@@ -135,8 +128,7 @@ def point_lookup(eval_texels, texel, texel_checked: bool, depth, strict: bool, n
     """T of a point lookup whose arguments are checked *in the lookup's own kernel*: invalid
     lanes read texel 0 at depth 0 and add 1 to a one-element counter (``dr.scatter_reduce``),
     evaluated with T in one launch; returns T (evaluated), or None when any lane was
-    invalid (the caller then raises through the host checks).  One kernel and one
-    4-byte readback per lookup instead of a separate reduction (5 launches) and a sync.
+    invalid (the caller then raises through the host checks).
 
     texel_checked: ``texel`` was already checked on the host (NumPy min / max); strict: see
     :func:`depth_mask`.  ``texel`` and ``depth`` have equal lengths, or one of them 1."""
@@ -148,17 +140,12 @@ def point_lookup(eval_texels, texel, texel_checked: bool, depth, strict: bool, n
         tex = dr.select(mt, tex, 0)
         ok = ok & mt
     d = dr.select(ok if texel_checked else md, A.to_float(depth, Float), 0)
-    n = max(dr.width(tex), dr.width(d))
-    if dr.width(tex) != n:
-        tex = tex + dr.zeros(UInt32, n)
-    if dr.width(d) != n:
-        d = d + dr.zeros(Float, n)
+    tex, d = _broadcast(tex, d)
     T = eval_texels(tex, d)
     bad = dr.zeros(UInt32, 1)
     dr.scatter_reduce(dr.ReduceOp.Add, bad, UInt32(1), UInt32(0), ~ok)
     dr.eval(T, bad)
-    # Wait for the kernel before the inputs can be released: a NumPy-backed input (the
-    # caller's converted texels / depths) freed while its kernel is still queued is released
-    # by a host task on the worker threads, which the next lookup can wait behind.
+    # Wait for the kernel before the inputs can be released: a NumPy-backed input freed while
+    # its kernel is queued is released by a host task that the next lookup can wait behind.
     dr.sync_thread()
     return T if int(bad[0]) == 0 else None

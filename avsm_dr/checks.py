@@ -1,17 +1,11 @@
-"""Statistical and gradient checks, for tests and for package code: Monte Carlo agreement and gradients.
+"""Statistical and gradient checks, for tests and for package code.
 
-* :func:`mc_agreement` - does an estimate with per-element standard errors (ratio
-  tracking, a noisy render) agree with a reference?  Per element
-  ``|e| <= k SE + floor`` for at least ``min_fraction`` of the elements; globally the
-  bias statistic ``Z = sum(e) / sqrt(sum SE^2)`` (standard normal for an unbiased
-  estimator) within ``max_z`` (plus ``floor`` per element); optionally the realised RMS
-  error over the RMS standard error (~1 when the SE is honest and nothing systematic
-  adds in quadrature) and the relative error ``|e| / max(|ref|, rel_floor)`` with
-  separate thresholds on its mean and its maximum.
-* :func:`check_gradients` - a reverse-mode gradient against central finite
-  differences on chosen coordinates, and reverse against forward mode along a random
-  direction (forward mode needs no loop-bound hint, so a symbolic loop whose
-  ``max_iterations`` is too small - silently wrong in reverse mode only - shows up).
+* :func:`mc_agreement`: does an estimate with per-element standard errors (ratio
+  tracking, a noisy render) agree with a reference?
+* :func:`check_gradients`: a reverse-mode gradient against central finite differences
+  and against forward mode along a random direction (forward mode needs no loop-bound
+  hint, so a symbolic loop whose ``max_iterations`` is too small, silently wrong in
+  reverse mode only, shows up).
 
 Both return a report (``.ok``, ``.failures``, the numbers) instead of asserting, so
 tests write ``assert r.ok, r`` and package code (e.g.
@@ -69,8 +63,8 @@ def mc_agreement(estimate, reference, stderr, *, k: float = 3.0, min_fraction: f
     * bias: ``|sum e| <= max_z * sqrt(sum SE^2) + n * floor`` (``Z`` standard normal
       for an unbiased estimator; ``floor`` a deterministic error allowed per element,
       e.g. the float32 rounding of the reference);
-    * ``max_rms_ratio``: ``sqrt(mean e^2 / mean SE^2) <= max_rms_ratio`` (a deterministic
-      mismatch of ``d`` SE raises the ratio to ``sqrt(1 + d^2)``);
+    * ``max_rms_ratio``: ``sqrt(mean e^2 / mean SE^2) <= max_rms_ratio`` (~1 when the SE is
+      honest; a deterministic mismatch of ``d`` SE raises it to ``sqrt(1 + d^2)``);
     * ``mean_rtol`` / ``max_rtol``: mean / max of ``|e| / max(|reference|, rel_floor)``.
 
     Optional checks are skipped when None.  Returns an :class:`MCAgreement`.
@@ -86,11 +80,9 @@ def mc_agreement(estimate, reference, stderr, *, k: float = 3.0, min_fraction: f
         se = np.broadcast_to(se, est.shape)
     except ValueError:
         raise ValueError(f"stderr: expected a scalar or shape {est.shape}, got {se.shape}") from None
-    k = V.real(k, "k", 0, open_min=True)
-    min_fraction = V.real(min_fraction, "min_fraction", 0, 1)
-    max_z = V.real(max_z, "max_z", 0, open_min=True)
-    floor = V.real(floor, "floor", 0)
-    rel_floor = V.real(rel_floor, "rel_floor", 0, open_min=True)
+    limits = (("k", k, None, True), ("min_fraction", min_fraction, 1, False), ("max_z", max_z, None, True),
+              ("floor", floor, None, False), ("rel_floor", rel_floor, None, True))     # (name, value, max, > 0)
+    k, min_fraction, max_z, floor, rel_floor = (V.real(v, name, 0, hi, open_min=o) for name, v, hi, o in limits)
     for name, val in (("max_rms_ratio", max_rms_ratio), ("mean_rtol", mean_rtol), ("max_rtol", max_rtol)):
         if val is not None:
             V.real(val, name, 0, open_min=True)
@@ -262,6 +254,3 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
             out.failures.append(f"reverse . v = {out.reverse:.10g} vs forward mode {out.forward:.10g} "
                                 f"(|diff| {err:.3g})")
     return out
-
-
-__all__ = ["MCAgreement", "mc_agreement", "GradientCheck", "check_gradients"]

@@ -16,26 +16,22 @@ to the edge.
   sigma = radius / 2, c_0 the centre of the texel holding p (weight 1, so the sum never
   underflows to 0 however small the radius: a tiny radius becomes the point filter).
 
-Precision: coordinates are split on the host in float64 into an integer texel (int64,
-clamped to the map before it reaches a 32-bit device integer) and the offset inside
-it, so texel selection is exact on any map and coordinates far outside it (>= 2^31)
-clamp to the edge instead of wrapping.
-
-Cost: one texel lookup per tap, ``K (2r+1)^2`` for box / gaussian, evaluated as wide
-batches of (receiver, tap) lanes of at most :data:`LANES_PER_BATCH` lanes: one kernel per
-batch whatever the radius (no trace growing as r^2).  ``radius`` must be a finite number
-``> 0`` and at most ``max(width, height)``: a larger support only re-weights the
-clamped edge texels.
+Coordinates are split on the host in float64 into an integer texel (int64, clamped to the
+map before it reaches a 32-bit device integer) and the offset inside it, so texel selection
+is exact on any map and coordinates far outside it (>= 2^31) clamp to the edge.  Box and
+gaussian evaluate ``K (2r+1)^2`` (receiver, tap) lanes in batches of at most
+:data:`LANES_PER_BATCH` (one kernel per batch whatever the radius).  ``radius``: finite,
+``> 0`` and at most ``max(width, height)`` (a larger support only re-weights edge texels).
 """
 from __future__ import annotations
 
 import math
-from numbers import Integral, Real
 
 import drjit as dr
 import numpy as np
 
 from . import _arrays as A
+from . import validation as V
 
 FILTERS = ("point", "bilinear", "box", "gaussian")
 #: (receiver, tap) lanes evaluated per batch (bounds the temporary memory: ~50 bytes/lane).
@@ -47,18 +43,12 @@ GAUSSIAN_INV2S2_MAX = 1e30
 
 def check_size(value, name: str) -> int:
     """``width`` / ``height``: an integer >= 1 (not bool), else ValueError naming it."""
-    ok = isinstance(value, Integral) and not isinstance(value, (bool, np.bool_)) and int(value) >= 1
-    if not ok:
-        raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
-    return int(value)
+    return V.integer(value, name, 1)
 
 
 def check_radius(radius, width: int | None = None, height: int | None = None) -> float:
     """``radius``: a finite real number > 0 (not bool / str), at most max(width, height)."""
-    ok = isinstance(radius, Real) and not isinstance(radius, (bool, np.bool_))
-    r = float(radius) if ok else math.nan
-    if not (math.isfinite(r) and r > 0):
-        raise ValueError(f"radius: expected a finite real number > 0, got {radius!r}")
+    r = V.real(radius, "radius", 0, open_min=True)
     if width is not None and height is not None and r > max(width, height):
         raise ValueError(f"radius: expected <= max(width, height) = {max(width, height)} (a larger "
                          f"kernel only re-weights the clamped edge texels), got {radius!r}")
@@ -81,6 +71,15 @@ def _clamped_texel(ix, iy, width: int, height: int):
     return np.clip(iy, 0, height - 1) * width + np.clip(ix, 0, width - 1)
 
 
+def bilinear_taps(coords: np.ndarray, width: int, height: int):
+    """(tex, weights): the (4, K) int64 texels (clamped to the map) and float64 weights
+    ``(1-fx)(1-fy), fx (1-fy), (1-fx) fy, fx fy`` of the bilinear filter at (K, 2) coordinates."""
+    ix, iy, fx, fy = split_coordinates(coords - 0.5, width, height, margin=1)
+    taps = ((0, 0), (1, 0), (0, 1), (1, 1))
+    return (np.stack([_clamped_texel(ix + dx, iy + dy, width, height) for dx, dy in taps]),
+            np.stack([(fx if dx else 1 - fx) * (fy if dy else 1 - fy) for dx, dy in taps]))
+
+
 def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: int, filter: str,
                   radius: float, Float, UInt32, Int32):
     """Filtered transmittance of K receivers (module docstring).
@@ -94,12 +93,9 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
         tex = _clamped_texel(ix, iy, width, height).astype(np.uint32)
         return eval_texels(A.to_uint32(tex), depth)
     if filter == "bilinear":
-        ix, iy, fx, fy = split_coordinates(coords - 0.5, width, height, margin=1)
         total = Float(0)
-        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-            tex = _clamped_texel(ix + dx, iy + dy, width, height).astype(np.uint32)
-            w = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-            total = total + A.to_float(w, Float) * eval_texels(A.to_uint32(tex), depth)
+        for tex, w in zip(*bilinear_taps(coords, width, height)):
+            total = total + A.to_float(w, Float) * eval_texels(A.to_uint32(tex.astype(np.uint32)), depth)
         return total
 
     # box / gaussian: K x m lanes, lane = receiver * m + tap (receiver-major, block sums)

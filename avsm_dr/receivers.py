@@ -1,25 +1,16 @@
 """Receiver sets for error measurements: points where a shadow carries information.
 
-A uniform set (half the points uniform over occupied voxels, half on a wall) weighs every
-voxel alike and fills half the set with wall points whose error is the same for every
-method.  The sets here are reported separately:
-
-* :func:`in_volume`  points inside the medium drawn with probability approximately
-  proportional to its *contribution* to an image: ``sigma_t(x) * T_light(x) * T_view(x)``
-  (single scattering seen by the default camera of
-  :func:`avsm_dr.groundtruth.default_camera`: a point matters where there is medium, where
-  light reaches it and where the camera sees it).  Sampling-importance-resampling:
-  ``4 n`` candidates are drawn proportionally to density (a voxel of the grid with
-  probability ~ its density, a point uniform inside it; or a particle with probability ~
-  extinction x volume, a point uniform inside the sphere), then ``n`` of them are kept
-  without replacement with probability ~ ``T_light * T_view``.  The visibilities are
-  float64 ray marches (:func:`avsm_dr.groundtruth.transmittance`, ``method='raymarch'``,
-  one-voxel steps: a sampling weight, not a measurement) through the grid, particles and
-  blockers; hair is left out of the weights (its analytic visibility costs O(points x capsules), and it does not change
-  where the medium is).
+* :func:`in_volume`  points in the medium drawn with probability ~ their *contribution* to
+  an image, ``sigma_t(x) * T_light(x) * T_view(x)`` (single scattering seen by
+  :func:`avsm_dr.groundtruth.default_camera`), by sampling-importance-resampling:
+  ``4 n`` candidates drawn ~ density (a voxel ~ its density, a point uniform inside it; or
+  a particle ~ extinction x volume, a point uniform inside the sphere), ``n`` of them kept
+  without replacement ~ ``T_light * T_view``: float64 ray marches with one-voxel steps (a
+  sampling weight, not a measurement) through grid, particles and blockers (hair left out).
 * :func:`surface`    a jittered, stratified grid on the scene's receiver plane (the wall or
   ground behind the volume, or the table top).
-* ``uniform``        the scene's own ``scene.receivers`` (continuity with earlier results).
+* ``uniform``        the scene's own ``scene.receivers`` (half in occupied voxels, half on
+  a wall: every voxel weighs alike).
 
 Every set is deterministic for a given seed.
 """
@@ -35,11 +26,11 @@ from .scene import PointLight, Scene
 
 #: Candidates drawn per kept in-volume receiver (sampling-importance-resampling).
 CANDIDATES_PER_POINT = 4
-#: Estimated host bytes per drawn point (measured: 2.5 KB marginal per point of
-#: :func:`in_volume` on an 8^3 grid, its candidates and their visibility ray march), checked
-#: against :func:`avsm_dr.validation.memory_budget` before drawing (n = 10^12 used to end in
-#: a MemoryError of NumPy).
+#: Estimated host bytes per drawn point of :func:`in_volume` (its candidates and their ray
+#: march), checked against :func:`avsm_dr.validation.memory_budget` before drawing.
 BYTES_PER_POINT = 2600
+#: The receiver sets of :func:`receiver_sets`.
+NAMES = ("in_volume", "surface", "uniform")
 
 
 def _check(scene, n, seed):
@@ -78,20 +69,27 @@ def visibility(scene: Scene, points, origin=None, step_fraction: float = 1.0) ->
     """(K,) float64 transmittance from ``scene.light`` (``origin=None``) or from the point
     ``origin`` to each point, through grid, particles and blockers (hair left out), by a
     float64 ray march with one-voxel steps (``step_fraction`` voxels)."""
-    from . import groundtruth
     p = V.points(points, "points", allow_empty=True)
-    if p.shape[0] == 0:
-        return np.zeros(0)
     sc = dataclasses.replace(scene, hair=None)
     if origin is not None:
         sc = dataclasses.replace(sc, light=PointLight(position=V.vec3(origin, "origin")))
-    if sc.density is None and sc.particles is None and not sc.blockers:
+    if p.shape[0] and sc.density is None and sc.particles is None and not sc.blockers:
         return np.ones(p.shape[0])
+    return marched(sc, p, step_fraction)
+
+
+def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
+    """(K,) float64 transmittance from ``scene.light`` to the (K, 3) ``points``: the ground
+    truth's float64 ray march (``method='raymarch'``), step ``step_fraction`` voxels."""
+    from . import groundtruth
+    p = np.asarray(points, np.float64)
+    if p.shape[0] == 0:
+        return np.zeros(0)
     step = None
-    if sc.density is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in sc.bbox)
-        step = step_fraction * float(np.min((hi - lo) / np.array(sc.density.shape[::-1])))
-    return groundtruth.transmittance(sc, p, method="raymarch", step=step)[0]
+    if scene.density is not None:
+        lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
+        step = step_fraction * float(np.min((hi - lo) / np.array(scene.density.shape[::-1])))
+    return groundtruth.transmittance(scene, p, method="raymarch", step=step)[0]
 
 
 def lattice(bbox, counts) -> np.ndarray:
@@ -104,8 +102,7 @@ def lattice(bbox, counts) -> np.ndarray:
     if len(n) != 3:
         raise ValueError(f"counts: expected 3 cell counts, got {len(n)}")
     axes = [lo[i] + (np.arange(n[i]) + 0.5) / n[i] * (hi[i] - lo[i]) for i in range(3)]
-    X, Y, Z = np.meshgrid(*axes, indexing="ij")
-    return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
 
 
 def in_volume(scene: Scene, n: int, seed: int = 0, camera=None) -> np.ndarray:
@@ -157,10 +154,11 @@ def surface(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
 
 
 def receiver_sets(scene: Scene, n_volume: int = 4096, n_surface: int = 1024, seed: int = 0,
-                  camera=None) -> dict[str, np.ndarray]:
+                  camera=None, names=NAMES) -> dict[str, np.ndarray]:
     """{'in_volume': :func:`in_volume`, 'surface': :func:`surface`, 'uniform':
-    ``scene.receivers``}; empty sets are left out."""
-    out = {"in_volume": in_volume(scene, n_volume, seed, camera),
-           "surface": surface(scene, n_surface, seed),
-           "uniform": V.points(scene.receivers, "receivers", allow_empty=True)}
+    ``scene.receivers``} of the sets ``names`` (in their order); empty sets are left out."""
+    make = {"in_volume": lambda: in_volume(scene, n_volume, seed, camera),
+            "surface": lambda: surface(scene, n_surface, seed),
+            "uniform": lambda: V.points(scene.receivers, "receivers", allow_empty=True)}
+    out = {k: make[V.one_of(k, "names", NAMES)]() for k in names}
     return {k: v for k, v in out.items() if v.shape[0] > 0}

@@ -6,24 +6,15 @@ Pipeline (every step differentiable with respect to the voxel densities ``sigma`
     8 voxels of each sample) --build--> representation --eval--> T at receivers
     --> radiance L = albedo / pi * E * cos * T --> loss
 
-* **Capture** (:func:`avsm_dr.capture`) with ``density=`` a Dr.Jit tensor with
-  gradients and ``keep_zero=True``: every march step inside the box becomes a
-  segment, including empty ones, so voxels that are still 0 receive gradients, and
-  the light camera is fitted to the whole box (the map does not move while the
-  density changes).  Segment boundaries are geometry only; with a tiny
-  ``epsilon`` (no early ray termination) the layout does not depend on the density.
-* **Representations**: ``exact``, ``fom``, ``osm`` (linear in tau: scatter-adds),
-  ``avsm`` (node layout held fixed: which nodes are inserted/removed is a
-  piecewise-constant function of the density; gradients flow through the node
-  values and the insertion ramps of the current layout) and ``dsm`` with
-  ``placement='curve'`` (node depths held fixed, values on the exact curve).
-  ``dsm`` with the default mid-slope placement is not differentiable.
-* Reverse mode for many parameters (the whole grid: ``dr.backward``), forward mode
-  for a few (``dr.forward_to`` along a direction); :func:`gradient_check` compares
-  the two - it catches a loop bound that is too small, which silently corrupts
-  reverse mode only.  Representations are built by :func:`avsm_dr.build` with
-  ``reverse='auto'`` (checkpointed where the reverse-mode trajectory, segments x
-  loop state, would be too large), ``'trajectory'`` or ``'checkpoint'``.
+* **Capture** with ``keep_zero=True``: every march step inside the box is a segment,
+  empty ones included, so voxels that are still 0 receive gradients; the light camera is
+  fitted to the whole box and, with a tiny ``epsilon``, the segment layout is geometry only.
+* **Representations**: ``exact``, ``fom``, ``osm`` (linear in tau), ``avsm`` (node layout
+  held fixed: gradients flow through the node values and insertion ramps of the current
+  layout) and ``dsm`` with ``placement='curve'`` (node depths fixed); other DSM placements
+  are not differentiable.
+* Reverse mode for many parameters (``dr.backward``), forward mode for a few;
+  :func:`gradient_check` compares the two (a too-small loop bound corrupts reverse mode only).
 
 Inverse problem (:func:`recover`): minimise over ``sigma >= 0`` ::
 
@@ -59,7 +50,6 @@ from .scene import DirectionalLight, Scene
 from .checks import check_gradients
 
 
-
 # ============================================================== lights, receivers
 def light_from_angles(azimuth: float, elevation: float, irradiance: float = 1.0) -> DirectionalLight:
     """Directional light coming from azimuth/elevation (degrees; azimuth about +y from
@@ -77,8 +67,7 @@ def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05)
     ray: the image is a radiograph of the grid along the light."""
     if not isinstance(light, DirectionalLight):
         raise ValueError(f"light: expected a DirectionalLight, got {type(light).__name__}")
-    if not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n: expected an integer >= 1, got {n!r}")
+    n = V.integer(n, "n", 1)
     lo, hi = (np.asarray(v, np.float64).reshape(3) for v in bbox)
     u, v, w = orthonormal_basis(light.direction)
     c = 0.5 * (lo + hi)
@@ -92,10 +81,7 @@ def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05)
 
 def with_light(scene: Scene, light, density=None) -> Scene:
     """A copy of ``scene`` lit by ``light`` (and holding ``density`` when given)."""
-    changes = {"light": light}
-    if density is not None:
-        changes["density"] = density
-    return dataclasses.replace(scene, **changes)
+    return dataclasses.replace(scene, light=light, **({} if density is None else {"density": density}))
 
 
 # ================================================================= the pipeline
@@ -127,10 +113,9 @@ def shadow(scene: Scene, density, points=None, light=None, kind: str = "fom", pa
     via capture -> ``kind`` (``params``, default: the kind's first differentiable
     configuration in the registry, ``representations.differentiable_configuration``) -> lookup.
 
-    resolution, step, epsilon: of :func:`avsm_dr.capture` (``keep_zero=True`` and the
-    Simpson march, ``method='march'``, always: its empty steps are what carry gradients
-    to voxels that are still 0).  filter: lookup filter ('point' | 'bilinear' | ...).  reverse: how reverse mode stores
-    loops, 'auto' | 'trajectory' | 'checkpoint' (see :func:`avsm_dr.build`).
+    resolution, step, epsilon: of :func:`avsm_dr.capture` (always ``keep_zero=True`` and the
+    Simpson march, ``method='march'``: module docstring).  filter: the lookup filter.
+    reverse: 'auto' | 'trajectory' | 'checkpoint' (:func:`avsm_dr.build`).
     """
     if kind not in kinds():
         raise ValueError(f"kind: expected one of {kinds()}, got {kind!r}")
@@ -183,24 +168,17 @@ def image_loss(predictions: Sequence, targets: Sequence):
 def neighbour_pairs(shape) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (a, b) of all face-adjacent voxel pairs of a (z, y, x) grid."""
     idx = np.arange(int(np.prod(shape))).reshape(shape)
-    a, b = [], []
-    for ax in range(3):
-        sl0 = [slice(None)] * 3
-        sl1 = [slice(None)] * 3
-        sl0[ax], sl1[ax] = slice(0, -1), slice(1, None)
-        a.append(idx[tuple(sl0)].ravel())
-        b.append(idx[tuple(sl1)].ravel())
-    return np.concatenate(a), np.concatenate(b)
+    side = [[idx[(slice(None),) * ax + (s,)].ravel() for ax in range(3)] for s in (slice(0, -1), slice(1, None))]
+    return np.concatenate(side[0]), np.concatenate(side[1])
 
 
 def smoothness(x, pairs=None):
     """Mean squared difference of face-adjacent voxels of the tensor ``x`` (differentiable)."""
     a, b = neighbour_pairs(tuple(x.shape)) if pairs is None else pairs
-    if a.size == 0:
-        return dr.zeros(type(x.array), 1)
     Float = type(x.array)
-    ia, ib = A.to_uint32(a), A.to_uint32(b)
-    return dr.mean(dr.square(dr.gather(Float, x.array, ia) - dr.gather(Float, x.array, ib)))
+    if a.size == 0:
+        return dr.zeros(Float, 1)
+    return dr.mean(dr.square(dr.gather(Float, x.array, A.to_uint32(a)) - dr.gather(Float, x.array, A.to_uint32(b))))
 
 
 # ================================================================ optimisation
@@ -235,11 +213,8 @@ class ProjectedAdam(drjit.opt.Adam):
 def gradient_check(loss_fn: Callable, x, rng=None, rtol: float = 1e-4, atol: float = 1e-9) -> dict:
     """Reverse mode vs forward mode on ``loss_fn(x)`` (a Dr.Jit scalar of tensor ``x``).
 
-    Reverse mode gives ``g = dL/dx``; forward mode along a random direction ``v`` gives
-    ``dL/dx . v`` without any loop-bound hint, so a mismatch exposes a reverse-mode
-    path that is silently wrong (e.g. a symbolic loop with a too-small
-    ``max_iterations``).  :func:`avsm_dr.checks.check_gradients` without finite
-    differences; returns dict(reverse, forward, error, ok).
+    :func:`avsm_dr.checks.check_gradients` without finite differences (``g . v`` against
+    forward mode along a random direction ``v``); returns dict(reverse, forward, error, ok).
     """
     chk = check_gradients(loss_fn, x, fd=0, rtol=rtol, atol=atol, rng=rng)
     return {k: chk.summary()[k] for k in ("reverse", "forward", "error", "ok")}
@@ -289,10 +264,8 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
         raise ValueError("scene: needs a density grid and its bbox (shape and box of the unknown)")
     if not (len(lights) == len(targets) == len(receivers)) or not lights:
         raise ValueError("targets: need one target image and one receiver set per light")
-    if init not in ("empty", "uniform"):
-        raise ValueError(f"init: expected 'empty' or 'uniform', got {init!r}")
-    if not isinstance(iterations, (int, np.integer)) or iterations < 0:
-        raise ValueError(f"iterations: expected an integer >= 0, got {iterations!r}")
+    V.one_of(init, "init", ("empty", "uniform"))
+    V.integer(iterations, "iterations", 0)
     shape = tuple(np.asarray(scene.density).shape)
     start = np.zeros(shape) if init == "empty" else np.full(shape, float(init_value))
     x = density_tensor(start, grad=False)
@@ -333,8 +306,3 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
             callback(it, rec)
     out.density = np.asarray(dr.detach(opt["sigma"]).numpy(), np.float32)
     return out
-
-
-__all__ = ["light_from_angles", "receiver_grid", "with_light", "density_tensor", "shadow",
-           "Shadow", "radiance_weights", "radiance", "image_loss", "neighbour_pairs", "smoothness", "ProjectedAdam",
-           "gradient_check", "density_error", "Recovery", "recover"]

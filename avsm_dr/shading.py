@@ -37,7 +37,7 @@ from . import validation as V
 from .groundtruth.content import check_scene, particles_tau, to_light
 from .groundtruth.images import camera_rays, check_camera, receiver_plane, receiver_plane_for
 from .groundtruth.tracking import default_step, march, transmittance as gt_transmittance
-from .scene import OpaquePlane, Scene, SpotLight, check_light
+from .scene import OpaquePlane, Scene, check_light
 
 #: Points per call of a light-transmittance callable (host memory bound; the ground truth
 #: marches at most ``groundtruth.MAX_SAMPLES`` = 2^28 samples per call, ~1000 per point).
@@ -45,13 +45,6 @@ CHUNK = 1 << 18
 
 
 # ================================================================== lighting
-def spot_falloff(light: SpotLight, points) -> np.ndarray:
-    """(K,) Mitsuba ``spot`` profile in [0, 1] at ``points`` (K, 3)."""
-    if not isinstance(light, SpotLight):
-        raise ValueError(f"light: expected a SpotLight, got {type(light).__name__}")
-    return light.falloff(V.points(points, allow_empty=True))
-
-
 def irradiance(light, points) -> np.ndarray:
     """(K,) unshadowed irradiance E on a surface facing the light at ``points``
     (:meth:`~avsm_dr.scene.Light.irradiance_at`)."""
@@ -100,11 +93,13 @@ def _hit_blockers(o, d, blockers):
     return t
 
 
-def _chunked(fn, x):
-    out = np.empty(x.shape[0])
-    for a in range(0, x.shape[0], CHUNK):
-        out[a:a + CHUNK] = np.asarray(fn(x[a:a + CHUNK]), np.float64).reshape(-1)
-    return out
+def _light_T(fn, x, mask):
+    """(N,) T >= 0 of the light-transmittance callable ``fn`` at ``x[mask]`` (0 elsewhere),
+    :data:`CHUNK` points per call."""
+    T, idx = np.zeros(x.shape[0]), np.flatnonzero(mask)
+    for a in range(0, idx.size, CHUNK):
+        T[idx[a:a + CHUNK]] = np.clip(np.asarray(fn(x[idx[a:a + CHUNK]]), np.float64).reshape(-1), 0.0, None)
+    return T
 
 
 # ==================================================================== images
@@ -143,10 +138,7 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
         l = to_light(scene.light, x)
         n_cam = np.where(((-d[idx]) @ n)[:, None] >= 0, n, -n)
         shade = reflectance / math.pi * irradiance(scene.light, x) * np.maximum(np.sum(n_cam * l, 1), 0.0)
-        lit = shade > 0
-        T = np.zeros(idx.size)
-        if lit.any():
-            T[lit] = np.clip(_chunked(light_transmittance, x[lit]), 0.0, None)
+        T = _light_T(light_transmittance, x, shade > 0)
         radiance[idx] = shade * T * np.exp(-_view_tau(content, o[idx], d[idx], t_plane[idx]))
 
     if albedo > 0 and content["grid"] is not None:
@@ -174,11 +166,7 @@ def _single_scattering(scene, content, o, d, t_end, light_T, albedo, step):
 
     def integrand(x, sig, h, tau_view):
         w = h * np.exp(-tau_view) * albedo * sig / (4 * math.pi) * irradiance(scene.light, x)
-        m = w > 0
-        T = np.zeros(x.shape[0])
-        if m.any():
-            T[m] = np.clip(_chunked(light_T, x[m]), 0.0, None)
-        return w * T
+        return w * _light_T(light_T, x, w > 0)
 
     return march(g.astype(np.float64), lo, hi, o, d, t_end, step, integrand)[1]
 

@@ -3,16 +3,9 @@
 Efron and Tibshirani, "An Introduction to the Bootstrap", 1993: the percentile interval
 (ch. 13) and the bias-corrected and accelerated (BCa) interval (ch. 14, eq. 14.9-14.15;
 acceleration from the jackknife).  Every resampling is vectorised NumPy (an (B, n) index
-matrix) and seeded, so the same call gives the same interval.
-
-* :func:`bootstrap_ci`     interval for a statistic of one sample.
-* :func:`paired_bootstrap` two methods evaluated on the same receivers: each replicate
-  resamples receivers once for both, so receiver-to-receiver variation cancels;
-  compares the statistics by difference (a - b) or ratio (a / b).
-* :func:`claim`            a paired comparison in each configuration (seed x light x ...),
-  the pooled effect (geometric mean of ratios, or mean difference, across configurations,
-  by a two-stage bootstrap: configurations, then receivers within each) and whether the
-  claim holds in every configuration.
+matrix) and seeded, so the same call gives the same interval.  :func:`paired_bootstrap`
+resamples the receivers of two methods together (receiver-to-receiver variation cancels);
+:func:`claim` pools paired comparisons over configurations (seed x light x ...).
 
 Samples with spatial correlation (texels of one map, receivers looked up through it) take
 ``blocks``: a block label per value (:func:`texel_blocks`: tiles of 8 x 8 texels).  A
@@ -65,21 +58,39 @@ def _sample(x, name: str) -> np.ndarray:
     return a
 
 
-def _check(n_boot, level, method):
+def _check(n_boot, level, method, compare="ratio"):
     V.integer(n_boot, "n_boot", 100)
     V.real(level, "level", 0.0, 1.0, open_min=True, open_max=True)
     V.one_of(method, "method", METHODS)
+    V.one_of(compare, "compare", ("difference", "ratio"))
+
+
+def _pair(a, b, name_a: str, name_b: str):
+    """The paired samples ``a``, ``b`` (:func:`_sample`), of one length."""
+    x, y = _sample(a, name_a), _sample(b, name_b)
+    if x.size != y.size:
+        raise ValueError(f"{name_b}: expected {x.size} values (paired with {name_a}), got {y.size}")
+    return x, y
 
 
 # ==================================================================== kernels
-def _replicates(fn: Callable, n: int, n_boot: int, rng) -> np.ndarray:
-    """(n_boot,) values of ``fn(idx)`` for (B, n) blocks of resampled indices."""
-    out = np.empty(n_boot)
+def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
+    """(count,) values of ``fn(idx)``, ``idx = rows(a, b)`` the index rows a..b-1 of length
+    ~n, in blocks of at most :data:`_BLOCK` entries."""
+    out = np.empty(count)
     per = max(1, _BLOCK // max(n, 1))
-    for a in range(0, n_boot, per):
-        b = min(n_boot, a + per)
-        out[a:b] = fn(rng.integers(0, n, size=(b - a, n)))
+    for a in range(0, count, per):
+        b = min(count, a + per)
+        out[a:b] = fn(rows(a, b))
     return out
+
+
+def _replicates(fn: Callable, n: int, n_boot: int, rng, layout=None) -> np.ndarray:
+    """(n_boot,) values of ``fn(idx)``: ``idx`` (B, n) value indices drawn with replacement,
+    or with ``layout`` (:func:`_layout`) the values of drawn blocks (:func:`_block_replicates`)."""
+    if layout is not None:
+        return _block_replicates(fn, layout, n_boot, rng)
+    return _rows(fn, n, n_boot, lambda a, b: rng.integers(0, n, size=(b - a, n)))
 
 
 #: Side in texels of the square tiles of :func:`texel_blocks`.
@@ -98,11 +109,14 @@ def texel_blocks(texels, width: int, size: int = BLOCK_TEXELS) -> np.ndarray:
     return (y // size) * (-(-width // size)) + x // size
 
 
-def _check_blocks(blocks, n: int, name: str = "blocks"):
+def _layout(blocks, n: int, method: str = "percentile", name: str = "blocks"):
     """(members, starts, counts) of the block labels ``blocks`` (n,): the value indices
-    sorted by block (stable), each block's start in ``members`` and size; None passes."""
+    sorted by block (stable), each block's start in ``members`` and size; None passes.
+    ValueError for BCa with blocks (block intervals are percentile intervals)."""
     if blocks is None:
         return None
+    if method != "percentile":
+        raise ValueError(f"method: block bootstrap intervals are percentile intervals, got method={method!r}")
     b = np.asarray(blocks).ravel()
     if b.size != n:
         raise ValueError(f"{name}: expected {n} block labels (one per value), got {b.size}")
@@ -140,14 +154,8 @@ def _block_mean_replicates(x, y, pre_post, compare, layout, n_boot: int, rng):
 
 def _jackknife(fn: Callable, n: int) -> np.ndarray:
     """(n,) leave-one-out values of ``fn(idx)`` (rows of the (n, n - 1) index matrix)."""
-    out = np.empty(n)
-    per = max(1, _BLOCK // max(n, 1))
-    base = np.arange(n - 1)
-    for a in range(0, n, per):
-        rows = np.arange(a, min(n, a + per))
-        idx = base[None, :] + (base[None, :] >= rows[:, None])       # skip index `row`
-        out[a:a + rows.size] = fn(idx)
-    return out
+    base = np.arange(n - 1)[None, :]
+    return _rows(fn, n, n, lambda a, b: base + (base >= np.arange(a, b)[:, None]))     # row r skips index r
 
 
 def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: Callable | None) -> tuple:
@@ -171,6 +179,7 @@ def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: C
 
 
 def _result(theta, boot, level, method, jack, **extra) -> dict:
+    """The result dict of :func:`bootstrap_ci` (plus ``extra``) from the replicates ``boot``."""
     lo, hi = _interval(theta, boot, level, method, jack)
     return dict(estimate=float(theta), low=lo, high=hi, level=level, method=method, n_boot=int(boot.size),
                 std_error=float(np.std(boot, ddof=1)), **extra)
@@ -187,13 +196,12 @@ def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, m
     """
     a = _sample(x, "x")
     _check(n_boot, level, method)
-    layout = _blocks_for(blocks, a.size, method)
+    layout = _layout(blocks, a.size, method)
     f = _stat(statistic)
     rng = np.random.default_rng(seed)
     fn = lambda idx: f(a[idx], axis=1)  # noqa: E731
-    boot = _replicates(fn, a.size, n_boot, rng) if layout is None else _block_replicates(fn, layout, n_boot, rng)
-    return _result(f(a[None, :], axis=1)[0], boot, level, method,
-                   lambda: _jackknife(lambda idx: f(a[idx], axis=1), a.size), n=int(a.size))
+    boot = _replicates(fn, a.size, n_boot, rng, layout)
+    return _result(f(a[None, :], axis=1)[0], boot, level, method, lambda: _jackknife(fn, a.size), n=int(a.size))
 
 
 def _compare(sa, sb, compare):
@@ -213,26 +221,14 @@ def paired_bootstrap(a, b, statistic="rmse", compare: str = "ratio", n_boot: int
     and ``p_a_smaller``: the share of replicates with stat(a) < stat(b).  blocks: a block
     label per receiver (module docstring; percentile intervals only).
     """
-    x, y = _sample(a, "a"), _sample(b, "b")
-    if x.size != y.size:
-        raise ValueError(f"b: expected {x.size} values (paired with a), got {y.size}")
-    if compare not in ("difference", "ratio"):
-        raise ValueError(f"compare: expected 'difference' or 'ratio', got {compare!r}")
-    _check(n_boot, level, method)
-    layout = _blocks_for(blocks, x.size, method)
-    return _paired(x, y, _stat(statistic), compare, n_boot, level, method, seed, layout)[0]
-
-
-def _blocks_for(blocks, n, method, name="blocks"):
-    """:func:`_check_blocks` of ``blocks``; ValueError for BCa with blocks."""
-    if blocks is not None and method != "percentile":
-        raise ValueError(f"method: block bootstrap intervals are percentile intervals, got method={method!r}")
-    return _check_blocks(blocks, n, name)
+    x, y = _pair(a, b, "a", "b")
+    _check(n_boot, level, method, compare)
+    return _paired(x, y, _stat(statistic), compare, n_boot, level, method, seed, _layout(blocks, x.size, method))[0]
 
 
 def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
     """(result dict of :func:`paired_bootstrap`, (n_boot,) replicates); inputs checked;
-    ``layout``: :func:`_check_blocks` of block labels, or None (values resampled)."""
+    ``layout``: :func:`_layout` of block labels, or None (values resampled)."""
     rng = np.random.default_rng(seed)
     smaller = []
 
@@ -244,7 +240,7 @@ def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
         boot, count = _block_mean_replicates(x, y, _MEAN_OF[f], compare, layout, n_boot, rng)
         smaller.append(count)
     else:
-        boot = _replicates(rep, x.size, n_boot, rng) if layout is None else _block_replicates(rep, layout, n_boot, rng)
+        boot = _replicates(rep, x.size, n_boot, rng, layout)
     sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])
     jack = lambda: _jackknife(lambda idx: _compare(f(x[idx], axis=1), f(y[idx], axis=1), compare),  # noqa: E731
                               x.size)
@@ -260,26 +256,20 @@ def claim(a_by_config, b_by_config, statistic="rmse", compare: str = "ratio", be
     pooled?  ``a_by_config`` / ``b_by_config``: sequences (one per configuration, e.g.
     seed x light) of paired per-receiver values (e.g. |errors| of methods a and b).
     blocks_by_config: None, or per configuration the block labels of its values (module
-    docstring): each configuration's replicates then resample blocks.
+    docstring).
 
-    Returns
-    -------
-    dict
-        ``per_config``: [paired_bootstrap result + config + holds (the whole interval below
-        ``below``) + point_holds (the estimate below it)]; ``estimate``, ``low``, ``high``:
-        the pooled effect - geometric mean of the per-configuration ratios (mean of
-        differences) - and its interval from a two-stage bootstrap (configurations
-        resampled, then receivers within each, replicate by replicate);
-        ``holds_in_every_configuration`` (every per-config interval below ``below``),
-        ``point_holds_in_every_configuration``, ``holds_pooled`` (the pooled interval below
-        it), ``n_configs``, ``below``, ``compare``, ``statistic`` (its name).
+    Returns dict(per_config: [:func:`paired_bootstrap` result + config + holds (the whole
+    interval below ``below``) + point_holds (the estimate below it)]; estimate, low, high:
+    the pooled effect, geometric mean of the per-configuration ratios (mean of differences),
+    and its interval from a two-stage bootstrap (configurations resampled, then receivers
+    within each, replicate by replicate); holds_in_every_configuration,
+    point_holds_in_every_configuration, holds_pooled (the pooled interval below ``below``),
+    n_configs, below, compare, statistic (its name)).
     """
     if len(a_by_config) != len(b_by_config) or len(a_by_config) == 0:
         raise ValueError(f"b_by_config: expected {len(a_by_config)} configurations (as a_by_config), "
                          f"got {len(b_by_config)}")
-    if compare not in ("difference", "ratio"):
-        raise ValueError(f"compare: expected 'difference' or 'ratio', got {compare!r}")
-    _check(n_boot, level, "percentile")
+    _check(n_boot, level, "percentile", compare)
     below = (1.0 if compare == "ratio" else 0.0) if below is None else float(below)
     C = len(a_by_config)
     configs = list(range(C)) if configs is None else list(configs)
@@ -291,11 +281,9 @@ def claim(a_by_config, b_by_config, statistic="rmse", compare: str = "ratio", be
         raise ValueError(f"blocks_by_config: expected {C} configurations (as a_by_config), got {len(blocks_by_config)}")
     per, reps = [], np.empty((C, n_boot))
     for c in range(C):
-        x, y = _sample(a_by_config[c], f"a_by_config[{c}]"), _sample(b_by_config[c], f"b_by_config[{c}]")
-        if x.size != y.size:
-            raise ValueError(f"b_by_config[{c}]: expected {x.size} values (paired), got {y.size}")
-        layout = None if blocks_by_config is None else _check_blocks(blocks_by_config[c], x.size,
-                                                                      f"blocks_by_config[{c}]")
+        x, y = _pair(a_by_config[c], b_by_config[c], f"a_by_config[{c}]", f"b_by_config[{c}]")
+        layout = None if blocks_by_config is None else _layout(blocks_by_config[c], x.size,
+                                                               name=f"blocks_by_config[{c}]")
         r, reps[c] = _paired(x, y, f, compare, n_boot, level, "percentile", seed + c, layout)
         r.update(config=configs[c], holds=bool(r["high"] < below), point_holds=bool(r["estimate"] < below))
         per.append(r)

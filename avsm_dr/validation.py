@@ -45,11 +45,8 @@ def _range_text(lo, hi, open_lo: bool, open_hi: bool) -> str:
 
 
 def _in_range(x, lo, hi, open_lo: bool, open_hi: bool) -> bool:
-    if lo is not None and (x <= lo if open_lo else x < lo):
-        return False
-    if hi is not None and (x >= hi if open_hi else x > hi):
-        return False
-    return True
+    return ((lo is None or (x > lo if open_lo else x >= lo))
+            and (hi is None or (x < hi if open_hi else x <= hi)))
 
 
 def real(value: Any, name: str, min: float | None = None, max: float | None = None, *,
@@ -105,11 +102,11 @@ def vec3(value: Any, name: str) -> np.ndarray:
     """(3,) float64 of three finite real numbers."""
     try:
         a = array(value, name).reshape(-1)
+        if a.shape == (3,):
+            return a
     except ValueError:
-        a = None
-    if a is None or a.shape != (3,):
-        raise ValueError(f"{name}: expected 3 finite numbers, got {value!r}")
-    return a
+        pass
+    raise ValueError(f"{name}: expected 3 finite numbers, got {value!r}")
 
 
 def unit_vector(value: Any, name: str) -> np.ndarray:
@@ -180,12 +177,9 @@ def grid_dtype(value: Any, name: str = "density") -> None:
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: expected a floating-point (z, y, x) array ({exc})") from None
     if kind in "iub":
-        if kind == "b":
-            how = "np.where(grid, sigma, 0).astype(np.float32)"
-        elif np.dtype(dname).itemsize <= 2:                   # voxel formats: 0..max stands for 0..sigma_max
-            how = f"grid.astype(np.float32) * (sigma_max / {np.iinfo(dname).max})"
-        else:
-            how = "grid.astype(np.float32) * scale"
+        how = ("np.where(grid, sigma, 0).astype(np.float32)" if kind == "b" else     # voxel formats: 0..max
+               f"grid.astype(np.float32) * (sigma_max / {np.iinfo(dname).max})" if np.dtype(dname).itemsize <= 2
+               else "grid.astype(np.float32) * scale")
         raise ValueError(f"{name}: {'boolean' if kind == 'b' else 'integer'} grid (dtype {dname}) refused: a "
                          f"density grid holds extinction per world unit as floating point; convert it "
                          f"with an explicit scale, e.g. {how}")

@@ -1,6 +1,6 @@
 """Shared plumbing for experiments: the output folder and its cache, CSV/JSON writers, the
-timer (:func:`measure`, :func:`timed`) and the memory meter (:class:`Meter`), re-exported
-from :mod:`avsm_dr.evaluation.timing`.
+timer (:func:`measure`, :func:`timed`, re-exported from :mod:`avsm_dr.evaluation.timing`)
+and the memory meter (:class:`Meter`).
 
 Cache: an experiment reuses ``<out>/data.csv`` when ``meta.json`` there records the same
 parameters *and* the same :func:`cache_key` (hash of the package source, Dr.Jit / Mitsuba /
@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import csv
 import functools
+import gc
 import hashlib
 import json
 import os
 import platform
 import subprocess
+import time
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -263,9 +265,85 @@ def _fmt(v):
 
 
 # ================================================================ timing, memory
-# The timer and the memory meter live in the public harness; re-exported for the studies.
-from avsm_dr.evaluation.timing import Meter, measure, sync, timed  # noqa: E402,F401
+# The timer lives in the public harness; re-exported for the studies.
+from avsm_dr.evaluation.timing import measure, sync, timed  # noqa: E402,F401
 from avsm_dr.evaluation.table import read_csv  # noqa: E402,F401
+
+
+def _status_kb() -> dict:
+    """``VmRSS`` / ``VmHWM`` of this process in KiB (Linux; empty elsewhere)."""
+    out = {}
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(("VmRSS:", "VmHWM:")):
+                    key, val = line.split(":")
+                    out[key] = int(val.split()[0])
+    except OSError:
+        pass
+    return out
+
+
+def _jit_backend():
+    from avsm_dr import backend
+    return dr.JitBackend.CUDA if backend.get_backend() == "cuda" else dr.JitBackend.LLVM
+
+
+class Meter:
+    """Time and peak memory of a block, for the active backend::
+
+        with Meter() as m:
+            out = fn(); dr.eval(out)
+        m.seconds, m.cpu_seconds, m.heap_bytes, m.rss_bytes
+
+    On entry: garbage collected, device synchronised, Dr.Jit's allocation cache freed and
+    its statistics reset.  On exit (after ``dr.sync_thread``): ``heap_bytes`` = growth of
+    Dr.Jit's allocator watermark (``dr.detail.malloc_watermark`` of the active backend:
+    host buffers on LLVM, device memory on CUDA); ``rss_bytes`` = growth of the process's
+    peak resident set above its size at entry (Linux ``VmHWM`` reset through
+    ``/proc/self/clear_refs``; NaN where that is unavailable; includes NumPy, temporaries
+    and kernel stacks).  Evaluate the block's results inside it."""
+
+    def __enter__(self):
+        gc.collect()
+        dr.sync_thread()
+        dr.flush_malloc_cache()
+        dr.detail.malloc_clear_statistics()
+        self._backend = _jit_backend()
+        self._heap0 = dr.detail.malloc_watermark(self._backend)
+        try:
+            with open("/proc/self/clear_refs", "w") as fh:
+                fh.write("5")                     # reset VmHWM to the current RSS
+            self._rss0 = _status_kb().get("VmRSS")
+        except OSError:
+            self._rss0 = None
+        self._c0, self._t0 = time.process_time(), time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        dr.sync_thread()
+        self.seconds = time.perf_counter() - self._t0
+        self.cpu_seconds = time.process_time() - self._c0
+        self.heap_bytes = float(dr.detail.malloc_watermark(self._backend) - self._heap0)
+        hwm = _status_kb().get("VmHWM")
+        self.rss_bytes = float((hwm - self._rss0) * 1024) if self._rss0 is not None and hwm is not None \
+            else float("nan")
+        return False
+
+    @property
+    def heap_mb(self) -> float:
+        """``heap_bytes`` in MB (1e6 bytes)."""
+        return self.heap_bytes / 1e6
+
+    @property
+    def rss_mb(self) -> float:
+        """``rss_bytes`` in MB (1e6 bytes)."""
+        return self.rss_bytes / 1e6
+
+    @property
+    def peak_bytes(self) -> float:
+        """The larger of the two measures (they overlap: Dr.Jit's host buffers are in RSS)."""
+        return max(self.heap_bytes, self.rss_bytes) if self.rss_bytes == self.rss_bytes else self.heap_bytes
 
 
 def front_to_back_first(orders, allowed) -> list[str]:

@@ -11,7 +11,7 @@ from avsm_dr import receivers, stats
 from avsm_dr.capture.opaque_map import OpaqueComposite
 from experiments.error_curves import findings as F
 from experiments import error_curves as E
-from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants, with_faint_segments
+from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants
 from avsm_dr.groundtruth import sample_density
 
 
@@ -151,7 +151,7 @@ def test_subset_build_equals_whole_map(plume, kind, params):
 
 def test_faint_segments_leave_the_curve_in_front_unchanged(plume):
     seg = ad.capture(plume, resolution=64, order="depth").segments
-    f = with_faint_segments(seg, 8.0)
+    f = E.with_faint_segments(seg, 8.0)
     nz = seg.counts > 0
     assert np.array_equal(f.counts, seg.counts + nz)
     near, far = seg.texel_bounds()

@@ -315,10 +315,11 @@ def test_configurations():
 def test_moved_names_are_public():
     from avsm_dr import evaluation
     from experiments import _common
-    for name in ("truth", "Probe", "Built", "SubsetBuilder", "light_variants", "with_faint_segments"):
+    for name in ("truth", "Probe", "Built", "SubsetBuilder", "light_variants"):
         assert callable(getattr(evaluation, name))
-    for name in ("measure", "timed", "Meter", "sync"):
+    for name in ("measure", "timed", "sync"):
         assert getattr(_common, name) is getattr(evaluation, name)
+    assert not hasattr(evaluation, "Meter") and _common.Meter.__module__ == "experiments._common"   # studies only
     assert {"Scene", "DirectionalLight", "SpotLight", "PointLight", "evaluation"} <= set(ad.__all__)
 
 

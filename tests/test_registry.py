@@ -276,11 +276,9 @@ def test_the_package_never_imports_the_studies():
 #: it, allowed because they validate an argument (the ValueError names it) rather than
 #: dispatch behaviour: (file, enclosing function, type) -> reason.
 TYPE_CHECKS_ALLOWED = {
-    ("avsm_dr/shading.py", "spot_falloff", "SpotLight"):
-        "argument check: the Mitsuba spot profile exists for spot lights only ('light: expected a SpotLight')",
     ("avsm_dr/reconstruction.py", "receiver_grid", "DirectionalLight"):
         "argument check: the radiograph plane is orthogonal to a parallel light ('light: expected ...')",
-    ("avsm_dr/evaluation/lights.py", "light_variants", "DirectionalLight"):
+    ("avsm_dr/evaluation/configuration.py", "light_variants", "DirectionalLight"):
         "argument check: the variants tilt a directional light ('scene: light_variants needs ...')",
 }
 

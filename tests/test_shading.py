@@ -87,8 +87,8 @@ def test_irradiance_and_spot_falloff():
     s = SpotLight([0, 0, 0], [0, 0, 1.0], fov=80, intensity=1.0)    # cutoff 40, beam 30 deg
     ang = np.radians([0, 29.9, 35.0, 37.5, 40.1, 90, 170])
     pts = np.c_[np.sin(ang), np.zeros(7), np.cos(ang)]
-    np.testing.assert_allclose(sh.spot_falloff(s, pts), [1, 1, 0.5, 0.25, 0, 0, 0], atol=1e-12)
-    np.testing.assert_allclose(sh.irradiance(s, 3 * pts), sh.spot_falloff(s, pts) / 9, rtol=1e-14)
+    np.testing.assert_allclose(s.falloff(pts), [1, 1, 0.5, 0.25, 0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(sh.irradiance(s, 3 * pts), s.falloff(pts) / 9, rtol=1e-14)
 
 
 def test_shade_receivers_formula(rng):

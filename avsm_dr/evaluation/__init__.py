@@ -14,19 +14,17 @@ where it matters, and at what cost.  For example::
   decomposition (compression / capture / spatial) at a receiver set.
 * :func:`depth_l2` (:mod:`.curves`): the depth-uniform L2 of a whole curve (on the
   midpoints of :func:`depth_grid`).
-* :func:`light_variants` (:mod:`.lights`), :func:`with_faint_segments` (:mod:`.perturb`).
-* :func:`measure`, :func:`timed`, :class:`Meter` (:mod:`.timing`): time and memory.
+* :func:`light_variants` (:mod:`.configuration`): the lights of a configuration.
+* :func:`measure`, :func:`timed` (:mod:`.timing`): wall, CPU and kernel time.
 """
 from .comparison import Comparison, compare
-from .configuration import LIGHTS, Configuration, configurations
+from .configuration import LIGHTS, Configuration, configurations, light_variants
 from .curves import curve_values, depth_grid, depth_l2
 from .harness import METRICS, RECEIVER_SETS, evaluate
-from .lights import light_variants
-from .perturb import with_faint_segments
 from .probe import Built, Probe, SubsetBuilder, truth
 from .table import Table, read_csv
-from .timing import Meter, measure, sync, timed
+from .timing import measure, sync, timed
 
-__all__ = ["Built", "Comparison", "Configuration", "LIGHTS", "METRICS", "Meter", "Probe", "RECEIVER_SETS",
+__all__ = ["Built", "Comparison", "Configuration", "LIGHTS", "METRICS", "Probe", "RECEIVER_SETS",
            "SubsetBuilder", "Table", "compare", "configurations", "curve_values", "depth_grid", "depth_l2", "evaluate",
-           "light_variants", "measure", "read_csv", "sync", "timed", "truth", "with_faint_segments"]
+           "light_variants", "measure", "read_csv", "sync", "timed", "truth"]

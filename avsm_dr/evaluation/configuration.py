@@ -2,23 +2,52 @@
 
 A built-in scene is regenerated per seed (its noise) and its receivers are drawn with that
 seed; a :class:`~avsm_dr.Scene` object keeps its content and only its receivers are drawn
-per seed.  The light is a name of :func:`~avsm_dr.evaluation.lights.light_variants`
-('dir_a': the scene's own light, 'dir_b': it tilted by 25 degrees, 'spot': a spot light on
-its axis) or a light object.
+per seed.  The light is a name of :func:`light_variants` ('dir_a': the scene's own light,
+'dir_b': it tilted by 25 degrees, 'spot': a spot light on its axis) or a light object.
 """
 from __future__ import annotations
 
 import dataclasses
 from numbers import Integral
 
-from .. import validation as V
-from ..scene import Light
+import numpy as np
 
-#: Light names a configuration takes (:func:`~avsm_dr.evaluation.lights.light_variants`).
+from .. import validation as V
+from ..scene import DirectionalLight, Light, SpotLight
+
+#: Light names a configuration takes (:func:`light_variants`).
 LIGHTS = ("dir_a", "dir_b", "spot")
 #: Host bytes per configuration while :func:`configurations` builds them (measured peak: 268),
-#: checked before allocating (seeds=10**9 used to end in a MemoryError).
+#: checked before allocating.
 BYTES_PER_CONFIGURATION = 300
+
+
+def _rotate(v, axis, degrees):
+    """Rodrigues rotation of v about the unit axis."""
+    a = np.radians(degrees)
+    return v * np.cos(a) + np.cross(axis, v) * np.sin(a) + axis * (axis @ v) * (1 - np.cos(a))
+
+
+def light_variants(scene, tilt: float = 25.0) -> dict:
+    """{'dir_a': the scene's directional light, 'dir_b': it tilted by ``tilt`` degrees
+    about the horizontal axis orthogonal to it, 'spot': a spot light on the same axis at
+    2.5 content radii from the content's centre, its cone covering the content sphere}.
+
+    Built for the scenes' default directional lights (ValueError otherwise)."""
+    light = scene.light
+    if not isinstance(light, DirectionalLight):
+        raise ValueError(f"scene: light_variants needs a DirectionalLight, got {type(light).__name__}")
+    d = np.asarray(light.direction, np.float64)
+    up = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    axis = np.cross(d, up)
+    axis /= np.linalg.norm(axis)
+    from ..groundtruth.content import check_scene, content_sphere
+    c, R = content_sphere(check_scene(scene))
+    dist = 2.5 * R
+    fov = min(170.0, 2.2 * float(np.degrees(np.arcsin(R / dist))))
+    return {"dir_a": light,
+            "dir_b": DirectionalLight(direction=_rotate(d, axis, tilt), irradiance=light.irradiance),
+            "spot": SpotLight(position=c - dist * d, direction=d, fov=fov)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,10 +80,7 @@ class Configuration:
         light (of any type); 'dir_b' and 'spot' need a directional one."""
         if not isinstance(self.light, str):
             return self.light
-        if self.light == "dir_a":
-            return scene.light
-        from .lights import light_variants
-        return light_variants(scene)[self.light]
+        return scene.light if self.light == "dir_a" else light_variants(scene)[self.light]
 
 
 def configurations(seeds=1, lights=("dir_a",)) -> list[Configuration]:

@@ -14,12 +14,9 @@ receiver RMSE it weighs every depth of a texel's range alike, wherever the recei
 per texel, the cost ``norm='l2'`` of the ``optimal`` kind minimises (up to the
 normalisation by the range).  Not counted: empty texels (T = 1 for every kind) and texels
 whose range is a single depth (only opaque faces, e.g. a table top without smoke: a step
-whose depth-uniform error has zero measure; the receiver RMSE covers them).
-
-Why the opaque interiors are left out: a blocker is captured as a thin slab (a table top
-3e-4 deep) of optical depth 1e4, inside which no receiver can be.  Counted, it made the
-metric measure how a kind interpolates inside a solid: linear AVSM-8 gave 0.544 on
-``smoke_over_table`` (64^2, the RMS of ``1 - x`` over the slab) against OSM-16's 0.052.
+whose depth-uniform error has zero measure; the receiver RMSE covers them).  Opaque
+interiors are left out: a blocker is captured as a thin slab of optical depth 1e4, inside
+which no receiver can be (counted, the metric would measure interpolation inside a solid).
 """
 from __future__ import annotations
 
@@ -32,48 +29,32 @@ from ..segments import OPAQUE_OPTICAL_DEPTH
 DEPTHS = 64
 #: Lanes (texels x depths) per ``eval`` call: bounds the device memory of one call.
 CHUNK_LANES = 1 << 22
-
-
 #: Host bytes per (texel, depth) of :func:`depth_l2` (the float64 curves of the kind and of
 #: the reference, and the depth grid of one chunk), checked before allocating.
 BYTES_PER_DEPTH = 24
 
 
 def _check(rep, segments, n_depths, texels):
-    """The validated arguments shared by :func:`curve_values` and :func:`depth_l2`:
-    (n_depths, texels as int64 or None); ValueError naming the argument."""
+    """(n_depths, texels as int64 or None) checked for ``segments`` and ``rep`` (None: no
+    representation); ValueError naming the argument."""
     from ..segments import Segments
     if not isinstance(segments, Segments):
         raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
-    if not callable(getattr(rep, "eval", None)):
+    if rep is not None and not callable(getattr(rep, "eval", None)):
         raise ValueError(f"rep: expected a representation (an object with eval(texel, depth)), "
                          f"got {type(rep).__name__}")
     if getattr(rep, "n_texels", segments.n_texels) != segments.n_texels:
         raise ValueError(f"rep: built on {rep.n_texels} texels, the segments have {segments.n_texels}")
     n = V.integer(n_depths, "n_depths", 1)
-    texels = _check_texels(segments, texels)
+    if texels is not None:
+        t = V.array(texels, "texels")
+        if t.ndim != 1 or np.any(t != np.round(t)) or np.any(t < 0) or np.any(t >= segments.n_texels):
+            raise ValueError(f"texels: expected a 1-D array of texel indices in [0, {segments.n_texels})")
+        texels = t.astype(np.int64)
     rows = int(np.count_nonzero(segments.counts > 0)) if texels is None else int(np.unique(texels).size)
     V.check_memory("n_depths", n, lambda m: float(m) * max(rows, 1) * BYTES_PER_DEPTH, lo=1,
                    what=f"depths on {rows} texels")
     return n, texels
-
-
-def _check_texels(segments, texels):
-    """``texels`` as int64 indices of ``segments`` (None stays None); ValueError naming it."""
-    if texels is None:
-        return None
-    t = V.array(texels, "texels")
-    if t.ndim != 1 or np.any(t != np.round(t)) or np.any(t < 0) or np.any(t >= segments.n_texels):
-        raise ValueError(f"texels: expected a 1-D array of texel indices in [0, {segments.n_texels})")
-    return t.astype(np.int64)
-
-
-def _opaque(segments):
-    """(texel, z0, z1) float64 of the opaque segments (optical depth >= OPAQUE_OPTICAL_DEPTH)."""
-    h = segments.numpy()
-    op = h["optical_depth"] >= OPAQUE_OPTICAL_DEPTH
-    tex = np.repeat(np.arange(segments.n_texels), segments.counts)[op]
-    return tex, h["z0"][op].astype(np.float64), h["z1"][op].astype(np.float64)
 
 
 def _domain(segments, texels=None):
@@ -101,7 +82,10 @@ def _grid(a, b, n):
 def _counted(segments, tex, a, b, n) -> np.ndarray:
     """(T', n) bool: the midpoints of :func:`_grid` not strictly inside an opaque segment."""
     keep = np.ones((tex.size, n), bool)
-    ot, o0, o1 = _opaque(segments)
+    h = segments.numpy()
+    op = h["optical_depth"] >= OPAQUE_OPTICAL_DEPTH
+    ot = np.repeat(np.arange(segments.n_texels), segments.counts)[op]
+    o0, o1 = h["z0"][op].astype(np.float64), h["z1"][op].astype(np.float64)
     row = np.searchsorted(tex, ot)
     hit = (row < tex.size) & (tex[np.minimum(row, tex.size - 1)] == ot) if tex.size else row < 0
     if hit.any():
@@ -112,17 +96,14 @@ def _counted(segments, tex, a, b, n) -> np.ndarray:
     return keep
 
 
-
 def depth_grid(segments, n_depths: int = DEPTHS, texels=None):
     """The grid :func:`depth_l2` measures on: ``(texels, depths, counted)``, the T' texels
     counted (increasing, the rows of :func:`curve_values` and ``depth_l2(per_texel=True)``),
     their (T', n_depths) midpoints and the bool mask of those not inside an opaque segment."""
-    from ..segments import Segments
-    if not isinstance(segments, Segments):
-        raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
-    n = V.integer(n_depths, "n_depths", 1)
-    tex, a, b = _domain(segments, _check_texels(segments, texels))
+    n, texels = _check(None, segments, n_depths, texels)
+    tex, a, b = _domain(segments, texels)
     return tex, _grid(a, b, n), _counted(segments, tex, a, b, n)
+
 
 def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarray:
     """(T', n_depths) float64 values ``rep.eval(t, z_tj)`` on the midpoint grid of the
@@ -145,29 +126,14 @@ def curve_values(rep, segments, n_depths: int = DEPTHS, texels=None) -> np.ndarr
 
 
 def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per_texel: bool = False):
-    """Depth-uniform L2 of ``rep``'s curve against the exact one (module docstring).
+    """Depth-uniform L2 of ``rep``'s curve against the exact one (module docstring): the RMS
+    over the texels counted (NaN when there is none), or with ``per_texel`` the (T',) array
+    of ``L2_t``.
 
-    Parameters
-    ----------
-    rep
-        a representation built on ``segments`` (anything with ``eval(texel, depth)``).
-    segments
-        the segments ``rep`` was built on.
-    exact
-        the reference - None (``build('exact', segments)``), a representation, or its
-        :func:`curve_values` on the same grid (reused across many ``rep``).
-    n_depths
-        midpoints per texel (default :data:`DEPTHS`).
-    texels
-        restrict to these texels (default: every non-empty one).
-    per_texel
-        return the per-texel values instead of their RMS.
-
-    Returns
-    -------
-    float or numpy.ndarray
-        the RMS over the texels counted (NaN when there is none), or with ``per_texel``
-        the (T',) array of ``L2_t``.
+    rep: built on ``segments`` (anything with ``eval(texel, depth)``).  exact: the reference,
+    None (``build('exact', segments)``), a representation, or its :func:`curve_values` on
+    the same grid (reused across many ``rep``).  n_depths: midpoints per texel.  texels:
+    restrict to these texels (default: every non-empty one).
     """
     n, texels = _check(rep, segments, n_depths, texels)
     if exact is None:

@@ -36,6 +36,7 @@ build_first_s                              the first build, JIT compilation incl
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import inspect
 from numbers import Integral
@@ -47,7 +48,7 @@ from .. import validation as V
 from ..capture import ORDERS as CAPTURE_ORDERS
 from ..capture.opaque_map import compose
 from ..metrics import THRESHOLD, error_stats
-from ..receivers import BYTES_PER_POINT
+from ..receivers import BYTES_PER_POINT, NAMES, receiver_sets
 from ..representations import REGISTRY, Representation, describe
 from ..scene import Scene
 from .configuration import Configuration
@@ -62,7 +63,7 @@ from .timing import measure
 METRICS = ("receiver_rmse", "depth_l2", "timing")
 #: Receiver sets (:mod:`avsm_dr.receivers`): by contribution inside the medium, on the
 #: receiver plane, the scene's own points.
-RECEIVER_SETS = ("in_volume", "surface", "uniform")
+RECEIVER_SETS = NAMES
 OPAQUE_MODES = ("inline", "separate")
 #: Receivers and taps of ``error_curves``' full mode (its quick mode: 512, 256, 128).
 N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
@@ -70,12 +71,7 @@ N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
 LOOKUP_REPEATS = 3
 
 
-@dataclasses.dataclass
-class _Method:
-    label: str
-    cls: type
-    params: dict
-    kind: str
+_Method = collections.namedtuple("_Method", "label cls params kind")
 
 
 def _methods(methods) -> list[_Method]:
@@ -87,16 +83,10 @@ def _methods(methods) -> list[_Method]:
     for label, spec in methods.items():
         if not isinstance(label, str) or not label:
             raise ValueError(f"methods: labels must be non-empty strings, got {label!r}")
-        if isinstance(spec, (str, type)):
-            kind, params = spec, {}
-        elif isinstance(spec, (tuple, list)) and len(spec) == 2:
-            kind, params = spec
-        else:
-            kind, params = None, None
+        pair = (spec, {}) if isinstance(spec, (str, type)) else spec
+        kind, params = pair if isinstance(pair, (tuple, list)) and len(pair) == 2 else (None, None)
         preset = isinstance(params, str) and params == "preset"
-        if preset:
-            params = {}
-        if not isinstance(params, dict):
+        if not (preset or isinstance(params, dict)):
             raise ValueError(f"methods[{label!r}]: expected (kind, params dict or 'preset'), got {spec!r}")
         if isinstance(kind, str):
             try:
@@ -129,15 +119,12 @@ def _scenes(scenes) -> list[tuple[str, object]]:
     known = getattr(builtin_scenes, "SCENES", {})
     out = []
     for s in scenes:
-        if isinstance(s, str):
-            if s not in known:
-                raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
-                                 f"{V.did_you_mean(s, known)}")
-            out.append((s, s))
-        elif isinstance(s, Scene):
-            out.append((s.name, s))
-        else:
+        if not isinstance(s, (str, Scene)):
             raise ValueError(f"scenes: expected built-in scene names or Scene objects, got {s!r}")
+        if isinstance(s, str) and s not in known:
+            raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
+                             f"{V.did_you_mean(s, known)}")
+        out.append((s, s) if isinstance(s, str) else (s.name, s))
     if not out:
         raise ValueError("scenes: no scene given")
     names = [n for n, _ in out]
@@ -156,12 +143,9 @@ def _configs(configurations) -> list[Configuration]:
                          f"got {configurations!r}")
     out = []
     for c in configurations:
-        if isinstance(c, Configuration):
-            out.append(c)
-        elif isinstance(c, (tuple, list)) and len(c) == 2:
-            out.append(Configuration(*c))
-        else:
+        if not (isinstance(c, Configuration) or isinstance(c, (tuple, list)) and len(c) == 2):
             raise ValueError(f"configurations: expected Configuration or (seed, light) items, got {c!r}")
+        out.append(c if isinstance(c, Configuration) else Configuration(*c))
     if not out:
         raise ValueError("configurations: none given")
     return out
@@ -179,22 +163,14 @@ def _names(value, name, choices=None) -> list:
 
 
 # ====================================================================== steps
-def _scene_for(spec, cfg: Configuration) -> Scene:
-    """The cell's scene: a built-in one regenerated with the seed; lit by the configuration."""
-    from .. import builtin_scenes
-    scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec
-    return dataclasses.replace(scene, light=cfg.light_for(scene))
-
-
-def _receiver_points(scene, receivers, cfg, n_volume, n_surface) -> dict:
-    from .. import receivers as R
-    if isinstance(receivers, dict):
-        return {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()}
-    make = {"in_volume": lambda: R.in_volume(scene, n_volume, cfg.seed),
-            "surface": lambda: R.surface(scene, n_surface, cfg.seed),
-            "uniform": lambda: V.points(scene.receivers, "receivers", allow_empty=True)}
-    sets = {k: make[k]() for k in receivers}
-    return {k: v for k, v in sets.items() if v.shape[0] > 0}      # e.g. no receiver plane: no surface set
+def _synced_build(cls, segments, params):
+    """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
+    rep = cls(segments, **params)
+    values = [x for v in vars(rep).values() for x in (v if isinstance(v, (list, tuple)) else [v])]
+    arrays = [x for x in values if dr.is_array_v(x)]
+    if arrays:
+        dr.eval(*arrays)
+    return rep
 
 
 def _capture(scene, resolution, order, opaque, seed):
@@ -206,18 +182,13 @@ def _capture(scene, resolution, order, opaque, seed):
     return cap, cap.order
 
 
-def _synced_build(cls, segments, params):
-    """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
-    rep = cls(segments, **params)
-    arrays = []
-    for v in vars(rep).values():
-        if dr.is_array_v(v):
-            arrays.append(v)
-        elif isinstance(v, (list, tuple)):
-            arrays += [x for x in v if dr.is_array_v(x)]
-    if arrays:
-        dr.eval(*arrays)
-    return rep
+def _timed(fn, want: bool, repeats: int):
+    """(result, median wall seconds, first-call seconds) of ``fn`` (:func:`~.timing.measure`,
+    one warm-up call); NaN times and one call when not ``want``."""
+    if not want:
+        return fn(), float("nan"), float("nan")
+    t = measure({"fn": fn}, repeats=repeats, warmup=1)["fn"]
+    return t["out"], t["wall_s"], t["first_s"]
 
 
 def _rms(x) -> float:
@@ -238,61 +209,36 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
              resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
              build_repeats: int = 1, progress: bool = True) -> Table:
-    """Measure ``methods`` on ``scenes`` in ``configurations``: one row per method x scene x
-    configuration x resolution x order x opaque mode x receiver set (columns: module docstring).
+    """Measure ``methods`` on ``scenes`` in ``configurations``: a :class:`Table` of one row per
+    method x scene x configuration x resolution x order x opaque mode x receiver set (columns:
+    module docstring).
 
-    Parameters
-    ----------
-    methods
-        {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
-        :class:`~avsm_dr.Representation` subclass, registered or not (built directly);
-        ``label: kind`` alone means default parameters, ``(kind, "preset")`` the kind's
-        best-practice parameters (``describe(kind)["preset"]``, recorded in ``params``; its
-        ``preset_capture``, e.g. ``opaque='separate'``, is the caller's ``opaque=``).
-    scenes
-        built-in scene names (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.
-    configurations
-        :class:`~.configuration.Configuration` items or (seed, light) pairs
-        (default ``configurations()``: seed 0, the scene's own light).
-    receivers
-        names of :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface'
-        without a receiver plane, are left out), or {name: (K, 3) points} for fixed ones.
-    metrics
-        names of :data:`METRICS`.
-    resolution
-        texels per side of the light map (or a sequence: a row per value).
-    order
-        the capture's insertion order, 'depth' | 'reverse_depth' | 'random' | 'submission'
-        (``avsm_dr.capture.ORDERS``; or a sequence: a row per value); default 'depth' (front to
-        back), not ad.capture's own default 'submission'; 'random' shuffles with the
-        configuration's seed (``order_seed=seed``).
-    n_volume, n_surface
-        receivers per set.
-    n_decomp
-        receivers of the capture / spatial terms.
-    opaque
-        'inline' | 'separate' (or both): blockers in the map or in their own depth map;
-        'separate' runs only for scenes with blockers.
-    subset
-        build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`,
-        faster at high resolution): the lookups of a whole-map build for kinds that work
-        per texel, given the map's global depth range (``error_curves`` checks every
-        built-in kind); ``bytes`` and ``depth_l2`` then cover those texels.
-    n_depths
-        depths per texel of ``depth_l2``.
-    build_repeats
-        timed builds after the first.
-    progress
-        a progress bar over the rows.
+    methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
+    :class:`~avsm_dr.Representation` subclass, registered or not; ``label: kind`` alone means
+    default parameters, ``(kind, "preset")`` the kind's best-practice parameters
+    (``describe(kind)["preset"]``, recorded in ``params``; its ``preset_capture``, e.g.
+    ``opaque='separate'``, is the caller's ``opaque=``).  scenes: built-in scene names
+    (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.  configurations:
+    :class:`~.configuration.Configuration` items or (seed, light) pairs (default
+    ``configurations()``: seed 0, the scene's own light).  receivers: names of
+    :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface' without a receiver
+    plane, are left out), or {name: (K, 3) points}.  metrics: names of :data:`METRICS`.
 
-    Returns
-    -------
-    Table
-        one row per method x scene x configuration x resolution x order x opaque mode x
-        receiver set.
+    resolution, order: texels per side of the light map; the capture's insertion order
+    (``avsm_dr.capture.ORDERS``), default 'depth' (front to back), not ad.capture's own
+    'submission'; 'random' shuffles with the configuration's seed.  Either may be a
+    sequence: a row per value.  n_volume, n_surface: receivers per set; n_decomp: receivers
+    of the capture / spatial terms.  opaque: 'inline' | 'separate' (or both): blockers in
+    the map or in their own depth map ('separate' runs only for scenes with blockers).
+    subset: build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`:
+    the lookups of a whole-map build for kinds that work per texel); ``bytes`` and
+    ``depth_l2`` then cover those texels.  n_depths: depths per texel of ``depth_l2``.
+    build_repeats: timed builds after the first.  progress: a progress bar over the cells.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
-    if not isinstance(receivers, dict):
+    fixed = {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()} if isinstance(receivers, dict) \
+        else None
+    if fixed is None:
         receivers = _names(receivers, "receivers", RECEIVER_SETS)
     metrics = _names(metrics, "metrics", METRICS)
     resolutions = [V.integer(r, "resolution", 1) for r in _names(resolution, "resolution")]
@@ -306,11 +252,14 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
 
     from tqdm import tqdm
+
+    from .. import builtin_scenes
     rows: list[dict] = []
     cells = [(s, c) for s in scs for c in cfgs]
     for (label, spec), cfg in tqdm(cells, desc="evaluate", unit="cell", disable=not progress):
-        scene = _scene_for(spec, cfg)
-        points = _receiver_points(scene, receivers, cfg, n_volume, n_surface)
+        scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec   # regenerated with the seed
+        scene = dataclasses.replace(scene, light=cfg.light_for(scene))
+        points = fixed if fixed is not None else receiver_sets(scene, n_volume, n_surface, cfg.seed, names=receivers)
         if not points:
             raise ValueError(f"receivers: scene {label!r} has none of the receiver sets {list(receivers)}")
         truth = {}
@@ -351,21 +300,12 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
     for m in meths:
         params = sub.params(m.cls, m.params) if subset else m.params
 
-        def make(m=m, params=params):
-            return _synced_build(m.cls, segs, params)
-        if want_time:
-            t = measure({"build": make}, repeats=build_repeats, warmup=1)["build"]
-            rep, build_s, first_s = t["out"], t["wall_s"], t["first_s"]
-        else:
-            rep, build_s, first_s = make(), float("nan"), float("nan")
+        rep, build_s, first_s = _timed(lambda m=m, params=params: _synced_build(m.cls, segs, params), want_time,
+                                       build_repeats)
         target = Built(rep, sub.remap, od) if subset else rep
         l2 = depth_l2(compose(rep, od), segs, exact=ex_curve, n_depths=n_depths) if want_l2 else float("nan")
         for s, p in probes.items():
-            if want_time:
-                t = measure({"lookup": lambda p=p: p.lookup(target)}, repeats=LOOKUP_REPEATS, warmup=1)["lookup"]
-                est, lookup_s = t["out"], t["wall_s"]
-            else:
-                est, lookup_s = p.lookup(target), float("nan")
+            est, lookup_s, _ = _timed(lambda p=p: p.lookup(target), want_time, LOOKUP_REPEATS)
             row = dict(method=m.label, kind=m.kind, params=dict(m.params), scene=head["scene"], seed=head["seed"],
                        light=head["light"], receivers=s, **{k: head[k] for k in ("order", "resolution", "opaque")},
                        n_receivers=p.k, n_decomp=p.n_decomp)

@@ -27,21 +27,14 @@ import dataclasses
 
 import numpy as np
 
-from .. import groundtruth
 from ..capture.opaque_map import compose
-from ..filtering import split_coordinates
+from ..filtering import bilinear_taps
+from ..receivers import marched
 
 
 def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
     """(K,) float64 true transmittance (module docstring) at world points."""
-    p = np.asarray(points, np.float64)
-    if p.shape[0] == 0:
-        return np.zeros(0)
-    step = None
-    if scene.density is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
-        step = step_fraction * float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1])))
-    return groundtruth.transmittance(scene, p, method="raymarch", step=step)[0]
+    return marched(scene, points, step_fraction)
 
 
 class Probe:
@@ -61,14 +54,7 @@ class Probe:
         coords, depth = cap.lookup(p, continuous=True)
         self.inside = cap.covers(p)
         self.depth = depth
-        w, h = cap.width, cap.height
-        ix, iy, fx, fy = split_coordinates(coords - 0.5, w, h, margin=1)
-        tex, wt = [], []
-        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-            tex.append(np.clip(iy + dy, 0, h - 1) * w + np.clip(ix + dx, 0, w - 1))
-            wt.append((fx if dx else 1 - fx) * (fy if dy else 1 - fy))
-        self.tex = np.stack(tex)                       # (4, K) int64
-        self.weights = np.stack(wt)                    # (4, K) float64, rows sum to 1
+        self.tex, self.weights = bilinear_taps(coords, cap.width, cap.height)     # (4, K) int64, float64
         self.truth = truth(scene, p) if truth_at_points is None else np.asarray(truth_at_points, np.float64)
         # truth along each tap's texel ray to the receiver's depth, on the first n_decomp receivers
         self.n_decomp = min(int(n_decomp), self.k)
@@ -141,7 +127,8 @@ class SubsetBuilder:
     def params(self, kind, params: dict) -> dict:
         """``params`` with the full map's near/far added where ``kind`` (a registered name or
         a :class:`~avsm_dr.Representation` subclass) takes a global range."""
-        schema = _schema_params(kind)
+        from ..representations import describe
+        schema = kind.schema.describe()["params"] if isinstance(kind, type) else describe(kind)["params"]
         p = dict(params)
         if "near" in schema and "far" in schema and p.get("depth_range", "global") == "global" \
                 and p.get("near") is None and p.get("far") is None:
@@ -155,11 +142,3 @@ class SubsetBuilder:
         p = self.params(kind, params)
         rep = kind(self.segments, **p) if isinstance(kind, type) else build(kind, self.segments, **p)
         return Built(rep, self.remap, self.opaque_depth)
-
-
-def _schema_params(kind) -> dict:
-    """The parameter schema (``describe(kind)['params']``) of a registered name or a class."""
-    if isinstance(kind, type):
-        return kind.schema.describe()["params"]
-    from ..representations import describe
-    return describe(kind)["params"]

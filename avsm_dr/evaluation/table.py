@@ -38,10 +38,7 @@ class Table:
     @property
     def columns(self) -> list[str]:
         """Column names in order of first appearance."""
-        out: dict[str, None] = {}
-        for r in self.rows:
-            out.update(dict.fromkeys(r))
-        return list(out)
+        return list(dict.fromkeys(k for r in self.rows for k in r))
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -67,19 +64,9 @@ class Table:
         for k in eq:
             self._check(k)
 
-        def ok(r):
-            for k, v in eq.items():
-                x = r.get(k)
-                if callable(v):
-                    if not v(x):
-                        return False
-                elif isinstance(v, (list, tuple, set, frozenset)):
-                    if x not in v:
-                        return False
-                elif x != v:
-                    return False
-            return True
-        return Table([r for r in self.rows if ok(r)])
+        def match(v, x) -> bool:
+            return v(x) if callable(v) else x in v if isinstance(v, (list, tuple, set, frozenset)) else x == v
+        return Table([r for r in self.rows if all(match(v, r.get(k)) for k, v in eq.items())])
 
     def to_csv(self, path) -> Path:
         """Write the rows as CSV (floats with 9 significant digits, dicts as JSON)."""

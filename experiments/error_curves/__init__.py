@@ -41,10 +41,11 @@ import numpy as np
 from avsm_dr import allows, build, configurations, describe
 from avsm_dr import kinds as all_kinds
 from avsm_dr.metrics import error_stats, optical_depth_error
+from avsm_dr.segments import Segments
 from . import findings as F
 from .._study import Option, Study
 from .labels import ORDERS, PRECISIONS, TUNING, with_size, label, order_dependent, tuned  # noqa: F401  (re-exported)
-from avsm_dr.evaluation import Built, Probe, SubsetBuilder, curve_values, depth_l2, light_variants, with_faint_segments
+from avsm_dr.evaluation import Built, Probe, SubsetBuilder, curve_values, depth_l2, light_variants
 from avsm_dr.stats import texel_blocks
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -330,6 +331,26 @@ def _tuning_columns(kind_names) -> list[str]:
             if name not in cols:
                 cols.append(name)
     return cols
+
+
+def with_faint_segments(segments, stretch: float, optical_depth: float = 0.01):
+    """Segments with one faint segment appended to every non-empty texel, at
+    ``near_t + stretch (far_t - near_t)`` (its own bounds), of length ``0.01 (far_t - near_t)``
+    and optical depth ``optical_depth``: the depth spread *within* a texel grows
+    ``stretch`` times while T in front of ``far_t`` does not change."""
+    h = segments.numpy()
+    off, c = h["offsets"], segments.counts
+    near, far = segments.texel_bounds()
+    nz = np.nonzero(c > 0)[0]
+    span = far[nz] - near[nz]
+    z0f = near[nz] + stretch * span
+    ins = off[1:][nz]                                   # insert at the end of each texel
+    z0 = np.insert(h["z0"], ins, z0f)
+    z1 = np.insert(h["z1"], ins, z0f + 0.01 * span)
+    tau = np.insert(h["optical_depth"], ins, optical_depth)
+    add = np.zeros(segments.n_texels + 1, np.int64)
+    add[1:] = np.cumsum(c > 0)
+    return Segments.from_arrays(off + add, z0, z1, optical_depth=tau, dtype=segments.dtype)
 
 
 def _depth_range(cap, sub, probe, exact, head0, rows, store, cfg, kind_names):
