@@ -11,13 +11,8 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 
-#: Builds run phases A and B on chunks of texels (:func:`next_chunk_segments`), so that their
-#: temporaries, ~``TEMP_BYTES_PER_SEGMENT`` per segment of a chunk (host and device, measured
-#: on random smoke-like maps), stay near the output's size: a chunk holds about as many
-#: segments as ``estimated output bytes / TEMP_BYTES_PER_SEGMENT`` (the first chunk
-#: ``MIN_CHUNK_SEGMENTS``, then extrapolated from the chunks built), clamped to
-#: [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS]: below the minimum the kernel launches of a
-#: chunk would dominate.
+#: Temporaries of phases A and B per segment of a chunk (bytes, host and device), and the
+#: bounds of a chunk's segments (:func:`next_chunk_segments`).
 TEMP_BYTES_PER_SEGMENT = 400
 MIN_CHUNK_SEGMENTS = 1 << 13
 MAX_CHUNK_SEGMENTS = 1 << 18
@@ -33,7 +28,8 @@ def chunk_end(offsets: np.ndarray, t0: int, per_chunk: int) -> int:
 def next_chunk_segments(output_bytes: float, segments_done: int, n_segments: int) -> int:
     """Segments of the next chunk: the output extrapolated from the chunks built
     (``output_bytes`` over ``segments_done`` of ``n_segments``) over
-    ``TEMP_BYTES_PER_SEGMENT``, clamped to [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS]."""
+    ``TEMP_BYTES_PER_SEGMENT``, clamped to [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS] (the
+    first chunk: the minimum, below which kernel launches dominate)."""
     if segments_done <= 0:
         return MIN_CHUNK_SEGMENTS
     estimate = output_bytes * n_segments / segments_done

@@ -1,27 +1,21 @@
 """Reverse mode through per-texel loops: the trajectory budget and checkpointed loops.
 
-What reverse mode costs (drjit 1.5, LLVM backend; ``python -m experiments backward_cost``
-measures it): a symbolic ``dr.while_loop`` differentiated in reverse mode with
-``max_iterations=M`` keeps its **trajectory in a per-lane local array of M x (state words)**
-inside the kernel.  On the CPU that array lives on the worker's stack, so it grows as
-``segments per texel x loop state`` and overflows it (a segfault) for long texels
-(the limits found: docs/performance.md); ``max_iterations > 65536`` raises.  On a GPU the
-same trajectory is per-thread local memory.  A bound below the true iteration count makes
-reverse mode write and read past that array (out of bounds: corrupts the worker's stack,
-later segfaults; Dr.Jit checks it only under ``JitFlag.Debug``), so :func:`run_loop`
-refuses it (ValueError) given the loop's true count; a larger one only costs trajectory space.
+Reverse mode through a symbolic ``dr.while_loop`` with ``max_iterations=M`` keeps its
+**trajectory in a per-lane local array of M x (state words)** (drjit 1.5; on the CPU on the
+worker's stack, which long texels overflow: a segfault).  A bound below the true iteration
+count writes past that array, so :func:`run_loop` refuses it (ValueError).
 
 * A *sum loop* (the increment does not read the accumulator) runs with
   ``max_iterations=-1``: reverse mode re-runs the loop and stores no trajectory
-  (the exact curve, DSM node values).  Such kinds declare ``loop_state_words = 0``.
-* Any other loop is run by :func:`run_loop`: plain ``dr.while_loop`` while the trajectory
-  fits :data:`TRAJECTORY_BUDGET_WORDS`, otherwise :func:`checkpointed_while_loop`
-  (Griewank and Walther 2008, "Evaluating Derivatives", ch. 12): chunks of C iterations
-  with AD off, the state saved at each chunk boundary (M / C states per lane in global
-  memory), the backward pass re-running one chunk at a time from its saved state in
-  reverse order.  One extra forward pass; forward mode needs neither.
+  (``loop_state_words = 0``).
+* Any other loop is run by :func:`run_loop`: plain while the trajectory fits
+  :data:`TRAJECTORY_BUDGET_WORDS`, otherwise :func:`checkpointed_while_loop` (Griewank and
+  Walther 2008, "Evaluating Derivatives", ch. 12): chunks of C iterations with AD off, the
+  state saved at each chunk boundary, the backward pass re-running one chunk at a time in
+  reverse order.
 
-This module imports only drjit, the backend and the array helpers: no concrete representation.
+Also the deterministic per-texel sums of the linear kinds (:func:`texel_sums`).  Imports no
+concrete representation.
 """
 from __future__ import annotations
 
@@ -31,9 +25,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 
-#: Trajectory words per lane a single reverse-differentiated loop may hold
-#: (M x state words), below the stack sizes that crashed (docs/performance.md).  16 k words
-#: = 64 KiB per lane.
+#: Trajectory words per lane a reverse-differentiated loop may hold (M x state words; 64 KiB).
 TRAJECTORY_BUDGET_WORDS = 16384
 #: Reverse-mode strategies accepted by every representation (``reverse=``).
 REVERSE_MODES = ("auto", "trajectory", "checkpoint")
@@ -166,14 +158,9 @@ def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: i
                          max_iterations=max_iterations, label=label)
 
 
-# ----------------------------------------------------------------------------
-# Deterministic per-texel sums (the linear kinds' projection without atomics)
-# ----------------------------------------------------------------------------
 def texel_lanes(segments):
-    """(texel, first, stop) of the non-empty texels (UInt32 each): the texel index and its
-    CSR range ``[first, stop)`` of segments, one lane per texel in texel order (neighbouring
-    lanes read neighbouring segments; ordering lanes by count to even out a SIMD packet's
-    loop length was slower: cache misses)."""
+    """(texel, first, stop) of the non-empty texels (UInt32 each, texel order): the texel
+    index and its CSR range ``[first, stop)`` of segments."""
     UInt32 = backend.types().UInt32
     texel = A.to_uint32(np.nonzero(segments.counts > 0)[0])
     offsets = segments.offsets_dr()
@@ -182,13 +169,9 @@ def texel_lanes(segments):
 
 def texel_sums(segments, term, n: int, label: str = "texel_sum"):
     """Per-texel sums of per-segment terms in a fixed order: one lane per non-empty texel
-    (:func:`texel_lanes`) loops over its segments i in CSR order, adding ``term(i, texel)``
-    (a list of ``n`` values for segment ``i`` of lane texel ``texel``, both UInt32) into
-    ``n`` registers of the segments' Float.  The same bits whatever the thread count, the load or what ran before
-    (``dr.scatter_reduce(ReduceOp.Add)`` adds in the order the threads arrive).  ``term``
-    runs inside a symbolic loop (no ``dr.eval``).  Returns (texel UInt32, sums: list of n
-    evaluated arrays, one value per non-empty texel).  No reverse mode through the loop:
-    callers keep the scatter-add for segments carrying gradients."""
+    loops over its segments i in CSR order, adding ``term(i, texel)`` (``n`` values, inside
+    a symbolic loop: no ``dr.eval``).  The same bits whatever the threads (unlike a
+    scatter-add); no reverse mode.  Returns (texel UInt32, sums: n evaluated arrays)."""
     texel, first, stop = texel_lanes(segments)
     def body(i, *acc):
         return (i + 1, *[a + x for a, x in zip(acc, term(i, texel))])

@@ -30,14 +30,7 @@ Steps (:func:`hankel_bound`):
    ``L = sum_{z_i < x_f} w_i`` (``1 - w_f`` when ``x_f`` is behind every root),
    ``U = min(L + w_f, 1)``; the optical depth in front is ``b_0 clamp(L + beta w_f, 0, 1)``.
 
-For n = 2 every operation is the one of the former 4-moment kernel (``hamburger4``), in
-the same order, so 4 moments give the same D and L bits at the same bias and target (U to
-1 ulp in float64; measured over 20k receivers); the floors are ``alpha`` times the
-target's pivots from a float64 Cholesky.  Accuracy of the roots against ``numpy.roots``
-of the same coefficients, 11480 receivers of 300 random texels (|root| < 10, relative):
-float64 max 1.7e-13 (6 moments) / 3.7e-13 (8); float32 median 2e-8, p99 4e-7, max 6e-5
-(6) and, for 8 moments, 8 receivers (0.07 %) above 1e-3 (max 0.32: nearly double roots
-that float32 evaluation of the quartic cannot separate).
+The floors are ``alpha`` times the target's pivots from a float64 Cholesky.
 """
 from __future__ import annotations
 
@@ -52,13 +45,9 @@ BIG = 1e6
 POLISH = 3
 #: Guard of divisions (|den| below it is replaced by it).
 TINY = 1e-30
-#: A texel whose zeroth moment (total optical depth) is at most this is empty (D = 0).  Its
-#: higher moments are smaller still (``|b_k| <= b_0``) and in float32 fall below the smallest
-#: normal number (1.2e-38), which the LLVM backend flushes to 0: e.g. a plume texel of
-#: optical depth 4.7e-37 stored ``b_4 .. b_8 = 0``, moments of no distribution, and 8
-#: moments gave NaN.  Above it the flush changes ``m_k = b_k / b_0`` by at most 1.2e-18,
-#: far below the smallest default bias (1e-9); below it ``T = exp(-b_0)`` is 1 in float32
-#: and float64 alike, so only the (vanishing) gradient of such a texel is lost.
+#: A texel whose zeroth moment (total optical depth) is at most this is empty (D = 0): its
+#: higher moments (``|b_k| <= b_0``) may be flushed to 0 in float32, moments of no
+#: distribution; ``T = exp(-b_0)`` is 1 there in float32 and float64 alike.
 NEGLIGIBLE = 1e-20
 #: Relative floor of the leading coefficient in the cubic / quartic closed forms
 #: (float32, float64): see :func:`_leading`.
@@ -78,9 +67,6 @@ def hankel_pivots(target) -> list[float]:
     return [float(v) for v in np.diag(L) ** 2]
 
 
-# ----------------------------------------------------------------------------
-# Polynomial roots (real-rooted polynomials; branch-free)
-# ----------------------------------------------------------------------------
 def _safe(x):
     """x with |x| >= TINY (sign kept; 0 -> TINY)."""
     return dr.select(dr.abs(x) > TINY, x, dr.select(x < 0, -TINY, TINY))
@@ -214,9 +200,6 @@ def quartic_roots(c0, c1, c2, c3, c4):
     return _polish([c0, c1, c2, c3, c4], [dr.clip(z, -BIG, BIG) for z in roots])
 
 
-# ----------------------------------------------------------------------------
-# The bound
-# ----------------------------------------------------------------------------
 def _elementary(others):
     """Elementary symmetric polynomials e_0 = 1, e_1, .., e_k of the arrays ``others``."""
     e = [1, others[0]]

@@ -59,9 +59,8 @@ from .registry import register
 from .base import Representation, depth_range
 from ._loops import texel_sums
 from ._precision import PRECISIONS, Stored
-from .basis_functions import (  # noqa: F401  (the bases: re-exported from their old home)
-    BASES, LIST_CHUNK, LIST_UNROLL, PROJECTION_ONLY, SHORT, SQRT2, Basis, CosineBasis, LegendreBasis,
-    check_count, clip_segment, cos_pi, make_basis, register_basis, sin_pi, sinc, sincos_pi)
+from .basis_functions import BASES, LIST_CHUNK, LIST_UNROLL, Basis, clip_segment, make_basis
+from .basis_functions import CosineBasis, LegendreBasis  # noqa: F401  (re-exported: their old home)
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
 #: Shortest depth range per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
@@ -79,14 +78,9 @@ MAX_LIST_COEFFICIENTS = 1 << 12
 
 @register("basis")
 class BasisRepresentation(Representation):
-    """Coefficient map of any :class:`Basis` (module docstring).
-
-    Parameters: ``basis`` (Basis instance or registered name), ``n`` (size, with a
-    name), ``near``, ``far`` (floats, default ``Segments.bounds()``, ``near < far``),
-    ``depth_range`` ``'global'`` | ``'texel'``.
-    Attributes: ``coefficients`` list of K Dr.Jit arrays of length T (``a_k`` per texel);
-    ``near``, ``far``: floats (global) or Dr.Jit arrays of length T (texel).
-    ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
+    """Coefficient map of any :class:`Basis` (module docstring).  Attributes: ``coefficients``
+    (K Dr.Jit arrays of length T); ``near``, ``far``: floats (global) or Dr.Jit arrays
+    (texel).  ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
     """
 
     # Best practice for every basis kind (inherited): per-texel range, opaque blockers apart.
@@ -138,8 +132,7 @@ class BasisRepresentation(Representation):
         return basis
 
     def _coefficients_at(self, v: int) -> int | None:
-        """Coefficients per texel at size-parameter value ``v`` (None: not searchable, e.g.
-        a Basis instance); the memory check searches the largest v that fits with it."""
+        """Coefficients per texel at size-parameter value ``v`` (None: a Basis instance)."""
         if not isinstance(self.params.get("basis", ""), str):
             return None
         return type(self.basis)(v).n_coefficients
@@ -156,10 +149,9 @@ class BasisRepresentation(Representation):
         return it * (2.0 * T + 2.5 * S) * K
 
     def _check_coefficients(self) -> None:
-        """ValueError before any allocation: more than :data:`MAX_COEFFICIENTS` per texel
-        (:data:`MAX_LIST_COEFFICIENTS` for a basis in list form), or a projection whose
-        estimate (:meth:`_build_bytes`) exceeds the memory budget
-        (:func:`avsm_dr.validation.memory_budget`), naming the size parameter and what fits."""
+        """ValueError naming the size parameter and what fits: more than :data:`MAX_COEFFICIENTS`
+        per texel (:data:`MAX_LIST_COEFFICIENTS` in list form), or :meth:`_build_bytes` above
+        the memory budget."""
         name = self.schema.size
         K = self.basis.n_coefficients
         searchable = self._coefficients_at(self.params[name]) is not None
@@ -211,8 +203,7 @@ class BasisRepresentation(Representation):
     _stored_attr = "_coef"
 
     def _stored(self):
-        """The stored map as coefficients scaled per texel (non-negative for monotone
-        bases), and a per-texel depth range in float32 (:mod:`._precision`)."""
+        """The stored map as coefficients (non-negative for monotone bases), the range."""
         out = (Stored(self._stored_attr, "coefficient", "flat", signed=not self.basis.monotone),)
         if self._per_texel:
             out += (Stored("near", "range", "texel"), Stored("far", "range", "texel"))
@@ -224,8 +215,7 @@ class BasisRepresentation(Representation):
         if self._per_texel:
             near = dr.gather(Float, self.near, texel)
             far = dr.gather(Float, self.far, texel)
-        else:
-            # opaque: a new near/far does not recompile the kernels
+        else:                                   # opaque: no kernel per near/far
             near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
         dt = self.segments.dtype
         floor = MIN_SPAN_REL[dt] * dr.maximum(dr.abs(near), dr.abs(far)) + MIN_SPAN_ABS[dt]
@@ -233,8 +223,7 @@ class BasisRepresentation(Representation):
 
     @property
     def coefficients(self) -> list:
-        """a_k per texel as a list of K Dr.Jit arrays of length T (made on demand from the
-        flat texel-major store ``[texel * K + k]``)."""
+        """a_k per texel as a list of K Dr.Jit arrays of length T (from the flat store)."""
         K, T = self.basis.n_coefficients, self.n_texels
         idx = dr.arange(backend.types().UInt32, T) * K
         return [dr.gather(self.Float, self._coef, idx + k) for k in range(K)]
@@ -252,8 +241,7 @@ class BasisRepresentation(Representation):
                              "2^32 - 1 entries that UInt32 indices address")
 
     def _clipped_segments(self):
-        """Per segment (one lane each): texel, clipped normalised depths c0 <= c1 in
-        [0, 1], optical depth inside the range and in front of near (behind: dropped)."""
+        """Per segment: texel and :func:`clip_segment` against its range."""
         seg = self.segments
         texel = seg.texel_of_segment()
         near, span = self._range(texel if self._per_texel else None)
@@ -406,10 +394,8 @@ class BasisRepresentation(Representation):
 
     @property
     def _store(self):
-        """The flat texel-major store ``[texel * K + k]`` that reconstruction reads (the
-        coefficients a_k; kinds storing a linear transform of them, e.g. OSM's cumulative
-        sums, override it).  Linear in a_k, so a weighted sum of stores is the store of the
-        weighted sum of coefficients (what prefiltering relies on)."""
+        """The flat store ``[texel * K + k]`` reconstruction reads: a_k or a linear transform
+        of them (OSM's cumulative sums), so prefiltering can weight it."""
         return self._coef
 
     def _optical_depth(self, texel, depth):
@@ -417,10 +403,8 @@ class BasisRepresentation(Representation):
         return self._reconstruct_from(self._store, texel, self.normalized_depth(texel, depth))
 
     def _reconstruct_from(self, store, row, u):
-        """D(u) = sum_k a_k g_k(u) with a_k read from a flat store ``store[row * K + k]``
-        (row: UInt32 per receiver; u: normalised depth per receiver).  Indexed bases over
-        (receiver, coefficient) lanes with block sums; others a Python loop over k,
-        evaluated every LIST_CHUNK terms beyond LIST_UNROLL."""
+        """D(u) = sum_k a_k g_k(u) with a_k read from ``store[row * K + k]`` (row: UInt32 per
+        receiver; u: normalised depth per receiver)."""
         Float, UInt32 = self.Float, backend.types().UInt32
         basis, K = self.basis, self.basis.n_coefficients
         R = dr.width(u)
@@ -451,13 +435,9 @@ class BasisRepresentation(Representation):
 
     def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
         """T from the filtered coefficient map: per receiver ``a_k = sum_j w_j a_k[tex_j] /
-        sum_j w_j`` over the filter's taps (:func:`~avsm_dr.filtering.filtered_eval` applied
-        to each stored coefficient), then one reconstruction ``exp(-sum_k a_k g_k(u))``.
-        With one global depth range this is exact filtering of the coefficient map (what
-        bilinear / mip filtering of a coefficient texture does in hardware).  A per-texel
-        range is refused (ValueError): each texel's a_k are coordinates over its own
-        [near, far], so their weighted sum projects no absorption, and filtering the ranges
-        as well would not make it one."""
+        sum_j w_j`` over the filter's taps (:func:`~avsm_dr.filtering.filtered_eval`), then
+        ``exp(-sum_k a_k g_k(u))``, as hardware filtering of a coefficient texture does.
+        ValueError with a per-texel range (each texel's a_k live on its own [near, far])."""
         if self._per_texel:
             raise ValueError("prefilter: needs depth_range='global'; with 'texel' every texel's "
                              "coefficients live on its own [near, far] and cannot be averaged")
@@ -482,10 +462,8 @@ class BasisRepresentation(Representation):
         return dr.clip(dr.exp(-self._reconstruct_from(flat, dr.arange(UInt32, R), u)), 0, 1)
 
     def optical_depth(self, texel, depth):
-        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp).
-
-        texel: (K,) integer texel indices (not validated: a diagnostic, use ``eval`` for
-        checked input); depth: (K,) or scalar light-space depths.  Returns Float (K,)."""
+        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp) at (K,) texel
+        indices (not validated: a diagnostic) and (K,) or scalar depths.  Returns Float (K,)."""
         tex = texel if A.is_drjit(texel) else A.to_uint32(np.asarray(texel).astype(np.uint32))
         if A.is_drjit(depth):
             d = A.to_float(depth, self.Float)

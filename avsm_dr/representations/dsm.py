@@ -7,93 +7,52 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
 
     |DSM(z) - V(z)| <= epsilon   for every depth z        (Lokovic-Veach error bound)
 
-Pipeline (one build, three phases):
-
-1. **Exact curve as a polyline** (phase A).  ``V(z) = exp(-tau(z))`` with the optical
-   depth ``tau`` piecewise linear between the texel's sorted unique segment ends
-   ("breakpoints") and steps at zero-length segments (a receiver at a step depth is
-   behind it, as in :mod:`.exact`).  ``tau`` at every breakpoint comes from events
-   sorted inside each texel (NumPy row sorts, O(S log S); skipped when the segments
-   are already sorted and disjoint) and a prefix sum (one Dr.Jit lane per texel; the
-   slope is a compensated sum so that short dense segments do not wipe out small
-   ones).  Between breakpoints ``V`` is exactly exponential; the polyline adds vertices
-   where ``V`` crosses a fixed table of levels ``L_0 = 1 > L_1 > ... > L_N`` with ::
+1. **Exact curve as a polyline** (phase A, :mod:`._dsm_polyline`).  ``V(z) = exp(-tau(z))``
+   with ``tau`` piecewise linear between the texel's sorted unique segment ends
+   ("breakpoints"), steps at zero-length segments (a receiver at a step depth is behind it,
+   as in :mod:`.exact`).  The polyline adds vertices where ``V`` crosses the levels ::
 
        L_{n+1} = L_n exp(-kappa_n),  kappa_n = sqrt(8 eps_p / L_n),  L_N <= eps_p,
 
-   so that every polyline piece lies inside one band ``[L_{n+1}, L_n]`` and its chord
-   error is at most ``max|V''| h^2 / 8 = L_n kappa^2 / 8 <= eps_p`` (below ``L_N`` both
-   curves lie in ``[0, eps_p]``).  This replaces uniform subdivision: a monotone curve
-   crosses each level once, so a texel's polyline has at most ``2 B + N`` vertices
-   (B breakpoints, N ~ sqrt(1 / eps_p) levels) however opaque a segment is.  Inserted
-   depths are rounded to the storage dtype first and their values are the exact curve
-   at the rounded depth, so stored depths are exact and vertices sit on ``V``.  A
-   crossing that rounds onto the previous vertex (a curve dropping within one ulp, e.g.
-   an opaque segment of sub-ulp length at a large depth offset) moves to the next
-   representable depth, and levels already passed there are skipped: dropping it would
-   leave the chord to the next breakpoint far above ``V``.
-   ``eps_p = epsilon / 4``.  Level crossings: one Dr.Jit lane per breakpoint (a
-   counting pass, an exclusive sum, a writing pass).
+   so each piece lies in one band ``[L_{n+1}, L_n]`` with chord error
+   ``max|V''| h^2 / 8 = L_n kappa^2 / 8 <= eps_p``; at most ``2 B + N`` vertices per texel
+   (B breakpoints, N ~ sqrt(1 / eps_p) levels).  Inserted depths are rounded to the storage
+   dtype (a crossing rounding onto the previous vertex moves to the next representable
+   depth) and take the exact curve's value there.  ``eps_p = epsilon / 4``.
 
-2. **Greedy compression** (phase B, Lokovic-Veach's algorithm): from the current origin
-   vertex keep the window ``[lo, hi]`` of slopes whose line from the origin passes
-   within ``delta = epsilon / 2`` of every polyline vertex seen so far (band clipped to
-   ``[0, 1]``, ``hi <= 0`` so the result is non-increasing); when the window empties,
-   emit a node at the depth of the last vertex that fitted and restart from it.  A
-   vertex at the origin's depth (a step) only asks the origin value to lie in its band,
-   otherwise a vertical step node is emitted.  The last vertex becomes a node unless
-   the slope 0 still fits (then the last node's value holds to the end).  Two node
-   placements:
+2. **Greedy compression** (phase B, :mod:`._dsm_compress`, Lokovic-Veach's algorithm): from
+   the current origin keep the window ``[lo, hi]`` of slopes whose line passes within
+   ``delta = epsilon / 2`` of every vertex seen so far (band clipped to ``[0, 1]``,
+   ``hi <= 0``: non-increasing); when it empties, emit a node at the last vertex that
+   fitted and restart from it.  ``placement="midslope"`` (default, the paper's): the node
+   lies on the mid-slope line ``(lo + hi) / 2``; ``placement="curve"``: nodes are polyline
+   vertices (exact curve values, differentiable with the node depths held fixed).
+   Error: polyline <= eps_p, compression <= delta, so ``|DSM - V| <= 3 epsilon / 4`` in
+   exact arithmetic; the remaining ``epsilon / 4`` absorbs the rounding of inserted depths.
+   Phases A and B run in float64; nodes are stored in the segments' dtype.
 
-   * ``placement="midslope"`` (default, the paper's): the node lies on the line with the
-     mid slope ``(lo + hi) / 2``, up to ``delta`` off the curve, and is the next origin.
-   * ``placement="curve"``: nodes are a subset of the polyline vertices (values on the
-     exact curve); a vertex is accepted while the chord to it stays within ``delta`` of
-     the vertices in between.  Slightly more nodes; the node values are exact curve
-     values, hence differentiable w.r.t. the segments with the node depths held fixed.
-
-   Error: polyline <= eps_p, compression <= delta (the difference of two polylines
-   whose kinks are all at polyline vertices is bounded by its values there), so
-   ``|DSM - V| <= 3 epsilon / 4`` in exact arithmetic; the remaining ``epsilon / 4``
-   absorbs the rounding of inserted depths (a rounded piece may straddle two bands).
-   One Dr.Jit lane per texel runs a ``dr.while_loop`` over the texel's CSR polyline,
-   scattering nodes into an output buffer of the polyline's size; nodes are then
-   compacted to CSR.  Phases A and B run in float64; nodes are stored in the segments'
-   dtype.
-
-3. **Lookup** (phase C): per receiver, binary search of the texel's nodes for the last
-   node with ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of
-   the first node, the last node's value behind the last one; empty texels ``V = 1``.
+3. **Lookup** (phase C): binary search of the texel's nodes for the last node with
+   ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of the first node
+   and in empty texels, the last node's value behind the last one.
 
 Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4``
-(the (depth, value) pairs plus one 4-byte CSR offset).
-
-Memory: phases A and B hold ~``TEMP_BYTES_PER_SEGMENT`` bytes per segment (float64 host
-events, device prefix sums, polyline, node buffers), so they run on chunks of texels
-sized from the output built so far (:func:`next_chunk_segments`); each chunk's nodes are
-kept in the storage dtype.  The build's peak stays within a few times the output's size.
-Texels are independent, so the nodes do not depend on the chunking.
-
-Code: phase A (and the polyline's memory bound) in :mod:`._dsm_polyline`, phase B in
-:mod:`._dsm_compress`, the chunks in :mod:`._dsm_chunks`, the representation (build loop,
-storage, phase C) here; the public names of those modules are re-exported here.
+(the (depth, value) pairs plus one 4-byte CSR offset).  Phases A and B run on chunks of
+texels (:mod:`._dsm_chunks`), so the build's peak stays within a few times the output's size.
 """
 from __future__ import annotations
 
-import math
 
 import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from . import _curve
 from .registry import register
+from .avsm import csr_bracket, lerp
 from .base import Representation
 from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema
-from .exact import exact_values
-# phase A, phase B and the chunks of the build live in private modules; their public names
-# are re-exported here, their old home
 from ._dsm_polyline import (  # noqa: F401
     BYTES_PER_VERTEX, MEMORY_BUDGET_BYTES, POLYLINE_SHARE, breakpoints, check_polyline_size, exact_polyline,
     next_up, prefix_optical_depth, sort_within_texels, transmittance_levels)
@@ -106,30 +65,17 @@ from ._dsm_chunks import (  # noqa: F401
 MIN_TOLERANCE = 1e-9
 
 
-# ----------------------------------------------------------------------------
-# The representation
-# ----------------------------------------------------------------------------
 @register("dsm")
 class DeepShadowMap(Representation):
-    """Deep shadow map with error bound ``tolerance`` (see the module docstring).
+    """Deep shadow map with error bound ``tolerance`` (module docstring; default 0.01, the
+    value of Salvi et al. 2010, table 1).
 
-    Parameters (of ``ad.build("dsm", segments, ...)``): ``tolerance``, epsilon, the bound on
-    ``|DSM(z) - V(z)|``, in [1e-9, inf) (default 0.01, the value of Salvi et al. 2010,
-    "Adaptive Volumetric Shadow Maps", table 1); ``placement``, 'midslope' (Lokovic-Veach,
-    not differentiable) or 'curve' (nodes on the exact curve; gradients w.r.t. optical depth
-    with the node depths held fixed).
-
-    Attributes after the build: ``node_counts`` (T,) int64 NumPy; ``node_depth``,
-    ``node_value`` Dr.Jit arrays in CSR order; ``node_offsets`` (T+1,) int64 NumPy;
-    ``node_left`` (bool NumPy) the node's polyline vertex is the value just before a step at
-    its depth; ``n_polyline_vertices`` (T,) size of the phase-A polyline.
-
-    Limit: the build holds the phase-A polyline, up to ``2 B + N`` vertices per texel
-    (B breakpoints, N ~ sqrt(2 / tolerance) levels for a texel that goes opaque: 15 at
-    0.01, 1418 at 1e-6, 44,727 at 1e-9), ``BYTES_PER_VERTEX`` bytes each, one chunk of
-    texels at a time; a build whose bound summed over its chunks exceeds
-    ``_dsm_polyline.MEMORY_BUDGET_BYTES`` (2 GiB) raises ValueError naming the tolerance that fits,
-    before allocating the chunk that crosses it.
+    Attributes: ``node_counts`` (T,) and ``node_offsets`` (T+1,) int64 NumPy; ``node_depth``,
+    ``node_value`` Dr.Jit arrays in CSR order; ``node_left`` (bool NumPy: the node's vertex
+    is the value just before a step at its depth); ``n_polyline_vertices`` (T,).
+    Raises ValueError naming the tolerance that fits when the phase-A polyline bound
+    (``BYTES_PER_VERTEX`` per vertex) summed over the chunks exceeds
+    ``_dsm_polyline.MEMORY_BUDGET_BYTES``, before allocating the chunk that crosses it.
     """
 
     schema = Schema(
@@ -156,7 +102,6 @@ class DeepShadowMap(Representation):
         """Only ``placement='curve'`` (node values on the exact curve) has gradients."""
         return self.placement == "curve"
 
-    # ------------------------------------------------------------- build
     def _build(self):
         """Phases A and B chunk by chunk of texels (:func:`next_chunk_segments`); each
         chunk's nodes are kept in the storage dtype and copied once into the final arrays."""
@@ -192,24 +137,12 @@ class DeepShadowMap(Representation):
         Float = seg.Float
         self.node_depth = Float(nz)
         value = Float(nv)
-        if self.placement == "curve" and counts.sum() and self._needs_grad():
-            value = self._attach_gradients(value, nz, self.node_left, counts)
+        if self.placement == "curve":         # the exact curve's gradients at fixed node depths
+            value = _curve.attach_exact_gradients(seg, value, np.repeat(np.arange(n_tex), counts), nz, self.node_left)
         self.node_value = value
         self._offsets_dr = t.UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
         self._max_nodes = int(counts.max()) if counts.size else 0
 
-    def _needs_grad(self) -> bool:
-        return self.segments.requires_grad
-
-    def _attach_gradients(self, value, nz, left, counts):
-        """value + (V(z) - detach(V(z))): the primal stays the float64 one, the gradient is
-        that of the exact curve at each node's fixed depth (left limit before a step;
-        :func:`.exact.exact_values`, a sum loop that reverse mode recomputes)."""
-        tex = np.repeat(np.arange(counts.size), counts)
-        v = exact_values(self.segments, tex, nz, left)
-        return value + (v - dr.detach(v))
-
-    # ------------------------------------------------------------ storage
     precisions = PRECISIONS
 
     def _stored(self):
@@ -235,39 +168,18 @@ class DeepShadowMap(Representation):
         v = np.asarray(dr.detach(self.node_value).numpy(), np.float64)
         return z[s], v[s]
 
-    # -------------------------------------------------------------- lookup
     def _eval_texels(self, texel, depth):
         Float = self.Float
-        UInt32 = backend.types().UInt32
         if self._max_nodes == 0:
             return dr.full(Float, 1.0, dr.width(depth))
-        start = dr.gather(UInt32, self._offsets_dr, texel)
-        end = dr.gather(UInt32, self._offsets_dr, texel + 1)
         zs, vs = self.node_depth, self.node_value
-        # binary search: j = first node in [start, end) with z_j > depth
-        lo, hi = UInt32(start), UInt32(end)
-        for _ in range(max(1, math.ceil(math.log2(self._max_nodes + 1)))):
-            live = lo < hi
-            mid = (lo + hi) >> 1
-            below = dr.gather(Float, zs, mid, live) <= depth
-            lo = dr.select(live & below, mid + 1, lo)
-            hi = dr.select(live & ~below, mid, hi)
-        j = lo
-        inside = (j > start) & (j < end)
-        after = (j > start) & (j == end)
-        ja = dr.select(j > start, j - 1, start)
-        jb = dr.select(inside, j, ja)
-        za = dr.gather(Float, zs, ja, j > start)
-        zb = dr.gather(Float, zs, jb, j > start)
-        va = dr.gather(Float, vs, ja, j > start)
-        vb = dr.gather(Float, vs, jb, j > start)
-        dz = zb - za
-        safe = dr.select(dz > 0, dz, 1.0)
-        w = dr.clip((depth - za) / safe, 0.0, 1.0)
-        interp = va + w * (vb - va)
-        out = dr.select(inside, interp, dr.select(after, va, 1.0))
+        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes,
+                                            lambda i, active: dr.gather(Float, zs, i, active), texel, depth)
+        za, zb = dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)
+        va, vb = dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)
+        out = dr.select(front, 1.0, dr.select(behind, va, lerp(za, va, zb, vb, depth, "linear")))
         out = dr.clip(out, 0.0, 1.0)
-        if self.placement == "midslope" and self._needs_grad():
+        if self.placement == "midslope" and self.segments.requires_grad:
             seg = self.segments     # a gradient request raises a clear ValueError, not Dr.Jit's
             out = dr.custom(_MidslopeNoGradient, out, seg.optical_depth, seg.z0, seg.z1)
         return out

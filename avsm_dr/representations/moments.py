@@ -69,7 +69,8 @@ from . import _moment_quantization as QZ
 from . import _trig_moments as TM
 from ._moment_bounds import hankel_bound, hankel_pivots
 from ._precision import quantise
-from .basis import MIN_SPAN_REL, Basis, BasisRepresentation, clip_segment, register_basis
+from .basis import MIN_SPAN_REL, BasisRepresentation
+from .basis_functions import Basis, clip_segment, register_basis
 from .registry import register
 from .schema import Param, Schema, depth_range_param, far_param, near_param
 
