@@ -12,25 +12,19 @@ Chebyshev-Markov-Stieltjes bounds ``L = sum_{z_i < x_f} w_i <= F(x_f-)``,
 
 Steps (:func:`hankel_bound`):
 1. bias: ``m = (1 - alpha) b / b_0 + alpha m*`` toward a target ``m*`` with a positive
-   definite Hankel matrix ``B*``; then ``B >= alpha B*`` (PSD order), and since every LDL^T
-   pivot is a Schur complement (a minimum of the quadratic form over an affine set) each
-   pivot of ``B`` is at least ``alpha`` times that of ``B*``: the pivots are floored there,
-   which holds in exact arithmetic and keeps rounding from making them vanish;
+   definite Hankel matrix ``B*``; then ``B >= alpha B*`` (PSD order) and each LDL^T pivot
+   (a Schur complement) of ``B`` is at least ``alpha`` times that of ``B*`` (float64
+   Cholesky): the pivots are floored there, so rounding cannot make them vanish;
 2. LDL^T of ``B``, forward / back substitution for ``c``;
-3. roots of ``c``: degree 2 the stable quadratic formula; degree 3 the trigonometric
-   (Viete) formula for three real roots; degree 4 Ferrari's method, the largest root of the
-   resolvent cubic (Viete or Cardano) splitting it into two real quadratics.  Degrees 3 and
-   4 then take :data:`POLISH` safeguarded Newton steps on ``c`` itself (a step is kept only
-   where it lowers ``|c(z)|``), because the closed forms work on ``c / c_n``, which loses
-   digits where ``c_n`` nears 0 (a root escaping to infinity: ``x_f`` near a zero of the
-   n-th orthogonal polynomial).  Roots are clipped to ``[-BIG, BIG]``;
+3. roots of ``c``: degree 2 the stable quadratic formula, 3 Viete's trigonometric formula,
+   4 Ferrari's method (the resolvent cubic's largest root splits it into two real
+   quadratics); degrees 3 and 4 then take :data:`POLISH` safeguarded Newton steps on ``c``
+   itself (the closed forms on ``c / c_n`` lose digits where ``c_n`` nears 0).  Roots are
+   clipped to ``[-BIG, BIG]``;
 4. weights by the Lagrange form on moments 0..n,
-   ``w_p = E[prod_{r != p} (z - r)] / prod_{r != p} (p - r)`` (moments 0..n reproduced
-   exactly whatever the roots' rounding), clipped to [0, 1];
+   ``w_p = E[prod_{r != p} (z - r)] / prod_{r != p} (p - r)``, clipped to [0, 1];
    ``L = sum_{z_i < x_f} w_i`` (``1 - w_f`` when ``x_f`` is behind every root),
    ``U = min(L + w_f, 1)``; the optical depth in front is ``b_0 clamp(L + beta w_f, 0, 1)``.
-
-The floors are ``alpha`` times the target's pivots from a float64 Cholesky.
 """
 from __future__ import annotations
 

@@ -196,37 +196,23 @@ class Representation(abc.ABC):
         """:attr:`nbytes_sparse` / T (<= ``nbytes_per_texel + 1/8``)."""
         return self.nbytes_sparse / max(self.n_texels, 1)
 
-    @property
-    def monotone(self) -> bool:
-        """True when T is guaranteed non-increasing in depth (to float rounding)."""
-        return True
-
-    @property
-    def differentiable(self) -> bool:
-        """True when gradients w.r.t. the segments' optical depths are supported."""
-        return True
-
-    @property
-    def unity_in_front(self) -> bool:
-        """True when T = 1 exactly in front of the texel's first segment (node methods);
-        basis methods spread absorption over their depth resolution."""
-        return True
-
-    @property
-    def prefilterable(self) -> bool:
-        """True when ``eval(..., prefilter=True)`` is supported: the kind is linear in a
-        stored per-texel map, so filtering the map and reconstructing once is defined."""
-        return False
+    # Traits (a kind overrides them as attributes or properties).
+    #: T is guaranteed non-increasing in depth (to float rounding).
+    monotone: bool = True
+    #: Gradients w.r.t. the segments' optical depths are supported.
+    differentiable: bool = True
+    #: T = 1 exactly in front of the texel's first segment (node methods; basis methods
+    #: spread absorption over their depth resolution).
+    unity_in_front: bool = True
+    #: ``eval(..., prefilter=True)`` is supported: the kind is linear in a stored map.
+    prefilterable: bool = False
+    #: State words per lane of the build loop reverse mode must store (0: no loop, or a sum
+    #: loop that reverse mode recomputes).
+    loop_state_words: int = 0
 
     def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
         """T reconstructed once from the filtered stored map (prefilterable kinds only)."""
         raise NotImplementedError
-
-    @property
-    def loop_state_words(self) -> int:
-        """State words per lane of the build loop reverse mode must store (0: no loop, or
-        a sum loop that reverse mode recomputes)."""
-        return 0
 
     @property
     def chunk(self) -> int:

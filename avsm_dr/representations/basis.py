@@ -181,10 +181,7 @@ class BasisRepresentation(Representation):
         """The basis' guarantee (non-negative coefficients, non-decreasing g_k)."""
         return bool(self.basis.monotone)
 
-    @property
-    def unity_in_front(self) -> bool:
-        """Basis methods spread absorption over their depth resolution."""
-        return False
+    unity_in_front = False
 
     @property
     def itemsize(self) -> int:
@@ -428,10 +425,7 @@ class BasisRepresentation(Representation):
                 dr.eval(D)
         return D
 
-    @property
-    def prefilterable(self) -> bool:
-        """Linear in the coefficients: ``eval(..., prefilter=True)`` filters the stored map."""
-        return True
+    prefilterable = True                  # linear in the coefficients
 
     def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
         """T from the filtered coefficient map: per receiver ``a_k = sum_j w_j a_k[tex_j] /

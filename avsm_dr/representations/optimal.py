@@ -263,7 +263,7 @@ def refit_l2(x, v, a, chosen, count):
     hs = np.where(h > 0, h, 1.0)
     rise = np.where(h > 0, (a1 - X[:, :-1] * a0) / hs, 0.0)    # int T (x - X_m) / h_m on interval m
     fall = np.where(h > 0, (X[:, 1:] * a0 - a1) / hs, 0.0)     # int T (X_{m+1} - x) / h_m
-    # normal equations for interior nodes 1..n-2: sub a, diag b, super c, rhs d
+    # normal equations for interior nodes 1..n-2: sub a, diag b, super c, rhs d (other rows: identity)
     a = np.zeros((B, M))
     b = np.ones((B, M))
     c = np.zeros((B, M))
@@ -286,13 +286,6 @@ def refit_l2(x, v, a, chosen, count):
     cl = c[np.arange(B), lr]
     d[np.arange(B), lr] -= np.where(has, cl * V0[np.arange(B), n - 1], 0.0)
     c[np.arange(B), lr] = np.where(has, 0.0, cl)
-    # rows outside 1..n-2 are identity (their values stay V0)
-    for m in range(M):
-        outside = (m == 0) | (m >= n - 1)
-        a[:, m] = np.where(outside, 0.0, a[:, m])
-        c[:, m] = np.where(outside, 0.0, c[:, m])
-        b[:, m] = np.where(outside, 1.0, b[:, m])
-        d[:, m] = np.where(outside, V0[:, m], d[:, m])
     # Thomas algorithm (diagonally dominant: (h_l + h_r) / 3 > h_l / 6 + h_r / 6)
     cp = np.zeros((B, M))
     dp = np.zeros((B, M))

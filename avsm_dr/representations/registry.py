@@ -48,22 +48,16 @@ def kinds() -> list[str]:
 
 
 def describe(kind: str) -> dict:
-    """What ``kind`` takes and how experiments size it.
-
-    Returns a dict: ``params`` (name -> dict(default, type, min, max, doc[, choices,
-    nullable])), ``size`` (the size parameter's name, or None), ``sweep`` /
-    ``quick_sweep`` (its values in the experiments), ``examples`` (parameter sets the
-    contract tests run), ``headline`` (the configuration of benchmarks), ``summary``,
-    ``paper``, ``doc`` (the class docstring's first paragraph), ``precisions`` (the
-    storage precisions the base parameter ``precision`` accepts besides None) and the
-    best practice (:func:`presets`): ``preset`` (parameters over the defaults; ``{}``: the
-    defaults), ``preset_capture`` (capture options it assumes, e.g. ``{'opaque':
-    'separate'}``), ``preset_variants`` ({label: params} reported beside it),
-    ``preset_tuned`` (False: not yet tuned, ``preset_note`` says why)."""
+    """What ``kind`` takes and how experiments size it: a dict of the schema's description
+    (:meth:`.schema.Schema.describe`: ``params``, ``size``, ``sweep``, ``quick_sweep``,
+    ``examples``, ``headline``, ``summary``, ``paper``, ``offline``), ``kind``, ``doc``
+    (the class docstring's first paragraph), ``precisions`` (accepted besides None) and the
+    best practice (:func:`presets`: ``preset``, ``preset_capture``, ``preset_variants``,
+    ``preset_tuned``, ``preset_note``)."""
     cls = _check_kind(kind)
     out = cls.schema.describe()
     out["kind"] = kind
-    out["precisions"] = list(cls.precisions)     # base parameter ``precision``: None or one of these
+    out["precisions"] = list(cls.precisions)
     out["doc"] = (cls.__doc__ or "").strip().split("\n\n")[0]
     out.update(presets(cls))
     return out
