@@ -23,13 +23,9 @@ from .exact import exact_values
 
 
 def curve_points(segments) -> dict:
-    """Points of every texel's exact curve (host float64 NumPy).
-
-    Returns dict: ``off`` (T+1,) int64 CSR over points; per point ``z`` (depth), ``tau``
-    (optical depth), ``v`` (``exp(-tau)``), ``slope`` (d tau / dz after the point; for a
-    left point that of its right point), ``left`` (bool: value just before a step) and
-    ``texel`` (int64).  Empty texels have no points.
-    """
+    """Points of every texel's exact curve (host float64 NumPy): dict of ``off`` (T+1,) CSR
+    and per point ``z``, ``tau``, ``v`` (``exp(-tau)``), ``slope`` (d tau / dz after it; a
+    left point's: its right point's), ``left`` (value just before a step), ``texel``."""
     h = segments.numpy()
     n_tex = segments.n_texels
     if segments.n_segments == 0:

@@ -57,9 +57,8 @@ def _run_chunk(state, params, cond, body, chunk: int):
 
 
 class _CheckpointedLoop(dr.CustomOp):
-    """CustomOp: the primal runs the chunks with AD off and saves each chunk's input
-    state; backward re-runs the chunks in reverse order with AD on (one traversal and
-    one kernel per chunk); forward mode pushes tangents through the chunks in order."""
+    """The primal runs the chunks with AD off, saving each chunk's input state; backward
+    re-runs them in reverse order with AD on; forward mode pushes tangents through in order."""
 
     def eval(self, state, params, cond, body, max_iterations, chunk):
         self.cond, self.body, self.chunk, self.params = cond, body, int(chunk), params
@@ -119,15 +118,11 @@ class _CheckpointedLoop(dr.CustomOp):
 
 
 def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chunk: int):
-    """``dr.while_loop`` with checkpointed reverse mode.
-
-    state: tuple of Dr.Jit arrays (flat); params: list of Dr.Jit float arrays the body
-    reads (e.g. segment buffers it gathers from) - gradients flow to them and to the
-    initial state; cond(params, *state) -> Bool; body(params, *state) -> new state tuple.
-    max_iterations: an upper bound of the iteration count (checked: RuntimeError when
-    the loop is still active after it).  chunk: iterations per checkpoint (C); memory:
-    ``ceil(M / C)`` saved states in global memory + a C-iteration trajectory per lane.
-    """
+    """``dr.while_loop`` with checkpointed reverse mode: ``cond(params, *state)``,
+    ``body(params, *state)``; gradients flow to ``params`` (Dr.Jit arrays the body reads)
+    and the initial state.  ``max_iterations``: an upper bound (RuntimeError when the loop
+    is still active after it); ``chunk``: iterations per checkpoint (C): ``ceil(M / C)``
+    saved states plus a C-iteration trajectory per lane."""
     if not isinstance(chunk, (int, np.integer)) or isinstance(chunk, bool) or chunk < 1:
         raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
     out = dr.custom(_CheckpointedLoop, tuple(state), list(params), cond, body,
@@ -141,13 +136,9 @@ def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chun
 def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: int | None, label: str,
              iterations: int | None = None):
     """Run ``cond``/``body`` over ``state`` (both take ``params`` first): a plain
-    ``dr.while_loop`` bounded by ``max_iterations`` when ``checkpoint_chunk`` is None,
-    else :func:`checkpointed_while_loop` in chunks of that many iterations.
-
-    iterations: the most iterations any lane runs, taken from the data the loop walks
-    (e.g. the longest texel's segment count); ValueError when ``max_iterations`` is below
-    it, before anything runs: reverse mode would write the trajectory past its
-    ``max_iterations`` entries (out of bounds) and return wrong gradients."""
+    ``dr.while_loop`` bounded by ``max_iterations`` when ``checkpoint_chunk`` is None, else
+    :func:`checkpointed_while_loop`.  ValueError when ``max_iterations`` is below
+    ``iterations`` (the most any lane runs): reverse mode would write past its trajectory."""
     if iterations is not None and max_iterations >= 0 and int(iterations) > int(max_iterations):
         raise ValueError(f"max_iterations: {max_iterations} is below the {int(iterations)} iterations "
                          f"of loop {label!r} (its reverse mode would write past a {max_iterations}-entry "

@@ -100,14 +100,10 @@ def check_precision(value) -> str | None:
 
 @dataclass(frozen=True)
 class Stored:
-    """One stored buffer of a kind: attribute name, meaning (:data:`MEANINGS`) and layout.
-
-    Layouts: ``'nodes'`` a list of N arrays of length T (``[node][texel]``); ``'flat'`` one
-    texel-major array of K values per texel; ``'csr'`` one array grouped by texel with the
-    kind's ``node_counts`` (T,) per texel; ``'texel'`` one value per texel.
-    ``signed``: coefficients may be negative (else non-negative, a [0, 1] code).
-    ``length``: the values are in depth units although not depths (beer's extent): checked
-    as depths are (:func:`quantise`)."""
+    """One stored buffer of a kind: attribute name, meaning (:data:`MEANINGS`) and layout:
+    ``'nodes'`` N arrays of length T, ``'flat'`` K values per texel, texel-major, ``'csr'``
+    grouped by texel with the kind's ``node_counts``, ``'texel'`` one value per texel.
+    ``signed``: coefficients may be negative; ``length``: depth units (checked as depths)."""
 
     attr: str
     meaning: str
@@ -122,9 +118,7 @@ class Stored:
             raise ValueError(f"layout: expected one of {LAYOUTS}, got {self.layout!r}")
 
 
-# ----------------------------------------------------------------------------
-# Host codecs (float64 NumPy in, float64 decoded values out)
-# ----------------------------------------------------------------------------
+# Host codecs: float64 NumPy in, float64 decoded values out.
 def round_unit(q: np.ndarray, precision: str) -> np.ndarray:
     """q in [0, 1] (or [-1, 1] for float formats) through the code of ``precision``."""
     if precision == "float32":
@@ -143,8 +137,13 @@ def float32_down(x: np.ndarray) -> np.ndarray:
 
 def float32_up(x: np.ndarray) -> np.ndarray:
     """Smallest float32 >= x (float64 array)."""
-    f = x.astype(np.float32)
-    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f).astype(np.float64)
+    return -float32_down(-x)
+
+
+def _sqrt_code(x, scale, steps: int):
+    """``scale (round(steps sqrt(x / scale)) / steps)^2``: x in [0, scale] (0 where scale is 0)."""
+    q = np.sqrt(np.where(scale > 0, np.minimum(x / np.where(scale > 0, scale, 1.0), 1.0), 0.0))
+    return scale * np.square(np.rint(q * steps) / steps)
 
 
 def _texel_reduce(x: np.ndarray, tex: np.ndarray, n_tex: int, op, fill: float) -> np.ndarray:
@@ -185,9 +184,8 @@ def encode_transmittance(t, tex, n_tex, precision):
     with np.errstate(divide="ignore"):
         tau = np.where(zero, 0.0, np.minimum(-np.log(np.where(zero, 1.0, t)), TAU_CAP))
     tmax, extra = _per_element(tau, tex, n_tex, np.maximum, 0.0, float32_down)
-    q = np.sqrt(np.where(tmax > 0, np.minimum(tau / np.where(tmax > 0, tmax, 1.0), 1.0), 0.0))
     # codes 0..254 of sqrt(tau / tau_max) over [0, 1]; code 255 is T = 0
-    return np.where(zero, 0.0, np.exp(-tmax * np.square(np.rint(q * T8_STEPS) / T8_STEPS))), extra
+    return np.where(zero, 0.0, np.exp(-_sqrt_code(tau, tmax, T8_STEPS))), extra
 
 
 def encode_coefficient(a, tex, n_tex, precision, signed: bool):
@@ -220,9 +218,7 @@ def encode_optical_depth(c, tex, n_tex, precision):
     s = float32_up(_texel_reduce(np.where(below, c, 0.0), tex, n_tex, np.maximum, 0.0))
     first = _texel_reduce(np.where(below, np.inf, c), tex, n_tex, np.minimum, np.inf)
     far = np.maximum(float32_up(np.where(np.isfinite(first), first, 0.0)), s)     # >= s: monotone
-    s_t = s[tex]
-    q = np.sqrt(np.where(s_t > 0, np.minimum(c / np.where(s_t > 0, s_t, 1.0), 1.0), 0.0))
-    return np.where(below, s_t * np.square(np.rint(q * steps) / steps), far[tex]), extra
+    return np.where(below, _sqrt_code(c, s[tex], steps), far[tex]), extra
 
 
 def encode(meaning, x, tex, n_tex, precision, signed=True):
@@ -270,9 +266,6 @@ def code_bytes(meaning: str, precision: str) -> int:
     return RANGE_BYTES if meaning == "range" else CODE_BYTES[precision]
 
 
-# ----------------------------------------------------------------------------
-# Applying it to a representation
-# ----------------------------------------------------------------------------
 def to_host(x) -> np.ndarray:
     """``x`` (a Dr.Jit array) detached, as a float64 NumPy array."""
     return np.asarray(dr.detach(x).numpy(), np.float64)

@@ -50,7 +50,7 @@ from ._avsm_insertion import INSERTIONS, remove_refit
 from ._loops import run_loop
 from .base import Representation, depth_range, node_build_bytes
 from ._precision import PRECISIONS, Stored
-from .schema import Param, Schema, far_param, near_param
+from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
 
@@ -89,25 +89,20 @@ def curve_at(d, t, x):
     return value, (tl == 0) & ((tr == 0) | (x == dl))
 
 
-def curve_value(d, t, x):
-    """T(x) of the node list (:func:`curve_at`, cancellation-free linear interpolation)."""
-    return curve_at(d, t, x)[0]
-
-
 def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
     """Nodes after inserting segment [a, b] (exit transmittance ts): N + 2 entries.
 
     ``used``: number of inserted (non-clear) nodes, which come first in the list.
     ``full``: the caller guarantees ``used >= N - 1`` (compressing phase), so only the
     last node can be a clear node - the same result with fewer instructions.
-    ``ta``: ``curve_value(d, t, a)`` when the caller has it.
+    ``ta``: ``curve_at(d, t, a)[0]`` when the caller has it.
     Nodes inside the segment take the ramp as ``R = ts + (1 - ts)(b - d_k) / (b - a)``,
     capped at 1 (two terms >= 0: within a relative ``7 u`` of the exact ramp).
     """
     n = len(d)
     UInt32 = type(used)
-    ta = curve_value(d, t, a) if ta is None else ta
-    tb = curve_value(d, t, b) * ts
+    ta = curve_at(d, t, a)[0] if ta is None else ta
+    tb = curve_at(d, t, b)[0] * ts
     length = b - a
     inv_len = 1 / dr.select(length > 0, length, 1)
     opacity = 1 - ts
@@ -297,7 +292,7 @@ class AVSM(NodeList):
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
                   "every 4 segments); see avsm_dr.representations._avsm_insertion",
                   choices=tuple(INSERTIONS)),
-            near_param(), far_param(),
+            NEAR, FAR,
             # Private ablation switches (benchmarks only; the nodes are the same either way):
             Param("_compact", "bool", True, "private: lanes only for non-empty texels (else one per texel)"),
             Param("_group", "bool", True, "private: lanes ordered by segment count, longest first"),
@@ -324,7 +319,6 @@ class AVSM(NodeList):
         """N depths, N values, index, count, done flag and two counters."""
         return 2 * self.N + 5
 
-    # ------------------------------------------------------------------ build
     def _build(self):
         seg = self.segments
         view = seg.depth_view() if self.params["sort"] else None

@@ -43,7 +43,7 @@ from .. import backend
 from .avsm import AVSM, INTERPOLATIONS, csr_bracket, interpolate
 from .base import Representation, depth_range, node_build_bytes
 from .registry import register
-from .schema import Param, Schema, far_param, near_param
+from .schema import FAR, NEAR, Param, Schema
 
 #: Kernel node counts (each distinct one is one compiled AVSM kernel).
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
@@ -159,7 +159,7 @@ class AVSMAdaptive(Representation):
             Param("sort", "bool", False, "insert segments sorted by depth per texel (as AVSM)"),
             Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp'",
                   choices=INTERPOLATIONS),
-            near_param(), far_param(),
+            NEAR, FAR,
             Param("_score", "choice", "complexity", "private: allocation score 'complexity' (span x drop^2), "
                   "'count' (segments only) or 'uniform' (one count for all non-empty texels)", choices=SCORES),
         ),

@@ -61,7 +61,7 @@ from ._loops import texel_sums
 from ._precision import PRECISIONS, Stored
 from .basis_functions import BASES, LIST_CHUNK, LIST_UNROLL, Basis, clip_segment, make_basis
 from .basis_functions import CosineBasis, LegendreBasis  # noqa: F401  (re-exported: their old home)
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 #: Shortest depth range per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
 #: MIN_SPAN_ABS[dtype] (the dtype's smallest normal number: near = far = 0 does not divide by 0).
@@ -91,7 +91,7 @@ class BasisRepresentation(Representation):
             Param("basis", "object", "legendre", f"a Basis instance or a registered name {sorted(BASES)}"),
             Param("n", "int", None, "size of a named basis (functions; default 8)", min=1, max=MAX_COEFFICIENTS,
                   nullable=True),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="n", sweep=(2, 4, 6, 8, 12, 16), quick_sweep=(4, 8),
         examples=({"basis": "legendre", "n": 6}, {"basis": "cosine", "n": 6}),
@@ -206,14 +206,16 @@ class BasisRepresentation(Representation):
             out += (Stored("near", "range", "texel"), Stored("far", "range", "texel"))
         return out
 
-    def _range(self, texel=None):
-        """(near, span) for the given texels (arrays) or globally (floats)."""
+    def _bounds(self, texel=None):
+        """(near, far) of the given texels, or global (opaque: no kernel per near/far)."""
         Float = self.Float
         if self._per_texel:
-            near = dr.gather(Float, self.near, texel)
-            far = dr.gather(Float, self.far, texel)
-        else:                                   # opaque: no kernel per near/far
-            near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+            return dr.gather(Float, self.near, texel), dr.gather(Float, self.far, texel)
+        return dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+
+    def _range(self, texel=None):
+        """(near, span) for the given texels (arrays) or globally (floats)."""
+        near, far = self._bounds(texel)
         dt = self.segments.dtype
         floor = MIN_SPAN_REL[dt] * dr.maximum(dr.abs(near), dr.abs(far)) + MIN_SPAN_ABS[dt]
         return near, dr.maximum(far - near, floor)

@@ -57,10 +57,8 @@ def check_count(value, name: str, lo: int = 1, hi: int | None = None) -> int:
     return value
 
 
-# ----------------------------------------------------------------------------
-# Exactly periodic trigonometry: the argument is reduced before the multiply by
-# pi, so integer arguments give sin = 0 exactly (T exact at far, Jansen and Bavoil 2010, eq. 3).
-# ----------------------------------------------------------------------------
+# Exactly periodic trigonometry: the argument is reduced before the multiply by pi, so
+# integer arguments give sin = 0 exactly (T exact at far, Jansen and Bavoil 2010, eq. 3).
 def sincos_pi(y):
     """(sin(pi y), cos(pi y)) with y reduced to r = y - floor(y) in [0, 1) first."""
     n = dr.floor(y)
@@ -91,9 +89,6 @@ def sinc(x):
     return dr.select(x > 0.1, dr.sin(safe) / safe, taylor)
 
 
-# ----------------------------------------------------------------------------
-# The basis interface
-# ----------------------------------------------------------------------------
 class Basis:
     """A set of ``n_coefficients`` projection functions on [0, 1].
 

@@ -35,7 +35,7 @@ from .. import backend
 from .registry import register
 from .basis import MAX_COEFFICIENTS, BasisRepresentation
 from .basis_functions import Basis, clip_segment, register_basis, sinc, sincos_pi
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 
 @register_basis("fourier")
@@ -124,16 +124,14 @@ RECURRENCE_HARMONICS = 16
 
 @register("fom")
 class FourierOpacityMap(BasisRepresentation):
-    """Fourier opacity map: ``harmonics`` n >= 1 (default 3, the paper's 7 coefficients),
-    ``near``/``far`` (default: global bounds of the segments), ``depth_range``
-    'global' | 'texel'.  ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2 itemsize per-texel
-    range).  Coefficients: ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (k = 1..n, b[0] = None)."""
+    """Fourier opacity map: n ``harmonics``; ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2
+    itemsize per-texel range).  ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (b[0] = None)."""
 
     schema = Schema(
         params=(
             Param("harmonics", "int", 3, "n harmonics: 2n + 1 coefficients per texel (the paper's 7: n = 3)",
                   min=1, max=(MAX_COEFFICIENTS - 1) // 2),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="harmonics", sweep=(1, 2, 3, 4, 6, 8, 12, 16), quick_sweep=(1, 4, 8, 16),
         examples=({"harmonics": 4}, {"harmonics": 3, "depth_range": "texel"}),

@@ -154,10 +154,8 @@ def removal_ranks(segments) -> tuple[dict, np.ndarray]:
 
 @register("greedy")
 class GreedyVW(NodeList):
-    """Offline Visvalingam-Whyatt on the exact curve: N (depth, transmittance) nodes per
-    texel (module docstring); ``nbytes_per_texel`` = 2 N itemsize (texels with fewer points
-    repeat their last node).  Attributes: ``depths``/``values``, ``node_counts`` (T,).
-    """
+    """Offline Visvalingam-Whyatt on the exact curve (module docstring): N nodes per texel
+    (fewer points: the last repeated), 2 N itemsize; ``node_counts`` (T,) distinct nodes."""
 
     schema = Schema(
         params=(

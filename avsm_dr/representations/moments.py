@@ -72,7 +72,7 @@ from ._precision import quantise
 from .basis import MIN_SPAN_REL, BasisRepresentation
 from .basis_functions import Basis, clip_segment, register_basis
 from .registry import register
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 FAMILIES = {"power": (4, 6, 8), "trigonometric": (2, 3, 4)}
 WARPS = ("linear", "log")
@@ -214,10 +214,7 @@ def default_quantization(family: str, moments: int, precision) -> str:
 
 @register("moments")
 class MomentShadowMap(BasisRepresentation):
-    """2n power moments of the absorbance with the Hamburger bound (module docstring).
-    ``moments`` 4 | 6 | 8, ``family`` 'power', ``warp`` 'linear' | 'log', ``bias``
-    (alpha), ``bias_target``, ``overestimation`` (beta, default 0.25), ``near``/``far``,
-    ``depth_range`` 'global' | 'texel'."""
+    """Power or trigonometric moments of the absorbance with their bound (module docstring)."""
 
     PRESET = dict(BasisRepresentation.PRESET, overestimation=0.45)
     schema = Schema(
@@ -239,7 +236,7 @@ class MomentShadowMap(BasisRepresentation):
                   "scale, as every basis kind) or 'msm' (Peters & Klein 2015's optimised transform, b_0 in "
                   "float32); None: 'msm' for 4 power moments in unorm16, else 'scaled'", choices=QZ.QUANTIZATIONS,
                   nullable=True),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="moments",
         sweep=(4, 6, 8),
@@ -326,11 +323,7 @@ class MomentShadowMap(BasisRepresentation):
 
     def _log_range(self, texel=None):
         """(ln near, ln far - ln near floored at MIN_SPAN_REL[dtype]) for the texels, or global."""
-        Float = self.Float
-        if self._per_texel:
-            near, far = dr.gather(Float, self.near, texel), dr.gather(Float, self.far, texel)
-        else:
-            near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+        near, far = self._bounds(texel)
         ln_near = dr.log(near)
         return ln_near, dr.maximum(dr.log(far) - ln_near, MIN_SPAN_REL[self.segments.dtype])
 
@@ -378,10 +371,7 @@ class MomentShadowMap(BasisRepresentation):
     def bounds(self, texel, depth):
         """(lower, upper) bounds of the absorbance fraction in front of each receiver
         (Dr.Jit arrays; texel UInt32, depth Float)."""
-        return self._reconstruct(texel, depth)[1:]
-
-    def _reconstruct(self, texel, depth):
-        return self._bounded(self._store, texel, self.normalized_depth(texel, depth))
+        return self._bounded(self._store, texel, self.normalized_depth(texel, depth))[1:]
 
     def _bounded(self, store, row, u):
         """(D, lower, upper) from moments read from a flat store ``store[row * K + k]``."""

@@ -386,15 +386,12 @@ class OptimalSubset(NodeList):
 
     @property
     def monotone(self) -> bool:
-        """False for 'l2' with linear interpolation: least-squares values can overshoot
-        (the L2 projection onto hat functions of a step rises above it); the exact values
-        kept otherwise are monotone."""
+        """False for the refit ('l2', linear): least-squares values can overshoot a step."""
         return not self._refit
 
     @property
     def differentiable(self) -> bool:
-        """Not for 'l2' with linear interpolation (values from a host least-squares
-        solve); otherwise the exact curve's gradients at the fixed node depths."""
+        """Not for the refit (a host least-squares solve); else the exact curve's gradients."""
         return not self._refit
 
     @property

@@ -36,7 +36,7 @@ from .registry import register
 from ._precision import Stored
 from .basis import MAX_COEFFICIENTS, BasisRepresentation
 from .basis_functions import Basis, clip_segment, register_basis
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 
 @register_basis("piecewise_constant")
@@ -100,17 +100,14 @@ BUILD_CHUNKS = 2
 
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
-    """Opacity shadow map: ``slices`` n >= 1 (default 16) uniform over ``near``/``far``
-    (default: global bounds of the segments), ``depth_range`` 'global' | 'texel'.
-    ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel range); with ``precision``
-    n code bytes + the per-texel float32 scale (float16: 4 bytes) or cap scale and far
-    optical depth (unorm: 8 bytes, :mod:`._precision` ``optical_depth``) + 8 for a per-texel range.
-    Attributes: ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
+    """Opacity shadow map: n ``slices``; ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel
+    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  Attributes:
+    ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
 
     schema = Schema(
         params=(
             Param("slices", "int", 16, "n uniform slices over [near, far]", min=1, max=MAX_COEFFICIENTS),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="slices", sweep=(4, 8, 16, 32, 64), quick_sweep=(4, 16, 32),
         examples=({"slices": 16},),
@@ -244,9 +241,7 @@ class OpacityShadowMap(BasisRepresentation):
             self._add_parts(P, Rd, seg.z0, seg.z1, seg.optical_depth, texel, texel * n)
         # a_j = P_j + sum_{i <= j} R_i: a prefix sum inside each texel's block of n, in float64
         a = P + Float(dr.block_prefix_sum(backend.types().Float64(Rd), n, exclusive=False))
-        # R's +r / -r pairs are added in the storage dtype (in any order under AD), so a slice no
-        # segment covers can keep a rounding residual; a negative one (-1.5e-8 found in
-        # float32) made D decrease: clamp it (a select, so a_k = 0 keeps its gradient)
+        # clamp a negative rounding residual of R's +r / -r pairs (D must not decrease)
         a = dr.select(a < 0, 0, a)
         dr.eval(a)
         return a
@@ -261,9 +256,7 @@ class OpacityShadowMap(BasisRepresentation):
     _stored_attr = "_cum"
 
     def _stored(self):
-        """The cumulative sums as optical depths (:mod:`._precision` ``optical_depth``: unorm
-        codes of sqrt(tau) up to ``TAU_CAP``, so an opaque blocker behind thin smoke does not
-        scale the smoke's codes away), the per-texel range as the basis stores it."""
+        """The cumulative sums as optical depths (:mod:`._precision`), the range as the basis'."""
         return (Stored("_cum", "optical_depth", "flat"),) + super()._stored()[1:]
 
     def _reconstruct_from(self, store, row, u):
