@@ -11,9 +11,7 @@ Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``
   smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|``
   (ties: the deepest such node); the first and last node are never removed and no
   node is ever moved.
-* **Insertion variants** (``insertion``, default ``'stream'``: the above): refitting the
-  removed node's neighbours and compressing only every few segments, see
-  :mod:`._avsm_insertion` (and docs/research/insertion_order.md for what they buy).
+* **Insertion variants** (``insertion``, default ``'stream'``: the above): :mod:`._avsm_insertion`.
 * **Sampling** (sec. 3.3): T = 1 in front of the first node, the last node's value behind
   the last one, and linear (eq. 2) or exponential interpolation in between.
 
@@ -26,15 +24,12 @@ Conventions made explicit here (the paper leaves them open):
   change the curve (behind a fully opaque point nothing changes).  "0" is read from the
   stored nodes (:func:`curve_at`), never from an interpolated value that rounded to 0.
 
-Precision: every node value is a product of factors (``ts``, ramps ``R``, interpolated
-entry values), each evaluated without cancellation (:func:`curve_at`, :func:`insert_segment`):
-with ``u`` the unit roundoff and ``k`` the segments inserted into a texel, each node value
-lies within a relative ``10 k u`` of exact arithmetic on the stored inputs (no absolute
-floor down to underflow), the value behind the texel within ``3 k u``.
+Precision: node values are products of factors evaluated without cancellation
+(:func:`curve_at`, :func:`insert_segment`): after ``k`` insertions each lies within a relative
+``10 k u`` (``u`` the unit roundoff) of exact arithmetic on the stored inputs.
 
-Kernel: one lane per non-empty texel (ordered by segment count); the N nodes live in
-registers as Python lists of Float, every step a branch-free ``dr.select`` shift; a first
-loop inserts while the texel has room, a second one compresses.
+Kernel: one lane per non-empty texel, the N nodes in registers (Python lists of Float,
+branch-free ``dr.select`` shifts); one loop inserts while the texel has room, one compresses.
 """
 from __future__ import annotations
 

@@ -3,19 +3,14 @@ transmittance leaves the exponential extrapolation of the last node; a variable 
 count per texel up to a cap, compacted; node depths in half precision relative to the
 texel's depth range.
 
-March (one Dr.Jit lane per texel, float64): the ray's samples are the exact curve's
-points in depth order (:mod:`._curve`: the segment ends, both sides of a step), each
-with ``T`` and the local extinction ``s`` (d tau / dz behind it).  The first point is a
-node.  The last node ``(d_n, T_n, s_n)`` predicts ``P(x) = T_n exp(-s_n (x - d_n))``
-(the exponential extrapolation with the extinction at that node).  At a point
-``(x_k, T_k)`` with ``|T_k - P(x_k)| > max(abs_error, rel_error T_k)`` (it departs by
-more than both tolerances) the previous point becomes a node (the last sample the
-extrapolation still held; its own extinction predicts the curve up to ``x_k`` exactly
-unless a step intervenes), and ``x_k`` itself too if it still departs from the new
-prediction (a step: two nodes at one depth, as in AVSM).  The last point is always a
-node (T behind the content is exact).  A node added to a full texel (``nodes`` = cap)
-pushes out the interior node of smallest AVSM area metric (Salvi et al. 2010,
-sec. 3.2; ties: the deepest; first and last never).
+March (one Dr.Jit lane per texel, float64) over the exact curve's points in depth order
+(:mod:`._curve`), each with ``T`` and the local extinction ``s`` (d tau / dz behind it).  The
+first point is a node; the last node ``(d_n, T_n, s_n)`` predicts ``P(x) = T_n exp(-s_n (x -
+d_n))``.  At a point with ``|T_k - P(x_k)| > max(abs_error, rel_error T_k)`` the previous
+point becomes a node, and ``x_k`` too if it still departs from the new prediction (a step:
+two nodes at one depth).  The last point is always a node.  A node added to a full texel
+(``nodes`` = cap) pushes out the interior node of smallest AVSM area metric (Salvi et al.
+2010, sec. 3.2; ties: the deepest; first and last never).
 
 Storage (compacted, ``nbytes_per_texel`` counts all of it): a CSR offset per texel
 (uint32, 4 bytes), the texel's depth range ``[lo, hi]`` (2 floats of the segments' dtype)

@@ -36,16 +36,12 @@ Storage precision (``precision=``, :mod:`._precision`): the stored map is quanti
 texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted); a per-texel range is kept
 in float32.
 
-Kernel (DESIGN.md, linear methods): coefficients are stored flat, texel-major
-``[texel * K + k]`` (``coefficients`` lists them).  Without gradients the projection sums
-each texel's segments in CSR order, no atomics, the same bits every run: *indexed* bases
-(closed forms ``f_at``, ``F_at`` in the coefficient index: Fourier, cosine, slices) one lane
-per (texel, coefficient), bases in list form (Legendre, moments, user bases) one lane per
-texel.  With gradients (no reverse mode through symbolic loops) each segment's terms are
-scatter-added (float atomics: the last bits vary between runs).  Reconstruction: one lane
-per (receiver, coefficient) and ``dr.block_sum`` (indexed), else the list form in chunks of
-``LIST_CHUNK``: linear in K either way.  Gradients w.r.t. ``optical_depth``, ``z0`` and
-``z1`` flow through the scatters and the gathers.
+Kernel (DESIGN.md, linear methods): coefficients stored flat, texel-major ``[texel * K + k]``.
+Without gradients each texel's segments are summed in CSR order (the same bits every run),
+with them scatter-added (:meth:`BasisRepresentation._project`); *indexed* bases (closed forms
+``f_at``, ``F_at`` in the coefficient index) run over (item, coefficient) lanes, list bases
+in chunks of ``LIST_CHUNK``: linear in K either way.  Gradients w.r.t. ``optical_depth``,
+``z0`` and ``z1`` flow through the scatters and the gathers.
 """
 from __future__ import annotations
 
@@ -57,7 +53,7 @@ from .. import backend
 from ..filtering import filtered_eval
 from .registry import register
 from .base import Representation, depth_range
-from ._loops import texel_sums
+from ._loops import texel_lanes, texel_sums
 from ._precision import PRECISIONS, Stored
 from .basis_functions import BASES, LIST_CHUNK, LIST_UNROLL, Basis, clip_segment, make_basis
 from .basis_functions import CosineBasis, LegendreBasis  # noqa: F401  (re-exported: their old home)
@@ -357,17 +353,13 @@ class BasisRepresentation(Representation):
         Float, UInt32 = seg.Float, backend.types().UInt32
         T, K = seg.n_texels, basis.n_coefficients
         flat = dr.zeros(Float, T * K)
-        lanes_np = np.nonzero(seg.counts > 0)[0]
-        lanes = A.to_uint32(lanes_np)
-        offsets = seg.offsets_dr()
-        first = dr.gather(UInt32, offsets, lanes)
-        end = dr.gather(UInt32, offsets, lanes + 1)       # one past the texel's last segment
+        lanes, first, end = texel_lanes(seg)
         z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
-        batches = self._coefficient_batches(lanes_np.size)
+        batches = self._coefficient_batches(dr.width(lanes))
         if len(batches) > 1:
             dr.eval(first, end)
         for j0, kc in batches:
-            lane = dr.arange(UInt32, lanes_np.size * kc)
+            lane = dr.arange(UInt32, dr.width(lanes) * kc)
             t = lane // kc                                       # texel's lane
             j = dr.opaque(UInt32, j0) + lane % kc                # coefficient
             texel = dr.gather(UInt32, lanes, t)

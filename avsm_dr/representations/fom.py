@@ -28,11 +28,10 @@ from __future__ import annotations
 import math
 
 import drjit as dr
-import numpy as np
 
-from .. import _arrays as A
 from .. import backend
 from .registry import register
+from ._loops import texel_lanes
 from .basis import MAX_COEFFICIENTS, BasisRepresentation
 from .basis_functions import Basis, clip_segment, register_basis, sinc, sincos_pi
 from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
@@ -168,15 +167,12 @@ class FourierOpacityMap(BasisRepresentation):
         seg = self.segments
         if seg.Float is not backend.types().Float32 or self.basis.n > RECURRENCE_HARMONICS:
             return super()._project_texels()
-        Float, UInt32 = seg.Float, backend.types().UInt32
+        Float = seg.Float
         Float64 = dr.float64_array_t(Float)
         T, n = seg.n_texels, self.basis.n
         K = 2 * n + 1
         flat = dr.zeros(Float, T * K)
-        lanes_np = np.nonzero(seg.counts > 0)[0]
-        texel = A.to_uint32(lanes_np)
-        offsets = seg.offsets_dr()
-        stop = dr.gather(UInt32, offsets, texel + 1)
+        texel, first, stop = texel_lanes(seg)
         z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
         near, span = self._range(texel if self._per_texel else None)
 
@@ -199,7 +195,7 @@ class FourierOpacityMap(BasisRepresentation):
                     qk, chk = qk * ch + chk, chk * ch - qk * sh2
             return (i + 1, *out)
 
-        state = (dr.gather(UInt32, offsets, texel), *[dr.zeros(Float, lanes_np.size) for _ in range(K)])
+        state = (first, *[dr.zeros(Float, dr.width(texel)) for _ in range(K)])
         _, *acc = dr.while_loop(state, lambda i, *acc: i < stop, body, label="fom_project")
         dr.eval(*acc)       # one loop kernel (each scatter into flat would otherwise re-run it)
         for k in range(K):

@@ -239,17 +239,22 @@ def best_subset(C, S, count, N: int, norm: str):
     return chosen, cost
 
 
+def chosen_order(chosen):
+    """(order, real) of a (B, K) mask of chosen points: their indices first, in depth order,
+    (B, M) with M the most chosen in a row, and which entries are chosen points."""
+    n = chosen.sum(axis=1)
+    M = int(n.max())
+    return np.argsort(~chosen, axis=1, kind="stable")[:, :M], np.arange(M)[None, :] < n[:, None]
+
+
 def refit_l2(x, v, a, chosen, count):
     """Least-squares values of the chosen nodes (linear interpolation, first and last value
     pinned), clipped to [0, 1], where they lower the L2 error; returns (values (B, M), L2
     error (B,)) over the chosen nodes in order (M = max chosen per row, padded)."""
     B, K = x.shape
     P = prefix_integrals(x, v, a)
-    n = chosen.sum(axis=1)
-    M = int(n.max())
-    order = np.argsort(~chosen, axis=1, kind="stable")[:, :M]         # chosen indices first, in order
-    col = np.arange(M)[None, :]
-    real = col < n[:, None]
+    order, real = chosen_order(chosen)
+    n, M = chosen.sum(axis=1), order.shape[1]
     idx = np.where(real, order, order[np.arange(B), n - 1][:, None])   # pad: repeat the last node
     X = np.take_along_axis(x, idx, 1)
     V0 = np.take_along_axis(v, idx, 1)
@@ -424,11 +429,7 @@ class OptimalSubset(NodeList):
                 V, cost, idx, real = refit_l2(x, v, a, chosen, count)
                 cost = cost + S[np.arange(tex.size), idx[:, 0]]     # the refit keeps the first node
             else:
-                n = chosen.sum(axis=1)
-                M = int(n.max())
-                order = np.argsort(~chosen, axis=1, kind="stable")[:, :M]
-                real = np.arange(M)[None, :] < n[:, None]
-                idx = order
+                idx, real = chosen_order(chosen)
                 V = np.take_along_axis(v, idx, 1)
             self.objective[tex] = np.sqrt(cost) if self.norm == "l2" else cost
             r, m = np.nonzero(real)
