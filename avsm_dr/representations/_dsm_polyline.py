@@ -22,6 +22,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
+from ._loops import count_sorted
 
 #: share of epsilon given to the polyline (phase A; the compression band's is
 #: :data:`~._dsm_compress.BAND_SHARE`)
@@ -175,22 +176,6 @@ def prefix_optical_depth(bp):
     return tau_left, tau_right, slope_out
 
 
-def count_below(table, x, m: int, strict: bool):
-    """Per lane: number of entries of the sorted Float64 ``table`` (size m) that are
-    ``< x`` (strict) or ``<= x``; unrolled binary search."""
-    U32 = backend.types().UInt32
-    lo = dr.zeros(U32, dr.width(x))
-    hi = dr.full(U32, m, dr.width(x))
-    for _ in range(max(1, math.ceil(math.log2(m + 1)))):
-        live = lo < hi
-        mid = (lo + hi) >> 1
-        val = dr.gather(type(x), table, mid, live)
-        below = (val < x) if strict else (val <= x)
-        lo = dr.select(live & below, mid + 1, lo)
-        hi = dr.select(live & ~below, mid, hi)
-    return lo
-
-
 def next_up(z, dtype: str):
     """The next depth after ``z`` (Float64 lanes holding ``dtype`` values) representable
     in the storage dtype (IEEE bit increment; +-0 -> the smallest subnormal)."""
@@ -256,8 +241,11 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
     lam_np = transmittance_levels(eps_p)
     m = lam_np.size
     lam = F64(A.aligned(lam_np)) if m else F64(0.0)
-    i0 = count_below(lam, tr, m, strict=False) if m else dr.zeros(U32, nb)
-    i1 = dr.select(has_next, count_below(lam, tl_next, m, strict=True) if m else i0, i0)
+    def below(x, strict):                 # levels below x (count_sorted over the table)
+        return count_sorted(lambda i, a: dr.gather(F64, lam, i, a), 0, dr.full(U32, m, nb), x, m, strict)
+
+    i0 = below(tr, False) if m else dr.zeros(U32, nb)
+    i1 = dr.select(has_next, below(tl_next, True) if m else i0, i0)
     i1 = dr.maximum(i1, i0)
     n_cross = int((i1 - i0).numpy().astype(np.int64).sum())
     check_polyline_size(before[0] + nb, before[1] + n_cross, before[2] + n_tex, eps_p, partial=before[2] > 0)

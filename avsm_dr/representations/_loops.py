@@ -19,6 +19,8 @@ concrete representation.
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import numpy as np
 
@@ -147,6 +149,21 @@ def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: i
         return checkpointed_while_loop(state, params, cond, body, max_iterations, checkpoint_chunk)
     return dr.while_loop(state, lambda *s: cond(params, *s), lambda *s: body(params, *s),
                          max_iterations=max_iterations, label=label)
+
+
+def count_sorted(value_at, start, count, x, max_count: int, strict: bool = False):
+    """Per lane: how many of the sorted values ``value_at(start + i, active)``, i in
+    [0, count) (at most ``max_count``), are ``< x`` (strict) or ``<= x``; unrolled binary search."""
+    U32 = backend.types().UInt32
+    lo, hi = dr.zeros(U32, dr.width(x)), U32(count)
+    for _ in range(max(1, math.ceil(math.log2(max_count + 1)))):
+        live = lo < hi
+        mid = (lo + hi) >> 1
+        val = value_at(start + mid, live)
+        below = (val < x) if strict else (val <= x)
+        lo = dr.select(live & below, mid + 1, lo)
+        hi = dr.select(live & ~below, mid, hi)
+    return lo
 
 
 def texel_lanes(segments):

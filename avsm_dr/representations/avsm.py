@@ -33,7 +33,6 @@ branch-free ``dr.select`` shifts); one loop inserts while the texel has room, on
 """
 from __future__ import annotations
 
-import math
 
 import drjit as dr
 import numpy as np
@@ -42,7 +41,7 @@ from .. import _arrays as A
 from .. import backend
 from .registry import register
 from ._avsm_insertion import INSERTIONS, remove_refit
-from ._loops import run_loop
+from ._loops import count_sorted, run_loop
 from .base import Representation, depth_range, node_build_bytes
 from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
@@ -193,13 +192,7 @@ def csr_bracket(offsets, max_nodes: int, depth_at, texel, depth):
     U32 = backend.types().UInt32
     start = dr.gather(U32, offsets, texel)
     count = dr.gather(U32, offsets, texel + 1) - start
-    n_le, hi = dr.zeros(U32, dr.width(depth)), U32(count)       # nodes at or before the depth
-    for _ in range(max(1, math.ceil(math.log2(max_nodes + 1)))):
-        live = n_le < hi
-        mid = (n_le + hi) >> 1
-        below = depth_at(start + mid, live) <= depth
-        n_le = dr.select(live & below, mid + 1, n_le)
-        hi = dr.select(live & ~below, mid, hi)
+    n_le = count_sorted(depth_at, start, count, depth, max_nodes)      # nodes at or before the depth
     front, behind = n_le == 0, n_le >= count
     il = start + dr.select(front, 0, n_le - 1)
     return front, behind, il, dr.select(behind | front, il, il + 1)
