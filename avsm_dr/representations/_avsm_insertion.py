@@ -50,10 +50,11 @@ INSERTIONS = {
 }
 
 
-def remove_refit(d, t, fit, metric: str = "area"):
+def remove_refit(d, t, fit, metric: str = "area", extra=()):
     """Remove the interior node of least ``metric`` (``"area"``: ``|c|``, the paper's; ``"l2"``:
-    ``c^2 / (d_r - d_l)``; ties: the deepest) and refit its neighbours (``fit``: None, ``"area"``
-    or ``"l2"``; module docstring).  Returns the shortened (d, t)."""
+    ``c^2 / (d_r - d_l)``; ties: the deepest) from ``d``, ``t`` and the ``extra`` lists carried
+    along, and refit its neighbours (``fit``: None, ``"area"`` or ``"l2"``; module docstring).
+    Returns the shortened (d, t, *extra)."""
     n = len(d)
     UInt32 = backend.types().UInt32
     best = idx = None
@@ -76,14 +77,12 @@ def remove_refit(d, t, fit, metric: str = "area"):
         idx = dr.select(take, UInt32(i), idx)
         if fit is not None:
             keep = {k: dr.select(take, v, keep[k]) for k, v in nb.items()}
-    out_d = [dr.select(idx <= j, d[j + 1], d[j]) for j in range(n - 1)]
-    out_t = [dr.select(idx <= j, t[j + 1], t[j]) for j in range(n - 1)]
-    if fit is None:
-        return out_d, out_t
-    tl, tr = refit_values(keep, idx >= 2, idx <= n - 3, fit)
-    for j in range(1, n - 2):        # l = idx - 1 >= 1 and r = idx <= n - 3 in the new list
-        out_t[j] = dr.select(idx == j + 1, tl, dr.select(idx == j, tr, out_t[j]))
-    return out_d, out_t
+    out = [[dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra)]
+    if fit is not None:
+        tl, tr = refit_values(keep, idx >= 2, idx <= n - 3, fit)
+        for j in range(1, n - 2):        # l = idx - 1 >= 1 and r = idx <= n - 3 in the new list
+            out[1][j] = dr.select(idx == j + 1, tl, dr.select(idx == j, tr, out[1][j]))
+    return tuple(out)
 
 
 def refit_values(nb, move_l, move_r, fit):

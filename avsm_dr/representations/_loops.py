@@ -76,10 +76,14 @@ class _CheckpointedLoop(dr.CustomOp):
             active = dr.any(cond(params, *state))
         return state
 
-    def _replay(self, saved):
+    def _replay(self, saved, tangents=None):
+        """One chunk re-run from its saved state with AD on (``tangents``: of state, params)."""
         s = [dr.detach(x) for x in saved]
         p = [dr.detach(x) for x in self.params]
         dr.enable_grad(s, p)
+        if tangents is not None:
+            dr.set_grad(s, tangents[0])
+            dr.set_grad(p, tangents[1])
         return s, p, _run_chunk(s, p, self.cond, self.body, self.chunk)
 
     def backward(self):
@@ -104,12 +108,7 @@ class _CheckpointedLoop(dr.CustomOp):
         tan_p = self.grad_in("params")
         for saved in self.saved:
             with dr.isolate_grad():
-                s = [dr.detach(x) for x in saved]
-                p = [dr.detach(x) for x in self.params]
-                dr.enable_grad(s, p)
-                dr.set_grad(s, tan_s)
-                dr.set_grad(p, tan_p)
-                out = _run_chunk(s, p, self.cond, self.body, self.chunk)
+                out = self._replay(saved, (tan_s, tan_p))[2]
                 dr.forward_to(out)
                 tan_s = dr.grad(out)
                 dr.eval(tan_s)

@@ -283,9 +283,14 @@ def hankel_bound(b, xf, alpha, beta, target, floors):
     for i, z in enumerate(roots):
         wi = dr.clip(_lagrange_weight(m, z, [xf] + roots[:i] + roots[i + 1:]), 0, 1)
         lower = lower + dr.select(z < xf, wi, 0)
-    lower = dr.select(xf <= roots[-1], lower, 1 - wf)
+    return bounded_depth(b0, empty, dr.select(xf <= roots[-1], lower, 1 - wf), wf, beta)
+
+
+def bounded_depth(b0, empty, lower, wf, beta):
+    """(D, L, U) from the weight ``lower`` in front of the depth and ``wf`` at it (step 4):
+    ``L`` clipped to [0, 1], ``U = min(L + w_f, 1)``, ``D = b_0 clamp(L + beta w_f, 0, 1)``
+    (0 in an empty texel)."""
     lower = dr.clip(lower, 0, 1)
     upper = dr.minimum(lower + wf, 1)
     frac = dr.clip(lower + beta * wf, 0, 1)
-    D_out = dr.select(empty, 0, b0 * frac)
-    return D_out, lower, upper
+    return dr.select(empty, 0, b0 * frac), lower, upper

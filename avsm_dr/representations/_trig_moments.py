@@ -36,7 +36,7 @@ import math
 import drjit as dr
 import numpy as np
 
-from ._moment_bounds import BIG, NEGLIGIBLE, kernel_polynomial, real_roots
+from ._moment_bounds import BIG, NEGLIGIBLE, bounded_depth, kernel_polynomial, real_roots
 from .basis_functions import sinc as _sinc
 
 #: Below this argument ``q - 1`` and ``sinc w - cos w`` use their series.
@@ -159,7 +159,4 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     for z in roots:
         wi = dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1)
         lower = lower + dr.select(z < xf, wi, 0)
-    lower = dr.clip(lower, 0, 1)
-    upper = dr.minimum(lower + wf, 1)
-    frac = dr.clip(lower + beta * wf, 0, 1)
-    return dr.select(empty, 0, b0 * frac), lower, upper
+    return bounded_depth(b0, empty, lower, wf, beta)

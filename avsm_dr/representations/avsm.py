@@ -149,17 +149,8 @@ def area_metric(d, t, i):
 def remove_smallest(d, t, *extra):
     """Remove the interior node of smallest area metric (ties: the deepest one) from the
     node lists ``d``, ``t`` and any ``extra`` lists carried along (e.g. node sources);
-    returns the shortened lists in the same order."""
-    n = len(d)
-    UInt32 = backend.types().UInt32
-    best = area_metric(d, t, 1)
-    idx = dr.full(UInt32, 1, dr.width(best))
-    for i in range(2, n - 1):
-        m = area_metric(d, t, i)
-        take = m <= best
-        best = dr.select(take, m, best)
-        idx = dr.select(take, UInt32(i), idx)
-    return tuple([dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra))
+    returns the shortened lists in the same order (:func:`._avsm_insertion.remove_refit`)."""
+    return remove_refit(d, t, None, "area", extra)
 
 
 def interpolate(d, t, depth, mode: str):
@@ -340,11 +331,9 @@ class AVSM(NodeList):
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
         refit, metric, stage = self._refit, self._metric, self._stage
-        if refit is None and metric == "area":
-            remove = remove_smallest                      # the paper's removal ('stream', 'staged')
-        else:
-            def remove(d, t):
-                return remove_refit(d, t, refit, metric)
+
+        def remove(d, t):                                 # 'stream' / 'staged': the paper's removal
+            return remove_refit(d, t, refit, metric)
 
         def segment(p, i, active=True):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
