@@ -151,10 +151,6 @@ class AVSMMarch(Representation):
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
         self.node_counts = counts
         self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._store_nodes(pts, src)
-
-    def _store_nodes(self, pts, src):
-        seg = self.segments
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
         off = pts["off"]
@@ -169,8 +165,7 @@ class AVSMMarch(Representation):
         span = (hi - lo)[tex]
         q = np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0)
         if self.precision is None:
-            F16 = getattr(t, "Float16")
-            self.node_q = F16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
+            self.node_q = t.Float16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
         else:                       # quantised after the build (:meth:`_stored`)
             self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
         value = Float(pts["v"][src].astype(dt))
