@@ -54,7 +54,7 @@ def remove_refit(d, t, fit, metric: str = "area", extra=()):
     """Remove the interior node of least ``metric`` (``"area"``: ``|c|``, the paper's; ``"l2"``:
     ``c^2 / (d_r - d_l)``; ties: the deepest) from ``d``, ``t`` and the ``extra`` lists carried
     along, and refit its neighbours (``fit``: None, ``"area"`` or ``"l2"``; module docstring).
-    Returns the shortened (d, t, *extra)."""
+    Returns the shortened ``(d, t, *extra)``."""
     n = len(d)
     UInt32 = backend.types().UInt32
     best = idx = None

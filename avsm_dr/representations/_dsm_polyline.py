@@ -25,7 +25,7 @@ from .. import validation as V
 from ._loops import count_sorted
 
 #: share of epsilon given to the polyline (phase A; the compression band's is
-#: :data:`~._dsm_compress.BAND_SHARE`)
+#: :data:`~.dsm.BAND_SHARE`)
 POLYLINE_SHARE = 0.25
 #: Memory the build may use for its phase-A polyline and phase-B buffers (bytes; 2 GiB),
 #: summed over its chunks of texels (:func:`check_polyline_size`).
