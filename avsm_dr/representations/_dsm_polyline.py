@@ -1,16 +1,8 @@
 """Deep shadow maps, phase A: the exact visibility curve of every texel as a polyline within
-``eps_p`` (Lokovic and Veach 2000, "Deep shadow maps"; the pipeline is described in
-:mod:`.dsm`).
-
-``V(z) = exp(-tau(z))``, ``tau`` piecewise linear between the texel's sorted unique segment
-ends ("breakpoints"), steps at zero-length segments.  Vertices: per breakpoint
-``(z_k, tau_left)``, ``(z_k, tau_right)`` after a step, then the crossings of the level table ::
-
-    L_{n+1} = L_n exp(-kappa_n),  kappa_n = sqrt(8 eps_p / L_n),  L_N <= eps_p,
-
-so each piece lies in one band ``[L_{n+1}, L_n]`` and its chord error is at most
-``L_n kappa^2 / 8 <= eps_p``.  Inserted depths are rounded to the storage dtype.  The
-polyline's size is bounded before it is allocated (:func:`check_polyline_size`).
+``eps_p`` (Lokovic and Veach 2000, "Deep shadow maps"; the level table and its error bound:
+:mod:`.dsm`).  Vertices: per breakpoint ``(z_k, tau_left)``, ``(z_k, tau_right)`` after a
+step, then the level crossings; the polyline's size is bounded before it is allocated
+(:func:`check_polyline_size`).
 """
 from __future__ import annotations
 
