@@ -19,6 +19,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import _device_checks as DC
 from .. import backend
+from .. import validation as V
 from ..filtering import FILTERS, check_radius, check_size
 from ..segments import flush_subnormal
 
@@ -41,8 +42,7 @@ class Lookup:
 def check_options(rep, filter, width, height, radius, prefilter) -> tuple:
     """``(width, height, radius)`` checked (``filter`` and ``prefilter`` too): ValueError naming
     the argument at fault."""
-    if filter not in FILTERS:
-        raise ValueError(f"filter: expected one of {FILTERS}, got {filter!r}")
+    V.one_of(filter, "filter", FILTERS)
     if not isinstance(prefilter, (bool, np.bool_)):
         raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
     if prefilter and not rep.prefilterable:

@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 
 #: Trajectory words per lane a reverse-differentiated loop may hold (M x state words; 64 KiB).
 TRAJECTORY_BUDGET_WORDS = 16384
@@ -124,8 +125,7 @@ def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chun
     and the initial state.  ``max_iterations``: an upper bound (RuntimeError when the loop
     is still active after it); ``chunk``: iterations per checkpoint (C): ``ceil(M / C)``
     saved states plus a C-iteration trajectory per lane."""
-    if not isinstance(chunk, (int, np.integer)) or isinstance(chunk, bool) or chunk < 1:
-        raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
+    V.integer(chunk, "chunk", 1)
     out = dr.custom(_CheckpointedLoop, tuple(state), list(params), cond, body,
                     int(max_iterations), int(chunk))
     if dr.any(cond([dr.detach(p) for p in params], *[dr.detach(x) for x in out])):

@@ -65,6 +65,7 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
+from .. import validation as V
 
 #: Accepted values of ``precision`` (None: the segments' own dtype).
 PRECISIONS = ("float32", "float16", "unorm16", "unorm8")
@@ -112,10 +113,8 @@ class Stored:
     length: bool = False
 
     def __post_init__(self):
-        if self.meaning not in MEANINGS:
-            raise ValueError(f"meaning: expected one of {MEANINGS}, got {self.meaning!r}")
-        if self.layout not in LAYOUTS:
-            raise ValueError(f"layout: expected one of {LAYOUTS}, got {self.layout!r}")
+        V.one_of(self.meaning, "meaning", MEANINGS)
+        V.one_of(self.layout, "layout", LAYOUTS)
 
 
 # Host codecs: float64 NumPy in, float64 decoded values out.

@@ -115,8 +115,7 @@ class Representation(abc.ABC):
         if self.precision is not None and self.precision not in self.precisions:
             raise ValueError(f"precision: kind {self.kind!r} accepts {self.precisions or 'only None'}, "
                              f"got {self.precision!r}{self._precision_note}")
-        if reverse not in REVERSE_MODES:
-            raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
+        V.one_of(reverse, "reverse", REVERSE_MODES)
         if chunk is not None:
             chunk = Param("chunk", "int", min=1, max=MAX_CHUNK).validate(chunk)
         self.segments = segments
