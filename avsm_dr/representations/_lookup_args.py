@@ -144,7 +144,7 @@ def lookup_args(rep, kernel, texel, depth, filter: str = "point", width: int | N
     if depth_dr is None:
         depth_dr = A.to_float(np.broadcast_to(d_h, (n,)), Float)
     elif d_size == 1 and n > 1:
-        depth_dr = dr.repeat(depth_dr, n) if hasattr(dr, "repeat") else depth_dr + dr.zeros(Float, n)
+        depth_dr = dr.repeat(depth_dr, n)
     if tex_dev is not None:
         tex_d = A.to_uint32(dr.detach(tex_dev))
         return Lookup(texel=tex_d + dr.zeros(UInt32, n) if k == 1 and n > 1 else tex_d, depth=depth_dr)
