@@ -234,11 +234,7 @@ class AVSMAdaptive(Representation):
         self._offsets_dr = UInt32(self.node_offsets.astype(np.uint32))
         self._max_nodes = int(stored.max(initial=0))
 
-    variable_size = True
-
-    def texel_payload_bytes(self):
-        """Sparse layout: a texel's stored (depth, value) nodes."""
-        return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
+    variable_size = True                    # sparse payload: the stored (depth, value) nodes
 
     @property
     def nbytes_per_texel(self) -> float:

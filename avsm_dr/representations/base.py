@@ -168,7 +168,10 @@ class Representation(abc.ABC):
     def texel_payload_bytes(self):
         """Bytes one non-empty texel stores in the sparse layout, offset excluded: a number
         (fixed-size kinds; default: :attr:`nbytes_per_texel`) or a (T,) float64 array
-        (variable-size kinds; only the non-empty texels' entries are counted)."""
+        (variable-size kinds, only the non-empty texels' entries counted; default: a
+        (depth, value) pair per node of ``node_counts``)."""
+        if self.variable_size:
+            return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
         return self.nbytes_per_texel
 
     def _csr_payload(self, counts, entry_bytes: float, texel_bytes: float = 0.0) -> np.ndarray:

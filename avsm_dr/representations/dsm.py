@@ -323,11 +323,7 @@ class DeepShadowMap(Representation):
     def _stored(self):
         return (Stored("node_depth", "depth", "csr"), Stored("node_value", "transmittance", "csr"))
 
-    variable_size = True
-
-    def texel_payload_bytes(self):
-        """Sparse layout: a texel's (depth, value) pairs."""
-        return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
+    variable_size = True                    # sparse payload: the (depth, value) pairs
 
     @property
     def nbytes_per_texel(self) -> float:
