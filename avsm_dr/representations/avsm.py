@@ -201,10 +201,7 @@ class NodeList(Representation):
     def _stored(self):
         return (Stored("depths", "depth", "nodes"), Stored("values", "transmittance", "nodes"))
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:
-            return self._stored_nbytes
+    def _native_bytes(self) -> float:
         return 2 * self.N * self.segments.itemsize
 
     def _node_rows(self):

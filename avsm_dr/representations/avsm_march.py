@@ -186,10 +186,7 @@ class AVSMMarch(Representation):
         item = self.segments.itemsize
         return self._csr_payload(self.node_counts, 2 + item, 2 * item)
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:      # codes, float32 range (:mod:`._precision`), offset
-            return self._stored_nbytes + 4
+    def _native_bytes(self) -> float:
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
         item = self.segments.itemsize
         return 4 + 2 * item + mean * (2 + item)

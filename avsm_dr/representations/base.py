@@ -255,9 +255,17 @@ class Representation(abc.ABC):
         """T at ``depth`` (Float) along texel ``texel`` (UInt32); one lane per receiver."""
 
     @property
-    @abc.abstractmethod
     def nbytes_per_texel(self) -> float:
-        """Storage of the compressed form per texel in bytes (variable-size forms: mean)."""
+        """Storage of the compressed form per texel in bytes (variable-size forms: the mean):
+        with a ``precision`` the quantised buffers (:mod:`._precision`) plus, for
+        ``variable_size`` kinds, the CSR offset; else :meth:`_native_bytes`."""
+        if self.precision is not None:
+            return self._stored_nbytes + (SPARSE_OFFSET_BYTES if self.variable_size else 0)
+        return self._native_bytes()
+
+    def _native_bytes(self) -> float:
+        """:attr:`nbytes_per_texel` in the segments' own dtype (a kind defines it, or the property)."""
+        raise NotImplementedError
 
     @property
     def n_texels(self) -> int:

@@ -184,10 +184,7 @@ class BasisRepresentation(Representation):
         """Bytes per stored coefficient (the segments' dtype)."""
         return self.segments.itemsize
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:
-            return self._stored_nbytes
+    def _native_bytes(self) -> float:
         extra = 2 if self._per_texel else 0
         return (self.basis.n_coefficients + extra) * self.itemsize
 

@@ -108,10 +108,7 @@ class BeerShadowMap(Representation):
         return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False, length=True),
                 third)
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:
-            return self._stored_nbytes
+    def _native_bytes(self) -> float:
         return 3 * self.segments.itemsize
 
     def _eval_texels(self, texel, depth):

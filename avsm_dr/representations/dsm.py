@@ -325,10 +325,7 @@ class DeepShadowMap(Representation):
 
     variable_size = True                    # sparse payload: the (depth, value) pairs
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:      # codes + per-texel ranges (:mod:`._precision`) + offset
-            return self._stored_nbytes + 4
+    def _native_bytes(self) -> float:
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
         return 2 * self.segments.itemsize * mean + 4
 
