@@ -179,14 +179,9 @@ class BasisRepresentation(Representation):
 
     unity_in_front = False
 
-    @property
-    def itemsize(self) -> int:
-        """Bytes per stored coefficient (the segments' dtype)."""
-        return self.segments.itemsize
-
     def _native_bytes(self) -> float:
         extra = 2 if self._per_texel else 0
-        return (self.basis.n_coefficients + extra) * self.itemsize
+        return (self.basis.n_coefficients + extra) * self.segments.itemsize
 
     precisions = PRECISIONS
     #: The flat store :mod:`._precision` quantises (the one reconstruction reads, ``_store``).
