@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.representations import _dsm_chunks, _dsm_polyline, dsm
+from avsm_dr.representations import _dsm_polyline, dsm
 from cases import random_segments
 from helpers import build_peak
 
@@ -13,13 +13,13 @@ ATTRS = ("node_counts", "node_offsets", "node_left", "n_polyline_vertices")
 
 
 def _one_piece(monkeypatch):
-    monkeypatch.setattr(_dsm_chunks, "MIN_CHUNK_SEGMENTS", 1 << 40)
-    monkeypatch.setattr(_dsm_chunks, "MAX_CHUNK_SEGMENTS", 1 << 40)
+    monkeypatch.setattr(dsm, "MIN_CHUNK_SEGMENTS", 1 << 40)
+    monkeypatch.setattr(dsm, "MAX_CHUNK_SEGMENTS", 1 << 40)
 
 
 def _chunked(monkeypatch, n):
-    monkeypatch.setattr(_dsm_chunks, "MIN_CHUNK_SEGMENTS", n)
-    monkeypatch.setattr(_dsm_chunks, "MAX_CHUNK_SEGMENTS", n)
+    monkeypatch.setattr(dsm, "MIN_CHUNK_SEGMENTS", n)
+    monkeypatch.setattr(dsm, "MAX_CHUNK_SEGMENTS", n)
 
 
 def _snapshot(rep):

@@ -12,8 +12,7 @@ from .registry import (REGISTRY, allows, build, configurations, describe, differ
                        register, unregister)
 from .schema import Param, Schema
 
-# The registry: each import registers its representation (explicit: a broken or
-# misspelt module fails here, loudly).
+# Each import registers its representation (a broken or misspelt module fails here).
 from . import exact  # noqa: E402,F401
 from . import avsm  # noqa: E402,F401
 from . import dsm  # noqa: E402,F401

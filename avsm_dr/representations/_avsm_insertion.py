@@ -1,7 +1,6 @@
 """AVSM insertion variants (the ``insertion`` parameter of :class:`.avsm.AVSM`): what happens
-when a texel's node list overflows.  Branch-free node-list operations on lists of Dr.Jit
-arrays, like :mod:`.avsm`; the research question and its measurements:
-``docs/research/insertion_order.md`` (``python -m experiments insertion_order --quick``).
+when a texel's node list overflows (branch-free, like :mod:`.avsm`; measurements:
+``docs/research/insertion_order.md``).
 
 * ``stream`` (Salvi et al. 2010, sec. 3.2): each inserted segment adds two nodes, then the
   interior node of least area metric is removed, twice; no node value ever changes.
@@ -10,11 +9,9 @@ arrays, like :mod:`.avsm`; the research question and its measurements:
 * ``refit_l2``: the removed node is the one of least squared-L2 loss (``c^2 / w``, see
   below) and its neighbours are refitted by least squares to the curve before the removal
   (:func:`remove_refit` with ``fit="l2"``).
-* ``staged`` / ``staged_refit_l2``: once the texel is full, segments are inserted
-  :data:`STAGE` at a time into a list of ``N + 2 STAGE`` nodes and the list is compressed
-  back to N only then (``2 STAGE`` removals; plain, respectively refitting).  No node is
-  removed while a batch is staged, so the batch's order inside it hardly matters (sorting it
-  by depth changed the prototype's ratios by less than 0.001: the kernel does not sort).
+* ``staged`` / ``staged_refit_l2``: once the texel is full, segments are inserted 4 at a
+  time into a list of ``N + 8`` nodes, compressed back to N only then (plain, respectively
+  refitting).
 
 Removal of interior node ``i`` with neighbours ``l = i - 1``, ``r = i + 1`` (and ``ll = i - 2``,
 ``rr = i + 2`` where they exist); ``c = (d_r - d_l)(t_r - t_i) - (d_r - d_i)(t_r - t_l)`` is
@@ -51,14 +48,13 @@ INSERTIONS = {
     "staged": (None, "area", 4),
     "staged_refit_l2": ("l2", "l2", 4),
 }
-#: Segments per batch of the staged variants (k).
-STAGE = 4
 
 
-def remove_refit(d, t, fit, metric: str = "area"):
+def remove_refit(d, t, fit, metric: str = "area", extra=()):
     """Remove the interior node of least ``metric`` (``"area"``: ``|c|``, the paper's; ``"l2"``:
-    ``c^2 / (d_r - d_l)``; ties: the deepest) and refit its neighbours (``fit``: None, ``"area"``
-    or ``"l2"``; module docstring).  Returns the shortened (d, t)."""
+    ``c^2 / (d_r - d_l)``; ties: the deepest) from ``d``, ``t`` and the ``extra`` lists carried
+    along, and refit its neighbours (``fit``: None, ``"area"`` or ``"l2"``; module docstring).
+    Returns the shortened ``(d, t, *extra)``."""
     n = len(d)
     UInt32 = backend.types().UInt32
     best = idx = None
@@ -81,14 +77,12 @@ def remove_refit(d, t, fit, metric: str = "area"):
         idx = dr.select(take, UInt32(i), idx)
         if fit is not None:
             keep = {k: dr.select(take, v, keep[k]) for k, v in nb.items()}
-    out_d = [dr.select(idx <= j, d[j + 1], d[j]) for j in range(n - 1)]
-    out_t = [dr.select(idx <= j, t[j + 1], t[j]) for j in range(n - 1)]
-    if fit is None:
-        return out_d, out_t
-    tl, tr = refit_values(keep, idx >= 2, idx <= n - 3, fit)
-    for j in range(1, n - 2):        # l = idx - 1 >= 1 and r = idx <= n - 3 in the new list
-        out_t[j] = dr.select(idx == j + 1, tl, dr.select(idx == j, tr, out_t[j]))
-    return out_d, out_t
+    out = [[dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra)]
+    if fit is not None:
+        tl, tr = refit_values(keep, idx >= 2, idx <= n - 3, fit)
+        for j in range(1, n - 2):        # l = idx - 1 >= 1 and r = idx <= n - 3 in the new list
+            out[1][j] = dr.select(idx == j + 1, tl, dr.select(idx == j, tr, out[1][j]))
+    return tuple(out)
 
 
 def refit_values(nb, move_l, move_r, fit):

@@ -7,12 +7,10 @@ The points are, per breakpoint ``z_k``: ``(z_k, T(z_k^-))`` when a step sits the
 *left* point), then ``(z_k, T(z_k))``; with the slope ``s_k = d tau / dz`` of the interval
 that follows.  Between consecutive points ``p``, ``q`` the curve is
 ``T(x) = T_p exp(-s_p (x - z_p))``.  Breakpoints, optical depths and slopes come from
-:mod:`.dsm`'s phase A (event sort, compensated prefix sums, float64).
+:mod:`.dsm`'s phase A (:mod:`._dsm_polyline`) (event sort, compensated prefix sums, float64).
 
-Also here: gradients of stored curve values (:func:`attach_exact_gradients`), texel
-buckets for padded NumPy work (:func:`buckets`, :func:`padded`), a per-segments cache
-(:func:`cached`) and node lists from chosen points (:func:`fill_slots`,
-:func:`store_nodes`).
+Also the helpers of those kinds: gradients of stored curve values, texel buckets for padded
+NumPy work, a per-segments cache and node lists from chosen points.
 """
 from __future__ import annotations
 
@@ -20,18 +18,14 @@ import drjit as dr
 import numpy as np
 
 from .. import backend
-from .dsm import breakpoints, prefix_optical_depth
-from .exact import exact_values  # noqa: F401  (re-exported: the kinds choosing nodes use it)
+from ._dsm_polyline import breakpoints, prefix_optical_depth
+from .exact import exact_values
 
 
 def curve_points(segments) -> dict:
-    """Points of every texel's exact curve (host float64 NumPy).
-
-    Returns dict: ``off`` (T+1,) int64 CSR over points; per point ``z`` (depth), ``tau``
-    (optical depth), ``v`` (``exp(-tau)``), ``slope`` (d tau / dz after the point; for a
-    left point that of its right point), ``left`` (bool: value just before a step) and
-    ``texel`` (int64).  Empty texels have no points.
-    """
+    """Points of every texel's exact curve (host float64 NumPy): dict of ``off`` (T+1,) CSR
+    and per point ``z``, ``tau``, ``v`` (``exp(-tau)``), ``slope`` (d tau / dz after it; a
+    left point's: its right point's), ``left`` (value just before a step), ``texel``."""
     h = segments.numpy()
     n_tex = segments.n_texels
     if segments.n_segments == 0:
@@ -55,8 +49,6 @@ def curve_points(segments) -> dict:
     texel = np.repeat(bp_tex, per_bp)
     off = np.concatenate([[0], np.cumsum(np.bincount(texel, minlength=n_tex))]).astype(np.int64)
     return dict(off=off, z=z, tau=tau, v=np.exp(-tau), slope=slope_p, left=left, texel=texel)
-
-
 
 
 def attach_exact_gradients(segments, value, texel, z, left):
@@ -106,18 +98,18 @@ def cached(segments, key: str, fn):
     return store[key]
 
 
-def fill_slots(sel_tex: np.ndarray, sel_pt: np.ndarray, slot: np.ndarray, N: int, T: int) -> np.ndarray:
-    """(N, T) point index of every node slot from the chosen points (texel, point, slot;
-    slots 0..count-1 per texel in depth order): slots beyond a texel's count repeat its
-    last node (duplicates change no lookup); -1 for empty texels."""
-    src = np.full((N, T), -1, np.int64)
+def fill_slots(sel_tex: np.ndarray, sel_pt: np.ndarray, slot: np.ndarray, N: int, T: int, fill=-1) -> np.ndarray:
+    """(N, T) point index (or value: ``sel_pt``'s dtype) of every node slot from the chosen
+    points (texel, point, slot; slots 0..count-1 per texel in depth order): slots beyond a
+    texel's count repeat its last node (duplicates change no lookup); ``fill`` for empty texels."""
+    src = np.full((N, T), fill, np.asarray(sel_pt).dtype)
     src[slot, sel_tex] = sel_pt
     count = np.bincount(sel_tex, minlength=T)
     nz = np.flatnonzero(count > 0)
     last = src[count[nz] - 1, nz]
     for k in range(N):
-        fill = count[nz] <= k
-        src[k, nz[fill]] = last[fill]
+        more = count[nz] <= k
+        src[k, nz[more]] = last[more]
     return src
 
 

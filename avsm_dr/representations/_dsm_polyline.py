@@ -1,16 +1,8 @@
 """Deep shadow maps, phase A: the exact visibility curve of every texel as a polyline within
-``eps_p`` (Lokovic and Veach 2000, "Deep shadow maps"; the pipeline is described in
-:mod:`.dsm`).
-
-``V(z) = exp(-tau(z))``, ``tau`` piecewise linear between the texel's sorted unique segment
-ends ("breakpoints"), steps at zero-length segments.  Vertices: per breakpoint
-``(z_k, tau_left)``, ``(z_k, tau_right)`` after a step, then the crossings of the level table ::
-
-    L_{n+1} = L_n exp(-kappa_n),  kappa_n = sqrt(8 eps_p / L_n),  L_N <= eps_p,
-
-so each piece lies in one band ``[L_{n+1}, L_n]`` and its chord error is at most
-``L_n kappa^2 / 8 <= eps_p``.  Inserted depths are rounded to the storage dtype.  The
-polyline's size is bounded before it is allocated (:func:`check_polyline_size`).
+``eps_p`` (Lokovic and Veach 2000, "Deep shadow maps"; the level table and its error bound:
+:mod:`.dsm`).  Vertices: per breakpoint ``(z_k, tau_left)``, ``(z_k, tau_right)`` after a
+step, then the level crossings; the polyline's size is bounded before it is allocated
+(:func:`check_polyline_size`).
 """
 from __future__ import annotations
 
@@ -22,14 +14,13 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
+from ._loops import count_sorted
 
 #: share of epsilon given to the polyline (phase A; the compression band's is
-#: :data:`~._dsm_compress.BAND_SHARE`)
+#: :data:`~.dsm.BAND_SHARE`)
 POLYLINE_SHARE = 0.25
 #: Memory the build may use for its phase-A polyline and phase-B buffers (bytes; 2 GiB),
-#: summed over its chunks of texels (the nodes, a subset of the polyline, are kept).
-#: Each chunk's polyline is bounded before it is allocated (``BYTES_PER_VERTEX`` per
-#: vertex); a larger one raises ValueError saying which tolerance would fit.
+#: summed over its chunks of texels (:func:`check_polyline_size`).
 MEMORY_BUDGET_BYTES = 2 * 2**30
 #: Device and host bytes per polyline vertex over the build (phase A: depth, optical
 #: depth, value, flag = 25; phase B: node depth, value, source = 20; host copies ~20).
@@ -37,11 +28,9 @@ BYTES_PER_VERTEX = 64
 
 
 def transmittance_levels(eps_p: float) -> np.ndarray:
-    """Optical-depth levels ``Lambda_n = -ln L_n`` (ascending, n >= 1) of the level table.
-
+    """Optical-depth levels ``Lambda_n = -ln L_n`` (ascending, n >= 1) of the level table
     ``L_{n+1} = L_n exp(-sqrt(8 eps_p / L_n))`` from ``L_0 = 1`` down to the first
-    ``L_N <= eps_p``.  Empty when ``eps_p >= 1``.
-    """
+    ``L_N <= eps_p``.  Empty when ``eps_p >= 1``."""
     out = []
     lam, level = 0.0, 1.0
     while level > eps_p:
@@ -52,12 +41,8 @@ def transmittance_levels(eps_p: float) -> np.ndarray:
 
 
 def sort_within_texels(off: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Permutation sorting ``values`` inside each CSR range ``off[t]:off[t+1]``.
-
-    Texels are bucketed by count (powers of two), each bucket padded with +inf to a
-    (texels, width) block and sorted along rows: O(n log n) per texel with NumPy's
-    row sorts, instead of a global ``lexsort`` on (texel, value).
-    """
+    """Permutation sorting ``values`` inside each CSR range ``off[t]:off[t+1]``: texels
+    bucketed by count (powers of two), each bucket padded with +inf and sorted along rows."""
     counts = np.diff(off)
     order = np.arange(values.size)
     busy = np.flatnonzero(counts > 1)
@@ -78,13 +63,10 @@ def sort_within_texels(off: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def breakpoints(offsets, z0, z1, tau):
-    """Sorted unique segment ends per texel and what happens at each (float64 NumPy).
-
-    Returns dict: ``off`` (T+1,) CSR over breakpoints, ``z`` depths, ``jump`` summed
-    optical depth of zero-length segments there, ``rate_in`` / ``rate_out`` summed
-    density (tau / length) of segments starting / ending there, ``active`` change of the
-    number of open positive-length segments.
-    """
+    """Sorted unique segment ends per texel and what happens at each (float64 NumPy): dict
+    of ``off`` (T+1,) CSR over breakpoints, ``z`` depths, ``jump`` summed optical depth of
+    zero-length segments there, ``rate_in`` / ``rate_out`` summed density (tau / length) of
+    segments starting / ending there, ``active`` change of the open positive-length segments."""
     n_tex = offsets.size - 1
     counts = np.diff(offsets)
     s = tau.size
@@ -99,10 +81,8 @@ def breakpoints(offsets, z0, z1, tau):
     ev_off = 2 * offsets
     first = np.zeros(2 * s, dtype=bool)               # first event of its texel
     first[ev_off[:-1][counts > 0]] = True
-    in_order = bool(np.all((np.diff(ev_z) >= 0) | first[1:]))
-    if in_order:    # sorted, non-overlapping segments (e.g. ray-marched voxels): no sort
-        order = None
-    else:
+    order = None                          # sorted, non-overlapping segments (e.g. ray-marched voxels)
+    if not np.all((np.diff(ev_z) >= 0) | first[1:]):
         order = sort_within_texels(ev_off, ev_z)
         ev_z = ev_z[order]
     new = first.copy()
@@ -131,7 +111,6 @@ def breakpoints(offsets, z0, z1, tau):
     return dict(off=off, z=bp_z, jump=jump, rate_in=rate_in, rate_out=rate_out, active=active)
 
 
-
 def lanes_by_length(off: np.ndarray) -> np.ndarray:
     """Non-empty CSR rows ordered by length: one lane each, so that SIMD packets run
     loops of similar length and empty texels cost nothing (DESIGN.md)."""
@@ -142,12 +121,10 @@ def lanes_by_length(off: np.ndarray) -> np.ndarray:
 
 def prefix_optical_depth(bp):
     """``tau`` just before (``left``) and at (``right``) every breakpoint, and the slope
-    ``d tau / dz`` on the interval after it.  Dr.Jit, one float64 lane per texel.
-
+    ``d tau / dz`` after it (Dr.Jit Float64, one lane per texel):
     tau_left[k] = tau_right[k-1] + slope[k-1] (z[k] - z[k-1]),  tau_right[k] = tau_left[k] + jump[k];
     the slope is a Neumaier-compensated running sum of rate_in - rate_out, reset to 0
-    whenever no positive-length segment is open.  Returns Dr.Jit Float64 arrays.
-    """
+    whenever no positive-length segment is open."""
     t = backend.types()
     F64, U32, I32 = t.Float64, t.UInt32, t.Int32
     nb = bp["z"].size
@@ -191,22 +168,6 @@ def prefix_optical_depth(bp):
     return tau_left, tau_right, slope_out
 
 
-def count_below(table, x, m: int, strict: bool):
-    """Per lane: number of entries of the sorted Float64 ``table`` (size m) that are
-    ``< x`` (strict) or ``<= x``; unrolled binary search."""
-    U32 = backend.types().UInt32
-    lo = dr.zeros(U32, dr.width(x))
-    hi = dr.full(U32, m, dr.width(x))
-    for _ in range(max(1, math.ceil(math.log2(m + 1)))):
-        live = lo < hi
-        mid = (lo + hi) >> 1
-        val = dr.gather(type(x), table, mid, live)
-        below = (val < x) if strict else (val <= x)
-        lo = dr.select(live & below, mid + 1, lo)
-        hi = dr.select(live & ~below, mid, hi)
-    return lo
-
-
 def next_up(z, dtype: str):
     """The next depth after ``z`` (Float64 lanes holding ``dtype`` values) representable
     in the storage dtype (IEEE bit increment; +-0 -> the smallest subnormal)."""
@@ -220,13 +181,10 @@ def next_up(z, dtype: str):
 
 def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p: float,
                         partial: bool = False) -> None:
-    """ValueError (naming ``tolerance``) when the polyline's upper bound of
-    ``2 B + crossings`` vertices exceeds :data:`MEMORY_BUDGET_BYTES` or the budget of every
-    build, :func:`avsm_dr.validation.memory_budget`, whichever is less (B breakpoints and
-    crossings of the first ``n_tex`` texels, all of them unless ``partial``).  The level
-    part grows as ``1 / sqrt(tolerance)`` (e.g. 44,727 levels at 1e-9: ~2.9 MB per opaque
-    texel, ~190 GB for a 256^2 map), so the message names the tolerance that would fit
-    (those texels; the rest of a ``partial`` map needs more)."""
+    """ValueError (naming ``tolerance`` and the one that would fit) when the polyline's
+    bound of ``2 B + crossings`` vertices (B breakpoints; the first ``n_tex`` texels, all of
+    them unless ``partial``) exceeds :data:`MEMORY_BUDGET_BYTES` or
+    :func:`avsm_dr.validation.memory_budget`, whichever is less."""
     bound = 2 * int(n_breakpoints) + int(n_crossings)
     need = bound * BYTES_PER_VERTEX
     budget = min(MEMORY_BUDGET_BYTES, V.memory_budget())   # and the budget of every build
@@ -247,15 +205,12 @@ def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p:
 def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", before=(0, 0, 0)):
     """Polyline within ``eps_p`` of the exact curve (phase A), all texels at once.
 
-    offsets (T+1,) int; z0, z1, tau (S,) float64 host arrays (tau clamped as in Segments);
-    ``before``: (breakpoints, level crossings, texels) of the chunks already built, counted
-    in :func:`check_polyline_size`.  Returns dict: ``off`` (T+1,) int64 CSR over vertices,
-    Dr.Jit arrays ``z``, ``tau``, ``v`` (Float64 depth, optical depth, transmittance) and
-    ``left`` (Bool: the vertex is the value just before a step at its depth), and
-    ``bound`` (breakpoints, level crossings) of these texels.  Per breakpoint k the vertices are
-    (z_k, tau_left), (z_k, tau_right) if a zero-length segment steps there, then the
-    level crossings inside (z_k, z_{k+1}) (one Dr.Jit lane per breakpoint, a counting
-    pass and a writing pass).
+    offsets (T+1,) int; z0, z1, tau (S,) float64 host arrays; ``before``: (breakpoints, level
+    crossings, texels) of the chunks already built (:func:`check_polyline_size`).  Returns
+    dict: ``off`` (T+1,) int64 CSR over vertices, Dr.Jit Float64 ``z``, ``tau``, ``v``, Bool
+    ``left`` (the value just before a step at its depth), ``bound`` (breakpoints, crossings).
+    Per breakpoint k: (z_k, tau_left), (z_k, tau_right) at a step, then the level crossings
+    inside (z_k, z_{k+1}) (one lane per breakpoint, a counting and a writing pass).
     """
     t = backend.types()
     F64, F32, U32, Bool = t.Float64, t.Float, t.UInt32, t.Bool
@@ -278,21 +233,21 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
     lam_np = transmittance_levels(eps_p)
     m = lam_np.size
     lam = F64(A.aligned(lam_np)) if m else F64(0.0)
-    i0 = count_below(lam, tr, m, strict=False) if m else dr.zeros(U32, nb)
-    i1 = dr.select(has_next, count_below(lam, tl_next, m, strict=True) if m else i0, i0)
+    def below(x, strict):                 # levels below x (count_sorted over the table)
+        return count_sorted(lambda i, a: dr.gather(F64, lam, i, a), 0, dr.full(U32, m, nb), x, m, strict)
+
+    i0 = below(tr, False) if m else dr.zeros(U32, nb)
+    i1 = dr.select(has_next, below(tl_next, True) if m else i0, i0)
     i1 = dr.maximum(i1, i0)
     n_cross = int((i1 - i0).numpy().astype(np.int64).sum())
     check_polyline_size(before[0] + nb, before[1] + n_cross, before[2] + n_tex, eps_p, partial=before[2] > 0)
     safe_slope = dr.select(slope > 0, slope, 1.0)
 
     def crossings(base, write: bool):
-        """Loop over the candidate levels of each breakpoint.  A level not yet passed by
-        the previous vertex (``Lambda_i > tau_prev``) gets a vertex at its crossing depth
-        rounded to the storage dtype, or at the next representable depth after the
-        previous vertex when it rounds onto it (a curve that drops within one ulp: the
-        vertex then lies past several levels, which are skipped); kept when it lies
-        before the next breakpoint.  Counts them, and with ``write`` scatters them from
-        ``base``."""
+        """Per breakpoint, a vertex for each level not yet passed (``Lambda_i > tau_prev``) at
+        its crossing depth rounded to the storage dtype (at least the next representable
+        depth after the previous vertex), kept before the next breakpoint.  Counts them;
+        ``write``: scatters them from ``base``."""
         def cond(i, n, z_prev, tau_prev):
             return i < i1
 

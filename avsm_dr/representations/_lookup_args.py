@@ -1,19 +1,12 @@
 """A lookup's arguments, checked and converted once: the argument handling of
 :meth:`~avsm_dr.representations.base.Representation.eval`.
 
-Three validation paths, cheapest first (:mod:`avsm_dr._device_checks` says what each accepts):
-
-1. plain NumPy point lookups whose extremes prove them valid: checked on the host by their
-   min / max, evaluated in one launch with no readback (:func:`~avsm_dr._device_checks.host_point_lookup`);
-2. Dr.Jit texels / depths (and NumPy integer texels, float depths once converted): checked on
-   the device, inside the point lookup's own kernel (:func:`~avsm_dr._device_checks.point_lookup`)
-   or as one flag read back for filtered lookups;
-3. everything those sufficient checks do not accept: the host checks below, which raise the
-   ``ValueError`` messages (naming ``texel``, ``depth``, ``width``, ...) or handle the input
-   (subnormal depths flushed, scalars broadcast).
-
-:func:`lookup_args` returns a :class:`Lookup`: ``T`` when path 1 or 2 already evaluated a
-point lookup, else the receivers' point texels or filter coordinates and depths.
+Three validation paths, cheapest first (:mod:`avsm_dr._device_checks`): 1. NumPy point
+lookups whose min / max prove them valid, evaluated in one launch; 2. Dr.Jit texels / depths,
+checked on the device (inside the point lookup's kernel, or one flag for filtered lookups);
+3. everything else: the host checks below, which raise the ``ValueError`` messages (naming
+``texel``, ``depth``, ``width``, ...) or handle the input (subnormals flushed, scalars
+broadcast).  :func:`lookup_args` returns a :class:`Lookup`.
 """
 from __future__ import annotations
 
@@ -26,16 +19,16 @@ import numpy as np
 from .. import _arrays as A
 from .. import _device_checks as DC
 from .. import backend
+from .. import validation as V
 from ..filtering import FILTERS, check_radius, check_size
 from ..segments import flush_subnormal
 
 
 @dataclass
 class Lookup:
-    """A lookup's checked arguments.  ``T``: the transmittance, when a fast path already
-    evaluated the point lookup; else ``depth`` (Float (n,), AD graph kept) with either
-    ``texel`` (UInt32 (n,), a point lookup) or ``coords`` ((n, 2) float64 shadow-map
-    coordinates in texel units, a filtered lookup over ``width`` x ``height`` with ``radius``)."""
+    """A lookup's checked arguments: ``T`` when a fast path evaluated the point lookup, else
+    ``depth`` (Float (n,), AD graph kept) with ``texel`` (UInt32 (n,), point) or ``coords``
+    ((n, 2) float64 texel units, filtered over ``width`` x ``height`` with ``radius``)."""
 
     T: Any = None
     texel: Any = None
@@ -49,8 +42,7 @@ class Lookup:
 def check_options(rep, filter, width, height, radius, prefilter) -> tuple:
     """``(width, height, radius)`` checked (``filter`` and ``prefilter`` too): ValueError naming
     the argument at fault."""
-    if filter not in FILTERS:
-        raise ValueError(f"filter: expected one of {FILTERS}, got {filter!r}")
+    V.one_of(filter, "filter", FILTERS)
     if not isinstance(prefilter, (bool, np.bool_)):
         raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
     if prefilter and not rep.prefilterable:
@@ -65,8 +57,8 @@ def check_options(rep, filter, width, height, radius, prefilter) -> tuple:
 
 def _device_checked(rep, kernel, texel, depth, filter: str):
     """Paths 1 and 2: ``(T, None, None, False)`` when a point lookup was evaluated, else
-    ``(None, tex_dev, dep_dev, tex_np)``: the arguments the device checks accepted (None:
-    the host checks take it; ``tex_np``: NumPy texels already checked by their min / max)."""
+    ``(None, tex_dev, dep_dev, tex_np)`` (None: the host checks take it; ``tex_np``: NumPy
+    texels already checked by their min / max)."""
     seg, Float, n_texels = rep.segments, rep.Float, rep.n_texels
     if filter == "point" and (T := DC.host_point_lookup(kernel, texel, depth, n_texels, seg.dtype,
                                                         Float)) is not None:
@@ -152,7 +144,7 @@ def lookup_args(rep, kernel, texel, depth, filter: str = "point", width: int | N
     if depth_dr is None:
         depth_dr = A.to_float(np.broadcast_to(d_h, (n,)), Float)
     elif d_size == 1 and n > 1:
-        depth_dr = dr.repeat(depth_dr, n) if hasattr(dr, "repeat") else depth_dr + dr.zeros(Float, n)
+        depth_dr = dr.repeat(depth_dr, n)
     if tex_dev is not None:
         tex_d = A.to_uint32(dr.detach(tex_dev))
         return Lookup(texel=tex_d + dr.zeros(UInt32, n) if k == 1 and n > 1 else tex_d, depth=depth_dr)

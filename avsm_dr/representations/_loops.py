@@ -1,39 +1,34 @@
 """Reverse mode through per-texel loops: the trajectory budget and checkpointed loops.
 
-What reverse mode costs (drjit 1.5, LLVM backend; ``python -m experiments backward_cost``
-measures it): a symbolic ``dr.while_loop`` differentiated in reverse mode with
-``max_iterations=M`` keeps its **trajectory in a per-lane local array of M x (state words)**
-inside the kernel.  On the CPU that array lives on the worker's stack, so it grows as
-``segments per texel x loop state`` and overflows it (a segfault) for long texels
-(the limits found: docs/performance.md); ``max_iterations > 65536`` raises.  On a GPU the
-same trajectory is per-thread local memory.  A bound below the true iteration count makes
-reverse mode write and read past that array (out of bounds: corrupts the worker's stack,
-later segfaults; Dr.Jit checks it only under ``JitFlag.Debug``), so :func:`run_loop`
-refuses it (ValueError) given the loop's true count; a larger one only costs trajectory space.
+Reverse mode through a symbolic ``dr.while_loop`` with ``max_iterations=M`` keeps its
+**trajectory in a per-lane local array of M x (state words)** (drjit 1.5; on the CPU on the
+worker's stack, which long texels overflow: a segfault).  A bound below the true iteration
+count writes past that array, so :func:`run_loop` refuses it (ValueError).
 
 * A *sum loop* (the increment does not read the accumulator) runs with
   ``max_iterations=-1``: reverse mode re-runs the loop and stores no trajectory
-  (the exact curve, DSM node values).  Such kinds declare ``loop_state_words = 0``.
-* Any other loop is run by :func:`run_loop`: plain ``dr.while_loop`` while the trajectory
-  fits :data:`TRAJECTORY_BUDGET_WORDS`, otherwise :func:`checkpointed_while_loop`
-  (Griewank and Walther 2008, "Evaluating Derivatives", ch. 12): chunks of C iterations
-  with AD off, the state saved at each chunk boundary (M / C states per lane in global
-  memory), the backward pass re-running one chunk at a time from its saved state in
-  reverse order.  One extra forward pass; forward mode needs neither.
+  (``loop_state_words = 0``).
+* Any other loop is run by :func:`run_loop`: plain while the trajectory fits
+  :data:`TRAJECTORY_BUDGET_WORDS`, otherwise :func:`checkpointed_while_loop` (Griewank and
+  Walther 2008, "Evaluating Derivatives", ch. 12): chunks of C iterations with AD off, the
+  state saved at each chunk boundary, the backward pass re-running one chunk at a time in
+  reverse order.
 
-This module imports only drjit, the backend and the array helpers: no concrete representation.
+Also the deterministic per-texel sums of the linear kinds (:func:`texel_sums`).  Imports no
+concrete representation.
 """
 from __future__ import annotations
+
+import math
 
 import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 
-#: Trajectory words per lane a single reverse-differentiated loop may hold
-#: (M x state words), below the stack sizes that crashed (docs/performance.md).  16 k words
-#: = 64 KiB per lane.
+#: Trajectory words per lane a reverse-differentiated loop may hold (M x state words; 64 KiB).
 TRAJECTORY_BUDGET_WORDS = 16384
 #: Reverse-mode strategies accepted by every representation (``reverse=``).
 REVERSE_MODES = ("auto", "trajectory", "checkpoint")
@@ -65,9 +60,8 @@ def _run_chunk(state, params, cond, body, chunk: int):
 
 
 class _CheckpointedLoop(dr.CustomOp):
-    """CustomOp: the primal runs the chunks with AD off and saves each chunk's input
-    state; backward re-runs the chunks in reverse order with AD on (one traversal and
-    one kernel per chunk); forward mode pushes tangents through the chunks in order."""
+    """The primal runs the chunks with AD off, saving each chunk's input state; backward
+    re-runs them in reverse order with AD on; forward mode pushes tangents through in order."""
 
     def eval(self, state, params, cond, body, max_iterations, chunk):
         self.cond, self.body, self.chunk, self.params = cond, body, int(chunk), params
@@ -83,10 +77,14 @@ class _CheckpointedLoop(dr.CustomOp):
             active = dr.any(cond(params, *state))
         return state
 
-    def _replay(self, saved):
+    def _replay(self, saved, tangents=None):
+        """One chunk re-run from its saved state with AD on (``tangents``: of state, params)."""
         s = [dr.detach(x) for x in saved]
         p = [dr.detach(x) for x in self.params]
         dr.enable_grad(s, p)
+        if tangents is not None:
+            dr.set_grad(s, tangents[0])
+            dr.set_grad(p, tangents[1])
         return s, p, _run_chunk(s, p, self.cond, self.body, self.chunk)
 
     def backward(self):
@@ -111,12 +109,7 @@ class _CheckpointedLoop(dr.CustomOp):
         tan_p = self.grad_in("params")
         for saved in self.saved:
             with dr.isolate_grad():
-                s = [dr.detach(x) for x in saved]
-                p = [dr.detach(x) for x in self.params]
-                dr.enable_grad(s, p)
-                dr.set_grad(s, tan_s)
-                dr.set_grad(p, tan_p)
-                out = _run_chunk(s, p, self.cond, self.body, self.chunk)
+                out = self._replay(saved, (tan_s, tan_p))[2]
                 dr.forward_to(out)
                 tan_s = dr.grad(out)
                 dr.eval(tan_s)
@@ -127,17 +120,12 @@ class _CheckpointedLoop(dr.CustomOp):
 
 
 def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chunk: int):
-    """``dr.while_loop`` with checkpointed reverse mode.
-
-    state: tuple of Dr.Jit arrays (flat); params: list of Dr.Jit float arrays the body
-    reads (e.g. segment buffers it gathers from) - gradients flow to them and to the
-    initial state; cond(params, *state) -> Bool; body(params, *state) -> new state tuple.
-    max_iterations: an upper bound of the iteration count (checked: RuntimeError when
-    the loop is still active after it).  chunk: iterations per checkpoint (C); memory:
-    ``ceil(M / C)`` saved states in global memory + a C-iteration trajectory per lane.
-    """
-    if not isinstance(chunk, (int, np.integer)) or isinstance(chunk, bool) or chunk < 1:
-        raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
+    """``dr.while_loop`` with checkpointed reverse mode: ``cond(params, *state)``,
+    ``body(params, *state)``; gradients flow to ``params`` (Dr.Jit arrays the body reads)
+    and the initial state.  ``max_iterations``: an upper bound (RuntimeError when the loop
+    is still active after it); ``chunk``: iterations per checkpoint (C): ``ceil(M / C)``
+    saved states plus a C-iteration trajectory per lane."""
+    V.integer(chunk, "chunk", 1)
     out = dr.custom(_CheckpointedLoop, tuple(state), list(params), cond, body,
                     int(max_iterations), int(chunk))
     if dr.any(cond([dr.detach(p) for p in params], *[dr.detach(x) for x in out])):
@@ -149,13 +137,9 @@ def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chun
 def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: int | None, label: str,
              iterations: int | None = None):
     """Run ``cond``/``body`` over ``state`` (both take ``params`` first): a plain
-    ``dr.while_loop`` bounded by ``max_iterations`` when ``checkpoint_chunk`` is None,
-    else :func:`checkpointed_while_loop` in chunks of that many iterations.
-
-    iterations: the most iterations any lane runs, taken from the data the loop walks
-    (e.g. the longest texel's segment count); ValueError when ``max_iterations`` is below
-    it, before anything runs: reverse mode would write the trajectory past its
-    ``max_iterations`` entries (out of bounds) and return wrong gradients."""
+    ``dr.while_loop`` bounded by ``max_iterations`` when ``checkpoint_chunk`` is None, else
+    :func:`checkpointed_while_loop`.  ValueError when ``max_iterations`` is below
+    ``iterations`` (the most any lane runs): reverse mode would write past its trajectory."""
     if iterations is not None and max_iterations >= 0 and int(iterations) > int(max_iterations):
         raise ValueError(f"max_iterations: {max_iterations} is below the {int(iterations)} iterations "
                          f"of loop {label!r} (its reverse mode would write past a {max_iterations}-entry "
@@ -166,14 +150,24 @@ def run_loop(state, params, cond, body, max_iterations: int, checkpoint_chunk: i
                          max_iterations=max_iterations, label=label)
 
 
-# ----------------------------------------------------------------------------
-# Deterministic per-texel sums (the linear kinds' projection without atomics)
-# ----------------------------------------------------------------------------
+def count_sorted(value_at, start, count, x, max_count: int, strict: bool = False):
+    """Per lane: how many of the sorted values ``value_at(start + i, active)``, i in
+    [0, count) (at most ``max_count``), are ``< x`` (strict) or ``<= x``; unrolled binary search."""
+    U32 = backend.types().UInt32
+    lo, hi = dr.zeros(U32, dr.width(x)), U32(count)
+    for _ in range(max(1, math.ceil(math.log2(max_count + 1)))):
+        live = lo < hi
+        mid = (lo + hi) >> 1
+        val = value_at(start + mid, live)
+        below = (val < x) if strict else (val <= x)
+        lo = dr.select(live & below, mid + 1, lo)
+        hi = dr.select(live & ~below, mid, hi)
+    return lo
+
+
 def texel_lanes(segments):
-    """(texel, first, stop) of the non-empty texels (UInt32 each): the texel index and its
-    CSR range ``[first, stop)`` of segments, one lane per texel in texel order (neighbouring
-    lanes read neighbouring segments; ordering lanes by count to even out a SIMD packet's
-    loop length was slower: cache misses)."""
+    """(texel, first, stop) of the non-empty texels (UInt32 each, texel order): the texel
+    index and its CSR range ``[first, stop)`` of segments."""
     UInt32 = backend.types().UInt32
     texel = A.to_uint32(np.nonzero(segments.counts > 0)[0])
     offsets = segments.offsets_dr()
@@ -182,13 +176,9 @@ def texel_lanes(segments):
 
 def texel_sums(segments, term, n: int, label: str = "texel_sum"):
     """Per-texel sums of per-segment terms in a fixed order: one lane per non-empty texel
-    (:func:`texel_lanes`) loops over its segments i in CSR order, adding ``term(i, texel)``
-    (a list of ``n`` values for segment ``i`` of lane texel ``texel``, both UInt32) into
-    ``n`` registers of the segments' Float.  The same bits whatever the thread count, the load or what ran before
-    (``dr.scatter_reduce(ReduceOp.Add)`` adds in the order the threads arrive).  ``term``
-    runs inside a symbolic loop (no ``dr.eval``).  Returns (texel UInt32, sums: list of n
-    evaluated arrays, one value per non-empty texel).  No reverse mode through the loop:
-    callers keep the scatter-add for segments carrying gradients."""
+    loops over its segments i in CSR order, adding ``term(i, texel)`` (``n`` values, inside
+    a symbolic loop: no ``dr.eval``).  The same bits whatever the threads (unlike a
+    scatter-add); no reverse mode.  Returns (texel UInt32, sums: n evaluated arrays)."""
     texel, first, stop = texel_lanes(segments)
     def body(i, *acc):
         return (i + 1, *[a + x for a, x in zip(acc, term(i, texel))])

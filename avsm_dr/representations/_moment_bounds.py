@@ -12,32 +12,19 @@ Chebyshev-Markov-Stieltjes bounds ``L = sum_{z_i < x_f} w_i <= F(x_f-)``,
 
 Steps (:func:`hankel_bound`):
 1. bias: ``m = (1 - alpha) b / b_0 + alpha m*`` toward a target ``m*`` with a positive
-   definite Hankel matrix ``B*``; then ``B >= alpha B*`` (PSD order), and since every LDL^T
-   pivot is a Schur complement (a minimum of the quadratic form over an affine set) each
-   pivot of ``B`` is at least ``alpha`` times that of ``B*``: the pivots are floored there,
-   which holds in exact arithmetic and keeps rounding from making them vanish;
+   definite Hankel matrix ``B*``; then ``B >= alpha B*`` (PSD order) and each LDL^T pivot
+   (a Schur complement) of ``B`` is at least ``alpha`` times that of ``B*`` (float64
+   Cholesky): the pivots are floored there, so rounding cannot make them vanish;
 2. LDL^T of ``B``, forward / back substitution for ``c``;
-3. roots of ``c``: degree 2 the stable quadratic formula; degree 3 the trigonometric
-   (Viete) formula for three real roots; degree 4 Ferrari's method, the largest root of the
-   resolvent cubic (Viete or Cardano) splitting it into two real quadratics.  Degrees 3 and
-   4 then take :data:`POLISH` safeguarded Newton steps on ``c`` itself (a step is kept only
-   where it lowers ``|c(z)|``), because the closed forms work on ``c / c_n``, which loses
-   digits where ``c_n`` nears 0 (a root escaping to infinity: ``x_f`` near a zero of the
-   n-th orthogonal polynomial).  Roots are clipped to ``[-BIG, BIG]``;
+3. roots of ``c``: degree 2 the stable quadratic formula, 3 Viete's trigonometric formula,
+   4 Ferrari's method (the resolvent cubic's largest root splits it into two real
+   quadratics); degrees 3 and 4 then take :data:`POLISH` safeguarded Newton steps on ``c``
+   itself (the closed forms on ``c / c_n`` lose digits where ``c_n`` nears 0).  Roots are
+   clipped to ``[-BIG, BIG]``;
 4. weights by the Lagrange form on moments 0..n,
-   ``w_p = E[prod_{r != p} (z - r)] / prod_{r != p} (p - r)`` (moments 0..n reproduced
-   exactly whatever the roots' rounding), clipped to [0, 1];
+   ``w_p = E[prod_{r != p} (z - r)] / prod_{r != p} (p - r)``, clipped to [0, 1];
    ``L = sum_{z_i < x_f} w_i`` (``1 - w_f`` when ``x_f`` is behind every root),
    ``U = min(L + w_f, 1)``; the optical depth in front is ``b_0 clamp(L + beta w_f, 0, 1)``.
-
-For n = 2 every operation is the one of the former 4-moment kernel (``hamburger4``), in
-the same order, so 4 moments give the same D and L bits at the same bias and target (U to
-1 ulp in float64; measured over 20k receivers); the floors are ``alpha`` times the
-target's pivots from a float64 Cholesky.  Accuracy of the roots against ``numpy.roots``
-of the same coefficients, 11480 receivers of 300 random texels (|root| < 10, relative):
-float64 max 1.7e-13 (6 moments) / 3.7e-13 (8); float32 median 2e-8, p99 4e-7, max 6e-5
-(6) and, for 8 moments, 8 receivers (0.07 %) above 1e-3 (max 0.32: nearly double roots
-that float32 evaluation of the quartic cannot separate).
 """
 from __future__ import annotations
 
@@ -52,13 +39,9 @@ BIG = 1e6
 POLISH = 3
 #: Guard of divisions (|den| below it is replaced by it).
 TINY = 1e-30
-#: A texel whose zeroth moment (total optical depth) is at most this is empty (D = 0).  Its
-#: higher moments are smaller still (``|b_k| <= b_0``) and in float32 fall below the smallest
-#: normal number (1.2e-38), which the LLVM backend flushes to 0: e.g. a plume texel of
-#: optical depth 4.7e-37 stored ``b_4 .. b_8 = 0``, moments of no distribution, and 8
-#: moments gave NaN.  Above it the flush changes ``m_k = b_k / b_0`` by at most 1.2e-18,
-#: far below the smallest default bias (1e-9); below it ``T = exp(-b_0)`` is 1 in float32
-#: and float64 alike, so only the (vanishing) gradient of such a texel is lost.
+#: A texel whose zeroth moment (total optical depth) is at most this is empty (D = 0): its
+#: higher moments (``|b_k| <= b_0``) may be flushed to 0 in float32, moments of no
+#: distribution; ``T = exp(-b_0)`` is 1 there in float32 and float64 alike.
 NEGLIGIBLE = 1e-20
 #: Relative floor of the leading coefficient in the cubic / quartic closed forms
 #: (float32, float64): see :func:`_leading`.
@@ -78,9 +61,6 @@ def hankel_pivots(target) -> list[float]:
     return [float(v) for v in np.diag(L) ** 2]
 
 
-# ----------------------------------------------------------------------------
-# Polynomial roots (real-rooted polynomials; branch-free)
-# ----------------------------------------------------------------------------
 def _safe(x):
     """x with |x| >= TINY (sign kept; 0 -> TINY)."""
     return dr.select(dr.abs(x) > TINY, x, dr.select(x < 0, -TINY, TINY))
@@ -214,9 +194,6 @@ def quartic_roots(c0, c1, c2, c3, c4):
     return _polish([c0, c1, c2, c3, c4], [dr.clip(z, -BIG, BIG) for z in roots])
 
 
-# ----------------------------------------------------------------------------
-# The bound
-# ----------------------------------------------------------------------------
 def _elementary(others):
     """Elementary symmetric polynomials e_0 = 1, e_1, .., e_k of the arrays ``others``."""
     e = [1, others[0]]
@@ -306,9 +283,14 @@ def hankel_bound(b, xf, alpha, beta, target, floors):
     for i, z in enumerate(roots):
         wi = dr.clip(_lagrange_weight(m, z, [xf] + roots[:i] + roots[i + 1:]), 0, 1)
         lower = lower + dr.select(z < xf, wi, 0)
-    lower = dr.select(xf <= roots[-1], lower, 1 - wf)
+    return bounded_depth(b0, empty, dr.select(xf <= roots[-1], lower, 1 - wf), wf, beta)
+
+
+def bounded_depth(b0, empty, lower, wf, beta):
+    """(D, L, U) from the weight ``lower`` in front of the depth and ``wf`` at it (step 4):
+    ``L`` clipped to [0, 1], ``U = min(L + w_f, 1)``, ``D = b_0 clamp(L + beta w_f, 0, 1)``
+    (0 in an empty texel)."""
     lower = dr.clip(lower, 0, 1)
     upper = dr.minimum(lower + wf, 1)
     frac = dr.clip(lower + beta * wf, 0, 1)
-    D_out = dr.select(empty, 0, b0 * frac)
-    return D_out, lower, upper
+    return dr.select(empty, 0, b0 * frac), lower, upper

@@ -7,24 +7,20 @@ For a texel's normalised moments of the warped depth ``u`` in [0, 1],
 
     q = mu @ MSM_MATRIX + MSM_OFFSET
 
-with the published matrix and offset below.  Every point moment vector ``(z, z^2, z^3,
-z^4)``, z in [0, 1], maps into [0, 1]^4 (to the ~1e-7 of the published 10-digit constants,
-measured: -6.5e-8 .. 1 + 3e-11), so by convexity every distribution on [0, 1] does; the
-transform spreads the highly correlated power moments over the code range, so a 16-bit
-code of q loses far less than codes of the moments themselves.  The inverse is computed
-here in float64 (``numpy.linalg.inv``), not hard-coded.
+with the published matrix and offset below.  Every point moment vector ``(z, .., z^4)``,
+z in [0, 1], maps into [0, 1]^4 (to ~1e-7), so by convexity every distribution on [0, 1]
+does; the transform spreads the correlated power moments over the code range.  The inverse
+is computed in float64 (``numpy.linalg.inv``).
 
 Our moments are of ``x = 2u - 1`` (:mod:`.moments`), converted exactly:
 ``E u^j = 2^-j sum_k C(j, k) E x^k`` and ``E x^k = sum_j C(k, j) 2^j (-1)^(k-j) E u^j``.
 
 Storage (:func:`encode_msm`): q as 4 codes of ``precision`` ('unorm16': ``round(q 65535)``,
 q clipped to [0, 1]; 'float16': IEEE half of q), and ``b_0`` (the texel's total optical
-depth) separately as float32 (round to nearest): ``4 x 2 + 4 = 12`` bytes per texel (the
-per-texel scaling of :mod:`._precision` stores 5 codes and a float32 scale, 14 bytes).
-Decoding (``q -> mu -> x-moments -> b_k = b_0 E x^k``) is done once, in float64, and
-rounded to the store's dtype, like every decoder of :mod:`._precision` (a shader decoding
-in float32 adds ~1e-7 relative rounding, far below the 16-bit step).  Empty texels
-(``b_0 <= 0``) store zeros.
+depth) separately as float32: ``4 x 2 + 4 = 12`` bytes per texel.  Decoding
+(``q -> mu -> x-moments -> b_k = b_0 E x^k``) is done once, in float64, and rounded to the
+store's dtype, like every decoder of :mod:`._precision`.  Empty texels (``b_0 <= 0``) store
+zeros.
 """
 from __future__ import annotations
 

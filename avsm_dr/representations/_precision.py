@@ -3,96 +3,59 @@ lookup (``build(kind, seg, precision=...)``).
 
 ``precision``: None (default: the segments' own dtype, nothing quantised), ``'float32'``,
 ``'float16'``, ``'unorm16'`` or ``'unorm8'``.  Each kind declares its stored buffers
-(:class:`Stored`: attribute, meaning, layout) and this module quantises them once, after
-the build (:meth:`Representation._apply_precision`).  Codes are rounded to nearest
-(``unorm``: ``c = round(q M)``, ``M = 2^b - 1``, decoded ``c / M``; ``float16``: IEEE
-half, round to nearest even).  The buffers keep the *decoded* values in the segments'
-dtype: decoding is an elementwise function of the code and the texel's stored range, so
-this is bit for bit what decoding at lookup returns (computed in float64, rounded once),
-and every lookup kernel stays as it is.  ``nbytes_per_texel`` counts the codes plus the
-per-texel ranges and scales, which are stored in float32 (4 bytes each); float64 data
-beyond float32's range is refused (ValueError naming ``precision``), and so are float64
-depths (and lengths) that all lie below float32's smallest normal number (no float32 range
-or scale holds them: they would decode to 0).
+(:class:`Stored`: attribute, meaning, layout) and :func:`quantise` codes them once, after
+the build.  Codes round to nearest (``unorm``: ``c = round(q M)``, ``M = 2^b - 1``, decoded
+``c / M``; ``float16``: IEEE half).  The buffers keep the *decoded* values in the segments'
+dtype (decoded in float64, rounded once: bit for bit what decoding at lookup returns), so
+every lookup kernel stays as it is.  ``nbytes_per_texel`` counts the codes plus the
+per-texel ranges and scales, stored in float32 (4 bytes each); float64 data beyond
+float32's range, or depths (lengths) all below float32's smallest normal number, raise
+ValueError naming ``precision``.
 
 Encodings by meaning (``q`` the value quantised, in [0, 1] or [-1, 1]):
 
-* ``depth``: ``'float32'``: the depth itself.  Otherwise relative to the texel's depth
-  range ``q = (d - lo) / (hi - lo)`` (``lo``/``hi``: min/max of the texel's stored depths,
-  float32 rounded outward; 8 bytes per texel; a ``texel`` layout, one depth per texel, uses
-  one global range instead).  Error <= (hi - lo) / (2 M) (unorm) or (hi - lo) 2^-12 (float16:
-  half an ulp of q <= 1), plus the final rounding to the dtype.  Rounding is monotone, so
-  sorted nodes stay sorted; absolute float16 depths would err by up to |d| 2^-11.
+* ``depth``: ``'float32'``: the depth itself.  Otherwise ``q = (d - lo) / (hi - lo)`` over
+  the texel's stored depths (float32, rounded outward; 8 bytes per texel; a ``texel``
+  layout uses one global range).  Error <= (hi - lo) / (2 M) (unorm) or (hi - lo) 2^-12
+  (float16); monotone, so sorted nodes stay sorted.
 * ``unit``: already in [0, 1] (e.g. avsm_march's relative depths): the code of q itself.
-* ``transmittance``: T in [0, 1], zero-preserving (T = 0 stays 0, T > 0 stays positive:
-  exponential interpolation falls back to linear next to a zero node, and a rounding
-  across 0 would switch branch).  ``'float32'``/``'float16'``: T itself (float16 error
-  <= 2^-12); ``'unorm16'``: linear, error <= 1 / (2 x 65535) (1 / 65535 for T below half a
-  step, kept at the first code); ``'unorm8'``: **square-root optical depth**: ``tau = -ln
-  T`` normalised by the texel's largest ``tau_max`` (capped at :data:`TAU_CAP`; float32,
-  4 bytes per texel), codes ``c = round(254 sqrt(tau / tau_max))`` decoded
-  ``exp(-tau_max (c / 254)^2)``, code 255 for T = 0.  A linear 8-bit T errs by up to 1/510
-  absolute, i.e. 20 % of a T = 0.01 shadow.  With ``q = sqrt(tau / tau_max)``,
-  ``|dtau| = tau_max |dq| (q + q^) <= tau_max (2 q + 1/508) / 508 <= tau_max / 254``: a
-  *relative* T error <= ``exp(tau_max / 254) - 1`` (<= 4.5 % at the cap), and an absolute
-  one ~ ``T |dtau| <= 2 exp(-tau) sqrt(tau tau_max) / 508 <= 0.0017 sqrt(tau_max)``
-  (<= 0.0057 at the cap).  Codes linear in tau bound the relative error by half as much
-  but err by up to ``tau_max / 508`` (0.022) where T ~ 1: one dark node (an opaque blocker,
-  dense smoke) sets ``tau_max`` and coarsens the steps of the thin smoke in front (the
-  failure mode of a per-texel maximum scale); the square root refines them where tau is
-  small (measured, unorm8 / float32 RMSE: DSM 1.82 -> 1.26 on smoke over a table, 1.38 ->
-  1.17 on the plume).  ``T = 1`` stays exact, the code is monotone in tau, and
-  0 < T < ``exp(-TAU_CAP)`` decodes to ``exp(-tau_max)``.
+* ``transmittance``: T in [0, 1], zero-preserving (T = 0 stays 0, T > 0 stays positive, so
+  exponential interpolation takes the same branch).  ``'float32'``/``'float16'``: T itself;
+  ``'unorm16'``: linear, error <= 1 / (2 x 65535); ``'unorm8'``: **square-root optical
+  depth** ``tau = -ln T`` over the texel's ``tau_max`` (capped at :data:`TAU_CAP`; float32,
+  4 bytes), ``c = round(254 sqrt(tau / tau_max))`` decoded ``exp(-tau_max (c / 254)^2)``,
+  code 255 for T = 0.  ``|dtau| <= tau_max / 254``: relative T error
+  ``<= exp(tau_max / 254) - 1`` (4.5 % at the cap), absolute ``<= 0.0017 sqrt(tau_max)``;
+  ``T = 1`` exact, monotone in tau.
 * ``coefficient`` (basis kinds): scaled per texel by ``s = max_k |a_k|`` (float32, rounded
-  up; 4 bytes per texel; for power moments ``s = b_0``).  Signed: ``q = a / s`` in [-1, 1],
-  unorm code of ``(q + 1) / 2``, error <= s / M; non-negative (``signed=False``): code of
-  ``a / s`` in [0, 1], error <= s / (2 M) and monotone sequences stay monotone.  float16:
-  ``fp16(a / s) s`` (relative 2^-11, no overflow).
-* ``optical_depth`` (OSM's cumulative optical depths ``C_j``, non-negative, non-decreasing
-  per texel; ``T = exp(-D)`` with ``D`` interpolated linearly between two of them).
-  ``'float32'``/``'float16'``: as a non-negative ``coefficient``.  ``'unorm16'``/``'unorm8'``:
-  **capped square-root optical depth**.  A coefficient scale ``max_j C_j`` fails behind an
-  opaque blocker (optical depth 1e4: every 8-bit step is 39, the smoke in front gets code 0
-  and T = 1; measured 87x the float32 RMSE on smoke over a table).  Instead, per texel (two
-  float32, 8 bytes): ``s`` the largest ``C_j <= TAU_CAP`` (rounded up) and ``F`` the first
-  ``C_j > TAU_CAP`` (rounded up, at least ``s``; ``s`` where none).  With ``S = M - 1``
-  steps, ``C <= TAU_CAP`` has the code ``c = round(S sqrt(C / s))`` decoded ``s (c / S)^2``
-  and the rest the top code ``M``, decoded ``F``.  Error below the cap (as for
-  ``transmittance``): ``|dC| <= s (2 sqrt(C / s) + 1 / (2 S)) / (2 S) <= s / S``, finer
-  where C is small (a linear code errs by ``s / (2 S)`` everywhere; measured unorm8 /
-  float32 RMSE with the table in a separate map 1.37 linear, 1.15 square root).  So
-  wherever ``D`` is interpolated from two codes below the cap, or from one below and ``F``
-  (the slice where D crosses the cap: exact at its far end), ``T^ / T`` is within
-  ``exp(+-s / S)``: relative error <= ``exp(TAU_CAP / 254) - 1`` = 4.5 % (unorm8; far less
-  in thin texels, where ``s`` is their largest optical depth), 1.7e-4 (unorm16).  Past the
-  cap (both ends) ``D^ = F <= D``, so ``|T^ - T| < exp(-TAU_CAP) = 2^-16``.  Decoding the
-  top code as an opaque D instead would err by up to ``T`` inside the crossing slice
-  (0.29 measured, dense smoke crossing the cap).  ``C = 0`` stays 0 (``T = 1`` exact in
-  front of the texel's content; a tiny positive ``C`` may round to 0: no lookup branches
-  on ``C > 0``); the codes and ``F >= s`` keep a non-decreasing sequence non-decreasing,
-  so T stays monotone.
+  up; 4 bytes; power moments ``s = b_0``).  Signed: unorm code of ``(a / s + 1) / 2``, error
+  <= s / M; non-negative (``signed=False``): code of ``a / s``, error <= s / (2 M), monotone
+  sequences stay monotone.  float16: ``fp16(a / s) s``.
+* ``optical_depth`` (OSM's cumulative ``C_j``, non-negative, non-decreasing; ``T = exp(-D)``,
+  D linear between two of them).  Floating formats: as a non-negative ``coefficient``.
+  unorm: **capped square-root optical depth**, per texel (two float32, 8 bytes) ``s`` the
+  largest ``C_j <= TAU_CAP`` and ``F`` the first ``C_j > TAU_CAP`` (both rounded up,
+  ``F >= s``).  With ``S = M - 1``, ``C <= TAU_CAP`` has the code ``round(S sqrt(C / s))``
+  decoded ``s (c / S)^2``, the rest the top code ``M`` decoded ``F``.  ``|dC| <= s / S``, so
+  ``T^ / T`` is within ``exp(+-s / S)`` (4.5 % unorm8, 1.7e-4 unorm16) where D comes from
+  codes below the cap; past it ``|T^ - T| < exp(-TAU_CAP) = 2^-16``.  ``C = 0`` stays 0 and
+  non-decreasing sequences stay non-decreasing (T monotone).  A scale ``max_j C_j`` would
+  let an opaque blocker behind thin smoke code the smoke to 0.
 * ``range``: per-texel ranges a kind stores itself (basis ``depth_range='texel'``,
   avsm_march): float32 whatever the precision.
-* ``scalar``: an unbounded non-negative value per texel that *scales* a ramp (beer's
-  optical depth ``x``, ``T = exp(-x w)``, w in [0, 1]), one global scale.  Then only a
-  relative bound carries over to T: with ``x^ / x`` in ``[1/r, r]``,
-  ``|dT| <= (r - 1) m w exp(-m w) <= (r - 1) / e`` (``m = min(x, x^)``).  ``'float32'``: x
-  itself; ``'float16'``: ``fp16(x / 2^p) 2^p``, ``2^p`` the smallest power of two with
-  ``max x / 2^p <= 65504`` (``p = 0`` unless the largest value would saturate): relative
-  2^-11 down to ``2^(p - 14)``, absolute ``2^(p - 25)`` below.  Saturating instead would
-  ramp a ``x = 1e6`` texel to 0 over 15x its length.  unorm: a **logarithmic code**
-  ``c = 1 + round((M - 1) ln(x / lo) / ln(hi / lo))``, decoded ``lo (hi / lo)^((c - 1) /
-  (M - 1))``, over the map's ``hi = max x`` and ``lo = max(min x > 0, hi 2^-LOG_OCTAVES)``
-  (both float32, rounded outward); code 0 is 0 (x = 0 exact), and ``x < lo`` takes the
-  nearer of 0 and ``lo`` (error <= lo / 2).  ``r = exp(ln(hi / lo) / (2 (M - 1)))``: at most
-  3.3 % (unorm8, 24 octaves) and 3.4e-4 (unorm16, 64 octaves), so ``|dT| <= 0.012`` and
-  ``1.3e-4``.  A linear code over ``max x`` would zero every thin texel of a map holding an
-  opaque one (the failure a per-texel scale as large as the value would avoid, at 4 bytes).
+* ``scalar``: an unbounded non-negative value per texel scaling a ramp (beer's ``x``,
+  ``T = exp(-x w)``, w in [0, 1]), one global scale; with ``x^ / x`` in ``[1/r, r]``,
+  ``|dT| <= (r - 1) / e``.  ``'float32'``: x; ``'float16'``: ``fp16(x / 2^p) 2^p``, ``2^p``
+  the smallest power of two with ``max x / 2^p <= 65504``.  unorm: **logarithmic code**
+  ``c = 1 + round((M - 1) ln(x / lo) / ln(hi / lo))``, decoded
+  ``lo (hi / lo)^((c - 1) / (M - 1))``, over ``hi = max x`` and
+  ``lo = max(min x > 0, hi 2^-LOG_OCTAVES)`` (float32, rounded outward); code 0 is 0, and
+  ``x < lo`` takes the nearer of 0 and ``lo``.  ``r = exp(ln(hi / lo) / (2 (M - 1)))``:
+  3.3 % (unorm8) and 3.4e-4 (unorm16).
 
-Gradients: straight-through estimator, ``dr.replace_grad(decoded, x)``: the primal is
-the decoded value, the derivative that of the unquantised ``x`` (rounding has zero
-derivative almost everywhere; the estimator keeps differentiable kinds differentiable,
-biased by at most the quantisation error).  Ranges and scales are constants of the build.
+Gradients: straight-through estimator, ``dr.replace_grad(decoded, x)`` (rounding has zero
+derivative almost everywhere; biased by at most the quantisation error).  Ranges and
+scales are constants of the build.
 """
 from __future__ import annotations
 
@@ -102,6 +65,7 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
+from .. import validation as V
 
 #: Accepted values of ``precision`` (None: the segments' own dtype).
 PRECISIONS = ("float32", "float16", "unorm16", "unorm8")
@@ -118,13 +82,11 @@ LOG_OCTAVES = {"unorm16": 64, "unorm8": 24}
 #: Largest finite float16 / float32.
 HALF_MAX = 65504.0
 FLOAT_MAX = float(np.finfo(np.float32).max)
-#: Smallest normal float32: float64 depths whose whole buffer lies below it (a scene at depth
-#: scale 1e-150) have no float32 range or scale (they flush to 0 or become subnormal).
+#: Smallest normal float32: depths whose whole buffer lies below it have no float32 range.
 FLOAT_TINY = float(np.finfo(np.float32).tiny)
 #: Steps of the 8-bit optical-depth code (code 255 is reserved for T = 0).
 T8_STEPS = 254
-#: Smallest positive decoded T per format (float32: smallest normal, since Dr.Jit's worker
-#: threads flush subnormals; float16: smallest subnormal 2^-24, normal in the float32 store).
+#: Smallest positive decoded T per format (float32: smallest normal, Dr.Jit flushes subnormals).
 SMALLEST = {"float32": 2.0**-126, "float16": 2.0**-24, "unorm16": 1 / 65535, "unorm8": 0.0}
 MEANINGS = ("depth", "unit", "transmittance", "coefficient", "optical_depth", "range", "scalar")
 LAYOUTS = ("nodes", "flat", "csr", "texel")
@@ -139,14 +101,10 @@ def check_precision(value) -> str | None:
 
 @dataclass(frozen=True)
 class Stored:
-    """One stored buffer of a kind: attribute name, meaning (:data:`MEANINGS`) and layout.
-
-    Layouts: ``'nodes'`` a list of N arrays of length T (``[node][texel]``); ``'flat'`` one
-    texel-major array of K values per texel; ``'csr'`` one array grouped by texel with the
-    kind's ``node_counts`` (T,) per texel; ``'texel'`` one value per texel.
-    ``signed``: coefficients may be negative (else non-negative, a [0, 1] code).
-    ``length``: the values are in depth units although not depths (beer's extent): checked
-    as depths are (:func:`quantise`)."""
+    """One stored buffer of a kind: attribute name, meaning (:data:`MEANINGS`) and layout:
+    ``'nodes'`` N arrays of length T, ``'flat'`` K values per texel, texel-major, ``'csr'``
+    grouped by texel with the kind's ``node_counts``, ``'texel'`` one value per texel.
+    ``signed``: coefficients may be negative; ``length``: depth units (checked as depths)."""
 
     attr: str
     meaning: str
@@ -155,15 +113,11 @@ class Stored:
     length: bool = False
 
     def __post_init__(self):
-        if self.meaning not in MEANINGS:
-            raise ValueError(f"meaning: expected one of {MEANINGS}, got {self.meaning!r}")
-        if self.layout not in LAYOUTS:
-            raise ValueError(f"layout: expected one of {LAYOUTS}, got {self.layout!r}")
+        V.one_of(self.meaning, "meaning", MEANINGS)
+        V.one_of(self.layout, "layout", LAYOUTS)
 
 
-# ----------------------------------------------------------------------------
-# Host codecs (float64 NumPy in, float64 decoded values out)
-# ----------------------------------------------------------------------------
+# Host codecs: float64 NumPy in, float64 decoded values out.
 def round_unit(q: np.ndarray, precision: str) -> np.ndarray:
     """q in [0, 1] (or [-1, 1] for float formats) through the code of ``precision``."""
     if precision == "float32":
@@ -182,8 +136,13 @@ def float32_down(x: np.ndarray) -> np.ndarray:
 
 def float32_up(x: np.ndarray) -> np.ndarray:
     """Smallest float32 >= x (float64 array)."""
-    f = x.astype(np.float32)
-    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f).astype(np.float64)
+    return -float32_down(-x)
+
+
+def _sqrt_code(x, scale, steps: int):
+    """``scale (round(steps sqrt(x / scale)) / steps)^2``: x in [0, scale] (0 where scale is 0)."""
+    q = np.sqrt(np.where(scale > 0, np.minimum(x / np.where(scale > 0, scale, 1.0), 1.0), 0.0))
+    return scale * np.square(np.rint(q * steps) / steps)
 
 
 def _texel_reduce(x: np.ndarray, tex: np.ndarray, n_tex: int, op, fill: float) -> np.ndarray:
@@ -192,21 +151,23 @@ def _texel_reduce(x: np.ndarray, tex: np.ndarray, n_tex: int, op, fill: float) -
     return out
 
 
+def _per_element(x, tex, n_tex, op, fill: float, rnd):
+    """``rnd`` of ``op`` over each element's texel (over all of ``x`` where ``tex`` is None),
+    at every element, and its bytes per texel (a float32, none for one global value)."""
+    if tex is None:
+        return np.full(x.shape, rnd(np.array([op.reduce(x, initial=fill)]))[0]), 0.0
+    return rnd(_texel_reduce(x, tex, n_tex, op, fill))[tex], float(RANGE_BYTES)
+
+
 def encode_depth(d, tex, n_tex, precision):
     """Decoded depths and the per-texel bytes (see the module docstring, ``depth``)."""
     if precision == "float32":
         return round_unit(d, "float32"), 0.0
-    if tex is None:                                  # one global range
-        lo = float32_down(np.array([d.min()]))[0] if d.size else 0.0
-        hi = float32_up(np.array([d.max()]))[0] if d.size else 0.0
-        lo_t, hi_t, extra = lo, hi, 0.0
-    else:
-        lo = float32_down(_texel_reduce(d, tex, n_tex, np.minimum, np.inf))
-        hi = float32_up(_texel_reduce(d, tex, n_tex, np.maximum, -np.inf))
-        lo_t, hi_t, extra = lo[tex], hi[tex], 2.0 * RANGE_BYTES
+    lo_t, e_lo = _per_element(d, tex, n_tex, np.minimum, np.inf, float32_down)
+    hi_t, e_hi = _per_element(d, tex, n_tex, np.maximum, -np.inf, float32_up)
     span = hi_t - lo_t
     q = np.where(span > 0, (d - lo_t) / np.where(span > 0, span, 1.0), 0.0)
-    return np.clip(lo_t + round_unit(np.clip(q, 0.0, 1.0), precision) * span, lo_t, hi_t), extra
+    return np.clip(lo_t + round_unit(np.clip(q, 0.0, 1.0), precision) * span, lo_t, hi_t), e_lo + e_hi
 
 
 def encode_transmittance(t, tex, n_tex, precision):
@@ -221,27 +182,16 @@ def encode_transmittance(t, tex, n_tex, precision):
     zero = t == 0
     with np.errstate(divide="ignore"):
         tau = np.where(zero, 0.0, np.minimum(-np.log(np.where(zero, 1.0, t)), TAU_CAP))
-    if tex is None:
-        tmax = np.full(t.shape, float32_down(np.array([tau.max(initial=0.0)]))[0])
-        extra = 0.0
-    else:
-        tmax = float32_down(_texel_reduce(tau, tex, n_tex, np.maximum, 0.0))[tex]
-        extra = float(RANGE_BYTES)
-    q = np.sqrt(np.where(tmax > 0, np.minimum(tau / np.where(tmax > 0, tmax, 1.0), 1.0), 0.0))
+    tmax, extra = _per_element(tau, tex, n_tex, np.maximum, 0.0, float32_down)
     # codes 0..254 of sqrt(tau / tau_max) over [0, 1]; code 255 is T = 0
-    return np.where(zero, 0.0, np.exp(-tmax * np.square(np.rint(q * T8_STEPS) / T8_STEPS))), extra
+    return np.where(zero, 0.0, np.exp(-_sqrt_code(tau, tmax, T8_STEPS))), extra
 
 
 def encode_coefficient(a, tex, n_tex, precision, signed: bool):
     """Decoded coefficients and the per-texel bytes (module docstring)."""
     if precision == "float32":
         return round_unit(a, "float32"), 0.0
-    if tex is None:
-        s = np.full(a.shape, float32_up(np.array([np.abs(a).max(initial=0.0)]))[0])
-        extra = 0.0
-    else:
-        s = float32_up(_texel_reduce(np.abs(a), tex, n_tex, np.maximum, 0.0))[tex]
-        extra = float(RANGE_BYTES)
+    s, extra = _per_element(np.abs(a), tex, n_tex, np.maximum, 0.0, float32_up)
     q = np.where(s > 0, a / np.where(s > 0, s, 1.0), 0.0)
     if not signed:
         q = np.clip(q, 0.0, 1.0)
@@ -267,22 +217,16 @@ def encode_optical_depth(c, tex, n_tex, precision):
     s = float32_up(_texel_reduce(np.where(below, c, 0.0), tex, n_tex, np.maximum, 0.0))
     first = _texel_reduce(np.where(below, np.inf, c), tex, n_tex, np.minimum, np.inf)
     far = np.maximum(float32_up(np.where(np.isfinite(first), first, 0.0)), s)     # >= s: monotone
-    s_t = s[tex]
-    q = np.sqrt(np.where(s_t > 0, np.minimum(c / np.where(s_t > 0, s_t, 1.0), 1.0), 0.0))
-    return np.where(below, s_t * np.square(np.rint(q * steps) / steps), far[tex]), extra
+    return np.where(below, _sqrt_code(c, s[tex], steps), far[tex]), extra
 
 
 def encode(meaning, x, tex, n_tex, precision, signed=True):
     """Decoded values (float64) and the per-texel bytes of ranges / scales for one buffer.
     ``tex``: the texel of each element, or None for one global range / scale."""
-    if meaning == "depth":
-        return encode_depth(x, tex, n_tex, precision)
-    if meaning == "transmittance":
-        return encode_transmittance(x, tex, n_tex, precision)
     if meaning == "coefficient":
         return encode_coefficient(x, tex, n_tex, precision, signed)
-    if meaning == "optical_depth":
-        return encode_optical_depth(x, tex, n_tex, precision)
+    if meaning in _BY_TEXEL:
+        return _BY_TEXEL[meaning](x, tex, n_tex, precision)
     if meaning == "unit":
         return round_unit(np.clip(x, 0.0, 1.0), precision), 0.0
     if meaning == "range":
@@ -313,14 +257,14 @@ def encode_scalar(x: np.ndarray, precision: str) -> np.ndarray:
     return np.where(x >= lo, np.minimum(dec, hi), np.where(x >= 0.5 * lo, lo, 0.0))
 
 
+_BY_TEXEL = {"depth": encode_depth, "transmittance": encode_transmittance, "optical_depth": encode_optical_depth}
+
+
 def code_bytes(meaning: str, precision: str) -> int:
     """Bytes of one stored element of ``meaning`` (ranges: always float32)."""
     return RANGE_BYTES if meaning == "range" else CODE_BYTES[precision]
 
 
-# ----------------------------------------------------------------------------
-# Applying it to a representation
-# ----------------------------------------------------------------------------
 def to_host(x) -> np.ndarray:
     """``x`` (a Dr.Jit array) detached, as a float64 NumPy array."""
     return np.asarray(dr.detach(x).numpy(), np.float64)
@@ -345,31 +289,19 @@ def quantise(rep, fields) -> float:
     for f in fields:
         buf = getattr(rep, f.attr)
         if f.layout == "nodes":
-            N = len(buf)
-            x = np.concatenate([to_host(b) for b in buf]) if N else np.zeros(0)
-            tex = np.tile(np.arange(T), N)
-            per_texel = float(N)
-        elif f.layout == "flat":
+            x = np.concatenate([to_host(b) for b in buf]) if buf else np.zeros(0)
+            tex, per_texel = np.tile(np.arange(T), len(buf)), float(len(buf))
+        else:       # elements per texel: flat K each, csr the kind's node_counts, texel None
             x = to_host(buf)
-            K = x.size // max(T, 1)
-            tex = np.repeat(np.arange(T), K)
-            per_texel = float(K)
-        elif f.layout == "csr":
-            x = to_host(buf)
-            counts = np.asarray(rep.node_counts, np.int64)
-            tex = np.repeat(np.arange(T), counts)
-            per_texel = float(counts.mean()) if counts.size else 0.0
-        else:   # texel
-            x = to_host(buf)
-            tex = None
-            per_texel = 1.0
+            counts = (np.full(T, x.size // max(T, 1)) if f.layout == "flat" else
+                      np.asarray(rep.node_counts, np.int64) if f.layout == "csr" else None)
+            tex = None if counts is None else np.repeat(np.arange(T), counts)
+            per_texel = 1.0 if counts is None else float(counts.mean()) if counts.size else 0.0
         if f.meaning != "scalar" and x.size and np.abs(x).max() > FLOAT_MAX:
             raise ValueError(f"precision: {rep.kind!r} stores {f.attr} values up to {np.abs(x).max():.3g}, "
                              "beyond float32's range (codes, ranges and scales are float32 at most); "
                              "keep precision=None for such float64 data")
         if (f.meaning in ("depth", "range") or f.length) and x.size and 0 < np.abs(x).max() < FLOAT_TINY:
-            # measured: float64 segments at depth scale 1e-150, precision='float32' (any code):
-            # every depth decoded to 0 (T = 0.0044 where the exact T is 1)
             raise ValueError(f"precision: {rep.kind!r} stores {f.attr} values (depth units) of at most "
                              f"{np.abs(x).max():.3g}, below float32's smallest normal number {FLOAT_TINY:.3g} "
                              "(depth ranges and scales are float32): they would decode to 0; rescale the depths "

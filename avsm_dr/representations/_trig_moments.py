@@ -12,24 +12,18 @@ linear warp ``E[e^{ik phi}] = e^{ik (pi/2) mid} sinc(w)``; log warp (density ~
 ``G = kappa sinh(kappa + i w) / ((kappa + i w) sinh kappa)``, written without cancellation
 as ``Re G = (kappa^2 cos w + q w^2 sinc w) / (kappa^2 + w^2)``,
 ``Im G = kappa w ((q - 1) sinc w + (sinc w - cos w)) / (kappa^2 + w^2)``, ``q = kappa
-coth kappa`` (``q - 1`` and ``sinc w - cos w`` by their Taylor series below 0.1, 5 and 4
-terms: truncation < 3e-17).
+coth kappa`` (``q - 1`` and ``sinc w - cos w`` by Taylor series below 0.1).
 
 Bound.  The Cayley transform ``x = tan(phi / 2)`` maps the circle without ``phi = pi`` onto
-the real line, and Laurent polynomials of degree n in ``e^{i phi}`` onto polynomials of
-degree 2n divided by ``(1 + x^2)^n``.  So ``mu`` (the normalised absorbance on the circle)
-has trigonometric moments ``t_0..t_n`` exactly when ``nu = mu / (1 + x^2)^n`` has the
-power moments ``M_j = E_mu[sin^j(phi/2) cos^(2n-j)(phi/2)]``, j = 0..2n (a fixed linear map
-of ``t``, :func:`cayley_matrix`), and the canonical representations correspond point by
-point, weights scaled by ``(1 + x^2)^n``.  The Toeplitz problem (canonical representation
-through ``phi_f``: ``phi_f`` and the n unit-circle roots of the kernel polynomial) is
-therefore the Hankel problem of :mod:`._moment_bounds` for ``m = M / M_0`` through
-``x_f = tan(phi_f / 2)`` (same LDL^T, kernel polynomial and real-root solvers), and the
-weight of a support point ``psi = atan(x)`` on the circle is the Christoffel function
-``w = M_0 / (s^T B_m^-1 s)`` with ``s_j = sin^j(psi) cos^(n-j)(psi)``
-(bounded: a root escaping to infinity is the point ``phi = pi``, where the formula stays
-finite).  ``L = sum_{x_i < x_f} w_i``, ``U = L + w_f``.  tests/reference/moments_ref.py
-checks this against the Toeplitz route (roots on the unit circle by ``numpy.roots``).
+the real line, Laurent polynomials of degree n in ``e^{i phi}`` onto polynomials of degree
+2n over ``(1 + x^2)^n``: ``mu`` has trigonometric moments ``t_0..t_n`` exactly when
+``nu = mu / (1 + x^2)^n`` has the power moments ``M_j = E_mu[sin^j(phi/2) cos^(2n-j)(phi/2)]``
+(a linear map of ``t``, :func:`cayley_matrix`), with canonical representations point by
+point.  So the Toeplitz problem through ``phi_f`` is the Hankel problem of
+:mod:`._moment_bounds` for ``m = M / M_0`` through ``x_f = tan(phi_f / 2)``, and a support
+point ``psi = atan(x)`` weighs the Christoffel function ``w = M_0 / (s^T B_m^-1 s)``,
+``s_j = sin^j(psi) cos^(n-j)(psi)`` (finite at ``phi = pi``).  ``L = sum_{x_i < x_f} w_i``,
+``U = L + w_f`` (checked against the Toeplitz route in tests/reference/moments_ref.py).
 
 Bias: toward the uniform distribution on the circle (``t_k = 0``, Toeplitz matrix = I):
 ``t = (1 - alpha) b / b_0``; the Hankel pivots of ``nu`` are then at least ``alpha`` times
@@ -42,7 +36,7 @@ import math
 import drjit as dr
 import numpy as np
 
-from ._moment_bounds import BIG, NEGLIGIBLE, kernel_polynomial, real_roots
+from ._moment_bounds import BIG, NEGLIGIBLE, bounded_depth, kernel_polynomial, real_roots
 from .basis_functions import sinc as _sinc
 
 #: Below this argument ``q - 1`` and ``sinc w - cos w`` use their series.
@@ -165,7 +159,4 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     for z in roots:
         wi = dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1)
         lower = lower + dr.select(z < xf, wi, 0)
-    lower = dr.clip(lower, 0, 1)
-    upper = dr.minimum(lower + wf, 1)
-    frac = dr.clip(lower + beta * wf, 0, 1)
-    return dr.select(empty, 0, b0 * frac), lower, upper
+    return bounded_depth(b0, empty, lower, wf, beta)

@@ -11,9 +11,7 @@ Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``
   smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|``
   (ties: the deepest such node); the first and last node are never removed and no
   node is ever moved.
-* **Insertion variants** (``insertion``, default ``'stream'``: the above): refitting the
-  removed node's neighbours and compressing only every few segments, see
-  :mod:`._avsm_insertion` (and docs/research/insertion_order.md for what they buy).
+* **Insertion variants** (``insertion``, default ``'stream'``: the above): :mod:`._avsm_insertion`.
 * **Sampling** (sec. 3.3): T = 1 in front of the first node, the last node's value behind
   the last one, and linear (eq. 2) or exponential interpolation in between.
 
@@ -26,24 +24,15 @@ Conventions made explicit here (the paper leaves them open):
   change the curve (behind a fully opaque point nothing changes).  "0" is read from the
   stored nodes (:func:`curve_at`), never from an interpolated value that rounded to 0.
 
-Precision: every node value is a product of factors (segment transmittances ``ts``, ramps
-``R``, interpolated entry values), each evaluated without cancellation
-(:func:`curve_at`, :func:`insert_segment`).  With ``u`` the unit roundoff (float32
-``2^-24``) and ``k`` the segments inserted into a texel, each node value lies within a
-relative ``10 k u`` of the same insertions and removals in exact arithmetic on the stored
-inputs (per factor: 7 u for the ramp or 6 u for an interpolation, 1 u for the product, 2 u
-for ``exp``; first order), with no absolute floor down to float32 underflow (1.2e-38); the
-value behind the texel, the product of its ``ts``, within ``3 k u``.  Hence sorted and
-unsorted builds of already sorted input are the same, and depth magnitudes (1e-8 .. 1e8 in
-one texel) cost no accuracy.  Which node a compression removes can still differ from exact
-arithmetic where area metrics nearly tie.
+Precision: node values are products of factors evaluated without cancellation
+(:func:`curve_at`, :func:`insert_segment`): after ``k`` insertions each lies within a relative
+``10 k u`` (``u`` the unit roundoff) of exact arithmetic on the stored inputs.
 
-Kernel: one lane per non-empty texel (texels ordered by segment count so SIMD packets
-run similar loop lengths); the N nodes live in registers as Python lists of Float and
-all insertion / removal steps are branch-free ``dr.select`` shifts.  A first loop runs
-the insert-only steps while the texel has room, a second one the compressing steps.
+Kernel: one lane per non-empty texel, the N nodes in registers (Python lists of Float,
+branch-free ``dr.select`` shifts); one loop inserts while the texel has room, one compresses.
 """
 from __future__ import annotations
+
 
 import drjit as dr
 import numpy as np
@@ -52,17 +41,14 @@ from .. import _arrays as A
 from .. import backend
 from .registry import register
 from ._avsm_insertion import INSERTIONS, remove_refit
-from ._loops import run_loop
+from ._loops import count_sorted, run_loop
 from .base import Representation, depth_range, node_build_bytes
 from ._precision import PRECISIONS, Stored
-from .schema import Param, Schema, far_param, near_param
+from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
 
 
-# ----------------------------------------------------------------------------
-# Branch-free node-list operations (lists of Dr.Jit arrays, one entry per node)
-# ----------------------------------------------------------------------------
 def bracket(d, t, x):
     """Nodes around x: the last node with d_k <= x and its successor, branch-free.
 
@@ -86,14 +72,9 @@ def curve_at(d, t, x):
     stored nodes make it exactly 0 there.  Returns (T, zero).
 
     ``T = t_r + (t_l - t_r) w`` with ``w = (d_r - x) / (d_r - d_l)`` (``t_l`` where
-    ``d_r = d_l``), capped at ``t_l``: two terms >= 0 (node values do not increase with
-    depth), so nothing cancels.  The textbook ``t_l + (x - d_l)(t_r - t_l) / (d_r - d_l)``
-    subtracts nearly equal values where ``T << t_l``: float32 nodes ``(-1e8, 1), (1, 1e-8)``
-    gave ``T(0.9) = 0`` (exact 1.1e-8), and AVSM then skipped the segment entering there as
-    if behind an opaque point.  Error: within a relative ``6 u`` (float32 ``u = 2^-24``) of
-    the exact interpolation of the stored nodes at the stored ``x``; 0 only where that is 0
-    or underflows (below 1.2e-38).  ``zero`` reads the stored nodes (``t_l = 0`` and
-    ``t_r = 0`` or ``x = d_l``), never a computed T."""
+    ``d_r = d_l``), capped at ``t_l``: two terms >= 0, nothing cancels (within a relative
+    ``6 u`` of the exact interpolation of the stored nodes).  ``zero`` reads the stored
+    nodes (``t_l = 0`` and ``t_r = 0`` or ``x = d_l``), never a computed T."""
     dl, tl, dr_, tr = bracket(d, t, x)
     dd = dr_ - dl
     w = (dr_ - x) / dr.select(dd > 0, dd, 1)       # weight of the left node, 1 at x = d_l
@@ -102,26 +83,20 @@ def curve_at(d, t, x):
     return value, (tl == 0) & ((tr == 0) | (x == dl))
 
 
-def curve_value(d, t, x):
-    """T(x) of the node list (:func:`curve_at`, cancellation-free linear interpolation)."""
-    return curve_at(d, t, x)[0]
-
-
 def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
     """Nodes after inserting segment [a, b] (exit transmittance ts): N + 2 entries.
 
     ``used``: number of inserted (non-clear) nodes, which come first in the list.
     ``full``: the caller guarantees ``used >= N - 1`` (compressing phase), so only the
     last node can be a clear node - the same result with fewer instructions.
-    ``ta``: ``curve_value(d, t, a)`` when the caller has it.
+    ``ta``: ``curve_at(d, t, a)[0]`` when the caller has it.
     Nodes inside the segment take the ramp as ``R = ts + (1 - ts)(b - d_k) / (b - a)``,
-    capped at 1: two terms >= 0 (``1 + (ts - 1)(d_k - a) / (b - a)`` cancels where ``ts`` is
-    small and ``d_k`` near ``b``), within a relative ``7 u`` of the exact ramp of ``ts``.
+    capped at 1 (two terms >= 0: within a relative ``7 u`` of the exact ramp).
     """
     n = len(d)
     UInt32 = type(used)
-    ta = curve_value(d, t, a) if ta is None else ta
-    tb = curve_value(d, t, b) * ts
+    ta = curve_at(d, t, a)[0] if ta is None else ta
+    tb = curve_at(d, t, b)[0] * ts
     length = b - a
     inv_len = 1 / dr.select(length > 0, length, 1)
     opacity = 1 - ts
@@ -174,25 +149,20 @@ def area_metric(d, t, i):
 def remove_smallest(d, t, *extra):
     """Remove the interior node of smallest area metric (ties: the deepest one) from the
     node lists ``d``, ``t`` and any ``extra`` lists carried along (e.g. node sources);
-    returns the shortened lists in the same order."""
-    n = len(d)
-    UInt32 = backend.types().UInt32
-    best = area_metric(d, t, 1)
-    idx = dr.full(UInt32, 1, dr.width(best))
-    for i in range(2, n - 1):
-        m = area_metric(d, t, i)
-        take = m <= best
-        best = dr.select(take, m, best)
-        idx = dr.select(take, UInt32(i), idx)
-    return tuple([dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra))
+    returns the shortened lists in the same order (:func:`._avsm_insertion.remove_refit`)."""
+    return remove_refit(d, t, None, "area", extra)
 
 
 def interpolate(d, t, depth, mode: str):
-    """Sample the node list at ``depth`` (Salvi et al. 2010, secs. 3.3 / 4.2): bracket, then one
-    interpolation, w = (depth - d_l) / (d_r - d_l):
-    linear ``t_l + w (t_r - t_l)`` (eq. 2) or exponential ``t_l (t_r / t_l)^w``
-    (uniform density between nodes; linear where t_l or t_r is 0)."""
-    dl, tl, dr_, tr = bracket(d, t, depth)
+    """Sample the node list at ``depth`` (Salvi et al. 2010, secs. 3.3 / 4.2): :func:`bracket`,
+    then :func:`lerp`."""
+    return lerp(*bracket(d, t, depth), depth, mode)
+
+
+def lerp(dl, tl, dr_, tr, depth, mode: str):
+    """One interpolation between nodes ``(d_l, t_l)`` and ``(d_r, t_r)``, ``w = (depth - d_l) /
+    (d_r - d_l)`` clipped to [0, 1]: linear ``t_l + w (t_r - t_l)`` (eq. 2) or exponential
+    ``t_l (t_r / t_l)^w`` (uniform density between nodes; linear where t_l or t_r is 0)."""
     dd = dr_ - dl
     w = dr.clip((depth - dl) / dr.select(dd > 0, dd, 1), 0, 1)
     lin = tl + w * (tr - tl)
@@ -204,7 +174,21 @@ def interpolate(d, t, depth, mode: str):
     return lin
 
 
-# ----------------------------------------------------------------------------
+def csr_bracket(offsets, max_nodes: int, depth_at, texel, depth):
+    """Nodes around each receiver in a CSR node list (``offsets``: UInt32 (T+1,), nodes sorted
+    by depth per texel, at most ``max_nodes``; ``depth_at(i, active)``: node i's depth).
+    Binary search for the last node at or before ``depth``; returns (front, behind, il, ir):
+    in front of the first node (or an empty texel), behind the last, that node and its
+    successor (itself behind the last)."""
+    U32 = backend.types().UInt32
+    start = dr.gather(U32, offsets, texel)
+    count = dr.gather(U32, offsets, texel + 1) - start
+    n_le = count_sorted(depth_at, start, count, depth, max_nodes)      # nodes at or before the depth
+    front, behind = n_le == 0, n_le >= count
+    il = start + dr.select(front, 0, n_le - 1)
+    return front, behind, il, dr.select(behind | front, il, il + 1)
+
+
 class NodeList(Representation):
     """Kinds storing N (depth, transmittance) nodes per texel as ``depths``/``values``
     (lists of N Dr.Jit arrays of length T) with ``self.N`` set and an ``interpolation``
@@ -217,27 +201,18 @@ class NodeList(Representation):
     def _stored(self):
         return (Stored("depths", "depth", "nodes"), Stored("values", "transmittance", "nodes"))
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:
-            return self._stored_nbytes
+    def _native_bytes(self) -> float:
         return 2 * self.N * self.segments.itemsize
 
     def _node_rows(self):
-        """The nodes as one row of ``2 N`` values per texel, ``[d_0 .. d_{N-1}, t_0 .. t_{N-1}]``,
-        so that a lookup reads a texel with one packet gather (``dr.gather(ArrayXf, rows,
-        texel, shape=(2 N, K))``: contiguous vector loads) instead of 2 N scattered gathers
-        from 2 N arrays.  Built once from
-        ``depths``/``values`` on first use and again whenever either list or one of its arrays
-        changes; None while any carries gradients (the lookup then gathers the lists, so the
-        AD graph is the same as before).  Costs a copy of the nodes (2 N values per texel)."""
+        """The nodes as one row ``[d_0 .. d_{N-1}, t_0 .. t_{N-1}]`` per texel, read by one
+        packet gather per lookup instead of 2 N gathers; rebuilt whenever ``depths``/``values``
+        change (the cache keeps references to its variables: same indices, same data); None
+        while any carries gradients (the lookup then gathers the lists)."""
         bufs = [*self.depths, *self.values]
         if any(dr.grad_enabled(b) for b in bufs):
             return None
         cache = getattr(self, "_rows_cache", None)
-        # The cache holds its own references to the variables it was built from: none of
-        # their indices can be reused, and a scatter into one of them copies (a new index)
-        # instead of writing in place.  Same indices = same data.
         if cache is not None and len(cache[0]) == len(bufs) and all(
                 h.index == b.index for h, b in zip(cache[0], bufs)):
             return cache[1]
@@ -270,20 +245,12 @@ class NodeList(Representation):
 
 @register("avsm")
 class AVSM(NodeList):
-    """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel.
-
-    Parameters (schema below): nodes N in [2, 64], sort, interpolation, insertion
-    (``'stream'``, the paper's, or a variant of :mod:`._avsm_insertion`), near/far
-    (default: global bounds; nodes are cleared to (far, 1)).  ``nbytes_per_texel`` =
-    2 N itemsize.
-    Extra attributes: ``depths``/``values`` (lists of N Dr.Jit arrays of length T),
-    ``used`` (NumPy (T,), inserted nodes kept per texel, N at most) and ``stats``
-    (lanes run = non-empty texels, segments skipped behind opaque points, insertions
-    that needed compression).
-    Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
-    Reverse mode: the build loops carry ``2 N + 5`` state words per lane, checkpointed
-    beyond the trajectory budget (:meth:`Representation.checkpoint_chunk`).  Without
-    gradients every ``reverse`` mode builds the same kernel.
+    """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel, cleared to
+    (far, 1); ``nbytes_per_texel`` = 2 N itemsize.  Attributes: ``depths``/``values`` (lists
+    of N Dr.Jit arrays of length T), ``used`` (NumPy (T,), inserted nodes kept per texel) and
+    ``stats`` (lanes run, segments skipped behind opaque points, insertions that compressed).
+    Gradients flow to optical_depth and z0/z1 with the node layout held fixed; the build
+    loops carry ``2 N + 5`` state words per lane (:meth:`Representation.checkpoint_chunk`).
     """
 
     # Both interpolations are reported (neither wins on every content): exp as the preset.
@@ -301,7 +268,7 @@ class AVSM(NodeList):
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
                   "every 4 segments); see avsm_dr.representations._avsm_insertion",
                   choices=tuple(INSERTIONS)),
-            near_param(), far_param(),
+            NEAR, FAR,
             # Private ablation switches (benchmarks only; the nodes are the same either way):
             Param("_compact", "bool", True, "private: lanes only for non-empty texels (else one per texel)"),
             Param("_group", "bool", True, "private: lanes ordered by segment count, longest first"),
@@ -328,11 +295,8 @@ class AVSM(NodeList):
         """N depths, N values, index, count, done flag and two counters."""
         return 2 * self.N + 5
 
-    # ------------------------------------------------------------------ build
     def _build(self):
         seg = self.segments
-        # sorted insertion reads each texel through the depth order (seg.depth_view():
-        # index[start_t + r]) instead of gathering sorted copies of z0, z1, optical_depth
         view = seg.depth_view() if self.params["sort"] else None
         t_ = backend.types()
         Float, UInt32, Bool = seg.Float, t_.UInt32, t_.Bool
@@ -364,11 +328,9 @@ class AVSM(NodeList):
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
         refit, metric, stage = self._refit, self._metric, self._stage
-        if refit is None and metric == "area":
-            remove = remove_smallest                      # the paper's removal ('stream', 'staged')
-        else:
-            def remove(d, t):
-                return remove_refit(d, t, refit, metric)
+
+        def remove(d, t):                                 # 'stream' / 'staged': the paper's removal
+            return remove_refit(d, t, refit, metric)
 
         def segment(p, i, active=True):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
@@ -394,9 +356,7 @@ class AVSM(NodeList):
             return skip, (skip if sorted_input else done), d, t
 
         # state: i (next segment), used (inserted nodes kept, <= N), done (sorted and behind
-        # an opaque point), skipped (segments not inserted), compressed (insertions that
-        # needed node removal), node depths d_0..d_{N-1}, node transmittances t_0..t_{N-1}
-        # ---- phase 1: insert while the texel has room (no compression work)
+        # an opaque point), skipped, compressed (counters), node depths d_k, transmittances t_k
         def cond_room(p, i, used, done, *rest):
             return (i < end) & (used + 2 <= N) & ~done
 
@@ -405,7 +365,6 @@ class AVSM(NodeList):
             used = dr.select(skip, used, used + 2)
             return (i + 1, used, done, skipped + UInt32(skip), compressed, *d, *t)
 
-        # ---- phase 2: insert and compress back to N nodes
         def cond_full(p, i, used, done, *rest):
             return (i < end) & ~done
 
@@ -420,11 +379,9 @@ class AVSM(NodeList):
             used = dr.select(skip | full, used, used + 2)
             return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip & full), *d, *t)
 
-        # ---- staged variants, once full: STAGE segments into a list of N + 2 STAGE nodes, then
-        # 2 STAGE removals.  A segment not inserted (skipped, or past the texel's end) appends two
-        # copies of the last node instead (real copies iff the last node is real): zero metric and
-        # deepest, so the compression drops them first, and ``used`` (N - 1 or N here) is the same
-        # after the batch as before it.
+        # staged variants, once full: ``stage`` segments into N + 2 stage nodes, then 2 stage
+        # removals; a segment not inserted appends two copies of the last node (zero metric,
+        # deepest: dropped first), so ``used`` is the same after the batch as before it.
         def body_staged(p, i, used, done, skipped, compressed, *dt):
             d, t = list(dt[:N]), list(dt[N:])
             grow = used

@@ -3,47 +3,35 @@ over the texels by a cheap estimate of each texel's complexity, then AVSM (Salvi
 Vidimce, Lauritzen and Lefohn 2010, "Adaptive Volumetric Shadow Maps", secs. 3-4) per
 texel with its own node count, stored compacted.
 
-Allocation (first pass, host float64, from the segments alone).  A texel with ``c``
-segments needs at most ``K = 2 c`` nodes: AVSM with ``N >= 2c`` never compresses (it
-keeps every entry and exit node).  Its options are the node counts of the ladder
-:data:`LADDER` below ``K`` (and at most ``max_nodes``) and ``K`` itself when
-``K <= max_nodes``; empty texels get 0 nodes, every other texel at least 2 (the first and
-the last node are kept).  The squared error of ``n`` nodes is modelled as ::
+Allocation (host float64, from the segments alone).  A texel with ``c`` segments needs at
+most ``K = 2 c`` nodes (AVSM with ``N >= 2c`` never compresses); its options are the
+:data:`LADDER` values below ``K`` (and at most ``max_nodes``) and ``K`` itself when
+``K <= max_nodes``; empty texels get 0 nodes, every other texel at least 2.  The squared
+error of ``n`` nodes is modelled as ::
 
     ``e(n) = span (1 - exp(-tau))^2 (1/n^2 - 1/K^2)^+``
 
-with ``span`` the texel's depth extent (``max z1 - min z0``) and ``tau`` its total optical
-depth: ``n`` nodes cut the drop ``1 - T_behind`` into ``n`` pieces whose deviation from a
-chord scales with the piece's drop, integrated over the span (receivers spread uniformly
-in depth); 0 once nothing is compressed.  ``e`` is convex in ``n``, so the slopes of its
-chords between consecutive options are non-increasing.  Water-filling: starting from the
-least option of every texel, upgrades ``n -> n'`` (the next option) are taken in order of
+(``span`` the texel's depth extent, ``tau`` its total optical depth: ``n`` nodes cut the
+drop ``1 - T_behind`` into ``n`` pieces).  ``e`` is convex in ``n``.  Water-filling: from
+the least option of every texel, upgrades to the next option are taken in order of
 decreasing gain per node ``(e(n) - e(n')) / (n' - n)`` (ties: lower texel, then smaller
-``n``) while the running node total fits the budget; the first that does not fit ends
-the pass, and upgrades the model says gain nothing are never taken (a map needing less
-than the budget stores less).  ``_score='count'`` uses ``span = 1``, ``tau = c`` (segment count only) and
-``_score='uniform'`` the same count ``n`` for every non-empty texel (the largest that
-fits): ablations for the ``memory_budget`` experiment.
+``n``) while the node total fits the budget; upgrades that gain nothing are never taken.
+Ablations for the ``memory_budget`` experiment: ``_score='count'`` (``span = 1``,
+``tau = c``) and ``_score='uniform'`` (the largest count that fits, for every non-empty texel).
 
-Build.  Dr.Jit AVSM keeps N nodes in registers with N a Python constant, so texels are
-grouped by their kernel N (the option's ladder value; ``K`` runs with the next ladder
-value, which never compresses) and :class:`~.avsm.AVSM` runs once per group on
-:meth:`~avsm_dr.Segments.select_texels` of the group with the map's near/far (clear nodes
-at the same far as a whole-map build).  A texel's AVSM-N nodes are therefore bit for bit
-those of ``build('avsm', seg, nodes=N)``.
+Build: texels are grouped by their kernel N (the option's ladder value; ``K`` runs with the
+next ladder value, which never compresses) and :class:`~.avsm.AVSM` runs once per group on
+:meth:`~avsm_dr.Segments.select_texels` with the map's near/far: a texel's nodes are bit for
+bit those of ``build('avsm', seg, nodes=N)``.
 
-Storage (compacted; ``nbytes_per_texel`` counts all of it): CSR node offsets (T+1 uint32)
-and per node a depth and a transmittance in the segments' dtype.  A texel that was
-allocated fewer than ``K`` nodes stores all N of its kernel (a clear node at far may be
-among them); one allocated ``K`` stores its ``used`` inserted nodes (the clear nodes behind
-them carry the last value: dropping them changes no lookup).  The budget is
-``bytes_per_texel x T`` bytes: ``4 (T + 1)`` for the offsets, the rest for nodes at
-``2 itemsize`` each; the stored total never exceeds it.
+Storage (compacted; ``nbytes_per_texel`` counts all of it, never above the budget
+``bytes_per_texel x T``): CSR node offsets (T+1 uint32) and per node a depth and a
+transmittance in the segments' dtype.  A texel allocated fewer than ``K`` nodes stores all
+N of its kernel, one allocated ``K`` its ``used`` inserted nodes.
 
-Lookup: binary search of the texel's nodes for the last one at or before the depth, then
-AVSM's bracket-and-interpolate (:func:`~.avsm.interpolate`) on that node and its
-successor: ``T = 1`` in front of the first node and in empty texels, the last node's
-value behind the last.
+Lookup: binary search for the last node at or before the depth, then AVSM's
+:func:`~.avsm.interpolate` with its successor: ``T = 1`` in front of the first node and in
+empty texels, the last node's value behind the last.
 """
 from __future__ import annotations
 
@@ -52,10 +40,10 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .avsm import AVSM, INTERPOLATIONS, interpolate
+from .avsm import AVSM, INTERPOLATIONS, csr_bracket, interpolate
 from .base import Representation, depth_range, node_build_bytes
 from .registry import register
-from .schema import Param, Schema, far_param, near_param
+from .schema import FAR, NEAR, Param, Schema
 
 #: Kernel node counts (each distinct one is one compiled AVSM kernel).
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
@@ -66,9 +54,6 @@ MAX_BYTES_PER_TEXEL = float(OFFSET_BYTES + 2 * 8 * LADDER[-1])
 SCORES = ("complexity", "count", "uniform")
 
 
-# ----------------------------------------------------------------------------
-# Allocation (host float64)
-# ----------------------------------------------------------------------------
 def ladder(max_nodes: int) -> np.ndarray:
     """Kernel node counts available under ``max_nodes``: :data:`LADDER` below it, and it."""
     return np.array([n for n in LADDER if n < max_nodes] + [max_nodes], np.int64)
@@ -155,20 +140,15 @@ def allocate(counts, weight, budget_nodes: int, max_nodes: int, uniform: bool = 
     return out
 
 
-# ----------------------------------------------------------------------------
 @register("avsm_adaptive")
 class AVSMAdaptive(Representation):
-    """AVSM with a per-texel node count chosen under a total memory budget (see the
-    module docstring): ``bytes_per_texel`` x T bytes for the whole map, offsets included.
-
-    Parameters: bytes_per_texel (mean budget per texel in bytes; ValueError when below
-    the offsets plus 2 nodes per non-empty texel), max_nodes (cap per texel, in [2, 64]),
-    sort, interpolation, near/far (as AVSM).  Attributes: ``allocated`` (T,) int64 node
-    counts of the allocation, ``kernel`` (T,) the AVSM kernel N per texel,
-    ``node_counts`` (T,) and ``node_offsets`` (T+1,) int64 of the stored nodes,
-    ``node_depth`` / ``node_value`` (Dr.Jit, CSR order), ``budget_nodes``, ``groups``
-    ({N: texels run with that kernel}).  Gradients flow as AVSM's (node layout fixed);
-    with ``reverse='auto'`` the groups' loops run checkpointed (see ``_build``).
+    """AVSM with a per-texel node count chosen under a total memory budget (module
+    docstring): ``bytes_per_texel`` x T bytes for the whole map, offsets included
+    (ValueError when below the offsets plus 2 nodes per non-empty texel).  Attributes:
+    ``allocated`` and ``kernel`` (T,) int64 (node counts of the allocation, AVSM kernel N),
+    ``node_counts`` (T,) and ``node_offsets`` (T+1,) of the stored nodes, ``node_depth`` /
+    ``node_value`` (Dr.Jit, CSR order), ``budget_nodes``, ``groups`` ({N: texels}).
+    Gradients flow as AVSM's; with ``reverse='auto'`` the groups' loops run checkpointed.
     """
 
     schema = Schema(
@@ -179,7 +159,7 @@ class AVSMAdaptive(Representation):
             Param("sort", "bool", False, "insert segments sorted by depth per texel (as AVSM)"),
             Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp'",
                   choices=INTERPOLATIONS),
-            near_param(), far_param(),
+            NEAR, FAR,
             Param("_score", "choice", "complexity", "private: allocation score 'complexity' (span x drop^2), "
                   "'count' (segments only) or 'uniform' (one count for all non-empty texels)", choices=SCORES),
         ),
@@ -198,8 +178,7 @@ class AVSMAdaptive(Representation):
         self._score = P.pop("_score")
         T, item = segments.n_texels, segments.itemsize
         counts = segments.counts
-        # the host allocation holds ~10 (T, options) int64 / float64 arrays, the AVSM groups
-        # at most every non-empty texel at max_nodes (node_build_bytes)
+        # the allocation's ~10 (T, options) arrays, the AVSM groups every non-empty texel at most
         n_nz = int(np.count_nonzero(counts))
         self._check_build_memory(lambda m: node_build_bytes(n_nz, m, item) + 80.0 * (ladder(m).size + 1) * T,
                                  name="max_nodes")
@@ -215,7 +194,6 @@ class AVSMAdaptive(Representation):
         """Those of the largest AVSM kernel run (2 N + 5)."""
         return 2 * int(self.kernel.max(initial=0)) + 5
 
-    # ------------------------------------------------------------------ build
     def _build(self):
         seg, P = self.segments, self.params
         self.allocated = allocate(seg.counts, complexity(seg, self._score), self.budget_nodes, P["max_nodes"],
@@ -227,10 +205,8 @@ class AVSMAdaptive(Representation):
         stored = np.zeros(T, np.int64)
         runs = []
         self.groups = {}
-        # Measured (Dr.Jit 1.5, LLVM): three or more AVSM builds with plain symbolic loops
-        # over different texel subsets of the same grad-enabled segments gave wrong
-        # reverse-mode gradients (some groups' gradients 0); checkpointed loops (a custom
-        # op replaying each chunk) matched finite differences.  'auto' therefore checkpoints.
+        # 'auto' checkpoints: plain loops over 3+ texel subsets of the same grad-enabled
+        # segments gave wrong reverse-mode gradients (Dr.Jit 1.5, LLVM)
         reverse = "checkpoint" if self.reverse == "auto" and seg.requires_grad else self.reverse
         for N in np.unique(self.kernel[self.kernel > 0]):
             tex = np.flatnonzero(self.kernel == N)
@@ -258,11 +234,7 @@ class AVSMAdaptive(Representation):
         self._offsets_dr = UInt32(self.node_offsets.astype(np.uint32))
         self._max_nodes = int(stored.max(initial=0))
 
-    variable_size = True
-
-    def texel_payload_bytes(self):
-        """Sparse layout: a texel's stored (depth, value) nodes."""
-        return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
+    variable_size = True                    # sparse payload: the stored (depth, value) nodes
 
     @property
     def nbytes_per_texel(self) -> float:
@@ -275,23 +247,12 @@ class AVSMAdaptive(Representation):
         return np.asarray(self.node_depth.numpy(), np.float64)
 
     def _eval_texels(self, texel, depth):
-        Float, U32 = self.Float, backend.types().UInt32
+        Float = self.Float
         if self._max_nodes == 0:
             return dr.full(Float, 1.0, dr.width(depth))
-        start = dr.gather(U32, self._offsets_dr, texel)
-        count = dr.gather(U32, self._offsets_dr, texel + 1) - start
-        n_le = dr.zeros(U32, dr.width(depth))       # nodes at or before the depth (binary search)
-        hi = U32(count)
-        for _ in range(int(np.ceil(np.log2(self._max_nodes + 1)))):
-            live = n_le < hi
-            mid = (n_le + hi) >> 1
-            below = dr.gather(Float, self.node_depth, start + mid, live) <= depth
-            n_le = dr.select(live & below, mid + 1, n_le)
-            hi = dr.select(live & ~below, mid, hi)
-        empty = count == 0
-        il = start + dr.select(n_le > 0, n_le - 1, 0)
-        ir = dr.select(n_le < count, il + 1, il)
-        ok = ~empty
-        d = [dr.gather(Float, self.node_depth, il, ok), dr.gather(Float, self.node_depth, ir, ok)]
-        t = [dr.gather(Float, self.node_value, il, ok), dr.gather(Float, self.node_value, ir, ok)]
-        return dr.select(empty, 1.0, interpolate(d, t, depth, self.params["interpolation"]))
+        zs, vs = self.node_depth, self.node_value
+        front, _, il, ir = csr_bracket(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(Float, zs, i, a),
+                                       texel, depth)
+        d = [dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)]
+        t = [dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)]
+        return dr.select(front, 1.0, interpolate(d, t, depth, self.params["interpolation"]))

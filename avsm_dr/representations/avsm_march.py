@@ -3,38 +3,27 @@ transmittance leaves the exponential extrapolation of the last node; a variable 
 count per texel up to a cap, compacted; node depths in half precision relative to the
 texel's depth range.
 
-March (one Dr.Jit lane per texel, float64): the ray's samples are the exact curve's
-points in depth order (:mod:`._curve`: the segment ends, both sides of a step), each
-with ``T`` and the local extinction ``s`` (d tau / dz behind it).  The first point is a
-node.  The last node ``(d_n, T_n, s_n)`` predicts ``P(x) = T_n exp(-s_n (x - d_n))``
-(the exponential extrapolation with the extinction at that node).  At a point
-``(x_k, T_k)`` with ``|T_k - P(x_k)| > max(abs_error, rel_error T_k)`` (it departs by
-more than both tolerances) the previous point becomes a node (the last sample the
-extrapolation still held; its own extinction predicts the curve up to ``x_k`` exactly
-unless a step intervenes), and ``x_k`` itself too if it still departs from the new
-prediction (a step: two nodes at one depth, as in AVSM).  The last point is always a
-node (T behind the content is exact).  A node added to a full texel (``nodes`` = cap)
-pushes out the interior node of smallest AVSM area metric (Salvi et al. 2010,
-sec. 3.2; ties: the deepest; first and last never).
+March (one Dr.Jit lane per texel, float64) over the exact curve's points in depth order
+(:mod:`._curve`), each with ``T`` and the local extinction ``s`` (d tau / dz behind it).  The
+first point is a node; the last node ``(d_n, T_n, s_n)`` predicts ``P(x) = T_n exp(-s_n (x -
+d_n))``.  At a point with ``|T_k - P(x_k)| > max(abs_error, rel_error T_k)`` the previous
+point becomes a node, and ``x_k`` too if it still departs from the new prediction (a step:
+two nodes at one depth).  The last point is always a node.  A node added to a full texel
+(``nodes`` = cap) pushes out the interior node of smallest AVSM area metric (Salvi et al.
+2010, sec. 3.2; ties: the deepest; first and last never).
 
 Storage (compacted, ``nbytes_per_texel`` counts all of it): a CSR offset per texel
-(uint32, 4 bytes; the node count is the difference of neighbouring offsets), the texel's
-depth range ``[lo, hi]`` (2 floats of the segments' dtype) and per node a float16 depth
-``q = (d - lo) / (hi - lo)`` in [0, 1] (2 bytes) and its T (segments' dtype).  Absolute
-float16 depths would carry a relative error of up to 2^-11 ~ 1/2048 of the depth itself
-(10-bit mantissa), i.e. depth x 1/2048 in light-space units - far more than a texel's
-content spans when it lies far from the light; relative to the range the error is at
-most (hi - lo) 2^-12.  Quantised on store (round to nearest float16), dequantised on
-lookup as ``lo + q (hi - lo)`` (monotone in q, so the nodes stay sorted; the first node
-sits exactly at ``lo``).  That is the default (``precision=None``); with ``precision=p``
-(:mod:`._precision`) q and T are both stored in ``p`` (q: the code of q itself, T: the
-transmittance code) and the range in float32.
+(uint32, 4 bytes), the texel's depth range ``[lo, hi]`` (2 floats of the segments' dtype)
+and per node a float16 depth ``q = (d - lo) / (hi - lo)`` in [0, 1] (2 bytes; error at
+most (hi - lo) 2^-12, where absolute float16 depths would err by up to |d| 2^-11) and its T
+(segments' dtype).  Dequantised on lookup as ``lo + q (hi - lo)`` (monotone: the nodes stay
+sorted).  With ``precision=p`` (:mod:`._precision`) q and T are both stored in ``p`` and the
+range in float32.
 
-Lookup: per receiver, a binary search of the texel's nodes for the last one at or before
-the depth, then exponential (default) or linear interpolation as AVSM; ``T = 1`` in
-front of the first node, the last node's value behind the last one, 1 for empty texels.
-Node values are the exact curve's (float64 march), with its gradients w.r.t. the optical
-depths at the fixed node depths.
+Lookup: binary search for the last node at or before the depth, then exponential (default)
+or linear interpolation as AVSM; ``T = 1`` in front of the first node and for empty texels,
+the last node's value behind the last one.  Node values are the exact curve's (float64
+march), with its gradients at the fixed node depths.
 """
 from __future__ import annotations
 
@@ -44,7 +33,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from . import _curve
-from .avsm import INTERPOLATIONS, remove_smallest
+from .avsm import INTERPOLATIONS, csr_bracket, lerp, remove_smallest
 from .base import Representation, node_build_bytes
 from ._precision import PRECISIONS, Stored
 from .registry import register
@@ -129,14 +118,10 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
 
 @register("avsm_march")
 class AVSMMarch(Representation):
-    """Engine-style AVSM (see the module docstring): up to ``nodes`` nodes per texel,
-    placed while marching where T departs from the last node's exponential extrapolation.
-
-    Parameters: nodes (the cap) in [2, 64]; abs_error, rel_error >= 0 (a point departs
-    when ``|T - P| > max(abs_error, rel_error T)``); interpolation 'exp' (default) or
-    'linear'.  Attributes: ``node_counts`` (T,), ``node_offsets`` (T+1,) int64 NumPy;
-    ``range_lo``/``range_hi`` (Dr.Jit, per texel); ``node_q`` (Dr.Jit Float16, relative
-    depths), ``node_value`` (Dr.Jit, T).
+    """Engine-style AVSM (module docstring): up to ``nodes`` nodes per texel, placed while
+    marching where T departs from the last node's exponential extrapolation.  Attributes:
+    ``node_counts`` (T,), ``node_offsets`` (T+1,) int64 NumPy; ``range_lo``/``range_hi``
+    (Dr.Jit, per texel); ``node_q`` (Dr.Jit Float16, relative depths), ``node_value`` (T).
     """
 
     schema = Schema(
@@ -166,10 +151,6 @@ class AVSMMarch(Representation):
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
         self.node_counts = counts
         self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._store_nodes(pts, src)
-
-    def _store_nodes(self, pts, src):
-        seg = self.segments
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
         off = pts["off"]
@@ -184,8 +165,7 @@ class AVSMMarch(Representation):
         span = (hi - lo)[tex]
         q = np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0)
         if self.precision is None:
-            F16 = getattr(t, "Float16")
-            self.node_q = F16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
+            self.node_q = t.Float16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
         else:                       # quantised after the build (:meth:`_stored`)
             self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
         value = Float(pts["v"][src].astype(dt))
@@ -206,10 +186,7 @@ class AVSMMarch(Representation):
         item = self.segments.itemsize
         return self._csr_payload(self.node_counts, 2 + item, 2 * item)
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:      # codes, float32 range (:mod:`._precision`), offset
-            return self._stored_nbytes + 4
+    def _native_bytes(self) -> float:
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
         item = self.segments.itemsize
         return 4 + 2 * item + mean * (2 + item)
@@ -222,37 +199,17 @@ class AVSMMarch(Representation):
         return lo + np.asarray(self.node_q.numpy(), np.float64) * (hi - lo)
 
     def _eval_texels(self, texel, depth):
-        Float, U32 = self.Float, backend.types().UInt32
-        start = dr.gather(U32, self._offsets_dr, texel)
-        count = dr.gather(U32, self._offsets_dr, texel + 1) - start
-        lo = dr.gather(Float, self.range_lo, texel)
-        span = dr.gather(Float, self.range_hi, texel) - lo
+        Float = self.Float
         if self._max_nodes == 0:
             return dr.full(Float, 1.0, dr.width(depth))
+        lo = dr.gather(Float, self.range_lo, texel)
+        span = dr.gather(Float, self.range_hi, texel) - lo
 
         def z(i, active=True):                  # dequantised node depth
             return lo + Float(dr.gather(type(self.node_q), self.node_q, i, active)) * span
 
-        n_le = dr.zeros(U32, dr.width(depth))   # nodes at or before the receiver (binary search)
-        hi_ = U32(count)
-        for _ in range(max(1, int(np.ceil(np.log2(self._max_nodes + 1))))):
-            live = n_le < hi_
-            mid = (n_le + hi_) >> 1
-            below = z(start + mid, live) <= depth
-            n_le = dr.select(live & below, mid + 1, n_le)
-            hi_ = dr.select(live & ~below, mid, hi_)
-        front = n_le == 0
-        behind = n_le >= count
-        il = start + dr.select(front, 0, n_le - 1)
-        ir = dr.select(behind | front, il, il + 1)
-        dl, dr_ = z(il, ~front), z(ir, ~front)
+        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes, z, texel, depth)
         tl = dr.gather(Float, self.node_value, il, ~front)
         tr = dr.gather(Float, self.node_value, ir, ~front)
-        dd = dr_ - dl
-        w = dr.clip((depth - dl) / dr.select(dd > 0, dd, 1), 0, 1)
-        val = tl + w * (tr - tl)
-        if self.params["interpolation"] == "exp":
-            ok = (tl > 0) & (tr > 0)
-            sl, sr = dr.select(ok, tl, 1), dr.select(ok, tr, 1)
-            val = dr.select(ok, sl * dr.exp(w * (dr.log(sr) - dr.log(sl))), val)
+        val = lerp(z(il, ~front), tl, z(ir, ~front), tr, depth, self.params["interpolation"])
         return dr.select(front, 1.0, dr.select(behind, tl, val))

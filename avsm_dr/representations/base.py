@@ -8,25 +8,20 @@ Contract (stated once here; subclasses document only what differs):
   ``0 <= T <= 1``; ``T = 1`` in front of the first blocker for node methods
   (exact, AVSM, DSM), up to their depth resolution for basis methods (OSM, FOM);
   representations with ``monotone = True`` guarantee ``T`` non-increasing in depth.
-* ``nbytes_per_texel`` is the exact storage of the compressed form
-  (for variable-size forms such as DSM: the mean over texels): the *dense* layout.
-* ``nbytes_sparse`` (total) / ``nbytes_sparse_per_texel``: the *sparse* layout, the same
-  rule for every kind: one occupancy bit per texel (``T / 8`` bytes), then per non-empty
-  texel (one with segments) its payload (``texel_payload_bytes``: a fixed-size kind's
-  ``nbytes_per_texel``, a variable-size kind's own entries) plus, for variable-size kinds
-  (``variable_size``: DSM, avsm_march, avsm_adaptive, exact), a 4-byte CSR offset.  An
-  all-empty map costs 1/8 byte per texel; sparse <= dense + 1/8 per texel.
+* ``nbytes_per_texel`` is the exact storage of the compressed form, the *dense* layout
+  (variable-size forms such as DSM: the mean over texels).
+* ``nbytes_sparse`` / ``nbytes_sparse_per_texel``, the *sparse* layout, one rule for every
+  kind: one occupancy bit per texel (``T / 8`` bytes), then per non-empty texel its payload
+  (``texel_payload_bytes``) plus, for ``variable_size`` kinds, a 4-byte CSR offset;
+  sparse <= dense + 1/8 per texel.
 * Gradients flow from ``T`` back to the segments' ``optical_depth`` (and
   ``z0``/``z1``) wherever the representation is differentiable.
 
 Depth range (every kind with ``near``/``far``, one rule: :func:`depth_range`): None means
 the segments' global bounds ``[min z0, max z1]``; an explicit range must contain every
-segment, ``near <= min z0`` and ``max z1 <= far`` compared in the storage dtype (the values
-the kernels use), and ``far - near`` must be finite there.  A range that cuts the content
-raises ``ValueError`` naming ``near`` (the content starts before it), ``far`` (it ends after
-it) or both, with the values and the content's span.  Receivers outside the range follow
-the kind's ``eval`` convention (T = 1 in front of the first blocker / at ``u = 0``, the
-total transmittance behind ``far``).
+segment (``near <= min z0``, ``max z1 <= far`` in the storage dtype, ``far - near`` finite),
+else ``ValueError`` naming ``near``, ``far`` or both.  Receivers outside the range follow
+the kind's ``eval`` convention (T = 1 in front, the total transmittance behind ``far``).
 """
 from __future__ import annotations
 
@@ -46,10 +41,8 @@ from ._lookup_args import lookup_args
 
 
 def depth_range(segments: Segments, near, far, open_range: bool = False) -> tuple[float, float]:
-    """(near, far) of a kind's depth range by the module docstring's rule: the given values
-    (None: the segments' bounds), finite in the storage dtype with a finite span, and
-    containing every segment; ``open_range``: an explicit range also needs ``near < far``
-    (the basis kinds divide by the span).  ValueError names the argument at fault."""
+    """(near, far) by the module docstring's rule; ``open_range``: an explicit range also
+    needs ``near < far`` (the basis kinds divide by the span).  ValueError names the argument."""
     lo, hi = segments.bounds()
     given = near is not None or far is not None
     near, far = segments.check_depth_range(lo if near is None else near, hi if far is None else far)
@@ -70,8 +63,7 @@ def depth_range(segments: Segments, near, far, open_range: bool = False) -> tupl
 
 def node_build_bytes(n_texels: int, nodes: int, itemsize: int) -> float:
     """Estimated peak bytes of a node-list build (AVSM and its kin): per texel its ``2N + 5``
-    loop-state words read, written and compacted, ``3 (2N + 5) itemsize`` (measured: AVSM-64,
-    float32, 4 M texels, one segment each: 1300 bytes per texel of RSS, this gives 1596)."""
+    loop-state words read, written and compacted, ``3 (2N + 5) itemsize``."""
     return 3.0 * (2 * int(nodes) + 5) * int(itemsize) * int(n_texels)
 
 
@@ -87,34 +79,23 @@ class Representation(abc.ABC):
     """Base class: parameter schema, traits, reverse-mode policy, validation, filtering
     and dispatch to the per-texel kernel.
 
-    A kind is one subclass with a ``schema`` (:class:`~.schema.Schema`: parameters with
-    defaults and ranges, the size parameter and its sweep) registered with
+    A kind is one subclass with a ``schema`` (:class:`~.schema.Schema`) registered with
     ``@register("name")``; it implements ``_eval_texels`` and ``nbytes_per_texel`` and
-    reads its validated parameters from ``self.params``.
+    reads its validated parameters from ``self.params``.  The build is one template,
+    ``__init__(segments, **params)``: :meth:`_validate`, :meth:`_resolve` (derived
+    parameters and memory checks, once), :meth:`_build`, :meth:`_apply_precision`; a kind
+    fills the hooks it needs and does not override ``__init__``.
 
-    The build is one template, run by ``__init__(segments, **params)`` in this order:
-    :meth:`_validate` (the segments, the base parameters, the schema: ``self.params``),
-    :meth:`_resolve` (the kind's derived parameters, once: depth range, defaults that
-    depend on others, memory checks), :meth:`_build` (the compressed form) and
-    :meth:`_apply_precision` (the stored buffers at ``precision``).  A kind fills the hooks
-    it needs and does not override ``__init__``.
-
-    Every kind also accepts ``reverse`` ('auto' | 'trajectory' | 'checkpoint') and
-    ``chunk`` (iterations per checkpoint): how reverse mode stores the build loops of
-    kinds whose ``loop_state_words > 0`` (see :mod:`._loops`).  'auto' checkpoints only
-    when ``max segments per texel x loop_state_words`` exceeds the trajectory budget;
-    'trajectory' refuses (ValueError) what would overflow it.
-
-    And ``precision`` (None | 'float32' | 'float16' | 'unorm16' | 'unorm8'): the storage
-    format of the kind's stored buffers (:mod:`._precision`; None, the default: the
-    segments' own dtype).  A kind lists what it accepts in ``precisions`` and declares its
-    buffers in :meth:`_stored`; they are quantised once, after the build, by shared code.
+    Every kind also accepts ``reverse`` ('auto' | 'trajectory' | 'checkpoint') and ``chunk``
+    (iterations per checkpoint): how reverse mode stores the build loops
+    (:meth:`checkpoint_chunk`, :mod:`._loops`); and ``precision`` (None | 'float32' |
+    'float16' | 'unorm16' | 'unorm8'): the storage format of the buffers the kind declares
+    in :meth:`_stored` (:mod:`._precision`; None: the segments' own dtype).
     """
 
     kind: str = "base"
     schema: Schema = Schema()
-    #: Storage precisions the kind accepts besides None (see :mod:`._precision`); opt-in: a
-    #: kind lists them and declares its buffers in :meth:`_stored`.
+    #: Storage precisions the kind accepts besides None (:mod:`._precision`).
     precisions: tuple = ()
 
     def __init__(self, segments: Segments, **params: Any):
@@ -123,7 +104,6 @@ class Representation(abc.ABC):
         self._build()
         self._apply_precision()
 
-    # ------------------------------------------------------- build template
     def _validate(self, segments: Segments, params: dict) -> None:
         """Check ``segments`` and the base parameters (``reverse``, ``chunk``, ``precision``),
         then the kind's against its schema into ``self.params`` (ValueError naming them)."""
@@ -135,8 +115,7 @@ class Representation(abc.ABC):
         if self.precision is not None and self.precision not in self.precisions:
             raise ValueError(f"precision: kind {self.kind!r} accepts {self.precisions or 'only None'}, "
                              f"got {self.precision!r}{self._precision_note}")
-        if reverse not in REVERSE_MODES:
-            raise ValueError(f"reverse: expected one of {REVERSE_MODES}, got {reverse!r}")
+        V.one_of(reverse, "reverse", REVERSE_MODES)
         if chunk is not None:
             chunk = Param("chunk", "int", min=1, max=MAX_CHUNK).validate(chunk)
         self.segments = segments
@@ -144,15 +123,11 @@ class Representation(abc.ABC):
         self.params: dict[str, Any] = self.schema.validate(self.kind, params)
 
     def _resolve(self) -> None:
-        """The kind's derived parameters, resolved once from ``self.params`` and the segments
-        (e.g. ``near``/``far`` by :func:`depth_range`), and its checks before allocating
-        (:meth:`_check_build_memory`).  Default: nothing."""
+        """The kind's derived parameters and checks before allocating.  Default: nothing."""
 
     def _build(self) -> None:
-        """Build the compressed form from ``self.segments`` (its buffers, declared for
-        ``precision`` in :meth:`_stored`).  Default: nothing (the kind reads the segments)."""
+        """Build the compressed form from ``self.segments``.  Default: nothing."""
 
-    # --------------------------------------------------------------- memory
     def _check_build_memory(self, need, name: str | None = None, search: bool = True) -> None:
         """Before allocating: ValueError naming ``name`` (default: the schema's size
         parameter) when ``need(v)``, the build's estimated peak bytes at that parameter's
@@ -162,11 +137,10 @@ class Representation(abc.ABC):
         p = self.schema.param(name)
         lo = p.min if search and p.min is not None and not p.open_min else None
         lo = int(lo) if lo is not None and p.type == "int" else lo
-        rule = self.schema.constraint                     # e.g. moments: 4, 6 or 8 power moments
+        rule = self.schema.constraint
         V.check_memory(name, self.params[name], need, lo=lo, what=f"over {self.n_texels} texels",
                        allowed=None if rule is None else lambda v: not rule({**self.params, name: v}))
 
-    # -------------------------------------------------------------- storage
     #: Why some precisions are refused (appended to the ValueError).
     _precision_note: str = ""
 
@@ -175,12 +149,10 @@ class Representation(abc.ABC):
         return ()
 
     def _apply_precision(self) -> None:
-        """Quantise the stored buffers to ``self.precision`` (after the build; no-op for
-        None); ``_stored_nbytes`` then holds their bytes per texel."""
+        """Quantise the stored buffers to ``self.precision``; ``_stored_nbytes``: their bytes."""
         if self.precision is not None:
             self._stored_nbytes = quantise(self, self._stored())
 
-    # ------------------------------------------------- sparse bytes, presets
     #: Sparse layout (:attr:`nbytes_sparse`): True for variable-size kinds, which keep a
     #: CSR offset (:data:`SPARSE_OFFSET_BYTES`) per non-empty texel.
     variable_size: bool = False
@@ -196,7 +168,10 @@ class Representation(abc.ABC):
     def texel_payload_bytes(self):
         """Bytes one non-empty texel stores in the sparse layout, offset excluded: a number
         (fixed-size kinds; default: :attr:`nbytes_per_texel`) or a (T,) float64 array
-        (variable-size kinds; only the non-empty texels' entries are counted)."""
+        (variable-size kinds, only the non-empty texels' entries counted; default: a
+        (depth, value) pair per node of ``node_counts``)."""
+        if self.variable_size:
+            return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
         return self.nbytes_per_texel
 
     def _csr_payload(self, counts, entry_bytes: float, texel_bytes: float = 0.0) -> np.ndarray:
@@ -211,9 +186,7 @@ class Representation(abc.ABC):
 
     @property
     def nbytes_sparse(self) -> float:
-        """Total bytes of the sparse layout: one occupancy bit per texel (``T / 8``), then for
-        each non-empty texel (one with segments) its payload (:meth:`texel_payload_bytes`)
-        and, for ``variable_size`` kinds, a 4-byte CSR offset."""
+        """Total bytes of the sparse layout (module docstring)."""
         occupied = self.segments.counts > 0
         n = int(np.count_nonzero(occupied))
         pay = self.texel_payload_bytes()
@@ -225,54 +198,35 @@ class Representation(abc.ABC):
         """:attr:`nbytes_sparse` / T (<= ``nbytes_per_texel + 1/8``)."""
         return self.nbytes_sparse / max(self.n_texels, 1)
 
-    # --------------------------------------------------------------- traits
-    @property
-    def monotone(self) -> bool:
-        """True when T is guaranteed non-increasing in depth (to float rounding)."""
-        return True
-
-    @property
-    def differentiable(self) -> bool:
-        """True when gradients w.r.t. the segments' optical depths are supported."""
-        return True
-
-    @property
-    def unity_in_front(self) -> bool:
-        """True when T = 1 exactly in front of the texel's first segment (node methods);
-        basis methods spread absorption over their depth resolution."""
-        return True
-
-    @property
-    def prefilterable(self) -> bool:
-        """True when ``eval(..., prefilter=True)`` is supported: the kind is linear in a
-        stored per-texel map, so filtering the map and reconstructing once is defined."""
-        return False
+    # Traits (a kind overrides them as attributes or properties).
+    #: T is guaranteed non-increasing in depth (to float rounding).
+    monotone: bool = True
+    #: Gradients w.r.t. the segments' optical depths are supported.
+    differentiable: bool = True
+    #: T = 1 exactly in front of the texel's first segment (node methods; basis methods
+    #: spread absorption over their depth resolution).
+    unity_in_front: bool = True
+    #: ``eval(..., prefilter=True)`` is supported: the kind is linear in a stored map.
+    prefilterable: bool = False
+    #: State words per lane of the build loop reverse mode must store (0: no loop, or a sum
+    #: loop that reverse mode recomputes).
+    loop_state_words: int = 0
 
     def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
         """T reconstructed once from the filtered stored map (prefilterable kinds only)."""
         raise NotImplementedError
 
     @property
-    def loop_state_words(self) -> int:
-        """State words per lane of the build loop reverse mode must store (0: no loop, or
-        a sum loop that reverse mode recomputes)."""
-        return 0
-
-    # ------------------------------------------------------- reverse policy
-    @property
     def chunk(self) -> int:
         """Iterations per checkpointed chunk (given, or the largest that fits the budget)."""
         return self._chunk or safe_chunk(self.loop_state_words)
 
     def checkpoint_chunk(self, segments: Segments | None = None) -> int | None:
-        """How to run this kind's build loops over ``segments`` (default: its own):
-        None for a plain ``dr.while_loop``, else the checkpoint chunk length.
-
-        Plain when there is no loop state or no gradient; checkpointed when asked
-        (``reverse='checkpoint'``) or when 'auto' finds the trajectory
-        ``max_count x loop_state_words`` above :data:`TRAJECTORY_BUDGET_WORDS`;
-        ``reverse='trajectory'`` beyond the budget raises ValueError (the CPU worker
-        stack would overflow: a segfault)."""
+        """How to run this kind's build loops over ``segments`` (default: its own): None for
+        a plain ``dr.while_loop`` (no loop state or no gradient), else the checkpoint chunk
+        length (``reverse='checkpoint'``, or 'auto' with a trajectory ``max_count x
+        loop_state_words`` above :data:`TRAJECTORY_BUDGET_WORDS`).  ValueError: 'trajectory'
+        or a ``chunk`` beyond that budget (the CPU worker stack would overflow)."""
         seg = segments if segments is not None else self.segments
         words = self.loop_state_words
         if words == 0 or not seg.requires_grad:
@@ -296,15 +250,22 @@ class Representation(abc.ABC):
             return self.chunk
         return None
 
-    # --------------------------------------------------------------- kernel
     @abc.abstractmethod
     def _eval_texels(self, texel, depth):
         """T at ``depth`` (Float) along texel ``texel`` (UInt32); one lane per receiver."""
 
     @property
-    @abc.abstractmethod
     def nbytes_per_texel(self) -> float:
-        """Storage of the compressed form per texel in bytes (variable-size forms: mean)."""
+        """Storage of the compressed form per texel in bytes (variable-size forms: the mean):
+        with a ``precision`` the quantised buffers (:mod:`._precision`) plus, for
+        ``variable_size`` kinds, the CSR offset; else :meth:`_native_bytes`."""
+        if self.precision is not None:
+            return self._stored_nbytes + (SPARSE_OFFSET_BYTES if self.variable_size else 0)
+        return self._native_bytes()
+
+    def _native_bytes(self) -> float:
+        """:attr:`nbytes_per_texel` in the segments' own dtype (a kind defines it, or the property)."""
+        raise NotImplementedError
 
     @property
     def n_texels(self) -> int:
@@ -316,7 +277,6 @@ class Representation(abc.ABC):
         """The Dr.Jit float type of the segments (Float32 or Float64 of the backend)."""
         return self.segments.Float
 
-    # ----------------------------------------------------------- public API
     def eval(self, texel, depth, filter: str = "point", width: int | None = None,
              height: int | None = None, radius: float = 1.0, prefilter: bool = False):
         """Transmittance at receivers.

@@ -16,53 +16,32 @@ override ``g``.  Segments are integrated analytically, not as points: a segment
     a_k += tau * (F_k(u1) - F_k(u0)) / (u1 - u0)            (``Basis.average``)
 
 and a zero-length segment the delta limit ``tau * f_k(u0)`` (sec. 5:
-``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  The difference quotient loses
-digits for short segments, so the default ``average`` switches to 3-point
-Gauss-Legendre on ``f`` below a length of ``2e-2`` (float32) / ``2e-3`` (float64); the Fourier
-and piecewise-constant bases override it with cancellation-free formulas.
-
-The bases themselves (the :class:`~.basis_functions.Basis` interface, cosine, Legendre,
-``register_basis``) live in :mod:`.basis_functions`.
+``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  Short segments, where the difference
+quotient loses digits, use 3-point Gauss-Legendre on ``f`` (:meth:`Basis.average`); the
+Fourier and piecewise-constant bases override it with cancellation-free formulas.  The
+bases (:class:`~.basis_functions.Basis`, cosine, Legendre, ``register_basis``) live in
+:mod:`.basis_functions`.
 
 Depth range (``depth_range=``):
-* ``"global"``: one ``[near, far]`` for all texels (default: ``Segments.bounds()``).
+* ``"global"``: one ``[near, far]`` for all texels (default: ``Segments.bounds()``; an
+  explicit range must contain every segment, :func:`~.base.depth_range`).
 * ``"texel"``: tight per-texel bounds ``Segments.texel_bounds()``, stored per texel
   (2 floats, counted in ``nbytes_per_texel``); ``near=``/``far=`` must not be given.
   Bounds are constants of the build: gradients w.r.t. ``z0``/``z1`` hold them fixed.
-A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` (e.g. all segments of a
-texel zero-length at one depth; 1e-6 relative in float32, 1e-14 in float64, plus the dtype's
-smallest normal number) is widened to that length.
+A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` is widened to that
+length.  The projection clips normalised depths to [0, 1] (a part in front of ``u = 0``
+counted as a delta there, one behind ``u = 1`` dropped); receiver depths clamp to the range.
 
-Storage precision (``precision=``, :mod:`avsm_dr.representations._precision`): the stored
-map is quantised per texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted),
-a per-texel range is kept in float32.
+Storage precision (``precision=``, :mod:`._precision`): the stored map is quantised per
+texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted); a per-texel range is kept
+in float32.
 
-An explicit ``[near, far]`` must contain every segment (ValueError naming ``near`` /
-``far`` otherwise: the rule of :mod:`.base`, :func:`~.base.depth_range`, shared by every
-kind with a depth range); the projection still clips normalised depths to [0, 1] (a part
-in front of ``u = 0`` counted as a delta there, one behind ``u = 1`` dropped), which only
-rounding reaches.  Receiver depths clamp to the range: ``u = clamp(u, 0, 1)``.
-
-Kernel (DESIGN.md, linear methods): coefficients are stored flat, texel-major
-``[texel * K + k]`` (``coefficients`` makes the per-k list on demand).  A basis with
-*indexed* forms (``f_at(j, u)``, ``F_at(j, u)``: closed forms in the coefficient index,
-as for Fourier, cosine and slices) projects with one lane per (texel, coefficient) looping
-over the texel's segments and one plain scatter (no atomics: the same bits every run), or,
-when the segments carry gradients (Dr.Jit has no reverse mode through symbolic loops), with
-one lane per (segment, coefficient) and ``dr.scatter_reduce(ReduceOp.Add)`` into the flat
-buffer (float atomics: the summation order, hence the last bits, vary between runs; both
-agree to float rounding of the sums).  Fourier overrides the first with one lane per texel
-and angle-addition recurrences over k (:meth:`avsm_dr.representations.fom.FourierOpacityMap._project_texels`,
-float32, up to 16 harmonics).  Bases in list form (Legendre, power and trigonometric
-moments, user bases) without gradients: one lane per texel summing each segment's K
-terms in CSR order (:meth:`BasisRepresentation._sum_per_texel`, no atomics either), so
-every linear kind's build has the same bits whatever ran before it, the thread count or
-the load (the scatter-add changed moments-8 by 1e-8..2e-7 between such builds).
-Reconstruction runs one lane per (receiver, coefficient) and ``dr.block_sum``: kernels
-whose size does not depend on K, cost linear in K.  Other bases (a recurrence such as
-Legendre, user bases) keep the list form, evaluated in chunks (``LIST_CHUNK``): linear in K
-too.  Gradients w.r.t. ``optical_depth``, ``z0`` and ``z1`` flow
-through the scatters and the gathers.
+Kernel (DESIGN.md, linear methods): coefficients stored flat, texel-major ``[texel * K + k]``.
+Without gradients each texel's segments are summed in CSR order (the same bits every run),
+with them scatter-added (:meth:`BasisRepresentation._project`); *indexed* bases (closed forms
+``f_at``, ``F_at`` in the coefficient index) run over (item, coefficient) lanes, list bases
+in chunks of ``LIST_CHUNK``: linear in K either way.  Gradients w.r.t. ``optical_depth``,
+``z0`` and ``z1`` flow through the scatters and the gathers.
 """
 from __future__ import annotations
 
@@ -74,18 +53,14 @@ from .. import backend
 from ..filtering import filtered_eval
 from .registry import register
 from .base import Representation, depth_range
-from ._loops import texel_sums
+from ._loops import texel_lanes, texel_sums
 from ._precision import PRECISIONS, Stored
-from .basis_functions import (  # noqa: F401  (the bases: re-exported from their old home)
-    BASES, LIST_CHUNK, LIST_UNROLL, PROJECTION_ONLY, SHORT, SQRT2, Basis, CosineBasis, LegendreBasis,
-    check_count, clip_segment, cos_pi, make_basis, register_basis, sin_pi, sinc, sincos_pi)
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .basis_functions import BASES, LIST_CHUNK, LIST_UNROLL, Basis, clip_segment, make_basis
+from .basis_functions import CosineBasis, LegendreBasis  # noqa: F401  (re-exported: their old home)
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
-#: Shortest depth range, per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
-#: MIN_SPAN_ABS[dtype] (float32 resolves ~6e-8 relative, float64 ~1.1e-16; the absolute term,
-#: the dtype's smallest normal number, only keeps near = far = 0 from dividing by 0).  One
-#: float32 floor for both (1e-6 relative + 1e-30) widened float64 content at depth 1e7 with
-#: span 1, and any range shorter than 1e-30, to many times its length: T = 1 almost everywhere.
+#: Shortest depth range per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
+#: MIN_SPAN_ABS[dtype] (the dtype's smallest normal number: near = far = 0 does not divide by 0).
 MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
 MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
 #: (item, coefficient) lanes per kernel on the indexed path.
@@ -93,29 +68,18 @@ LANES_PER_BATCH = 1 << 22
 #: Most coefficients per texel, the bound of every size parameter (n, harmonics, slices):
 #: 2^16 (256 KiB per texel in float32); the memory budget bounds texels x coefficients.
 MAX_COEFFICIENTS = 1 << 16
-#: Most coefficients of a basis in list form (no indexed forms: Legendre, user bases): it
-#: runs ~K / LIST_CHUNK kernels per build and lookup batch.
+#: Most coefficients of a basis in list form (~K / LIST_CHUNK kernels per build and lookup).
 MAX_LIST_COEFFICIENTS = 1 << 12
 
 
-# ----------------------------------------------------------------------------
-# The representation
-# ----------------------------------------------------------------------------
 @register("basis")
 class BasisRepresentation(Representation):
-    """Coefficient map of any :class:`Basis` (module docstring).
-
-    Parameters: ``basis`` (Basis instance or registered name), ``n`` (size, with a
-    name), ``near``, ``far`` (floats, default ``Segments.bounds()``, ``near < far``),
-    ``depth_range`` ``'global'`` | ``'texel'``.
-    Attributes: ``coefficients`` list of K Dr.Jit arrays of length T (``a_k`` per texel);
-    ``near``, ``far``: floats (global) or Dr.Jit arrays of length T (texel).
-    ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
+    """Coefficient map of any :class:`Basis` (module docstring).  Attributes: ``coefficients``
+    (K Dr.Jit arrays of length T); ``near``, ``far``: floats (global) or Dr.Jit arrays
+    (texel).  ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
     """
 
-    # Best practice for every basis kind (FOM, OSM, moments inherit it): a tight per-texel
-    # depth range, and opaque blockers in their own depth map (capture ``opaque='separate'``),
-    # so that the basis spends its resolution on the medium alone.
+    # Best practice for every basis kind (inherited): per-texel range, opaque blockers apart.
     PRESET = {"depth_range": "texel"}
     PRESET_CAPTURE = {"opaque": "separate"}
     schema = Schema(
@@ -123,7 +87,7 @@ class BasisRepresentation(Representation):
             Param("basis", "object", "legendre", f"a Basis instance or a registered name {sorted(BASES)}"),
             Param("n", "int", None, "size of a named basis (functions; default 8)", min=1, max=MAX_COEFFICIENTS,
                   nullable=True),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="n", sweep=(2, 4, 6, 8, 12, 16), quick_sweep=(4, 8),
         examples=({"basis": "legendre", "n": 6}, {"basis": "cosine", "n": 6}),
@@ -163,10 +127,8 @@ class BasisRepresentation(Representation):
         self.params["n"] = basis.n
         return basis
 
-    # --------------------------------------------------------------- memory
     def _coefficients_at(self, v: int) -> int | None:
-        """Coefficients per texel at size-parameter value ``v`` (None: not searchable, e.g.
-        a Basis instance); the memory check searches the largest v that fits with it."""
+        """Coefficients per texel at size-parameter value ``v`` (None: a Basis instance)."""
         if not isinstance(self.params.get("basis", ""), str):
             return None
         return type(self.basis)(v).n_coefficients
@@ -175,9 +137,7 @@ class BasisRepresentation(Representation):
         """Estimated peak bytes of the projection with K coefficients per texel (T texels,
         S segments, in words of the storage dtype): the flat store and its copies, 2 T K,
         plus one batch of (item, coefficient) lanes, ~8 words each (indexed bases), or
-        the K per-segment terms of the list form, 2.5 S K.  Measured peaks (Dr.Jit
-        malloc watermark; float32, float64, with gradients): indexed 1.34-1.69 T K; list
-        form (Legendre, moments) 1.8-2.05 S K."""
+        the K per-segment terms of the list form, 2.5 S K."""
         seg = self.segments
         T, S, it = seg.n_texels, seg.n_segments, seg.itemsize
         if self.basis.indexed:
@@ -185,10 +145,9 @@ class BasisRepresentation(Representation):
         return it * (2.0 * T + 2.5 * S) * K
 
     def _check_coefficients(self) -> None:
-        """ValueError before any allocation: more than :data:`MAX_COEFFICIENTS` per texel
-        (:data:`MAX_LIST_COEFFICIENTS` for a basis in list form), or a projection whose
-        estimate (:meth:`_build_bytes`) exceeds the memory budget
-        (:func:`avsm_dr.validation.memory_budget`), naming the size parameter and what fits."""
+        """ValueError naming the size parameter and what fits: more than :data:`MAX_COEFFICIENTS`
+        per texel (:data:`MAX_LIST_COEFFICIENTS` in list form), or :meth:`_build_bytes` above
+        the memory budget."""
         name = self.schema.size
         K = self.basis.n_coefficients
         searchable = self._coefficients_at(self.params[name]) is not None
@@ -218,54 +177,40 @@ class BasisRepresentation(Representation):
         """The basis' guarantee (non-negative coefficients, non-decreasing g_k)."""
         return bool(self.basis.monotone)
 
-    @property
-    def unity_in_front(self) -> bool:
-        """Basis methods spread absorption over their depth resolution."""
-        return False
+    unity_in_front = False
 
-    # -------------------------------------------------------------- storage
-    @property
-    def itemsize(self) -> int:
-        """Bytes per stored coefficient (the segments' dtype)."""
-        return self.segments.itemsize
-
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:
-            return self._stored_nbytes
+    def _native_bytes(self) -> float:
         extra = 2 if self._per_texel else 0
-        return (self.basis.n_coefficients + extra) * self.itemsize
+        return (self.basis.n_coefficients + extra) * self.segments.itemsize
 
     precisions = PRECISIONS
     #: The flat store :mod:`._precision` quantises (the one reconstruction reads, ``_store``).
     _stored_attr = "_coef"
 
     def _stored(self):
-        """The stored map as coefficients scaled per texel (non-negative for monotone
-        bases), and a per-texel depth range in float32 (:mod:`._precision`)."""
+        """The stored map as coefficients (non-negative for monotone bases), the range."""
         out = (Stored(self._stored_attr, "coefficient", "flat", signed=not self.basis.monotone),)
         if self._per_texel:
             out += (Stored("near", "range", "texel"), Stored("far", "range", "texel"))
         return out
 
-    # ---------------------------------------------------------------- range
-    def _range(self, texel=None):
-        """(near, span) for the given texels (arrays) or globally (floats)."""
+    def _bounds(self, texel=None):
+        """(near, far) of the given texels, or global (opaque: no kernel per near/far)."""
         Float = self.Float
         if self._per_texel:
-            near = dr.gather(Float, self.near, texel)
-            far = dr.gather(Float, self.far, texel)
-        else:
-            # opaque: a new near/far does not recompile the kernels
-            near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+            return dr.gather(Float, self.near, texel), dr.gather(Float, self.far, texel)
+        return dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+
+    def _range(self, texel=None):
+        """(near, span) for the given texels (arrays) or globally (floats)."""
+        near, far = self._bounds(texel)
         dt = self.segments.dtype
         floor = MIN_SPAN_REL[dt] * dr.maximum(dr.abs(near), dr.abs(far)) + MIN_SPAN_ABS[dt]
         return near, dr.maximum(far - near, floor)
 
     @property
     def coefficients(self) -> list:
-        """a_k per texel as a list of K Dr.Jit arrays of length T (made on demand from the
-        flat texel-major store ``[texel * K + k]``)."""
+        """a_k per texel as a list of K Dr.Jit arrays of length T (from the flat store)."""
         K, T = self.basis.n_coefficients, self.n_texels
         idx = dr.arange(backend.types().UInt32, T) * K
         return [dr.gather(self.Float, self._coef, idx + k) for k in range(K)]
@@ -282,71 +227,54 @@ class BasisRepresentation(Representation):
             raise ValueError(f"{self.schema.size or 'n'}: {T} texels x {K} coefficients exceed the "
                              "2^32 - 1 entries that UInt32 indices address")
 
-    # ---------------------------------------------------------- projection
     def _clipped_segments(self):
-        """Per segment (one lane each): texel, clipped normalised depths c0 <= c1 in
-        [0, 1], optical depth inside the range and in front of near (behind: dropped)."""
+        """Per segment: texel and :func:`clip_segment` against its range."""
         seg = self.segments
         texel = seg.texel_of_segment()
         near, span = self._range(texel if self._per_texel else None)
         return (texel, *clip_segment(seg.z0, seg.z1, seg.optical_depth, near, span))
 
     def _project(self):
-        """a_k per texel, flat ``[texel * K + k]``.  Segments without gradients: indexed
-        bases :meth:`_project_texels`, others :meth:`_project_list_texels` (no atomics, the
-        same bits every run); with gradients :meth:`_project_scatter` (scatter-add,
-        differentiable: reverse mode through symbolic loops is not available in Dr.Jit)."""
+        """a_k per texel, flat ``[texel * K + k]``: without gradients per-texel sums in CSR
+        order (:meth:`_project_texels`, :meth:`_sum_per_texel`: the same bits every run),
+        with them :meth:`_project_scatter` (no reverse mode through symbolic loops)."""
         seg, basis = self.segments, self.basis
-        T, K = seg.n_texels, basis.n_coefficients
-        self._check_index_range(T, K)
+        self._check_index_range(seg.n_texels, basis.n_coefficients)
         if seg.n_segments and not seg.requires_grad:
-            return self._project_texels() if basis.indexed else self._project_list_texels()
+            return self._project_texels() if basis.indexed else self._sum_per_texel(self._list_terms())
         return self._project_scatter()
 
     def _project_scatter(self):
-        """a_k by scatter-add of every segment's contribution: indexed bases over (segment,
-        coefficient) lanes, a kernel per batch of coefficients whatever K; others one lane
-        per segment and a Python loop over k, evaluated every LIST_CHUNK coefficients beyond
-        LIST_UNROLL.  Float atomics: the summation order varies from run to run."""
+        """a_k by scatter-add (float atomics: the order varies between runs): list bases
+        :meth:`_scatter_terms`, indexed ones over (segment, coefficient) lanes, a kernel per
+        batch of coefficients whatever K."""
         seg, basis = self.segments, self.basis
+        if not basis.indexed:
+            return self._scatter_terms(self._list_terms())
         Float, UInt32 = seg.Float, backend.types().UInt32
         T, K, S = seg.n_texels, basis.n_coefficients, seg.n_segments
-        self._check_index_range(T, K)
         flat = dr.zeros(Float, T * K)
         if S == 0:
             return flat
         texel, c0, c1, tau_in, tau_front = self._clipped_segments()
-        add = dr.ReduceOp.Add
-        if basis.indexed:
-            dr.eval(texel, c0, c1, tau_in, tau_front)
-            batches = self._coefficient_batches(S)
-            for j0, kc in batches:
-                lane = dr.arange(UInt32, S * kc)
-                s = lane // kc                                   # segment
-                j = dr.opaque(UInt32, j0) + lane % kc            # coefficient
-                u0, u1 = dr.gather(Float, c0, s), dr.gather(Float, c1, s)
-                val = (dr.gather(Float, tau_in, s) * basis.average_at(j, u0, u1)
-                       + dr.gather(Float, tau_front, s) * basis.f_at(j, dr.zeros(Float, S * kc)))
-                dr.scatter_reduce(add, flat, val, dr.gather(UInt32, texel, s) * K + j)
-                if len(batches) > 1:
-                    dr.eval(flat)
-        else:
-            avg = basis.average(c0, c1)                 # mean of f_k over [c0, c1]
-            f_near = basis.f(dr.zeros(Float, 1))        # f_k(0): the part in front of near
-            base = texel * K
-            for k in range(K):
-                kk = dr.opaque(UInt32, k) if K > LIST_UNROLL else k    # one kernel per chunk
-                dr.scatter_reduce(add, flat, tau_in * avg[k] + tau_front * f_near[k], base + kk)
-                if K > LIST_UNROLL and k % LIST_CHUNK == LIST_CHUNK - 1:
-                    dr.eval(flat)
+        dr.eval(texel, c0, c1, tau_in, tau_front)
+        batches = self._coefficient_batches(S)
+        for j0, kc in batches:
+            lane = dr.arange(UInt32, S * kc)
+            s = lane // kc                                   # segment
+            j = dr.opaque(UInt32, j0) + lane % kc            # coefficient
+            u0, u1 = dr.gather(Float, c0, s), dr.gather(Float, c1, s)
+            val = (dr.gather(Float, tau_in, s) * basis.average_at(j, u0, u1)
+                   + dr.gather(Float, tau_front, s) * basis.f_at(j, dr.zeros(Float, S * kc)))
+            dr.scatter_reduce(dr.ReduceOp.Add, flat, val, dr.gather(UInt32, texel, s) * K + j)
+            if len(batches) > 1:
+                dr.eval(flat)
         dr.eval(flat)
         return flat
 
-    def _project_list_texels(self):
-        """a_k of a basis in list form (no indexed forms: Legendre, moments, user bases)
-        without atomics: per-texel sums in CSR order (:meth:`_sum_per_texel`) of each
-        segment's ``tau_in avg_k + tau_front f_k(0)``, the expressions of
-        :meth:`_project_scatter`."""
+    def _list_terms(self):
+        """``terms(z0, z1, tau, texel)`` of a basis in list form: each segment's
+        ``tau_in avg_k + tau_front f_k(0)`` (:func:`clip_segment`, ``Basis.average``)."""
         basis = self.basis
         f_near = basis.f(dr.zeros(self.segments.Float, 1))      # f_k(0): the part in front of near
 
@@ -356,17 +284,33 @@ class BasisRepresentation(Representation):
             avg = basis.average(c0, c1)                        # mean of f_k over [c0, c1]
             return [t_in * avg[k] + t_front * f_near[k] for k in range(basis.n_coefficients)]
 
-        return self._sum_per_texel(terms)
+        return terms
+
+    def _scatter_terms(self, terms):
+        """Flat ``[texel * K + k]`` sums over each texel's segments of ``terms(z0, z1, tau,
+        texel)`` (K values per segment) by scatter-add, one per k (evaluated every LIST_CHUNK
+        coefficients beyond LIST_UNROLL); differentiable."""
+        seg = self.segments
+        UInt32, K = backend.types().UInt32, self.basis.n_coefficients
+        flat = dr.zeros(seg.Float, seg.n_texels * K)
+        if seg.n_segments == 0:
+            return flat
+        texel = seg.texel_of_segment()
+        every, base = terms(seg.z0, seg.z1, seg.optical_depth, texel), texel * K
+        for k in range(K):
+            kk = dr.opaque(UInt32, k) if K > LIST_UNROLL else k    # one kernel per chunk
+            dr.scatter_reduce(dr.ReduceOp.Add, flat, every[k], base + kk)
+            if K > LIST_UNROLL and k % LIST_CHUNK == LIST_CHUNK - 1:
+                dr.eval(flat)
+        dr.eval(flat)
+        return flat
 
     def _sum_per_texel(self, terms):
-        """Flat ``[texel * K + k]`` sums over each texel's segments of ``terms(z0, z1, tau,
-        texel)`` (K values per segment), deterministic (:func:`._loops.texel_sums`: one lane
-        per texel adds its segments in CSR order; no float atomics, whose order follows the
-        threads).  Below LIST_UNROLL coefficients the terms are computed inside that loop
-        (nothing stored per segment; so a list basis' ``f`` / ``average``
-        must not ``dr.eval`` there); from it on, where a list basis may evaluate its own
-        chunks (Legendre's recurrence does beyond LIST_UNROLL terms of ``F``), for every
-        segment first, then summed LIST_CHUNK coefficients at a time."""
+        """:meth:`_scatter_terms` without atomics (:func:`._loops.texel_sums`: one lane per
+        texel adds its segments in CSR order, the same bits every run).  Below
+        LIST_UNROLL coefficients the terms are computed inside that loop (so a list basis'
+        ``f`` / ``average`` must not ``dr.eval``), from it on for every segment first, then
+        summed LIST_CHUNK coefficients at a time."""
         seg = self.segments
         Float, UInt32 = seg.Float, backend.types().UInt32
         T, K = seg.n_texels, self.basis.n_coefficients
@@ -395,28 +339,19 @@ class BasisRepresentation(Representation):
 
     def _project_texels(self):
         """a_k of an indexed basis with one lane per (non-empty texel, coefficient), each
-        looping over the texel's segments (CSR offsets) in order and summing in a register,
-        then one plain scatter: no atomics, no per-segment temporaries, the same bits every
-        run.  Each contribution is the same float expression as in :meth:`_project_scatter`
-        (:func:`clip_segment`, ``average_at``, ``f_at``); only the summation order differs
-        (the texel's segments in CSR order here).  A texel's K lanes are adjacent, so a SIMD
-        packet runs one loop length (faster than the K sums of a texel in the registers of
-        one lane)."""
+        summing the texel's segments in CSR order in a register (the expressions of
+        :meth:`_project_scatter`), then one plain scatter: the same bits every run."""
         seg, basis = self.segments, self.basis
         Float, UInt32 = seg.Float, backend.types().UInt32
         T, K = seg.n_texels, basis.n_coefficients
         flat = dr.zeros(Float, T * K)
-        lanes_np = np.nonzero(seg.counts > 0)[0]
-        lanes = A.to_uint32(lanes_np)
-        offsets = seg.offsets_dr()
-        first = dr.gather(UInt32, offsets, lanes)
-        end = dr.gather(UInt32, offsets, lanes + 1)       # one past the texel's last segment
+        lanes, first, end = texel_lanes(seg)
         z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
-        batches = self._coefficient_batches(lanes_np.size)
+        batches = self._coefficient_batches(dr.width(lanes))
         if len(batches) > 1:
             dr.eval(first, end)
         for j0, kc in batches:
-            lane = dr.arange(UInt32, lanes_np.size * kc)
+            lane = dr.arange(UInt32, dr.width(lanes) * kc)
             t = lane // kc                                       # texel's lane
             j = dr.opaque(UInt32, j0) + lane % kc                # coefficient
             texel = dr.gather(UInt32, lanes, t)
@@ -435,7 +370,6 @@ class BasisRepresentation(Representation):
             dr.eval(flat)
         return flat
 
-    # -------------------------------------------------------- reconstruction
     def normalized_depth(self, texel, depth):
         """u = clamp((depth - near) / (far - near), 0, 1) for each receiver."""
         near, span = self._range(texel)
@@ -443,10 +377,8 @@ class BasisRepresentation(Representation):
 
     @property
     def _store(self):
-        """The flat texel-major store ``[texel * K + k]`` that reconstruction reads (the
-        coefficients a_k; kinds storing a linear transform of them, e.g. OSM's cumulative
-        sums, override it).  Linear in a_k, so a weighted sum of stores is the store of the
-        weighted sum of coefficients (what prefiltering relies on)."""
+        """The flat store ``[texel * K + k]`` reconstruction reads: a_k or a linear transform
+        of them (OSM's cumulative sums), so prefiltering can weight it."""
         return self._coef
 
     def _optical_depth(self, texel, depth):
@@ -454,10 +386,8 @@ class BasisRepresentation(Representation):
         return self._reconstruct_from(self._store, texel, self.normalized_depth(texel, depth))
 
     def _reconstruct_from(self, store, row, u):
-        """D(u) = sum_k a_k g_k(u) with a_k read from a flat store ``store[row * K + k]``
-        (row: UInt32 per receiver; u: normalised depth per receiver).  Indexed bases over
-        (receiver, coefficient) lanes with block sums; others a Python loop over k,
-        evaluated every LIST_CHUNK terms beyond LIST_UNROLL."""
+        """D(u) = sum_k a_k g_k(u) with a_k read from ``store[row * K + k]`` (row: UInt32 per
+        receiver; u: normalised depth per receiver)."""
         Float, UInt32 = self.Float, backend.types().UInt32
         basis, K = self.basis, self.basis.n_coefficients
         R = dr.width(u)
@@ -481,21 +411,13 @@ class BasisRepresentation(Representation):
                 dr.eval(D)
         return D
 
-    # ---------------------------------------------------------- prefiltering
-    @property
-    def prefilterable(self) -> bool:
-        """Linear in the coefficients: ``eval(..., prefilter=True)`` filters the stored map."""
-        return True
+    prefilterable = True                  # linear in the coefficients
 
     def _prefiltered_eval(self, coords, depth, width, height, filter, radius):
         """T from the filtered coefficient map: per receiver ``a_k = sum_j w_j a_k[tex_j] /
-        sum_j w_j`` over the filter's taps (:func:`~avsm_dr.filtering.filtered_eval` applied
-        to each stored coefficient), then one reconstruction ``exp(-sum_k a_k g_k(u))``.
-        With one global depth range this is exact filtering of the coefficient map (what
-        bilinear / mip filtering of a coefficient texture does in hardware).  A per-texel
-        range is refused (ValueError): each texel's a_k are coordinates over its own
-        [near, far], so their weighted sum projects no absorption, and filtering the ranges
-        as well would not make it one."""
+        sum_j w_j`` over the filter's taps (:func:`~avsm_dr.filtering.filtered_eval`), then
+        ``exp(-sum_k a_k g_k(u))``, as hardware filtering of a coefficient texture does.
+        ValueError with a per-texel range (each texel's a_k live on its own [near, far])."""
         if self._per_texel:
             raise ValueError("prefilter: needs depth_range='global'; with 'texel' every texel's "
                              "coefficients live on its own [near, far] and cannot be averaged")
@@ -520,10 +442,8 @@ class BasisRepresentation(Representation):
         return dr.clip(dr.exp(-self._reconstruct_from(flat, dr.arange(UInt32, R), u)), 0, 1)
 
     def optical_depth(self, texel, depth):
-        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp).
-
-        texel: (K,) integer texel indices (not validated: a diagnostic, use ``eval`` for
-        checked input); depth: (K,) or scalar light-space depths.  Returns Float (K,)."""
+        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp) at (K,) texel
+        indices (not validated: a diagnostic) and (K,) or scalar depths.  Returns Float (K,)."""
         tex = texel if A.is_drjit(texel) else A.to_uint32(np.asarray(texel).astype(np.uint32))
         if A.is_drjit(depth):
             d = A.to_float(depth, self.Float)

@@ -18,18 +18,17 @@ and ``F``; lists of Dr.Jit arrays, one per coefficient)::
 from __future__ import annotations
 
 import math
-from numbers import Integral
 
 import drjit as dr
+
+from .. import validation as V
 
 SQRT2 = math.sqrt(2.0)
 #: Segment length (in u) below which Basis.average integrates f by quadrature instead of
 #: differencing F (balances eps / du against the quadrature error for ~12 cosines).
 SHORT = {"float32": 2e-2, "float64": 2e-3}
-#: List path (bases without indexed forms) beyond LIST_UNROLL coefficients: the per-k
-#: Python loop is evaluated every LIST_CHUNK coefficients with per-k constants as opaque
-#: scalars, so every chunk is the same kernel (compiled once) and no kernel grows with K
-#: (one kernel for all K compiles in time quadratic in K).
+#: List path (bases without indexed forms) beyond LIST_UNROLL coefficients: evaluated every
+#: LIST_CHUNK coefficients with per-k constants as opaque scalars (one kernel per chunk).
 LIST_UNROLL = 32
 LIST_CHUNK = 8
 
@@ -45,22 +44,8 @@ def register_basis(name: str):
     return deco
 
 
-def check_count(value, name: str, lo: int = 1, hi: int | None = None) -> int:
-    """``value`` as an int in [lo, hi], else ValueError naming ``name``."""
-    ok = isinstance(value, Integral) and not isinstance(value, bool)
-    if ok:
-        value = int(value)
-        ok = value >= lo and (hi is None or value <= hi)
-    if not ok:
-        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ValueError(f"{name}: expected an integer {rng}, got {value!r}")
-    return value
-
-
-# ----------------------------------------------------------------------------
-# Exactly periodic trigonometry: the argument is reduced before the multiply by
-# pi, so integer arguments give sin = 0 exactly (T exact at far, Jansen and Bavoil 2010, eq. 3).
-# ----------------------------------------------------------------------------
+# Exactly periodic trigonometry: the argument is reduced before the multiply by pi, so
+# integer arguments give sin = 0 exactly (T exact at far, Jansen and Bavoil 2010, eq. 3).
 def sincos_pi(y):
     """(sin(pi y), cos(pi y)) with y reduced to r = y - floor(y) in [0, 1) first."""
     n = dr.floor(y)
@@ -91,9 +76,6 @@ def sinc(x):
     return dr.select(x > 0.1, dr.sin(safe) / safe, taylor)
 
 
-# ----------------------------------------------------------------------------
-# The basis interface
-# ----------------------------------------------------------------------------
 class Basis:
     """A set of ``n_coefficients`` projection functions on [0, 1].
 
@@ -114,7 +96,7 @@ class Basis:
     indexed = False
 
     def __init__(self, n: int, arg: str = "n"):
-        self.n = check_count(n, arg)
+        self.n = V.integer(n, arg, 1)
 
     @property
     def n_coefficients(self) -> int:

@@ -20,19 +20,14 @@ Per texel, with ``a`` = first entry (min z0), ``b`` = last exit (max z1) and
   variant), ``T = 1`` in front, ``exp(-tau_max)`` behind.
 
 Stored per texel: ``a``, the extent ``e = b - a`` and ``tau_max`` ('cloud') or
-``exp(-tau_max)`` ('two_node'); the mean extinction ``sigma_mean = tau_max / e`` is
-formed at lookup (``T(d) = exp(-tau_max clamp((d - a) / e, 0, 1))``), so no stored value
-carries the texel's depth units: a stored extinction underflows float16 for long texels and
-saturates it for thin ones.  3 floats per texel in the segments' dtype
-(``nbytes_per_texel = 3 itemsize``); ``precision=`` (:mod:`._precision`) stores 3 codes
-(``3 x`` the code bytes): ``a`` relative to one global depth range, ``e`` over the map's
-largest extent (non-negative ``coefficient``), ``tau_max`` as a ``scalar`` (float16 /
-logarithmic unorm code, relative error, one global scale), ``exp(-tau_max)`` as a
-``transmittance``; the global range and scales count no bytes per texel.
-Gradients flow to the optical depths (``tau_max`` is a sum of them); ``a`` and ``e`` are
-taken from the segments' depths without gradients.  Without gradients ``tau_max`` is summed
-per texel in CSR order (:func:`._loops.texel_sums`: the same bits every run), with them by
-``dr.scatter_reduce`` (float atomics: the last bits vary between runs).
+``exp(-tau_max)`` ('two_node'); the mean extinction is formed at lookup
+(``T(d) = exp(-tau_max clamp((d - a) / e, 0, 1))``), so no stored value carries depth
+units (a stored extinction would underflow or saturate float16).  ``nbytes_per_texel =
+3 itemsize``; ``precision=`` (:mod:`._precision`) stores 3 codes: ``a`` relative to one
+global depth range, ``e`` over the largest extent, ``tau_max`` as a ``scalar``,
+``exp(-tau_max)`` as a ``transmittance`` (global ranges and scales count no bytes per texel).
+Gradients flow to the optical depths (``tau_max`` is their sum, per texel in CSR order
+without gradients, scatter-added with them); ``a`` and ``e`` carry none.
 """
 from __future__ import annotations
 
@@ -51,14 +46,9 @@ VARIANTS = ("cloud", "two_node")
 
 @register("beer")
 class BeerShadowMap(Representation):
-    """Beer shadow map: front depth, extent and maximum optical depth per texel
-    (``variant='cloud'``: the mean extinction over the extent), or two (depth, T) nodes
-    with linear interpolation (``variant='two_node'``); see the module docstring.
-
-    Attributes (Dr.Jit, one value per texel): ``front`` (first entry), ``extent``
-    (last exit - first entry), ``tau_max`` (total optical depth), ``t_back``
-    (``exp(-tau_max)``); properties ``back`` (``front + extent``) and ``sigma_mean``
-    (``tau_max / extent``, 0 where the extent is 0).
+    """Beer shadow map (module docstring).  Attributes (Dr.Jit, one value per texel):
+    ``front`` (first entry), ``extent`` (last exit - first entry), ``tau_max`` (total optical
+    depth), ``t_back`` (``exp(-tau_max)``); properties ``back`` and ``sigma_mean``.
     """
 
     schema = Schema(
@@ -81,7 +71,6 @@ class BeerShadowMap(Representation):
             lo[empty] = segments.bounds()[0]
         ext = np.where(empty, 0.0, hi - lo)
         self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(ext))
-        # tau_max: total optical depth of the texel
         self.tau_max = dr.zeros(Float, segments.n_texels)
         if segments.n_segments and segments.requires_grad:
             dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth,
@@ -119,10 +108,7 @@ class BeerShadowMap(Representation):
         return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False, length=True),
                 third)
 
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:
-            return self._stored_nbytes
+    def _native_bytes(self) -> float:
         return 3 * self.segments.itemsize
 
     def _eval_texels(self, texel, depth):

@@ -7,129 +7,250 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
 
     |DSM(z) - V(z)| <= epsilon   for every depth z        (Lokovic-Veach error bound)
 
-Pipeline (one build, three phases):
-
-1. **Exact curve as a polyline** (phase A).  ``V(z) = exp(-tau(z))`` with the optical
-   depth ``tau`` piecewise linear between the texel's sorted unique segment ends
-   ("breakpoints") and steps at zero-length segments (a receiver at a step depth is
-   behind it, as in :mod:`.exact`).  ``tau`` at every breakpoint comes from events
-   sorted inside each texel (NumPy row sorts, O(S log S); skipped when the segments
-   are already sorted and disjoint) and a prefix sum (one Dr.Jit lane per texel; the
-   slope is a compensated sum so that short dense segments do not wipe out small
-   ones).  Between breakpoints ``V`` is exactly exponential; the polyline adds vertices
-   where ``V`` crosses a fixed table of levels ``L_0 = 1 > L_1 > ... > L_N`` with ::
+1. **Exact curve as a polyline** (phase A, :mod:`._dsm_polyline`).  ``V(z) = exp(-tau(z))``
+   with ``tau`` piecewise linear between the texel's sorted unique segment ends
+   ("breakpoints"), steps at zero-length segments (a receiver at a step depth is behind it,
+   as in :mod:`.exact`).  The polyline adds vertices where ``V`` crosses the levels ::
 
        L_{n+1} = L_n exp(-kappa_n),  kappa_n = sqrt(8 eps_p / L_n),  L_N <= eps_p,
 
-   so that every polyline piece lies inside one band ``[L_{n+1}, L_n]`` and its chord
-   error is at most ``max|V''| h^2 / 8 = L_n kappa^2 / 8 <= eps_p`` (below ``L_N`` both
-   curves lie in ``[0, eps_p]``).  This replaces uniform subdivision: a monotone curve
-   crosses each level once, so a texel's polyline has at most ``2 B + N`` vertices
-   (B breakpoints, N ~ sqrt(1 / eps_p) levels) however opaque a segment is.  Inserted
-   depths are rounded to the storage dtype first and their values are the exact curve
-   at the rounded depth, so stored depths are exact and vertices sit on ``V``.  A
-   crossing that rounds onto the previous vertex (a curve dropping within one ulp, e.g.
-   an opaque segment of sub-ulp length at a large depth offset) moves to the next
-   representable depth, and levels already passed there are skipped: dropping it would
-   leave the chord to the next breakpoint far above ``V``.
-   ``eps_p = epsilon / 4``.  Level crossings: one Dr.Jit lane per breakpoint (a
-   counting pass, an exclusive sum, a writing pass).
+   so each piece lies in one band ``[L_{n+1}, L_n]`` with chord error
+   ``max|V''| h^2 / 8 = L_n kappa^2 / 8 <= eps_p``; at most ``2 B + N`` vertices per texel
+   (B breakpoints, N ~ sqrt(1 / eps_p) levels).  Inserted depths are rounded to the storage
+   dtype (a crossing rounding onto the previous vertex moves to the next representable
+   depth) and take the exact curve's value there.  ``eps_p = epsilon / 4``.
 
-2. **Greedy compression** (phase B, Lokovic-Veach's algorithm): from the current origin
-   vertex keep the window ``[lo, hi]`` of slopes whose line from the origin passes
-   within ``delta = epsilon / 2`` of every polyline vertex seen so far (band clipped to
-   ``[0, 1]``, ``hi <= 0`` so the result is non-increasing); when the window empties,
-   emit a node at the depth of the last vertex that fitted and restart from it.  A
-   vertex at the origin's depth (a step) only asks the origin value to lie in its band,
-   otherwise a vertical step node is emitted.  The last vertex becomes a node unless
-   the slope 0 still fits (then the last node's value holds to the end).  Two node
-   placements:
+2. **Greedy compression** (phase B, :func:`compress`, Lokovic-Veach's algorithm): from
+   the current origin keep the window ``[lo, hi]`` of slopes whose line passes within
+   ``delta = epsilon / 2`` of every vertex seen so far (band clipped to ``[0, 1]``,
+   ``hi <= 0``: non-increasing); when it empties, emit a node at the last vertex that
+   fitted and restart from it.  ``placement="midslope"`` (default, the paper's): the node
+   lies on the mid-slope line ``(lo + hi) / 2``; ``placement="curve"``: nodes are polyline
+   vertices (exact curve values, differentiable with the node depths held fixed).
+   Error: polyline <= eps_p, compression <= delta, so ``|DSM - V| <= 3 epsilon / 4`` in
+   exact arithmetic; the remaining ``epsilon / 4`` absorbs the rounding of inserted depths.
+   Phases A and B run in float64; nodes are stored in the segments' dtype.
 
-   * ``placement="midslope"`` (default, the paper's): the node lies on the line with the
-     mid slope ``(lo + hi) / 2``, up to ``delta`` off the curve, and is the next origin.
-   * ``placement="curve"``: nodes are a subset of the polyline vertices (values on the
-     exact curve); a vertex is accepted while the chord to it stays within ``delta`` of
-     the vertices in between.  Slightly more nodes; the node values are exact curve
-     values, hence differentiable w.r.t. the segments with the node depths held fixed.
-
-   Error: polyline <= eps_p, compression <= delta (the difference of two polylines
-   whose kinks are all at polyline vertices is bounded by its values there), so
-   ``|DSM - V| <= 3 epsilon / 4`` in exact arithmetic; the remaining ``epsilon / 4``
-   absorbs the rounding of inserted depths (a rounded piece may straddle two bands).
-   One Dr.Jit lane per texel runs a ``dr.while_loop`` over the texel's CSR polyline,
-   scattering nodes into an output buffer of the polyline's size; nodes are then
-   compacted to CSR.  Phases A and B run in float64; nodes are stored in the segments'
-   dtype.
-
-3. **Lookup** (phase C): per receiver, binary search of the texel's nodes for the last
-   node with ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of
-   the first node, the last node's value behind the last one; empty texels ``V = 1``.
+3. **Lookup** (phase C): binary search of the texel's nodes for the last node with
+   ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of the first node
+   and in empty texels, the last node's value behind the last one.
 
 Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4``
-(the (depth, value) pairs plus one 4-byte CSR offset).
-
-Memory: phases A and B hold ~``TEMP_BYTES_PER_SEGMENT`` bytes per segment (float64 host
-events, device prefix sums, polyline, node buffers), so they run on chunks of texels
-sized from the output built so far (:func:`next_chunk_segments`); each chunk's nodes are
-kept in the storage dtype.  The build's peak stays within a few times the output's size.
-Texels are independent, so the nodes do not depend on the chunking.
-
-Code: phase A (and the polyline's memory bound) in :mod:`._dsm_polyline`, phase B in
-:mod:`._dsm_compress`, the chunks in :mod:`._dsm_chunks`, the representation (build loop,
-storage, phase C) here; the public names of those modules are re-exported here.
+(the (depth, value) pairs plus one 4-byte CSR offset).  Phases A and B run on chunks of
+texels (:func:`next_chunk_segments`; texels are independent, so the nodes do not depend on the
+chunking), so the build's peak stays within a few times the output's size.
 """
 from __future__ import annotations
-
-import math
 
 import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from . import _curve
 from .registry import register
+from .avsm import csr_bracket, lerp
 from .base import Representation
 from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema
-from .exact import exact_values
-# phase A, phase B and the chunks of the build live in private modules; their public names
-# are re-exported here, their old home
 from ._dsm_polyline import (  # noqa: F401
     BYTES_PER_VERTEX, MEMORY_BUDGET_BYTES, POLYLINE_SHARE, breakpoints, check_polyline_size, exact_polyline,
-    next_up, prefix_optical_depth, sort_within_texels, transmittance_levels)
-from ._dsm_compress import BAND_SHARE, PLACEMENTS, compress  # noqa: F401
-from ._dsm_chunks import (  # noqa: F401
-    MAX_CHUNK_SEGMENTS, MIN_CHUNK_SEGMENTS, TEMP_BYTES_PER_SEGMENT, chunk_end, concatenate, host_range,
-    next_chunk_segments)
+    lanes_by_length, next_up, prefix_optical_depth, sort_within_texels, transmittance_levels)
 
 #: smallest accepted tolerance (the level table has ~1/sqrt(2 eps_p) entries)
 MIN_TOLERANCE = 1e-9
+PLACEMENTS = ("midslope", "curve")
+#: share of epsilon given to the compression band (phase B)
+BAND_SHARE = 0.5
 
 
-# ----------------------------------------------------------------------------
-# The representation
-# ----------------------------------------------------------------------------
+def compress(poly, delta: float, placement: str = "midslope"):
+    """Greedy slope-window compression of every texel's polyline (:func:`~._dsm_polyline.exact_polyline`)
+    within ``delta``.  Returns (counts (T,) int64, z, v, src): float64 NumPy node depths /
+    values and the vertex whose depth each node takes, in CSR by counts."""
+    t = backend.types()
+    F64, U32, Bool = t.Float64, t.UInt32, t.Bool
+    off = poly["off"]
+    n_tex = off.size - 1
+    nv = int(off[-1])
+    if nv == 0:
+        e = np.zeros(0)
+        return np.zeros(n_tex, np.int64), e, e, np.zeros(0, np.int64)
+    lanes = lanes_by_length(off)
+    start = U32(A.aligned(off[lanes].astype(np.uint32)))
+    end = U32(A.aligned(off[lanes + 1].astype(np.uint32)))
+    pz, pv = poly["z"], poly["v"]
+    out_z, out_v, out_src = dr.zeros(F64, nv), dr.zeros(F64, nv), dr.zeros(U32, nv)
+    n = lanes.size
+    inf = float("inf")
+
+    # the first vertex is always the first node
+    zo, vo = dr.gather(F64, pz, start), dr.gather(F64, pv, start)
+    dr.scatter(out_z, zo, start)
+    dr.scatter(out_v, vo, start)
+    dr.scatter(out_src, start, start)
+
+    def band(vk):
+        """Admissible values at a vertex: [max(v - delta, 0), min(v + delta, 1)]."""
+        return dr.maximum(vk - delta, 0.0), dr.minimum(vk + delta, 1.0)
+
+    def emit(cnt, active, z_new, v_new, src):
+        idx = start + cnt
+        dr.scatter(out_z, z_new, idx, active)
+        dr.scatter(out_v, v_new, idx, active)
+        dr.scatter(out_src, src, idx, active)
+        return cnt + dr.select(active, U32(1), U32(0))
+
+    def cond(k, *_):
+        return k < end
+
+    if placement == "midslope":
+        # state: k next vertex, (zo, vo) origin, [lo, hi] slope window, has_w window
+        # holds a constraint, (zp, ip) last vertex that fitted, cnt nodes emitted
+        def body(k, zo, vo, lo, hi, has_w, zp, ip, cnt):
+            zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
+            a, b = band(vk)
+            dz = zk - zo
+            vertical = dz <= 0
+            sdz = dr.select(vertical, 1.0, dz)
+            nlo = dr.maximum(lo, (a - vo) / sdz)
+            nhi = dr.minimum(hi, (b - vo) / sdz)
+            nlo = dr.select(has_w, nlo, dr.minimum(nlo, nhi))    # first constraint always fits
+            accept = dr.select(vertical, (vo >= a) & (vo <= b), nlo <= nhi)
+            step = vertical & ~accept        # step at the origin's depth: node (zo, vk)
+            brk = ~vertical & ~accept        # window empty: node on the mid-slope line at zp
+            s = 0.5 * (lo + hi)
+            v_line = dr.maximum(vo + s * (zp - zo), 0.0)
+            z_new = dr.select(step, zo, zp)
+            v_new = dr.select(step, vk, v_line)
+            emitted = step | brk
+            cnt = emit(cnt, emitted, z_new, v_new, dr.select(step, k, ip))
+            fit = accept & ~vertical
+            lo = dr.select(fit, nlo, dr.select(emitted, -inf, lo))
+            hi = dr.select(fit, nhi, dr.select(emitted, 0.0, hi))
+            has_w = dr.select(fit, True, dr.select(emitted, False, has_w))
+            zo = dr.select(emitted, z_new, zo)
+            vo = dr.select(emitted, v_new, vo)
+            zp = dr.select(accept, zk, dr.select(brk, zp, zo))
+            ip = dr.select(accept | step, k, ip)
+            k = dr.select(accept | step, k + 1, k)
+            return k, zo, vo, lo, hi, has_w, zp, ip, cnt
+
+        state = (start + 1, zo, vo, dr.full(F64, -inf, n), dr.zeros(F64, n),
+                 dr.zeros(Bool, n), F64(zo), U32(start), dr.full(U32, 1, n))
+        k, zo, vo, lo, hi, has_w, zp, ip, cnt = dr.while_loop(state, cond, body,
+                                                              label="dsm_compress_midslope")
+        v_last = dr.maximum(vo + 0.5 * (lo + hi) * (zp - zo), 0.0)
+        flat_tail = (lo <= 0) & (hi >= 0)      # the origin's value holds to the end
+        cnt = emit(cnt, has_w & ~flat_tail, zp, v_last, ip)
+    elif placement == "curve":
+        # state: k next vertex, (zo, vo) origin, [lo, hi] slopes of chords that keep the
+        # vertices between origin and k within delta, (zp, vp, ip) last feasible vertex
+        def body(k, zo, vo, io, lo, hi, zp, vp, ip, cnt):
+            zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
+            a, b = band(vk)
+            dz = zk - zo
+            vertical = dz <= 0
+            sdz = dr.select(vertical, 1.0, dz)
+            sk = (vk - vo) / sdz
+            feasible = vertical | ((sk >= lo) & (sk <= hi))
+            in_band = (vo >= a) & (vo <= b)
+            nlo = dr.select(vertical, dr.select(in_band, lo, inf), dr.maximum(lo, (a - vo) / sdz))
+            nhi = dr.select(vertical, hi, dr.minimum(hi, (b - vo) / sdz))
+            brk = ~feasible
+            cnt = emit(cnt, brk, zp, vp, ip)
+            lo = dr.select(feasible, nlo, -inf)
+            hi = dr.select(feasible, nhi, inf)
+            zo = dr.select(brk, zp, zo)
+            vo = dr.select(brk, vp, vo)
+            io = dr.select(brk, ip, io)
+            zp = dr.select(feasible, zk, zp)
+            vp = dr.select(feasible, vk, vp)
+            ip = dr.select(feasible, k, ip)
+            k = dr.select(feasible, k + 1, k)
+            return k, zo, vo, io, lo, hi, zp, vp, ip, cnt
+
+        state = (start + 1, zo, vo, U32(start), dr.full(F64, -inf, n), dr.full(F64, inf, n),
+                 F64(zo), F64(vo), U32(start), dr.full(U32, 1, n))
+        k, zo, vo, io, lo, hi, zp, vp, ip, cnt = dr.while_loop(state, cond, body,
+                                                              label="dsm_compress_curve")
+        flat_tail = (lo <= 0) & (hi >= 0)      # the origin's value holds to the end
+        cnt = emit(cnt, (ip != io) & ~flat_tail, zp, vp, ip)
+    else:
+        raise ValueError(f"placement: expected one of {PLACEMENTS}, got {placement!r}")
+
+    dr.eval(out_z, out_v, out_src, cnt)
+    counts = np.zeros(n_tex, np.int64)
+    counts[lanes] = cnt.numpy()
+    # compact: node j of texel i sits at off[i] + j in the output buffer
+    node_off = np.concatenate([[0], np.cumsum(counts)])
+    idx = np.repeat(off[:-1], counts) + (np.arange(node_off[-1]) - np.repeat(node_off[:-1], counts))
+    return counts, out_z.numpy()[idx], out_v.numpy()[idx], out_src.numpy()[idx].astype(np.int64)
+
+#: Temporaries of phases A and B per segment of a chunk (bytes, host and device), and the
+#: bounds of a chunk's segments (:func:`next_chunk_segments`).
+TEMP_BYTES_PER_SEGMENT = 400
+MIN_CHUNK_SEGMENTS = 1 << 13
+MAX_CHUNK_SEGMENTS = 1 << 18
+
+
+def chunk_end(offsets: np.ndarray, t0: int, per_chunk: int) -> int:
+    """End ``t1`` of the chunk of texels that starts at ``t0`` and holds about ``per_chunk``
+    segments (at least one texel: a texel's curve needs all of its segments)."""
+    t1 = int(np.searchsorted(offsets, offsets[t0] + per_chunk, side="right")) - 1
+    return min(max(t1, t0 + 1), offsets.size - 1)
+
+
+def next_chunk_segments(output_bytes: float, segments_done: int, n_segments: int) -> int:
+    """Segments of the next chunk: the output extrapolated from the chunks built
+    (``output_bytes`` over ``segments_done`` of ``n_segments``) over
+    ``TEMP_BYTES_PER_SEGMENT``, clamped to [MIN_CHUNK_SEGMENTS, MAX_CHUNK_SEGMENTS] (the
+    first chunk: the minimum, below which kernel launches dominate)."""
+    if segments_done <= 0:
+        return MIN_CHUNK_SEGMENTS
+    estimate = output_bytes * n_segments / segments_done
+    return int(min(MAX_CHUNK_SEGMENTS, max(MIN_CHUNK_SEGMENTS, estimate // TEMP_BYTES_PER_SEGMENT)))
+
+
+def host_range(x, s0: int, s1: int) -> np.ndarray:
+    """Entries ``s0:s1`` of the Dr.Jit array ``x`` as float64 NumPy (the LLVM backend's
+    ``numpy()`` is a view of its buffer; elsewhere only the range is gathered and copied)."""
+    x = dr.detach(x)
+    dr.eval(x)
+    if dr.backend_v(x) == dr.JitBackend.LLVM:
+        return np.asarray(x.numpy()[s0:s1], np.float64)
+    U32 = backend.types().UInt32
+    idx = dr.arange(U32, s1 - s0) + dr.opaque(U32, s0)
+    return np.asarray(dr.gather(type(x), x, idx).numpy(), np.float64)
+
+
+def concatenate(parts: list, k: int) -> np.ndarray:
+    """Entry ``k`` of every chunk's tuple, concatenated into one 64-byte aligned array
+    (:func:`avsm_dr._arrays.aligned`); each part is released once copied."""
+    dtype = parts[0][k].dtype if parts else np.float64
+    n = sum(p[k].size for p in parts)
+    buf = np.empty(n + (64 + A.TAIL_PAD) // dtype.itemsize, dtype)
+    first = (-buf.ctypes.data % 64) // dtype.itemsize
+    out = buf[first:first + n]
+    at = 0
+    for i, p in enumerate(parts):
+        out[at:at + p[k].size] = p[k]
+        at += p[k].size
+        parts[i] = p[:k] + (None,) + p[k + 1:]
+    return out
+
+
 @register("dsm")
 class DeepShadowMap(Representation):
-    """Deep shadow map with error bound ``tolerance`` (see the module docstring).
+    """Deep shadow map with error bound ``tolerance`` (module docstring; default 0.01, the
+    value of Salvi et al. 2010, table 1).
 
-    Parameters (of ``ad.build("dsm", segments, ...)``): ``tolerance``, epsilon, the bound on
-    ``|DSM(z) - V(z)|``, in [1e-9, inf) (default 0.01, the value of Salvi et al. 2010,
-    "Adaptive Volumetric Shadow Maps", table 1); ``placement``, 'midslope' (Lokovic-Veach,
-    not differentiable) or 'curve' (nodes on the exact curve; gradients w.r.t. optical depth
-    with the node depths held fixed).
-
-    Attributes after the build: ``node_counts`` (T,) int64 NumPy; ``node_depth``,
-    ``node_value`` Dr.Jit arrays in CSR order; ``node_offsets`` (T+1,) int64 NumPy;
-    ``node_left`` (bool NumPy) the node's polyline vertex is the value just before a step at
-    its depth; ``n_polyline_vertices`` (T,) size of the phase-A polyline.
-
-    Limit: the build holds the phase-A polyline, up to ``2 B + N`` vertices per texel
-    (B breakpoints, N ~ sqrt(2 / tolerance) levels for a texel that goes opaque: 15 at
-    0.01, 1418 at 1e-6, 44,727 at 1e-9), ``BYTES_PER_VERTEX`` bytes each, one chunk of
-    texels at a time; a build whose bound summed over its chunks exceeds
-    ``_dsm_polyline.MEMORY_BUDGET_BYTES`` (2 GiB) raises ValueError naming the tolerance that fits,
-    before allocating the chunk that crosses it.
+    Attributes: ``node_counts`` (T,) and ``node_offsets`` (T+1,) int64 NumPy; ``node_depth``,
+    ``node_value`` Dr.Jit arrays in CSR order; ``node_left`` (bool NumPy: the node's vertex
+    is the value just before a step at its depth); ``n_polyline_vertices`` (T,).
+    Raises ValueError naming the tolerance that fits when the phase-A polyline bound
+    (``BYTES_PER_VERTEX`` per vertex) summed over the chunks exceeds
+    ``_dsm_polyline.MEMORY_BUDGET_BYTES``, before allocating the chunk that crosses it.
     """
 
     schema = Schema(
@@ -156,7 +277,6 @@ class DeepShadowMap(Representation):
         """Only ``placement='curve'`` (node values on the exact curve) has gradients."""
         return self.placement == "curve"
 
-    # ------------------------------------------------------------- build
     def _build(self):
         """Phases A and B chunk by chunk of texels (:func:`next_chunk_segments`); each
         chunk's nodes are kept in the storage dtype and copied once into the final arrays."""
@@ -192,39 +312,20 @@ class DeepShadowMap(Representation):
         Float = seg.Float
         self.node_depth = Float(nz)
         value = Float(nv)
-        if self.placement == "curve" and counts.sum() and self._needs_grad():
-            value = self._attach_gradients(value, nz, self.node_left, counts)
+        if self.placement == "curve":         # the exact curve's gradients at fixed node depths
+            value = _curve.attach_exact_gradients(seg, value, np.repeat(np.arange(n_tex), counts), nz, self.node_left)
         self.node_value = value
         self._offsets_dr = t.UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
         self._max_nodes = int(counts.max()) if counts.size else 0
 
-    def _needs_grad(self) -> bool:
-        return self.segments.requires_grad
-
-    def _attach_gradients(self, value, nz, left, counts):
-        """value + (V(z) - detach(V(z))): the primal stays the float64 one, the gradient is
-        that of the exact curve at each node's fixed depth (left limit before a step;
-        :func:`.exact.exact_values`, a sum loop that reverse mode recomputes)."""
-        tex = np.repeat(np.arange(counts.size), counts)
-        v = exact_values(self.segments, tex, nz, left)
-        return value + (v - dr.detach(v))
-
-    # ------------------------------------------------------------ storage
     precisions = PRECISIONS
 
     def _stored(self):
         return (Stored("node_depth", "depth", "csr"), Stored("node_value", "transmittance", "csr"))
 
-    variable_size = True
+    variable_size = True                    # sparse payload: the (depth, value) pairs
 
-    def texel_payload_bytes(self):
-        """Sparse layout: a texel's (depth, value) pairs."""
-        return self._csr_payload(self.node_counts, 2 * self.segments.itemsize)
-
-    @property
-    def nbytes_per_texel(self) -> float:
-        if self.precision is not None:      # codes + per-texel ranges (:mod:`._precision`) + offset
-            return self._stored_nbytes + 4
+    def _native_bytes(self) -> float:
         mean = float(self.node_counts.mean()) if self.node_counts.size else 0.0
         return 2 * self.segments.itemsize * mean + 4
 
@@ -235,39 +336,18 @@ class DeepShadowMap(Representation):
         v = np.asarray(dr.detach(self.node_value).numpy(), np.float64)
         return z[s], v[s]
 
-    # -------------------------------------------------------------- lookup
     def _eval_texels(self, texel, depth):
         Float = self.Float
-        UInt32 = backend.types().UInt32
         if self._max_nodes == 0:
             return dr.full(Float, 1.0, dr.width(depth))
-        start = dr.gather(UInt32, self._offsets_dr, texel)
-        end = dr.gather(UInt32, self._offsets_dr, texel + 1)
         zs, vs = self.node_depth, self.node_value
-        # binary search: j = first node in [start, end) with z_j > depth
-        lo, hi = UInt32(start), UInt32(end)
-        for _ in range(max(1, math.ceil(math.log2(self._max_nodes + 1)))):
-            live = lo < hi
-            mid = (lo + hi) >> 1
-            below = dr.gather(Float, zs, mid, live) <= depth
-            lo = dr.select(live & below, mid + 1, lo)
-            hi = dr.select(live & ~below, mid, hi)
-        j = lo
-        inside = (j > start) & (j < end)
-        after = (j > start) & (j == end)
-        ja = dr.select(j > start, j - 1, start)
-        jb = dr.select(inside, j, ja)
-        za = dr.gather(Float, zs, ja, j > start)
-        zb = dr.gather(Float, zs, jb, j > start)
-        va = dr.gather(Float, vs, ja, j > start)
-        vb = dr.gather(Float, vs, jb, j > start)
-        dz = zb - za
-        safe = dr.select(dz > 0, dz, 1.0)
-        w = dr.clip((depth - za) / safe, 0.0, 1.0)
-        interp = va + w * (vb - va)
-        out = dr.select(inside, interp, dr.select(after, va, 1.0))
+        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes,
+                                            lambda i, active: dr.gather(Float, zs, i, active), texel, depth)
+        za, zb = dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)
+        va, vb = dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)
+        out = dr.select(front, 1.0, dr.select(behind, va, lerp(za, va, zb, vb, depth, "linear")))
         out = dr.clip(out, 0.0, 1.0)
-        if self.placement == "midslope" and self._needs_grad():
+        if self.placement == "midslope" and self.segments.requires_grad:
             seg = self.segments     # a gradient request raises a clear ValueError, not Dr.Jit's
             out = dr.custom(_MidslopeNoGradient, out, seg.optical_depth, seg.z0, seg.z1)
         return out

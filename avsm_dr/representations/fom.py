@@ -28,13 +28,13 @@ from __future__ import annotations
 import math
 
 import drjit as dr
-import numpy as np
 
-from .. import _arrays as A
 from .. import backend
 from .registry import register
-from .basis import MAX_COEFFICIENTS, Basis, BasisRepresentation, clip_segment, register_basis, sinc, sincos_pi
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from ._loops import texel_lanes
+from .basis import MAX_COEFFICIENTS, BasisRepresentation
+from .basis_functions import Basis, clip_segment, register_basis, sinc, sincos_pi
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 
 @register_basis("fourier")
@@ -113,31 +113,24 @@ class FourierBasis(Basis):
         return dr.select(j == 0, 2.0, w * dr.select(is_b, s, c))
 
 
-#: Harmonics per unrolled block of the one-lane-per-receiver lookup
-#: (:meth:`FourierOpacityMap._reconstruct_from`): up to it one kernel unrolled over exactly
-#: n harmonics; beyond it blocks of this many harmonics, one kernel reused for every block
-#: and every n (its first harmonic, n and 2n + 1 opaque), the recurrence state evaluated
-#: between blocks.
+#: Harmonics per unrolled block of the lookup (:meth:`FourierOpacityMap._reconstruct_from`):
+#: beyond it one kernel reused for every block and every n (opaque indices).
 LOOKUP_UNROLL_HARMONICS = 32
 
-#: Most harmonics built by the one-lane-per-texel recurrence (its loop body is unrolled
-#: over k, so the kernel grows with n; beyond it the per-coefficient lanes, whose kernel
-#: does not).
+#: Most harmonics built by the one-lane-per-texel recurrence (its body is unrolled over k).
 RECURRENCE_HARMONICS = 16
 
 
 @register("fom")
 class FourierOpacityMap(BasisRepresentation):
-    """Fourier opacity map: ``harmonics`` n >= 1 (default 3, the paper's 7 coefficients),
-    ``near``/``far`` (default: global bounds of the segments), ``depth_range``
-    'global' | 'texel'.  ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2 itemsize per-texel
-    range).  Coefficients: ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (k = 1..n, b[0] = None)."""
+    """Fourier opacity map: n ``harmonics``; ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2
+    itemsize per-texel range).  ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (b[0] = None)."""
 
     schema = Schema(
         params=(
             Param("harmonics", "int", 3, "n harmonics: 2n + 1 coefficients per texel (the paper's 7: n = 3)",
                   min=1, max=(MAX_COEFFICIENTS - 1) // 2),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="harmonics", sweep=(1, 2, 3, 4, 6, 8, 12, 16), quick_sweep=(1, 4, 8, 16),
         examples=({"harmonics": 4}, {"harmonics": 3, "depth_range": "texel"}),
@@ -152,7 +145,7 @@ class FourierOpacityMap(BasisRepresentation):
     def _build_bytes(self, K: int) -> float:
         """The recurrence path (:meth:`_project_texels`, float32, no gradients, up to
         :data:`RECURRENCE_HARMONICS`): K sums per texel lane and the store, ``3 T K``
-        words (measured 2.58); otherwise the base class' estimate."""
+        words; otherwise the base class' estimate."""
         seg = self.segments
         if seg.Float is backend.types().Float32 and not seg.requires_grad and (K - 1) // 2 <= RECURRENCE_HARMONICS:
             return 3.0 * seg.itemsize * seg.n_texels * K
@@ -168,25 +161,18 @@ class FourierOpacityMap(BasisRepresentation):
             cos(k h) = cos((k-1) h) cos h - q_{k-1} sin(h)^2,   sinc(k h) = q_k sinc(h) / k
 
         (q_k = sin(k h) / sin(h), finite at h = 0; sinc(h) in float64, :func:`sinc`).
-        Contract: each complex product rounds by at most sqrt(2) gamma_2 (Higham 2002, sec.
-        3.6) and the base carries eps/2 per component, so cos(k a), sin(k a) are within
-        ~3.6 k eps (plus k times the error of m), below the 2 pi k eps of rounding 2 k m in
-        the per-coefficient form; sinc(k h) within ~3 k eps + 3 eps (q_k's terms are
-        positive while k h <= pi/2, beyond it 1/(k h) < 2/pi).  Float64 segments keep the
-        per-(texel, coefficient) lanes of the base class, and so do more than
-        :data:`RECURRENCE_HARMONICS` harmonics (the unrolled body grows with n)."""
+        Error (Higham 2002, sec. 3.6): cos(k a), sin(k a) within ~3.6 k eps (plus k times
+        the error of m), sinc(k h) within ~3 k eps + 3 eps.  Float64 segments and more than
+        :data:`RECURRENCE_HARMONICS` harmonics keep the base class' lanes."""
         seg = self.segments
         if seg.Float is not backend.types().Float32 or self.basis.n > RECURRENCE_HARMONICS:
             return super()._project_texels()
-        Float, UInt32 = seg.Float, backend.types().UInt32
+        Float = seg.Float
         Float64 = dr.float64_array_t(Float)
         T, n = seg.n_texels, self.basis.n
         K = 2 * n + 1
         flat = dr.zeros(Float, T * K)
-        lanes_np = np.nonzero(seg.counts > 0)[0]
-        texel = A.to_uint32(lanes_np)
-        offsets = seg.offsets_dr()
-        stop = dr.gather(UInt32, offsets, texel + 1)
+        texel, first, stop = texel_lanes(seg)
         z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
         near, span = self._range(texel if self._per_texel else None)
 
@@ -209,7 +195,7 @@ class FourierOpacityMap(BasisRepresentation):
                     qk, chk = qk * ch + chk, chk * ch - qk * sh2
             return (i + 1, *out)
 
-        state = (dr.gather(UInt32, offsets, texel), *[dr.zeros(Float, lanes_np.size) for _ in range(K)])
+        state = (first, *[dr.zeros(Float, dr.width(texel)) for _ in range(K)])
         _, *acc = dr.while_loop(state, lambda i, *acc: i < stop, body, label="fom_project")
         dr.eval(*acc)       # one loop kernel (each scatter into flat would otherwise re-run it)
         for k in range(K):
@@ -224,17 +210,12 @@ class FourierOpacityMap(BasisRepresentation):
 
             e^{i(k+1)x} = e^{ikx} e^{ix},   D = a'_0 u / 2 + sum_k (a'_k cos(kx) + b'_k sin(kx)) sin(kx) / (pi k)
 
-        (sin(2 kx) = 2 sin(kx) cos(kx), 1 - cos(2 kx) = 2 sin(kx)^2: no cancellation).  The
-        base class' per-(receiver, coefficient) lanes ran a ``sincos`` per harmonic.
-        Error (u_r: unit roundoff): sin(kx), cos(kx) are within k delta, delta ~ 12 u_r (the
-        base e^{ix} ~7 u_r, each complex product sqrt(2) gamma_2, Higham 2002, sec. 3.6), as
-        the per-harmonic form's rounding of k u (pi k u u_r) also grows with k; the 1 / (pi k)
-        weight keeps every term's error below (2 delta / pi) (|a'_k| + |b'_k|) whatever k
-        (tests/test_fom_lookup.py: measured at most 14 % of that bound plus the sum's, up to
-        the schema's 32767 harmonics).  u = 0 and u = 1 are exact: sin(pi u) = 0 keeps every
-        sin(kx) = 0, so T(near) = 1 and T(far) = exp(-a'_0 / 2) as in the build.  Blocks of
-        :data:`LOOKUP_UNROLL_HARMONICS` beyond it (the unrolled kernel grows with n).
-        Differentiable in both modes (no symbolic loop: the trace is unrolled)."""
+        (sin(2 kx) = 2 sin(kx) cos(kx), 1 - cos(2 kx) = 2 sin(kx)^2: no cancellation).
+        Error (u_r: unit roundoff): sin(kx), cos(kx) within k delta, delta ~ 12 u_r (Higham
+        2002, sec. 3.6); the 1 / (pi k) weight keeps every term's error below
+        (2 delta / pi) (|a'_k| + |b'_k|) whatever k.  u = 0 and u = 1 are exact, so
+        T(near) = 1 and T(far) = exp(-a'_0 / 2).  Blocks of :data:`LOOKUP_UNROLL_HARMONICS`
+        beyond it; differentiable in both modes (no symbolic loop)."""
         Float, UInt32 = self.Float, backend.types().UInt32
         n, L = self.basis.n, LOOKUP_UNROLL_HARMONICS
         blocks = n > L

@@ -4,22 +4,16 @@ Journal 30(1)), with AVSM's removal metric and tie rule.
 
 AVSM (Salvi et al. 2010, sec. 3.2) removes, while a texel holds more than N nodes, the
 interior node of smallest area metric ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])
-(t[i+1]-t[i-1])|`` (ties: the deepest), *while streaming* the segments in.  This kind
-runs the same removal on the whole exact curve at once: the nodes start as the curve's
-points (:mod:`._curve`: segment ends with the exact curve's values; a zero-length
-segment gives two nodes at one depth, before and after its step, as in AVSM) and the
-smallest-metric interior node is removed, the metrics of its two neighbours updated,
-until N remain; the first and last point stay.  It separates what AVSM loses by
-streaming from what it loses by being greedy (the ``avsm_gap`` experiment).
+(t[i+1]-t[i-1])|`` (ties: the deepest), *while streaming* the segments in.  This kind runs
+the same removal on the whole exact curve at once (its points, :mod:`._curve`): the
+smallest-metric interior node is removed and its neighbours' metrics updated until N
+remain, the first and last point kept (the ``avsm_gap`` experiment: streaming vs greed).
 
-The removal order does not depend on N, so it is computed once per segments (to the
-last interior point; cached) and ``nodes=N`` keeps the N points removed last.  Host
-float64: texels of up to :data:`HEAP_POINTS` points vectorised over texels of similar
-point count (O(K^2) per texel: one argmin over its points per removal), larger ones one
-at a time with a heap and lazy deletion (O(K log K); identical ranks).  Node values are
-the exact curve's (for 'exp', positive ones at least the storage dtype's smallest normal:
-:func:`.optimal.exp_stored_values`); their gradients w.r.t. the optical depths are
-those of the exact curve at the fixed node depths.  Lookup as AVSM (:func:`.avsm.interpolate`).
+The removal order does not depend on N: computed once per segments (cached), ``nodes=N``
+keeps the N points removed last.  Host float64: texels up to :data:`HEAP_POINTS` points
+vectorised (O(K^2) per texel), larger ones with a heap (O(K log K); identical ranks).  Node
+values are the exact curve's (for 'exp' as :func:`.optimal.exp_stored_values`), with its
+gradients at the fixed node depths.  Lookup as AVSM (:func:`.avsm.interpolate`).
 """
 from __future__ import annotations
 
@@ -78,20 +72,16 @@ def vw_removal_rank(x: np.ndarray, v: np.ndarray, count: np.ndarray) -> np.ndarr
 
 #: Areas that overflow count as this (the scan marks removed points with inf).
 BIG = np.finfo(np.float64).max
-#: Texels with more points than this use the heap (:func:`vw_removal_rank_heap`, O(K log K)
-#: in Python); smaller ones the vectorised O(K^2) scan, which runs over many texels at once
-#: and is faster per texel there.
+#: Texels with more points than this use the heap (:func:`vw_removal_rank_heap`), smaller
+#: ones the vectorised O(K^2) scan (faster per texel there).
 HEAP_POINTS = 1024
 
 
 def vw_removal_rank_heap(x, v, n: int) -> np.ndarray:
     """:func:`vw_removal_rank` of one curve of ``n`` points (1-D float64 ``x``, ``v``), in
-    O(n log n): a binary heap with lazy deletion (an entry is stale once its point is
-    removed or re-scored).  Keys are Python ints ``bits(area) << S | (2^S - 1 - index)``
-    (``bits``: the IEEE pattern, monotone for areas >= 0; ints compare faster than
-    tuples), so the order is the scan's: smallest area, ties the deepest point; an area
-    that overflows counts as :data:`BIG`, a NaN one comes first (``bits`` -1).  Areas use
-    the scan's float64 operations in the same order: identical ranks."""
+    O(n log n): a binary heap with lazy deletion, keys ``bits(area) << S | (2^S - 1 -
+    index)`` (the IEEE pattern, monotone for areas >= 0; NaN first, overflow :data:`BIG`):
+    the scan's order and float64 operations, identical ranks."""
     import heapq
     import struct
 
@@ -164,14 +154,8 @@ def removal_ranks(segments) -> tuple[dict, np.ndarray]:
 
 @register("greedy")
 class GreedyVW(NodeList):
-    """Offline Visvalingam-Whyatt on the exact curve: N (depth, transmittance) nodes per
-    texel (see the module docstring).
-
-    Parameters: nodes N in [2, 64]; interpolation 'linear' (default, as AVSM) or 'exp'.
-    ``nbytes_per_texel`` = 2 N itemsize (texels with fewer points repeat their last node).
-    Attributes: ``depths``/``values`` (N Dr.Jit arrays of length T), ``node_counts``
-    (T,) distinct nodes kept per texel.
-    """
+    """Offline Visvalingam-Whyatt on the exact curve (module docstring): N nodes per texel
+    (fewer points: the last repeated), 2 N itemsize; ``node_counts`` (T,) distinct nodes."""
 
     schema = Schema(
         params=(

@@ -34,57 +34,29 @@ Reconstruction (one lane per receiver): :func:`._moment_bounds.hankel_bound`, th
 ``overestimation`` (0: the lower bound, light; 1: the upper bound, dark; MBOIT uses
 0.25).  ``T = 1`` at and in front of near, ``T = exp(-b_0)`` at and behind far.
 
-Bias (``bias`` alpha, ``bias_target`` m*).  Caveat: MBOIT's table was not available to us.
-The float32 targets below for 4, 6 and 8 power moments and the float32 alphas 5e-7 (4
-moments) and 5e-5 (8 moments) agree with several independent public implementations
-(numbers compared, no code used); alpha 5e-6 for 6 moments, the trigonometric alphas and
-the 16-bit alphas are NOT corroborated.  MBOIT's 16-bit path pairs its own quantisation
-transform (not published in a form we could use) with other targets ((0, .628, 0, .628)
-for 4, (0, .5566, 0, .489, 0, .47869382) for 6, (0, .42474916, 0, .22407803, 0,
-.15369231, 0, .12900441) for 8), so our 16-bit defaults (float32 target, 16-bit alpha,
-our per-texel scaling or the MSM transform below) are ours, not MBOIT's.
-``bias=``/``bias_target=`` override them.  Target by default MBOIT's float32 vectors:
-4 moments ``(0, 0.375, 0, 0.375)``, 6 ``(0, 0.48, 0, 0.451, 0, 0.45)``,
-8 ``(0, 0.75, 0, 0.6766667, 0, 0.63, 0, 0.6003030)`` (their Hankel matrices are positive
-definite; checked at import); the former default, the uniform distribution's moments
-``1/(k+1)`` (even k), is :data:`UNIFORM_TARGET`.  alpha by default from the storage
-precision (``self.precision``, else the segments' dtype), :data:`DEFAULT_BIAS`: the 32-bit
-and 16-bit values above for 'float32' and 'float16' / 'unorm16' ('msm' in 'unorm16':
-:data:`MSM_UNORM16_BIAS`); 'float64' (ours)
-1e-9, 1e-8, 1e-7 for 4, 6, 8 moments (4: the former default); 'unorm8' (ours, nothing is
-published) the 16-bit value x 256, at most 0.5 (the quantisation step grows 256x).
-Trigonometric moments bias toward the uniform distribution on the circle
-(:mod:`._trig_moments`), alpha :data:`DEFAULT_TRIG_BIAS` (not corroborated).
+Bias (``bias`` alpha, ``bias_target`` m*; ``bias=``/``bias_target=`` override the defaults).
+Target: MBOIT's float32 vectors :data:`MBOIT_TARGET` (Hankel matrices positive definite,
+checked at import); :data:`UNIFORM_TARGET` holds the uniform distribution's ``1/(k+1)``.
+alpha by storage precision (``self.precision``, else the segments' dtype):
+:data:`DEFAULT_BIAS` (MBOIT's 32-bit / 16-bit values; float64 and unorm8, 16-bit x 256 at
+most 0.5, are ours), :data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'.  Only the float32
+targets and alphas 5e-7 (4) / 5e-5 (8) are corroborated by independent implementations;
+MBOIT's 16-bit targets go with its own transform and are not used.  Trigonometric moments
+bias toward the uniform distribution on the circle (:mod:`._trig_moments`), alpha
+:data:`DEFAULT_TRIG_BIAS`.
 
 16-bit storage (``quantization``, 4 power moments in 'float16' / 'unorm16'): 'scaled' codes
 the moments over the per-texel scale ``b_0`` like every basis kind (:mod:`._precision`, 5
 codes + a float32 scale, 14 bytes); 'msm' stores the optimised transform of Peters and Klein
 2015, sec. 5 (:mod:`._moment_quantization`: 4 codes, ``b_0`` in float32, 12 bytes).  Default
-'msm' in 'unorm16' (with alpha :data:`MSM_UNORM16_BIAS` = 5e-6), 'scaled' elsewhere.
-Measured (64^2 maps, 2048 in-volume receivers, 4 seeds x 2-3 lights = 10 configurations,
-compression RMSE vs the exact curve, pooled ratio and 95 % interval of
-:func:`avsm_dr.stats.claim`; alpha of every variant tuned on seed 4, not evaluated): unorm16
-'msm' / 'scaled' 0.956 [0.934, 0.978] on smoke_over_table, 0.9981 [0.9974, 0.9986] on
-plume, 0.9995 [0.9994, 0.9996] on hair_and_smoke (against float32 on smoke_over_table:
-'msm' 1.082 [1.065, 1.101], 'scaled' 1.132 [1.098, 1.165]); in 'float16' 'msm' loses
-(1.84 [1.73, 1.94] on smoke_over_table: half precision keeps 11 bits where q nears 1),
-so 'scaled' stays its default.  Every one of these losses comes from the opaque table stored
-inline with the smoke (b_0 ~ 1e4 leaves the smoke's moment fraction few bits): with
-``opaque='separate'`` every 16-bit variant is within 0.03 % of float32 (experiment
-``moment_storage``, which reproduces these numbers).
+'msm' in 'unorm16', 'scaled' elsewhere (experiment ``moment_storage``).
 
 Family 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`
-(phase ``phi = (pi/2) x``, bound through the Cayley transform).  Sweeps: 4, 6, 8 power
-moments (the schema's ``constraint`` rejects counts a family does not take; sweeps skip them
-through ``ad.allows``).  ``monotone`` False (bounds non-decreasing in exact arithmetic, not
-the float reconstruction).  ``nbytes_per_texel`` = ``(moments + 1)`` itemsize (+ 2 itemsize
-per-texel range); with ``precision`` as :mod:`._precision` counts it (12 bytes + ranges, 'msm').
-
-Preset (media): beta 0.45, chosen by ``python -m experiments moment_tuning`` on held-out seeds
-100-102 (6 scenes x 9 configurations, 128^2): depth-uniform L2 0.47 [0.46, 0.49], receiver RMSE
-0.47 [0.45, 0.49] x MBOIT's 0.25 (which leaks: signed mean +0.06), < 1 for every count (RMSE
-alone picks 0.4).  alpha x0.01-x10 and the target move either metric <= 2.6 % (power 8; x100:
-+15 %): they stay MBOIT's (chosen: x0.01 for power 4/6, trig 2/3; x10 for power 8, trig 4).
+(phase ``phi = (pi/2) x``, bound through the Cayley transform).  The schema's ``constraint``
+rejects counts a family does not take.  ``monotone`` False (bounds non-decreasing in exact
+arithmetic, not the float reconstruction).  ``nbytes_per_texel`` = ``(moments + 1)`` itemsize
+(+ 2 itemsize per-texel range; with ``precision`` as :mod:`._precision` counts it).
+Preset (media): beta 0.45 (experiment ``moment_tuning``).
 """
 from __future__ import annotations
 
@@ -97,35 +69,29 @@ from . import _moment_quantization as QZ
 from . import _trig_moments as TM
 from ._moment_bounds import hankel_bound, hankel_pivots
 from ._precision import quantise
-from .basis import MIN_SPAN_REL, Basis, BasisRepresentation, clip_segment, register_basis
+from .basis import MIN_SPAN_REL, BasisRepresentation
+from .basis_functions import Basis, clip_segment, register_basis
 from .registry import register
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 FAMILIES = {"power": (4, 6, 8), "trigonometric": (2, 3, 4)}
 WARPS = ("linear", "log")
-#: MBOIT's float32 bias targets m*_1..m*_2n by moment count (paper's table not available to
-#: us; these agree with several independent public implementations, numbers compared).
-#: MBOIT's 16-bit targets differ and go with its own quantisation: not used (docstring).
+#: MBOIT's float32 bias targets m*_1..m*_2n by moment count (module docstring).
 MBOIT_TARGET = {4: (0.0, 0.375, 0.0, 0.375),
                 6: (0.0, 0.48, 0.0, 0.451, 0.0, 0.45),
                 8: (0.0, 0.75, 0.0, 0.67666666666666664, 0.0, 0.63, 0.0, 0.60030303030303034)}
-#: Moments of the uniform distribution on [-1, 1] (the former bias target).
+#: Moments of the uniform distribution on [-1, 1].
 UNIFORM_TARGET = {n: tuple(0.0 if k % 2 else 1.0 / (k + 1) for k in range(1, n + 1)) for n in (4, 6, 8)}
-#: Default alpha by moment count and storage (32-bit, 16-bit).  Corroborated by independent
-#: public implementations: the 32-bit 5e-7 (4) and 5e-5 (8) only; 5e-6 (6) and every 16-bit
-#: value are NOT (module docstring); float64 and unorm8 are ours.
+#: Default alpha by moment count and storage (MBOIT's 32-bit, 16-bit; module docstring).
 _MBOIT_ALPHA = {4: (5e-7, 6e-5), 6: (5e-6, 6e-4), 8: (5e-5, 2.5e-3)}
 _FLOAT64_ALPHA = {4: 1e-9, 6: 1e-8, 8: 1e-7}
 DEFAULT_BIAS = {n: {"float32": a32, "float16": a16, "unorm16": a16, "unorm8": min(a16 * 256, 0.5),
                     "float64": _FLOAT64_ALPHA[n]} for n, (a32, a16) in _MBOIT_ALPHA.items()}
-#: Trigonometric moments (bias toward the uniform distribution on the circle): 32-bit and
-#: 16-bit alpha by moment count as transcribed for MBOIT, NOT corroborated; float64 and
-#: unorm8 ours (as for power moments).
+#: Trigonometric moments: 32-bit and 16-bit alpha as transcribed for MBOIT (not corroborated).
 _MBOIT_TRIG_ALPHA = {2: (4e-7, 4e-4), 3: (4e-7, 6.5e-4), 4: (4e-7, 8.5e-4)}
 DEFAULT_TRIG_BIAS = {n: {"float32": a32, "float16": a16, "unorm16": a16, "unorm8": min(a16 * 256, 0.5),
                          "float64": 1e-9} for n, (a32, a16) in _MBOIT_TRIG_ALPHA.items()}
-#: Storage where 4 power moments default to the MSM transform, and its default alpha (ours:
-#: tuned on seeds not evaluated; module docstring, "16-bit storage").
+#: Storage where 4 power moments default to the MSM transform, and its default alpha (ours).
 MSM_DEFAULT_PRECISION = "unorm16"
 MSM_UNORM16_BIAS = 5e-6
 #: Below this kappa = ln(z1 / z0) / 2 the log-warp segment means use the series.
@@ -248,12 +214,8 @@ def default_quantization(family: str, moments: int, precision) -> str:
 
 @register("moments")
 class MomentShadowMap(BasisRepresentation):
-    """2n power moments of the absorbance with the Hamburger bound (module docstring).
-    ``moments`` 4 | 6 | 8, ``family`` 'power', ``warp`` 'linear' | 'log', ``bias``
-    (alpha), ``bias_target``, ``overestimation`` (beta, default 0.25), ``near``/``far``,
-    ``depth_range`` 'global' | 'texel'."""
+    """Power or trigonometric moments of the absorbance with their bound (module docstring)."""
 
-    # The basis preset (per-texel range, opaque separate), beta tuned for media (module docstring).
     PRESET = dict(BasisRepresentation.PRESET, overestimation=0.45)
     schema = Schema(
         params=(
@@ -274,7 +236,7 @@ class MomentShadowMap(BasisRepresentation):
                   "scale, as every basis kind) or 'msm' (Peters & Klein 2015's optimised transform, b_0 in "
                   "float32); None: 'msm' for 4 power moments in unorm16, else 'scaled'", choices=QZ.QUANTIZATIONS,
                   nullable=True),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="moments",
         sweep=(4, 6, 8),
@@ -291,12 +253,9 @@ class MomentShadowMap(BasisRepresentation):
         return TrigMomentBasis(n) if self._trig else PowerMomentBasis(n)
 
     def _resolve(self):
-        """Every derived parameter, in this one place: ``quantization``; the bias target
-        (power: ``bias_target`` or MBOIT's, with its Hankel pivots; trigonometric: the
-        uniform distribution, through the Cayley transform); the basis, its memory check and
-        the depth range (the base class'); ``near > 0`` for the log warp; ``bias`` (None:
-        MBOIT's value for the storage precision and moment count, or Peters and Klein's
-        for 'msm')."""
+        """Every derived parameter, in this one place: ``quantization``, the bias target and
+        its pivots, the basis and depth range (base class), ``near > 0`` for the log warp,
+        ``bias`` (None: the default for the storage precision and moment count)."""
         P = self.params
         n = P["moments"]
         self._check_quantization()
@@ -323,7 +282,6 @@ class MomentShadowMap(BasisRepresentation):
             table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
             P["bias"] = table[n][self.precision or self.segments.dtype]
 
-    # ------------------------------------------------------------- storage
     def _check_quantization(self):
         """Resolve ``quantization`` (None: :func:`default_quantization`); 'msm' needs 4 power
         moments (schema constraint) and a 16-bit ``precision`` (ValueError naming it)."""
@@ -335,15 +293,13 @@ class MomentShadowMap(BasisRepresentation):
                              f"got precision={self.precision!r}")
 
     def _apply_precision(self) -> None:
-        """'msm': the moment store through :func:`._moment_quantization.encode_msm`, the
-        per-texel ranges (if any) through :mod:`._precision`; otherwise the base class'."""
+        """'msm': the moments through :mod:`._moment_quantization`, ranges as the base class."""
         if self.params["quantization"] != "msm":
             return super()._apply_precision()
         nbytes = QZ.quantise_store(self, self._stored_attr, self.precision)
         rest = tuple(f for f in self._stored() if f.attr != self._stored_attr)
         self._stored_nbytes = nbytes + quantise(self, rest)
 
-    # ------------------------------------------------------------------ warp
     @property
     def _trig(self) -> bool:
         return self.params["family"] == "trigonometric"
@@ -353,8 +309,7 @@ class MomentShadowMap(BasisRepresentation):
         return self.params["warp"] == "log"
 
     def _check_log_range(self):
-        """near > 0 for the log warp (ValueError naming near); empty texels of a per-texel
-        range get (1, 2) (no moments, any positive range)."""
+        """near > 0 for the log warp (ValueError naming near); empty texels get (1, 2)."""
         if self._per_texel:
             near, far = np.asarray(self.near, np.float64), np.asarray(self.far, np.float64)
             empty = self.segments.counts == 0
@@ -368,11 +323,7 @@ class MomentShadowMap(BasisRepresentation):
 
     def _log_range(self, texel=None):
         """(ln near, ln far - ln near floored at MIN_SPAN_REL[dtype]) for the texels, or global."""
-        Float = self.Float
-        if self._per_texel:
-            near, far = dr.gather(Float, self.near, texel), dr.gather(Float, self.far, texel)
-        else:
-            near, far = dr.opaque(Float, self.near), dr.opaque(Float, self.far)
+        near, far = self._bounds(texel)
         ln_near = dr.log(near)
         return ln_near, dr.maximum(dr.log(far) - ln_near, MIN_SPAN_REL[self.segments.dtype])
 
@@ -385,18 +336,13 @@ class MomentShadowMap(BasisRepresentation):
         return dr.clip((dr.log(dr.maximum(depth, near)) - ln_near) / ls, 0, 1)
 
     def _project(self):
-        """Linear warp: the basis projection.  Log warp: per segment the clipped range in
-        warped x and :func:`log_warp_means`, summed per texel like the basis (in CSR order
-        without gradients, scatter-added with them)."""
+        """Linear warp: the basis projection.  Log warp: :func:`log_warp_means` per segment,
+        summed per texel like the basis."""
         if not self._log:
             return super()._project()             # the basis' average: power or trigonometric
         seg = self.segments
-        Float = seg.Float
-        T, K, S = seg.n_texels, self.basis.n_coefficients, seg.n_segments
-        self._check_index_range(T, K)
-        flat = dr.zeros(Float, T * K)
-        if S == 0:
-            return flat
+        K = self.basis.n_coefficients
+        self._check_index_range(seg.n_texels, K)
         if self._trig:
             at_near = TM.delta_values(-1.0, self.basis.n)
         else:
@@ -418,24 +364,14 @@ class MomentShadowMap(BasisRepresentation):
                 means = log_warp_means(x0, x1, 0.5 * ls, K - 1, seg.dtype)
             return [tau_in * means[k] + tau_front * at_near[k] for k in range(K)]
 
-        if not seg.requires_grad:                   # per texel in CSR order: the same bits every run
+        if seg.n_segments and not seg.requires_grad:
             return self._sum_per_texel(terms)
-        texel = seg.texel_of_segment()
-        every = terms(seg.z0, seg.z1, seg.optical_depth, texel)
-        base = texel * K
-        for k in range(K):
-            dr.scatter_reduce(dr.ReduceOp.Add, flat, every[k], base + k)
-        dr.eval(flat)
-        return flat
+        return self._scatter_terms(terms)
 
-    # -------------------------------------------------------- reconstruction
     def bounds(self, texel, depth):
         """(lower, upper) bounds of the absorbance fraction in front of each receiver
         (Dr.Jit arrays; texel UInt32, depth Float)."""
-        return self._reconstruct(texel, depth)[1:]
-
-    def _reconstruct(self, texel, depth):
-        return self._bounded(self._store, texel, self.normalized_depth(texel, depth))
+        return self._bounded(self._store, texel, self.normalized_depth(texel, depth))[1:]
 
     def _bounded(self, store, row, u):
         """(D, lower, upper) from moments read from a flat store ``store[row * K + k]``."""

@@ -21,15 +21,12 @@ from .base import Representation
 
 
 class OpaqueComposite(Representation):
-    """A volumetric representation composed with an opaque depth map (module docstring):
-    ``T = T_volume(texel, z) * [z < z_o(texel)]`` per lookup tap, so every filter of
-    :meth:`~avsm_dr.representations.base.Representation.eval` applies the depth test per
-    texel (percentage-closer) before weighting.
+    """A volumetric representation composed with an opaque depth map (module docstring),
+    per lookup tap, so every filter applies the depth test per texel (percentage-closer).
 
     volume: a built representation; depth: (n_texels,) opaque depths (+inf: none).
-    Storage: the volume's bytes plus one depth per texel in the segments' dtype.
-    Traits (monotone, differentiable, unity_in_front) are the volume's; gradients flow
-    to the volume's segments, not to the opaque depths.
+    Storage: the volume's bytes plus one depth per texel in the segments' dtype.  Traits are
+    the volume's; gradients flow to the volume's segments, not to the opaque depths.
     """
 
     kind = "opaque_composite"

@@ -1,46 +1,27 @@
 """Offline optimum: the best N-node curve whose nodes are a subset of the exact curve's
 points ("best breakpoint subset"), by dynamic programming.
 
-The candidate nodes are the texel's exact-curve points (:mod:`._curve`: segment ends
-with the exact curve's values, two points at a step); the last point is always kept.
-In front of the first node the lookup gives 1: starting at point j costs the error of
-``T = 1`` on ``[z_0, z_j)`` (:func:`start_costs`; nothing at the right point of a
-leading step, whose left point would be a wasted node).  Between chosen points
-``i < j`` the curve is the chord of the lookup's interpolation
-(``interpolation='linear'``: AVSM's eq. 2; ``'exp'``: ``T_i (T_j / T_i)^w``, linear
-where a value is 0; :func:`exp_stored_values`), and its cost ``C(i, j)`` on
-``[z_i, z_j]``:
+The candidates are the texel's exact-curve points (:mod:`._curve`; the last one is always
+kept).  Starting at point j costs the error of ``T = 1`` on ``[z_0, z_j)`` (the lookup gives
+1 in front of the first node; :func:`start_costs`).  Between chosen points ``i < j`` the
+curve is the chord of the lookup's interpolation (``'linear'``: AVSM's eq. 2; ``'exp'``:
+``T_i (T_j / T_i)^w``, linear where a value is 0; :func:`exp_stored_values`), with cost
+``C(i, j)`` on ``[z_i, z_j]``: ``norm='l2'`` ``int (T - chord)^2 dz`` (closed forms per
+interval, prefix sums of ``int T``, ``int z T``, ``int T^2``); ``norm='linf'``
+``max |T - chord|`` over the continuous curve (the points and the one interior extremum
+per interval).  DP over "at most n nodes": ``D_1(j) = S(j)``, ``D_n(j) = min(D_{n-1}(j),
+min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, O(N K^2) per texel; the answer ``D_N(K-1)``,
+backtracked.  Costs are formed in log space from the optical depths (finite for any input);
+a non-finite one raises RuntimeError.  With ``norm='l2'`` and linear interpolation the
+chosen nodes' values are then refitted by least squares (tridiagonal normal equations of
+the hat functions, first and last value pinned), kept where that lowers the texel's L2
+error: the best subset refitted, not the joint optimum over subsets and values.
 
-* ``norm='l2'``: ``int (T - chord)^2 dz``.  Linear chords: O(1) per pair from prefix
-  sums of ``int T``, ``int z T`` and ``int T^2`` (each interval between points is one
-  exponential, integrated in closed form).  Exponential chords: ``int T^2`` from the
-  prefix sums, ``int chord^2`` in closed form and ``int T chord`` as a sum of closed-form
-  integrals over the intervals between ``i`` and ``j`` (O(K) per pair).
-* ``norm='linf'``: ``max |T - chord|`` over the continuous curve: at every point between
-  ``i`` and ``j`` and at the one interior extremum per interval (``T - chord`` is a
-  difference of an exponential and a line or an exponential: one critical point, in
-  closed form).  O(K) per pair.
-
-DP over "at most n nodes": ``D_1(j) = S(j)`` (the start cost), ``D_n(j) =
-min(D_{n-1}(j), min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, n = 2..N, O(N K^2) per texel;
-the answer is ``D_N(K-1)``, backtracked.  Costs are formed in log space from the optical
-depths (finite for any input: denormal and zero values, opaque segments); a non-finite
-one raises RuntimeError rather than enter the DP.
-This is exact for nodes carrying the exact curve's values.  With ``norm='l2'`` and
-linear interpolation the chosen nodes' values are then refitted by least squares (the
-normal equations of the hat functions: tridiagonal, solved by the Thomas algorithm) with
-the first and last value pinned (T = 1 in front, the total optical depth behind), kept
-only where that lowers the texel's L2 error (values are clipped to [0, 1]); the result
-is the best subset for interpolating nodes, refitted - not the joint optimum over
-subsets and values, and not the optimum over free node depths (AVSM's off-curve nodes
-can beat it on some texels).  Other settings keep the exact values.
-
-An offline reference: host NumPy in float64 (depths normalised to [0, 1] per texel),
-vectorised over texels of similar point count.  Work grows as ``N K^2`` per texel
-(``K^3 / 3`` more pair evaluations for the O(K) costs); builds above :data:`MAX_WORK` or with a texel
-above :data:`MAX_POINTS` points raise ValueError before computing.  ``objective``
-holds each texel's cost of the stored curve: RMS over ``[first, last point]`` (l2) or
-the max error (linf).
+Host NumPy in float64 (depths normalised to [0, 1] per texel), vectorised over texels of
+similar point count.  Builds above :data:`MAX_WORK` work units or with a texel above
+:data:`MAX_POINTS` points raise ValueError before computing.  ``objective`` holds each
+texel's cost of the stored curve: RMS over ``[first, last point]`` (l2) or the max error
+(linf).
 """
 from __future__ import annotations
 
@@ -53,17 +34,12 @@ from .registry import register
 from .schema import Param, Schema
 
 NORMS = ("l2", "linf")
-#: Most points a texel may have (a (K, K) float64 cost block and a few temporaries of that
-#: size per texel: 32 MiB each at 2048).
+#: Most points a texel may have (a (K, K) float64 cost block per texel: 32 MiB at 2048).
 MAX_POINTS = 2048
 #: Most work units per build: sum over texels of N K^2 (+ 3 K^3 for O(K) pair costs).
-#: Measured ~1e7 units/s for both terms (three_columns at 128^2, 2 busy CPU cores): ~3 minutes.
 MAX_WORK = 2e9
 
 
-# ----------------------------------------------------------------------------
-# Closed-form integrals of one exponential piece T(y) = v exp(-s y), y in [0, h]
-# ----------------------------------------------------------------------------
 def phi1(z):
     """(1 - e^-z) / z, 1 at z = 0 (``int_0^1 e^{-z t} dt``)."""
     z = np.asarray(z, np.float64)
@@ -115,20 +91,14 @@ def linear_chord_l2(a0, a1, q, xa, xb, va, vb):
     return np.where(d > 0, np.maximum(q - 2 * tl + ll, 0.0), 0.0)
 
 
-# ----------------------------------------------------------------------------
-# Pair costs C(i, j) for a (B, K) block
-# ----------------------------------------------------------------------------
 def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
     """(B, K, K) costs of the chord from point i to point j (i < j < count; inf else), from
     the points' depths ``x`` (normalised), optical depths ``tau`` and piece exponents ``a``
     (:func:`piece_exponents`); ``store``: the dtype the node values are stored in.
 
-    The chord is the one the lookup (:func:`.avsm.interpolate`) evaluates on the stored
-    values (:func:`exp_stored_values` for ``interp='exp'``): a line in log space between
-    two positive ones, a line in T where one is 0 (an opaque point, or one below
-    ``store``'s range).  Everything is formed from ``tau``, log values of normal numbers
-    and ratios in [0, 1] (never ``T_i / T_j`` or a normalised slope), so every valid cost
-    is finite; a non-finite one raises RuntimeError (a bug, not an input error)."""
+    The chord is the lookup's (:func:`.avsm.interpolate`) on the stored values: a line in
+    log space between two positive ones, a line in T where one is 0.  Formed from ``tau``,
+    logs of normal numbers and ratios in [0, 1], so every valid cost is finite."""
     B, K = x.shape
     v = np.exp(-tau)
     ii = np.arange(K)[None, :, None]
@@ -203,11 +173,9 @@ def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
 
 def exp_stored_values(v, store):
     """Node values as the offline kinds store them for exponential interpolation: 0 where
-    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least the smallest
-    normal ``tiny`` of ``store`` (changes a value by < ``tiny``).  The lookup's
-    ``exp(w (log t_r - log t_l))`` then never takes the log of a denormal (Dr.Jit's LLVM
-    log returns about ``ln(tiny / 2)`` for any, so a chord towards T = 1e-318 would bend
-    by up to ~1e-2 of ``t_l``), and the DP's chords are the lookup's exactly."""
+    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least its smallest
+    normal ``tiny``: the lookup never takes the log of a denormal (Dr.Jit's LLVM log is
+    inexact there), so the DP's chords are the lookup's exactly."""
     v = np.asarray(v, np.float64)
     return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
 
@@ -221,9 +189,6 @@ def _check_finite(C, valid):
                            "a bug in avsm_dr.representations.optimal.pair_costs")
 
 
-# ----------------------------------------------------------------------------
-# DP and refit
-# ----------------------------------------------------------------------------
 def start_costs(x, tau, a, count, norm: str):
     """(B, K) cost of starting the node list at point j: the lookup gives 1 in front of the
     first node, so ``[x_0, x_j)`` costs ``int (1 - T)^2`` (l2) or ``1 - T(x_j^-)`` (linf,
@@ -274,17 +239,22 @@ def best_subset(C, S, count, N: int, norm: str):
     return chosen, cost
 
 
+def chosen_order(chosen):
+    """(order, real) of a (B, K) mask of chosen points: their indices first, in depth order,
+    (B, M) with M the most chosen in a row, and which entries are chosen points."""
+    n = chosen.sum(axis=1)
+    M = int(n.max())
+    return np.argsort(~chosen, axis=1, kind="stable")[:, :M], np.arange(M)[None, :] < n[:, None]
+
+
 def refit_l2(x, v, a, chosen, count):
     """Least-squares values of the chosen nodes (linear interpolation, first and last value
     pinned), clipped to [0, 1], where they lower the L2 error; returns (values (B, M), L2
     error (B,)) over the chosen nodes in order (M = max chosen per row, padded)."""
     B, K = x.shape
     P = prefix_integrals(x, v, a)
-    n = chosen.sum(axis=1)
-    M = int(n.max())
-    order = np.argsort(~chosen, axis=1, kind="stable")[:, :M]         # chosen indices first, in order
-    col = np.arange(M)[None, :]
-    real = col < n[:, None]
+    order, real = chosen_order(chosen)
+    n, M = chosen.sum(axis=1), order.shape[1]
     idx = np.where(real, order, order[np.arange(B), n - 1][:, None])   # pad: repeat the last node
     X = np.take_along_axis(x, idx, 1)
     V0 = np.take_along_axis(v, idx, 1)
@@ -298,7 +268,7 @@ def refit_l2(x, v, a, chosen, count):
     hs = np.where(h > 0, h, 1.0)
     rise = np.where(h > 0, (a1 - X[:, :-1] * a0) / hs, 0.0)    # int T (x - X_m) / h_m on interval m
     fall = np.where(h > 0, (X[:, 1:] * a0 - a1) / hs, 0.0)     # int T (X_{m+1} - x) / h_m
-    # normal equations for interior nodes 1..n-2: sub a, diag b, super c, rhs d
+    # normal equations for interior nodes 1..n-2: sub a, diag b, super c, rhs d (other rows: identity)
     a = np.zeros((B, M))
     b = np.ones((B, M))
     c = np.zeros((B, M))
@@ -321,13 +291,6 @@ def refit_l2(x, v, a, chosen, count):
     cl = c[np.arange(B), lr]
     d[np.arange(B), lr] -= np.where(has, cl * V0[np.arange(B), n - 1], 0.0)
     c[np.arange(B), lr] = np.where(has, 0.0, cl)
-    # rows outside 1..n-2 are identity (their values stay V0)
-    for m in range(M):
-        outside = (m == 0) | (m >= n - 1)
-        a[:, m] = np.where(outside, 0.0, a[:, m])
-        c[:, m] = np.where(outside, 0.0, c[:, m])
-        b[:, m] = np.where(outside, 1.0, b[:, m])
-        d[:, m] = np.where(outside, V0[:, m], d[:, m])
     # Thomas algorithm (diagonally dominant: (h_l + h_r) / 3 > h_l / 6 + h_r / 6)
     cp = np.zeros((B, M))
     dp = np.zeros((B, M))
@@ -355,8 +318,7 @@ def refit_l2(x, v, a, chosen, count):
 
 
 def work_units(count: np.ndarray, N: int, norm: str, interp: str) -> float:
-    """Work of a build: sum over texels of N K^2 (DP), + 3 K^3 where pair costs are O(K)
-    (weights from timings: the K^3 / 3 pair loop costs ~9x a DP step per element)."""
+    """Work of a build: sum over texels of N K^2 (DP), + 3 K^3 where pair costs are O(K)."""
     k = count.astype(np.float64)
     cubic = not (norm == "l2" and interp == "linear")
     return float(np.sum(N * k * k + (3 * k ** 3 if cubic else 0.0)))
@@ -364,14 +326,9 @@ def work_units(count: np.ndarray, N: int, norm: str, interp: str) -> float:
 
 @register("optimal")
 class OptimalSubset(NodeList):
-    """Best N-node breakpoint subset of the exact curve (DP, offline; see the module
-    docstring).
-
-    Parameters: nodes N in [2, 64]; norm 'l2' | 'linf'; interpolation 'linear' | 'exp'.
-    ``nbytes_per_texel`` = 2 N itemsize (as AVSM).  Attributes: ``depths``/``values``
-    (N Dr.Jit arrays of length T), ``node_counts`` (T,), ``objective`` (T,) float64: the
-    stored curve's RMS error over ``[first, last point]`` (l2; for 'l2'+'linear' after the
-    refit) or its max error (linf), 0 for empty texels.
+    """Best N-node breakpoint subset of the exact curve (DP, offline; module docstring).
+    ``nbytes_per_texel`` = 2 N itemsize (as AVSM).  Attributes: ``depths``/``values``,
+    ``node_counts`` (T,), ``objective`` (T,) float64 (module docstring; 0 for empty texels).
     Raises ValueError (naming ``segments``) above :data:`MAX_POINTS` points per texel or
     :data:`MAX_WORK` work units.
     """
@@ -434,15 +391,12 @@ class OptimalSubset(NodeList):
 
     @property
     def monotone(self) -> bool:
-        """False for 'l2' with linear interpolation: least-squares values can overshoot
-        (the L2 projection onto hat functions of a step rises above it); the exact values
-        kept otherwise are monotone."""
+        """False for the refit ('l2', linear): least-squares values can overshoot a step."""
         return not self._refit
 
     @property
     def differentiable(self) -> bool:
-        """Not for 'l2' with linear interpolation (values from a host least-squares
-        solve); otherwise the exact curve's gradients at the fixed node depths."""
+        """Not for the refit (a host least-squares solve); else the exact curve's gradients."""
         return not self._refit
 
     @property
@@ -475,11 +429,7 @@ class OptimalSubset(NodeList):
                 V, cost, idx, real = refit_l2(x, v, a, chosen, count)
                 cost = cost + S[np.arange(tex.size), idx[:, 0]]     # the refit keeps the first node
             else:
-                n = chosen.sum(axis=1)
-                M = int(n.max())
-                order = np.argsort(~chosen, axis=1, kind="stable")[:, :M]
-                real = np.arange(M)[None, :] < n[:, None]
-                idx = order
+                idx, real = chosen_order(chosen)
                 V = np.take_along_axis(v, idx, 1)
             self.objective[tex] = np.sqrt(cost) if self.norm == "l2" else cost
             r, m = np.nonzero(real)
@@ -493,13 +443,7 @@ class OptimalSubset(NodeList):
         self.node_counts = np.bincount(sel_tex, minlength=T)
         src = _curve.fill_slots(sel_tex, sel_pt, slot, N, T)
         if self._refit:
-            value = np.ones((N, T))
-            value[slot, sel_tex] = cat(vals, np.float64)
-            nz = np.flatnonzero(self.node_counts)
-            lastv = value[self.node_counts[nz] - 1, nz]
-            for k in range(N):
-                fill = self.node_counts[nz] <= k
-                value[k, nz[fill]] = lastv[fill]
+            value = _curve.fill_slots(sel_tex, cat(vals, np.float64), slot, N, T, fill=1.0)
             self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value)
         else:
             if self.interp == "exp":

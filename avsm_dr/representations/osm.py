@@ -20,12 +20,10 @@ float rounding: ``a_k >= 0`` and ``g_k`` non-decreasing make ``T`` monotone
 (``monotone = True``; to one ulp, as Dr.Jit's float32 ``exp`` is itself not monotone at
 the ulp level).
 
-Projection: four scatters per segment whatever ``n`` (see ``_project``: end slices
-directly, the slices fully covered through a difference array), not ``n`` as in the
-generic basis kernel.  Without gradients the build runs in :data:`BUILD_CHUNKS` chunks of
-texels (``_build_chunked``), so that its peak is the two stored arrays (a_k and C_j) plus
-one chunk's parts: 3.0x the output (it was 7x with every temporary at full size).
-Depth range, clipping: see :mod:`avsm_dr.representations.basis`.
+Projection: four scatters per segment whatever ``n`` (``_project``: end slices directly,
+the slices fully covered through a difference array); without gradients in
+:data:`BUILD_CHUNKS` chunks of texels (``_build_chunked``).  Depth range, clipping: see
+:mod:`avsm_dr.representations.basis`.
 """
 from __future__ import annotations
 
@@ -36,8 +34,9 @@ from .. import _arrays as A
 from .. import backend
 from .registry import register
 from ._precision import Stored
-from .basis import MAX_COEFFICIENTS, Basis, BasisRepresentation, clip_segment, register_basis
-from .schema import Param, Schema, depth_range_param, far_param, near_param
+from .basis import MAX_COEFFICIENTS, BasisRepresentation
+from .basis_functions import Basis, clip_segment, register_basis
+from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
 
 @register_basis("piecewise_constant")
@@ -95,25 +94,20 @@ class PiecewiseConstantBasis(Basis):
 
 
 #: Texel chunks of the build without gradients (:meth:`OpacityShadowMap._build_chunked`):
-#: one chunk's parts P and R at a time, 2 / BUILD_CHUNKS of the output's size (peak 3.0x the
-#: output; 4 chunks: 2.5x, but the build 0.64-0.91x as fast, 2: 0.92-0.99x; 256^2 and
-#: 64^2 x 100 segments, 32 slices, 2 loaded cores).
+#: one chunk's parts P and R at a time, 2 / BUILD_CHUNKS of the output's size.
 BUILD_CHUNKS = 2
 
 
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
-    """Opacity shadow map: ``slices`` n >= 1 (default 16) uniform over ``near``/``far``
-    (default: global bounds of the segments), ``depth_range`` 'global' | 'texel'.
-    ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel range); with ``precision``
-    n code bytes + the per-texel float32 scale (float16: 4 bytes) or cap scale and far
-    optical depth (unorm: 8 bytes, :mod:`._precision` ``optical_depth``) + 8 for a per-texel range.
-    Attributes: ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
+    """Opacity shadow map: n ``slices``; ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel
+    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  Attributes:
+    ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
 
     schema = Schema(
         params=(
             Param("slices", "int", 16, "n uniform slices over [near, far]", min=1, max=MAX_COEFFICIENTS),
-            near_param(), far_param(), depth_range_param(),
+            NEAR, FAR, DEPTH_RANGE,
         ),
         size="slices", sweep=(4, 8, 16, 32, 64), quick_sweep=(4, 16, 32),
         examples=({"slices": 16},),
@@ -127,12 +121,9 @@ class OpacityShadowMap(BasisRepresentation):
 
     def _build_bytes(self, K: int) -> float:
         """Without gradients (:meth:`_build_chunked`): a_k, C_j and one chunk's parts,
-        ``(2 + 2 / BUILD_CHUNKS) itemsize`` per (texel, slice) plus 4 bytes per texel
-        (measured 3.00-3.02 itemsize per (texel, slice): float32, float64, 1-256 slices).
-        With gradients (:meth:`_project` at full size): the parts P, the difference array R,
-        their float64 prefix sums and the store, ``8 itemsize + 32`` bytes per (texel,
-        slice) (measured 38 - 60: float32, float64, float32 with gradients), and ~12 words
-        per segment of scatter terms."""
+        ``(2 + 2 / BUILD_CHUNKS) itemsize`` per (texel, slice) plus 4 bytes per texel.  With
+        gradients (:meth:`_project` at full size): P, R, their float64 prefix sums and the
+        store, ``8 itemsize + 32`` bytes per (texel, slice), and ~12 words per segment."""
         seg = self.segments
         T, it = seg.n_texels, seg.itemsize
         if not seg.requires_grad:
@@ -150,16 +141,12 @@ class OpacityShadowMap(BasisRepresentation):
         dr.eval(self._cum)
 
     def _build_chunked(self):
-        """(a_k, C_j), flat texel-major, without gradients, in :data:`BUILD_CHUNKS` chunks
-        of texels, so that the build's peak is the two results and one chunk's parts (its
-        temporaries at full size made it 7x the output).  Per chunk: one lane per non-empty
-        texel adds its segments' parts in CSR order into its own rows of P and R
-        (:meth:`_add_parts`: no two lanes add to one slot, no atomics, the same bits every
-        run), then one lane per texel walks its slices j in order with float64 running
-        sums, ``a_j = P_j + (sum_{i<=j} R_i)``, clamped at 0, and ``C_{j+1} = sum_{k<=j}
-        a_k``, written into the results: the operations, in the order, of the dense form
-        (:meth:`_project` and ``dr.block_prefix_sum``, a sequential sum per block), so the
-        same bits (tests/test_osm_build.py)."""
+        """(a_k, C_j), flat texel-major, without gradients, in :data:`BUILD_CHUNKS` chunks of
+        texels.  Per chunk: one lane per non-empty texel adds its segments' parts in CSR
+        order into its own rows of P and R (:meth:`_add_parts`, no atomics), then one lane
+        per texel walks its slices with float64 running sums, ``a_j = P_j + sum_{i<=j} R_i``
+        clamped at 0 and ``C_{j+1} = sum_{k<=j} a_k``: the operations, in order, of the
+        dense form (:meth:`_project`, ``dr.block_prefix_sum``), so the same bits."""
         seg, n = self.segments, self.basis.n
         T = seg.n_texels
         self._check_index_range(T, n)
@@ -196,8 +183,7 @@ class OpacityShadowMap(BasisRepresentation):
         def sums(j, r, c):
             r = r + F64(dr.gather(Float, Rd, row + j))
             a = dr.gather(Float, P, row + j) + Float(r)
-            # R's +r / -r pairs can leave a rounding residual in a slice no segment
-            # covers; a negative one (-1.5e-8 found in float32) made D decrease
+            # clamp a negative rounding residual of R's +r / -r pairs (as in _project)
             a = dr.select(a < 0, 0, a)
             c = c + F64(a)
             dr.scatter(a_all, a, out + j)
@@ -247,19 +233,15 @@ class OpacityShadowMap(BasisRepresentation):
         seg, n = self.segments, self.basis.n
         Float, T = seg.Float, seg.n_texels
         self._check_index_range(T, n)
-        # texel-major [texel * n + j]: a texel's segments are contiguous, so its scatters
-        # stay in one cache line or two (slice-major j * T + texel: cache misses)
+        # texel-major [texel * n + j]: a texel's scatters stay in one cache line or two
         P = dr.zeros(Float, n * T)                  # end-slice parts
         Rd = dr.zeros(Float, n * T)                 # difference array of full-slice rates
         if seg.n_segments:      # with gradients (reverse mode: no symbolic loop); otherwise _build_chunked
             texel = seg.texel_of_segment()
             self._add_parts(P, Rd, seg.z0, seg.z1, seg.optical_depth, texel, texel * n)
-        # a_j = P_j + sum_{i <= j} R_i: a prefix sum inside each texel's block of n, in
-        # float64 (a float32 running sum over 1e6 slices drifted by 8e-4)
+        # a_j = P_j + sum_{i <= j} R_i: a prefix sum inside each texel's block of n, in float64
         a = P + Float(dr.block_prefix_sum(backend.types().Float64(Rd), n, exclusive=False))
-        # R's +r / -r pairs are added in the storage dtype (in any order under AD), so a slice no
-        # segment covers can keep a rounding residual; a negative one (-1.5e-8 found in
-        # float32) made D decrease: clamp it (a select, so a_k = 0 keeps its gradient)
+        # clamp a negative rounding residual of R's +r / -r pairs (D must not decrease)
         a = dr.select(a < 0, 0, a)
         dr.eval(a)
         return a
@@ -274,9 +256,7 @@ class OpacityShadowMap(BasisRepresentation):
     _stored_attr = "_cum"
 
     def _stored(self):
-        """The cumulative sums as optical depths (:mod:`._precision` ``optical_depth``: unorm
-        codes of sqrt(tau) up to ``TAU_CAP``, so an opaque blocker behind thin smoke does not
-        scale the smoke's codes away), the per-texel range as the basis stores it."""
+        """The cumulative sums as optical depths (:mod:`._precision`), the range as the basis'."""
         return (Stored("_cum", "optical_depth", "flat"),) + super()._stored()[1:]
 
     def _reconstruct_from(self, store, row, u):

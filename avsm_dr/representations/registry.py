@@ -48,34 +48,18 @@ def kinds() -> list[str]:
 
 
 def describe(kind: str) -> dict:
-    """What ``kind`` takes and how experiments size it.
-
-    Returns a dict: ``params`` (name -> dict(default, type, min, max, doc[, choices,
-    nullable])), ``size`` (the size parameter's name, or None), ``sweep`` /
-    ``quick_sweep`` (its values in the experiments), ``examples`` (parameter sets the
-    contract tests run), ``headline`` (the configuration of benchmarks), ``summary``,
-    ``paper``, ``doc`` (the class docstring's first paragraph), ``precisions`` (the
-    storage precisions the base parameter ``precision`` accepts besides None) and the
-    best practice (:func:`presets`): ``preset`` (parameters over the defaults; ``{}``: the
-    defaults), ``preset_capture`` (capture options it assumes, e.g. ``{'opaque':
-    'separate'}``), ``preset_variants`` ({label: params} reported beside it),
-    ``preset_tuned`` (False: not yet tuned, ``preset_note`` says why)."""
+    """What ``kind`` takes and how experiments size it: a dict of the schema's description
+    (:meth:`.schema.Schema.describe`: ``params``, ``size``, ``sweep``, ``quick_sweep``,
+    ``examples``, ``headline``, ``summary``, ``paper``, ``offline``), ``kind``, ``doc``
+    (the class docstring's first paragraph), ``precisions`` (accepted besides None) and the
+    best practice from the class attributes ``PRESET*``: ``preset``, ``preset_capture``,
+    ``preset_variants``, ``preset_tuned`` (``preset_note`` only when that is False)."""
     cls = _check_kind(kind)
     out = cls.schema.describe()
-    out["kind"] = kind
-    out["precisions"] = list(cls.precisions)     # base parameter ``precision``: None or one of these
-    out["doc"] = (cls.__doc__ or "").strip().split("\n\n")[0]
-    out.update(presets(cls))
-    return out
-
-
-def presets(cls: type[Representation]) -> dict:
-    """The best-practice keys of ``describe``, from the class attributes ``PRESET``,
-    ``PRESET_CAPTURE``, ``PRESET_VARIANTS`` and ``PRESET_UNTUNED``; ``preset_note`` only
-    when ``preset_tuned`` is False."""
-    out = {"preset": dict(cls.PRESET), "preset_capture": dict(cls.PRESET_CAPTURE),
-           "preset_variants": {k: dict(v) for k, v in cls.PRESET_VARIANTS.items()},
-           "preset_tuned": cls.PRESET_UNTUNED is None}
+    out.update(kind=kind, precisions=list(cls.precisions), doc=(cls.__doc__ or "").strip().split("\n\n")[0],
+               preset=dict(cls.PRESET), preset_capture=dict(cls.PRESET_CAPTURE),
+               preset_variants={k: dict(v) for k, v in cls.PRESET_VARIANTS.items()},
+               preset_tuned=cls.PRESET_UNTUNED is None)
     if cls.PRESET_UNTUNED is not None:
         out["preset_note"] = cls.PRESET_UNTUNED
     return out

@@ -15,15 +15,12 @@ Errors are ``ValueError("<name>: expected ..., got ...")``.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-from typing import Callable
-from numbers import Integral, Real
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-from ..validation import did_you_mean
+from .. import validation as V
 
 KINDS = ("int", "float", "bool", "choice", "object")
 
@@ -49,54 +46,23 @@ class Param:
     def __post_init__(self):
         if self.type not in KINDS:
             raise ValueError(f"type: expected one of {KINDS}, got {self.type!r}")
-
-    # ---------------------------------------------------------------- checks
-    def _range_text(self) -> str:
-        lo = "" if self.min is None else (f"> {self.min:g}" if self.open_min else f">= {self.min:g}")
-        hi = "" if self.max is None else (f"< {self.max:g}" if self.open_max else f"<= {self.max:g}")
-        if lo and hi:
-            left = "(" if self.open_min else "["
-            right = ")" if self.open_max else "]"
-            return f"in {left}{self.min:g}, {self.max:g}{right}"
-        return lo or hi
-
-    def _in_range(self, v) -> bool:
-        if self.min is not None and (v <= self.min if self.open_min else v < self.min):
-            return False
-        if self.max is not None and (v >= self.max if self.open_max else v > self.max):
-            return False
-        return True
+        if self.type == "int" and (self.open_min or self.open_max):
+            raise ValueError(f"open_min: int parameter {self.name!r} takes closed bounds")
 
     def validate(self, value):
-        """The value converted to its Python type, or ValueError naming the parameter."""
-        if value is None and self.nullable:
-            return None
-        t = self.type
-        if t == "object":
+        """The value converted to its Python type, or ValueError naming the parameter
+        (:mod:`avsm_dr.validation`'s rules and messages)."""
+        if (value is None and self.nullable) or self.type == "object":
             return value
-        if t == "bool":
+        if self.type == "bool":
             if isinstance(value, (bool, np.bool_)):
                 return bool(value)
             raise ValueError(f"{self.name}: expected True or False, got {value!r}")
-        if t == "choice":
-            if isinstance(value, str) and value in self.choices:
-                return value
-            raise ValueError(f"{self.name}: expected one of {self.choices}, got {value!r}")
-        is_bool = isinstance(value, (bool, np.bool_))
-        if t == "int":
-            ok = isinstance(value, Integral) and not is_bool and self._in_range(int(value))
-            if not ok:
-                rng = self._range_text()
-                raise ValueError(f"{self.name}: expected an integer{' ' + rng if rng else ''}, got {value!r}")
-            return int(value)
-        # float
-        ok = isinstance(value, Real) and not is_bool and math.isfinite(float(value)) \
-            and self._in_range(float(value))
-        if not ok:
-            rng = self._range_text()
-            raise ValueError(f"{self.name}: expected a finite real number{' ' + rng if rng else ''}, "
-                             f"got {value!r}")
-        return float(value)
+        if self.type == "choice":
+            return V.one_of(value, self.name, self.choices)
+        if self.type == "int":
+            return V.integer(value, self.name, self.min, self.max)
+        return V.real(value, self.name, self.min, self.max, open_min=self.open_min, open_max=self.open_max)
 
     def describe(self) -> dict:
         """Plain-data description (for ``ad.describe`` and the docs)."""
@@ -161,7 +127,7 @@ class Schema:
         """``"<name>: unknown parameter of <kind>; known: [...]"`` (public names), with a
         "did you mean" for a misspelling."""
         known = self.public_names()
-        return f"{name}: unknown parameter of {kind!r}; known: {known}{did_you_mean(name, known)}"
+        return f"{name}: unknown parameter of {kind!r}; known: {known}{V.did_you_mean(name, known)}"
 
     def validate(self, kind: str, given: dict) -> dict:
         """Defaults filled in and every value checked; unknown names raise ValueError."""
@@ -191,21 +157,8 @@ class Schema:
                 "summary": self.summary, "paper": self.paper, "offline": self.offline}
 
 
-# Parameters several kinds share (one definition, one message).
-def near_param() -> Param:
-    """``near``: start of the depth range (None: the segments' global bounds)."""
-    return Param("near", "float", None, "start of the depth range (default: the segments' global bounds)",
-                 nullable=True)
-
-
-def far_param() -> Param:
-    """``far``: end of the depth range (None: the segments' global bounds)."""
-    return Param("far", "float", None, "end of the depth range (default: the segments' global bounds)",
-                 nullable=True)
-
-
-def depth_range_param() -> Param:
-    """``depth_range``: 'global' (one range) or 'texel' (tight per-texel ranges, stored)."""
-    return Param("depth_range", "choice", "global",
-                 "'global': one [near, far] for all texels; 'texel': tight per-texel bounds, stored "
-                 "(2 floats per texel)", choices=("global", "texel"))
+#: Parameters several kinds share (one definition, one message): the depth range.
+NEAR = Param("near", "float", None, "start of the depth range (default: the segments' global bounds)", nullable=True)
+FAR = Param("far", "float", None, "end of the depth range (default: the segments' global bounds)", nullable=True)
+DEPTH_RANGE = Param("depth_range", "choice", "global", "'global': one [near, far] for all texels; 'texel': tight "
+                    "per-texel bounds, stored (2 floats per texel)", choices=("global", "texel"))
