@@ -90,18 +90,23 @@ def build_texel(z0, z1, tau, n, far, sort=False):
 TIE = 1e-14
 
 
-def _compress_all(nodes, n, tie):
+def _compress_all(nodes, n, tie, by_metric=False):
     """Every layout :func:`compress` could give when metrics within ``tie`` of the
-    smallest are treated as equal (which of them goes is then decided by rounding)."""
+    smallest are treated as equal (which of them goes is then decided by rounding).
+    Like :func:`compress`, the choice between dropping clear nodes and removing by the
+    metric is made once per insertion (``by_metric``: already removing by the metric), not
+    again after each removal."""
     clear = [i for i, p in enumerate(nodes) if p[2]]
-    if len(nodes) <= n or len(clear) >= len(nodes) - n:
+    if len(nodes) <= n:
+        return [list(nodes)]
+    if not by_metric and len(clear) >= len(nodes) - n:
         return [compress(nodes, n)]
     ms = [metric(nodes, i) for i in range(1, len(nodes) - 1)]
     best = min(ms)
     out = []
     for i, m in enumerate(ms):
         if m <= best + tie:
-            out += _compress_all(nodes[:i + 1] + nodes[i + 2:], n, tie)
+            out += _compress_all(nodes[:i + 1] + nodes[i + 2:], n, tie, by_metric=True)
     return out
 
 
