@@ -255,14 +255,12 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
 
 def test_corner_table_and_gathers_give_the_same_segments(monkeypatch):
     """The packet load of a dual cell's 8 corners from the corner table reads the same values
-    as 8 gathers from the padded window (the fallback for windows above the table budget);
-    packed slot buffers (one packet store per segment) give the same segments as three."""
-    from avsm_dr.capture import _grid_slots, dual_cells
+    as 8 gathers from the padded window (the fallback for windows above the table budget)."""
+    from avsm_dr.capture import dual_cells
     d = small_grid()
     out = []
-    for cells, packet in ((dual_cells.CORNER_TABLE_CELLS, True), (0, True), (dual_cells.CORNER_TABLE_CELLS, False)):
+    for cells in (dual_cells.CORNER_TABLE_CELLS, 0):
         monkeypatch.setattr(dual_cells, "CORNER_TABLE_CELLS", cells)
-        monkeypatch.setattr(_grid_slots, "PACKET_SLOTS", packet)
         g = GridVolume.prepare(d, BBOX)
         tex, z0, z1, tau, _ = traverse(g, _camera(g, LIGHTS["spot"]), 1e-4)
         out.append([tex] + _host(z0, z1, tau))
@@ -292,16 +290,15 @@ def test_capture_at_a_new_resolution_compiles_nothing(method):
 
 @pytest.mark.parametrize("keep_zero", [False, True])
 def test_march_one_pass_equals_two_passes(monkeypatch, keep_zero):
-    """The march's one pass into slots (a bound of each lane's segments, then compaction), with
-    packed or separate slot buffers, writes exactly the segments of the counting pass + writing
-    pass (its fallback when the slots exceed the budget or a lane fills its slots)."""
-    from avsm_dr.capture import _grid_slots, grid as G
+    """The march's one pass into slots (a bound of each lane's segments, then compaction) writes
+    exactly the segments of the counting pass + writing pass (its fallback when the slots exceed
+    the budget or a lane fills its slots)."""
+    from avsm_dr.capture import grid as G
     g = GridVolume.prepare(small_grid(), BBOX, skip_empty=not keep_zero)
     cam = _camera(g, LIGHTS["point"])
     out = []
-    for budget, packet in ((G.MARCH_SLOT_BUDGET, True), (G.MARCH_SLOT_BUDGET, False), (0, True)):
+    for budget in (G.MARCH_SLOT_BUDGET, 0):
         monkeypatch.setattr(G, "MARCH_SLOT_BUDGET", budget)
-        monkeypatch.setattr(_grid_slots, "PACKET_SLOTS", packet)
         tex, z0, z1, tau, st = G.march(g, cam, 0.02, 1e-4, keep_zero=keep_zero)
         assert ("slots" in st) == (budget > 0) and st["segments"] > 100
         out.append([tex] + _host(z0, z1, tau))

@@ -35,10 +35,10 @@ from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
 from . import opaque as _opaque
 from . import opaque_map as _opaque_map
-from . import grid as _grid
 from . import particles as _particles
 from .assembly import combine
 from .camera import CubeCamera, LightCamera, OrthoCamera, PerspectiveCamera, make_camera
+from ._grid_rays import SUBMISSION_BRICK, brick_keys
 from .dda import traverse
 from .grid import GridVolume, check_method, march
 from .hair import load_tfx, procedural_strands
@@ -347,11 +347,10 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         if method == "exact":
             tex, z0, z1, tau, st = traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True)
         else:
-            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, method=method,
-                                         runs=True)
+            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True)
         stats["grid"] = dict(st, seconds=time.perf_counter() - t0)
         if tex.size:
-            key = (dr.opaque(backend.types().UInt32, bases["grid"]) + _grid.brick_keys(grid, camera, tex, z0, z1),) \
+            key = (dr.opaque(backend.types().UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1),) \
                 if drawn else ()
             pieces.append((tex, z0, z1, tau) + key)
     if scene.particles is not None:
@@ -393,7 +392,7 @@ def _draw_bases(blockers, grid, scene) -> dict:
     """First draw key of each content kind in the ``'submission'`` order (:data:`ORDERS`):
     blockers, then the grid's bricks, then particles, then hair capsules; ValueError naming
     ``order`` when the keys exceed 32 bits."""
-    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // _grid.SUBMISSION_BRICK)))
+    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // SUBMISSION_BRICK)))
     n_particles = 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size)
     n_capsules = 0
     if scene.hair is not None:

@@ -16,8 +16,8 @@ of which sigma is 0).
 
 Traversal: one Dr.Jit lane per texel ray, a 3-D DDA [Amanatides & Woo, "A Fast Voxel
 Traversal Algorithm for Ray Tracing", Eurographics 1987] over the dual cells, two-level
-for empty space: the dual cells are grouped in ``block^3`` blocks, an empty block (all
-voxels reaching it are 0) is crossed in one iteration.  Robust in float32:
+for empty space (``block^3`` dual cells per block; an empty block is crossed in one
+iteration).  Robust in float32:
 
 * the cell index is an integer per axis; an iteration moves one axis by one cell (or to
   the next block), so the loop is bounded by the number of cells (checked);
@@ -25,25 +25,15 @@ voxels reaching it are 0) is crossed in one iteration.  Robust in float32:
   ``s_b = (plane_b - u_b) / du_b`` (no accumulated ``tMax += tDelta`` drift), and the
   new crossing end is ``max(s, min_b s_b)``: rounding gives zero-length crossings,
   never a step back;
-* axes the ray crosses less than 1e-6 cells along (grazing or parallel rays) are never
-  chosen (their plane parameter is a large constant); no division by 0;
-* sigma inside a crossing is evaluated with the cell's own 8 corners (one packet load,
-  or 8 gathers, per crossing), so the polynomial is the cell's even where rounding puts a
-  sample a few ulps across a plane.
+* axes the ray crosses less than :data:`_GRAZING_CELLS` cells along are never chosen;
+* sigma inside a crossing is evaluated with the cell's own 8 corners, so the polynomial is
+  the cell's even where rounding puts a sample a few ulps across a plane.
 
-Output as :func:`~avsm_dr.capture.grid.march`, in one traversal: every lane writes its
-segments into its own slots (one per dual cell its clipped ray meets, + 3), then
-:func:`~avsm_dr.capture.grid.compact_slots` gathers the filled ones into CSR order; when
-the slots exceed :data:`SLOT_BUDGET`, in rounds: every unfinished lane writes up to
-:data:`ROUND_CAPACITY` segments into its own slots and stops; lanes with more continue in
-the next round from their saved state.  The lanes' rays and constants are made on the
-device in float64 (:func:`lane_constants`), a crossing's 8 corners come from one packet
-load (:func:`~avsm_dr.capture.dual_cells.corner_table`), so the host touches one value per ray (its texel and count).
-
-Gradients by recomputing each segment's Simpson sum from differentiable gathers (exact
-too: a segment lies in one dual cell).  The old half-voxel march costs 16 voxel reads
-per step, two steps per voxel of path; this costs 8 per crossing, |d_x| + |d_y| + |d_z|
-crossings per voxel of path (|d| = 1).
+Output as :func:`~avsm_dr.capture.grid.march`: every lane writes its segments into its own
+slots (one per dual cell its clipped ray meets, + 3), then compacted into CSR order; above
+:data:`SLOT_BUDGET` slots, in rounds of :data:`ROUND_CAPACITY` segments per unfinished lane,
+each round resuming from the saved state.  Gradients: each segment's Simpson sum recomputed
+from differentiable gathers (exact too: a segment lies in one dual cell).
 """
 from __future__ import annotations
 
@@ -56,16 +46,15 @@ from .. import _arrays as A
 from .. import backend
 from .assembly import TexelRuns
 from .dual_cells import corner_table, dual_block_max, dual_grid  # noqa: F401 (dual_block_max: API)
-from .grid import MarchKernel, compact_slots, hit_lanes, new_slots, read_slots, write_slots
+from ._grid_rays import hit_lanes
+from ._grid_slots import compact_slots, new_slots, read_slots, write_slots
+from ._grid_volume import segment_tau
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
 _FAR = 1e30
-#: Most output slots (3 floats each) of the one-round layout, one slot per dual cell a ray
-#: meets (about 2.7x the segments on the plume at 1024^2: 164 MB); above it, rounds.
+#: Most output slots of the one-round layout (one per dual cell a ray meets); above it, rounds.
 SLOT_BUDGET = 1 << 25
-#: Segments a lane writes per round into its own slots of a round buffer: lanes that
-#: have more go on in another round from where they stopped; the slots are then
-#: compacted into the CSR order (one traversal instead of a counting and a writing pass).
+#: Segments a lane writes per round into its own slots; lanes with more go on in another round.
 ROUND_CAPACITY = 16
 #: Axes along which a ray moves less than this many cells over its whole length are
 #: treated as parallel (never crossed): the cell polynomial is then evaluated at most
@@ -272,7 +261,9 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         if stats["max_iterations"] >= max_iter:
             raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
         if S and (differentiable if differentiable is not None else dr.grad_enabled(grid.data)):
-            tau = differentiable_tau(grid, *(host_rays or camera.rays(lanes)), counts, z0, z1)
+            o_h, d_h = host_rays or camera.rays(lanes)
+            tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), Float) for i in range(3)]
+                                      for v in (o_h, d_h)), counts, z0, z1)
         clock = time.perf_counter()
         texel = TexelRuns(lanes, counts) if runs else np.repeat(lanes.astype(np.int64), counts)
         stats["texel_s"] = time.perf_counter() - clock
@@ -345,17 +336,3 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     times["compact_s"] = time.perf_counter() - clock
     return finish(counts, iters, cross, len(rounds), z0, z1, tau)
 
-
-def differentiable_tau(grid, o, d, counts, z0, z1):
-    """Simpson optical depth of each segment ``[z0, z1]`` of lane ray ``o + t d`` (``counts``
-    segments per lane, in lane order) from differentiable gathers of ``grid.data``: exact
-    when every segment lies in one dual cell, and gradients flow to the voxels."""
-    Float = grid.Float
-    kern = MarchKernel(grid)
-    lane = A.to_uint32(np.repeat(np.arange(counts.size, dtype=np.uint32), counts))
-    gx, gy, gz = (dr.gather(Float, A.to_float(np.ascontiguousarray(o[:, i]), Float), lane) for i in range(3))
-    ex, ey, ez = (dr.gather(Float, A.to_float(np.ascontiguousarray(d[:, i]), Float), lane) for i in range(3))
-
-    def sig(tt):
-        return kern.trilinear(grid.data, gx + ex * tt, gy + ey * tt, gz + ez * tt)
-    return (z1 - z0) * (sig(z0) + 4 * sig(0.5 * (z0 + z1)) + sig(z1)) * (1.0 / 6.0)

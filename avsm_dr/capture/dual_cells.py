@@ -9,6 +9,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from ._grid_volume import window_max
 
 #: Most dual cells of the table of 8 corners per cell (:func:`corner_table`, 256 MB in float32);
 #: larger windows read the 8 corners with 8 gathers from the padded window.
@@ -24,21 +25,7 @@ def dual_block_max(padded: np.ndarray, block: int) -> np.ndarray:
     the cells with ``(c + 1) // block == B``, i.e. padded voxels ``[B block, (B + 1) block]``
     (inclusive).  0 means sigma = 0 on the whole closed block.
     """
-    out = padded
-    for axis in (0, 1, 2):
-        n = out.shape[axis]                       # w + 2
-        nb = (n - 2) // block + 1
-        shape = list(out.shape)
-        shape[axis] = nb
-        res = np.empty(shape, out.dtype)
-        for b in range(nb):
-            src = [slice(None)] * 3
-            src[axis] = slice(b * block, min((b + 1) * block + 1, n))
-            dst = [slice(None)] * 3
-            dst[axis] = b
-            res[tuple(dst)] = out[tuple(src)].max(axis=axis)
-        out = res
-    return out
+    return window_max(padded, block, 0, lambda n: (n - 2) // block + 1)
 
 
 def dual_grid(grid):
