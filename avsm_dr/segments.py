@@ -8,16 +8,12 @@ A zero-length segment is a step at ``z0`` (a receiver at exactly ``z0`` is behin
 
 Storage dtype (float32 or float64) limits, checked at :meth:`Segments.from_arrays`:
 every depth, and the depth range ``max z1 - min z0`` (hence every length), must be
-finite in that dtype (``ValueError`` naming ``z0``/``z1`` otherwise; a float32 overflow
-used to become inf and crash or silently corrupt the kernels).  Subnormal depths and
+finite in that dtype (``ValueError`` naming ``z0``/``z1`` otherwise).  Subnormal depths and
 optical depths (below the dtype's smallest normal number) are stored as 0: Dr.Jit's CPU
-worker threads flush subnormals to zero (denormals-are-zero) while the calling thread
-does not, so they would otherwise give results that depend on the array size
-(measured: a receiver at depth -1.4e-45 behind a step at 0 got T = 1 in a batch of 8,
-T = 0.61 in a batch of 16).  :meth:`Segments.check_depth` applies the same rules to
-other depths (receivers, near/far).  A positive length below :data:`MIN_LENGTH` (2.4e-295,
-only near depth 0 in float64) is stored as a zero-length step: its density would
-overflow float64.
+worker threads flush subnormals to zero while the calling thread does not, so they would
+otherwise give results that depend on the array size.  :meth:`Segments.check_depth` applies
+the same rules to other depths (receivers, near/far).  A positive length below
+:data:`MIN_LENGTH` is stored as a zero-length step: its density would overflow float64.
 """
 from __future__ import annotations
 
@@ -30,9 +26,8 @@ import numpy as np
 from . import _arrays as A
 from . import backend
 from . import validation as V
-from .segment_dtype import (  # noqa: F401  (re-exported from their old home)
-    OVERFLOW_HINT, check_in_dtype, check_tiny, flush_subnormal, flushed, has_subnormal, np_dtype)
-from .segment_keys import rank_in_ranges, shuffle_key  # noqa: F401  (re-exported)
+from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
+from .segment_keys import rank_in_ranges, shuffle_key
 from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels, sort_texels_view
 from .texel_sort import plan as sort_plan
 
@@ -41,14 +36,11 @@ from .texel_sort import plan as sort_plan
 #: that products with zero-length fractions never make NaN.
 OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: Shortest positive segment length (2.4e-295): below it the summed density of up to 2^32
-#: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64 (the DSM polyline
-#: then made NaN slopes and segfaulted).  Such lengths only occur within ~1e-279 of depth
-#: 0 in float64 storage; they are stored as zero-length steps at z0.
+#: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
+#: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: :meth:`Segments.sorted` ranks float64 segments, and orders float32 ones with equal z0 in a
-#: texel (:func:`~avsm_dr.texel_sort.break_ties`), on the device while ``sum count^2 <=
-#: DEVICE_SORT_WORK * S`` (mean count weighted by segments <= 256; both cost up to ``count``
-#: comparisons per segment), else by a host lexsort.
+#: Sorts that cost up to ``count`` comparisons per segment run on the device while ``sum
+#: count^2 <= DEVICE_SORT_WORK * S`` (:func:`device_sortable`), else on the host.
 DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
@@ -58,6 +50,22 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
 _TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
+
+
+def device_sortable(counts: np.ndarray) -> bool:
+    """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
+    comparisons per segment runs on the device (else on the host)."""
+    c = np.asarray(counts).astype(np.float64)
+    return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
+
+
+def _per_segment(x, name: str, n: int) -> np.ndarray:
+    """Host float64 copy of a per-segment array: 1-D, ``n`` values, finite (ValueError naming ``name``)."""
+    arr = A.host_1d(x, name)
+    if arr.size != n:
+        raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
+    A.check_finite(arr, name)
+    return arr
 
 
 def _recipe(src, Float, dtype: str, flush: bool, clamp: bool = False):
@@ -176,23 +184,14 @@ class Segments:
                 if A.is_drjit(x) and A.dtype_of(x) == "float64":
                     dtype = "float64"
         Float = A.float_type(dtype)
-        z0h = A.host_1d(z0, "z0")
-        z1h = A.host_1d(z1, "z1")
-        for name, arr in (("z0", z0h), ("z1", z1h)):
-            if arr.size != n:
-                raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
-            A.check_finite(arr, name)
+        z0h, z1h = _per_segment(z0, "z0", n), _per_segment(z1, "z1", n)
         z0f = check_in_dtype(z0h, "z0", dtype)
         z1f = check_in_dtype(z1h, "z1", dtype)
         if np.any(z1h < z0h):
             raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
         if n:   # the depth range (basis spans), hence every length, must be finite in dtype too
-            ft = np_dtype(dtype)
-            with np.errstate(over="ignore"):
-                span = ft(z1f.max()) - ft(z0f.min())
-            if not np.isfinite(span):
-                raise ValueError(f"z1: the depth range max(z1) - min(z0) = {z1f.max() - z0f.min():.6g} "
-                                 f"overflows the {dtype} storage; rescale the scene{OVERFLOW_HINT[dtype]}")
+            check_span(z0f.min(), z1f.max(), dtype, "z1", "the depth range max(z1) - min(z0)",
+                       f"; rescale the scene{OVERFLOW_HINT[dtype]}")
         if (transmittance is None) == (optical_depth is None):
             raise ValueError("transmittance: pass exactly one of transmittance= or optical_depth=")
         # Each stored array comes from a recipe over the caller's arrays: a grad-enabled Dr.Jit
@@ -212,14 +211,16 @@ class Segments:
                     return dr.select(short_d, z0_of(), z1_raw())
         z0d, z1d = z0_of(), z1_of()
         if transmittance is not None:
-            th = A.host_1d(transmittance, "transmittance")
-            if th.size != n:
-                raise ValueError(f"transmittance: length {th.size} does not match offsets[-1] = {n}")
-            A.check_finite(th, "transmittance")
+            th = _per_segment(transmittance, "transmittance", n)
             if np.any((th < 0) | (th > 1)):
                 raise ValueError("transmittance: values must lie in [0, 1] (opacity above 1 or negative)")
-            if n == 0:  # no blockers at all: every texel is empty (T = 1 everywhere)
-                return cls(off, Float(), Float(), Float(), dtype, order=order)
+        else:
+            oh = _per_segment(optical_depth, "optical_depth", n)
+            if np.any(oh < 0):
+                raise ValueError("optical_depth: values must be >= 0 (negative density)")
+        if n == 0:      # every texel is empty (T = 1 everywhere)
+            return cls(off, Float(), Float(), Float(), dtype, order=order)
+        if transmittance is not None:
             tiny = float(np.exp(-OPAQUE_OPTICAL_DEPTH)) if dtype == "float64" else 0.0
 
             def tau_of():
@@ -230,14 +231,6 @@ class Segments:
                 return dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH),
                                  OPAQUE_OPTICAL_DEPTH)
         else:
-            oh = A.host_1d(optical_depth, "optical_depth")
-            if oh.size != n:
-                raise ValueError(f"optical_depth: length {oh.size} does not match offsets[-1] = {n}")
-            A.check_finite(oh, "optical_depth")
-            if np.any(oh < 0):
-                raise ValueError("optical_depth: values must be >= 0 (negative density)")
-            if n == 0:
-                return cls(off, Float(), Float(), Float(), dtype, order=order)
             if A.is_drjit(optical_depth):   # clamped and flushed only where needed (recipe)
                 tau_of = _recipe(optical_depth, Float, dtype, has_subnormal(oh, dtype),
                                  clamp=bool(np.any(oh > OPAQUE_OPTICAL_DEPTH)))
@@ -292,6 +285,12 @@ class Segments:
     def transmittance(self):
         """Exit transmittance exp(-tau) of each segment (Dr.Jit)."""
         return dr.exp(-self.optical_depth)
+
+    def _sort_plan(self) -> dict:
+        """:func:`~avsm_dr.texel_sort.plan` of these counts (cached)."""
+        if "sort_plan" not in self._cache:
+            self._cache["sort_plan"] = sort_plan(self.counts, self.offsets_dr())
+        return self._cache["sort_plan"]
 
     def offsets_dr(self):
         """offsets as a Dr.Jit UInt32 array (cached)."""
@@ -369,8 +368,7 @@ class Segments:
     def _exact_order(self):
         """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host
         lexsort where the per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment."""
-        c = self.counts.astype(np.float64)
-        if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
+        if device_sortable(self.counts):
             return self._rank_order()
         h = self.numpy()
         tex = np.repeat(np.arange(self.n_texels), self.counts)
@@ -429,19 +427,16 @@ class Segments:
         if order == "reverse_depth":     # slot r of texel t <- slot count_t - 1 - r
             idx = dr.gather(UInt32, off, tex + 1) - 1 - (i - dr.gather(UInt32, off, tex))
         else:
-            c = base.counts.astype(np.float64)
-            if float(c @ c) > DEVICE_SORT_WORK * n:             # host: the same keys, np.lexsort
+            if not device_sortable(base.counts):                # host: the same keys, np.lexsort
                 tex_h = np.repeat(np.arange(base.n_texels, dtype=np.int64), base.counts)
                 rank = np.arange(n, dtype=np.int64) - base.offsets[tex_h]
                 key = shuffle_key(seed, tex_h.astype(np.uint32), rank.astype(np.uint32))
                 idx = A.to_uint32(np.lexsort((rank, key, tex_h)).astype(np.uint32))
             else:                                               # words key << 32 | position
                 key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
-                if "sort_plan" not in base._cache:
-                    base._cache["sort_plan"] = sort_plan(base.counts, off)
                 U32 = dr.detached_t(UInt32)
                 perm, _ = sort_texels(base.counts, off, tex, "index", (U32(i), U32(key)), ties=False,
-                                      layout=base._cache["sort_plan"])
+                                      layout=base._sort_plan())
                 idx = UInt32(perm)
         return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
 
@@ -491,14 +486,11 @@ class Segments:
         if self.dtype != "float32":
             return _TIES
         z0 = dr.detached_t(self.Float)(dr.detach(self.z0))      # words key(z0) << 32 | position
-        if "sort_plan" not in self._cache:
-            self._cache["sort_plan"] = sort_plan(self.counts, self.offsets_dr())
         pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
-                                             layout=self._cache["sort_plan"])
+                                             layout=self._sort_plan())
         if flags & TIE:                                         # equal z0: z1, then position decide
-            c = self.counts.astype(np.float64)                  # runs of r equal z0 cost r^2: bounded
-            if float(c @ c) > DEVICE_SORT_WORK * self.n_segments:
-                return _TIES                                    # by sum count^2, else the host lexsort
+            if not device_sortable(self.counts):                # runs of r equal z0 cost r^2
+                return _TIES
             z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
             pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
             dr.eval(pay)
@@ -551,12 +543,7 @@ class Segments:
         """(near, far) as floats checked with :meth:`check_depth`, and ``far - near``
         finite in the storage dtype (the basis methods divide by it)."""
         lo, hi = self.check_depth(near, names[0]), self.check_depth(far, names[1])
-        ft = np.float32 if self.dtype == "float32" else np.float64
-        with np.errstate(over="ignore"):
-            span = ft(hi) - ft(lo)
-        if not np.isfinite(span):
-            raise ValueError(f"{names[1]}: the range {names[1]} - {names[0]} = {hi - lo:.6g} overflows the "
-                             f"{self.dtype} storage")
+        check_span(lo, hi, self.dtype, names[1], f"the range {names[1]} - {names[0]}")
         return lo, hi
 
     def select_texels(self, texels) -> "Segments":

@@ -27,7 +27,7 @@ from .. import _arrays as A
 from .. import _device_checks as DC
 from .. import backend
 from ..filtering import FILTERS, check_radius, check_size
-from ..segments import flush_subnormal
+from ..segment_dtype import flush_subnormal
 
 
 @dataclass
