@@ -29,6 +29,8 @@ import sys
 import drjit as dr
 import numpy as np
 
+from .. import _arrays as A
+from .. import backend
 from ..geometry import orthonormal_basis
 
 
@@ -66,8 +68,7 @@ def _rect_areas(x0, x1, y0, y1) -> np.ndarray:
 def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     """All (item, texel) pairs of inclusive rectangles; texel = offset + y * res + x."""
     wx = np.maximum(x1 - x0 + 1, 0)
-    wy = np.maximum(y1 - y0 + 1, 0)
-    counts = wx * wy
+    counts = _rect_areas(x0, x1, y0, y1)
     total = int(counts.sum())
     item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     if total == 0:
@@ -81,29 +82,33 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
 
 
 class LightCamera:
-    """Common interface of the light cameras.  ``width``, ``height``, ``n_texels``; see the
-    module docstring."""
+    """Common interface of the light cameras.  ``width``, ``height``, ``n_texels``, ``res``
+    (texels per side of a face), ``texel_offset`` (of a cube's face); see the module docstring."""
 
     width: int
     height: int
+    res: int
+    texel_offset = 0
 
     @property
     def n_texels(self) -> int:
         return self.width * self.height
 
-    def rays(self, texels=None) -> tuple[np.ndarray, np.ndarray]:
-        """(origins (K, 3), unit directions (K, 3)) float64 of the given texels (default: all)."""
+    def rays_device(self, texels) -> tuple[list, list]:
+        """Texel rays on the device: texels a Dr.Jit UInt32 array -> (origin, unit direction),
+        each a list of three Dr.Jit Float64 arrays (the camera's constants enter as opaque
+        scalars, so one compiled kernel serves every camera of a class)."""
         raise NotImplementedError
 
-    def rays_device(self, texels) -> tuple[list, list]:
-        """The rays of :meth:`rays` on the device: texels a Dr.Jit UInt32 array -> (origin,
-        direction), each a list of three Dr.Jit Float64 arrays (the same float64 formulas; the
-        camera's constants enter as opaque scalars, so one compiled kernel serves every
-        camera of a class).  This fallback computes them on the host."""
-        o, d = self.rays(np.asarray(texels.numpy(), np.int64))
-        F64 = _f64()
-        return ([F64(np.ascontiguousarray(o[:, a])) for a in range(3)],
-                [F64(np.ascontiguousarray(d[:, a])) for a in range(3)])
+    def rays(self, texels=None) -> tuple[np.ndarray, np.ndarray]:
+        """(origins (K, 3), unit directions (K, 3)) float64 of the given texels (default: all),
+        :meth:`rays_device` read back."""
+        t = self.texel_offset + np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
+        if t.size == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        o, d = self.rays_device(A.to_uint32(t))
+        dr.eval(o, d)
+        return tuple(np.stack([np.asarray(v.numpy(), np.float64) for v in x], axis=1) for x in (o, d))
 
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Continuous map coordinates (K, 2) (x, y in texel units) and depths (K,) float64."""
@@ -111,7 +116,9 @@ class LightCamera:
 
     def texel_index(self, coords) -> np.ndarray:
         """Texel containing each continuous coordinate, clamped to the map (cube: to the face)."""
-        raise NotImplementedError
+        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
+        return self.texel_offset + iy * self.res + ix
 
     def covers(self, coords) -> np.ndarray:
         """(K,) bool: the continuous coordinates (K, 2) lie on the map, ``[0, width) x [0, height)``."""
@@ -185,13 +192,6 @@ class OrthoCamera(LightCamera):
         cd = pd.min() - 0.05 * size
         return cls(d, cu * u + cv * v + cd * d, half, res)
 
-    def rays(self, texels=None):
-        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
-        x = (t % self.res + 0.5) * self.texel_size - self.half
-        y = (t // self.res + 0.5) * self.texel_size - self.half
-        o = self.center + x[:, None] * self.u + y[:, None] * self.v
-        return o, np.broadcast_to(self.d, o.shape).copy()
-
     def rays_device(self, texels):
         F64 = _f64()
         res = _opaque_u32(self.res)
@@ -207,11 +207,6 @@ class OrthoCamera(LightCamera):
         x = (q @ self.u + self.half) / self.texel_size
         y = (q @ self.v + self.half) / self.texel_size
         return np.stack([x, y], axis=1), q @ self.d
-
-    def texel_index(self, coords):
-        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
-        return iy * self.res + ix
 
     def texel_width(self, texels, t):
         return np.full(np.shape(t), self.texel_size)
@@ -236,14 +231,6 @@ class PerspectiveCamera(LightCamera):
         self.res = self.width = self.height = int(res)
         self.texel_offset = int(texel_offset)
 
-    def rays(self, texels=None):
-        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64) - self.texel_offset
-        sx = ((t % self.res + 0.5) / self.res * 2 - 1) * self.tan_half
-        sy = ((t // self.res + 0.5) / self.res * 2 - 1) * self.tan_half
-        d = self.w + sx[:, None] * self.u + sy[:, None] * self.v
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return np.broadcast_to(self.position, d.shape).copy(), d
-
     def rays_device(self, texels):
         t = texels - _opaque_u32(self.texel_offset)
         return _perspective_rays(t, self.res, self.tan_half, *(_opaque_vec(a) for a in (self.u, self.v, self.w)),
@@ -263,11 +250,6 @@ class PerspectiveCamera(LightCamera):
         x = np.where(zc > 0, x, -1e9)
         y = np.where(zc > 0, y, -1e9)
         return np.stack([x, y], axis=1), np.linalg.norm(q, axis=1)
-
-    def texel_index(self, coords):
-        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
-        return self.texel_offset + iy * self.res + ix
 
     def texel_width(self, texels, t):
         """t * (2 tan(fov/2) / res) / cos^2(alpha), alpha the ray's angle off the axis (an
@@ -308,17 +290,6 @@ class CubeCamera(LightCamera):
             w = np.zeros(3)
             w[axis] = sign
             self.faces.append(PerspectiveCamera(position, w, 90.0, res, texel_offset=f * res * res))
-
-    def rays(self, texels=None):
-        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
-        o = np.empty((t.size, 3))
-        d = np.empty((t.size, 3))
-        face = t // (self.res * self.res)
-        for f, cam in enumerate(self.faces):
-            m = face == f
-            if m.any():
-                o[m], d[m] = cam.rays(t[m])
-        return o, d
 
     def rays_device(self, texels):
         """Each lane reads its face's basis from (6, 3) tables: one kernel for all faces."""
@@ -361,27 +332,22 @@ class CubeCamera(LightCamera):
         return face * self.res * self.res + iy * self.res + ix
 
     def texel_width(self, texels, t):
+        """As :meth:`PerspectiveCamera.texel_width`, with each texel's face axis."""
         texels = np.asarray(texels, np.int64)
-        t = np.broadcast_to(np.asarray(t, np.float64), texels.shape)
-        out = np.empty(texels.shape)
-        face = texels // (self.res * self.res)
-        for f, cam in enumerate(self.faces):
-            m = face == f
-            if m.any():
-                out[m] = cam.texel_width(texels[m], t[m])
-        return out
+        _, d = self.rays(texels)
+        cos = np.einsum("ij,ij->i", d, np.array([c.w for c in self.faces])[texels // (self.res * self.res)])
+        return (np.broadcast_to(np.asarray(t, np.float64), texels.shape)
+                * (2 * self.faces[0].tan_half / self.res) / (cos * cos))
 
     def footprint_rects(self, bmin, bmax):
         return [r for cam in self.faces for r in cam.footprint_rects(bmin, bmax)]
 
 
 def _f64():
-    from .. import backend
     return backend.types().Float64
 
 
 def _opaque_u32(v: int):
-    from .. import backend
     return dr.opaque(backend.types().UInt32, int(v))
 
 
