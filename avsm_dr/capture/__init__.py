@@ -12,11 +12,9 @@ by ray marching (:mod:`.grid`), particles as chords (:mod:`.particles`), hair st
 as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
 (:mod:`.camera`) fits a directional light's orthographic map to the content's
 bounds (the non-zero part of a grid, with one empty texel of margin), uses the
-spot cone for a spot light and a cube of six faces for a point light.
-
-Insertion order (``order=``, recorded as ``Segments.order``): the order in which each
-texel's segments are stored, hence inserted by an order-dependent build such as AVSM.
-The default, ``"submission"``, is what a GPU rasteriser delivers (:data:`ORDERS`).
+spot cone for a spot light and a cube of six faces for a point light.  Each texel's
+segments are stored in an insertion order (:data:`ORDERS`), the order an order-dependent
+build such as AVSM inserts them.
 """
 from __future__ import annotations
 
@@ -66,9 +64,8 @@ SUBMISSIONS = ("list", "back_to_front")
 #: position (spot/point) or reference plane (directional), in front of every segment
 #: (segments lie at ray parameters >= 0), so every representation returns T = 1 there.
 OUTSIDE_DEPTH = 0.0
-#: Finest grid march step, as a fraction of the smallest voxel side: the march's error
-#: along a trilinear field falls at least as step^2, nothing measurable is gained below
-#: this, and the march costs one iteration per step per texel.
+#: Finest grid march step, as a fraction of the smallest voxel side (the march's error falls
+#: as step^2, its cost grows as 1 / step).
 MIN_STEP_FRACTION = 1.0 / 1024
 
 
@@ -108,7 +105,7 @@ class Capture:
 
     @property
     def order(self) -> str:
-        """The insertion order of the segments (``segments.order``; :data:`ORDERS`)."""
+        """``segments.order`` (:data:`ORDERS`)."""
         return self.segments.order
 
     @property
@@ -255,13 +252,10 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
         depth map, ``Capture.opaque_depth``, composed at lookup; see :mod:`.opaque_map`).
     order
-        the insertion order of each texel's segments (:data:`ORDERS`, recorded as
-        ``Segments.order`` and ``Capture.order``): 'submission' (default: a renderer's draw
-        order, primitive by primitive), 'depth' (front to back), 'reverse_depth' (back to
-        front) or 'random' (a seeded shuffle).
+        the insertion order of each texel's segments, one of :data:`ORDERS` (default
+        'submission'), recorded as ``Segments.order``.
     submission
-        particles' draw order with ``order='submission'``: 'list' (default, the
-        scene's list order) or 'back_to_front' (sorted by depth, farthest first).
+        particles' draw order with ``order='submission'``, one of :data:`SUBMISSIONS`.
     order_seed
         seed of ``order='random'``, an integer in [0, 2^32) (default 0).
 

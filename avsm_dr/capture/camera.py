@@ -150,6 +150,13 @@ class LightCamera:
                     yield item + start, texel
                 start = stop
 
+    def footprint_rays(self, bmin, bmax, chunk: int = 1):
+        """Yield ``(item, texel, origins, directions)`` of :meth:`footprint_chunks` (with
+        :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles)."""
+        for start in range(0, bmin.shape[0], chunk):
+            for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
+                yield (item + start, texel, *self.rays(texel))
+
     def footprint(self, bmin, bmax):
         """Candidate texels of N boxes: (item (M,), texel (M,)) int64 with every texel whose
         ray may meet box ``item`` (conservative, one entry per pair)."""

@@ -30,8 +30,7 @@ def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float
     tex, z0, bid = [], [], []
     for i, b in enumerate(blockers):
         lo, hi = b.bounds()
-        for _, texel in camera.footprint_chunks(lo[None], hi[None]):
-            o, d = camera.rays(texel)
+        for _, texel, o, d in camera.footprint_rays(lo[None], hi[None]):
             t, hit, cos = b.first_hit(o, d)
             texel, t, cos = texel[hit], t[hit], cos[hit]
             tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)

@@ -47,16 +47,12 @@ def capture_particles(camera, particles, Float, ids: bool = False):
     lo, hi = c - r[:, None], c + r[:, None]
     check_candidates(camera, lo, hi, "particles", MAX_CANDIDATES)
     tex, z0, z1, pid = [], [], [], []
-    for start in range(0, c.shape[0], CHUNK):
-        sl = slice(start, start + CHUNK)
-        for item, texel in camera.footprint_chunks(lo[sl], hi[sl]):
-            item = item + start
-            o, d = camera.rays(texel)
-            t0, t1, hit = ray_sphere(o, d, c[item], r[item], t_min=0.0)
-            tex.append(texel[hit])
-            z0.append(t0[hit])
-            z1.append(t1[hit])
-            pid.append(item[hit])
+    for item, texel, o, d in camera.footprint_rays(lo, hi, CHUNK):
+        t0, t1, hit = ray_sphere(o, d, c[item], r[item], t_min=0.0)
+        tex.append(texel[hit])
+        z0.append(t0[hit])
+        z1.append(t1[hit])
+        pid.append(item[hit])
     if not tex:
         return (np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Float()) + ((np.zeros(0, np.int64),) if ids else ())
     tex, z0, z1, pid = (np.concatenate(a) for a in (tex, z0, z1, pid))
