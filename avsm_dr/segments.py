@@ -49,7 +49,7 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
-_TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
+_TIES = object()        # :meth:`Segments._network_view`: no network order (float64, costly ties)
 
 
 def device_sortable(counts: np.ndarray) -> bool:
@@ -355,19 +355,31 @@ class Segments:
     # ------------------------------------------------------------- reorder
     def sorted(self) -> "Segments":
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
-        lexsort); gradients follow the permutation.
+        lexsort, :meth:`depth_order`); gradients follow the permutation."""
+        return self if self.sorted_by_depth else self._reordered(self.depth_order())
 
-        On the device (:meth:`depth_order`); for float64, or equal z0 in a texel, where the
-        per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment, a host
-        lexsort (same order)."""
-        if self.sorted_by_depth or self.n_segments == 0:
-            return self if self.sorted_by_depth else self._reordered(None)
-        idx = self._network_order()
-        return self._reordered(self._exact_order() if idx is _TIES else idx)
+    def depth_order(self):
+        """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
+        ties in stored order; None when they are already in order.
+
+        float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels` (words ``key(z0) << 32 |
+        position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
+        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
+        :func:`device_sortable` is false and ranks or ties are needed."""
+        view = self._network_view()
+        if view is _TIES:
+            return self._exact_order()
+        if view is None:
+            return None
+        UInt32 = backend.types().UInt32
+        pay, start = view
+        tex = self.texel_of_segment()
+        local = dr.arange(UInt32, self.n_segments) - dr.gather(UInt32, self.offsets_dr(), tex)
+        return dr.gather(UInt32, pay, dr.gather(UInt32, start, tex) + local)
 
     def _exact_order(self):
         """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host
-        lexsort where the per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment."""
+        lexsort where :func:`device_sortable` is false."""
         if device_sortable(self.counts):
             return self._rank_order()
         h = self.numpy()
@@ -455,28 +467,6 @@ class Segments:
         out = Segments(offsets, *(fns[k]() for k in _FIELDS), self.dtype, sorted_by_depth,
                        {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
-
-    def depth_order(self):
-        """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
-        ties in stored order, computed on the device; None when they are already in order.
-
-        float32: by z0 alone with :func:`~avsm_dr.texel_sort.sort_texels` (sorting networks in
-        registers, one lane per texel), the words ``key(z0) << 32 | position`` making the
-        order stable; where a texel holds equal z0, z1 then position decide
-        (:func:`~avsm_dr.texel_sort.break_ties`); float64: by rank, :meth:`_rank_order`."""
-        idx = self._network_order()
-        return self._rank_order() if idx is _TIES else idx
-
-    def _network_order(self):
-        """Permutation, None (already in order) or ``_TIES`` (float64)."""
-        view = self._network_view()
-        if view is None or view is _TIES:
-            return view
-        UInt32 = backend.types().UInt32
-        pay, start = view
-        tex = self.texel_of_segment()
-        local = dr.arange(UInt32, self.n_segments) - dr.gather(UInt32, self.offsets_dr(), tex)
-        return dr.gather(UInt32, pay, dr.gather(UInt32, start, tex) + local)
 
     def _network_view(self):
         """:meth:`depth_view` by the sorting networks (equal z0: :func:`~avsm_dr.texel_sort.break_ties`),

@@ -6,27 +6,19 @@ Input: one 64-bit *word* per segment in CSR order, ``word = key << 32 | payload`
 comparing words is comparing ``(key, payload)``.  Output: for every CSR position
 ``o_t + r`` the payload of the ``r``-th smallest word of texel ``t``.
 
-* Texels of ``k <= 64`` segments: one lane per texel loads its ``k`` words into registers
-  (``B - k`` pads of ``2^64 - 1`` up to its size class ``B``, the next power of two) and
-  sorts them with Batcher's odd-even merge sort network (K. E. Batcher, "Sorting networks
-  and their applications", AFIPS 1968, section 2), comparators on pads pruned: no memory
-  traffic besides one gather per segment and one packet store per texel.  All classes run
-  in one kernel, a chain of symbolic conditionals (lanes grouped by class, so a SIMD
-  packet runs one network).
-* Longer texels: blocks of 64 (a texel's last block by the network of its size class),
-  then bottom-up merges of pairs of sorted runs, one lane per pair walking both runs with
-  their heads in registers (one gather and one store per word), the last merge writing the
-  payloads to their place and checking neighbours for equal keys.
-* :func:`sort_texels_view` leaves the payloads in that layout (texel ``t`` from
-  ``base[t]``): a consumer walking each texel reads through it, no permutation is formed.
-* Equal keys (:func:`break_ties`): one lane per segment scans its run of equal keys and
-  ranks itself by a second key, then position.
+* Texels of ``k <= 64`` segments: one lane per texel sorts its ``k`` words in registers
+  (padded with ``2^64 - 1`` up to its size class, the next power of two) with Batcher's
+  odd-even merge sort network (K. E. Batcher, "Sorting networks and their applications",
+  AFIPS 1968, section 2), comparators on pads pruned; all classes in one kernel (a chain of
+  symbolic conditionals, lanes grouped by class).
+* Longer texels: blocks of 64, then bottom-up merges of pairs of sorted runs, one lane per
+  pair with both heads in registers.
+* Equal keys (:func:`break_ties`): one lane per segment ranks itself inside its run of
+  equal keys by a second key, then position.
 
-Timings against the alternatives tried (ranking, full networks, merge path): docs/performance.md.
-
-Flags (counted on the device, read back once): :data:`TIE` when two words of a texel share
-their key (the caller may need a finer order), :data:`UNSORTED` when some texel's words
-were not already increasing in CSR order (always set when a texel exceeds 64).
+Flags (counted on the device): :data:`TIE` when two words of a texel share their key,
+:data:`UNSORTED` when some texel's words were not already increasing in CSR order (always
+set when a texel exceeds 64).
 """
 from __future__ import annotations
 
@@ -65,9 +57,7 @@ def network(n: int) -> tuple:
 
 
 def _u32(a: np.ndarray):
-    """Host integers as a UInt32 Dr.Jit array, copied from a 64-byte aligned buffer (a mapped
-    NumPy buffer's alignment enters the kernel hash: recompiles at random, seconds for the
-    64-input network)."""
+    """Host integers as a UInt32 Dr.Jit array from a 64-byte aligned buffer (:func:`~avsm_dr._arrays.aligned`)."""
     return _types()[0](A.aligned(np.asarray(a).astype(np.uint32)))
 
 
@@ -88,9 +78,8 @@ def float_key(z):
 def _network_branch(word_at, size: int, out, ties: bool):
     """``f(start, count, packet) -> flags``: one lane per run ``[start, start + count)``
     (``count <= size``): its words ``word_at(position, valid)`` sorted in registers, stored
-    as packet ``packet`` of ``size`` entries of ``out`` (payloads into a UInt32 ``out``,
-    whole words into a UInt64 one); flags (UInt64): 1 for equal keys side by side, ``2^32``
-    when the run was not already increasing."""
+    as packet ``packet`` of ``out`` (payloads into a UInt32 ``out``, words into a UInt64 one);
+    flags (UInt64): 1 for equal keys side by side, ``2^32`` when the run was unsorted."""
     UInt32, UInt64, ArrayXu, ArrayXu64 = _types()
 
     def f(start, count, packet):
@@ -128,10 +117,8 @@ def word_function(kind: str, sources):
 
 
 def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
-    """Sort the runs of all lanes (lanes ordered by decreasing size class) in one kernel: a
-    chain of symbolic conditionals picks the network of each lane's size class ``sizes``
-    (ascending); SIMD packets whose lanes share a class run one network.  Returns the
-    lanes' flags summed (UInt64, width 1; see :func:`_network_branch`)."""
+    """Sort the runs of all lanes (by decreasing size class) in one kernel, a chain of symbolic
+    conditionals picking each lane's network; returns the flags summed (UInt64, width 1)."""
     UInt32, UInt64, _, _ = _types()
     word_at = word_function(kind, sources)
 
@@ -147,10 +134,9 @@ def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
 
 
 def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
-    """Merge two sorted runs per lane, ``cur[a0:mid]`` and ``cur[mid:end]``, sequentially
-    (two heads in registers: one gather and one store per word), writing the ``n`` smallest
-    words to ``out[dst:dst + n]`` (payloads into a UInt32 ``out``, words into a UInt64 one).
-    tie: also return, per lane, whether two consecutive outputs share their key (a Bool)."""
+    """Merge two sorted runs per lane, ``cur[a0:mid]`` and ``cur[mid:end]``, writing the ``n``
+    smallest words to ``out[dst:dst + n]`` (payloads into a UInt32 ``out``, words into a UInt64
+    one); returns per lane whether two consecutive outputs share their key (with ``tie``)."""
     UInt32, UInt64, _, _ = _types()
     Bool = dr.mask_t(UInt32)
     a, b, k = UInt32(a0), UInt32(mid), dr.zeros(UInt32, dr.width(a0))
@@ -174,9 +160,9 @@ def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
 
 
 def plan(counts: np.ndarray, offsets_dr) -> dict:
-    """The layout of a sort (depends on the texel counts only, so callers may keep it):
-    lanes per size class, packet and slot of every texel (``base``: where its sorted payloads
-    start), blocks of the long texels (grouped by size class) and their merge passes."""
+    """The layout of a sort (a function of the texel counts, so callers may keep it): lanes
+    per size class, ``base`` (where each texel's sorted payloads start), blocks of the long
+    texels and their merge passes."""
     UInt32 = _types()[0]
     off = UInt32(offsets_dr)
     counts = np.asarray(counts, np.int64)
@@ -257,9 +243,7 @@ def sort_texels(counts: np.ndarray, offsets_dr, texel_of, kind: str, sources, ti
 def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):
     """``(payloads, base, flags)`` without the final permutation: texel ``t``'s ``r``-th
     smallest word has its payload at ``payloads[base[t] + r]`` (both Dr.Jit UInt32,
-    evaluated; ``payloads`` holds the size classes' packets, then the long texels), so a
-    consumer that walks each texel reads its order there (one gather per segment) instead
-    of materialising a permutation.  Arguments as :func:`sort_texels`."""
+    evaluated), for a consumer that walks each texel.  Arguments as :func:`sort_texels`."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay = dr.empty(UInt32, lay["total"])
@@ -285,7 +269,6 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
     n_tie, n_unsorted = int(counter[0]) & 0xFFFFFFFF, int(counter[0]) >> 32
     flags = (TIE if n_tie else 0) | (UNSORTED if n_unsorted or big is not None else 0)   # blocks: not checked
     return pay, lay["base"], flags
-
 
 
 def break_ties(payloads, base, offsets_dr, texel_of, key, second):
