@@ -2,13 +2,11 @@
 
 Dr.Jit 1.5 on LLVM 15 aborts the whole process at the first ``dr.maximum`` /
 ``dr.minimum`` ("Cannot select: fmaximum"); LLVM >= 16 works.  Dr.Jit loads its
-libLLVM once, eagerly, inside ``import drjit`` (``DRJIT_LIBLLVM_PATH`` if set, else
-its own search; measured with drjit 1.5: setting the variable afterwards changes
-nothing).  So :func:`ensure_libllvm` points ``DRJIT_LIBLLVM_PATH`` at the newest
-libLLVM >= 16 it can find, unless the user set it, and must run before ``drjit`` is
-imported; :func:`check_loaded` then asks Dr.Jit which LLVM it actually loaded.
-When ``drjit`` was imported first, its own choice stands: fine when it found
-LLVM >= 16, otherwise :data:`PROBLEM` says that the import order is the cause.
+libLLVM once, inside ``import drjit`` (``DRJIT_LIBLLVM_PATH`` if set, else its own
+search), so :func:`ensure_libllvm` points ``DRJIT_LIBLLVM_PATH`` at the newest libLLVM
+>= 16 unless the user set it, before ``drjit`` is imported; :func:`check_loaded` then asks
+Dr.Jit which LLVM it loaded (when ``drjit`` was imported first, :data:`PROBLEM` names the
+import order as the cause of an LLVM < 16).
 """
 from __future__ import annotations
 

@@ -40,24 +40,18 @@ def _check_threshold(threshold):
     return V.real(threshold, "threshold", 0.0)
 
 
+_KEYS = ("rmse", "max_error", "mean_error", "mean_abs_error", "leak_fraction", "dark_fraction",
+         "p99_error", "p999_error")
+
+
 def _summary(diff: np.ndarray, threshold: float, prefix: str = "") -> dict:
-    """Statistics of signed errors ``diff`` (finite)."""
+    """Statistics of signed errors ``diff`` (finite), NaN when there are none."""
     if diff.size == 0:
-        nan = float("nan")
-        return {f"{prefix}{k}": nan for k in ("rmse", "max_error", "mean_error", "mean_abs_error",
-                                              "leak_fraction", "dark_fraction", "p99_error", "p999_error")}
+        return {prefix + k: float("nan") for k in _KEYS}
     a = np.abs(diff)
-    p99, p999 = np.percentile(a, [99.0, 99.9])
-    return {
-        f"{prefix}rmse": float(np.sqrt(np.mean(diff ** 2))),
-        f"{prefix}max_error": float(a.max()),
-        f"{prefix}mean_error": float(np.mean(diff)),
-        f"{prefix}mean_abs_error": float(np.mean(a)),
-        f"{prefix}leak_fraction": float(np.mean(diff > threshold)),
-        f"{prefix}dark_fraction": float(np.mean(diff < -threshold)),
-        f"{prefix}p99_error": float(p99),
-        f"{prefix}p999_error": float(p999),
-    }
+    values = (np.sqrt(np.mean(diff ** 2)), a.max(), np.mean(diff), np.mean(a), np.mean(diff > threshold),
+              np.mean(diff < -threshold), *np.percentile(a, [99.0, 99.9]))
+    return {prefix + k: float(v) for k, v in zip(_KEYS, values)}
 
 
 def error_stats(estimate, reference, threshold: float = THRESHOLD) -> dict:

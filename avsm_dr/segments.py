@@ -27,8 +27,8 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
-from .segment_keys import rank_in_ranges, shuffle_key
-from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels, sort_texels_view
+from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels,
+                         sort_texels_view)
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).

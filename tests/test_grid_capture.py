@@ -256,11 +256,11 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
 def test_corner_table_and_gathers_give_the_same_segments(monkeypatch):
     """The packet load of a dual cell's 8 corners from the corner table reads the same values
     as 8 gathers from the padded window (the fallback for windows above the table budget)."""
-    from avsm_dr.capture import dual_cells
+    from avsm_dr.capture import _grid_volume
     d = small_grid()
     out = []
-    for cells in (dual_cells.CORNER_TABLE_CELLS, 0):
-        monkeypatch.setattr(dual_cells, "CORNER_TABLE_CELLS", cells)
+    for cells in (_grid_volume.CORNER_TABLE_CELLS, 0):
+        monkeypatch.setattr(_grid_volume, "CORNER_TABLE_CELLS", cells)
         g = GridVolume.prepare(d, BBOX)
         tex, z0, z1, tau, _ = traverse(g, _camera(g, LIGHTS["spot"]), 1e-4)
         out.append([tex] + _host(z0, z1, tau))

@@ -9,7 +9,7 @@ Example::
 Every kind of content becomes segments ``[z0, z1]`` with optical depth ``tau``
 (Salvi et al., "Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3): density grids
 by ray marching (:mod:`.grid`), particles as chords (:mod:`.particles`), hair strands
-as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
+as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque_map`).  The light camera
 (:mod:`.camera`) fits a directional light's orthographic map to the content's
 bounds (the non-zero part of a grid, with one empty texel of margin), uses the
 spot cone for a spot light and a cube of six faces for a point light.  Each texel's
@@ -31,12 +31,11 @@ from .. import validation as V
 from ..scene import Scene, check_light, validate_blockers
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
-from . import opaque as _opaque
 from . import opaque_map as _opaque_map
 from . import particles as _particles
 from .assembly import combine
 from .camera import CubeCamera, LightCamera, OrthoCamera, PerspectiveCamera, make_camera
-from ._grid_rays import SUBMISSION_BRICK, brick_keys
+from ._grid_lanes import SUBMISSION_BRICK, brick_keys
 from .dda import traverse
 from .grid import GridVolume, check_method, march
 from .hair import load_tfx, procedural_strands
@@ -242,7 +241,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         (default 1e-4 x the content's diagonal).
     opaque_slope_bias
         extra offset in texel widths x tan(angle of incidence), so receivers
-        on a blocker's lit surface are not shadowed by it (see :mod:`.opaque`).
+        on a blocker's lit surface are not shadowed by it (see :mod:`.opaque_map`).
     bounds
         (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
     method
@@ -333,44 +332,41 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
                              f"iteration per step per texel)")
     stats["setup_s"] = time.perf_counter() - t_start
 
-    # ---- segments of every content kind
-    pieces = []                                            # (texel, z0, z1, tau[, draw key])
+    # ---- segments of every content kind: pieces (texel, z0, z1, tau[, draw key])
+    pieces = []
     bases = _draw_bases(blockers, grid, scene) if drawn else None
+    UInt32 = backend.types().UInt32
+
+    def add(kind, t0, piece, key, inline=True, **st):
+        stats[kind] = {**st, "segments": int(piece[0].size), "seconds": time.perf_counter() - t0}
+        if inline and piece[0].size:
+            pieces.append(piece + ((key(),) if drawn else ()))
     if grid is not None:
         t0 = time.perf_counter()
         if method == "exact":
             tex, z0, z1, tau, st = traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True)
         else:
             tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True)
-        stats["grid"] = dict(st, seconds=time.perf_counter() - t0)
-        if tex.size:
-            key = (dr.opaque(backend.types().UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1),) \
-                if drawn else ()
-            pieces.append((tex, z0, z1, tau) + key)
+        add("grid", t0, (tex, z0, z1, tau),
+            lambda: dr.opaque(UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
     if scene.particles is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau, pid = _particles.capture_particles(camera, scene.particles, Float, ids=True)
-        stats["particles"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
-        if tex.size:
-            key = (bases["particles"] + _particles.draw_ranks(camera, scene.particles, submission)[pid],) \
-                if drawn else ()
-            pieces.append((tex, z0, z1, tau) + key)
+        *piece, pid = _particles.capture_particles(camera, scene.particles, Float, ids=True)
+        add("particles", t0, tuple(piece),
+            lambda: bases["particles"] + _particles.draw_ranks(camera, scene.particles, submission)[pid])
     if scene.hair is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau, cid = _hair.capture_hair(camera, scene.hair, ids=True)
-        stats["hair"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
-        if tex.size:
-            pieces.append((tex, z0, z1, tau) + ((bases["hair"] + cid,) if drawn else ()))
+        *piece, cid = _hair.capture_hair(camera, scene.hair, ids=True)
+        add("hair", t0, tuple(piece), lambda: bases["hair"] + cid)
     opaque_depth = None
     if blockers:
+        t0 = time.perf_counter()
         bias = 1e-4 * diag if opaque_bias is None else float(opaque_bias)
-        tex, z0, z1, bid = _opaque.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias, ids=True)
-        stats["opaque"] = {"segments": int(tex.size)}
+        tex, z0, z1, bid = _opaque_map.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias, ids=True)
         if opaque == "separate":
             opaque_depth = _opaque_map.depth_map(tex, z0, camera.n_texels)
             pieces = _opaque_map.clip_pieces(pieces, opaque_depth, Float)
-        elif tex.size:
-            pieces.append((tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)) + ((bid,) if drawn else ()))
+        add("opaque", t0, (tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)), lambda: bid, opaque == "inline")
 
     t0 = time.perf_counter()
     seg = combine([p[:4] for p in pieces], camera.n_texels, Float, order,

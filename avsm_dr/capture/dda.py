@@ -45,10 +45,8 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .assembly import TexelRuns
-from .dual_cells import corner_table, dual_block_max, dual_grid  # noqa: F401 (dual_block_max: API)
-from ._grid_rays import hit_lanes
-from ._grid_slots import compact_slots, new_slots, read_slots, write_slots
-from ._grid_volume import segment_tau
+from ._grid_lanes import compact_slots, hit_lanes, new_slots, read_slots, write_slots
+from ._grid_volume import corner_table, dual_block_max, dual_grid, segment_tau  # noqa: F401
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
 _FAR = 1e30

@@ -16,7 +16,7 @@ the lattice planes where its derivative jumps).  Steps with tau = 0 emit nothing
 stops once its accumulated optical depth exceeds ``-ln(epsilon)``.
 
 Output: one pass writes each lane's segments into its own slots (a bound of its segments:
-steps plus block faces crossed; :mod:`._grid_slots`); above :data:`MARCH_SLOT_BUDGET` slots,
+steps plus block faces crossed; :mod:`._grid_lanes`); above :data:`MARCH_SLOT_BUDGET` slots,
 or when a lane fills its slots, a counting pass then a writing pass at the prefix-sum
 offsets.  With a grad-enabled density the optical depths are recomputed per segment from
 differentiable gathers (:func:`~._grid_volume.segment_tau`); segment boundaries and counts
@@ -32,10 +32,9 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .assembly import TexelRuns
-from .dual_cells import corner_table
-from ._grid_volume import GridVolume, MarchKernel, block_max, segment_tau  # noqa: F401 (block_max: API)
-from ._grid_rays import SUBMISSION_BRICK, candidate_texels, hit_lanes  # noqa: F401 (API)
-from ._grid_slots import compact_slots, new_slots, read_slots, write_slots
+from ._grid_volume import GridVolume, MarchKernel, block_max, corner_table, segment_tau  # noqa: F401
+from ._grid_lanes import (SUBMISSION_BRICK, candidate_texels, compact_slots, hit_lanes,  # noqa: F401
+                         new_slots, read_slots, write_slots)
 
 
 # --------------------------------------------------------------------- marching
