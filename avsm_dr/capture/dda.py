@@ -92,7 +92,7 @@ def lane_constants(grid, o, d, t_in, t_out):
 
 
 def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiable: bool | None = None,
-             lanes_rays=None, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
+             capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
              runs: bool = False):
     """Integrate every texel ray of ``camera`` through ``grid`` exactly, one segment per
     dual-cell crossing with non-zero optical depth.
@@ -107,10 +107,6 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     differentiable
         recompute tau from differentiable gathers (default: when the grid's
         data has gradients enabled).
-    lanes_rays
-        host (texels, o, d, t_in, t_out) float64 arrays of the rays meeting the box;
-        default: the rays are made, clipped and compacted on the device
-        (:func:`~avsm_dr.capture.grid.hit_lanes`).
     capacity
         segments a lane writes per round (see :data:`ROUND_CAPACITY`).
     slot_budget
@@ -127,25 +123,12 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         return empty
     clock = time.perf_counter()
     # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
-    if lanes_rays is None:
-        lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
-        L = dr.width(lanes_d)
-        if L == 0:
-            return empty
-        lanes = np.asarray(lanes_d.numpy(), np.int64)
-        host_rays = None
-    else:
-        lanes, o_h, d_h, t_in_h, t_out_h = lanes_rays
-        L = lanes.size
-        if L == 0:
-            return empty
-        F64 = t.Float64
-        o, d = ([F64(np.ascontiguousarray(v[:, a], np.float64)) for a in range(3)] for v in (o_h, d_h))
-        t_in, t_out = F64(np.asarray(t_in_h, np.float64)), F64(np.asarray(t_out_h, np.float64))
-        host_rays = (o_h, d_h)
-        cap = None
-    const, cell, cap_l = lane_constants(grid, o, d, t_in, t_out)
-    cap = cap_l if cap is None else cap
+    lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
+    L = dr.width(lanes_d)
+    if L == 0:
+        return empty
+    lanes = np.asarray(lanes_d.numpy(), np.int64)
+    const, cell, _ = lane_constants(grid, o, d, t_in, t_out)
     times = {"lanes_s": time.perf_counter() - clock}
 
     wlen = np.array(grid.window_shape[::-1], np.int64)             # (wx, wy, wz)
@@ -259,7 +242,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         if stats["max_iterations"] >= max_iter:
             raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
         if S and (differentiable if differentiable is not None else dr.grad_enabled(grid.data)):
-            o_h, d_h = host_rays or camera.rays(lanes)
+            o_h, d_h = camera.rays(lanes)
             tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), Float) for i in range(3)]
                                       for v in (o_h, d_h)), counts, z0, z1)
         clock = time.perf_counter()
