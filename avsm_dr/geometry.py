@@ -46,8 +46,6 @@ def ray_box(o, d, lo, hi, t_min: float = -math.inf):
     ``t_near = max(t_min, max_a min(t_a, t'_a))``, ``t_far = min_a max(t_a, t'_a)``.
     A ray parallel to a slab (``d_a = 0``) is inside it for all t when ``lo_a <= o_a <= hi_a``
     (the closed slab) and misses the box otherwise (``t_near = inf``, ``t_far = -inf``).
-    One axis at a time on contiguous columns (reductions over a length-3 last axis were the
-    slow part of this on 10^6 rays).
     """
     o = np.asarray(o, np.float64)
     d = np.asarray(d, np.float64)

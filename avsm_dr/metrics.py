@@ -1,18 +1,11 @@
-"""Error metrics between transmittance estimates and a reference.
+"""Error metrics between transmittance estimates and a reference: :func:`error_stats` in T,
+:func:`optical_depth_error` in ``tau = -ln max(T, floor)`` (dense media, where T -> 0 hides
+errors; floor 1e-4, the capture's default stop threshold).
 
 Sign convention: ``error = estimate - reference``; positive = light leaking (the estimate
 is brighter than the truth), negative = over-darkening.  All statistics are over the
-finite estimates (non-finite ones are counted, not averaged).
-
-* :func:`error_stats`: RMSE, max, mean (signed) and mean |error|, the fractions of receivers
-  leaking / over-darkening by more than ``threshold`` (0.02), the 99th and 99.9th
-  percentiles of |error|, counts of NaN / inf / out-of-[0, 1] estimates.
-* :func:`optical_depth_error`: the same in the log domain, ``tau = -ln max(T, floor)``,
-  for dense media where T -> 0 hides errors (floor 1e-4: the capture's default stop
-  threshold, below which no transmittance is resolved).
-
-A 99.9th percentile needs thousands of receivers to mean more than the maximum: with
-K receivers it interpolates between the two largest errors when K < 1000.
+finite estimates (non-finite ones are counted, not averaged).  With K < 1000 receivers the
+99.9th percentile interpolates between the two largest errors.
 """
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ from .. import _arrays as A
 from .. import backend
 from ..geometry import ray_box_dr
 from .assembly import TexelRuns
-from ._grid_volume import GridVolume
+from ._grid_volume import GridVolume, segment_tau
 
 
 def candidate_texels(camera, lo, hi):
@@ -61,6 +61,19 @@ def hit_lanes(grid: GridVolume, camera, per_lane=None):
     o, d = camera.rays_device(lanes)
     t_in, t_out, _ = ray_box_dr(o, d, *box, t_min=0.0)
     return lanes, o, d, t_in, t_out, extra
+
+
+def lane_output(grid: GridVolume, camera, lanes, counts, z0, z1, tau, stats, differentiable, runs: bool):
+    """``(texel, z0, z1, tau, stats)`` of a grid capture whose lane ``i`` (texel ``lanes[i]``)
+    holds ``counts[i]`` segments, in lane order: ``tau`` recomputed from differentiable gathers
+    (:func:`~._grid_volume.segment_tau`) when ``differentiable`` (None: when the grid's data has
+    gradients); texels as :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each."""
+    if dr.grad_enabled(grid.data) if differentiable is None else differentiable:
+        o, d = camera.rays(lanes)
+        tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), grid.Float) for i in range(3)]
+                                  for v in (o, d)), counts, z0, z1)
+    texel = TexelRuns(lanes, counts) if runs else np.repeat(lanes.astype(np.int64), counts)
+    return texel, z0, z1, tau, stats
 
 
 #: Bricks of the ``"submission"`` order (:func:`brick_keys`): voxels per side.

@@ -209,20 +209,20 @@ class OrthoCamera(LightCamera):
         o = [c[a] + x * u[a] + y * v[a] for a in range(3)]
         return o, [dr.full(F64, 0.0, dr.width(texels)) + d[a] for a in range(3)]
 
+    def _coords(self, p):
+        """Map coordinates (x, y) and depth of points ``p`` (..., 3)."""
+        q = p - self.center
+        return (q @ self.u + self.half) / self.texel_size, (q @ self.v + self.half) / self.texel_size, q @ self.d
+
     def project(self, points):
-        q = np.asarray(points, np.float64) - self.center
-        x = (q @ self.u + self.half) / self.texel_size
-        y = (q @ self.v + self.half) / self.texel_size
-        return np.stack([x, y], axis=1), q @ self.d
+        x, y, depth = self._coords(np.asarray(points, np.float64))
+        return np.stack([x, y], axis=1), depth
 
     def texel_width(self, texels, t):
         return np.full(np.shape(t), self.texel_size)
 
     def footprint_rects(self, bmin, bmax):
-        c = _box_corners(bmin, bmax)                                   # (N, 8, 3)
-        q = c - self.center
-        x = (q @ self.u + self.half) / self.texel_size
-        y = (q @ self.v + self.half) / self.texel_size
+        x, y, _ = self._coords(_box_corners(bmin, bmax))               # (N, 8) each
         return [(*_rect_from_coords(x, y, self.res), 0)]
 
 
@@ -230,9 +230,9 @@ class PerspectiveCamera(LightCamera):
     """Perspective square map at ``position`` looking along ``direction``, full angle ``fov``
     degrees (spot light, or one cube face with fov = 90)."""
 
-    def __init__(self, position, direction, fov: float, res: int, basis=None, texel_offset: int = 0):
+    def __init__(self, position, direction, fov: float, res: int, texel_offset: int = 0):
         self.position = np.asarray(position, dtype=np.float64)
-        self.u, self.v, self.w = basis if basis is not None else orthonormal_basis(direction)
+        self.u, self.v, self.w = orthonormal_basis(direction)
         self.fov = float(fov)
         self.tan_half = math.tan(math.radians(self.fov) / 2)
         self.res = self.width = self.height = int(res)

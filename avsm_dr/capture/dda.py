@@ -44,9 +44,8 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .assembly import TexelRuns
-from ._grid_lanes import compact_slots, hit_lanes, new_slots, read_slots, write_slots
-from ._grid_volume import corner_table, dual_block_max, dual_grid, segment_tau  # noqa: F401
+from ._grid_lanes import compact_slots, hit_lanes, lane_output, new_slots, read_slots, write_slots
+from ._grid_volume import corner_table, dual_block_max, dual_grid  # noqa: F401
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
 _FAR = 1e30
@@ -241,14 +240,9 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
                  "max_iterations": int(iters.max()), "rounds": n_rounds, **times}
         if stats["max_iterations"] >= max_iter:
             raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
-        if S and (differentiable if differentiable is not None else dr.grad_enabled(grid.data)):
-            o_h, d_h = camera.rays(lanes)
-            tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), Float) for i in range(3)]
-                                      for v in (o_h, d_h)), counts, z0, z1)
-        clock = time.perf_counter()
-        texel = TexelRuns(lanes, counts) if runs else np.repeat(lanes.astype(np.int64), counts)
-        stats["texel_s"] = time.perf_counter() - clock
-        return (texel, z0, z1, tau, stats) if S else empty[:4] + (stats,)
+        if S == 0:
+            return empty[:4] + (stats,)
+        return lane_output(grid, camera, lanes, counts, z0, z1, tau, stats, differentiable, runs)
 
     # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 3 for
     # float32 rounding at its ends); lane i's segments fill its first counts[i] slots

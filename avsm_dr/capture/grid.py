@@ -31,9 +31,8 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .assembly import TexelRuns
-from ._grid_volume import GridVolume, MarchKernel, block_max, corner_table, segment_tau  # noqa: F401
-from ._grid_lanes import (SUBMISSION_BRICK, candidate_texels, compact_slots, hit_lanes,  # noqa: F401
+from ._grid_volume import GridVolume, MarchKernel, block_max, corner_table  # noqa: F401
+from ._grid_lanes import (SUBMISSION_BRICK, candidate_texels, compact_slots, hit_lanes, lane_output,  # noqa: F401
                          new_slots, read_slots, write_slots)
 
 
@@ -238,14 +237,4 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     stats.update(times)
     if S == 0:
         return empty[:4] + (stats,)
-    z0, z1, tau = res
-
-    # ---- differentiable optical depths: one lane per segment, no loop
-    if differentiable is None:
-        differentiable = dr.grad_enabled(grid.data)
-    if differentiable:
-        tau = segment_tau(grid, (ox, oy, oz), (dx, dy, dz), counts, z0, z1)
-    if runs:
-        return TexelRuns(lanes, counts), z0, z1, tau, stats
-    texel = np.repeat(lanes.astype(np.int64), counts)
-    return texel, z0, z1, tau, stats
+    return lane_output(grid, camera, lanes, counts, *res, stats, differentiable, runs)
