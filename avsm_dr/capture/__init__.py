@@ -8,13 +8,10 @@ Example::
 
 Every kind of content becomes segments ``[z0, z1]`` with optical depth ``tau``
 (Salvi et al., "Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3): density grids
-by ray marching (:mod:`.grid`), particles as chords (:mod:`.particles`), hair strands
-as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque_map`).  The light camera
-(:mod:`.camera`) fits a directional light's orthographic map to the content's
-bounds (the non-zero part of a grid, with one empty texel of margin), uses the
-spot cone for a spot light and a cube of six faces for a point light.  Each texel's
-segments are stored in an insertion order (:data:`ORDERS`), the order an order-dependent
-build such as AVSM inserts them.
+by ray marching (:mod:`.grid`, :mod:`.dda`), particles as chords (:mod:`.particles`), hair
+strands as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0
+(:mod:`.opaque_map`), seen by the light's camera (:mod:`.camera`).  Each texel's segments are
+stored in an insertion order (:data:`ORDERS`), the order an order-dependent build inserts them.
 """
 from __future__ import annotations
 
@@ -77,21 +74,15 @@ class Capture:
     segments
         :class:`~avsm_dr.Segments` over ``width * height`` texels (row-major,
         texel ``y * width + x``; cube maps stack their six faces vertically).
-    camera
-        the light camera (rays and projection).
-    light
-        the light (``scene.light``).
-    resolution
-        texels per side (the input of :func:`capture`).
+    camera, light, resolution, epsilon
+        the light camera, ``scene.light`` and the arguments of :func:`capture`.
     step
         the grid march step (None for the exact capture).
-    epsilon
-        the transmittance below which a grid ray stops.
     stats
         counts and host/kernel timings of the capture.
     opaque_depth
-        (texels,) float64 opaque depth map of ``capture(..., opaque='separate')``
-        (+inf: no blocker), composed with every representation at lookup; None when inline.
+        (texels,) float64 opaque depth map of ``opaque='separate'`` (+inf: no blocker),
+        composed with every representation at lookup; None when inline.
     """
     segments: Segments
     camera: LightCamera
@@ -137,7 +128,7 @@ class Capture:
 
     def _lookup(self, points):
         """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
-        coords, depth = self.camera.project(_points(points))
+        coords, depth = self.camera.project(V.points(points, "points", allow_empty=True))
         out = ~self.camera.covers(coords)
         if out.any():
             depth = np.where(out, OUTSIDE_DEPTH, depth)
@@ -169,10 +160,6 @@ class Capture:
 
 
 # ------------------------------------------------------------------ validation
-def _points(points) -> np.ndarray:
-    return V.points(points, "points", allow_empty=True)
-
-
 def _check_order(order, submission, order_seed) -> tuple[str, str, int | None]:
     """(order, submission, seed) after checks; ValueError names the argument."""
     V.one_of(order, "order", ORDERS)
@@ -227,36 +214,27 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     epsilon
         a grid ray stops once its transmittance falls below ``epsilon``.
     density
-        overrides ``scene.density`` - a (z, y, x) NumPy array, a 3-D Dr.Jit tensor
-        (``TensorXf``/``TensorXf64``, e.g. with ``dr.enable_grad``: gradients flow to
-        ``segments.optical_depth``), a ``.vol`` path or a prepared :class:`GridVolume`.
-    block
-        empty-space-skipping block size in voxels.
-    keep_zero
-        emit zero-density steps inside occupied blocks (see :func:`.grid.march`).
+        overrides ``scene.density``: a (z, y, x) NumPy array, a 3-D Dr.Jit tensor (gradients
+        flow to ``segments.optical_depth``), a ``.vol`` path or a prepared :class:`GridVolume`.
+    block, keep_zero
+        empty-space-skipping block size in voxels; emit zero-density steps inside occupied
+        blocks (:func:`.grid.march`).
     dtype
         'float32' (default) | 'float64' (default for float64 Dr.Jit densities).
-    opaque_bias
-        constant depth offset (and thickness) of opaque blocker segments
-        (default 1e-4 x the content's diagonal).
-    opaque_slope_bias
-        extra offset in texel widths x tan(angle of incidence), so receivers
-        on a blocker's lit surface are not shadowed by it (see :mod:`.opaque_map`).
+    opaque_bias, opaque_slope_bias
+        constant depth offset (and thickness) of opaque blocker segments (default 1e-4 x
+        the content's diagonal), and the slope offset in texel widths (:mod:`.opaque_map`).
     bounds
         (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
     method
-        grid capture - 'march' (default: Simpson steps of ``step``) or 'exact' (one
-        segment per dual-cell crossing, integrated exactly, no step: :mod:`.dda`).
+        grid capture: 'march' (default, Simpson steps of ``step``) or 'exact' (:mod:`.dda`).
     opaque
         'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
-        depth map, ``Capture.opaque_depth``, composed at lookup; see :mod:`.opaque_map`).
-    order
-        the insertion order of each texel's segments, one of :data:`ORDERS` (default
-        'submission'), recorded as ``Segments.order``.
-    submission
-        particles' draw order with ``order='submission'``, one of :data:`SUBMISSIONS`.
-    order_seed
-        seed of ``order='random'``, an integer in [0, 2^32) (default 0).
+        depth map, ``Capture.opaque_depth``, composed at lookup; :mod:`.opaque_map`).
+    order, submission, order_seed
+        the insertion order of each texel's segments (:data:`ORDERS`, default 'submission',
+        recorded as ``Segments.order``); the particles' draw order of 'submission'
+        (:data:`SUBMISSIONS`); the seed of 'random', an integer in [0, 2^32) (default 0).
 
     Returns
     -------

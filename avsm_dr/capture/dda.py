@@ -1,23 +1,18 @@
 """Exact light-ray integration of a trilinear density grid: one segment per dual-cell crossing.
 
-The density of a :class:`~avsm_dr.capture.grid.GridVolume` is trilinear between voxel
-centres.  In the *dual grid* - cells whose corners are 8 neighbouring voxel centres, plus
-the half-voxel band at the box's edge where the lookup clamps (there the 8 corners repeat
-the edge voxels) - ``sigma`` is one trilinear polynomial, so along a ray ``o + t d``
-inside one dual cell it is a cubic in ``t`` and Simpson's rule over the crossing
-``[t_a, t_b]`` ::
+In the *dual grid* of a :class:`~avsm_dr.capture.grid.GridVolume` (cells whose corners are
+8 neighbouring voxel centres, plus the half-voxel band at the box's edge where the lookup
+clamps) ``sigma`` is one trilinear polynomial, so along a ray ``o + t d`` inside one dual
+cell it is a cubic in ``t`` and Simpson's rule over the crossing ``[t_a, t_b]`` ::
 
     tau = (t_b - t_a) / 6 * (sigma(t_a) + 4 sigma((t_a + t_b) / 2) + sigma(t_b))
 
-is exact.  The breakpoints of the ray are therefore its crossings of the planes through
-the voxel centres (dual-cell faces) and the box faces (the ray is clipped to the
-occupied part of the box, whose faces are voxel-centre planes or box faces, and outside
-of which sigma is 0).
+is exact.  The ray's breakpoints are its crossings of the voxel-centre planes and of the
+faces of the occupied part of the box (outside which sigma is 0).
 
 Traversal: one Dr.Jit lane per texel ray, a 3-D DDA [Amanatides & Woo, "A Fast Voxel
-Traversal Algorithm for Ray Tracing", Eurographics 1987] over the dual cells, two-level
-for empty space (``block^3`` dual cells per block; an empty block is crossed in one
-iteration).  Robust in float32:
+Traversal Algorithm for Ray Tracing", Eurographics 1987] over the dual cells, an empty
+``block^3`` block crossed in one iteration.  Robust in float32:
 
 * the cell index is an integer per axis; an iteration moves one axis by one cell (or to
   the next block), so the loop is bounded by the number of cells (checked);
@@ -29,11 +24,10 @@ iteration).  Robust in float32:
 * sigma inside a crossing is evaluated with the cell's own 8 corners, so the polynomial is
   the cell's even where rounding puts a sample a few ulps across a plane.
 
-Output as :func:`~avsm_dr.capture.grid.march`: every lane writes its segments into its own
-slots (one per dual cell its clipped ray meets, + 3), then compacted into CSR order; above
-:data:`SLOT_BUDGET` slots, in rounds of :data:`ROUND_CAPACITY` segments per unfinished lane,
-each round resuming from the saved state.  Gradients: each segment's Simpson sum recomputed
-from differentiable gathers (exact too: a segment lies in one dual cell).
+Output as :func:`~avsm_dr.capture.grid.march` (slots: one per dual cell the clipped ray
+meets, + 3); above :data:`SLOT_BUDGET` slots, rounds of :data:`ROUND_CAPACITY` segments per
+unfinished lane, each resuming from the saved state.  Gradients as the march's (exact: a
+segment lies in one dual cell).
 """
 from __future__ import annotations
 
@@ -94,26 +88,11 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
              capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
              runs: bool = False):
     """Integrate every texel ray of ``camera`` through ``grid`` exactly, one segment per
-    dual-cell crossing with non-zero optical depth.
-
-    Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of
-    ``grid.dtype``, stats dict) like :func:`~avsm_dr.capture.grid.march`.
-
-    Parameters
-    ----------
-    keep_zero
-        also emit crossings of positive length with tau = 0 inside occupied blocks.
-    differentiable
-        recompute tau from differentiable gathers (default: when the grid's
-        data has gradients enabled).
-    capacity
-        segments a lane writes per round (see :data:`ROUND_CAPACITY`).
-    slot_budget
-        most slots of the one-round layout (see :data:`SLOT_BUDGET`); 0 forces rounds.
-    runs
-        return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
-        count), not expanded to one per segment on the host.
-    """
+    dual-cell crossing with non-zero optical depth (with ``keep_zero`` also those of tau = 0
+    inside occupied blocks).  Returns and ``differentiable``, ``runs`` as
+    :func:`~avsm_dr.capture.grid.march`; ``capacity``: segments a lane writes per round
+    (:data:`ROUND_CAPACITY`); ``slot_budget``: most slots of the one-round layout
+    (:data:`SLOT_BUDGET`; 0 forces rounds)."""
     t = backend.types()
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
     stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}

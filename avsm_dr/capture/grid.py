@@ -62,23 +62,19 @@ def check_method(method, step) -> str:
 
 def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zero: bool = False,
           differentiable: bool | None = None, runs: bool = False):
-    """March every texel ray of ``camera`` through ``grid``.
-
-    Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``,
-    stats dict).  Segments of one texel are in depth order.
+    """March every texel ray of ``camera`` through ``grid``: (texel (S,) int64 NumPy in texel
+    order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``, stats dict), each texel's segments in
+    depth order.
 
     Parameters
     ----------
     keep_zero
-        also emit steps with tau = 0 (gradients can then reach voxels that are
-        still 0 inside occupied blocks; use ``GridVolume.prepare(..., skip_empty=False)``
-        to reach every voxel).
+        also emit steps with tau = 0 (gradients can then reach voxels that are still 0 inside
+        occupied blocks; ``GridVolume.prepare(..., skip_empty=False)`` reaches every voxel).
     differentiable
-        recompute tau from differentiable gathers (default: when the grid's
-        data has gradients enabled).
+        recompute tau from differentiable gathers (default: when the grid's data has gradients).
     runs
-        return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
-        count), not expanded to one per segment on the host.
+        the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (one run per ray).
     """
     t = backend.types()
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
