@@ -58,6 +58,9 @@ def _box_corners(bmin, bmax):
 #: (box, texel) pairs enumerated at once by :meth:`LightCamera.footprint_chunks` (host memory:
 #: the rays of one chunk take 2 x 3 float64 per pair, 200 MB).
 MAX_PAIRS = 1 << 22
+#: Most (item, texel) pairs one capture of particles or hair enumerates (each becomes at most
+#: one segment, ~40 bytes on the host while sorting).
+MAX_CANDIDATES = 1 << 27
 
 
 def _rect_areas(x0, x1, y0, y1) -> np.ndarray:
@@ -150,9 +153,17 @@ class LightCamera:
                     yield item + start, texel
                 start = stop
 
-    def footprint_rays(self, bmin, bmax, chunk: int = 1):
+    def footprint_rays(self, bmin, bmax, chunk: int = 1, name: str | None = None):
         """Yield ``(item, texel, origins, directions)`` of :meth:`footprint_chunks` (with
-        :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles)."""
+        :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles);
+        with ``name``, ValueError naming it when the footprints hold more than
+        :data:`MAX_CANDIDATES` pairs (counted without enumerating them)."""
+        total = name and sum(self.footprint_pairs(bmin[s:s + chunk], bmax[s:s + chunk])
+                             for s in range(0, bmin.shape[0], chunk))
+        if name and total > MAX_CANDIDATES:
+            raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
+                             f"{MAX_CANDIDATES:.3g} one capture handles; use fewer or smaller items, or a "
+                             f"lower resolution")
         for start in range(0, bmin.shape[0], chunk):
             for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
                 yield (item + start, texel, *self.rays(texel))

@@ -20,7 +20,6 @@ import numpy as np
 from .. import validation as V
 from ..geometry import ray_capsule
 from ..segments import OPAQUE_OPTICAL_DEPTH
-from .particles import MAX_CANDIDATES, check_candidates
 
 #: Capsules whose footprint rectangles are computed at once (bounds host memory).
 CHUNK = 2048
@@ -145,9 +144,8 @@ def capture_hair(camera, hair, ids: bool = False):
     strand_of = np.repeat(np.arange(S), V - 1)
     bmin = np.minimum(pa, pb) - r
     bmax = np.maximum(pa, pb) + r
-    check_candidates(camera, bmin, bmax, "hair", MAX_CANDIDATES)
     tex, sid, ti, to, cid = [], [], [], [], []
-    for item, texel, o, d in camera.footprint_rays(bmin, bmax, CHUNK):
+    for item, texel, o, d in camera.footprint_rays(bmin, bmax, CHUNK, "hair"):
         t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r, t_min=0.0)
         tex.append(texel[hit])
         sid.append(strand_of[item[hit]])

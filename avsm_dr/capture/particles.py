@@ -16,24 +16,8 @@ import numpy as np
 from .. import _arrays as A
 from ..geometry import ray_sphere
 
-#: Particles whose footprint rectangles are computed at once (bounds host memory; the
-#: (particle, texel) pairs are then enumerated in chunks of ``camera.MAX_PAIRS``).
+#: Particles whose footprint rectangles are computed at once (bounds host memory).
 CHUNK = 4096
-#: Most (item, texel) candidate pairs one capture enumerates (each becomes at most one
-#: segment, ~40 bytes on the host while sorting): 2^27.
-MAX_CANDIDATES = 1 << 27
-
-
-def check_candidates(camera, bmin, bmax, name: str, limit: int) -> None:
-    """ValueError naming ``name`` when the boxes' footprints hold more than ``limit``
-    (item, texel) pairs (counted chunk by chunk, without enumerating them)."""
-    total = 0
-    for start in range(0, bmin.shape[0], CHUNK):
-        total += camera.footprint_pairs(bmin[start:start + CHUNK], bmax[start:start + CHUNK])
-    if total > limit:
-        raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
-                         f"{limit:.3g} one capture handles; use fewer or smaller items, or a lower "
-                         f"resolution")
 
 
 def capture_particles(camera, particles, Float, ids: bool = False):
@@ -45,9 +29,8 @@ def capture_particles(camera, particles, Float, ids: bool = False):
     """
     c, r, s = particles.validate()
     lo, hi = c - r[:, None], c + r[:, None]
-    check_candidates(camera, lo, hi, "particles", MAX_CANDIDATES)
     tex, z0, z1, pid = [], [], [], []
-    for item, texel, o, d in camera.footprint_rays(lo, hi, CHUNK):
+    for item, texel, o, d in camera.footprint_rays(lo, hi, CHUNK, "particles"):
         t0, t1, hit = ray_sphere(o, d, c[item], r[item], t_min=0.0)
         tex.append(texel[hit])
         z0.append(t0[hit])
