@@ -43,15 +43,9 @@ def _major_version(path: str) -> int | None:
 
 def find_libllvm(min_version: int = MIN_VERSION) -> str | None:
     """Path of the newest libLLVM with major version >= ``min_version``, or None."""
-    best: tuple[int, str] | None = None
-    for pattern in _SEARCH_PATTERNS:
-        for path in glob.glob(pattern):
-            version = _major_version(path)
-            if version is None or version < min_version or not os.path.isfile(path):
-                continue
-            if best is None or version > best[0]:
-                best = (version, path)
-    return best[1] if best else None
+    found = [(v, path) for pattern in _SEARCH_PATTERNS for path in glob.glob(pattern)
+             if (v := _major_version(path)) is not None and v >= min_version and os.path.isfile(path)]
+    return max(found, key=lambda f: f[0])[1] if found else None     # the first of the newest
 
 
 #: The libLLVM Dr.Jit loaded when it is >= 16 (its path where the OS tells, else a
