@@ -1,21 +1,15 @@
 """CSR assembly of captured content: pieces ``(texel, z0, z1, tau)`` -> :class:`Segments`.
 
 Every content kind (grid, particles, hair, opaque blockers) yields a piece: per segment its
-texel (a NumPy array, or :class:`TexelRuns` for the grid, whose segments come as one run per
-ray), depths and optical depth (Dr.Jit or NumPy).  :func:`combine` orders them by
-``(texel, z0)`` and builds the offsets, on the device:
-
-* one grid piece (the plume): already in texel and depth order; the offsets come from the
-  ``L`` per-ray counts, no per-segment host array (no ``np.repeat`` of texels, no ``np.bincount``);
-* merged content: counts per texel by ``dr.scatter_inc`` (which also gives each segment a
-  slot in its texel), an exclusive prefix sum for the offsets, a scatter into texel groups,
-  then every texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to
-  32 bits over its range; :func:`~avsm_dr.texel_sort.sort_texels`): the order of the host's
-  stable argsort of ``texel << 32 | zq`` (:func:`host_order`, the fallback where
-  :func:`~avsm_dr.segments.device_sortable` is false).
-
-That is the ``"depth"`` order.  ``"submission"`` orders each texel by the pieces' draw keys
-instead (:func:`texel_key_order`: words ``key << 32 | concatenation index``, the same sort);
+texel (a NumPy array, or :class:`TexelRuns` for the grid: one run per ray), depths and
+optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments on the device:
+one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
+content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
+texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to 32 bits over its
+range; :func:`~avsm_dr.texel_sort.sort_texels`), the order of the host's stable argsort of
+``texel << 32 | zq`` (:func:`host_order`, the fallback where
+:func:`~avsm_dr.segments.device_sortable` is false).  That is the ``"depth"`` order;
+``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
 ``"reverse_depth"`` and ``"random"`` reorder the depth order
 (:meth:`~avsm_dr.segments.Segments.in_order`).
 """

@@ -322,18 +322,13 @@ class CubeCamera(LightCamera):
         return _perspective_rays(texels - face * n2, self.res, self.faces[0].tan_half, *basis,
                                  _opaque_vec(self.position))
 
-    def face_of(self, q):
-        """Face index of directions q (K, 3): the dominant axis and its sign."""
-        axis = np.argmax(np.abs(q), axis=1)
-        neg = q[np.arange(q.shape[0]), axis] < 0
-        return 2 * axis + neg
-
     def project(self, points):
-        """y includes the face offset ``face * res``; within a face the coordinates are
-        clamped to [0.5, res - 0.5] so bilinear taps never read a neighbouring face
-        (wider filters near face edges still do; cube maps are filtered per face only)."""
+        """Face: the dominant axis of ``p - position`` and its sign; y includes the face offset
+        ``face * res``; within a face the coordinates are clamped to [0.5, res - 0.5] so bilinear
+        taps never read a neighbouring face (wider filters near face edges still do)."""
         q = np.asarray(points, np.float64) - self.position
-        face = self.face_of(q)
+        axis = np.argmax(np.abs(q), axis=1)
+        face = 2 * axis + (q[np.arange(q.shape[0]), axis] < 0)
         xy = np.empty((q.shape[0], 2))
         for f, cam in enumerate(self.faces):
             m = face == f
