@@ -21,7 +21,6 @@ import numpy as np
 from . import validation as V
 
 
-# ====================================================================== boxes
 def check_bbox(bbox, name: str = "bbox") -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) float64 (3,) corners of a finite box with ``hi > lo`` on every axis;
     ValueError naming ``name`` for anything else (zero-size or inverted boxes included)."""
@@ -94,7 +93,6 @@ def _component(v, a):
     return float(x) if isinstance(x, np.generic) else x
 
 
-# ==================================================================== spheres
 def ray_sphere(o, d, c, r, t_min: float = -math.inf):
     """``(t_near, t_far, hit)`` (K,) of rays o, d (K, 3) (|d| = 1) with spheres c ((3,) or
     (K, 3)), r (scalar or (K,)).
@@ -144,7 +142,6 @@ def ray_capsule(o, d, pa, pb, r, t_min: float = -math.inf):
     oo = np.einsum("ij,ij->i", oa, oa)
     t_in = np.full(o.shape[0], np.inf)
     t_out = np.full(o.shape[0], -np.inf)
-    # finite cylinder: |oa + t d|^2 L2 - ((oa + t d) . ba)^2 = r^2 L2, axial 0 <= (.) . ba <= L2
     a = L2 - bd * bd
     b = L2 * od - boa * bd
     c = L2 * oo - boa * boa - r * r * L2
@@ -170,7 +167,6 @@ def ray_capsule(o, d, pa, pb, r, t_min: float = -math.inf):
     return t_in, t_out, t_out > t_in
 
 
-# ===================================================================== frames
 def orthonormal_basis(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(u, v, w): right-handed orthonormal frame whose third axis is ``w`` (normalised).
 

@@ -142,7 +142,6 @@ class Segments:
         if self.order == "unknown" and self.sorted_by_depth:
             self.order = "depth"
 
-    # ------------------------------------------------------------------ build
     @classmethod
     def from_arrays(cls, offsets, z0, z1, transmittance=None, optical_depth=None,
                     dtype: str | None = None, order: str = "unknown") -> "Segments":
@@ -249,7 +248,6 @@ class Segments:
             self.__dict__["_links"] = {**self.__dict__.get("_links", {}), **live}
         return self
 
-    # ------------------------------------------------------------ properties
     @property
     def Float(self):
         return type(self.z0)
@@ -352,7 +350,6 @@ class Segments:
             "optical_depth": A.host(self.optical_depth, "optical_depth"),
         }
 
-    # ------------------------------------------------------------- reorder
     def sorted(self) -> "Segments":
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
         lexsort, :meth:`depth_order`); gradients follow the permutation."""

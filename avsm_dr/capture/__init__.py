@@ -159,7 +159,6 @@ class Capture:
                 f"{self.segments!r})")
 
 
-# ------------------------------------------------------------------ validation
 def _check_order(order, submission, order_seed) -> tuple[str, str, int | None]:
     """(order, submission, seed) after checks; ValueError names the argument."""
     V.one_of(order, "order", ORDERS)
@@ -195,7 +194,6 @@ def validate_scene(scene: Scene) -> None:
         raise ValueError("scene: no content (density, particles, hair or blockers)")
 
 
-# --------------------------------------------------------------------- capture
 def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
             density=None, block: int = 8, keep_zero: bool = False, dtype: str | None = None,
             opaque_bias: float | None = None, opaque_slope_bias: float = 2.0, bounds=None,

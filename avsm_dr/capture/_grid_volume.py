@@ -158,7 +158,6 @@ class GridVolume:
             w0, wshape = np.zeros(3, np.int64), tuple(shape)
         return cls(data, tuple(shape), lo, hi, int(block), occ, occupied, dtype, w0, tuple(wshape))
 
-    # ------------------------------------------------------------- sampling
     def sample(self, points) -> np.ndarray:
         """sigma at world points (K, 3), float64 NumPy; 0 outside the box (Mitsuba's convention)."""
         p = np.asarray(points, np.float64)

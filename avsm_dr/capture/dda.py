@@ -51,7 +51,6 @@ ROUND_CAPACITY = 16
 #: treated as parallel (never crossed): the cell polynomial is then evaluated at most
 #: this far outside its cell, a change of sigma far below float32 rounding.
 _GRAZING_CELLS = 1e-6
-# --------------------------------------------------------------------- traversal
 def lane_constants(grid, o, d, t_in, t_out):
     """Per-lane constants of the traversal from device float64 rays (lists of three Float64,
     clipped to ``[t_in, t_out]``), the float64 formulas then rounded to ``grid.Float``:

@@ -36,7 +36,6 @@ from ._grid_lanes import (SUBMISSION_BRICK, candidate_texels, compact_slots, hit
                          new_slots, read_slots, write_slots)
 
 
-# --------------------------------------------------------------------- marching
 #: Most output slots of the march's one-pass layout (a bound of each lane's segments); above
 #: it, or when a lane fills its slots, two passes.
 MARCH_SLOT_BUDGET = 1 << 25

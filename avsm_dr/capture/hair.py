@@ -27,7 +27,6 @@ CHUNK = 2048
 MAX_VERTICES = 1 << 24
 
 
-# --------------------------------------------------------------------- loading
 def load_tfx(path, return_w: bool = False):
     """Read a TressFX 4.x ``.tfx`` file (little-endian).
 
