@@ -256,7 +256,7 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
     cam = _camera(g, LIGHTS[light], res=48)
     lo, hi = g.occupied
     cand = np.asarray(candidate_texels(cam, lo, hi).numpy(), np.int64)
-    assert np.array_equal(cand, cam.footprint(lo[None], hi[None])[1])
+    assert np.array_equal(cand, np.concatenate([t for _, t in cam.footprint_chunks(lo[None], hi[None])]))
     o, d = cam.rays(cand)
     od, dd = cam.rays_device(ad.backend.types().UInt32(cand.astype(np.uint32)))
     for a in range(3):

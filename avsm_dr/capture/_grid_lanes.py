@@ -18,13 +18,13 @@ from ._grid_volume import GridVolume, segment_tau
 
 
 def candidate_texels(camera, lo, hi):
-    """Dr.Jit UInt32 texels (ascending) of ``camera.footprint`` for one box ``[lo, hi]``:
+    """Dr.Jit UInt32 candidate texels (ascending) of ``camera`` for one box ``[lo, hi]``:
     enumerated on the device when the footprint is one rectangle, on the host otherwise."""
     UInt32 = backend.types().UInt32
     rects = [r for r in camera.footprint_rects(lo[None], hi[None]) if r[1][0] >= r[0][0] and r[3][0] >= r[2][0]]
     if len(rects) != 1:
-        _, cand = camera.footprint(lo[None], hi[None])
-        return A.to_uint32(cand)
+        cand = [t for _, t in camera.footprint_chunks(lo[None], hi[None])]
+        return A.to_uint32(np.concatenate(cand) if cand else np.zeros(0, np.int64))
     x0, x1, y0, y1, offset = (int(np.asarray(v).reshape(-1)[0]) for v in rects[0])
     w = x1 - x0 + 1
     i = dr.arange(UInt32, w * (y1 - y0 + 1))

@@ -135,12 +135,13 @@ class LightCamera:
         raise NotImplementedError
 
     def footprint_pairs(self, bmin, bmax) -> int:
-        """Number of (box, texel) pairs :meth:`footprint` would return (no enumeration)."""
+        """Number of (box, texel) pairs of :meth:`footprint_chunks` (no enumeration)."""
         return sum(int(_rect_areas(*r[:4]).sum()) for r in self.footprint_rects(bmin, bmax))
 
     def footprint_chunks(self, bmin, bmax, max_pairs: int = MAX_PAIRS):
-        """Yield (item, texel) int64 pairs of :meth:`footprint` in chunks of at most
-        ``max_pairs`` pairs (or one box's footprint when that alone is larger)."""
+        """Yield the candidate (item, texel) int64 pairs of the boxes (every texel whose ray may
+        meet box ``item``, :meth:`footprint_rects`) in chunks of at most ``max_pairs`` pairs (or
+        one box's footprint when that alone is larger)."""
         for x0, x1, y0, y1, offset in self.footprint_rects(bmin, bmax):
             csum = np.cumsum(_rect_areas(x0, x1, y0, y1))
             start = 0
@@ -167,14 +168,6 @@ class LightCamera:
         for start in range(0, bmin.shape[0], chunk):
             for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
                 yield (item + start, texel, *self.rays(texel))
-
-    def footprint(self, bmin, bmax):
-        """Candidate texels of N boxes: (item (M,), texel (M,)) int64 with every texel whose
-        ray may meet box ``item`` (conservative, one entry per pair)."""
-        chunks = list(self.footprint_chunks(bmin, bmax, max_pairs=np.iinfo(np.int64).max))
-        if not chunks:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
 
     def texel_width(self, texels, t) -> np.ndarray:
         """World width of a texel's footprint across its ray at depth ``t`` (K,)."""
