@@ -59,6 +59,17 @@ def device_sortable(counts: np.ndarray) -> bool:
     return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
 
 
+def run_index(starts, n: int):
+    """(n,) Dr.Jit UInt32 run of each of ``n`` elements, runs starting at ``starts`` (UInt32,
+    ascending, repeated for empty runs, the first 0 left out): a 1 added at every start, then an
+    inclusive prefix sum (``n`` opaque, mode Local: no compile per size)."""
+    UInt32 = backend.types().UInt32
+    flag = dr.zeros(UInt32, n)
+    dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), starts, starts < dr.opaque(UInt32, n),
+                      mode=dr.ReduceMode.Local)
+    return dr.cumsum(flag)
+
+
 def _per_segment(x, name: str, n: int) -> np.ndarray:
     """Host float64 copy of a per-segment array: 1-D, ``n`` values, finite (ValueError naming ``name``)."""
     arr = A.host_1d(x, name)
@@ -298,23 +309,15 @@ class Segments:
 
     def texel_of_segment(self):
         """(S,) texel index of every segment, Dr.Jit UInt32 (cached), built on the device:
-        a 1 scattered (added) at every texel start ``offsets[1:T]`` below S, then an
-        inclusive prefix sum, ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}``."""
+        ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}`` (:func:`run_index`)."""
         if "texel_of" not in self._cache:
             UInt32 = backend.types().UInt32
             n = self.n_segments
             if self.n_texels < 2 or n == 0:
                 self._cache["texel_of"] = dr.zeros(UInt32, n)
-                return self._cache["texel_of"]
-            starts = self.offsets_dr()
-            k = dr.arange(UInt32, 1, self.n_texels)
-            at = dr.gather(UInt32, starts, k)
-            flag = dr.zeros(UInt32, n)
-            # S opaque and mode Local (the default, Expand on LLVM, puts S in the kernel as a
-            # literal): no compile per segment count
-            dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), at, at < dr.opaque(UInt32, n),
-                              mode=dr.ReduceMode.Local)
-            self._cache["texel_of"] = dr.cumsum(flag)
+            else:
+                self._cache["texel_of"] = run_index(dr.gather(UInt32, self.offsets_dr(),
+                                                              dr.arange(UInt32, 1, self.n_texels)), n)
         return self._cache["texel_of"]
 
     def bounds(self) -> tuple[float, float]:

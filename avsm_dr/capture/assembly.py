@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, run_index
 from ..texel_sort import sort_texels
 
 
@@ -50,18 +50,15 @@ class TexelRuns:
         return c
 
     def device(self):
-        """Texel of every segment as a Dr.Jit UInt32 array, expanded on the device: the run's
-        index by a scatter of 1 at every run start and an inclusive prefix sum."""
+        """Texel of every segment as a Dr.Jit UInt32 array, expanded on the device (the run of
+        each segment by :func:`~avsm_dr.segments.run_index`)."""
         UInt32 = backend.types().UInt32
         nz = self.counts > 0
         tex, cnt = self.texels[nz], self.counts[nz]
         n = int(cnt.sum())
         if tex.size <= 1:
             return dr.full(UInt32, int(tex[0]) if tex.size else 0, n)
-        starts = A.to_uint32(np.cumsum(cnt[:-1]))
-        flag = dr.zeros(UInt32, n)
-        dr.scatter(flag, UInt32(1), starts)
-        return dr.gather(UInt32, A.to_uint32(tex), dr.cumsum(flag))
+        return dr.gather(UInt32, A.to_uint32(tex), run_index(A.to_uint32(np.cumsum(cnt[:-1])), n))
 
 
 def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed: int | None = None) -> Segments:
