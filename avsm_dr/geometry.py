@@ -21,9 +21,9 @@ import numpy as np
 from . import validation as V
 
 
-def check_bbox(bbox, name: str = "bbox") -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) float64 (3,) corners of a finite box with ``hi > lo`` on every axis;
-    ValueError naming ``name`` for anything else (zero-size or inverted boxes included)."""
+def check_bbox(bbox, name: str = "bbox", flat: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) float64 (3,) corners of a finite box with ``hi > lo`` on every axis (``hi >= lo``
+    with ``flat``); ValueError naming ``name`` for anything else (zero-size or inverted boxes)."""
     try:
         lo, hi = bbox
         lo = np.asarray(lo, np.float64).reshape(3)
@@ -32,7 +32,7 @@ def check_bbox(bbox, name: str = "bbox") -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{name}: expected (min_xyz, max_xyz), got {bbox!r}") from None
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError(f"{name}: contains NaN or inf")
-    if np.any(hi <= lo):
+    if np.any(hi < lo) or (not flat and np.any(hi == lo)):
         raise ValueError(f"{name}: zero-size or inverted box {lo.tolist()} .. {hi.tolist()}")
     return lo, hi
 

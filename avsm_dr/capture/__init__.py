@@ -25,6 +25,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
+from ..geometry import check_bbox
 from ..scene import Scene, check_light, validate_blockers
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
@@ -274,14 +275,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     if not boxes and grid is not None:
         boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
     if bounds is not None:
-        try:
-            lo, hi = bounds
-        except (TypeError, ValueError):
-            raise ValueError(f"bounds: expected (min_xyz, max_xyz), got {bounds!r}") from None
-        lo, hi = V.vec3(lo, "bounds"), V.vec3(hi, "bounds")
-        if not np.all(hi >= lo):
-            raise ValueError(f"bounds: expected max >= min on every axis, got {bounds!r}")
-        boxes = [(lo, hi)]
+        boxes = [check_bbox(bounds, "bounds", flat=True)]
     bmin = np.array([b[0] for b in boxes])
     bmax = np.array([b[1] for b in boxes])
     light = scene.light
