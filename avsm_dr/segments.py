@@ -131,13 +131,9 @@ class Segments:
     Dr.Jit float arrays of length S (AD graphs kept); ``dtype`` 'float32'|'float64';
     ``order`` the insertion order the segments of each texel are stored in, one of
     :data:`ORDERS` ('unknown' unless given or made by :meth:`sorted` / :meth:`in_order` /
-    ``ad.capture``; 'depth' when built with ``sorted_by_depth=True``), kept by
-    :meth:`select_texels`, so a study can record it.
-
-    Reusable under reverse mode: arrays that :meth:`from_arrays`, :meth:`sorted` and
-    :meth:`select_texels` derive from grad-enabled input are re-derived from the caller's
-    arrays when read (:class:`_Linked`), so ``dr.backward`` after one build leaves the next
-    build's gradients intact.
+    ``ad.capture``; 'depth' when built with ``sorted_by_depth=True``).  Reusable under
+    reverse mode: ``dr.backward`` after one build leaves the next build's gradients intact
+    (:class:`_Linked`).
     """
 
     offsets: np.ndarray
@@ -387,11 +383,10 @@ class Segments:
         return A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
 
     def depth_view(self):
-        """The order of :meth:`sorted` without sorted copies: None when every texel is already
-        in order, else ``(index, start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in
-        (z0, z1) order is segment ``index[start[t] + r]``.  A consumer walking each texel
-        (e.g. the AVSM build) reads through it: one gather per segment instead of a
-        permutation and three gathered arrays."""
+        """The order of :meth:`sorted` without sorted copies, for a consumer walking each texel
+        (e.g. the AVSM build): None when every texel is already in order, else ``(index,
+        start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in (z0, z1) order is segment
+        ``index[start[t] + r]``."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         view = self._network_view()

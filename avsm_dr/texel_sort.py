@@ -346,14 +346,11 @@ def shuffle_key(seed: int, texel, rank):
     return _mix32(_mix32(texel + s, *_MIX) + rank, *_MIX)
 
 
-def rank_in_ranges(lo, hi, keys, ids=None):
+def rank_in_ranges(lo, hi, keys):
     """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
-    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., ids_j) < (keys[0]_i, ..., ids_i)}``,
-    lexicographic, on the device (one lane per element, ``hi - lo`` gathers each).
-
-    keys: Dr.Jit arrays (S,) compared in order; ids: distinct tie-breakers (S,) (default:
-    the lane index, so equal keys keep their stored order, a stable sort).  Within each
-    range the ranks are a permutation of ``0 .. hi - lo - 1``."""
+    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., j) < (keys[0]_i, ..., i)}``,
+    lexicographic (equal keys keep their stored order, a stable sort), on the device (one lane
+    per element, ``hi - lo`` gathers each); keys: Dr.Jit arrays (S,) compared in order."""
     UInt32 = backend.types().UInt32
     i = dr.arange(UInt32, dr.width(lo))
 
@@ -361,7 +358,7 @@ def rank_in_ranges(lo, hi, keys, ids=None):
         return j < hi
 
     def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
-        before = j < i if ids is None else dr.gather(type(ids), ids, j) < ids
+        before = j < i
         for k in reversed(keys):
             kj = dr.gather(type(k), k, j)
             before = (kj < k) | ((kj == k) & before)
