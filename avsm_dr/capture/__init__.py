@@ -321,18 +321,18 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
             lambda: dr.opaque(UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
     if scene.particles is not None:
         t0 = time.perf_counter()
-        *piece, pid = _particles.capture_particles(camera, scene.particles, Float, ids=True)
+        *piece, pid = _particles.capture_particles(camera, scene.particles, Float)
         add("particles", t0, tuple(piece),
             lambda: bases["particles"] + _particles.draw_ranks(camera, scene.particles, submission)[pid])
     if scene.hair is not None:
         t0 = time.perf_counter()
-        *piece, cid = _hair.capture_hair(camera, scene.hair, ids=True)
+        *piece, cid = _hair.capture_hair(camera, scene.hair)
         add("hair", t0, tuple(piece), lambda: bases["hair"] + cid)
     opaque_depth = None
     if blockers:
         t0 = time.perf_counter()
         bias = 1e-4 * diag if opaque_bias is None else float(opaque_bias)
-        tex, z0, z1, bid = _opaque_map.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias, ids=True)
+        tex, z0, z1, bid = _opaque_map.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias)
         if opaque == "separate":
             opaque_depth = _opaque_map.depth_map(tex, z0, camera.n_texels)
             pieces = _opaque_map.clip_pieces(pieces, opaque_depth, Float)

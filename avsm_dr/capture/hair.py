@@ -132,9 +132,9 @@ def merge_crossings(texel, strand, t_in, t_out, capsule=None):
     return out if capsule is None else out + (np.minimum.reduceat(capsule[order], starts),)
 
 
-def capture_hair(camera, hair, ids: bool = False):
-    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand;
-    with ``ids`` also the (S,) int64 draw position of each crossing: its first capsule's index
+def capture_hair(camera, hair):
+    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand,
+    and the (S,) int64 draw position of each crossing: its first capsule's index
     ``strand * (V - 1) + j`` (strands in list order, a strand's capsules in vertex order)."""
     s, r, op = hair.validate()
     S, V, _ = s.shape
@@ -153,7 +153,7 @@ def capture_hair(camera, hair, ids: bool = False):
         cid.append(item[hit])
     if not tex:
         z = np.zeros(0)
-        return (np.zeros(0, np.int64), z, z, z) + ((np.zeros(0, np.int64),) if ids else ())
+        return np.zeros(0, np.int64), z, z, z, np.zeros(0, np.int64)
     texel, _, z0, z1, first = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to, cid)))
     tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
-    return (texel, z0, z1, np.full(texel.size, tau)) + ((first,) if ids else ())
+    return texel, z0, z1, np.full(texel.size, tau), first

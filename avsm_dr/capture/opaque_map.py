@@ -36,9 +36,9 @@ from ..representations.opaque_composite import OpaqueComposite
 OPAQUE_MODES = ("inline", "separate")
 
 
-def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float = 2.0, ids: bool = False):
-    """(texel, z0, z1) float64 NumPy for every (texel, blocker) hit; tau is OPAQUE_OPTICAL_DEPTH;
-    with ``ids`` also the (S,) int64 index of each segment's blocker in the list."""
+def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float = 2.0):
+    """(texel, z0, z1) float64 NumPy for every (texel, blocker) hit (tau is OPAQUE_OPTICAL_DEPTH)
+    and the (S,) int64 index of each segment's blocker in the list."""
     tex, z0, bid = [], [], []
     for i, b in enumerate(blockers):
         lo, hi = b.bounds()
@@ -50,9 +50,9 @@ def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float
             z0.append(t + bias + slope * camera.texel_width(texel, t) * (tan + 0.5))
             bid.append(np.full(texel.size, i, np.int64))
     if not tex:
-        return (np.zeros(0, np.int64), np.zeros(0), np.zeros(0)) + ((np.zeros(0, np.int64),) if ids else ())
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
     tex, z0 = np.concatenate(tex), np.concatenate(z0)
-    return (tex, z0, z0 + thickness) + ((np.concatenate(bid),) if ids else ())
+    return tex, z0, z0 + thickness, np.concatenate(bid)
 
 
 def depth_map(texel: np.ndarray, z0: np.ndarray, n_texels: int) -> np.ndarray:

@@ -20,13 +20,10 @@ from ..geometry import ray_sphere
 CHUNK = 4096
 
 
-def capture_particles(camera, particles, Float, ids: bool = False):
-    """Segments of all particles: (texel (S,) int64, z0, z1 (S,) float64 NumPy, tau Dr.Jit ``Float``),
-    and with ``ids`` the (S,) int64 index of each segment's particle in the list.
-
-    tau = density * chord; when ``particles.density`` is a Dr.Jit array it is gathered
-    (gradients flow to the per-particle densities).
-    """
+def capture_particles(camera, particles, Float):
+    """Segments of all particles: (texel (S,) int64, z0, z1 (S,) float64 NumPy, tau Dr.Jit ``Float``,
+    the (S,) int64 index of each segment's particle in the list).  tau = density * chord; a
+    Dr.Jit ``particles.density`` is gathered (gradients flow to the per-particle densities)."""
     c, r, s = particles.validate()
     lo, hi = c - r[:, None], c + r[:, None]
     tex, z0, z1, pid = [], [], [], []
@@ -37,14 +34,14 @@ def capture_particles(camera, particles, Float, ids: bool = False):
         z1.append(t1[hit])
         pid.append(item[hit])
     if not tex:
-        return (np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Float()) + ((np.zeros(0, np.int64),) if ids else ())
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Float(), np.zeros(0, np.int64)
     tex, z0, z1, pid = (np.concatenate(a) for a in (tex, z0, z1, pid))
     length = A.to_float(z1 - z0, Float)
     if A.is_drjit(particles.density):
         dens = dr.gather(Float, A.to_float(particles.density, Float), A.to_uint32(pid))
     else:
         dens = A.to_float(s[pid], Float)
-    return (tex, z0, z1, dens * length) + ((pid,) if ids else ())
+    return tex, z0, z1, dens * length, pid
 
 
 def draw_ranks(camera, particles, submission: str) -> np.ndarray:
