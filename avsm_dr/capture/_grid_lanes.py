@@ -63,12 +63,12 @@ def hit_lanes(grid: GridVolume, camera, per_lane=None):
     return lanes, o, d, t_in, t_out, extra
 
 
-def lane_output(grid: GridVolume, camera, lanes, counts, z0, z1, tau, stats, differentiable, runs: bool):
+def lane_output(grid: GridVolume, camera, lanes, counts, z0, z1, tau, stats, runs: bool):
     """``(texel, z0, z1, tau, stats)`` of a grid capture whose lane ``i`` (texel ``lanes[i]``)
     holds ``counts[i]`` segments, in lane order: ``tau`` recomputed from differentiable gathers
-    (:func:`~._grid_volume.segment_tau`) when ``differentiable`` (None: when the grid's data has
-    gradients); texels as :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each."""
-    if dr.grad_enabled(grid.data) if differentiable is None else differentiable:
+    (:func:`~._grid_volume.segment_tau`) when the grid's data has gradients; texels as
+    :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each."""
+    if dr.grad_enabled(grid.data):
         o, d = camera.rays(lanes)
         tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), grid.Float) for i in range(3)]
                                   for v in (o, d)), counts, z0, z1)

@@ -83,12 +83,11 @@ def lane_constants(grid, o, d, t_in, t_out):
     return u_in + du + inv + [Float(s_end), Float(t_in)], cell, t.UInt32(dr.select(dr.isfinite(cap), cap, 0))
 
 
-def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiable: bool | None = None,
-             capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
-             runs: bool = False):
+def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: int = ROUND_CAPACITY,
+             slot_budget: int = SLOT_BUDGET, runs: bool = False):
     """Integrate every texel ray of ``camera`` through ``grid`` exactly, one segment per
     dual-cell crossing with non-zero optical depth (with ``keep_zero`` also those of tau = 0
-    inside occupied blocks).  Returns and ``differentiable``, ``runs`` as
+    inside occupied blocks).  Returns, gradients and ``runs`` as
     :func:`~avsm_dr.capture.grid.march`; ``capacity``: segments a lane writes per round
     (:data:`ROUND_CAPACITY`); ``slot_budget``: most slots of the one-round layout
     (:data:`SLOT_BUDGET`; 0 forces rounds)."""
@@ -220,7 +219,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
             raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
         if S == 0:
             return empty[:4] + (stats,)
-        return lane_output(grid, camera, lanes, counts, z0, z1, tau, stats, differentiable, runs)
+        return lane_output(grid, camera, lanes, counts, z0, z1, tau, stats, runs)
 
     # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 3 for
     # float32 rounding at its ends); lane i's segments fill its first counts[i] slots

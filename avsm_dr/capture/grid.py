@@ -60,18 +60,16 @@ def check_method(method, step) -> str:
 
 
 def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zero: bool = False,
-          differentiable: bool | None = None, runs: bool = False):
+          runs: bool = False):
     """March every texel ray of ``camera`` through ``grid``: (texel (S,) int64 NumPy in texel
     order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``, stats dict), each texel's segments in
-    depth order.
+    depth order; with a grad-enabled ``grid.data``, tau is recomputed from differentiable gathers.
 
     Parameters
     ----------
     keep_zero
         also emit steps with tau = 0 (gradients can then reach voxels that are still 0 inside
         occupied blocks; ``GridVolume.prepare(..., skip_empty=False)`` reaches every voxel).
-    differentiable
-        recompute tau from differentiable gathers (default: when the grid's data has gradients).
     runs
         the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (one run per ray).
     """
@@ -232,4 +230,4 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     stats.update(times)
     if S == 0:
         return empty[:4] + (stats,)
-    return lane_output(grid, camera, lanes, counts, *res, stats, differentiable, runs)
+    return lane_output(grid, camera, lanes, counts, *res, stats, runs)
