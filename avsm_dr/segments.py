@@ -524,11 +524,11 @@ class Segments:
         out = check_in_dtype(np.atleast_1d(arr).ravel(), name, self.dtype).reshape(arr.shape)
         return float(out) if out.ndim == 0 else out
 
-    def check_depth_range(self, near, far, names=("near", "far")) -> tuple[float, float]:
+    def check_depth_range(self, near, far) -> tuple[float, float]:
         """(near, far) as floats checked with :meth:`check_depth`, and ``far - near``
         finite in the storage dtype (the basis methods divide by it)."""
-        lo, hi = self.check_depth(near, names[0]), self.check_depth(far, names[1])
-        check_span(lo, hi, self.dtype, names[1], f"the range {names[1]} - {names[0]}")
+        lo, hi = self.check_depth(near, "near"), self.check_depth(far, "far")
+        check_span(lo, hi, self.dtype, "far", "the range far - near")
         return lo, hi
 
     def select_texels(self, texels) -> "Segments":

@@ -33,14 +33,13 @@ def candidate_texels(camera, lo, hi):
             + (i - row * dr.opaque(UInt32, w)))
 
 
-def hit_lanes(grid: GridVolume, camera, per_lane=None):
+def hit_lanes(grid: GridVolume, camera, per_lane):
     """The texels whose ray meets the occupied box: (texels UInt32 ascending, origins,
     directions (lists of three Float64), t_in, t_out (Float64), extra) of the rays that meet
-    the occupied box.  One kernel makes, clips and tests every candidate ray (and evaluates
-    ``per_lane(o, d, t_in, t_out)``, a UInt32 per ray, returned as ``extra`` for the hit
-    lanes; None without it), ``dr.compress`` keeps the hits; the hit lanes' rays are then
-    recomputed lazily (fused into the kernel that reads them) rather than stored.  No hit:
-    empty texels, and every other entry None."""
+    the occupied box.  One kernel makes, clips and tests every candidate ray and evaluates
+    ``per_lane(o, d, t_in, t_out)``, a UInt32 per ray (``extra``); ``dr.compress`` keeps the
+    hits, whose rays are then recomputed lazily (fused into the kernel that reads them).  No
+    hit: empty texels, and every other entry None."""
     UInt32 = backend.types().UInt32
     lo, hi = grid.occupied
     cand = candidate_texels(camera, lo, hi)
@@ -50,13 +49,13 @@ def hit_lanes(grid: GridVolume, camera, per_lane=None):
     F64 = type(o[0])
     box = [[dr.opaque(F64, float(x)) for x in corner] for corner in (lo, hi)]   # one kernel for any box
     t_in, t_out, hit = ray_box_dr(o, d, *box, t_min=0.0)
-    extra = dr.select(hit, per_lane(o, d, t_in, t_out), 0) if per_lane is not None else None
+    extra = dr.select(hit, per_lane(o, d, t_in, t_out), 0)
     dr.eval(cand, hit, extra)
     sel = dr.compress(hit)
     if dr.width(sel) == 0:
         return UInt32(), None, None, None, None, None
     lanes = dr.gather(UInt32, cand, sel)
-    extra = dr.gather(UInt32, extra, sel) if extra is not None else None
+    extra = dr.gather(UInt32, extra, sel)
     dr.eval(lanes, extra)                                   # one kernel
     o, d = camera.rays_device(lanes)
     t_in, t_out, _ = ray_box_dr(o, d, *box, t_min=0.0)
@@ -80,7 +79,7 @@ def lane_output(grid: GridVolume, camera, lanes, counts, z0, z1, tau, stats, run
 SUBMISSION_BRICK = 8
 
 
-def brick_keys(grid: GridVolume, camera, texels, z0, z1, brick: int = SUBMISSION_BRICK):
+def brick_keys(grid: GridVolume, camera, texels, z0, z1):
     """Draw position of every grid segment in the ``"submission"`` order: the index
     ``(b_z n_y + b_y) n_x + b_x`` (x fastest, the grid's memory order) of the ``brick^3``-voxel
     brick of the whole grid that holds the segment's midpoint ``o + (z0 + z1) / 2 d`` (clamped
@@ -92,8 +91,8 @@ def brick_keys(grid: GridVolume, camera, texels, z0, z1, brick: int = SUBMISSION
     tex = texels.device() if isinstance(texels, TexelRuns) else A.to_uint32(np.asarray(texels, np.int64))
     o, d = camera.rays_device(tex)
     zm = 0.5 * (F64(dr.detach(z0)) + F64(dr.detach(z1)))
-    nb = -(-np.array(grid.shape[::-1], np.int64) // int(brick))          # bricks along (x, y, z)
-    side = grid.voxel * int(brick)
+    nb = -(-np.array(grid.shape[::-1], np.int64) // SUBMISSION_BRICK)    # bricks along (x, y, z)
+    side = grid.voxel * SUBMISSION_BRICK
     key = dr.zeros(UInt32, dr.width(tex))
     for a in (2, 1, 0):                                                   # z slowest, x fastest
         lo_a, side_a = dr.opaque(F64, float(grid.bmin[a])), dr.opaque(F64, float(side[a]))

@@ -138,16 +138,16 @@ class LightCamera:
         """Number of (box, texel) pairs of :meth:`footprint_chunks` (no enumeration)."""
         return sum(int(_rect_areas(*r[:4]).sum()) for r in self.footprint_rects(bmin, bmax))
 
-    def footprint_chunks(self, bmin, bmax, max_pairs: int = MAX_PAIRS):
+    def footprint_chunks(self, bmin, bmax):
         """Yield the candidate (item, texel) int64 pairs of the boxes (every texel whose ray may
-        meet box ``item``, :meth:`footprint_rects`) in chunks of at most ``max_pairs`` pairs (or
-        one box's footprint when that alone is larger)."""
+        meet box ``item``, :meth:`footprint_rects`) in chunks of at most :data:`MAX_PAIRS` pairs
+        (or one box's footprint when that alone is larger)."""
         for x0, x1, y0, y1, offset in self.footprint_rects(bmin, bmax):
             csum = np.cumsum(_rect_areas(x0, x1, y0, y1))
             start = 0
             while start < csum.size:
                 base = int(csum[start - 1]) if start else 0
-                stop = max(start + 1, int(np.searchsorted(csum, base + max_pairs, side="right")))
+                stop = max(start + 1, int(np.searchsorted(csum, base + MAX_PAIRS, side="right")))
                 sl = slice(start, stop)
                 item, texel = expand_rects(x0[sl], x1[sl], y0[sl], y1[sl], self.res, offset)
                 if texel.size:
@@ -189,16 +189,16 @@ class OrthoCamera(LightCamera):
         self.texel_size = 2.0 * self.half / self.res
 
     @classmethod
-    def fit(cls, direction, bmin, bmax, res: int, margin_texels: float = 1.0):
-        """Fit the window to the union of boxes (N, 3) ``bmin``/``bmax``, keeping
-        ``margin_texels`` empty texels on each side (so edge-clamped lookups outside
-        the content read an empty texel), with the reference plane in front of all of it."""
+    def fit(cls, direction, bmin, bmax, res: int):
+        """Fit the window to the union of boxes (N, 3) ``bmin``/``bmax``, keeping one empty
+        texel on each side (so edge-clamped lookups outside the content read an empty texel),
+        with the reference plane in front of all of it."""
         u, v, d = orthonormal_basis(direction)
         corners = _box_corners(bmin, bmax).reshape(-1, 3)
         pu, pv, pd = corners @ u, corners @ v, corners @ d
         size = max(np.ptp(pu), np.ptp(pv), np.ptp(pd), 1e-6)
         ext = max(np.ptp(pu), np.ptp(pv), 1e-6 * size)
-        half = 0.5 * ext * res / (res - 2.0 * margin_texels)
+        half = 0.5 * ext * res / (res - 2.0)
         cu, cv = 0.5 * (pu.min() + pu.max()), 0.5 * (pv.min() + pv.max())
         cd = pd.min() - 0.05 * size
         return cls(d, cu * u + cv * v + cd * d, half, res)
