@@ -67,13 +67,6 @@ def flat_array(x: Any):
     return x.array if dr.is_tensor_v(x) else x
 
 
-def host_1d(x: Any, name: str, dtype=np.float64) -> np.ndarray:
-    arr = host(x, name, dtype)
-    if arr.ndim != 1:
-        raise ValueError(f"{name}: expected a 1-D array, got shape {arr.shape}")
-    return arr
-
-
 def check_finite(arr: np.ndarray, name: str) -> None:
     if arr.size and not np.all(np.isfinite(arr)):
         bad = int(np.count_nonzero(~np.isfinite(arr)))

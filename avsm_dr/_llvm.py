@@ -41,10 +41,10 @@ def _major_version(path: str) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def find_libllvm(min_version: int = MIN_VERSION) -> str | None:
-    """Path of the newest libLLVM with major version >= ``min_version``, or None."""
+def find_libllvm() -> str | None:
+    """Path of the newest libLLVM with major version >= :data:`MIN_VERSION`, or None."""
     found = [(v, path) for pattern in _SEARCH_PATTERNS for path in glob.glob(pattern)
-             if (v := _major_version(path)) is not None and v >= min_version and os.path.isfile(path)]
+             if (v := _major_version(path)) is not None and v >= MIN_VERSION and os.path.isfile(path)]
     return max(found, key=lambda f: f[0])[1] if found else None     # the first of the newest
 
 

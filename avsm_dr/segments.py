@@ -72,7 +72,9 @@ def run_index(starts, n: int):
 
 def _per_segment(x, name: str, n: int) -> np.ndarray:
     """Host float64 copy of a per-segment array: 1-D, ``n`` values, finite (ValueError naming ``name``)."""
-    arr = A.host_1d(x, name)
+    arr = A.host(x, name)
+    if arr.ndim != 1:
+        raise ValueError(f"{name}: expected a 1-D array, got shape {arr.shape}")
     if arr.size != n:
         raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
     A.check_finite(arr, name)
