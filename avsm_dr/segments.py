@@ -28,7 +28,7 @@ from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
 from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels,
-                         sort_texels_view)
+                         sort_texels_view, view_order)
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -367,13 +367,7 @@ class Segments:
         view = self._network_view()
         if view is _TIES:
             return self._exact_order()
-        if view is None:
-            return None
-        UInt32 = backend.types().UInt32
-        pay, start = view
-        tex = self.texel_of_segment()
-        local = dr.arange(UInt32, self.n_segments) - dr.gather(UInt32, self.offsets_dr(), tex)
-        return dr.gather(UInt32, pay, dr.gather(UInt32, start, tex) + local)
+        return None if view is None else view_order(*view, self.offsets_dr(), self.texel_of_segment())
 
     def _exact_order(self):
         """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host

@@ -236,12 +236,17 @@ def sort_texels(counts: np.ndarray, offsets_dr, texel_of, kind: str, sources, ti
     (S,) UInt32 texel of every segment; kind, sources: the words (:func:`word_function`),
     distinct inside a texel; ties: look for equal keys; layout: :func:`plan` of these counts
     (computed when None)."""
-    UInt32 = _types()[0]
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay, base, flags = sort_texels_view(counts, offsets_dr, kind, sources, ties, lay)
-    tex = UInt32(texel_of)
-    local = dr.arange(UInt32, lay["n"]) - dr.gather(UInt32, lay["off"], tex)
-    return dr.gather(UInt32, pay, dr.gather(UInt32, base, tex) + local), flags
+    return view_order(pay, base, lay["off"], _types()[0](texel_of)), flags
+
+
+def view_order(payloads, base, offsets_dr, texel_of):
+    """The permutation of a :func:`sort_texels_view` layout: segment ``i`` of texel ``t`` gets
+    ``payloads[base[t] + i - offsets[t]]`` (all UInt32 of ``texel_of``'s type)."""
+    UInt32 = type(texel_of)
+    local = dr.arange(UInt32, dr.width(texel_of)) - dr.gather(UInt32, offsets_dr, texel_of)
+    return dr.gather(UInt32, payloads, dr.gather(UInt32, base, texel_of) + local)
 
 
 def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):

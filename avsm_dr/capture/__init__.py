@@ -186,7 +186,7 @@ def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
 
 
 def validate_scene(scene: Scene) -> None:
-    """Checks shared by capture and ground truth; ValueError names the field."""
+    """The scene checks of :func:`capture` (type, light, receivers, some content); ValueError names the field."""
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
     check_light(scene.light)
