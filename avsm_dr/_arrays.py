@@ -67,22 +67,14 @@ def flat_array(x: Any):
     return x.array if dr.is_tensor_v(x) else x
 
 
-def host_1d(x: Any, name: str, dtype=np.float64) -> np.ndarray:
-    arr = host(x, name, dtype)
-    if arr.ndim != 1:
-        raise ValueError(f"{name}: expected a 1-D array, got shape {arr.shape}")
-    return arr
-
-
 def check_finite(arr: np.ndarray, name: str) -> None:
     if arr.size and not np.all(np.isfinite(arr)):
         bad = int(np.count_nonzero(~np.isfinite(arr)))
         raise ValueError(f"{name}: contains {bad} NaN or inf value(s)")
 
 
-#: Bytes readable past the end of a buffer that Dr.Jit maps: its LLVM kernels load whole
-#: packets (up to 16 lanes of 8 bytes on AVX-512) even for the last, partial one, so a mapped
-#: NumPy input is read up to 120 bytes past its end.
+#: Bytes readable past the end of a buffer that Dr.Jit maps: its LLVM kernels load the last,
+#: partial packet whole (up to 16 lanes of 8 bytes), up to 120 bytes past the end.
 TAIL_PAD = 128
 
 
@@ -94,19 +86,11 @@ def _has_tail(a: np.ndarray) -> bool:
 
 
 def aligned(a: np.ndarray, dtype=None) -> np.ndarray:
-    """A C-contiguous copy of ``a`` (cast to ``dtype`` if given, in the same single copy;
-    overflow becomes inf, as in ``astype``) whose data starts on a 64-byte boundary and is
-    followed by :data:`TAIL_PAD` readable bytes; ``a`` itself when it already is one.
-
-    Dr.Jit's LLVM backend emits ``align 64`` loads for a NumPy-backed input only when
-    its pointer happens to be 64-byte aligned (``align 1`` otherwise), so the same
-    kernel gets two hashes and is recompiled at random.  It maps the NumPy memory
-    without copying and its kernels read the last packet whole, past the array's end:
-    without the tail padding that read crossed into an unmapped page (a segfault) when
-    the buffer was an mmap'd allocation ending at a page boundary (glibc serves large
-    allocations by mmap; ``mallopt(M_MMAP_THRESHOLD, 64 KiB)`` in the memory benchmark
-    made every buffer >= 64 KiB one).
-    """
+    """A C-contiguous copy of ``a`` (cast to ``dtype`` if given, overflow becoming inf as in
+    ``astype``) whose data starts on a 64-byte boundary and is followed by :data:`TAIL_PAD`
+    readable bytes; ``a`` itself when it already is one.  Dr.Jit maps NumPy memory without a
+    copy: its alignment enters the kernel hash (``align 64`` or ``align 1`` loads), and the
+    last packet is read whole, past the array's end."""
     a = np.asarray(a)
     dt = a.dtype if dtype is None else np.dtype(dtype)
     if a.dtype == dt and a.flags.c_contiguous and a.ctypes.data % 64 == 0 and _has_tail(a):

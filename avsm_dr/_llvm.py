@@ -2,13 +2,11 @@
 
 Dr.Jit 1.5 on LLVM 15 aborts the whole process at the first ``dr.maximum`` /
 ``dr.minimum`` ("Cannot select: fmaximum"); LLVM >= 16 works.  Dr.Jit loads its
-libLLVM once, eagerly, inside ``import drjit`` (``DRJIT_LIBLLVM_PATH`` if set, else
-its own search; measured with drjit 1.5: setting the variable afterwards changes
-nothing).  So :func:`ensure_libllvm` points ``DRJIT_LIBLLVM_PATH`` at the newest
-libLLVM >= 16 it can find, unless the user set it, and must run before ``drjit`` is
-imported; :func:`check_loaded` then asks Dr.Jit which LLVM it actually loaded.
-When ``drjit`` was imported first, its own choice stands: fine when it found
-LLVM >= 16, otherwise :data:`PROBLEM` says that the import order is the cause.
+libLLVM once, inside ``import drjit`` (``DRJIT_LIBLLVM_PATH`` if set, else its own
+search), so :func:`ensure_libllvm` points ``DRJIT_LIBLLVM_PATH`` at the newest libLLVM
+>= 16 unless the user set it, before ``drjit`` is imported; :func:`check_loaded` then asks
+Dr.Jit which LLVM it loaded (when ``drjit`` was imported first, :data:`PROBLEM` names the
+import order as the cause of an LLVM < 16).
 """
 from __future__ import annotations
 
@@ -43,17 +41,11 @@ def _major_version(path: str) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def find_libllvm(min_version: int = MIN_VERSION) -> str | None:
-    """Path of the newest libLLVM with major version >= ``min_version``, or None."""
-    best: tuple[int, str] | None = None
-    for pattern in _SEARCH_PATTERNS:
-        for path in glob.glob(pattern):
-            version = _major_version(path)
-            if version is None or version < min_version or not os.path.isfile(path):
-                continue
-            if best is None or version > best[0]:
-                best = (version, path)
-    return best[1] if best else None
+def find_libllvm() -> str | None:
+    """Path of the newest libLLVM with major version >= :data:`MIN_VERSION`, or None."""
+    found = [(v, path) for pattern in _SEARCH_PATTERNS for path in glob.glob(pattern)
+             if (v := _major_version(path)) is not None and v >= MIN_VERSION and os.path.isfile(path)]
+    return max(found, key=lambda f: f[0])[1] if found else None     # the first of the newest
 
 
 #: The libLLVM Dr.Jit loaded when it is >= 16 (its path where the OS tells, else a

@@ -1,9 +1,8 @@
 """Dr.Jit backend selection: LLVM (CPU) by default, CUDA when a GPU is present.
 
 ``set_backend("llvm" | "cuda")`` chooses (``with use_backend(name):`` for a block);
-``types()`` returns the Dr.Jit AD module (``drjit.llvm.ad`` or ``drjit.cuda.ad``) whose
-``Float``, ``UInt32``... every kernel uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice
-(``llvm`` or ``cuda``; anything else is a ValueError naming the variable).
+``types()`` returns the Dr.Jit AD module (``drjit.llvm.ad`` or ``drjit.cuda.ad``) every kernel
+uses.  ``AVSM_DR_BACKEND`` in the environment sets the initial choice (``llvm`` or ``cuda``).
 """
 from __future__ import annotations
 

@@ -13,6 +13,7 @@ import struct
 import numpy as np
 
 from . import validation as V
+from .geometry import check_bbox
 
 _MAGIC = b"VOL"
 _VERSION = 3
@@ -31,13 +32,7 @@ def write_vol(path, data, bbox=None) -> None:
         a = a[..., None]
     if a.ndim != 4 or min(a.shape) < 1:
         raise ValueError(f"data: expected a (z, y, x) or (z, y, x, c) array, got shape {np.shape(data)}")
-    if bbox is None:
-        bbox = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    try:
-        lo, hi = bbox
-    except (TypeError, ValueError):
-        raise ValueError(f"bbox: expected (min_xyz, max_xyz), got {bbox!r}") from None
-    lo, hi = V.vec3(lo, "bbox"), V.vec3(hi, "bbox")
+    lo, hi = check_bbox(((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)) if bbox is None else bbox, "bbox", flat=True)
     if max(np.abs(lo).max(), np.abs(hi).max()) > np.finfo(np.float32).max:
         raise ValueError(f"bbox: beyond the float32 range of the .vol header, got {bbox!r}")
     nz, ny, nx, nc = a.shape

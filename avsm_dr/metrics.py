@@ -1,18 +1,11 @@
-"""Error metrics between transmittance estimates and a reference.
+"""Error metrics between transmittance estimates and a reference: :func:`error_stats` in T,
+:func:`optical_depth_error` in ``tau = -ln max(T, floor)`` (dense media, where T -> 0 hides
+errors; floor 1e-4, the capture's default stop threshold).
 
 Sign convention: ``error = estimate - reference``; positive = light leaking (the estimate
 is brighter than the truth), negative = over-darkening.  All statistics are over the
-finite estimates (non-finite ones are counted, not averaged).
-
-* :func:`error_stats`: RMSE, max, mean (signed) and mean |error|, the fractions of receivers
-  leaking / over-darkening by more than ``threshold`` (0.02), the 99th and 99.9th
-  percentiles of |error|, counts of NaN / inf / out-of-[0, 1] estimates.
-* :func:`optical_depth_error`: the same in the log domain, ``tau = -ln max(T, floor)``,
-  for dense media where T -> 0 hides errors (floor 1e-4: the capture's default stop
-  threshold, below which no transmittance is resolved).
-
-A 99.9th percentile needs thousands of receivers to mean more than the maximum: with
-K receivers it interpolates between the two largest errors when K < 1000.
+finite estimates (non-finite ones are counted, not averaged).  With K < 1000 receivers the
+99.9th percentile interpolates between the two largest errors.
 """
 from __future__ import annotations
 
@@ -40,24 +33,18 @@ def _check_threshold(threshold):
     return V.real(threshold, "threshold", 0.0)
 
 
+_KEYS = ("rmse", "max_error", "mean_error", "mean_abs_error", "leak_fraction", "dark_fraction",
+         "p99_error", "p999_error")
+
+
 def _summary(diff: np.ndarray, threshold: float, prefix: str = "") -> dict:
-    """Statistics of signed errors ``diff`` (finite)."""
+    """Statistics of signed errors ``diff`` (finite), NaN when there are none."""
     if diff.size == 0:
-        nan = float("nan")
-        return {f"{prefix}{k}": nan for k in ("rmse", "max_error", "mean_error", "mean_abs_error",
-                                              "leak_fraction", "dark_fraction", "p99_error", "p999_error")}
+        return {prefix + k: float("nan") for k in _KEYS}
     a = np.abs(diff)
-    p99, p999 = np.percentile(a, [99.0, 99.9])
-    return {
-        f"{prefix}rmse": float(np.sqrt(np.mean(diff ** 2))),
-        f"{prefix}max_error": float(a.max()),
-        f"{prefix}mean_error": float(np.mean(diff)),
-        f"{prefix}mean_abs_error": float(np.mean(a)),
-        f"{prefix}leak_fraction": float(np.mean(diff > threshold)),
-        f"{prefix}dark_fraction": float(np.mean(diff < -threshold)),
-        f"{prefix}p99_error": float(p99),
-        f"{prefix}p999_error": float(p999),
-    }
+    values = (np.sqrt(np.mean(diff ** 2)), a.max(), np.mean(diff), np.mean(a), np.mean(diff > threshold),
+              np.mean(diff < -threshold), *np.percentile(a, [99.0, 99.9]))
+    return {prefix + k: float(v) for k, v in zip(_KEYS, values)}
 
 
 def error_stats(estimate, reference, threshold: float = THRESHOLD) -> dict:

@@ -29,16 +29,22 @@ def check_in_dtype(arr: np.ndarray, name: str, dtype: str) -> np.ndarray:
                     f"{int(np.count_nonzero(bad))} value(s) overflow (e.g. {float(arr[bad][0]):g})")
             raise ValueError(f"{name}: {what} the {dtype} storage (|x| <= {float(info.max):.6g}); "
                              f"rescale the scene{OVERFLOW_HINT[dtype]}")
-        tiny = np.abs(arr) < float(info.tiny)
-        if tiny.any():
-            arr = np.where(tiny, 0.0, arr)
-    return arr
+    return check_tiny(arr, dtype)
 
 
 def check_tiny(arr: np.ndarray, dtype: str) -> np.ndarray:
     """``arr`` with values below the smallest normal number of ``dtype`` set to 0."""
     tiny = float(np.finfo(np_dtype(dtype)).tiny)
     return np.where(np.abs(arr) < tiny, 0.0, arr) if arr.size else arr
+
+
+def check_span(lo: float, hi: float, dtype: str, name: str, what: str, hint: str = "") -> None:
+    """ValueError naming ``name`` when ``hi - lo`` (``what``) overflows the ``dtype`` storage."""
+    ft = np_dtype(dtype)
+    with np.errstate(over="ignore"):
+        span = ft(hi) - ft(lo)
+    if not np.isfinite(span):
+        raise ValueError(f"{name}: {what} = {hi - lo:.6g} overflows the {dtype} storage{hint}")
 
 
 def has_subnormal(host_arr: np.ndarray, dtype: str) -> bool:

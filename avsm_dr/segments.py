@@ -8,16 +8,12 @@ A zero-length segment is a step at ``z0`` (a receiver at exactly ``z0`` is behin
 
 Storage dtype (float32 or float64) limits, checked at :meth:`Segments.from_arrays`:
 every depth, and the depth range ``max z1 - min z0`` (hence every length), must be
-finite in that dtype (``ValueError`` naming ``z0``/``z1`` otherwise; a float32 overflow
-used to become inf and crash or silently corrupt the kernels).  Subnormal depths and
+finite in that dtype (``ValueError`` naming ``z0``/``z1`` otherwise).  Subnormal depths and
 optical depths (below the dtype's smallest normal number) are stored as 0: Dr.Jit's CPU
-worker threads flush subnormals to zero (denormals-are-zero) while the calling thread
-does not, so they would otherwise give results that depend on the array size
-(measured: a receiver at depth -1.4e-45 behind a step at 0 got T = 1 in a batch of 8,
-T = 0.61 in a batch of 16).  :meth:`Segments.check_depth` applies the same rules to
-other depths (receivers, near/far).  A positive length below :data:`MIN_LENGTH` (2.4e-295,
-only near depth 0 in float64) is stored as a zero-length step: its density would
-overflow float64.
+worker threads flush subnormals to zero while the calling thread does not, so they would
+otherwise give results that depend on the array size.  :meth:`Segments.check_depth` applies
+the same rules to other depths (receivers, near/far).  A positive length below
+:data:`MIN_LENGTH` is stored as a zero-length step: its density would overflow float64.
 """
 from __future__ import annotations
 
@@ -30,10 +26,9 @@ import numpy as np
 from . import _arrays as A
 from . import backend
 from . import validation as V
-from .segment_dtype import (  # noqa: F401  (re-exported from their old home)
-    OVERFLOW_HINT, check_in_dtype, check_tiny, flush_subnormal, flushed, has_subnormal, np_dtype)
-from .segment_keys import rank_in_ranges, shuffle_key  # noqa: F401  (re-exported)
-from .texel_sort import TIE, UNSORTED, break_ties, float_key, sort_texels, sort_texels_view
+from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
+from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels,
+                         sort_texels_view, view_order)
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -41,14 +36,11 @@ from .texel_sort import plan as sort_plan
 #: that products with zero-length fractions never make NaN.
 OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: Shortest positive segment length (2.4e-295): below it the summed density of up to 2^32
-#: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64 (the DSM polyline
-#: then made NaN slopes and segfaulted).  Such lengths only occur within ~1e-279 of depth
-#: 0 in float64 storage; they are stored as zero-length steps at z0.
+#: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
+#: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: :meth:`Segments.sorted` ranks float64 segments, and orders float32 ones with equal z0 in a
-#: texel (:func:`~avsm_dr.texel_sort.break_ties`), on the device while ``sum count^2 <=
-#: DEVICE_SORT_WORK * S`` (mean count weighted by segments <= 256; both cost up to ``count``
-#: comparisons per segment), else by a host lexsort.
+#: Sorts that cost up to ``count`` comparisons per segment run on the device while ``sum
+#: count^2 <= DEVICE_SORT_WORK * S`` (:func:`device_sortable`), else on the host.
 DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
@@ -57,7 +49,36 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
-_TIES = object()        # :meth:`Segments._network_order`: no network order (float64, costly ties)
+_TIES = object()        # :meth:`Segments._network_view`: no network order (float64, costly ties)
+
+
+def device_sortable(counts: np.ndarray) -> bool:
+    """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
+    comparisons per segment runs on the device (else on the host)."""
+    c = np.asarray(counts).astype(np.float64)
+    return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
+
+
+def run_index(starts, n: int):
+    """(n,) Dr.Jit UInt32 run of each of ``n`` elements, runs starting at ``starts`` (UInt32,
+    ascending, repeated for empty runs, the first 0 left out): a 1 added at every start, then an
+    inclusive prefix sum (``n`` opaque, mode Local: no compile per size)."""
+    UInt32 = backend.types().UInt32
+    flag = dr.zeros(UInt32, n)
+    dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), starts, starts < dr.opaque(UInt32, n),
+                      mode=dr.ReduceMode.Local)
+    return dr.cumsum(flag)
+
+
+def _per_segment(x, name: str, n: int) -> np.ndarray:
+    """Host float64 copy of a per-segment array: 1-D, ``n`` values, finite (ValueError naming ``name``)."""
+    arr = A.host(x, name)
+    if arr.ndim != 1:
+        raise ValueError(f"{name}: expected a 1-D array, got shape {arr.shape}")
+    if arr.size != n:
+        raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
+    A.check_finite(arr, name)
+    return arr
 
 
 def _recipe(src, Float, dtype: str, flush: bool, clamp: bool = False):
@@ -112,13 +133,9 @@ class Segments:
     Dr.Jit float arrays of length S (AD graphs kept); ``dtype`` 'float32'|'float64';
     ``order`` the insertion order the segments of each texel are stored in, one of
     :data:`ORDERS` ('unknown' unless given or made by :meth:`sorted` / :meth:`in_order` /
-    ``ad.capture``; 'depth' when built with ``sorted_by_depth=True``), kept by
-    :meth:`select_texels`, so a study can record it.
-
-    Reusable under reverse mode: arrays that :meth:`from_arrays`, :meth:`sorted` and
-    :meth:`select_texels` derive from grad-enabled input are re-derived from the caller's
-    arrays when read (:class:`_Linked`), so ``dr.backward`` after one build leaves the next
-    build's gradients intact.
+    ``ad.capture``; 'depth' when built with ``sorted_by_depth=True``).  Reusable under
+    reverse mode: ``dr.backward`` after one build leaves the next build's gradients intact
+    (:class:`_Linked`).
     """
 
     offsets: np.ndarray
@@ -134,7 +151,6 @@ class Segments:
         if self.order == "unknown" and self.sorted_by_depth:
             self.order = "depth"
 
-    # ------------------------------------------------------------------ build
     @classmethod
     def from_arrays(cls, offsets, z0, z1, transmittance=None, optical_depth=None,
                     dtype: str | None = None, order: str = "unknown") -> "Segments":
@@ -176,23 +192,14 @@ class Segments:
                 if A.is_drjit(x) and A.dtype_of(x) == "float64":
                     dtype = "float64"
         Float = A.float_type(dtype)
-        z0h = A.host_1d(z0, "z0")
-        z1h = A.host_1d(z1, "z1")
-        for name, arr in (("z0", z0h), ("z1", z1h)):
-            if arr.size != n:
-                raise ValueError(f"{name}: length {arr.size} does not match offsets[-1] = {n}")
-            A.check_finite(arr, name)
+        z0h, z1h = _per_segment(z0, "z0", n), _per_segment(z1, "z1", n)
         z0f = check_in_dtype(z0h, "z0", dtype)
         z1f = check_in_dtype(z1h, "z1", dtype)
         if np.any(z1h < z0h):
             raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
         if n:   # the depth range (basis spans), hence every length, must be finite in dtype too
-            ft = np_dtype(dtype)
-            with np.errstate(over="ignore"):
-                span = ft(z1f.max()) - ft(z0f.min())
-            if not np.isfinite(span):
-                raise ValueError(f"z1: the depth range max(z1) - min(z0) = {z1f.max() - z0f.min():.6g} "
-                                 f"overflows the {dtype} storage; rescale the scene{OVERFLOW_HINT[dtype]}")
+            check_span(z0f.min(), z1f.max(), dtype, "z1", "the depth range max(z1) - min(z0)",
+                       f"; rescale the scene{OVERFLOW_HINT[dtype]}")
         if (transmittance is None) == (optical_depth is None):
             raise ValueError("transmittance: pass exactly one of transmittance= or optical_depth=")
         # Each stored array comes from a recipe over the caller's arrays: a grad-enabled Dr.Jit
@@ -212,14 +219,16 @@ class Segments:
                     return dr.select(short_d, z0_of(), z1_raw())
         z0d, z1d = z0_of(), z1_of()
         if transmittance is not None:
-            th = A.host_1d(transmittance, "transmittance")
-            if th.size != n:
-                raise ValueError(f"transmittance: length {th.size} does not match offsets[-1] = {n}")
-            A.check_finite(th, "transmittance")
+            th = _per_segment(transmittance, "transmittance", n)
             if np.any((th < 0) | (th > 1)):
                 raise ValueError("transmittance: values must lie in [0, 1] (opacity above 1 or negative)")
-            if n == 0:  # no blockers at all: every texel is empty (T = 1 everywhere)
-                return cls(off, Float(), Float(), Float(), dtype, order=order)
+        else:
+            oh = _per_segment(optical_depth, "optical_depth", n)
+            if np.any(oh < 0):
+                raise ValueError("optical_depth: values must be >= 0 (negative density)")
+        if n == 0:      # every texel is empty (T = 1 everywhere)
+            return cls(off, Float(), Float(), Float(), dtype, order=order)
+        if transmittance is not None:
             tiny = float(np.exp(-OPAQUE_OPTICAL_DEPTH)) if dtype == "float64" else 0.0
 
             def tau_of():
@@ -230,14 +239,6 @@ class Segments:
                 return dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH),
                                  OPAQUE_OPTICAL_DEPTH)
         else:
-            oh = A.host_1d(optical_depth, "optical_depth")
-            if oh.size != n:
-                raise ValueError(f"optical_depth: length {oh.size} does not match offsets[-1] = {n}")
-            A.check_finite(oh, "optical_depth")
-            if np.any(oh < 0):
-                raise ValueError("optical_depth: values must be >= 0 (negative density)")
-            if n == 0:
-                return cls(off, Float(), Float(), Float(), dtype, order=order)
             if A.is_drjit(optical_depth):   # clamped and flushed only where needed (recipe)
                 tau_of = _recipe(optical_depth, Float, dtype, has_subnormal(oh, dtype),
                                  clamp=bool(np.any(oh > OPAQUE_OPTICAL_DEPTH)))
@@ -256,7 +257,6 @@ class Segments:
             self.__dict__["_links"] = {**self.__dict__.get("_links", {}), **live}
         return self
 
-    # ------------------------------------------------------------ properties
     @property
     def Float(self):
         return type(self.z0)
@@ -293,6 +293,12 @@ class Segments:
         """Exit transmittance exp(-tau) of each segment (Dr.Jit)."""
         return dr.exp(-self.optical_depth)
 
+    def _sort_plan(self) -> dict:
+        """:func:`~avsm_dr.texel_sort.plan` of these counts (cached)."""
+        if "sort_plan" not in self._cache:
+            self._cache["sort_plan"] = sort_plan(self.counts, self.offsets_dr())
+        return self._cache["sort_plan"]
+
     def offsets_dr(self):
         """offsets as a Dr.Jit UInt32 array (cached)."""
         if "offsets" not in self._cache:
@@ -301,23 +307,15 @@ class Segments:
 
     def texel_of_segment(self):
         """(S,) texel index of every segment, Dr.Jit UInt32 (cached), built on the device:
-        a 1 scattered (added) at every texel start ``offsets[1:T]`` below S, then an
-        inclusive prefix sum, ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}``."""
+        ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}`` (:func:`run_index`)."""
         if "texel_of" not in self._cache:
             UInt32 = backend.types().UInt32
             n = self.n_segments
             if self.n_texels < 2 or n == 0:
                 self._cache["texel_of"] = dr.zeros(UInt32, n)
-                return self._cache["texel_of"]
-            starts = self.offsets_dr()
-            k = dr.arange(UInt32, 1, self.n_texels)
-            at = dr.gather(UInt32, starts, k)
-            flag = dr.zeros(UInt32, n)
-            # S opaque and mode Local (the default, Expand on LLVM, puts S in the kernel as a
-            # literal): no compile per segment count
-            dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), at, at < dr.opaque(UInt32, n),
-                              mode=dr.ReduceMode.Local)
-            self._cache["texel_of"] = dr.cumsum(flag)
+            else:
+                self._cache["texel_of"] = run_index(dr.gather(UInt32, self.offsets_dr(),
+                                                              dr.arange(UInt32, 1, self.n_texels)), n)
         return self._cache["texel_of"]
 
     def bounds(self) -> tuple[float, float]:
@@ -353,35 +351,38 @@ class Segments:
             "optical_depth": A.host(self.optical_depth, "optical_depth"),
         }
 
-    # ------------------------------------------------------------- reorder
     def sorted(self) -> "Segments":
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
-        lexsort); gradients follow the permutation.
+        lexsort, :meth:`depth_order`); gradients follow the permutation."""
+        return self if self.sorted_by_depth else self._reordered(self.depth_order())
 
-        On the device (:meth:`depth_order`); for float64, or equal z0 in a texel, where the
-        per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment, a host
-        lexsort (same order)."""
-        if self.sorted_by_depth or self.n_segments == 0:
-            return self if self.sorted_by_depth else self._reordered(None)
-        idx = self._network_order()
-        return self._reordered(self._exact_order() if idx is _TIES else idx)
+    def depth_order(self):
+        """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
+        ties in stored order; None when they are already in order.
+
+        float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels` (words ``key(z0) << 32 |
+        position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
+        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
+        :func:`device_sortable` is false and ranks or ties are needed."""
+        view = self._network_view()
+        if view is _TIES:
+            return self._exact_order()
+        return None if view is None else view_order(*view, self.offsets_dr(), self.texel_of_segment())
 
     def _exact_order(self):
         """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host
-        lexsort where the per-texel work ``sum count^2`` exceeds :data:`DEVICE_SORT_WORK` per segment."""
-        c = self.counts.astype(np.float64)
-        if float(c @ c) <= DEVICE_SORT_WORK * self.n_segments:
+        lexsort where :func:`device_sortable` is false."""
+        if device_sortable(self.counts):
             return self._rank_order()
         h = self.numpy()
         tex = np.repeat(np.arange(self.n_texels), self.counts)
         return A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
 
     def depth_view(self):
-        """The order of :meth:`sorted` without sorted copies: None when every texel is already
-        in order, else ``(index, start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in
-        (z0, z1) order is segment ``index[start[t] + r]``.  A consumer walking each texel
-        (e.g. the AVSM build) reads through it: one gather per segment instead of a
-        permutation and three gathered arrays."""
+        """The order of :meth:`sorted` without sorted copies, for a consumer walking each texel
+        (e.g. the AVSM build): None when every texel is already in order, else ``(index,
+        start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in (z0, z1) order is segment
+        ``index[start[t] + r]``."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         view = self._network_view()
@@ -429,19 +430,16 @@ class Segments:
         if order == "reverse_depth":     # slot r of texel t <- slot count_t - 1 - r
             idx = dr.gather(UInt32, off, tex + 1) - 1 - (i - dr.gather(UInt32, off, tex))
         else:
-            c = base.counts.astype(np.float64)
-            if float(c @ c) > DEVICE_SORT_WORK * n:             # host: the same keys, np.lexsort
+            if not device_sortable(base.counts):                # host: the same keys, np.lexsort
                 tex_h = np.repeat(np.arange(base.n_texels, dtype=np.int64), base.counts)
                 rank = np.arange(n, dtype=np.int64) - base.offsets[tex_h]
                 key = shuffle_key(seed, tex_h.astype(np.uint32), rank.astype(np.uint32))
                 idx = A.to_uint32(np.lexsort((rank, key, tex_h)).astype(np.uint32))
             else:                                               # words key << 32 | position
                 key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
-                if "sort_plan" not in base._cache:
-                    base._cache["sort_plan"] = sort_plan(base.counts, off)
                 U32 = dr.detached_t(UInt32)
                 perm, _ = sort_texels(base.counts, off, tex, "index", (U32(i), U32(key)), ties=False,
-                                      layout=base._cache["sort_plan"])
+                                      layout=base._sort_plan())
                 idx = UInt32(perm)
         return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
 
@@ -461,28 +459,6 @@ class Segments:
                        {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
 
-    def depth_order(self):
-        """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
-        ties in stored order, computed on the device; None when they are already in order.
-
-        float32: by z0 alone with :func:`~avsm_dr.texel_sort.sort_texels` (sorting networks in
-        registers, one lane per texel), the words ``key(z0) << 32 | position`` making the
-        order stable; where a texel holds equal z0, z1 then position decide
-        (:func:`~avsm_dr.texel_sort.break_ties`); float64: by rank, :meth:`_rank_order`."""
-        idx = self._network_order()
-        return self._rank_order() if idx is _TIES else idx
-
-    def _network_order(self):
-        """Permutation, None (already in order) or ``_TIES`` (float64)."""
-        view = self._network_view()
-        if view is None or view is _TIES:
-            return view
-        UInt32 = backend.types().UInt32
-        pay, start = view
-        tex = self.texel_of_segment()
-        local = dr.arange(UInt32, self.n_segments) - dr.gather(UInt32, self.offsets_dr(), tex)
-        return dr.gather(UInt32, pay, dr.gather(UInt32, start, tex) + local)
-
     def _network_view(self):
         """:meth:`depth_view` by the sorting networks (equal z0: :func:`~avsm_dr.texel_sort.break_ties`),
         or ``_TIES``: float64, or equal z0 where ``sum count^2 > DEVICE_SORT_WORK * S``."""
@@ -491,14 +467,11 @@ class Segments:
         if self.dtype != "float32":
             return _TIES
         z0 = dr.detached_t(self.Float)(dr.detach(self.z0))      # words key(z0) << 32 | position
-        if "sort_plan" not in self._cache:
-            self._cache["sort_plan"] = sort_plan(self.counts, self.offsets_dr())
         pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
-                                             layout=self._cache["sort_plan"])
+                                             layout=self._sort_plan())
         if flags & TIE:                                         # equal z0: z1, then position decide
-            c = self.counts.astype(np.float64)                  # runs of r equal z0 cost r^2: bounded
-            if float(c @ c) > DEVICE_SORT_WORK * self.n_segments:
-                return _TIES                                    # by sum count^2, else the host lexsort
+            if not device_sortable(self.counts):                # runs of r equal z0 cost r^2
+                return _TIES
             z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
             pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
             dr.eval(pay)
@@ -547,16 +520,11 @@ class Segments:
         out = check_in_dtype(np.atleast_1d(arr).ravel(), name, self.dtype).reshape(arr.shape)
         return float(out) if out.ndim == 0 else out
 
-    def check_depth_range(self, near, far, names=("near", "far")) -> tuple[float, float]:
+    def check_depth_range(self, near, far) -> tuple[float, float]:
         """(near, far) as floats checked with :meth:`check_depth`, and ``far - near``
         finite in the storage dtype (the basis methods divide by it)."""
-        lo, hi = self.check_depth(near, names[0]), self.check_depth(far, names[1])
-        ft = np.float32 if self.dtype == "float32" else np.float64
-        with np.errstate(over="ignore"):
-            span = ft(hi) - ft(lo)
-        if not np.isfinite(span):
-            raise ValueError(f"{names[1]}: the range {names[1]} - {names[0]} = {hi - lo:.6g} overflows the "
-                             f"{self.dtype} storage")
+        lo, hi = self.check_depth(near, "near"), self.check_depth(far, "far")
+        check_span(lo, hi, self.dtype, "far", "the range far - near")
         return lo, hi
 
     def select_texels(self, texels) -> "Segments":

@@ -6,27 +6,23 @@ Input: one 64-bit *word* per segment in CSR order, ``word = key << 32 | payload`
 comparing words is comparing ``(key, payload)``.  Output: for every CSR position
 ``o_t + r`` the payload of the ``r``-th smallest word of texel ``t``.
 
-* Texels of ``k <= 64`` segments: one lane per texel loads its ``k`` words into registers
-  (``B - k`` pads of ``2^64 - 1`` up to its size class ``B``, the next power of two) and
-  sorts them with Batcher's odd-even merge sort network (K. E. Batcher, "Sorting networks
-  and their applications", AFIPS 1968, section 2), comparators on pads pruned: no memory
-  traffic besides one gather per segment and one packet store per texel.  All classes run
-  in one kernel, a chain of symbolic conditionals (lanes grouped by class, so a SIMD
-  packet runs one network).
-* Longer texels: blocks of 64 (a texel's last block by the network of its size class),
-  then bottom-up merges of pairs of sorted runs, one lane per pair walking both runs with
-  their heads in registers (one gather and one store per word), the last merge writing the
-  payloads to their place and checking neighbours for equal keys.
-* :func:`sort_texels_view` leaves the payloads in that layout (texel ``t`` from
-  ``base[t]``): a consumer walking each texel reads through it, no permutation is formed.
-* Equal keys (:func:`break_ties`): one lane per segment scans its run of equal keys and
-  ranks itself by a second key, then position.
+* Texels of ``k <= 64`` segments: one lane per texel sorts its ``k`` words in registers
+  (padded with ``2^64 - 1`` up to its size class, the next power of two) with Batcher's
+  odd-even merge sort network (K. E. Batcher, "Sorting networks and their applications",
+  AFIPS 1968, section 2), comparators on pads pruned; all classes in one kernel (a chain of
+  symbolic conditionals, lanes grouped by class).
+* Longer texels: blocks of 64, then bottom-up merges of pairs of sorted runs, one lane per
+  pair with both heads in registers.
+* Equal keys (:func:`break_ties`): one lane per segment ranks itself inside its run of
+  equal keys by a second key, then position.
 
-Timings against the alternatives tried (ranking, full networks, merge path): docs/performance.md.
+Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segments.in_order>`
+and :meth:`Segments.sorted <avsm_dr.segments.Segments.sorted>`: the seeded 32-bit shuffle hash
+(:func:`shuffle_key`) and ranks within index ranges (:func:`rank_in_ranges`).
 
-Flags (counted on the device, read back once): :data:`TIE` when two words of a texel share
-their key (the caller may need a finer order), :data:`UNSORTED` when some texel's words
-were not already increasing in CSR order (always set when a texel exceeds 64).
+Flags (counted on the device): :data:`TIE` when two words of a texel share their key,
+:data:`UNSORTED` when some texel's words were not already increasing in CSR order (always
+set when a texel exceeds 64).
 """
 from __future__ import annotations
 
@@ -65,9 +61,7 @@ def network(n: int) -> tuple:
 
 
 def _u32(a: np.ndarray):
-    """Host integers as a UInt32 Dr.Jit array, copied from a 64-byte aligned buffer (a mapped
-    NumPy buffer's alignment enters the kernel hash: recompiles at random, seconds for the
-    64-input network)."""
+    """Host integers as a UInt32 Dr.Jit array from a 64-byte aligned buffer (:func:`~avsm_dr._arrays.aligned`)."""
     return _types()[0](A.aligned(np.asarray(a).astype(np.uint32)))
 
 
@@ -88,9 +82,8 @@ def float_key(z):
 def _network_branch(word_at, size: int, out, ties: bool):
     """``f(start, count, packet) -> flags``: one lane per run ``[start, start + count)``
     (``count <= size``): its words ``word_at(position, valid)`` sorted in registers, stored
-    as packet ``packet`` of ``size`` entries of ``out`` (payloads into a UInt32 ``out``,
-    whole words into a UInt64 one); flags (UInt64): 1 for equal keys side by side, ``2^32``
-    when the run was not already increasing."""
+    as packet ``packet`` of ``out`` (payloads into a UInt32 ``out``, words into a UInt64 one);
+    flags (UInt64): 1 for equal keys side by side, ``2^32`` when the run was unsorted."""
     UInt32, UInt64, ArrayXu, ArrayXu64 = _types()
 
     def f(start, count, packet):
@@ -128,10 +121,8 @@ def word_function(kind: str, sources):
 
 
 def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
-    """Sort the runs of all lanes (lanes ordered by decreasing size class) in one kernel: a
-    chain of symbolic conditionals picks the network of each lane's size class ``sizes``
-    (ascending); SIMD packets whose lanes share a class run one network.  Returns the
-    lanes' flags summed (UInt64, width 1; see :func:`_network_branch`)."""
+    """Sort the runs of all lanes (by decreasing size class) in one kernel, a chain of symbolic
+    conditionals picking each lane's network; returns the flags summed (UInt64, width 1)."""
     UInt32, UInt64, _, _ = _types()
     word_at = word_function(kind, sources)
 
@@ -147,10 +138,9 @@ def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
 
 
 def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
-    """Merge two sorted runs per lane, ``cur[a0:mid]`` and ``cur[mid:end]``, sequentially
-    (two heads in registers: one gather and one store per word), writing the ``n`` smallest
-    words to ``out[dst:dst + n]`` (payloads into a UInt32 ``out``, words into a UInt64 one).
-    tie: also return, per lane, whether two consecutive outputs share their key (a Bool)."""
+    """Merge two sorted runs per lane, ``cur[a0:mid]`` and ``cur[mid:end]``, writing the ``n``
+    smallest words to ``out[dst:dst + n]`` (payloads into a UInt32 ``out``, words into a UInt64
+    one); returns per lane whether two consecutive outputs share their key (with ``tie``)."""
     UInt32, UInt64, _, _ = _types()
     Bool = dr.mask_t(UInt32)
     a, b, k = UInt32(a0), UInt32(mid), dr.zeros(UInt32, dr.width(a0))
@@ -174,9 +164,9 @@ def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
 
 
 def plan(counts: np.ndarray, offsets_dr) -> dict:
-    """The layout of a sort (depends on the texel counts only, so callers may keep it):
-    lanes per size class, packet and slot of every texel (``base``: where its sorted payloads
-    start), blocks of the long texels (grouped by size class) and their merge passes."""
+    """The layout of a sort (a function of the texel counts, so callers may keep it): lanes
+    per size class, ``base`` (where each texel's sorted payloads start), blocks of the long
+    texels and their merge passes."""
     UInt32 = _types()[0]
     off = UInt32(offsets_dr)
     counts = np.asarray(counts, np.int64)
@@ -246,20 +236,23 @@ def sort_texels(counts: np.ndarray, offsets_dr, texel_of, kind: str, sources, ti
     (S,) UInt32 texel of every segment; kind, sources: the words (:func:`word_function`),
     distinct inside a texel; ties: look for equal keys; layout: :func:`plan` of these counts
     (computed when None)."""
-    UInt32 = _types()[0]
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay, base, flags = sort_texels_view(counts, offsets_dr, kind, sources, ties, lay)
-    tex = UInt32(texel_of)
-    local = dr.arange(UInt32, lay["n"]) - dr.gather(UInt32, lay["off"], tex)
-    return dr.gather(UInt32, pay, dr.gather(UInt32, base, tex) + local), flags
+    return view_order(pay, base, lay["off"], _types()[0](texel_of)), flags
+
+
+def view_order(payloads, base, offsets_dr, texel_of):
+    """The permutation of a :func:`sort_texels_view` layout: segment ``i`` of texel ``t`` gets
+    ``payloads[base[t] + i - offsets[t]]`` (all UInt32 of ``texel_of``'s type)."""
+    UInt32 = type(texel_of)
+    local = dr.arange(UInt32, dr.width(texel_of)) - dr.gather(UInt32, offsets_dr, texel_of)
+    return dr.gather(UInt32, payloads, dr.gather(UInt32, base, texel_of) + local)
 
 
 def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):
     """``(payloads, base, flags)`` without the final permutation: texel ``t``'s ``r``-th
     smallest word has its payload at ``payloads[base[t] + r]`` (both Dr.Jit UInt32,
-    evaluated; ``payloads`` holds the size classes' packets, then the long texels), so a
-    consumer that walks each texel reads its order there (one gather per segment) instead
-    of materialising a permutation.  Arguments as :func:`sort_texels`."""
+    evaluated), for a consumer that walks each texel.  Arguments as :func:`sort_texels`."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay = dr.empty(UInt32, lay["total"])
@@ -285,7 +278,6 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
     n_tie, n_unsorted = int(counter[0]) & 0xFFFFFFFF, int(counter[0]) >> 32
     flags = (TIE if n_tie else 0) | (UNSORTED if n_unsorted or big is not None else 0)   # blocks: not checked
     return pay, lay["base"], flags
-
 
 
 def break_ties(payloads, base, offsets_dr, texel_of, key, second):
@@ -322,3 +314,59 @@ def break_ties(payloads, base, offsets_dr, texel_of, key, second):
     out = dr.empty(UInt32, dr.width(payloads))
     dr.scatter(out, p, b + dr.select(r0 < r1, r0 + rank, r))
     return out
+
+
+def _mix32(x, c1, c2):
+    """Chris Wellons' "lowbias32" integer hash (x ^= x >> 16; x *= c1; x ^= x >> 15; x *= c2;
+    x ^= x >> 16) on uint32 NumPy or Dr.Jit UInt32 arrays (products modulo 2^32)."""
+    x = x ^ (x >> 16)
+    x = x * c1
+    x = x ^ (x >> 15)
+    x = x * c2
+    return x ^ (x >> 16)
+
+
+_MIX = (0x7FEB352D, 0x846CA68B)
+
+
+def _seed_word(seed: int) -> int:
+    """``lowbias32(seed)`` as a Python int (the seed's share of :func:`shuffle_key`)."""
+    return int(_mix32(np.array([seed], np.uint32), *(np.uint32(c) for c in _MIX))[0])
+
+
+def shuffle_key(seed: int, texel, rank):
+    """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
+    ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
+    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: uint32
+    NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
+    opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
+    (seed, texel, its segment count) only, not on threads or on the order it came in."""
+    if isinstance(texel, np.ndarray):
+        c1, c2 = (np.uint32(c) for c in _MIX)
+        s = np.uint32(_seed_word(seed))
+        with np.errstate(over="ignore"):
+            return _mix32(_mix32(texel.astype(np.uint32) + s, c1, c2) + rank.astype(np.uint32), c1, c2)
+    UInt32 = type(texel)
+    s = dr.opaque(UInt32, _seed_word(seed))
+    return _mix32(_mix32(texel + s, *_MIX) + rank, *_MIX)
+
+
+def rank_in_ranges(lo, hi, keys):
+    """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
+    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., j) < (keys[0]_i, ..., i)}``,
+    lexicographic (equal keys keep their stored order, a stable sort), on the device (one lane
+    per element, ``hi - lo`` gathers each); keys: Dr.Jit arrays (S,) compared in order."""
+    UInt32 = backend.types().UInt32
+    i = dr.arange(UInt32, dr.width(lo))
+
+    def cond(j, rank):
+        return j < hi
+
+    def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
+        before = j < i
+        for k in reversed(keys):
+            kj = dr.gather(type(k), k, j)
+            before = (kj < k) | ((kj == k) & before)
+        return j + 1, rank + dr.select(before, 1, 0)
+
+    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), cond, body, labels=("j", "rank"))[1]

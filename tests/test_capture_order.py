@@ -218,8 +218,7 @@ def test_submission_draws_grid_bricks_in_memory_order(method, monkeypatch):
     in_brick = same & (np.diff(key) == 0)
     assert np.all(np.diff(got["z0"])[in_brick] > 0)                 # a brick's stretch front to back
     assert np.any(np.diff(got["z0"])[same] < 0)                     # and not the depth order
-    from avsm_dr.capture import assembly
-    monkeypatch.setattr(assembly, "DEVICE_SORT_WORK", 0)            # the host fallback: the same order
+    monkeypatch.setattr(S, "DEVICE_SORT_WORK", 0)                   # the host fallback: the same order
     host = ad.capture(sc, resolution=RES, order="submission", method=method).segments.numpy()
     assert all(np.array_equal(host[k], ref[k]) for k in ref)
 

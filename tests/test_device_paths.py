@@ -190,7 +190,7 @@ def test_capture_assembly_on_the_device_matches_the_host_order(backend, rng, lay
     perm = asm.host_order(tex_h, z0_h)      # a single piece in texel order is sorted by depth too
     off = np.concatenate([[0], np.cumsum(np.bincount(tex_h, minlength=T))])
     results = [asm.combine(pieces, T, Float)]
-    monkeypatch.setattr(asm, "DEVICE_SORT_WORK", 0)                   # host fallback
+    monkeypatch.setattr(ad.segments, "DEVICE_SORT_WORK", 0)          # host fallback
     results.append(asm.combine(pieces, T, Float))
     for seg in results:
         assert isinstance(seg, Segments) and seg.sorted_by_depth

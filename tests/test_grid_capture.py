@@ -194,6 +194,22 @@ def _grazing_rays(g):
     return np.arange(len(o)), o, d, t0, t1
 
 
+class _RayCamera:
+    """A light camera whose texel k shoots the hand-made ray ``(o[k], d[k])``: one row of texels."""
+
+    def __init__(self, o, d):
+        self.o, self.d, self.res = o, d, len(o)
+
+    def footprint_rects(self, lo, hi):
+        zero = np.zeros(1, np.int64)
+        return [(zero, zero + self.res - 1, zero, zero, 0)]
+
+    def rays_device(self, texels):
+        F64 = ad.backend.types().Float64
+        return tuple([dr.gather(F64, F64(np.ascontiguousarray(v[:, a])), texels) for a in range(3)]
+                     for v in (self.o, self.d))
+
+
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_grazing_rays_terminate_and_are_exact(dtype):
     """Rays on voxel-centre planes and dual-cell edges, nearly parallel rays and rays starting on
@@ -203,7 +219,7 @@ def test_grazing_rays_terminate_and_are_exact(dtype):
     bbox = (np.array([-0.6, -0.7, -0.65]), np.array([0.7, 0.7, 0.6]))
     g = GridVolume.prepare(d, bbox, dtype=dtype)
     lanes = _grazing_rays(g)
-    tex, z0, z1, tau, st = traverse(g, None, 1e-12, lanes_rays=lanes)
+    tex, z0, z1, tau, st = traverse(g, _RayCamera(lanes[1], lanes[2]), 1e-12)
     _, z1, tau = _host(z0, z1, tau)
     assert np.all(np.isfinite(tau)) and np.unique(tex).size == lanes[0].size
     assert st["max_iterations"] <= 2 * sum(d.shape) + 8
@@ -240,7 +256,7 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
     cam = _camera(g, LIGHTS[light], res=48)
     lo, hi = g.occupied
     cand = np.asarray(candidate_texels(cam, lo, hi).numpy(), np.int64)
-    assert np.array_equal(cand, cam.footprint(lo[None], hi[None])[1])
+    assert np.array_equal(cand, np.concatenate([t for _, t in cam.footprint_chunks(lo[None], hi[None])]))
     o, d = cam.rays(cand)
     od, dd = cam.rays_device(ad.backend.types().UInt32(cand.astype(np.uint32)))
     for a in range(3):
@@ -255,14 +271,12 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
 
 def test_corner_table_and_gathers_give_the_same_segments(monkeypatch):
     """The packet load of a dual cell's 8 corners from the corner table reads the same values
-    as 8 gathers from the padded window (the fallback for windows above the table budget);
-    packed slot buffers (one packet store per segment) give the same segments as three."""
-    from avsm_dr.capture import _grid_slots, dual_cells
+    as 8 gathers from the padded window (the fallback for windows above the table budget)."""
+    from avsm_dr.capture import _grid_volume
     d = small_grid()
     out = []
-    for cells, packet in ((dual_cells.CORNER_TABLE_CELLS, True), (0, True), (dual_cells.CORNER_TABLE_CELLS, False)):
-        monkeypatch.setattr(dual_cells, "CORNER_TABLE_CELLS", cells)
-        monkeypatch.setattr(_grid_slots, "PACKET_SLOTS", packet)
+    for cells in (_grid_volume.CORNER_TABLE_CELLS, 0):
+        monkeypatch.setattr(_grid_volume, "CORNER_TABLE_CELLS", cells)
         g = GridVolume.prepare(d, BBOX)
         tex, z0, z1, tau, _ = traverse(g, _camera(g, LIGHTS["spot"]), 1e-4)
         out.append([tex] + _host(z0, z1, tau))
@@ -292,16 +306,15 @@ def test_capture_at_a_new_resolution_compiles_nothing(method):
 
 @pytest.mark.parametrize("keep_zero", [False, True])
 def test_march_one_pass_equals_two_passes(monkeypatch, keep_zero):
-    """The march's one pass into slots (a bound of each lane's segments, then compaction), with
-    packed or separate slot buffers, writes exactly the segments of the counting pass + writing
-    pass (its fallback when the slots exceed the budget or a lane fills its slots)."""
-    from avsm_dr.capture import _grid_slots, grid as G
+    """The march's one pass into slots (a bound of each lane's segments, then compaction) writes
+    exactly the segments of the counting pass + writing pass (its fallback when the slots exceed
+    the budget or a lane fills its slots)."""
+    from avsm_dr.capture import grid as G
     g = GridVolume.prepare(small_grid(), BBOX, skip_empty=not keep_zero)
     cam = _camera(g, LIGHTS["point"])
     out = []
-    for budget, packet in ((G.MARCH_SLOT_BUDGET, True), (G.MARCH_SLOT_BUDGET, False), (0, True)):
+    for budget in (G.MARCH_SLOT_BUDGET, 0):
         monkeypatch.setattr(G, "MARCH_SLOT_BUDGET", budget)
-        monkeypatch.setattr(_grid_slots, "PACKET_SLOTS", packet)
         tex, z0, z1, tau, st = G.march(g, cam, 0.02, 1e-4, keep_zero=keep_zero)
         assert ("slots" in st) == (budget > 0) and st["segments"] > 100
         out.append([tex] + _host(z0, z1, tau))

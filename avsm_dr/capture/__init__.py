@@ -8,15 +8,10 @@ Example::
 
 Every kind of content becomes segments ``[z0, z1]`` with optical depth ``tau``
 (Salvi et al., "Adaptive Volumetric Shadow Maps", EGSR 2010, sec. 3): density grids
-by ray marching (:mod:`.grid`), particles as chords (:mod:`.particles`), hair strands
-as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0 (:mod:`.opaque`).  The light camera
-(:mod:`.camera`) fits a directional light's orthographic map to the content's
-bounds (the non-zero part of a grid, with one empty texel of margin), uses the
-spot cone for a spot light and a cube of six faces for a point light.
-
-Insertion order (``order=``, recorded as ``Segments.order``): the order in which each
-texel's segments are stored, hence inserted by an order-dependent build such as AVSM.
-The default, ``"submission"``, is what a GPU rasteriser delivers (:data:`ORDERS`).
+by ray marching (:mod:`.grid`, :mod:`.dda`), particles as chords (:mod:`.particles`), hair
+strands as crossings (:mod:`.hair`), opaque blockers as short segments with T = 0
+(:mod:`.opaque_map`), seen by the light's camera (:mod:`.camera`).  Each texel's segments are
+stored in an insertion order (:data:`ORDERS`), the order an order-dependent build inserts them.
 """
 from __future__ import annotations
 
@@ -30,15 +25,15 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from .. import validation as V
+from ..geometry import check_bbox
 from ..scene import Scene, check_light, validate_blockers
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 from . import hair as _hair
-from . import opaque as _opaque
 from . import opaque_map as _opaque_map
-from . import grid as _grid
 from . import particles as _particles
 from .assembly import combine
 from .camera import CubeCamera, LightCamera, OrthoCamera, PerspectiveCamera, make_camera
+from ._grid_lanes import SUBMISSION_BRICK, brick_keys
 from .dda import traverse
 from .grid import GridVolume, check_method, march
 from .hair import load_tfx, procedural_strands
@@ -66,9 +61,8 @@ SUBMISSIONS = ("list", "back_to_front")
 #: position (spot/point) or reference plane (directional), in front of every segment
 #: (segments lie at ray parameters >= 0), so every representation returns T = 1 there.
 OUTSIDE_DEPTH = 0.0
-#: Finest grid march step, as a fraction of the smallest voxel side: the march's error
-#: along a trilinear field falls at least as step^2, nothing measurable is gained below
-#: this, and the march costs one iteration per step per texel.
+#: Finest grid march step, as a fraction of the smallest voxel side (the march's error falls
+#: as step^2, its cost grows as 1 / step).
 MIN_STEP_FRACTION = 1.0 / 1024
 
 
@@ -81,21 +75,15 @@ class Capture:
     segments
         :class:`~avsm_dr.Segments` over ``width * height`` texels (row-major,
         texel ``y * width + x``; cube maps stack their six faces vertically).
-    camera
-        the light camera (rays and projection).
-    light
-        the light (``scene.light``).
-    resolution
-        texels per side (the input of :func:`capture`).
+    camera, light, resolution, epsilon
+        the light camera, ``scene.light`` and the arguments of :func:`capture`.
     step
         the grid march step (None for the exact capture).
-    epsilon
-        the transmittance below which a grid ray stops.
     stats
         counts and host/kernel timings of the capture.
     opaque_depth
-        (texels,) float64 opaque depth map of ``capture(..., opaque='separate')``
-        (+inf: no blocker), composed with every representation at lookup; None when inline.
+        (texels,) float64 opaque depth map of ``opaque='separate'`` (+inf: no blocker),
+        composed with every representation at lookup; None when inline.
     """
     segments: Segments
     camera: LightCamera
@@ -108,7 +96,7 @@ class Capture:
 
     @property
     def order(self) -> str:
-        """The insertion order of the segments (``segments.order``; :data:`ORDERS`)."""
+        """``segments.order`` (:data:`ORDERS`)."""
         return self.segments.order
 
     @property
@@ -141,7 +129,7 @@ class Capture:
 
     def _lookup(self, points):
         """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
-        coords, depth = self.camera.project(_points(points))
+        coords, depth = self.camera.project(V.points(points, "points", allow_empty=True))
         out = ~self.camera.covers(coords)
         if out.any():
             depth = np.where(out, OUTSIDE_DEPTH, depth)
@@ -172,11 +160,6 @@ class Capture:
                 f"{self.segments!r})")
 
 
-# ------------------------------------------------------------------ validation
-def _points(points) -> np.ndarray:
-    return V.points(points, "points", allow_empty=True)
-
-
 def _check_order(order, submission, order_seed) -> tuple[str, str, int | None]:
     """(order, submission, seed) after checks; ValueError names the argument."""
     V.one_of(order, "order", ORDERS)
@@ -203,7 +186,7 @@ def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
 
 
 def validate_scene(scene: Scene) -> None:
-    """Checks shared by capture and ground truth; ValueError names the field."""
+    """The scene checks of :func:`capture` (type, light, receivers, some content); ValueError names the field."""
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
     check_light(scene.light)
@@ -212,7 +195,6 @@ def validate_scene(scene: Scene) -> None:
         raise ValueError("scene: no content (density, particles, hair or blockers)")
 
 
-# --------------------------------------------------------------------- capture
 def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
             density=None, block: int = 8, keep_zero: bool = False, dtype: str | None = None,
             opaque_bias: float | None = None, opaque_slope_bias: float = 2.0, bounds=None,
@@ -231,39 +213,27 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     epsilon
         a grid ray stops once its transmittance falls below ``epsilon``.
     density
-        overrides ``scene.density`` - a (z, y, x) NumPy array, a 3-D Dr.Jit tensor
-        (``TensorXf``/``TensorXf64``, e.g. with ``dr.enable_grad``: gradients flow to
-        ``segments.optical_depth``), a ``.vol`` path or a prepared :class:`GridVolume`.
-    block
-        empty-space-skipping block size in voxels.
-    keep_zero
-        emit zero-density steps inside occupied blocks (see :func:`.grid.march`).
+        overrides ``scene.density``: a (z, y, x) NumPy array, a 3-D Dr.Jit tensor (gradients
+        flow to ``segments.optical_depth``), a ``.vol`` path or a prepared :class:`GridVolume`.
+    block, keep_zero
+        empty-space-skipping block size in voxels; emit zero-density steps inside occupied
+        blocks (:func:`.grid.march`).
     dtype
         'float32' (default) | 'float64' (default for float64 Dr.Jit densities).
-    opaque_bias
-        constant depth offset (and thickness) of opaque blocker segments
-        (default 1e-4 x the content's diagonal).
-    opaque_slope_bias
-        extra offset in texel widths x tan(angle of incidence), so receivers
-        on a blocker's lit surface are not shadowed by it (see :mod:`.opaque`).
+    opaque_bias, opaque_slope_bias
+        constant depth offset (and thickness) of opaque blocker segments (default 1e-4 x
+        the content's diagonal), and the slope offset in texel widths (:mod:`.opaque_map`).
     bounds
         (min_xyz, max_xyz) to fit a directional light's map to instead of the content.
     method
-        grid capture - 'march' (default: Simpson steps of ``step``) or 'exact' (one
-        segment per dual-cell crossing, integrated exactly, no step: :mod:`.dda`).
+        grid capture: 'march' (default, Simpson steps of ``step``) or 'exact' (:mod:`.dda`).
     opaque
         'inline' (blockers are segments of the one map) or 'separate' (a per-texel opaque
-        depth map, ``Capture.opaque_depth``, composed at lookup; see :mod:`.opaque_map`).
-    order
-        the insertion order of each texel's segments (:data:`ORDERS`, recorded as
-        ``Segments.order`` and ``Capture.order``): 'submission' (default: a renderer's draw
-        order, primitive by primitive), 'depth' (front to back), 'reverse_depth' (back to
-        front) or 'random' (a seeded shuffle).
-    submission
-        particles' draw order with ``order='submission'``: 'list' (default, the
-        scene's list order) or 'back_to_front' (sorted by depth, farthest first).
-    order_seed
-        seed of ``order='random'``, an integer in [0, 2^32) (default 0).
+        depth map, ``Capture.opaque_depth``, composed at lookup; :mod:`.opaque_map`).
+    order, submission, order_seed
+        the insertion order of each texel's segments (:data:`ORDERS`, default 'submission',
+        recorded as ``Segments.order``); the particles' draw order of 'submission'
+        (:data:`SUBMISSIONS`); the seed of 'random', an integer in [0, 2^32) (default 0).
 
     Returns
     -------
@@ -299,14 +269,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     if not boxes and grid is not None:
         boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
     if bounds is not None:
-        try:
-            lo, hi = bounds
-        except (TypeError, ValueError):
-            raise ValueError(f"bounds: expected (min_xyz, max_xyz), got {bounds!r}") from None
-        lo, hi = V.vec3(lo, "bounds"), V.vec3(hi, "bounds")
-        if not np.all(hi >= lo):
-            raise ValueError(f"bounds: expected max >= min on every axis, got {bounds!r}")
-        boxes = [(lo, hi)]
+        boxes = [check_bbox(bounds, "bounds", flat=True)]
     bmin = np.array([b[0] for b in boxes])
     bmax = np.array([b[1] for b in boxes])
     light = scene.light
@@ -333,45 +296,41 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
                              f"iteration per step per texel)")
     stats["setup_s"] = time.perf_counter() - t_start
 
-    # ---- segments of every content kind
-    pieces = []                                            # (texel, z0, z1, tau[, draw key])
+    # ---- segments of every content kind: pieces (texel, z0, z1, tau[, draw key])
+    pieces = []
     bases = _draw_bases(blockers, grid, scene) if drawn else None
+    UInt32 = backend.types().UInt32
+
+    def add(kind, t0, piece, key, inline=True, **st):
+        stats[kind] = {**st, "segments": int(piece[0].size), "seconds": time.perf_counter() - t0}
+        if inline and piece[0].size:
+            pieces.append(piece + ((key(),) if drawn else ()))
     if grid is not None:
         t0 = time.perf_counter()
         if method == "exact":
             tex, z0, z1, tau, st = traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True)
         else:
-            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, method=method,
-                                         runs=True)
-        stats["grid"] = dict(st, seconds=time.perf_counter() - t0)
-        if tex.size:
-            key = (dr.opaque(backend.types().UInt32, bases["grid"]) + _grid.brick_keys(grid, camera, tex, z0, z1),) \
-                if drawn else ()
-            pieces.append((tex, z0, z1, tau) + key)
+            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True)
+        add("grid", t0, (tex, z0, z1, tau),
+            lambda: dr.opaque(UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
     if scene.particles is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau, pid = _particles.capture_particles(camera, scene.particles, Float, ids=True)
-        stats["particles"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
-        if tex.size:
-            key = (bases["particles"] + _particles.draw_ranks(camera, scene.particles, submission)[pid],) \
-                if drawn else ()
-            pieces.append((tex, z0, z1, tau) + key)
+        *piece, pid = _particles.capture_particles(camera, scene.particles, Float)
+        add("particles", t0, tuple(piece),
+            lambda: bases["particles"] + _particles.draw_ranks(camera, scene.particles, submission)[pid])
     if scene.hair is not None:
         t0 = time.perf_counter()
-        tex, z0, z1, tau, cid = _hair.capture_hair(camera, scene.hair, ids=True)
-        stats["hair"] = {"segments": int(tex.size), "seconds": time.perf_counter() - t0}
-        if tex.size:
-            pieces.append((tex, z0, z1, tau) + ((bases["hair"] + cid,) if drawn else ()))
+        *piece, cid = _hair.capture_hair(camera, scene.hair)
+        add("hair", t0, tuple(piece), lambda: bases["hair"] + cid)
     opaque_depth = None
     if blockers:
+        t0 = time.perf_counter()
         bias = 1e-4 * diag if opaque_bias is None else float(opaque_bias)
-        tex, z0, z1, bid = _opaque.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias, ids=True)
-        stats["opaque"] = {"segments": int(tex.size)}
+        tex, z0, z1, bid = _opaque_map.capture_opaque(camera, blockers, bias, bias, opaque_slope_bias)
         if opaque == "separate":
             opaque_depth = _opaque_map.depth_map(tex, z0, camera.n_texels)
             pieces = _opaque_map.clip_pieces(pieces, opaque_depth, Float)
-        elif tex.size:
-            pieces.append((tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)) + ((bid,) if drawn else ()))
+        add("opaque", t0, (tex, z0, z1, np.full(tex.size, OPAQUE_OPTICAL_DEPTH)), lambda: bid, opaque == "inline")
 
     t0 = time.perf_counter()
     seg = combine([p[:4] for p in pieces], camera.n_texels, Float, order,
@@ -387,7 +346,7 @@ def _draw_bases(blockers, grid, scene) -> dict:
     """First draw key of each content kind in the ``'submission'`` order (:data:`ORDERS`):
     blockers, then the grid's bricks, then particles, then hair capsules; ValueError naming
     ``order`` when the keys exceed 32 bits."""
-    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // _grid.SUBMISSION_BRICK)))
+    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // SUBMISSION_BRICK)))
     n_particles = 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size)
     n_capsules = 0
     if scene.hair is not None:

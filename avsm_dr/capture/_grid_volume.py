@@ -4,6 +4,11 @@ Grid convention (Mitsuba ``gridvolume``, see :mod:`avsm_dr.scene`): a (nz, ny, n
 array of extinction ``sigma`` per world unit over ``bbox``; voxel values sit at cell
 centres, ``sigma(p)`` is trilinear in between, clamped to the edge inside the box.
 The marching that reads these grids is :mod:`.grid` (and :mod:`.dda`).
+
+The *dual grid* (cells between voxel centres, inside which trilinear density is a cubic
+along a ray): its edge-padded window, per-block occupancy for block skipping
+(:func:`dual_grid`), and the table of every dual cell's 8 corner voxels
+(:func:`corner_table`, one packet load per crossing), cached on the grid.
 """
 from __future__ import annotations
 
@@ -21,29 +26,21 @@ from ..geometry import check_bbox
 from ..io import read_vol
 
 
-def block_max(density: np.ndarray, block: int) -> np.ndarray:
-    """(nbz, nby, nbx) upper bound of sigma over each block's region.
-
-    Entry b is the max over voxels ``[b*block - 1, (b+1)*block]`` (clipped) along every
-    axis - every voxel whose trilinear support reaches block b - so 0 means sigma = 0
-    on the whole (closed) block.  Separable: z first (whole contiguous slabs, the cheap
-    direction), then y and x on the 1/block-size result.
-    """
-    out = density
+def window_max(a: np.ndarray, block: int, lo: int, n_blocks) -> np.ndarray:
+    """Max of ``a`` over the windows ``[b block + lo, (b + 1) block]`` (inclusive, clipped),
+    ``b < n_blocks(n)``, along every axis; separable, z first (whole contiguous slabs)."""
     for axis in (0, 1, 2):
-        n = out.shape[axis]
-        nb = -(-n // block)
-        shape = list(out.shape)
-        shape[axis] = nb
-        res = np.empty(shape, out.dtype)
-        for b in range(nb):
-            src = [slice(None)] * 3
-            src[axis] = slice(max(b * block - 1, 0), min((b + 1) * block + 1, n))
-            dst = [slice(None)] * 3
-            dst[axis] = b
-            res[tuple(dst)] = out[tuple(src)].max(axis=axis)
-        out = res
-    return out
+        n = a.shape[axis]
+        a = np.stack([a[(slice(None),) * axis + (slice(max(b * block + lo, 0), min((b + 1) * block + 1, n)),)]
+                      .max(axis=axis) for b in range(n_blocks(n))], axis=axis)
+    return a
+
+
+def block_max(density: np.ndarray, block: int) -> np.ndarray:
+    """(nbz, nby, nbx) upper bound of sigma over each block's region: the max over voxels
+    ``[b*block - 1, (b+1)*block]`` (clipped) along every axis, every voxel whose trilinear
+    support reaches block b, so 0 means sigma = 0 on the whole (closed) block."""
+    return window_max(density, block, -1, lambda n: -(-n // block))
 
 
 @dataclass(eq=False)
@@ -161,7 +158,6 @@ class GridVolume:
             w0, wshape = np.zeros(3, np.int64), tuple(shape)
         return cls(data, tuple(shape), lo, hi, int(block), occ, occupied, dtype, w0, tuple(wshape))
 
-    # ------------------------------------------------------------- sampling
     def sample(self, points) -> np.ndarray:
         """sigma at world points (K, 3), float64 NumPy; 0 outside the box (Mitsuba's convention)."""
         p = np.asarray(points, np.float64)
@@ -196,24 +192,29 @@ class MarchKernel:
         self.nx = dr.opaque(Int32, wx)
         self.ny = dr.opaque(Int32, wy)
 
+    def _cells(self, x, y, z):
+        """Per axis the Int32 ``floor(u)`` and the weight ``u - floor(u)`` of the window
+        coordinate ``u = (c - lo) / h - 1/2`` (voxel centres at integers)."""
+        idx, w = [], []
+        for c, lo, s in zip((x, y, z), self.lo, self.scale):
+            u = (c - lo) * s - 0.5
+            f = dr.floor(u)
+            idx.append(self.Int32(f))
+            w.append(u - f)
+        return idx, w
+
     def trilinear(self, data, x, y, z, active=True):
         """sigma(x, y, z) by trilinear interpolation of cell-centred voxels, clamped to the
         edge of the window (equal to the whole grid's clamping: the window's own edge
         voxels are zero wherever it is smaller than the grid)."""
-        Float, Int32, UInt32 = self.Float, self.Int32, self.UInt32
-        idx, w = [], []
-        for c, lo, s, nm in zip((x, y, z), self.lo, self.scale, self.nmax):
-            u = (c - lo) * s - 0.5
-            f = dr.floor(u)
-            i0 = Int32(f)
-            w.append(u - f)
-            idx.append((dr.clip(i0, 0, nm), dr.clip(i0 + 1, 0, nm)))
-        (x0, x1), (y0, y1), (z0, z1) = idx
-        wx, wy, wz = w
+        (ix, iy, iz), (wx, wy, wz) = self._cells(x, y, z)
+        (x0, x1), (y0, y1), (z0, z1) = ((dr.clip(i, 0, nm), dr.clip(i + 1, 0, nm))
+                                        for i, nm in zip((ix, iy, iz), self.nmax))
 
         def g(i, j, k):
-            return dr.gather(Float, data, UInt32((k * self.ny + j) * self.nx + i), active)
+            return dr.gather(self.Float, data, self.UInt32((k * self.ny + j) * self.nx + i), active)
 
+        # gathers interleaved with the blends: the AD graph's order, hence the gradient sums
         c00 = dr.lerp(g(x0, y0, z0), g(x1, y0, z0), wx)
         c10 = dr.lerp(g(x0, y1, z0), g(x1, y1, z0), wx)
         c01 = dr.lerp(g(x0, y0, z1), g(x1, y0, z1), wx)
@@ -222,23 +223,97 @@ class MarchKernel:
 
     def trilinear_table(self, table, x, y, z, active=True):
         """:meth:`trilinear` with the 8 voxels read by one packet load from the dual cell's
-        entry of :func:`~avsm_dr.capture.dual_cells.corner_table` (the table's edge padding repeats
+        entry of :func:`corner_table` (the table's edge padding repeats
         the edge voxels, which is the clamp): the same values, the same arithmetic."""
-        Float, Int32, UInt32 = self.Float, self.Int32, self.UInt32
-        cell, w = [], []
-        for c, lo, s, nm in zip((x, y, z), self.lo, self.scale, self.nmax):
-            u = (c - lo) * s - 0.5
-            f = dr.floor(u)
-            w.append(u - f)
-            cell.append(dr.clip(Int32(f), -1, nm) + 1)
-        cx, cy, cz = cell
-        wx, wy, wz = w
+        idx, w = self._cells(x, y, z)
+        cx, cy, cz = (dr.clip(i, -1, nm) + 1 for i, nm in zip(idx, self.nmax))
         t = backend.types()
-        ArrX = t.ArrayXf if Float is t.Float else t.ArrayXf64
-        v = dr.gather(ArrX, table, UInt32((cz * (self.ny + 1) + cy) * (self.nx + 1) + cx), active,
+        ArrX = t.ArrayXf if self.Float is t.Float else t.ArrayXf64
+        v = dr.gather(ArrX, table, self.UInt32((cz * (self.ny + 1) + cy) * (self.nx + 1) + cx), active,
                       shape=(8, dr.width(cx)))
-        c00 = dr.lerp(v[0], v[1], wx)
-        c10 = dr.lerp(v[2], v[3], wx)
-        c01 = dr.lerp(v[4], v[5], wx)
-        c11 = dr.lerp(v[6], v[7], wx)
-        return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
+        return _lerp8(v, *w)
+
+
+def _lerp8(v, wx, wy, wz):
+    """Trilinear blend of corners ``v[4 k + 2 j + i]`` (i along x, j along y, k along z)."""
+    c00 = dr.lerp(v[0], v[1], wx)
+    c10 = dr.lerp(v[2], v[3], wx)
+    c01 = dr.lerp(v[4], v[5], wx)
+    c11 = dr.lerp(v[6], v[7], wx)
+    return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
+
+
+def segment_tau(grid: GridVolume, o, d, counts, z0, z1):
+    """Simpson optical depth of each segment ``[z0, z1]`` of lane ray ``o + t d`` (``o``, ``d``:
+    three Dr.Jit ``grid.Float`` arrays per lane; ``counts`` segments per lane, in lane order)
+    from differentiable gathers of ``grid.data``, so gradients flow to the voxels::
+
+        tau = (z1 - z0) / 6 * (sigma(z0) + 4 sigma((z0 + z1) / 2) + sigma(z1))
+    """
+    Float, kern = grid.Float, MarchKernel(grid)
+    lane = A.to_uint32(np.repeat(np.arange(counts.size, dtype=np.uint32), counts))
+    gx, gy, gz = (dr.gather(Float, v, lane) for v in o)
+    ex, ey, ez = (dr.gather(Float, v, lane) for v in d)
+
+    def sig(tt):
+        return kern.trilinear(grid.data, gx + ex * tt, gy + ey * tt, gz + ez * tt)
+    return (z1 - z0) * (sig(z0) + 4 * sig(0.5 * (z0 + z1)) + sig(z1)) * (1.0 / 6.0)
+
+
+#: Most dual cells of the table of 8 corners per cell (:func:`corner_table`, 256 MB in float32);
+#: larger windows read the 8 corners with 8 gathers from the padded window.
+CORNER_TABLE_CELLS = 1 << 23
+
+
+def dual_block_max(padded: np.ndarray, block: int) -> np.ndarray:
+    """(nbz, nby, nbx) max of the edge-padded window ``padded`` over each dual block.
+
+    ``padded`` is the (wz + 2, wy + 2, wx + 2) window with one layer of repeated edge
+    voxels on every side; dual cell ``c`` (window voxel units, -1 <= c <= w - 1) has
+    corners ``padded[c + 1]`` and ``padded[c + 2]`` along each axis; block ``B`` holds
+    the cells with ``(c + 1) // block == B``, i.e. padded voxels ``[B block, (B + 1) block]``
+    (inclusive).  0 means sigma = 0 on the whole closed block.
+    """
+    return window_max(padded, block, 0, lambda n: (n - 2) // block + 1)
+
+
+def dual_grid(grid):
+    """(padded data (Dr.Jit Float, detached), dual block occupancy (host uint32, flat),
+    occupancy shape (nbz, nby, nbx)) of ``grid``, computed once and cached on it."""
+    cache = grid.__dict__.setdefault("_dual_cache", {})
+    if "pad" not in cache:
+        host = np.asarray(dr.detach(grid.data).numpy()).reshape(grid.window_shape)
+        pad = np.pad(host, 1, mode="edge")
+        occ = dual_block_max(pad, grid.block) > 0
+        cache["pad"] = A.to_float(pad, grid.Float)
+        cache["occ"] = A.to_uint32(occ.ravel().astype(np.uint32))
+        cache["occ_shape"] = occ.shape
+    return cache["pad"], cache["occ"], cache["occ_shape"]
+
+
+def corner_table(grid):
+    """The 8 corner voxels of every dual cell, contiguous: cell ``((cz + 1) (wy + 1) + cy + 1)
+    (wx + 1) + cx + 1``, corner ``4 k + 2 j + i``, so a crossing reads them with one packet
+    load instead of 8 gathers (bit-identical values).  Gathered on the device from the padded
+    window of :func:`dual_grid` and cached on the grid; None when it would exceed
+    :data:`CORNER_TABLE_CELLS` cells (8 x the window's memory)."""
+    cache = grid.__dict__.setdefault("_dual_cache", {})
+    if "table" not in cache:
+        pad, _, _ = dual_grid(grid)
+        wz, wy, wx = grid.window_shape
+        n = (wx + 1) * (wy + 1) * (wz + 1)
+        table = None
+        if n <= CORNER_TABLE_CELLS:
+            UInt32 = backend.types().UInt32
+            i = dr.arange(UInt32, 8 * n)
+            cell, c = i // 8, i % 8
+            cz = cell // dr.opaque(UInt32, (wx + 1) * (wy + 1))
+            rest = cell - cz * dr.opaque(UInt32, (wx + 1) * (wy + 1))
+            cy = rest // dr.opaque(UInt32, wx + 1)
+            cx = rest - cy * dr.opaque(UInt32, wx + 1)
+            src = (((cz + (c >> 2)) * dr.opaque(UInt32, wy + 2) + cy + ((c >> 1) & 1)) * dr.opaque(UInt32, wx + 2)
+                   + cx + (c & 1))
+            table = dr.gather(grid.Float, pad, src)
+            dr.eval(table)
+        cache["table"] = table
+    return cache["table"]

@@ -1,22 +1,15 @@
 """CSR assembly of captured content: pieces ``(texel, z0, z1, tau)`` -> :class:`Segments`.
 
 Every content kind (grid, particles, hair, opaque blockers) yields a piece: per segment its
-texel (a NumPy array, or :class:`TexelRuns` for the grid, whose segments come as one run per
-ray), depths and optical depth (Dr.Jit or NumPy).  :func:`combine` orders them by
-``(texel, z0)`` and builds the offsets, on the device:
-
-* one grid piece (the plume): already in texel and depth order; the offsets come from the
-  ``L`` per-ray counts, no per-segment host array (no ``np.repeat`` of texels, no ``np.bincount``);
-* merged content: counts per texel by ``dr.scatter_inc`` (which also gives each segment a
-  slot in its texel), an exclusive prefix sum for the offsets, a scatter into texel groups,
-  then every texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to
-  32 bits over its range; :func:`~avsm_dr.texel_sort.sort_texels`, sorting networks in
-  registers): the same order as the host's stable argsort of ``texel << 32 | zq``, which
-  stays the fallback when the per-texel work ``sum count^2`` exceeds
-  :data:`~avsm_dr.segments.DEVICE_SORT_WORK` per segment.
-
-That is the ``"depth"`` order.  ``"submission"`` orders each texel by the pieces' draw keys
-instead (:func:`texel_key_order`: words ``key << 32 | concatenation index``, the same sort);
+texel (a NumPy array, or :class:`TexelRuns` for the grid: one run per ray), depths and
+optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments on the device:
+one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
+content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
+texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to 32 bits over its
+range; :func:`~avsm_dr.texel_sort.sort_texels`), the order of the host's stable argsort of
+``texel << 32 | zq`` (:func:`host_order`, the fallback where
+:func:`~avsm_dr.segments.device_sortable` is false).  That is the ``"depth"`` order;
+``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
 ``"reverse_depth"`` and ``"random"`` reorder the depth order
 (:meth:`~avsm_dr.segments.Segments.in_order`).
 """
@@ -29,7 +22,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..segments import DEVICE_SORT_WORK, OPAQUE_OPTICAL_DEPTH, Segments
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, run_index
 from ..texel_sort import sort_texels
 
 
@@ -57,22 +50,15 @@ class TexelRuns:
         return c
 
     def device(self):
-        """Texel of every segment as a Dr.Jit UInt32 array, expanded on the device: the run's
-        index by a scatter of 1 at every run start and an inclusive prefix sum."""
+        """Texel of every segment as a Dr.Jit UInt32 array, expanded on the device (the run of
+        each segment by :func:`~avsm_dr.segments.run_index`)."""
         UInt32 = backend.types().UInt32
         nz = self.counts > 0
         tex, cnt = self.texels[nz], self.counts[nz]
         n = int(cnt.sum())
         if tex.size <= 1:
             return dr.full(UInt32, int(tex[0]) if tex.size else 0, n)
-        starts = A.to_uint32(np.cumsum(cnt[:-1]))
-        flag = dr.zeros(UInt32, n)
-        dr.scatter(flag, UInt32(1), starts)
-        return dr.gather(UInt32, A.to_uint32(tex), dr.cumsum(flag))
-
-
-def _dtype(Float) -> str:
-    return "float64" if dr.type_v(Float) == dr.VarType.Float64 else "float32"
+        return dr.gather(UInt32, A.to_uint32(tex), run_index(A.to_uint32(np.cumsum(cnt[:-1])), n))
 
 
 def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed: int | None = None) -> Segments:
@@ -85,16 +71,15 @@ def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed:
       segment of each piece (uint32 NumPy or Dr.Jit UInt32, ``< 2^32``);
     * ``'reverse_depth'``, ``'random'`` (``seed``): the depth order reordered by
       :meth:`~avsm_dr.segments.Segments.in_order`."""
-    dtype = _dtype(Float)
+    dtype = A.dtype_of(Float)
     if not pieces:
         return Segments.from_arrays(np.zeros(n_texels + 1, np.int64), Float(), Float(),
                                     optical_depth=Float(), dtype=dtype, order=order)
-    z0 = _cat([A.to_float(p[1], Float) for p in pieces])
-    z1 = _cat([A.to_float(p[2], Float) for p in pieces])
-    tau = _cat([A.to_float(p[3], Float) for p in pieces])
+    z0, z1, tau = (_concat([A.to_float(p[i], Float) for p in pieces], Float) for i in (1, 2, 3))
     offsets = np.zeros(n_texels + 1, np.int64)
     if order == "submission":
-        key = _cat([A.to_uint32(np.asarray(k, np.uint32)) if isinstance(k, np.ndarray) else k for k in keys])
+        key = _concat([A.to_uint32(np.asarray(k, np.uint32)) if isinstance(k, np.ndarray) else k for k in keys],
+                      backend.types().UInt32)
         offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels)
         z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
     elif len(pieces) == 1 and isinstance(pieces[0][0], TexelRuns):    # one grid: in order already
@@ -102,7 +87,7 @@ def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed:
     elif len(pieces) == 1 and _texel_depth_sorted(pieces[0][0], pieces[0][1]):   # one piece in order
         np.cumsum(np.bincount(np.asarray(pieces[0][0], np.int64), minlength=n_texels), out=offsets[1:])
     else:
-        offsets, perm = texel_depth_order([p[0] for p in pieces], z0, n_texels)
+        offsets, perm = texel_key_order([p[0] for p in pieces], None, n_texels, z0=z0)
         z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
     # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
     # build the CSR directly (Segments.from_arrays would copy everything to the host again)
@@ -123,21 +108,6 @@ def _texel_depth_sorted(texel, z0) -> bool:
     return bool(np.all((np.diff(z) >= 0) | (np.diff(tex) > 0)))
 
 
-def _device_texels(texels) -> object:
-    UInt32 = backend.types().UInt32
-    parts = [t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
-             for t in texels]
-    parts = [p for p in parts if dr.width(p) > 0]
-    if len(parts) == 1:
-        return parts[0]
-    out = dr.zeros(UInt32, sum(dr.width(p) for p in parts))
-    start = 0
-    for p in parts:
-        dr.scatter(out, p, dr.arange(UInt32, dr.width(p)) + dr.opaque(UInt32, start))   # no offset in the hash
-        start += dr.width(p)
-    return out
-
-
 def quantised_depth(z0):
     """``(z0 - min) * (2^32 - 1) / (max - min)`` truncated to an integer (Dr.Jit UInt64),
     computed in float64 on the device exactly as the host key of :func:`host_order`."""
@@ -148,18 +118,14 @@ def quantised_depth(z0):
     return t.UInt64((z - dr.opaque(t.Float64, lo)) * dr.opaque(t.Float64, scale))
 
 
-def texel_depth_order(texels, z0, n_texels: int):
-    """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
-    the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by (texel, quantised
-    z0, concatenation index), on the device unless the per-texel work is too large."""
-    return texel_key_order(texels, None, n_texels, z0=z0)
-
-
 def texel_key_order(texels, key, n_texels: int, z0=None):
-    """:func:`texel_depth_order` by ``(texel, key, concatenation index)``: ``key`` a Dr.Jit
-    UInt32 (S,) per concatenated segment (None: ``z0`` quantised, the depth order)."""
+    """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
+    the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by ``(texel, key,
+    concatenation index)``: ``key`` a Dr.Jit UInt32 (S,) per concatenated segment (None:
+    ``z0`` quantised, :func:`quantised_depth`), on the device where :func:`device_sortable`."""
     UInt32 = backend.types().UInt32
-    tex = _device_texels(texels)
+    tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
+                   for t in texels], UInt32)
     n = dr.width(tex)
     one = texels[0] if len(texels) == 1 else None         # one piece in texel order: grouped already
     if isinstance(one, TexelRuns):
@@ -174,8 +140,7 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
         counts = np.asarray(cnt.numpy(), np.int64)
     offsets = np.zeros(n_texels + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    c = counts.astype(np.float64)
-    if float(c @ c) > DEVICE_SORT_WORK * max(n, 1):
+    if not device_sortable(counts):
         tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
         if key is not None:
             k = np.asarray(key.numpy(), np.uint64)
@@ -208,16 +173,16 @@ def host_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
-def _cat(arrays):
+def _concat(arrays, Type):
+    """Dr.Jit arrays concatenated as one ``Type`` array (empty ones skipped), each scattered at
+    an opaque offset (no offset in the kernel hash)."""
     arrays = [a for a in arrays if dr.width(a) > 0]
     if len(arrays) == 1:
         return arrays[0]
-    Float = type(arrays[0])
-    out = dr.zeros(Float, sum(dr.width(a) for a in arrays))
+    out = dr.zeros(Type, sum(dr.width(a) for a in arrays))
     UInt32 = backend.types().UInt32
     start = 0
     for a in arrays:
-        n = dr.width(a)
-        dr.scatter(out, a, dr.arange(UInt32, n) + dr.opaque(UInt32, start))   # opaque: no offset in the kernel hash
-        start += n
+        dr.scatter(out, a, dr.arange(UInt32, dr.width(a)) + dr.opaque(UInt32, start))
+        start += dr.width(a)
     return out

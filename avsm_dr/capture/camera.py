@@ -29,6 +29,8 @@ import sys
 import drjit as dr
 import numpy as np
 
+from .. import _arrays as A
+from .. import backend
 from ..geometry import orthonormal_basis
 
 
@@ -56,6 +58,9 @@ def _box_corners(bmin, bmax):
 #: (box, texel) pairs enumerated at once by :meth:`LightCamera.footprint_chunks` (host memory:
 #: the rays of one chunk take 2 x 3 float64 per pair, 200 MB).
 MAX_PAIRS = 1 << 22
+#: Most (item, texel) pairs one capture of particles or hair enumerates (each becomes at most
+#: one segment, ~40 bytes on the host while sorting).
+MAX_CANDIDATES = 1 << 27
 
 
 def _rect_areas(x0, x1, y0, y1) -> np.ndarray:
@@ -66,8 +71,7 @@ def _rect_areas(x0, x1, y0, y1) -> np.ndarray:
 def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     """All (item, texel) pairs of inclusive rectangles; texel = offset + y * res + x."""
     wx = np.maximum(x1 - x0 + 1, 0)
-    wy = np.maximum(y1 - y0 + 1, 0)
-    counts = wx * wy
+    counts = _rect_areas(x0, x1, y0, y1)
     total = int(counts.sum())
     item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     if total == 0:
@@ -81,29 +85,33 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
 
 
 class LightCamera:
-    """Common interface of the light cameras.  ``width``, ``height``, ``n_texels``; see the
-    module docstring."""
+    """Common interface of the light cameras.  ``width``, ``height``, ``n_texels``, ``res``
+    (texels per side of a face), ``texel_offset`` (of a cube's face); see the module docstring."""
 
     width: int
     height: int
+    res: int
+    texel_offset = 0
 
     @property
     def n_texels(self) -> int:
         return self.width * self.height
 
-    def rays(self, texels=None) -> tuple[np.ndarray, np.ndarray]:
-        """(origins (K, 3), unit directions (K, 3)) float64 of the given texels (default: all)."""
+    def rays_device(self, texels) -> tuple[list, list]:
+        """Texel rays on the device: texels a Dr.Jit UInt32 array -> (origin, unit direction),
+        each a list of three Dr.Jit Float64 arrays (the camera's constants enter as opaque
+        scalars, so one compiled kernel serves every camera of a class)."""
         raise NotImplementedError
 
-    def rays_device(self, texels) -> tuple[list, list]:
-        """The rays of :meth:`rays` on the device: texels a Dr.Jit UInt32 array -> (origin,
-        direction), each a list of three Dr.Jit Float64 arrays (the same float64 formulas; the
-        camera's constants enter as opaque scalars, so one compiled kernel serves every
-        camera of a class).  This fallback computes them on the host."""
-        o, d = self.rays(np.asarray(texels.numpy(), np.int64))
-        F64 = _f64()
-        return ([F64(np.ascontiguousarray(o[:, a])) for a in range(3)],
-                [F64(np.ascontiguousarray(d[:, a])) for a in range(3)])
+    def rays(self, texels=None) -> tuple[np.ndarray, np.ndarray]:
+        """(origins (K, 3), unit directions (K, 3)) float64 of the given texels (default: all),
+        :meth:`rays_device` read back."""
+        t = self.texel_offset + np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
+        if t.size == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        o, d = self.rays_device(A.to_uint32(t))
+        dr.eval(o, d)
+        return tuple(np.stack([np.asarray(v.numpy(), np.float64) for v in x], axis=1) for x in (o, d))
 
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Continuous map coordinates (K, 2) (x, y in texel units) and depths (K,) float64."""
@@ -111,7 +119,9 @@ class LightCamera:
 
     def texel_index(self, coords) -> np.ndarray:
         """Texel containing each continuous coordinate, clamped to the map (cube: to the face)."""
-        raise NotImplementedError
+        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
+        return self.texel_offset + iy * self.res + ix
 
     def covers(self, coords) -> np.ndarray:
         """(K,) bool: the continuous coordinates (K, 2) lie on the map, ``[0, width) x [0, height)``."""
@@ -125,31 +135,39 @@ class LightCamera:
         raise NotImplementedError
 
     def footprint_pairs(self, bmin, bmax) -> int:
-        """Number of (box, texel) pairs :meth:`footprint` would return (no enumeration)."""
+        """Number of (box, texel) pairs of :meth:`footprint_chunks` (no enumeration)."""
         return sum(int(_rect_areas(*r[:4]).sum()) for r in self.footprint_rects(bmin, bmax))
 
-    def footprint_chunks(self, bmin, bmax, max_pairs: int = MAX_PAIRS):
-        """Yield (item, texel) int64 pairs of :meth:`footprint` in chunks of at most
-        ``max_pairs`` pairs (or one box's footprint when that alone is larger)."""
+    def footprint_chunks(self, bmin, bmax):
+        """Yield the candidate (item, texel) int64 pairs of the boxes (every texel whose ray may
+        meet box ``item``, :meth:`footprint_rects`) in chunks of at most :data:`MAX_PAIRS` pairs
+        (or one box's footprint when that alone is larger)."""
         for x0, x1, y0, y1, offset in self.footprint_rects(bmin, bmax):
             csum = np.cumsum(_rect_areas(x0, x1, y0, y1))
             start = 0
             while start < csum.size:
                 base = int(csum[start - 1]) if start else 0
-                stop = max(start + 1, int(np.searchsorted(csum, base + max_pairs, side="right")))
+                stop = max(start + 1, int(np.searchsorted(csum, base + MAX_PAIRS, side="right")))
                 sl = slice(start, stop)
                 item, texel = expand_rects(x0[sl], x1[sl], y0[sl], y1[sl], self.res, offset)
                 if texel.size:
                     yield item + start, texel
                 start = stop
 
-    def footprint(self, bmin, bmax):
-        """Candidate texels of N boxes: (item (M,), texel (M,)) int64 with every texel whose
-        ray may meet box ``item`` (conservative, one entry per pair)."""
-        chunks = list(self.footprint_chunks(bmin, bmax, max_pairs=np.iinfo(np.int64).max))
-        if not chunks:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
+    def footprint_rays(self, bmin, bmax, chunk: int = 1, name: str | None = None):
+        """Yield ``(item, texel, origins, directions)`` of :meth:`footprint_chunks` (with
+        :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles);
+        with ``name``, ValueError naming it when the footprints hold more than
+        :data:`MAX_CANDIDATES` pairs (counted without enumerating them)."""
+        total = name and sum(self.footprint_pairs(bmin[s:s + chunk], bmax[s:s + chunk])
+                             for s in range(0, bmin.shape[0], chunk))
+        if name and total > MAX_CANDIDATES:
+            raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
+                             f"{MAX_CANDIDATES:.3g} one capture handles; use fewer or smaller items, or a "
+                             f"lower resolution")
+        for start in range(0, bmin.shape[0], chunk):
+            for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
+                yield (item + start, texel, *self.rays(texel))
 
     def texel_width(self, texels, t) -> np.ndarray:
         """World width of a texel's footprint across its ray at depth ``t`` (K,)."""
@@ -171,26 +189,19 @@ class OrthoCamera(LightCamera):
         self.texel_size = 2.0 * self.half / self.res
 
     @classmethod
-    def fit(cls, direction, bmin, bmax, res: int, margin_texels: float = 1.0):
-        """Fit the window to the union of boxes (N, 3) ``bmin``/``bmax``, keeping
-        ``margin_texels`` empty texels on each side (so edge-clamped lookups outside
-        the content read an empty texel), with the reference plane in front of all of it."""
+    def fit(cls, direction, bmin, bmax, res: int):
+        """Fit the window to the union of boxes (N, 3) ``bmin``/``bmax``, keeping one empty
+        texel on each side (so edge-clamped lookups outside the content read an empty texel),
+        with the reference plane in front of all of it."""
         u, v, d = orthonormal_basis(direction)
         corners = _box_corners(bmin, bmax).reshape(-1, 3)
         pu, pv, pd = corners @ u, corners @ v, corners @ d
         size = max(np.ptp(pu), np.ptp(pv), np.ptp(pd), 1e-6)
         ext = max(np.ptp(pu), np.ptp(pv), 1e-6 * size)
-        half = 0.5 * ext * res / (res - 2.0 * margin_texels)
+        half = 0.5 * ext * res / (res - 2.0)
         cu, cv = 0.5 * (pu.min() + pu.max()), 0.5 * (pv.min() + pv.max())
         cd = pd.min() - 0.05 * size
         return cls(d, cu * u + cv * v + cd * d, half, res)
-
-    def rays(self, texels=None):
-        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
-        x = (t % self.res + 0.5) * self.texel_size - self.half
-        y = (t // self.res + 0.5) * self.texel_size - self.half
-        o = self.center + x[:, None] * self.u + y[:, None] * self.v
-        return o, np.broadcast_to(self.d, o.shape).copy()
 
     def rays_device(self, texels):
         F64 = _f64()
@@ -202,25 +213,20 @@ class OrthoCamera(LightCamera):
         o = [c[a] + x * u[a] + y * v[a] for a in range(3)]
         return o, [dr.full(F64, 0.0, dr.width(texels)) + d[a] for a in range(3)]
 
-    def project(self, points):
-        q = np.asarray(points, np.float64) - self.center
-        x = (q @ self.u + self.half) / self.texel_size
-        y = (q @ self.v + self.half) / self.texel_size
-        return np.stack([x, y], axis=1), q @ self.d
+    def _coords(self, p):
+        """Map coordinates (x, y) and depth of points ``p`` (..., 3)."""
+        q = p - self.center
+        return (q @ self.u + self.half) / self.texel_size, (q @ self.v + self.half) / self.texel_size, q @ self.d
 
-    def texel_index(self, coords):
-        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
-        return iy * self.res + ix
+    def project(self, points):
+        x, y, depth = self._coords(np.asarray(points, np.float64))
+        return np.stack([x, y], axis=1), depth
 
     def texel_width(self, texels, t):
         return np.full(np.shape(t), self.texel_size)
 
     def footprint_rects(self, bmin, bmax):
-        c = _box_corners(bmin, bmax)                                   # (N, 8, 3)
-        q = c - self.center
-        x = (q @ self.u + self.half) / self.texel_size
-        y = (q @ self.v + self.half) / self.texel_size
+        x, y, _ = self._coords(_box_corners(bmin, bmax))               # (N, 8) each
         return [(*_rect_from_coords(x, y, self.res), 0)]
 
 
@@ -228,21 +234,13 @@ class PerspectiveCamera(LightCamera):
     """Perspective square map at ``position`` looking along ``direction``, full angle ``fov``
     degrees (spot light, or one cube face with fov = 90)."""
 
-    def __init__(self, position, direction, fov: float, res: int, basis=None, texel_offset: int = 0):
+    def __init__(self, position, direction, fov: float, res: int, texel_offset: int = 0):
         self.position = np.asarray(position, dtype=np.float64)
-        self.u, self.v, self.w = basis if basis is not None else orthonormal_basis(direction)
+        self.u, self.v, self.w = orthonormal_basis(direction)
         self.fov = float(fov)
         self.tan_half = math.tan(math.radians(self.fov) / 2)
         self.res = self.width = self.height = int(res)
         self.texel_offset = int(texel_offset)
-
-    def rays(self, texels=None):
-        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64) - self.texel_offset
-        sx = ((t % self.res + 0.5) / self.res * 2 - 1) * self.tan_half
-        sy = ((t // self.res + 0.5) / self.res * 2 - 1) * self.tan_half
-        d = self.w + sx[:, None] * self.u + sy[:, None] * self.v
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return np.broadcast_to(self.position, d.shape).copy(), d
 
     def rays_device(self, texels):
         t = texels - _opaque_u32(self.texel_offset)
@@ -263,11 +261,6 @@ class PerspectiveCamera(LightCamera):
         x = np.where(zc > 0, x, -1e9)
         y = np.where(zc > 0, y, -1e9)
         return np.stack([x, y], axis=1), np.linalg.norm(q, axis=1)
-
-    def texel_index(self, coords):
-        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
-        return self.texel_offset + iy * self.res + ix
 
     def texel_width(self, texels, t):
         """t * (2 tan(fov/2) / res) / cos^2(alpha), alpha the ray's angle off the axis (an
@@ -309,17 +302,6 @@ class CubeCamera(LightCamera):
             w[axis] = sign
             self.faces.append(PerspectiveCamera(position, w, 90.0, res, texel_offset=f * res * res))
 
-    def rays(self, texels=None):
-        t = np.arange(self.n_texels) if texels is None else np.asarray(texels, np.int64)
-        o = np.empty((t.size, 3))
-        d = np.empty((t.size, 3))
-        face = t // (self.res * self.res)
-        for f, cam in enumerate(self.faces):
-            m = face == f
-            if m.any():
-                o[m], d[m] = cam.rays(t[m])
-        return o, d
-
     def rays_device(self, texels):
         """Each lane reads its face's basis from (6, 3) tables: one kernel for all faces."""
         F64 = _f64()
@@ -333,18 +315,13 @@ class CubeCamera(LightCamera):
         return _perspective_rays(texels - face * n2, self.res, self.faces[0].tan_half, *basis,
                                  _opaque_vec(self.position))
 
-    def face_of(self, q):
-        """Face index of directions q (K, 3): the dominant axis and its sign."""
-        axis = np.argmax(np.abs(q), axis=1)
-        neg = q[np.arange(q.shape[0]), axis] < 0
-        return 2 * axis + neg
-
     def project(self, points):
-        """y includes the face offset ``face * res``; within a face the coordinates are
-        clamped to [0.5, res - 0.5] so bilinear taps never read a neighbouring face
-        (wider filters near face edges still do; cube maps are filtered per face only)."""
+        """Face: the dominant axis of ``p - position`` and its sign; y includes the face offset
+        ``face * res``; within a face the coordinates are clamped to [0.5, res - 0.5] so bilinear
+        taps never read a neighbouring face (wider filters near face edges still do)."""
         q = np.asarray(points, np.float64) - self.position
-        face = self.face_of(q)
+        axis = np.argmax(np.abs(q), axis=1)
+        face = 2 * axis + (q[np.arange(q.shape[0]), axis] < 0)
         xy = np.empty((q.shape[0], 2))
         for f, cam in enumerate(self.faces):
             m = face == f
@@ -361,27 +338,22 @@ class CubeCamera(LightCamera):
         return face * self.res * self.res + iy * self.res + ix
 
     def texel_width(self, texels, t):
+        """As :meth:`PerspectiveCamera.texel_width`, with each texel's face axis."""
         texels = np.asarray(texels, np.int64)
-        t = np.broadcast_to(np.asarray(t, np.float64), texels.shape)
-        out = np.empty(texels.shape)
-        face = texels // (self.res * self.res)
-        for f, cam in enumerate(self.faces):
-            m = face == f
-            if m.any():
-                out[m] = cam.texel_width(texels[m], t[m])
-        return out
+        _, d = self.rays(texels)
+        cos = np.einsum("ij,ij->i", d, np.array([c.w for c in self.faces])[texels // (self.res * self.res)])
+        return (np.broadcast_to(np.asarray(t, np.float64), texels.shape)
+                * (2 * self.faces[0].tan_half / self.res) / (cos * cos))
 
     def footprint_rects(self, bmin, bmax):
         return [r for cam in self.faces for r in cam.footprint_rects(bmin, bmax)]
 
 
 def _f64():
-    from .. import backend
     return backend.types().Float64
 
 
 def _opaque_u32(v: int):
-    from .. import backend
     return dr.opaque(backend.types().UInt32, int(v))
 
 

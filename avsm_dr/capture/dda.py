@@ -1,23 +1,18 @@
 """Exact light-ray integration of a trilinear density grid: one segment per dual-cell crossing.
 
-The density of a :class:`~avsm_dr.capture.grid.GridVolume` is trilinear between voxel
-centres.  In the *dual grid* - cells whose corners are 8 neighbouring voxel centres, plus
-the half-voxel band at the box's edge where the lookup clamps (there the 8 corners repeat
-the edge voxels) - ``sigma`` is one trilinear polynomial, so along a ray ``o + t d``
-inside one dual cell it is a cubic in ``t`` and Simpson's rule over the crossing
-``[t_a, t_b]`` ::
+In the *dual grid* of a :class:`~avsm_dr.capture.grid.GridVolume` (cells whose corners are
+8 neighbouring voxel centres, plus the half-voxel band at the box's edge where the lookup
+clamps) ``sigma`` is one trilinear polynomial, so along a ray ``o + t d`` inside one dual
+cell it is a cubic in ``t`` and Simpson's rule over the crossing ``[t_a, t_b]`` ::
 
     tau = (t_b - t_a) / 6 * (sigma(t_a) + 4 sigma((t_a + t_b) / 2) + sigma(t_b))
 
-is exact.  The breakpoints of the ray are therefore its crossings of the planes through
-the voxel centres (dual-cell faces) and the box faces (the ray is clipped to the
-occupied part of the box, whose faces are voxel-centre planes or box faces, and outside
-of which sigma is 0).
+is exact.  The ray's breakpoints are its crossings of the voxel-centre planes and of the
+faces of the occupied part of the box (outside which sigma is 0).
 
 Traversal: one Dr.Jit lane per texel ray, a 3-D DDA [Amanatides & Woo, "A Fast Voxel
-Traversal Algorithm for Ray Tracing", Eurographics 1987] over the dual cells, two-level
-for empty space: the dual cells are grouped in ``block^3`` blocks, an empty block (all
-voxels reaching it are 0) is crossed in one iteration.  Robust in float32:
+Traversal Algorithm for Ray Tracing", Eurographics 1987] over the dual cells, an empty
+``block^3`` block crossed in one iteration.  Robust in float32:
 
 * the cell index is an integer per axis; an iteration moves one axis by one cell (or to
   the next block), so the loop is bounded by the number of cells (checked);
@@ -25,25 +20,14 @@ voxels reaching it are 0) is crossed in one iteration.  Robust in float32:
   ``s_b = (plane_b - u_b) / du_b`` (no accumulated ``tMax += tDelta`` drift), and the
   new crossing end is ``max(s, min_b s_b)``: rounding gives zero-length crossings,
   never a step back;
-* axes the ray crosses less than 1e-6 cells along (grazing or parallel rays) are never
-  chosen (their plane parameter is a large constant); no division by 0;
-* sigma inside a crossing is evaluated with the cell's own 8 corners (one packet load,
-  or 8 gathers, per crossing), so the polynomial is the cell's even where rounding puts a
-  sample a few ulps across a plane.
+* axes the ray crosses less than :data:`_GRAZING_CELLS` cells along are never chosen;
+* sigma inside a crossing is evaluated with the cell's own 8 corners, so the polynomial is
+  the cell's even where rounding puts a sample a few ulps across a plane.
 
-Output as :func:`~avsm_dr.capture.grid.march`, in one traversal: every lane writes its
-segments into its own slots (one per dual cell its clipped ray meets, + 3), then
-:func:`~avsm_dr.capture.grid.compact_slots` gathers the filled ones into CSR order; when
-the slots exceed :data:`SLOT_BUDGET`, in rounds: every unfinished lane writes up to
-:data:`ROUND_CAPACITY` segments into its own slots and stops; lanes with more continue in
-the next round from their saved state.  The lanes' rays and constants are made on the
-device in float64 (:func:`lane_constants`), a crossing's 8 corners come from one packet
-load (:func:`~avsm_dr.capture.dual_cells.corner_table`), so the host touches one value per ray (its texel and count).
-
-Gradients by recomputing each segment's Simpson sum from differentiable gathers (exact
-too: a segment lies in one dual cell).  The old half-voxel march costs 16 voxel reads
-per step, two steps per voxel of path; this costs 8 per crossing, |d_x| + |d_y| + |d_z|
-crossings per voxel of path (|d| = 1).
+Output as :func:`~avsm_dr.capture.grid.march` (slots: one per dual cell the clipped ray
+meets, + 3); above :data:`SLOT_BUDGET` slots, rounds of :data:`ROUND_CAPACITY` segments per
+unfinished lane, each resuming from the saved state.  Gradients as the march's (exact: a
+segment lies in one dual cell).
 """
 from __future__ import annotations
 
@@ -54,24 +38,19 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .assembly import TexelRuns
-from .dual_cells import corner_table, dual_block_max, dual_grid  # noqa: F401 (dual_block_max: API)
-from .grid import MarchKernel, compact_slots, hit_lanes, new_slots, read_slots, write_slots
+from ._grid_lanes import compact_slots, hit_lanes, lane_output, new_slots, read_slots, write_slots
+from ._grid_volume import corner_table, dual_block_max, dual_grid  # noqa: F401
 
 #: Parameter of a plane the ray never reaches (grazing axes); beyond every ray's end.
 _FAR = 1e30
-#: Most output slots (3 floats each) of the one-round layout, one slot per dual cell a ray
-#: meets (about 2.7x the segments on the plume at 1024^2: 164 MB); above it, rounds.
+#: Most output slots of the one-round layout (one per dual cell a ray meets); above it, rounds.
 SLOT_BUDGET = 1 << 25
-#: Segments a lane writes per round into its own slots of a round buffer: lanes that
-#: have more go on in another round from where they stopped; the slots are then
-#: compacted into the CSR order (one traversal instead of a counting and a writing pass).
+#: Segments a lane writes per round into its own slots; lanes with more go on in another round.
 ROUND_CAPACITY = 16
 #: Axes along which a ray moves less than this many cells over its whole length are
 #: treated as parallel (never crossed): the cell polynomial is then evaluated at most
 #: this far outside its cell, a change of sigma far below float32 rounding.
 _GRAZING_CELLS = 1e-6
-# --------------------------------------------------------------------- traversal
 def lane_constants(grid, o, d, t_in, t_out):
     """Per-lane constants of the traversal from device float64 rays (lists of three Float64,
     clipped to ``[t_in, t_out]``), the float64 formulas then rounded to ``grid.Float``:
@@ -104,34 +83,14 @@ def lane_constants(grid, o, d, t_in, t_out):
     return u_in + du + inv + [Float(s_end), Float(t_in)], cell, t.UInt32(dr.select(dr.isfinite(cap), cap, 0))
 
 
-def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiable: bool | None = None,
-             lanes_rays=None, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET,
-             runs: bool = False):
+def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: int = ROUND_CAPACITY,
+             slot_budget: int = SLOT_BUDGET, runs: bool = False):
     """Integrate every texel ray of ``camera`` through ``grid`` exactly, one segment per
-    dual-cell crossing with non-zero optical depth.
-
-    Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of
-    ``grid.dtype``, stats dict) like :func:`~avsm_dr.capture.grid.march`.
-
-    Parameters
-    ----------
-    keep_zero
-        also emit crossings of positive length with tau = 0 inside occupied blocks.
-    differentiable
-        recompute tau from differentiable gathers (default: when the grid's
-        data has gradients enabled).
-    lanes_rays
-        host (texels, o, d, t_in, t_out) float64 arrays of the rays meeting the box;
-        default: the rays are made, clipped and compacted on the device
-        (:func:`~avsm_dr.capture.grid.hit_lanes`).
-    capacity
-        segments a lane writes per round (see :data:`ROUND_CAPACITY`).
-    slot_budget
-        most slots of the one-round layout (see :data:`SLOT_BUDGET`); 0 forces rounds.
-    runs
-        return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
-        count), not expanded to one per segment on the host.
-    """
+    dual-cell crossing with non-zero optical depth (with ``keep_zero`` also those of tau = 0
+    inside occupied blocks).  Returns, gradients and ``runs`` as
+    :func:`~avsm_dr.capture.grid.march`; ``capacity``: segments a lane writes per round
+    (:data:`ROUND_CAPACITY`); ``slot_budget``: most slots of the one-round layout
+    (:data:`SLOT_BUDGET`; 0 forces rounds)."""
     t = backend.types()
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
     stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}
@@ -140,25 +99,12 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
         return empty
     clock = time.perf_counter()
     # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
-    if lanes_rays is None:
-        lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
-        L = dr.width(lanes_d)
-        if L == 0:
-            return empty
-        lanes = np.asarray(lanes_d.numpy(), np.int64)
-        host_rays = None
-    else:
-        lanes, o_h, d_h, t_in_h, t_out_h = lanes_rays
-        L = lanes.size
-        if L == 0:
-            return empty
-        F64 = t.Float64
-        o, d = ([F64(np.ascontiguousarray(v[:, a], np.float64)) for a in range(3)] for v in (o_h, d_h))
-        t_in, t_out = F64(np.asarray(t_in_h, np.float64)), F64(np.asarray(t_out_h, np.float64))
-        host_rays = (o_h, d_h)
-        cap = None
-    const, cell, cap_l = lane_constants(grid, o, d, t_in, t_out)
-    cap = cap_l if cap is None else cap
+    lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
+    L = dr.width(lanes_d)
+    if L == 0:
+        return empty
+    lanes = np.asarray(lanes_d.numpy(), np.int64)
+    const, cell, _ = lane_constants(grid, o, d, t_in, t_out)
     times = {"lanes_s": time.perf_counter() - clock}
 
     wlen = np.array(grid.window_shape[::-1], np.int64)             # (wx, wy, wz)
@@ -271,12 +217,9 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
                  "max_iterations": int(iters.max()), "rounds": n_rounds, **times}
         if stats["max_iterations"] >= max_iter:
             raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
-        if S and (differentiable if differentiable is not None else dr.grad_enabled(grid.data)):
-            tau = differentiable_tau(grid, *(host_rays or camera.rays(lanes)), counts, z0, z1)
-        clock = time.perf_counter()
-        texel = TexelRuns(lanes, counts) if runs else np.repeat(lanes.astype(np.int64), counts)
-        stats["texel_s"] = time.perf_counter() - clock
-        return (texel, z0, z1, tau, stats) if S else empty[:4] + (stats,)
+        if S == 0:
+            return empty[:4] + (stats,)
+        return lane_output(grid, camera, lanes, counts, z0, z1, tau, stats, runs)
 
     # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 3 for
     # float32 rounding at its ends); lane i's segments fill its first counts[i] slots
@@ -345,17 +288,3 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, differentiab
     times["compact_s"] = time.perf_counter() - clock
     return finish(counts, iters, cross, len(rounds), z0, z1, tau)
 
-
-def differentiable_tau(grid, o, d, counts, z0, z1):
-    """Simpson optical depth of each segment ``[z0, z1]`` of lane ray ``o + t d`` (``counts``
-    segments per lane, in lane order) from differentiable gathers of ``grid.data``: exact
-    when every segment lies in one dual cell, and gradients flow to the voxels."""
-    Float = grid.Float
-    kern = MarchKernel(grid)
-    lane = A.to_uint32(np.repeat(np.arange(counts.size, dtype=np.uint32), counts))
-    gx, gy, gz = (dr.gather(Float, A.to_float(np.ascontiguousarray(o[:, i]), Float), lane) for i in range(3))
-    ex, ey, ez = (dr.gather(Float, A.to_float(np.ascontiguousarray(d[:, i]), Float), lane) for i in range(3))
-
-    def sig(tt):
-        return kern.trilinear(grid.data, gx + ex * tt, gy + ey * tt, gz + ez * tt)
-    return (z1 - z0) * (sig(z0) + 4 * sig(0.5 * (z0 + z1)) + sig(z1)) * (1.0 / 6.0)

@@ -1,43 +1,26 @@
-"""Density grids: trilinear sampling and light-ray marching into segments.
+"""Density grids: light-ray marching into segments (``method='march'``, the default grid capture).
 
-Grid convention (Mitsuba ``gridvolume``, see :mod:`avsm_dr.scene`): a (nz, ny, nx)
-array of extinction ``sigma`` per world unit over ``bbox``; voxel values sit at cell
-centres, ``sigma(p)`` is trilinear in between, clamped to the edge inside the box.
+Grid convention (Mitsuba ``gridvolume``, :mod:`._grid_volume`): voxel values of extinction
+``sigma`` at cell centres, trilinear in between, clamped to the edge inside ``bbox``.
 
-Marching (one Dr.Jit lane per texel ray, clipped to the occupied part of the box):
-the ray walks the coarse block grid (``block^3`` voxels per block) with a 3-D DDA
-[Amanatides & Woo 1987].  An empty block (max of every voxel that influences it
-is 0) is crossed in one iteration; in an occupied block the ray takes steps of
-length ``h = step`` (the last one up to the block's exit), and each step
-``[t_a, t_b]`` becomes one segment whose optical depth is Simpson's rule ::
+One Dr.Jit lane per texel ray, clipped to the occupied part of the box, walks the coarse
+block grid (``block^3`` voxels per block) with a 3-D DDA [Amanatides & Woo 1987].  An empty
+block (max of every voxel that influences it is 0) is crossed in one iteration; in an
+occupied block the ray takes steps of length ``h = step`` (the last one up to the block's
+exit), and each step ``[t_a, t_b]`` becomes one segment whose optical depth is Simpson's rule ::
 
     tau = (t_b - t_a) / 6 * (sigma(t_a) + 4 sigma((t_a + t_b) / 2) + sigma(t_b))
 
-(exact for the cubic that trilinear interpolation gives inside one lattice cell;
-O(h^2) at the lattice planes where its derivative jumps).  Steps with tau = 0
-emit nothing.  A ray stops once its accumulated optical depth exceeds
-``-ln(epsilon)`` (transmittance below ``epsilon``).
+(exact for the cubic that trilinear interpolation gives inside one lattice cell; O(h^2) at
+the lattice planes where its derivative jumps).  Steps with tau = 0 emit nothing.  A ray
+stops once its accumulated optical depth exceeds ``-ln(epsilon)``.
 
-Rays: made, clipped to the occupied box and compacted to the hitting lanes on the device
-in float64 (:func:`hit_lanes`, no per-ray host array).  Variable output per lane: one pass
-writes each lane's segments into its own slots (a bound of its segments: steps plus block faces crossed), then
-:func:`compact_slots` gathers the filled slots into CSR order; if the slots would exceed
-:data:`MARCH_SLOT_BUDGET` or a lane fills them, the loop runs twice instead, first
-counting segments per lane, then writing them at the prefix-sum offsets.  The two
-samples of a step read their 8 voxels with one packet load each from the table of
-corners per dual cell (:func:`~avsm_dr.capture.dual_cells.corner_table`).  When the
-density is a Dr.Jit array with gradients enabled, the optical depths are then
-recomputed per segment (one lane per segment, no loop) from differentiable
-gathers, so gradients flow to the voxels; segment boundaries and counts are not
-differentiated (they are piecewise constant in the density).
-
-``method='exact'`` (:mod:`.dda`) integrates each crossing of the dual grid (cells between
-voxel centres, where sigma is one cubic along the ray) exactly instead, with no step;
-``method='march'`` (this module) stays the default (see :func:`check_method`).
-
-Code: grids and sampling in :mod:`._grid_volume`, texel rays and brick keys in
-:mod:`._grid_rays`, slot buffers in :mod:`._grid_slots`, the march here; the public names
-of those modules are re-exported here.
+Output: one pass writes each lane's segments into its own slots (a bound of its segments:
+steps plus block faces crossed; :mod:`._grid_lanes`); above :data:`MARCH_SLOT_BUDGET` slots,
+or when a lane fills its slots, a counting pass then a writing pass at the prefix-sum
+offsets.  With a grad-enabled density the optical depths are recomputed per segment from
+differentiable gathers (:func:`~._grid_volume.segment_tau`); segment boundaries and counts
+are piecewise constant in the density and not differentiated.  ``method='exact'`` is :mod:`.dda`.
 """
 from __future__ import annotations
 
@@ -48,16 +31,11 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from .assembly import TexelRuns
-from .dual_cells import corner_table
-# the grid, the texel rays and the slot buffers live in private modules; their public names
-# are re-exported here, their old home
-from ._grid_volume import GridVolume, MarchKernel, block_max  # noqa: F401
-from ._grid_rays import SUBMISSION_BRICK, brick_keys, candidate_texels, hit_lanes  # noqa: F401
-from ._grid_slots import PACKET_SLOTS, compact_slots, new_slots, read_slots, write_slots  # noqa: F401
+from ._grid_volume import GridVolume, MarchKernel, block_max, corner_table  # noqa: F401
+from ._grid_lanes import (SUBMISSION_BRICK, candidate_texels, compact_slots, hit_lanes, lane_output,  # noqa: F401
+                         new_slots, read_slots, write_slots)
 
 
-# --------------------------------------------------------------------- marching
 #: Most output slots of the march's one-pass layout (a bound of each lane's segments); above
 #: it, or when a lane fills its slots, two passes.
 MARCH_SLOT_BUDGET = 1 << 25
@@ -68,13 +46,9 @@ METHODS = ("exact", "march")
 
 def check_method(method, step) -> str:
     """The grid capture method, 'march' when None; ValueError naming ``method`` (unknown)
-    or ``step`` (given with 'exact', which has no step).
-
-    'march' stays the default: the exact capture's segments span a whole dual cell (about
-    one voxel instead of half), so a representation that interpolates inside a segment
-    (uniform density assumed) errs more at receivers *inside* the smoke (plume, 64^2:
-    max |dT| 0.10 vs 0.03), while at segment ends (receivers behind it) it is exact
-    (1.6e-7 vs 2.0e-3)."""
+    or ``step`` (given with 'exact', which has no step).  'march' is the default: its
+    segments span half a voxel, the exact capture's a whole dual cell, so a representation
+    that assumes uniform density inside a segment errs less inside the smoke."""
     if method is None:
         return "march"
     if method not in METHODS:
@@ -86,30 +60,19 @@ def check_method(method, step) -> str:
 
 
 def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zero: bool = False,
-          differentiable: bool | None = None, method: str = "march", runs: bool = False):
-    """March every texel ray of ``camera`` through ``grid``.
-
-    Returns (texel (S,) int64 NumPy in texel order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``,
-    stats dict).  Segments of one texel are in depth order.
+          runs: bool = False):
+    """March every texel ray of ``camera`` through ``grid``: (texel (S,) int64 NumPy in texel
+    order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``, stats dict), each texel's segments in
+    depth order; with a grad-enabled ``grid.data``, tau is recomputed from differentiable gathers.
 
     Parameters
     ----------
-    method
-        'march' only (Simpson steps of length ``step``); the 'exact' capture (one
-        segment per dual-cell crossing) is :func:`.dda.traverse`, dispatched by ``capture``.
     keep_zero
-        also emit steps with tau = 0 (gradients can then reach voxels that are
-        still 0 inside occupied blocks; use ``GridVolume.prepare(..., skip_empty=False)``
-        to reach every voxel).
-    differentiable
-        recompute tau from differentiable gathers (default: when the grid's
-        data has gradients enabled).
+        also emit steps with tau = 0 (gradients can then reach voxels that are still 0 inside
+        occupied blocks; ``GridVolume.prepare(..., skip_empty=False)`` reaches every voxel).
     runs
-        return the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (per ray: texel,
-        count), not expanded to one per segment on the host.
+        the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (one run per ray).
     """
-    if method != "march":
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     t = backend.types()
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0})
@@ -257,29 +220,14 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         if S == 0:
             return empty[:4] + (stats,)
         base_h = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        res = dr.zeros(Float, S), dr.zeros(Float, S), dr.zeros(Float, S)
-        written, _, _ = run((A.to_uint32(base_h), A.to_uint32(counts), res))
+        buf = new_slots(Float, S)
+        written, _, _ = run((A.to_uint32(base_h), A.to_uint32(counts), buf))
         if not np.array_equal(np.asarray(written.numpy(), np.int64), counts):
             raise RuntimeError("grid march: count and write passes disagree (non-deterministic kernel)")
+        res = read_slots(buf, dr.arange(UInt32, S))
         dr.eval(res)
         times["march_s"] = time.perf_counter() - clock
     stats.update(times)
     if S == 0:
         return empty[:4] + (stats,)
-    z0, z1, tau = res
-
-    # ---- differentiable optical depths: one lane per segment, no loop
-    if differentiable is None:
-        differentiable = dr.grad_enabled(grid.data)
-    if differentiable:
-        lane = A.to_uint32(np.repeat(np.arange(L, dtype=np.uint32), counts))
-        gx, gy, gz = (dr.gather(Float, v, lane) for v in (ox, oy, oz))
-        ex, ey, ez = (dr.gather(Float, v, lane) for v in (dx, dy, dz))
-
-        def sig(tt):
-            return kern.trilinear(grid.data, gx + ex * tt, gy + ey * tt, gz + ez * tt)
-        tau = (z1 - z0) * (sig(z0) + 4 * sig(0.5 * (z0 + z1)) + sig(z1)) * (1.0 / 6.0)
-    if runs:
-        return TexelRuns(lanes, counts), z0, z1, tau, stats
-    texel = np.repeat(lanes.astype(np.int64), counts)
-    return texel, z0, z1, tau, stats
+    return lane_output(grid, camera, lanes, counts, *res, stats, runs)

@@ -18,9 +18,8 @@ import struct
 import numpy as np
 
 from .. import validation as V
-from ..geometry import ray_sphere
+from ..geometry import ray_capsule
 from ..segments import OPAQUE_OPTICAL_DEPTH
-from .particles import MAX_CANDIDATES, check_candidates
 
 #: Capsules whose footprint rectangles are computed at once (bounds host memory).
 CHUNK = 2048
@@ -28,7 +27,6 @@ CHUNK = 2048
 MAX_VERTICES = 1 << 24
 
 
-# --------------------------------------------------------------------- loading
 def load_tfx(path, return_w: bool = False):
     """Read a TressFX 4.x ``.tfx`` file (little-endian).
 
@@ -109,47 +107,6 @@ def fit_strands(strands: np.ndarray, bmin, bmax, fill: float = 0.8) -> np.ndarra
     return ((s - 0.5 * (lo + hi)) * scale + 0.5 * (bmin + bmax)).astype(np.float32)
 
 
-# --------------------------------------------------------------------- geometry
-def ray_capsule(o, d, pa, pb, r):
-    """(t_in, t_out, hit) of unit rays (o, d) (K, 3) through capsules (pa, pb (K, 3), radius r), float64."""
-    ba = pb - pa
-    L2 = np.einsum("ij,ij->i", ba, ba)
-    oa = o - pa
-    bd = np.einsum("ij,ij->i", ba, d)
-    boa = np.einsum("ij,ij->i", ba, oa)
-    od = np.einsum("ij,ij->i", oa, d)
-    oo = np.einsum("ij,ij->i", oa, oa)
-    t_in = np.full(o.shape[0], np.inf)
-    t_out = np.full(o.shape[0], -np.inf)
-
-    # finite cylinder: |oa + t d|^2 L2 - ((oa + t d) . ba)^2 = r^2 L2, axial 0 <= (.) . ba <= L2
-    a = L2 - bd * bd
-    b = L2 * od - boa * bd
-    c = L2 * oo - boa * boa - r * r * L2
-    disc = b * b - a * c
-    cyl = (a > 1e-12 * np.maximum(L2, 1e-300)) & (disc > 0)     # parallel rays: the end spheres cover it
-    sq = np.sqrt(np.where(cyl, disc, 0.0))
-    sa = np.where(cyl, a, 1.0)
-    ta, tb = (-b - sq) / sa, (-b + sq) / sa
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s0 = (0.0 - boa) / bd
-        s1 = (L2 - boa) / bd
-    lo_s = np.where(bd != 0, np.minimum(s0, s1), np.where((boa >= 0) & (boa <= L2), -np.inf, np.inf))
-    hi_s = np.where(bd != 0, np.maximum(s0, s1), np.where((boa >= 0) & (boa <= L2), np.inf, -np.inf))
-    ca, cb = np.maximum(ta, lo_s), np.minimum(tb, hi_s)
-    cyl &= cb > ca
-    t_in = np.where(cyl, np.minimum(t_in, ca), t_in)
-    t_out = np.where(cyl, np.maximum(t_out, cb), t_out)
-
-    # end spheres
-    for p in (pa, pb):
-        t0, t1, hs = ray_sphere(o, d, p, r)
-        t_in = np.where(hs, np.minimum(t_in, t0), t_in)
-        t_out = np.where(hs, np.maximum(t_out, t1), t_out)
-    t_in = np.maximum(t_in, 0.0)
-    return t_in, t_out, t_out > t_in
-
-
 def merge_crossings(texel, strand, t_in, t_out, capsule=None):
     """Merge overlapping intervals of the same (texel, strand); returns the merged arrays
     (by texel, strand, t_in), and with ``capsule`` (an id per interval) also the smallest
@@ -175,9 +132,9 @@ def merge_crossings(texel, strand, t_in, t_out, capsule=None):
     return out if capsule is None else out + (np.minimum.reduceat(capsule[order], starts),)
 
 
-def capture_hair(camera, hair, ids: bool = False):
-    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand;
-    with ``ids`` also the (S,) int64 draw position of each crossing: its first capsule's index
+def capture_hair(camera, hair):
+    """(texel, z0, z1, tau) float64 NumPy: one segment per crossing of a light ray and a strand,
+    and the (S,) int64 draw position of each crossing: its first capsule's index
     ``strand * (V - 1) + j`` (strands in list order, a strand's capsules in vertex order)."""
     s, r, op = hair.validate()
     S, V, _ = s.shape
@@ -186,22 +143,17 @@ def capture_hair(camera, hair, ids: bool = False):
     strand_of = np.repeat(np.arange(S), V - 1)
     bmin = np.minimum(pa, pb) - r
     bmax = np.maximum(pa, pb) + r
-    check_candidates(camera, bmin, bmax, "hair", MAX_CANDIDATES)
     tex, sid, ti, to, cid = [], [], [], [], []
-    for start in range(0, pa.shape[0], CHUNK):
-        sl = slice(start, start + CHUNK)
-        for item, texel in camera.footprint_chunks(bmin[sl], bmax[sl]):
-            item = item + start
-            o, d = camera.rays(texel)
-            t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r)
-            tex.append(texel[hit])
-            sid.append(strand_of[item[hit]])
-            ti.append(t_in[hit])
-            to.append(t_out[hit])
-            cid.append(item[hit])
+    for item, texel, o, d in camera.footprint_rays(bmin, bmax, CHUNK, "hair"):
+        t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r, t_min=0.0)
+        tex.append(texel[hit])
+        sid.append(strand_of[item[hit]])
+        ti.append(t_in[hit])
+        to.append(t_out[hit])
+        cid.append(item[hit])
     if not tex:
         z = np.zeros(0)
-        return (np.zeros(0, np.int64), z, z, z) + ((np.zeros(0, np.int64),) if ids else ())
+        return np.zeros(0, np.int64), z, z, z, np.zeros(0, np.int64)
     texel, _, z0, z1, first = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to, cid)))
     tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
-    return (texel, z0, z1, np.full(texel.size, tau)) + ((first,) if ids else ())
+    return texel, z0, z1, np.full(texel.size, tau), first

@@ -1,17 +1,28 @@
-"""Opaque content in a separate depth map, composed with the volumetric representation.
+"""Opaque blockers: short segments that take transmittance to zero, or a separate depth map.
 
-``capture(scene, opaque="separate")`` keeps opaque blockers out of the volumetric
-segments: they go into a per-texel depth map ``z_o`` (the nearest opaque segment's
-start, the depth at which the inline segment of :mod:`.opaque` begins; +inf where no
-blocker is hit) and the volumetric segments are cut at ``z_o`` (a segment straddling it
-keeps its part in front, with the optical depth scaled by that part's share, which is
-the exact curve's own linear ramp).  A lookup multiplies, per filter tap::
+Inline (``capture(..., opaque='inline')``, the default; Salvi et al., "Adaptive Volumetric
+Shadow Maps", EGSR 2010, sec. 3: "a short, dense segment that takes the transmittance to
+zero at the exit point"): a texel ray first meets the blocker's surface at depth ``t_hit``
+(:meth:`avsm_dr.scene.Blocker.first_hit`); the segment is ``[t_hit + b, t_hit + b +
+thickness]`` with optical depth ``OPAQUE_OPTICAL_DEPTH`` (exit transmittance exactly 0).  The
+bias ``b`` keeps receivers lying on the lit surface lit (no "shadow acne"): a receiver
+anywhere in the texel's footprint lies on the surface up to ``w tan(theta)`` deeper than the
+texel's ray hit (w the footprint width, theta the angle between ray and surface normal), so ::
+
+    b = bias + slope * w * (min(tan(theta), 10) + 0.5)
+
+with ``slope`` = 2 texels by default (also covers bilinear lookups of neighbours); the
+``+ 0.5`` covers the change of slope across curved surfaces.  Grazing surfaces and the points
+of a box's side face within a texel of an edge can still self-shadow.
+
+Separate (``opaque='separate'``): blockers go into a per-texel depth map ``z_o`` (the depth
+where the inline segment would begin; +inf where no blocker is hit) and the volumetric
+segments are cut at ``z_o`` (a segment straddling it keeps its part in front, its optical
+depth scaled by that part's share).  A lookup multiplies, per filter tap::
 
     T(texel, z) = T_volume(texel, z) * [z < z_o(texel)]
 
-(:class:`~avsm_dr.representations.opaque_composite.OpaqueComposite`, with the papers this
-follows).  ``opaque="inline"`` (default) keeps blockers as
-short segments with T -> 0 inside the one representation.
+(:class:`~avsm_dr.representations.opaque_composite.OpaqueComposite`, with the papers this follows).
 """
 from __future__ import annotations
 
@@ -23,6 +34,25 @@ from ..representations.base import Representation
 from ..representations.opaque_composite import OpaqueComposite
 
 OPAQUE_MODES = ("inline", "separate")
+
+
+def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float = 2.0):
+    """(texel, z0, z1) float64 NumPy for every (texel, blocker) hit (tau is OPAQUE_OPTICAL_DEPTH)
+    and the (S,) int64 index of each segment's blocker in the list."""
+    tex, z0, bid = [], [], []
+    for i, b in enumerate(blockers):
+        lo, hi = b.bounds()
+        for _, texel, o, d in camera.footprint_rays(lo[None], hi[None]):
+            t, hit, cos = b.first_hit(o, d)
+            texel, t, cos = texel[hit], t[hit], cos[hit]
+            tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)
+            tex.append(texel)
+            z0.append(t + bias + slope * camera.texel_width(texel, t) * (tan + 0.5))
+            bid.append(np.full(texel.size, i, np.int64))
+    if not tex:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
+    tex, z0 = np.concatenate(tex), np.concatenate(z0)
+    return tex, z0, z0 + thickness, np.concatenate(bid)
 
 
 def depth_map(texel: np.ndarray, z0: np.ndarray, n_texels: int) -> np.ndarray:

@@ -16,56 +16,32 @@ import numpy as np
 from .. import _arrays as A
 from ..geometry import ray_sphere
 
-#: Particles whose footprint rectangles are computed at once (bounds host memory; the
-#: (particle, texel) pairs are then enumerated in chunks of ``camera.MAX_PAIRS``).
+#: Particles whose footprint rectangles are computed at once (bounds host memory).
 CHUNK = 4096
-#: Most (item, texel) candidate pairs one capture enumerates (each becomes at most one
-#: segment, ~40 bytes on the host while sorting): 2^27.
-MAX_CANDIDATES = 1 << 27
 
 
-def check_candidates(camera, bmin, bmax, name: str, limit: int) -> None:
-    """ValueError naming ``name`` when the boxes' footprints hold more than ``limit``
-    (item, texel) pairs (counted chunk by chunk, without enumerating them)."""
-    total = 0
-    for start in range(0, bmin.shape[0], CHUNK):
-        total += camera.footprint_pairs(bmin[start:start + CHUNK], bmax[start:start + CHUNK])
-    if total > limit:
-        raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
-                         f"{limit:.3g} one capture handles; use fewer or smaller items, or a lower "
-                         f"resolution")
-
-
-def capture_particles(camera, particles, Float, ids: bool = False):
-    """Segments of all particles: (texel (S,) int64, z0, z1 (S,) float64 NumPy, tau Dr.Jit ``Float``),
-    and with ``ids`` the (S,) int64 index of each segment's particle in the list.
-
-    tau = density * chord; when ``particles.density`` is a Dr.Jit array it is gathered
-    (gradients flow to the per-particle densities).
-    """
+def capture_particles(camera, particles, Float):
+    """Segments of all particles: (texel (S,) int64, z0, z1 (S,) float64 NumPy, tau Dr.Jit ``Float``,
+    the (S,) int64 index of each segment's particle in the list).  tau = density * chord; a
+    Dr.Jit ``particles.density`` is gathered (gradients flow to the per-particle densities)."""
     c, r, s = particles.validate()
     lo, hi = c - r[:, None], c + r[:, None]
-    check_candidates(camera, lo, hi, "particles", MAX_CANDIDATES)
     tex, z0, z1, pid = [], [], [], []
-    for start in range(0, c.shape[0], CHUNK):
-        sl = slice(start, start + CHUNK)
-        for item, texel in camera.footprint_chunks(lo[sl], hi[sl]):
-            item = item + start
-            o, d = camera.rays(texel)
-            t0, t1, hit = ray_sphere(o, d, c[item], r[item], t_min=0.0)
-            tex.append(texel[hit])
-            z0.append(t0[hit])
-            z1.append(t1[hit])
-            pid.append(item[hit])
+    for item, texel, o, d in camera.footprint_rays(lo, hi, CHUNK, "particles"):
+        t0, t1, hit = ray_sphere(o, d, c[item], r[item], t_min=0.0)
+        tex.append(texel[hit])
+        z0.append(t0[hit])
+        z1.append(t1[hit])
+        pid.append(item[hit])
     if not tex:
-        return (np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Float()) + ((np.zeros(0, np.int64),) if ids else ())
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Float(), np.zeros(0, np.int64)
     tex, z0, z1, pid = (np.concatenate(a) for a in (tex, z0, z1, pid))
     length = A.to_float(z1 - z0, Float)
     if A.is_drjit(particles.density):
         dens = dr.gather(Float, A.to_float(particles.density, Float), A.to_uint32(pid))
     else:
         dens = A.to_float(s[pid], Float)
-    return (tex, z0, z1, dens * length) + ((pid,) if ids else ())
+    return tex, z0, z1, dens * length, pid
 
 
 def draw_ranks(camera, particles, submission: str) -> np.ndarray:

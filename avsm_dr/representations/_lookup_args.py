@@ -21,7 +21,7 @@ from .. import _device_checks as DC
 from .. import backend
 from .. import validation as V
 from ..filtering import FILTERS, check_radius, check_size
-from ..segments import flush_subnormal
+from ..segment_dtype import flush_subnormal
 
 
 @dataclass
