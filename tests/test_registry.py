@@ -174,7 +174,7 @@ LAYERS = [
     ["avsm_dr._llvm", "avsm_dr.backend", "avsm_dr._arrays", "avsm_dr.validation", "avsm_dr.geometry",
      "avsm_dr.camera",
      "avsm_dr._device_checks"],
-    ["avsm_dr.segments", "avsm_dr.segment_dtype", "avsm_dr.segment_keys", "avsm_dr.texel_sort",
+    ["avsm_dr.segments", "avsm_dr.segment_dtype", "avsm_dr.texel_sort",
      "avsm_dr.filtering", "avsm_dr.stats", "avsm_dr.metrics",
      "avsm_dr.scene", "avsm_dr.io"],
     ["avsm_dr.representations", "avsm_dr.capture", "avsm_dr.fluid"],
