@@ -94,6 +94,15 @@ def test_camera_receivers_stay_in_the_box_and_move():
 
 
 # -------------------------------------------------------------------- the run
+def test_narrowed_runs_are_checked():
+    P, _ = T.STUDY.params(True, methods=["avsm-8 staged sorted", "exact"], settings=["camera"])
+    assert P["methods"] == ["exact", "avsm-8 staged sorted"] and P["settings"] == ["camera"]     # methods() order
+    for kw, name in ((dict(methods=["avsm-8 nope sorted"]), "methods"), (dict(methods=[]), "methods"),
+                     (dict(settings=["wind"]), "settings"), (dict(settings=[]), "settings")):
+        with pytest.raises(ValueError, match=f"^{name}:"):
+            T.STUDY.params(True, **kw)
+
+
 def test_quick_temporal_run(tmp_path, monkeypatch):
     monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
     out = quick_cli_run("temporal", tmp_path)
