@@ -148,8 +148,9 @@ def plot_insertion(res, summary, labels, variants):
                            label="sorted stream AVSM's flicker")
             ax.set_yscale("log")
             _log(ax)
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))   # narrow ranges: 1 digit repeats
             ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
-            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.2g}"))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
             ax.set_title(f"{s}, vs {vs}")
             ax.set_xlabel(f"RMS error vs {vs} (pooled)")
         axes[row][0].set_ylabel("flicker (RMS change of\nthe error between frames)")
