@@ -137,7 +137,8 @@ def plot_insertion(res, summary, labels, variants):
             for m in stream + list(variants):
                 x, y = blk[m]["error"], blk[m]["flicker"]
                 name, order = " ".join(m.split(" ")[1:-1]), m.split(" ")[-1]
-                ax.errorbar(x["estimate"], y["estimate"], xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
+                ax.errorbar(x["estimate"], y["estimate"],
+                            xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
                             yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
                             color=colour[name], marker="o" if order == "unsorted" else "s",
                             markerfacecolor=colour[name] if order == "unsorted" else "none", markersize=4.5,
