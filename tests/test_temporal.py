@@ -11,6 +11,7 @@ import pytest
 from avsm_dr import fluid
 from helpers import quick_cli_run
 from experiments import _common
+import experiments.temporal as T
 from experiments.temporal import metrics as M
 from experiments.temporal import scenes as S
 
@@ -93,11 +94,20 @@ def test_camera_receivers_stay_in_the_box_and_move():
 
 
 # -------------------------------------------------------------------- the run
+def test_narrowed_runs_are_checked():
+    P, _ = T.STUDY.params(True, methods=["avsm-8 staged sorted", "exact"], settings=["camera"])
+    assert P["methods"] == ["exact", "avsm-8 staged sorted"] and P["settings"] == ["camera"]     # methods() order
+    for kw, name in ((dict(methods=["avsm-8 nope sorted"]), "methods"), (dict(methods=[]), "methods"),
+                     (dict(settings=["wind"]), "settings"), (dict(settings=[]), "settings")):
+        with pytest.raises(ValueError, match=f"^{name}:"):
+            T.STUDY.params(True, **kw)
+
+
 def test_quick_temporal_run(tmp_path, monkeypatch):
     monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
     out = quick_cli_run("temporal", tmp_path)
     for name in ("data.csv", "findings.json", "meta.json", "error_flicker_per_frame.png", "flicker_vs_error.png",
-                 "shadow_smoke.gif"):
+                 "insertion_flicker.png", "shadow_smoke.gif"):
         assert (out / name).stat().st_size > 0, name
     rows = _common.read_csv(out / "data.csv")
     assert {r["setting"] for r in rows} == {"smoke", "light", "camera", "hair"}
@@ -114,6 +124,21 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
         un = block["exact"]["avsm-8 unsorted"]
         assert un["error"]["low"] <= un["error"]["estimate"] <= un["error"]["high"]
         assert f["headline"][setting]["most_flicker"] in methods
+    variants = {f"avsm-8 {ins} {order}" for ins in T.insertion_variants() for order in ("unsorted", "sorted")}
+    assert "stream" not in T.insertion_variants() and variants <= methods
+    for setting, block in f["insertion"].items():
+        assert set(block) == variants and setting in f["headline"]
+        assert f["headline"][setting]["most_flicker"] not in variants            # one row per kind
+        for label, rec in block.items():
+            for vs in ("exact", "truth"):
+                for key in ("flicker_vs_sorted", "flicker_vs_stream", "error_vs_stream"):
+                    c = rec[vs][key]
+                    assert c["a"] == label and c["low"] <= c["ratio"] <= c["high"], (setting, label, vs, key)
+                assert rec[vs]["flicker_vs_stream"]["b"] == "avsm-8 " + label.split(" ")[-1]
+                fl = rec[vs]["flicker_vs_sorted"]
+                assert fl["b"] == "avsm-8 sorted"
+                assert rec[vs]["verdict"] == ("less" if fl["high"] < 1 else "more" if fl["low"] > 1
+                                              else "indistinguishable")
     from PIL import Image
     with Image.open(out / "shadow_smoke.gif") as im:
         assert im.n_frames == 5

@@ -11,7 +11,9 @@ Representations: every registered kind in its headline configuration
 (``describe(kind)['headline']``), and AVSM twice (Salvi et al., "Adaptive Volumetric
 Shadow Maps", EGSR 2010, sec. 4.1 on insertion order): ``unsorted``, its segments inserted in
 a fresh random order per frame, as an unordered on-device capture delivers them, and
-``sorted`` (``sort=True``, depth order).  ``avsm_march`` is the engine-style AVSM that
+``sorted`` (``sort=True``, depth order), and so is each of AVSM's other insertion variants
+(:func:`insertion_variants`, rows ``avsm-8 <insertion> unsorted|sorted``; the unsorted ones see
+the same random order per frame as unsorted AVSM).  ``avsm_march`` is the engine-style AVSM that
 re-allocates its nodes as it marches.  Other kinds are built on the capture's depth-sorted
 segments; all builds cover only the texels the receivers' bilinear taps touch, with the
 whole map's depth range.
@@ -27,7 +29,8 @@ flicker per frame and pooled, as defined in :mod:`.metrics`::
     flicker_index = flicker / (sqrt(2) error)                       (0 frozen, 1 uncorrelated)
 
 Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`);
-paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM) by
+paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
+variant vs sorted and vs same-order stream AVSM: :func:`insertion_claims`) by
 :func:`avsm_dr.stats.claim` (configurations, then receivers x frames within each).
 """
 
@@ -42,7 +45,7 @@ from tqdm import tqdm
 from avsm_dr import builtin_scenes, capture, describe, kinds, procedural
 from . import scenes as S
 from .._headline import num
-from .._study import Study
+from .._study import Option, Study
 from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
 from ..ordering import shuffled
@@ -71,12 +74,19 @@ QUICK_KINDS = ("exact", "avsm", "avsm_march", "fom", "moments")
 SKIP_KINDS = ("optimal",)
 
 
+def insertion_variants() -> list[str]:
+    """AVSM's ``insertion`` choices (``describe("avsm")["params"]["insertion"]``) but the
+    paper's ``stream``, whose rows are ``avsm-8 unsorted`` and ``avsm-8 sorted``."""
+    return [c for c in describe("avsm")["params"]["insertion"]["choices"] if c != "stream"]
+
+
 def methods(quick: bool = False) -> list[tuple[str, str, dict, bool]]:
     """(label, kind, params, shuffle) of every representation measured: each registered kind
     but :data:`SKIP_KINDS` (``quick``: those of :data:`QUICK_KINDS`) at its headline parameters; AVSM unsorted
-    (``shuffle``: a random insertion order per frame) and sorted.  Labels:
-    ``kind-<size value>`` plus the variant."""
-    out = []
+    (``shuffle``: a random insertion order per frame) and sorted; last, the same two for each
+    of :func:`insertion_variants` (``params['insertion']`` set).  Labels: ``kind-<size value>``
+    plus the variant (``avsm-8 refit_l2 sorted``)."""
+    out, variants = [], []
     for kind in kinds():
         if kind in SKIP_KINDS or quick and kind not in QUICK_KINDS:
             continue
@@ -86,9 +96,12 @@ def methods(quick: bool = False) -> list[tuple[str, str, dict, bool]]:
         if kind == "avsm":
             out.append((f"{name} unsorted", kind, dict(p, sort=False), True))
             out.append((f"{name} sorted", kind, dict(p, sort=True), False))
+            for ins in insertion_variants():
+                variants.append((f"{name} {ins} unsorted", kind, dict(p, sort=False, insertion=ins), True))
+                variants.append((f"{name} {ins} sorted", kind, dict(p, sort=True, insertion=ins), False))
         else:
             out.append((name, kind, p, False))
-    return out
+    return out + variants                  # appended: the other rows keep their order
 
 
 def _gif_labels(ms) -> list[str]:
@@ -113,7 +126,17 @@ QUICK = dict(FULL, frames=5, configs=[[0, "dir_a"]], size=16, hair_size=12, hair
 
 
 def _resolve(P: dict, quick: bool) -> dict:
-    return dict(P, methods=[m[0] for m in methods(quick)])
+    """``methods``: every label of :func:`methods` (``None``), or the given subset, checked."""
+    bad = [s for s in P["settings"] if s not in SETTINGS]
+    if bad or not P["settings"]:
+        raise ValueError(f"settings: expected animations among {list(SETTINGS)}, got {bad or P['settings']}")
+    labels = [m[0] for m in methods(quick)]
+    if P["methods"] is None:
+        return dict(P, methods=labels)
+    unknown = [m for m in P["methods"] if m not in labels]
+    if unknown or not P["methods"]:
+        raise ValueError(f"methods: expected labels among {labels}, got {unknown or P['methods']}")
+    return dict(P, methods=[m for m in labels if m in P["methods"]])
 
 
 # ======================================================================= frames
@@ -172,8 +195,7 @@ def _evaluate(frame, P, ms, rng, gif: bool):
 # ========================================================================== run
 def _compute(res, P: dict) -> dict:
     """Every animation, configuration and method, frame by frame; the findings, figures and GIFs."""
-    quick = res.quick
-    ms = methods(quick)
+    ms = [m for m in methods(res.quick) if m[0] in P["methods"]]
     t0 = time.perf_counter()
     F = P["frames"]
     series = {}     # (setting, config) -> dict(exact (F,K), truth (F,K), est {label: (F,K)}, bytes, image)
@@ -183,8 +205,8 @@ def _compute(res, P: dict) -> dict:
         anims = _animations(P, seed, names)
         for li in names:
             cfg = f"s{seed}-{li}"
-            for si, setting in enumerate(P["settings"]):
-                rng = np.random.default_rng([seed, si, LIGHTS.index(li)])
+            for setting in P["settings"]:      # seeded by the animation's name: a narrowed run draws the same orders
+                rng = np.random.default_rng([seed, SETTINGS.index(setting), LIGHTS.index(li)])
                 gif = [seed, li] == list(P["configs"][0]) and setting in P["gif_settings"]
                 acc = dict(exact=[], truth=[], est={m[0]: [] for m in ms}, bytes={m[0]: [] for m in ms}, image=[])
                 for t in range(F):
@@ -227,14 +249,17 @@ def _rows(series, ms) -> list[dict]:
 # ===================================================================== findings
 def findings(series, ms, P) -> dict:
     """Pooled statistics per animation, reference and method with intervals (module
-    docstring), per-configuration values, the method that flickers most (absolute and
-    relative to its error) and the paired AVSM comparisons."""
+    docstring), per-configuration values, the kind that flickers most (absolute and
+    relative to its error; one row per kind: AVSM's insertion variants are left out), the
+    paired AVSM comparisons and, under ``insertion``, those of :func:`insertion_claims`."""
     from avsm_dr.stats import claim
     F = P["frames"]
+    base = [m for m in ms if "insertion" not in m[2]]
     settings = sorted({k[0] for k in series}, key=list(SETTINGS).index)
     out = {"definition": "e = T_rep - T_ref at fixed receivers; flicker = sqrt(mean_{t>=1,i} (e_t - e_{t-1})^2); "
                          "content = the same for T_ref; flicker_index = flicker / (sqrt(2) error)",
-           "frames": F, "configs": sorted({k[1] for k in series}), "per_setting": {}, "claims": {}, "headline": {}}
+           "frames": F, "configs": sorted({k[1] for k in series}), "per_setting": {}, "claims": {}, "headline": {},
+           "insertion": {}}
     for setting in settings:
         cfgs = sorted(c for s, c in series if s == setting)
         block = {}
@@ -247,8 +272,10 @@ def findings(series, ms, P) -> dict:
                 per[label] = ci
             block[vs] = per
         out["per_setting"][setting] = block
-        rel = {m: v["flicker_index"]["estimate"] for m, v in block["exact"].items() if v["error"]["estimate"] > 0}
-        absf = {m: v["flicker"]["estimate"] for m, v in block["exact"].items()}
+        kinds_ = {m[0] for m in base}
+        rel = {m: v["flicker_index"]["estimate"] for m, v in block["exact"].items()
+               if m in kinds_ and v["error"]["estimate"] > 0}
+        absf = {m: v["flicker"]["estimate"] for m, v in block["exact"].items() if m in kinds_}
         top_rel = max(rel, key=rel.get) if rel else None
         top_abs = max(absf, key=absf.get)
         out["headline"][setting] = dict(
@@ -256,7 +283,8 @@ def findings(series, ms, P) -> dict:
             most_flicker=top_abs, most_flicker_value=absf[top_abs],
             most_flicker_vs_error=top_rel, most_flicker_index=rel.get(top_rel),
             least_flicker_vs_error=min(rel, key=rel.get) if rel else None)
-        out["claims"][setting] = _claims(series, setting, cfgs, ms, claim, P["n_boot"])
+        out["claims"][setting] = _claims(series, setting, cfgs, base, claim, P["n_boot"])
+        out["insertion"][setting] = insertion_claims(series, setting, cfgs, ms, claim, P["n_boot"])
     return out
 
 
@@ -270,16 +298,56 @@ def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
     for name, (a, b) in pairs.items():
         if a is None or b is None:
             continue
-
-        def d(label):
-            return [np.diff(series[(setting, c)]["est"][label] - series[(setting, c)]["exact"], axis=0).ravel()
-                    for c in cfgs]
-        if all(np.all(x == 0) for x in d(b)):
+        if all(np.all(x == 0) for x in _changes(series, setting, cfgs, b, "exact")):
             continue
-        cl = claim(d(a), d(b), statistic="rmse", configs=cfgs, n_boot=n_boot)
-        out[name] = dict(a=a, b=b, flicker_ratio=cl["estimate"], low=cl["low"], high=cl["high"],
-                         holds_in_every_configuration=cl["holds_in_every_configuration"],
-                         holds_pooled=cl["holds_pooled"])
+        out[name] = _paired(claim, _changes(series, setting, cfgs, a, "exact"),
+                            _changes(series, setting, cfgs, b, "exact"), cfgs, n_boot, a, b, "flicker_ratio")
+    return out
+
+
+def _errors(series, setting, cfgs, label, vs) -> list[np.ndarray]:
+    """Per configuration, the errors e[t, i] of ``label`` against ``vs``, raveled."""
+    return [(series[(setting, c)]["est"][label] - series[(setting, c)][vs]).ravel() for c in cfgs]
+
+
+def _changes(series, setting, cfgs, label, vs) -> list[np.ndarray]:
+    """Per configuration, the frame-to-frame changes e[t, i] - e[t-1, i] of ``label``'s error."""
+    return [np.diff(series[(setting, c)]["est"][label] - series[(setting, c)][vs], axis=0).ravel() for c in cfgs]
+
+
+def _paired(claim, a, b, cfgs, n_boot, la, lb, key) -> dict:
+    cl = claim(a, b, statistic="rmse", configs=cfgs, n_boot=n_boot)
+    return {"a": la, "b": lb, key: cl["estimate"], "low": cl["low"], "high": cl["high"],
+            "holds_in_every_configuration": cl["holds_in_every_configuration"], "holds_pooled": cl["holds_pooled"]}
+
+
+def insertion_claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
+    """Per AVSM insertion variant (label ``avsm-8 <insertion> <order>``) and reference (``exact``,
+    ``truth``), paired ratios by :func:`avsm_dr.stats.claim` (RMS, configurations then
+    receivers x frames): ``flicker_vs_sorted`` (its flicker over sorted stream AVSM's: the
+    moonshot's bar), ``flicker_vs_stream`` and ``error_vs_stream`` (over stream AVSM's in the
+    same order: the variant's own gain); ``verdict``: the flicker-vs-sorted interval lies below
+    1 (``less``), above it (``more``) or across it (``indistinguishable``)."""
+    stream = {lab.split(" ")[-1]: lab for lab, k, p, _ in ms if k == "avsm" and "insertion" not in p}
+    out = {}
+    for label, kind, p, _ in ms:
+        if kind != "avsm" or "insertion" not in p or "sorted" not in stream:
+            continue
+        same = stream[label.split(" ")[-1]]
+        rec = {}
+        for vs in ("exact", "truth"):
+            fl = _changes(series, setting, cfgs, label, vs)
+            r = {"flicker_vs_sorted": _paired(claim, fl, _changes(series, setting, cfgs, stream["sorted"], vs), cfgs,
+                                              n_boot, label, stream["sorted"], "ratio")}
+            r["flicker_vs_stream"] = r["flicker_vs_sorted"] if same == stream["sorted"] else \
+                _paired(claim, fl, _changes(series, setting, cfgs, same, vs), cfgs, n_boot, label, same, "ratio")
+            r |= {"error_vs_stream": _paired(claim, _errors(series, setting, cfgs, label, vs),
+                                            _errors(series, setting, cfgs, same, vs), cfgs, n_boot, label, same,
+                                            "ratio")}
+            f = r["flicker_vs_sorted"]
+            r["verdict"] = "less" if f["high"] < 1 else "more" if f["low"] > 1 else "indistinguishable"
+            rec[vs] = r
+        out[label] = rec
     return out
 
 def _headline(s: dict) -> list[str]:
@@ -294,5 +362,9 @@ def _headline(s: dict) -> list[str]:
 STUDY = Study("temporal", "Temporal stability of every representation under animation: error per frame and flicker",
               REPRODUCES, FULL, QUICK, _compute, resolve=_resolve,
               writes=("data.csv (one row per animation, configuration, method, reference and frame)",
-                      "findings.json", "GIFs"), headline=_headline)
+                      "findings.json", "GIFs"), headline=_headline,
+              options=(Option("methods", "only these labels (default: all; 'avsm-8 refit_l2 sorted', ...)", nargs="+",
+                              metavar="LABEL"),
+                       Option("settings", f"only these animations (default: all of {', '.join(SETTINGS)})",
+                              nargs="+", metavar="ANIMATION")))
 run = STUDY.run

@@ -1,5 +1,6 @@
 """Figures of the ``temporal`` experiment: error and flicker per frame, flicker against mean
-error, and animated GIFs (Matplotlib's Pillow writer) of the light's T on a slice of the content."""
+error (one row per kind; AVSM's insertion variants in a figure of their own), and animated
+GIFs (Matplotlib's Pillow writer) of the light's T on a slice of the content."""
 from __future__ import annotations
 
 import numpy as np
@@ -43,13 +44,15 @@ def _style(label: str) -> dict:
 
 
 def plot_all(res, rows, summary, series, P, gif_labels):
-    """Write ``error_flicker_per_frame.png``, ``flicker_vs_error.png`` and one
-    ``shadow_<setting>.gif`` per animation with slice images (first configuration)."""
+    """Write ``error_flicker_per_frame.png``, ``flicker_vs_error.png``,
+    ``insertion_flicker.png`` (:func:`plot_insertion`) and one ``shadow_<setting>.gif`` per
+    animation with slice images (first configuration)."""
     from matplotlib.ticker import MaxNLocator
     from .. import _plotstyle as plotstyle
     _plt()                        # the Agg backend
     settings = list(summary["per_setting"])
-    labels = list(summary["per_setting"][settings[0]]["exact"])
+    variants = {m for blk in summary.get("insertion", {}).values() for m in blk}
+    labels = [m for m in summary["per_setting"][settings[0]]["exact"] if m not in variants]
     with plotstyle.context():
         fig, axes = plotstyle.grid(len(settings), 2, panel=(3.6, 1.9), sharey=False)
         for i, s in enumerate(settings):
@@ -103,12 +106,57 @@ def plot_all(res, rows, summary, series, P, gif_labels):
         axes[0][0].set_ylabel("flicker (RMS change of the error\nbetween frames)")
         plotstyle.legend_below(fig, ncol=4)
         res.save_figure(fig, "flicker_vs_error.png")
+        if variants:
+            plot_insertion(res, summary, labels, sorted(variants))
 
     cfg0 = "s{}-{}".format(*P["configs"][0])
     for s in P["gif_settings"]:
         images = series.get((s, cfg0), {}).get("image")
         if images:
             _gif(res, s, images, gif_labels, P["image"])
+
+
+def plot_insertion(res, summary, labels, variants):
+    """``insertion_flicker.png``: pooled flicker against error (with their intervals) of stream
+    AVSM and each insertion variant, filled unsorted (a random order per frame), hollow sorted;
+    one column per animation, against the exact curve (top) and the truth (bottom); linear error
+    axes (the methods' errors lie within a few x of each other).  The dashed
+    line is sorted stream AVSM's flicker: the moonshot's bar."""
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+    from .. import _plotstyle as plotstyle
+    stream = [m for m in labels if m.startswith("avsm-") and m.split(" ")[-1] in ("unsorted", "sorted")]
+    names = sorted({" ".join(m.split(" ")[1:-1]) for m in variants})
+    colours = [c for c in plotstyle.PALETTE if c not in ("black", "rose")]
+    colour = {"": plotstyle.PALETTE["rose"]} | {n: plotstyle.PALETTE[colours[i % len(colours)]]
+                                                for i, n in enumerate(names)}
+    settings = list(summary["per_setting"])
+    fig, axes = plotstyle.grid(2, len(settings), panel=(2.6, 2.4), sharex=False, sharey=False)
+    for row, vs in enumerate(("exact", "truth")):
+        for ax, s in zip(axes[row], settings):
+            blk = summary["per_setting"][s][vs]
+            for m in stream + list(variants):
+                x, y = blk[m]["error"], blk[m]["flicker"]
+                name, order = " ".join(m.split(" ")[1:-1]), m.split(" ")[-1]
+                ax.errorbar(x["estimate"], y["estimate"],
+                            xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
+                            yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
+                            color=colour[name], marker="o" if order == "unsorted" else "s",
+                            markerfacecolor=colour[name] if order == "unsorted" else "none", markersize=4.5,
+                            capsize=2, elinewidth=0.8, label=f"{name or 'stream'} {order}")
+            bar = [m for m in stream if m.split(" ")[-1] == "sorted"]
+            if bar:
+                ax.axhline(blk[bar[0]]["flicker"]["estimate"], color="grey", linewidth=0.8, linestyle="--",
+                           label="sorted stream AVSM's flicker")
+            ax.set_yscale("log")
+            _log(ax)
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))   # narrow ranges: 1 digit repeats
+            ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+            ax.set_title(f"{s}, vs {vs}")
+            ax.set_xlabel(f"RMS error vs {vs} (pooled)")
+        axes[row][0].set_ylabel("flicker (RMS change of\nthe error between frames)")
+    plotstyle.legend_below(fig, axes=[axes[0][0]], ncol=4)
+    res.save_figure(fig, "insertion_flicker.png")
 
 
 def _rgb(x, cmap, lo, hi):
