@@ -192,21 +192,3 @@ def groundtruth_plane(scene: Scene, width: int = 128, height: int = 128, camera=
         return gt_transmittance(scene, points, method="raymarch", step=step)[0]
     return render_plane(scene, light_T, width, height, camera, **kw)
 
-
-# ================================================================ comparison
-def compare_images(a, b) -> dict:
-    """Error of image ``b`` against reference ``a`` (same shape).
-
-    Returns dict(rmse, max_abs, mean_abs, rel_rmse = rmse / mean |a|, diff4x = 4 |a - b|).
-    """
-    a = V.array(a, "a")
-    b = V.array(b, "b")
-    if a.shape != b.shape:
-        raise ValueError(f"b: shape {b.shape} does not match a's {a.shape}")
-    if a.size == 0:
-        raise ValueError("a: empty image")
-    diff = a - b
-    rmse = float(np.sqrt(np.mean(diff ** 2)))
-    scale = float(np.mean(np.abs(a)))
-    return {"rmse": rmse, "max_abs": float(np.abs(diff).max()), "mean_abs": float(np.mean(np.abs(diff))),
-            "rel_rmse": rmse / scale if scale > 0 else float("inf"), "diff4x": 4 * np.abs(diff)}
