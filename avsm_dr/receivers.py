@@ -78,6 +78,14 @@ def visibility(scene: Scene, points, origin=None, step_fraction: float = 1.0) ->
     return marched(sc, p, step_fraction)
 
 
+def voxel_step(scene: Scene, fraction: float) -> float | None:
+    """``fraction`` of the smallest voxel side of ``scene``'s grid (None without a grid)."""
+    if scene.density is None:
+        return None
+    from .groundtruth.tracking import default_step
+    return default_step(scene.density, *(np.asarray(b, np.float64) for b in scene.bbox), fraction)
+
+
 def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
     """(K,) float64 transmittance from ``scene.light`` to the (K, 3) ``points``: the ground
     truth's float64 ray march (``method='raymarch'``), step ``step_fraction`` voxels."""
@@ -85,11 +93,7 @@ def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
     p = np.asarray(points, np.float64)
     if p.shape[0] == 0:
         return np.zeros(0)
-    step = None
-    if scene.density is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
-        step = step_fraction * float(np.min((hi - lo) / np.array(scene.density.shape[::-1])))
-    return groundtruth.transmittance(scene, p, method="raymarch", step=step)[0]
+    return groundtruth.transmittance(scene, p, method="raymarch", step=voxel_step(scene, step_fraction))[0]
 
 
 def lattice(bbox, counts) -> np.ndarray:
