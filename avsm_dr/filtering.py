@@ -41,11 +41,6 @@ LANES_PER_BATCH = 1 << 22
 GAUSSIAN_INV2S2_MAX = 1e30
 
 
-def check_size(value, name: str) -> int:
-    """``width`` / ``height``: an integer >= 1 (not bool), else ValueError naming it."""
-    return V.integer(value, name, 1)
-
-
 def check_radius(radius, width: int | None = None, height: int | None = None) -> float:
     """``radius``: a finite real number > 0 (not bool / str), at most max(width, height)."""
     r = V.real(radius, "radius", 0, open_min=True)

@@ -1,11 +1,6 @@
-"""``evaluate``: methods x scenes x configurations x receiver sets -> one tidy :class:`Table`.
-
-Per scene and configuration (one cell of the progress bar) the steps of ``error_curves``:
-the scene (a built-in one regenerated with the seed) lit by the configuration's light;
-receiver sets drawn with the seed (:mod:`avsm_dr.receivers`); ``ad.capture`` at each
-resolution and insertion order; a :class:`~.probe.Probe` per receiver set (bilinear taps,
-float64 truth); every method built on the captured segments and looked up through the
-probes.  The columns of a row:
+"""``evaluate``: methods x scenes x configurations x receiver sets -> one tidy :class:`Table`
+(the steps of ``error_curves``: receivers drawn with the seed, a capture per resolution and
+order, a :class:`~.probe.Probe` per receiver set).  The columns of a row:
 
 =========================================  ==========================================================
 method, kind                               the label given, the registered kind (or the class name)
@@ -46,9 +41,10 @@ import numpy as np
 
 from .. import validation as V
 from ..capture import ORDERS as CAPTURE_ORDERS
-from ..capture.opaque_map import compose
+from ..capture.opaque_map import OPAQUE_MODES, compose
 from ..metrics import THRESHOLD, error_stats
-from ..receivers import BYTES_PER_POINT, NAMES, receiver_sets
+from ..receivers import BYTES_PER_POINT, receiver_sets
+from ..receivers import NAMES as RECEIVER_SETS
 from ..representations import REGISTRY, Representation, describe
 from ..scene import Scene
 from .configuration import Configuration
@@ -56,15 +52,11 @@ from .configuration import configurations as _configurations
 from .curves import DEPTHS, curve_values, depth_l2
 from .probe import Built, Probe, SubsetBuilder
 from .table import Table
-from .timing import measure
+from .timing import timed
 
 #: Optional metric groups: the receiver statistics are always computed (every row is about
 #: a receiver set); without 'depth_l2' or 'timing' that work is skipped and the columns are NaN.
 METRICS = ("receiver_rmse", "depth_l2", "timing")
-#: Receiver sets (:mod:`avsm_dr.receivers`): by contribution inside the medium, on the
-#: receiver plane, the scene's own points.
-RECEIVER_SETS = NAMES
-OPAQUE_MODES = ("inline", "separate")
 #: Receivers and taps of ``error_curves``' full mode (its quick mode: 512, 256, 128).
 N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
 #: Timed repeats of each lookup (after one warm-up call).
@@ -174,8 +166,7 @@ def _synced_build(cls, segments, params):
 
 
 def _capture(scene, resolution, order, opaque, seed):
-    """``ad.capture`` in insertion order ``order`` ('random': shuffled with the configuration's
-    seed) -> (capture, the order recorded by its segments)."""
+    """``ad.capture`` -> (capture, its recorded order); 'random' shuffles with ``seed``."""
     from .. import capture
     cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
                   **({"order_seed": seed} if order == "random" else {}))
@@ -183,12 +174,12 @@ def _capture(scene, resolution, order, opaque, seed):
 
 
 def _timed(fn, want: bool, repeats: int):
-    """(result, median wall seconds, first-call seconds) of ``fn`` (:func:`~.timing.measure`,
-    one warm-up call); NaN times and one call when not ``want``."""
+    """(result, median wall seconds, first-call seconds) of ``fn`` (:func:`~.timing.timed`);
+    NaN times and one call when not ``want``."""
     if not want:
         return fn(), float("nan"), float("nan")
-    t = measure({"fn": fn}, repeats=repeats, warmup=1)["fn"]
-    return t["out"], t["wall_s"], t["first_s"]
+    wall, first, out = timed(fn, repeats)
+    return out, wall, first
 
 
 def _rms(x) -> float:
@@ -289,11 +280,10 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
                             cap.opaque_depth)
         segs, od = sub.segments, sub.opaque_depth
         exact = sub.build("exact", {})
-        exact_rep = compose(exact.rep, od)
     else:
         segs, od = cap.segments, cap.opaque_depth
         exact = build("exact", segs)
-        exact_rep = compose(exact, od)
+    exact_rep = compose(exact.rep if subset else exact, od)
     ex = {s: p.lookup(exact) for s, p in probes.items()}
     ex_curve = curve_values(exact_rep, segs, n_depths) if want_l2 else None
     rows = []
@@ -306,12 +296,10 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
         l2 = depth_l2(compose(rep, od), segs, exact=ex_curve, n_depths=n_depths) if want_l2 else float("nan")
         for s, p in probes.items():
             est, lookup_s, _ = _timed(lambda p=p: p.lookup(target), want_time, LOOKUP_REPEATS)
-            row = dict(method=m.label, kind=m.kind, params=dict(m.params), scene=head["scene"], seed=head["seed"],
-                       light=head["light"], receivers=s, **{k: head[k] for k in ("order", "resolution", "opaque")},
-                       n_receivers=p.k, n_decomp=p.n_decomp)
-            row.update(_stats(p, est, ex[s]))
-            row.update(depth_l2=l2, bytes=float(rep.nbytes_sparse_per_texel),
-                       bytes_dense=float(rep.nbytes_per_texel), build_s=build_s, lookup_s=lookup_s,
-                       build_first_s=first_s)
-            rows.append(row)
+            rows.append(dict(method=m.label, kind=m.kind, params=dict(m.params),
+                             **{k: head[k] for k in ("scene", "seed", "light")}, receivers=s,
+                             **{k: head[k] for k in ("order", "resolution", "opaque")}, n_receivers=p.k,
+                             n_decomp=p.n_decomp, **_stats(p, est, ex[s]), depth_l2=l2,
+                             bytes=float(rep.nbytes_sparse_per_texel), bytes_dense=float(rep.nbytes_per_texel),
+                             build_s=build_s, lookup_s=lookup_s, build_first_s=first_s))
     return rows
