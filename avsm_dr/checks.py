@@ -68,8 +68,7 @@ def _scalar(value) -> float:
 def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: float = 1e-6,
                     fd_rtol: float = 1e-6, fd_atol: float = 1e-7, forward: bool = True,
                     rtol: float = 1e-9, atol: float = 1e-12, primal: Callable | None = None,
-                    accept: Callable | None = None, min_fd: int | None = None,
-                    rng: np.random.Generator | None = None) -> GradientCheck:
+                    accept: Callable | None = None, rng: np.random.Generator | None = None) -> GradientCheck:
     """Check the gradient of ``loss(x)`` (a width-1 Dr.Jit array) at ``x`` (a Dr.Jit
     float array or tensor; the checker differentiates fresh copies of it).
 
@@ -79,11 +78,11 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
     NumPy array of x's shape returning a float; default ``loss`` itself) must satisfy
     ``|g_i - fd_i| <= fd_atol + fd_rtol |fd_i|`` (defaults for float64: truncation
     ``O(eps^2 f''')`` and cancellation ``~1e-16 |f| / eps`` stay far below).
-    accept(x_plus, x_minus) -> bool: False skips a coordinate whose difference
-    straddles a non-differentiable point (e.g. a change of AVSM's node layout); at
-    least ``min_fd`` coordinates (default: all when ``accept`` is None, else 3/4) must
-    remain.  forward: also compare ``g . v`` with forward mode's ``dL/dx . v``,
-    ``|rev - fwd| <= atol + rtol max(|rev|, |fwd|)`` (same arithmetic in another order).
+    accept(x_plus, x_minus) -> bool: False skips a coordinate whose difference straddles a
+    non-differentiable point (e.g. a change of AVSM's node layout); at least 3/4 of the
+    coordinates (all without ``accept``) must remain.  forward: also compare ``g . v`` with
+    forward mode's ``dL/dx . v``, ``|rev - fwd| <= atol + rtol max(|rev|, |fwd|)`` (same
+    arithmetic in another order).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     eps = V.real(eps, "eps", 0, open_min=True)
@@ -136,7 +135,7 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
         if not abs(g[idx] - d) <= fd_atol + fd_rtol * abs(d):
             out.failures.append(f"finite difference at {tuple(map(int, idx))}: reverse {g[idx]:.10g} vs fd {d:.10g}")
     out.fd = np.array(fds, np.float64)
-    need = (pick.size if accept is None else (3 * pick.size + 3) // 4) if min_fd is None else int(min_fd)
+    need = pick.size if accept is None else (3 * pick.size + 3) // 4
     if len(out.indices) < need:
         out.failures.append(f"only {len(out.indices)} coordinates finite-differenced ({out.skipped} skipped), "
                             f"need {need}")

@@ -199,32 +199,27 @@ def _stats(probe, est, exact) -> dict:
 def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surface"), metrics=METRICS,
              resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
-             build_repeats: int = 1, progress: bool = True) -> Table:
-    """Measure ``methods`` on ``scenes`` in ``configurations``: a :class:`Table` of one row per
-    method x scene x configuration x resolution x order x opaque mode x receiver set (columns:
-    module docstring).
+             progress: bool = True) -> Table:
+    """A :class:`Table` of one row (columns: module docstring) per method x scene x
+    configuration x resolution x order x opaque mode x receiver set.
 
-    methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
-    :class:`~avsm_dr.Representation` subclass, registered or not; ``label: kind`` alone means
-    default parameters, ``(kind, "preset")`` the kind's best-practice parameters
-    (``describe(kind)["preset"]``, recorded in ``params``; its ``preset_capture``, e.g.
-    ``opaque='separate'``, is the caller's ``opaque=``).  scenes: built-in scene names
-    (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.  configurations:
-    :class:`~.configuration.Configuration` items or (seed, light) pairs (default
-    ``configurations()``: seed 0, the scene's own light).  receivers: names of
-    :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface' without a receiver
-    plane, are left out), or {name: (K, 3) points}.  metrics: names of :data:`METRICS`.
+    methods: {label: (kind, params)}; kind a registered name or a
+    :class:`~avsm_dr.Representation` subclass; ``label: kind`` alone means default
+    parameters, ``(kind, "preset")`` the kind's ``describe(kind)["preset"]`` (its
+    ``preset_capture`` is the caller's ``opaque=``).  scenes: built-in scene names and
+    :class:`~avsm_dr.Scene` objects.  configurations: :class:`~.configuration.Configuration`
+    items or (seed, light) pairs (default: seed 0, the scene's own light).  receivers: names
+    of :data:`RECEIVER_SETS` (sets a scene cannot make are left out), or {name: (K, 3)
+    points}.  metrics: names of :data:`METRICS`.
 
     resolution, order: texels per side of the light map; the capture's insertion order
-    (``avsm_dr.capture.ORDERS``), default 'depth' (front to back), not ad.capture's own
-    'submission'; 'random' shuffles with the configuration's seed.  Either may be a
-    sequence: a row per value.  n_volume, n_surface: receivers per set; n_decomp: receivers
-    of the capture / spatial terms.  opaque: 'inline' | 'separate' (or both): blockers in
-    the map or in their own depth map ('separate' runs only for scenes with blockers).
-    subset: build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`:
-    the lookups of a whole-map build for kinds that work per texel); ``bytes`` and
-    ``depth_l2`` then cover those texels.  n_depths: depths per texel of ``depth_l2``.
-    build_repeats: timed builds after the first.  progress: a progress bar over the cells.
+    (``avsm_dr.capture.ORDERS``), default 'depth', not ad.capture's own 'submission';
+    'random' shuffles with the configuration's seed.  Either may be a sequence: a row per
+    value.  n_volume, n_surface: receivers per set; n_decomp: receivers of the capture /
+    spatial terms.  opaque: 'inline' | 'separate' (or both; 'separate' only for scenes with
+    blockers).  subset: build on the texels the receivers touch only
+    (:class:`~.probe.SubsetBuilder`); ``bytes`` and ``depth_l2`` then cover those texels.
+    n_depths: depths per texel of ``depth_l2``.  progress: a progress bar over the cells.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
     fixed = {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()} if isinstance(receivers, dict) \
@@ -239,7 +234,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
         V.integer(v, name, 0)
         V.check_memory(name, int(v), lambda m: float(m) * BYTES_PER_POINT, lo=0, what="receivers")
     V.integer(n_depths, "n_depths", 1)
-    V.integer(build_repeats, "build_repeats", 1)
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
 
     from tqdm import tqdm
@@ -267,12 +261,11 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
                     pr = {s: p.with_capture(cap) for s, p in probes.items()}
                     head = dict(scene=label, seed=cfg.seed, light=cfg.light_label, order=order_label,
                                 resolution=res, opaque=mode)
-                    rows += _run_capture(meths, cap, pr, head, subset, want_l2, want_time, n_depths,
-                                         build_repeats)
+                    rows += _run_capture(meths, cap, pr, head, subset, want_l2, want_time, n_depths)
     return Table(rows)
 
 
-def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths, build_repeats) -> list[dict]:
+def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths) -> list[dict]:
     """The rows of every method on one capture."""
     from ..representations import build
     if subset:
@@ -290,8 +283,7 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
     for m in meths:
         params = sub.params(m.cls, m.params) if subset else m.params
 
-        rep, build_s, first_s = _timed(lambda m=m, params=params: _synced_build(m.cls, segs, params), want_time,
-                                       build_repeats)
+        rep, build_s, first_s = _timed(lambda m=m, params=params: _synced_build(m.cls, segs, params), want_time, 1)
         target = Built(rep, sub.remap, od) if subset else rep
         l2 = depth_l2(compose(rep, od), segs, exact=ex_curve, n_depths=n_depths) if want_l2 else float("nan")
         for s, p in probes.items():
