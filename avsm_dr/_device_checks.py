@@ -1,15 +1,11 @@
 """Lookup arguments validated on the device (Dr.Jit arrays, and NumPy depths once converted).
 
 The host checks' rules (finite, in range) reduce to one flag per argument (``dr.all``, one
-readback) instead of a host copy of every texel / depth; :func:`point_lookup` checks inside
-the lookup's own kernel, and :func:`host_point_lookup` skips the flag where the extremes of
-NumPy input already prove it valid.  NumPy texels are checked by their min and max, NumPy
-depths once converted to the storage type.
-
-The checks are *sufficient*, not exact: they accept only input the host checks accept;
-anything else (including what the host checks would fix up, such as subnormal depths, or
-accept at a boundary, such as a float64 depth that rounds to the float32 maximum) returns
-``None`` so the caller reruns the host checks, which raise their usual ``ValueError``.
+readback); :func:`point_lookup` checks inside the lookup's own kernel, and
+:func:`host_point_lookup` skips the flag where the extremes of NumPy input prove it valid.
+The checks are *sufficient*, not exact: anything they do not accept (including what the
+host checks would fix up, such as subnormal depths) returns ``None`` so the caller reruns
+the host checks, which raise their usual ``ValueError``.
 """
 from __future__ import annotations
 

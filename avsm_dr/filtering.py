@@ -17,11 +17,9 @@ to the edge.
   underflows to 0 however small the radius: a tiny radius becomes the point filter).
 
 Coordinates are split on the host in float64 into an integer texel (int64, clamped to the
-map before it reaches a 32-bit device integer) and the offset inside it, so texel selection
-is exact on any map and coordinates far outside it (>= 2^31) clamp to the edge.  Box and
-gaussian evaluate ``K (2r+1)^2`` (receiver, tap) lanes in batches of at most
-:data:`LANES_PER_BATCH` (one kernel per batch whatever the radius).  ``radius``: finite,
-``> 0`` and at most ``max(width, height)`` (a larger support only re-weights edge texels).
+map) and the offset inside it, so texel selection is exact on any map and coordinates far
+outside it (>= 2^31) clamp to the edge.  ``radius``: finite, ``> 0`` and at most
+``max(width, height)``.
 """
 from __future__ import annotations
 

@@ -66,7 +66,6 @@ def _check(n_boot, level, method, compare="ratio"):
 
 
 def _pair(a, b, name_a: str, name_b: str):
-    """The paired samples ``a``, ``b`` (:func:`_sample`), of one length."""
     x, y = _sample(a, name_a), _sample(b, name_b)
     if x.size != y.size:
         raise ValueError(f"{name_b}: expected {x.size} values (paired with {name_a}), got {y.size}")
@@ -75,8 +74,8 @@ def _pair(a, b, name_a: str, name_b: str):
 
 # ==================================================================== kernels
 def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
-    """(count,) values of ``fn(idx)``, ``idx = rows(a, b)`` the index rows a..b-1 of length
-    ~n, in blocks of at most :data:`_BLOCK` entries."""
+    """(count,) values of ``fn(rows(a, b))`` (index rows a..b-1 of length ~n), :data:`_BLOCK`
+    entries at a time."""
     out = np.empty(count)
     per = max(1, _BLOCK // max(n, 1))
     for a in range(0, count, per):
@@ -163,7 +162,6 @@ def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: C
 
 
 def _result(theta, boot, level, method, jack, **extra) -> dict:
-    """The result dict of :func:`bootstrap_ci` (plus ``extra``) from the replicates ``boot``."""
     lo, hi = _interval(theta, boot, level, method, jack)
     return dict(estimate=float(theta), low=lo, high=hi, level=level, method=method, n_boot=int(boot.size),
                 std_error=float(np.std(boot, ddof=1)), **extra)

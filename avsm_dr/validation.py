@@ -206,12 +206,7 @@ def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndar
         raise ValueError(f"{name}: expected a 3-D (z, y, x) array, got shape {raw.shape}")
     if min(raw.shape) < 1:
         raise ValueError(f"{name}: empty grid of shape {raw.shape}")
-    A.check_finite(raw, name)
-    with np.errstate(over="ignore"):
-        out = raw.astype(dtype)
-    if not np.all(np.isfinite(out)):
-        raise ValueError(f"{name}: values beyond the {np.dtype(dtype).name} range "
-                         f"(largest {np.finfo(dtype).max:.3g}), got {float(np.max(raw)):.3g}")
+    out = array(raw, name, dtype)
     lo = float(out.min())
     if lo < 0:
         raise ValueError(f"{name}: negative extinction {lo:g} (densities must be >= 0)")

@@ -9,14 +9,12 @@ strictly inside an opaque segment::
     L2_t     = sqrt( (1/|D_t|) sum_{j in D_t} (T_rep(t, z_tj) - T_exact(t, z_tj))^2 )
     depth_l2 = sqrt( mean_t L2_t^2 )       (RMS over the texels counted)
 
-i.e. the midpoint rule of ``(1 / |D|) int_D (T_rep - T_exact)^2 dz`` per texel.  Unlike the
-receiver RMSE it weighs every depth of a texel's range alike, wherever the receivers are:
-per texel, the cost ``norm='l2'`` of the ``optimal`` kind minimises (up to the
-normalisation by the range).  Not counted: empty texels (T = 1 for every kind) and texels
-whose range is a single depth (only opaque faces, e.g. a table top without smoke: a step
-whose depth-uniform error has zero measure; the receiver RMSE covers them).  Opaque
-interiors are left out: a blocker is captured as a thin slab of optical depth 1e4, inside
-which no receiver can be (counted, the metric would measure interpolation inside a solid).
+i.e. the midpoint rule of ``(1 / |D|) int_D (T_rep - T_exact)^2 dz`` per texel: every depth
+of a texel's range weighs alike, wherever the receivers are (per texel, the cost
+``norm='l2'`` of the ``optimal`` kind minimises, up to the normalisation by the range).
+Not counted: empty texels (T = 1 for every kind), texels whose range is a single depth
+(only opaque faces: zero measure) and opaque interiors (a blocker's slab, where no
+receiver can be).
 """
 from __future__ import annotations
 

@@ -13,8 +13,7 @@ For a receiver ``x`` at light-space depth ``z`` with bilinear taps ``(texel_i, w
 so ``e_total = e_compression + e_capture + e_spatial`` receiver by receiver.  ``T`` is
 :func:`avsm_dr.groundtruth.transmittance` with ``method='raymarch'``: a float64 midpoint
 rule through the same trilinear grid (step = 1/8 voxel), times the analytic particle,
-hair and blocker factors.  Mitsuba ratio tracking (independent, unbiased, with a
-standard error) checks that truth where a run asks for it.
+hair and blocker factors.
 
 Points the light map does not cover get T = 1 from every representation (the border
 convention of :meth:`avsm_dr.capture.Capture.lookup`); there the taps are unused and
@@ -33,7 +32,7 @@ from ..receivers import marched
 
 
 def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
-    """(K,) float64 true transmittance (module docstring) at world points."""
+    """(K,) float64 true transmittance ``T`` (module docstring) at world points."""
     return marched(scene, points, step_fraction)
 
 
