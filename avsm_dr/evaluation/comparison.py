@@ -131,9 +131,9 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     per = []
     for key in ra:
         va, vb = ra[key][1], rb[key][1]
-        if isinstance(va, (bool, np.bool_)) or isinstance(vb, (bool, np.bool_)):
-            raise ValueError(f"metric: {metric!r} is not numeric ({va!r}, {vb!r})")
         try:
+            if isinstance(va, (bool, np.bool_)) or isinstance(vb, (bool, np.bool_)):
+                raise TypeError
             va, vb = float(va), float(vb)
         except (TypeError, ValueError):
             raise ValueError(f"metric: {metric!r} is not numeric ({va!r}, {vb!r})") from None

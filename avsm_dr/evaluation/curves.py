@@ -72,6 +72,11 @@ def _domain(segments, texels=None):
     return keep, a[keep], b[keep]
 
 
+def rms(x) -> float:
+    """``sqrt(mean x^2)`` of an array (NaN when empty)."""
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+
+
 def _grid(a, b, n):
     """(T', n) midpoints of ``[a, b]`` per row."""
     return a[:, None] + ((np.arange(n) + 0.5) / n)[None, :] * (b - a)[:, None]
@@ -144,9 +149,6 @@ def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per
     est = curve_values(rep, segments, n, texels)
     if ref.shape != est.shape:
         raise ValueError(f"exact: expected curve values of shape {est.shape}, got {ref.shape}")
-    tex, a, b = _domain(segments, texels)
-    keep = _counted(segments, tex, a, b, n)
+    keep = _counted(segments, *_domain(segments, texels), n)
     l2 = np.sqrt(np.sum(np.square(est - ref) * keep, axis=1) / np.maximum(keep.sum(axis=1), 1))
-    if per_texel:
-        return l2
-    return float(np.sqrt(np.mean(np.square(l2)))) if l2.size else float("nan")
+    return l2 if per_texel else rms(l2)

@@ -49,7 +49,7 @@ from ..representations import REGISTRY, Representation, describe
 from ..scene import Scene
 from .configuration import Configuration
 from .configuration import configurations as _configurations
-from .curves import DEPTHS, curve_values, depth_l2
+from .curves import DEPTHS, curve_values, depth_l2, rms
 from .probe import Built, Probe, SubsetBuilder
 from .table import Table
 from .timing import timed
@@ -104,21 +104,15 @@ def _methods(methods) -> list[_Method]:
 
 def _scenes(scenes) -> list[tuple[str, object]]:
     from .. import builtin_scenes
-    if isinstance(scenes, (str, Scene)):
-        scenes = [scenes]
-    if not isinstance(scenes, (list, tuple)):
-        raise ValueError(f"scenes: expected a list of built-in scene names and Scene objects, got {scenes!r}")
     known = getattr(builtin_scenes, "SCENES", {})
     out = []
-    for s in scenes:
+    for s in _names(scenes, "scenes"):
         if not isinstance(s, (str, Scene)):
             raise ValueError(f"scenes: expected built-in scene names or Scene objects, got {s!r}")
         if isinstance(s, str) and s not in known:
             raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
                              f"{V.did_you_mean(s, known)}")
         out.append((s, s) if isinstance(s, str) else (s.name, s))
-    if not out:
-        raise ValueError("scenes: no scene given")
     names = [n for n, _ in out]
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two scenes share a name in {names} (give Scene objects distinct names)")
@@ -128,18 +122,11 @@ def _scenes(scenes) -> list[tuple[str, object]]:
 def _configs(configurations) -> list[Configuration]:
     if configurations is None:
         return _configurations()
-    if isinstance(configurations, Configuration):
-        configurations = [configurations]
-    if isinstance(configurations, (str, bytes)) or not hasattr(configurations, "__iter__"):
-        raise ValueError(f"configurations: expected a list of Configuration or (seed, light) items, "
-                         f"got {configurations!r}")
     out = []
-    for c in configurations:
+    for c in _names(configurations, "configurations"):
         if not (isinstance(c, Configuration) or isinstance(c, (tuple, list)) and len(c) == 2):
-            raise ValueError(f"configurations: expected Configuration or (seed, light) items, got {c!r}")
+            raise ValueError(f"configurations: expected a list of Configuration or (seed, light) items, got {c!r}")
         out.append(c if isinstance(c, Configuration) else Configuration(*c))
-    if not out:
-        raise ValueError("configurations: none given")
     return out
 
 
@@ -182,15 +169,11 @@ def _timed(fn, want: bool, repeats: int):
     return out, wall, first
 
 
-def _rms(x) -> float:
-    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
-
-
 def _stats(probe, est, exact) -> dict:
     t = probe.terms(est, exact)
     s = error_stats(est, probe.truth, THRESHOLD)
-    return dict(rmse=s["rmse"], compression_rms=_rms(t["compression"]), capture_rms=_rms(t["capture"]),
-                spatial_rms=_rms(t["spatial"]), signed_mean=s["mean_error"], leak_share=s["leak_fraction"],
+    return dict(rmse=s["rmse"], compression_rms=rms(t["compression"]), capture_rms=rms(t["capture"]),
+                spatial_rms=rms(t["spatial"]), signed_mean=s["mean_error"], leak_share=s["leak_fraction"],
                 dark_share=s["dark_fraction"], p99=s["p99_error"], p99_9=s["p999_error"], max=s["max_error"],
                 nonfinite=s["nan_count"] + s["inf_count"])
 
