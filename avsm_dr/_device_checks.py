@@ -9,6 +9,9 @@ the host checks, which raise their usual ``ValueError``.
 """
 from __future__ import annotations
 
+import functools
+import operator
+
 import drjit as dr
 import numpy as np
 
@@ -113,11 +116,7 @@ def _broadcast(tex, d):
 
 def all_true(*masks) -> bool:
     """``dr.all`` of every mask, read back as one Python bool."""
-    ok = None
-    for m in masks:
-        r = dr.all(m)
-        ok = r if ok is None else ok & r
-    return bool(ok[0])
+    return bool(functools.reduce(operator.and_, (dr.all(m) for m in masks))[0])
 
 
 def point_lookup(eval_texels, texel, texel_checked: bool, depth, strict: bool, n_texels: int, dtype: str, Float):

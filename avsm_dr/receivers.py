@@ -65,17 +65,17 @@ def _density_candidates(scene: Scene, m: int, rng) -> np.ndarray:
     return np.zeros((0, 3))
 
 
-def visibility(scene: Scene, points, origin=None, step_fraction: float = 1.0) -> np.ndarray:
+def visibility(scene: Scene, points, origin=None) -> np.ndarray:
     """(K,) float64 transmittance from ``scene.light`` (``origin=None``) or from the point
     ``origin`` to each point, through grid, particles and blockers (hair left out), by a
-    float64 ray march with one-voxel steps (``step_fraction`` voxels)."""
+    float64 ray march with one-voxel steps."""
     p = V.points(points, "points", allow_empty=True)
     sc = dataclasses.replace(scene, hair=None)
     if origin is not None:
         sc = dataclasses.replace(sc, light=PointLight(position=V.vec3(origin, "origin")))
     if p.shape[0] and sc.density is None and sc.particles is None and not sc.blockers:
         return np.ones(p.shape[0])
-    return marched(sc, p, step_fraction)
+    return marched(sc, p, 1.0)
 
 
 def voxel_step(scene: Scene, fraction: float) -> float | None:

@@ -9,10 +9,8 @@ Pipeline (every step differentiable with respect to the voxel densities ``sigma`
 * **Capture** with ``keep_zero=True``: every march step inside the box is a segment,
   empty ones included, so voxels that are still 0 receive gradients; the light camera is
   fitted to the whole box and, with a tiny ``epsilon``, the segment layout is geometry only.
-* **Representations**: ``exact``, ``fom``, ``osm`` (linear in tau), ``avsm`` (node layout
-  held fixed: gradients flow through the node values and insertion ramps of the current
-  layout) and ``dsm`` with ``placement='curve'`` (node depths fixed); other DSM placements
-  are not differentiable.
+* **Representations**: the configurations ``ad.describe`` marks differentiable (``avsm``
+  with its node layout held fixed, ``dsm`` with ``placement='curve'``: node depths fixed).
 * Reverse mode for many parameters (``dr.backward``), forward mode for a few;
   :func:`gradient_check` compares the two (a too-small loop bound corrupts reverse mode only).
 

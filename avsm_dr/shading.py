@@ -125,12 +125,11 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
         step = V.real(step, "step", 0.0, open_min=True)
     s = V.integer(supersample, "supersample", 1)
     o, d = camera_rays(scene, width, height, cam, s)
-    N = o.shape[0]
     t_plane = OpaquePlane(c, n, half).surface_hit(o, d)     # the receiver square, the same test
     t_block = _hit_blockers(o, d, content["blockers"])
     on_plane = np.isfinite(t_plane) & (t_plane < t_block)
     t_end = np.minimum(t_plane, t_block)
-    radiance = np.zeros(N)
+    radiance = np.zeros(o.shape[0])
 
     idx = np.nonzero(on_plane)[0]
     if idx.size:

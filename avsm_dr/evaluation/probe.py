@@ -38,12 +38,8 @@ def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
 
 class Probe:
     """One receiver set seen through one capture: bilinear taps, the truth at the receivers
-    and (on the first ``n_decomp`` receivers) at the taps' texel rays.
-
-    ``lookup(rep)`` -> (K,) float64 bilinear transmittance (``rep`` composed with the
-    capture's opaque depth map when it has one); :meth:`terms` -> the signed
-    per-receiver terms of the module docstring.
-    """
+    and (on the first ``n_decomp`` receivers) at the taps' texel rays; :meth:`lookup` through
+    it, :meth:`terms` of the module docstring."""
 
     def __init__(self, cap, scene, points, n_decomp: int, truth_at_points=None):
         self.cap = cap
@@ -74,7 +70,8 @@ class Probe:
 
     def lookup(self, rep) -> np.ndarray:
         """(K,) float64 bilinear lookup at the receivers (1 outside the map) of ``rep``: a
-        representation built on the whole map of the capture, or a :class:`Built`."""
+        representation built on the whole map of the capture (composed with its opaque depth
+        map), or a :class:`Built`."""
         tex = self.tex
         if isinstance(rep, Built):
             tex = rep.remap[tex]
@@ -110,9 +107,8 @@ class SubsetBuilder:
     Every kind's kernel works per texel; what a kind takes from the whole map is its global
     depth range, so kinds whose schema has ``near``/``far`` get the full map's bounds
     (unless ``depth_range='texel'`` or given).  Lookups through :class:`Probe` then equal
-    those of a build on the whole map (``error_curves`` checks this per kind in its base
-    configuration and falls back to whole-map builds where it does not hold);
-    ``nbytes_per_texel`` of variable-size kinds is then the mean over the subset.
+    those of a build on the whole map; ``nbytes_per_texel`` of variable-size kinds is the
+    mean over the subset.
     """
 
     def __init__(self, segments, texels, opaque_depth=None):
