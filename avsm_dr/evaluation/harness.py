@@ -80,22 +80,18 @@ def _methods(methods) -> list[_Method]:
         preset = isinstance(params, str) and params == "preset"
         if not (preset or isinstance(params, dict)):
             raise ValueError(f"methods[{label!r}]: expected (kind, params dict or 'preset'), got {spec!r}")
-        if isinstance(kind, str):
-            try:
-                describe(kind)
-            except ValueError as exc:
-                raise ValueError(f"methods[{label!r}]: {exc}") from None
-            cls, name = REGISTRY[kind], kind
-        elif isinstance(kind, type) and issubclass(kind, Representation) and not inspect.isabstract(kind):
-            cls = kind
-            name = cls.kind if REGISTRY.get(cls.kind) is cls else cls.__name__
-        else:
-            raise ValueError(f"methods[{label!r}]: expected a kind name or a Representation subclass "
-                             f"(with _eval_texels and nbytes_per_texel), got {kind!r}")
-        if preset:                                           # the kind's best practice (describe)
-            params = dict(cls.PRESET)
         try:
-            cls(toy, **params)                               # parameters checked before any capture
+            if isinstance(kind, str):
+                describe(kind)
+                cls, name = REGISTRY[kind], kind
+            elif isinstance(kind, type) and issubclass(kind, Representation) and not inspect.isabstract(kind):
+                cls = kind
+                name = cls.kind if REGISTRY.get(cls.kind) is cls else cls.__name__
+            else:
+                raise ValueError(f"expected a kind name or a Representation subclass (with _eval_texels and "
+                                 f"nbytes_per_texel), got {kind!r}")
+            params = dict(cls.PRESET) if preset else params     # the kind's best practice (describe)
+            cls(toy, **params)                                   # parameters checked before any capture
         except ValueError as exc:
             raise ValueError(f"methods[{label!r}]: {exc}") from None
         out.append(_Method(label, cls, dict(params), name))
