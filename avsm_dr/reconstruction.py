@@ -115,8 +115,7 @@ def shadow(scene: Scene, density, points=None, light=None, kind: str = "fom", pa
     Simpson march, ``method='march'``: module docstring).  filter: the lookup filter.
     reverse: 'auto' | 'trajectory' | 'checkpoint' (:func:`avsm_dr.build`).
     """
-    if kind not in kinds():
-        raise ValueError(f"kind: expected one of {kinds()}, got {kind!r}")
+    V.one_of(kind, "kind", kinds())
     p = differentiable_configuration(kind) if params is None else dict(params)
     if p is None:
         raise ValueError(f"kind: {kind!r} has no differentiable configuration")
