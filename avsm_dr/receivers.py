@@ -54,9 +54,7 @@ def _density_candidates(scene: Scene, m: int, rng) -> np.ndarray:
         h = (hi - lo) / np.array([nx, ny, nz])
         return lo + (np.stack([kx, ky, kz], 1) + rng.random((m, 3))) * h
     if scene.particles is not None:
-        c = np.asarray(scene.particles.centers, np.float64)
-        r = np.asarray(scene.particles.radii, np.float64)
-        s = np.asarray(scene.particles.density, np.float64)
+        c, r, s = (np.asarray(getattr(scene.particles, k), np.float64) for k in ("centers", "radii", "density"))
         w = s * r ** 3
         pick = rng.choice(w.size, size=m, p=w / w.sum())
         u = rng.standard_normal((m, 3))

@@ -14,6 +14,7 @@ The rule (the same as the representations' parameter schema):
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
 import math
 import os
@@ -100,12 +101,10 @@ def array(value: Any, name: str, dtype=np.float64, finite: bool = True) -> np.nd
 
 def vec3(value: Any, name: str) -> np.ndarray:
     """(3,) float64 of three finite real numbers."""
-    try:
+    with contextlib.suppress(ValueError):
         a = array(value, name).reshape(-1)
         if a.shape == (3,):
             return a
-    except ValueError:
-        pass
     raise ValueError(f"{name}: expected 3 finite numbers, got {value!r}")
 
 
@@ -228,17 +227,13 @@ def memory_budget() -> int:
     if MEMORY_BUDGET_BYTES is not None:
         return int(MEMORY_BUDGET_BYTES)
     total = math.inf
-    try:
+    with contextlib.suppress(AttributeError, ValueError, OSError):      # not POSIX: only the limit below
         total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (AttributeError, ValueError, OSError):       # not POSIX: only the limit below
-        pass
-    try:
+    with contextlib.suppress(ImportError, ValueError, OSError):
         import resource
         limit = resource.getrlimit(resource.RLIMIT_AS)[0]
         if limit != resource.RLIM_INFINITY:
             total = min(total, limit)
-    except (ImportError, ValueError, OSError):
-        pass
     return int(MEMORY_FRACTION * total) if math.isfinite(total) else 2**62
 
 

@@ -44,18 +44,16 @@ class Probe:
     def __init__(self, cap, scene, points, n_decomp: int, truth_at_points=None):
         self.cap = cap
         p = np.asarray(points, np.float64)
-        self.points = p
         self.k = p.shape[0]
-        coords, depth = cap.lookup(p, continuous=True)
+        coords, self.depth = cap.lookup(p, continuous=True)
         self.inside = cap.covers(p)
-        self.depth = depth
         self.tex, self.weights = bilinear_taps(coords, cap.width, cap.height)     # (4, K) int64, float64
         self.truth = truth(scene, p) if truth_at_points is None else np.asarray(truth_at_points, np.float64)
         # truth along each tap's texel ray to the receiver's depth, on the first n_decomp receivers
         self.n_decomp = min(int(n_decomp), self.k)
         m = self.n_decomp
         o, d = cap.camera.rays(self.tex[:, :m].ravel())
-        q = o + np.tile(depth[:m], 4)[:, None] * d
+        q = o + np.tile(self.depth[:m], 4)[:, None] * d
         t_taps = truth(scene, q).reshape(4, m)
         self.truth_taps = np.where(self.inside[:m], np.sum(self.weights[:, :m] * t_taps, axis=0), 1.0)
 
