@@ -1,17 +1,16 @@
 """Lookup arguments validated on the device (Dr.Jit arrays, and NumPy depths once converted).
 
 The host checks' rules (finite, in range) reduce to one flag per argument (``dr.all``, one
-readback) instead of a host copy of every texel / depth; :func:`point_lookup` checks inside
-the lookup's own kernel, and :func:`host_point_lookup` skips the flag where the extremes of
-NumPy input already prove it valid.  NumPy texels are checked by their min and max, NumPy
-depths once converted to the storage type.
-
-The checks are *sufficient*, not exact: they accept only input the host checks accept;
-anything else (including what the host checks would fix up, such as subnormal depths, or
-accept at a boundary, such as a float64 depth that rounds to the float32 maximum) returns
-``None`` so the caller reruns the host checks, which raise their usual ``ValueError``.
+readback); :func:`point_lookup` checks inside the lookup's own kernel, and
+:func:`host_point_lookup` skips the flag where the extremes of NumPy input prove it valid.
+The checks are *sufficient*, not exact: anything they do not accept (including what the
+host checks would fix up, such as subnormal depths) returns ``None`` so the caller reruns
+the host checks, which raise their usual ``ValueError``.
 """
 from __future__ import annotations
+
+import functools
+import operator
 
 import drjit as dr
 import numpy as np
@@ -52,12 +51,21 @@ def depth_mask(depth, dtype: str, strict: bool = False):
     return dr.isfinite(d) & (a <= float(info.max)) & ((d == 0) | normal)
 
 
+#: NumPy dtypes (native byte order) that :func:`host_point_lookup` takes.
+_NP_TYPES = frozenset(np.dtype(t) for t in (np.int32, np.int64, np.uint32, np.uint64, np.float32, np.float64))
+
+
+def _plain(x, kinds: str, native: bool = True) -> bool:
+    """True for a non-empty 1-D NumPy array of dtype kind in ``kinds`` (``native``: a dtype of
+    :data:`_NP_TYPES`)."""
+    return (isinstance(x, np.ndarray) and x.ndim == 1 and x.size > 0 and x.dtype.kind in kinds
+            and (not native or x.dtype in _NP_TYPES))
+
+
 def host_texels(texel, n_texels: int):
     """NumPy integer texel indices (1-D, non-empty) in ``[0, n_texels)`` as a Dr.Jit UInt32
     array (checked by their min and max: no float64 copy), else None."""
-    if not isinstance(texel, np.ndarray) or texel.dtype.kind not in "iu" or texel.ndim != 1 or texel.size == 0:
-        return None
-    if int(texel.min()) < 0 or int(texel.max()) >= n_texels:
+    if not _plain(texel, "iu", native=False) or int(texel.min()) < 0 or int(texel.max()) >= n_texels:
         return None
     return A.to_uint32(texel)
 
@@ -65,20 +73,10 @@ def host_texels(texel, n_texels: int):
 def host_depth(depth, Float):
     """NumPy float depths (1-D, non-empty) converted once to ``Float`` (checked afterwards
     with ``depth_mask(..., strict=True)``), else None."""
-    if not isinstance(depth, np.ndarray) or depth.dtype.kind != "f" or depth.ndim != 1 or depth.size == 0:
+    if not _plain(depth, "f", native=False):
         return None
     with np.errstate(over="ignore", invalid="ignore"):      # an overflow becomes inf: refused later
         return A.to_float(depth, Float)
-
-
-#: NumPy dtypes (native byte order) that :func:`host_point_lookup` takes.
-_NP_TYPES = frozenset(np.dtype(t) for t in (np.int32, np.int64, np.uint32, np.uint64, np.float32, np.float64))
-
-
-def _plain(x, kinds: str) -> bool:
-    """True for a non-empty 1-D NumPy array of a native dtype in :data:`_NP_TYPES` of kind ``kinds``."""
-    return (isinstance(x, np.ndarray) and x.ndim == 1 and x.size > 0 and x.dtype in _NP_TYPES
-            and x.dtype.kind in kinds)
 
 
 def host_point_lookup(eval_texels, texel, depth, n_texels: int, dtype: str, Float):
@@ -117,11 +115,7 @@ def _broadcast(tex, d):
 
 def all_true(*masks) -> bool:
     """``dr.all`` of every mask, read back as one Python bool."""
-    ok = None
-    for m in masks:
-        r = dr.all(m)
-        ok = r if ok is None else ok & r
-    return bool(ok[0])
+    return bool(functools.reduce(operator.and_, (dr.all(m) for m in masks))[0])
 
 
 def point_lookup(eval_texels, texel, texel_checked: bool, depth, strict: bool, n_texels: int, dtype: str, Float):

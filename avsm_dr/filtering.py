@@ -17,11 +17,9 @@ to the edge.
   underflows to 0 however small the radius: a tiny radius becomes the point filter).
 
 Coordinates are split on the host in float64 into an integer texel (int64, clamped to the
-map before it reaches a 32-bit device integer) and the offset inside it, so texel selection
-is exact on any map and coordinates far outside it (>= 2^31) clamp to the edge.  Box and
-gaussian evaluate ``K (2r+1)^2`` (receiver, tap) lanes in batches of at most
-:data:`LANES_PER_BATCH` (one kernel per batch whatever the radius).  ``radius``: finite,
-``> 0`` and at most ``max(width, height)`` (a larger support only re-weights edge texels).
+map) and the offset inside it, so texel selection is exact on any map and coordinates far
+outside it (>= 2^31) clamp to the edge.  ``radius``: finite, ``> 0`` and at most
+``max(width, height)``.
 """
 from __future__ import annotations
 
@@ -39,11 +37,6 @@ LANES_PER_BATCH = 1 << 22
 #: Largest gaussian ``1 / (2 sigma^2)`` used: finite in float32 also times a squared
 #: distance of the support (<= 2 (r + 1)^2 for r <= 1: below 1e8).
 GAUSSIAN_INV2S2_MAX = 1e30
-
-
-def check_size(value, name: str) -> int:
-    """``width`` / ``height``: an integer >= 1 (not bool), else ValueError naming it."""
-    return V.integer(value, name, 1)
 
 
 def check_radius(radius, width: int | None = None, height: int | None = None) -> float:

@@ -54,9 +54,7 @@ def _density_candidates(scene: Scene, m: int, rng) -> np.ndarray:
         h = (hi - lo) / np.array([nx, ny, nz])
         return lo + (np.stack([kx, ky, kz], 1) + rng.random((m, 3))) * h
     if scene.particles is not None:
-        c = np.asarray(scene.particles.centers, np.float64)
-        r = np.asarray(scene.particles.radii, np.float64)
-        s = np.asarray(scene.particles.density, np.float64)
+        c, r, s = (np.asarray(getattr(scene.particles, k), np.float64) for k in ("centers", "radii", "density"))
         w = s * r ** 3
         pick = rng.choice(w.size, size=m, p=w / w.sum())
         u = rng.standard_normal((m, 3))
@@ -65,17 +63,25 @@ def _density_candidates(scene: Scene, m: int, rng) -> np.ndarray:
     return np.zeros((0, 3))
 
 
-def visibility(scene: Scene, points, origin=None, step_fraction: float = 1.0) -> np.ndarray:
+def visibility(scene: Scene, points, origin=None) -> np.ndarray:
     """(K,) float64 transmittance from ``scene.light`` (``origin=None``) or from the point
     ``origin`` to each point, through grid, particles and blockers (hair left out), by a
-    float64 ray march with one-voxel steps (``step_fraction`` voxels)."""
+    float64 ray march with one-voxel steps."""
     p = V.points(points, "points", allow_empty=True)
     sc = dataclasses.replace(scene, hair=None)
     if origin is not None:
         sc = dataclasses.replace(sc, light=PointLight(position=V.vec3(origin, "origin")))
     if p.shape[0] and sc.density is None and sc.particles is None and not sc.blockers:
         return np.ones(p.shape[0])
-    return marched(sc, p, step_fraction)
+    return marched(sc, p, 1.0)
+
+
+def voxel_step(scene: Scene, fraction: float) -> float | None:
+    """``fraction`` of the smallest voxel side of ``scene``'s grid (None without a grid)."""
+    if scene.density is None:
+        return None
+    from .groundtruth.tracking import default_step
+    return default_step(scene.density, *(np.asarray(b, np.float64) for b in scene.bbox), fraction)
 
 
 def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
@@ -85,11 +91,7 @@ def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
     p = np.asarray(points, np.float64)
     if p.shape[0] == 0:
         return np.zeros(0)
-    step = None
-    if scene.density is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
-        step = step_fraction * float(np.min((hi - lo) / np.array(scene.density.shape[::-1])))
-    return groundtruth.transmittance(scene, p, method="raymarch", step=step)[0]
+    return groundtruth.transmittance(scene, p, method="raymarch", step=voxel_step(scene, step_fraction))[0]
 
 
 def lattice(bbox, counts) -> np.ndarray:

@@ -9,10 +9,8 @@ Pipeline (every step differentiable with respect to the voxel densities ``sigma`
 * **Capture** with ``keep_zero=True``: every march step inside the box is a segment,
   empty ones included, so voxels that are still 0 receive gradients; the light camera is
   fitted to the whole box and, with a tiny ``epsilon``, the segment layout is geometry only.
-* **Representations**: ``exact``, ``fom``, ``osm`` (linear in tau), ``avsm`` (node layout
-  held fixed: gradients flow through the node values and insertion ramps of the current
-  layout) and ``dsm`` with ``placement='curve'`` (node depths fixed); other DSM placements
-  are not differentiable.
+* **Representations**: the configurations ``ad.describe`` marks differentiable (``avsm``
+  with its node layout held fixed, ``dsm`` with ``placement='curve'``: node depths fixed).
 * Reverse mode for many parameters (``dr.backward``), forward mode for a few;
   :func:`gradient_check` compares the two (a too-small loop bound corrupts reverse mode only).
 
@@ -117,8 +115,7 @@ def shadow(scene: Scene, density, points=None, light=None, kind: str = "fom", pa
     Simpson march, ``method='march'``: module docstring).  filter: the lookup filter.
     reverse: 'auto' | 'trajectory' | 'checkpoint' (:func:`avsm_dr.build`).
     """
-    if kind not in kinds():
-        raise ValueError(f"kind: expected one of {kinds()}, got {kind!r}")
+    V.one_of(kind, "kind", kinds())
     p = differentiable_configuration(kind) if params is None else dict(params)
     if p is None:
         raise ValueError(f"kind: {kind!r} has no differentiable configuration")
@@ -195,10 +192,8 @@ class ProjectedAdam(drjit.opt.Adam):
 
     def __init__(self, lr: float = 0.1, params=None, *, beta1: float = 0.9, beta2: float = 0.99,
                  eps: float = 1e-8, lower: float | None = 0.0):
-        lr = V.real(lr, "lr", 0, open_min=True)
-        beta1 = V.real(beta1, "beta1", 0, 1, open_max=True)
-        beta2 = V.real(beta2, "beta2", 0, 1, open_max=True)
-        eps = V.real(eps, "eps", 0, open_min=True)
+        lr, eps = (V.real(v, name, 0, open_min=True) for v, name in ((lr, "lr"), (eps, "eps")))
+        beta1, beta2 = (V.real(v, name, 0, 1, open_max=True) for v, name in ((beta1, "beta1"), (beta2, "beta2")))
         self.lower = None if lower is None else V.real(lower, "lower")
         super().__init__(lr, params, beta_1=beta1, beta_2=beta2, epsilon=eps)
 
@@ -223,8 +218,7 @@ def gradient_check(loss_fn: Callable, x, rng=None, rtol: float = 1e-4, atol: flo
 def density_error(recovered, truth) -> dict:
     """Errors of a recovered grid against the known one: relative L2, RMSE, mean
     absolute, max absolute, and the relative error of the total mass."""
-    r = np.asarray(recovered, np.float64)
-    t = np.asarray(truth, np.float64)
+    r, t = (np.asarray(v, np.float64) for v in (recovered, truth))
     if r.shape != t.shape:
         raise ValueError(f"recovered: shape {r.shape} differs from the truth's {t.shape}")
     d = r - t

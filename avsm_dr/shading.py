@@ -125,12 +125,11 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
         step = V.real(step, "step", 0.0, open_min=True)
     s = V.integer(supersample, "supersample", 1)
     o, d = camera_rays(scene, width, height, cam, s)
-    N = o.shape[0]
     t_plane = OpaquePlane(c, n, half).surface_hit(o, d)     # the receiver square, the same test
     t_block = _hit_blockers(o, d, content["blockers"])
     on_plane = np.isfinite(t_plane) & (t_plane < t_block)
     t_end = np.minimum(t_plane, t_block)
-    radiance = np.zeros(N)
+    radiance = np.zeros(o.shape[0])
 
     idx = np.nonzero(on_plane)[0]
     if idx.size:
@@ -192,21 +191,3 @@ def groundtruth_plane(scene: Scene, width: int = 128, height: int = 128, camera=
         return gt_transmittance(scene, points, method="raymarch", step=step)[0]
     return render_plane(scene, light_T, width, height, camera, **kw)
 
-
-# ================================================================ comparison
-def compare_images(a, b) -> dict:
-    """Error of image ``b`` against reference ``a`` (same shape).
-
-    Returns dict(rmse, max_abs, mean_abs, rel_rmse = rmse / mean |a|, diff4x = 4 |a - b|).
-    """
-    a = V.array(a, "a")
-    b = V.array(b, "b")
-    if a.shape != b.shape:
-        raise ValueError(f"b: shape {b.shape} does not match a's {a.shape}")
-    if a.size == 0:
-        raise ValueError("a: empty image")
-    diff = a - b
-    rmse = float(np.sqrt(np.mean(diff ** 2)))
-    scale = float(np.mean(np.abs(a)))
-    return {"rmse": rmse, "max_abs": float(np.abs(diff).max()), "mean_abs": float(np.mean(np.abs(diff))),
-            "rel_rmse": rmse / scale if scale > 0 else float("inf"), "diff4x": 4 * np.abs(diff)}

@@ -8,7 +8,7 @@ resamples the receivers of two methods together (receiver-to-receiver variation 
 :func:`claim` pools paired comparisons over configurations (seed x light x ...).
 
 Samples with spatial correlation (texels of one map, receivers looked up through it) take
-``blocks``: a block label per value (:func:`texel_blocks`: tiles of 8 x 8 texels).  A
+``blocks``: a block label per value (e.g. tiles of 8 x 8 texels of the map).  A
 replicate then draws as many blocks as there are, with replacement, and keeps every value
 of each drawn block (the moving-block idea of Kuensch 1989 on fixed, non-overlapping tiles:
 Lahiri, "Resampling Methods for Dependent Data", 2003, sec. 2.6), so the interval keeps the
@@ -66,7 +66,6 @@ def _check(n_boot, level, method, compare="ratio"):
 
 
 def _pair(a, b, name_a: str, name_b: str):
-    """The paired samples ``a``, ``b`` (:func:`_sample`), of one length."""
     x, y = _sample(a, name_a), _sample(b, name_b)
     if x.size != y.size:
         raise ValueError(f"{name_b}: expected {x.size} values (paired with {name_a}), got {y.size}")
@@ -75,8 +74,8 @@ def _pair(a, b, name_a: str, name_b: str):
 
 # ==================================================================== kernels
 def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
-    """(count,) values of ``fn(idx)``, ``idx = rows(a, b)`` the index rows a..b-1 of length
-    ~n, in blocks of at most :data:`_BLOCK` entries."""
+    """(count,) values of ``fn(rows(a, b))`` (index rows a..b-1 of length ~n), :data:`_BLOCK`
+    entries at a time."""
     out = np.empty(count)
     per = max(1, _BLOCK // max(n, 1))
     for a in range(0, count, per):
@@ -91,22 +90,6 @@ def _replicates(fn: Callable, n: int, n_boot: int, rng, layout=None) -> np.ndarr
     if layout is not None:
         return _block_replicates(fn, layout, n_boot, rng)
     return _rows(fn, n, n_boot, lambda a, b: rng.integers(0, n, size=(b - a, n)))
-
-
-#: Side in texels of the square tiles of :func:`texel_blocks`.
-BLOCK_TEXELS = 8
-
-
-def texel_blocks(texels, width: int, size: int = BLOCK_TEXELS) -> np.ndarray:
-    """(n,) int64 block label of each texel index (row-major, ``y * width + x``): the tile
-    ``(y // size, x // size)`` of ``size`` x ``size`` texels, numbered row-major."""
-    t = V.array(texels, "texels").ravel()
-    width, size = V.integer(width, "width", 1), V.integer(size, "size", 1)
-    if np.any(t < 0) or np.any(t != np.round(t)):
-        raise ValueError("texels: expected non-negative integer texel indices")
-    t = t.astype(np.int64)
-    y, x = t // width, t % width
-    return (y // size) * (-(-width // size)) + x // size
 
 
 def _layout(blocks, n: int, method: str = "percentile", name: str = "blocks"):
@@ -179,7 +162,6 @@ def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: C
 
 
 def _result(theta, boot, level, method, jack, **extra) -> dict:
-    """The result dict of :func:`bootstrap_ci` (plus ``extra``) from the replicates ``boot``."""
     lo, hi = _interval(theta, boot, level, method, jack)
     return dict(estimate=float(theta), low=lo, high=hi, level=level, method=method, n_boot=int(boot.size),
                 std_error=float(np.std(boot, ddof=1)), **extra)

@@ -14,6 +14,7 @@ The rule (the same as the representations' parameter schema):
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
 import math
 import os
@@ -100,12 +101,10 @@ def array(value: Any, name: str, dtype=np.float64, finite: bool = True) -> np.nd
 
 def vec3(value: Any, name: str) -> np.ndarray:
     """(3,) float64 of three finite real numbers."""
-    try:
+    with contextlib.suppress(ValueError):
         a = array(value, name).reshape(-1)
         if a.shape == (3,):
             return a
-    except ValueError:
-        pass
     raise ValueError(f"{name}: expected 3 finite numbers, got {value!r}")
 
 
@@ -206,12 +205,7 @@ def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndar
         raise ValueError(f"{name}: expected a 3-D (z, y, x) array, got shape {raw.shape}")
     if min(raw.shape) < 1:
         raise ValueError(f"{name}: empty grid of shape {raw.shape}")
-    A.check_finite(raw, name)
-    with np.errstate(over="ignore"):
-        out = raw.astype(dtype)
-    if not np.all(np.isfinite(out)):
-        raise ValueError(f"{name}: values beyond the {np.dtype(dtype).name} range "
-                         f"(largest {np.finfo(dtype).max:.3g}), got {float(np.max(raw)):.3g}")
+    out = array(raw, name, dtype)
     lo = float(out.min())
     if lo < 0:
         raise ValueError(f"{name}: negative extinction {lo:g} (densities must be >= 0)")
@@ -233,17 +227,13 @@ def memory_budget() -> int:
     if MEMORY_BUDGET_BYTES is not None:
         return int(MEMORY_BUDGET_BYTES)
     total = math.inf
-    try:
+    with contextlib.suppress(AttributeError, ValueError, OSError):      # not POSIX: only the limit below
         total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (AttributeError, ValueError, OSError):       # not POSIX: only the limit below
-        pass
-    try:
+    with contextlib.suppress(ImportError, ValueError, OSError):
         import resource
         limit = resource.getrlimit(resource.RLIMIT_AS)[0]
         if limit != resource.RLIM_INFINITY:
             total = min(total, limit)
-    except (ImportError, ValueError, OSError):
-        pass
     return int(MEMORY_FRACTION * total) if math.isfinite(total) else 2**62
 
 

@@ -35,6 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import backend, build, kinds
+from avsm_dr.receivers import voxel_step
 from ._headline import listing, num
 from ._study import Study
 
@@ -138,6 +139,7 @@ def quadrature_light(scene, step_fraction: float = LIGHT_STEP):
     method, computed with one Dr.Jit lane per point."""
     from avsm_dr import groundtruth as gt
     from avsm_dr.groundtruth.content import check_scene
+    from avsm_dr.groundtruth.tracking import default_step
     content = check_scene(scene)
     others = dataclasses.replace(scene, density=None, bbox=None)
     has_others = content["particles"] is not None or content["hair"] is not None or bool(content["blockers"])
@@ -147,9 +149,8 @@ def quadrature_light(scene, step_fraction: float = LIGHT_STEP):
         T = np.ones(p.shape[0])
         if content["grid"] is not None:
             g, lo, hi = content["grid"]
-            step = float(np.min((hi - lo) / np.asarray(g.shape[::-1]))) * step_fraction
             o, d, L = gt.light_paths(scene, p)
-            T = np.exp(-_march_grid(g, lo, hi, o, d, L, step))
+            T = np.exp(-_march_grid(g, lo, hi, o, d, L, default_step(g, lo, hi, step_fraction)))
         if has_others:
             T = T * gt.transmittance(others, p, method="raymarch")[0]
         return T
@@ -203,7 +204,7 @@ def _check_reference(scene, ccam, crop, spp, seeds, look):
     against Mitsuba ``volpath`` (``seeds`` independent renders of spp / seeds samples: mean
     and standard error), compared at 8 x 8 rays per pixel."""
     from avsm_dr import groundtruth, shading
-    step = _voxel(scene) * VIEW_STEP
+    step = voxel_step(scene, VIEW_STEP)
     light = quadrature_light(scene)
     ref = shading.render_plane(scene, light, crop, crop, ccam, supersample=4, step=step, **look)
     fine = shading.render_plane(scene, quadrature_light(scene, LIGHT_STEP / 2), crop, crop, ccam, supersample=4,
@@ -254,11 +255,6 @@ def _interior_pixels(scene, cam, crop, s: int = 4):
     return out
 
 
-def _voxel(scene):
-    lo, hi = (np.asarray(b, float) for b in scene.bbox)
-    return float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1])))
-
-
 def _zoom_window(diffs, size):
     """(row, col) top-left of the size x size window with the largest mean |difference|
     summed over ``diffs`` (box filter by cumulative sums)."""
@@ -299,7 +295,7 @@ def _compute(res, params: dict) -> dict:
         cam = dict(CAMERAS.get(name, {}))
         Wx = int(round(H * cam.pop("aspect", 1.0)))
         look = dict(albedo=params["albedo"], reflectance=params["reflectance"])
-        common = dict(camera=cam, supersample=params["supersample"], step=_voxel(scene) * VIEW_STEP, **look)
+        common = dict(camera=cam, supersample=params["supersample"], step=voxel_step(scene, VIEW_STEP), **look)
         ref = shading.render_plane(scene, quadrature_light(scene), Wx, H, **common)
         imgs = {}
         for kind, p in METHODS:

@@ -138,7 +138,8 @@ def _configs(names, seeds, lights, n_receivers):
 
 def _compute(res, params: dict) -> dict:
     """Every kind at each budget and resolution, per configuration; the findings and figures."""
-    from avsm_dr import capture, groundtruth
+    from avsm_dr import capture
+    from avsm_dr.receivers import marched, voxel_step
     from avsm_dr.stats import bootstrap_ci, claim
     plans = {b: plan(b, params["resolutions"]) for b in params["budgets"]}
     resolutions = sorted({r for p in plans.values() for _, r, _ in p} | set(params["resolutions"]))
@@ -146,9 +147,8 @@ def _compute(res, params: dict) -> dict:
     configs = list(_configs(params["scenes"], params["seeds"], params["lights"], params["n_receivers"]))
     for name, seed, li, scene in tqdm(configs, desc="spatial_budget", unit="config"):
         pts = np.asarray(scene.receivers, np.float64)
-        lo, hi = (np.asarray(b, float) for b in scene.bbox)
-        step = float(np.min((hi - lo) / np.asarray(scene.density.shape[::-1]))) * params["step_fraction"]
-        truth = groundtruth.transmittance(scene, pts, method="raymarch", step=step)[0]
+        step = voxel_step(scene, params["step_fraction"])
+        truth = marched(scene, pts, params["step_fraction"])
         groups = _groups(pts.shape[0])
         many = np.resize(pts, (params["lookups"], 3))          # the lookup-timing batch (receivers first)
         base = dict(scene=name, seed=seed, light=li)

@@ -1,4 +1,4 @@
-"""Spatial block bootstrap of avsm_dr.stats (``blocks=``, :func:`~avsm_dr.stats.texel_blocks`)
+"""Spatial block bootstrap of avsm_dr.stats (``blocks=``, :func:`experiments.error_curves.texel_blocks`)
 against a slow NumPy reference written out replicate by replicate."""
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from avsm_dr import stats
+from experiments.error_curves import texel_blocks
 
 
 def _reference_replicates(x, y, blocks, statistic, n_boot, seed, compare="ratio"):
@@ -73,7 +74,7 @@ def test_blocks_widen_the_interval_of_correlated_texels():
     tile = rng.standard_normal((8, 8))
     img = np.kron(tile, np.ones((8, 8))) + 0.01 * rng.standard_normal((64, 64))
     x = img.ravel()
-    blocks = stats.texel_blocks(np.arange(x.size), 64)
+    blocks = texel_blocks(np.arange(x.size), 64)
     iid = stats.bootstrap_ci(x, "mean", n_boot=1000, seed=0)
     blk = stats.bootstrap_ci(x, "mean", n_boot=1000, seed=0, blocks=blocks)
     w_iid, w_blk = iid["high"] - iid["low"], blk["high"] - blk["low"]
@@ -86,8 +87,8 @@ def test_texel_blocks_tiles():
     """Texel (y, x) of a 20-wide map falls in tile (y // 8) * 3 + x // 8 (3 tiles per row,
     the last one partial)."""
     t = np.array([0, 7, 8, 19, 20 * 8, 20 * 8 + 19, 20 * 17 + 9])
-    assert stats.texel_blocks(t, 20).tolist() == [0, 0, 1, 2, 3, 5, 7]
-    assert stats.texel_blocks(t, 20, size=1).tolist() == t.tolist()
+    assert texel_blocks(t, 20).tolist() == [0, 0, 1, 2, 3, 5, 7]
+    assert texel_blocks(t, 20, size=1).tolist() == t.tolist()
 
 
 def test_claim_with_blocks_per_configuration():
@@ -115,9 +116,9 @@ def test_bad_blocks_name_the_argument():
     with pytest.raises(ValueError, match=r"blocks_by_config\[1\]"):
         stats.claim([x, x], [x + 1, x + 1], blocks_by_config=[np.zeros(10), np.zeros(3)])
     with pytest.raises(ValueError, match="texels"):
-        stats.texel_blocks([-1, 2], 4)
+        texel_blocks([-1, 2], 4)
     with pytest.raises(ValueError, match="width"):
-        stats.texel_blocks([1, 2], 0)
+        texel_blocks([1, 2], 0)
 
 
 @pytest.mark.parametrize("statistic,compare", [("rmse", "ratio"), ("mean", "difference"), ("mean_abs", "ratio")])

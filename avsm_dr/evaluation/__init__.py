@@ -6,16 +6,6 @@ where it matters, and at what cost.  For example::
     table = ad.evaluation.evaluate(methods, ["plume"],
                                    ad.evaluation.configurations(seeds=4, lights=("dir_a", "spot")))
     print(ad.evaluation.compare(table, "avsm-8", "fom-4"))
-
-* :func:`evaluate` (:mod:`.harness`): methods x scenes x configurations -> a :class:`Table`.
-* :func:`compare` (:mod:`.comparison`): a ratio with an interval over configurations.
-* :class:`Configuration`, :func:`configurations` (:mod:`.configuration`): seed x light.
-* :class:`Probe`, :class:`SubsetBuilder`, :func:`truth` (:mod:`.probe`): the error
-  decomposition (compression / capture / spatial) at a receiver set.
-* :func:`depth_l2` (:mod:`.curves`): the depth-uniform L2 of a whole curve (on the
-  midpoints of :func:`depth_grid`).
-* :func:`light_variants` (:mod:`.configuration`): the lights of a configuration.
-* :func:`measure`, :func:`timed` (:mod:`.timing`): wall, CPU and kernel time.
 """
 from .comparison import Comparison, compare
 from .configuration import LIGHTS, Configuration, configurations, light_variants

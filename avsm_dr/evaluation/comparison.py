@@ -47,17 +47,14 @@ class Comparison:
     def __str__(self) -> str:
         where = f" at {self.receivers} receivers" if self.receivers else ""
         head = f"{self.metric}({self.a}) / {self.metric}({self.b}){where} = {self.ratio:.3g}"
-        if math.isnan(self.low):
-            iv = "no interval (one configuration)"
-        else:
-            iv = f"{self.level:.0%} interval [{self.low:.3g}, {self.high:.3g}]"
+        iv = "no interval (one configuration)" if math.isnan(self.low) else \
+            f"{self.level:.0%} interval [{self.low:.3g}, {self.high:.3g}]"
         tail = f"over {self.n_configurations} configuration{'s' if self.n_configurations != 1 else ''} " \
                "(scene x seed x light)"
         note = f"; indicative: fewer than {MIN_CONFIGURATIONS} configurations" if self.indicative else ""
-        lines = [f"{head}, {iv} {tail}{note}"]
-        for c in self.per_configuration:
-            lines.append(f"  {c['scene']} s{c['seed']} {c['light']}: {c['a']:.4g} / {c['b']:.4g} = {c['ratio']:.3g}")
-        return "\n".join(lines)
+        return "\n".join([f"{head}, {iv} {tail}{note}"] + [
+            f"  {c['scene']} s{c['seed']} {c['light']}: {c['a']:.4g} / {c['b']:.4g} = {c['ratio']:.3g}"
+            for c in self.per_configuration])
 
 
 def _pick(table, method, metric, name):
@@ -131,9 +128,9 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     per = []
     for key in ra:
         va, vb = ra[key][1], rb[key][1]
-        if isinstance(va, (bool, np.bool_)) or isinstance(vb, (bool, np.bool_)):
-            raise ValueError(f"metric: {metric!r} is not numeric ({va!r}, {vb!r})")
         try:
+            if isinstance(va, (bool, np.bool_)) or isinstance(vb, (bool, np.bool_)):
+                raise TypeError
             va, vb = float(va), float(vb)
         except (TypeError, ValueError):
             raise ValueError(f"metric: {metric!r} is not numeric ({va!r}, {vb!r})") from None

@@ -9,14 +9,12 @@ strictly inside an opaque segment::
     L2_t     = sqrt( (1/|D_t|) sum_{j in D_t} (T_rep(t, z_tj) - T_exact(t, z_tj))^2 )
     depth_l2 = sqrt( mean_t L2_t^2 )       (RMS over the texels counted)
 
-i.e. the midpoint rule of ``(1 / |D|) int_D (T_rep - T_exact)^2 dz`` per texel.  Unlike the
-receiver RMSE it weighs every depth of a texel's range alike, wherever the receivers are:
-per texel, the cost ``norm='l2'`` of the ``optimal`` kind minimises (up to the
-normalisation by the range).  Not counted: empty texels (T = 1 for every kind) and texels
-whose range is a single depth (only opaque faces, e.g. a table top without smoke: a step
-whose depth-uniform error has zero measure; the receiver RMSE covers them).  Opaque
-interiors are left out: a blocker is captured as a thin slab of optical depth 1e4, inside
-which no receiver can be (counted, the metric would measure interpolation inside a solid).
+i.e. the midpoint rule of ``(1 / |D|) int_D (T_rep - T_exact)^2 dz`` per texel: every depth
+of a texel's range weighs alike, wherever the receivers are (per texel, the cost
+``norm='l2'`` of the ``optimal`` kind minimises, up to the normalisation by the range).
+Not counted: empty texels (T = 1 for every kind), texels whose range is a single depth
+(only opaque faces: zero measure) and opaque interiors (a blocker's slab, where no
+receiver can be).
 """
 from __future__ import annotations
 
@@ -72,6 +70,11 @@ def _domain(segments, texels=None):
     if texels is not None:
         keep = np.intersect1d(keep, np.asarray(texels, np.int64))
     return keep, a[keep], b[keep]
+
+
+def rms(x) -> float:
+    """``sqrt(mean x^2)`` of an array (NaN when empty)."""
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
 
 
 def _grid(a, b, n):
@@ -146,9 +149,6 @@ def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per
     est = curve_values(rep, segments, n, texels)
     if ref.shape != est.shape:
         raise ValueError(f"exact: expected curve values of shape {est.shape}, got {ref.shape}")
-    tex, a, b = _domain(segments, texels)
-    keep = _counted(segments, tex, a, b, n)
+    keep = _counted(segments, *_domain(segments, texels), n)
     l2 = np.sqrt(np.sum(np.square(est - ref) * keep, axis=1) / np.maximum(keep.sum(axis=1), 1))
-    if per_texel:
-        return l2
-    return float(np.sqrt(np.mean(np.square(l2)))) if l2.size else float("nan")
+    return l2 if per_texel else rms(l2)

@@ -1,11 +1,6 @@
-"""``evaluate``: methods x scenes x configurations x receiver sets -> one tidy :class:`Table`.
-
-Per scene and configuration (one cell of the progress bar) the steps of ``error_curves``:
-the scene (a built-in one regenerated with the seed) lit by the configuration's light;
-receiver sets drawn with the seed (:mod:`avsm_dr.receivers`); ``ad.capture`` at each
-resolution and insertion order; a :class:`~.probe.Probe` per receiver set (bilinear taps,
-float64 truth); every method built on the captured segments and looked up through the
-probes.  The columns of a row:
+"""``evaluate``: methods x scenes x configurations x receiver sets -> one tidy :class:`Table`
+(the steps of ``error_curves``: receivers drawn with the seed, a capture per resolution and
+order, a :class:`~.probe.Probe` per receiver set).  The columns of a row:
 
 =========================================  ==========================================================
 method, kind                               the label given, the registered kind (or the class name)
@@ -46,25 +41,22 @@ import numpy as np
 
 from .. import validation as V
 from ..capture import ORDERS as CAPTURE_ORDERS
-from ..capture.opaque_map import compose
+from ..capture.opaque_map import OPAQUE_MODES, compose
 from ..metrics import THRESHOLD, error_stats
-from ..receivers import BYTES_PER_POINT, NAMES, receiver_sets
+from ..receivers import BYTES_PER_POINT, receiver_sets
+from ..receivers import NAMES as RECEIVER_SETS
 from ..representations import REGISTRY, Representation, describe
 from ..scene import Scene
 from .configuration import Configuration
 from .configuration import configurations as _configurations
-from .curves import DEPTHS, curve_values, depth_l2
+from .curves import DEPTHS, curve_values, depth_l2, rms
 from .probe import Built, Probe, SubsetBuilder
 from .table import Table
-from .timing import measure
+from .timing import timed
 
 #: Optional metric groups: the receiver statistics are always computed (every row is about
 #: a receiver set); without 'depth_l2' or 'timing' that work is skipped and the columns are NaN.
 METRICS = ("receiver_rmse", "depth_l2", "timing")
-#: Receiver sets (:mod:`avsm_dr.receivers`): by contribution inside the medium, on the
-#: receiver plane, the scene's own points.
-RECEIVER_SETS = NAMES
-OPAQUE_MODES = ("inline", "separate")
 #: Receivers and taps of ``error_curves``' full mode (its quick mode: 512, 256, 128).
 N_VOLUME, N_SURFACE, N_DECOMP = 4096, 1024, 512
 #: Timed repeats of each lookup (after one warm-up call).
@@ -88,22 +80,18 @@ def _methods(methods) -> list[_Method]:
         preset = isinstance(params, str) and params == "preset"
         if not (preset or isinstance(params, dict)):
             raise ValueError(f"methods[{label!r}]: expected (kind, params dict or 'preset'), got {spec!r}")
-        if isinstance(kind, str):
-            try:
-                describe(kind)
-            except ValueError as exc:
-                raise ValueError(f"methods[{label!r}]: {exc}") from None
-            cls, name = REGISTRY[kind], kind
-        elif isinstance(kind, type) and issubclass(kind, Representation) and not inspect.isabstract(kind):
-            cls = kind
-            name = cls.kind if REGISTRY.get(cls.kind) is cls else cls.__name__
-        else:
-            raise ValueError(f"methods[{label!r}]: expected a kind name or a Representation subclass "
-                             f"(with _eval_texels and nbytes_per_texel), got {kind!r}")
-        if preset:                                           # the kind's best practice (describe)
-            params = dict(cls.PRESET)
         try:
-            cls(toy, **params)                               # parameters checked before any capture
+            if isinstance(kind, str):
+                describe(kind)
+                cls, name = REGISTRY[kind], kind
+            elif isinstance(kind, type) and issubclass(kind, Representation) and not inspect.isabstract(kind):
+                cls = kind
+                name = cls.kind if REGISTRY.get(cls.kind) is cls else cls.__name__
+            else:
+                raise ValueError(f"expected a kind name or a Representation subclass (with _eval_texels and "
+                                 f"nbytes_per_texel), got {kind!r}")
+            params = dict(cls.PRESET) if preset else params     # the kind's best practice (describe)
+            cls(toy, **params)                                   # parameters checked before any capture
         except ValueError as exc:
             raise ValueError(f"methods[{label!r}]: {exc}") from None
         out.append(_Method(label, cls, dict(params), name))
@@ -112,21 +100,15 @@ def _methods(methods) -> list[_Method]:
 
 def _scenes(scenes) -> list[tuple[str, object]]:
     from .. import builtin_scenes
-    if isinstance(scenes, (str, Scene)):
-        scenes = [scenes]
-    if not isinstance(scenes, (list, tuple)):
-        raise ValueError(f"scenes: expected a list of built-in scene names and Scene objects, got {scenes!r}")
     known = getattr(builtin_scenes, "SCENES", {})
     out = []
-    for s in scenes:
+    for s in _names(scenes, "scenes"):
         if not isinstance(s, (str, Scene)):
             raise ValueError(f"scenes: expected built-in scene names or Scene objects, got {s!r}")
         if isinstance(s, str) and s not in known:
             raise ValueError(f"scenes: unknown built-in scene {s!r}; known: {sorted(known)}"
                              f"{V.did_you_mean(s, known)}")
         out.append((s, s) if isinstance(s, str) else (s.name, s))
-    if not out:
-        raise ValueError("scenes: no scene given")
     names = [n for n, _ in out]
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two scenes share a name in {names} (give Scene objects distinct names)")
@@ -136,18 +118,11 @@ def _scenes(scenes) -> list[tuple[str, object]]:
 def _configs(configurations) -> list[Configuration]:
     if configurations is None:
         return _configurations()
-    if isinstance(configurations, Configuration):
-        configurations = [configurations]
-    if isinstance(configurations, (str, bytes)) or not hasattr(configurations, "__iter__"):
-        raise ValueError(f"configurations: expected a list of Configuration or (seed, light) items, "
-                         f"got {configurations!r}")
     out = []
-    for c in configurations:
+    for c in _names(configurations, "configurations"):
         if not (isinstance(c, Configuration) or isinstance(c, (tuple, list)) and len(c) == 2):
-            raise ValueError(f"configurations: expected Configuration or (seed, light) items, got {c!r}")
+            raise ValueError(f"configurations: expected a list of Configuration or (seed, light) items, got {c!r}")
         out.append(c if isinstance(c, Configuration) else Configuration(*c))
-    if not out:
-        raise ValueError("configurations: none given")
     return out
 
 
@@ -174,8 +149,7 @@ def _synced_build(cls, segments, params):
 
 
 def _capture(scene, resolution, order, opaque, seed):
-    """``ad.capture`` in insertion order ``order`` ('random': shuffled with the configuration's
-    seed) -> (capture, the order recorded by its segments)."""
+    """``ad.capture`` -> (capture, its recorded order); 'random' shuffles with ``seed``."""
     from .. import capture
     cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
                   **({"order_seed": seed} if order == "random" else {}))
@@ -183,23 +157,19 @@ def _capture(scene, resolution, order, opaque, seed):
 
 
 def _timed(fn, want: bool, repeats: int):
-    """(result, median wall seconds, first-call seconds) of ``fn`` (:func:`~.timing.measure`,
-    one warm-up call); NaN times and one call when not ``want``."""
+    """(result, median wall seconds, first-call seconds) of ``fn`` (:func:`~.timing.timed`);
+    NaN times and one call when not ``want``."""
     if not want:
         return fn(), float("nan"), float("nan")
-    t = measure({"fn": fn}, repeats=repeats, warmup=1)["fn"]
-    return t["out"], t["wall_s"], t["first_s"]
-
-
-def _rms(x) -> float:
-    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+    wall, first, out = timed(fn, repeats)
+    return out, wall, first
 
 
 def _stats(probe, est, exact) -> dict:
     t = probe.terms(est, exact)
     s = error_stats(est, probe.truth, THRESHOLD)
-    return dict(rmse=s["rmse"], compression_rms=_rms(t["compression"]), capture_rms=_rms(t["capture"]),
-                spatial_rms=_rms(t["spatial"]), signed_mean=s["mean_error"], leak_share=s["leak_fraction"],
+    return dict(rmse=s["rmse"], compression_rms=rms(t["compression"]), capture_rms=rms(t["capture"]),
+                spatial_rms=rms(t["spatial"]), signed_mean=s["mean_error"], leak_share=s["leak_fraction"],
                 dark_share=s["dark_fraction"], p99=s["p99_error"], p99_9=s["p999_error"], max=s["max_error"],
                 nonfinite=s["nan_count"] + s["inf_count"])
 
@@ -208,32 +178,27 @@ def _stats(probe, est, exact) -> dict:
 def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surface"), metrics=METRICS,
              resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
-             build_repeats: int = 1, progress: bool = True) -> Table:
-    """Measure ``methods`` on ``scenes`` in ``configurations``: a :class:`Table` of one row per
-    method x scene x configuration x resolution x order x opaque mode x receiver set (columns:
-    module docstring).
+             progress: bool = True) -> Table:
+    """A :class:`Table` of one row (columns: module docstring) per method x scene x
+    configuration x resolution x order x opaque mode x receiver set.
 
-    methods: {label: (kind, params)}; kind a registered name (``ad.kinds()``) or a
-    :class:`~avsm_dr.Representation` subclass, registered or not; ``label: kind`` alone means
-    default parameters, ``(kind, "preset")`` the kind's best-practice parameters
-    (``describe(kind)["preset"]``, recorded in ``params``; its ``preset_capture``, e.g.
-    ``opaque='separate'``, is the caller's ``opaque=``).  scenes: built-in scene names
-    (``ad.scenes.SCENES``) and :class:`~avsm_dr.Scene` objects.  configurations:
-    :class:`~.configuration.Configuration` items or (seed, light) pairs (default
-    ``configurations()``: seed 0, the scene's own light).  receivers: names of
-    :data:`RECEIVER_SETS` (sets a scene cannot make, e.g. 'surface' without a receiver
-    plane, are left out), or {name: (K, 3) points}.  metrics: names of :data:`METRICS`.
+    methods: {label: (kind, params)}; kind a registered name or a
+    :class:`~avsm_dr.Representation` subclass; ``label: kind`` alone means default
+    parameters, ``(kind, "preset")`` the kind's ``describe(kind)["preset"]`` (its
+    ``preset_capture`` is the caller's ``opaque=``).  scenes: built-in scene names and
+    :class:`~avsm_dr.Scene` objects.  configurations: :class:`~.configuration.Configuration`
+    items or (seed, light) pairs (default: seed 0, the scene's own light).  receivers: names
+    of :data:`RECEIVER_SETS` (sets a scene cannot make are left out), or {name: (K, 3)
+    points}.  metrics: names of :data:`METRICS`.
 
     resolution, order: texels per side of the light map; the capture's insertion order
-    (``avsm_dr.capture.ORDERS``), default 'depth' (front to back), not ad.capture's own
-    'submission'; 'random' shuffles with the configuration's seed.  Either may be a
-    sequence: a row per value.  n_volume, n_surface: receivers per set; n_decomp: receivers
-    of the capture / spatial terms.  opaque: 'inline' | 'separate' (or both): blockers in
-    the map or in their own depth map ('separate' runs only for scenes with blockers).
-    subset: build on the texels the receivers touch only (:class:`~.probe.SubsetBuilder`:
-    the lookups of a whole-map build for kinds that work per texel); ``bytes`` and
-    ``depth_l2`` then cover those texels.  n_depths: depths per texel of ``depth_l2``.
-    build_repeats: timed builds after the first.  progress: a progress bar over the cells.
+    (``avsm_dr.capture.ORDERS``), default 'depth', not ad.capture's own 'submission';
+    'random' shuffles with the configuration's seed.  Either may be a sequence: a row per
+    value.  n_volume, n_surface: receivers per set; n_decomp: receivers of the capture /
+    spatial terms.  opaque: 'inline' | 'separate' (or both; 'separate' only for scenes with
+    blockers).  subset: build on the texels the receivers touch only
+    (:class:`~.probe.SubsetBuilder`); ``bytes`` and ``depth_l2`` then cover those texels.
+    n_depths: depths per texel of ``depth_l2``.  progress: a progress bar over the cells.
     """
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
     fixed = {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()} if isinstance(receivers, dict) \
@@ -248,7 +213,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
         V.integer(v, name, 0)
         V.check_memory(name, int(v), lambda m: float(m) * BYTES_PER_POINT, lo=0, what="receivers")
     V.integer(n_depths, "n_depths", 1)
-    V.integer(build_repeats, "build_repeats", 1)
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
 
     from tqdm import tqdm
@@ -276,12 +240,11 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
                     pr = {s: p.with_capture(cap) for s, p in probes.items()}
                     head = dict(scene=label, seed=cfg.seed, light=cfg.light_label, order=order_label,
                                 resolution=res, opaque=mode)
-                    rows += _run_capture(meths, cap, pr, head, subset, want_l2, want_time, n_depths,
-                                         build_repeats)
+                    rows += _run_capture(meths, cap, pr, head, subset, want_l2, want_time, n_depths)
     return Table(rows)
 
 
-def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths, build_repeats) -> list[dict]:
+def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths) -> list[dict]:
     """The rows of every method on one capture."""
     from ..representations import build
     if subset:
@@ -289,29 +252,25 @@ def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths,
                             cap.opaque_depth)
         segs, od = sub.segments, sub.opaque_depth
         exact = sub.build("exact", {})
-        exact_rep = compose(exact.rep, od)
     else:
         segs, od = cap.segments, cap.opaque_depth
         exact = build("exact", segs)
-        exact_rep = compose(exact, od)
+    exact_rep = compose(exact.rep if subset else exact, od)
     ex = {s: p.lookup(exact) for s, p in probes.items()}
     ex_curve = curve_values(exact_rep, segs, n_depths) if want_l2 else None
     rows = []
     for m in meths:
         params = sub.params(m.cls, m.params) if subset else m.params
 
-        rep, build_s, first_s = _timed(lambda m=m, params=params: _synced_build(m.cls, segs, params), want_time,
-                                       build_repeats)
+        rep, build_s, first_s = _timed(lambda m=m, params=params: _synced_build(m.cls, segs, params), want_time, 1)
         target = Built(rep, sub.remap, od) if subset else rep
         l2 = depth_l2(compose(rep, od), segs, exact=ex_curve, n_depths=n_depths) if want_l2 else float("nan")
         for s, p in probes.items():
             est, lookup_s, _ = _timed(lambda p=p: p.lookup(target), want_time, LOOKUP_REPEATS)
-            row = dict(method=m.label, kind=m.kind, params=dict(m.params), scene=head["scene"], seed=head["seed"],
-                       light=head["light"], receivers=s, **{k: head[k] for k in ("order", "resolution", "opaque")},
-                       n_receivers=p.k, n_decomp=p.n_decomp)
-            row.update(_stats(p, est, ex[s]))
-            row.update(depth_l2=l2, bytes=float(rep.nbytes_sparse_per_texel),
-                       bytes_dense=float(rep.nbytes_per_texel), build_s=build_s, lookup_s=lookup_s,
-                       build_first_s=first_s)
-            rows.append(row)
+            rows.append(dict(method=m.label, kind=m.kind, params=dict(m.params),
+                             **{k: head[k] for k in ("scene", "seed", "light")}, receivers=s,
+                             **{k: head[k] for k in ("order", "resolution", "opaque")}, n_receivers=p.k,
+                             n_decomp=p.n_decomp, **_stats(p, est, ex[s]), depth_l2=l2,
+                             bytes=float(rep.nbytes_sparse_per_texel), bytes_dense=float(rep.nbytes_per_texel),
+                             build_s=build_s, lookup_s=lookup_s, build_first_s=first_s))
     return rows

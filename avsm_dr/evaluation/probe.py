@@ -13,8 +13,7 @@ For a receiver ``x`` at light-space depth ``z`` with bilinear taps ``(texel_i, w
 so ``e_total = e_compression + e_capture + e_spatial`` receiver by receiver.  ``T`` is
 :func:`avsm_dr.groundtruth.transmittance` with ``method='raymarch'``: a float64 midpoint
 rule through the same trilinear grid (step = 1/8 voxel), times the analytic particle,
-hair and blocker factors.  Mitsuba ratio tracking (independent, unbiased, with a
-standard error) checks that truth where a run asks for it.
+hair and blocker factors.
 
 Points the light map does not cover get T = 1 from every representation (the border
 convention of :meth:`avsm_dr.capture.Capture.lookup`); there the taps are unused and
@@ -33,34 +32,28 @@ from ..receivers import marched
 
 
 def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
-    """(K,) float64 true transmittance (module docstring) at world points."""
+    """(K,) float64 true transmittance ``T`` (module docstring) at world points."""
     return marched(scene, points, step_fraction)
 
 
 class Probe:
     """One receiver set seen through one capture: bilinear taps, the truth at the receivers
-    and (on the first ``n_decomp`` receivers) at the taps' texel rays.
-
-    ``lookup(rep)`` -> (K,) float64 bilinear transmittance (``rep`` composed with the
-    capture's opaque depth map when it has one); :meth:`terms` -> the signed
-    per-receiver terms of the module docstring.
-    """
+    and (on the first ``n_decomp`` receivers) at the taps' texel rays; :meth:`lookup` through
+    it, :meth:`terms` of the module docstring."""
 
     def __init__(self, cap, scene, points, n_decomp: int, truth_at_points=None):
         self.cap = cap
         p = np.asarray(points, np.float64)
-        self.points = p
         self.k = p.shape[0]
-        coords, depth = cap.lookup(p, continuous=True)
+        coords, self.depth = cap.lookup(p, continuous=True)
         self.inside = cap.covers(p)
-        self.depth = depth
         self.tex, self.weights = bilinear_taps(coords, cap.width, cap.height)     # (4, K) int64, float64
         self.truth = truth(scene, p) if truth_at_points is None else np.asarray(truth_at_points, np.float64)
         # truth along each tap's texel ray to the receiver's depth, on the first n_decomp receivers
         self.n_decomp = min(int(n_decomp), self.k)
         m = self.n_decomp
         o, d = cap.camera.rays(self.tex[:, :m].ravel())
-        q = o + np.tile(depth[:m], 4)[:, None] * d
+        q = o + np.tile(self.depth[:m], 4)[:, None] * d
         t_taps = truth(scene, q).reshape(4, m)
         self.truth_taps = np.where(self.inside[:m], np.sum(self.weights[:, :m] * t_taps, axis=0), 1.0)
 
@@ -75,7 +68,8 @@ class Probe:
 
     def lookup(self, rep) -> np.ndarray:
         """(K,) float64 bilinear lookup at the receivers (1 outside the map) of ``rep``: a
-        representation built on the whole map of the capture, or a :class:`Built`."""
+        representation built on the whole map of the capture (composed with its opaque depth
+        map), or a :class:`Built`."""
         tex = self.tex
         if isinstance(rep, Built):
             tex = rep.remap[tex]
@@ -111,9 +105,8 @@ class SubsetBuilder:
     Every kind's kernel works per texel; what a kind takes from the whole map is its global
     depth range, so kinds whose schema has ``near``/``far`` get the full map's bounds
     (unless ``depth_range='texel'`` or given).  Lookups through :class:`Probe` then equal
-    those of a build on the whole map (``error_curves`` checks this per kind in its base
-    configuration and falls back to whole-map builds where it does not hold);
-    ``nbytes_per_texel`` of variable-size kinds is then the mean over the subset.
+    those of a build on the whole map; ``nbytes_per_texel`` of variable-size kinds is the
+    mean over the subset.
     """
 
     def __init__(self, segments, texels, opaque_depth=None):

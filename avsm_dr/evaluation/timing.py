@@ -4,6 +4,7 @@ by :func:`sync`, since Dr.Jit arrays are lazy: a bare wall clock around them tim
 tracing, not the work."""
 from __future__ import annotations
 
+import contextlib
 import statistics
 import time
 from typing import Any, Callable
@@ -15,10 +16,8 @@ def sync(out=None):
     """Evaluate ``out`` (if it holds Dr.Jit arrays) and wait for the active backend's
     queued kernels (``dr.sync_thread``: CPU worker threads or the CUDA stream)."""
     if out is not None:
-        try:
+        with contextlib.suppress(Exception):     # not a Dr.Jit PyTree (NumPy, plain objects)
             dr.eval(out)
-        except Exception:                 # not a Dr.Jit PyTree (NumPy, plain objects)
-            pass
     dr.sync_thread()
 
 

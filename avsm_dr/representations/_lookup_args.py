@@ -20,7 +20,7 @@ from .. import _arrays as A
 from .. import _device_checks as DC
 from .. import backend
 from .. import validation as V
-from ..filtering import FILTERS, check_radius, check_size
+from ..filtering import FILTERS, check_radius
 from ..segment_dtype import flush_subnormal
 
 
@@ -50,8 +50,8 @@ def check_options(rep, filter, width, height, radius, prefilter) -> tuple:
                          "(prefilterable = False); filter its T instead (prefilter=False)")
     if prefilter and filter == "point":
         raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
-    width = None if width is None else check_size(width, "width")
-    height = None if height is None else check_size(height, "height")
+    width = None if width is None else V.integer(width, "width", 1)
+    height = None if height is None else V.integer(height, "height", 1)
     return width, height, check_radius(radius, width, height)
 
 

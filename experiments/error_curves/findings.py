@@ -6,7 +6,7 @@ in every configuration (seed x light) where both exist, with
 effect (geometric mean of ratios, or mean of differences) with its two-stage interval,
 and whether it holds in every configuration.  The unit of every pooled interval is the
 configuration (scene seed x light); within a configuration receivers are resampled in tiles
-of 8 x 8 texels of the map they are looked up in (:func:`avsm_dr.stats.texel_blocks`), as
+of 8 x 8 texels of the map they are looked up in (:func:`experiments.error_curves.texel_blocks`), as
 are the texels of the depth-uniform L2.  Verdicts:
 
 * ``holds in every configuration``: every per-configuration 95 % interval is below the
