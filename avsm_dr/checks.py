@@ -1,11 +1,13 @@
-"""Gradient checks, for tests and for package code.
+"""The library's checks, for tests and for package code: gradients and Monte Carlo agreement.
 
 :func:`check_gradients`: a reverse-mode gradient against central finite differences and
 against forward mode along a random direction (forward mode needs no loop-bound hint, so a
 symbolic loop whose ``max_iterations`` is too small, silently wrong in reverse mode only,
 shows up).  It returns a report (``.ok``, ``.failures``, the numbers) instead of asserting,
 so tests write ``assert r.ok, r`` and package code (e.g.
-:func:`avsm_dr.reconstruction.gradient_check`) can act on it.
+:func:`avsm_dr.reconstruction.gradient_check`) can act on it.  :func:`mc_agreement`: a Monte
+Carlo estimate against a reference given its standard errors (per-element band, bias Z,
+RMS ratio), reported the same way.
 """
 from __future__ import annotations
 
@@ -153,4 +155,97 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
         if not err <= atol + rtol * max(abs(out.reverse), abs(out.forward)):
             out.failures.append(f"reverse . v = {out.reverse:.10g} vs forward mode {out.forward:.10g} "
                                 f"(|diff| {err:.3g})")
+    return out
+
+
+@dataclass
+class MCAgreement:
+    """Result of :func:`mc_agreement`: the statistics and which checks failed."""
+    n: int
+    fraction_within: float      #: share of elements with |e| <= k SE + floor
+    z: float                    #: sum(e) / sqrt(sum SE^2) (0 when every SE is 0 or inf)
+    rms_ratio: float            #: sqrt(mean e^2 / mean SE^2) (inf when every SE is 0)
+    rel_mean: float             #: mean of |e| / max(|ref|, rel_floor)
+    rel_max: float              #: max of |e| / max(|ref|, rel_floor)
+    worst: float                #: max |e| / (k SE + floor) (> 1: outside the band)
+    failures: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when every requested check passed."""
+        return not self.failures
+
+    def __str__(self) -> str:
+        state = "ok" if self.ok else "FAILED: " + "; ".join(self.failures)
+        return (f"MC agreement {state} (n={self.n}, within={self.fraction_within:.4f}, z={self.z:.3g}, "
+                f"rms_ratio={self.rms_ratio:.3g}, rel_mean={self.rel_mean:.3g}, rel_max={self.rel_max:.3g}, "
+                f"worst={self.worst:.3g})")
+
+
+def mc_agreement(estimate, reference, stderr, *, k: float = 3.0, min_fraction: float = 0.98,
+                 max_z: float = 4.0, floor: float = 0.0, max_rms_ratio: float | None = None,
+                 rel_floor: float = 1e-2, mean_rtol: float | None = None,
+                 max_rtol: float | None = None) -> MCAgreement:
+    """Agreement of ``estimate`` (any shape) with ``reference`` given the estimate's
+    standard errors ``stderr`` (same shape, or a scalar: one noise level for all).
+
+    Checks (``e = estimate - reference``, ``n`` elements):
+
+    * per element ``|e| <= k * SE + floor`` for at least ``min_fraction`` of them.
+      Default 3 SE and 98 %: ratio-tracking weights are skewed, so even an exact
+      estimator leaves a few in a thousand outside 3 SE (measured 0.25-0.65 %);
+    * bias: ``|sum e| <= max_z * sqrt(sum SE^2) + n * floor`` (``Z`` standard normal
+      for an unbiased estimator; ``floor`` a deterministic error allowed per element,
+      e.g. the float32 rounding of the reference);
+    * ``max_rms_ratio``: ``sqrt(mean e^2 / mean SE^2) <= max_rms_ratio`` (~1 when the SE is
+      honest; a deterministic mismatch of ``d`` SE raises it to ``sqrt(1 + d^2)``);
+    * ``mean_rtol`` / ``max_rtol``: mean / max of ``|e| / max(|reference|, rel_floor)``.
+
+    Optional checks are skipped when None.  Returns an :class:`MCAgreement`.
+    """
+    est = V.array(estimate, "estimate")
+    ref = V.array(reference, "reference")
+    if est.shape != ref.shape or est.size == 0:
+        raise ValueError(f"reference: expected the estimate's shape {est.shape} (non-empty), got {ref.shape}")
+    se = np.asarray(V.array(stderr, "stderr", finite=False), np.float64)
+    if np.any(np.isnan(se)) or np.any(se < 0):
+        raise ValueError("stderr: expected standard errors >= 0 (inf allowed), got NaN or negative values")
+    try:
+        se = np.broadcast_to(se, est.shape)
+    except ValueError:
+        raise ValueError(f"stderr: expected a scalar or shape {est.shape}, got {se.shape}") from None
+    limits = (("k", k, None, True), ("min_fraction", min_fraction, 1, False), ("max_z", max_z, None, True),
+              ("floor", floor, None, False), ("rel_floor", rel_floor, None, True))     # (name, value, max, > 0)
+    k, min_fraction, max_z, floor, rel_floor = (V.real(v, name, 0, hi, open_min=o) for name, v, hi, o in limits)
+    for name, val in (("max_rms_ratio", max_rms_ratio), ("mean_rtol", mean_rtol), ("max_rtol", max_rtol)):
+        if val is not None:
+            V.real(val, name, 0, open_min=True)
+
+    e = (est - ref).ravel()
+    se = se.ravel()
+    n = e.size
+    band = k * se + floor
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(band > 0, np.abs(e) / band, np.where(e == 0, 0.0, np.inf))
+    within = float(np.mean(np.abs(e) <= band))
+    finite = np.isfinite(se)
+    var = float(np.sum(se[finite] ** 2))
+    # elements with an infinite SE (e.g. one sample) carry no information about the bias
+    bias_sum = float(np.sum(e[finite]))
+    z = bias_sum / math.sqrt(var) if var > 0 else 0.0
+    mse_se = float(np.mean(se ** 2))
+    rms_ratio = math.sqrt(float(np.mean(e * e)) / mse_se) if mse_se > 0 else math.inf
+    rel = np.abs(e) / np.maximum(np.abs(ref.ravel()), rel_floor)
+    out = MCAgreement(n, within, z, rms_ratio, float(rel.mean()), float(rel.max()), float(ratio.max()))
+
+    if within < min_fraction:
+        out.failures.append(f"{within:.4f} of elements within {k:g} SE + {floor:g}, need {min_fraction:g}")
+    if abs(bias_sum) > max_z * math.sqrt(var) + int(finite.sum()) * floor:
+        out.failures.append(f"bias: |Z| = {abs(z):.3g} > {max_z:g}" + (f" (+ floor {floor:g})" if floor else ""))
+    if max_rms_ratio is not None and not rms_ratio <= max_rms_ratio:
+        out.failures.append(f"RMS error / RMS SE = {rms_ratio:.3g} > {max_rms_ratio:g}")
+    if mean_rtol is not None and out.rel_mean > mean_rtol:
+        out.failures.append(f"mean relative error {out.rel_mean:.3g} > {mean_rtol:g}")
+    if max_rtol is not None and out.rel_max > max_rtol:
+        out.failures.append(f"max relative error {out.rel_max:.3g} > {max_rtol:g}")
     return out

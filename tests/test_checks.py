@@ -8,8 +8,7 @@ import pytest
 
 import drjit as dr
 from avsm_dr import backend
-from avsm_dr.checks import check_gradients
-from helpers import mc_agreement
+from avsm_dr.checks import check_gradients, mc_agreement
 
 T64 = backend.types()
 N = 4000

@@ -1,6 +1,6 @@
 """Mitsuba ground truth: grid convention, ratio tracking, ray march, analytic content.
 
-Monte Carlo tolerances (tests/helpers.py mc_agreement): a receiver passes when
+Monte Carlo tolerances (avsm_dr.checks.mc_agreement): a receiver passes when
 |estimate - truth| <= 3 standard errors (the estimator's own sample standard error).
 Ratio-tracking weights are skewed, so a few receivers in a thousand fall outside 3 SE
 even for an exact estimator (measured 0.25-0.65 %); we require 98 % (99 % with thousands
@@ -21,7 +21,7 @@ from avsm_dr import geometry
 from avsm_dr.groundtruth import tracking
 from avsm_dr.scene import (DirectionalLight, Hair, OpaqueBox, OpaquePlane, OpaqueSphere, Particles,
                            PointLight, Scene, SpotLight)
-from helpers import mc_agreement
+from avsm_dr.checks import mc_agreement
 
 pytestmark = pytest.mark.mitsuba
 

@@ -1,6 +1,6 @@
 """Shading and images: our receiver-plane renderer against Mitsuba's volpath reference.
 
-Image tolerances (tests/helpers.py mc_agreement with one noise level for all pixels): the
+Image tolerances (avsm_dr.checks.mc_agreement with one noise level for all pixels): the
 Mitsuba reference carries Monte Carlo noise; its per-pixel noise sigma is measured from
 two renders with different seeds (rmse / sqrt 2).  Our image is deterministic, so on
 pixels fully covered by the plane rmse(ours, reference) must be close to sigma (a
@@ -25,7 +25,7 @@ from avsm_dr import shading as sh
 from avsm_dr.scene import (DirectionalLight, OpaquePlane, OpaqueSphere, Particles, PointLight, Scene,
                            SpotLight)
 from avsm_dr.camera import PinholeCamera
-from helpers import mc_agreement
+from avsm_dr.checks import mc_agreement
 
 pytestmark = pytest.mark.mitsuba
 
