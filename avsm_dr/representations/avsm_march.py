@@ -20,10 +20,8 @@ most (hi - lo) 2^-12, where absolute float16 depths would err by up to |d| 2^-11
 sorted).  With ``precision=p`` (:mod:`._precision`) q and T are both stored in ``p`` and the
 range in float32.
 
-Lookup: binary search for the last node at or before the depth, then exponential (default)
-or linear interpolation as AVSM; ``T = 1`` in front of the first node and for empty texels,
-the last node's value behind the last one.  Node values are the exact curve's (float64
-march), with its gradients at the fixed node depths.
+Lookup as :mod:`.dsm`'s, interpolating as AVSM (default 'exp').  Node values are the exact
+curve's (float64 march), with its gradients at the fixed node depths.
 """
 from __future__ import annotations
 
@@ -118,11 +116,9 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
 
 @register("avsm_march")
 class AVSMMarch(Representation):
-    """Engine-style AVSM (module docstring): up to ``nodes`` nodes per texel, placed while
-    marching where T departs from the last node's exponential extrapolation.  Attributes:
-    ``node_counts`` (T,), ``node_offsets`` (T+1,) int64 NumPy; ``range_lo``/``range_hi``
-    (Dr.Jit, per texel); ``node_q`` (Dr.Jit Float16, relative depths), ``node_value`` (T).
-    """
+    """Engine-style AVSM (module docstring).  Attributes: ``node_counts``, ``node_offsets``
+    as DSM's; ``range_lo``/``range_hi`` (Dr.Jit, per texel); ``node_q`` (Dr.Jit Float16,
+    relative depths), ``node_value`` (T)."""
 
     schema = Schema(
         params=(
@@ -149,8 +145,7 @@ class AVSMMarch(Representation):
         seg, P = self.segments, self.params
         pts = _curve.cached(seg, "curve_points", lambda: _curve.curve_points(seg))
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
-        self.node_counts = counts
-        self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._set_nodes(counts)
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
         off = pts["off"]
@@ -170,8 +165,6 @@ class AVSMMarch(Representation):
             self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
         value = Float(pts["v"][src].astype(dt))
         self.node_value = _curve.attach_exact_gradients(seg, value, tex, pts["z"][src], pts["left"][src])
-        self._offsets_dr = t.UInt32(self.node_offsets.astype(np.uint32))
-        self._max_nodes = int(self.node_counts.max()) if self.node_counts.size else 0
 
     precisions = PRECISIONS
 

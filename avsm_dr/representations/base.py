@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import _arrays as A
 from .. import backend
 from .. import validation as V
 from ..filtering import filtered_eval
@@ -164,6 +165,14 @@ class Representation(abc.ABC):
     PRESET_VARIANTS: dict = {}
     #: None: the preset is best practice; else why it is not yet tuned (``"preset_tuned"`` False).
     PRESET_UNTUNED: str | None = None
+
+    def _set_nodes(self, counts) -> None:
+        """A variable-size kind's CSR layout from its (T,) node counts: ``node_counts``,
+        ``node_offsets`` (T+1,) int64, the lookup's UInt32 offsets and largest count."""
+        self.node_counts = counts
+        self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._offsets_dr = backend.types().UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
+        self._max_nodes = int(counts.max(initial=0))
 
     def texel_payload_bytes(self):
         """Bytes one non-empty texel stores in the sparse layout, offset excluded: a number

@@ -35,10 +35,9 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
    ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of the first node
    and in empty texels, the last node's value behind the last one.
 
-Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4``
-(the (depth, value) pairs plus one 4-byte CSR offset).  Phases A and B run on chunks of
-texels (:func:`next_chunk_segments`; texels are independent, so the nodes do not depend on the
-chunking), so the build's peak stays within a few times the output's size.
+Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4`` (the
+(depth, value) pairs and a 4-byte CSR offset).  Phases A and B run on chunks of texels
+(:func:`next_chunk_segments`; the nodes do not depend on the chunking).
 """
 from __future__ import annotations
 
@@ -90,8 +89,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
     dr.scatter(out_v, vo, start)
     dr.scatter(out_src, start, start)
 
-    def band(vk):
-        """Admissible values at a vertex: [max(v - delta, 0), min(v + delta, 1)]."""
+    def band(vk):                                # admissible values at a vertex
         return dr.maximum(vk - delta, 0.0), dr.minimum(vk + delta, 1.0)
 
     def emit(cnt, active, z_new, v_new, src):
@@ -278,10 +276,7 @@ class DeepShadowMap(Representation):
         return self.placement == "curve"
 
     def _build(self):
-        """Phases A and B chunk by chunk of texels (:func:`next_chunk_segments`); each
-        chunk's nodes are kept in the storage dtype and copied once into the final arrays."""
         seg = self.segments
-        t = backend.types()
         store = np.float32 if seg.dtype == "float32" else np.float64
         offsets = seg.offsets
         n_tex = seg.n_texels
@@ -306,8 +301,7 @@ class DeepShadowMap(Representation):
             node_bytes += 2 * nz.size * seg.itemsize
             del nz, nv, src
             t0 = t1
-        self.node_counts = counts
-        self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._set_nodes(counts)
         nz, nv, self.node_left = (concatenate(parts, k) for k in range(3))
         Float = seg.Float
         self.node_depth = Float(nz)
@@ -315,8 +309,6 @@ class DeepShadowMap(Representation):
         if self.placement == "curve":         # the exact curve's gradients at fixed node depths
             value = _curve.attach_exact_gradients(seg, value, np.repeat(np.arange(n_tex), counts), nz, self.node_left)
         self.node_value = value
-        self._offsets_dr = t.UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
-        self._max_nodes = int(counts.max()) if counts.size else 0
 
     precisions = PRECISIONS
 

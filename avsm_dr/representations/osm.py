@@ -101,8 +101,8 @@ BUILD_CHUNKS = 2
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
     """Opacity shadow map: n ``slices``; ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel
-    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  Attributes:
-    ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
+    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  ``coefficients``:
+    a_k, the optical depth per slice; ``_cum``: the stored C_1..C_n, flat."""
 
     schema = Schema(
         params=(
@@ -194,13 +194,6 @@ class OpacityShadowMap(BasisRepresentation):
         dr.while_loop((dr.zeros(UInt32, w), dr.zeros(F64, w), dr.zeros(F64, w)), lambda j, r, c: j < n, sums,
                       label="osm_sums")
         dr.eval(a_all, c_all)
-
-    @property
-    def cumulative(self) -> list:
-        """C_1..C_n per texel as a list of n Dr.Jit arrays (on demand from the flat store)."""
-        n, T = self.basis.n, self.n_texels
-        idx = dr.arange(backend.types().UInt32, T) * n
-        return [dr.gather(self.Float, self._cum, idx + j) for j in range(n)]
 
     def _add_parts(self, P, Rd, z0, z1, tau, texel, row, mode=dr.ReduceMode.Auto):
         """Add segments' parts into P (end slices) and Rd (difference array of full-slice
