@@ -42,7 +42,7 @@ from .. import backend
 from .registry import register
 from ._avsm_insertion import INSERTIONS, remove_refit
 from ._loops import count_sorted, run_loop
-from .base import Representation, depth_range, node_build_bytes
+from .base import Representation, depth_range
 from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
@@ -286,7 +286,7 @@ class AVSM(NodeList):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         self.N = P["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
+        self._check_node_memory()
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
 

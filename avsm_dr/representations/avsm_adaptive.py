@@ -224,8 +224,7 @@ class AVSMAdaptive(Representation):
 
     variable_size = True                    # sparse payload: the stored (depth, value) nodes
 
-    @property
-    def nbytes_per_texel(self) -> float:
+    def _native_bytes(self) -> float:
         T = self.n_texels
         return (OFFSET_BYTES * (T + 1) + 2 * self.segments.itemsize * int(self.node_offsets[-1])) / T
 

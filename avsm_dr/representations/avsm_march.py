@@ -32,7 +32,7 @@ from .. import _arrays as A
 from .. import backend
 from . import _curve
 from .avsm import INTERPOLATIONS, csr_bracket, lerp, remove_smallest
-from .base import Representation, node_build_bytes
+from .base import Representation
 from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
@@ -60,14 +60,11 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
         """Node (x, tv, point k) after the last one where ``active``; a full list drops
         its smallest-area interior node."""
         full = cnt == cap
-        ed = [dr.select(U32(j) == cnt, x, d[j]) for j in range(cap)] + [x]
-        ev = [dr.select(U32(j) == cnt, tv, v[j]) for j in range(cap)] + [tv]
-        es = [dr.select(U32(j) == cnt, k, src[j]) for j in range(cap)] + [k]
-        rd, rv, rs = remove_smallest(ed, ev, es)
-        nd = [dr.select(active, dr.select(full, rd[j], ed[j]), d[j]) for j in range(cap)]
-        nv = [dr.select(active, dr.select(full, rv[j], ev[j]), v[j]) for j in range(cap)]
-        ns = [dr.select(active, dr.select(full, rs[j], es[j]), src[j]) for j in range(cap)]
-        return dr.select(active & ~full, cnt + 1, cnt), nd, nv, ns
+        old = (d, v, src)
+        ext = [[dr.select(U32(j) == cnt, new, o[j]) for j in range(cap)] + [new] for o, new in zip(old, (x, tv, k))]
+        out = [[dr.select(active, dr.select(full, r[j], e[j]), o[j]) for j in range(cap)]
+               for o, e, r in zip(old, ext, remove_smallest(*ext))]
+        return dr.select(active & ~full, cnt + 1, cnt), *out
 
     # state: k next point; cnt nodes held; (dn, tn, sn) last node and its extinction;
     # (xp, tp, sp, kp) previous point; p_node: the previous point is a node;
@@ -137,13 +134,12 @@ class AVSMMarch(Representation):
     )
 
     def _resolve(self):
-        seg = self.segments
         self.cap = self.params["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
+        self._check_node_memory()
 
     def _build(self):
         seg, P = self.segments, self.params
-        pts = _curve.cached(seg, "curve_points", lambda: _curve.curve_points(seg))
+        pts = _curve.points(seg)
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
         self._set_nodes(counts)
         Float, t = seg.Float, backend.types()

@@ -89,8 +89,13 @@ def compress(poly, delta: float, placement: str = "midslope"):
     dr.scatter(out_v, vo, start)
     dr.scatter(out_src, start, start)
 
-    def band(vk):                                # admissible values at a vertex
-        return dr.maximum(vk - delta, 0.0), dr.minimum(vk + delta, 1.0)
+    def vertex(k, zo):
+        """Vertex k, its band of admissible values [max(v - delta, 0), min(v + delta, 1)], whether
+        it lies at the origin's depth zo and its (safe) depth step from it."""
+        zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
+        dz = zk - zo
+        vertical = dz <= 0
+        return zk, vk, dr.maximum(vk - delta, 0.0), dr.minimum(vk + delta, 1.0), vertical, dr.select(vertical, 1.0, dz)
 
     def emit(cnt, active, z_new, v_new, src):
         idx = start + cnt
@@ -106,11 +111,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
         # state: k next vertex, (zo, vo) origin, [lo, hi] slope window, has_w window
         # holds a constraint, (zp, ip) last vertex that fitted, cnt nodes emitted
         def body(k, zo, vo, lo, hi, has_w, zp, ip, cnt):
-            zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
-            a, b = band(vk)
-            dz = zk - zo
-            vertical = dz <= 0
-            sdz = dr.select(vertical, 1.0, dz)
+            zk, vk, a, b, vertical, sdz = vertex(k, zo)
             nlo = dr.maximum(lo, (a - vo) / sdz)
             nhi = dr.minimum(hi, (b - vo) / sdz)
             nlo = dr.select(has_w, nlo, dr.minimum(nlo, nhi))    # first constraint always fits
@@ -145,11 +146,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
         # state: k next vertex, (zo, vo) origin, [lo, hi] slopes of chords that keep the
         # vertices between origin and k within delta, (zp, vp, ip) last feasible vertex
         def body(k, zo, vo, io, lo, hi, zp, vp, ip, cnt):
-            zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
-            a, b = band(vk)
-            dz = zk - zo
-            vertical = dz <= 0
-            sdz = dr.select(vertical, 1.0, dz)
+            zk, vk, a, b, vertical, sdz = vertex(k, zo)
             sk = (vk - vo) / sdz
             feasible = vertical | ((sk >= lo) & (sk <= hi))
             in_band = (vo >= a) & (vo <= b)

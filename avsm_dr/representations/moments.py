@@ -203,12 +203,6 @@ def _moment_count_rule(p: dict) -> str | None:
     return None
 
 
-def default_quantization(family: str, moments: int, precision) -> str:
-    """The ``quantization`` a build gets when it names none: 'msm' for 4 power moments in
-    'unorm16', else 'scaled' (module docstring, "16-bit storage")."""
-    return "msm" if (family, moments, precision) == ("power", 4, MSM_DEFAULT_PRECISION) else "scaled"
-
-
 @register("moments")
 class MomentShadowMap(BasisRepresentation):
     """Power or trigonometric moments of the absorbance with their bound (module docstring)."""
@@ -254,8 +248,9 @@ class MomentShadowMap(BasisRepresentation):
         class), ``near > 0`` for the log warp, ``bias`` (None: the default for the storage)."""
         P = self.params
         n = P["moments"]
-        if P["quantization"] is None:
-            P["quantization"] = default_quantization(P["family"], n, self.precision)
+        if P["quantization"] is None:                   # module docstring, "16-bit storage"
+            msm = (P["family"], n, self.precision) == ("power", 4, MSM_DEFAULT_PRECISION)
+            P["quantization"] = "msm" if msm else "scaled"
         elif P["quantization"] == "msm" and self.precision not in QZ.MSM_PRECISIONS:
             raise ValueError(f"quantization: 'msm' needs precision in {QZ.MSM_PRECISIONS}, "
                              f"got precision={self.precision!r}")

@@ -20,10 +20,8 @@ float rounding: ``a_k >= 0`` and ``g_k`` non-decreasing make ``T`` monotone
 (``monotone = True``; to one ulp, as Dr.Jit's float32 ``exp`` is itself not monotone at
 the ulp level).
 
-Projection: four scatters per segment whatever ``n`` (``_project``: end slices directly,
-the slices fully covered through a difference array); without gradients in
-:data:`BUILD_CHUNKS` chunks of texels (``_build_chunked``).  Depth range, clipping: see
-:mod:`avsm_dr.representations.basis`.
+Projection: four scatters per segment whatever ``n`` (``_project``).  Depth range, clipping:
+see :mod:`avsm_dr.representations.basis`.
 """
 from __future__ import annotations
 
@@ -56,9 +54,6 @@ class PiecewiseConstantBasis(Basis):
         j = self._slice(u)
         return [dr.select(j == k, 1, 0 * u) for k in range(self.n)]
 
-    def F(self, u):
-        return [dr.clip(u - k / self.n, 0, 1 / self.n) for k in range(self.n)]
-
     def g(self, u):
         return [dr.clip(self.n * u - k, 0, 1) for k in range(self.n)]
 
@@ -66,9 +61,6 @@ class PiecewiseConstantBasis(Basis):
 
     def f_at(self, j, u):
         return dr.select(self._slice(u) == type(u)(j), 1.0, 0.0)
-
-    def F_at(self, j, u):
-        return dr.clip(u - type(u)(j) / self.n, 0, 1 / self.n)
 
     def g_at(self, j, u):
         return dr.clip(self.n * u - type(u)(j), 0, 1)

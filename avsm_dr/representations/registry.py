@@ -23,11 +23,6 @@ def register(kind: str):
     return deco
 
 
-def unregister(kind: str) -> None:
-    """Remove ``kind`` from the registry (for kinds registered at run time, e.g. in tests)."""
-    REGISTRY.pop(kind, None)
-
-
 def _check_kind(kind) -> type[Representation]:
     if not isinstance(kind, str) or kind not in REGISTRY:
         raise ValueError(f"kind: unknown representation {kind!r}; known: {sorted(REGISTRY)}"
