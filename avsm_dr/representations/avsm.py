@@ -246,11 +246,9 @@ class NodeList(Representation):
 @register("avsm")
 class AVSM(NodeList):
     """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel, cleared to
-    (far, 1); ``nbytes_per_texel`` = 2 N itemsize.  Attributes: ``depths``/``values`` (lists
-    of N Dr.Jit arrays of length T), ``used`` (NumPy (T,), inserted nodes kept per texel) and
-    ``stats`` (lanes run, segments skipped behind opaque points, insertions that compressed).
-    Gradients flow to optical_depth and z0/z1 with the node layout held fixed; the build
-    loops carry ``2 N + 5`` state words per lane (:meth:`Representation.checkpoint_chunk`).
+    (far, 1), stored as a :class:`NodeList`.  Attributes: ``used`` (NumPy (T,), inserted nodes
+    kept per texel) and ``stats`` (lanes run, segments skipped behind opaque points, insertions
+    that compressed).  Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
     """
 
     # Both interpolations are reported (neither wins on every content): exp as the preset.

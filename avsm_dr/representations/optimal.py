@@ -325,10 +325,9 @@ def work_units(count: np.ndarray, N: int, norm: str, interp: str) -> float:
 
 @register("optimal")
 class OptimalSubset(NodeList):
-    """Best N-node breakpoint subset of the exact curve (DP, offline; module docstring).
-    ``nbytes_per_texel`` = 2 N itemsize (as AVSM).  Attributes: ``depths``/``values``,
-    ``node_counts`` (T,), ``objective`` (T,) float64 (module docstring; 0 for empty texels).
-    Raises ValueError (naming ``segments``) above :data:`MAX_POINTS` points per texel or
+    """Best N-node breakpoint subset of the exact curve (DP, offline; module docstring), a
+    :class:`~.avsm.NodeList`; ``node_counts`` (T,), ``objective`` (T,) float64 (0 for empty
+    texels).  ValueError (naming ``segments``) above :data:`MAX_POINTS` points per texel or
     :data:`MAX_WORK` work units.
     """
 
