@@ -36,14 +36,12 @@ import numpy as np
 
 from .. import _arrays as A
 from .avsm import AVSM, INTERPOLATIONS, csr_bracket, interpolate
-from .base import Representation, depth_range, node_build_bytes
+from .base import SPARSE_OFFSET_BYTES as OFFSET_BYTES, Representation, depth_range, node_build_bytes
 from .registry import register
 from .schema import FAR, NEAR, Param, Schema
 
 #: Kernel node counts (each distinct one is one compiled AVSM kernel).
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
-#: Bytes of one CSR offset (uint32).
-OFFSET_BYTES = 4
 #: Largest ``bytes_per_texel``: the most one texel can store, 64 float64 nodes and its offset.
 MAX_BYTES_PER_TEXEL = float(OFFSET_BYTES + 2 * 8 * LADDER[-1])
 SCORES = ("complexity", "count", "uniform")

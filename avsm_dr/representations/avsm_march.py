@@ -33,6 +33,7 @@ from .. import backend
 from . import _curve
 from .avsm import INTERPOLATIONS, csr_bracket, lerp, remove_smallest
 from .base import Representation
+from ._dsm_polyline import lanes_by_length
 from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
@@ -46,9 +47,7 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
     F64, U32, Bool = t.Float64, t.UInt32, t.Bool
     off = pts["off"]
     n_tex = off.size - 1
-    counts_np = np.diff(off)
-    lanes_np = np.flatnonzero(counts_np > 0)
-    lanes_np = lanes_np[np.argsort(counts_np[lanes_np], kind="stable")]   # similar loop lengths per packet
+    lanes_np = lanes_by_length(off)
     if lanes_np.size == 0:
         return np.zeros(n_tex, np.int64), np.zeros(0, np.int64)
     L = lanes_np.size
