@@ -43,11 +43,9 @@ def kinds() -> list[str]:
 
 
 def describe(kind: str) -> dict:
-    """What ``kind`` takes and how experiments size it: a dict of the schema's description
-    (:meth:`.schema.Schema.describe`: ``params``, ``size``, ``sweep``, ``quick_sweep``,
-    ``examples``, ``headline``, ``summary``, ``paper``, ``offline``), ``kind``, ``doc``
-    (the class docstring's first paragraph), ``precisions`` (accepted besides None) and the
-    best practice from the class attributes ``PRESET*``: ``preset``, ``preset_capture``,
+    """What ``kind`` takes and how experiments size it: :meth:`.schema.Schema.describe`'s dict
+    plus ``kind``, ``doc`` (the class docstring's first paragraph), ``precisions`` (accepted
+    besides None) and the class attributes ``PRESET*``: ``preset``, ``preset_capture``,
     ``preset_variants``, ``preset_tuned`` (``preset_note`` only when that is False)."""
     cls = _check_kind(kind)
     out = cls.schema.describe()
