@@ -112,7 +112,7 @@ def test_texel_path_in_coefficient_batches(rng, monkeypatch):
     whole = _np(ad.build("fom", seg, harmonics=6)._coef)
     monkeypatch.setattr(B, "LANES_PER_BATCH", 100)      # 3 coefficients per batch
     rep = ad.build("fom", seg, harmonics=6)
-    assert len(rep._coefficient_batches(int(np.count_nonzero(seg.counts)))) > 1
+    assert len(rep._lane_batches(int(np.count_nonzero(seg.counts)))) > 1
     assert np.array_equal(_np(rep._coef), whole)
 
 

@@ -8,8 +8,7 @@ so a new kind joins all of them by being registered.
 from __future__ import annotations
 
 from .base import Representation
-from .registry import (REGISTRY, allows, build, configurations, describe, differentiable_configuration, kinds,
-                       register, unregister)
+from .registry import REGISTRY, allows, build, configurations, describe, differentiable_configuration, kinds, register
 from .schema import Param, Schema
 
 # Each import registers its representation (a broken or misspelt module fails here).
@@ -27,5 +26,4 @@ from . import avsm_march  # noqa: E402,F401
 from . import avsm_adaptive  # noqa: E402,F401
 
 __all__ = ["REGISTRY", "Param", "allows", "Representation", "Schema", "build", "configurations", "describe",
-           "differentiable_configuration",
-           "kinds", "register", "unregister"]
+           "differentiable_configuration", "kinds", "register"]

@@ -89,6 +89,11 @@ def padded(off: np.ndarray, texels: np.ndarray, kmax: int, *arrays):
     return count, [a[idx] for a in arrays]
 
 
+def points(segments) -> dict:
+    """:func:`curve_points`, computed once per segments (:func:`cached`)."""
+    return cached(segments, "curve_points", lambda: curve_points(segments))
+
+
 def cached(segments, key: str, fn):
     """``fn()`` computed once per :class:`~avsm_dr.Segments` (kept in its cache: the
     points and the offline orders depend only on the segments' values)."""

@@ -42,7 +42,7 @@ from .. import backend
 from .registry import register
 from ._avsm_insertion import INSERTIONS, remove_refit
 from ._loops import count_sorted, run_loop
-from .base import Representation, depth_range, node_build_bytes
+from .base import Representation, depth_range
 from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
@@ -246,11 +246,9 @@ class NodeList(Representation):
 @register("avsm")
 class AVSM(NodeList):
     """Adaptive volumetric shadow map: N (depth, transmittance) nodes per texel, cleared to
-    (far, 1); ``nbytes_per_texel`` = 2 N itemsize.  Attributes: ``depths``/``values`` (lists
-    of N Dr.Jit arrays of length T), ``used`` (NumPy (T,), inserted nodes kept per texel) and
-    ``stats`` (lanes run, segments skipped behind opaque points, insertions that compressed).
-    Gradients flow to optical_depth and z0/z1 with the node layout held fixed; the build
-    loops carry ``2 N + 5`` state words per lane (:meth:`Representation.checkpoint_chunk`).
+    (far, 1), stored as a :class:`NodeList`.  Attributes: ``used`` (NumPy (T,), inserted nodes
+    kept per texel) and ``stats`` (lanes run, segments skipped behind opaque points, insertions
+    that compressed).  Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
     """
 
     # Both interpolations are reported (neither wins on every content): exp as the preset.
@@ -286,7 +284,7 @@ class AVSM(NodeList):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         self.N = P["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
+        self._check_node_memory()
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
 
@@ -360,24 +358,21 @@ class AVSM(NodeList):
         def cond_room(p, i, used, done, *rest):
             return (i < end) & (used + 2 <= N) & ~done
 
-        def body_room(p, i, used, done, skipped, compressed, *dt):
-            skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), False)
-            used = dr.select(skip, used, used + 2)
-            return (i + 1, used, done, skipped + UInt32(skip), compressed, *d, *t)
-
         def cond_full(p, i, used, done, *rest):
             return (i < end) & ~done
 
-        def body_full(p, i, used, done, skipped, compressed, *dt):
-            skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), True)
-            return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip), *d, *t)
-
-        # ---- ablation (_split=False): one loop computing both steps and selecting
-        def body_one(p, i, used, done, skipped, compressed, *dt):
-            full = used + 2 > N
-            skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), full)
-            used = dr.select(skip | full, used, used + 2)
-            return (i + 1, used, done, skipped + UInt32(skip), compressed + UInt32(~skip & full), *d, *t)
+        def body_insert(compress):
+            # compress: False (room left), True (full), None (ablation _split=False: one loop
+            # computing both steps, selecting per lane)
+            def body(p, i, used, done, skipped, compressed, *dt):
+                full = used + 2 > N if compress is None else compress
+                skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), full)
+                if compress is not True:
+                    used = dr.select(skip if compress is False else skip | full, used, used + 2)
+                if compress is not False:
+                    compressed = compressed + UInt32(~skip if compress else ~skip & full)
+                return (i + 1, used, done, skipped + UInt32(skip), compressed, *d, *t)
+            return body
 
         # staged variants, once full: ``stage`` segments into N + 2 stage nodes, then 2 stage
         # removals; a segment not inserted appends two copies of the last node (zero metric,
@@ -414,13 +409,13 @@ class AVSM(NodeList):
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L),
                  *[dr.opaque(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
         if stage > 1:                                     # staged: always the two loops
-            state = run(state, cond_room, body_room, "avsm_insert")
+            state = run(state, cond_room, body_insert(False), "avsm_insert")
             state = run(state, cond_full, body_staged, "avsm_staged")
         elif ablate["_split"]:
-            state = run(state, cond_room, body_room, "avsm_insert")
-            state = run(state, cond_full, body_full, "avsm_compress")
+            state = run(state, cond_room, body_insert(False), "avsm_insert")
+            state = run(state, cond_full, body_insert(True), "avsm_compress")
         else:
-            state = run(state, cond_full, body_one, "avsm_one_loop")
+            state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
         d, t = list(state[5:5 + N]), list(state[5 + N:])
 

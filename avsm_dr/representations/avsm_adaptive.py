@@ -24,14 +24,10 @@ next ladder value, which never compresses) and :class:`~.avsm.AVSM` runs once pe
 :meth:`~avsm_dr.Segments.select_texels` with the map's near/far: a texel's nodes are bit for
 bit those of ``build('avsm', seg, nodes=N)``.
 
-Storage (compacted; ``nbytes_per_texel`` counts all of it, never above the budget
-``bytes_per_texel x T``): CSR node offsets (T+1 uint32) and per node a depth and a
-transmittance in the segments' dtype.  A texel allocated fewer than ``K`` nodes stores all
-N of its kernel, one allocated ``K`` its ``used`` inserted nodes.
-
-Lookup: binary search for the last node at or before the depth, then AVSM's
-:func:`~.avsm.interpolate` with its successor: ``T = 1`` in front of the first node and in
-empty texels, the last node's value behind the last.
+Storage (compacted, at most ``bytes_per_texel x T`` bytes): CSR node offsets (T+1 uint32),
+per node a depth and a transmittance; a texel allocated fewer than ``K`` nodes stores all N of
+its kernel, one allocated ``K`` its ``used`` inserted nodes.  Lookup as :mod:`.dsm`'s, with
+AVSM's :func:`~.avsm.interpolate`.
 """
 from __future__ import annotations
 
@@ -39,16 +35,13 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
-from .. import backend
 from .avsm import AVSM, INTERPOLATIONS, csr_bracket, interpolate
-from .base import Representation, depth_range, node_build_bytes
+from .base import SPARSE_OFFSET_BYTES as OFFSET_BYTES, Representation, depth_range, node_build_bytes
 from .registry import register
 from .schema import FAR, NEAR, Param, Schema
 
 #: Kernel node counts (each distinct one is one compiled AVSM kernel).
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
-#: Bytes of one CSR offset (uint32).
-OFFSET_BYTES = 4
 #: Largest ``bytes_per_texel``: the most one texel can store, 64 float64 nodes and its offset.
 MAX_BYTES_PER_TEXEL = float(OFFSET_BYTES + 2 * 8 * LADDER[-1])
 SCORES = ("complexity", "count", "uniform")
@@ -142,13 +135,11 @@ def allocate(counts, weight, budget_nodes: int, max_nodes: int, uniform: bool = 
 
 @register("avsm_adaptive")
 class AVSMAdaptive(Representation):
-    """AVSM with a per-texel node count chosen under a total memory budget (module
-    docstring): ``bytes_per_texel`` x T bytes for the whole map, offsets included
-    (ValueError when below the offsets plus 2 nodes per non-empty texel).  Attributes:
-    ``allocated`` and ``kernel`` (T,) int64 (node counts of the allocation, AVSM kernel N),
-    ``node_counts`` (T,) and ``node_offsets`` (T+1,) of the stored nodes, ``node_depth`` /
-    ``node_value`` (Dr.Jit, CSR order), ``budget_nodes``, ``groups`` ({N: texels}).
-    Gradients flow as AVSM's; with ``reverse='auto'`` the groups' loops run checkpointed.
+    """AVSM with per-texel node counts under a total budget of ``bytes_per_texel`` x T bytes
+    (module docstring; ValueError below the offsets plus 2 nodes per non-empty texel).
+    Attributes: ``allocated``, ``kernel`` (T,) int64 (allocated counts, AVSM kernel N), the CSR
+    nodes as DSM's, ``budget_nodes``, ``groups`` ({N: texels}).  Gradients flow as AVSM's;
+    with ``reverse='auto'`` the groups' loops run checkpointed.
     """
 
     schema = Schema(
@@ -199,9 +190,7 @@ class AVSMAdaptive(Representation):
         self.allocated = allocate(seg.counts, complexity(seg, self._score), self.budget_nodes, P["max_nodes"],
                                   uniform=self._score == "uniform")
         self.kernel = kernel_nodes(self.allocated, seg.counts, P["max_nodes"])
-        Float, UInt32 = seg.Float, backend.types().UInt32
-        T = seg.n_texels
-        K = 2 * seg.counts
+        Float, T, K = seg.Float, seg.n_texels, 2 * seg.counts
         stored = np.zeros(T, np.int64)
         runs = []
         self.groups = {}
@@ -216,8 +205,7 @@ class AVSMAdaptive(Representation):
             # compressing texels keep all N nodes, the others their inserted ones
             stored[tex] = np.where(self.allocated[tex] < K[tex], int(N), sub.used)
             runs.append((tex, sub))
-        self.node_counts = stored
-        self.node_offsets = np.concatenate([[0], np.cumsum(stored)]).astype(np.int64)
+        self._set_nodes(stored)
         total = int(self.node_offsets[-1])
         self.node_depth = dr.zeros(Float, total)
         self.node_value = dr.zeros(Float, total)
@@ -231,19 +219,15 @@ class AVSMAdaptive(Representation):
                 dr.scatter(self.node_depth, dr.gather(Float, sub.depths[k], src), dst)
                 dr.scatter(self.node_value, dr.gather(Float, sub.values[k], src), dst)
         dr.eval(self.node_depth, self.node_value)
-        self._offsets_dr = UInt32(self.node_offsets.astype(np.uint32))
-        self._max_nodes = int(stored.max(initial=0))
 
     variable_size = True                    # sparse payload: the stored (depth, value) nodes
 
-    @property
-    def nbytes_per_texel(self) -> float:
+    def _native_bytes(self) -> float:
         T = self.n_texels
         return (OFFSET_BYTES * (T + 1) + 2 * self.segments.itemsize * int(self.node_offsets[-1])) / T
 
     def node_depths(self) -> np.ndarray:
-        """Depths of every stored node (float64 NumPy, CSR order: texel ``i`` owns
-        ``node_offsets[i]:node_offsets[i+1]``)."""
+        """Depths of every stored node (float64 NumPy, CSR order)."""
         return np.asarray(self.node_depth.numpy(), np.float64)
 
     def _eval_texels(self, texel, depth):

@@ -20,10 +20,8 @@ most (hi - lo) 2^-12, where absolute float16 depths would err by up to |d| 2^-11
 sorted).  With ``precision=p`` (:mod:`._precision`) q and T are both stored in ``p`` and the
 range in float32.
 
-Lookup: binary search for the last node at or before the depth, then exponential (default)
-or linear interpolation as AVSM; ``T = 1`` in front of the first node and for empty texels,
-the last node's value behind the last one.  Node values are the exact curve's (float64
-march), with its gradients at the fixed node depths.
+Lookup as :mod:`.dsm`'s, interpolating as AVSM (default 'exp').  Node values are the exact
+curve's (float64 march), with its gradients at the fixed node depths.
 """
 from __future__ import annotations
 
@@ -34,7 +32,8 @@ from .. import _arrays as A
 from .. import backend
 from . import _curve
 from .avsm import INTERPOLATIONS, csr_bracket, lerp, remove_smallest
-from .base import Representation, node_build_bytes
+from .base import Representation
+from ._dsm_polyline import lanes_by_length
 from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
@@ -48,9 +47,7 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
     F64, U32, Bool = t.Float64, t.UInt32, t.Bool
     off = pts["off"]
     n_tex = off.size - 1
-    counts_np = np.diff(off)
-    lanes_np = np.flatnonzero(counts_np > 0)
-    lanes_np = lanes_np[np.argsort(counts_np[lanes_np], kind="stable")]   # similar loop lengths per packet
+    lanes_np = lanes_by_length(off)
     if lanes_np.size == 0:
         return np.zeros(n_tex, np.int64), np.zeros(0, np.int64)
     L = lanes_np.size
@@ -62,14 +59,11 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
         """Node (x, tv, point k) after the last one where ``active``; a full list drops
         its smallest-area interior node."""
         full = cnt == cap
-        ed = [dr.select(U32(j) == cnt, x, d[j]) for j in range(cap)] + [x]
-        ev = [dr.select(U32(j) == cnt, tv, v[j]) for j in range(cap)] + [tv]
-        es = [dr.select(U32(j) == cnt, k, src[j]) for j in range(cap)] + [k]
-        rd, rv, rs = remove_smallest(ed, ev, es)
-        nd = [dr.select(active, dr.select(full, rd[j], ed[j]), d[j]) for j in range(cap)]
-        nv = [dr.select(active, dr.select(full, rv[j], ev[j]), v[j]) for j in range(cap)]
-        ns = [dr.select(active, dr.select(full, rs[j], es[j]), src[j]) for j in range(cap)]
-        return dr.select(active & ~full, cnt + 1, cnt), nd, nv, ns
+        old = (d, v, src)
+        ext = [[dr.select(U32(j) == cnt, new, o[j]) for j in range(cap)] + [new] for o, new in zip(old, (x, tv, k))]
+        out = [[dr.select(active, dr.select(full, r[j], e[j]), o[j]) for j in range(cap)]
+               for o, e, r in zip(old, ext, remove_smallest(*ext))]
+        return dr.select(active & ~full, cnt + 1, cnt), *out
 
     # state: k next point; cnt nodes held; (dn, tn, sn) last node and its extinction;
     # (xp, tp, sp, kp) previous point; p_node: the previous point is a node;
@@ -118,11 +112,9 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
 
 @register("avsm_march")
 class AVSMMarch(Representation):
-    """Engine-style AVSM (module docstring): up to ``nodes`` nodes per texel, placed while
-    marching where T departs from the last node's exponential extrapolation.  Attributes:
-    ``node_counts`` (T,), ``node_offsets`` (T+1,) int64 NumPy; ``range_lo``/``range_hi``
-    (Dr.Jit, per texel); ``node_q`` (Dr.Jit Float16, relative depths), ``node_value`` (T).
-    """
+    """Engine-style AVSM (module docstring).  Attributes: ``node_counts``, ``node_offsets``
+    as DSM's; ``range_lo``/``range_hi`` (Dr.Jit, per texel); ``node_q`` (Dr.Jit Float16,
+    relative depths), ``node_value`` (T)."""
 
     schema = Schema(
         params=(
@@ -141,16 +133,14 @@ class AVSMMarch(Representation):
     )
 
     def _resolve(self):
-        seg = self.segments
         self.cap = self.params["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
+        self._check_node_memory()
 
     def _build(self):
         seg, P = self.segments, self.params
-        pts = _curve.cached(seg, "curve_points", lambda: _curve.curve_points(seg))
+        pts = _curve.points(seg)
         counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
-        self.node_counts = counts
-        self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._set_nodes(counts)
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
         off = pts["off"]
@@ -170,8 +160,6 @@ class AVSMMarch(Representation):
             self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
         value = Float(pts["v"][src].astype(dt))
         self.node_value = _curve.attach_exact_gradients(seg, value, tex, pts["z"][src], pts["left"][src])
-        self._offsets_dr = t.UInt32(self.node_offsets.astype(np.uint32))
-        self._max_nodes = int(self.node_counts.max()) if self.node_counts.size else 0
 
     precisions = PRECISIONS
 

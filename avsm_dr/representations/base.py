@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import _arrays as A
 from .. import backend
 from .. import validation as V
 from ..filtering import filtered_eval
@@ -80,17 +81,12 @@ class Representation(abc.ABC):
     and dispatch to the per-texel kernel.
 
     A kind is one subclass with a ``schema`` (:class:`~.schema.Schema`) registered with
-    ``@register("name")``; it implements ``_eval_texels`` and ``nbytes_per_texel`` and
-    reads its validated parameters from ``self.params``.  The build is one template,
+    ``@register("name")``; it implements ``_eval_texels`` and ``_native_bytes`` and reads its
+    validated parameters from ``self.params``.  The build is one template,
     ``__init__(segments, **params)``: :meth:`_validate`, :meth:`_resolve` (derived
-    parameters and memory checks, once), :meth:`_build`, :meth:`_apply_precision`; a kind
-    fills the hooks it needs and does not override ``__init__``.
-
-    Every kind also accepts ``reverse`` ('auto' | 'trajectory' | 'checkpoint') and ``chunk``
-    (iterations per checkpoint): how reverse mode stores the build loops
-    (:meth:`checkpoint_chunk`, :mod:`._loops`); and ``precision`` (None | 'float32' |
-    'float16' | 'unorm16' | 'unorm8'): the storage format of the buffers the kind declares
-    in :meth:`_stored` (:mod:`._precision`; None: the segments' own dtype).
+    parameters and memory checks, once), :meth:`_build`, :meth:`_apply_precision`.
+    Every kind also takes ``reverse`` and ``chunk`` (:meth:`checkpoint_chunk`) and
+    ``precision`` (:mod:`._precision`, of the buffers the kind declares in :meth:`_stored`).
     """
 
     kind: str = "base"
@@ -123,10 +119,10 @@ class Representation(abc.ABC):
         self.params: dict[str, Any] = self.schema.validate(self.kind, params)
 
     def _resolve(self) -> None:
-        """The kind's derived parameters and checks before allocating.  Default: nothing."""
+        """The kind's derived parameters and checks before allocating."""
 
     def _build(self) -> None:
-        """Build the compressed form from ``self.segments``.  Default: nothing."""
+        """Build the compressed form from ``self.segments``."""
 
     def _check_build_memory(self, need, name: str | None = None, search: bool = True) -> None:
         """Before allocating: ValueError naming ``name`` (default: the schema's size
@@ -140,6 +136,11 @@ class Representation(abc.ABC):
         rule = self.schema.constraint
         V.check_memory(name, self.params[name], need, lo=lo, what=f"over {self.n_texels} texels",
                        allowed=None if rule is None else lambda v: not rule({**self.params, name: v}))
+
+    def _check_node_memory(self) -> None:
+        """:meth:`_check_build_memory` of a node-list build over its ``nodes`` (:func:`node_build_bytes`)."""
+        seg = self.segments
+        self._check_build_memory(lambda n: node_build_bytes(seg.n_texels, n, seg.itemsize))
 
     #: Why some precisions are refused (appended to the ValueError).
     _precision_note: str = ""
@@ -164,6 +165,14 @@ class Representation(abc.ABC):
     PRESET_VARIANTS: dict = {}
     #: None: the preset is best practice; else why it is not yet tuned (``"preset_tuned"`` False).
     PRESET_UNTUNED: str | None = None
+
+    def _set_nodes(self, counts) -> None:
+        """A variable-size kind's CSR layout from its (T,) node counts: ``node_counts``,
+        ``node_offsets`` (T+1,) int64, the lookup's UInt32 offsets and largest count."""
+        self.node_counts = counts
+        self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._offsets_dr = backend.types().UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
+        self._max_nodes = int(counts.max(initial=0))
 
     def texel_payload_bytes(self):
         """Bytes one non-empty texel stores in the sparse layout, offset excluded: a number

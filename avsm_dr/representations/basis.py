@@ -36,12 +36,9 @@ Storage precision (``precision=``, :mod:`._precision`): the stored map is quanti
 texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted); a per-texel range is kept
 in float32.
 
-Kernel (DESIGN.md, linear methods): coefficients stored flat, texel-major ``[texel * K + k]``.
-Without gradients each texel's segments are summed in CSR order (the same bits every run),
-with them scatter-added (:meth:`BasisRepresentation._project`); *indexed* bases (closed forms
-``f_at``, ``F_at`` in the coefficient index) run over (item, coefficient) lanes, list bases
-in chunks of ``LIST_CHUNK``: linear in K either way.  Gradients w.r.t. ``optical_depth``,
-``z0`` and ``z1`` flow through the scatters and the gathers.
+Kernel: coefficients stored flat, texel-major ``[texel * K + k]``, projected by
+:meth:`BasisRepresentation._project`; gradients w.r.t. ``optical_depth``, ``z0`` and ``z1``
+flow through its scatters and the lookup's gathers.
 """
 from __future__ import annotations
 
@@ -215,24 +212,23 @@ class BasisRepresentation(Representation):
         idx = dr.arange(backend.types().UInt32, T) * K
         return [dr.gather(self.Float, self._coef, idx + k) for k in range(K)]
 
-    def _coefficient_batches(self, n_items: int):
-        """(j0, kc) coefficient ranges such that n_items x kc <= LANES_PER_BATCH."""
-        K = self.basis.n_coefficients
+    def _lane_batches(self, n_items: int) -> list:
+        """(item, j, kc) per batch of kc coefficients: UInt32 lanes, item-major, of the n_items x kc
+        (item, coefficient j) pairs, n_items x kc <= LANES_PER_BATCH (one kernel per batch)."""
+        K, UInt32 = self.basis.n_coefficients, backend.types().UInt32
         per = max(1, min(K, LANES_PER_BATCH // max(n_items, 1)))
-        return [(j0, min(per, K - j0)) for j0 in range(0, K, per)]
+        out = []
+        for j0 in range(0, K, per):
+            kc = min(per, K - j0)
+            lane = dr.arange(UInt32, n_items * kc)
+            out.append((lane // kc, dr.opaque(UInt32, j0) + lane % kc, kc))
+        return out
 
     def _check_index_range(self, T: int, K: int) -> None:
         """ValueError when T x K coefficients exceed what UInt32 indices address."""
         if T * K >= 2**32:
             raise ValueError(f"{self.schema.size or 'n'}: {T} texels x {K} coefficients exceed the "
                              "2^32 - 1 entries that UInt32 indices address")
-
-    def _clipped_segments(self):
-        """Per segment: texel and :func:`clip_segment` against its range."""
-        seg = self.segments
-        texel = seg.texel_of_segment()
-        near, span = self._range(texel if self._per_texel else None)
-        return (texel, *clip_segment(seg.z0, seg.z1, seg.optical_depth, near, span))
 
     def _project(self):
         """a_k per texel, flat ``[texel * K + k]``: without gradients per-texel sums in CSR
@@ -256,16 +252,15 @@ class BasisRepresentation(Representation):
         flat = dr.zeros(Float, T * K)
         if S == 0:
             return flat
-        texel, c0, c1, tau_in, tau_front = self._clipped_segments()
+        texel = seg.texel_of_segment()
+        near, span = self._range(texel if self._per_texel else None)
+        c0, c1, tau_in, tau_front = clip_segment(seg.z0, seg.z1, seg.optical_depth, near, span)
         dr.eval(texel, c0, c1, tau_in, tau_front)
-        batches = self._coefficient_batches(S)
-        for j0, kc in batches:
-            lane = dr.arange(UInt32, S * kc)
-            s = lane // kc                                   # segment
-            j = dr.opaque(UInt32, j0) + lane % kc            # coefficient
+        batches = self._lane_batches(S)
+        for s, j, _ in batches:                              # segment, coefficient
             u0, u1 = dr.gather(Float, c0, s), dr.gather(Float, c1, s)
             val = (dr.gather(Float, tau_in, s) * basis.average_at(j, u0, u1)
-                   + dr.gather(Float, tau_front, s) * basis.f_at(j, dr.zeros(Float, S * kc)))
+                   + dr.gather(Float, tau_front, s) * basis.f_at(j, dr.zeros(Float, dr.width(s))))
             dr.scatter_reduce(dr.ReduceOp.Add, flat, val, dr.gather(UInt32, texel, s) * K + j)
             if len(batches) > 1:
                 dr.eval(flat)
@@ -347,24 +342,21 @@ class BasisRepresentation(Representation):
         flat = dr.zeros(Float, T * K)
         lanes, first, end = texel_lanes(seg)
         z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
-        batches = self._coefficient_batches(dr.width(lanes))
+        batches = self._lane_batches(dr.width(lanes))
         if len(batches) > 1:
             dr.eval(first, end)
-        for j0, kc in batches:
-            lane = dr.arange(UInt32, dr.width(lanes) * kc)
-            t = lane // kc                                       # texel's lane
-            j = dr.opaque(UInt32, j0) + lane % kc                # coefficient
+        for t, j, _ in batches:                              # texel's lane, coefficient
             texel = dr.gather(UInt32, lanes, t)
             stop = dr.gather(UInt32, end, t)
             near, span = self._range(texel if self._per_texel else None)
-            f_near = basis.f_at(j, dr.zeros(Float, dr.width(lane)))     # f_j(0): in front of near
+            f_near = basis.f_at(j, dr.zeros(Float, dr.width(t)))        # f_j(0): in front of near
 
             def body(i, acc):
                 c0, c1, t_in, t_front = clip_segment(dr.gather(Float, z0, i), dr.gather(Float, z1, i),
                                                      dr.gather(Float, tau, i), near, span)
                 return i + 1, acc + (t_in * basis.average_at(j, c0, c1) + t_front * f_near)
 
-            _, acc = dr.while_loop((dr.gather(UInt32, first, t), dr.zeros(Float, dr.width(lane))),
+            _, acc = dr.while_loop((dr.gather(UInt32, first, t), dr.zeros(Float, dr.width(t))),
                                    lambda i, acc: i < stop, body, label="basis_project")
             dr.scatter(flat, acc, texel * K + j)
             dr.eval(flat)
@@ -393,11 +385,8 @@ class BasisRepresentation(Representation):
         R = dr.width(u)
         D = dr.zeros(Float, R)
         if basis.indexed:
-            batches = self._coefficient_batches(R)
-            for j0, kc in batches:
-                lane = dr.arange(UInt32, R * kc)
-                r = lane // kc                                   # receiver
-                j = dr.opaque(UInt32, j0) + lane % kc            # coefficient
+            batches = self._lane_batches(R)
+            for r, j, kc in batches:                         # receiver, coefficient
                 a = dr.gather(Float, store, dr.gather(UInt32, row, r) * K + j)
                 D += dr.block_sum(a * basis.g_at(j, dr.gather(Float, u, r)), kc)
                 if len(batches) > 1:

@@ -79,9 +79,9 @@ def sinc(x):
 class Basis:
     """A set of ``n_coefficients`` projection functions on [0, 1].
 
-    Subclasses give ``f(u)`` and ``F(u)`` (lists of arrays, one per coefficient),
-    and override ``g`` when the reconstruction is not ``F`` (non-orthonormal scaling)
-    and ``average`` when a cancellation-free segment mean is known.
+    Subclasses give ``f(u)`` and ``F(u)`` (lists of arrays, one per coefficient), or,
+    when the reconstruction is not ``F`` (non-orthonormal scaling), ``g`` and ``average``
+    (also overridden where a cancellation-free segment mean is known).
     ``n`` is the basis' size parameter (harmonics, slices, functions).  Below LIST_UNROLL
     coefficients ``f`` and ``average`` are traced inside the projection's per-texel loop
     (:meth:`BasisRepresentation._sum_per_texel`): they must not call ``dr.eval`` there.

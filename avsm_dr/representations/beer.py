@@ -48,7 +48,7 @@ VARIANTS = ("cloud", "two_node")
 class BeerShadowMap(Representation):
     """Beer shadow map (module docstring).  Attributes (Dr.Jit, one value per texel):
     ``front`` (first entry), ``extent`` (last exit - first entry), ``tau_max`` (total optical
-    depth), ``t_back`` (``exp(-tau_max)``); properties ``back`` and ``sigma_mean``.
+    depth), ``t_back`` (``exp(-tau_max)``); property ``sigma_mean``.
     """
 
     schema = Schema(
@@ -82,17 +82,7 @@ class BeerShadowMap(Representation):
         self.t_back = dr.exp(-self.tau_max)
         dr.eval(self.tau_max, self.t_back)
 
-    @property
-    def variant(self) -> str:
-        """'cloud' or 'two_node'."""
-        return self.params["variant"]
-
     precisions = PRECISIONS
-
-    @property
-    def back(self):
-        """Last exit ``front + extent`` per texel (Dr.Jit)."""
-        return self.front + self.extent
 
     @property
     def sigma_mean(self):
@@ -103,7 +93,7 @@ class BeerShadowMap(Representation):
     def _stored(self):
         """``front`` relative to one global depth range, ``extent`` over the largest
         extent, then ``tau_max`` (a relative code) or ``t_back`` (module docstring)."""
-        third = (Stored("tau_max", "scalar", "texel") if self.variant == "cloud"
+        third = (Stored("tau_max", "scalar", "texel") if self.params["variant"] == "cloud"
                  else Stored("t_back", "transmittance", "texel"))
         return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False, length=True),
                 third)
@@ -119,7 +109,7 @@ class BeerShadowMap(Representation):
         # (content without extent: a receiver at a step is behind it)
         w = dr.clip((depth - a) / dr.select(e > 0, e, 1), 0, 1)
         w = dr.select(e > 0, w, dr.select(depth >= a, 1, 0))
-        if self.variant == "cloud":
+        if self.params["variant"] == "cloud":
             return dr.exp(-dr.gather(Float, self.tau_max, texel) * w)
         tb = dr.gather(Float, self.t_back, texel)
         return 1 + w * (tb - 1)

@@ -35,10 +35,9 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
    ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of the first node
    and in empty texels, the last node's value behind the last one.
 
-Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4``
-(the (depth, value) pairs plus one 4-byte CSR offset).  Phases A and B run on chunks of
-texels (:func:`next_chunk_segments`; texels are independent, so the nodes do not depend on the
-chunking), so the build's peak stays within a few times the output's size.
+Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4`` (the
+(depth, value) pairs and a 4-byte CSR offset).  Phases A and B run on chunks of texels
+(:func:`next_chunk_segments`; the nodes do not depend on the chunking).
 """
 from __future__ import annotations
 
@@ -90,9 +89,13 @@ def compress(poly, delta: float, placement: str = "midslope"):
     dr.scatter(out_v, vo, start)
     dr.scatter(out_src, start, start)
 
-    def band(vk):
-        """Admissible values at a vertex: [max(v - delta, 0), min(v + delta, 1)]."""
-        return dr.maximum(vk - delta, 0.0), dr.minimum(vk + delta, 1.0)
+    def vertex(k, zo):
+        """Vertex k, its band of admissible values [max(v - delta, 0), min(v + delta, 1)], whether
+        it lies at the origin's depth zo and its (safe) depth step from it."""
+        zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
+        dz = zk - zo
+        vertical = dz <= 0
+        return zk, vk, dr.maximum(vk - delta, 0.0), dr.minimum(vk + delta, 1.0), vertical, dr.select(vertical, 1.0, dz)
 
     def emit(cnt, active, z_new, v_new, src):
         idx = start + cnt
@@ -108,11 +111,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
         # state: k next vertex, (zo, vo) origin, [lo, hi] slope window, has_w window
         # holds a constraint, (zp, ip) last vertex that fitted, cnt nodes emitted
         def body(k, zo, vo, lo, hi, has_w, zp, ip, cnt):
-            zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
-            a, b = band(vk)
-            dz = zk - zo
-            vertical = dz <= 0
-            sdz = dr.select(vertical, 1.0, dz)
+            zk, vk, a, b, vertical, sdz = vertex(k, zo)
             nlo = dr.maximum(lo, (a - vo) / sdz)
             nhi = dr.minimum(hi, (b - vo) / sdz)
             nlo = dr.select(has_w, nlo, dr.minimum(nlo, nhi))    # first constraint always fits
@@ -147,11 +146,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
         # state: k next vertex, (zo, vo) origin, [lo, hi] slopes of chords that keep the
         # vertices between origin and k within delta, (zp, vp, ip) last feasible vertex
         def body(k, zo, vo, io, lo, hi, zp, vp, ip, cnt):
-            zk, vk = dr.gather(F64, pz, k), dr.gather(F64, pv, k)
-            a, b = band(vk)
-            dz = zk - zo
-            vertical = dz <= 0
-            sdz = dr.select(vertical, 1.0, dz)
+            zk, vk, a, b, vertical, sdz = vertex(k, zo)
             sk = (vk - vo) / sdz
             feasible = vertical | ((sk >= lo) & (sk <= hi))
             in_band = (vo >= a) & (vo <= b)
@@ -278,10 +273,7 @@ class DeepShadowMap(Representation):
         return self.placement == "curve"
 
     def _build(self):
-        """Phases A and B chunk by chunk of texels (:func:`next_chunk_segments`); each
-        chunk's nodes are kept in the storage dtype and copied once into the final arrays."""
         seg = self.segments
-        t = backend.types()
         store = np.float32 if seg.dtype == "float32" else np.float64
         offsets = seg.offsets
         n_tex = seg.n_texels
@@ -306,8 +298,7 @@ class DeepShadowMap(Representation):
             node_bytes += 2 * nz.size * seg.itemsize
             del nz, nv, src
             t0 = t1
-        self.node_counts = counts
-        self.node_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._set_nodes(counts)
         nz, nv, self.node_left = (concatenate(parts, k) for k in range(3))
         Float = seg.Float
         self.node_depth = Float(nz)
@@ -315,8 +306,6 @@ class DeepShadowMap(Representation):
         if self.placement == "curve":         # the exact curve's gradients at fixed node depths
             value = _curve.attach_exact_gradients(seg, value, np.repeat(np.arange(n_tex), counts), nz, self.node_left)
         self.node_value = value
-        self._offsets_dr = t.UInt32(A.aligned(self.node_offsets.astype(np.uint32)))
-        self._max_nodes = int(counts.max()) if counts.size else 0
 
     precisions = PRECISIONS
 

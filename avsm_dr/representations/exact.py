@@ -44,8 +44,7 @@ class Exact(Representation):
         """Sparse layout: a texel's segments (z0, z1, tau)."""
         return self._csr_payload(self.segments.counts, 3 * self.segments.itemsize)
 
-    @property
-    def nbytes_per_texel(self) -> float:
+    def _native_bytes(self) -> float:
         mean = self.segments.n_segments / max(self.segments.n_texels, 1)
         return 3 * self.segments.itemsize * mean + 4
 

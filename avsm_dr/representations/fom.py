@@ -18,10 +18,8 @@ written without cancellation).  Every angle is reduced before it is multiplied b
 (:func:`~avsm_dr.representations.basis_functions.sincos_pi`), so ``T(near) = 1`` and
 ``T(far) = exp(-a'_0 / 2) = exp(-sum tau)`` hold to float rounding of the sum.
 
-Reconstruction rings (``monotone = False``) and is clamped to [0, 1]; a lookup takes one
-``sincos`` per receiver and the angle-addition recurrence over k
-(:meth:`FourierOpacityMap._reconstruct_from`).  Depth range,
-clipping and kernel layout: see :mod:`avsm_dr.representations.basis`.
+Reconstruction rings (``monotone = False``) and is clamped to [0, 1].  Depth range, clipping
+and kernel layout: see :mod:`avsm_dr.representations.basis`.
 """
 from __future__ import annotations
 
@@ -50,10 +48,6 @@ class FourierBasis(Basis):
     def n_coefficients(self) -> int:
         return 2 * self.n + 1
 
-    def _half_angles(self, u):
-        """(sin(pi k u), cos(pi k u)) for k = 1..n."""
-        return [sincos_pi(k * u) for k in range(1, self.n + 1)]
-
     def f(self, u):
         out = [2 + 0 * u]
         for k in range(1, self.n + 1):
@@ -61,16 +55,11 @@ class FourierBasis(Basis):
             out += [2 * c, 2 * s]
         return out
 
-    def F(self, u):
-        out = [2 * u]
-        for k, (s, c) in enumerate(self._half_angles(u), start=1):
-            out += [(2 / (math.pi * k)) * s * c, (2 / (math.pi * k)) * s * s]
-        return out
-
     def g(self, u):
         # sin(2x) = 2 sin(x) cos(x),  1 - cos(2x) = 2 sin(x)^2  (x = pi k u, no cancellation)
         out = [0.5 * u]
-        for k, (s, c) in enumerate(self._half_angles(u), start=1):
+        for k in range(1, self.n + 1):
+            s, c = sincos_pi(k * u)
             out += [(1 / (math.pi * k)) * s * c, (1 / (math.pi * k)) * s * s]
         return out
 
@@ -95,11 +84,6 @@ class FourierBasis(Basis):
         k, is_b = self._harmonic(j, u)
         s, c = sincos_pi(2 * k * u)
         return dr.select(j == 0, 2.0, 2 * dr.select(is_b, s, c))
-
-    def F_at(self, j, u):
-        k, is_b = self._harmonic(j, u)
-        s, c = sincos_pi(k * u)
-        return dr.select(j == 0, 2 * u, (2 / math.pi) / dr.maximum(k, 1) * s * dr.select(is_b, s, c))
 
     def g_at(self, j, u):
         k, is_b = self._harmonic(j, u)

@@ -22,7 +22,6 @@ import numpy as np
 from . import _curve
 from .avsm import INTERPOLATIONS, NodeList
 from .optimal import exp_stored_values
-from .base import node_build_bytes
 from .registry import register
 from .schema import Param, Schema
 
@@ -133,7 +132,7 @@ def removal_ranks(segments) -> tuple[dict, np.ndarray]:
     """The segments' curve points (:func:`._curve.curve_points`) and the VW removal step
     of each point (first / last point of a texel: its point count), cached."""
     def compute():
-        pts = _curve.cached(segments, "curve_points", lambda: _curve.curve_points(segments))
+        pts = _curve.points(segments)
         off = pts["off"]
         rank = np.zeros(pts["z"].size, np.int64)
         for tex, kmax in _curve.buckets(off, power=1):
@@ -172,7 +171,7 @@ class GreedyVW(NodeList):
 
     def _resolve(self):
         self.N = self.params["nodes"]
-        self._check_build_memory(lambda n: node_build_bytes(self.n_texels, n, self.segments.itemsize))
+        self._check_node_memory()
 
     def _build(self):
         segments = self.segments

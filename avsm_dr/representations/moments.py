@@ -39,9 +39,7 @@ Target: MBOIT's float32 vectors :data:`MBOIT_TARGET` (Hankel matrices positive d
 checked at import); :data:`UNIFORM_TARGET` holds the uniform distribution's ``1/(k+1)``.
 alpha by storage precision (``self.precision``, else the segments' dtype):
 :data:`DEFAULT_BIAS` (MBOIT's 32-bit / 16-bit values; float64 and unorm8, 16-bit x 256 at
-most 0.5, are ours), :data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'.  Only the float32
-targets and alphas 5e-7 (4) / 5e-5 (8) are corroborated by independent implementations;
-MBOIT's 16-bit targets go with its own transform and are not used.  Trigonometric moments
+most 0.5, are ours), :data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'.  Trigonometric moments
 bias toward the uniform distribution on the circle (:mod:`._trig_moments`), alpha
 :data:`DEFAULT_TRIG_BIAS`.
 
@@ -56,7 +54,6 @@ Family 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig
 rejects counts a family does not take.  ``monotone`` False (bounds non-decreasing in exact
 arithmetic, not the float reconstruction).  ``nbytes_per_texel`` = ``(moments + 1)`` itemsize
 (+ 2 itemsize per-texel range; with ``precision`` as :mod:`._precision` counts it).
-Preset (media): beta 0.45 (experiment ``moment_tuning``).
 """
 from __future__ import annotations
 
@@ -206,12 +203,6 @@ def _moment_count_rule(p: dict) -> str | None:
     return None
 
 
-def default_quantization(family: str, moments: int, precision) -> str:
-    """The ``quantization`` a build gets when it names none: 'msm' for 4 power moments in
-    'unorm16', else 'scaled' (module docstring, "16-bit storage")."""
-    return "msm" if (family, moments, precision) == ("power", 4, MSM_DEFAULT_PRECISION) else "scaled"
-
-
 @register("moments")
 class MomentShadowMap(BasisRepresentation):
     """Power or trigonometric moments of the absorbance with their bound (module docstring)."""
@@ -253,12 +244,16 @@ class MomentShadowMap(BasisRepresentation):
         return TrigMomentBasis(n) if self._trig else PowerMomentBasis(n)
 
     def _resolve(self):
-        """Every derived parameter, in this one place: ``quantization``, the bias target and
-        its pivots, the basis and depth range (base class), ``near > 0`` for the log warp,
-        ``bias`` (None: the default for the storage precision and moment count)."""
+        """``quantization``, the bias target and its pivots, the basis and depth range (base
+        class), ``near > 0`` for the log warp, ``bias`` (None: the default for the storage)."""
         P = self.params
         n = P["moments"]
-        self._check_quantization()
+        if P["quantization"] is None:                   # module docstring, "16-bit storage"
+            msm = (P["family"], n, self.precision) == ("power", 4, MSM_DEFAULT_PRECISION)
+            P["quantization"] = "msm" if msm else "scaled"
+        elif P["quantization"] == "msm" and self.precision not in QZ.MSM_PRECISIONS:
+            raise ValueError(f"quantization: 'msm' needs precision in {QZ.MSM_PRECISIONS}, "
+                             f"got precision={self.precision!r}")
         if self._trig:
             if P["bias_target"] is not None:
                 raise ValueError("bias_target: the trigonometric family biases toward the uniform "
@@ -282,15 +277,6 @@ class MomentShadowMap(BasisRepresentation):
             table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
             P["bias"] = table[n][self.precision or self.segments.dtype]
 
-    def _check_quantization(self):
-        """Resolve ``quantization`` (None: :func:`default_quantization`); 'msm' needs 4 power
-        moments (schema constraint) and a 16-bit ``precision`` (ValueError naming it)."""
-        P = self.params
-        if P["quantization"] is None:
-            P["quantization"] = default_quantization(P["family"], P["moments"], self.precision)
-        elif P["quantization"] == "msm" and self.precision not in QZ.MSM_PRECISIONS:
-            raise ValueError(f"quantization: 'msm' needs precision in {QZ.MSM_PRECISIONS}, "
-                             f"got precision={self.precision!r}")
 
     def _apply_precision(self) -> None:
         """'msm': the moments through :mod:`._moment_quantization`, ranges as the base class."""

@@ -21,12 +21,10 @@ from .base import Representation
 
 
 class OpaqueComposite(Representation):
-    """A volumetric representation composed with an opaque depth map (module docstring),
-    per lookup tap, so every filter applies the depth test per texel (percentage-closer).
-
-    volume: a built representation; depth: (n_texels,) opaque depths (+inf: none).
-    Storage: the volume's bytes plus one depth per texel in the segments' dtype.  Traits are
-    the volume's; gradients flow to the volume's segments, not to the opaque depths.
+    """The module docstring's composite, per lookup tap: every filter applies the depth test
+    per texel (percentage-closer).  volume: a built representation; depth: (n_texels,) opaque
+    depths (+inf: none).  Storage: the volume's bytes plus one depth per texel in the segments'
+    dtype.  Traits are the volume's; gradients flow to the volume's segments, not to the depths.
     """
 
     kind = "opaque_composite"

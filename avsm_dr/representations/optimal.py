@@ -29,7 +29,6 @@ import numpy as np
 
 from . import _curve
 from .avsm import INTERPOLATIONS, NodeList
-from .base import node_build_bytes
 from .registry import register
 from .schema import Param, Schema
 
@@ -326,10 +325,9 @@ def work_units(count: np.ndarray, N: int, norm: str, interp: str) -> float:
 
 @register("optimal")
 class OptimalSubset(NodeList):
-    """Best N-node breakpoint subset of the exact curve (DP, offline; module docstring).
-    ``nbytes_per_texel`` = 2 N itemsize (as AVSM).  Attributes: ``depths``/``values``,
-    ``node_counts`` (T,), ``objective`` (T,) float64 (module docstring; 0 for empty texels).
-    Raises ValueError (naming ``segments``) above :data:`MAX_POINTS` points per texel or
+    """Best N-node breakpoint subset of the exact curve (DP, offline; module docstring), a
+    :class:`~.avsm.NodeList`; ``node_counts`` (T,), ``objective`` (T,) float64 (0 for empty
+    texels).  ValueError (naming ``segments``) above :data:`MAX_POINTS` points per texel or
     :data:`MAX_WORK` work units.
     """
 
@@ -353,10 +351,10 @@ class OptimalSubset(NodeList):
     )
 
     def _resolve(self):
-        P, segments = self.params, self.segments
+        P = self.params
         self.N, self.norm, self.interp = P["nodes"], P["norm"], P["interpolation"]
-        self._check_build_memory(lambda n: node_build_bytes(segments.n_texels, n, segments.itemsize))
-        counts = np.diff(self._points()["off"])
+        self._check_node_memory()
+        counts = np.diff(_curve.points(self.segments)["off"])
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
             raise ValueError(f"segments: texel {t} has {int(counts[t])} exact-curve points (segment ends, two "
@@ -367,10 +365,6 @@ class OptimalSubset(NodeList):
         work = work_units(counts, self.N, self.norm, self.interp)
         if work > MAX_WORK:
             raise ValueError(self._work_message(counts, work))
-
-    def _points(self) -> dict:
-        """The exact curve's points (:func:`._curve.curve_points`, cached on the segments)."""
-        return _curve.cached(self.segments, "curve_points", lambda: _curve.curve_points(self.segments))
 
     def _work_message(self, counts, work: float) -> str:
         """Why a build is refused above :data:`MAX_WORK`, and what fits."""
@@ -405,7 +399,7 @@ class OptimalSubset(NodeList):
         return P["norm"] == "l2" and P["interpolation"] == "linear" and P["_refit"]
 
     def _build(self):
-        seg, pts = self.segments, self._points()
+        seg, pts = self.segments, _curve.points(self.segments)
         T, N = seg.n_texels, self.N
         off = pts["off"]
         store = np.float32 if seg.dtype == "float32" else np.float64

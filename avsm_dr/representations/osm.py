@@ -20,10 +20,8 @@ float rounding: ``a_k >= 0`` and ``g_k`` non-decreasing make ``T`` monotone
 (``monotone = True``; to one ulp, as Dr.Jit's float32 ``exp`` is itself not monotone at
 the ulp level).
 
-Projection: four scatters per segment whatever ``n`` (``_project``: end slices directly,
-the slices fully covered through a difference array); without gradients in
-:data:`BUILD_CHUNKS` chunks of texels (``_build_chunked``).  Depth range, clipping: see
-:mod:`avsm_dr.representations.basis`.
+Projection: four scatters per segment whatever ``n`` (``_project``).  Depth range, clipping:
+see :mod:`avsm_dr.representations.basis`.
 """
 from __future__ import annotations
 
@@ -56,9 +54,6 @@ class PiecewiseConstantBasis(Basis):
         j = self._slice(u)
         return [dr.select(j == k, 1, 0 * u) for k in range(self.n)]
 
-    def F(self, u):
-        return [dr.clip(u - k / self.n, 0, 1 / self.n) for k in range(self.n)]
-
     def g(self, u):
         return [dr.clip(self.n * u - k, 0, 1) for k in range(self.n)]
 
@@ -66,9 +61,6 @@ class PiecewiseConstantBasis(Basis):
 
     def f_at(self, j, u):
         return dr.select(self._slice(u) == type(u)(j), 1.0, 0.0)
-
-    def F_at(self, j, u):
-        return dr.clip(u - type(u)(j) / self.n, 0, 1 / self.n)
 
     def g_at(self, j, u):
         return dr.clip(self.n * u - type(u)(j), 0, 1)
@@ -101,8 +93,8 @@ BUILD_CHUNKS = 2
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
     """Opacity shadow map: n ``slices``; ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel
-    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  Attributes:
-    ``coefficients`` (a_k, optical depth per slice), ``cumulative`` (C_1..C_n)."""
+    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  ``coefficients``:
+    a_k, the optical depth per slice; ``_cum``: the stored C_1..C_n, flat."""
 
     schema = Schema(
         params=(
@@ -148,59 +140,48 @@ class OpacityShadowMap(BasisRepresentation):
         clamped at 0 and ``C_{j+1} = sum_{k<=j} a_k``: the operations, in order, of the
         dense form (:meth:`_project`, ``dr.block_prefix_sum``), so the same bits."""
         seg, n = self.segments, self.basis.n
-        T = seg.n_texels
-        self._check_index_range(T, n)
-        a_all, c_all = dr.zeros(seg.Float, T * n), dr.zeros(seg.Float, T * n)
-        lanes = np.nonzero(seg.counts > 0)[0]
-        offsets = seg.offsets_dr()
-        rows = -(-T // BUILD_CHUNKS)
-        for r0 in range(0, T, rows):
-            sel = lanes[np.searchsorted(lanes, r0):np.searchsorted(lanes, min(T, r0 + rows))]
-            if sel.size:
-                self._build_rows(a_all, c_all, r0, min(T, r0 + rows) - r0, A.to_uint32(sel), offsets)
-        return a_all, c_all
-
-    def _build_rows(self, a_all, c_all, r0, m, texel, offsets):
-        """One chunk of :meth:`_build_chunked`: rows r0 .. r0 + m - 1 (texel: its non-empty
-        texels), written into a_all and c_all (in place: scatters)."""
-        seg, n = self.segments, self.basis.n
         t = backend.types()
         Float, UInt32, F64 = seg.Float, t.UInt32, t.Float64
+        T = seg.n_texels
+        self._check_index_range(T, n)
+        a_all, c_all = dr.zeros(Float, T * n), dr.zeros(Float, T * n)
+        lanes = np.nonzero(seg.counts > 0)[0]
+        offsets = seg.offsets_dr()
         z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
-        first, stop = dr.gather(UInt32, offsets, texel), dr.gather(UInt32, offsets, texel + 1)
-        row = (texel - dr.opaque(UInt32, r0)) * n          # the texel's first slot in the chunk
-        P, Rd = dr.zeros(Float, m * n), dr.zeros(Float, m * n)
+        rows = -(-T // BUILD_CHUNKS)
+        for r0 in range(0, T, rows):         # rows r0 .. r0 + m - 1, their non-empty texels
+            sel = lanes[np.searchsorted(lanes, r0):np.searchsorted(lanes, min(T, r0 + rows))]
+            if not sel.size:
+                continue
+            texel, m = A.to_uint32(sel), min(T, r0 + rows) - r0
+            first, stop = dr.gather(UInt32, offsets, texel), dr.gather(UInt32, offsets, texel + 1)
+            row = (texel - dr.opaque(UInt32, r0)) * n          # the texel's first slot in the chunk
+            P, Rd = dr.zeros(Float, m * n), dr.zeros(Float, m * n)
 
-        def body(i):
-            self._add_parts(P, Rd, dr.gather(Float, z0, i), dr.gather(Float, z1, i), dr.gather(Float, tau, i),
-                            texel, row, mode=dr.ReduceMode.NoConflicts)
-            return (i + 1,)
+            def body(i):
+                self._add_parts(P, Rd, dr.gather(Float, z0, i), dr.gather(Float, z1, i), dr.gather(Float, tau, i),
+                                texel, row, mode=dr.ReduceMode.NoConflicts)
+                return (i + 1,)
 
-        dr.while_loop((first,), lambda i: i < stop, body, label="osm_project")
-        dr.eval(P, Rd)
-        out = texel * n
+            dr.while_loop((first,), lambda i: i < stop, body, label="osm_project")
+            dr.eval(P, Rd)
+            out = texel * n
 
-        def sums(j, r, c):
-            r = r + F64(dr.gather(Float, Rd, row + j))
-            a = dr.gather(Float, P, row + j) + Float(r)
-            # clamp a negative rounding residual of R's +r / -r pairs (as in _project)
-            a = dr.select(a < 0, 0, a)
-            c = c + F64(a)
-            dr.scatter(a_all, a, out + j)
-            dr.scatter(c_all, Float(c), out + j)
-            return j + 1, r, c
+            def sums(j, r, c):
+                r = r + F64(dr.gather(Float, Rd, row + j))
+                a = dr.gather(Float, P, row + j) + Float(r)
+                # clamp a negative rounding residual of R's +r / -r pairs (as in _project)
+                a = dr.select(a < 0, 0, a)
+                c = c + F64(a)
+                dr.scatter(a_all, a, out + j)
+                dr.scatter(c_all, Float(c), out + j)
+                return j + 1, r, c
 
-        w = dr.width(texel)
-        dr.while_loop((dr.zeros(UInt32, w), dr.zeros(F64, w), dr.zeros(F64, w)), lambda j, r, c: j < n, sums,
-                      label="osm_sums")
-        dr.eval(a_all, c_all)
-
-    @property
-    def cumulative(self) -> list:
-        """C_1..C_n per texel as a list of n Dr.Jit arrays (on demand from the flat store)."""
-        n, T = self.basis.n, self.n_texels
-        idx = dr.arange(backend.types().UInt32, T) * n
-        return [dr.gather(self.Float, self._cum, idx + j) for j in range(n)]
+            w = dr.width(texel)
+            dr.while_loop((dr.zeros(UInt32, w), dr.zeros(F64, w), dr.zeros(F64, w)), lambda j, r, c: j < n, sums,
+                          label="osm_sums")
+            dr.eval(a_all, c_all)
+        return a_all, c_all
 
     def _add_parts(self, P, Rd, z0, z1, tau, texel, row, mode=dr.ReduceMode.Auto):
         """Add segments' parts into P (end slices) and Rd (difference array of full-slice

@@ -23,11 +23,6 @@ def register(kind: str):
     return deco
 
 
-def unregister(kind: str) -> None:
-    """Remove ``kind`` from the registry (for kinds registered at run time, e.g. in tests)."""
-    REGISTRY.pop(kind, None)
-
-
 def _check_kind(kind) -> type[Representation]:
     if not isinstance(kind, str) or kind not in REGISTRY:
         raise ValueError(f"kind: unknown representation {kind!r}; known: {sorted(REGISTRY)}"
@@ -48,11 +43,9 @@ def kinds() -> list[str]:
 
 
 def describe(kind: str) -> dict:
-    """What ``kind`` takes and how experiments size it: a dict of the schema's description
-    (:meth:`.schema.Schema.describe`: ``params``, ``size``, ``sweep``, ``quick_sweep``,
-    ``examples``, ``headline``, ``summary``, ``paper``, ``offline``), ``kind``, ``doc``
-    (the class docstring's first paragraph), ``precisions`` (accepted besides None) and the
-    best practice from the class attributes ``PRESET*``: ``preset``, ``preset_capture``,
+    """What ``kind`` takes and how experiments size it: :meth:`.schema.Schema.describe`'s dict
+    plus ``kind``, ``doc`` (the class docstring's first paragraph), ``precisions`` (accepted
+    besides None) and the class attributes ``PRESET*``: ``preset``, ``preset_capture``,
     ``preset_variants``, ``preset_tuned`` (``preset_note`` only when that is False)."""
     cls = _check_kind(kind)
     out = cls.schema.describe()
