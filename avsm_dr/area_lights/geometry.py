@@ -47,22 +47,14 @@ def kit(dtype: str = "float32") -> Kit:
     return Kit(dtype, Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
 
 
-def occluder_hits(scene: AreaLightScene, k: Kit, o, d):
-    """Per occluder: (hit, t0, t1, occluder) for unit-direction rays o + t d."""
-    out = []
-    for occ in scene.occluders:
-        t0, t1, h = occ.hit_dr(k, o, d)
-        out.append((h, t0, t1, occ))
-    return out
-
-
 def occluded(scene: AreaLightScene, k: Kit, x, p, eps: float):
     """True where the open segment x -> p (shortened by eps at both ends) meets an occluder."""
     v = p - x
     r = dr.norm(v)
     d = v / dr.select(r > 0, r, 1)
     blocked = dr.zeros(k.Bool, dr.width(r))
-    for h, t0, t1, _ in occluder_hits(scene, k, x, d):
+    for occ in scene.occluders:
+        t0, t1, h = occ.hit_dr(k, x, d)
         blocked |= h & (t1 > eps) & (t0 < r - eps)
     return blocked
 
@@ -105,7 +97,8 @@ def camera_hits(scene: AreaLightScene, k: Kit) -> CameraHits:
     alb = dr.select(m, float(scene.floor_albedo), alb)
 
     # -- occluders ------------------------------------------------------------------
-    for h, t0, _, occ in occluder_hits(scene, k, o, d):
+    for occ in scene.occluders:
+        t0, _, h = occ.hit_dr(k, o, d)
         m = h & (t0 > 0) & (t0 < t_best)
         t_best = dr.select(m, t0, t_best)
         kind = dr.select(m, DIFFUSE, kind)
