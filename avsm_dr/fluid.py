@@ -367,21 +367,13 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     ``wobble`` (seeded random walk), then :meth:`StableFluids.step` with ``dt``: advection
     (MacCormack for the density), forces (``buoyancy`` per unit density, vorticity
     confinement ``vorticity``), projection (``iterations`` SOR sweeps).
-    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_<key>.npy``,
-    key = hash of the parameters, the backend and this module's source.
+    cache: as in :func:`simulate_plume_sequence`, of which this is the one frame ``start = steps``.
     """
     solver = dict(dt=dt, buoyancy=buoyancy, vorticity=vorticity, source_speed=source_speed,
                   source_radius=source_radius, wobble=wobble, iterations=iterations)
-    params = _plume_params(shape, seed, **solver)
-    params.update(steps=V.integer(steps, "steps", 0), backend=backend.get_backend(), version=_VERSION)
-    shape = tuple(params["shape"])
-
-    def run():
-        out = np.zeros(shape, np.float32)
-        for _, out in zip(range(params["steps"]), plume_frames(shape, seed, **solver)):
-            pass
-        return out
-    return _cached(cache, "plume", params, shape, run)
+    if V.integer(steps, "steps", 0) == 0:
+        return np.zeros(_plume_params(shape, seed, **solver)["shape"], np.float32)
+    return simulate_plume_sequence(shape, 1, steps, 1, seed, cache, **solver)[0]
 
 
 # ============================================================ an animation
@@ -428,7 +420,8 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     """Animation of the plume of :func:`simulate_plume`: (frames, nz, ny, nx) float32, frame f
     the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
     one solver run for all frames.  kwargs: the solver parameters of :func:`plume_frames`.
-    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``).  progress: a tqdm bar.
+    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_seq_<key>.npy``,
+    key = hash of the parameters, the backend and this module's source.  progress: a tqdm bar.
     """
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)

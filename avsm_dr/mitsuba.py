@@ -353,9 +353,6 @@ def _make_class():
             mei.p = p
             return dr.select(active, medium.get_scattering_coefficients(mei, active)[2][0], 0.0)
 
-        def aov_names(self):
-            return []
-
         def to_string(self):
             return f"AVSMSingleScatterIntegrator[representation={self.kind!r}, params={self.params}]"
 

@@ -359,11 +359,10 @@ class OpaqueBox(Blocker):
         t0, t1, _ = ray_box(o, d, np.asarray(self.min, np.float64), np.asarray(self.max, np.float64))
         return t0, t1, t0 <= t1
 
-    def to_mitsuba(self, mi, bsdf):
+    def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
         lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
-        return {"type": "cube", "bsdf": bsdf, "to_world": (
-            mi.ScalarTransform4f().translate(((lo + hi) / 2).tolist())
-            @ mi.ScalarTransform4f().scale(((hi - lo) / 2).tolist()))}
+        m = affine(np.diag((hi - lo) / 2), (hi + lo) / 2)
+        return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
 
 
 @dataclass

@@ -28,7 +28,7 @@ import numpy as np
 from .. import validation as V
 from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
 from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
-from ..scene import OpaqueBox, OpaqueSphere, affine
+from ..scene import OpaqueBox, OpaqueSphere
 
 @dataclass
 class Medium:
@@ -189,10 +189,6 @@ class Box(OpaqueBox, Occluder):
         x, y, z = d @ eu, d @ ev, d @ n
         r_lo = np.linalg.norm(np.maximum(np.maximum(a[None] - vpls, 0), vpls - b[None]), axis=1)   # to the box
         return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)
-
-    def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
-        m = affine(np.diag((self.max - self.min) / 2), (self.max + self.min) / 2)
-        return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
 
 
 def _as_occluder(o):
