@@ -27,7 +27,7 @@ from .area_scene import AreaLightScene
 from .visibility import (boundary_mask, interleave, lookup_bilinear, lookup_point, lookup_point_edge,
                          project, scan, voxelize_points, voxelize_rays)
 from .. import validation as V
-from .vpl import LightGrid, fit_grid, sample_vpls
+from .vpl import fit_grid, sample_vpls
 
 METHODS = ("naive_exact", "naive_voxel", "imperfect")
 INTERPOLATIONS = ("none", "boundary", "full")
@@ -152,12 +152,12 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
         thunk = _render_batched(scene, k, grid, frame, hits, P, K, N, M, intensity, bias,
                                 interpolation, voxelization, seed, c, clock)
         image, boundary = clock("t_gather", lambda: _accumulate(k, image, 0, thunk, K))
-    else:
-        pix = dr.arange(k.UInt32, n_pix)
+    else:                                # one pass per VPL: the batched path with K = 1, or ray casts
         for i in range(K):
             p = dr.gather(k.Vec3, P, dr.opaque(k.UInt32, i))   # width 1, same kernel for every i
-            thunk = _render_one(scene, k, grid, frame, hits, pix, p, N, intensity, bias,
-                                method, interpolation, clock)
+            thunk = (_exact_pass(scene, k, hits, p, N, intensity, bias, clock) if method == "naive_exact" else
+                     _render_batched(scene, k, grid, frame, hits, p, 1, N, M, intensity, bias, interpolation,
+                                     voxelization, seed, c, clock))
             image, boundary = clock("t_gather", lambda: _accumulate(k, image, boundary, thunk, 1))
 
     img = np.asarray(image.numpy(), dtype=np.float64).reshape(cam.height, cam.width)
@@ -221,34 +221,25 @@ def _voxel_gather(scene, k: Kit, grid, frame, hits, pix, vpl, p, N, intensity, b
     return L + corr, nb
 
 
-def _render_one(scene, k: Kit, grid: LightGrid, frame, hits, pix, p, N, intensity, bias, method,
-                interpolation, clock):
-    """One naive pass for a single VPL at p: visibility and scan now, the gather as a thunk
-    (so that the caller times it)."""
-    if method == "naive_exact":
-        Vm, Vs = clock("t_visibility", lambda: exact_visibility(scene, k, hits, p, N, bias))
+def _exact_pass(scene, k: Kit, hits, p, N, intensity, bias, clock):
+    """One naive_exact pass for a single VPL at p: ray-cast visibility now, the gather as a
+    thunk (so that the caller times it)."""
+    pix = dr.arange(k.UInt32, dr.width(hits.t_end))
+    Vm, Vs = clock("t_visibility", lambda: exact_visibility(scene, k, hits, p, N, bias))
 
-        def vis_medium(x, j):       # the ray-cast visibility of step j
-            return dr.gather(k.Float, Vm, pix * N + j), None
+    def vis_medium(x, j):       # the ray-cast visibility of step j
+        return dr.gather(k.Float, Vm, pix * N + j), None
 
-        def vis_surface(x):
-            return dr.gather(k.Float, Vs, pix)
-
-        def thunk():
-            L, _ = gather(scene, k, hits, pix, p, N, intensity, vis_medium, vis_surface, 0.0)
-            return L, k.UInt32(0)
-        return thunk
-
-    words = clock("t_visibility", lambda: voxelize_rays(scene, grid, k, frame, p, 1))
-    S, stride = _shadow_volume(grid, k, words, interpolation, clock)
-    vpl = k.UInt32(0)
-    return lambda: _voxel_gather(scene, k, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
-                                 interpolation, lambda lane: (lane, k.UInt32(0), p))
+    def thunk():
+        L, _ = gather(scene, k, hits, pix, p, N, intensity, vis_medium, lambda x: dr.gather(k.Float, Vs, pix), 0.0)
+        return L, k.UInt32(0)
+    return thunk
 
 
 def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bias, interpolation,
                     voxelization, seed, coverage, clock):
-    """Imperfect VSVs: one buffer for all K grids, one scan, one (pixel, VPL) gather."""
+    """Voxel methods: one buffer for the K grids (imperfect VSVs; naive_voxel: K = 1 per pass), one
+    scan, one (pixel, VPL) gather as a thunk."""
     if voxelization == "points":
         words = clock("t_visibility", lambda: voxelize_points(scene, grid, k, frame, P, K, M, seed,
                                                               coverage))
