@@ -19,7 +19,6 @@ EXIT, DIFFUSE, LIGHT_FRONT, LIGHT_BACK = 0, 1, 2, 3
 @dataclass(frozen=True)
 class Kit:
     """Dr.Jit types for one precision: Float, Vec3, UInt32, Int32, Bool, PCG32."""
-    dtype: str
     Float: type
     Vec3: type
     UInt32: type
@@ -44,7 +43,7 @@ def kit(dtype: str = "float32") -> Kit:
     t = backend.types()
     Float = A.float_type(dtype)
     Vec3 = t.Array3f if dtype == "float32" else t.Array3f64
-    return Kit(dtype, Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
+    return Kit(Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
 
 
 def occluded(scene: AreaLightScene, k: Kit, x, p, eps: float):

@@ -62,28 +62,6 @@ class _Clock:
         return out
 
 
-def _validate(scene, method, vpls, resolution, steps, interpolation, voxelization, points_per_vpl,
-              splat_coverage, surface_bias, dtype):
-    if not isinstance(scene, AreaLightScene):
-        raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
-    V.one_of(method, "method", METHODS)
-    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
-        V.integer(value, name, lo)
-    if interpolation is not None:
-        V.one_of(interpolation, "interpolation", INTERPOLATIONS)
-    if method == "naive_exact" and interpolation not in (None, "none"):
-        raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
-    V.one_of(voxelization, "voxelization", VOXELIZATIONS)
-    if method == "naive_voxel" and voxelization != "rays":
-        raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
-    if points_per_vpl is not None:
-        V.integer(points_per_vpl, "points_per_vpl", 1)
-    V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
-    if surface_bias is not None:
-        V.real(surface_bias, "surface_bias", 0.0)
-    A.float_type(dtype)  # raises ValueError naming dtype
-
-
 def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, resolution: int = 128,
            steps: int = 128, interpolation: str | None = None, voxelization: str | None = None,
            points_per_vpl: int | None = None, splat_coverage: float = 1.5,
@@ -116,13 +94,27 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
     jitter, seed
         jittered VPL strata; seed of the random surface points.
     """
-    if voxelization is None:
-        voxelization = "points" if method == "imperfect" else "rays"
-    _validate(scene, method, vpls, resolution, steps, interpolation, voxelization, points_per_vpl,
-              splat_coverage, surface_bias, dtype)
-    c = float(splat_coverage)
+    if not isinstance(scene, AreaLightScene):
+        raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
+    V.one_of(method, "method", METHODS)
     if interpolation is None:
         interpolation = "boundary" if method == "imperfect" else "none"
+    if voxelization is None:
+        voxelization = "points" if method == "imperfect" else "rays"
+    V.one_of(interpolation, "interpolation", INTERPOLATIONS)
+    V.one_of(voxelization, "voxelization", VOXELIZATIONS)
+    if method == "naive_exact" and interpolation != "none":
+        raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
+    if method == "naive_voxel" and voxelization != "rays":
+        raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
+    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
+        V.integer(value, name, lo)
+    if points_per_vpl is not None:
+        V.integer(points_per_vpl, "points_per_vpl", 1)
+    c = V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
+    if surface_bias is not None:
+        V.real(surface_bias, "surface_bias", 0.0)
+    A.float_type(dtype)  # raises ValueError naming dtype
     K, R, N = int(vpls), int(resolution), int(steps)
     M = int(points_per_vpl) if points_per_vpl is not None else 4 * R * R
     k = kit(dtype)
