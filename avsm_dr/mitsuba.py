@@ -16,10 +16,7 @@ Shadow Maps", EGSR 2010, sec. 3).  With ``representation='exact'`` this is ``vol
 Importing this module selects a variant only when none is set (``llvm_ad_rgb``, or
 ``cuda_ad_rgb`` on the CUDA backend) and re-registers the plugin on every variant change; the
 rest of the package imports Mitsuba lazily.  Errors are ValueErrors naming the property or the
-scene: under a variant without JIT AD the constructor names the variant to set; a bad property
-(an unknown name first, with a "did you mean") is raised without its traceback, so that
-``mi.load_dict`` quotes ``ValueError: <message>``; ``mi.render`` (wrapped once at import)
-raises this integrator's ValueError, not Dr.Jit's ``RuntimeError ... (see above)``.
+scene, also as raised by ``mi.load_dict`` and ``mi.render``.
 """
 from __future__ import annotations
 
@@ -166,10 +163,8 @@ def _make_class():
 
         Properties (described in the Mitsuba page of the docs): ``representation``, a kind of
         :func:`avsm_dr.kinds` (default ``exact``: equals ``volpath``); the kind's parameters,
-        passed to :func:`avsm_dr.build` and checked by its schema; and the plugin's options with
-        their defaults (:data:`_OPTIONS`): ``resolution`` 256 (64..1024), ``filter`` bilinear,
-        ``max_depth`` 2 (1 or 2), ``march_steps`` 64, ``hide_emitters`` false, ``capture_method``
-        march.
+        passed to :func:`avsm_dr.build` and checked by its schema; and the plugin's options
+        (defaults and checks: :data:`_OPTIONS`).
 
         Per camera sample, with ``[a, b]`` the ray's stretch inside the medium's box (cut at
         the first surface), ``t* ~ U[a, b]`` and ``x* = o + t* d``::
