@@ -56,28 +56,24 @@ def light_of(emitter):
 
 
 def scene_medium(scene):
-    """(medium, bbox lo (3,), bbox hi (3,)) of the one shape with an interior medium."""
+    """(medium, sigma_t grid, bbox lo (3,), bbox hi (3,)) of the one shape with an interior
+    medium; the grid (z, y, x) is a Dr.Jit TensorXf ``scale * data``, AD graph kept."""
     found = [(s, s.interior_medium()) for s in scene.shapes() if s.interior_medium() is not None]
     if len(found) != 1:
         raise ValueError(f"scene: {NAME} needs exactly one shape with an interior medium, found {len(found)}")
     shape, medium = found[0]
-    if medium.class_name() != "HeterogeneousMedium" or "sigma_t.data" not in mi.traverse(medium).keys():
+    params = mi.traverse(medium)
+    if medium.class_name() != "HeterogeneousMedium" or "sigma_t.data" not in params.keys():
         raise ValueError(f"scene: the medium must be 'heterogeneous' with a 'gridvolume' sigma_t, "
                          f"got {medium.class_name()}")
-    b = shape.bbox()
-    lo = np.array([float(v) for v in b.min], np.float64)
-    hi = np.array([float(v) for v in b.max], np.float64)
-    return medium, lo, hi
-
-
-def medium_density(medium):
-    """sigma_t grid (z, y, x) as a Dr.Jit TensorXf, ``scale * data``, AD graph kept."""
-    params = mi.traverse(medium)
     data = params["sigma_t.data"]
     if data.ndim != 4 or data.shape[3] != 1:
         raise ValueError(f"scene: the medium's sigma_t grid must have one channel, got shape {data.shape}")
-    scale = float(params["scale"])
-    return mi.TensorXf(data.array * scale, tuple(int(s) for s in data.shape[:3]))
+    density = mi.TensorXf(data.array * float(params["scale"]), tuple(int(s) for s in data.shape[:3]))
+    b = shape.bbox()
+    lo = np.array([float(v) for v in b.min], np.float64)
+    hi = np.array([float(v) for v in b.max], np.float64)
+    return medium, density, lo, hi
 
 
 def check_box(medium, density, lo, hi, n: int = 64) -> None:
@@ -203,8 +199,7 @@ def _make_class():
             if len(emitters) != 1:
                 raise ValueError(f"scene: {NAME} needs exactly one emitter, found {len(emitters)}")
             light = light_of(emitters[0])
-            medium, lo, hi = scene_medium(scene)
-            density = medium_density(medium)
+            medium, density, lo, hi = scene_medium(scene)
             # the grid rule of every entry point (NaN, inf, negative: named here, not as a to_world mismatch)
             V.density_grid(density, "scene: the medium's sigma_t grid (scale * data)")
             with dr.suspend_grad():
@@ -362,20 +357,15 @@ def supported_variant(variant) -> bool:
     return isinstance(variant, str) and variant.startswith(("llvm_ad", "cuda_ad"))
 
 
-def variant_message(variant) -> str:
-    """Why ``avsm_single_scatter`` cannot be created under ``variant``, and what to call."""
-    return (f"{NAME} needs a JIT variant of Mitsuba with autodiff (llvm_ad_rgb, or cuda_ad_rgb on an "
-            f"NVIDIA GPU; any llvm_ad_* / cuda_ad_*), the current variant is {variant!r}: call "
-            f"mi.set_variant('llvm_ad_rgb') before building the scene dict and loading it (importing "
-            f"avsm_dr.mitsuba selects it only when no variant is set)")
-
-
 def integrator_class():
-    """The ``avsm_single_scatter`` class of the current Mitsuba variant; ValueError under a
-    variant it cannot run in (:func:`variant_message`)."""
+    """The ``avsm_single_scatter`` class of the current Mitsuba variant; ValueError, naming the
+    variant to set, under a variant it cannot run in (not :func:`supported_variant`)."""
     variant = mi.variant()
     if not supported_variant(variant):
-        raise ValueError(variant_message(variant))
+        raise ValueError(f"{NAME} needs a JIT variant of Mitsuba with autodiff (llvm_ad_rgb, or cuda_ad_rgb on an "
+                         f"NVIDIA GPU; any llvm_ad_* / cuda_ad_*), the current variant is {variant!r}: call "
+                         f"mi.set_variant('llvm_ad_rgb') before building the scene dict and loading it (importing "
+                         f"avsm_dr.mitsuba selects it only when no variant is set)")
     if variant not in _CLASSES:
         _CLASSES[variant] = _make_class()
     return _CLASSES[variant]
@@ -439,5 +429,5 @@ mi.detail.add_variant_callback(lambda *_args: register())
 if not getattr(mi.render, "_avsm_dr_checked", False):
     mi.render = _checked_render(mi.render)
 
-__all__ = ["NAME", "register", "integrator_class", "supported_variant", "variant_message", "light_of",
-           "scene_medium", "medium_density"]
+__all__ = ["NAME", "register", "integrator_class", "supported_variant", "light_of",
+           "scene_medium"]
