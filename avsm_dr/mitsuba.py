@@ -105,17 +105,6 @@ _OPTIONS = {
 }
 
 
-def _unknown_message(kind: str, name: str) -> str:
-    """The schema's unknown-parameter message, followed, when no kind parameter is close, by the
-    plugin's own properties and their "did you mean" (``resolutoin`` -> ``'resolution'``)."""
-    schema = REGISTRY[kind].schema
-    public = schema.public_names()
-    if V.did_you_mean(name, public):
-        return schema.unknown_message(kind, name)
-    return (f"{schema.unknown_message(kind, name)}; {NAME} properties: {list(OWN_PROPERTIES)}"
-            f"{V.did_you_mean(name, OWN_PROPERTIES)}")
-
-
 def _check_properties(props) -> dict:
     """Plugin options and the representation's parameters (schema-validated); ValueError names one:
     the kind, then unknown names (a misspelt one, with its "did you mean", first), then values."""
@@ -129,7 +118,11 @@ def _check_properties(props) -> dict:
     if unknown:                                          # private (``_``) switches are accepted, not listed
         # a misspelling first: ``representaton="avsm", nodes=4`` is about 'representation', not 'nodes'
         typos = [u for u in unknown if V.did_you_mean(u, schema.public_names() + list(OWN_PROPERTIES))]
-        raise ValueError(_unknown_message(kind, (typos or unknown)[0]))
+        name = (typos or unknown)[0]
+        msg = schema.unknown_message(kind, name)
+        if not V.did_you_mean(name, schema.public_names()):     # then the plugin's own, too
+            msg += f"; {NAME} properties: {list(OWN_PROPERTIES)}{V.did_you_mean(name, OWN_PROPERTIES)}"
+        raise ValueError(msg)
     opts = {"kind": kind}
     for name, (default, ok, expected) in _OPTIONS.items():
         opts[name] = value = props.get(name, default)

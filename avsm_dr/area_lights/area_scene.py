@@ -26,9 +26,10 @@ import drjit as dr
 import numpy as np
 
 from .. import validation as V
-from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
+from ..camera import PinholeCamera
 from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
 from ..scene import OpaqueBox, OpaqueSphere
+
 
 @dataclass
 class Medium:
