@@ -172,15 +172,6 @@ def _accumulate(k: Kit, image, boundary, thunk, K: int):
     return image + L, boundary + nb
 
 
-def _shadow_volume(grid, k: Kit, words, interpolation: str, clock):
-    """Scan phase: S = scan(O), plus the boundary mask interleaved with S for 'boundary'.
-    Returns (buffer, stride): S words sit at ``stride * index`` of the buffer."""
-    S = clock("t_scan", lambda: scan(words, grid, k))
-    if interpolation != "boundary":
-        return S, 1
-    return clock("t_scan", lambda: interleave(S, boundary_mask(S, grid, k), k)), 2
-
-
 def _voxel_gather(scene, k: Kit, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
                   interpolation, lane_info):
     """Gather with voxel visibility: nearest texel ('none'), bilinear at every step
@@ -237,7 +228,10 @@ def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bia
                                                               coverage))
     else:
         words = clock("t_visibility", lambda: voxelize_rays(scene, grid, k, frame, P, K))
-    S, stride = _shadow_volume(grid, k, words, interpolation, clock)
+    S = clock("t_scan", lambda: scan(words, grid, k))
+    stride = 2 if interpolation == "boundary" else 1
+    if stride == 2:                     # the boundary mask interleaved with S (S words at 2 * index)
+        S = clock("t_scan", lambda: interleave(S, boundary_mask(S, grid, k), k))
 
     n_pix = dr.width(hits.t_end)
 
