@@ -140,17 +140,14 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
                               scene.light.radiance * dr.exp(-scene.medium.sigma_t * hits.t_end), 0))
     boundary = dr.zeros(k.UInt32, 1)
 
-    if method == "imperfect":
-        thunk = _render_batched(scene, k, grid, frame, hits, P, K, N, M, intensity, bias,
-                                interpolation, voxelization, seed, c, clock)
-        image, boundary = clock("t_gather", lambda: _accumulate(k, image, 0, thunk, K))
-    else:                                # one pass per VPL: the batched path with K = 1, or ray casts
-        for i in range(K):
-            p = dr.gather(k.Vec3, P, dr.opaque(k.UInt32, i))   # width 1, same kernel for every i
-            thunk = (_exact_pass(scene, k, hits, p, N, intensity, bias, clock) if method == "naive_exact" else
-                     _render_batched(scene, k, grid, frame, hits, p, 1, N, M, intensity, bias, interpolation,
-                                     voxelization, seed, c, clock))
-            image, boundary = clock("t_gather", lambda: _accumulate(k, image, boundary, thunk, 1))
+    # imperfect: one pass over all K VPLs; naive: one pass per VPL (width 1, same kernel for every i)
+    passes = [(P, K)] if method == "imperfect" else ((dr.gather(k.Vec3, P, dr.opaque(k.UInt32, i)), 1)
+                                                      for i in range(K))
+    for p, n in passes:
+        thunk = (_exact_pass(scene, k, hits, p, N, intensity, bias, clock) if method == "naive_exact" else
+                 _render_batched(scene, k, grid, frame, hits, p, n, N, M, intensity, bias, interpolation,
+                                 voxelization, seed, c, clock))
+        image, boundary = clock("t_gather", lambda: _accumulate(k, image, boundary, thunk, n))
 
     img = np.asarray(image.numpy(), dtype=np.float64).reshape(cam.height, cam.width)
     stats = dict(grid=grid.__dict__.copy() if voxels else None,
