@@ -169,38 +169,6 @@ def _accumulate(k: Kit, image, boundary, thunk, K: int):
     return image + L, boundary + nb
 
 
-def _voxel_gather(scene, k: Kit, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
-                  interpolation, lane_info):
-    """Gather with voxel visibility: nearest texel ('none'), bilinear at every step
-    ('full'), or nearest plus the compacted boundary pass ('boundary', S interleaved with
-    the boundary mask, ``stride`` 2)."""
-    def vis(x, p_, vpl_, bilinear: bool):
-        return (lookup_bilinear if bilinear else lookup_point)(grid, k, S, vpl_, project(grid, k, frame, x, p_),
-                                                               stride=stride)
-
-    def vis_surface(x):
-        return vis(x, p, vpl, interpolation != "none")
-
-    def vis_medium(x, j):
-        if interpolation == "boundary":
-            return lookup_point_edge(grid, k, S, vpl, project(grid, k, frame, x, p))
-        return vis(x, p, vpl, interpolation == "full"), None
-
-    L, flags = gather(scene, k, hits, pix, p, N, intensity, vis_medium, vis_surface, bias,
-                      boundaries=interpolation == "boundary")
-    if flags is None:
-        return L, k.UInt32(0)
-    dr.eval(L, *flags)
-
-    def vis_delta(x, vpl_, p_):
-        c = project(grid, k, frame, x, p_)
-        return lookup_bilinear(grid, k, S, vpl_, c, stride=stride) - lookup_point(grid, k, S, vpl_, c, stride=stride)
-
-    corr = boundary_correction(scene, k, hits, N, intensity, flags, lane_info, vis_delta)
-    nb = sum((dr.sum(dr.popcnt(f)) for f in flags), k.UInt32(0))
-    return L + corr, nb
-
-
 def _exact_pass(scene, k: Kit, hits, p, N, intensity, bias, clock):
     """One naive_exact pass for a single VPL at p: ray-cast visibility now, the gather as a
     thunk (so that the caller times it)."""
@@ -240,7 +208,31 @@ def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bia
         return pix, vpl, dr.gather(k.Vec3, P, vpl)
 
     def thunk():
+        """The gather with voxel visibility: nearest texel ('none'), bilinear at every step ('full'),
+        or nearest plus the compacted pass over the boundary steps ('boundary')."""
         pix, vpl, p = lane_info(dr.arange(k.UInt32, n_pix * K))
-        return _voxel_gather(scene, k, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
-                             interpolation, lane_info)
+
+        def vis(x, bilinear: bool):
+            lookup = lookup_bilinear if bilinear else lookup_point
+            return lookup(grid, k, S, vpl, project(grid, k, frame, x, p), stride=stride)
+
+        def vis_medium(x, j):
+            if interpolation == "boundary":
+                return lookup_point_edge(grid, k, S, vpl, project(grid, k, frame, x, p))
+            return vis(x, interpolation == "full"), None
+
+        L, flags = gather(scene, k, hits, pix, p, N, intensity, vis_medium, lambda x: vis(x, interpolation != "none"),
+                          bias, boundaries=interpolation == "boundary")
+        if flags is None:
+            return L, k.UInt32(0)
+        dr.eval(L, *flags)
+
+        def vis_delta(x, vpl_, p_):
+            c = project(grid, k, frame, x, p_)
+            return (lookup_bilinear(grid, k, S, vpl_, c, stride=stride)
+                    - lookup_point(grid, k, S, vpl_, c, stride=stride))
+
+        corr = boundary_correction(scene, k, hits, N, intensity, flags, lane_info, vis_delta)
+        nb = sum((dr.sum(dr.popcnt(f)) for f in flags), k.UInt32(0))
+        return L + corr, nb
     return thunk
