@@ -364,25 +364,22 @@ def integrator_class():
     return _CLASSES[variant]
 
 
-def _without_traceback(make):
-    """``make(props)``, a ValueError from it re-raised without its traceback (which Mitsuba's
-    parser would quote whole, the message on its last line)."""
+def register() -> None:
+    """Register ``avsm_single_scatter`` for the current variant (at import and after every variant
+    change): the integrator under a JIT AD variant, else a constructor raising ValueError that
+    names the variant to set (not Mitsuba's ``Plugin "avsm_single_scatter" not found!``).  Its
+    ValueErrors lose their traceback, which Mitsuba's parser would quote whole, the message last."""
+    if mi.variant() is None:
+        return
+    make = integrator_class() if supported_variant(mi.variant()) else lambda props: integrator_class()
+
     def factory(props):
         try:
             return make(props)
         except ValueError as err:
             err.__traceback__ = None
             raise
-    return factory
-
-
-def register() -> None:
-    """Register ``avsm_single_scatter`` for the current variant (at import and after every variant
-    change): the integrator under a JIT AD variant, else a constructor raising ValueError that
-    names the variant to set (not Mitsuba's ``Plugin "avsm_single_scatter" not found!``)."""
-    if mi.variant() is not None:
-        mi.register_integrator(NAME, _without_traceback(
-            integrator_class() if supported_variant(mi.variant()) else lambda props: integrator_class()))
+    mi.register_integrator(NAME, factory)
 
 
 def _integrator_of(signature, args, kwargs):

@@ -154,16 +154,13 @@ def voxelize_points(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_
     return words
 
 
-def _smear(x):
-    """Bit b of the result is set iff a bit <= b of x is set (log-step OR scan)."""
-    for s in (1, 2, 4, 8, 16):
-        x = x | (x << s)
-    return x
-
-
 def scan(words, grid: LightGrid, k: Kit):
-    """Exclusive prefix-OR of the occupancy along every texel ray (shadow volumes S)."""
-    inner = _smear(words) << 1
+    """Exclusive prefix-OR of the occupancy along every texel ray (shadow volumes S): within a word,
+    a log-step OR scan sets bit b iff a bit <= b is set, shifted by one bin."""
+    inner = words
+    for s in (1, 2, 4, 8, 16):
+        inner = inner | (inner << s)
+    inner = inner << 1
     if grid.words == 1:
         return inner
     carry = dr.block_prefix_reduce(dr.ReduceOp.Or, words, grid.words, exclusive=True)
