@@ -191,12 +191,7 @@ class StableFluids:
         velocity = V.vec3(velocity, "velocity")
         mk = self.m.Float(np.ascontiguousarray(np.asarray(mask, np.float32)).ravel())
         self.d = dr.maximum(self.d, amount * mk)
-        fields = []
-        for axis, (L, f) in enumerate(zip(self._faces(), (self.u, self.v, self.w))):
-            mf = self._to_faces(mk, L, axis)            # mask averaged over the two cells beside a face
-            fields.append(dr.select(self._interior[axis], f + mf * (float(velocity[axis]) - f), 0.0))
-        self.u, self.v, self.w = fields
-        dr.eval(self.d, self.u, self.v, self.w)
+        self._update_faces(lambda a, L, f: f + self._to_faces(mk, L, a) * (float(velocity[a]) - f), self.d)
 
     def add_forces(self, dt: float) -> None:
         """Buoyancy on y-faces and vorticity confinement (Fedkiw et al. 2001, sec. 3.2)."""
@@ -204,12 +199,18 @@ class StableFluids:
         self.v = dr.select(self._interior[1], self.v + dt * self.buoyancy * db, 0.0)
         if self.vorticity > 0:
             f = self._confinement()
-            self.u, self.v, self.w = (dr.select(self._interior[a], q + dt * self._to_faces(f[a], L, a), 0.0)
-                                      for a, (L, q) in enumerate(zip(self._faces(), (self.u, self.v, self.w))))
+            self._update_faces(lambda a, L, q: q + dt * self._to_faces(f[a], L, a))
         dr.eval(self.u, self.v, self.w)
 
     def _faces(self):
         return self.U, self.V, self.W
+
+    def _update_faces(self, fn, *also) -> None:
+        """``u, v, w = fn(axis, layout, field)`` on interior faces, 0 on the walls (a closed box);
+        evaluated together with ``also``.  ``fn`` of a cell-centred field uses :meth:`_to_faces`."""
+        self.u, self.v, self.w = (dr.select(inner, fn(a, L, f), 0.0) for a, (L, f, inner) in
+                                  enumerate(zip(self._faces(), (self.u, self.v, self.w), self._interior)))
+        dr.eval(*also, self.u, self.v, self.w)
 
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
@@ -293,12 +294,11 @@ class StableFluids:
                 p = dr.select(self._red == colour, p + w * (gs - p), p)
                 dr.eval(p)
         self.p = p
-        fields = []
-        for axis, (L, f) in enumerate(zip(self._faces(), (self.u, self.v, self.w))):
-            lo, hi = self._beside(p, L, axis)
-            fields.append(dr.select(self._interior[axis], f - (hi - lo), 0.0))
-        self.u, self.v, self.w = fields
-        dr.eval(self.u, self.v, self.w)
+
+        def minus_grad(a, L, f):            # grad p on a face: the difference of its two cells
+            lo, hi = self._beside(p, L, a)
+            return f - (hi - lo)
+        self._update_faces(minus_grad)
 
     def step(self, dt: float) -> None:
         """advect, forces, project (Bridson, "Fluid Simulation for Computer Graphics", 2015,
@@ -367,21 +367,13 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     ``wobble`` (seeded random walk), then :meth:`StableFluids.step` with ``dt``: advection
     (MacCormack for the density), forces (``buoyancy`` per unit density, vorticity
     confinement ``vorticity``), projection (``iterations`` SOR sweeps).
-    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_<key>.npy``,
-    key = hash of the parameters, the backend and this module's source.
+    cache: as in :func:`simulate_plume_sequence`, of which this is the one frame ``start = steps``.
     """
     solver = dict(dt=dt, buoyancy=buoyancy, vorticity=vorticity, source_speed=source_speed,
                   source_radius=source_radius, wobble=wobble, iterations=iterations)
-    params = _plume_params(shape, seed, **solver)
-    params.update(steps=V.integer(steps, "steps", 0), backend=backend.get_backend(), version=_VERSION)
-    shape = tuple(params["shape"])
-
-    def run():
-        out = np.zeros(shape, np.float32)
-        for _, out in zip(range(params["steps"]), plume_frames(shape, seed, **solver)):
-            pass
-        return out
-    return _cached(cache, "plume", params, shape, run)
+    if V.integer(steps, "steps", 0) == 0:
+        return np.zeros(_plume_params(shape, seed, **solver)["shape"], np.float32)
+    return simulate_plume_sequence(shape, 1, steps, 1, seed, cache, **solver)[0]
 
 
 # ============================================================ an animation
@@ -428,7 +420,8 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     """Animation of the plume of :func:`simulate_plume`: (frames, nz, ny, nx) float32, frame f
     the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
     one solver run for all frames.  kwargs: the solver parameters of :func:`plume_frames`.
-    cache: as in :func:`simulate_plume` (file ``plume_seq_<key>.npy``).  progress: a tqdm bar.
+    cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_seq_<key>.npy``,
+    key = hash of the parameters, the backend and this module's source.  progress: a tqdm bar.
     """
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)

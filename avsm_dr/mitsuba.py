@@ -16,10 +16,7 @@ Shadow Maps", EGSR 2010, sec. 3).  With ``representation='exact'`` this is ``vol
 Importing this module selects a variant only when none is set (``llvm_ad_rgb``, or
 ``cuda_ad_rgb`` on the CUDA backend) and re-registers the plugin on every variant change; the
 rest of the package imports Mitsuba lazily.  Errors are ValueErrors naming the property or the
-scene: under a variant without JIT AD the constructor names the variant to set; a bad property
-(an unknown name first, with a "did you mean") is raised without its traceback, so that
-``mi.load_dict`` quotes ``ValueError: <message>``; ``mi.render`` (wrapped once at import)
-raises this integrator's ValueError, not Dr.Jit's ``RuntimeError ... (see above)``.
+scene, also as raised by ``mi.load_dict`` and ``mi.render``.
 """
 from __future__ import annotations
 
@@ -59,28 +56,24 @@ def light_of(emitter):
 
 
 def scene_medium(scene):
-    """(medium, bbox lo (3,), bbox hi (3,)) of the one shape with an interior medium."""
+    """(medium, sigma_t grid, bbox lo (3,), bbox hi (3,)) of the one shape with an interior
+    medium; the grid (z, y, x) is a Dr.Jit TensorXf ``scale * data``, AD graph kept."""
     found = [(s, s.interior_medium()) for s in scene.shapes() if s.interior_medium() is not None]
     if len(found) != 1:
         raise ValueError(f"scene: {NAME} needs exactly one shape with an interior medium, found {len(found)}")
     shape, medium = found[0]
-    if medium.class_name() != "HeterogeneousMedium" or "sigma_t.data" not in mi.traverse(medium).keys():
+    params = mi.traverse(medium)
+    if medium.class_name() != "HeterogeneousMedium" or "sigma_t.data" not in params.keys():
         raise ValueError(f"scene: the medium must be 'heterogeneous' with a 'gridvolume' sigma_t, "
                          f"got {medium.class_name()}")
-    b = shape.bbox()
-    lo = np.array([float(v) for v in b.min], np.float64)
-    hi = np.array([float(v) for v in b.max], np.float64)
-    return medium, lo, hi
-
-
-def medium_density(medium):
-    """sigma_t grid (z, y, x) as a Dr.Jit TensorXf, ``scale * data``, AD graph kept."""
-    params = mi.traverse(medium)
     data = params["sigma_t.data"]
     if data.ndim != 4 or data.shape[3] != 1:
         raise ValueError(f"scene: the medium's sigma_t grid must have one channel, got shape {data.shape}")
-    scale = float(params["scale"])
-    return mi.TensorXf(data.array * scale, tuple(int(s) for s in data.shape[:3]))
+    density = mi.TensorXf(data.array * float(params["scale"]), tuple(int(s) for s in data.shape[:3]))
+    b = shape.bbox()
+    lo = np.array([float(v) for v in b.min], np.float64)
+    hi = np.array([float(v) for v in b.max], np.float64)
+    return medium, density, lo, hi
 
 
 def check_box(medium, density, lo, hi, n: int = 64) -> None:
@@ -112,17 +105,6 @@ _OPTIONS = {
 }
 
 
-def _unknown_message(kind: str, name: str) -> str:
-    """The schema's unknown-parameter message, followed, when no kind parameter is close, by the
-    plugin's own properties and their "did you mean" (``resolutoin`` -> ``'resolution'``)."""
-    schema = REGISTRY[kind].schema
-    public = schema.public_names()
-    if V.did_you_mean(name, public):
-        return schema.unknown_message(kind, name)
-    return (f"{schema.unknown_message(kind, name)}; {NAME} properties: {list(OWN_PROPERTIES)}"
-            f"{V.did_you_mean(name, OWN_PROPERTIES)}")
-
-
 def _check_properties(props) -> dict:
     """Plugin options and the representation's parameters (schema-validated); ValueError names one:
     the kind, then unknown names (a misspelt one, with its "did you mean", first), then values."""
@@ -136,7 +118,11 @@ def _check_properties(props) -> dict:
     if unknown:                                          # private (``_``) switches are accepted, not listed
         # a misspelling first: ``representaton="avsm", nodes=4`` is about 'representation', not 'nodes'
         typos = [u for u in unknown if V.did_you_mean(u, schema.public_names() + list(OWN_PROPERTIES))]
-        raise ValueError(_unknown_message(kind, (typos or unknown)[0]))
+        name = (typos or unknown)[0]
+        msg = schema.unknown_message(kind, name)
+        if not V.did_you_mean(name, schema.public_names()):     # then the plugin's own, too
+            msg += f"; {NAME} properties: {list(OWN_PROPERTIES)}{V.did_you_mean(name, OWN_PROPERTIES)}"
+        raise ValueError(msg)
     opts = {"kind": kind}
     for name, (default, ok, expected) in _OPTIONS.items():
         opts[name] = value = props.get(name, default)
@@ -166,10 +152,8 @@ def _make_class():
 
         Properties (described in the Mitsuba page of the docs): ``representation``, a kind of
         :func:`avsm_dr.kinds` (default ``exact``: equals ``volpath``); the kind's parameters,
-        passed to :func:`avsm_dr.build` and checked by its schema; and the plugin's options with
-        their defaults (:data:`_OPTIONS`): ``resolution`` 256 (64..1024), ``filter`` bilinear,
-        ``max_depth`` 2 (1 or 2), ``march_steps`` 64, ``hide_emitters`` false, ``capture_method``
-        march.
+        passed to :func:`avsm_dr.build` and checked by its schema; and the plugin's options
+        (defaults and checks: :data:`_OPTIONS`).
 
         Per camera sample, with ``[a, b]`` the ray's stretch inside the medium's box (cut at
         the first surface), ``t* ~ U[a, b]`` and ``x* = o + t* d``::
@@ -208,8 +192,7 @@ def _make_class():
             if len(emitters) != 1:
                 raise ValueError(f"scene: {NAME} needs exactly one emitter, found {len(emitters)}")
             light = light_of(emitters[0])
-            medium, lo, hi = scene_medium(scene)
-            density = medium_density(medium)
+            medium, density, lo, hi = scene_medium(scene)
             # the grid rule of every entry point (NaN, inf, negative: named here, not as a to_world mismatch)
             V.density_grid(density, "scene: the medium's sigma_t grid (scale * data)")
             with dr.suspend_grad():
@@ -353,9 +336,6 @@ def _make_class():
             mei.p = p
             return dr.select(active, medium.get_scattering_coefficients(mei, active)[2][0], 0.0)
 
-        def aov_names(self):
-            return []
-
         def to_string(self):
             return f"AVSMSingleScatterIntegrator[representation={self.kind!r}, params={self.params}]"
 
@@ -370,44 +350,36 @@ def supported_variant(variant) -> bool:
     return isinstance(variant, str) and variant.startswith(("llvm_ad", "cuda_ad"))
 
 
-def variant_message(variant) -> str:
-    """Why ``avsm_single_scatter`` cannot be created under ``variant``, and what to call."""
-    return (f"{NAME} needs a JIT variant of Mitsuba with autodiff (llvm_ad_rgb, or cuda_ad_rgb on an "
-            f"NVIDIA GPU; any llvm_ad_* / cuda_ad_*), the current variant is {variant!r}: call "
-            f"mi.set_variant('llvm_ad_rgb') before building the scene dict and loading it (importing "
-            f"avsm_dr.mitsuba selects it only when no variant is set)")
-
-
 def integrator_class():
-    """The ``avsm_single_scatter`` class of the current Mitsuba variant; ValueError under a
-    variant it cannot run in (:func:`variant_message`)."""
+    """The ``avsm_single_scatter`` class of the current Mitsuba variant; ValueError, naming the
+    variant to set, under a variant it cannot run in (not :func:`supported_variant`)."""
     variant = mi.variant()
     if not supported_variant(variant):
-        raise ValueError(variant_message(variant))
+        raise ValueError(f"{NAME} needs a JIT variant of Mitsuba with autodiff (llvm_ad_rgb, or cuda_ad_rgb on an "
+                         f"NVIDIA GPU; any llvm_ad_* / cuda_ad_*), the current variant is {variant!r}: call "
+                         f"mi.set_variant('llvm_ad_rgb') before building the scene dict and loading it (importing "
+                         f"avsm_dr.mitsuba selects it only when no variant is set)")
     if variant not in _CLASSES:
         _CLASSES[variant] = _make_class()
     return _CLASSES[variant]
 
 
-def _without_traceback(make):
-    """``make(props)``, a ValueError from it re-raised without its traceback (which Mitsuba's
-    parser would quote whole, the message on its last line)."""
+def register() -> None:
+    """Register ``avsm_single_scatter`` for the current variant (at import and after every variant
+    change): the integrator under a JIT AD variant, else a constructor raising ValueError that
+    names the variant to set (not Mitsuba's ``Plugin "avsm_single_scatter" not found!``).  Its
+    ValueErrors lose their traceback, which Mitsuba's parser would quote whole, the message last."""
+    if mi.variant() is None:
+        return
+    make = integrator_class() if supported_variant(mi.variant()) else lambda props: integrator_class()
+
     def factory(props):
         try:
             return make(props)
         except ValueError as err:
             err.__traceback__ = None
             raise
-    return factory
-
-
-def register() -> None:
-    """Register ``avsm_single_scatter`` for the current variant (at import and after every variant
-    change): the integrator under a JIT AD variant, else a constructor raising ValueError that
-    names the variant to set (not Mitsuba's ``Plugin "avsm_single_scatter" not found!``)."""
-    if mi.variant() is not None:
-        mi.register_integrator(NAME, _without_traceback(
-            integrator_class() if supported_variant(mi.variant()) else lambda props: integrator_class()))
+    mi.register_integrator(NAME, factory)
 
 
 def _integrator_of(signature, args, kwargs):
@@ -447,5 +419,5 @@ mi.detail.add_variant_callback(lambda *_args: register())
 if not getattr(mi.render, "_avsm_dr_checked", False):
     mi.render = _checked_render(mi.render)
 
-__all__ = ["NAME", "register", "integrator_class", "supported_variant", "variant_message", "light_of",
-           "scene_medium", "medium_density"]
+__all__ = ["NAME", "register", "integrator_class", "supported_variant", "light_of",
+           "scene_medium"]

@@ -359,11 +359,10 @@ class OpaqueBox(Blocker):
         t0, t1, _ = ray_box(o, d, np.asarray(self.min, np.float64), np.asarray(self.max, np.float64))
         return t0, t1, t0 <= t1
 
-    def to_mitsuba(self, mi, bsdf):
+    def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
         lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
-        return {"type": "cube", "bsdf": bsdf, "to_world": (
-            mi.ScalarTransform4f().translate(((lo + hi) / 2).tolist())
-            @ mi.ScalarTransform4f().scale(((hi - lo) / 2).tolist()))}
+        m = affine(np.diag((hi - lo) / 2), (hi + lo) / 2)
+        return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
 
 
 @dataclass
@@ -564,32 +563,30 @@ RECEIVER_BYTES = 128
 
 
 def _read_grid(path: str):
-    """(grid, box or None) of a ``.npy`` or ``.vol`` file; ValueError naming ``grid_or_path``."""
+    """(grid, box or None) of a ``.npy`` or ``.vol`` file; ValueError naming ``grid_or_path``.
+    A ``.npy`` is memory-mapped, then copied: a header announcing more data than the file holds is
+    refused before any allocation; object arrays are refused (never unpickled)."""
     ext = path.lower().rsplit(".", 1)[-1] if "." in path else ""
+    if ext not in ("npy", "vol"):
+        raise ValueError(f"grid_or_path: expected a .npy or .vol file, got {path!r}")
     try:
         if ext == "npy":
-            # memory-mapped, then copied: a header announcing more data than the file holds is a
-            # ValueError before any allocation; object arrays are refused (never unpickled)
-            try:
-                mm = np.load(path, mmap_mode="r", allow_pickle=False)
-            except OSError:
-                raise
-            except ValueError as exc:
-                why = ("truncated, or its header announces more data than it holds"
-                       if "greater than file size" in str(exc) else str(exc))
-                raise ValueError(f"{path!r} is not a readable .npy grid ({why})") from None
-            except Exception as exc:                   # a malformed header (SyntaxError, TokenError)
-                raise ValueError(f"{path!r} is not a readable .npy file ({type(exc).__name__}: {exc})") from None
-            return np.array(mm), None
-        if ext == "vol":
-            from .io import read_vol
-            grid, box = read_vol(path, with_bbox=True)
-            if grid.ndim != 3:
-                raise ValueError(f"{path!r} has {grid.shape[-1]} channels, expected 1")
-            return grid, box
+            return np.array(np.load(path, mmap_mode="r", allow_pickle=False)), None
+        from .io import read_vol
+        grid, box = read_vol(path, with_bbox=True)
+        if grid.ndim != 3:
+            raise ValueError(f"{path!r} has {grid.shape[-1]} channels, expected 1")
+        return grid, box
     except OSError as exc:
         raise ValueError(f"grid_or_path: cannot read {path!r} ({exc})") from None
     except ValueError as exc:
         msg = str(exc)
+        if ext == "npy":
+            why = ("truncated, or its header announces more data than it holds"
+                   if "greater than file size" in msg else msg)
+            msg = f"{path!r} is not a readable .npy grid ({why})"
         raise ValueError(f"grid_or_path: {msg[6:] if msg.startswith('path: ') else msg}") from None
-    raise ValueError(f"grid_or_path: expected a .npy or .vol file, got {path!r}")
+    except Exception as exc:                   # a malformed .npy header (SyntaxError, TokenError)
+        if ext != "npy":
+            raise
+        raise ValueError(f"grid_or_path: {path!r} is not a readable .npy file ({type(exc).__name__}: {exc})") from None

@@ -26,12 +26,9 @@ import drjit as dr
 import numpy as np
 
 from .. import validation as V
-from ..camera import MAX_SIDE, PinholeCamera  # noqa: F401  (the package's one camera, re-exported)
+from ..camera import PinholeCamera
 from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
-from ..scene import OpaqueBox, OpaqueSphere, affine
-
-def _albedo(v, name: str = "albedo") -> float:
-    return V.real(v, name, 0.0, 1.0)
+from ..scene import OpaqueBox, OpaqueSphere
 
 
 @dataclass
@@ -101,19 +98,6 @@ def safe_dir(d):
     return type(d)(*[dr.select(c == 0, 1e-20, c) for c in (d.x, d.y, d.z)])
 
 
-def box_normal(x, lo, hi, Vec3):
-    """Outward normal of the box face nearest to the surface point x."""
-    c = (lo + hi) * 0.5
-    h = (hi - lo) * 0.5
-    q = (x - c) / h
-    ax, ay, az = dr.abs(q.x), dr.abs(q.y), dr.abs(q.z)
-    isx = (ax >= ay) & (ax >= az)
-    isy = ~isx & (ay >= az)
-    isz = ~isx & ~isy
-    return Vec3(dr.select(isx, dr.sign(q.x), 0), dr.select(isy, dr.sign(q.y), 0),
-                dr.select(isz, dr.sign(q.z), 0))
-
-
 class Occluder:
     """An opaque diffuse occluder: a subclass (a dataclass) is one shape, a package blocker
     (:class:`avsm_dr.scene.Blocker`: ``bounds()``, ``to_mitsuba(mi, bsdf)``) with an ``albedo``
@@ -123,16 +107,17 @@ class Occluder:
     frame)``: per VPL (x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, r_lo, r_hi) in the light frame
     (e_u, e_v, n) centred at the VPL (exact for spheres per axis).
     """
+    def __post_init__(self):        # the blocker's checks (ValueError names ``sphere.radius``, ...)
+        checked = self.validate(type(self).__name__.lower())
+        for f in dataclasses.fields(checked):
+            setattr(self, f.name, getattr(checked, f.name))
+        self.albedo = V.real(self.albedo, "albedo", 0.0, 1.0)
 
 
 @dataclass
 class Sphere(OpaqueSphere, Occluder):
     """Opaque diffuse sphere."""
     albedo: float = 0.5
-
-    def __post_init__(self):
-        checked = OpaqueSphere.validate(self, "sphere")
-        self.center, self.radius, self.albedo = checked.center, checked.radius, _albedo(self.albedo)
 
     @property
     def area(self) -> float:
@@ -164,10 +149,6 @@ class Box(OpaqueBox, Occluder):
     """Opaque diffuse axis-aligned box ``[min, max]``."""
     albedo: float = 0.5
 
-    def __post_init__(self):
-        checked = OpaqueBox.validate(self, "box")
-        self.min, self.max, self.albedo = checked.min, checked.max, _albedo(self.albedo)
-
     @property
     def area(self) -> float:
         e = self.max - self.min
@@ -176,8 +157,14 @@ class Box(OpaqueBox, Occluder):
     def hit_dr(self, k, o, d):
         return ray_box_dr(o, safe_dir(d), k.vec(self.min), k.vec(self.max))
 
-    def normal_dr(self, k, x):
-        return box_normal(x, k.vec(self.min), k.vec(self.max), k.Vec3)
+    def normal_dr(self, k, x):         # the outward normal of the face nearest to x
+        lo, hi = k.vec(self.min), k.vec(self.max)
+        q = (x - (lo + hi) * 0.5) / ((hi - lo) * 0.5)
+        ax, ay, az = dr.abs(q.x), dr.abs(q.y), dr.abs(q.z)
+        isx = (ax >= ay) & (ax >= az)
+        isy = ~isx & (ay >= az)
+        return k.Vec3(dr.select(isx, dr.sign(q.x), 0), dr.select(isy, dr.sign(q.y), 0),
+                      dr.select(~isx & ~isy, dr.sign(q.z), 0))
 
     def sample_dr(self, k, u1, u2, u3):
         e = self.max - self.min
@@ -203,10 +190,6 @@ class Box(OpaqueBox, Occluder):
         x, y, z = d @ eu, d @ ev, d @ n
         r_lo = np.linalg.norm(np.maximum(np.maximum(a[None] - vpls, 0), vpls - b[None]), axis=1)   # to the box
         return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)
-
-    def to_mitsuba(self, mi, bsdf):     # from the matrix, not translate @ scale: the inverse rounds otherwise
-        m = affine(np.diag((self.max - self.min) / 2), (self.max + self.min) / 2)
-        return {"type": "cube", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": bsdf}
 
 
 def _as_occluder(o):
@@ -236,7 +219,7 @@ class AreaLightScene:
             if not isinstance(getattr(self, name), kind):
                 raise ValueError(f"{name}: expected {kind.__name__}, got {type(getattr(self, name)).__name__}")
         self.bounds = lo, hi = check_bbox(self.bounds, "bounds")
-        self.floor_albedo = _albedo(self.floor_albedo, "floor_albedo")
+        self.floor_albedo = V.real(self.floor_albedo, "floor_albedo", 0.0, 1.0)
         self.occluders = [_as_occluder(o) for o in list(self.occluders)]
 
         def inside(p, strict=True):

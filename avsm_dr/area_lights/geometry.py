@@ -19,7 +19,6 @@ EXIT, DIFFUSE, LIGHT_FRONT, LIGHT_BACK = 0, 1, 2, 3
 @dataclass(frozen=True)
 class Kit:
     """Dr.Jit types for one precision: Float, Vec3, UInt32, Int32, Bool, PCG32."""
-    dtype: str
     Float: type
     Vec3: type
     UInt32: type
@@ -44,16 +43,7 @@ def kit(dtype: str = "float32") -> Kit:
     t = backend.types()
     Float = A.float_type(dtype)
     Vec3 = t.Array3f if dtype == "float32" else t.Array3f64
-    return Kit(dtype, Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
-
-
-def occluder_hits(scene: AreaLightScene, k: Kit, o, d):
-    """Per occluder: (hit, t0, t1, occluder) for unit-direction rays o + t d."""
-    out = []
-    for occ in scene.occluders:
-        t0, t1, h = occ.hit_dr(k, o, d)
-        out.append((h, t0, t1, occ))
-    return out
+    return Kit(Float, Vec3, t.UInt32, t.Int32, t.Bool, t.PCG32)
 
 
 def occluded(scene: AreaLightScene, k: Kit, x, p, eps: float):
@@ -62,7 +52,8 @@ def occluded(scene: AreaLightScene, k: Kit, x, p, eps: float):
     r = dr.norm(v)
     d = v / dr.select(r > 0, r, 1)
     blocked = dr.zeros(k.Bool, dr.width(r))
-    for h, t0, t1, _ in occluder_hits(scene, k, x, d):
+    for occ in scene.occluders:
+        t0, t1, h = occ.hit_dr(k, x, d)
         blocked |= h & (t1 > eps) & (t0 < r - eps)
     return blocked
 
@@ -105,7 +96,8 @@ def camera_hits(scene: AreaLightScene, k: Kit) -> CameraHits:
     alb = dr.select(m, float(scene.floor_albedo), alb)
 
     # -- occluders ------------------------------------------------------------------
-    for h, t0, _, occ in occluder_hits(scene, k, o, d):
+    for occ in scene.occluders:
+        t0, _, h = occ.hit_dr(k, o, d)
         m = h & (t0 > 0) & (t0 < t_best)
         t_best = dr.select(m, t0, t_best)
         kind = dr.select(m, DIFFUSE, kind)

@@ -27,7 +27,7 @@ from .area_scene import AreaLightScene
 from .visibility import (boundary_mask, interleave, lookup_bilinear, lookup_point, lookup_point_edge,
                          project, scan, voxelize_points, voxelize_rays)
 from .. import validation as V
-from .vpl import LightGrid, fit_grid, sample_vpls
+from .vpl import fit_grid, sample_vpls
 
 METHODS = ("naive_exact", "naive_voxel", "imperfect")
 INTERPOLATIONS = ("none", "boundary", "full")
@@ -62,28 +62,6 @@ class _Clock:
         return out
 
 
-def _validate(scene, method, vpls, resolution, steps, interpolation, voxelization, points_per_vpl,
-              splat_coverage, surface_bias, dtype):
-    if not isinstance(scene, AreaLightScene):
-        raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
-    V.one_of(method, "method", METHODS)
-    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
-        V.integer(value, name, lo)
-    if interpolation is not None:
-        V.one_of(interpolation, "interpolation", INTERPOLATIONS)
-    if method == "naive_exact" and interpolation not in (None, "none"):
-        raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
-    V.one_of(voxelization, "voxelization", VOXELIZATIONS)
-    if method == "naive_voxel" and voxelization != "rays":
-        raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
-    if points_per_vpl is not None:
-        V.integer(points_per_vpl, "points_per_vpl", 1)
-    V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
-    if surface_bias is not None:
-        V.real(surface_bias, "surface_bias", 0.0)
-    A.float_type(dtype)  # raises ValueError naming dtype
-
-
 def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, resolution: int = 128,
            steps: int = 128, interpolation: str | None = None, voxelization: str | None = None,
            points_per_vpl: int | None = None, splat_coverage: float = 1.5,
@@ -116,13 +94,27 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
     jitter, seed
         jittered VPL strata; seed of the random surface points.
     """
-    if voxelization is None:
-        voxelization = "points" if method == "imperfect" else "rays"
-    _validate(scene, method, vpls, resolution, steps, interpolation, voxelization, points_per_vpl,
-              splat_coverage, surface_bias, dtype)
-    c = float(splat_coverage)
+    if not isinstance(scene, AreaLightScene):
+        raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
+    V.one_of(method, "method", METHODS)
     if interpolation is None:
         interpolation = "boundary" if method == "imperfect" else "none"
+    if voxelization is None:
+        voxelization = "points" if method == "imperfect" else "rays"
+    V.one_of(interpolation, "interpolation", INTERPOLATIONS)
+    V.one_of(voxelization, "voxelization", VOXELIZATIONS)
+    if method == "naive_exact" and interpolation != "none":
+        raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
+    if method == "naive_voxel" and voxelization != "rays":
+        raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
+    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
+        V.integer(value, name, lo)
+    if points_per_vpl is not None:
+        V.integer(points_per_vpl, "points_per_vpl", 1)
+    c = V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
+    if surface_bias is not None:
+        V.real(surface_bias, "surface_bias", 0.0)
+    A.float_type(dtype)  # raises ValueError naming dtype
     K, R, N = int(vpls), int(resolution), int(steps)
     M = int(points_per_vpl) if points_per_vpl is not None else 4 * R * R
     k = kit(dtype)
@@ -148,17 +140,14 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
                               scene.light.radiance * dr.exp(-scene.medium.sigma_t * hits.t_end), 0))
     boundary = dr.zeros(k.UInt32, 1)
 
-    if method == "imperfect":
-        thunk = _render_batched(scene, k, grid, frame, hits, P, K, N, M, intensity, bias,
-                                interpolation, voxelization, seed, c, clock)
-        image, boundary = clock("t_gather", lambda: _accumulate(k, image, 0, thunk, K))
-    else:
-        pix = dr.arange(k.UInt32, n_pix)
-        for i in range(K):
-            p = dr.gather(k.Vec3, P, dr.opaque(k.UInt32, i))   # width 1, same kernel for every i
-            thunk = _render_one(scene, k, grid, frame, hits, pix, p, N, intensity, bias,
-                                method, interpolation, clock)
-            image, boundary = clock("t_gather", lambda: _accumulate(k, image, boundary, thunk, 1))
+    # imperfect: one pass over all K VPLs; naive: one pass per VPL (width 1, same kernel for every i)
+    passes = [(P, K)] if method == "imperfect" else ((dr.gather(k.Vec3, P, dr.opaque(k.UInt32, i)), 1)
+                                                      for i in range(K))
+    for p, n in passes:
+        thunk = (_exact_pass(scene, k, hits, p, N, intensity, bias, clock) if method == "naive_exact" else
+                 _render_batched(scene, k, grid, frame, hits, p, n, N, M, intensity, bias, interpolation,
+                                 voxelization, seed, c, clock))
+        image, boundary = clock("t_gather", lambda: _accumulate(k, image, boundary, thunk, n))
 
     img = np.asarray(image.numpy(), dtype=np.float64).reshape(cam.height, cam.width)
     stats = dict(grid=grid.__dict__.copy() if voxels else None,
@@ -180,81 +169,34 @@ def _accumulate(k: Kit, image, boundary, thunk, K: int):
     return image + L, boundary + nb
 
 
-def _shadow_volume(grid, k: Kit, words, interpolation: str, clock):
-    """Scan phase: S = scan(O), plus the boundary mask interleaved with S for 'boundary'.
-    Returns (buffer, stride): S words sit at ``stride * index`` of the buffer."""
-    S = clock("t_scan", lambda: scan(words, grid, k))
-    if interpolation != "boundary":
-        return S, 1
-    return clock("t_scan", lambda: interleave(S, boundary_mask(S, grid, k), k)), 2
+def _exact_pass(scene, k: Kit, hits, p, N, intensity, bias, clock):
+    """One naive_exact pass for a single VPL at p: ray-cast visibility now, the gather as a
+    thunk (so that the caller times it)."""
+    pix = dr.arange(k.UInt32, dr.width(hits.t_end))
+    Vm, Vs = clock("t_visibility", lambda: exact_visibility(scene, k, hits, p, N, bias))
 
+    def vis_medium(x, j):       # the ray-cast visibility of step j
+        return dr.gather(k.Float, Vm, pix * N + j), None
 
-def _voxel_gather(scene, k: Kit, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
-                  interpolation, lane_info):
-    """Gather with voxel visibility: nearest texel ('none'), bilinear at every step
-    ('full'), or nearest plus the compacted boundary pass ('boundary', S interleaved with
-    the boundary mask, ``stride`` 2)."""
-    def vis(x, p_, vpl_, bilinear: bool):
-        return (lookup_bilinear if bilinear else lookup_point)(grid, k, S, vpl_, project(grid, k, frame, x, p_),
-                                                               stride=stride)
-
-    def vis_surface(x):
-        return vis(x, p, vpl, interpolation != "none")
-
-    def vis_medium(x, j):
-        if interpolation == "boundary":
-            return lookup_point_edge(grid, k, S, vpl, project(grid, k, frame, x, p))
-        return vis(x, p, vpl, interpolation == "full"), None
-
-    L, flags = gather(scene, k, hits, pix, p, N, intensity, vis_medium, vis_surface, bias,
-                      boundaries=interpolation == "boundary")
-    if flags is None:
+    def thunk():
+        L, _ = gather(scene, k, hits, pix, p, N, intensity, vis_medium, lambda x: dr.gather(k.Float, Vs, pix), 0.0)
         return L, k.UInt32(0)
-    dr.eval(L, *flags)
-
-    def vis_delta(x, vpl_, p_):
-        c = project(grid, k, frame, x, p_)
-        return lookup_bilinear(grid, k, S, vpl_, c, stride=stride) - lookup_point(grid, k, S, vpl_, c, stride=stride)
-
-    corr = boundary_correction(scene, k, hits, N, intensity, flags, lane_info, vis_delta)
-    nb = sum((dr.sum(dr.popcnt(f)) for f in flags), k.UInt32(0))
-    return L + corr, nb
-
-
-def _render_one(scene, k: Kit, grid: LightGrid, frame, hits, pix, p, N, intensity, bias, method,
-                interpolation, clock):
-    """One naive pass for a single VPL at p: visibility and scan now, the gather as a thunk
-    (so that the caller times it)."""
-    if method == "naive_exact":
-        Vm, Vs = clock("t_visibility", lambda: exact_visibility(scene, k, hits, p, N, bias))
-
-        def vis_medium(x, j):       # the ray-cast visibility of step j
-            return dr.gather(k.Float, Vm, pix * N + j), None
-
-        def vis_surface(x):
-            return dr.gather(k.Float, Vs, pix)
-
-        def thunk():
-            L, _ = gather(scene, k, hits, pix, p, N, intensity, vis_medium, vis_surface, 0.0)
-            return L, k.UInt32(0)
-        return thunk
-
-    words = clock("t_visibility", lambda: voxelize_rays(scene, grid, k, frame, p, 1))
-    S, stride = _shadow_volume(grid, k, words, interpolation, clock)
-    vpl = k.UInt32(0)
-    return lambda: _voxel_gather(scene, k, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
-                                 interpolation, lambda lane: (lane, k.UInt32(0), p))
+    return thunk
 
 
 def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bias, interpolation,
                     voxelization, seed, coverage, clock):
-    """Imperfect VSVs: one buffer for all K grids, one scan, one (pixel, VPL) gather."""
+    """Voxel methods: one buffer for the K grids (imperfect VSVs; naive_voxel: K = 1 per pass), one
+    scan, one (pixel, VPL) gather as a thunk."""
     if voxelization == "points":
         words = clock("t_visibility", lambda: voxelize_points(scene, grid, k, frame, P, K, M, seed,
                                                               coverage))
     else:
         words = clock("t_visibility", lambda: voxelize_rays(scene, grid, k, frame, P, K))
-    S, stride = _shadow_volume(grid, k, words, interpolation, clock)
+    S = clock("t_scan", lambda: scan(words, grid, k))
+    stride = 2 if interpolation == "boundary" else 1
+    if stride == 2:                     # the boundary mask interleaved with S (S words at 2 * index)
+        S = clock("t_scan", lambda: interleave(S, boundary_mask(S, grid, k), k))
 
     n_pix = dr.width(hits.t_end)
 
@@ -266,7 +208,31 @@ def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bia
         return pix, vpl, dr.gather(k.Vec3, P, vpl)
 
     def thunk():
+        """The gather with voxel visibility: nearest texel ('none'), bilinear at every step ('full'),
+        or nearest plus the compacted pass over the boundary steps ('boundary')."""
         pix, vpl, p = lane_info(dr.arange(k.UInt32, n_pix * K))
-        return _voxel_gather(scene, k, grid, frame, hits, pix, vpl, p, N, intensity, bias, S, stride,
-                             interpolation, lane_info)
+
+        def vis(x, bilinear: bool):
+            lookup = lookup_bilinear if bilinear else lookup_point
+            return lookup(grid, k, S, vpl, project(grid, k, frame, x, p), stride=stride)
+
+        def vis_medium(x, j):
+            if interpolation == "boundary":
+                return lookup_point_edge(grid, k, S, vpl, project(grid, k, frame, x, p))
+            return vis(x, interpolation == "full"), None
+
+        L, flags = gather(scene, k, hits, pix, p, N, intensity, vis_medium, lambda x: vis(x, interpolation != "none"),
+                          bias, boundaries=interpolation == "boundary")
+        if flags is None:
+            return L, k.UInt32(0)
+        dr.eval(L, *flags)
+
+        def vis_delta(x, vpl_, p_):
+            c = project(grid, k, frame, x, p_)
+            return (lookup_bilinear(grid, k, S, vpl_, c, stride=stride)
+                    - lookup_point(grid, k, S, vpl_, c, stride=stride))
+
+        corr = boundary_correction(scene, k, hits, N, intensity, flags, lane_info, vis_delta)
+        nb = sum((dr.sum(dr.popcnt(f)) for f in flags), k.UInt32(0))
+        return L + corr, nb
     return thunk

@@ -26,7 +26,7 @@ import drjit as dr
 import numpy as np
 
 from .. import backend
-from .geometry import Kit, occluder_hits
+from .geometry import Kit
 from .area_scene import AreaLightScene
 from .vpl import LightGrid
 
@@ -87,7 +87,8 @@ def voxelize_rays(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_vp
     t = grid.t_min + (k.Float(j) + 0.5) * ((grid.t_max - grid.t_min) / R)
     d = dr.normalize(eu * s + ev * t + n)
     p = dr.gather(k.Vec3, P, vpl) if n_vpl > 1 else P
-    for h, t0, _, _ in occluder_hits(scene, k, p, d):
+    for occ in scene.occluders:
+        t0, _, h = occ.hit_dr(k, p, d)
         _set_bin(grid, k, words, vpl, i, j, t0, h & (t0 > 0))
     return words
 
@@ -153,16 +154,13 @@ def voxelize_points(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_
     return words
 
 
-def _smear(x):
-    """Bit b of the result is set iff a bit <= b of x is set (log-step OR scan)."""
-    for s in (1, 2, 4, 8, 16):
-        x = x | (x << s)
-    return x
-
-
 def scan(words, grid: LightGrid, k: Kit):
-    """Exclusive prefix-OR of the occupancy along every texel ray (shadow volumes S)."""
-    inner = _smear(words) << 1
+    """Exclusive prefix-OR of the occupancy along every texel ray (shadow volumes S): within a word,
+    a log-step OR scan sets bit b iff a bit <= b is set, shifted by one bin."""
+    inner = words
+    for s in (1, 2, 4, 8, 16):
+        inner = inner | (inner << s)
+    inner = inner << 1
     if grid.words == 1:
         return inner
     carry = dr.block_prefix_reduce(dr.ReduceOp.Or, words, grid.words, exclusive=True)

@@ -36,25 +36,21 @@ def _radical_inverse2(i: np.ndarray) -> np.ndarray:
     return out
 
 
-def vpl_uv(K: int, jitter: bool = False, seed: int = 0) -> np.ndarray:
-    """(K, 2) stratified positions (a, b) in [0, 1)^2 on the quad."""
+def sample_vpls(light: QuadLight, K: int, jitter: bool = False, seed: int = 0) -> np.ndarray:
+    """(K, 3) VPL positions p_k on the quad (float64), stratified as the module docstring says;
+    each carries intensity ``L_e (A / K) max(0, n . w)`` (W/sr per unit radiance)."""
     K = check_count(K, "vpls", 1)
     m = int(round(math.sqrt(K)))
     if m * m == K:
         i, j = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
         off = np.random.default_rng(seed).random((K, 2)) if jitter else np.full((K, 2), 0.5)
-        return (np.stack([i.ravel(), j.ravel()], 1) + off) / m
-    k = np.arange(K)
-    uv = np.stack([(k + 0.5) / K, _radical_inverse2(k)], 1)
-    if jitter:
-        uv = (uv + np.random.default_rng(seed).random(2)) % 1.0  # Cranley-Patterson rotation
-    return uv
-
-
-def sample_vpls(light: QuadLight, K: int, jitter: bool = False, seed: int = 0) -> np.ndarray:
-    """(K, 3) VPL positions p_k on the quad (float64); each carries intensity
-    ``L_e (A / K) max(0, n . w)`` (W/sr per unit radiance)."""
-    uv = vpl_uv(K, jitter, seed) - 0.5
+        uv = (np.stack([i.ravel(), j.ravel()], 1) + off) / m
+    else:
+        k = np.arange(K)
+        uv = np.stack([(k + 0.5) / K, _radical_inverse2(k)], 1)
+        if jitter:
+            uv = (uv + np.random.default_rng(seed).random(2)) % 1.0  # Cranley-Patterson rotation
+    uv = uv - 0.5
     return light.center[None] + uv[:, :1] * light.edge_u[None] + uv[:, 1:] * light.edge_v[None]
 
 

@@ -66,8 +66,14 @@ def light_paths(scene: Scene, points) -> tuple[np.ndarray, np.ndarray, np.ndarra
     with L the distance from x back to the plane, orthogonal to w, that touches the
     light side of the content's bounding sphere (L = 0 when x is beyond it).
     """
+    return checked_paths(scene, points)[2:]
+
+
+def checked_paths(scene: Scene, points):
+    """(content of :func:`check_scene`, points (K, 3) float64, and their :func:`light_paths` o, d, L)."""
     content = check_scene(scene)
-    return scene.light.paths(V.points(points), *content_sphere(content))
+    p = V.points(points)
+    return (content, p, *scene.light.paths(p, *content_sphere(content)))
 
 
 def to_light(light, p):
@@ -89,17 +95,15 @@ def scene_scale(content, scene, p) -> float:
 # ======================================================================= blockers
 def blocked(scene: Scene, points) -> np.ndarray:
     """(K,) True where an opaque blocker lies between the light and the point."""
-    content = check_scene(scene)
-    p = V.points(points)
-    o, d, L = scene.light.paths(p, *content_sphere(content))
-    return blocked_paths(content["blockers"], o, d, L, EPS_REL * scene_scale(content, scene, p))
+    return blocked_paths(scene, *checked_paths(scene, points))
 
 
-def blocked_paths(blockers, o, d, L, eps):
-    """(K,) True where a blocker meets the open path (0, L - eps) of rays o + t d."""
+def blocked_paths(scene, content, p, o, d, L):
+    """(K,) True where a blocker meets the open path (0, L - eps) of rays o + t d towards the
+    points p, eps = :data:`EPS_REL` x :func:`scene_scale`."""
     out = np.zeros(o.shape[0], bool)
-    far = L - eps
-    for b in blockers:
+    far = L - EPS_REL * scene_scale(content, scene, p)
+    for b in content["blockers"]:
         out |= b.blocks(o, d, far)
     return out
 

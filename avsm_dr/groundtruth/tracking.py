@@ -25,7 +25,7 @@ import numpy as np
 from .. import validation as V
 from ..geometry import ray_box
 from ..scene import Scene
-from .content import EPS_REL, blocked_paths, check_scene, content_sphere, hair_tau, particles_tau, scene_scale
+from .content import blocked_paths, checked_paths, hair_tau, particles_tau
 from .media import check_grid, medium_dict, mitsuba, sample_grid
 
 METHODS = ("ratio_tracking", "raymarch")
@@ -200,15 +200,13 @@ def transmittance(scene: Scene, points, spp: int = 256, seed: int = 0, method: s
     the module docstring states.  majorant_factor: f >= 1.  Particles, hair and blockers are
     analytic factors (:mod:`avsm_dr.groundtruth.content`).
     """
-    content = check_scene(scene)
-    p = V.points(points)
+    content, p, o, d, L = checked_paths(scene, points)
     V.one_of(method, "method", METHODS)
     spp = V.integer(spp, "spp", 1, MAX_LANES)
     seed = V.integer(seed, "seed")
     f = V.real(majorant_factor, "majorant_factor", 1.0)
     if step is not None:
         step = V.real(step, "step", 0.0, open_min=True)
-    o, d, L = scene.light.paths(p, *content_sphere(content))
     K = p.shape[0]
     mean, se = np.ones(K), np.zeros(K)
     if content["grid"] is not None:
@@ -225,6 +223,5 @@ def transmittance(scene: Scene, points, spp: int = 256, seed: int = 0, method: s
         tau += hair_tau(content["hair"], o, d, L)
     factor = np.exp(-tau)
     if content["blockers"]:
-        eps = EPS_REL * scene_scale(content, scene, p)
-        factor = np.where(blocked_paths(content["blockers"], o, d, L, eps), 0.0, factor)
+        factor = np.where(blocked_paths(scene, content, p, o, d, L), 0.0, factor)
     return mean * factor, se * factor
