@@ -275,7 +275,7 @@ class Blocker:
 
     * ``bounds()``: world AABB (lo, hi);  ``contains(p)``: p inside the solid (default: never);
     * ``first_hit(o, d)``: ``(t, hit, cos)`` of the first surface at ``t >= 0``, ``cos = |d . n|``
-      (capture: :mod:`avsm_dr.capture.opaque`);
+      (capture: :mod:`avsm_dr.capture.opaque_map`);
     * ``blocks(o, d, far)``: (K,) the blocker meets the open path ``(0, far)`` (ground truth);
     * ``surface_hit(o, d)``: (K,) nearest surface crossing at ``t > 0``, inf = none (view rays);
     * ``to_mitsuba(mi, bsdf)``: the Mitsuba shape dict with ``bsdf``.
