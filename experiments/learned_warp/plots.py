@@ -33,7 +33,7 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     panels = [(b, m) for b in bases for m in ("depth_l2", "receiver_rmse")]
     names = {"depth_l2": "depth-uniform L2", "receiver_rmse": "receiver RMSE"}
     fig, axes = plt.subplots(len(panels), len(kinds), figsize=(4.2 * len(kinds), 4.0 * len(panels)), squeeze=False)
-    fig.subplots_adjust(hspace=0.55)
+    fig.subplots_adjust(hspace=0.55, bottom=0.8 / (4.0 * len(panels)))
     for row, (b, metric) in zip(axes, panels):
         for ax, kind in zip(row, kinds):
             if not any(r["kind"] == kind and r["method"] == b for r in rows):
@@ -80,7 +80,8 @@ def _scatter(ax, rows, kind, base_method, groups, metric="depth_l2") -> None:
     ax.set_yscale("log")
     ax.set_xlim(lim)
     ax.set_ylim(lim)
-    for axis in (ax.xaxis, ax.yaxis):
+    for axis in (ax.xaxis, ax.yaxis):          # labels at 1, 2 and 5 x 10^k (more overlap on wide ranges)
+        axis.set_minor_locator(matplotlib.ticker.LogLocator(base=10, subs=(2.0, 5.0)))
         axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
         axis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
     ax.tick_params(axis="x", which="both", labelrotation=60, labelsize=7)
