@@ -29,7 +29,12 @@ def test_quick_run_writes_results(quick_run):
         pre = [json.loads(r["params"]) for r in rows if r["kind"] == kind and r["method"] == "preset"]
         assert pre and all(p["depth_range"] == "texel" for p in pre), kind
     assert {r["split"] for r in rows} == {"train", "held_out"}
-    assert {"rmse", "max_error", "bytes_per_texel", "group", "seed", "light"} <= set(rows[0])
+    assert {"depth_l2", "receiver_rmse", "signed_mean", "leak_share", "max_error", "bytes_per_texel", "group", "seed",
+            "light"} <= set(rows[0])
+    for r in rows:                           # both metrics measured in every row
+        assert float(r["depth_l2"]) > 0 and float(r["receiver_rmse"]) > 0 and 0 <= float(r["leak_share"]) <= 1
+    metric_rows = _common.read_csv(quick_run / "avsm_metric.csv")
+    assert all(float(r["receiver_rmse"]) > 0 for r in metric_rows)
     for kind in kinds:                       # equal bytes: one size per kind whatever the warp
         assert len({r["bytes_per_texel"] for r in rows if r["kind"] == kind}) == 1
     for name in ("warps.png", "error_per_scene.png", "loss.png", "avsm_metric.png", "meta.json", "losses.csv",
@@ -50,35 +55,50 @@ def test_training_lowers_the_loss(quick_run):
         assert v[-1] < v[0], (kind, v)
     f = json.loads((quick_run / "findings.json").read_text())
     for kind in ("osm", "fom"):
-        assert f[kind]["train"]["learned_rmse"] < f[kind]["train"]["identity_rmse"]
+        assert f[kind]["train"]["learned_depth_l2"] < f[kind]["train"]["identity_depth_l2"]
     for kind in f:
         for g, e in f[kind].items():
             for c in (v for k, v in (e.items() if isinstance(e, dict) else ()) if k.startswith("learned_over_")):
-                assert c["low"] <= c["ratio"] <= c["high"], (kind, g)
+                assert isinstance(c["metric_dependent"], bool), (kind, g)
+                for metric in learned_warp.METRICS:
+                    assert c[metric]["low"] <= c[metric]["ratio"] <= c[metric]["high"], (kind, g, metric)
     for kind in ("osm", "fom"):
         e = f[kind]["held_out_all"]
-        assert {"preset_rmse", "learned_over_preset"} <= set(e) and e["indicative"] is False
-        assert 0 <= e["learned_over_preset"]["learned_smaller_in"] <= e["n_scenes"]
-    assert "preset_rmse" not in f["moments"]["train"]   # no moment count fits 20 B with a range
+        assert {"preset_depth_l2", "preset_receiver_rmse", "learned_over_preset"} <= set(e)
+        assert e["indicative"] is False
+        assert 0 <= e["learned_over_preset"]["receiver_rmse"]["learned_smaller_in"] <= e["n_scenes"]
+    assert "preset_depth_l2" not in f["moments"]["train"]   # no moment count fits 20 B with a range
     m = f["avsm_metric"]
     assert 0 < m["beta_learned"] < 1 and m["bytes_per_texel"] == 64
-    assert {"paper_rmse", "learned_rmse", "learned_over_paper"} <= set(m["held_out_all"])
+    assert {"paper_depth_l2", "learned_receiver_rmse", "learned_over_paper"} <= set(m["held_out_all"])
 
 
 def test_findings_on_hand_made_rows():
-    """Ratios are means of per-scene RMSEs; groups and their counts as given."""
+    """Ratios are means of per-configuration values, per metric; groups and their counts as
+    given; a baseline the two metrics rank in opposite directions is metric-dependent."""
     rows = []
     for split, group, k in (("train", "smoke", 3), ("held_out", "hair_and_smoke", 2)):
         for s in range(k):
-            for m, v in (("identity", 0.2), ("log", 0.4), ("learned", 0.1)):
+            for m, v, rec in (("identity", 0.2, 0.05), ("log", 0.4, 0.2), ("learned", 0.1, 0.1)):
                 rows.append(dict(split=split, group=group, kind="osm", bytes_per_texel=32, method=m,
-                                 rmse=v * (s + 1)))
+                                 depth_l2=v * (s + 1), receiver_rmse=rec * (s + 1)))
     f = learned_warp.findings(rows)["osm"]
     assert f["train"]["n_scenes"] == 3 and f["hair_and_smoke"]["n_scenes"] == 2
     assert f["held_out_other_types"]["n_scenes"] == 2
-    assert f["train"]["learned_over_identity"]["ratio"] == pytest.approx(0.5)
-    assert f["train"]["learned_over_log"]["ratio"] == pytest.approx(0.25)
-    assert f["train"]["identity_rmse"] == pytest.approx(0.4)
+    ident, log = f["train"]["learned_over_identity"], f["train"]["learned_over_log"]
+    assert ident["depth_l2"]["ratio"] == pytest.approx(0.5) and ident["receiver_rmse"]["ratio"] == pytest.approx(2.0)
+    assert ident["metric_dependent"] is True           # smaller in depth L2, larger at the receivers
+    assert log["depth_l2"]["ratio"] == pytest.approx(0.25) and log["receiver_rmse"]["ratio"] == pytest.approx(0.5)
+    assert log["metric_dependent"] is False
+    assert f["train"]["identity_depth_l2"] == pytest.approx(0.4)
+    assert f["train"]["identity_receiver_rmse"] == pytest.approx(0.1)
+
+
+def test_metric_dependent_needs_two_established_directions():
+    below, above, spans = dict(low=0.5, high=0.9), dict(low=1.1, high=1.5), dict(low=0.9, high=1.1)
+    assert learned_warp.metric_dependent(below, above) and learned_warp.metric_dependent(above, below)
+    assert not learned_warp.metric_dependent(below, below)
+    assert not learned_warp.metric_dependent(below, spans)
 
 
 def test_preset_params_at_equal_bytes():
@@ -96,10 +116,10 @@ def test_preset_params_at_equal_bytes():
 
 def test_findings_flags_few_configurations():
     """Fewer than MIN_CONFIGS configurations: indicative; learned_smaller_in counts them."""
-    rows = [dict(split="train", group="smoke", kind="osm", bytes_per_texel=32, method=m, rmse=v + 0.01 * s)
-            for s in range(3) for m, v in (("preset", 0.2), ("learned", 0.1 if s else 0.3))]
+    rows = [dict(split="train", group="smoke", kind="osm", bytes_per_texel=32, method=m, depth_l2=v + 0.01 * s,
+                 receiver_rmse=v) for s in range(3) for m, v in (("preset", 0.2), ("learned", 0.1 if s else 0.3))]
     e = learned_warp.findings(rows)["osm"]["train"]
-    assert e["indicative"] is True and e["learned_over_preset"]["learned_smaller_in"] == 2
+    assert e["indicative"] is True and e["learned_over_preset"]["depth_l2"]["learned_smaller_in"] == 2
 
 
 def test_blended_metric_avsm_at_beta_0_is_the_avsm_kind():
@@ -121,3 +141,22 @@ def test_blended_metric_avsm_at_beta_0_is_the_avsm_kind():
     assert not np.array_equal(np.stack([np.asarray(x) for x in d2], 1), got_d)
     _, d3, t3 = avsm_nodes(seg, N, _opaque(0.3), _opaque(0.05))
     assert all(np.all(np.isfinite(np.asarray(x))) for x in d3 + t3)
+
+
+def test_receiver_lookup_of_the_warp_matches_the_unwarped_kind():
+    """At the in-volume receivers the identity warp (theta = 0) gives the unwarped kind's
+    bilinear T (the warp's lookup path is only a change of depth variable), and the hard
+    AVSM node lists at beta = 0 give the avsm kind's."""
+    import avsm_dr as ad
+    from experiments.learned_warp import SceneData, _receiver_rep, receiver_errors
+    from experiments.learned_warp.avsm import NodeLists
+    P = dict(learned_warp.QUICK, size=8, resolution=64, receivers_per_texel=2, n_volume=64)
+    d = SceneData("smoke", "plume", 0, 0, P)
+    plain = d.probe.lookup(ad.build("fom", d.seg, harmonics=3))
+    warped = d.probe.lookup(_receiver_rep(d, "fom", {"harmonics": 3}, np.zeros(8)))
+    np.testing.assert_allclose(warped, plain, atol=2e-5)
+    assert np.any(np.abs(plain - d.exact_receivers) > 1e-4)   # FOM-3 is not the exact curve there
+    np.testing.assert_allclose(d.probe.lookup(NodeLists(d.seg, 4, 0.0)),
+                               d.probe.lookup(ad.build("avsm", d.seg, nodes=4)), atol=1e-6)
+    e = receiver_errors(d, ad.build("exact", d.seg))
+    assert e["receiver_rmse"] == 0 and e["leak_share"] == 0

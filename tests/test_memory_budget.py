@@ -59,9 +59,19 @@ def test_quick_run_compares_at_equal_bytes(quick):
     assert P["orders"] == orders
     for n in P["budgets"]:
         for o in orders:                        # fixed and adaptive AVSM under every order, same receivers
-            ad_rows = [r for r in rows if r["method"] == "adaptive" and int(r["nodes"]) == n and r["order"] == o]
-            fx = [r for r in rows if r["method"] == "avsm" and int(r["nodes"]) == n and r["order"] == o]
+            ad_rows = [r for r in rows if r["method"] == "adaptive" and int(r["nodes"]) == n and r["order"] == o
+                       and r["interpolation"] == "linear"]
+            fx = [r for r in rows if r["method"] == "avsm" and int(r["nodes"]) == n and r["order"] == o
+                  and r["interpolation"] == "linear"]
             assert len(ad_rows) == len(fx) == len(P["scenes"])
+    interp = {(r["method"], r["interpolation"]) for r in rows}
+    for n in P["nodes"]:                    # AVSM's preset interpolation beside the headline's linear
+        for i in ("linear", "exp"):
+            assert len([r for r in rows if r["method"] == "avsm" and int(r["nodes"]) == n
+                        and r["interpolation"] == i and r["order"] == "depth"]) == len(P["scenes"])
+    assert {("adaptive", "exp"), ("adaptive", "linear")} <= interp
+    assert {i for m, i in interp if m in ("dsm", "optimal")} == {"-"}
+    assert {r["order"] for r in rows if r["interpolation"] == "exp"} == {"depth"}
     assert {r["order"] for r in rows if r["method"] in ("dsm", "optimal", "adaptive_uniform")} <= {"-", "depth"}
     assert {r["order"] for r in rows if r["method"] in ("dsm", "optimal")} == {"-"}
     # the allocation pays off on the plume at the smallest budget (measured: ratio ~0.04)
@@ -75,7 +85,38 @@ def test_quick_run_compares_at_equal_bytes(quick):
     assert f["bytes_saved_at_equal_rmse_dense_baseline"]["plume"]["N=2"]["saving"] > s["saving"]
     assert f["avsm_order"] == "depth" and set(f["bytes_saved_at_equal_rmse_by_order"]) == set(orders)
     assert f["bytes_saved_at_equal_rmse_by_order"]["depth"] == f["bytes_saved_at_equal_rmse"]
+    # exp and linear AVSM differ (measured on the quick plume: exp / linear 1.3-2.6 at N = 2-8)
+    e = f["rmse_ratio_avsm_exp_over_linear"]["plume"]["N=2"]
+    assert e["low"] <= e["estimate"] <= e["high"] and e["estimate"] != pytest.approx(1, abs=1e-3)
+    assert set(f["bytes_saved_at_equal_rmse_exp"]["plume"]) == {f"N={n}" for n in P["budgets"]}
     assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
     assert {p.name for p in quick.glob("*.pdf")} == {"error_vs_bytes.pdf", "allocation.pdf"}   # vector beside PNG
     again = MB.run(quick=True, out=quick)
     assert again.get("cached") is True
+
+
+def test_full_mode_configurations():
+    """Full mode: at least 10 configurations (seed x light) per scene, a spot light among
+    them, each a valid avsm_dr.evaluation.Configuration; a bad light names its argument."""
+    from avsm_dr.evaluation import Configuration
+    cfgs = [Configuration(s, li) for s, li in MB.FULL["configs"]]
+    assert len({c.label for c in cfgs}) == len(cfgs) >= 10
+    assert any(c.light == "spot" for c in cfgs)
+    assert MB.FULL["interpolations"] == ["linear", "exp"] and ad.describe("avsm")["preset"]["interpolation"] == "exp"
+    with pytest.raises(ValueError, match="light"):
+        MB._resolve(dict(MB.QUICK, configs=[[0, "sun"]]), quick=True)
+
+
+@pytest.mark.parametrize("scene", ["smoke_over_table", "particles"])
+def test_spot_light_configuration_runs(scene):
+    """A spot-light configuration (new in full mode) on an opaque-table scene and on particles:
+    rows for fixed and adaptive AVSM in both interpolations, errors finite."""
+    from avsm_dr.evaluation import Configuration
+    P = dict(MB.QUICK, scenes=[scene], configs=[[1, "spot"]], nodes=[2, 4], budgets=[2], n_volume=64,
+             orders=["depth"], optimal_max_n=0)
+    rows, errors, heat = [], {}, {}
+    MB._config_rows(scene, Configuration(1, "spot"), P, rows, errors, heat)
+    got = {(r["method"], r["interpolation"], r["nodes"]) for r in rows}
+    assert {("avsm", "linear", 4), ("avsm", "exp", 4), ("adaptive", "linear", 2), ("adaptive", "exp", 2)} <= got
+    assert all(r["light"] == "spot" and 0 <= r["rmse"] <= 1 for r in rows)
+    assert all(math.isfinite(float(v)) for e in errors.values() for v in e)

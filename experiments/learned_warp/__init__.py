@@ -30,10 +30,19 @@ Per kind (at its size, the same for every warp):
   + range = 32 B, FOM 2 harmonics + range = 28 B); absent where no size fits (moments: 4
   moments at the preset take 28 B, not 20).
 
-The metric is the depth-uniform one (receivers uniform in depth over each texel's content,
-the stratified form of :func:`avsm_dr.evaluation.depth_l2`); the receiver RMSE at receivers
-by contribution is not measured here.  Captures are front to back (``order='depth'``; the
-linear kinds do not depend on the order).
+Two metrics (issue 23 item 5), both against the exact curve of the same segments (the
+compression error: the warp changes nothing else):
+
+* ``depth_l2``: the RMSE at receivers uniform in depth over each non-empty texel's content
+  (the stratified form of :func:`avsm_dr.evaluation.depth_l2`, point lookups), the metric the
+  warp is trained on;
+* ``receiver_rmse``: the RMSE at in-volume receivers by contribution
+  (:func:`avsm_dr.receivers.in_volume`, ``n_volume`` of them, seeded by the configuration),
+  bilinear lookups through the capture (:class:`avsm_dr.evaluation.Probe`), the warped kinds
+  looked up at ``w(z)``; with its signed mean (``signed_mean``, > 0: light leaking) and leak
+  share (``leak_share``: error > 0.02, :func:`avsm_dr.metrics.error_stats`).
+
+Captures are front to back (``order='depth'``; the linear kinds do not depend on the order).
 
 Second part, AVSM's removal metric (:mod:`.avsm`): the blend
 ``(1 - beta) area + beta depth-gap`` learned through a softmin surrogate of the removal
@@ -41,11 +50,13 @@ Second part, AVSM's removal metric (:mod:`.avsm`): the blend
 equal to it at ``beta = 0``) against the paper's metric (``beta = 0``), AVSM-8 at 64 bytes;
 a sweep of the hard algorithm over ``beta`` on the training scenes checks the surrogate.
 
-``findings.json``: per kind and held-out group, the mean RMSE per method and the ratio
-learned / each baseline (means of per-scene RMSEs) with a paired bootstrap 95 % interval
-whose unit is the configuration (scene seed x light: :func:`avsm_dr.stats.paired_bootstrap`
-over the group's configurations, statistic 'mean'), the number of configurations where the
-learned warp is the smaller, and ``indicative`` (fewer than :data:`MIN_CONFIGS`
+``findings.json``: per kind and held-out group, per metric (:data:`METRICS`) the mean per
+method and the ratio learned / each baseline (means of per-configuration values) with a
+paired bootstrap 95 % interval whose unit is the configuration (scene seed x light:
+:func:`avsm_dr.stats.paired_bootstrap` over the group's configurations, statistic 'mean')
+and the number of configurations where the learned warp is the smaller;
+``metric_dependent`` when the two metrics' intervals lie entirely on opposite sides of 1
+(the rule of ``error_curves``); ``indicative`` (fewer than :data:`MIN_CONFIGS`
 configurations); ``avsm_metric`` likewise for the learned beta vs the paper's metric.
 """
 
@@ -74,6 +85,8 @@ REPRODUCES = (
 KINDS = [("osm", {"slices": 8}), ("fom", {"harmonics": 3}), ("moments", {})]
 #: Fewer configurations than this make a group's intervals ``indicative``.
 MIN_CONFIGS = 4
+#: The two metrics of every row and finding (module docstring).
+METRICS = ("depth_l2", "receiver_rmse")
 #: Ratios tried for the logarithmic baseline (the best on the training set is kept).
 LOG_RATIOS = (3.0, 10.0, 30.0, 100.0)
 #: Light directions as (azimuth, elevation) degrees; the last is never used in training.
@@ -93,27 +106,35 @@ FULL = dict(train=[("smoke", "plume", s, li) for s in (0, 1, 2, 3) for li in (0,
             + [("hair_and_smoke", "hair_and_smoke", s, li) for s in (0, 1, 2) for li in (0, 2)]
             + [("three_columns", "three_columns", s, li) for s in (0, 1, 2) for li in (0, 2)]
             + [("particles", "particles", s, li) for s in (0, 1, 2) for li in (0, 2)],
-            size=20, resolution=64, knots=16, iterations=80, lr=0.05, receivers_per_texel=8, **METRIC,
+            size=20, resolution=64, knots=16, iterations=80, lr=0.05, receivers_per_texel=8, n_volume=2048, **METRIC,
             metric_iterations=15, metric_sweep=[0.0, 0.003, 0.01, 0.03, 0.1, 0.3, 0.6, 0.9], **_COMMON)
 QUICK = dict(train=[("smoke", "plume", s, 0) for s in (0, 1)],
              held=[("smoke_new_seeds", "plume", s, 2) for s in (10, 11)]
              + [("hair_and_smoke", "hair_and_smoke", s, 0) for s in (0, 1)],
-             size=10, resolution=64, knots=8, iterations=12, lr=0.1, receivers_per_texel=4, **METRIC,
+             size=10, resolution=64, knots=8, iterations=12, lr=0.1, receivers_per_texel=4, n_volume=512, **METRIC,
              metric_iterations=3, metric_sweep=[], **_COMMON)
 
 
 class SceneData:
     """One captured scene: segments, training and evaluation receivers (uniform in depth
-    per non-empty texel, stratified) and the exact T at both."""
+    per non-empty texel, stratified) and the exact T at both; in-volume receivers by
+    contribution (:attr:`probe`, seeded by the scene seed) and the exact curve's bilinear T
+    there (:attr:`exact_receivers`)."""
 
     def __init__(self, group, name, seed, light, P):
-        from avsm_dr import builtin_scenes, capture
+        from avsm_dr import builtin_scenes, capture, receivers
+        from avsm_dr.evaluation import Probe
         from avsm_dr.reconstruction import light_from_angles
         kw = {} if name == "particles" else {"size": P["size"]}
         scene = getattr(builtin_scenes, name)(seed=seed, light=light_from_angles(*LIGHTS[light]), **kw)
         self.group, self.name, self.seed, self.light = group, name, seed, light
-        self.seg = capture(scene, resolution=P["resolution"], order="depth").segments
+        cap = capture(scene, resolution=P["resolution"], order="depth")
+        self.seg = cap.segments
         exact = build("exact", self.seg)
+        # the truth at the points is not used (errors are against the exact curve): ones skip its quadrature
+        points = receivers.in_volume(scene, P["n_volume"], seed=seed)
+        self.probe = Probe(cap, scene, points, n_decomp=0, truth_at_points=np.ones(points.shape[0]))
+        self.exact_receivers = self.probe.lookup(exact)
         lo, hi = self.seg.texel_bounds()
         tex = np.flatnonzero((self.seg.counts > 0) & (hi > lo))
         R = P["receivers_per_texel"]
@@ -166,6 +187,34 @@ def _warped_eval(data: SceneData, kind, params, theta, key):
     return build(kind, w.segments(data.seg), near=0.0, far=1.0, **params).eval(t, w(z))
 
 
+class _Warped:
+    """``rep`` looked up at warped depths: ``eval(texel, z) = rep.eval(texel, warp(z))``."""
+
+    def __init__(self, rep, warp):
+        self.rep, self.warp = rep, warp
+
+    def eval(self, texel, depth):
+        return self.rep.eval(texel, self.warp(np.asarray(depth, np.float64)))
+
+
+def _receiver_rep(data: SceneData, kind, params, theta):
+    """What :meth:`avsm_dr.evaluation.Probe.lookup` evaluates for ``kind`` under ``theta``
+    (as in :func:`_warped_eval`)."""
+    if theta is None or isinstance(theta, dict):
+        return build(kind, data.seg, **(theta or params))
+    w = DepthWarp.for_segments(data.seg, theta=theta)
+    return _Warped(build(kind, w.segments(data.seg), near=0.0, far=1.0, **params), w)
+
+
+def receiver_errors(data: SceneData, rep) -> dict:
+    """``receiver_rmse``, ``signed_mean`` and ``leak_share`` of ``rep`` (anything with
+    ``eval(texel, depth)`` on ``data.seg``'s texels) at the in-volume receivers, against the
+    exact curve's bilinear lookup there."""
+    from avsm_dr.metrics import error_stats
+    s = error_stats(data.probe.lookup(rep), data.exact_receivers)
+    return {"receiver_rmse": s["rmse"], "signed_mean": s["mean_error"], "leak_share": s["leak_fraction"]}
+
+
 def _mse(data, kind, params, theta, key):
     import drjit as dr
     T = _warped_eval(data, kind, params, theta, key)
@@ -173,11 +222,12 @@ def _mse(data, kind, params, theta, key):
 
 
 def errors(data, kind, params, theta, key="eval") -> dict:
-    """RMSE and max |error| of ``kind`` under the warp ``theta`` (None: no warp)."""
+    """``depth_l2`` (RMSE uniform in depth) and max |error| there of ``kind`` under the warp
+    ``theta`` (None: no warp)."""
     import drjit as dr
     T = np.asarray(dr.detach(_warped_eval(data, kind, params, theta, key)), np.float64)
     e = T - np.asarray(data.sets[key][2], np.float64)
-    return {"rmse": float(np.sqrt(np.mean(e * e))), "max_error": float(np.abs(e).max())}
+    return {"depth_l2": float(np.sqrt(np.mean(e * e))), "max_error": float(np.abs(e).max())}
 
 
 def train(scenes, kind, params, P, progress=None):
@@ -200,7 +250,7 @@ def train(scenes, kind, params, P, progress=None):
 
 
 def _mean_rmse(scenes, kind, params, theta, key):
-    return float(np.mean([errors(d, kind, params, theta, key)["rmse"] for d in scenes]))
+    return float(np.mean([errors(d, kind, params, theta, key)["depth_l2"] for d in scenes]))
 
 
 def _compute(res, P: dict) -> dict:
@@ -234,7 +284,8 @@ def _compute(res, P: dict) -> dict:
                                      params=json.dumps(th if isinstance(th, dict) else params),
                                      bytes_per_texel=bpt, method=method,
                                      log_ratio=best_r if method == "log" else "", knots=P["knots"],
-                                     **errors(d, kind, params, th)))
+                                     **errors(d, kind, params, th),
+                                     **receiver_errors(d, _receiver_rep(d, kind, params, th))))
     bar.close()
     metric_rows, metric_loss, sweep = _avsm_metric(train_s, held_s, P)
     summary = findings(rows)
@@ -254,7 +305,7 @@ def _compute(res, P: dict) -> dict:
 def _avsm_metric(train_s, held_s, P):
     """Learn the blend beta of AVSM's removal metric on the surrogate, sweep the hard
     algorithm over beta on the training scenes, evaluate paper (beta = 0) vs learned."""
-    from .avsm import rmse, sigmoid, train_metric
+    from .avsm import NodeLists, rmse, sigmoid, train_metric
     N = P["metric_nodes"]
     bar = tqdm(total=P["metric_iterations"], desc="learned_warp: AVSM metric", unit="it")
     phi, loss_rows = train_metric(train_s, N, P, bar)
@@ -269,18 +320,23 @@ def _avsm_metric(train_s, held_s, P):
             for method, b in (("paper", 0.0), ("learned", beta)):
                 rows.append(dict(split=split, group=d.group, scene=d.name, seed=d.seed,
                                  light=d.light, kind="avsm", nodes=N, bytes_per_texel=2 * N * d.seg.itemsize,
-                                 method=method, beta=b, rmse=rmse(d, N, b)))
+                                 method=method, beta=b, depth_l2=rmse(d, N, b),
+                                 **receiver_errors(d, NodeLists(d.seg, N, b))))
     return rows, loss_rows, sweep
 
 
 def findings(rows) -> dict:
-    """Per kind and group (train, each held-out group, all held-out): mean RMSE per method,
-    ratios learned / each other method (identity, log, kind_log and preset for the warps, the
-    paper's metric for AVSM) with paired bootstrap 95 % intervals over the group's
-    configurations (needs >= 2), the configurations where learned is the smaller, and
-    ``indicative`` (fewer than :data:`MIN_CONFIGS` configurations)."""
+    """Per kind and group (train, each held-out group, all held-out), per metric of
+    :data:`METRICS` present in the rows: the mean per method (``<method>_<metric>``) and
+    ``learned_over_<method>`` for every other method (identity, log, kind_log and preset for
+    the warps, the paper's metric for AVSM): per metric the ratio of means with a paired
+    bootstrap 95 % interval over the group's configurations (needs >= 2) and the
+    configurations where learned is the smaller; ``metric_dependent`` when the two metrics'
+    intervals lie entirely on opposite sides of 1.  ``indicative``: fewer than
+    :data:`MIN_CONFIGS` configurations."""
     out = {}
     kinds = list(dict.fromkeys(r["kind"] for r in rows))
+    metrics = [m for m in METRICS if rows and m in rows[0]]
     for kind in kinds:
         mine = [r for r in rows if r["kind"] == kind]
         groups = {"train": [r for r in mine if r["split"] == "train"],
@@ -294,35 +350,61 @@ def findings(rows) -> dict:
         d = out.setdefault(kind, {"bytes_per_texel": mine[0]["bytes_per_texel"]})
         methods = list(dict.fromkeys(r["method"] for r in mine))
         for g, rs in ((g, rs) for g, rs in groups.items() if rs):
-            by = {m: np.array([r["rmse"] for r in rs if r["method"] == m]) for m in methods}
-            n = int(by["learned"].size)
+            n = sum(1 for r in rs if r["method"] == "learned")
             e = {"n_scenes": n, "indicative": n < MIN_CONFIGS}
-            e.update({f"{m}_rmse": float(v.mean()) for m, v in by.items()})
+            by = {(m, k): np.array([r[k] for r in rs if r["method"] == m], np.float64)
+                  for m in methods for k in metrics}
+            e.update({f"{m}_{k}": float(v.mean()) for (m, k), v in by.items()})
             for base in (m for m in methods if m != "learned"):
-                if n >= 2:
-                    ci = paired_bootstrap(by["learned"], by[base], statistic="mean", compare="ratio")
-                    e[f"learned_over_{base}"] = {"ratio": ci["estimate"], "low": ci["low"], "high": ci["high"],
-                                                 "p_learned_smaller": ci["p_a_smaller"],
-                                                 "learned_smaller_in": int(np.sum(by["learned"] < by[base]))}
+                if n < 2:
+                    continue
+                c = {}
+                for k in metrics:
+                    ci = paired_bootstrap(by["learned", k], by[base, k], statistic="mean", compare="ratio")
+                    c[k] = {"ratio": ci["estimate"], "low": ci["low"], "high": ci["high"],
+                            "p_learned_smaller": ci["p_a_smaller"],
+                            "learned_smaller_in": int(np.sum(by["learned", k] < by[base, k]))}
+                c["metric_dependent"] = metric_dependent(*c.values())
+                e[f"learned_over_{base}"] = c
             d[g] = e
     return out
 
 
-__all__ = ["run", "findings", "train", "errors", "kind_log_params", "preset_params", "SceneData", "KINDS",
-           "LOG_RATIOS", "LIGHTS", "METRIC", "MIN_CONFIGS"]
+def _direction(c) -> str | None:
+    """'below' / 'above' when the interval of ``c`` lies entirely below / above 1, else None."""
+    return "below" if c["high"] < 1 else "above" if c["low"] > 1 else None
+
+
+def metric_dependent(*cis) -> bool:
+    """True when two metrics' intervals (dicts with ``low`` and ``high``) both establish a
+    direction against 1 and the directions differ (``error_curves``' rule)."""
+    if len(cis) != 2:
+        return False
+    d1, d2 = (_direction(c) for c in cis)
+    return bool(d1 and d2 and d1 != d2)
+
+
+__all__ = ["run", "findings", "metric_dependent", "train", "errors", "receiver_errors", "kind_log_params",
+           "preset_params", "SceneData", "KINDS", "LOG_RATIOS", "LIGHTS", "METRIC", "METRICS", "MIN_CONFIGS"]
 
 def _headline(s: dict) -> list[str]:
-    """Per kind on the held-out scenes: the learned warp's RMSE over the identity's and the
-    log warp's (ratio [interval]); the learned AVSM metric over the paper's."""
+    """Per kind and metric on the held-out scenes: the learned warp's value over each
+    baseline's (ratio [interval]), the baselines whose direction is metric-dependent; the
+    learned AVSM metric over the paper's likewise."""
     out = []
     for kind, d in s.items():
         h = d.get("held_out_all", {})
-        ratios = [f"{k[len('learned_over_'):]} {interval(v)}" for k, v in h.items() if k.startswith("learned_over_")]
-        if ratios:
-            where = f" at {d['bytes_per_texel']} B/texel" if "bytes_per_texel" in d else ""
-            name = f"avsm-{d['nodes']} metric" if kind == "avsm_metric" and "nodes" in d else kind
-            out.append(f"{name}{where}, {h.get('n_scenes', '?')} held-out scenes, learned RMSE over "
-                       + ", ".join(ratios))
+        cmp = {k[len("learned_over_"):]: v for k, v in h.items() if k.startswith("learned_over_")}
+        where = f" at {d['bytes_per_texel']} B/texel" if "bytes_per_texel" in d else ""
+        name = f"avsm-{d['nodes']} metric" if kind == "avsm_metric" and "nodes" in d else kind
+        for metric, what in (("depth_l2", "depth-uniform L2"), ("receiver_rmse", "receiver RMSE")):
+            ratios = [f"{b} {interval(v[metric])}" for b, v in cmp.items() if metric in v]
+            if ratios:
+                out.append(f"{name}{where}, {h.get('n_scenes', '?')} held-out scenes, learned {what} over "
+                           + ", ".join(ratios))
+        dep = [b for b, v in cmp.items() if v.get("metric_dependent")]
+        if dep:
+            out.append(f"{name}: metric-dependent against {', '.join(dep)}")
     return out
 
 

@@ -112,6 +112,25 @@ def lookup(seg, lanes, d, t, texel, depth):
     return interpolate(dd, tt, A.to_float(depth, Float), "linear")
 
 
+class NodeLists:
+    """The hard blended-metric AVSM-``N`` of ``seg`` (:func:`avsm_nodes` at ``beta``) as
+    something to look up: ``eval(texel, depth)`` -> (K,) T, 1 in empty texels (nothing in
+    front of any depth), so bilinear taps may touch them."""
+
+    def __init__(self, seg, N: int, beta: float):
+        self.seg = seg
+        self.lanes, self.d, self.t = avsm_nodes(seg, N, _opaque(beta))
+
+    def eval(self, texel, depth):
+        texel = np.asarray(texel, np.int64)
+        depth = np.asarray(depth, np.float64)
+        out = np.ones(texel.size)
+        has = self.seg.counts[texel] > 0
+        if np.any(has):
+            out[has] = np.asarray(lookup(self.seg, self.lanes, self.d, self.t, texel[has], depth[has]), np.float64)
+        return out
+
+
 def _opaque(x):
     """A width-1 opaque Float (a new value does not recompile the kernels), or None."""
     return None if x is None else dr.opaque(backend.types().Float, float(x))

@@ -1,5 +1,5 @@
-"""Figures of the ``learned_warp`` experiment: warp curves, error per scene against no warp
-and against the kind at its preset, training loss."""
+"""Figures of the ``learned_warp`` experiment: warp curves, both metrics per configuration
+against no warp and against the kind at its preset, training loss."""
 from __future__ import annotations
 
 import numpy as np
@@ -27,22 +27,24 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     axes[0][0].legend(fontsize=8)
     res.save_figure(fig, "warps.png")
 
-    # ---- RMSE per scene: learned vs no warp (top) and vs the kind at its preset (bottom, where it has one)
+    # ---- per scene, both metrics: learned vs no warp and vs the kind at its preset (where it has one)
     groups = list(dict.fromkeys(r["group"] for r in rows))
     bases = [b for b in ("identity", "preset") if any(r["method"] == b for r in rows)]
-    fig, axes = plt.subplots(len(bases), len(kinds), figsize=(4.2 * len(kinds), 4.0 * len(bases)), squeeze=False)
-    fig.subplots_adjust(hspace=0.45)
-    for row, b in zip(axes, bases):
+    panels = [(b, m) for b in bases for m in ("depth_l2", "receiver_rmse")]
+    names = {"depth_l2": "depth-uniform L2", "receiver_rmse": "receiver RMSE"}
+    fig, axes = plt.subplots(len(panels), len(kinds), figsize=(4.2 * len(kinds), 4.0 * len(panels)), squeeze=False)
+    fig.subplots_adjust(hspace=0.55, bottom=0.8 / (4.0 * len(panels)))
+    for row, (b, metric) in zip(axes, panels):
         for ax, kind in zip(row, kinds):
             if not any(r["kind"] == kind and r["method"] == b for r in rows):
                 ax.set_axis_off()
                 ax.text(0.5, 0.5, f"{kind}: no preset\nat equal bytes", ha="center", va="center",
                         transform=ax.transAxes, fontsize=9)
                 continue
-            _scatter(ax, rows, kind, b, groups)
-            ax.set_title(kind)
-            ax.set_xlabel("RMSE without warp" if b == "identity" else "RMSE at the preset (per-texel range)")
-            ax.set_ylabel("RMSE with learned warp")
+            _scatter(ax, rows, kind, b, groups, metric)
+            ax.set_title(f"{kind}, {names[metric]}")
+            ax.set_xlabel("without warp" if b == "identity" else "at the preset (per-texel range)")
+            ax.set_ylabel("with learned warp")
     handles, labs = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labs, loc="upper center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, 0.0))
     res.save_figure(fig, "error_per_scene.png")
@@ -59,15 +61,16 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     res.save_figure(fig, "loss.png")
 
 
-def _scatter(ax, rows, kind, base_method, groups) -> None:
-    """Per scene: RMSE of ``base_method`` (x) against the learned warp's (y), log axes, y = x dotted."""
+def _scatter(ax, rows, kind, base_method, groups, metric="depth_l2") -> None:
+    """Per configuration: ``metric`` of ``base_method`` (x) against the learned warp's (y),
+    log axes, y = x dotted."""
     import matplotlib.ticker
     lo, hi = np.inf, 0.0
     for gi, g in enumerate(groups):
         base = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == base_method]
         lrn = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "learned"]
-        x = np.array([r["rmse"] for r in base])
-        y = np.array([r["rmse"] for r in lrn])
+        x = np.array([r[metric] for r in base])
+        y = np.array([r[metric] for r in lrn])
         ax.scatter(x, y, s=16, color=f"C{gi}", marker="o" if base[0]["split"] == "train" else "^",
                    label=f"{g} ({base[0]['split']})")
         lo, hi = min(lo, x.min(), y.min()), max(hi, x.max(), y.max())
@@ -77,7 +80,8 @@ def _scatter(ax, rows, kind, base_method, groups) -> None:
     ax.set_yscale("log")
     ax.set_xlim(lim)
     ax.set_ylim(lim)
-    for axis in (ax.xaxis, ax.yaxis):
+    for axis in (ax.xaxis, ax.yaxis):          # labels at 1, 2 and 5 x 10^k (more overlap on wide ranges)
+        axis.set_minor_locator(matplotlib.ticker.LogLocator(base=10, subs=(2.0, 5.0)))
         axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
         axis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
     ax.tick_params(axis="x", which="both", labelrotation=60, labelsize=7)

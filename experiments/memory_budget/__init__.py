@@ -3,8 +3,10 @@ node counts by complexity water-filling, CSR storage) against fixed-N AVSM, DSM 
 best breakpoint subset (``optimal``, fixed N) at equal total bytes, per built-in scene
 over seeds and lights.
 
-Per configuration (scene, seed, light: the scene's directional light ``dir_a`` and its
-25-degree tilt ``dir_b``, :func:`avsm_dr.evaluation.light_variants`) and per node count N of
+Per configuration (scene x :class:`avsm_dr.evaluation.Configuration`: a seed and a light
+of :func:`avsm_dr.evaluation.light_variants`, the scene's directional light ``dir_a``, its
+25-degree tilt ``dir_b`` or the ``spot`` light on its axis; full mode: error_curves' ten,
+4 seeds x both directional lights and 2 seeds x the spot light) and per node count N of
 fixed AVSM (``bytes = 2 N itemsize`` per texel, float32 captures: 8 N):
 
 * ``avsm``: AVSM-N, N in ``nodes`` (up to 64: fixed AVSM's error-vs-bytes curve);
@@ -45,6 +47,12 @@ receivers, with an ``order`` column (``-`` for DSM and ``optimal``, which do not
 it), and ``bytes_saved_at_equal_rmse_by_order`` compares adaptive and fixed AVSM within each
 order.
 
+Interpolation: the headline AVSM rows (``interpolation`` = ``linear``) sample the node list
+linearly; AVSM's registry preset is ``interpolation='exp'`` (``describe('avsm')['preset']``),
+so fixed AVSM-N and adaptive AVSM are built again with it (``exp`` rows, front to back, same
+segments and receivers; ``-`` for DSM and ``optimal``); findings give the exp savings, the
+exp / linear RMSE ratios and adaptive / fixed within exp.
+
 Bytes of the savings: the **sparse** layout on both sides (``bytes_sparse``,
 ``nbytes_sparse_per_texel``: an occupancy bit per texel, then fixed AVSM-N's ``8 N`` per
 non-empty texel, adaptive AVSM's nodes plus a 4-byte CSR offset per non-empty texel), so the
@@ -63,6 +71,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build
+from avsm_dr.evaluation import Configuration
 from avsm_dr.stats import bootstrap_ci, claim
 from .._common import front_to_back_first
 from .._headline import interval, num
@@ -86,15 +95,20 @@ OPTIMAL_MAX_N = 8
 #: Methods compared at each byte budget (label, kind, extra parameters).
 ADAPTIVE = (("adaptive", {}), ("adaptive_uniform", {"_score": "uniform"}), ("adaptive_count", {"_score": "count"}))
 
-#: Parameters of the full and the quick run (quick: the plume, one configuration).
 #: Insertion orders of the AVSM rows (the first is the headline's).
 ORDERS = ["depth", "submission", "reverse_depth", "random"]
+#: AVSM's interpolations: the headline's (linear) and the registry preset's (exp).
+INTERPOLATIONS = ["linear", "exp"]
+#: Configurations (seed, light) of the full run: error_curves' ten (4 seeds x both directional
+#: lights, 2 seeds x the spot light), :class:`avsm_dr.evaluation.Configuration`.
+FULL_CONFIGS = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
 
-FULL = dict(scenes=SCENES, seeds=[0, 1], lights=["dir_a", "dir_b"], resolution=64, nodes=[2, 4, 8, 16, 32, 64],
+#: Parameters of the full and the quick run (quick: the plume, one configuration).
+FULL = dict(scenes=SCENES, configs=FULL_CONFIGS, resolution=64, nodes=[2, 4, 8, 16, 32, 64],
             budgets=[2, 4, 8, 16, 32], n_volume=2048, optimal_max_n=OPTIMAL_MAX_N, optimal_first_only=True,
             heat_nodes=4, ablations_everywhere=False, dsm_steps=DSM_STEPS, n_boot=2000, filter="bilinear",
-            orders=ORDERS)
-QUICK = dict(FULL, scenes=QUICK_SCENES, seeds=[0], lights=["dir_a"], nodes=[2, 4, 8, 16, 32], budgets=[2, 4, 8],
+            orders=ORDERS, interpolations=INTERPOLATIONS)
+QUICK = dict(FULL, scenes=QUICK_SCENES, configs=[[0, "dir_a"]], nodes=[2, 4, 8, 16, 32], budgets=[2, 4, 8],
              n_volume=512, optimal_max_n=4, optimal_first_only=False, ablations_everywhere=True, dsm_steps=2,
              n_boot=500)
 
@@ -195,15 +209,23 @@ class NormalisedLookup:
 
 
 def _configs(P):
-    return [(s, seed, light) for s in P["scenes"] for seed in P["seeds"] for light in P["lights"]]
+    """(scene, Configuration) of every scene x ``P['configs']`` ([seed, light] pairs)."""
+    return [(s, Configuration(seed, light)) for s in P["scenes"] for seed, light in P["configs"]]
 
 
-def _config_rows(name, seed, light, P, rows, errors, heat):
+def key(method: str, order: str = "-", interpolation: str = "-") -> str:
+    """The label of a row's errors: ``method``, ``method@order`` for an insertion order other
+    than front to back, ``method/exp`` for the exp interpolation."""
+    return method + ("" if order in ("-", "depth") else f"@{order}") \
+        + ("" if interpolation in ("-", "linear") else f"/{interpolation}")
+
+
+def _config_rows(name, config, P, rows, errors, heat):
     from avsm_dr import builtin_scenes, capture, receivers
-    from avsm_dr.evaluation import light_variants
     from ..avsm_gap import UniformObjective
+    seed, light = config.seed, config.light_label
     scene = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(scene, light=light_variants(scene)[light])
+    scene = dataclasses.replace(scene, light=config.light_for(scene))
     cap = capture(scene, resolution=P["resolution"], order="depth")
     points = receivers.in_volume(scene, P["n_volume"], seed=seed)
     look = NormalisedLookup(cap, points)
@@ -211,15 +233,15 @@ def _config_rows(name, seed, light, P, rows, errors, heat):
     exact = look(build("exact", seg))
     obj = UniformObjective(seg)
     cfg = f"{name}/s{seed}/{light}"
-    first = seed == P["seeds"][0] and light == P["lights"][0]
+    first = [seed, light] == list(P["configs"][0])
     head = dict(scene=name, seed=seed, light=light, config=cfg, resolution=P["resolution"],
                 texels=seg.n_texels, nonempty=int(np.count_nonzero(seg.counts)), max_segments=seg.max_count)
 
-    def row(method, n, rep, build_s, budget, order="-"):
+    def row(method, n, rep, build_s, budget, order="-", interpolation="-"):
         err = look(rep) - exact
         m = obj.measure(rep)
-        errors[(cfg, method if order in ("-", "depth") else f"{method}@{order}", n)] = err
-        r = dict(head, method=method, order=order, nodes=n, budget_bytes_per_texel=budget,
+        errors[(cfg, key(method, order, interpolation), n)] = err
+        r = dict(head, method=method, order=order, interpolation=interpolation, nodes=n, budget_bytes_per_texel=budget,
                  bytes_per_texel=rep.nbytes_per_texel,
                  bytes_sparse=rep.nbytes_sparse_per_texel, total_bytes=rep.nbytes_per_texel * seg.n_texels,
                  rmse=float(np.sqrt(np.mean(err ** 2))),
@@ -242,23 +264,29 @@ def _config_rows(name, seed, light, P, rows, errors, heat):
         else:
             reordered[o] = seg.in_order(o, seed=seed if o == "random" else None)
 
+    others = [i for i in P.get("interpolations", ["linear"]) if i != "linear"]
     dsm_cache: dict = {}
     for n in P["nodes"]:
         rep, t = timed_build("avsm", nodes=n)
         target = rep.nbytes_per_texel
-        row("avsm", n, rep, t, target, "depth")
+        row("avsm", n, rep, t, target, "depth", "linear")
         for o, s_o in reordered.items():
-            row("avsm", n, *timed_build("avsm", s_o, nodes=n), target, o)
+            row("avsm", n, *timed_build("avsm", s_o, nodes=n), target, o, "linear")
+        for i in others:                         # the preset's interpolation, front to back
+            row("avsm", n, *timed_build("avsm", nodes=n, interpolation=i), target, "depth", i)
         if n not in P["budgets"]:
             continue
         for label, extra in ADAPTIVE:
             if label == "adaptive_count" and not (first or P["ablations_everywhere"]):
                 continue
             rep, t = timed_build("avsm_adaptive", bytes_per_texel=target, **extra)
-            row(label, n, rep, t, target, "depth")
+            row(label, n, rep, t, target, "depth", "linear")
             if label == "adaptive":
                 for o, s_o in reordered.items():
-                    row(label, n, *timed_build("avsm_adaptive", s_o, bytes_per_texel=target), target, o)
+                    row(label, n, *timed_build("avsm_adaptive", s_o, bytes_per_texel=target), target, o, "linear")
+                for i in others:
+                    row(label, n, *timed_build("avsm_adaptive", bytes_per_texel=target, interpolation=i), target,
+                        "depth", i)
             if label == "adaptive" and first and n == P["heat_nodes"]:
                 heat[name] = (rep.allocated.reshape(cap.height, cap.width), target)
         t0 = time.perf_counter()
@@ -336,15 +364,32 @@ def ratios(rows, errors, a: str, b: str, n_boot: int) -> dict:
     return out
 
 
+def _linear(r) -> bool:
+    return r.get("interpolation", "-") in ("-", "linear")
+
+
 def findings(rows, errors, n_boot: int) -> dict:
     """``findings.json``: savings at equal error (receivers and uniform in depth) and the
-    RMSE ratios of adaptive AVSM to the others at equal bytes, front to back; the savings
-    again within each insertion order."""
+    RMSE ratios of adaptive AVSM to the others at equal bytes, front to back with linear
+    interpolation; the savings again within each insertion order; with the exp
+    interpolation (the preset) the savings, adaptive / fixed and exp / linear."""
     orders = list(dict.fromkeys(r.get("order", "depth") for r in rows if r.get("order", "-") != "-"))
-    by_order = {o: savings([r for r in rows if r.get("order", "-") == o], "rmse") for o in orders}
-    rows = [r for r in rows if r.get("order", "-") in ("-", "depth")]
+    by_order = {o: savings([r for r in rows if r.get("order", "-") == o and _linear(r)], "rmse") for o in orders}
+    front = [r for r in rows if r.get("order", "-") in ("-", "depth")]
+    exp = [r for r in front if r.get("interpolation") == "exp"]
+    rows = [r for r in front if _linear(r)]
+    out_exp = {}
+    if exp:
+        out_exp = {
+            "bytes_saved_at_equal_rmse_exp": savings(exp, "rmse"),
+            "bytes_saved_at_equal_depth_rms_exp": savings(exp, "depth_rms"),
+            "rmse_ratio_adaptive_over_avsm_exp": ratios(rows, errors, "adaptive/exp", "avsm/exp", n_boot),
+            "rmse_ratio_avsm_exp_over_linear": ratios(rows, errors, "avsm/exp", "avsm", n_boot),
+            "rmse_ratio_adaptive_exp_over_linear": ratios(rows, errors, "adaptive/exp", "adaptive", n_boot),
+        }
     return {
         "avsm_order": "depth",
+        "avsm_interpolation": "linear (headline keys); exp, the preset: keys ending in _exp",
         "bytes_saved_at_equal_rmse_by_order": by_order,
         "bytes_saved_at_equal_rmse": savings(rows, "rmse"),
         "bytes_saved_at_equal_depth_rms": savings(rows, "depth_rms"),
@@ -357,6 +402,7 @@ def findings(rows, errors, n_boot: int) -> dict:
         "rmse_ratio_adaptive_over_dsm": ratios(rows, errors, "adaptive", "dsm", n_boot),
         "rmse_ratio_adaptive_over_optimal": ratios(rows, errors, "adaptive", "optimal", n_boot),
         "rmse_ratio_optimal_over_avsm": ratios(rows, errors, "optimal", "avsm", n_boot),
+        **out_exp,
     }
 
 
@@ -366,8 +412,8 @@ def _compute(res, P: dict) -> dict:
     rows: list[dict] = []
     errors: dict = {}
     heat: dict = {}
-    for name, seed, light in tqdm(_configs(P), desc="memory_budget", unit="config"):
-        _config_rows(name, seed, light, P, rows, errors, heat)
+    for name, config in tqdm(_configs(P), desc="memory_budget", unit="config"):
+        _config_rows(name, config, P, rows, errors, heat)
     summary = findings(rows, errors, P["n_boot"])
     from .plots import plot_curves, plot_heat
     plot_curves(res, [r for r in rows if r["order"] in ("-", "depth")], P["scenes"])
@@ -376,8 +422,10 @@ def _compute(res, P: dict) -> dict:
 
 
 def _resolve(P: dict, quick: bool) -> dict:
-    """Orders checked; front to back first (the headline's)."""
+    """Orders checked; front to back first (the headline's); configurations checked."""
     P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
+    for seed, light in P["configs"]:
+        Configuration(seed, light)               # ValueError naming seed / light
     return P
 
 def _headline(s: dict) -> list[str]:
@@ -400,6 +448,17 @@ def _headline(s: dict) -> list[str]:
                 line += f"; bytes saved at equal RMSE {interval(pct, 2) if 'low' in pct else num(pct['estimate'], 2)}%"
             if sv.get("censored"):
                 line += f" ({sv['censored']} of {sv['configs']} configurations censored)"
+            out.append(line)
+    for scene, per_n in s.get("rmse_ratio_adaptive_over_avsm_exp", {}).items():
+        for n, r in per_n.items():
+            line = f"{scene} {n}, exp interpolation (AVSM's preset): adaptive RMSE over AVSM {interval(r)}"
+            e = s.get("rmse_ratio_avsm_exp_over_linear", {}).get(scene, {}).get(n)
+            if e:
+                line += f"; AVSM exp over linear {interval(e)}"
+            sv = s.get("bytes_saved_at_equal_rmse_exp", {}).get(scene, {}).get(n, {})
+            if sv.get("saving") is not None:
+                pct = {("estimate" if k == "saving" else k): 100 * sv[k] for k in ("saving", "low", "high") if k in sv}
+                line += f"; bytes saved {interval(pct, 2) if 'low' in pct else num(pct['estimate'], 2)}%"
             out.append(line)
     return out
 

@@ -6,23 +6,29 @@ from __future__ import annotations
 import numpy as np
 
 METHODS = ("avsm", "adaptive", "adaptive_uniform", "adaptive_count", "dsm", "optimal")
+#: Curves drawn: (method, interpolation); the exp rows (AVSM's preset) dashed in the method's
+#: colour, markers filled.
+CURVES = tuple((m, "exp" if m in ("avsm", "adaptive") and e else None) for e in (False, True) for m in METHODS
+               if not e or m in ("avsm", "adaptive"))
 
 
 def plot_curves(res, rows, scenes):
     """``error_vs_bytes.png``: RMSE at in-volume receivers (top) and uniform-in-depth RMS
     (bottom) against the map's total bytes in the sparse layout (``bytes_sparse`` x texels:
-    the layout the savings count), one column per scene."""
+    the layout the savings count), one column per scene; fixed and adaptive AVSM with the
+    exp interpolation (AVSM's preset) dashed beside their linear curves."""
     import matplotlib
     matplotlib.use("Agg")
     from .. import _plotstyle as plotstyle
     with plotstyle.context():
         fig, axes = plotstyle.grid(2, len(scenes), panel=(3.0, 2.3), sharey="row")
         for j, scene in enumerate(scenes):
-            for i, (key, ylab) in enumerate((("rmse", "RMSE of T, in-volume receivers"),
-                                             ("depth_rms", "RMS error of T, uniform in depth"))):
+            for i, (key, ylab) in enumerate((("rmse", "RMSE, in-volume receivers"),
+                                             ("depth_rms", "RMS, uniform in depth"))):
                 ax = axes[i][j]
-                for m in METHODS:
-                    rs = [r for r in rows if r["scene"] == scene and r["method"] == m]
+                for m, interp in CURVES:
+                    rs = [r for r in rows if r["scene"] == scene and r["method"] == m
+                          and (r.get("interpolation") == "exp") == (interp == "exp")]
                     ns = sorted({r["nodes"] for r in rs})
                     if not ns:
                         continue
@@ -31,7 +37,9 @@ def plot_curves(res, rows, scenes):
                     ys = [np.array([max(r[key], 1e-7) for r in rs if r["nodes"] == n]) for n in ns]
                     gm = [float(np.exp(np.mean(np.log(y)))) for y in ys]
                     st = _style(m)
-                    ax.plot(xb, gm, **st, label=m)
+                    if interp == "exp":
+                        st = dict(st, linestyle="--", markerfacecolor=st["color"])
+                    ax.plot(xb, gm, **st, label=m if interp is None else f"{m} (exp)")
                     ax.fill_between(xb, [y.min() for y in ys], [y.max() for y in ys], color=st["color"],
                                     alpha=0.12, linewidth=0)
                 ax.set_xscale("log")
@@ -42,7 +50,7 @@ def plot_curves(res, rows, scenes):
                     ax.set_xlabel("total bytes of the map, sparse (KiB)")
                 if j == 0:
                     ax.set_ylabel(ylab)
-        plotstyle.legend_below(fig, axes[0], ncol=min(len(METHODS), 3 * len(scenes)))
+        plotstyle.legend_below(fig, axes[0], ncol=min(4, 3 * len(scenes)))
         res.save_figure(fig, "error_vs_bytes.png")
 
 
