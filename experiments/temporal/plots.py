@@ -116,11 +116,16 @@ def plot_all(res, rows, summary, series, P, gif_labels):
             _gif(res, s, images, gif_labels, P["image"])
 
 
+#: Markers of :func:`plot_insertion` per insertion order (the label's last word).
+MARKERS = {"unsorted": "o", "sorted": "s", "submission": "^"}
+
+
 def plot_insertion(res, summary, labels, variants):
     """``insertion_flicker.png``: pooled flicker against error (with their intervals) of stream
-    AVSM and each insertion variant, filled unsorted (a random order per frame), hollow sorted;
-    one column per animation, against the exact curve (top) and the truth (bottom); linear error
-    axes (the methods' errors lie within a few x of each other).  The dashed
+    AVSM and each insertion variant, circles unsorted (a random order per frame), hollow squares
+    sorted, triangles in submission order (the same draw order every frame); one colour per
+    insertion; one column per animation, against the exact curve (top) and the truth (bottom);
+    linear error axes (the methods' errors lie within a few x of each other).  The dashed
     line is sorted stream AVSM's flicker: the moonshot's bar."""
     from matplotlib.ticker import FuncFormatter, MaxNLocator
     from .. import _plotstyle as plotstyle
@@ -140,8 +145,8 @@ def plot_insertion(res, summary, labels, variants):
                 ax.errorbar(x["estimate"], y["estimate"],
                             xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
                             yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
-                            color=colour[name], marker="o" if order == "unsorted" else "s",
-                            markerfacecolor=colour[name] if order == "unsorted" else "none", markersize=4.5,
+                            color=colour[name], marker=MARKERS.get(order, "o"),
+                            markerfacecolor="none" if order == "sorted" else colour[name], markersize=4.5,
                             capsize=2, elinewidth=0.8, label=f"{name or 'stream'} {order}")
             bar = [m for m in stream if m.split(" ")[-1] == "sorted"]
             if bar:
