@@ -130,7 +130,9 @@ def plot_insertion(res, summary, labels, variants):
     from matplotlib.ticker import FuncFormatter, MaxNLocator
     from .. import _plotstyle as plotstyle
     stream = [m for m in labels if m.startswith("avsm-") and m.split(" ")[-1] in ("unsorted", "sorted")]
-    names = sorted({" ".join(m.split(" ")[1:-1]) for m in variants})
+    names = sorted({" ".join(m.split(" ")[1:-1]) for m in variants} - {""})     # "": stream AVSM
+    rank = {o: i for i, o in enumerate(MARKERS)}
+    variants = sorted(variants, key=lambda m: (" ".join(m.split(" ")[1:-1]), rank.get(m.split(" ")[-1], 9)))
     colours = [c for c in plotstyle.PALETTE if c not in ("black", "rose")]
     colour = {"": plotstyle.PALETTE["rose"]} | {n: plotstyle.PALETTE[colours[i % len(colours)]]
                                                 for i, n in enumerate(names)}
@@ -160,7 +162,9 @@ def plot_insertion(res, summary, labels, variants):
             ax.set_title(f"{s}, vs {vs}")
             ax.set_xlabel(f"RMS error vs {vs} (pooled)")
         axes[row][0].set_ylabel("flicker (RMS change of\nthe error between frames)")
-    plotstyle.legend_below(fig, axes=[axes[0][0]], ncol=4)
+    handles = {lab: h for h, lab in zip(*axes[0][0].get_legend_handles_labels())}
+    columns = [[h for lab, h in handles.items() if lab.rsplit(" ", 1)[0] == (n or "stream")] for n in [""] + names]
+    plotstyle.legend_columns(fig, columns + [[h for lab, h in handles.items() if lab.startswith("sorted stream")]])
     res.save_figure(fig, "insertion_flicker.png")
 
 
