@@ -131,7 +131,7 @@ def test_insertion_claims_skip_stream_rows_not_run():
     est = {"avsm-8 sorted": 0.02 * sign, "avsm-8 refit_l2 unsorted": 0.01 * sign,
            "avsm-8 refit_l2 submission": 0.01 * sign}
     series = {("camera", "s0-dir_a"): dict(exact=ref, truth=ref, est=est)}
-    out = T.insertion_claims(series, "camera", ["s0-dir_a"], ms, claim, 50)
+    out = T.insertion_claims(series, "camera", ["s0-dir_a"], ms, claim, 100)
     assert set(out) == {"avsm-8 refit_l2 unsorted", "avsm-8 refit_l2 submission"}
     for rec in out.values():
         assert set(rec["exact"]) == {"flicker_vs_sorted", "verdict"}
