@@ -97,10 +97,46 @@ def test_camera_receivers_stay_in_the_box_and_move():
 def test_narrowed_runs_are_checked():
     P, _ = T.STUDY.params(True, methods=["avsm-8 staged sorted", "exact"], settings=["camera"])
     assert P["methods"] == ["exact", "avsm-8 staged sorted"] and P["settings"] == ["camera"]     # methods() order
+    P, _ = T.STUDY.params(True, methods=["avsm-8 refit_l2 submission", "avsm-8 submission", "exact"])
+    assert P["methods"] == ["exact", "avsm-8 submission", "avsm-8 refit_l2 submission"]
     for kw, name in ((dict(methods=["avsm-8 nope sorted"]), "methods"), (dict(methods=[]), "methods"),
                      (dict(settings=["wind"]), "settings"), (dict(settings=[]), "settings")):
         with pytest.raises(ValueError, match=f"^{name}:"):
             T.STUDY.params(True, **kw)
+
+
+def test_submission_rows_come_last_in_submission_order():
+    """``avsm-8 submission`` and one ``avsm-8 <insertion> submission`` per variant, unsorted, on
+    the ``'submission'`` capture, after every other row (whose order and parameters they leave alone)."""
+    ms = T.methods(quick=True)
+    sub = [m for m in ms if m[3] == "submission"]
+    assert [m[0] for m in sub] == ["avsm-8 submission"] + [f"avsm-8 {i} submission" for i in T.insertion_variants()]
+    assert ms[-len(sub):] == sub and all(m[1] == "avsm" and m[2]["sort"] is False for m in sub)
+    assert {m[3] for m in ms[:-len(sub)]} == {"depth", "random"}
+    assert all(m[3] == "random" for m in ms if m[0].endswith(" unsorted"))
+
+
+def test_insertion_claims_skip_stream_rows_not_run():
+    """A narrowed run without random-order stream AVSM: its variants keep the flicker-vs-sorted
+    claim and lose only the comparisons that need the missing row.  Synthetic errors: the
+    variant's alternate +-0.01, sorted AVSM's +-0.02, so the flicker ratio is 0.5."""
+    from avsm_dr.stats import claim
+    F, K = 4, 50
+    ref = np.zeros((F, K))
+    sign = (-1.0) ** np.arange(F)[:, None] * np.ones((1, K))
+    p = dict(nodes=8, sort=False)
+    ms = [("avsm-8 sorted", "avsm", dict(p, sort=True), "depth"),
+          ("avsm-8 refit_l2 unsorted", "avsm", dict(p, insertion="refit_l2"), "random"),
+          ("avsm-8 refit_l2 submission", "avsm", dict(p, insertion="refit_l2"), "submission")]
+    est = {"avsm-8 sorted": 0.02 * sign, "avsm-8 refit_l2 unsorted": 0.01 * sign,
+           "avsm-8 refit_l2 submission": 0.01 * sign}
+    series = {("camera", "s0-dir_a"): dict(exact=ref, truth=ref, est=est)}
+    out = T.insertion_claims(series, "camera", ["s0-dir_a"], ms, claim, 100)
+    assert set(out) == {"avsm-8 refit_l2 unsorted", "avsm-8 refit_l2 submission"}
+    for rec in out.values():
+        assert set(rec["exact"]) == {"flicker_vs_sorted", "verdict"}
+        assert rec["exact"]["flicker_vs_sorted"]["ratio"] == pytest.approx(0.5, rel=1e-12)
+        assert rec["exact"]["verdict"] == "less"
 
 
 def test_quick_temporal_run(tmp_path, monkeypatch):
@@ -124,21 +160,31 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
         un = block["exact"]["avsm-8 unsorted"]
         assert un["error"]["low"] <= un["error"]["estimate"] <= un["error"]["high"]
         assert f["headline"][setting]["most_flicker"] in methods
-    variants = {f"avsm-8 {ins} {order}" for ins in T.insertion_variants() for order in ("unsorted", "sorted")}
+    variants = {f"avsm-8 {ins} {order}" for ins in T.insertion_variants()
+                for order in ("unsorted", "sorted", "submission")} | {"avsm-8 submission"}
     assert "stream" not in T.insertion_variants() and variants <= methods
     for setting, block in f["insertion"].items():
         assert set(block) == variants and setting in f["headline"]
         assert f["headline"][setting]["most_flicker"] not in variants            # one row per kind
         for label, rec in block.items():
+            order = label.split(" ")[-1]
             for vs in ("exact", "truth"):
-                for key in ("flicker_vs_sorted", "flicker_vs_stream", "error_vs_stream"):
+                keys = {"flicker_vs_sorted", "verdict"} | ({"flicker_vs_unsorted"} if order == "submission" else set())
+                if label != "avsm-8 submission":
+                    keys |= {"flicker_vs_stream", "error_vs_stream"}
+                    assert rec[vs]["flicker_vs_stream"]["b"] == "avsm-8 " + order
+                assert set(rec[vs]) == keys, (setting, label, vs)
+                for key in keys - {"verdict"}:
                     c = rec[vs][key]
                     assert c["a"] == label and c["low"] <= c["ratio"] <= c["high"], (setting, label, vs, key)
-                assert rec[vs]["flicker_vs_stream"]["b"] == "avsm-8 " + label.split(" ")[-1]
+                if order == "submission":
+                    assert rec[vs]["flicker_vs_unsorted"]["b"] == "avsm-8 unsorted"
                 fl = rec[vs]["flicker_vs_sorted"]
                 assert fl["b"] == "avsm-8 sorted"
                 assert rec[vs]["verdict"] == ("less" if fl["high"] < 1 else "more" if fl["low"] > 1
                                               else "indistinguishable")
+    cam = f["insertion"]["camera"]["avsm-8 submission"]["exact"]["flicker_vs_unsorted"]
+    assert cam["high"] < 1    # content and light still: the same draw order gives the same map every frame
     from PIL import Image
     with Image.open(out / "shadow_smoke.gif") as im:
         assert im.n_frames == 5

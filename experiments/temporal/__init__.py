@@ -13,10 +13,13 @@ Shadow Maps", EGSR 2010, sec. 4.1 on insertion order): ``unsorted``, its segment
 a fresh random order per frame, as an unordered on-device capture delivers them, and
 ``sorted`` (``sort=True``, depth order), and so is each of AVSM's other insertion variants
 (:func:`insertion_variants`, rows ``avsm-8 <insertion> unsorted|sorted``; the unsorted ones see
-the same random order per frame as unsorted AVSM).  ``avsm_march`` is the engine-style AVSM that
-re-allocates its nodes as it marches.  Other kinds are built on the capture's depth-sorted
-segments; all builds cover only the texels the receivers' bilinear taps touch, with the
-whole map's depth range.
+the same random order per frame as unsorted AVSM).  Last, ``avsm-8 submission`` and
+``avsm-8 <insertion> submission``: unsorted, on a second capture in ``order="submission"``
+(:data:`avsm_dr.capture.ORDERS`: a renderer's draw order, the same primitives in the same order
+every frame), so only the content's and the light's motion re-orders a texel's segments.
+``avsm_march`` is the engine-style AVSM that re-allocates its nodes as it marches.  Other kinds
+are built on the capture's depth-sorted segments; all builds cover only the texels the
+receivers' bilinear taps touch, with the whole map's depth range.
 
 Per representation, animation and configuration (seed x light direction), at fixed receivers,
 against the exact curve of the same map and filter (``vs='exact'``: the representation's own
@@ -30,7 +33,8 @@ flicker per frame and pooled, as defined in :mod:`.metrics`::
 
 Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`);
 paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
-variant vs sorted and vs same-order stream AVSM: :func:`insertion_claims`) by
+variant vs sorted and vs same-order stream AVSM, submission-order rows also vs random-order
+stream AVSM: :func:`insertion_claims`) by
 :func:`avsm_dr.stats.claim` (configurations, then receivers x frames within each).
 """
 
@@ -80,13 +84,15 @@ def insertion_variants() -> list[str]:
     return [c for c in describe("avsm")["params"]["insertion"]["choices"] if c != "stream"]
 
 
-def methods(quick: bool = False) -> list[tuple[str, str, dict, bool]]:
-    """(label, kind, params, shuffle) of every representation measured: each registered kind
+def methods(quick: bool = False) -> list[tuple[str, str, dict, str]]:
+    """(label, kind, params, order) of every representation measured: each registered kind
     but :data:`SKIP_KINDS` (``quick``: those of :data:`QUICK_KINDS`) at its headline parameters; AVSM unsorted
-    (``shuffle``: a random insertion order per frame) and sorted; last, the same two for each
-    of :func:`insertion_variants` (``params['insertion']`` set).  Labels: ``kind-<size value>``
-    plus the variant (``avsm-8 refit_l2 sorted``)."""
-    out, variants = [], []
+    (``order`` ``'random'``: a fresh random insertion order per frame) and sorted; then the same
+    two for each of :func:`insertion_variants` (``params['insertion']`` set); last, stream AVSM
+    and each variant unsorted in the capture's ``'submission'`` order (the same draw order every
+    frame).  Other rows: ``order`` ``'depth'`` (the depth-order capture).  Labels:
+    ``kind-<size value>`` plus the variant (``avsm-8 refit_l2 sorted``, ``avsm-8 submission``)."""
+    out, variants, submitted = [], [], []
     for kind in kinds():
         if kind in SKIP_KINDS or quick and kind not in QUICK_KINDS:
             continue
@@ -94,14 +100,17 @@ def methods(quick: bool = False) -> list[tuple[str, str, dict, bool]]:
         p = dict(d["headline"])
         name = f"{kind}-{p[d['size']]}" if d["size"] and d["size"] in p else kind
         if kind == "avsm":
-            out.append((f"{name} unsorted", kind, dict(p, sort=False), True))
-            out.append((f"{name} sorted", kind, dict(p, sort=True), False))
+            out.append((f"{name} unsorted", kind, dict(p, sort=False), "random"))
+            out.append((f"{name} sorted", kind, dict(p, sort=True), "depth"))
+            submitted.append((f"{name} submission", kind, dict(p, sort=False), "submission"))
             for ins in insertion_variants():
-                variants.append((f"{name} {ins} unsorted", kind, dict(p, sort=False, insertion=ins), True))
-                variants.append((f"{name} {ins} sorted", kind, dict(p, sort=True, insertion=ins), False))
+                variants.append((f"{name} {ins} unsorted", kind, dict(p, sort=False, insertion=ins), "random"))
+                variants.append((f"{name} {ins} sorted", kind, dict(p, sort=True, insertion=ins), "depth"))
+                submitted.append((f"{name} {ins} submission", kind, dict(p, sort=False, insertion=ins),
+                                  "submission"))
         else:
-            out.append((name, kind, p, False))
-    return out + variants                  # appended: the other rows keep their order
+            out.append((name, kind, p, "depth"))
+    return out + variants + submitted      # appended: the other rows keep their order
 
 
 def _gif_labels(ms) -> list[str]:
@@ -168,23 +177,30 @@ def _animations(P, seed, light_names):
 
 def _evaluate(frame, P, ms, rng, gif: bool):
     """Lookups of every method in one frame: (exact (K,), truth (K,), {label: (K,)},
-    {label: bytes per texel}, image dict or None)."""
+    {label: bytes per texel}, image dict or None).  Rows in ``'submission'`` order are built
+    on a second capture of the same frame in that order (the same texels' segments)."""
     cap = capture(frame.scene, resolution=P["resolution"], bounds=frame.bounds, order="depth")
     probe = Probe(cap, frame.scene, frame.receivers, 0, truth_at_points=truth(frame.scene, frame.receivers))
     img = Probe(cap, frame.scene, frame.image, 0, truth_at_points=np.ones(len(frame.image))) \
         if gif and frame.image is not None else None
-    taps = [probe.tex.ravel()] + ([img.tex.ravel()] if img is not None else [])
-    sub = SubsetBuilder(cap.segments, np.concatenate(taps))
+    taps = np.concatenate([probe.tex.ravel()] + ([img.tex.ravel()] if img is not None else []))
+    sub = SubsetBuilder(cap.segments, taps)
     mixed = copy.copy(sub)
     mixed.segments = shuffled(sub.segments, rng)           # an unordered capture: new order every frame
+    builders = {"depth": sub, "random": mixed}
+    if any(m[3] == "submission" for m in ms):              # a renderer's draw order: the same every frame
+        drawn = capture(frame.scene, resolution=P["resolution"], bounds=frame.bounds, order="submission")
+        if not np.array_equal(drawn.segments.counts, cap.segments.counts):
+            raise RuntimeError("the submission-order capture has other segment counts than the depth-order one")
+        builders["submission"] = SubsetBuilder(drawn.segments, taps)
     exact = sub.build("exact", {})
     ex = probe.lookup(exact)
     est, nbytes, image = {}, {}, None
     if img is not None:
         image = {"exact": img.lookup(exact)}
     gl = set(_gif_labels(ms))
-    for label, kind, params, shuf in ms:
-        rep = exact if kind == "exact" else (mixed if shuf else sub).build(kind, params)
+    for label, kind, params, order in ms:
+        rep = exact if kind == "exact" else builders[order].build(kind, params)
         est[label] = ex if kind == "exact" else probe.lookup(rep)
         nbytes[label] = float(rep.rep.nbytes_per_texel)
         if image is not None and label in gl:
@@ -250,11 +266,12 @@ def _rows(series, ms) -> list[dict]:
 def findings(series, ms, P) -> dict:
     """Pooled statistics per animation, reference and method with intervals (module
     docstring), per-configuration values, the kind that flickers most (absolute and
-    relative to its error; one row per kind: AVSM's insertion variants are left out), the
+    relative to its error; one row per kind: AVSM's insertion variants and submission-order
+    rows are left out), the
     paired AVSM comparisons and, under ``insertion``, those of :func:`insertion_claims`."""
     from avsm_dr.stats import claim
     F = P["frames"]
-    base = [m for m in ms if "insertion" not in m[2]]
+    base = [m for m in ms if "insertion" not in m[2] and m[3] != "submission"]
     settings = sorted({k[0] for k in series}, key=list(SETTINGS).index)
     out = {"definition": "e = T_rep - T_ref at fixed receivers; flicker = sqrt(mean_{t>=1,i} (e_t - e_{t-1})^2); "
                          "content = the same for T_ref; flicker_index = flicker / (sqrt(2) error)",
@@ -322,33 +339,44 @@ def _paired(claim, a, b, cfgs, n_boot, la, lb, key) -> dict:
 
 
 def insertion_claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
-    """Per AVSM insertion variant (label ``avsm-8 <insertion> <order>``) and reference (``exact``,
-    ``truth``), paired ratios by :func:`avsm_dr.stats.claim` (RMS, configurations then
-    receivers x frames): ``flicker_vs_sorted`` (its flicker over sorted stream AVSM's: the
-    moonshot's bar), ``flicker_vs_stream`` and ``error_vs_stream`` (over stream AVSM's in the
-    same order: the variant's own gain); ``verdict``: the flicker-vs-sorted interval lies below
-    1 (``less``), above it (``more``) or across it (``indistinguishable``)."""
-    stream = {lab.split(" ")[-1]: lab for lab, k, p, _ in ms if k == "avsm" and "insertion" not in p}
+    """Per AVSM insertion variant (label ``avsm-8 <insertion> <order>``) and submission-order
+    row (``avsm-8 [<insertion>] submission``), and per reference (``exact``, ``truth``), paired
+    ratios by :func:`avsm_dr.stats.claim` (RMS, configurations then receivers x frames):
+    ``flicker_vs_sorted`` (its flicker over sorted stream AVSM's: the moonshot's bar),
+    ``flicker_vs_stream`` and ``error_vs_stream`` (over stream AVSM's in the same order: the
+    variant's own gain; not for ``avsm-8 submission`` itself), for submission-order rows
+    ``flicker_vs_unsorted`` (over stream AVSM's in a fresh random order per frame);
+    ``verdict``: the flicker-vs-sorted interval lies below 1 (``less``), above it (``more``)
+    or across it (``indistinguishable``).  A comparison whose stream row was not run is left out."""
+    stream = {order: lab for lab, k, p, order in ms if k == "avsm" and "insertion" not in p and not p.get("sort")}
+    stream["depth"] = next((lab for lab, k, p, _ in ms if k == "avsm" and "insertion" not in p and p.get("sort")),
+                           None)
+    sorted_ = stream["depth"]
     out = {}
-    for label, kind, p, _ in ms:
-        if kind != "avsm" or "insertion" not in p or "sorted" not in stream:
+    for label, kind, p, order in ms:
+        if kind != "avsm" or sorted_ is None or label in (sorted_, stream.get("random")):
             continue
-        same = stream[label.split(" ")[-1]]
+        same = None if label == stream.get(order) else stream.get(order)
         rec = {}
         for vs in ("exact", "truth"):
-            fl = _changes(series, setting, cfgs, label, vs)
-            r = {"flicker_vs_sorted": _paired(claim, fl, _changes(series, setting, cfgs, stream["sorted"], vs), cfgs,
-                                              n_boot, label, stream["sorted"], "ratio")}
-            r["flicker_vs_stream"] = r["flicker_vs_sorted"] if same == stream["sorted"] else \
-                _paired(claim, fl, _changes(series, setting, cfgs, same, vs), cfgs, n_boot, label, same, "ratio")
-            r |= {"error_vs_stream": _paired(claim, _errors(series, setting, cfgs, label, vs),
-                                            _errors(series, setting, cfgs, same, vs), cfgs, n_boot, label, same,
-                                            "ratio")}
+            ch = lambda lab: _changes(series, setting, cfgs, lab, vs)          # noqa: E731
+            fl = ch(label)
+            r = {"flicker_vs_sorted": _paired(claim, fl, ch(sorted_), cfgs, n_boot, label, sorted_, "ratio")}
+            if same is not None:
+                r["flicker_vs_stream"] = r["flicker_vs_sorted"] if same == sorted_ else \
+                    _paired(claim, fl, ch(same), cfgs, n_boot, label, same, "ratio")
+                r["error_vs_stream"] = _paired(claim, _errors(series, setting, cfgs, label, vs),
+                                               _errors(series, setting, cfgs, same, vs), cfgs, n_boot, label, same,
+                                               "ratio")
+            if order == "submission" and stream.get("random") is not None:
+                r["flicker_vs_unsorted"] = _paired(claim, fl, ch(stream["random"]), cfgs, n_boot, label,
+                                                   stream["random"], "ratio")
             f = r["flicker_vs_sorted"]
             r["verdict"] = "less" if f["high"] < 1 else "more" if f["low"] > 1 else "indistinguishable"
             rec[vs] = r
         out[label] = rec
     return out
+
 
 def _headline(s: dict) -> list[str]:
     """Per animation: how much the true shadow changes per frame, the kind that flickers most
@@ -363,8 +391,8 @@ STUDY = Study("temporal", "Temporal stability of every representation under anim
               REPRODUCES, FULL, QUICK, _compute, resolve=_resolve,
               writes=("data.csv (one row per animation, configuration, method, reference and frame)",
                       "findings.json", "GIFs"), headline=_headline,
-              options=(Option("methods", "only these labels (default: all; 'avsm-8 refit_l2 sorted', ...)", nargs="+",
-                              metavar="LABEL"),
+              options=(Option("methods", "only these labels (default: all; 'avsm-8 refit_l2 sorted', "
+                                         "'avsm-8 submission', ...)", nargs="+", metavar="LABEL"),
                        Option("settings", f"only these animations (default: all of {', '.join(SETTINGS)})",
                               nargs="+", metavar="ANIMATION")))
 run = STUDY.run

@@ -116,16 +116,23 @@ def plot_all(res, rows, summary, series, P, gif_labels):
             _gif(res, s, images, gif_labels, P["image"])
 
 
+#: Markers of :func:`plot_insertion` per insertion order (the label's last word).
+MARKERS = {"unsorted": "o", "sorted": "s", "submission": "^"}
+
+
 def plot_insertion(res, summary, labels, variants):
     """``insertion_flicker.png``: pooled flicker against error (with their intervals) of stream
-    AVSM and each insertion variant, filled unsorted (a random order per frame), hollow sorted;
-    one column per animation, against the exact curve (top) and the truth (bottom); linear error
-    axes (the methods' errors lie within a few x of each other).  The dashed
+    AVSM and each insertion variant, circles unsorted (a random order per frame), hollow squares
+    sorted, triangles in submission order (the same draw order every frame); one colour per
+    insertion; one column per animation, against the exact curve (top) and the truth (bottom);
+    linear error axes (the methods' errors lie within a few x of each other).  The dashed
     line is sorted stream AVSM's flicker: the moonshot's bar."""
     from matplotlib.ticker import FuncFormatter, MaxNLocator
     from .. import _plotstyle as plotstyle
     stream = [m for m in labels if m.startswith("avsm-") and m.split(" ")[-1] in ("unsorted", "sorted")]
-    names = sorted({" ".join(m.split(" ")[1:-1]) for m in variants})
+    names = sorted({" ".join(m.split(" ")[1:-1]) for m in variants} - {""})     # "": stream AVSM
+    rank = {o: i for i, o in enumerate(MARKERS)}
+    variants = sorted(variants, key=lambda m: (" ".join(m.split(" ")[1:-1]), rank.get(m.split(" ")[-1], 9)))
     colours = [c for c in plotstyle.PALETTE if c not in ("black", "rose")]
     colour = {"": plotstyle.PALETTE["rose"]} | {n: plotstyle.PALETTE[colours[i % len(colours)]]
                                                 for i, n in enumerate(names)}
@@ -140,8 +147,8 @@ def plot_insertion(res, summary, labels, variants):
                 ax.errorbar(x["estimate"], y["estimate"],
                             xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
                             yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
-                            color=colour[name], marker="o" if order == "unsorted" else "s",
-                            markerfacecolor=colour[name] if order == "unsorted" else "none", markersize=4.5,
+                            color=colour[name], marker=MARKERS.get(order, "o"),
+                            markerfacecolor="none" if order == "sorted" else colour[name], markersize=4.5,
                             capsize=2, elinewidth=0.8, label=f"{name or 'stream'} {order}")
             bar = [m for m in stream if m.split(" ")[-1] == "sorted"]
             if bar:
@@ -155,7 +162,9 @@ def plot_insertion(res, summary, labels, variants):
             ax.set_title(f"{s}, vs {vs}")
             ax.set_xlabel(f"RMS error vs {vs} (pooled)")
         axes[row][0].set_ylabel("flicker (RMS change of\nthe error between frames)")
-    plotstyle.legend_below(fig, axes=[axes[0][0]], ncol=4)
+    handles = {lab: h for h, lab in zip(*axes[0][0].get_legend_handles_labels())}
+    columns = [[h for lab, h in handles.items() if lab.rsplit(" ", 1)[0] == (n or "stream")] for n in [""] + names]
+    plotstyle.legend_columns(fig, columns + [[h for lab, h in handles.items() if lab.startswith("sorted stream")]])
     res.save_figure(fig, "insertion_flicker.png")
 
 
