@@ -260,3 +260,15 @@ def test_numbers_on_pages_come_from_the_committed_data():
                                             *(ROOT / "docs" / "representations" / "notes").glob("*.md")])
     quoted = set(re.findall(r"\{claim\}`([^`:]+)", pages))
     assert quoted <= committed, sorted(quoted - committed)
+
+
+def test_main_job_time_is_the_committed_runs():
+    """The README's time for the main job is the committed full run's (``run_seconds`` of
+    docs/data/error_curves_meta.json, rounded as the ``{runtime}`` role rounds it), and the docs
+    quote it only through that role: one source for the number."""
+    minutes = _ext().runtime_text("error_curves")
+    readme = (ROOT / "README.md").read_text()
+    stated = re.findall(r"about (\d+ min) on 2 cores after setup", readme)
+    assert stated == [minutes], (stated, minutes)
+    pages = "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
+    assert not re.findall(r"about \d+ min on 2 cores", pages)
