@@ -11,7 +11,7 @@ EGSR 2010.
 """
 from __future__ import annotations
 
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,11 +61,10 @@ class SceneEntry:
 CONTENT = ("grid", "particles", "hair", "blockers")
 
 
-class SceneRegistry(MutableMapping):
+class SceneRegistry(Mapping):
     """The built-in scenes by name: a mapping ``name -> factory`` (registration order) that
-    also keeps each scene's :class:`SceneEntry`.  ``SCENES[name] = factory`` and
-    ``SCENES.update({...})`` register with no tags; :meth:`register` (also a decorator,
-    :func:`register_scene`) takes the description, content and tags."""
+    also keeps each scene's :class:`SceneEntry`; :meth:`register` (also a decorator,
+    :func:`register_scene`) adds one."""
 
     def __init__(self):
         self._entries: dict[str, SceneEntry] = {}
@@ -91,12 +90,6 @@ class SceneRegistry(MutableMapping):
 
     def __getitem__(self, name):
         return self._entries[name].factory
-
-    def __setitem__(self, name, factory):
-        self.register(factory, name=name)
-
-    def __delitem__(self, name):
-        del self._entries[name]
 
     def __iter__(self):
         return iter(self._entries)

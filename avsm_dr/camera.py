@@ -94,14 +94,11 @@ class PinholeCamera:
         right /= np.linalg.norm(right)
         return fwd, right, np.cross(right, fwd)
 
-    def _tangents(self) -> tuple[float, float]:
-        tx = math.tan(math.radians(self.fov) / 2)
-        return tx, tx * self.height / self.width
-
     def rays(self) -> np.ndarray:
         """(H*W, 3) float64 unit directions through the pixel centres, row-major from the top."""
         fwd, right, up = self.frame()
-        tx, ty = self._tangents()
+        tx = math.tan(math.radians(self.fov) / 2)
+        ty = tx * self.height / self.width
         i = (np.arange(self.width) + 0.5) / self.width * 2 - 1
         j = 1 - (np.arange(self.height) + 0.5) / self.height * 2
         X, Y = np.meshgrid(i * tx, j * ty)

@@ -24,8 +24,8 @@ difference of its two cells, so ``div(grad p) = L p`` exactly (after the solve `
 the Poisson residual).  Semi-Lagrangian advection keeps ``d >= 0`` and is unconditionally
 stable, neither exactly conservative nor free of numerical diffusion.
 
-:func:`simulate_plume` (cached on disk), :func:`plume_frames` and :func:`simulate_plume_sequence`
-run a buoyant plume from a seeded, wobbling source.
+:func:`simulate_plume` and :func:`simulate_plume_sequence` (cached on disk) run a buoyant plume
+from a seeded, wobbling source.
 """
 from __future__ import annotations
 
@@ -391,16 +391,12 @@ def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_rad
                 source_radius=radius, wobble=float(wobble), iterations=int(iterations))
 
 
-def plume_frames(shape=(32, 48, 32), seed: int = 0, dt: float = 1.0, buoyancy: float = 0.25,
-                 vorticity: float = 0.3, source_speed: float = 1.5, source_radius: float | None = None,
-                 wobble: float = 0.35, iterations: int = 40):
-    """Generator of the plume of :func:`simulate_plume`, one (nz, ny, nx) float32 density
-    after each step (the k-th yielded array equals ``simulate_plume(steps=k)``).  Endless:
-    the caller stops it."""
-    p = _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations)
+def _plume_frames(p):
+    """Endless generator of the plume's (nz, ny, nx) float32 density after each step (the k-th
+    is ``simulate_plume(steps=k)``); ``p``: the parameters of :func:`_plume_params`."""
     shape, radius = tuple(p["shape"]), p["source_radius"]
     nz, ny, nx = shape
-    sim = StableFluids(shape, buoyancy=buoyancy, vorticity=vorticity, iterations=iterations)
+    sim = StableFluids(shape, buoyancy=p["buoyancy"], vorticity=p["vorticity"], iterations=p["iterations"])
     rng = np.random.default_rng(p["seed"])
     centre = np.array([nx / 2, nz / 2], np.float64)
     kick = np.zeros(2)
@@ -419,20 +415,19 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
                             **kwargs) -> np.ndarray:
     """Animation of the plume of :func:`simulate_plume`: (frames, nz, ny, nx) float32, frame f
     the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
-    one solver run for all frames.  kwargs: the solver parameters of :func:`plume_frames`.
+    one solver run for all frames.  kwargs: the solver parameters of :func:`simulate_plume`.
     cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_seq_<key>.npy``,
     key = hash of the parameters, the backend and this module's source.  progress: a tqdm bar.
     """
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)
     stride = V.integer(stride, "stride", 1)
-    defaults = {k: v.default for k, v in inspect.signature(plume_frames).parameters.items()
-                if k not in ("shape", "seed")}
+    defaults = {k: v.default for k, v in inspect.signature(simulate_plume).parameters.items()
+                if k not in ("shape", "steps", "seed", "cache")}
     if set(kwargs) - set(defaults):
         raise ValueError(f"kwargs: unknown solver parameters {sorted(set(kwargs) - set(defaults))}")
-    solver = dict(defaults, **kwargs)
-    params = dict(_plume_params(shape, seed, **solver), frames=int(frames), start=int(start), stride=int(stride),
-                  backend=backend.get_backend(), version=_VERSION)
+    params = dict(_plume_params(shape, seed, **dict(defaults, **kwargs)), frames=int(frames), start=int(start),
+                  stride=int(stride), backend=backend.get_backend(), version=_VERSION)
     shape = (frames, *params["shape"])
 
     def run():
@@ -441,7 +436,7 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
         if progress:
             from tqdm import tqdm
             steps = tqdm(steps, desc="plume", unit="step", leave=False)
-        for k, d in zip(steps, plume_frames(params["shape"], seed, **solver)):
+        for k, d in zip(steps, _plume_frames(params)):
             if k >= start and (k - start) % stride == 0:
                 out[(k - start) // stride] = d
         return out

@@ -17,7 +17,7 @@ import numpy as np
 
 from .area_scene import AreaLightScene
 from ..groundtruth.media import mitsuba as _mi
-from ..scene import affine
+from ..scene import OpaqueBox, affine
 from ..validation import integer as check_count
 
 
@@ -30,19 +30,13 @@ def scene_dict(scene: AreaLightScene) -> dict:
     mi = _mi()
     med = scene.medium
     lo, hi = scene.bounds
-    margin = 0.01 * (hi[1] - lo[1])
-    mlo = lo - np.array([0.0, margin, 0.0])
-    centre, half = (mlo + hi) / 2, (hi - mlo) / 2
+    mlo = lo - np.array([0.0, 0.01 * (hi[1] - lo[1]), 0.0])
     phase = {"type": "isotropic"} if med.g == 0 else {"type": "hg", "g": float(med.g)}
     albedo = med.sigma_s / med.sigma_t if med.sigma_t > 0 else 0.0
     d = {
         "type": "scene",
-        "medium_box": {
-            "type": "cube", "to_world": _to_world(mi, np.diag(half), centre),
-            "bsdf": {"type": "null"},
-            "interior": {"type": "homogeneous", "albedo": float(albedo), "sigma_t": float(med.sigma_t),
-                         "phase": phase},
-        },
+        "medium_box": dict(OpaqueBox(mlo, hi).to_mitsuba(mi, {"type": "null"}), interior={
+            "type": "homogeneous", "albedo": float(albedo), "sigma_t": float(med.sigma_t), "phase": phase}),
         "floor": {
             "type": "rectangle",
             "to_world": _to_world(mi, [[(hi[0] - lo[0]) / 2, 0, 0], [0, 0, -(hi[2] - lo[2]) / 2], [0, 1, 0]],

@@ -60,12 +60,8 @@ def content_sphere(content) -> tuple[np.ndarray, float]:
 
 
 def light_paths(scene: Scene, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Light-side origins o (K, 3), unit directions d (K, 3) towards the points, lengths L (K,).
-
-    Point/spot: o = light position.  Directional (travelling along w): o = x - L w
-    with L the distance from x back to the plane, orthogonal to w, that touches the
-    light side of the content's bounding sphere (L = 0 when x is beyond it).
-    """
+    """Light-side origins o (K, 3), unit directions d (K, 3) towards the points, lengths L (K,):
+    ``scene.light.paths`` (:class:`~avsm_dr.scene.Light`) with the content's bounding sphere."""
     return checked_paths(scene, points)[2:]
 
 
@@ -109,6 +105,14 @@ def blocked_paths(scene, content, p, o, d, L):
 
 
 # ====================================================================== particles
+def _sphere_chords(o, d, c, r):
+    """(b, h2) (K, P) of unit rays o, d (K, 3) and spheres c (P, 3), r: the chord is
+    ``b -+ sqrt(h2)`` where ``h2 > 0`` (``b = (c - o) . d``, ``h2 = r^2 - |c - o|^2 + b^2``)."""
+    oc = c[None, :, :] - o[:, None, :]                             # (K, P, 3)
+    b = np.einsum("kpj,kj->kp", oc, d)
+    return b, r * r - (np.einsum("kpj,kpj->kp", oc, oc) - b * b)
+
+
 def particles_tau(particles, o, d, L):
     """(K,) optical depth of the particles along [0, L] (exact chords)."""
     c, r, s = particles
@@ -116,13 +120,10 @@ def particles_tau(particles, o, d, L):
     tau = np.zeros(K)
     chunk = max(1, MAX_CHUNK // max(K, 1))
     for a in range(0, c.shape[0], chunk):
-        cc, rr, ss = c[a:a + chunk], r[a:a + chunk], s[a:a + chunk]
-        oc = cc[None, :, :] - o[:, None, :]                        # (K, P, 3)
-        b = np.einsum("kpj,kj->kp", oc, d)
-        h2 = rr[None] ** 2 - (np.einsum("kpj,kpj->kp", oc, oc) - b * b)
+        b, h2 = _sphere_chords(o, d, c[a:a + chunk], r[None, a:a + chunk])
         h = np.sqrt(np.maximum(h2, 0.0))
         chord = np.clip(np.minimum(b + h, L[:, None]) - np.maximum(b - h, 0.0), 0.0, None)
-        tau += np.where(h2 > 0, chord, 0.0) @ ss
+        tau += np.where(h2 > 0, chord, 0.0) @ s[a:a + chunk]
     return tau
 
 
@@ -136,9 +137,7 @@ def _capsule_intervals(o, d, A0, A1, r):
     t0 = np.full((o.shape[0], A0.shape[0]), np.inf)
     t1 = np.full_like(t0, -np.inf)
     for c in (A0, A1):                                             # end spheres
-        oc = c[None] - o[:, None]
-        b = np.einsum("kcj,kj->kc", oc, d)
-        h2 = r * r - (np.einsum("kcj,kcj->kc", oc, oc) - b * b)
+        b, h2 = _sphere_chords(o, d, c, r)
         h = np.sqrt(np.maximum(h2, 0.0))
         t0 = np.where(h2 > 0, np.minimum(t0, b - h), t0)
         t1 = np.where(h2 > 0, np.maximum(t1, b + h), t1)
@@ -183,7 +182,7 @@ def hair_tau(hair, o, d, L):
     if alpha <= 0:
         return tau
     tau_c = -math.log(1.0 - alpha) if alpha < 1 else 1e4
-    S, V_, _ = st.shape
+    S = st.shape[0]
     lo = st.min(axis=1) - r                                         # strand boxes for culling
     hi = st.max(axis=1) + r
     for s in range(S):
