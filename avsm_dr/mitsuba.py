@@ -116,7 +116,6 @@ def _check_properties(props) -> dict:
     schema = REGISTRY[kind].schema
     unknown = sorted(set(given) - set(schema.names()) - set(BASE_PARAMETERS))
     if unknown:                                          # private (``_``) switches are accepted, not listed
-        # a misspelling first: ``representaton="avsm", nodes=4`` is about 'representation', not 'nodes'
         typos = [u for u in unknown if V.did_you_mean(u, schema.public_names() + list(OWN_PROPERTIES))]
         name = (typos or unknown)[0]
         msg = schema.unknown_message(kind, name)

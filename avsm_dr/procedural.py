@@ -1,9 +1,5 @@
-"""Content unlike the smoke of :mod:`avsm_dr.builtin_scenes`: Perlin-Worley noise and four scenes.
-
-* :func:`cumulus`        a cumulus cloud, long along a low sun: a large light-space depth range.
-* :func:`fog_bank`       a ground fog layer whose top is a sharp (one-voxel) boundary.
-* :func:`gaussian_blobs` soft particles (Gaussian extinction blobs) listed in emission (draw) order.
-* :func:`tall_column`    a simulated smoke column twice the plume's height, at a higher resolution.
+"""Content unlike the smoke of :mod:`avsm_dr.builtin_scenes`: Perlin-Worley noise and four scenes,
+:func:`cumulus`, :func:`fog_bank`, :func:`gaussian_blobs` and :func:`tall_column`.
 
 Densities are extinction per world unit, deterministic for ``seed``.  Noise: value-noise fBm
 (:func:`fbm`) remapped by Worley cellular noise (Worley 1996, "A cellular texture basis function";
