@@ -47,7 +47,7 @@ configurations (seed x light: the scene's light with seed 0, the tilted light ``
 with seed 1; quick mode the first only) by :func:`avsm_dr.stats.claim`.  Under ``claims``
 (:func:`claims`) each ratio to optimal (AVSM in every order, greedy, the subset) and each
 order's AVSM over front-to-back AVSM on both metrics, receiver RMSE and depth L2, with
-``metric_dependent``, ``indicative`` (fewer than :data:`MIN_CONFIDENT` configurations: so
+``metric_dependent``, ``indicative`` (fewer than :data:`._two_metric.MIN_CONFIDENT` configurations: so
 always with the two of the full run), the order, ``preset`` (AVSM here interpolates
 linearly; its preset is ``exp``) and each side's signed mean and leak share.
 """
@@ -84,8 +84,6 @@ BEATS_MARGIN = 1e-6
 MAX_POINTS = 16
 #: The receiver set of the ``rmse`` / ``signed_mean`` / ``leak_share`` columns and the claims.
 RECEIVERS = "in_volume"
-#: Below this many configurations a claim is ``indicative`` (``error_curves``' rule).
-MIN_CONFIDENT = 4
 
 #: Parameters of the full and the quick run (``scenes``: an option; ``methods`` filled in).
 #: Insertion orders AVSM is built under (the first is the headline's: front to back).
@@ -295,14 +293,6 @@ def _blocks(blocks, scene, configs, *rest):
     return None if any(b is None for b in got) else got
 
 
-def _side(errors) -> dict:
-    """Signed mean and leak share (> :data:`avsm_dr.metrics.THRESHOLD`) of one side's receiver
-    errors, pooled over configurations."""
-    from avsm_dr.metrics import THRESHOLD
-    e = np.concatenate(errors)
-    return dict(mean_signed_error=float(np.mean(e)), leak_share=float(np.mean(e > THRESHOLD)))
-
-
 #: Pairs (a, b) of each claim per scene and N: AVSM (every order), greedy and the subset
 #: against the optimum, and AVSM in every other order against front to back.
 def _pairs(labels) -> list[tuple[str, str]]:
@@ -317,11 +307,11 @@ def claims(receiver_errors: dict, l2_errors: dict, blocks: dict | None = None, n
     against the exact curve, paired) and the depth-uniform L2 ratio (per texel, paired), each
     by :func:`avsm_dr.stats.claim` (unit: the configuration; within a configuration 8 x 8
     texel tiles), ``metric_dependent`` when their intervals lie on opposite sides of 1,
-    ``indicative`` below :data:`MIN_CONFIDENT` configurations, the order, whether each side is
+    ``indicative`` below :data:`._two_metric.MIN_CONFIDENT` configurations, the order, whether each side is
     its kind's preset, and each side's signed mean and leak share."""
-    from avsm_dr import stats
+    from ._two_metric import claim
     from .error_curves.findings import preset_differences
-    from .learned_warp import metric_dependent
+    kinds_ = {"avsm": "avsm", "greedy": "greedy", "optimal_subset": "optimal", "optimal": "optimal"}
     out: dict = {}
     for scene, n in sorted({(k[0], k[2]) for k in receiver_errors}):
         configs = sorted({k[1] for k in receiver_errors if k[0] == scene and k[2] == n})
@@ -332,29 +322,16 @@ def claims(receiver_errors: dict, l2_errors: dict, blocks: dict | None = None, n
                     and np.any(receiver_errors[(scene, c, n, b)] != 0) and np.any(l2_errors[(scene, c, n, b)] > 0)]
             if not used:
                 continue
-            metrics = {}
-            for name, store, blk in (("receiver_rmse", receiver_errors, _blocks(blocks, scene, used, RECEIVERS)),
-                                     ("depth_l2", l2_errors, _blocks(blocks, scene, used))):
-                r = stats.claim([store[(scene, c, n, a)] for c in used], [store[(scene, c, n, b)] for c in used],
-                                "rmse", "ratio", configs=used, n_boot=n_boot, blocks_by_config=blk)
-                metrics[name] = dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=r["n_configs"],
-                                     holds_pooled=r["holds_pooled"],
-                                     per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]]
-                                                 for pc in r["per_config"]})
+            pair = lambda store: tuple([store[(scene, c, n, m)] for c in used] for m in (a, b))  # noqa: E731
+            r = claim(pair(receiver_errors), pair(l2_errors), used,
+                      (_blocks(blocks, scene, used, RECEIVERS), _blocks(blocks, scene, used)), n_boot)
             sides = {k: m.split("@")[0] for k, m in (("a", a), ("b", b))}
-            kinds_ = {"avsm": "avsm", "greedy": "greedy", "optimal_subset": "optimal", "optimal": "optimal"}
-            rm = metrics["receiver_rmse"]
             out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{a}_over_{b}"] = dict(
                 statement=f"{a} below {b} at N = {n} (ratio < 1; linear interpolation"
                           + (", front to back" if "avsm" in (a, b) and "@" not in a else "") + ")",
-                estimate=rm["estimate"], low=rm["low"], high=rm["high"], n_configs=rm["n_configs"],
-                indicative=rm["n_configs"] < MIN_CONFIDENT, interval_unit="configuration",
-                within_configuration="8x8 texel blocks" if blocks else "receivers / texels",
                 order=a.split("@")[1] if "@" in a else "depth" if sides["a"] == "avsm" else "-",
                 preset={k: not preset_differences(dict(variant=f"{kinds_[v]}-{n}", opaque="inline"), False)
-                        for k, v in sides.items()},
-                metrics=metrics, metric_dependent=metric_dependent(metrics["receiver_rmse"], metrics["depth_l2"]),
-                sides={k: _side([receiver_errors[(scene, c, n, m)] for c in used]) for k, m in (("a", a), ("b", b))})
+                        for k, v in sides.items()}, **r)
     return out
 
 
