@@ -4,6 +4,7 @@ results cache is keyed on parameters, package source and versions; the CLI repor
 ``--out`` in one line; the recipes in ``experiments/`` call existing experiments."""
 import dataclasses
 import json
+import math
 import re
 import os
 import subprocess
@@ -98,6 +99,18 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
     if name == "ordering":
         sorted_rows = [r for r in rows if r["sorted"] == "True"]
         assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
+        assert {r["order"] for r in sorted_rows} == {"depth"} and {r["order"] for r in rows} == {"depth", "random"}
+        assert all(float(r["depth_l2"]) > 0 and 0 <= float(r["leak_share"]) <= 1 for r in rows)
+    if name in ("runtime_vs_error", "ordering"):                  # issue 23's columns, finite
+        for r in rows:
+            for k in ("depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
+                assert math.isfinite(float(r[k])), (name, k, r)
+    if name == "runtime_vs_error":
+        from experiments.error_curves.labels import order_dependent
+        assert all(r["order"] == ("depth" if r["method"] != "exact" and order_dependent(r["method"]) else "-")
+                   for r in rows)
+        assert {r["pareto_depth_l2"] for r in rows if r["method"] != "exact"} == {"True", "False"}
+        assert set(meta["summary"]["pareto_front_depth_l2"]) == set(meta["summary"]["pareto_front"])
     if name == "bench_capture":
         assert [r["case"] for r in rows] == ["tight", "4x per axis", "4x volume"]
         assert float(rows[0]["ratio_capture"]) == 1.0
