@@ -101,6 +101,11 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
         assert {r["order"] for r in sorted_rows} == {"depth"} and {r["order"] for r in rows} == {"depth", "random"}
         assert all(float(r["depth_l2"]) > 0 and 0 <= float(r["leak_share"]) <= 1 for r in rows)
+    if name == "images":                  # the curve metrics of the maps that made the images
+        for r in rows:
+            assert math.isfinite(float(r["depth_l2"])) and float(r["bytes"]) > 0 and float(r["bytes_dense"]) > 0
+            assert r["order"] == ("depth" if r["method"] == "avsm" else "-"), r
+        assert all(float(r["depth_l2"]) == 0 for r in rows if r["method"] == "exact")
     if name in ("runtime_vs_error", "ordering"):                  # issue 23's columns, finite
         for r in rows:
             for k in ("depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
