@@ -43,12 +43,12 @@ layout, ``nbytes_sparse_per_texel``) and ``bytes_dense``.
 ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise (first
 configuration), and under ``intervals`` the depth-RMS ratios to optimal with 95 %
 bootstrap intervals: per configuration over texels in 8 x 8 tiles (paired), pooled over the
-configurations (seed x light: the scene's light with seed 0, the tilted light ``dir_b``
-with seed 1; quick mode the first only) by :func:`avsm_dr.stats.claim`.  Under ``claims``
+configurations (seed x light, :data:`FULL_CONFIGS`: ten in full mode, a spot light among
+them; quick mode seed 0 with the scene's light only) by :func:`avsm_dr.stats.claim`.  Under ``claims``
 (:func:`claims`) each ratio to optimal (AVSM in every order, greedy, the subset) and each
 order's AVSM over front-to-back AVSM on both metrics, receiver RMSE and depth L2, with
-``metric_dependent``, ``indicative`` (fewer than :data:`._two_metric.MIN_CONFIDENT` configurations: so
-always with the two of the full run), the order, ``preset`` (AVSM here interpolates
+``metric_dependent``, ``indicative`` (fewer than :data:`._two_metric.MIN_CONFIDENT` configurations:
+always in quick mode), the order, ``preset`` (AVSM here interpolates
 linearly; its preset is ``exp``) and each side's signed mean and leak share.
 """
 
@@ -89,7 +89,11 @@ RECEIVERS = "in_volume"
 #: Insertion orders AVSM is built under (the first is the headline's: front to back).
 ORDERS = ["depth", "submission", "reverse_depth", "random"]
 
-FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=[[0, "dir_a"], [1, "dir_b"]],
+#: Full mode: error_curves' ten configurations (4 seeds x both directional lights, 2 seeds x the
+#: spot light; issue 23: >= 10 per scene, one a spot light).
+FULL_CONFIGS = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
+
+FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=FULL_CONFIGS,
             n_volume=4096, n_surface=1024, gauss_points=GAUSS_POINTS, max_points=MAX_POINTS, filter="bilinear",
             methods=None, n_boot=1000, orders=ORDERS)
 QUICK = dict(FULL, resolution=64, nodes=[4, 8], configs=[[0, "dir_a"]], n_volume=256, n_surface=128, n_boot=200)

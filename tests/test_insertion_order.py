@@ -120,6 +120,13 @@ def test_both_metrics_leak_bytes_and_order_over_depth(quick):
                         assert e["depth_l2"]["estimate"] == pytest.approx(1.0)
 
 
+def test_full_mode_configurations():
+    """Issue 23: full mode runs >= 10 configurations per scene, a spot light among them."""
+    from avsm_dr.evaluation import Configuration
+    cfgs = [Configuration(s, li) for s, li in S.FULL["configs"]]
+    assert len({c.label for c in cfgs}) == len(cfgs) >= 10 and any(c.light == "spot" for c in cfgs)
+
+
 def test_bad_scene_names_the_argument():
     with pytest.raises(ValueError, match="scenes"):
         S.run(quick=True, scenes=["no_such_scene"])

@@ -260,3 +260,21 @@ def test_avsm_gap_quick(tmp_path):
             texels = {r["texels"] for r in rows if r["scene"] == scene and f"N={r['nodes']}" == n}
             assert len(texels) == 1                                   # one set of texels for every order
             assert set(intervals[scene][n]) >= {"avsm@random_over_optimal", "avsm@submission_over_optimal"}
+
+
+def test_avsm_gap_full_configurations_and_a_spot_light():
+    """Issue 23: full mode runs >= 10 configurations per scene, a spot light among them; a
+    spot-light configuration runs (plume, N = 4, tiny receiver sets) with finite metrics and
+    its claims on both metrics."""
+    from avsm_dr.evaluation import Configuration
+    from experiments import avsm_gap
+    cfgs = [Configuration(s, li) for s, li in avsm_gap.FULL["configs"]]
+    assert len({c.label for c in cfgs}) == len(cfgs) >= 10 and any(c.light == "spot" for c in cfgs)
+    P = avsm_gap._resolve(dict(avsm_gap.QUICK, nodes=[4], n_volume=128, n_surface=64), True)
+    rows, te, rec, l2, blocks = [], {}, {}, {}, {}
+    avsm_gap._scene_rows("plume", P, rows, True, 1, "spot", te, rec, l2, blocks)
+    assert {r["config"] for r in rows} == {"s1-spot"}
+    assert all(math.isfinite(r[k]) for r in rows for k in ("rmse", "depth_l2", "signed_mean", "leak_share"))
+    c = avsm_gap.claims(rec, l2, blocks, n_boot=100)["plume"]["N=4"]["avsm@random_over_avsm"]
+    assert c["order"] == "random" and set(c["metrics"]) == {"receiver_rmse", "depth_l2"}
+
