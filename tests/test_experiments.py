@@ -101,6 +101,9 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
         assert {r["order"] for r in sorted_rows} == {"depth"} and {r["order"] for r in rows} == {"depth", "random"}
         assert all(float(r["depth_l2"]) > 0 and 0 <= float(r["leak_share"]) <= 1 for r in rows)
+    if name == "curves":                                    # the insertion order of every row
+        assert {(r["method"], r["order"]) for r in rows} >= {("avsm", "depth"), ("fom", "-"), ("exact", "-")}
+        assert {r["order"] for r in rows if r["method"] == "avsm"} == {"depth"}
     if name == "images":                  # the curve metrics of the maps that made the images
         for r in rows:
             assert math.isfinite(float(r["depth_l2"])) and float(r["bytes"]) > 0 and float(r["bytes_dense"]) > 0
