@@ -94,6 +94,10 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         assert any("nan" in c for c in cols) and any("inf" in c for c in cols)
         assert sum(int(r["nan_count"]) + int(r["inf_count"]) for r in rows) == 0
         assert sum(int(r["bounds_violations"]) for r in rows) == 0
+        # the order each kind saw: the cases are drawn unsorted, sort=True sorts them
+        assert {(r["method"], r["sorted"], r["order"]) for r in rows if r["method"] == "avsm"} == {
+            ("avsm", "False", "random"), ("avsm", "True", "depth")}
+        assert {r["order"] for r in rows if r["method"] in ("fom", "exact")} == {"-"}
         checks = _rows(out / "reliability.csv")          # hostile input: refused or right
         assert len(checks) >= 10 and sum(int(r["failures"]) for r in checks) == 0, checks
     if name == "ordering":
