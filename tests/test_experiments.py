@@ -105,6 +105,8 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
         assert {r["order"] for r in sorted_rows} == {"depth"} and {r["order"] for r in rows} == {"depth", "random"}
         assert all(float(r["depth_l2"]) > 0 and 0 <= float(r["leak_share"]) <= 1 for r in rows)
+    if name == "inverse":                                   # the insertion order each model's build saw
+        assert {(r["model"], r["order"]) for r in rows} == {("exact", "-"), ("fom", "-"), ("avsm", "depth")}
     if name == "curves":                                    # the insertion order of every row
         assert {(r["method"], r["order"]) for r in rows} >= {("avsm", "depth"), ("fom", "-"), ("exact", "-")}
         assert {r["order"] for r in rows if r["method"] == "avsm"} == {"depth"}
