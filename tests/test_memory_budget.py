@@ -115,6 +115,8 @@ def test_quick_run_compares_at_equal_bytes(quick):
     # measured on the quick plume, front to back at N = 2: exp over linear AVSM 1.34 [1.15, 1.63] at the
     # receivers, 0.85 [0.77, 0.94] in depth L2: the metrics disagree
     assert c["avsm/exp_over_avsm"]["metric_dependent"] is True
+    assert c["avsm/exp_over_avsm"]["preset"] == {"a": True, "b": False}        # AVSM's preset is exp
+    assert c["adaptive@random_over_avsm@random"]["preset"] == {"a": True, "b": False}
     assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
     assert {p.name for p in quick.glob("*.pdf")} == {"error_vs_bytes.pdf", "allocation.pdf"}   # vector beside PNG
     again = MB.run(quick=True, out=quick)

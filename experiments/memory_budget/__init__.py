@@ -411,7 +411,8 @@ def ratios(rows, errors, a: str, b: str, n_boot: int, blocks: dict | None = None
 def claims(errors: dict, l2: dict, blocks: dict | None = None, n_boot: int = 1000, orders=ORDERS) -> dict:
     """Per scene and N, ``a`` below ``b`` on both metrics (:func:`experiments._two_metric.claim`:
     receiver RMSE and depth L2 ratios, configuration-level intervals, 8 x 8 texel tiles within a
-    configuration, ``metric_dependent``, ``indicative``, each side's signed mean and leak share):
+    configuration, ``metric_dependent``, ``indicative``, each side's signed mean and leak share;
+    ``preset``: whether each side is at its kind's preset, :func:`_at_preset`):
     adaptive over fixed AVSM, adaptive over fixed and fixed exp over linear AVSM, each under
     every insertion order, and adaptive over DSM and over the optimum (front to back)."""
     from .._two_metric import claim as two_metric
@@ -434,8 +435,20 @@ def claims(errors: dict, l2: dict, blocks: dict | None = None, n_boot: int = 100
                               for ks in ([(c, "receivers") for c in used], used))
                 out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{a}_over_{b}"] = dict(
                     order=o, interpolation="exp" if "/exp" in b else "exp / linear" if "/exp" in a else "linear",
+                    preset={k: _at_preset(m, n) for k, m in (("a", a), ("b", b))},
                     **two_metric(pair(errors), pair(l2), used, tiles, n_boot))
     return out
+
+
+def _at_preset(label: str, n: int) -> bool:
+    """Whether the method of an errors label (:func:`key`) is at its kind's preset
+    (``describe(kind)['preset']``: AVSM's is the exp interpolation; adaptive AVSM, DSM and
+    optimal have none beyond the settings searched here)."""
+    from ..error_curves.findings import preset_differences
+    kind = {"avsm": "avsm", "adaptive": "avsm_adaptive", "dsm": "dsm", "optimal": "optimal"}[
+        label.split("@")[0].split("/")[0]]
+    variant = f"{kind}-{n}" + ("/interpolation=exp" if label.endswith("/exp") else "")
+    return not preset_differences(dict(variant=variant, opaque="inline"), False)
 
 
 def _linear(r) -> bool:
