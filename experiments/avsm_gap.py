@@ -33,12 +33,23 @@ that do not depend on it).  The headline rows (``method == "avsm"`` without a su
 ``findings.json``) are front to back, as before; ``avsm_over_optimal_by_order`` gives each
 order's ratio and ``intervals`` each order's interval (``avsm@<order>_over_optimal``).
 
+The columns every study carries (issue 23): ``rmse``, ``signed_mean`` and ``leak_share``
+(error > 0.02) at the in-volume receivers; ``depth_l2``, the harness's depth-uniform L2
+(:func:`avsm_dr.evaluation.depth_l2`, 64 midpoints per texel: the same measure as
+``depth_rms`` by another quadrature, within 2.1 % on the quick run); ``bytes`` (the sparse
+layout, ``nbytes_sparse_per_texel``) and ``bytes_dense``.
+
 ``findings.json``: per scene and N, AVSM / greedy / optimal ``depth_rms`` and the
 ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise (first
 configuration), and under ``intervals`` the depth-RMS ratios to optimal with 95 %
-bootstrap intervals: per configuration over texels (paired), pooled over the
-configurations (seed x light: the scene's light with seed 0, the tilted light ``dir_b``
-with seed 1; quick mode the first only) by :func:`avsm_dr.stats.claim`.
+bootstrap intervals: per configuration over texels in 8 x 8 tiles (paired), pooled over the
+configurations (seed x light, :data:`FULL_CONFIGS`: ten in full mode, a spot light among
+them; quick mode seed 0 with the scene's light only) by :func:`avsm_dr.stats.claim`.  Under ``claims``
+(:func:`claims`) each ratio to optimal (AVSM in every order, greedy, the subset) and each
+order's AVSM over front-to-back AVSM on both metrics, receiver RMSE and depth L2, with
+``metric_dependent``, ``indicative`` (fewer than :data:`._two_metric.MIN_CONFIDENT` configurations:
+always in quick mode), the order, ``preset`` (AVSM here interpolates
+linearly; its preset is ``exp``) and each side's signed mean and leak share.
 """
 
 from __future__ import annotations
@@ -49,8 +60,10 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build, kinds
+from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
 from avsm_dr.metrics import error_stats
 from ._common import front_to_back_first
+from .error_curves import texel_blocks
 from ._headline import interval
 from ._study import Option, Study
 
@@ -69,12 +82,18 @@ GAUSS_POINTS = 6
 BEATS_MARGIN = 1e-6
 #: Evenly spaced points per piece (and its ends) where the max error is also looked for.
 MAX_POINTS = 16
+#: The receiver set of the ``rmse`` / ``signed_mean`` / ``leak_share`` columns and the claims.
+RECEIVERS = "in_volume"
 
 #: Parameters of the full and the quick run (``scenes``: an option; ``methods`` filled in).
 #: Insertion orders AVSM is built under (the first is the headline's: front to back).
 ORDERS = ["depth", "submission", "reverse_depth", "random"]
 
-FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=[[0, "dir_a"], [1, "dir_b"]],
+#: Full mode: error_curves' ten configurations (4 seeds x both directional lights, 2 seeds x the
+#: spot light; issue 23: >= 10 per scene, one a spot light).
+FULL_CONFIGS = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
+
+FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=FULL_CONFIGS,
             n_volume=4096, n_surface=1024, gauss_points=GAUSS_POINTS, max_points=MAX_POINTS, filter="bilinear",
             methods=None, n_boot=1000, orders=ORDERS)
 QUICK = dict(FULL, resolution=64, nodes=[4, 8], configs=[[0, "dir_a"]], n_volume=256, n_surface=128, n_boot=200)
@@ -151,9 +170,17 @@ class UniformObjective:
                 "_texel_rms": np.sqrt(mse)}
 
 
-def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
+def _key(label: str, order: str) -> str:
+    """The label of a method's errors: ``avsm`` front to back, ``avsm@<order>`` otherwise."""
+    return label if order in ("-", "depth") else f"{label}@{order}"
+
+
+def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None, receiver_errors=None,
+                l2_errors=None, blocks=None):
     """Rows of one configuration (scene, seed, light); per-texel RMS of every method into
-    ``texel_errors[(scene, config, N, method)]`` (for the intervals)."""
+    ``texel_errors[(scene, config, N, method)]`` (for the intervals), its signed errors at the
+    in-volume receivers into ``receiver_errors`` and its per-texel depth L2 into
+    ``l2_errors`` (same keys; for the claims), the 8 x 8 texel tiles into ``blocks``."""
     import dataclasses
     from avsm_dr import capture, receivers
     from avsm_dr import scenes as scene_lib
@@ -167,6 +194,13 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
     exact = build("exact", seg)
     ex = {s: np.asarray(cap.transmittance(exact, p, filter="bilinear"), np.float64) for s, p in sets.items()}
     obj = UniformObjective(seg)
+    # the harness's depth-uniform L2 (every order: the same texels and exact curve) and the
+    # 8 x 8 texel tiles of its texels and of the in-volume receivers (nearest texel)
+    ex_curve = curve_values(exact, seg)
+    l2_texels = depth_grid(seg)[0]
+    if blocks is not None:
+        blocks[(name, config)] = texel_blocks(l2_texels, cap.width)
+        blocks[(name, config, RECEIVERS)] = texel_blocks(cap.lookup(sets[RECEIVERS])[0], cap.width)
     head = dict(scene=name, config=config, resolution=P["resolution"], texels=int(obj.texels.size),
                 max_segments=int(seg.max_count))
 
@@ -188,9 +222,20 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
         r = dict(head, method=label, kind=kind, order=order, nodes=n, bytes_per_texel=rep.nbytes_per_texel,
                  bytes_sparse=rep.nbytes_sparse_per_texel, build_s=build_s,
                  **{k: v for k, v in m.items() if not k.startswith("_")})
+        per_l2 = depth_l2(rep, seg, exact=ex_curve, per_texel=True)
         for s, p in sets.items():
-            st = error_stats(np.asarray(cap.transmittance(rep, p, filter="bilinear"), np.float64), ex[s])
-            r.update({f"rmse_{s}": st["rmse"], f"max_{s}": st["max_error"], f"mean_{s}": st["mean_error"]})
+            est = np.asarray(cap.transmittance(rep, p, filter="bilinear"), np.float64)
+            st = error_stats(est, ex[s])
+            r.update({f"rmse_{s}": st["rmse"], f"max_{s}": st["max_error"], f"mean_{s}": st["mean_error"],
+                      f"leak_{s}": st["leak_fraction"]})
+            if s == RECEIVERS and receiver_errors is not None:
+                receiver_errors[(name, config, n, _key(label, order))] = est - ex[s]
+        if l2_errors is not None:
+            l2_errors[(name, config, n, _key(label, order))] = per_l2
+        s = RECEIVERS
+        r.update(rmse=r[f"rmse_{s}"], signed_mean=r[f"mean_{s}"], leak_share=r[f"leak_{s}"],
+                 depth_l2=float(np.sqrt(np.mean(per_l2 ** 2))) if per_l2.size else float("nan"),
+                 bytes=rep.nbytes_sparse_per_texel, bytes_dense=rep.nbytes_per_texel)
         if kind == "optimal":
             r["objective_analytic"] = float(np.sqrt(np.mean(rep.objective[obj.texels] ** 2))) \
                 if params.get("norm", "l2") == "l2" else float(rep.objective[obj.texels].max())
@@ -219,10 +264,11 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None):
         row("beer", "beer", {}, 0)
 
 
-def intervals(texel_errors: dict, n_boot: int = 1000) -> dict:
+def intervals(texel_errors: dict, n_boot: int = 1000, blocks: dict | None = None) -> dict:
     """Per scene and N: AVSM / greedy / optimal_subset uniform-depth RMS over optimal's,
     the per-texel RMS paired, with :func:`avsm_dr.stats.claim`'s intervals (per
-    configuration: bootstrap over texels; pooled: configurations, then texels)."""
+    configuration: bootstrap over texels, in 8 x 8 tiles with ``blocks``
+    (``{(scene, config): tile of each texel}``); pooled: configurations, then texels)."""
     from avsm_dr import stats
     out: dict = {}
     keys = sorted({(k[0], k[2]) for k in texel_errors})
@@ -236,17 +282,69 @@ def intervals(texel_errors: dict, n_boot: int = 1000) -> dict:
                 continue
             r = stats.claim([texel_errors[(scene, c, n, m)] for c in used],
                             [texel_errors[(scene, c, n, "optimal")] for c in used], statistic="rmse",
-                            compare="ratio", below=1.0, configs=used, n_boot=n_boot)
+                            compare="ratio", below=1.0, configs=used, n_boot=n_boot,
+                            blocks_by_config=_blocks(blocks, scene, used))
             out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{m}_over_optimal"] = dict(
                 estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
                 per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})
     return out
 
 
-def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict:
+def _blocks(blocks, scene, configs, *rest):
+    """Per configuration the 8 x 8 texel tiles of ``blocks[(scene, config, *rest)]`` (None
+    when any is missing: the bootstrap then resamples single texels / receivers)."""
+    got = [(blocks or {}).get((scene, c, *rest)) for c in configs]
+    return None if any(b is None for b in got) else got
+
+
+#: Pairs (a, b) of each claim per scene and N: AVSM (every order), greedy and the subset
+#: against the optimum, and AVSM in every other order against front to back.
+def _pairs(labels) -> list[tuple[str, str]]:
+    orders = [x for x in labels if x.startswith("avsm@")]
+    return ([(m, "optimal") for m in ("avsm", *orders, "greedy", "optimal_subset") if m in labels]
+            + [(m, "avsm") for m in orders])
+
+
+def claims(receiver_errors: dict, l2_errors: dict, blocks: dict | None = None, n_boot: int = 1000) -> dict:
+    """Per scene and N, each pair of :func:`_pairs` as a claim 'a below b' on both metrics
+    (``error_curves``' form): the receiver RMSE ratio (in-volume receivers, signed errors
+    against the exact curve, paired) and the depth-uniform L2 ratio (per texel, paired), each
+    by :func:`avsm_dr.stats.claim` (unit: the configuration; within a configuration 8 x 8
+    texel tiles), ``metric_dependent`` when their intervals lie on opposite sides of 1,
+    ``indicative`` below :data:`._two_metric.MIN_CONFIDENT` configurations, the order, whether each side is
+    its kind's preset, and each side's signed mean and leak share."""
+    from ._two_metric import claim
+    from .error_curves.findings import preset_differences
+    kinds_ = {"avsm": "avsm", "greedy": "greedy", "optimal_subset": "optimal", "optimal": "optimal"}
+    out: dict = {}
+    for scene, n in sorted({(k[0], k[2]) for k in receiver_errors}):
+        configs = sorted({k[1] for k in receiver_errors if k[0] == scene and k[2] == n})
+        labels = {k[3] for k in receiver_errors if k[0] == scene and k[2] == n}
+        for a, b in _pairs(labels):
+            used = [c for c in configs if all((scene, c, n, m) in store for m in (a, b)
+                                              for store in (receiver_errors, l2_errors))
+                    and np.any(receiver_errors[(scene, c, n, b)] != 0) and np.any(l2_errors[(scene, c, n, b)] > 0)]
+            if not used:
+                continue
+            pair = lambda store: tuple([store[(scene, c, n, m)] for c in used] for m in (a, b))  # noqa: E731
+            r = claim(pair(receiver_errors), pair(l2_errors), used,
+                      (_blocks(blocks, scene, used, RECEIVERS), _blocks(blocks, scene, used)), n_boot)
+            sides = {k: m.split("@")[0] for k, m in (("a", a), ("b", b))}
+            out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{a}_over_{b}"] = dict(
+                statement=f"{a} below {b} at N = {n} (ratio < 1; linear interpolation"
+                          + (", front to back" if "avsm" in (a, b) and "@" not in a else "") + ")",
+                order=a.split("@")[1] if "@" in a else "depth" if sides["a"] == "avsm" else "-",
+                preset={k: not preset_differences(dict(variant=f"{kinds_[v]}-{n}", opaque="inline"), False)
+                        for k, v in sides.items()}, **r)
+    return out
+
+
+def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000, receiver_errors: dict | None = None,
+             l2_errors: dict | None = None, blocks: dict | None = None) -> dict:
     """Per scene and N (the first configuration): AVSM / greedy / optimal uniform-depth RMS
     and in-volume RMSE, and the ratios to optimal; with ``texel_errors``, the ratios'
-    intervals over every configuration under ``"intervals"``."""
+    intervals over every configuration under ``"intervals"``; with ``receiver_errors`` and
+    ``l2_errors``, the two-metric claims of :func:`claims` under ``"claims"``."""
     out = {}
     first = {}
     for r in rows:
@@ -282,7 +380,9 @@ def findings(rows, texel_errors: dict | None = None, n_boot: int = 1000) -> dict
                 if oi and f"{m}_rmse_in_volume" in d:
                     d[f"{m}_over_optimal_in_volume"] = d[f"{m}_rmse_in_volume"] / oi
     if texel_errors:
-        out["intervals"] = intervals(texel_errors, n_boot)
+        out["intervals"] = intervals(texel_errors, n_boot, blocks)
+    if receiver_errors and l2_errors:
+        out["claims"] = claims(receiver_errors, l2_errors, blocks, n_boot)
     return out
 
 
@@ -298,11 +398,12 @@ def _compute(res, P: dict) -> dict:
     """Every configuration's rows, the findings and the figure."""
     quick, names = res.quick, P["scenes"]
     rows: list[dict] = []
-    texel_errors: dict = {}
+    texel_errors, receiver_errors, l2_errors, blocks = {}, {}, {}, {}
     jobs = [(name, seed, light) for name in names for seed, light in P["configs"]]
     for name, seed, light in tqdm(jobs, desc="avsm_gap", unit="config"):
-        _scene_rows(name, P, rows, quick, seed, light, texel_errors)
-    summary = findings(rows, texel_errors, n_boot=P["n_boot"])
+        _scene_rows(name, P, rows, quick, seed, light, texel_errors, receiver_errors, l2_errors, blocks)
+    summary = findings(rows, texel_errors, n_boot=P["n_boot"], receiver_errors=receiver_errors,
+                       l2_errors=l2_errors, blocks=blocks)
     first = {}
     for r in rows:
         first.setdefault(r["scene"], r["config"])
@@ -356,7 +457,7 @@ def _headline(s: dict) -> list[str]:
     curve's (the interval over configurations where recorded), AVSM's worst insertion order."""
     ivs, out = s.get("intervals", {}), []
     for scene, per_n in s.items():
-        for n, d in per_n.items() if scene != "intervals" else ():
+        for n, d in per_n.items() if scene not in ("intervals", "claims") else ():
             iv = ivs.get(scene, {}).get(n, {})
             by = d.get("avsm_over_optimal_by_order", {})
             worst = max(by, key=by.get) if by else None
@@ -365,6 +466,10 @@ def _headline(s: dict) -> list[str]:
                        f"{interval(iv.get('greedy_over_optimal', d.get('greedy_over_optimal')))}"
                        + (f"; worst order {worst} {interval(iv.get(f'avsm@{worst}_over_optimal', by[worst]))}"
                           if worst and worst != "depth" else ""))
+    dep = [f"{scene} {n} {c}" for scene, per_n in s.get("claims", {}).items() for n, cs in per_n.items()
+           for c, v in cs.items() if v.get("metric_dependent")]
+    if dep:
+        out.append("metric-dependent (receiver RMSE and depth L2 disagree): " + ", ".join(dep))
     return out
 
 

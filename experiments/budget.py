@@ -24,6 +24,12 @@ the same map: what resolution and capture cost before any compression), and buil
 wall times in the first configuration (after a warm-up call; a lookup is one batch of the
 receivers).  Kinds that
 fit in no setting are listed as such.  The run ends with a short table.
+
+Issue 23's columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on
+it; '-' otherwise), ``signed_mean`` and ``leak_share`` (error > 0.02) at the receivers, mean
+over configurations, beside ``rmse`` and ``depth_l2``; the summary names the setting of least
+``depth_l2`` too and ``metric_dependent`` when it is not the setting of least RMSE.  The
+choice itself stays by receiver RMSE (the shadows a viewer sees).
 """
 
 from __future__ import annotations
@@ -311,12 +317,16 @@ def _aggregate(rows: list[dict], budget: float, n_cfg: int) -> dict:
     byts = np.array([r["bytes"] for r in rows], np.float64)
     l2 = np.array([r["depth_l2"] for r in rows], np.float64)
     first = rows[0]
+    from .error_curves.labels import order_dependent
+    kind_order = first["order"] if first["kind"] in kinds() and order_dependent(first["kind"]) else "-"
     timed = next((r for r in rows if np.isfinite(r["build_s"])), first)     # the first configuration
     return dict(kind=first["kind"], setting=first["setting"], params=json.dumps(first["params"], sort_keys=True),
                 bytes=float(byts.max()), bytes_mean=float(byts.mean()), bytes_dense=float(first["bytes_dense"]),
                 fits=bool(byts.max() <= budget), rmse=float(est), rmse_low=float(low), rmse_high=float(high),
                 configurations=len(rows), indicative=n_cfg < MIN_CONFIGURATIONS,
-                depth_l2=float(np.sqrt(np.mean(l2 ** 2))),
+                depth_l2=float(np.sqrt(np.mean(l2 ** 2))), order=kind_order,
+                signed_mean=float(np.mean([r["signed_mean"] for r in rows])),
+                leak_share=float(np.mean([r["leak_share"] for r in rows])),
                 build_ms=timed["build_s"] * 1e3, lookup_ms=timed["lookup_s"] * 1e3,
                 lookup_ns_per_receiver=timed["lookup_s"] / max(timed["n_receivers"], 1) * 1e9,
                 nonfinite=int(sum(r["nonfinite"] for r in rows)), screened_bytes=float(first["screened_bytes"]))
@@ -347,8 +357,9 @@ def _compute(res, P: dict) -> dict:
             continue
         s = info[r["method"]]
         row = dict(kind=r["kind"], setting=s["setting"], params=s["params"], screened_bytes=s["screened_bytes"],
-                   **{k: r[k] for k in ("seed", "light", "n_receivers", "rmse", "depth_l2", "bytes", "bytes_dense",
-                                        "signed_mean", "p99", "max", "nonfinite", "build_s", "lookup_s")})
+                   **{k: r[k] for k in ("seed", "light", "order", "n_receivers", "rmse", "depth_l2", "bytes",
+                                        "bytes_dense", "signed_mean", "leak_share", "p99", "max", "nonfinite",
+                                        "build_s", "lookup_s")})
         by_method.setdefault(r["method"], []).append(row)
         per_config.append(dict(row, params=json.dumps(s["params"], sort_keys=True)))
     n_cfg = len(cfgs)
@@ -368,6 +379,9 @@ def _compute(res, P: dict) -> dict:
     _plot(res, rows, best, P, name, n_cfg)
     fitting = [b for b in best if b["status"] == "chosen"]
     top = fitting[0] if fitting else None
+    # the same choice by the depth-uniform L2: the fitting setting of least depth_l2
+    top_l2 = min((r for r in rows if r["kind"] != "exact" and r["fits"] and np.isfinite(r["depth_l2"])),
+                 key=lambda r: (r["depth_l2"], r["bytes"]), default=None)
     summary = {
         "volume": P["volume"] or f"built-in scene {DEFAULT_SCENE!r}",
         "budget": f"{P['bytes']:g} sparse bytes per texel",
@@ -375,6 +389,11 @@ def _compute(res, P: dict) -> dict:
                                                         if n_cfg < MIN_CONFIGURATIONS else ""),
         "lowest_rmse": (f"{top['kind']} {top['setting']}: {top['rmse']:.4g} at {top['bytes']:.3g} B" if top
                         else "no kind fits"),
+        "lowest_depth_l2": (f"{top_l2['kind']} {top_l2['setting']}: {top_l2['depth_l2']:.4g} at {top_l2['bytes']:.3g} B"
+                            if top_l2 else "no kind fits"),
+        # the two metrics choose different settings (kind or setting)
+        "metric_dependent": bool(top and top_l2 and (top["kind"], top["setting"]) != (top_l2["kind"],
+                                                                                       top_l2["setting"])),
         "map_floor_rmse": floor["rmse"],
         "kinds_that_do_not_fit": ", ".join(b["kind"] for b in best if b["status"] != "chosen") or "none",
         "settings_measured": len(rows),
@@ -408,9 +427,9 @@ def _choose(rows: list[dict], budget: float, refused=()) -> list[dict]:
 
 
 #: Columns of best.csv.
-BEST_COLUMNS = ("kind", "status", "setting", "params", "bytes", "bytes_mean", "bytes_dense", "rmse", "rmse_low",
-                "rmse_high", "configurations", "indicative", "depth_l2", "map_floor", "rmse_over_floor", "build_ms",
-                "lookup_ms", "lookup_ns_per_receiver", "nonfinite")
+BEST_COLUMNS = ("kind", "status", "setting", "params", "order", "bytes", "bytes_mean", "bytes_dense", "rmse",
+                "rmse_low", "rmse_high", "configurations", "indicative", "depth_l2", "signed_mean", "leak_share",
+                "map_floor", "rmse_over_floor", "build_ms", "lookup_ms", "lookup_ns_per_receiver", "nonfinite")
 
 
 def _ms(v: float) -> str:

@@ -4,6 +4,11 @@ Volumetric Shadow Maps", figs. 6-7.
 
 Texels chosen: the one with the most segments in ``hair_and_smoke`` (hair steps in
 smoke, fig. 6) and in ``three_columns`` (three smoke columns, fig. 7).
+
+Each row records the insertion ``order`` of its representation ('depth': the capture is front
+to back, for the kinds whose build depends on the order; '-' otherwise).  The figure is the
+claim: single curves, no receivers, no interval; the summary gives each representation's
+largest ``|T - T_exact|`` along the texel.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from avsm_dr import build, kinds
 from ._headline import num, wrap
 from ._study import Study
 from .error_curves import march_step
+from .error_curves.labels import order_dependent
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -56,7 +62,7 @@ def _compute(res, params: dict) -> dict:
         exact = np.asarray(build("exact", seg).eval(tex, x))
         ax.plot(x, exact, "k", lw=2.2, label=f"exact ({seg.counts[texel]} segments)")
         for d, t in zip(x, exact):
-            rows.append(dict(scene=name, texel=texel, method="exact", param="", depth=d, transmittance=t))
+            rows.append(dict(scene=name, texel=texel, method="exact", param="", order="-", depth=d, transmittance=t))
         summary[name] = {"texel": texel, "segments": int(seg.counts[texel])}
         for kind, p in METHODS:
             if kind not in kinds():
@@ -67,8 +73,8 @@ def _compute(res, params: dict) -> dict:
             ax.plot(x, T, lw=1.1, label=label)
             summary[name][label + "_max_error"] = float(np.max(np.abs(T - exact)))
             for d, t in zip(x, T):
-                rows.append(dict(scene=name, texel=texel, method=kind, param=next(iter(p.values())), depth=d,
-                                 transmittance=t))
+                rows.append(dict(scene=name, texel=texel, method=kind, param=next(iter(p.values())),
+                                 order="depth" if order_dependent(kind) else "-", depth=d, transmittance=t))
         ax.set_title(f"{name}, texel {texel}")
         ax.set_xlabel("light-space depth")
         ax.set_ylabel("transmittance")

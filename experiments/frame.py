@@ -30,6 +30,9 @@ resolution, method): columns ``random_unsorted_s`` / ``random_sorted_s`` of the 
 
     python -m experiments frame [--quick]
 
+Each row records the insertion ``order`` its kind's build saw ('depth': the capture is front to
+back, for the kinds whose build depends on the order; '-' otherwise).
+
 Writes ``data.csv`` (one row per frame: scene, resolution, method, kind), ``frame.png``
 (stacked bars: capture, build, lookup) and ``meta.json``.
 """
@@ -180,6 +183,7 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
     build seconds per segment measured at the previous size (updated in place)."""
     from avsm_dr import capture
     from avsm_dr import describe
+    from .error_curves.labels import order_dependent
     has_grid = scene.density is not None
     methods = methods if has_grid else methods[:1]          # no grid: the method changes nothing
     caps = {m: capture(scene, resolution=resolution, method=m, order="depth") for m in methods}
@@ -234,7 +238,8 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
                     capture_grid_s=st.get("seconds", float("nan")),
                     capture_segments_per_s=segs / c["wall_s"] if c["wall_s"] > 0 else float("nan"))
         for kind in kinds:
-            row = dict(base, kind=kind, params=json.dumps(describe(kind)["headline"], sort_keys=True))
+            row = dict(base, kind=kind, params=json.dumps(describe(kind)["headline"], sort_keys=True),
+                       order="depth" if order_dependent(kind) else "-")     # the capture's, front to back
             if (m, kind) in notes:
                 row.update(build_s=float("nan"), lookup_s=float("nan"), frame_s=float("nan"),
                            note=notes[m, kind])

@@ -23,6 +23,15 @@ RMSE; PSNR = 10 log10(S^2 / MSE); FLIP (Andersson et al., "FLIP: A Difference Ev
 Alternating Images", HPG 2020; ``flip_evaluator``, LDR, on min(I / S, 1) sRGB-encoded, 67
 pixels per degree); signed ``e = I - R`` (> 0: light leaking): mean, mean of max(e, 0)
 (leak) and of max(-e, 0) (dark), share of pixels with e > 0.02 S (leak) or e < -0.02 S.
+
+The claims (rankings) use these image metrics: the study is about the pictures, so the
+receiver RMSE of the shadow-map harness does not apply (the pixels are the receivers here,
+and their signed mean and leak share are ``mean_signed`` and ``leak_pixels``).  Beside them
+every row carries the curve metrics of the map that made the image, cheap at the map's
+resolution (issue 23): ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2` against the exact
+curve of the same capture), ``order`` ('depth' for the kinds whose build depends on the
+insertion order: the capture is front to back; '-' otherwise), ``bytes`` (sparse layout) and
+``bytes_dense``.  One configuration per scene: no interval.
 """
 
 from __future__ import annotations
@@ -283,6 +292,8 @@ def _resolved(order, imgs, scored, eps):
 def _compute(res, params: dict) -> dict:
     """Each scene's images per representation against the reference, the crops and the ranking."""
     from avsm_dr import capture, scenes as scene_lib, shading
+    from avsm_dr.evaluation import curve_values, depth_l2
+    from .error_curves.labels import order_dependent
     names = params["scenes"]
     import matplotlib
     matplotlib.use("Agg")
@@ -297,12 +308,17 @@ def _compute(res, params: dict) -> dict:
         look = dict(albedo=params["albedo"], reflectance=params["reflectance"])
         common = dict(camera=cam, supersample=params["supersample"], step=voxel_step(scene, VIEW_STEP), **look)
         ref = shading.render_plane(scene, quadrature_light(scene), Wx, H, **common)
-        imgs = {}
+        imgs, maps = {}, {}
+        ex_curve = curve_values(build("exact", cap.segments), cap.segments)
         for kind, p in METHODS:
             if kind in kinds():
                 rep = build(kind, cap.segments, **p)
                 imgs[_label(kind, p)] = shading.shade_plane(scene, rep, cap, Wx, H, filter=params["filter"],
                                                             **common)
+                # the curve metrics of the map that made the image (module docstring)
+                maps[_label(kind, p)] = dict(order="depth" if order_dependent(kind) else "-",
+                                             depth_l2=depth_l2(rep, cap.segments, exact=ex_curve),
+                                             bytes=rep.nbytes_sparse_per_texel, bytes_dense=rep.nbytes_per_texel)
         zoom = _zoom_window([v - ref for k, v in imgs.items() if k != "exact"] or [ref], max(8, H // 4))
         r0, c0, zs = zoom
         ccam = _crop_camera(scene, cam, Wx, H, r0 + zs // 2, c0 + zs // 2, params["crop"])
@@ -318,7 +334,7 @@ def _compute(res, params: dict) -> dict:
             row = dict(scene=name, method=kind, param=label[len(kind) + 1:], reference="float64 quadrature",
                        resolution=params["resolution"], **met, rank_rmse=order_rmse.index(label) + 1,
                        rank_flip=order_flip.index(label) + 1, ahead_of_next_resolved=resolved.get(label, ""),
-                       white=white, reference_self_convergence_rmse=check["self_convergence_rmse"])
+                       white=white, reference_self_convergence_rmse=check["self_convergence_rmse"], **maps[label])
             if "vs_mitsuba_rmse" in check:
                 row.update(reference_vs_mitsuba_rmse=check["vs_mitsuba_rmse"],
                            mitsuba_stderr_rms=check["mitsuba_stderr_rms"])

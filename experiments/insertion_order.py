@@ -28,7 +28,10 @@ bilinear lookups through :class:`avsm_dr.evaluation.Probe`):
 * ``depth_l2``: :func:`avsm_dr.evaluation.depth_l2`, the depth-uniform L2 per texel, RMS
   over the non-empty texels (the cost ``optimal`` minimises per texel over node subsets);
 * ``signed_mean`` (``signed_mean_truth``): mean of ``T_rep - T_exact`` (``- T_true``) at
-  the receivers; > 0 is light leaking through;
+  the receivers; > 0 is light leaking through; ``leak_share`` (``leak_share_truth``): the
+  share of receivers where that error exceeds 0.02 (:data:`avsm_dr.metrics.THRESHOLD`);
+* ``bytes``: ``nbytes_sparse_per_texel`` (occupancy bit per texel, each non-empty texel's
+  payload and offset), ``bytes_dense``: ``nbytes_per_texel``;
 * ``ratio_to_optimal`` (``ratio_to_optimal_rmse``), ``ratio_to_greedy``: ``depth_l2``
   (receiver ``rmse``) over the reference's in the same configuration;
   ``beats_optimal_texels``: share of non-empty texels whose depth L2 is below optimal's by
@@ -44,7 +47,12 @@ bilinear lookups through :class:`avsm_dr.evaluation.Probe`):
 configurations of both ratios to optimal with a 95 % bootstrap interval whose unit is the
 configuration (seed x light; :func:`avsm_dr.stats.bootstrap_ci` of the log ratios), the
 ranking of the kinds by ``depth_l2`` ratio per order and whether the order changes it;
-``indicative`` when fewer than :data:`MIN_CONFIGS` configurations back an interval.
+``indicative`` when fewer than :data:`MIN_CONFIGS` configurations back an interval; each
+kind's mean ``leak_share`` per order; ``order_over_depth``: per streaming kind, each other
+order's receiver RMSE and depth L2 over front to back's (same configuration, segments and
+receivers), with intervals over configurations; ``metric_dependent`` wherever the two
+metrics' intervals lie entirely on opposite sides of 1 (``error_curves``' rule).  Every
+interval's unit is the configuration; no within-map interval is shown.
 
 Flicker (the change of T between frames) is not measured here: it needs the temporal
 study's animation (``experiments/temporal``); ``experiments/ordering.py`` measures the change
@@ -91,9 +99,10 @@ MIN_CONFIGS = 4
 #: Scenes per row of the figure's small multiples.
 PANELS_PER_ROW = 5
 
-#: Parameters of the full and the quick run (``scenes=None``: every built-in scene).
+#: Parameters of the full and the quick run (``scenes=None``: every built-in scene; full mode:
+#: error_curves' ten configurations, 4 seeds x both directional lights and 2 seeds x the spot light).
 FULL = dict(scenes=None, resolution=128, nodes=[4, 8, 16],
-            configs=[[s, light] for s in range(5) for light in ("dir_a", "dir_b")],
+            configs=[[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2],
             n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7, free_texels=16, free_nodes=[8])
 QUICK = dict(FULL, scenes=["three_columns", "plume"], resolution=64, nodes=[8], configs=[[0, "dir_a"], [1, "dir_b"]],
              n_volume=256, n_boot=500, free_texels=12)
@@ -138,10 +147,11 @@ def _timed_avsm_builds(seg, n: int, repeats: int = TIMING_REPEATS) -> dict:
     return {m: (reps[m], min(wall[m]), min(kern[m])) for m in INSERTION_METHODS}
 
 
-def _stats(est, ref) -> tuple[float, float]:
-    """(RMSE, signed mean) of ``est - ref``."""
+def _stats(est, ref) -> tuple[float, float, float]:
+    """(RMSE, signed mean, leak share) of ``est - ref`` (leak: > :data:`avsm_dr.metrics.THRESHOLD`)."""
+    from avsm_dr.metrics import THRESHOLD
     d = np.asarray(est, np.float64) - np.asarray(ref, np.float64)
-    return float(np.sqrt(np.mean(d * d))), float(np.mean(d))
+    return float(np.sqrt(np.mean(d * d))), float(np.mean(d)), float(np.mean(d > THRESHOLD))
 
 
 def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
@@ -167,11 +177,12 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
 
     def measure(rep, s):
         est = probe.lookup(rep)
-        rmse, mean = _stats(est, ex_lookup)
-        rmse_t, mean_t = _stats(est, probe.truth)
+        rmse, mean, leak = _stats(est, ex_lookup)
+        rmse_t, mean_t, leak_t = _stats(est, probe.truth)
         per = depth_l2(rep, s, exact=ex_curve, n_depths=n_depths, per_texel=True)
-        return dict(rmse=rmse, signed_mean=mean, rmse_truth=rmse_t, signed_mean_truth=mean_t,
-                    depth_l2=float(np.sqrt(np.mean(per ** 2))) if per.size else float("nan")), per
+        return dict(rmse=rmse, signed_mean=mean, leak_share=leak, rmse_truth=rmse_t, signed_mean_truth=mean_t,
+                    leak_share_truth=leak_t, depth_l2=float(np.sqrt(np.mean(per ** 2))) if per.size else float("nan"),
+                    bytes=rep.nbytes_sparse_per_texel, bytes_dense=rep.nbytes_per_texel), per
 
     rows = []
     nan = float("nan")
@@ -240,10 +251,15 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
                     per[k] = dict(depth_l2=_interval([r["ratio_to_optimal"] for r in rk], n_boot),
                                   rmse=_interval([r["ratio_to_optimal_rmse"] for r in rk], n_boot),
                                   signed_mean=float(np.mean([r["signed_mean"] for r in rk])),
+                                  leak_share=float(np.mean([r["leak_share"] for r in rk])),
                                   beats_optimal_texels=float(np.mean([r["beats_optimal_texels"] for r in rk])),
                                   free_vertex=_free_interval(rk, n_boot))
+                for k, e in per.items():
+                    e["metric_dependent"] = _metric_dependent(e["rmse"], e["depth_l2"])
                 d[order] = per
                 rank[order] = sorted(per, key=lambda k: per[k]["depth_l2"]["estimate"])
+            d["order_over_depth"] = _order_over_depth([r for r in rows if r["scene"] == scene and r["nodes"] == n],
+                                                      n_boot)
             d["optimal_over_free_vertex"] = _free_interval(
                 sorted((r for r in rows if r["scene"] == scene and r["nodes"] == n and r["order"] == "depth"
                         and r["kind"] == "optimal"), key=lambda r: r["config"]), n_boot)
@@ -254,6 +270,37 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
             d["best_avsm_order"] = ORDERS[int(np.argmin(avsm))]
             d["goal"] = _goal(d, [r for r in rows if r["scene"] == scene and r["nodes"] == n])
             out.setdefault(scene, {})[f"N={n}"] = d
+    return out
+
+
+def _metric_dependent(a: dict, b: dict) -> bool:
+    """Both intervals establish a direction against 1 and the directions differ
+    (``error_curves``' rule; a single configuration has no interval, so no direction)."""
+    from ._two_metric import direction
+    if "low" not in a or "low" not in b:
+        return False
+    d1, d2 = direction(a), direction(b)
+    return bool(d1 and d2 and d1 != d2)
+
+
+def _order_over_depth(rows: list[dict], n_boot: int) -> dict:
+    """Per streaming kind and order other than 'depth': its receiver RMSE and depth L2 over
+    the same kind's front to back in the same configuration (same segments and receivers),
+    geometric means over configurations with intervals (:func:`_interval`), and
+    ``metric_dependent``."""
+    out: dict = {}
+    for k in STREAMING:
+        base = {r["config"]: r for r in rows if r["kind"] == k and r["order"] == "depth"}
+        for o in ORDERS:
+            if o == "depth":
+                continue
+            rk = sorted((r for r in rows if r["kind"] == k and r["order"] == o and r["config"] in base),
+                        key=lambda r: r["config"])
+            if not rk or any(base[r["config"]][m] <= 0 for r in rk for m in ("rmse", "depth_l2")):
+                continue
+            e = {m: _interval([r[m] / base[r["config"]][m] for r in rk], n_boot) for m in ("rmse", "depth_l2")}
+            e["metric_dependent"] = _metric_dependent(e["rmse"], e["depth_l2"])
+            out.setdefault(k, {})[o] = e
     return out
 
 

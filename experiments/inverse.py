@@ -46,6 +46,13 @@ FULL = dict(size=12, density_scale=20.0, resolution=96, image=32, probes=[6, 9, 
 QUICK = dict(FULL, size=8, resolution=64, image=20, probes=[4, 6, 4], iterations=40, inits=["empty"], spp=64)
 
 
+def _order(kind: str) -> str:
+    """The insertion order the model's build sees: ``avsm_dr.reconstruction`` captures front to
+    back ('depth') for the kinds whose build depends on it; '-' otherwise."""
+    from .error_curves.labels import order_dependent
+    return "depth" if order_dependent(kind) else "-"
+
+
 def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2)))
 
@@ -84,7 +91,7 @@ def _compute(res, params: dict) -> dict:
             recovered[label] = rec.density
             checks[label] = rec.gradient_check
             for h in rec.history:
-                rows.append(dict(table="history", model=kind, init=init, **h))
+                rows.append(dict(table="history", model=kind, init=init, order=_order(kind), **h))
             last = rec.history[-1]
             summary[label] = {"data_loss_first": rec.history[0]["data"], "data_loss_last": last["data"],
                               "density_rel_l2": last["density_rel_l2"], "density_rmse": last["density_rmse"],
@@ -106,7 +113,7 @@ def _compute(res, params: dict) -> dict:
                                         resolution=params["resolution"], filter=params["filter"]).T, np.float64)
         images[f"{label} (Mitsuba RT)"] = T_rt[:n_img]
         for part, sl in (("image", slice(0, n_img)), ("probes", slice(n_img, None)), ("all", slice(None))):
-            r = dict(table="held_out", model=kind, init=label.split("/")[1], part=part,
+            r = dict(table="held_out", model=kind, init=label.split("/")[1], part=part, order=_order(kind),
                      rmse_recovered_vs_truth=_rmse(T_rt[sl], T_true[sl]),
                      rmse_model_vs_mitsuba_on_recovered=_rmse(T_model[sl], T_rt[sl]),
                      rmse_empty_vs_truth=_rmse(np.ones_like(T_true[sl]), T_true[sl]),

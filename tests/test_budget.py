@@ -83,6 +83,26 @@ def test_map_floor_is_the_exact_kinds_rmse(quick_run):
     assert all(np.isfinite(_f(r, "depth_l2")) and _f(r, "build_ms") > 0 and _f(r, "lookup_ms") > 0 for r in data)
 
 
+def test_order_signed_mean_leak_share_and_the_depth_l2_choice(quick_run):
+    """Issue 23: every setting (data.csv, best.csv) carries its order ('depth' for the AVSM family,
+    '-' for kinds that do not depend on it), signed mean and leak share; configurations.csv
+    per configuration; the summary names the depth-L2 choice and whether it differs."""
+    from experiments.error_curves.labels import order_dependent
+    folder, _ = quick_run
+    data, best = _common.read_csv(folder / "data.csv"), _common.read_csv(folder / "best.csv")
+    per = _common.read_csv(folder / "configurations.csv")
+    for r in data + [b for b in best if b["status"] == "chosen"]:
+        assert r["order"] == ("depth" if order_dependent(r["kind"]) else "-"), r
+        assert np.isfinite(_f(r, "signed_mean")) and 0 <= _f(r, "leak_share") <= 1
+    assert {r["order"] for r in per} == {"depth"} and all(0 <= _f(r, "leak_share") <= 1 for r in per)
+    s = json.loads((folder / "meta.json").read_text())["summary"]
+    fit = [r for r in data if r["kind"] != "exact" and _f(r, "bytes") <= BUDGET]
+    least = min(fit, key=lambda r: (_f(r, "depth_l2"), _f(r, "bytes")))
+    assert s["lowest_depth_l2"].startswith(f"{least['kind']} {least['setting']}:")
+    top = min((b for b in best if b["status"] == "chosen"), key=lambda b: _f(b, "rmse"))
+    assert s["metric_dependent"] == ((top["kind"], top["setting"]) != (least["kind"], least["setting"]))
+
+
 def test_the_run_prints_a_table_and_where_its_files_are(quick_run):
     folder, printed = quick_run
     best = _common.read_csv(folder / "best.csv")

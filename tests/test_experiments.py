@@ -4,6 +4,7 @@ results cache is keyed on parameters, package source and versions; the CLI repor
 ``--out`` in one line; the recipes in ``experiments/`` call existing experiments."""
 import dataclasses
 import json
+import math
 import re
 import os
 import subprocess
@@ -93,11 +94,37 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         assert any("nan" in c for c in cols) and any("inf" in c for c in cols)
         assert sum(int(r["nan_count"]) + int(r["inf_count"]) for r in rows) == 0
         assert sum(int(r["bounds_violations"]) for r in rows) == 0
+        # the order each kind saw: the cases are drawn unsorted, sort=True sorts them
+        assert {(r["method"], r["sorted"], r["order"]) for r in rows if r["method"] == "avsm"} == {
+            ("avsm", "False", "random"), ("avsm", "True", "depth")}
+        assert {r["order"] for r in rows if r["method"] in ("fom", "exact")} == {"-"}
         checks = _rows(out / "reliability.csv")          # hostile input: refused or right
         assert len(checks) >= 10 and sum(int(r["failures"]) for r in checks) == 0, checks
     if name == "ordering":
         sorted_rows = [r for r in rows if r["sorted"] == "True"]
         assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
+        assert {r["order"] for r in sorted_rows} == {"depth"} and {r["order"] for r in rows} == {"depth", "random"}
+        assert all(float(r["depth_l2"]) > 0 and 0 <= float(r["leak_share"]) <= 1 for r in rows)
+    if name == "inverse":                                   # the insertion order each model's build saw
+        assert {(r["model"], r["order"]) for r in rows} == {("exact", "-"), ("fom", "-"), ("avsm", "depth")}
+    if name == "curves":                                    # the insertion order of every row
+        assert {(r["method"], r["order"]) for r in rows} >= {("avsm", "depth"), ("fom", "-"), ("exact", "-")}
+        assert {r["order"] for r in rows if r["method"] == "avsm"} == {"depth"}
+    if name == "images":                  # the curve metrics of the maps that made the images
+        for r in rows:
+            assert math.isfinite(float(r["depth_l2"])) and float(r["bytes"]) > 0 and float(r["bytes_dense"]) > 0
+            assert r["order"] == ("depth" if r["method"] == "avsm" else "-"), r
+        assert all(float(r["depth_l2"]) == 0 for r in rows if r["method"] == "exact")
+    if name in ("runtime_vs_error", "ordering"):                  # issue 23's columns, finite
+        for r in rows:
+            for k in ("depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
+                assert math.isfinite(float(r[k])), (name, k, r)
+    if name == "runtime_vs_error":
+        from experiments.error_curves.labels import order_dependent
+        assert all(r["order"] == ("depth" if r["method"] != "exact" and order_dependent(r["method"]) else "-")
+                   for r in rows)
+        assert {r["pareto_depth_l2"] for r in rows if r["method"] != "exact"} == {"True", "False"}
+        assert set(meta["summary"]["pareto_front_depth_l2"]) == set(meta["summary"]["pareto_front"])
     if name == "bench_capture":
         assert [r["case"] for r in rows] == ["tight", "4x per axis", "4x volume"]
         assert float(rows[0]["ratio_capture"]) == 1.0

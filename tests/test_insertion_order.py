@@ -16,8 +16,8 @@ from reference import avsm_ref
 COLUMNS = {"scene", "config", "kind", "nodes", "order", "rmse", "rmse_truth", "depth_l2", "signed_mean",
            "signed_mean_truth", "ratio_to_optimal", "ratio_to_optimal_rmse", "ratio_to_greedy",
            "beats_optimal_texels", "insertion", "build_s", "build_ratio", "kernel_ratio", "ratio_to_free",
-           "free_texels"}
-METRICS = ("rmse", "rmse_truth", "depth_l2", "signed_mean", "signed_mean_truth")
+           "free_texels", "leak_share", "leak_share_truth", "bytes", "bytes_dense"}
+METRICS = ("rmse", "rmse_truth", "depth_l2", "signed_mean", "signed_mean_truth", "leak_share", "leak_share_truth")
 TEXT = ("scene", "config", "light", "kind", "order", "insertion")
 
 
@@ -90,6 +90,41 @@ def test_findings_per_order_with_intervals(quick):
                 sel = [r["ratio_to_optimal"] for r in rows
                        if r["scene"] == scene and r["nodes"] == n and r["order"] == o and r["kind"] == "avsm"]
                 assert min(sel) <= e["estimate"] <= max(sel)    # geometric mean of the configurations
+
+
+def test_both_metrics_leak_bytes_and_order_over_depth(quick):
+    """Every row: leak shares in [0, 1], both byte layouts (sparse below dense on these maps
+    with empty texels); findings: each kind's leak share per order, ``metric_dependent`` on
+    every kind and order, and each order over front to back on both metrics (issue 23)."""
+    rows, found, _ = quick
+    for r in rows:
+        assert 0 <= r["leak_share"] <= 1 and 0 <= r["leak_share_truth"] <= 1
+        assert 0 < r["bytes"] < r["bytes_dense"], r
+    for scene in {r["scene"] for r in rows}:
+        for n in {r["nodes"] for r in rows}:
+            d = found[scene][f"N={n}"]
+            for o in S.ORDERS:
+                for k, e in d[o].items():
+                    assert 0 <= e["leak_share"] <= 1 and isinstance(e["metric_dependent"], bool)
+            assert set(d["order_over_depth"]) == set(S.STREAMING)
+            for k, per in d["order_over_depth"].items():
+                assert set(per) == set(S.ORDERS) - {"depth"}
+                for o, e in per.items():
+                    for m in ("rmse", "depth_l2"):
+                        assert e[m]["low"] <= e[m]["estimate"] <= e[m]["high"] and e[m]["indicative"]
+                        by = {(r["config"], r["order"]): r[m] for r in rows if r["scene"] == scene
+                              and r["nodes"] == n and r["kind"] == k}
+                        ratios = [by[(c, o)] / by[(c, "depth")] for c, oo in by if oo == "depth"]
+                        assert e[m]["estimate"] == pytest.approx(np.exp(np.mean(np.log(ratios))), rel=1e-6)  # CSV text
+                    if k == "avsm_march":                    # does not see the order
+                        assert e["depth_l2"]["estimate"] == pytest.approx(1.0)
+
+
+def test_full_mode_configurations():
+    """Issue 23: full mode runs >= 10 configurations per scene, a spot light among them."""
+    from avsm_dr.evaluation import Configuration
+    cfgs = [Configuration(s, li) for s, li in S.FULL["configs"]]
+    assert len({c.label for c in cfgs}) == len(cfgs) >= 10 and any(c.light == "spot" for c in cfgs)
 
 
 def test_bad_scene_names_the_argument():

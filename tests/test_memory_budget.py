@@ -71,7 +71,17 @@ def test_quick_run_compares_at_equal_bytes(quick):
                         and r["interpolation"] == i and r["order"] == "depth"]) == len(P["scenes"])
     assert {("adaptive", "exp"), ("adaptive", "linear")} <= interp
     assert {i for m, i in interp if m in ("dsm", "optimal")} == {"-"}
-    assert {r["order"] for r in rows if r["interpolation"] == "exp"} == {"depth"}
+    # the preset's exp rows under every order too (fixed and adaptive), on the same receivers
+    for m in ("avsm", "adaptive"):
+        for o in orders:
+            assert {int(r["nodes"]) for r in rows if r["method"] == m and r["interpolation"] == "exp"
+                    and r["order"] == o} == set(P["nodes"] if m == "avsm" else P["budgets"]), (m, o)
+    # both metrics, signed mean, leak share and both byte layouts on every row, finite
+    for r in rows:
+        for k in ("rmse", "depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
+            assert math.isfinite(float(r[k])), (k, r)
+        assert float(r["bytes"]) == float(r["bytes_sparse"]) and float(r["bytes_dense"]) == float(r["bytes_per_texel"])
+        assert 0 <= float(r["leak_share"]) <= 1 and abs(float(r["signed_mean"])) <= float(r["rmse"]) + 1e-12
     assert {r["order"] for r in rows if r["method"] in ("dsm", "optimal", "adaptive_uniform")} <= {"-", "depth"}
     assert {r["order"] for r in rows if r["method"] in ("dsm", "optimal")} == {"-"}
     # the allocation pays off on the plume at the smallest budget (measured: ratio ~0.04)
@@ -89,6 +99,24 @@ def test_quick_run_compares_at_equal_bytes(quick):
     e = f["rmse_ratio_avsm_exp_over_linear"]["plume"]["N=2"]
     assert e["low"] <= e["estimate"] <= e["high"] and e["estimate"] != pytest.approx(1, abs=1e-3)
     assert set(f["bytes_saved_at_equal_rmse_exp"]["plume"]) == {f"N={n}" for n in P["budgets"]}
+    assert set(f["bytes_saved_at_equal_rmse_by_order_exp"]) == set(orders)
+    assert f["bytes_saved_at_equal_rmse_by_order_exp"]["depth"] == f["bytes_saved_at_equal_rmse_exp"]
+    assert r["indicative"] is True and s["indicative"] is True                   # one configuration
+    # two-metric claims per order, configuration-level, flagged
+    c = f["claims"]["plume"]["N=2"]
+    for o in orders:
+        k = "" if o == "depth" else f"@{o}"
+        assert {f"adaptive{k}_over_avsm{k}", f"adaptive{k}/exp_over_avsm{k}/exp", f"avsm{k}/exp_over_avsm{k}"} <= set(c)
+    for v in c.values():
+        assert set(v["metrics"]) == {"receiver_rmse", "depth_l2"} and v["interval_unit"] == "configuration"
+        assert all(m["low"] <= m["estimate"] <= m["high"] for m in v["metrics"].values())
+        assert v["indicative"] is True and v["within_configuration"] == "8x8 texel blocks"
+        assert isinstance(v["metric_dependent"], bool) and set(v["sides"]) == {"a", "b"}
+    # measured on the quick plume, front to back at N = 2: exp over linear AVSM 1.34 [1.15, 1.63] at the
+    # receivers, 0.85 [0.77, 0.94] in depth L2: the metrics disagree
+    assert c["avsm/exp_over_avsm"]["metric_dependent"] is True
+    assert c["avsm/exp_over_avsm"]["preset"] == {"a": True, "b": False}        # AVSM's preset is exp
+    assert c["adaptive@random_over_avsm@random"]["preset"] == {"a": True, "b": False}
     assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
     assert {p.name for p in quick.glob("*.pdf")} == {"error_vs_bytes.pdf", "allocation.pdf"}   # vector beside PNG
     again = MB.run(quick=True, out=quick)

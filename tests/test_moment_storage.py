@@ -82,6 +82,30 @@ def test_quick_run_claims_match_the_csv(quick):
     assert MS.run(quick=True, out=quick).get("cached") is True
 
 
+def test_quick_run_both_metrics(quick):
+    """Issue 23: every row carries the depth L2, signed mean, leak share, both byte layouts and
+    the order ('-': moments do not depend on it); every claim both metrics with configuration-level
+    intervals, metric_dependent, indicative (2 configurations) and each side's signed mean and
+    leak share; the receiver RMSE estimate is the claim's own."""
+    rows = _common.read_csv(quick / "data.csv")
+    claims = json.loads((quick / "findings.json").read_text())["claims"]
+    for r in rows:
+        for k in ("depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
+            assert math.isfinite(float(r[k])), (k, r)
+        assert r["order"] == "-" and float(r["signed_mean"]) == float(r["mean_error"])
+        assert 0 <= float(r["leak_share"]) <= 1 and float(r["depth_l2"]) >= 0
+        assert float(r["bytes_dense"]) == float(r["bytes_per_texel"])
+    for by_mode in claims.values():
+        for d in by_mode.values():
+            for key, c in d.items():
+                assert set(c["metrics"]) == {"receiver_rmse", "depth_l2"}, key
+                assert c["metrics"]["receiver_rmse"]["estimate"] == pytest.approx(c["estimate"], rel=1e-12)
+                assert all(m["low"] <= m["estimate"] <= m["high"] for m in c["metrics"].values()), key
+                assert c["indicative"] is True and c["interval_unit"] == "configuration" and c["order"] == "-"
+                assert c["within_configuration"] == "8x8 texel blocks" and isinstance(c["metric_dependent"], bool)
+                assert all(0 <= x["leak_share"] <= 1 for x in c["sides"].values())
+
+
 def test_tuning_seed_must_be_held_out(monkeypatch, tmp_path):
     monkeypatch.setitem(MS.QUICK, "configs", MS.QUICK["configs"] + [[MS.QUICK["tune_seed"], "dir_a"]])
     with pytest.raises(ValueError, match="^tune_seed"):

@@ -5,6 +5,7 @@ Gauss-Legendre L2 costs, densely sampled L-infinity costs, a dense least-squares
 and the ``avsm_gap`` experiment in quick mode."""
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -201,8 +202,37 @@ def test_avsm_gap_quick(tmp_path):
         assert subset <= float(by[(scene, "greedy", n)]["depth_rms"]) + 1e-6
         assert float(r["depth_rms"]) <= subset + 1e-6
         assert float(r["depth_rms"]) == pytest.approx(float(r["objective_analytic"]), abs=1e-5)
+    # both metrics, signed mean, leak share and both byte layouts on every row, finite
+    for r in rows:
+        for k in ("rmse", "depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
+            assert math.isfinite(float(r[k])), (k, r)
+        assert float(r["rmse"]) == float(r["rmse_in_volume"]) and float(r["signed_mean"]) == float(r["mean_in_volume"])
+        assert 0 <= float(r["leak_share"]) <= 1 and float(r["bytes"]) == float(r["bytes_sparse"])
+        assert float(r["bytes_dense"]) == float(r["bytes_per_texel"])
+        # the harness's 64-midpoint depth L2 and the study's quadrature measure the same thing
+        if r["method"] in ("avsm", "greedy", "optimal"):
+            assert float(r["depth_l2"]) == pytest.approx(float(r["depth_rms"]), rel=0.05)
     findings = json.loads((out / "findings.json").read_text())
     intervals = findings.pop("intervals")
+    claims = findings.pop("claims")
+    assert set(claims) == set(intervals)
+    for scene, per_n in claims.items():       # every order on both metrics, configuration-level, flagged
+        for d in per_n.values():
+            assert {"avsm_over_optimal", "greedy_over_optimal"} <= set(d)
+            assert {f"avsm@{o}_over_{b}" for o in ("submission", "reverse_depth", "random")
+                    for b in ("optimal", "avsm")} <= set(d)
+            for c in d.values():
+                assert set(c["metrics"]) == {"receiver_rmse", "depth_l2"}
+                for m in c["metrics"].values():
+                    assert m["low"] <= m["estimate"] <= m["high"]
+                assert c["estimate"] == c["metrics"]["receiver_rmse"]["estimate"]
+                assert c["indicative"] is True and c["interval_unit"] == "configuration"   # one configuration
+                assert c["within_configuration"] == "8x8 texel blocks"
+                assert isinstance(c["metric_dependent"], bool)
+                assert all(0 <= s["leak_share"] <= 1 and math.isfinite(s["mean_signed_error"])
+                           for s in c["sides"].values())
+            assert d["avsm_over_optimal"]["order"] == "depth" and d["greedy_over_optimal"]["order"] == "-"
+            assert d["avsm_over_optimal"]["preset"] == {"a": False, "b": True}     # AVSM's preset is exp
     assert set(findings) == {"plume", "three_columns", "hair_and_smoke"} == set(intervals)
     assert all("avsm_over_optimal" in d for s in findings.values() for d in s.values())
     for scene in intervals.values():                  # paired bootstrap over texels, per N
@@ -230,3 +260,21 @@ def test_avsm_gap_quick(tmp_path):
             texels = {r["texels"] for r in rows if r["scene"] == scene and f"N={r['nodes']}" == n}
             assert len(texels) == 1                                   # one set of texels for every order
             assert set(intervals[scene][n]) >= {"avsm@random_over_optimal", "avsm@submission_over_optimal"}
+
+
+def test_avsm_gap_full_configurations_and_a_spot_light():
+    """Issue 23: full mode runs >= 10 configurations per scene, a spot light among them; a
+    spot-light configuration runs (plume, N = 4, tiny receiver sets) with finite metrics and
+    its claims on both metrics."""
+    from avsm_dr.evaluation import Configuration
+    from experiments import avsm_gap
+    cfgs = [Configuration(s, li) for s, li in avsm_gap.FULL["configs"]]
+    assert len({c.label for c in cfgs}) == len(cfgs) >= 10 and any(c.light == "spot" for c in cfgs)
+    P = avsm_gap._resolve(dict(avsm_gap.QUICK, nodes=[4], n_volume=128, n_surface=64), True)
+    rows, te, rec, l2, blocks = [], {}, {}, {}, {}
+    avsm_gap._scene_rows("plume", P, rows, True, 1, "spot", te, rec, l2, blocks)
+    assert {r["config"] for r in rows} == {"s1-spot"}
+    assert all(math.isfinite(r[k]) for r in rows for k in ("rmse", "depth_l2", "signed_mean", "leak_share"))
+    c = avsm_gap.claims(rec, l2, blocks, n_boot=100)["plume"]["N=4"]["avsm@random_over_avsm"]
+    assert c["order"] == "random" and set(c["metrics"]) == {"receiver_rmse", "depth_l2"}
+

@@ -49,9 +49,21 @@ order.
 
 Interpolation: the headline AVSM rows (``interpolation`` = ``linear``) sample the node list
 linearly; AVSM's registry preset is ``interpolation='exp'`` (``describe('avsm')['preset']``),
-so fixed AVSM-N and adaptive AVSM are built again with it (``exp`` rows, front to back, same
-segments and receivers; ``-`` for DSM and ``optimal``); findings give the exp savings, the
-exp / linear RMSE ratios and adaptive / fixed within exp.
+so fixed AVSM-N and adaptive AVSM are built again with it (``exp`` rows, under every order of
+``orders`` like the linear rows, same segments and receivers; ``-`` for DSM and
+``optimal``); findings give the exp savings (``bytes_saved_at_equal_rmse_by_order_exp`` per
+order), the exp / linear RMSE ratios and adaptive / fixed within exp.
+
+Both metrics (issue 23): every row carries ``rmse``, ``signed_mean`` and ``leak_share``
+(error > 0.02) at the receivers, ``depth_rms`` (the quadrature of :class:`.avsm_gap.UniformObjective`)
+and ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`, 64 midpoints: the same measure by the
+harness), ``bytes`` (sparse) and ``bytes_dense``.  ``findings.json``'s ``claims``
+(:func:`claims`) give adaptive / fixed AVSM (linear and exp) and exp / linear AVSM under every
+order, adaptive / DSM and adaptive / optimal, each on both metrics with configuration-level
+intervals, ``metric_dependent``, ``indicative`` (fewer than :data:`MIN_CONFIDENT`
+configurations: always in quick mode) and each side's signed mean and leak share.  Within a
+configuration every interval (``claims`` and the ``rmse_ratio_*`` keys) resamples receivers
+and texels in 8 x 8 texel tiles.
 
 Bytes of the savings: the **sparse** layout on both sides (``bytes_sparse``,
 ``nbytes_sparse_per_texel``: an occupancy bit per texel, then fixed AVSM-N's ``8 N`` per
@@ -95,6 +107,8 @@ OPTIMAL_MAX_N = 8
 #: Methods compared at each byte budget (label, kind, extra parameters).
 ADAPTIVE = (("adaptive", {}), ("adaptive_uniform", {"_score": "uniform"}), ("adaptive_count", {"_score": "count"}))
 
+#: Below this many configurations a result is ``indicative`` (``error_curves``' rule).
+MIN_CONFIDENT = 4
 #: Insertion orders of the AVSM rows (the first is the headline's).
 ORDERS = ["depth", "submission", "reverse_depth", "random"]
 #: AVSM's interpolations: the headline's (linear) and the registry preset's (exp).
@@ -220,9 +234,15 @@ def key(method: str, order: str = "-", interpolation: str = "-") -> str:
         + ("" if interpolation in ("-", "linear") else f"/{interpolation}")
 
 
-def _config_rows(name, config, P, rows, errors, heat):
+def _config_rows(name, config, P, rows, errors, heat, l2=None, blocks=None):
+    """Rows of one configuration; each row's receiver errors into ``errors[(config, key, N)]``,
+    its per-texel depth L2 into ``l2`` (same keys), the 8 x 8 texel tiles of the texels and
+    receivers into ``blocks[config]`` / ``blocks[(config, 'receivers')]``."""
     from avsm_dr import builtin_scenes, capture, receivers
+    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
+    from avsm_dr.metrics import error_stats
     from ..avsm_gap import UniformObjective
+    from ..error_curves import texel_blocks
     seed, light = config.seed, config.light_label
     scene = builtin_scenes.get(name, seed=seed)
     scene = dataclasses.replace(scene, light=config.light_for(scene))
@@ -230,9 +250,14 @@ def _config_rows(name, config, P, rows, errors, heat):
     points = receivers.in_volume(scene, P["n_volume"], seed=seed)
     look = NormalisedLookup(cap, points)
     seg = look.segments
-    exact = look(build("exact", seg))
+    exact_rep = build("exact", seg)
+    exact = look(exact_rep)
+    ex_curve = curve_values(exact_rep, seg)              # the depth L2's reference, every order
     obj = UniformObjective(seg)
     cfg = f"{name}/s{seed}/{light}"
+    if blocks is not None:
+        blocks[cfg] = texel_blocks(depth_grid(seg)[0], cap.width)
+        blocks[(cfg, "receivers")] = texel_blocks(cap.lookup(points)[0], cap.width)
     first = [seed, light] == list(P["configs"][0])
     head = dict(scene=name, seed=seed, light=light, config=cfg, resolution=P["resolution"],
                 texels=seg.n_texels, nonempty=int(np.count_nonzero(seg.counts)), max_segments=seg.max_count)
@@ -241,11 +266,18 @@ def _config_rows(name, config, P, rows, errors, heat):
         err = look(rep) - exact
         m = obj.measure(rep)
         errors[(cfg, key(method, order, interpolation), n)] = err
+        per_l2 = depth_l2(rep, seg, exact=ex_curve, per_texel=True)
+        if l2 is not None:
+            l2[(cfg, key(method, order, interpolation), n)] = per_l2
+        st = error_stats(err, np.zeros_like(err))
         r = dict(head, method=method, order=order, interpolation=interpolation, nodes=n, budget_bytes_per_texel=budget,
                  bytes_per_texel=rep.nbytes_per_texel,
                  bytes_sparse=rep.nbytes_sparse_per_texel, total_bytes=rep.nbytes_per_texel * seg.n_texels,
                  rmse=float(np.sqrt(np.mean(err ** 2))),
-                 max_error=float(np.max(np.abs(err))), depth_rms=m["depth_rms"], build_s=build_s)
+                 max_error=float(np.max(np.abs(err))), depth_rms=m["depth_rms"], build_s=build_s,
+                 signed_mean=st["mean_error"], leak_share=st["leak_fraction"],
+                 depth_l2=float(np.sqrt(np.mean(per_l2 ** 2))) if per_l2.size else float("nan"),
+                 bytes=rep.nbytes_sparse_per_texel, bytes_dense=rep.nbytes_per_texel)
         rows.append(r)
         return r
 
@@ -272,8 +304,10 @@ def _config_rows(name, config, P, rows, errors, heat):
         row("avsm", n, rep, t, target, "depth", "linear")
         for o, s_o in reordered.items():
             row("avsm", n, *timed_build("avsm", s_o, nodes=n), target, o, "linear")
-        for i in others:                         # the preset's interpolation, front to back
+        for i in others:                         # the preset's interpolation, under every order
             row("avsm", n, *timed_build("avsm", nodes=n, interpolation=i), target, "depth", i)
+            for o, s_o in reordered.items():
+                row("avsm", n, *timed_build("avsm", s_o, nodes=n, interpolation=i), target, o, i)
         if n not in P["budgets"]:
             continue
         for label, extra in ADAPTIVE:
@@ -287,6 +321,9 @@ def _config_rows(name, config, P, rows, errors, heat):
                 for i in others:
                     row(label, n, *timed_build("avsm_adaptive", bytes_per_texel=target, interpolation=i), target,
                         "depth", i)
+                    for o, s_o in reordered.items():
+                        row(label, n, *timed_build("avsm_adaptive", s_o, bytes_per_texel=target, interpolation=i),
+                            target, o, i)
             if label == "adaptive" and first and n == P["heat_nodes"]:
                 heat[name] = (rep.allocated.reshape(cap.height, cap.width), target)
         t0 = time.perf_counter()
@@ -325,7 +362,8 @@ def savings(rows, metric: str = "rmse", method: str = "adaptive", key: str = "by
         for (n, budget), vals in sorted(per_n.items()):
             v = np.array([x for x, c in vals if not c])
             cens = [x for x, c in vals if c]
-            e = {"budget_bytes_per_texel": budget, "configs": len(vals), "censored": len(cens)}
+            e = {"budget_bytes_per_texel": budget, "configs": len(vals), "censored": len(cens),
+                 "indicative": len(vals) < MIN_CONFIDENT}
             if cens:
                 e["censored_saving_at_least"] = float(min(cens))
             if v.size >= 2:
@@ -338,9 +376,11 @@ def savings(rows, metric: str = "rmse", method: str = "adaptive", key: str = "by
     return out
 
 
-def ratios(rows, errors, a: str, b: str, n_boot: int) -> dict:
+def ratios(rows, errors, a: str, b: str, n_boot: int, blocks: dict | None = None) -> dict:
     """Per scene and N: RMSE(a) / RMSE(b) at the same receivers, per configuration and
-    pooled (:func:`avsm_dr.stats.claim`)."""
+    pooled (:func:`avsm_dr.stats.claim`); within a configuration the receivers are resampled
+    in 8 x 8 texel tiles when ``blocks`` has them (:func:`_config_rows`); ``indicative`` below
+    :data:`MIN_CONFIDENT` configurations."""
     out = {}
     for scene in sorted({r["scene"] for r in rows}):
         for n in sorted({r["nodes"] for r in rows if r["scene"] == scene}):
@@ -352,29 +392,79 @@ def ratios(rows, errors, a: str, b: str, n_boot: int) -> dict:
             xb = [errors[(c, b, n)] for c in cfgs]
             if any(np.sqrt(np.mean(x ** 2)) == 0 for x in xb):
                 continue
+            blk = [(blocks or {}).get((c, "receivers")) for c in cfgs]
+            blk = None if any(x is None for x in blk) else blk
             if len(cfgs) == 1:
                 from avsm_dr.stats import paired_bootstrap
-                r = paired_bootstrap(xa[0], xb[0], "rmse", "ratio", n_boot=n_boot)
+                r = paired_bootstrap(xa[0], xb[0], "rmse", "ratio", n_boot=n_boot,
+                                     blocks=None if blk is None else blk[0])
                 e = dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=1)
             else:
-                r = claim(xa, xb, "rmse", "ratio", configs=cfgs, n_boot=n_boot)
+                r = claim(xa, xb, "rmse", "ratio", configs=cfgs, n_boot=n_boot, blocks_by_config=blk)
                 e = dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=r["n_configs"],
                          below_1_in_every_config=r["holds_in_every_configuration"])
+            e["indicative"] = e["n_configs"] < MIN_CONFIDENT
             out.setdefault(scene, {})[f"N={n}"] = e
     return out
+
+
+def claims(errors: dict, l2: dict, blocks: dict | None = None, n_boot: int = 1000, orders=ORDERS) -> dict:
+    """Per scene and N, ``a`` below ``b`` on both metrics (:func:`experiments._two_metric.claim`:
+    receiver RMSE and depth L2 ratios, configuration-level intervals, 8 x 8 texel tiles within a
+    configuration, ``metric_dependent``, ``indicative``, each side's signed mean and leak share;
+    ``preset``: whether each side is at its kind's preset, :func:`_at_preset`):
+    adaptive over fixed AVSM, adaptive over fixed and fixed exp over linear AVSM, each under
+    every insertion order, and adaptive over DSM and over the optimum (front to back)."""
+    from .._two_metric import claim as two_metric
+    pairs = []
+    for o in orders:
+        pairs += [(key("adaptive", o), key("avsm", o), o), (key("adaptive", o, "exp"), key("avsm", o, "exp"), o),
+                  (key("avsm", o, "exp"), key("avsm", o), o)]
+    pairs += [("adaptive", "dsm", "depth"), ("adaptive", "optimal", "depth")]
+    out: dict = {}
+    for scene in sorted({c.split("/")[0] for c, _, _ in errors}):
+        for n in sorted({k for c, _, k in errors if c.split("/")[0] == scene}):
+            for a, b, o in pairs:
+                used = sorted(c for c, m, k in errors if k == n and m == a and c.split("/")[0] == scene
+                              and all((c, x, n) in store for x in (a, b) for store in (errors, l2))
+                              and np.any(errors[(c, b, n)] != 0) and np.any(l2[(c, b, n)] > 0))
+                if not used:
+                    continue
+                pair = lambda store: tuple([store[(c, x, n)] for c in used] for x in (a, b))  # noqa: E731
+                tiles = tuple(None if any((blocks or {}).get(k) is None for k in ks) else [blocks[k] for k in ks]
+                              for ks in ([(c, "receivers") for c in used], used))
+                out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{a}_over_{b}"] = dict(
+                    order=o, interpolation="exp" if "/exp" in b else "exp / linear" if "/exp" in a else "linear",
+                    preset={k: _at_preset(m, n) for k, m in (("a", a), ("b", b))},
+                    **two_metric(pair(errors), pair(l2), used, tiles, n_boot))
+    return out
+
+
+def _at_preset(label: str, n: int) -> bool:
+    """Whether the method of an errors label (:func:`key`) is at its kind's preset
+    (``describe(kind)['preset']``: AVSM's is the exp interpolation; adaptive AVSM, DSM and
+    optimal have none beyond the settings searched here)."""
+    from ..error_curves.findings import preset_differences
+    kind = {"avsm": "avsm", "adaptive": "avsm_adaptive", "dsm": "dsm", "optimal": "optimal"}[
+        label.split("@")[0].split("/")[0]]
+    variant = f"{kind}-{n}" + ("/interpolation=exp" if label.endswith("/exp") else "")
+    return not preset_differences(dict(variant=variant, opaque="inline"), False)
 
 
 def _linear(r) -> bool:
     return r.get("interpolation", "-") in ("-", "linear")
 
 
-def findings(rows, errors, n_boot: int) -> dict:
+def findings(rows, errors, n_boot: int, l2: dict | None = None, blocks: dict | None = None) -> dict:
     """``findings.json``: savings at equal error (receivers and uniform in depth) and the
     RMSE ratios of adaptive AVSM to the others at equal bytes, front to back with linear
-    interpolation; the savings again within each insertion order; with the exp
-    interpolation (the preset) the savings, adaptive / fixed and exp / linear."""
+    interpolation; the savings again within each insertion order, with either interpolation;
+    with the exp interpolation (the preset) the savings, adaptive / fixed and exp / linear;
+    with ``l2`` the two-metric claims of :func:`claims` under ``claims``."""
     orders = list(dict.fromkeys(r.get("order", "depth") for r in rows if r.get("order", "-") != "-"))
     by_order = {o: savings([r for r in rows if r.get("order", "-") == o and _linear(r)], "rmse") for o in orders}
+    by_order_exp = {o: savings(x, "rmse") for o in orders
+                    if (x := [r for r in rows if r.get("order", "-") == o and r.get("interpolation") == "exp"])}
     front = [r for r in rows if r.get("order", "-") in ("-", "depth")]
     exp = [r for r in front if r.get("interpolation") == "exp"]
     rows = [r for r in front if _linear(r)]
@@ -383,10 +473,13 @@ def findings(rows, errors, n_boot: int) -> dict:
         out_exp = {
             "bytes_saved_at_equal_rmse_exp": savings(exp, "rmse"),
             "bytes_saved_at_equal_depth_rms_exp": savings(exp, "depth_rms"),
-            "rmse_ratio_adaptive_over_avsm_exp": ratios(rows, errors, "adaptive/exp", "avsm/exp", n_boot),
-            "rmse_ratio_avsm_exp_over_linear": ratios(rows, errors, "avsm/exp", "avsm", n_boot),
-            "rmse_ratio_adaptive_exp_over_linear": ratios(rows, errors, "adaptive/exp", "adaptive", n_boot),
+            "rmse_ratio_adaptive_over_avsm_exp": ratios(rows, errors, "adaptive/exp", "avsm/exp", n_boot, blocks),
+            "rmse_ratio_avsm_exp_over_linear": ratios(rows, errors, "avsm/exp", "avsm", n_boot, blocks),
+            "rmse_ratio_adaptive_exp_over_linear": ratios(rows, errors, "adaptive/exp", "adaptive", n_boot, blocks),
+            "bytes_saved_at_equal_rmse_by_order_exp": by_order_exp,
         }
+    if l2:
+        out_exp["claims"] = claims(errors, l2, blocks, n_boot, orders)
     return {
         "avsm_order": "depth",
         "avsm_interpolation": "linear (headline keys); exp, the preset: keys ending in _exp",
@@ -397,11 +490,12 @@ def findings(rows, errors, n_boot: int) -> dict:
         "bytes_saved_at_equal_rmse_uniform_allocation": savings(rows, "rmse", "adaptive_uniform"),
         # the former baseline: both sides dense (fixed AVSM pays 8 N bytes for an empty texel)
         "bytes_saved_at_equal_rmse_dense_baseline": savings(rows, "rmse", key="bytes_per_texel"),
-        "rmse_ratio_adaptive_over_avsm": ratios(rows, errors, "adaptive", "avsm", n_boot),
-        "rmse_ratio_adaptive_over_adaptive_uniform": ratios(rows, errors, "adaptive", "adaptive_uniform", n_boot),
-        "rmse_ratio_adaptive_over_dsm": ratios(rows, errors, "adaptive", "dsm", n_boot),
-        "rmse_ratio_adaptive_over_optimal": ratios(rows, errors, "adaptive", "optimal", n_boot),
-        "rmse_ratio_optimal_over_avsm": ratios(rows, errors, "optimal", "avsm", n_boot),
+        "rmse_ratio_adaptive_over_avsm": ratios(rows, errors, "adaptive", "avsm", n_boot, blocks),
+        "rmse_ratio_adaptive_over_adaptive_uniform": ratios(rows, errors, "adaptive", "adaptive_uniform", n_boot,
+                                                            blocks),
+        "rmse_ratio_adaptive_over_dsm": ratios(rows, errors, "adaptive", "dsm", n_boot, blocks),
+        "rmse_ratio_adaptive_over_optimal": ratios(rows, errors, "adaptive", "optimal", n_boot, blocks),
+        "rmse_ratio_optimal_over_avsm": ratios(rows, errors, "optimal", "avsm", n_boot, blocks),
         **out_exp,
     }
 
@@ -410,11 +504,10 @@ def findings(rows, errors, n_boot: int) -> dict:
 def _compute(res, P: dict) -> dict:
     """Every configuration's rows, the findings and the figures."""
     rows: list[dict] = []
-    errors: dict = {}
-    heat: dict = {}
+    errors, l2, blocks, heat = {}, {}, {}, {}
     for name, config in tqdm(_configs(P), desc="memory_budget", unit="config"):
-        _config_rows(name, config, P, rows, errors, heat)
-    summary = findings(rows, errors, P["n_boot"])
+        _config_rows(name, config, P, rows, errors, heat, l2, blocks)
+    summary = findings(rows, errors, P["n_boot"], l2, blocks)
     from .plots import plot_curves, plot_heat
     plot_curves(res, [r for r in rows if r["order"] in ("-", "depth")], P["scenes"])
     plot_heat(res, heat)
@@ -460,6 +553,10 @@ def _headline(s: dict) -> list[str]:
                 pct = {("estimate" if k == "saving" else k): 100 * sv[k] for k in ("saving", "low", "high") if k in sv}
                 line += f"; bytes saved {interval(pct, 2) if 'low' in pct else num(pct['estimate'], 2)}%"
             out.append(line)
+    dep = [f"{scene} {n} {c}" for scene, per_n in s.get("claims", {}).items() for n, cs in per_n.items()
+           for c, v in cs.items() if v.get("metric_dependent")]
+    if dep:
+        out.append("metric-dependent (receiver RMSE and depth L2 disagree): " + ", ".join(dep))
     return out
 
 

@@ -25,6 +25,16 @@ mean of the per-configuration ratios, 95 % two-stage bootstrap interval):
 with ``bytes_per_texel`` per variant and the tuned alphas.  ``data.csv``: one row per
 scene, opaque mode, configuration, variant and alpha choice (RMSE, max and mean error);
 ``tuning.csv``: the held-out seed's RMSE per alpha.
+
+Both metrics (issue 23): each row also carries ``signed_mean`` and ``leak_share`` (error >
+0.02) at the receivers, ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2` against the exact
+curve, per texel then RMS), ``bytes`` (sparse layout) and ``bytes_dense``, and ``order``
+(``-``: moments do not depend on the insertion order).  Every claim carries, besides the
+receiver RMSE fields above, ``metrics`` (receiver RMSE and depth-L2 ratio, each with its
+configuration-level interval), ``metric_dependent``, ``indicative`` (fewer than 4
+configurations) and each side's signed mean and leak share
+(:func:`experiments._two_metric.claim`); within a configuration receivers and texels are
+resampled in 8 x 8 texel tiles.  The tuning criterion stays the receivers' squared error.
 """
 
 from __future__ import annotations
@@ -82,20 +92,29 @@ def build_variant(segments, precision: str, quantization: str | None, alpha: flo
 
 @dataclasses.dataclass
 class _View:
-    """One capture seen at the receivers: probe and the exact curve's lookups."""
+    """One capture seen at the receivers: probe, the exact curve's lookups, its values on the
+    depth-L2 grid (:func:`avsm_dr.evaluation.curve_values`) and the 8 x 8 texel tiles of the
+    receivers (nearest tap) and of the depth-L2 texels (None when not needed)."""
     probe: object
     segments: object
     exact: np.ndarray
+    curve: np.ndarray | None = None
+    tiles: tuple | None = None
 
     def error(self, precision, quantization, alpha=None):
         """(signed per-receiver compression error (K,), representation)."""
         rep = build_variant(self.segments, precision, quantization, alpha)
         return self.probe.lookup(rep) - self.exact, rep
 
+    def l2(self, rep) -> np.ndarray:
+        """Per-texel depth-uniform L2 of ``rep`` (:func:`avsm_dr.evaluation.depth_l2`)."""
+        from avsm_dr.evaluation import depth_l2
+        return depth_l2(rep, self.segments, exact=self.curve, per_texel=True)
 
-def views(name: str, seed: int, light: str, P: dict) -> dict:
+
+def views(name: str, seed: int, light: str, P: dict, curves: bool = False) -> dict:
     """{'inline': _View, 'separate': _View (scenes with blockers, when ``P['separate']``)} of
-    one configuration (scene, seed, light)."""
+    one configuration (scene, seed, light); ``curves``: with the depth-L2 reference and tiles."""
     from avsm_dr import capture, receivers
     from avsm_dr import scenes as scene_lib
     from avsm_dr.evaluation import Probe, light_variants
@@ -109,7 +128,15 @@ def views(name: str, seed: int, light: str, P: dict) -> dict:
     out = {}
     for mode, cap in caps.items():
         pr = probe.with_capture(cap)
-        out[mode] = _View(pr, cap.segments, pr.lookup(build("exact", cap.segments)))
+        exact = build("exact", cap.segments)
+        v = _View(pr, cap.segments, pr.lookup(exact))
+        if curves:
+            from avsm_dr.evaluation import curve_values, depth_grid
+            from ..error_curves import texel_blocks
+            nearest = pr.tex[np.argmax(pr.weights, axis=0), np.arange(pr.k)]
+            v.curve = curve_values(exact, cap.segments)
+            v.tiles = (texel_blocks(nearest, cap.width), texel_blocks(depth_grid(cap.segments)[0], cap.width))
+        out[mode] = v
     return out
 
 
@@ -132,59 +159,84 @@ def tune(P: dict, progress: bool = True) -> tuple[dict, list]:
     return best, rows
 
 
-def evaluate(P: dict, best: dict, progress: bool = True) -> tuple[list, dict, dict]:
+def evaluate(P: dict, best: dict, progress: bool = True) -> tuple[list, dict, dict, dict, dict]:
     """(rows, errors {(scene, mode, config, variant, tag): (K,) signed errors}, bytes per
-    texel {variant: bytes}) over the evaluation configurations."""
-    rows, errs, nbytes = [], {}, {}
+    texel {variant: bytes}, per-texel depth L2 {same keys}, tiles {(scene, mode, config):
+    (receiver tiles, texel tiles)}) over the evaluation configurations."""
+    from avsm_dr.metrics import THRESHOLD
+    rows, errs, nbytes, l2s, tiles = [], {}, {}, {}, {}
     jobs = [(n, s, li) for n in P["scenes"] for s, li in P["configs"]]
     for name, seed, light in tqdm(jobs, desc="moment_storage", unit="config", disable=not progress):
         config = f"s{seed}-{light}"
-        for mode, v in views(name, seed, light, P).items():
+        for mode, v in views(name, seed, light, P, curves=True).items():
+            tiles[(name, mode, config)] = v.tiles
             for prec, q in VARIANTS:
                 lab = label(prec, q)
                 for tag in TAGS:
                     e, rep = v.error(prec, q, best[mode][lab] if tag == "tuned" else None)
                     errs[(name, mode, config, lab, tag)] = e
+                    l2 = l2s[(name, mode, config, lab, tag)] = v.l2(rep)
                     nbytes[lab] = float(rep.nbytes_per_texel)
                     rows.append(dict(scene=name, opaque=mode, config=config, seed=seed, light=light, variant=lab,
                                      precision=prec, quantization=q or "", tag=tag,
                                      alpha=float(rep.params["bias"]), bytes_per_texel=float(rep.nbytes_per_texel),
                                      n=int(e.size), rmse=float(np.sqrt(np.mean(e ** 2))),
-                                     max_error=float(np.max(np.abs(e))), mean_error=float(np.mean(e))))
-    return rows, errs, nbytes
+                                     max_error=float(np.max(np.abs(e))), mean_error=float(np.mean(e)),
+                                     order="-", signed_mean=float(np.mean(e)), leak_share=float(np.mean(e > THRESHOLD)),
+                                     depth_l2=float(np.sqrt(np.mean(l2 ** 2))) if l2.size else float("nan"),
+                                     bytes=float(rep.nbytes_sparse_per_texel), bytes_dense=float(rep.nbytes_per_texel)))
+    return rows, errs, nbytes, l2s, tiles
 
 
-def _claim(a, b, configs, n_boot) -> dict:
+def _claim(a, b, configs, n_boot, l2=None, tiles=None) -> dict:
+    """The receiver RMSE claim (:func:`avsm_dr.stats.claim`), and with ``l2`` = (a, b) per-texel
+    depth L2 the two-metric fields of :func:`experiments._two_metric.claim` (``metrics``,
+    ``metric_dependent``, ``indicative``, ``sides``, ...); ``tiles``: per configuration the
+    (receiver, texel) 8 x 8 tiles of the within-configuration resampling."""
     from avsm_dr import stats
-    r = stats.claim(a, b, statistic="rmse", compare="ratio", configs=configs, n_boot=n_boot)
-    return dict(estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
-                holds_in_every_configuration=r["holds_in_every_configuration"],
-                point_holds_in_every_configuration=r["point_holds_in_every_configuration"],
-                holds_pooled=r["holds_pooled"],
-                per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})
+    blocks = (None, None) if tiles is None else tuple(list(x) for x in zip(*tiles))
+    r = stats.claim(a, b, statistic="rmse", compare="ratio", configs=configs, n_boot=n_boot,
+                    blocks_by_config=blocks[0])
+    out = dict(estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
+               holds_in_every_configuration=r["holds_in_every_configuration"],
+               point_holds_in_every_configuration=r["point_holds_in_every_configuration"],
+               holds_pooled=r["holds_pooled"],
+               per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})
+    if l2 is not None:
+        from .._two_metric import claim as two_metric
+        both = two_metric((a, b), l2, configs, blocks, n_boot)
+        out.update(order="-", **{k: both[k] for k in ("indicative", "interval_unit", "within_configuration",
+                                                      "metrics", "metric_dependent", "sides")})
+    return out
 
 
-def findings(errs: dict, nbytes: dict, best: dict, n_boot: int = 1000) -> dict:
-    """Claims per scene and opaque mode (module docstring), bytes and tuned alphas."""
+def findings(errs: dict, nbytes: dict, best: dict, n_boot: int = 1000, l2s: dict | None = None,
+             tiles: dict | None = None) -> dict:
+    """Claims per scene and opaque mode (module docstring), bytes and tuned alphas; with
+    ``l2s`` (and ``tiles``) every claim on both metrics."""
     out: dict = {"bytes_per_texel": nbytes, "best_alpha": best, "claims": {}}
     keys = sorted({(k[0], k[1]) for k in errs})
     for scene, mode in keys:
         configs = sorted({k[2] for k in errs if k[:2] == (scene, mode)})
+        til = None if tiles is None else [tiles[(scene, mode, c)] for c in configs]
 
-        def side(lab, tag):
-            return [errs[(scene, mode, c, lab, tag)] for c in configs]
-        ref = side(REFERENCE, "tuned")
+        def side(lab, tag, store=errs):
+            return [store[(scene, mode, c, lab, tag)] for c in configs]
+
+        def cl(a, b):
+            l2 = None if l2s is None else (side(*a, store=l2s), side(*b, store=l2s))
+            return _claim(side(*a), side(*b), configs, n_boot, l2, til)
+        ref = (REFERENCE, "tuned")
         d = out["claims"].setdefault(scene, {}).setdefault(mode, {})
-        d[f"{REFERENCE}/default vs {REFERENCE}"] = _claim(side(REFERENCE, "default"), ref, configs, n_boot)
+        d[f"{REFERENCE}/default vs {REFERENCE}"] = cl((REFERENCE, "default"), ref)
         for prec, q in VARIANTS:
             if q is None:
                 continue
             for tag in TAGS:
-                d[f"{label(prec, q)}/{tag} vs {REFERENCE}"] = _claim(side(label(prec, q), tag), ref, configs, n_boot)
+                d[f"{label(prec, q)}/{tag} vs {REFERENCE}"] = cl((label(prec, q), tag), ref)
         for prec in sorted({p for p, q in VARIANTS if q == "msm"}):
             for tag in TAGS:
-                d[f"{prec} msm vs scaled ({tag})"] = _claim(side(f"{prec}/msm", tag), side(f"{prec}/scaled", tag),
-                                                            configs, n_boot)
+                d[f"{prec} msm vs scaled ({tag})"] = cl((f"{prec}/msm", tag), (f"{prec}/scaled", tag))
     return out
 
 
@@ -198,8 +250,8 @@ def _resolve(P: dict, quick: bool) -> dict:
 def _compute(res, P: dict) -> dict:
     """The clamping strength tuned on the held-out seed, every variant's errors, the figure."""
     best, tune_rows = tune(P)
-    rows, errs, nbytes = evaluate(P, best)
-    summary = findings(errs, nbytes, best, n_boot=P["n_boot"])
+    rows, errs, nbytes, l2s, tiles = evaluate(P, best)
+    summary = findings(errs, nbytes, best, n_boot=P["n_boot"], l2s=l2s, tiles=tiles)
     from .plots import plot_ratios
     plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
     return dict(rows=rows, tables={"tuning.csv": tune_rows}, findings=summary,

@@ -2,7 +2,8 @@
 
 Cases: opacities up to exactly 1, optical depths up to 1e4, segment lengths down to 0,
 1e5 segments on one ray, depth ranges from 1e-4 to 1e6 units, float32 against float64,
-and shuffled insertion order (AVSM unsorted vs sorted).  Every estimate is compared
+and shuffled insertion order (AVSM unsorted vs sorted); each row's ``order`` column records
+the order its kind saw (:func:`_order`).  Every estimate is compared
 with the float64 exact curve; the CSV counts NaN / inf outputs (must be 0) and bound
 violations, and reports RMSE / max error.
 
@@ -49,6 +50,16 @@ def _smoke(rng, texels, count, lo, hi, tau_scale=0.05, length_scale=0.02):
     z1 = np.minimum(z0 + rng.exponential(length_scale * (hi - lo), n), hi)
     tau = rng.exponential(tau_scale, n)
     return offsets, z0, z1, tau
+
+
+def _order(kind: str, params: dict) -> str:
+    """The insertion order a row's kind saw: the cases' segments are drawn in random depth
+    order ('random'); ``sort=True`` sorts them front to back ('depth'); '-' for the kinds that
+    do not depend on the order."""
+    from ..error_curves.labels import order_dependent
+    if kind not in kinds() or not order_dependent(kind):
+        return "-"
+    return "depth" if params.get("sort") else "random"
 
 
 def cases(quick: bool, rng):
@@ -101,14 +112,16 @@ def _compute(res, params: dict) -> dict:
                 est = np.asarray(build(kind, seg, **p).eval(tex, depth))
                 stats = error_stats(est, ref)
                 rows.append(dict(case=name, method=kind, param=next(iter(p.values()), ""),
-                                 sorted=p.get("sort", False), dtype=dtype, precision="native", **stats))
+                                 sorted=p.get("sort", False), order=_order(kind, p), dtype=dtype,
+                                 precision="native", **stats))
             if (quick and dtype == "float64") or (quick and name not in PRECISION_QUICK_CASES):
                 continue
             t0 = time.perf_counter()
             for kind, p, precision in precision_configs(name):
                 est = np.asarray(build(kind, seg, precision=precision, **p).eval(tex, depth))
                 rows.append(dict(case=name, method=kind, param=next(iter(p.values()), ""),
-                                 sorted=p.get("sort", False), dtype=dtype, precision=precision,
+                                 sorted=p.get("sort", False), order=_order(kind, p), dtype=dtype,
+                                 precision=precision,
                                  **error_stats(est, ref)))
             t_precision += time.perf_counter() - t0
     # insertion order: AVSM on shuffled copies of the same smoke
@@ -123,7 +136,8 @@ def _compute(res, params: dict) -> dict:
         for sort in (False, True):
             est = np.asarray(build("avsm", seg, nodes=8, sort=sort).eval(tex, depth))
             rows.append(dict(case=f"shuffled_order_{trial}", method="avsm", param=8, sorted=sort,
-                             dtype="float32", precision="native", **error_stats(est, ref)))
+                             order="depth" if sort else "random", dtype="float32", precision="native",
+                             **error_stats(est, ref)))
     checks = run_checks(quick) + [precision_check(rows, t_precision)]
 
     import matplotlib
