@@ -7,6 +7,8 @@ into CSR order.
 """
 from __future__ import annotations
 
+import time
+
 import drjit as dr
 import numpy as np
 
@@ -147,3 +149,82 @@ def compact_slots(buf, slot, counts, n_segments: int):
     dr.eval(out)
     dr.sync_thread()
     return out
+
+
+#: Most output slots of the one-round layout of :func:`slot_rounds`; above it, rounds.
+SLOT_BUDGET = 1 << 25
+#: Segments a lane writes per round into its own slots; lanes with more go on in another round.
+ROUND_CAPACITY = 16
+
+
+def slot_rounds(run, const, state, cap, tally, slot_budget: int, capacity: int, times: dict):
+    """Run a lane loop to the end and gather its segments in CSR (lane) order.
+
+    ``run(const, state, bufs, slot, cap)`` resumes the lanes of ``const`` (per-lane constants)
+    from ``state``, each writing up to ``cap`` segments (z0, z1, tau) at slots ``slot + n`` of
+    ``bufs`` (:func:`new_slots`), and returns ``(*state, n, done)``.  One round with ``cap`` slots
+    per lane (a bound of its segments) and :func:`compact_slots` while they fit ``slot_budget``;
+    otherwise, or when a lane overflowed its bound, rounds of ``capacity`` slots per unfinished
+    lane, each resuming from the saved state (the same segments).  Returns ``(counts, final,
+    (z0, z1, tau), stats)``: ``final`` the int64 NumPy final ``state[i]`` of every lane for ``i``
+    in ``tally``; ``stats`` the rounds (and the slots of the one-round layout)."""
+    t = backend.types()
+    UInt32, Float = t.UInt32, type(state[0])
+    L, K = dr.width(cap), int(capacity)
+    clock = time.perf_counter()
+    dr.eval(cap)
+    n_slots = int(dr.sum(t.UInt64(cap))[0])
+    if n_slots <= slot_budget:
+        bufs = new_slots(Float, n_slots)
+        slot = dr.prefix_sum(cap)
+        out = run(const, state, bufs, slot, cap)
+        dr.eval(out, bufs)
+        if bool(dr.all(out[-1])):
+            counts = np.asarray(out[-2].numpy(), np.int64)
+            times["rounds_s"], clock = time.perf_counter() - clock, time.perf_counter()
+            res = compact_slots(bufs, slot, out[-2], int(counts.sum()))
+            times["compact_s"] = time.perf_counter() - clock
+            return counts, [np.asarray(out[i].numpy(), np.int64) for i in tally], res, {"rounds": 1, "slots": n_slots}
+        clock = time.perf_counter()                          # a lane overflowed its bound: rounds
+
+    active = np.arange(L, dtype=np.int64)      # lanes of this round (indices into 0..L-1)
+    cst, rounds = const, []                    # rounds: (lanes, n per lane, buffers)
+    counts = np.zeros(L, np.int64)
+    final = [np.zeros(L, np.int64) for _ in tally]
+    while active.size:
+        bufs = new_slots(Float, active.size * K)
+        out = run(cst, state, bufs, dr.arange(UInt32, active.size) * K, K)
+        dr.eval(out, bufs)
+        n_r = np.asarray(out[-2].numpy(), np.int64)
+        done = np.asarray(out[-1].numpy(), bool)
+        rounds.append((active, n_r, bufs))
+        counts[active] += n_r
+        for f, i in zip(final, tally):
+            f[active[done]] = np.asarray(out[i].numpy(), np.int64)[done]
+        keep = np.flatnonzero(~done)
+        active = active[keep]
+        if active.size:
+            k_sel, a_sel = A.to_uint32(keep), A.to_uint32(active)
+            state = [dr.gather(type(v), v, k_sel) for v in out[:-2]]
+            cst = [dr.gather(type(v), v, a_sel) for v in const]
+    times["rounds_s"], clock = time.perf_counter() - clock, time.perf_counter()
+
+    # ---- compaction: slot j < n of lane i of a round -> offset[i] + (segments of earlier rounds) + j
+    S = int(counts.sum())
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    written = np.zeros(L, np.int64)
+    res = [dr.zeros(Float, S) for _ in range(3)]
+    for lanes_r, n_r, bufs in rounds:
+        base = A.to_uint32(start[lanes_r] + written[lanes_r])
+        written[lanes_r] += n_r
+        slot = dr.arange(UInt32, lanes_r.size * K)
+        i = slot // K
+        j = slot - i * K
+        ok = j < dr.gather(UInt32, A.to_uint32(n_r), i)
+        dst = dr.gather(UInt32, base, i, ok) + j
+        for src, dst_buf in zip(read_slots(bufs, slot, ok), res):
+            dr.scatter(dst_buf, src, dst, ok)
+    dr.eval(res)
+    dr.sync_thread()
+    times["compact_s"] = time.perf_counter() - clock
+    return counts, final, res, {"rounds": len(rounds)}

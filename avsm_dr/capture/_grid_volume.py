@@ -221,17 +221,12 @@ class MarchKernel:
         c11 = dr.lerp(g(x0, y1, z1), g(x1, y1, z1), wx)
         return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
 
-    def trilinear_table(self, table, x, y, z, active=True):
-        """:meth:`trilinear` with the 8 voxels read by one packet load from the dual cell's
-        entry of :func:`corner_table` (the table's edge padding repeats
-        the edge voxels, which is the clamp): the same values, the same arithmetic."""
+    def trilinear_corners(self, corners, x, y, z, active=True):
+        """:meth:`trilinear` with the 8 voxels read by a :class:`DualCorners` ``corners`` (the
+        padded window repeats the edge voxels, which is the clamp): the same values, the same
+        arithmetic."""
         idx, w = self._cells(x, y, z)
-        cx, cy, cz = (dr.clip(i, -1, nm) + 1 for i, nm in zip(idx, self.nmax))
-        t = backend.types()
-        ArrX = t.ArrayXf if self.Float is t.Float else t.ArrayXf64
-        v = dr.gather(ArrX, table, self.UInt32((cz * (self.ny + 1) + cy) * (self.nx + 1) + cx), active,
-                      shape=(8, dr.width(cx)))
-        return _lerp8(v, *w)
+        return _lerp8(corners(*(dr.clip(i, -1, nm) for i, nm in zip(idx, self.nmax)), active), *w)
 
 
 def _lerp8(v, wx, wy, wz):
@@ -317,3 +312,27 @@ def corner_table(grid):
             dr.eval(table)
         cache["table"] = table
     return cache["table"]
+
+
+class DualCorners:
+    """``corners(cx, cy, cz, active)``: the 8 corner voxels ``v[4 k + 2 j + i]`` (i along x) of
+    dual cells ``(cx, cy, cz)`` (window voxel units, -1 .. w - 1), one packet load from
+    :func:`corner_table`, or 8 gathers from the padded window of :func:`dual_grid` where there
+    is no table (the same values)."""
+
+    def __init__(self, grid):
+        t = backend.types()
+        self.table, self.pad, self.Float, self.UInt32 = corner_table(grid), dual_grid(grid)[0], grid.Float, t.UInt32
+        self.ArrX = t.ArrayXf if grid.Float is t.Float else t.ArrayXf64
+        wz, wy, wx = grid.window_shape
+        self.cx, self.cy, self.px, self.py = (dr.opaque(t.Int32, int(v)) for v in (wx + 1, wy + 1, wx + 2, wy + 2))
+
+    def __call__(self, cx, cy, cz, active=True) -> list:
+        if self.table is not None:
+            v = dr.gather(self.ArrX, self.table, self.UInt32(((cz + 1) * self.cy + (cy + 1)) * self.cx + (cx + 1)),
+                          active, shape=(8, dr.width(cx)))
+            return [v[c] for c in range(8)]
+        base = self.UInt32(((cz + 1) * self.py + (cy + 1)) * self.px + (cx + 1))
+        sy, sz = self.UInt32(self.px), self.UInt32(self.px * self.py)
+        return [dr.gather(self.Float, self.pad, base + (c >> 2) * sz + ((c >> 1) & 1) * sy + (c & 1), active)
+                for c in range(8)]
