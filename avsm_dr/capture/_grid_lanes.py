@@ -64,11 +64,19 @@ def hit_lanes(grid: GridVolume, camera, per_lane):
     return lanes, o, d, t_in, t_out, extra
 
 
-def lane_output(grid: GridVolume, camera, lanes, counts, z0, z1, tau, stats, runs: bool):
+def lane_output(grid: GridVolume, camera, lanes, counts, iters, max_iter: int, res, stats: dict, runs: bool):
     """``(texel, z0, z1, tau, stats)`` of a grid capture whose lane ``i`` (texel ``lanes[i]``)
-    holds ``counts[i]`` segments, in lane order: ``tau`` recomputed from differentiable gathers
+    holds ``counts[i]`` segments ``res`` = (z0, z1, tau), in lane order, after ``iters[i]``
+    iterations (RuntimeError at ``max_iter``): ``tau`` recomputed from differentiable gathers
     (:func:`~._grid_volume.segment_tau`) when the grid's data has gradients; texels as
-    :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each."""
+    :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each (empty without segments)."""
+    S = int(counts.sum())
+    stats.update(lanes=lanes.size, iterations=int(iters.sum()), segments=S, max_iterations=int(iters.max()))
+    if stats["max_iterations"] >= max_iter:
+        raise RuntimeError(f"grid capture: a ray hit the iteration bound {max_iter} (DDA did not advance)")
+    z0, z1, tau = res
+    if S == 0:
+        return np.zeros(0, np.int64), z0, z1, tau, stats
     if dr.grad_enabled(grid.data):
         o, d = camera.rays(lanes)
         tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), grid.Float) for i in range(3)]

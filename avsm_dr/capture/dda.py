@@ -194,12 +194,5 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
     # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 3 for
     # float32 rounding at its ends), or rounds of ``capacity`` segments per unfinished lane
     counts, (iters, cross), res, st = slot_rounds(run, const, state0, cap, (6, 7), slot_budget, capacity, times)
-    S = int(counts.sum())
-    stats = {"lanes": L, "iterations": int(iters.sum()), "crossings": int(cross.sum()), "segments": S,
-             "max_iterations": int(iters.max()), **st, **times}
-    if stats["max_iterations"] >= max_iter:
-        raise RuntimeError(f"grid traversal: a ray hit the iteration bound {max_iter} (DDA did not advance)")
-    if S == 0:
-        return empty[:4] + (stats,)
-    return lane_output(grid, camera, lanes, counts, *res, stats, runs)
-
+    return lane_output(grid, camera, lanes, counts, iters, max_iter, res,
+                       {"crossings": int(cross.sum()), **st, **times}, runs)

@@ -181,11 +181,4 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
 
     # ---- one round with a slot per bound of every lane's segments, or rounds
     counts, (iters,), res, st = slot_rounds(run, const, state0, cap, (9,), slot_budget, capacity, times)
-    S = int(counts.sum())
-    stats = {"lanes": L, "iterations": int(iters.sum()), "segments": S, "max_iterations": int(iters.max()),
-             **st, **times}
-    if stats["max_iterations"] >= max_iter:
-        raise RuntimeError(f"grid march: a ray hit the iteration bound {max_iter} (DDA did not advance)")
-    if S == 0:
-        return empty[:4] + (stats,)
-    return lane_output(grid, camera, lanes, counts, *res, stats, runs)
+    return lane_output(grid, camera, lanes, counts, iters, max_iter, res, {**st, **times}, runs)
