@@ -344,12 +344,7 @@ class Segments:
 
     def numpy(self) -> dict[str, np.ndarray]:
         """Host copies (float64) of offsets, z0, z1, optical_depth."""
-        return {
-            "offsets": self.offsets.copy(),
-            "z0": A.host(self.z0, "z0"),
-            "z1": A.host(self.z1, "z1"),
-            "optical_depth": A.host(self.optical_depth, "optical_depth"),
-        }
+        return {"offsets": self.offsets.copy(), **{k: A.host(getattr(self, k), k) for k in _FIELDS}}
 
     def sorted(self) -> "Segments":
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
@@ -358,38 +353,32 @@ class Segments:
 
     def depth_order(self):
         """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
-        ties in stored order; None when they are already in order.
-
-        float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels` (words ``key(z0) << 32 |
-        position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
-        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
-        :func:`device_sortable` is false and ranks or ties are needed."""
-        view = self._network_view()
-        if view is _TIES:
-            return self._exact_order()
+        ties in stored order; None when they are already in order (:meth:`depth_view`)."""
+        view = self.depth_view()
         return None if view is None else view_order(*view, self.offsets_dr(), self.texel_of_segment())
-
-    def _exact_order(self):
-        """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host
-        lexsort where :func:`device_sortable` is false."""
-        if device_sortable(self.counts):
-            return self._rank_order()
-        h = self.numpy()
-        tex = np.repeat(np.arange(self.n_texels), self.counts)
-        return A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
 
     def depth_view(self):
         """The order of :meth:`sorted` without sorted copies, for a consumer walking each texel
         (e.g. the AVSM build): None when every texel is already in order, else ``(index,
         start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in (z0, z1) order is segment
-        ``index[start[t] + r]``."""
+        ``index[start[t] + r]``.
+
+        float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
+        | position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
+        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
+        :func:`device_sortable` is false and ranks or ties are needed."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         view = self._network_view()
-        if view is _TIES:
-            idx = self._exact_order()
-            return None if idx is None else (backend.types().UInt32(idx), self.offsets_dr())
-        return view
+        if view is not _TIES:
+            return view
+        if device_sortable(self.counts):
+            idx = self._rank_order()
+        else:
+            h = self.numpy()
+            tex = np.repeat(np.arange(self.n_texels), self.counts)
+            idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
+        return None if idx is None else (backend.types().UInt32(idx), self.offsets_dr())
 
     def _reordered(self, idx) -> "Segments":
         """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the

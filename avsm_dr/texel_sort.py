@@ -329,11 +329,6 @@ def _mix32(x, c1, c2):
 _MIX = (0x7FEB352D, 0x846CA68B)
 
 
-def _seed_word(seed: int) -> int:
-    """``lowbias32(seed)`` as a Python int (the seed's share of :func:`shuffle_key`)."""
-    return int(_mix32(np.array([seed], np.uint32), *(np.uint32(c) for c in _MIX))[0])
-
-
 def shuffle_key(seed: int, texel, rank):
     """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
     ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
@@ -341,14 +336,12 @@ def shuffle_key(seed: int, texel, rank):
     NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
     opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
     (seed, texel, its segment count) only, not on threads or on the order it came in."""
+    c = tuple(np.uint32(m) for m in _MIX)
+    s = int(_mix32(np.array([seed], np.uint32), *c)[0])
     if isinstance(texel, np.ndarray):
-        c1, c2 = (np.uint32(c) for c in _MIX)
-        s = np.uint32(_seed_word(seed))
         with np.errstate(over="ignore"):
-            return _mix32(_mix32(texel.astype(np.uint32) + s, c1, c2) + rank.astype(np.uint32), c1, c2)
-    UInt32 = type(texel)
-    s = dr.opaque(UInt32, _seed_word(seed))
-    return _mix32(_mix32(texel + s, *_MIX) + rank, *_MIX)
+            return _mix32(_mix32(texel.astype(np.uint32) + np.uint32(s), *c) + rank.astype(np.uint32), *c)
+    return _mix32(_mix32(texel + dr.opaque(type(texel), s), *_MIX) + rank, *_MIX)
 
 
 def rank_in_ranges(lo, hi, keys):
