@@ -27,8 +27,8 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
-from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels,
-                         sort_texels_view, view_order)
+from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels_view,
+                         view_order)
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -187,10 +187,8 @@ class Segments:
         off = off.astype(np.int64)
         n = int(off[-1])
         if dtype is None:
-            dtype = "float32"
-            for x in (z0, z1, transmittance, optical_depth):
-                if A.is_drjit(x) and A.dtype_of(x) == "float64":
-                    dtype = "float64"
+            f64 = any(A.is_drjit(x) and A.dtype_of(x) == "float64" for x in (z0, z1, transmittance, optical_depth))
+            dtype = "float64" if f64 else "float32"
         Float = A.float_type(dtype)
         z0h, z1h = _per_segment(z0, "z0", n), _per_segment(z1, "z1", n)
         z0f = check_in_dtype(z0h, "z0", dtype)
@@ -427,9 +425,9 @@ class Segments:
             else:                                               # words key << 32 | position
                 key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
                 U32 = dr.detached_t(UInt32)
-                perm, _ = sort_texels(base.counts, off, tex, "index", (U32(i), U32(key)), ties=False,
-                                      layout=base._sort_plan())
-                idx = UInt32(perm)
+                pay, start, _ = sort_texels_view(base.counts, off, "index", (U32(i), U32(key)), ties=False,
+                                                 layout=base._sort_plan())
+                idx = UInt32(view_order(pay, start, U32(off), U32(tex)))
         return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
 
     def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None, order: str | None = None) -> "Segments":

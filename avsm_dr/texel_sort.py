@@ -36,7 +36,7 @@ from . import backend
 
 #: Largest texel sorted by a network in one lane; longer texels merge sorted blocks of it.
 MAX_NETWORK = 64
-#: Flag bits returned by :func:`sort_texels`.
+#: Flag bits returned by :func:`sort_texels_view`.
 TIE, UNSORTED = 1, 2
 _PAD = 0xFFFFFFFFFFFFFFFF
 
@@ -227,32 +227,22 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     return out
 
 
-def sort_texels(counts: np.ndarray, offsets_dr, texel_of, kind: str, sources, ties: bool = True, layout=None):
-    """``(payloads, flags)``: ``payloads`` (Dr.Jit UInt32, S, lazy) holds at CSR position
-    ``o_t + r`` the payload (low 32 bits) of texel ``t``'s ``r``-th smallest word; ``flags``
-    the :data:`TIE` / :data:`UNSORTED` bits (a Python int; one device round trip).
-
-    counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; texel_of:
-    (S,) UInt32 texel of every segment; kind, sources: the words (:func:`word_function`),
-    distinct inside a texel; ties: look for equal keys; layout: :func:`plan` of these counts
-    (computed when None)."""
-    lay = plan(counts, offsets_dr) if layout is None else layout
-    pay, base, flags = sort_texels_view(counts, offsets_dr, kind, sources, ties, lay)
-    return view_order(pay, base, lay["off"], _types()[0](texel_of)), flags
-
-
 def view_order(payloads, base, offsets_dr, texel_of):
     """The permutation of a :func:`sort_texels_view` layout: segment ``i`` of texel ``t`` gets
-    ``payloads[base[t] + i - offsets[t]]`` (all UInt32 of ``texel_of``'s type)."""
+    ``payloads[base[t] + i - offsets[t]]`` (UInt32 of ``texel_of``'s type)."""
     UInt32 = type(texel_of)
     local = dr.arange(UInt32, dr.width(texel_of)) - dr.gather(UInt32, offsets_dr, texel_of)
     return dr.gather(UInt32, payloads, dr.gather(UInt32, base, texel_of) + local)
 
 
 def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):
-    """``(payloads, base, flags)`` without the final permutation: texel ``t``'s ``r``-th
-    smallest word has its payload at ``payloads[base[t] + r]`` (both Dr.Jit UInt32,
-    evaluated), for a consumer that walks each texel.  Arguments as :func:`sort_texels`."""
+    """``(payloads, base, flags)``: texel ``t``'s ``r``-th smallest word has its payload (low
+    32 bits) at ``payloads[base[t] + r]`` (both Dr.Jit UInt32, evaluated; the permutation:
+    :func:`view_order`); ``flags`` the :data:`TIE` / :data:`UNSORTED` bits (a Python int).
+
+    counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; kind, sources:
+    the words (:func:`word_function`), distinct inside a texel; ties: look for equal keys;
+    layout: :func:`plan` of these counts (computed when None)."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay = dr.empty(UInt32, lay["total"])

@@ -260,14 +260,9 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     if grid is not None and grid.dtype != dtype:
         raise ValueError(f"dtype: {dtype!r} differs from the prepared grid's {grid.dtype!r}")
     blockers = validate_blockers(scene.blockers)
-    boxes = []
-    if grid is not None and grid.occupied is not None:
-        boxes.append(grid.occupied)
-    for item in (scene.particles, scene.hair, *blockers):
-        if item is not None:
-            boxes.append(item.bounds())
-    if not boxes and grid is not None:
-        boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
+    boxes = [item.bounds() for item in (scene.particles, scene.hair, *blockers) if item is not None]
+    if grid is not None and (grid.occupied is not None or not boxes):     # an all-zero grid alone: empty map
+        boxes.insert(0, grid.occupied if grid.occupied is not None else (grid.bmin, grid.bmax))
     if bounds is not None:
         boxes = [check_bbox(bounds, "bounds", flat=True)]
     bmin = np.array([b[0] for b in boxes])
@@ -346,17 +341,15 @@ def _draw_bases(blockers, grid, scene) -> dict:
     """First draw key of each content kind in the ``'submission'`` order (:data:`ORDERS`):
     blockers, then the grid's bricks, then particles, then hair capsules; ValueError naming
     ``order`` when the keys exceed 32 bits."""
-    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // SUBMISSION_BRICK)))
-    n_particles = 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size)
-    n_capsules = 0
-    if scene.hair is not None:
-        S, Vn = np.shape(scene.hair.strands)[:2]
-        n_capsules = S * (Vn - 1)
-    bases = {"opaque": 0, "grid": len(blockers)}
-    bases["particles"] = bases["grid"] + n_bricks
-    bases["hair"] = bases["particles"] + n_particles
-    if bases["hair"] + n_capsules > 2**32:
-        raise ValueError(f"order: 'submission' numbers {bases['hair'] + n_capsules} primitives "
+    counts = {"opaque": len(blockers),
+              "grid": 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // SUBMISSION_BRICK))),
+              "particles": 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size),
+              "hair": 0 if scene.hair is None else int(np.prod(np.subtract(np.shape(scene.hair.strands)[:2], (0, 1))))}
+    total, bases = 0, {}
+    for kind, n in counts.items():
+        bases[kind], total = total, total + n
+    if total > 2**32:
+        raise ValueError(f"order: 'submission' numbers {total} primitives "
                          f"(blockers, bricks, particles, hair capsules), more than 2^32")
     return bases
 

@@ -1,9 +1,8 @@
 """Lanes of a grid capture: the rays of a light's camera that meet a grid's occupied box
 (:func:`hit_lanes`), the brick keys of the ``"submission"`` order (:func:`brick_keys`), and
-the slot buffers of the one-pass layout of :mod:`.grid` and :mod:`.dda`: every lane writes its
-segments (z0, z1, tau) into its own run of slots (a bound of its segments; a slot is 4 floats,
-one packet store or load per segment), then :func:`compact_slots` gathers the filled slots
-into CSR order.
+the slot buffers of :mod:`.grid` and :mod:`.dda` (:func:`slot_rounds`): every lane writes its
+segments (z0, z1, tau) into its own run of slots (a slot is 4 floats, one packet store or load
+per segment), then the filled slots are gathered into CSR order.
 """
 from __future__ import annotations
 
@@ -111,23 +110,18 @@ def brick_keys(grid: GridVolume, camera, texels, z0, z1):
     return key
 
 
-def new_slots(Float, n: int):
-    """An uninitialised slot buffer for ``n`` segments."""
-    return dr.empty(Float, 4 * n)
-
-
 def _arr4(Float):
     t = backend.types()
     return t.Array4f if Float is t.Float else t.Array4f64
 
 
 def write_slots(buf, values, idx, active) -> None:
-    """Write (z0, z1, tau) ``values`` at slots ``idx`` of a :func:`new_slots` buffer."""
+    """Write (z0, z1, tau) ``values`` at slots ``idx`` of a slot buffer (4 floats per slot)."""
     dr.scatter(buf, _arr4(type(values[0]))(*values, 0), idx, active)
 
 
 def read_slots(buf, idx, active=True) -> list:
-    """(z0, z1, tau) at slots ``idx`` of a :func:`new_slots` buffer."""
+    """(z0, z1, tau) at slots ``idx`` of a slot buffer."""
     v = dr.gather(_arr4(type(buf)), buf, idx, active)
     return [v[0], v[1], v[2]]
 
@@ -170,7 +164,7 @@ def slot_rounds(run, const, state, cap, tally, slot_budget: int, capacity: int, 
 
     ``run(const, state, bufs, slot, cap)`` resumes the lanes of ``const`` (per-lane constants)
     from ``state``, each writing up to ``cap`` segments (z0, z1, tau) at slots ``slot + n`` of
-    ``bufs`` (:func:`new_slots`), and returns ``(*state, n, done)``.  One round with ``cap`` slots
+    ``bufs``, and returns ``(*state, n, done)``.  One round with ``cap`` slots
     per lane (a bound of its segments) and :func:`compact_slots` while they fit ``slot_budget``;
     otherwise, or when a lane overflowed its bound, rounds of ``capacity`` slots per unfinished
     lane, each resuming from the saved state (the same segments).  Returns ``(counts, final,
@@ -183,7 +177,7 @@ def slot_rounds(run, const, state, cap, tally, slot_budget: int, capacity: int, 
     dr.eval(cap)
     n_slots = int(dr.sum(t.UInt64(cap))[0])
     if n_slots <= slot_budget:
-        bufs = new_slots(Float, n_slots)
+        bufs = dr.empty(Float, 4 * n_slots)
         slot = dr.prefix_sum(cap)
         out = run(const, state, bufs, slot, cap)
         dr.eval(out, bufs)
@@ -200,7 +194,7 @@ def slot_rounds(run, const, state, cap, tally, slot_budget: int, capacity: int, 
     counts = np.zeros(L, np.int64)
     final = [np.zeros(L, np.int64) for _ in tally]
     while active.size:
-        bufs = new_slots(Float, active.size * K)
+        bufs = dr.empty(Float, 4 * active.size * K)
         out = run(cst, state, bufs, dr.arange(UInt32, active.size) * K, K)
         dr.eval(out, bufs)
         n_r = np.asarray(out[-2].numpy(), np.int64)

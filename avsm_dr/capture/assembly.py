@@ -6,7 +6,7 @@ optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments o
 one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
 content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
 texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to 32 bits over its
-range; :func:`~avsm_dr.texel_sort.sort_texels`), the order of the host's stable argsort of
+range; :func:`~avsm_dr.texel_sort.sort_texels_view`), the order of the host's stable argsort of
 ``texel << 32 | zq`` (:func:`host_order`, the fallback where
 :func:`~avsm_dr.segments.device_sortable` is false).  That is the ``"depth"`` order;
 ``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
@@ -23,7 +23,7 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, run_index
-from ..texel_sort import sort_texels
+from ..texel_sort import sort_texels_view, view_order
 
 
 @dataclass
@@ -158,8 +158,8 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
         gtex = dr.gather(UInt32, tex, gid)
     U32 = dr.detached_t(UInt32)
     zq = U32(quantised_depth(z0) if key is None else key)  # < 2^32: words zq << 32 | index
-    perm, _ = sort_texels(counts, off, gtex, "index", (U32(gid), zq), ties=False)
-    return offsets, UInt32(perm)
+    pay, base, _ = sort_texels_view(counts, off, "index", (U32(gid), zq), ties=False)
+    return offsets, UInt32(view_order(pay, base, U32(off), U32(gtex)))
 
 
 def host_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:

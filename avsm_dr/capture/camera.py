@@ -36,15 +36,10 @@ from ..geometry import orthonormal_basis
 
 def _rect_from_coords(x, y, res):
     """Inclusive texel rectangle covering continuous coordinates (x, y) (..., n); empty -> x0 > x1."""
-    x0 = np.floor(x.min(axis=-1)).astype(np.int64)
-    x1 = np.floor(x.max(axis=-1)).astype(np.int64)
-    y0 = np.floor(y.min(axis=-1)).astype(np.int64)
-    y1 = np.floor(y.max(axis=-1)).astype(np.int64)
+    x0, x1, y0, y1 = (np.floor(f(c, axis=-1)).astype(np.int64) for c in (x, y) for f in (np.min, np.max))
     empty = (x1 < 0) | (y1 < 0) | (x0 > res - 1) | (y0 > res - 1)
-    x0, x1 = np.clip(x0, 0, res - 1), np.clip(x1, 0, res - 1)
-    y0, y1 = np.clip(y0, 0, res - 1), np.clip(y1, 0, res - 1)
-    x1 = np.where(empty, x0 - 1, x1)
-    return x0, x1, y0, y1
+    x0, x1, y0, y1 = (np.clip(v, 0, res - 1) for v in (x0, x1, y0, y1))
+    return x0, np.where(empty, x0 - 1, x1), y0, y1
 
 
 def _box_corners(bmin, bmax):
@@ -134,10 +129,6 @@ class LightCamera:
         (conservative; empty rectangles have ``x0 > x1``)."""
         raise NotImplementedError
 
-    def footprint_pairs(self, bmin, bmax) -> int:
-        """Number of (box, texel) pairs of :meth:`footprint_chunks` (no enumeration)."""
-        return sum(int(_rect_areas(*r[:4]).sum()) for r in self.footprint_rects(bmin, bmax))
-
     def footprint_chunks(self, bmin, bmax):
         """Yield the candidate (item, texel) int64 pairs of the boxes (every texel whose ray may
         meet box ``item``, :meth:`footprint_rects`) in chunks of at most :data:`MAX_PAIRS` pairs
@@ -159,8 +150,8 @@ class LightCamera:
         :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles);
         with ``name``, ValueError naming it when the footprints hold more than
         :data:`MAX_CANDIDATES` pairs (counted without enumerating them)."""
-        total = name and sum(self.footprint_pairs(bmin[s:s + chunk], bmax[s:s + chunk])
-                             for s in range(0, bmin.shape[0], chunk))
+        total = name and sum(int(_rect_areas(*r[:4]).sum()) for s in range(0, bmin.shape[0], chunk)
+                             for r in self.footprint_rects(bmin[s:s + chunk], bmax[s:s + chunk]))
         if name and total > MAX_CANDIDATES:
             raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
                              f"{MAX_CANDIDATES:.3g} one capture handles; use fewer or smaller items, or a "

@@ -24,10 +24,8 @@ Traversal Algorithm for Ray Tracing", Eurographics 1987] over the dual cells, an
 * sigma inside a crossing is evaluated with the cell's own 8 corners, so the polynomial is
   the cell's even where rounding puts a sample a few ulps across a plane.
 
-Output as :func:`~avsm_dr.capture.grid.march` (slots: one per dual cell the clipped ray
-meets, + 3); above :data:`SLOT_BUDGET` slots, rounds of :data:`ROUND_CAPACITY` segments per
-unfinished lane, each resuming from the saved state.  Gradients as the march's (exact: a
-segment lies in one dual cell).
+Output and gradients as :func:`~avsm_dr.capture.grid.march` (a lane's slot bound: the dual
+cells the clipped ray meets, + 3; gradients exact: a segment lies in one dual cell).
 """
 from __future__ import annotations
 
