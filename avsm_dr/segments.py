@@ -528,8 +528,7 @@ class Segments:
         texels = arr.astype(np.int64)
         c = self.counts[texels]
         off = np.concatenate([[0], np.cumsum(c)]).astype(np.int64)
-        idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels]) \
-            if texels.size else np.zeros(0, np.int64)
+        idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels])
         if idx.size == 0:
             Float = self.Float
             return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth, order=self.order)

@@ -175,7 +175,15 @@ def _check_order(order, submission, order_seed) -> tuple[str, str, int | None]:
     return order, submission, seed
 
 
-def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
+def _check_params(scene, resolution, step, epsilon, opaque_bias, opaque_slope_bias):
+    """The checks of :func:`capture`'s scene (type, light, receivers, some content) and
+    numeric arguments; ValueError names the argument or the scene's field."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
+    check_light(scene.light)
+    V.points(scene.receivers, "receivers", allow_empty=True)
+    if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
+        raise ValueError("scene: no content (density, particles, hair or blockers)")
     V.integer(resolution, "resolution", *RESOLUTION_RANGE)
     if step is not None:
         V.real(step, "step", 0.0, open_min=True)
@@ -183,16 +191,6 @@ def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
     if opaque_bias is not None:
         V.real(opaque_bias, "opaque_bias", 0.0, open_min=True)
     V.real(opaque_slope_bias, "opaque_slope_bias", 0.0)
-
-
-def validate_scene(scene: Scene) -> None:
-    """The scene checks of :func:`capture` (type, light, receivers, some content); ValueError names the field."""
-    if not isinstance(scene, Scene):
-        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
-    check_light(scene.light)
-    V.points(scene.receivers, "receivers", allow_empty=True)
-    if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
-        raise ValueError("scene: no content (density, particles, hair or blockers)")
 
 
 def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
@@ -240,8 +238,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     Capture
         the segments, the light camera and the capture's statistics.
     """
-    validate_scene(scene)
-    _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias)
+    _check_params(scene, resolution, step, epsilon, opaque_bias, opaque_slope_bias)
     order, submission, order_seed = _check_order(order, submission, order_seed)
     drawn = order == "submission"          # pieces carry a draw key per segment
     method = check_method(method, step)
@@ -371,6 +368,6 @@ def _check_range(bmin, bmax, position, dtype: str) -> None:
                          + (" (use dtype='float64')" if dtype == "float32" else ""))
 
 
-__all__ = ["capture", "Capture", "GridVolume", "validate_scene", "load_tfx", "procedural_strands",
+__all__ = ["capture", "Capture", "GridVolume", "load_tfx", "procedural_strands",
            "LightCamera", "OrthoCamera", "PerspectiveCamera", "CubeCamera",
            "RESOLUTION_RANGE", "OUTSIDE_DEPTH", "MIN_STEP_FRACTION", "ORDERS", "SUBMISSIONS"]

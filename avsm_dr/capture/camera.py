@@ -160,6 +160,16 @@ class LightCamera:
             for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
                 yield (item + start, texel, *self.rays(texel))
 
+    def footprint_hits(self, bmin, bmax, hit, n_values: int, chunk: int = 1, name: str | None = None) -> list:
+        """``[item, texel, *values]``: int64, int64 and ``n_values`` float64 NumPy arrays over
+        the rays of :meth:`footprint_rays` that ``hit(item, origins, directions) -> (*values,
+        mask)`` keeps (a ray-shape intersection of :mod:`avsm_dr.geometry`)."""
+        out = [(np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * n_values]
+        for item, texel, o, d in self.footprint_rays(bmin, bmax, chunk, name):
+            *values, m = hit(item, o, d)
+            out.append((item[m], texel[m], *(v[m] for v in values)))
+        return [np.concatenate(a) for a in zip(*out)]
+
     def texel_width(self, texels, t) -> np.ndarray:
         """World width of a texel's footprint across its ray at depth ``t`` (K,)."""
         raise NotImplementedError

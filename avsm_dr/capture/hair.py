@@ -143,17 +143,8 @@ def capture_hair(camera, hair):
     strand_of = np.repeat(np.arange(S), V - 1)
     bmin = np.minimum(pa, pb) - r
     bmax = np.maximum(pa, pb) + r
-    tex, sid, ti, to, cid = [], [], [], [], []
-    for item, texel, o, d in camera.footprint_rays(bmin, bmax, CHUNK, "hair"):
-        t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r, t_min=0.0)
-        tex.append(texel[hit])
-        sid.append(strand_of[item[hit]])
-        ti.append(t_in[hit])
-        to.append(t_out[hit])
-        cid.append(item[hit])
-    if not tex:
-        z = np.zeros(0)
-        return np.zeros(0, np.int64), z, z, z, np.zeros(0, np.int64)
-    texel, _, z0, z1, first = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to, cid)))
+    cid, tex, t_in, t_out = camera.footprint_hits(
+        bmin, bmax, lambda i, o, d: ray_capsule(o, d, pa[i], pb[i], r, t_min=0.0), 2, CHUNK, "hair")
+    texel, _, z0, z1, first = merge_crossings(tex, strand_of[cid], t_in, t_out, cid)
     tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
     return texel, z0, z1, np.full(texel.size, tau), first
