@@ -347,7 +347,9 @@ class Segments:
     def sorted(self) -> "Segments":
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
         lexsort, :meth:`depth_order`); gradients follow the permutation."""
-        return self if self.sorted_by_depth else self._reordered(self.depth_order())
+        if self.sorted_by_depth:
+            return self
+        return self._gathered(self.offsets, self.depth_order(), True, self._layout_cache(), "depth")
 
     def depth_order(self):
         """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
@@ -377,11 +379,6 @@ class Segments:
             tex = np.repeat(np.arange(self.n_texels), self.counts)
             idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
         return None if idx is None else (backend.types().UInt32(idx), self.offsets_dr())
-
-    def _reordered(self, idx) -> "Segments":
-        """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the
-        device copies of offsets, texels and the sort layout carry over."""
-        return self._gathered(self.offsets, idx, True, self._layout_cache(), "depth")
 
     def _layout_cache(self) -> dict:
         """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""

@@ -160,9 +160,7 @@ class GridVolume:
 
     def sample(self, points) -> np.ndarray:
         """sigma at world points (K, 3), float64 NumPy; 0 outside the box (Mitsuba's convention)."""
-        p = np.asarray(points, np.float64)
-        if p.ndim != 2 or p.shape[1] != 3:
-            raise ValueError(f"points: expected shape (K, 3), got {p.shape}")
+        p = V.points(points, "points", allow_empty=True)
         if self.occupied is None or p.shape[0] == 0:
             return np.zeros(p.shape[0])
         Float = self.Float

@@ -69,8 +69,6 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     counts = _rect_areas(x0, x1, y0, y1)
     total = int(counts.sum())
     item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
-    if total == 0:
-        return item, np.zeros(0, np.int64)
     starts = np.cumsum(counts) - counts
     local = np.arange(total, dtype=np.int64) - starts[item]
     lx = local % wx[item]
@@ -115,8 +113,9 @@ class LightCamera:
     def texel_index(self, coords) -> np.ndarray:
         """Texel containing each continuous coordinate, clamped to the map (cube: to the face)."""
         ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
-        return self.texel_offset + iy * self.res + ix
+        face = np.clip(np.floor(coords[:, 1] / self.res), 0, self.height // self.res - 1).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1] - face * self.res), 0, self.res - 1).astype(np.int64)
+        return self.texel_offset + face * self.res * self.res + iy * self.res + ix
 
     def covers(self, coords) -> np.ndarray:
         """(K,) bool: the continuous coordinates (K, 2) lie on the map, ``[0, width) x [0, height)``."""
@@ -331,12 +330,6 @@ class CubeCamera(LightCamera):
                 xy[m, 0] = np.clip(x, 0.5, self.res - 0.5)
                 xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
         return xy, np.linalg.norm(q, axis=1)
-
-    def texel_index(self, coords):
-        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        face = np.clip(np.floor(coords[:, 1] / self.res), 0, 5).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1] - face * self.res), 0, self.res - 1).astype(np.int64)
-        return face * self.res * self.res + iy * self.res + ix
 
     def texel_width(self, texels, t):
         """As :meth:`PerspectiveCamera.texel_width`, with each texel's face axis."""

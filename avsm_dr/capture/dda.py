@@ -189,8 +189,6 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
               dr.zeros(UInt32, L)]             # nc: crossings integrated (occupied iterations)
     times["prep_s"] = time.perf_counter() - clock - times["lanes_s"]
 
-    # ---- one round with a slot per possible crossing (cells the clipped ray meets, + 3 for
-    # float32 rounding at its ends), or rounds of ``capacity`` segments per unfinished lane
     counts, (iters, cross), res, st = slot_rounds(run, const, state0, cap, (6, 7), slot_budget, capacity, times)
     return lane_output(grid, camera, lanes, counts, iters, max_iter, res,
                        {"crossings": int(cross.sum()), **st, **times}, runs)

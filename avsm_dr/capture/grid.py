@@ -179,6 +179,5 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
               dr.zeros(UInt32, L)]             # it: iterations (safety bound)
     times["prep_s"] = time.perf_counter() - clock - times["lanes_s"]
 
-    # ---- one round with a slot per bound of every lane's segments, or rounds
     counts, (iters,), res, st = slot_rounds(run, const, state0, cap, (9,), slot_budget, capacity, times)
     return lane_output(grid, camera, lanes, counts, iters, max_iter, res, {**st, **times}, runs)
