@@ -172,8 +172,7 @@ class Segments:
             the insertion order the arrays are in, one of :data:`ORDERS` (a label recorded
             as :attr:`order`, not checked against the depths).
         """
-        if not (isinstance(order, str) and order in ORDERS):
-            raise ValueError(f"order: expected one of {ORDERS}, got {order!r}")
+        V.one_of(order, "order", ORDERS)
         off = A.host(offsets, "offsets", np.float64)
         if off.ndim != 1 or off.size < 2:
             raise ValueError(f"offsets: expected a 1-D array of T+1 >= 2 entries, got shape {off.shape}")
@@ -396,8 +395,7 @@ class Segments:
 
         seed: integer in [0, 2^32) of ``'random'`` (default 0; ValueError naming ``seed``
         when given with another order)."""
-        if not (isinstance(order, str) and order in REORDERS):
-            raise ValueError(f"order: expected one of {REORDERS}, got {order!r}")
+        V.one_of(order, "order", REORDERS)
         if seed is not None and order != "random":
             raise ValueError(f"seed: only the 'random' order takes a seed, got seed={seed!r} with order={order!r}")
         seed = V.integer(0 if seed is None else seed, "seed", 0, 2**32 - 1)

@@ -247,10 +247,9 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     t_start = time.perf_counter()
 
     # ---- content and its world bounds
-    grid = None
     dens = scene.density if density is None else density
-    if dens is not None:
-        grid = GridVolume.prepare(dens, scene.bbox, block=block, dtype=dtype, skip_empty=not keep_zero)
+    grid = None if dens is None else GridVolume.prepare(dens, scene.bbox, block=block, dtype=dtype,
+                                                        skip_empty=not keep_zero)
     if dtype is None:
         dtype = grid.dtype if grid is not None else "float32"
     Float = A.float_type(dtype)
@@ -299,10 +298,8 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
             pieces.append(piece + ((key(),) if drawn else ()))
     if grid is not None:
         t0 = time.perf_counter()
-        if method == "exact":
-            tex, z0, z1, tau, st = traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True)
-        else:
-            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True)
+        tex, z0, z1, tau, st = (traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True) if method == "exact"
+                                else march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True))
         add("grid", t0, (tex, z0, z1, tau),
             lambda: dr.opaque(UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
     if scene.particles is not None:

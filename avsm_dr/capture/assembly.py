@@ -142,11 +142,8 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
     np.cumsum(counts, out=offsets[1:])
     if not device_sortable(counts):
         tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
-        if key is not None:
-            k = np.asarray(key.numpy(), np.uint64)
-            return offsets, A.to_uint32(np.argsort((tex_h.astype(np.uint64) << np.uint64(32)) | k,
-                                                   kind="stable").astype(np.uint32))
-        return offsets, A.to_uint32(host_order(tex_h, A.host(z0, "z0")).astype(np.uint32))
+        k = None if key is None else np.asarray(key.numpy(), np.uint64)
+        return offsets, A.to_uint32(host_order(tex_h, z0 if k is None else None, k).astype(np.uint32))
     off = A.to_uint32(offsets)
     # ---- group by texel (slots from the atomic counter), then sort inside each texel
     if one is not None:
@@ -162,15 +159,17 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
     return offsets, UInt32(view_order(pay, base, U32(off), U32(gtex)))
 
 
-def host_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:
-    """Stable permutation sorting by (texel, z0): one uint64 key (texel << 32 | z0 quantised to
-    32 bits over its range, finer than float32 depths), sorted by timsort, which runs in near
-    linear time on the already sorted runs of each piece."""
-    lo, hi = float(z0.min()), float(z0.max())
-    scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
-    zq = ((z0 - lo) * scale).astype(np.uint64)
-    key = (tex.astype(np.uint64) << np.uint64(32)) | zq
-    return np.argsort(key, kind="stable")
+def host_order(tex: np.ndarray, z0, key=None) -> np.ndarray:
+    """Stable permutation sorting by (texel, key): one uint64 word ``texel << 32 | key``, sorted
+    by timsort, which runs in near linear time on the already sorted runs of each piece.
+    ``key``: uint64 NumPy below 2^32; None: ``z0`` (NumPy or Dr.Jit) quantised to 32 bits over
+    its range (finer than float32 depths)."""
+    if key is None:
+        z0 = A.host(z0, "z0")
+        lo, hi = float(z0.min()), float(z0.max())
+        scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
+        key = ((z0 - lo) * scale).astype(np.uint64)
+    return np.argsort((tex.astype(np.uint64) << np.uint64(32)) | key, kind="stable")
 
 
 def _concat(arrays, Type):
