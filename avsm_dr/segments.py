@@ -285,11 +285,6 @@ class Segments:
     def max_count(self) -> int:
         return int(self.counts.max()) if self.n_texels else 0
 
-    @property
-    def transmittance(self):
-        """Exit transmittance exp(-tau) of each segment (Dr.Jit)."""
-        return dr.exp(-self.optical_depth)
-
     def _sort_plan(self) -> dict:
         """:func:`~avsm_dr.texel_sort.plan` of these counts (cached)."""
         if "sort_plan" not in self._cache:
@@ -320,9 +315,7 @@ class Segments:
         if self.n_segments == 0:
             return 0.0, 1.0
         if "bounds" not in self._cache:  # reduced on the device: no host copy of S values
-            lo = dr.min(dr.detach(self.z0))
-            hi = dr.max(dr.detach(self.z1))
-            self._cache["bounds"] = (float(lo[0]), float(hi[0]))
+            self._cache["bounds"] = (float(dr.min(dr.detach(self.z0))[0]), float(dr.max(dr.detach(self.z1))[0]))
         return self._cache["bounds"]
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:

@@ -123,9 +123,7 @@ class Capture:
         every segment, so ``rep.eval`` returns 1 for them.
         """
         coords, depth, _ = self._lookup(points)
-        if continuous:
-            return coords, depth
-        return self.camera.texel_index(coords), depth
+        return (coords if continuous else self.camera.texel_index(coords)), depth
 
     def _lookup(self, points):
         """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
@@ -133,8 +131,7 @@ class Capture:
         out = ~self.camera.covers(coords)
         if out.any():
             depth = np.where(out, OUTSIDE_DEPTH, depth)
-            coords[out, 0] = np.clip(coords[out, 0], 0.5, self.width - 0.5)
-            coords[out, 1] = np.clip(coords[out, 1], 0.5, self.height - 0.5)
+            coords[out] = np.clip(coords[out], 0.5, [self.width - 0.5, self.height - 0.5])
         return coords, depth, out
 
     def covers(self, points) -> np.ndarray:
@@ -354,10 +351,7 @@ def _check_range(bmin, bmax, position, dtype: str) -> None:
     Depths are differences of coordinates (at most 4x the largest magnitude along the
     map's rays), so the coordinates must stay below 1/16 of the dtype's largest value.
     """
-    coords = [np.abs(bmin).max(), np.abs(bmax).max()]
-    if position is not None:
-        coords.append(np.abs(position).max())
-    reach = float(max(coords))
+    reach = float(max(np.abs(a).max() for a in (bmin, bmax, position) if a is not None))
     limit = float(np.finfo(dtype).max) / 16
     if not reach <= limit:
         raise ValueError(f"scene: content or light coordinates reach {reach:.3g}; {dtype} depths need "

@@ -71,8 +71,7 @@ class GridVolume:
     @property
     def voxel(self) -> np.ndarray:
         """(3,) voxel size (x, y, z) in world units."""
-        nz, ny, nx = self.shape
-        return (self.bmax - self.bmin) / np.array([nx, ny, nz], np.float64)
+        return (self.bmax - self.bmin) / np.array(self.shape[::-1], np.float64)
 
     @property
     def Float(self):
@@ -187,8 +186,7 @@ class MarchKernel:
         self.lo = [dr.opaque(Float, float(v)) for v in wlo]
         self.scale = [dr.opaque(Float, float(v)) for v in 1.0 / h]
         self.nmax = [dr.opaque(Int32, int(v) - 1) for v in (wx, wy, wz)]
-        self.nx = dr.opaque(Int32, wx)
-        self.ny = dr.opaque(Int32, wy)
+        self.nx, self.ny = dr.opaque(Int32, wx), dr.opaque(Int32, wy)
 
     def _cells(self, x, y, z):
         """Per axis the Int32 ``floor(u)`` and the weight ``u - floor(u)`` of the window
