@@ -70,6 +70,22 @@ def run_index(starts, n: int):
     return dr.cumsum(flag)
 
 
+def key_order(counts: np.ndarray, offsets_dr, texel, key, group=None, layout=None):
+    """The permutation (Dr.Jit UInt32, S) sorting segments by ``(texel, key, index)``: ``texel``
+    and ``key`` (< 2^32) UInt32 per segment; ``group`` = (index, texel) of every CSR position
+    when the segments are not in texel order (None: they are).  On the device (words ``key << 32
+    | index``, :func:`~avsm_dr.texel_sort.sort_texels_view` with ``layout``) where
+    :func:`device_sortable`, else one stable host argsort of ``texel << 32 | key``."""
+    UInt32 = backend.types().UInt32
+    if not device_sortable(counts):
+        word = (np.asarray(texel.numpy(), np.uint64) << np.uint64(32)) | np.asarray(key.numpy(), np.uint64)
+        return A.to_uint32(np.argsort(word, kind="stable").astype(np.uint32))
+    U32 = dr.detached_t(UInt32)
+    index, gtex = (dr.arange(UInt32, dr.width(texel)), texel) if group is None else group
+    pay, base, _ = sort_texels_view(counts, offsets_dr, "index", (U32(index), U32(key)), ties=False, layout=layout)
+    return UInt32(view_order(pay, base, U32(offsets_dr), U32(gtex)))
+
+
 def _per_segment(x, name: str, n: int) -> np.ndarray:
     """Host float64 copy of a per-segment array: 1-D, ``n`` values, finite (ValueError naming ``name``)."""
     arr = A.host(x, name)
@@ -405,17 +421,8 @@ class Segments:
         if order == "reverse_depth":     # slot r of texel t <- slot count_t - 1 - r
             idx = dr.gather(UInt32, off, tex + 1) - 1 - (i - dr.gather(UInt32, off, tex))
         else:
-            if not device_sortable(base.counts):                # host: the same keys, np.lexsort
-                tex_h = np.repeat(np.arange(base.n_texels, dtype=np.int64), base.counts)
-                rank = np.arange(n, dtype=np.int64) - base.offsets[tex_h]
-                key = shuffle_key(seed, tex_h.astype(np.uint32), rank.astype(np.uint32))
-                idx = A.to_uint32(np.lexsort((rank, key, tex_h)).astype(np.uint32))
-            else:                                               # words key << 32 | position
-                key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
-                U32 = dr.detached_t(UInt32)
-                pay, start, _ = sort_texels_view(base.counts, off, "index", (U32(i), U32(key)), ties=False,
-                                                 layout=base._sort_plan())
-                idx = UInt32(view_order(pay, start, U32(off), U32(tex)))
+            key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
+            idx = key_order(base.counts, off, tex, key, layout=base._sort_plan())
         return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
 
     def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None, order: str | None = None) -> "Segments":

@@ -5,10 +5,8 @@ texel (a NumPy array, or :class:`TexelRuns` for the grid: one run per ray), dept
 optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments on the device:
 one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
 content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
-texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to 32 bits over its
-range; :func:`~avsm_dr.texel_sort.sort_texels_view`), the order of the host's stable argsort of
-``texel << 32 | zq`` (:func:`host_order`, the fallback where
-:func:`~avsm_dr.segments.device_sortable` is false).  That is the ``"depth"`` order;
+texel sorted by ``(zq, concatenation index)``, ``zq`` z0 quantised to 32 bits over its range
+(:func:`~avsm_dr.segments.key_order`).  That is the ``"depth"`` order;
 ``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
 ``"reverse_depth"`` and ``"random"`` reorder the depth order
 (:meth:`~avsm_dr.segments.Segments.in_order`).
@@ -22,8 +20,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, run_index
-from ..texel_sort import sort_texels_view, view_order
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, key_order, run_index
 
 
 @dataclass
@@ -110,7 +107,7 @@ def _texel_depth_sorted(texel, z0) -> bool:
 
 def quantised_depth(z0):
     """``(z0 - min) * (2^32 - 1) / (max - min)`` truncated to an integer (Dr.Jit UInt64),
-    computed in float64 on the device exactly as the host key of :func:`host_order`."""
+    computed in float64 on the device (finer than float32 depths)."""
     t = backend.types()
     z = t.Float64(dr.detach(z0))
     lo, hi = float(dr.min(z)[0]), float(dr.max(z)[0])
@@ -122,7 +119,7 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
     """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
     the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by ``(texel, key,
     concatenation index)``: ``key`` a Dr.Jit UInt32 (S,) per concatenated segment (None:
-    ``z0`` quantised, :func:`quantised_depth`), on the device where :func:`device_sortable`."""
+    ``z0`` quantised, :func:`quantised_depth`); :func:`~avsm_dr.segments.key_order`."""
     UInt32 = backend.types().UInt32
     tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
                    for t in texels], UInt32)
@@ -140,36 +137,12 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
         counts = np.asarray(cnt.numpy(), np.int64)
     offsets = np.zeros(n_texels + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    if not device_sortable(counts):
-        tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
-        k = None if key is None else np.asarray(key.numpy(), np.uint64)
-        return offsets, A.to_uint32(host_order(tex_h, z0 if k is None else None, k).astype(np.uint32))
-    off = A.to_uint32(offsets)
-    # ---- group by texel (slots from the atomic counter), then sort inside each texel
-    if one is not None:
-        gid, gtex = dr.arange(UInt32, n), tex
-    else:
-        pos = dr.gather(UInt32, off, tex) + slot
+    off, group = A.to_uint32(offsets), None
+    if one is None and device_sortable(counts):     # group by texel (slots from the atomic counter)
         gid = dr.zeros(UInt32, n)
-        dr.scatter(gid, dr.arange(UInt32, n), pos)         # concatenation index at its group slot
-        gtex = dr.gather(UInt32, tex, gid)
-    U32 = dr.detached_t(UInt32)
-    zq = U32(quantised_depth(z0) if key is None else key)  # < 2^32: words zq << 32 | index
-    pay, base, _ = sort_texels_view(counts, off, "index", (U32(gid), zq), ties=False)
-    return offsets, UInt32(view_order(pay, base, U32(off), U32(gtex)))
-
-
-def host_order(tex: np.ndarray, z0, key=None) -> np.ndarray:
-    """Stable permutation sorting by (texel, key): one uint64 word ``texel << 32 | key``, sorted
-    by timsort, which runs in near linear time on the already sorted runs of each piece.
-    ``key``: uint64 NumPy below 2^32; None: ``z0`` (NumPy or Dr.Jit) quantised to 32 bits over
-    its range (finer than float32 depths)."""
-    if key is None:
-        z0 = A.host(z0, "z0")
-        lo, hi = float(z0.min()), float(z0.max())
-        scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
-        key = ((z0 - lo) * scale).astype(np.uint64)
-    return np.argsort((tex.astype(np.uint64) << np.uint64(32)) | key, kind="stable")
+        dr.scatter(gid, dr.arange(UInt32, n), dr.gather(UInt32, off, tex) + slot)   # index at its slot
+        group = (gid, dr.gather(UInt32, tex, gid))
+    return offsets, key_order(counts, off, tex, quantised_depth(z0) if key is None else key, group)
 
 
 def _concat(arrays, Type):
