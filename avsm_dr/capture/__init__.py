@@ -50,10 +50,8 @@ RESOLUTION_RANGE = (64, 1024)
 #:   (``submission="back_to_front"``, :func:`~.particles.draw_ranks`); then the hair strands
 #:   in list order, a strand's crossings in vertex order.
 #: * ``"depth"``: front to back (z0 quantised to 32 bits over the depth range; equal values in
-#:   content order: grid, particles, hair, blockers).
-#: * ``"reverse_depth"``: back to front, each texel's ``"depth"`` order reversed.
-#: * ``"random"``: a seeded shuffle of each texel's ``"depth"`` order (``order_seed``,
-#:   :meth:`~avsm_dr.segments.Segments.in_order`): the same seed, the same order.
+#:   content order: grid, particles, hair, blockers); ``"reverse_depth"`` and ``"random"``
+#:   (seed ``order_seed``): as :meth:`~avsm_dr.segments.Segments.in_order`.
 ORDERS = ("submission", "depth", "reverse_depth", "random")
 #: Particle draw orders of ``order="submission"`` (``submission=``), the default first.
 SUBMISSIONS = ("list", "back_to_front")

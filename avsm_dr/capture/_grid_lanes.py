@@ -35,12 +35,10 @@ def candidate_texels(camera, lo, hi):
 
 
 def hit_lanes(grid: GridVolume, camera, per_lane):
-    """The texels whose ray meets the occupied box: (texels UInt32 ascending, origins,
-    directions (lists of three Float64), t_in, t_out (Float64), extra) of the rays that meet
-    the occupied box.  One kernel makes, clips and tests every candidate ray and evaluates
-    ``per_lane(o, d, t_in, t_out)``, a UInt32 per ray (``extra``); ``dr.compress`` keeps the
-    hits, whose rays are then recomputed lazily (fused into the kernel that reads them).  No
-    hit: empty texels, and every other entry None."""
+    """(texels UInt32 ascending, origins, directions (lists of three Float64), t_in, t_out
+    (Float64), extra) of the rays that meet the grid's occupied box, ``extra`` the UInt32
+    ``per_lane(o, d, t_in, t_out)`` evaluated in the kernel that makes, clips and tests every
+    candidate ray.  No hit: empty texels, and every other entry None."""
     UInt32 = backend.types().UInt32
     lo, hi = grid.occupied
     cand = candidate_texels(camera, lo, hi)

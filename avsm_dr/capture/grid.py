@@ -40,10 +40,9 @@ METHODS = ("exact", "march")
 
 
 def check_method(method, step) -> str:
-    """The grid capture method, 'march' when None; ValueError naming ``method`` (unknown)
-    or ``step`` (given with 'exact', which has no step).  'march' is the default: its
-    segments span half a voxel, the exact capture's a whole dual cell, so a representation
-    that assumes uniform density inside a segment errs less inside the smoke."""
+    """The grid capture method, 'march' when None (its segments span half a voxel, the exact
+    capture's a whole dual cell); ValueError naming ``method`` (unknown) or ``step`` (given
+    with 'exact', which has no step)."""
     if method is None:
         return "march"
     if method not in METHODS:

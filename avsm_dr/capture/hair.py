@@ -50,9 +50,7 @@ def load_tfx(path, return_w: bool = False):
     strands = np.ascontiguousarray(xyzw[..., :3], dtype=np.float32)
     if not np.all(np.isfinite(strands)):
         raise ValueError(f"path: {path!r} has non-finite vertex positions")
-    if return_w:
-        return strands, np.ascontiguousarray(xyzw[..., 3])
-    return strands
+    return (strands, np.ascontiguousarray(xyzw[..., 3])) if return_w else strands
 
 
 def procedural_strands(n_strands: int = 300, n_vertices: int = 16, root_center=(0.0, -0.3, 0.0),
@@ -114,8 +112,6 @@ def merge_crossings(texel, strand, t_in, t_out, capsule=None):
     order = np.lexsort((t_in, strand, texel))
     texel, strand, t_in, t_out = texel[order], strand[order], t_in[order], t_out[order]
     n = texel.size
-    if n == 0:
-        return (texel, strand, t_in, t_out) + (() if capsule is None else (capsule[order],))
     group_start = np.ones(n, bool)
     group_start[1:] = (texel[1:] != texel[:-1]) | (strand[1:] != strand[:-1])
     group = np.cumsum(group_start) - 1
