@@ -38,8 +38,10 @@ def hit_lanes(grid: GridVolume, camera, per_lane):
     """(texels UInt32 ascending, origins, directions (lists of three Float64), t_in, t_out
     (Float64), extra) of the rays that meet the grid's occupied box, ``extra`` the UInt32
     ``per_lane(o, d, t_in, t_out)`` evaluated in the kernel that makes, clips and tests every
-    candidate ray.  No hit: empty texels, and every other entry None."""
+    candidate ray.  No hit (or an all-zero grid): empty texels, and every other entry None."""
     UInt32 = backend.types().UInt32
+    if grid.occupied is None:
+        return UInt32(), None, None, None, None, None
     lo, hi = grid.occupied
     cand = candidate_texels(camera, lo, hi)
     if dr.width(cand) == 0:

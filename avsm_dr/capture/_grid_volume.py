@@ -101,12 +101,10 @@ class GridVolume:
         if not isinstance(block, (int, np.integer)) or block < 1:
             raise ValueError(f"block: expected an integer >= 1, got {block!r}")
         if isinstance(density, (str, os.PathLike)):
-            data, file_bbox = read_vol(density, with_bbox=True)
-            if data.ndim != 3:
-                raise ValueError(f"density: {density!r} has {data.shape[-1]} channels, expected 1")
-            density = data
-            if bbox is None:
-                bbox = file_bbox
+            path, (density, file_bbox) = density, read_vol(density, with_bbox=True)
+            if density.ndim != 3:
+                raise ValueError(f"density: {path!r} has {density.shape[-1]} channels, expected 1")
+            bbox = file_bbox if bbox is None else bbox
         if bbox is None:
             raise ValueError("bbox: a density grid needs its world box (min_xyz, max_xyz)")
         lo, hi = check_bbox(bbox)

@@ -258,9 +258,7 @@ class PerspectiveCamera(LightCamera):
         """Points behind the light (or on its plane) get coordinates far outside the map."""
         q = np.asarray(points, np.float64) - self.position
         x, y, zc = self._coords(q)
-        x = np.where(zc > 0, x, -1e9)
-        y = np.where(zc > 0, y, -1e9)
-        return np.stack([x, y], axis=1), np.linalg.norm(q, axis=1)
+        return np.where((zc > 0)[:, None], np.stack([x, y], axis=1), -1e9), np.linalg.norm(q, axis=1)
 
     def texel_width(self, texels, t):
         """t * (2 tan(fov/2) / res) / cos^2(alpha), alpha the ray's angle off the axis (an
@@ -296,11 +294,8 @@ class CubeCamera(LightCamera):
         self.position = np.asarray(position, dtype=np.float64)
         self.res = int(res)
         self.width, self.height = self.res, 6 * self.res
-        self.faces = []
-        for f, (axis, sign) in enumerate(CUBE_FACES):
-            w = np.zeros(3)
-            w[axis] = sign
-            self.faces.append(PerspectiveCamera(position, w, 90.0, res, texel_offset=f * res * res))
+        self.faces = [PerspectiveCamera(position, np.where(np.arange(3) == axis, sign, 0.0), 90.0, res,
+                                        texel_offset=f * res * res) for f, (axis, sign) in enumerate(CUBE_FACES)]
 
     def rays_device(self, texels):
         """Each lane reads its face's basis from (6, 3) tables: one kernel for all faces."""

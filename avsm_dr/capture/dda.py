@@ -88,8 +88,6 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
     stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), stats0)
-    if grid.occupied is None:
-        return empty
     clock = time.perf_counter()
     # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
     lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])

@@ -73,8 +73,6 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     t = backend.types()
     Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0})
-    if grid.occupied is None:
-        return empty
     clock = time.perf_counter()
     nb = np.array(grid.occupancy.shape[::-1], np.int64)               # (nbx, nby, nbz)
     bs = grid.voxel * grid.block                                        # block size (x, y, z)
