@@ -65,6 +65,8 @@ def run_index(starts, n: int):
     inclusive prefix sum (``n`` opaque, mode Local: no compile per size)."""
     UInt32 = backend.types().UInt32
     flag = dr.zeros(UInt32, n)
+    if n == 0 or dr.width(starts) == 0:             # one run (or nothing)
+        return flag
     dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), starts, starts < dr.opaque(UInt32, n),
                       mode=dr.ReduceMode.Local)
     return dr.cumsum(flag)
@@ -318,12 +320,8 @@ class Segments:
         ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}`` (:func:`run_index`)."""
         if "texel_of" not in self._cache:
             UInt32 = backend.types().UInt32
-            n = self.n_segments
-            if self.n_texels < 2 or n == 0:
-                self._cache["texel_of"] = dr.zeros(UInt32, n)
-            else:
-                self._cache["texel_of"] = run_index(dr.gather(UInt32, self.offsets_dr(),
-                                                              dr.arange(UInt32, 1, self.n_texels)), n)
+            starts = dr.gather(UInt32, self.offsets_dr(), dr.arange(UInt32, 1, self.n_texels))
+            self._cache["texel_of"] = run_index(starts, self.n_segments)
         return self._cache["texel_of"]
 
     def bounds(self) -> tuple[float, float]:

@@ -52,10 +52,7 @@ class TexelRuns:
         UInt32 = backend.types().UInt32
         nz = self.counts > 0
         tex, cnt = self.texels[nz], self.counts[nz]
-        n = int(cnt.sum())
-        if tex.size <= 1:
-            return dr.full(UInt32, int(tex[0]) if tex.size else 0, n)
-        return dr.gather(UInt32, A.to_uint32(tex), run_index(A.to_uint32(np.cumsum(cnt[:-1])), n))
+        return dr.gather(UInt32, A.to_uint32(tex), run_index(A.to_uint32(np.cumsum(cnt[:-1])), int(cnt.sum())))
 
 
 def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed: int | None = None) -> Segments:
