@@ -159,12 +159,13 @@ SLOT_BUDGET = 1 << 25
 ROUND_CAPACITY = 16
 
 
-def slot_rounds(run, const, state, cap, tally, slot_budget: int, capacity: int, times: dict):
+def slot_rounds(body, const, state, cap, tally, slot_budget: int, capacity: int, times: dict, label: str):
     """Run a lane loop to the end and gather its segments in CSR (lane) order.
 
-    ``run(const, state, bufs, slot, cap)`` resumes the lanes of ``const`` (per-lane constants)
-    from ``state``, each writing up to ``cap`` segments (z0, z1, tau) at slots ``slot + n`` of
-    ``bufs``, and returns ``(*state, n, done)``.  One round with ``cap`` slots
+    ``body(const, bufs, slot)`` is the body of loop ``label`` over ``(*state, n, done)`` for the
+    lanes of ``const`` (per-lane constants), writing segment ``n`` (z0, z1, tau) at slot ``slot
+    + n`` of ``bufs``; a round resumes every lane from ``state`` and runs it until it is done or
+    has written ``cap`` segments.  One round with ``cap`` slots
     per lane (a bound of its segments) and :func:`compact_slots` while they fit ``slot_budget``;
     otherwise, or when a lane overflowed its bound, rounds of ``capacity`` slots per unfinished
     lane, each resuming from the saved state (the same segments).  Returns ``(counts, final,
@@ -173,6 +174,11 @@ def slot_rounds(run, const, state, cap, tally, slot_budget: int, capacity: int, 
     t = backend.types()
     UInt32, Float = t.UInt32, type(state[0])
     L, K = dr.width(cap), int(capacity)
+
+    def run(cst, state, bufs, slot, cap):
+        n = dr.width(state[0])
+        return dr.while_loop(tuple(state) + (dr.zeros(UInt32, n), dr.zeros(t.Bool, n)),
+                             lambda *s: ~s[-1] & (s[-2] < cap), body(cst, bufs, slot), label=label)
     clock = time.perf_counter()
     dr.eval(cap)
     n_slots = int(dr.sum(t.UInt64(cap))[0])

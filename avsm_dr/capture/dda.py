@@ -85,7 +85,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
     (:data:`ROUND_CAPACITY`); ``slot_budget``: most slots of the one-round layout
     (:data:`SLOT_BUDGET`; 0 forces rounds)."""
     t = backend.types()
-    Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
+    Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
     stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), stats0)
     clock = time.perf_counter()
@@ -119,15 +119,11 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
         y = [dr.fma(fy, x[2 * k + 1] - x[2 * k], x[2 * k]) for k in (0, 1)]
         return dr.fma(fz, y[1] - y[0], y[0])
 
-    def run(cst, state, bufs, slot, cap):
-        """One round for the lanes of ``cst`` (their constants) from ``state``: each lane
-        writes up to ``cap`` segments at ``slot + n`` of ``bufs`` = (z0, z1, tau) and stops."""
+    def run(cst, bufs, slot):
+        """The loop body of the lanes of ``cst`` (their constants), writing segment ``n`` at
+        slot ``slot + n`` of ``bufs``."""
         ux, uy, uz, dux, duy, duz, ivx, ivy, ivz, send, tin = cst
-        n_lanes = dr.width(send)
         psx, psy, psz = (dr.select(v > 0, Int32(1), Int32(0)) for v in (dux, duy, duz))
-
-        def cond(s, cx, cy, cz, tau, sig0, it, nc, n, done):
-            return ~done & (n < cap)
 
         def body(s, cx, cy, cz, tau, sig0, it, nc, n, done):
             # ---- the block of the current cell; next plane: the cell's exit face or the block's
@@ -172,9 +168,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
             outside = (cx < -1) | (cy < -1) | (cz < -1) | (cx > WX) | (cy > WY) | (cz > WZ)
             done = (m >= send) | (tau > tau_max) | outside | (it >= it_max)
             return s1, cx, cy, cz, tau, sig0, it, nc, n, done
-
-        return dr.while_loop(tuple(state) + (dr.zeros(UInt32, n_lanes), dr.zeros(Bool, n_lanes)),
-                             cond, body, label="grid_dda")
+        return body
 
     cx0, cy0, cz0 = cell
     c0 = corners(cx0, cy0, cz0, True)
@@ -187,6 +181,7 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
               dr.zeros(UInt32, L)]             # nc: crossings integrated (occupied iterations)
     times["prep_s"] = time.perf_counter() - clock - times["lanes_s"]
 
-    counts, (iters, cross), res, st = slot_rounds(run, const, state0, cap, (6, 7), slot_budget, capacity, times)
+    counts, (iters, cross), res, st = slot_rounds(run, const, state0, cap, (6, 7), slot_budget, capacity, times,
+                                                  "grid_dda")
     return lane_output(grid, camera, lanes, counts, iters, max_iter, res,
                        {"crossings": int(cross.sum()), **st, **times}, runs)

@@ -71,7 +71,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         rounds; :func:`~._grid_lanes.slot_rounds`).
     """
     t = backend.types()
-    Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
+    Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0})
     clock = time.perf_counter()
     nb = np.array(grid.occupancy.shape[::-1], np.int64)               # (nbx, nby, nbz)
@@ -125,14 +125,9 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         ox, oy, oz, dx, dy, dz = cst[:6]
         return kern.trilinear_corners(corners, ox + dx * tt, oy + dy * tt, oz + dz * tt, active)
 
-    def run(cst, state, bufs, slot, cap):
-        """One round for the lanes of ``cst`` from ``state``: each lane writes up to ``cap``
-        segments at ``slot + n`` of ``bufs`` and stops."""
+    def run(cst, bufs, slot):
+        """The loop body of the lanes of ``cst``, writing segment ``n`` at slot ``slot + n`` of ``bufs``."""
         t_end, tdx, tdy, tdz, sx, sy, sz = cst[6:]
-        n_lanes = dr.width(t_end)
-
-        def cond(t_, bx, by, bz, mx, my, mz, tau, s0, it, n, done):
-            return ~done & (n < cap)
 
         def body(t_, bx, by, bz, mx, my, mz, tau, s0, it, n, done):
             blk_exit = dr.minimum(dr.minimum(mx, my), dr.minimum(mz, t_end))
@@ -164,9 +159,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
             outside = (bx < 0) | (by < 0) | (bz < 0) | (bx >= nbx) | (by >= nby) | (bz >= nbz)
             done = (t1 >= t_end) | (tau > tau_max) | outside | (it >= it_max)
             return t1, bx, by, bz, mx, my, mz, tau, s0, it, n, done
-
-        return dr.while_loop(tuple(state) + (dr.zeros(UInt32, n_lanes), dr.zeros(Bool, n_lanes)),
-                             cond, body, label="grid_march")
+        return body
 
     t0 = Float(t_in)
     state0 = [t0, b[0], b[1], b[2],            # t: the current ray parameter; the current block
@@ -176,5 +169,5 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
               dr.zeros(UInt32, L)]             # it: iterations (safety bound)
     times["prep_s"] = time.perf_counter() - clock - times["lanes_s"]
 
-    counts, (iters,), res, st = slot_rounds(run, const, state0, cap, (9,), slot_budget, capacity, times)
+    counts, (iters,), res, st = slot_rounds(run, const, state0, cap, (9,), slot_budget, capacity, times, "grid_march")
     return lane_output(grid, camera, lanes, counts, iters, max_iter, res, {**st, **times}, runs)
