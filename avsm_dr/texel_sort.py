@@ -19,10 +19,6 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
 Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segments.in_order>`
 and :meth:`Segments.sorted <avsm_dr.segments.Segments.sorted>`: the seeded 32-bit shuffle hash
 (:func:`shuffle_key`) and ranks within index ranges (:func:`rank_in_ranges`).
-
-Flags (counted on the device): :data:`TIE` when two words of a texel share their key,
-:data:`UNSORTED` when some texel's words were not already increasing in CSR order (always
-set when a texel exceeds 64).
 """
 from __future__ import annotations
 
@@ -36,7 +32,8 @@ from . import backend
 
 #: Largest texel sorted by a network in one lane; longer texels merge sorted blocks of it.
 MAX_NETWORK = 64
-#: Flag bits returned by :func:`sort_texels_view`.
+#: Flag bits of :func:`sort_texels_view` (counted on the device): two words of a texel share
+#: their key; some texel's words were not already increasing in CSR order (always, above 64).
 TIE, UNSORTED = 1, 2
 _PAD = 0xFFFFFFFFFFFFFFFF
 

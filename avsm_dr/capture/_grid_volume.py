@@ -114,12 +114,9 @@ class GridVolume:
             if not dr.is_tensor_v(density) or density.ndim != 3:
                 raise ValueError("density: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
             V.grid_dtype(density, "density")
-            flat = density.array
-            if dtype is None:
-                dtype = A.dtype_of(flat)
-            data = A.to_float(flat, A.float_type(dtype))
-        else:
-            dtype = dtype or "float32"
+            dtype = dtype or A.dtype_of(density.array)
+            data = A.to_float(density.array, A.float_type(dtype))
+        dtype = dtype or "float32"
         # one rule for every grid entry point: float input, 3-D, non-empty, finite, >= 0
         host = V.density_grid(density, "density", np.float64 if dtype == "float64" else np.float32)
         shape = host.shape

@@ -80,10 +80,8 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
              slot_budget: int = SLOT_BUDGET, runs: bool = False):
     """Integrate every texel ray of ``camera`` through ``grid`` exactly, one segment per
     dual-cell crossing with non-zero optical depth (with ``keep_zero`` also those of tau = 0
-    inside occupied blocks).  Returns, gradients and ``runs`` as
-    :func:`~avsm_dr.capture.grid.march`; ``capacity``: segments a lane writes per round
-    (:data:`ROUND_CAPACITY`); ``slot_budget``: most slots of the one-round layout
-    (:data:`SLOT_BUDGET`; 0 forces rounds)."""
+    inside occupied blocks).  Returns, gradients, ``runs``, ``capacity`` and ``slot_budget`` as
+    :func:`~avsm_dr.capture.grid.march`."""
     t = backend.types()
     Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
     stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}
