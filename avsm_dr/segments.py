@@ -49,7 +49,6 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
-_TIES = object()        # :meth:`Segments._network_view`: no network order (float64, costly ties)
 
 
 def device_sortable(counts: np.ndarray) -> bool:
@@ -375,16 +374,25 @@ class Segments:
         :func:`device_sortable` is false and ranks or ties are needed."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
-        view = self._network_view()
-        if view is not _TIES:
-            return view
+        UInt32 = backend.types().UInt32
+        if self.dtype == "float32":                             # words key(z0) << 32 | position
+            z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
+            pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
+                                                 layout=self._sort_plan())
+            if not flags & TIE:
+                return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
+            if device_sortable(self.counts):                    # equal z0 (runs of r cost r^2): z1, position
+                z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
+                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
+                dr.eval(pay)
+                return UInt32(pay), UInt32(start)
         if device_sortable(self.counts):
             idx = self._rank_order()
         else:
             h = self.numpy()
             tex = np.repeat(np.arange(self.n_texels), self.counts)
             idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
-        return None if idx is None else (backend.types().UInt32(idx), self.offsets_dr())
+        return None if idx is None else (UInt32(idx), self.offsets_dr())
 
     def _layout_cache(self) -> dict:
         """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""
@@ -438,25 +446,6 @@ class Segments:
         out = Segments(offsets, *(fns[k]() for k in _FIELDS), self.dtype, sorted_by_depth,
                        {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
-
-    def _network_view(self):
-        """:meth:`depth_view` by the sorting networks (equal z0: :func:`~avsm_dr.texel_sort.break_ties`),
-        or ``_TIES``: float64, or equal z0 where ``sum count^2 > DEVICE_SORT_WORK * S``."""
-        if self.n_segments < 2:
-            return None
-        if self.dtype != "float32":
-            return _TIES
-        z0 = dr.detached_t(self.Float)(dr.detach(self.z0))      # words key(z0) << 32 | position
-        pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
-                                             layout=self._sort_plan())
-        if flags & TIE:                                         # equal z0: z1, then position decide
-            if not device_sortable(self.counts):                # runs of r equal z0 cost r^2
-                return _TIES
-            z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
-            pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
-            dr.eval(pay)
-        UInt32 = backend.types().UInt32
-        return (UInt32(pay), UInt32(start)) if flags & (UNSORTED | TIE) else None
 
     def _rank_order(self):
         """:meth:`depth_order` by rank, any dtype and ties.
