@@ -453,12 +453,10 @@ class Segments:
         One lane per segment ``i`` of texel ``t``: its rank among the texel's segments,
         ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic),
         is its sorted slot, ``perm[o_t + r_i] = i``: ``sum_t count_t^2`` comparisons, no
-        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel."""
-        t = backend.types()
-        UInt32 = t.UInt32
+        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel (None:
+        in order; at least 2 segments)."""
+        UInt32 = backend.types().UInt32
         n = self.n_segments
-        if n < 2:
-            return None
         z0, z1 = dr.detach(self.z0), dr.detach(self.z1)
         tex = self.texel_of_segment()
         Float = type(z0)
@@ -472,11 +470,10 @@ class Segments:
             return None
         # ---- rank of every segment inside its texel
         off = self.offsets_dr()
-        i = dr.arange(UInt32, n)
         lo = dr.gather(UInt32, off, tex)
         rank = rank_in_ranges(lo, dr.gather(UInt32, off, tex + 1), [z0, z1])
         perm = dr.zeros(UInt32, n)
-        dr.scatter(perm, i, lo + rank)
+        dr.scatter(perm, dr.arange(UInt32, n), lo + rank)
         return perm
 
     def check_depth(self, value, name: str):

@@ -196,7 +196,8 @@ def slot_rounds(body, const, state, cap, tally, slot_budget: int, capacity: int,
         clock = time.perf_counter()                          # a lane overflowed its bound: rounds
 
     active = np.arange(L, dtype=np.int64)      # lanes of this round (indices into 0..L-1)
-    cst, rounds = const, []                    # rounds: (lanes, n per lane, buffers)
+    cst = const
+    rounds = []                                # (lanes, n per lane, buffers)
     counts = np.zeros(L, np.int64)
     final = [np.zeros(L, np.int64) for _ in tally]
     while active.size:

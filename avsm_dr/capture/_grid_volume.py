@@ -101,7 +101,8 @@ class GridVolume:
         if not isinstance(block, (int, np.integer)) or block < 1:
             raise ValueError(f"block: expected an integer >= 1, got {block!r}")
         if isinstance(density, (str, os.PathLike)):
-            path, (density, file_bbox) = density, read_vol(density, with_bbox=True)
+            path = density
+            density, file_bbox = read_vol(path, with_bbox=True)
             if density.ndim != 3:
                 raise ValueError(f"density: {path!r} has {density.shape[-1]} channels, expected 1")
             bbox = file_bbox if bbox is None else bbox

@@ -134,7 +134,8 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
         counts = np.asarray(cnt.numpy(), np.int64)
     offsets = np.zeros(n_texels + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    off, group = A.to_uint32(offsets), None
+    off = A.to_uint32(offsets)
+    group = None
     if one is None and device_sortable(counts):     # group by texel (slots from the atomic counter)
         gid = dr.zeros(UInt32, n)
         dr.scatter(gid, dr.arange(UInt32, n), dr.gather(UInt32, off, tex) + slot)   # index at its slot
