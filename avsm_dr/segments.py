@@ -335,8 +335,7 @@ class Segments:
         """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""
         near = np.zeros(self.n_texels)
         far = np.ones(self.n_texels)
-        c = self.counts
-        nz = c > 0
+        nz = self.counts > 0
         if nz.any():
             z0 = A.host(self.z0, "z0")
             z1 = A.host(self.z1, "z1")
