@@ -422,12 +422,11 @@ class Segments:
         UInt32 = backend.types().UInt32
         tex = base.texel_of_segment()
         off = base.offsets_dr()
-        i = dr.arange(UInt32, n)
+        rank = dr.arange(UInt32, n) - dr.gather(UInt32, off, tex)
         if order == "reverse_depth":     # slot r of texel t <- slot count_t - 1 - r
-            idx = dr.gather(UInt32, off, tex + 1) - 1 - (i - dr.gather(UInt32, off, tex))
+            idx = dr.gather(UInt32, off, tex + 1) - 1 - rank
         else:
-            key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
-            idx = key_order(base.counts, off, tex, key, layout=base._sort_plan())
+            idx = key_order(base.counts, off, tex, shuffle_key(seed, UInt32(tex), rank), layout=base._sort_plan())
         return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
 
     def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None, order: str | None = None) -> "Segments":

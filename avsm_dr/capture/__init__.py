@@ -111,8 +111,7 @@ class Capture:
         Returns (K,) int64 texel indices (nearest texel, clamped to the map) and (K,)
         float64 light-space depths; with ``continuous=True`` the (K, 2) float64 map
         coordinates (x, y) in texel units instead of indices, for the filters of
-        :mod:`avsm_dr.filtering` (``rep.eval(coords, depth, filter, width=cap.width,
-        height=cap.height)``).
+        :mod:`avsm_dr.filtering` (``rep.eval(coords, depth, filter, width=..., height=...)``).
 
         Points the map does not cover (:meth:`covers`: behind a spot light or outside its
         square frustum, beside a directional map's window; a cube map covers everything)
@@ -258,8 +257,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         boxes = [check_bbox(bounds, "bounds", flat=True)]
     bmin = np.array([b[0] for b in boxes])
     bmax = np.array([b[1] for b in boxes])
-    light = scene.light
-    pos = getattr(light, "position", None)                 # a light at a point (spot, point)
+    pos = getattr(scene.light, "position", None)           # a light at a point (spot, point)
     _check_range(bmin, bmax, pos, dtype)
     diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0
 
@@ -271,7 +269,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         for i, b in enumerate(blockers):
             if b.contains(pos):
                 raise ValueError(f"light: the light lies inside blockers[{i}]")
-    camera = make_camera(light, int(resolution), bmin, bmax)
+    camera = make_camera(scene.light, int(resolution), bmin, bmax)
     if grid is not None and method == "march":
         finest = MIN_STEP_FRACTION * float(grid.voxel.min())
         if step is None:
@@ -323,7 +321,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
                       **({"order_seed": order_seed} if order == "random" else {})}
     stats["combine_s"] = time.perf_counter() - t0
     stats["total_s"] = time.perf_counter() - t_start
-    return Capture(seg, camera, light, int(resolution), step, float(epsilon), stats, opaque_depth)
+    return Capture(seg, camera, scene.light, int(resolution), step, float(epsilon), stats, opaque_depth)
 
 
 def _draw_bases(blockers, grid, scene) -> dict:

@@ -57,7 +57,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
           runs: bool = False, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET):
     """March every texel ray of ``camera`` through ``grid``: (texel (S,) int64 NumPy in texel
     order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``, stats dict), each texel's segments in
-    depth order; with a grad-enabled ``grid.data``, tau is recomputed from differentiable gathers.
+    depth order (gradients: module docstring).
 
     Parameters
     ----------
