@@ -164,8 +164,7 @@ class GridVolume:
         whi = wlo + np.array(self.window_shape[::-1]) * h
         inside = np.all((p >= self.bmin) & (p <= self.bmax) & (p >= wlo) & (p <= whi), axis=1)
         x, y, z = (A.to_float(p[:, i], Float) for i in range(3))
-        k = MarchKernel(self)
-        val = k.trilinear(dr.detach(self.data), x, y, z, A.to_float(inside.astype(np.float64), Float) > 0)
+        val = MarchKernel(self).trilinear(dr.detach(self.data), x, y, z, backend.types().Bool(inside))
         return np.where(inside, np.asarray(val.numpy(), np.float64), 0.0)
 
 

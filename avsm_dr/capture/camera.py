@@ -268,9 +268,7 @@ class PerspectiveCamera(LightCamera):
         return np.asarray(t) * (2 * self.tan_half / self.res) / (cos * cos)
 
     def footprint_rects(self, bmin, bmax):
-        c = _box_corners(bmin, bmax)
-        q = c - self.position
-        x, y, zc = self._coords(q)
+        x, y, zc = self._coords(_box_corners(bmin, bmax) - self.position)
         tiny = 1e-9
         front = np.all(zc > tiny, axis=1)
         behind = np.all(zc <= tiny, axis=1)

@@ -168,11 +168,9 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
             return s1, cx, cy, cz, tau, sig0, it, nc, n, done
         return body
 
-    cx0, cy0, cz0 = cell
-    c0 = corners(cx0, cy0, cz0, True)
-    sig_start = dr.maximum(cubic(c0, const[0] - Float(cx0), const[1] - Float(cy0), const[2] - Float(cz0)), 0)
+    sig_start = dr.maximum(cubic(corners(*cell, True), *(u - Float(c) for u, c in zip(const[:3], cell))), 0)
     state0 = [dr.zeros(Float, L),              # s: ray parameter - t_in of the current point
-              cx0, cy0, cz0,                   # current dual cell (window voxel units)
+              *cell,                           # current dual cell (window voxel units)
               dr.zeros(Float, L),              # tau: optical depth integrated so far
               sig_start,                       # sig0: sigma at s
               dr.zeros(UInt32, L),             # it: iterations (safety bound)
