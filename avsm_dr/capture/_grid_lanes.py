@@ -35,17 +35,18 @@ def candidate_texels(camera, lo, hi):
 
 
 def hit_lanes(grid: GridVolume, camera, per_lane):
-    """(texels UInt32 ascending, origins, directions (lists of three Float64), t_in, t_out
+    """(texels int64 NumPy ascending, origins, directions (lists of three Float64), t_in, t_out
     (Float64), extra) of the rays that meet the grid's occupied box, ``extra`` the UInt32
     ``per_lane(o, d, t_in, t_out)`` evaluated in the kernel that makes, clips and tests every
     candidate ray.  No hit (or an all-zero grid): empty texels, and every other entry None."""
     UInt32 = backend.types().UInt32
+    none = (np.zeros(0, np.int64),) + (None,) * 5
     if grid.occupied is None:
-        return UInt32(), None, None, None, None, None
+        return none
     lo, hi = grid.occupied
     cand = candidate_texels(camera, lo, hi)
     if dr.width(cand) == 0:
-        return cand, None, None, None, None, None
+        return none
     o, d = camera.rays_device(cand)
     F64 = type(o[0])
     box = [[dr.opaque(F64, float(x)) for x in corner] for corner in (lo, hi)]   # one kernel for any box
@@ -54,13 +55,13 @@ def hit_lanes(grid: GridVolume, camera, per_lane):
     dr.eval(cand, hit, extra)
     sel = dr.compress(hit)
     if dr.width(sel) == 0:
-        return UInt32(), None, None, None, None, None
+        return none
     lanes = dr.gather(UInt32, cand, sel)
     extra = dr.gather(UInt32, extra, sel)
     dr.eval(lanes, extra)                                   # one kernel
     o, d = camera.rays_device(lanes)
     t_in, t_out, _ = ray_box_dr(o, d, *box, t_min=0.0)
-    return lanes, o, d, t_in, t_out, extra
+    return np.asarray(lanes.numpy(), np.int64), o, d, t_in, t_out, extra
 
 
 def lane_output(grid: GridVolume, camera, lanes, counts, iters, max_iter: int, res, stats: dict, runs: bool):

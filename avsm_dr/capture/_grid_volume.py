@@ -158,12 +158,11 @@ class GridVolume:
         p = V.points(points, "points", allow_empty=True)
         if self.occupied is None or p.shape[0] == 0:
             return np.zeros(p.shape[0])
-        Float = self.Float
         h = self.voxel
         wlo = self.bmin + self.window_lo * h
         whi = wlo + np.array(self.window_shape[::-1]) * h
         inside = np.all((p >= self.bmin) & (p <= self.bmax) & (p >= wlo) & (p <= whi), axis=1)
-        x, y, z = (A.to_float(p[:, i], Float) for i in range(3))
+        x, y, z = (A.to_float(p[:, i], self.Float) for i in range(3))
         val = MarchKernel(self).trilinear(dr.detach(self.data), x, y, z, backend.types().Bool(inside))
         return np.where(inside, np.asarray(val.numpy(), np.float64), 0.0)
 

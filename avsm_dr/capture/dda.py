@@ -88,11 +88,10 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), stats0)
     clock = time.perf_counter()
     # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
-    lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
-    L = dr.width(lanes_d)
+    lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
+    L = lanes.size
     if L == 0:
         return empty
-    lanes = np.asarray(lanes_d.numpy(), np.int64)
     const, cell, _ = lane_constants(grid, o, d, t_in, t_out)
     times = {"lanes_s": time.perf_counter() - clock}
 

@@ -88,11 +88,10 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
             n += 2 * (faces + 1)
         return UInt32(dr.select(dr.isfinite(n), n, 0))
 
-    lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, slots)
-    L = dr.width(lanes_d)
+    lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, slots)
+    L = lanes.size
     if L == 0:
         return empty
-    lanes = np.asarray(lanes_d.numpy(), np.int64)
     times = {"lanes_s": time.perf_counter() - clock}
 
     # ---- DDA initialisation over the block grid (float64 on the device)
