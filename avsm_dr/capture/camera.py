@@ -205,7 +205,7 @@ class OrthoCamera(LightCamera):
 
     def rays_device(self, texels):
         F64 = backend.types().Float64
-        res = _opaque_u32(self.res)
+        res = dr.opaque(type(texels), self.res)
         ts, half = (dr.opaque(F64, v) for v in (self.texel_size, self.half))
         x = (F64(texels % res) + 0.5) * ts - half
         y = (F64(texels // res) + 0.5) * ts - half
@@ -243,7 +243,7 @@ class PerspectiveCamera(LightCamera):
         self.texel_offset = int(texel_offset)
 
     def rays_device(self, texels):
-        t = texels - _opaque_u32(self.texel_offset)
+        t = texels - dr.opaque(type(texels), self.texel_offset)
         return _perspective_rays(t, self.res, self.tan_half, *(_opaque_vec(a) for a in (self.u, self.v, self.w)),
                                  _opaque_vec(self.position))
 
@@ -299,7 +299,7 @@ class CubeCamera(LightCamera):
         """Each lane reads its face's basis from (6, 3) tables: one kernel for all faces."""
         F64 = backend.types().Float64
         UInt32 = type(texels)
-        n2 = _opaque_u32(self.res * self.res)
+        n2 = dr.opaque(UInt32, self.res * self.res)
         face = texels // n2
         basis = []
         for name in ("u", "v", "w"):
@@ -336,10 +336,6 @@ class CubeCamera(LightCamera):
         return [r for cam in self.faces for r in cam.footprint_rects(bmin, bmax)]
 
 
-def _opaque_u32(v: int):
-    return dr.opaque(backend.types().UInt32, int(v))
-
-
 def _opaque_vec(a) -> list:
     """A float64 3-vector as three opaque Dr.Jit Float64 scalars."""
     return [dr.opaque(backend.types().Float64, float(x)) for x in np.asarray(a, np.float64).reshape(3)]
@@ -349,7 +345,7 @@ def _perspective_rays(t, res: int, tan_half: float, u, v, w, position):
     """Device rays of face-local texels ``t`` of a square perspective map (basis u, v, w:
     lists of Float64): the formulas of :meth:`PerspectiveCamera.rays`."""
     F64 = backend.types().Float64
-    r = _opaque_u32(res)
+    r = dr.opaque(type(t), int(res))
     rf, th = dr.opaque(F64, float(res)), dr.opaque(F64, float(tan_half))
     sx = ((F64(t % r) + 0.5) / rf * 2 - 1) * th
     sy = ((F64(t // r) + 0.5) / rf * 2 - 1) * th
