@@ -71,17 +71,14 @@ def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed:
                                     optical_depth=Float(), dtype=dtype, order=order)
     z0, z1, tau = (_concat([A.to_float(p[i], Float) for p in pieces], Float) for i in (1, 2, 3))
     offsets = np.zeros(n_texels + 1, np.int64)
-    if order == "submission":
-        key = _concat([A.to_uint32(np.asarray(k, np.uint32)) if isinstance(k, np.ndarray) else k for k in keys],
-                      backend.types().UInt32)
-        offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels)
-        z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
-    elif len(pieces) == 1 and isinstance(pieces[0][0], TexelRuns):    # one grid: in order already
-        np.cumsum(pieces[0][0].texel_counts(n_texels), out=offsets[1:])
-    elif len(pieces) == 1 and _texel_depth_sorted(pieces[0][0], pieces[0][1]):   # one piece in order
-        np.cumsum(np.bincount(np.asarray(pieces[0][0], np.int64), minlength=n_texels), out=offsets[1:])
+    single = pieces[0][0] if len(pieces) == 1 and order != "submission" else None
+    if isinstance(single, TexelRuns):                                   # one grid: in order already
+        np.cumsum(single.texel_counts(n_texels), out=offsets[1:])
+    elif single is not None and _texel_depth_sorted(single, pieces[0][1]):   # one piece in order
+        np.cumsum(np.bincount(np.asarray(single, np.int64), minlength=n_texels), out=offsets[1:])
     else:
-        offsets, perm = texel_key_order([p[0] for p in pieces], None, n_texels, z0=z0)
+        key = None if order != "submission" else _concat([A.to_uint32(k) for k in keys], backend.types().UInt32)
+        offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels, z0=z0)
         z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
     # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
     # build the CSR directly (Segments.from_arrays would copy everything to the host again)
