@@ -1,7 +1,7 @@
 """Spherical particles as light-aligned segments (Salvi et al., "Adaptive Volumetric Shadow
 Maps", EGSR 2010, sec. 3: "a segment representing the ray's traversal through the particle").
 
-A texel ray ``o + t d`` (|d| = 1) meets the sphere (c, r) where its distance to the
+A texel ray ``o + t d`` (``|d| = 1``) meets the sphere (c, r) where its distance to the
 centre ``b = |(c - o) - ((c - o) . d) d|`` is below r; the segment is the exact chord ::
 
     z0, z1 = (c - o) . d -+ sqrt(r^2 - b^2),      tau = sigma * (z1 - z0)
