@@ -503,8 +503,7 @@ class Segments:
         if np.any(arr != np.round(arr)) or np.any(arr < 0) or np.any(arr >= self.n_texels):
             raise ValueError(f"texels: indices must be integers in [0, {self.n_texels})")
         texels = arr.astype(np.int64)
-        c = self.counts[texels]
-        off = np.concatenate([[0], np.cumsum(c)]).astype(np.int64)
+        off = np.concatenate([[0], np.cumsum(self.counts[texels])]).astype(np.int64)
         idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels])
         if idx.size == 0:
             Float = self.Float

@@ -283,7 +283,6 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     # ---- segments of every content kind: pieces (texel, z0, z1, tau[, draw key])
     pieces = []
     bases = _draw_bases(blockers, grid, scene) if drawn else None
-    UInt32 = backend.types().UInt32
 
     def add(kind, t0, piece, key, inline=True, **st):
         stats[kind] = {**st, "segments": int(piece[0].size), "seconds": time.perf_counter() - t0}
@@ -294,7 +293,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         tex, z0, z1, tau, st = (traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True) if method == "exact"
                                 else march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True))
         add("grid", t0, (tex, z0, z1, tau),
-            lambda: dr.opaque(UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
+            lambda: dr.opaque(backend.types().UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
     if scene.particles is not None:
         t0 = time.perf_counter()
         *piece, pid = _particles.capture_particles(camera, scene.particles, Float)

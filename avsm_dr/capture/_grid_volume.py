@@ -140,8 +140,7 @@ class GridVolume:
                 occupied = (lo + np.maximum(imin - 0.5, 0) * h, lo + np.minimum(imax + 1.5, n) * h)
                 w0, w1 = np.maximum(imin - 1, 0), np.minimum(imax + 1, n - 1)
         else:
-            nb = [-(-s // block) for s in shape]
-            occ = np.ones(nb, np.float32)
+            occ = np.ones([-(-s // block) for s in shape], np.float32)
             occupied = (lo.copy(), hi.copy())
             w0, w1 = np.zeros(3, np.int64), n - 1
         Float = A.float_type(dtype)
