@@ -21,14 +21,13 @@ def check_in_dtype(arr: np.ndarray, name: str, dtype: str) -> np.ndarray:
     """``arr`` (float64 host values, finite) checked to be finite once stored in
     ``dtype``; returns it with subnormal values (in ``dtype``) set to 0."""
     info = np.finfo(np_dtype(dtype))
-    if arr.size:
-        with np.errstate(over="ignore"):
-            bad = ~np.isfinite(arr.astype(info.dtype))
-        if bad.any():
-            what = (f"{float(arr[0]):g} overflows" if arr.size == 1 else
-                    f"{int(np.count_nonzero(bad))} value(s) overflow (e.g. {float(arr[bad][0]):g})")
-            raise ValueError(f"{name}: {what} the {dtype} storage (|x| <= {float(info.max):.6g}); "
-                             f"rescale the scene{OVERFLOW_HINT[dtype]}")
+    with np.errstate(over="ignore"):
+        bad = ~np.isfinite(arr.astype(info.dtype))
+    if bad.any():
+        what = (f"{float(arr[0]):g} overflows" if arr.size == 1 else
+                f"{int(np.count_nonzero(bad))} value(s) overflow (e.g. {float(arr[bad][0]):g})")
+        raise ValueError(f"{name}: {what} the {dtype} storage (|x| <= {float(info.max):.6g}); "
+                         f"rescale the scene{OVERFLOW_HINT[dtype]}")
     return check_tiny(arr, dtype)
 
 

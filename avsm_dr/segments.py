@@ -27,8 +27,8 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
-from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels,
-                         sort_texels_view, view_order)
+from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels_view,
+                         view_order)
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -49,7 +49,6 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
-_TIES = object()        # :meth:`Segments._network_view`: no network order (float64, costly ties)
 
 
 def device_sortable(counts: np.ndarray) -> bool:
@@ -65,9 +64,27 @@ def run_index(starts, n: int):
     inclusive prefix sum (``n`` opaque, mode Local: no compile per size)."""
     UInt32 = backend.types().UInt32
     flag = dr.zeros(UInt32, n)
+    if n == 0 or dr.width(starts) == 0:             # one run (or nothing)
+        return flag
     dr.scatter_reduce(dr.ReduceOp.Add, flag, UInt32(1), starts, starts < dr.opaque(UInt32, n),
                       mode=dr.ReduceMode.Local)
     return dr.cumsum(flag)
+
+
+def key_order(counts: np.ndarray, offsets_dr, texel, key, group=None, layout=None):
+    """The permutation (Dr.Jit UInt32, S) sorting segments by ``(texel, key, index)``: ``texel``
+    and ``key`` (< 2^32) UInt32 per segment; ``group`` = (index, texel) of every CSR position
+    when the segments are not in texel order (None: they are).  On the device (words ``key << 32
+    | index``, :func:`~avsm_dr.texel_sort.sort_texels_view` with ``layout``) where
+    :func:`device_sortable`, else one stable host argsort of ``texel << 32 | key``."""
+    UInt32 = backend.types().UInt32
+    if not device_sortable(counts):
+        word = (np.asarray(texel.numpy(), np.uint64) << np.uint64(32)) | np.asarray(key.numpy(), np.uint64)
+        return A.to_uint32(np.argsort(word, kind="stable").astype(np.uint32))
+    U32 = dr.detached_t(UInt32)
+    index, gtex = (dr.arange(UInt32, dr.width(texel)), texel) if group is None else group
+    pay, base, _ = sort_texels_view(counts, offsets_dr, "index", (U32(index), U32(key)), ties=False, layout=layout)
+    return UInt32(view_order(pay, base, U32(offsets_dr), U32(gtex)))
 
 
 def _per_segment(x, name: str, n: int) -> np.ndarray:
@@ -172,8 +189,7 @@ class Segments:
             the insertion order the arrays are in, one of :data:`ORDERS` (a label recorded
             as :attr:`order`, not checked against the depths).
         """
-        if not (isinstance(order, str) and order in ORDERS):
-            raise ValueError(f"order: expected one of {ORDERS}, got {order!r}")
+        V.one_of(order, "order", ORDERS)
         off = A.host(offsets, "offsets", np.float64)
         if off.ndim != 1 or off.size < 2:
             raise ValueError(f"offsets: expected a 1-D array of T+1 >= 2 entries, got shape {off.shape}")
@@ -187,10 +203,8 @@ class Segments:
         off = off.astype(np.int64)
         n = int(off[-1])
         if dtype is None:
-            dtype = "float32"
-            for x in (z0, z1, transmittance, optical_depth):
-                if A.is_drjit(x) and A.dtype_of(x) == "float64":
-                    dtype = "float64"
+            f64 = any(A.is_drjit(x) and A.dtype_of(x) == "float64" for x in (z0, z1, transmittance, optical_depth))
+            dtype = "float64" if f64 else "float32"
         Float = A.float_type(dtype)
         z0h, z1h = _per_segment(z0, "z0", n), _per_segment(z1, "z1", n)
         z0f = check_in_dtype(z0h, "z0", dtype)
@@ -288,11 +302,6 @@ class Segments:
     def max_count(self) -> int:
         return int(self.counts.max()) if self.n_texels else 0
 
-    @property
-    def transmittance(self):
-        """Exit transmittance exp(-tau) of each segment (Dr.Jit)."""
-        return dr.exp(-self.optical_depth)
-
     def _sort_plan(self) -> dict:
         """:func:`~avsm_dr.texel_sort.plan` of these counts (cached)."""
         if "sort_plan" not in self._cache:
@@ -310,12 +319,8 @@ class Segments:
         ``texel(i) = #{k in 1..T-1 : offsets[k] <= i}`` (:func:`run_index`)."""
         if "texel_of" not in self._cache:
             UInt32 = backend.types().UInt32
-            n = self.n_segments
-            if self.n_texels < 2 or n == 0:
-                self._cache["texel_of"] = dr.zeros(UInt32, n)
-            else:
-                self._cache["texel_of"] = run_index(dr.gather(UInt32, self.offsets_dr(),
-                                                              dr.arange(UInt32, 1, self.n_texels)), n)
+            starts = dr.gather(UInt32, self.offsets_dr(), dr.arange(UInt32, 1, self.n_texels))
+            self._cache["texel_of"] = run_index(starts, self.n_segments)
         return self._cache["texel_of"]
 
     def bounds(self) -> tuple[float, float]:
@@ -323,17 +328,14 @@ class Segments:
         if self.n_segments == 0:
             return 0.0, 1.0
         if "bounds" not in self._cache:  # reduced on the device: no host copy of S values
-            lo = dr.min(dr.detach(self.z0))
-            hi = dr.max(dr.detach(self.z1))
-            self._cache["bounds"] = (float(lo[0]), float(hi[0]))
+            self._cache["bounds"] = (float(dr.min(dr.detach(self.z0))[0]), float(dr.max(dr.detach(self.z1))[0]))
         return self._cache["bounds"]
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""
         near = np.zeros(self.n_texels)
         far = np.ones(self.n_texels)
-        c = self.counts
-        nz = c > 0
+        nz = self.counts > 0
         if nz.any():
             z0 = A.host(self.z0, "z0")
             z1 = A.host(self.z1, "z1")
@@ -344,57 +346,52 @@ class Segments:
 
     def numpy(self) -> dict[str, np.ndarray]:
         """Host copies (float64) of offsets, z0, z1, optical_depth."""
-        return {
-            "offsets": self.offsets.copy(),
-            "z0": A.host(self.z0, "z0"),
-            "z1": A.host(self.z1, "z1"),
-            "optical_depth": A.host(self.optical_depth, "optical_depth"),
-        }
+        return {"offsets": self.offsets.copy(), **{k: A.host(getattr(self, k), k) for k in _FIELDS}}
 
     def sorted(self) -> "Segments":
         """Segments of each texel sorted by (z0, z1), ties in their stored order (a stable
         lexsort, :meth:`depth_order`); gradients follow the permutation."""
-        return self if self.sorted_by_depth else self._reordered(self.depth_order())
+        if self.sorted_by_depth:
+            return self
+        return self._gathered(self.offsets, self.depth_order(), True, self._layout_cache(), "depth")
 
     def depth_order(self):
         """The permutation (Dr.Jit UInt32, S) that sorts each texel's segments by (z0, z1),
-        ties in stored order; None when they are already in order.
-
-        float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels` (words ``key(z0) << 32 |
-        position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
-        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
-        :func:`device_sortable` is false and ranks or ties are needed."""
-        view = self._network_view()
-        if view is _TIES:
-            return self._exact_order()
+        ties in stored order; None when they are already in order (:meth:`depth_view`)."""
+        view = self.depth_view()
         return None if view is None else view_order(*view, self.offsets_dr(), self.texel_of_segment())
-
-    def _exact_order(self):
-        """Permutation (or None: in order) by (z0, z1, position): :meth:`_rank_order`, or a host
-        lexsort where :func:`device_sortable` is false."""
-        if device_sortable(self.counts):
-            return self._rank_order()
-        h = self.numpy()
-        tex = np.repeat(np.arange(self.n_texels), self.counts)
-        return A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
 
     def depth_view(self):
         """The order of :meth:`sorted` without sorted copies, for a consumer walking each texel
         (e.g. the AVSM build): None when every texel is already in order, else ``(index,
         start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in (z0, z1) order is segment
-        ``index[start[t] + r]``."""
+        ``index[start[t] + r]``.
+
+        float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
+        | position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
+        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
+        :func:`device_sortable` is false and ranks or ties are needed."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
-        view = self._network_view()
-        if view is _TIES:
-            idx = self._exact_order()
-            return None if idx is None else (backend.types().UInt32(idx), self.offsets_dr())
-        return view
-
-    def _reordered(self, idx) -> "Segments":
-        """Sorted Segments: ``idx`` gathered (None: already in order); same offsets, so the
-        device copies of offsets, texels and the sort layout carry over."""
-        return self._gathered(self.offsets, idx, True, self._layout_cache(), "depth")
+        UInt32 = backend.types().UInt32
+        if self.dtype == "float32":                             # words key(z0) << 32 | position
+            z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
+            pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
+                                                 layout=self._sort_plan())
+            if not flags & TIE:
+                return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
+            if device_sortable(self.counts):                    # equal z0 (runs of r cost r^2): z1, position
+                z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
+                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
+                dr.eval(pay)
+                return UInt32(pay), UInt32(start)
+        if device_sortable(self.counts):
+            idx = self._rank_order()
+        else:
+            h = self.numpy()
+            tex = np.repeat(np.arange(self.n_texels), self.counts)
+            idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
+        return None if idx is None else (UInt32(idx), self.offsets_dr())
 
     def _layout_cache(self) -> dict:
         """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""
@@ -412,8 +409,7 @@ class Segments:
 
         seed: integer in [0, 2^32) of ``'random'`` (default 0; ValueError naming ``seed``
         when given with another order)."""
-        if not (isinstance(order, str) and order in REORDERS):
-            raise ValueError(f"order: expected one of {REORDERS}, got {order!r}")
+        V.one_of(order, "order", REORDERS)
         if seed is not None and order != "random":
             raise ValueError(f"seed: only the 'random' order takes a seed, got seed={seed!r} with order={order!r}")
         seed = V.integer(0 if seed is None else seed, "seed", 0, 2**32 - 1)
@@ -426,21 +422,11 @@ class Segments:
         UInt32 = backend.types().UInt32
         tex = base.texel_of_segment()
         off = base.offsets_dr()
-        i = dr.arange(UInt32, n)
+        rank = dr.arange(UInt32, n) - dr.gather(UInt32, off, tex)
         if order == "reverse_depth":     # slot r of texel t <- slot count_t - 1 - r
-            idx = dr.gather(UInt32, off, tex + 1) - 1 - (i - dr.gather(UInt32, off, tex))
+            idx = dr.gather(UInt32, off, tex + 1) - 1 - rank
         else:
-            if not device_sortable(base.counts):                # host: the same keys, np.lexsort
-                tex_h = np.repeat(np.arange(base.n_texels, dtype=np.int64), base.counts)
-                rank = np.arange(n, dtype=np.int64) - base.offsets[tex_h]
-                key = shuffle_key(seed, tex_h.astype(np.uint32), rank.astype(np.uint32))
-                idx = A.to_uint32(np.lexsort((rank, key, tex_h)).astype(np.uint32))
-            else:                                               # words key << 32 | position
-                key = shuffle_key(seed, UInt32(tex), i - dr.gather(UInt32, off, tex))
-                U32 = dr.detached_t(UInt32)
-                perm, _ = sort_texels(base.counts, off, tex, "index", (U32(i), U32(key)), ties=False,
-                                      layout=base._sort_plan())
-                idx = UInt32(perm)
+            idx = key_order(base.counts, off, tex, shuffle_key(seed, UInt32(tex), rank), layout=base._sort_plan())
         return base._gathered(base.offsets, idx, False, base._layout_cache(), order)
 
     def _gathered(self, offsets, idx, sorted_by_depth: bool, cache=None, order: str | None = None) -> "Segments":
@@ -459,37 +445,16 @@ class Segments:
                        {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
 
-    def _network_view(self):
-        """:meth:`depth_view` by the sorting networks (equal z0: :func:`~avsm_dr.texel_sort.break_ties`),
-        or ``_TIES``: float64, or equal z0 where ``sum count^2 > DEVICE_SORT_WORK * S``."""
-        if self.n_segments < 2:
-            return None
-        if self.dtype != "float32":
-            return _TIES
-        z0 = dr.detached_t(self.Float)(dr.detach(self.z0))      # words key(z0) << 32 | position
-        pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
-                                             layout=self._sort_plan())
-        if flags & TIE:                                         # equal z0: z1, then position decide
-            if not device_sortable(self.counts):                # runs of r equal z0 cost r^2
-                return _TIES
-            z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
-            pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
-            dr.eval(pay)
-        UInt32 = backend.types().UInt32
-        return (UInt32(pay), UInt32(start)) if flags & (UNSORTED | TIE) else None
-
     def _rank_order(self):
         """:meth:`depth_order` by rank, any dtype and ties.
 
         One lane per segment ``i`` of texel ``t``: its rank among the texel's segments,
         ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic),
         is its sorted slot, ``perm[o_t + r_i] = i``: ``sum_t count_t^2`` comparisons, no
-        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel."""
-        t = backend.types()
-        UInt32 = t.UInt32
+        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel (None:
+        in order; at least 2 segments)."""
+        UInt32 = backend.types().UInt32
         n = self.n_segments
-        if n < 2:
-            return None
         z0, z1 = dr.detach(self.z0), dr.detach(self.z1)
         tex = self.texel_of_segment()
         Float = type(z0)
@@ -503,11 +468,10 @@ class Segments:
             return None
         # ---- rank of every segment inside its texel
         off = self.offsets_dr()
-        i = dr.arange(UInt32, n)
         lo = dr.gather(UInt32, off, tex)
         rank = rank_in_ranges(lo, dr.gather(UInt32, off, tex + 1), [z0, z1])
         perm = dr.zeros(UInt32, n)
-        dr.scatter(perm, i, lo + rank)
+        dr.scatter(perm, dr.arange(UInt32, n), lo + rank)
         return perm
 
     def check_depth(self, value, name: str):
@@ -539,10 +503,8 @@ class Segments:
         if np.any(arr != np.round(arr)) or np.any(arr < 0) or np.any(arr >= self.n_texels):
             raise ValueError(f"texels: indices must be integers in [0, {self.n_texels})")
         texels = arr.astype(np.int64)
-        c = self.counts[texels]
-        off = np.concatenate([[0], np.cumsum(c)]).astype(np.int64)
-        idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels]) \
-            if texels.size else np.zeros(0, np.int64)
+        off = np.concatenate([[0], np.cumsum(self.counts[texels])]).astype(np.int64)
+        idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels])
         if idx.size == 0:
             Float = self.Float
             return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth, order=self.order)

@@ -19,10 +19,6 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
 Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segments.in_order>`
 and :meth:`Segments.sorted <avsm_dr.segments.Segments.sorted>`: the seeded 32-bit shuffle hash
 (:func:`shuffle_key`) and ranks within index ranges (:func:`rank_in_ranges`).
-
-Flags (counted on the device): :data:`TIE` when two words of a texel share their key,
-:data:`UNSORTED` when some texel's words were not already increasing in CSR order (always
-set when a texel exceeds 64).
 """
 from __future__ import annotations
 
@@ -36,7 +32,8 @@ from . import backend
 
 #: Largest texel sorted by a network in one lane; longer texels merge sorted blocks of it.
 MAX_NETWORK = 64
-#: Flag bits returned by :func:`sort_texels`.
+#: Flag bits of :func:`sort_texels_view` (counted on the device): two words of a texel share
+#: their key; some texel's words were not already increasing in CSR order (always, above 64).
 TIE, UNSORTED = 1, 2
 _PAD = 0xFFFFFFFFFFFFFFFF
 
@@ -227,32 +224,22 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     return out
 
 
-def sort_texels(counts: np.ndarray, offsets_dr, texel_of, kind: str, sources, ties: bool = True, layout=None):
-    """``(payloads, flags)``: ``payloads`` (Dr.Jit UInt32, S, lazy) holds at CSR position
-    ``o_t + r`` the payload (low 32 bits) of texel ``t``'s ``r``-th smallest word; ``flags``
-    the :data:`TIE` / :data:`UNSORTED` bits (a Python int; one device round trip).
-
-    counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; texel_of:
-    (S,) UInt32 texel of every segment; kind, sources: the words (:func:`word_function`),
-    distinct inside a texel; ties: look for equal keys; layout: :func:`plan` of these counts
-    (computed when None)."""
-    lay = plan(counts, offsets_dr) if layout is None else layout
-    pay, base, flags = sort_texels_view(counts, offsets_dr, kind, sources, ties, lay)
-    return view_order(pay, base, lay["off"], _types()[0](texel_of)), flags
-
-
 def view_order(payloads, base, offsets_dr, texel_of):
     """The permutation of a :func:`sort_texels_view` layout: segment ``i`` of texel ``t`` gets
-    ``payloads[base[t] + i - offsets[t]]`` (all UInt32 of ``texel_of``'s type)."""
+    ``payloads[base[t] + i - offsets[t]]`` (UInt32 of ``texel_of``'s type)."""
     UInt32 = type(texel_of)
     local = dr.arange(UInt32, dr.width(texel_of)) - dr.gather(UInt32, offsets_dr, texel_of)
     return dr.gather(UInt32, payloads, dr.gather(UInt32, base, texel_of) + local)
 
 
 def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):
-    """``(payloads, base, flags)`` without the final permutation: texel ``t``'s ``r``-th
-    smallest word has its payload at ``payloads[base[t] + r]`` (both Dr.Jit UInt32,
-    evaluated), for a consumer that walks each texel.  Arguments as :func:`sort_texels`."""
+    """``(payloads, base, flags)``: texel ``t``'s ``r``-th smallest word has its payload (low
+    32 bits) at ``payloads[base[t] + r]`` (both Dr.Jit UInt32, evaluated; the permutation:
+    :func:`view_order`); ``flags`` the :data:`TIE` / :data:`UNSORTED` bits (a Python int).
+
+    counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; kind, sources:
+    the words (:func:`word_function`), distinct inside a texel; ties: look for equal keys;
+    layout: :func:`plan` of these counts (computed when None)."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay = dr.empty(UInt32, lay["total"])
@@ -329,11 +316,6 @@ def _mix32(x, c1, c2):
 _MIX = (0x7FEB352D, 0x846CA68B)
 
 
-def _seed_word(seed: int) -> int:
-    """``lowbias32(seed)`` as a Python int (the seed's share of :func:`shuffle_key`)."""
-    return int(_mix32(np.array([seed], np.uint32), *(np.uint32(c) for c in _MIX))[0])
-
-
 def shuffle_key(seed: int, texel, rank):
     """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
     ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
@@ -341,14 +323,12 @@ def shuffle_key(seed: int, texel, rank):
     NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
     opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
     (seed, texel, its segment count) only, not on threads or on the order it came in."""
+    c = tuple(np.uint32(m) for m in _MIX)
+    s = int(_mix32(np.array([seed], np.uint32), *c)[0])
     if isinstance(texel, np.ndarray):
-        c1, c2 = (np.uint32(c) for c in _MIX)
-        s = np.uint32(_seed_word(seed))
         with np.errstate(over="ignore"):
-            return _mix32(_mix32(texel.astype(np.uint32) + s, c1, c2) + rank.astype(np.uint32), c1, c2)
-    UInt32 = type(texel)
-    s = dr.opaque(UInt32, _seed_word(seed))
-    return _mix32(_mix32(texel + s, *_MIX) + rank, *_MIX)
+            return _mix32(_mix32(texel.astype(np.uint32) + np.uint32(s), *c) + rank.astype(np.uint32), *c)
+    return _mix32(_mix32(texel + dr.opaque(type(texel), s), *_MIX) + rank, *_MIX)
 
 
 def rank_in_ranges(lo, hi, keys):

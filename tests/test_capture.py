@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 import avsm_dr as ad
 import drjit as dr
 from avsm_dr.capture import GridVolume, load_tfx, procedural_strands
-from avsm_dr.capture.grid import block_max
+from avsm_dr.capture._grid_volume import block_max
 from avsm_dr.capture.hair import merge_crossings
 from avsm_dr.io import read_vol, write_vol
 from avsm_dr.scene import (DirectionalLight, Hair, OpaqueBox, OpaquePlane, OpaqueSphere, Particles,

@@ -15,7 +15,8 @@ import avsm_dr as ad
 import drjit as dr
 from avsm_dr import segments as S
 from avsm_dr.capture import ORDERS
-from avsm_dr.capture.grid import SUBMISSION_BRICK, GridVolume
+from avsm_dr.capture import GridVolume
+from avsm_dr.capture._grid_lanes import SUBMISSION_BRICK
 from avsm_dr.scene import DirectionalLight, Hair, OpaqueSphere, Particles, Scene, SpotLight
 from avsm_dr.segments import OPAQUE_OPTICAL_DEPTH, Segments, shuffle_key
 

@@ -187,7 +187,8 @@ def test_capture_assembly_on_the_device_matches_the_host_order(backend, rng, lay
         pieces.append((tex, z0, z0 + rng.random(n), rng.random(n)))
     tex_h = np.concatenate([np.asarray(p[0], np.int64) for p in pieces])
     z0_h = np.concatenate([np.asarray(p[1], np.float32) for p in pieces]).astype(np.float64)
-    perm = asm.host_order(tex_h, z0_h)      # a single piece in texel order is sorted by depth too
+    zq = ((z0_h - z0_h.min()) * ((2.0 ** 32 - 1) / np.ptp(z0_h))).astype(np.uint64)    # z0 in 32 bits
+    perm = np.argsort((tex_h.astype(np.uint64) << np.uint64(32)) | zq, kind="stable")   # stable by texel, zq
     off = np.concatenate([[0], np.cumsum(np.bincount(tex_h, minlength=T))])
     results = [asm.combine(pieces, T, Float)]
     monkeypatch.setattr(ad.segments, "DEVICE_SORT_WORK", 0)          # host fallback

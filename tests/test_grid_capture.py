@@ -11,7 +11,8 @@ from helpers import compiled_kernels
 import drjit as dr
 from avsm_dr.capture import GridVolume
 from avsm_dr.capture.camera import make_camera
-from avsm_dr.capture.dda import dual_block_max, traverse
+from avsm_dr.capture._grid_volume import dual_block_max
+from avsm_dr.capture.dda import traverse
 from avsm_dr.scene import DirectionalLight, Scene
 from reference import capture_ref as R
 from reference import grid_quadrature_ref as Q
@@ -250,7 +251,7 @@ def test_rounds_give_the_same_segments_as_one_round(keep_zero):
 def test_device_ray_setup_matches_the_host_bit_for_bit(light):
     """Rays, slab clipping and candidate texels made on the device in float64 (no host round
     trip: 0.45 s of a 1.2 s plume capture at 1024^2 was host ray setup) equal the host's."""
-    from avsm_dr.capture.grid import candidate_texels
+    from avsm_dr.capture._grid_lanes import candidate_texels
     from avsm_dr.geometry import ray_box, ray_box_dr
     g = GridVolume.prepare(small_grid(), BBOX)
     cam = _camera(g, LIGHTS[light], res=48)
@@ -269,16 +270,20 @@ def test_device_ray_setup_matches_the_host_bit_for_bit(light):
         assert np.array_equal(np.asarray(x.numpy())[hit], y[hit])
 
 
-def test_corner_table_and_gathers_give_the_same_segments(monkeypatch):
+@pytest.mark.parametrize("method", ["exact", "march"])
+def test_corner_table_and_gathers_give_the_same_segments(monkeypatch, method):
     """The packet load of a dual cell's 8 corners from the corner table reads the same values
-    as 8 gathers from the padded window (the fallback for windows above the table budget)."""
+    as 8 gathers from the padded window (the fallback for windows above the table budget;
+    the march crashed there before it shared the exact capture's corner reader)."""
     from avsm_dr.capture import _grid_volume
+    from avsm_dr.capture.grid import march
     d = small_grid()
     out = []
     for cells in (_grid_volume.CORNER_TABLE_CELLS, 0):
         monkeypatch.setattr(_grid_volume, "CORNER_TABLE_CELLS", cells)
         g = GridVolume.prepare(d, BBOX)
-        tex, z0, z1, tau, _ = traverse(g, _camera(g, LIGHTS["spot"]), 1e-4)
+        cam = _camera(g, LIGHTS["spot"])
+        tex, z0, z1, tau, _ = traverse(g, cam, 1e-4) if method == "exact" else march(g, cam, 0.02, 1e-4)
         out.append([tex] + _host(z0, z1, tau))
         assert (g._dual_cache["table"] is None) == (cells == 0)
     for other in out[1:]:
@@ -305,19 +310,18 @@ def test_capture_at_a_new_resolution_compiles_nothing(method):
 
 
 @pytest.mark.parametrize("keep_zero", [False, True])
-def test_march_one_pass_equals_two_passes(monkeypatch, keep_zero):
+def test_march_one_pass_equals_rounds(keep_zero):
     """The march's one pass into slots (a bound of each lane's segments, then compaction) writes
-    exactly the segments of the counting pass + writing pass (its fallback when the slots exceed
-    the budget or a lane fills its slots)."""
+    exactly the segments of rounds of 2 slots per lane (its fallback when the slots exceed the
+    budget or a lane fills its slots; lanes continue from where they stopped)."""
     from avsm_dr.capture import grid as G
     g = GridVolume.prepare(small_grid(), BBOX, skip_empty=not keep_zero)
     cam = _camera(g, LIGHTS["point"])
     out = []
-    for budget in (G.MARCH_SLOT_BUDGET, 0):
-        monkeypatch.setattr(G, "MARCH_SLOT_BUDGET", budget)
-        tex, z0, z1, tau, st = G.march(g, cam, 0.02, 1e-4, keep_zero=keep_zero)
-        assert ("slots" in st) == (budget > 0) and st["segments"] > 100
-        out.append([tex] + _host(z0, z1, tau))
+    for budget in (G.SLOT_BUDGET, 0):
+        tex, z0, z1, tau, st = G.march(g, cam, 0.02, 1e-4, keep_zero=keep_zero, capacity=2, slot_budget=budget)
+        assert ("slots" in st) == (budget > 0) and st["segments"] > 100 and (st["rounds"] > 5) == (budget == 0)
+        out.append([tex] + _host(z0, z1, tau) + [st["iterations"]])
     for other in out[1:]:
         for x, y in zip(out[0], other):
             assert np.array_equal(x, y)

@@ -50,10 +50,8 @@ RESOLUTION_RANGE = (64, 1024)
 #:   (``submission="back_to_front"``, :func:`~.particles.draw_ranks`); then the hair strands
 #:   in list order, a strand's crossings in vertex order.
 #: * ``"depth"``: front to back (z0 quantised to 32 bits over the depth range; equal values in
-#:   content order: grid, particles, hair, blockers).
-#: * ``"reverse_depth"``: back to front, each texel's ``"depth"`` order reversed.
-#: * ``"random"``: a seeded shuffle of each texel's ``"depth"`` order (``order_seed``,
-#:   :meth:`~avsm_dr.segments.Segments.in_order`): the same seed, the same order.
+#:   content order: grid, particles, hair, blockers); ``"reverse_depth"`` and ``"random"``
+#:   (seed ``order_seed``): as :meth:`~avsm_dr.segments.Segments.in_order`.
 ORDERS = ("submission", "depth", "reverse_depth", "random")
 #: Particle draw orders of ``order="submission"`` (``submission=``), the default first.
 SUBMISSIONS = ("list", "back_to_front")
@@ -113,8 +111,7 @@ class Capture:
         Returns (K,) int64 texel indices (nearest texel, clamped to the map) and (K,)
         float64 light-space depths; with ``continuous=True`` the (K, 2) float64 map
         coordinates (x, y) in texel units instead of indices, for the filters of
-        :mod:`avsm_dr.filtering` (``rep.eval(coords, depth, filter, width=cap.width,
-        height=cap.height)``).
+        :mod:`avsm_dr.filtering` (``rep.eval(coords, depth, filter, width=..., height=...)``).
 
         Points the map does not cover (:meth:`covers`: behind a spot light or outside its
         square frustum, beside a directional map's window; a cube map covers everything)
@@ -123,9 +120,7 @@ class Capture:
         every segment, so ``rep.eval`` returns 1 for them.
         """
         coords, depth, _ = self._lookup(points)
-        if continuous:
-            return coords, depth
-        return self.camera.texel_index(coords), depth
+        return (coords if continuous else self.camera.texel_index(coords)), depth
 
     def _lookup(self, points):
         """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
@@ -133,8 +128,7 @@ class Capture:
         out = ~self.camera.covers(coords)
         if out.any():
             depth = np.where(out, OUTSIDE_DEPTH, depth)
-            coords[out, 0] = np.clip(coords[out, 0], 0.5, self.width - 0.5)
-            coords[out, 1] = np.clip(coords[out, 1], 0.5, self.height - 0.5)
+            coords[out] = np.clip(coords[out], 0.5, [self.width - 0.5, self.height - 0.5])
         return coords, depth, out
 
     def covers(self, points) -> np.ndarray:
@@ -175,7 +169,15 @@ def _check_order(order, submission, order_seed) -> tuple[str, str, int | None]:
     return order, submission, seed
 
 
-def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
+def _check_params(scene, resolution, step, epsilon, opaque_bias, opaque_slope_bias):
+    """The checks of :func:`capture`'s scene (type, light, receivers, some content) and
+    numeric arguments; ValueError names the argument or the scene's field."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
+    check_light(scene.light)
+    V.points(scene.receivers, "receivers", allow_empty=True)
+    if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
+        raise ValueError("scene: no content (density, particles, hair or blockers)")
     V.integer(resolution, "resolution", *RESOLUTION_RANGE)
     if step is not None:
         V.real(step, "step", 0.0, open_min=True)
@@ -183,16 +185,6 @@ def _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias):
     if opaque_bias is not None:
         V.real(opaque_bias, "opaque_bias", 0.0, open_min=True)
     V.real(opaque_slope_bias, "opaque_slope_bias", 0.0)
-
-
-def validate_scene(scene: Scene) -> None:
-    """The scene checks of :func:`capture` (type, light, receivers, some content); ValueError names the field."""
-    if not isinstance(scene, Scene):
-        raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
-    check_light(scene.light)
-    V.points(scene.receivers, "receivers", allow_empty=True)
-    if scene.density is None and scene.particles is None and scene.hair is None and not scene.blockers:
-        raise ValueError("scene: no content (density, particles, hair or blockers)")
 
 
 def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsilon: float = 1e-4, *,
@@ -240,8 +232,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     Capture
         the segments, the light camera and the capture's statistics.
     """
-    validate_scene(scene)
-    _check_params(resolution, step, epsilon, opaque_bias, opaque_slope_bias)
+    _check_params(scene, resolution, step, epsilon, opaque_bias, opaque_slope_bias)
     order, submission, order_seed = _check_order(order, submission, order_seed)
     drawn = order == "submission"          # pieces carry a draw key per segment
     method = check_method(method, step)
@@ -250,30 +241,23 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     t_start = time.perf_counter()
 
     # ---- content and its world bounds
-    grid = None
     dens = scene.density if density is None else density
-    if dens is not None:
-        grid = GridVolume.prepare(dens, scene.bbox, block=block, dtype=dtype, skip_empty=not keep_zero)
+    grid = None if dens is None else GridVolume.prepare(dens, scene.bbox, block=block, dtype=dtype,
+                                                        skip_empty=not keep_zero)
     if dtype is None:
         dtype = grid.dtype if grid is not None else "float32"
     Float = A.float_type(dtype)
     if grid is not None and grid.dtype != dtype:
         raise ValueError(f"dtype: {dtype!r} differs from the prepared grid's {grid.dtype!r}")
     blockers = validate_blockers(scene.blockers)
-    boxes = []
-    if grid is not None and grid.occupied is not None:
-        boxes.append(grid.occupied)
-    for item in (scene.particles, scene.hair, *blockers):
-        if item is not None:
-            boxes.append(item.bounds())
-    if not boxes and grid is not None:
-        boxes.append((grid.bmin, grid.bmax))               # an all-zero grid: empty map
+    boxes = [item.bounds() for item in (scene.particles, scene.hair, *blockers) if item is not None]
+    if grid is not None and (grid.occupied is not None or not boxes):     # an all-zero grid alone: empty map
+        boxes.insert(0, grid.occupied if grid.occupied is not None else (grid.bmin, grid.bmax))
     if bounds is not None:
         boxes = [check_bbox(bounds, "bounds", flat=True)]
     bmin = np.array([b[0] for b in boxes])
     bmax = np.array([b[1] for b in boxes])
-    light = scene.light
-    pos = getattr(light, "position", None)                 # a light at a point (spot, point)
+    pos = getattr(scene.light, "position", None)           # a light at a point (spot, point)
     _check_range(bmin, bmax, pos, dtype)
     diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0
 
@@ -285,7 +269,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         for i, b in enumerate(blockers):
             if b.contains(pos):
                 raise ValueError(f"light: the light lies inside blockers[{i}]")
-    camera = make_camera(light, int(resolution), bmin, bmax)
+    camera = make_camera(scene.light, int(resolution), bmin, bmax)
     if grid is not None and method == "march":
         finest = MIN_STEP_FRACTION * float(grid.voxel.min())
         if step is None:
@@ -299,7 +283,6 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     # ---- segments of every content kind: pieces (texel, z0, z1, tau[, draw key])
     pieces = []
     bases = _draw_bases(blockers, grid, scene) if drawn else None
-    UInt32 = backend.types().UInt32
 
     def add(kind, t0, piece, key, inline=True, **st):
         stats[kind] = {**st, "segments": int(piece[0].size), "seconds": time.perf_counter() - t0}
@@ -307,12 +290,10 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
             pieces.append(piece + ((key(),) if drawn else ()))
     if grid is not None:
         t0 = time.perf_counter()
-        if method == "exact":
-            tex, z0, z1, tau, st = traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True)
-        else:
-            tex, z0, z1, tau, st = march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True)
+        tex, z0, z1, tau, st = (traverse(grid, camera, epsilon, keep_zero=keep_zero, runs=True) if method == "exact"
+                                else march(grid, camera, step, epsilon, keep_zero=keep_zero, runs=True))
         add("grid", t0, (tex, z0, z1, tau),
-            lambda: dr.opaque(UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
+            lambda: dr.opaque(backend.types().UInt32, bases["grid"]) + brick_keys(grid, camera, tex, z0, z1), **st)
     if scene.particles is not None:
         t0 = time.perf_counter()
         *piece, pid = _particles.capture_particles(camera, scene.particles, Float)
@@ -339,24 +320,22 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
                       **({"order_seed": order_seed} if order == "random" else {})}
     stats["combine_s"] = time.perf_counter() - t0
     stats["total_s"] = time.perf_counter() - t_start
-    return Capture(seg, camera, light, int(resolution), step, float(epsilon), stats, opaque_depth)
+    return Capture(seg, camera, scene.light, int(resolution), step, float(epsilon), stats, opaque_depth)
 
 
 def _draw_bases(blockers, grid, scene) -> dict:
     """First draw key of each content kind in the ``'submission'`` order (:data:`ORDERS`):
     blockers, then the grid's bricks, then particles, then hair capsules; ValueError naming
     ``order`` when the keys exceed 32 bits."""
-    n_bricks = 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // SUBMISSION_BRICK)))
-    n_particles = 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size)
-    n_capsules = 0
-    if scene.hair is not None:
-        S, Vn = np.shape(scene.hair.strands)[:2]
-        n_capsules = S * (Vn - 1)
-    bases = {"opaque": 0, "grid": len(blockers)}
-    bases["particles"] = bases["grid"] + n_bricks
-    bases["hair"] = bases["particles"] + n_particles
-    if bases["hair"] + n_capsules > 2**32:
-        raise ValueError(f"order: 'submission' numbers {bases['hair'] + n_capsules} primitives "
+    counts = {"opaque": len(blockers),
+              "grid": 0 if grid is None else int(np.prod(-(-np.array(grid.shape) // SUBMISSION_BRICK))),
+              "particles": 0 if scene.particles is None else int(np.asarray(scene.particles.radii).size),
+              "hair": 0 if scene.hair is None else int(np.prod(np.subtract(np.shape(scene.hair.strands)[:2], (0, 1))))}
+    total, bases = 0, {}
+    for kind, n in counts.items():
+        bases[kind], total = total, total + n
+    if total > 2**32:
+        raise ValueError(f"order: 'submission' numbers {total} primitives "
                          f"(blockers, bricks, particles, hair capsules), more than 2^32")
     return bases
 
@@ -367,10 +346,7 @@ def _check_range(bmin, bmax, position, dtype: str) -> None:
     Depths are differences of coordinates (at most 4x the largest magnitude along the
     map's rays), so the coordinates must stay below 1/16 of the dtype's largest value.
     """
-    coords = [np.abs(bmin).max(), np.abs(bmax).max()]
-    if position is not None:
-        coords.append(np.abs(position).max())
-    reach = float(max(coords))
+    reach = float(max(np.abs(a).max() for a in (bmin, bmax, position) if a is not None))
     limit = float(np.finfo(dtype).max) / 16
     if not reach <= limit:
         raise ValueError(f"scene: content or light coordinates reach {reach:.3g}; {dtype} depths need "
@@ -378,6 +354,6 @@ def _check_range(bmin, bmax, position, dtype: str) -> None:
                          + (" (use dtype='float64')" if dtype == "float32" else ""))
 
 
-__all__ = ["capture", "Capture", "GridVolume", "validate_scene", "load_tfx", "procedural_strands",
+__all__ = ["capture", "Capture", "GridVolume", "load_tfx", "procedural_strands",
            "LightCamera", "OrthoCamera", "PerspectiveCamera", "CubeCamera",
            "RESOLUTION_RANGE", "OUTSIDE_DEPTH", "MIN_STEP_FRACTION", "ORDERS", "SUBMISSIONS"]

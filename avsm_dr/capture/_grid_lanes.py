@@ -1,11 +1,12 @@
 """Lanes of a grid capture: the rays of a light's camera that meet a grid's occupied box
 (:func:`hit_lanes`), the brick keys of the ``"submission"`` order (:func:`brick_keys`), and
-the slot buffers of the one-pass layout of :mod:`.grid` and :mod:`.dda`: every lane writes its
-segments (z0, z1, tau) into its own run of slots (a bound of its segments; a slot is 4 floats,
-one packet store or load per segment), then :func:`compact_slots` gathers the filled slots
-into CSR order.
+the slot buffers of :mod:`.grid` and :mod:`.dda` (:func:`slot_rounds`): every lane writes its
+segments (z0, z1, tau) into its own run of slots (a slot is 4 floats, one packet store or load
+per segment), then the filled slots are gathered into CSR order.
 """
 from __future__ import annotations
+
+import time
 
 import drjit as dr
 import numpy as np
@@ -34,17 +35,18 @@ def candidate_texels(camera, lo, hi):
 
 
 def hit_lanes(grid: GridVolume, camera, per_lane):
-    """The texels whose ray meets the occupied box: (texels UInt32 ascending, origins,
-    directions (lists of three Float64), t_in, t_out (Float64), extra) of the rays that meet
-    the occupied box.  One kernel makes, clips and tests every candidate ray and evaluates
-    ``per_lane(o, d, t_in, t_out)``, a UInt32 per ray (``extra``); ``dr.compress`` keeps the
-    hits, whose rays are then recomputed lazily (fused into the kernel that reads them).  No
-    hit: empty texels, and every other entry None."""
+    """(texels int64 NumPy ascending, origins, directions (lists of three Float64), t_in, t_out
+    (Float64), extra) of the rays that meet the grid's occupied box, ``extra`` the UInt32
+    ``per_lane(o, d, t_in, t_out)`` evaluated in the kernel that makes, clips and tests every
+    candidate ray.  No hit (or an all-zero grid): empty texels, and every other entry None."""
     UInt32 = backend.types().UInt32
+    none = (np.zeros(0, np.int64),) + (None,) * 5
+    if grid.occupied is None:
+        return none
     lo, hi = grid.occupied
     cand = candidate_texels(camera, lo, hi)
     if dr.width(cand) == 0:
-        return cand, None, None, None, None, None
+        return none
     o, d = camera.rays_device(cand)
     F64 = type(o[0])
     box = [[dr.opaque(F64, float(x)) for x in corner] for corner in (lo, hi)]   # one kernel for any box
@@ -53,20 +55,28 @@ def hit_lanes(grid: GridVolume, camera, per_lane):
     dr.eval(cand, hit, extra)
     sel = dr.compress(hit)
     if dr.width(sel) == 0:
-        return UInt32(), None, None, None, None, None
+        return none
     lanes = dr.gather(UInt32, cand, sel)
     extra = dr.gather(UInt32, extra, sel)
     dr.eval(lanes, extra)                                   # one kernel
     o, d = camera.rays_device(lanes)
     t_in, t_out, _ = ray_box_dr(o, d, *box, t_min=0.0)
-    return lanes, o, d, t_in, t_out, extra
+    return np.asarray(lanes.numpy(), np.int64), o, d, t_in, t_out, extra
 
 
-def lane_output(grid: GridVolume, camera, lanes, counts, z0, z1, tau, stats, runs: bool):
+def lane_output(grid: GridVolume, camera, lanes, counts, iters, max_iter: int, res, stats: dict, runs: bool):
     """``(texel, z0, z1, tau, stats)`` of a grid capture whose lane ``i`` (texel ``lanes[i]``)
-    holds ``counts[i]`` segments, in lane order: ``tau`` recomputed from differentiable gathers
+    holds ``counts[i]`` segments ``res`` = (z0, z1, tau), in lane order, after ``iters[i]``
+    iterations (RuntimeError at ``max_iter``): ``tau`` recomputed from differentiable gathers
     (:func:`~._grid_volume.segment_tau`) when the grid's data has gradients; texels as
-    :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each."""
+    :class:`~.assembly.TexelRuns` with ``runs``, else one int64 each (empty without segments)."""
+    S = int(counts.sum())
+    stats.update(lanes=lanes.size, iterations=int(iters.sum()), segments=S, max_iterations=int(iters.max()))
+    if stats["max_iterations"] >= max_iter:
+        raise RuntimeError(f"grid capture: a ray hit the iteration bound {max_iter} (DDA did not advance)")
+    z0, z1, tau = res
+    if S == 0:
+        return np.zeros(0, np.int64), z0, z1, tau, stats
     if dr.grad_enabled(grid.data):
         o, d = camera.rays(lanes)
         tau = segment_tau(grid, *([A.to_float(np.ascontiguousarray(v[:, i]), grid.Float) for i in range(3)]
@@ -101,23 +111,18 @@ def brick_keys(grid: GridVolume, camera, texels, z0, z1):
     return key
 
 
-def new_slots(Float, n: int):
-    """An uninitialised slot buffer for ``n`` segments."""
-    return dr.empty(Float, 4 * n)
-
-
 def _arr4(Float):
     t = backend.types()
     return t.Array4f if Float is t.Float else t.Array4f64
 
 
 def write_slots(buf, values, idx, active) -> None:
-    """Write (z0, z1, tau) ``values`` at slots ``idx`` of a :func:`new_slots` buffer."""
+    """Write (z0, z1, tau) ``values`` at slots ``idx`` of a slot buffer (4 floats per slot)."""
     dr.scatter(buf, _arr4(type(values[0]))(*values, 0), idx, active)
 
 
 def read_slots(buf, idx, active=True) -> list:
-    """(z0, z1, tau) at slots ``idx`` of a :func:`new_slots` buffer."""
+    """(z0, z1, tau) at slots ``idx`` of a slot buffer."""
     v = dr.gather(_arr4(type(buf)), buf, idx, active)
     return [v[0], v[1], v[2]]
 
@@ -147,3 +152,89 @@ def compact_slots(buf, slot, counts, n_segments: int):
     dr.eval(out)
     dr.sync_thread()
     return out
+
+
+#: Most output slots of the one-round layout of :func:`slot_rounds`; above it, rounds.
+SLOT_BUDGET = 1 << 25
+#: Segments a lane writes per round into its own slots; lanes with more go on in another round.
+ROUND_CAPACITY = 16
+
+
+def slot_rounds(body, const, state, cap, tally, slot_budget: int, capacity: int, times: dict, label: str):
+    """Run a lane loop to the end and gather its segments in CSR (lane) order.
+
+    ``body(const, bufs, slot)`` is the body of loop ``label`` over ``(*state, n, done)`` for the
+    lanes of ``const`` (per-lane constants), writing segment ``n`` (z0, z1, tau) at slot ``slot
+    + n`` of ``bufs``; a round resumes every lane from ``state`` and runs it until it is done or
+    has written ``cap`` segments.  One round with ``cap`` slots
+    per lane (a bound of its segments) and :func:`compact_slots` while they fit ``slot_budget``;
+    otherwise, or when a lane overflowed its bound, rounds of ``capacity`` slots per unfinished
+    lane, each resuming from the saved state (the same segments).  Returns ``(counts, final,
+    (z0, z1, tau), stats)``: ``final`` the int64 NumPy final ``state[i]`` of every lane for ``i``
+    in ``tally``; ``stats`` the rounds (and the slots of the one-round layout)."""
+    t = backend.types()
+    UInt32, Float = t.UInt32, type(state[0])
+    L, K = dr.width(cap), int(capacity)
+
+    def run(cst, state, bufs, slot, cap):
+        n = dr.width(state[0])
+        return dr.while_loop(tuple(state) + (dr.zeros(UInt32, n), dr.zeros(t.Bool, n)),
+                             lambda *s: ~s[-1] & (s[-2] < cap), body(cst, bufs, slot), label=label)
+    clock = time.perf_counter()
+    dr.eval(cap)
+    n_slots = int(dr.sum(t.UInt64(cap))[0])
+    if n_slots <= slot_budget:
+        bufs = dr.empty(Float, 4 * n_slots)
+        slot = dr.prefix_sum(cap)
+        out = run(const, state, bufs, slot, cap)
+        dr.eval(out, bufs)
+        if bool(dr.all(out[-1])):
+            counts = np.asarray(out[-2].numpy(), np.int64)
+            times["rounds_s"], clock = time.perf_counter() - clock, time.perf_counter()
+            res = compact_slots(bufs, slot, out[-2], int(counts.sum()))
+            times["compact_s"] = time.perf_counter() - clock
+            return counts, [np.asarray(out[i].numpy(), np.int64) for i in tally], res, {"rounds": 1, "slots": n_slots}
+        clock = time.perf_counter()                          # a lane overflowed its bound: rounds
+
+    active = np.arange(L, dtype=np.int64)      # lanes of this round (indices into 0..L-1)
+    cst = const
+    rounds = []                                # (lanes, n per lane, buffers)
+    counts = np.zeros(L, np.int64)
+    final = [np.zeros(L, np.int64) for _ in tally]
+    while active.size:
+        bufs = dr.empty(Float, 4 * active.size * K)
+        out = run(cst, state, bufs, dr.arange(UInt32, active.size) * K, K)
+        dr.eval(out, bufs)
+        n_r = np.asarray(out[-2].numpy(), np.int64)
+        done = np.asarray(out[-1].numpy(), bool)
+        rounds.append((active, n_r, bufs))
+        counts[active] += n_r
+        for f, i in zip(final, tally):
+            f[active[done]] = np.asarray(out[i].numpy(), np.int64)[done]
+        keep = np.flatnonzero(~done)
+        active = active[keep]
+        if active.size:
+            k_sel, a_sel = A.to_uint32(keep), A.to_uint32(active)
+            state = [dr.gather(type(v), v, k_sel) for v in out[:-2]]
+            cst = [dr.gather(type(v), v, a_sel) for v in const]
+    times["rounds_s"], clock = time.perf_counter() - clock, time.perf_counter()
+
+    # ---- compaction: slot j < n of lane i of a round -> offset[i] + (segments of earlier rounds) + j
+    S = int(counts.sum())
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    written = np.zeros(L, np.int64)
+    res = [dr.zeros(Float, S) for _ in range(3)]
+    for lanes_r, n_r, bufs in rounds:
+        base = A.to_uint32(start[lanes_r] + written[lanes_r])
+        written[lanes_r] += n_r
+        slot = dr.arange(UInt32, lanes_r.size * K)
+        i = slot // K
+        j = slot - i * K
+        ok = j < dr.gather(UInt32, A.to_uint32(n_r), i)
+        dst = dr.gather(UInt32, base, i, ok) + j
+        for src, dst_buf in zip(read_slots(bufs, slot, ok), res):
+            dr.scatter(dst_buf, src, dst, ok)
+    dr.eval(res)
+    dr.sync_thread()
+    times["compact_s"] = time.perf_counter() - clock
+    return counts, final, res, {"rounds": len(rounds)}

@@ -71,8 +71,7 @@ class GridVolume:
     @property
     def voxel(self) -> np.ndarray:
         """(3,) voxel size (x, y, z) in world units."""
-        nz, ny, nx = self.shape
-        return (self.bmax - self.bmin) / np.array([nx, ny, nz], np.float64)
+        return (self.bmax - self.bmin) / np.array(self.shape[::-1], np.float64)
 
     @property
     def Float(self):
@@ -102,12 +101,11 @@ class GridVolume:
         if not isinstance(block, (int, np.integer)) or block < 1:
             raise ValueError(f"block: expected an integer >= 1, got {block!r}")
         if isinstance(density, (str, os.PathLike)):
-            data, file_bbox = read_vol(density, with_bbox=True)
-            if data.ndim != 3:
-                raise ValueError(f"density: {density!r} has {data.shape[-1]} channels, expected 1")
-            density = data
-            if bbox is None:
-                bbox = file_bbox
+            path = density
+            density, file_bbox = read_vol(path, with_bbox=True)
+            if density.ndim != 3:
+                raise ValueError(f"density: {path!r} has {density.shape[-1]} channels, expected 1")
+            bbox = file_bbox if bbox is None else bbox
         if bbox is None:
             raise ValueError("bbox: a density grid needs its world box (min_xyz, max_xyz)")
         lo, hi = check_bbox(bbox)
@@ -117,12 +115,9 @@ class GridVolume:
             if not dr.is_tensor_v(density) or density.ndim != 3:
                 raise ValueError("density: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
             V.grid_dtype(density, "density")
-            flat = density.array
-            if dtype is None:
-                dtype = A.dtype_of(flat)
-            data = A.to_float(flat, A.float_type(dtype))
-        else:
-            dtype = dtype or "float32"
+            dtype = dtype or A.dtype_of(density.array)
+            data = A.to_float(density.array, A.float_type(dtype))
+        dtype = dtype or "float32"
         # one rule for every grid entry point: float input, 3-D, non-empty, finite, >= 0
         host = V.density_grid(density, "density", np.float64 if dtype == "float64" else np.float32)
         shape = host.shape
@@ -145,8 +140,7 @@ class GridVolume:
                 occupied = (lo + np.maximum(imin - 0.5, 0) * h, lo + np.minimum(imax + 1.5, n) * h)
                 w0, w1 = np.maximum(imin - 1, 0), np.minimum(imax + 1, n - 1)
         else:
-            nb = [-(-s // block) for s in shape]
-            occ = np.ones(nb, np.float32)
+            occ = np.ones([-(-s // block) for s in shape], np.float32)
             occupied = (lo.copy(), hi.copy())
             w0, w1 = np.zeros(3, np.int64), n - 1
         Float = A.float_type(dtype)
@@ -160,19 +154,15 @@ class GridVolume:
 
     def sample(self, points) -> np.ndarray:
         """sigma at world points (K, 3), float64 NumPy; 0 outside the box (Mitsuba's convention)."""
-        p = np.asarray(points, np.float64)
-        if p.ndim != 2 or p.shape[1] != 3:
-            raise ValueError(f"points: expected shape (K, 3), got {p.shape}")
+        p = V.points(points, "points", allow_empty=True)
         if self.occupied is None or p.shape[0] == 0:
             return np.zeros(p.shape[0])
-        Float = self.Float
         h = self.voxel
         wlo = self.bmin + self.window_lo * h
         whi = wlo + np.array(self.window_shape[::-1]) * h
         inside = np.all((p >= self.bmin) & (p <= self.bmax) & (p >= wlo) & (p <= whi), axis=1)
-        x, y, z = (A.to_float(p[:, i], Float) for i in range(3))
-        k = MarchKernel(self)
-        val = k.trilinear(dr.detach(self.data), x, y, z, A.to_float(inside.astype(np.float64), Float) > 0)
+        x, y, z = (A.to_float(p[:, i], self.Float) for i in range(3))
+        val = MarchKernel(self).trilinear(dr.detach(self.data), x, y, z, backend.types().Bool(inside))
         return np.where(inside, np.asarray(val.numpy(), np.float64), 0.0)
 
 
@@ -189,8 +179,7 @@ class MarchKernel:
         self.lo = [dr.opaque(Float, float(v)) for v in wlo]
         self.scale = [dr.opaque(Float, float(v)) for v in 1.0 / h]
         self.nmax = [dr.opaque(Int32, int(v) - 1) for v in (wx, wy, wz)]
-        self.nx = dr.opaque(Int32, wx)
-        self.ny = dr.opaque(Int32, wy)
+        self.nx, self.ny = dr.opaque(Int32, wx), dr.opaque(Int32, wy)
 
     def _cells(self, x, y, z):
         """Per axis the Int32 ``floor(u)`` and the weight ``u - floor(u)`` of the window
@@ -221,17 +210,12 @@ class MarchKernel:
         c11 = dr.lerp(g(x0, y1, z1), g(x1, y1, z1), wx)
         return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
 
-    def trilinear_table(self, table, x, y, z, active=True):
-        """:meth:`trilinear` with the 8 voxels read by one packet load from the dual cell's
-        entry of :func:`corner_table` (the table's edge padding repeats
-        the edge voxels, which is the clamp): the same values, the same arithmetic."""
+    def trilinear_corners(self, corners, x, y, z, active=True):
+        """:meth:`trilinear` with the 8 voxels read by a :class:`DualCorners` ``corners`` (the
+        padded window repeats the edge voxels, which is the clamp): the same values, the same
+        arithmetic."""
         idx, w = self._cells(x, y, z)
-        cx, cy, cz = (dr.clip(i, -1, nm) + 1 for i, nm in zip(idx, self.nmax))
-        t = backend.types()
-        ArrX = t.ArrayXf if self.Float is t.Float else t.ArrayXf64
-        v = dr.gather(ArrX, table, self.UInt32((cz * (self.ny + 1) + cy) * (self.nx + 1) + cx), active,
-                      shape=(8, dr.width(cx)))
-        return _lerp8(v, *w)
+        return _lerp8(corners(*(dr.clip(i, -1, nm) for i, nm in zip(idx, self.nmax)), active), *w)
 
 
 def _lerp8(v, wx, wy, wz):
@@ -317,3 +301,27 @@ def corner_table(grid):
             dr.eval(table)
         cache["table"] = table
     return cache["table"]
+
+
+class DualCorners:
+    """``corners(cx, cy, cz, active)``: the 8 corner voxels ``v[4 k + 2 j + i]`` (i along x) of
+    dual cells ``(cx, cy, cz)`` (window voxel units, -1 .. w - 1), one packet load from
+    :func:`corner_table`, or 8 gathers from the padded window of :func:`dual_grid` where there
+    is no table (the same values)."""
+
+    def __init__(self, grid):
+        t = backend.types()
+        self.table, self.pad, self.Float, self.UInt32 = corner_table(grid), dual_grid(grid)[0], grid.Float, t.UInt32
+        self.ArrX = t.ArrayXf if grid.Float is t.Float else t.ArrayXf64
+        wz, wy, wx = grid.window_shape
+        self.cx, self.cy, self.px, self.py = (dr.opaque(t.Int32, int(v)) for v in (wx + 1, wy + 1, wx + 2, wy + 2))
+
+    def __call__(self, cx, cy, cz, active=True) -> list:
+        if self.table is not None:
+            v = dr.gather(self.ArrX, self.table, self.UInt32(((cz + 1) * self.cy + (cy + 1)) * self.cx + (cx + 1)),
+                          active, shape=(8, dr.width(cx)))
+            return [v[c] for c in range(8)]
+        base = self.UInt32(((cz + 1) * self.py + (cy + 1)) * self.px + (cx + 1))
+        sy, sz = self.UInt32(self.px), self.UInt32(self.px * self.py)
+        return [dr.gather(self.Float, self.pad, base + (c >> 2) * sz + ((c >> 1) & 1) * sy + (c & 1), active)
+                for c in range(8)]

@@ -5,10 +5,8 @@ texel (a NumPy array, or :class:`TexelRuns` for the grid: one run per ray), dept
 optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments on the device:
 one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
 content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
-texel sorted by the words ``zq << 32 | concatenation index`` (z0 quantised to 32 bits over its
-range; :func:`~avsm_dr.texel_sort.sort_texels`), the order of the host's stable argsort of
-``texel << 32 | zq`` (:func:`host_order`, the fallback where
-:func:`~avsm_dr.segments.device_sortable` is false).  That is the ``"depth"`` order;
+texel sorted by ``(zq, concatenation index)``, ``zq`` z0 quantised to 32 bits over its range
+(:func:`~avsm_dr.segments.key_order`).  That is the ``"depth"`` order;
 ``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
 ``"reverse_depth"`` and ``"random"`` reorder the depth order
 (:meth:`~avsm_dr.segments.Segments.in_order`).
@@ -22,8 +20,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, run_index
-from ..texel_sort import sort_texels
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, key_order, run_index
 
 
 @dataclass
@@ -55,10 +52,7 @@ class TexelRuns:
         UInt32 = backend.types().UInt32
         nz = self.counts > 0
         tex, cnt = self.texels[nz], self.counts[nz]
-        n = int(cnt.sum())
-        if tex.size <= 1:
-            return dr.full(UInt32, int(tex[0]) if tex.size else 0, n)
-        return dr.gather(UInt32, A.to_uint32(tex), run_index(A.to_uint32(np.cumsum(cnt[:-1])), n))
+        return dr.gather(UInt32, A.to_uint32(tex), run_index(A.to_uint32(np.cumsum(cnt[:-1])), int(cnt.sum())))
 
 
 def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed: int | None = None) -> Segments:
@@ -77,17 +71,14 @@ def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed:
                                     optical_depth=Float(), dtype=dtype, order=order)
     z0, z1, tau = (_concat([A.to_float(p[i], Float) for p in pieces], Float) for i in (1, 2, 3))
     offsets = np.zeros(n_texels + 1, np.int64)
-    if order == "submission":
-        key = _concat([A.to_uint32(np.asarray(k, np.uint32)) if isinstance(k, np.ndarray) else k for k in keys],
-                      backend.types().UInt32)
-        offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels)
-        z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
-    elif len(pieces) == 1 and isinstance(pieces[0][0], TexelRuns):    # one grid: in order already
-        np.cumsum(pieces[0][0].texel_counts(n_texels), out=offsets[1:])
-    elif len(pieces) == 1 and _texel_depth_sorted(pieces[0][0], pieces[0][1]):   # one piece in order
-        np.cumsum(np.bincount(np.asarray(pieces[0][0], np.int64), minlength=n_texels), out=offsets[1:])
+    single = pieces[0][0] if len(pieces) == 1 and order != "submission" else None
+    if isinstance(single, TexelRuns):                                   # one grid: in order already
+        np.cumsum(single.texel_counts(n_texels), out=offsets[1:])
+    elif single is not None and _texel_depth_sorted(single, pieces[0][1]):   # one piece in order
+        np.cumsum(np.bincount(np.asarray(single, np.int64), minlength=n_texels), out=offsets[1:])
     else:
-        offsets, perm = texel_key_order([p[0] for p in pieces], None, n_texels, z0=z0)
+        key = None if order != "submission" else _concat([A.to_uint32(k) for k in keys], backend.types().UInt32)
+        offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels, z0=z0)
         z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
     # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
     # build the CSR directly (Segments.from_arrays would copy everything to the host again)
@@ -110,7 +101,7 @@ def _texel_depth_sorted(texel, z0) -> bool:
 
 def quantised_depth(z0):
     """``(z0 - min) * (2^32 - 1) / (max - min)`` truncated to an integer (Dr.Jit UInt64),
-    computed in float64 on the device exactly as the host key of :func:`host_order`."""
+    computed in float64 on the device (finer than float32 depths)."""
     t = backend.types()
     z = t.Float64(dr.detach(z0))
     lo, hi = float(dr.min(z)[0]), float(dr.max(z)[0])
@@ -122,7 +113,7 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
     """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
     the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by ``(texel, key,
     concatenation index)``: ``key`` a Dr.Jit UInt32 (S,) per concatenated segment (None:
-    ``z0`` quantised, :func:`quantised_depth`), on the device where :func:`device_sortable`."""
+    ``z0`` quantised, :func:`quantised_depth`); :func:`~avsm_dr.segments.key_order`."""
     UInt32 = backend.types().UInt32
     tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
                    for t in texels], UInt32)
@@ -140,37 +131,13 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
         counts = np.asarray(cnt.numpy(), np.int64)
     offsets = np.zeros(n_texels + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    if not device_sortable(counts):
-        tex_h = np.concatenate([np.asarray(t, np.int64) for t in texels])
-        if key is not None:
-            k = np.asarray(key.numpy(), np.uint64)
-            return offsets, A.to_uint32(np.argsort((tex_h.astype(np.uint64) << np.uint64(32)) | k,
-                                                   kind="stable").astype(np.uint32))
-        return offsets, A.to_uint32(host_order(tex_h, A.host(z0, "z0")).astype(np.uint32))
     off = A.to_uint32(offsets)
-    # ---- group by texel (slots from the atomic counter), then sort inside each texel
-    if one is not None:
-        gid, gtex = dr.arange(UInt32, n), tex
-    else:
-        pos = dr.gather(UInt32, off, tex) + slot
+    group = None
+    if one is None and device_sortable(counts):     # group by texel (slots from the atomic counter)
         gid = dr.zeros(UInt32, n)
-        dr.scatter(gid, dr.arange(UInt32, n), pos)         # concatenation index at its group slot
-        gtex = dr.gather(UInt32, tex, gid)
-    U32 = dr.detached_t(UInt32)
-    zq = U32(quantised_depth(z0) if key is None else key)  # < 2^32: words zq << 32 | index
-    perm, _ = sort_texels(counts, off, gtex, "index", (U32(gid), zq), ties=False)
-    return offsets, UInt32(perm)
-
-
-def host_order(tex: np.ndarray, z0: np.ndarray) -> np.ndarray:
-    """Stable permutation sorting by (texel, z0): one uint64 key (texel << 32 | z0 quantised to
-    32 bits over its range, finer than float32 depths), sorted by timsort, which runs in near
-    linear time on the already sorted runs of each piece."""
-    lo, hi = float(z0.min()), float(z0.max())
-    scale = (2.0 ** 32 - 1) / (hi - lo) if hi > lo else 0.0
-    zq = ((z0 - lo) * scale).astype(np.uint64)
-    key = (tex.astype(np.uint64) << np.uint64(32)) | zq
-    return np.argsort(key, kind="stable")
+        dr.scatter(gid, dr.arange(UInt32, n), dr.gather(UInt32, off, tex) + slot)   # index at its slot
+        group = (gid, dr.gather(UInt32, tex, gid))
+    return offsets, key_order(counts, off, tex, quantised_depth(z0) if key is None else key, group)
 
 
 def _concat(arrays, Type):

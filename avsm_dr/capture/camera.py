@@ -36,15 +36,10 @@ from ..geometry import orthonormal_basis
 
 def _rect_from_coords(x, y, res):
     """Inclusive texel rectangle covering continuous coordinates (x, y) (..., n); empty -> x0 > x1."""
-    x0 = np.floor(x.min(axis=-1)).astype(np.int64)
-    x1 = np.floor(x.max(axis=-1)).astype(np.int64)
-    y0 = np.floor(y.min(axis=-1)).astype(np.int64)
-    y1 = np.floor(y.max(axis=-1)).astype(np.int64)
+    x0, x1, y0, y1 = (np.floor(f(c, axis=-1)).astype(np.int64) for c in (x, y) for f in (np.min, np.max))
     empty = (x1 < 0) | (y1 < 0) | (x0 > res - 1) | (y0 > res - 1)
-    x0, x1 = np.clip(x0, 0, res - 1), np.clip(x1, 0, res - 1)
-    y0, y1 = np.clip(y0, 0, res - 1), np.clip(y1, 0, res - 1)
-    x1 = np.where(empty, x0 - 1, x1)
-    return x0, x1, y0, y1
+    x0, x1, y0, y1 = (np.clip(v, 0, res - 1) for v in (x0, x1, y0, y1))
+    return x0, np.where(empty, x0 - 1, x1), y0, y1
 
 
 def _box_corners(bmin, bmax):
@@ -74,8 +69,6 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     counts = _rect_areas(x0, x1, y0, y1)
     total = int(counts.sum())
     item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
-    if total == 0:
-        return item, np.zeros(0, np.int64)
     starts = np.cumsum(counts) - counts
     local = np.arange(total, dtype=np.int64) - starts[item]
     lx = local % wx[item]
@@ -120,8 +113,9 @@ class LightCamera:
     def texel_index(self, coords) -> np.ndarray:
         """Texel containing each continuous coordinate, clamped to the map (cube: to the face)."""
         ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1]), 0, self.res - 1).astype(np.int64)
-        return self.texel_offset + iy * self.res + ix
+        face = np.clip(np.floor(coords[:, 1] / self.res), 0, self.height // self.res - 1).astype(np.int64)
+        iy = np.clip(np.floor(coords[:, 1] - face * self.res), 0, self.res - 1).astype(np.int64)
+        return self.texel_offset + face * self.res * self.res + iy * self.res + ix
 
     def covers(self, coords) -> np.ndarray:
         """(K,) bool: the continuous coordinates (K, 2) lie on the map, ``[0, width) x [0, height)``."""
@@ -133,10 +127,6 @@ class LightCamera:
         of (N,) int64 arrays per map face, holding every texel whose ray may meet the box
         (conservative; empty rectangles have ``x0 > x1``)."""
         raise NotImplementedError
-
-    def footprint_pairs(self, bmin, bmax) -> int:
-        """Number of (box, texel) pairs of :meth:`footprint_chunks` (no enumeration)."""
-        return sum(int(_rect_areas(*r[:4]).sum()) for r in self.footprint_rects(bmin, bmax))
 
     def footprint_chunks(self, bmin, bmax):
         """Yield the candidate (item, texel) int64 pairs of the boxes (every texel whose ray may
@@ -159,8 +149,8 @@ class LightCamera:
         :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles);
         with ``name``, ValueError naming it when the footprints hold more than
         :data:`MAX_CANDIDATES` pairs (counted without enumerating them)."""
-        total = name and sum(self.footprint_pairs(bmin[s:s + chunk], bmax[s:s + chunk])
-                             for s in range(0, bmin.shape[0], chunk))
+        total = name and sum(int(_rect_areas(*r[:4]).sum()) for s in range(0, bmin.shape[0], chunk)
+                             for r in self.footprint_rects(bmin[s:s + chunk], bmax[s:s + chunk]))
         if name and total > MAX_CANDIDATES:
             raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
                              f"{MAX_CANDIDATES:.3g} one capture handles; use fewer or smaller items, or a "
@@ -168,6 +158,16 @@ class LightCamera:
         for start in range(0, bmin.shape[0], chunk):
             for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
                 yield (item + start, texel, *self.rays(texel))
+
+    def footprint_hits(self, bmin, bmax, hit, n_values: int, chunk: int = 1, name: str | None = None) -> list:
+        """``[item, texel, *values]``: int64, int64 and ``n_values`` float64 NumPy arrays over
+        the rays of :meth:`footprint_rays` that ``hit(item, origins, directions) -> (*values,
+        mask)`` keeps (a ray-shape intersection of :mod:`avsm_dr.geometry`)."""
+        out = [(np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * n_values]
+        for item, texel, o, d in self.footprint_rays(bmin, bmax, chunk, name):
+            *values, m = hit(item, o, d)
+            out.append((item[m], texel[m], *(v[m] for v in values)))
+        return [np.concatenate(a) for a in zip(*out)]
 
     def texel_width(self, texels, t) -> np.ndarray:
         """World width of a texel's footprint across its ray at depth ``t`` (K,)."""
@@ -204,8 +204,8 @@ class OrthoCamera(LightCamera):
         return cls(d, cu * u + cv * v + cd * d, half, res)
 
     def rays_device(self, texels):
-        F64 = _f64()
-        res = _opaque_u32(self.res)
+        F64 = backend.types().Float64
+        res = dr.opaque(type(texels), self.res)
         ts, half = (dr.opaque(F64, v) for v in (self.texel_size, self.half))
         x = (F64(texels % res) + 0.5) * ts - half
         y = (F64(texels // res) + 0.5) * ts - half
@@ -243,7 +243,7 @@ class PerspectiveCamera(LightCamera):
         self.texel_offset = int(texel_offset)
 
     def rays_device(self, texels):
-        t = texels - _opaque_u32(self.texel_offset)
+        t = texels - dr.opaque(type(texels), self.texel_offset)
         return _perspective_rays(t, self.res, self.tan_half, *(_opaque_vec(a) for a in (self.u, self.v, self.w)),
                                  _opaque_vec(self.position))
 
@@ -258,9 +258,7 @@ class PerspectiveCamera(LightCamera):
         """Points behind the light (or on its plane) get coordinates far outside the map."""
         q = np.asarray(points, np.float64) - self.position
         x, y, zc = self._coords(q)
-        x = np.where(zc > 0, x, -1e9)
-        y = np.where(zc > 0, y, -1e9)
-        return np.stack([x, y], axis=1), np.linalg.norm(q, axis=1)
+        return np.where((zc > 0)[:, None], np.stack([x, y], axis=1), -1e9), np.linalg.norm(q, axis=1)
 
     def texel_width(self, texels, t):
         """t * (2 tan(fov/2) / res) / cos^2(alpha), alpha the ray's angle off the axis (an
@@ -270,9 +268,7 @@ class PerspectiveCamera(LightCamera):
         return np.asarray(t) * (2 * self.tan_half / self.res) / (cos * cos)
 
     def footprint_rects(self, bmin, bmax):
-        c = _box_corners(bmin, bmax)
-        q = c - self.position
-        x, y, zc = self._coords(q)
+        x, y, zc = self._coords(_box_corners(bmin, bmax) - self.position)
         tiny = 1e-9
         front = np.all(zc > tiny, axis=1)
         behind = np.all(zc <= tiny, axis=1)
@@ -296,17 +292,14 @@ class CubeCamera(LightCamera):
         self.position = np.asarray(position, dtype=np.float64)
         self.res = int(res)
         self.width, self.height = self.res, 6 * self.res
-        self.faces = []
-        for f, (axis, sign) in enumerate(CUBE_FACES):
-            w = np.zeros(3)
-            w[axis] = sign
-            self.faces.append(PerspectiveCamera(position, w, 90.0, res, texel_offset=f * res * res))
+        self.faces = [PerspectiveCamera(position, np.where(np.arange(3) == axis, sign, 0.0), 90.0, res,
+                                        texel_offset=f * res * res) for f, (axis, sign) in enumerate(CUBE_FACES)]
 
     def rays_device(self, texels):
         """Each lane reads its face's basis from (6, 3) tables: one kernel for all faces."""
-        F64 = _f64()
+        F64 = backend.types().Float64
         UInt32 = type(texels)
-        n2 = _opaque_u32(self.res * self.res)
+        n2 = dr.opaque(UInt32, self.res * self.res)
         face = texels // n2
         basis = []
         for name in ("u", "v", "w"):
@@ -331,12 +324,6 @@ class CubeCamera(LightCamera):
                 xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
         return xy, np.linalg.norm(q, axis=1)
 
-    def texel_index(self, coords):
-        ix = np.clip(np.floor(coords[:, 0]), 0, self.res - 1).astype(np.int64)
-        face = np.clip(np.floor(coords[:, 1] / self.res), 0, 5).astype(np.int64)
-        iy = np.clip(np.floor(coords[:, 1] - face * self.res), 0, self.res - 1).astype(np.int64)
-        return face * self.res * self.res + iy * self.res + ix
-
     def texel_width(self, texels, t):
         """As :meth:`PerspectiveCamera.texel_width`, with each texel's face axis."""
         texels = np.asarray(texels, np.int64)
@@ -349,24 +336,16 @@ class CubeCamera(LightCamera):
         return [r for cam in self.faces for r in cam.footprint_rects(bmin, bmax)]
 
 
-def _f64():
-    return backend.types().Float64
-
-
-def _opaque_u32(v: int):
-    return dr.opaque(backend.types().UInt32, int(v))
-
-
 def _opaque_vec(a) -> list:
     """A float64 3-vector as three opaque Dr.Jit Float64 scalars."""
-    return [dr.opaque(_f64(), float(x)) for x in np.asarray(a, np.float64).reshape(3)]
+    return [dr.opaque(backend.types().Float64, float(x)) for x in np.asarray(a, np.float64).reshape(3)]
 
 
 def _perspective_rays(t, res: int, tan_half: float, u, v, w, position):
     """Device rays of face-local texels ``t`` of a square perspective map (basis u, v, w:
     lists of Float64): the formulas of :meth:`PerspectiveCamera.rays`."""
-    F64 = _f64()
-    r = _opaque_u32(res)
+    F64 = backend.types().Float64
+    r = dr.opaque(type(t), int(res))
     rf, th = dr.opaque(F64, float(res)), dr.opaque(F64, float(tan_half))
     sx = ((F64(t % r) + 0.5) / rf * 2 - 1) * th
     sy = ((F64(t // r) + 0.5) / rf * 2 - 1) * th

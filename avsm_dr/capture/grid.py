@@ -15,12 +15,11 @@ exit), and each step ``[t_a, t_b]`` becomes one segment whose optical depth is S
 the lattice planes where its derivative jumps).  Steps with tau = 0 emit nothing.  A ray
 stops once its accumulated optical depth exceeds ``-ln(epsilon)``.
 
-Output: one pass writes each lane's segments into its own slots (a bound of its segments:
-steps plus block faces crossed; :mod:`._grid_lanes`); above :data:`MARCH_SLOT_BUDGET` slots,
-or when a lane fills its slots, a counting pass then a writing pass at the prefix-sum
-offsets.  With a grad-enabled density the optical depths are recomputed per segment from
-differentiable gathers (:func:`~._grid_volume.segment_tau`); segment boundaries and counts
-are piecewise constant in the density and not differentiated.  ``method='exact'`` is :mod:`.dda`.
+Output: each lane writes its segments into its own slots, a bound of its segments (steps
+plus block faces crossed), or in rounds (:func:`~._grid_lanes.slot_rounds`).  With a
+grad-enabled density the optical depths are recomputed per segment from differentiable
+gathers (:func:`~._grid_volume.segment_tau`); segment boundaries and counts are piecewise
+constant in the density and not differentiated.  ``method='exact'`` is :mod:`.dda`.
 """
 from __future__ import annotations
 
@@ -31,24 +30,19 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ._grid_volume import GridVolume, MarchKernel, block_max, corner_table  # noqa: F401
-from ._grid_lanes import (SUBMISSION_BRICK, candidate_texels, compact_slots, hit_lanes, lane_output,  # noqa: F401
-                         new_slots, read_slots, write_slots)
+from ._grid_lanes import ROUND_CAPACITY, SLOT_BUDGET, hit_lanes, lane_output, slot_rounds, write_slots
+from ._grid_volume import DualCorners, GridVolume, MarchKernel
 
 
-#: Most output slots of the march's one-pass layout (a bound of each lane's segments); above
-#: it, or when a lane fills its slots, two passes.
-MARCH_SLOT_BUDGET = 1 << 25
 #: Grid capture methods: 'exact' integrates each dual-cell crossing exactly (:mod:`.dda`),
 #: 'march' takes Simpson steps of a given length (this module).
 METHODS = ("exact", "march")
 
 
 def check_method(method, step) -> str:
-    """The grid capture method, 'march' when None; ValueError naming ``method`` (unknown)
-    or ``step`` (given with 'exact', which has no step).  'march' is the default: its
-    segments span half a voxel, the exact capture's a whole dual cell, so a representation
-    that assumes uniform density inside a segment errs less inside the smoke."""
+    """The grid capture method, 'march' when None (its segments span half a voxel, the exact
+    capture's a whole dual cell); ValueError naming ``method`` (unknown) or ``step`` (given
+    with 'exact', which has no step)."""
     if method is None:
         return "march"
     if method not in METHODS:
@@ -60,10 +54,10 @@ def check_method(method, step) -> str:
 
 
 def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zero: bool = False,
-          runs: bool = False):
+          runs: bool = False, capacity: int = ROUND_CAPACITY, slot_budget: int = SLOT_BUDGET):
     """March every texel ray of ``camera`` through ``grid``: (texel (S,) int64 NumPy in texel
     order, z0, z1, tau Dr.Jit Floats of ``grid.dtype``, stats dict), each texel's segments in
-    depth order; with a grad-enabled ``grid.data``, tau is recomputed from differentiable gathers.
+    depth order (gradients: module docstring).
 
     Parameters
     ----------
@@ -72,12 +66,13 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         occupied blocks; ``GridVolume.prepare(..., skip_empty=False)`` reaches every voxel).
     runs
         the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (one run per ray).
+    capacity, slot_budget
+        segments a lane writes per round (:data:`~._grid_lanes.ROUND_CAPACITY`); most slots of
+        the one-round layout (:data:`~._grid_lanes.SLOT_BUDGET`; 0 forces rounds).
     """
     t = backend.types()
-    Float, UInt32, Int32, Bool = grid.Float, t.UInt32, t.Int32, t.Bool
+    Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
     empty = (np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0})
-    if grid.occupied is None:
-        return empty
     clock = time.perf_counter()
     nb = np.array(grid.occupancy.shape[::-1], np.int64)               # (nbx, nby, nbz)
     bs = grid.voxel * grid.block                                        # block size (x, y, z)
@@ -93,11 +88,10 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
             n += 2 * (faces + 1)
         return UInt32(dr.select(dr.isfinite(n), n, 0))
 
-    lanes_d, o, d, t_in, t_out, cap = hit_lanes(grid, camera, slots)
-    L = dr.width(lanes_d)
+    lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, slots)
+    L = lanes.size
     if L == 0:
         return empty
-    lanes = np.asarray(lanes_d.numpy(), np.int64)
     times = {"lanes_s": time.perf_counter() - clock}
 
     # ---- DDA initialisation over the block grid (float64 on the device)
@@ -116,11 +110,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     # steps + one iteration per block face crossed (+ zero-length ones at edges and corners)
     max_iter = int(np.ceil(float(dr.max(t_out - t_in)[0]) / step)) + 3 * int(nb.sum()) + 16
 
-    ox, oy, oz = (Float(v) for v in o)
-    dx, dy, dz = (Float(v) for v in d)
-    t_end = Float(t_out)
-    tdx, tdy, tdz = (Float(v) for v in tdelta)
-    sx, sy, sz = sgn
+    const = [Float(v) for v in (*o, *d, t_out, *tdelta)] + sgn
     occ = A.to_uint32((grid.occupancy > 0).ravel())
     nbx, nby, nbz = (dr.opaque(Int32, int(v)) for v in nb)
     kern = MarchKernel(grid)
@@ -128,42 +118,28 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     snap = dr.opaque(Float, 1e-3 * float(step))
     tau_max = dr.opaque(Float, float(-np.log(epsilon)))
     it_max = dr.opaque(UInt32, max_iter)
+    corners = DualCorners(grid)
 
-    table = corner_table(grid)                      # one load for a dual cell's 8 corners
+    def sigma(cst, tt, active):
+        ox, oy, oz, dx, dy, dz = cst[:6]
+        return kern.trilinear_corners(corners, ox + dx * tt, oy + dy * tt, oz + dz * tt, active)
 
-    def sigma(tt, active):
-        return kern.trilinear_table(table, ox + dx * tt, oy + dy * tt, oz + dz * tt, active)
+    def run(cst, bufs, slot):
+        """The loop body of the lanes of ``cst``, writing segment ``n`` at slot ``slot + n`` of ``bufs``."""
+        t_end, tdx, tdy, tdz, sx, sy, sz = cst[6:]
 
-    def run(write, stop: bool = False):
-        """One pass of the march; ``write`` = (base, cap, buffers) or None; with
-        ``stop`` a lane stops once it has written ``cap`` segments.  Returns (segments
-        emitted, iterations, done) per lane."""
-        t0 = Float(t_in)
-        state = (t0, b[0], b[1], b[2],
-                 Float(tmax[0]), Float(tmax[1]), Float(tmax[2]),
-                 dr.zeros(Float, L),                  # tau: optical depth marched so far
-                 sigma(t0, True),                     # s0: sigma at the current t
-                 dr.zeros(UInt32, L),                 # n: segments emitted so far
-                 dr.zeros(UInt32, L),                 # it: iterations (safety bound)
-                 dr.zeros(Bool, L))                   # done
-
-        def cond(t_, bx, by, bz, mx, my, mz, tau, s0, n, it, done):
-            return ~done & (n < write[1]) if stop else ~done
-
-        def body(t_, bx, by, bz, mx, my, mz, tau, s0, n, it, done):
+        def body(t_, bx, by, bz, mx, my, mz, tau, s0, it, n, done):
             blk_exit = dr.minimum(dr.minimum(mx, my), dr.minimum(mz, t_end))
             bidx = UInt32((bz * nby + by) * nbx + bx)
             occupied = dr.gather(UInt32, occ, bidx) > 0
             t_step = t_ + h
             take = occupied & (t_step < blk_exit - snap)
             t1 = dr.select(take, t_step, blk_exit)
-            sm = sigma(0.5 * (t_ + t1), occupied)
-            s1 = sigma(t1, occupied)
+            sm = sigma(cst, 0.5 * (t_ + t1), occupied)
+            s1 = sigma(cst, t1, occupied)
             seg = dr.select(occupied, (t1 - t_) * (s0 + 4 * sm + s1) * (1.0 / 6.0), 0)
             emit = occupied if keep_zero else occupied & (seg > 0)
-            if write is not None:
-                base, cap, bufs = write
-                write_slots(bufs, (t_, t1, seg), base + n, emit & (n < cap))
+            write_slots(bufs, (t_, t1, seg), slot + n, emit)
             n = n + dr.select(emit, 1, 0)
             tau = tau + seg
             s0 = dr.select(occupied, s1, 0)
@@ -181,53 +157,16 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
             it = it + 1
             outside = (bx < 0) | (by < 0) | (bz < 0) | (bx >= nbx) | (by >= nby) | (bz >= nbz)
             done = (t1 >= t_end) | (tau > tau_max) | outside | (it >= it_max)
-            return t1, bx, by, bz, mx, my, mz, tau, s0, n, it, done
+            return t1, bx, by, bz, mx, my, mz, tau, s0, it, n, done
+        return body
 
-        out = dr.while_loop(state, cond, body, label="grid_march")
-        return out[9], out[10], out[11]
+    t0 = Float(t_in)
+    state0 = [t0, b[0], b[1], b[2],            # t: the current ray parameter; the current block
+              Float(tmax[0]), Float(tmax[1]), Float(tmax[2]),    # next block face per axis
+              dr.zeros(Float, L),              # tau: optical depth marched so far
+              sigma(const, t0, True),          # s0: sigma at the current t
+              dr.zeros(UInt32, L)]             # it: iterations (safety bound)
+    times["prep_s"] = time.perf_counter() - clock - times["lanes_s"]
 
-    def check(counts, iters):
-        S = int(counts.sum())
-        stats = {"lanes": L, "iterations": int(iters.sum()), "segments": S, "max_iterations": int(iters.max()),
-                 **times}
-        if stats["max_iterations"] >= max_iter:
-            raise RuntimeError(f"grid march: a ray hit the iteration bound {max_iter} (DDA did not advance)")
-        return S, stats
-
-    times["prep_s"], clock = time.perf_counter() - clock - times["lanes_s"], time.perf_counter()
-    # ---- one pass into slots (a bound of every lane's segments), then the filled slots in CSR
-    # order; a lane that fills its slots: a counting pass, then a pass writing at the offsets
-    dr.eval(cap)
-    n_slots = int(dr.sum(t.UInt64(cap))[0])
-    res = None
-    if n_slots <= MARCH_SLOT_BUDGET:
-        slot = dr.prefix_sum(cap)
-        bufs = new_slots(Float, n_slots)
-        n_d, it_d, done = run((slot, cap, bufs), stop=True)
-        dr.eval(n_d, it_d, done, bufs)
-        if bool(dr.all(done)):
-            counts, iters = (np.asarray(v.numpy(), np.int64) for v in (n_d, it_d))
-            S, stats = check(counts, iters)
-            stats["slots"] = n_slots
-            times["march_s"], clock = time.perf_counter() - clock, time.perf_counter()
-            res = compact_slots(bufs, slot, n_d, S)
-            times["compact_s"] = time.perf_counter() - clock
-    if res is None:
-        counts_dr, iters, _ = run(None)
-        dr.eval(counts_dr, iters)                           # one kernel for both outputs
-        counts = np.asarray(counts_dr.numpy(), dtype=np.int64)
-        S, stats = check(counts, np.asarray(iters.numpy(), dtype=np.int64))
-        if S == 0:
-            return empty[:4] + (stats,)
-        base_h = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        buf = new_slots(Float, S)
-        written, _, _ = run((A.to_uint32(base_h), A.to_uint32(counts), buf))
-        if not np.array_equal(np.asarray(written.numpy(), np.int64), counts):
-            raise RuntimeError("grid march: count and write passes disagree (non-deterministic kernel)")
-        res = read_slots(buf, dr.arange(UInt32, S))
-        dr.eval(res)
-        times["march_s"] = time.perf_counter() - clock
-    stats.update(times)
-    if S == 0:
-        return empty[:4] + (stats,)
-    return lane_output(grid, camera, lanes, counts, *res, stats, runs)
+    counts, (iters,), res, st = slot_rounds(run, const, state0, cap, (9,), slot_budget, capacity, times, "grid_march")
+    return lane_output(grid, camera, lanes, counts, iters, max_iter, res, {**st, **times}, runs)

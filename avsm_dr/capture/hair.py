@@ -50,9 +50,7 @@ def load_tfx(path, return_w: bool = False):
     strands = np.ascontiguousarray(xyzw[..., :3], dtype=np.float32)
     if not np.all(np.isfinite(strands)):
         raise ValueError(f"path: {path!r} has non-finite vertex positions")
-    if return_w:
-        return strands, np.ascontiguousarray(xyzw[..., 3])
-    return strands
+    return (strands, np.ascontiguousarray(xyzw[..., 3])) if return_w else strands
 
 
 def procedural_strands(n_strands: int = 300, n_vertices: int = 16, root_center=(0.0, -0.3, 0.0),
@@ -114,8 +112,6 @@ def merge_crossings(texel, strand, t_in, t_out, capsule=None):
     order = np.lexsort((t_in, strand, texel))
     texel, strand, t_in, t_out = texel[order], strand[order], t_in[order], t_out[order]
     n = texel.size
-    if n == 0:
-        return (texel, strand, t_in, t_out) + (() if capsule is None else (capsule[order],))
     group_start = np.ones(n, bool)
     group_start[1:] = (texel[1:] != texel[:-1]) | (strand[1:] != strand[:-1])
     group = np.cumsum(group_start) - 1
@@ -143,17 +139,8 @@ def capture_hair(camera, hair):
     strand_of = np.repeat(np.arange(S), V - 1)
     bmin = np.minimum(pa, pb) - r
     bmax = np.maximum(pa, pb) + r
-    tex, sid, ti, to, cid = [], [], [], [], []
-    for item, texel, o, d in camera.footprint_rays(bmin, bmax, CHUNK, "hair"):
-        t_in, t_out, hit = ray_capsule(o, d, pa[item], pb[item], r, t_min=0.0)
-        tex.append(texel[hit])
-        sid.append(strand_of[item[hit]])
-        ti.append(t_in[hit])
-        to.append(t_out[hit])
-        cid.append(item[hit])
-    if not tex:
-        z = np.zeros(0)
-        return np.zeros(0, np.int64), z, z, z, np.zeros(0, np.int64)
-    texel, _, z0, z1, first = merge_crossings(*(np.concatenate(a) for a in (tex, sid, ti, to, cid)))
+    cid, tex, t_in, t_out = camera.footprint_hits(
+        bmin, bmax, lambda i, o, d: ray_capsule(o, d, pa[i], pb[i], r, t_min=0.0), 2, CHUNK, "hair")
+    texel, _, z0, z1, first = merge_crossings(tex, strand_of[cid], t_in, t_out, cid)
     tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
     return texel, z0, z1, np.full(texel.size, tau), first

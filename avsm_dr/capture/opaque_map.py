@@ -58,8 +58,7 @@ def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float
 def depth_map(texel: np.ndarray, z0: np.ndarray, n_texels: int) -> np.ndarray:
     """(n_texels,) float64: the smallest ``z0`` of each texel's opaque segments, +inf where none."""
     out = np.full(int(n_texels), np.inf)
-    if np.size(texel):
-        np.minimum.at(out, np.asarray(texel, np.int64), np.asarray(z0, np.float64))
+    np.minimum.at(out, np.asarray(texel, np.int64), np.asarray(z0, np.float64))
     return out
 
 

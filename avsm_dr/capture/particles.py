@@ -1,7 +1,7 @@
 """Spherical particles as light-aligned segments (Salvi et al., "Adaptive Volumetric Shadow
 Maps", EGSR 2010, sec. 3: "a segment representing the ray's traversal through the particle").
 
-A texel ray ``o + t d`` (|d| = 1) meets the sphere (c, r) where its distance to the
+A texel ray ``o + t d`` (``|d| = 1``) meets the sphere (c, r) where its distance to the
 centre ``b = |(c - o) - ((c - o) . d) d|`` is below r; the segment is the exact chord ::
 
     z0, z1 = (c - o) . d -+ sqrt(r^2 - b^2),      tau = sigma * (z1 - z0)
@@ -26,16 +26,8 @@ def capture_particles(camera, particles, Float):
     Dr.Jit ``particles.density`` is gathered (gradients flow to the per-particle densities)."""
     c, r, s = particles.validate()
     lo, hi = c - r[:, None], c + r[:, None]
-    tex, z0, z1, pid = [], [], [], []
-    for item, texel, o, d in camera.footprint_rays(lo, hi, CHUNK, "particles"):
-        t0, t1, hit = ray_sphere(o, d, c[item], r[item], t_min=0.0)
-        tex.append(texel[hit])
-        z0.append(t0[hit])
-        z1.append(t1[hit])
-        pid.append(item[hit])
-    if not tex:
-        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Float(), np.zeros(0, np.int64)
-    tex, z0, z1, pid = (np.concatenate(a) for a in (tex, z0, z1, pid))
+    pid, tex, z0, z1 = camera.footprint_hits(lo, hi, lambda i, o, d: ray_sphere(o, d, c[i], r[i], t_min=0.0),
+                                             2, CHUNK, "particles")
     length = A.to_float(z1 - z0, Float)
     if A.is_drjit(particles.density):
         dens = dr.gather(Float, A.to_float(particles.density, Float), A.to_uint32(pid))
