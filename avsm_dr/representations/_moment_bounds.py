@@ -48,10 +48,10 @@ NEGLIGIBLE = 1e-20
 LEAD = {False: 1e-3, True: 1e-6}
 
 
-def hankel_pivots(target) -> list[float]:
-    """LDL^T pivots of the Hankel matrix of ``(1, *target)`` (float64): the floors of step 1
+def hankel_pivots(target, m0: float = 1.0) -> list[float]:
+    """LDL^T pivots of the Hankel matrix of ``(m0, *target)`` (float64): the floors of step 1
     are ``alpha`` times these.  ValueError when the target's matrix is not positive definite."""
-    m = np.concatenate([[1.0], np.asarray(target, np.float64)])
+    m = np.concatenate([[m0], np.asarray(target, np.float64)])
     n = (m.size - 1) // 2
     H = np.array([[m[i + j] for j in range(n + 1)] for i in range(n + 1)])
     try:

@@ -61,14 +61,6 @@ def cayley_matrix(n: int) -> np.ndarray:
     return A
 
 
-def uniform_pivots(n: int) -> list[float]:
-    """LDL^T pivots of the Hankel matrix of the uniform distribution's M (unnormalised:
-    M_0 = E[cos^2n(phi/2)], D_0 = M_0)."""
-    M = cayley_matrix(n)[:, 0]
-    H = np.array([[M[i + j] for j in range(n + 1)] for i in range(n + 1)])
-    return [float(v) for v in np.diag(np.linalg.cholesky(H)) ** 2]
-
-
 def tilted_phase_mean(kappa, w):
     """(Re G, Im G) of G = E[e^{i w tau}] under the density ~ e^{kappa tau} on [-1, 1]
     (kappa, w >= 0; module docstring)."""
@@ -133,7 +125,8 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     """Optical depth in front of warped depth ``xw`` and the bounds (module docstring).
 
     b: 2n + 1 Dr.Jit arrays [b_0, Re b_1, Im b_1, ..]; xw: Float in [-1, 1]; alpha, beta:
-    floats; A: :func:`cayley_matrix`; pivots: :func:`uniform_pivots`.  Returns (D, L, U)."""
+    floats; A: :func:`cayley_matrix`; pivots: :func:`._moment_bounds.hankel_pivots` of its first
+    column (the uniform distribution's M, unnormalised).  Returns (D, L, U)."""
     n = (len(b) - 1) // 2
     b0 = b[0]
     empty = b0 <= NEGLIGIBLE        # flushed higher moments: _moment_bounds.NEGLIGIBLE

@@ -146,13 +146,6 @@ def area_metric(d, t, i):
                   - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
 
 
-def remove_smallest(d, t, *extra):
-    """Remove the interior node of smallest area metric (ties: the deepest one) from the
-    node lists ``d``, ``t`` and any ``extra`` lists carried along (e.g. node sources);
-    returns the shortened lists in the same order (:func:`._avsm_insertion.remove_refit`)."""
-    return remove_refit(d, t, None, "area", extra)
-
-
 def interpolate(d, t, depth, mode: str):
     """Sample the node list at ``depth`` (Salvi et al. 2010, secs. 3.3 / 4.2): :func:`bracket`,
     then :func:`lerp`."""
@@ -174,19 +167,27 @@ def lerp(dl, tl, dr_, tr, depth, mode: str):
     return lin
 
 
-def csr_bracket(offsets, max_nodes: int, depth_at, texel, depth):
-    """Nodes around each receiver in a CSR node list (``offsets``: UInt32 (T+1,), nodes sorted
-    by depth per texel, at most ``max_nodes``; ``depth_at(i, active)``: node i's depth).
-    Binary search for the last node at or before ``depth``; returns (front, behind, il, ir):
-    in front of the first node (or an empty texel), behind the last, that node and its
-    successor (itself behind the last)."""
-    U32 = backend.types().UInt32
+def csr_lookup(offsets, max_nodes: int, depth_at, values, texel, depth, mode: str, hold_last: bool = True):
+    """T at receivers from a CSR node list (``offsets``: UInt32 (T+1,), at most ``max_nodes``
+    nodes per texel sorted by depth; ``depth_at(i, active)``: node i's depth; ``values``: the
+    nodes' T): binary search for the last node at or before ``depth``, then :func:`lerp` to its
+    successor; T = 1 in front of the first node and in empty texels, the last node's value
+    behind the last (DSM, avsm_march, avsm_adaptive; ``hold_last`` False: :func:`interpolate`
+    of the two nodes, the same value)."""
+    Float, U32 = type(depth), backend.types().UInt32
+    if max_nodes == 0:
+        return dr.full(Float, 1.0, dr.width(depth))
     start = dr.gather(U32, offsets, texel)
     count = dr.gather(U32, offsets, texel + 1) - start
     n_le = count_sorted(depth_at, start, count, depth, max_nodes)      # nodes at or before the depth
     front, behind = n_le == 0, n_le >= count
     il = start + dr.select(front, 0, n_le - 1)
-    return front, behind, il, dr.select(behind | front, il, il + 1)
+    ir = dr.select(behind | front, il, il + 1)
+    zl, zr = depth_at(il, ~front), depth_at(ir, ~front)
+    tl, tr = dr.gather(Float, values, il, ~front), dr.gather(Float, values, ir, ~front)
+    if not hold_last:
+        return dr.select(front, 1.0, interpolate([zl, zr], [tl, tr], depth, mode))
+    return dr.select(front, 1.0, dr.select(behind, tl, lerp(zl, tl, zr, tr, depth, mode)))
 
 
 class NodeList(Representation):

@@ -35,7 +35,7 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
-from .avsm import AVSM, INTERPOLATIONS, csr_bracket, interpolate
+from .avsm import AVSM, INTERPOLATIONS, csr_lookup
 from .base import SPARSE_OFFSET_BYTES as OFFSET_BYTES, Representation, depth_range, node_build_bytes
 from .registry import register
 from .schema import FAR, NEAR, Param, Schema
@@ -231,12 +231,6 @@ class AVSMAdaptive(Representation):
         return np.asarray(self.node_depth.numpy(), np.float64)
 
     def _eval_texels(self, texel, depth):
-        Float = self.Float
-        if self._max_nodes == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
-        zs, vs = self.node_depth, self.node_value
-        front, _, il, ir = csr_bracket(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(Float, zs, i, a),
-                                       texel, depth)
-        d = [dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)]
-        t = [dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)]
-        return dr.select(front, 1.0, interpolate(d, t, depth, self.params["interpolation"]))
+        zs = self.node_depth
+        return csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, zs, i, a),
+                          self.node_value, texel, depth, self.params["interpolation"], hold_last=False)

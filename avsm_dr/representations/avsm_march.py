@@ -31,7 +31,8 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from . import _curve
-from .avsm import INTERPOLATIONS, csr_bracket, lerp, remove_smallest
+from ._avsm_insertion import remove_refit
+from .avsm import INTERPOLATIONS, csr_lookup
 from .base import Representation
 from ._dsm_polyline import lanes_by_length
 from ._precision import PRECISIONS, Stored
@@ -62,7 +63,7 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
         old = (d, v, src)
         ext = [[dr.select(U32(j) == cnt, new, o[j]) for j in range(cap)] + [new] for o, new in zip(old, (x, tv, k))]
         out = [[dr.select(active, dr.select(full, r[j], e[j]), o[j]) for j in range(cap)]
-               for o, e, r in zip(old, ext, remove_smallest(*ext))]
+               for o, e, r in zip(old, ext, remove_refit(*ext[:2], None, "area", ext[2:]))]
         return dr.select(active & ~full, cnt + 1, cnt), *out
 
     # state: k next point; cnt nodes held; (dn, tn, sn) last node and its extinction;
@@ -188,16 +189,11 @@ class AVSMMarch(Representation):
 
     def _eval_texels(self, texel, depth):
         Float = self.Float
-        if self._max_nodes == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
         lo = dr.gather(Float, self.range_lo, texel)
         span = dr.gather(Float, self.range_hi, texel) - lo
 
         def z(i, active=True):                  # dequantised node depth
             return lo + Float(dr.gather(type(self.node_q), self.node_q, i, active)) * span
 
-        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes, z, texel, depth)
-        tl = dr.gather(Float, self.node_value, il, ~front)
-        tr = dr.gather(Float, self.node_value, ir, ~front)
-        val = lerp(z(il, ~front), tl, z(ir, ~front), tr, depth, self.params["interpolation"])
-        return dr.select(front, 1.0, dr.select(behind, tl, val))
+        return csr_lookup(self._offsets_dr, self._max_nodes, z, self.node_value, texel, depth,
+                          self.params["interpolation"])

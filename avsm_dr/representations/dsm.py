@@ -31,13 +31,10 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
    exact arithmetic; the remaining ``epsilon / 4`` absorbs the rounding of inserted depths.
    Phases A and B run in float64; nodes are stored in the segments' dtype.
 
-3. **Lookup** (phase C): binary search of the texel's nodes for the last node with
-   ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of the first node
-   and in empty texels, the last node's value behind the last one.
+3. **Lookup** (phase C): :func:`.avsm.csr_lookup`, linear between nodes.
 
-Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4`` (the
-(depth, value) pairs and a 4-byte CSR offset).  Phases A and B run on chunks of texels
-(:func:`next_chunk_segments`; the nodes do not depend on the chunking).
+Storage: per texel its (depth, value) nodes and a 4-byte CSR offset.  Phases A and B run on
+chunks of texels (:func:`next_chunk_segments`; the nodes do not depend on the chunking).
 """
 from __future__ import annotations
 
@@ -48,13 +45,11 @@ from .. import _arrays as A
 from .. import backend
 from . import _curve
 from .registry import register
-from .avsm import csr_bracket, lerp
+from .avsm import csr_lookup
 from .base import Representation
 from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema
-from ._dsm_polyline import (  # noqa: F401
-    BYTES_PER_VERTEX, MEMORY_BUDGET_BYTES, POLYLINE_SHARE, breakpoints, check_polyline_size, exact_polyline,
-    lanes_by_length, next_up, prefix_optical_depth, sort_within_texels, transmittance_levels)
+from ._dsm_polyline import POLYLINE_SHARE, exact_polyline, lanes_by_length
 
 #: smallest accepted tolerance (the level table has ~1/sqrt(2 eps_p) entries)
 MIN_TOLERANCE = 1e-9
@@ -326,17 +321,11 @@ class DeepShadowMap(Representation):
         return z[s], v[s]
 
     def _eval_texels(self, texel, depth):
-        Float = self.Float
-        if self._max_nodes == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
-        zs, vs = self.node_depth, self.node_value
-        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes,
-                                            lambda i, active: dr.gather(Float, zs, i, active), texel, depth)
-        za, zb = dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)
-        va, vb = dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)
-        out = dr.select(front, 1.0, dr.select(behind, va, lerp(za, va, zb, vb, depth, "linear")))
+        zs = self.node_depth
+        out = csr_lookup(self._offsets_dr, self._max_nodes, lambda i, active: dr.gather(self.Float, zs, i, active),
+                         self.node_value, texel, depth, "linear")
         out = dr.clip(out, 0.0, 1.0)
-        if self.placement == "midslope" and self.segments.requires_grad:
+        if self.placement == "midslope" and self.segments.requires_grad and self._max_nodes:
             seg = self.segments     # a gradient request raises a clear ValueError, not Dr.Jit's
             out = dr.custom(_MidslopeNoGradient, out, seg.optical_depth, seg.z0, seg.z1)
         return out

@@ -50,53 +50,40 @@ class Exact(Representation):
 
     def _eval_texels(self, texel, depth):
         seg = self.segments
-        Float, UInt32 = seg.Float, backend.types().UInt32
         if seg.n_segments == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
-        F64 = backend.types().Float64
-        offsets = seg.offsets_dr()
-        i = dr.gather(UInt32, offsets, texel)          # current segment
-        end = dr.gather(UInt32, offsets, texel + 1)    # one past the texel's last segment
-        tau = dr.zeros(F64, dr.width(depth))           # optical depth accumulated in front of depth
+            return dr.full(seg.Float, 1.0, dr.width(depth))
+        UInt32, offsets = backend.types().UInt32, seg.offsets_dr()
+        tau = optical_depth_in_front(seg, dr.gather(UInt32, offsets, texel), dr.gather(UInt32, offsets, texel + 1),
+                                     depth, backend.types().Float64, stop=True, label="exact_eval")
+        return seg.Float(dr.exp(-tau))
 
-        def cond(i, tau):
-            return (i < end) & (tau < OPAQUE_OPTICAL_DEPTH)
 
-        def body(i, tau):
-            z0 = dr.gather(Float, seg.z0, i)
-            z1 = dr.gather(Float, seg.z1, i)
-            od = dr.gather(Float, seg.optical_depth, i)
-            return i + 1, tau + F64(od * segment_fraction(depth, z0, z1))
+def optical_depth_in_front(seg, i, end, depth, Acc, left=None, stop: bool = False, label: str = "exact"):
+    """Optical depth in front of ``depth`` summed in ``Acc`` over segments ``[i, end)`` (one lane
+    per receiver; ``left``: left limits, a step at the depth not counted; ``stop``: at
+    ``OPAQUE_OPTICAL_DEPTH``).  A sum loop (tau only read by the condition): reverse mode
+    re-runs it (:mod:`._loops`)."""
+    Float = seg.Float
 
-        # a sum loop (tau only read by the condition): reverse mode re-runs it (_loops)
-        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="exact_eval")
-        return Float(dr.exp(-tau))
+    def cond(i, tau):
+        return (i < end) & (tau < OPAQUE_OPTICAL_DEPTH) if stop else i < end
+
+    def body(i, tau):
+        z0, z1, od = (dr.gather(Float, x, i) for x in (seg.z0, seg.z1, seg.optical_depth))
+        f = segment_fraction(depth, z0, z1)
+        if left is not None:
+            f = dr.select(left & (z0 == z1) & (depth == z0), 0.0, f)   # T(z^-) before a step
+        return i + 1, tau + Acc(od * f)
+
+    return dr.while_loop((i, dr.zeros(Acc, dr.width(depth))), cond, body, max_iterations=-1, label=label)[1]
 
 
 def exact_values(segments, texel: np.ndarray, z: np.ndarray, left: np.ndarray):
     """``T`` of the exact curve at depths ``z`` of texels ``texel`` (left limits where
-    ``left``), as a Dr.Jit Float of the segments' type carrying their AD graph.
-    One lane per point; a sum loop over the texel's segments (reverse mode recomputes it)."""
-    seg = segments
-    t = backend.types()
-    Float, UInt32 = seg.Float, t.UInt32
-    dt = np.float32 if seg.dtype == "float32" else np.float64
-    i = UInt32(seg.offsets[texel].astype(np.uint32))
-    end = UInt32(seg.offsets[texel + 1].astype(np.uint32))
-    zd = Float(A.aligned(np.asarray(z, dt)))
+    ``left``), as a Dr.Jit Float of the segments' type carrying their AD graph."""
+    seg, t = segments, backend.types()
+    i = t.UInt32(seg.offsets[texel].astype(np.uint32))
+    end = t.UInt32(seg.offsets[texel + 1].astype(np.uint32))
+    zd = seg.Float(A.aligned(np.asarray(z, np.dtype(seg.dtype).type)))
     is_left = t.Bool(A.aligned(np.asarray(left, bool)))
-    tau = dr.zeros(Float, z.size)
-
-    def cond(i, tau):
-        return i < end
-
-    def body(i, tau):
-        z0 = dr.gather(Float, seg.z0, i)
-        z1 = dr.gather(Float, seg.z1, i)
-        od = dr.gather(Float, seg.optical_depth, i)
-        f = segment_fraction(zd, z0, z1)
-        f = dr.select(is_left & (z0 == z1) & (zd == z0), 0.0, f)   # T(z^-) before a step
-        return i + 1, tau + od * f
-
-    _, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="curve_exact_values")
-    return dr.exp(-tau)
+    return dr.exp(-optical_depth_in_front(seg, i, end, zd, seg.Float, is_left, label="curve_exact_values"))

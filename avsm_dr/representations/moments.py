@@ -258,7 +258,8 @@ class MomentShadowMap(BasisRepresentation):
             if P["bias_target"] is not None:
                 raise ValueError("bias_target: the trigonometric family biases toward the uniform "
                                  "distribution on the circle (no other target)")
-            self._cayley, self._pivots = TM.cayley_matrix(n), TM.uniform_pivots(n)
+            self._cayley = TM.cayley_matrix(n)
+            self._pivots = hankel_pivots(self._cayley[1:, 0], self._cayley[0, 0])   # of the uniform distribution
         else:
             target = MBOIT_TARGET[n] if P["bias_target"] is None else P["bias_target"]
             try:
@@ -321,14 +322,12 @@ class MomentShadowMap(BasisRepresentation):
         ln_near, ls = self._log_range(texel)
         return dr.clip((dr.log(dr.maximum(depth, near)) - ln_near) / ls, 0, 1)
 
-    def _project(self):
-        """Linear warp: the basis projection.  Log warp: :func:`log_warp_means` per segment,
-        summed per texel like the basis."""
+    def _list_terms(self):
+        """Linear warp: the basis' terms.  Log warp: :func:`log_warp_means` per segment."""
         if not self._log:
-            return super()._project()             # the basis' average: power or trigonometric
+            return super()._list_terms()          # the basis' average: power or trigonometric
         seg = self.segments
         K = self.basis.n_coefficients
-        self._check_index_range(seg.n_texels, K)
         if self._trig:
             at_near = TM.delta_values(-1.0, self.basis.n)
         else:
@@ -350,9 +349,7 @@ class MomentShadowMap(BasisRepresentation):
                 means = log_warp_means(x0, x1, 0.5 * ls, K - 1, seg.dtype)
             return [tau_in * means[k] + tau_front * at_near[k] for k in range(K)]
 
-        if seg.n_segments and not seg.requires_grad:
-            return self._sum_per_texel(terms)
-        return self._scatter_terms(terms)
+        return terms
 
     def bounds(self, texel, depth):
         """(lower, upper) bounds of the absorbance fraction in front of each receiver
