@@ -118,12 +118,25 @@ def fill_slots(sel_tex: np.ndarray, sel_pt: np.ndarray, slot: np.ndarray, N: int
     return src
 
 
-def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None = None):
+def exp_stored_values(v, store):
+    """Node values as the offline kinds store them for exponential interpolation: 0 where
+    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least its smallest
+    normal ``tiny``: the lookup never takes the log of a denormal (Dr.Jit's LLVM log is
+    inexact there), so the DP's chords are the lookup's exactly."""
+    v = np.asarray(v, np.float64)
+    return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
+
+
+
+def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None = None, exp: bool = False):
     """Node lists (N Dr.Jit Floats of length T) from the (N, T) point indices ``src``
     (:func:`fill_slots`): depths ``z[src]``, values ``values`` (default: the exact values
-    ``v[src]``, with the exact curve's gradients attached); empty texels hold (0, 1)."""
+    ``v[src]``, with the exact curve's gradients attached; ``exp``: as
+    :func:`exp_stored_values`); empty texels hold (0, 1)."""
     N, T = src.shape
     dt = np.float32 if segments.dtype == "float32" else np.float64
+    if exp and values is None:
+        pts = {**pts, "v": exp_stored_values(pts["v"], dt)}
     Float = segments.Float
     has = src >= 0
     s = np.maximum(src, 0)

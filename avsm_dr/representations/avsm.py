@@ -47,6 +47,10 @@ from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
+#: Parameters of the node-list kinds (avsm, greedy, optimal).
+NODES = Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64)
+INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'linear' or 'exp' (as AVSM)",
+                      choices=INTERPOLATIONS)
 
 
 def bracket(d, t, x):
@@ -199,6 +203,10 @@ class NodeList(Representation):
 
     precisions = PRECISIONS
 
+    def _resolve(self):
+        self.N = self.params["nodes"]
+        self._check_node_memory()
+
     def _stored(self):
         return (Stored("depths", "depth", "nodes"), Stored("values", "transmittance", "nodes"))
 
@@ -257,7 +265,7 @@ class AVSM(NodeList):
     PRESET_VARIANTS = {"linear": {"interpolation": "linear"}, "exp": {"interpolation": "exp"}}
     schema = Schema(
         params=(
-            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
+            NODES,
             Param("sort", "bool", False, "insert segments sorted by depth per texel (deterministic) "
                   "instead of in the given order"),
             Param("interpolation", "choice", "linear", "between nodes: 'linear' (the paper's eq. 2) or "
@@ -284,8 +292,7 @@ class AVSM(NodeList):
     def _resolve(self):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
-        self.N = P["nodes"]
-        self._check_node_memory()
+        super()._resolve()
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
 

@@ -12,7 +12,7 @@ remain, the first and last point kept (the ``avsm_gap`` experiment: streaming vs
 The removal order does not depend on N: computed once per segments (cached), ``nodes=N``
 keeps the N points removed last.  Host float64: texels up to :data:`HEAP_POINTS` points
 vectorised (O(K^2) per texel), larger ones with a heap (O(K log K); identical ranks).  Node
-values are the exact curve's (for 'exp' as :func:`.optimal.exp_stored_values`), with its
+values are the exact curve's (for 'exp' as :func:`._curve.exp_stored_values`), with its
 gradients at the fixed node depths.  Lookup as AVSM (:func:`.avsm.interpolate`).
 """
 from __future__ import annotations
@@ -20,10 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from . import _curve
-from .avsm import INTERPOLATIONS, NodeList
-from .optimal import exp_stored_values
+from .avsm import INTERPOLATION, NODES, NodeList
 from .registry import register
-from .schema import Param, Schema
+from .schema import Schema
 
 
 def vw_removal_rank(x: np.ndarray, v: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -60,12 +59,10 @@ def vw_removal_rank(x: np.ndarray, v: np.ndarray, count: np.ndarray) -> np.ndarr
         p, q = prev[r, i], nxt[r, i]
         nxt[r, p] = q
         prev[r, q] = p
-        upd = p >= 1
-        rp, pp = r[upd], p[upd]
-        area[rp, pp] = metric(rp, prev[rp, pp], pp, q[upd])
-        upd = q < count[r] - 1
-        rq, qq = r[upd], q[upd]
-        area[rq, qq] = metric(rq, p[upd], qq, nxt[rq, qq])
+        for j in (p, q):                       # the neighbours' new areas (interior ones)
+            upd = (j >= 1) & (j < count[r] - 1)
+            rj, jj = r[upd], j[upd]
+            area[rj, jj] = metric(rj, prev[rj, jj], jj, nxt[rj, jj])
     return rank
 
 
@@ -117,14 +114,11 @@ def vw_removal_rank_heap(x, v, n: int) -> np.ndarray:
         p, q = prev[i], nxt[i]
         nxt[p] = q
         prev[q] = p
-        if p >= 1:
-            o = prev[p]
-            cur[p] = b = bits(abs((xs[q] - xs[o]) * (vs[q] - vs[p]) - (xs[q] - xs[p]) * (vs[q] - vs[o])))
-            push(heap, (b << S) | (M - p))
-        if q < n - 1:
-            r = nxt[q]
-            cur[q] = b = bits(abs((xs[r] - xs[p]) * (vs[r] - vs[q]) - (xs[r] - xs[q]) * (vs[r] - vs[p])))
-            push(heap, (b << S) | (M - q))
+        for j in (p, q):                       # the neighbours' new areas (interior ones)
+            if 1 <= j < n - 1:
+                o, r = prev[j], nxt[j]
+                cur[j] = b = bits(abs((xs[r] - xs[o]) * (vs[r] - vs[j]) - (xs[r] - xs[j]) * (vs[r] - vs[o])))
+                push(heap, (b << S) | (M - j))
     return rank
 
 
@@ -158,9 +152,7 @@ class GreedyVW(NodeList):
 
     schema = Schema(
         params=(
-            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' or 'exp' (as AVSM)",
-                  choices=INTERPOLATIONS),
+            NODES, INTERPOLATION,
         ),
         size="nodes", sweep=(2, 4, 6, 8, 12, 16, 24, 32), quick_sweep=(2, 4, 8, 16),
         examples=({"nodes": 4}, {"nodes": 8, "interpolation": "exp"}),
@@ -168,10 +160,6 @@ class GreedyVW(NodeList):
         summary="offline Visvalingam-Whyatt on the exact curve (AVSM's metric, whole curve known)",
         paper="Visvalingam & Whyatt 1993", offline=True,
     )
-
-    def _resolve(self):
-        self.N = self.params["nodes"]
-        self._check_node_memory()
 
     def _build(self):
         segments = self.segments
@@ -185,7 +173,4 @@ class GreedyVW(NodeList):
         slot = np.arange(sel.size) - node_off[tex]
         self.node_counts = np.diff(node_off)
         src = _curve.fill_slots(tex, sel, slot, self.N, segments.n_texels)
-        if self.params["interpolation"] == "exp":     # no denormal node values (as optimal)
-            store = np.float32 if segments.dtype == "float32" else np.float64
-            pts = {**pts, "v": exp_stored_values(pts["v"], store)}
-        self.depths, self.values = _curve.store_nodes(segments, src, pts)
+        self.depths, self.values = _curve.store_nodes(segments, src, pts, exp=self.params["interpolation"] == "exp")

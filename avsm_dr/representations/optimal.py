@@ -28,7 +28,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import _curve
-from .avsm import INTERPOLATIONS, NodeList
+from ._curve import exp_stored_values
+from .avsm import INTERPOLATION, NODES, NodeList
 from .registry import register
 from .schema import Param, Schema
 
@@ -168,15 +169,6 @@ def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
         C[:, i, i + 1:] = np.where(valid[:, i, i + 1:], c, np.inf)
     _check_finite(C, valid)
     return C
-
-
-def exp_stored_values(v, store):
-    """Node values as the offline kinds store them for exponential interpolation: 0 where
-    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least its smallest
-    normal ``tiny``: the lookup never takes the log of a denormal (Dr.Jit's LLVM log is
-    inexact there), so the DP's chords are the lookup's exactly."""
-    v = np.asarray(v, np.float64)
-    return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
 
 
 def _check_finite(C, valid):
@@ -333,11 +325,10 @@ class OptimalSubset(NodeList):
 
     schema = Schema(
         params=(
-            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
+            NODES,
             Param("norm", "choice", "l2", "objective per texel, uniform in depth: 'l2' (squared error "
                   "integral) or 'linf' (max error over the continuous curve)", choices=NORMS),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' or 'exp' (as AVSM)",
-                  choices=INTERPOLATIONS),
+            INTERPOLATION,
             # Private ablation switch (the avsm_gap experiment): the subset's exact values
             Param("_refit", "bool", True, "private: refit the values for 'l2' + 'linear' (False: keep "
                   "the best subset's exact values)"),
@@ -351,9 +342,8 @@ class OptimalSubset(NodeList):
     )
 
     def _resolve(self):
-        P = self.params
-        self.N, self.norm, self.interp = P["nodes"], P["norm"], P["interpolation"]
-        self._check_node_memory()
+        super()._resolve()
+        self.norm, self.interp = self.params["norm"], self.params["interpolation"]
         counts = np.diff(_curve.points(self.segments)["off"])
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
@@ -436,10 +426,5 @@ class OptimalSubset(NodeList):
         sel_tex, sel_pt, slot = cat(sel_tex, np.int64), cat(sel_pt, np.int64), cat(slot, np.int64)
         self.node_counts = np.bincount(sel_tex, minlength=T)
         src = _curve.fill_slots(sel_tex, sel_pt, slot, N, T)
-        if self._refit:
-            value = _curve.fill_slots(sel_tex, cat(vals, np.float64), slot, N, T, fill=1.0)
-            self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value)
-        else:
-            if self.interp == "exp":
-                pts = {**pts, "v": exp_stored_values(pts["v"], store)}
-            self.depths, self.values = _curve.store_nodes(seg, src, pts)
+        value = _curve.fill_slots(sel_tex, cat(vals, np.float64), slot, N, T, fill=1.0) if self._refit else None
+        self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value, exp=self.interp == "exp")
