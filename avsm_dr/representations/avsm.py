@@ -2,34 +2,28 @@
 
 Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``.
 
-* **Insertion** of a segment ``[a, b]`` with exit transmittance ``ts`` (sec. 3.1, 4.1):
-  the curve becomes ``T'(x) = T(x) R(x)`` with the segment's linear ramp
+* **Insertion** of a segment ``[a, b]`` with exit transmittance ``ts`` (secs. 3.1, 4.1):
+  ``T'(x) = T(x) R(x)`` with the segment's linear ramp
   ``R(x) = 1 (x <= a),  1 + (ts - 1)(x - a)/(b - a) (a < x < b),  ts (x >= b, x > a)``;
   existing nodes are multiplied by ``R(d_i)``; an entry node ``(a, T(a))`` and an exit
   node ``(b, T(b) ts)`` are added after existing nodes of equal depth.
 * **Compression** (sec. 3.2): while more than N nodes, remove the interior node with the
-  smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|``
-  (ties: the deepest such node); the first and last node are never removed and no
-  node is ever moved.
-* **Insertion variants** (``insertion``, default ``'stream'``: the above): :mod:`._avsm_insertion`.
+  smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|`` (ties: the
+  deepest); the first and last node are never removed, no node is moved.  Variants
+  (``insertion``): :mod:`._avsm_insertion`.
 * **Sampling** (sec. 3.3): T = 1 in front of the first node, the last node's value behind
-  the last one, and linear (eq. 2) or exponential interpolation in between.
+  the last one, linear (eq. 2) or exponential interpolation in between.
 
-Conventions made explicit here (the paper leaves them open):
-* Clear nodes ``(far, T)`` sort after every inserted node of equal depth and are the
-  first nodes dropped when the texel overflows: they carry zero area (their metric is
-  exactly 0), so this is the paper's metric with a fixed tie-break, and it means a
-  texel with room left does no compression work at all.
-* A segment whose entry lies where the curve is already 0 is not inserted: it cannot
-  change the curve (behind a fully opaque point nothing changes).  "0" is read from the
-  stored nodes (:func:`curve_at`), never from an interpolated value that rounded to 0.
+Conventions the paper leaves open: clear nodes ``(far, T)`` sort after every inserted node
+of equal depth and are dropped first when the texel overflows (their metric is exactly 0: the
+paper's metric with a fixed tie-break; a texel with room left does no compression work).  A
+segment whose entry lies where the stored nodes make the curve 0 (:func:`curve_at`) is not
+inserted (behind a fully opaque point nothing changes).
 
-Precision: node values are products of factors evaluated without cancellation
-(:func:`curve_at`, :func:`insert_segment`): after ``k`` insertions each lies within a relative
-``10 k u`` (``u`` the unit roundoff) of exact arithmetic on the stored inputs.
-
-Kernel: one lane per non-empty texel, the N nodes in registers (Python lists of Float,
-branch-free ``dr.select`` shifts); one loop inserts while the texel has room, one compresses.
+Precision: node values are products of factors evaluated without cancellation: after ``k``
+insertions each lies within a relative ``10 k u`` (``u`` the unit roundoff) of exact
+arithmetic on the stored inputs.  Kernel: one lane per non-empty texel, the N nodes in
+registers; one loop inserts while the texel has room, one compresses.
 """
 from __future__ import annotations
 

@@ -16,18 +16,15 @@ drop ``1 - T_behind`` into ``n`` pieces).  ``e`` is convex in ``n``.  Water-fill
 the least option of every texel, upgrades to the next option are taken in order of
 decreasing gain per node ``(e(n) - e(n')) / (n' - n)`` (ties: lower texel, then smaller
 ``n``) while the node total fits the budget; upgrades that gain nothing are never taken.
-Ablations for the ``memory_budget`` experiment: ``_score='count'`` (``span = 1``,
-``tau = c``) and ``_score='uniform'`` (the largest count that fits, for every non-empty texel).
+Ablations (experiment ``memory_budget``): ``_score='count'`` (``span = 1``, ``tau = c``),
+``_score='uniform'`` (the largest count that fits, for every non-empty texel).
 
-Build: texels are grouped by their kernel N (the option's ladder value; ``K`` runs with the
-next ladder value, which never compresses) and :class:`~.avsm.AVSM` runs once per group on
-:meth:`~avsm_dr.Segments.select_texels` with the map's near/far: a texel's nodes are bit for
-bit those of ``build('avsm', seg, nodes=N)``.
-
-Storage (compacted, at most ``bytes_per_texel x T`` bytes): CSR node offsets (T+1 uint32),
-per node a depth and a transmittance; a texel allocated fewer than ``K`` nodes stores all N of
-its kernel, one allocated ``K`` its ``used`` inserted nodes.  Lookup as :mod:`.dsm`'s, with
-AVSM's :func:`~.avsm.interpolate`.
+Build: :class:`~.avsm.AVSM` once per kernel N (the option's ladder value; ``K`` runs with the
+next ladder value, which never compresses) on :meth:`~avsm_dr.Segments.select_texels` with the
+map's near/far: a texel's nodes are bit for bit those of ``build('avsm', seg, nodes=N)``.
+Storage (CSR, at most ``bytes_per_texel x T`` bytes): T+1 uint32 offsets, per node a depth and
+a transmittance (all N of its kernel where allocated fewer than ``K``, else the ``used`` ones).
+Lookup: :func:`~.avsm.csr_lookup`.
 """
 from __future__ import annotations
 

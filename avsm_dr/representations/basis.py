@@ -8,37 +8,24 @@ and rebuilt from reconstruction integrals ``g_k``::
     a_k  = int_0^1 sigma(u) f_k(u) du                       (coefficient map, sec. 5)
     D(u) = sum_k a_k g_k(u),   T(u) = clamp(exp(-D(u)), 0, 1)
 
-For an orthonormal basis ``g_k(u) = F_k(u) = int_0^u f_k``; scaled pairs (the
-paper's Fourier ``a'_k``, the simplified piecewise-constant form of sec. 5.1)
-override ``g``.  Segments are integrated analytically, not as points: a segment
-``[u0, u1]`` with optical depth ``tau`` (uniform density ``tau / (u1 - u0)``) adds ::
+For an orthonormal basis ``g_k = F_k = int_0^u f_k``; scaled pairs (the paper's Fourier
+``a'_k``, the piecewise-constant form of sec. 5.1) override ``g``.  A segment ``[u0, u1]``
+with optical depth ``tau`` (uniform density) adds ``tau * (F_k(u1) - F_k(u0)) / (u1 - u0)``
+(:meth:`~.basis_functions.Basis.average`), a zero-length one the delta limit
+``tau * f_k(u0)`` (sec. 5: ``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  The bases live
+in :mod:`.basis_functions`.
 
-    a_k += tau * (F_k(u1) - F_k(u0)) / (u1 - u0)            (``Basis.average``)
+Depth range (``depth_range=``): ``"global"``, one ``[near, far]`` for all texels (default
+``Segments.bounds()``; an explicit range must contain every segment,
+:func:`~.base.depth_range`), or ``"texel"``, tight per-texel bounds stored per texel (2
+floats; ``near=``/``far=`` must not be given; constants of the build: gradients w.r.t.
+``z0``/``z1`` hold them fixed).  A range shorter than ``MIN_SPAN_REL max(|near|, |far|) +
+MIN_SPAN_ABS`` is widened to that length.  Normalised depths clip to [0, 1] (a part in front
+of ``u = 0`` counted as a delta there, one behind ``u = 1`` dropped); receiver depths clamp
+to the range.  ``precision=``: coefficients per texel as ``a_k / s``, ``s = max_k |a_k|``
+(:mod:`._precision`).
 
-and a zero-length segment the delta limit ``tau * f_k(u0)`` (sec. 5:
-``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  Short segments, where the difference
-quotient loses digits, use 3-point Gauss-Legendre on ``f`` (:meth:`Basis.average`); the
-Fourier and piecewise-constant bases override it with cancellation-free formulas.  The
-bases (:class:`~.basis_functions.Basis`, cosine, Legendre, ``register_basis``) live in
-:mod:`.basis_functions`.
-
-Depth range (``depth_range=``):
-* ``"global"``: one ``[near, far]`` for all texels (default: ``Segments.bounds()``; an
-  explicit range must contain every segment, :func:`~.base.depth_range`).
-* ``"texel"``: tight per-texel bounds ``Segments.texel_bounds()``, stored per texel
-  (2 floats, counted in ``nbytes_per_texel``); ``near=``/``far=`` must not be given.
-  Bounds are constants of the build: gradients w.r.t. ``z0``/``z1`` hold them fixed.
-A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` is widened to that
-length.  The projection clips normalised depths to [0, 1] (a part in front of ``u = 0``
-counted as a delta there, one behind ``u = 1`` dropped); receiver depths clamp to the range.
-
-Storage precision (``precision=``, :mod:`._precision`): the stored map is quantised per
-texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted); a per-texel range is kept
-in float32.
-
-Kernel: coefficients stored flat, texel-major ``[texel * K + k]``, projected by
-:meth:`BasisRepresentation._project`; gradients w.r.t. ``optical_depth``, ``z0`` and ``z1``
-flow through its scatters and the lookup's gathers.
+Kernel: coefficients stored flat, texel-major ``[texel * K + k]`` (:meth:`BasisRepresentation._project`).
 """
 from __future__ import annotations
 

@@ -1,59 +1,44 @@
 """Moment-based transmittance: 4, 6 or 8 power moments of the absorbance with the
-Hamburger bound (Peters and Klein 2015, "Moment Shadow Mapping", algorithm 2; Peters,
-Muenstermann, Wetzstein, Klein 2016, "Beyond Hard Shadows: Moment Shadow Maps for
-Single Scattering, Soft Shadows and Translucent Occluders", I3D, and its JCGT 2017
-version; Muenstermann, Krumpen, Klein, Peters 2018, "Moment-Based Order-Independent
-Transparency" (MBOIT), sec. 3-4, applied to optical depth as in the latter).
+Hamburger bound (Peters and Klein 2015, "Moment Shadow Mapping", algorithm 2; Peters et al.
+2016/2017, "Beyond Hard Shadows", I3D / JCGT; Muenstermann, Krumpen, Klein, Peters 2018,
+"Moment-Based Order-Independent Transparency" (MBOIT), secs. 3-4, on optical depth as there).
 
 Depth warp (``warp=``): ``u = (z - near) / (far - near)`` ('linear') or
-``u = (ln z - ln near) / (ln far - ln near)`` ('log', MBOIT's logarithmic depth warp;
-needs ``near > 0``), same ranges and clipping as :mod:`avsm_dr.representations.basis`;
-then ``x = 2 u - 1`` in [-1, 1].  A texel stores ``2n + 1`` values (``moments = 2n``) ::
+``u = (ln z - ln near) / (ln far - ln near)`` ('log', MBOIT's; needs ``near > 0``), ranges and
+clipping as :mod:`.basis`; then ``x = 2 u - 1`` in [-1, 1].  A texel stores ``2n + 1`` values
+(``moments = 2n``) ::
 
     b_0 = sum_i tau_i,    b_k = sum_i tau_i E_i[x^k]  (k = 1..2n),
 
-``E_i`` the mean over segment ``i`` with its optical depth uniform in ``z`` (a
-zero-length segment: ``x_i^k``).
+``E_i`` the mean over segment ``i`` with its optical depth uniform in ``z`` (a zero-length
+segment: ``x_i^k``).
 
 * linear warp: ``E[x^k] = sum_{j=0..k} x1^(k-j) x0^j / (k + 1)`` (no cancellation);
 * log warp: uniform in z is the density ``~ e^{lambda x}`` in x (``lambda =
   (ln far - ln near) / 2``), so with ``x = mid + h tau``, ``tau`` in [-1, 1],
-  ``E[x^k] = sum_j C(k, j) mid^(k-j) h^j mu_j(kappa)``, ``kappa = lambda h =
-  ln(z1 / z0) / 2`` and ``mu_j(kappa) = int tau^j e^{kappa tau} / int e^{kappa tau}``
-  in closed form: for ``kappa < KAPPA_SWITCH`` the positive series
-  ``int_{-1}^{1} tau^j e^{kappa tau} = sum_{i + j even} kappa^i / i! 2 / (i + j + 1)``
-  (no cancellation; truncation < 1e-16 at 34 terms for float64, < 1e-9 at 24 for
-  float32), else the recurrence ``mu_j = c_j - (j / kappa) mu_{j-1}`` (integration by
-  parts; ``c_j = 1`` for even j, ``coth kappa`` for odd j), whose error grows by
-  ``prod_{i<=j} i / kappa <= 8! / 4^8 < 1`` at ``kappa >= 4``.  Every term is at most 1
-  in magnitude (``|mid| + h <= 1``): absolute error ~ eps.
+  ``E[x^k] = sum_j C(k, j) mid^(k-j) h^j mu_j(kappa)``, ``kappa = lambda h`` and
+  ``mu_j(kappa) = int tau^j e^{kappa tau} / int e^{kappa tau}``: for ``kappa < KAPPA_SWITCH``
+  the positive series ``int_{-1}^{1} tau^j e^{kappa tau} = sum_{i + j even} kappa^i / i!
+  2 / (i + j + 1)``, else the recurrence ``mu_j = c_j - (j / kappa) mu_{j-1}`` (``c_j = 1``
+  for even j, ``coth kappa`` for odd j; its error grows by ``prod_{i<=j} i / kappa < 1``).
 
-Reconstruction (one lane per receiver): :func:`._moment_bounds.hankel_bound`, the bias
-``m = (1 - alpha) b / b_0 + alpha m*``, the canonical representation through ``x_f`` and
-``D = b_0 clamp(L + beta (U - L), 0, 1)``, ``T = exp(-D)`` with ``beta`` =
-``overestimation`` (0: the lower bound, light; 1: the upper bound, dark; MBOIT uses
-0.25).  ``T = 1`` at and in front of near, ``T = exp(-b_0)`` at and behind far.
+Reconstruction: :func:`._moment_bounds.hankel_bound` with bias ``alpha`` and
+``beta = overestimation`` (0: the lower bound, light; 1: the upper bound, dark; MBOIT: 0.25),
+``T = exp(-D)``; ``T = 1`` at and in front of near, ``T = exp(-b_0)`` at and behind far.
 
-Bias (``bias`` alpha, ``bias_target`` m*; ``bias=``/``bias_target=`` override the defaults).
-Target: MBOIT's float32 vectors :data:`MBOIT_TARGET` (Hankel matrices positive definite,
-checked at import); :data:`UNIFORM_TARGET` holds the uniform distribution's ``1/(k+1)``.
-alpha by storage precision (``self.precision``, else the segments' dtype):
-:data:`DEFAULT_BIAS` (MBOIT's 32-bit / 16-bit values; float64 and unorm8, 16-bit x 256 at
-most 0.5, are ours), :data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'.  Trigonometric moments
-bias toward the uniform distribution on the circle (:mod:`._trig_moments`), alpha
-:data:`DEFAULT_TRIG_BIAS`.
+Bias (``bias`` alpha, ``bias_target`` m*): target :data:`MBOIT_TARGET` (positive definite
+Hankel matrices, checked at import; :data:`UNIFORM_TARGET`: the uniform distribution's);
+alpha by storage precision (``self.precision``, else the segments' dtype) from
+:data:`DEFAULT_BIAS` (MBOIT's 32-bit / 16-bit values; float64 and unorm8 ours),
+:data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'; trigonometric: :data:`DEFAULT_TRIG_BIAS`.
 
 16-bit storage (``quantization``, 4 power moments in 'float16' / 'unorm16'): 'scaled' codes
-the moments over the per-texel scale ``b_0`` like every basis kind (:mod:`._precision`, 5
-codes + a float32 scale, 14 bytes); 'msm' stores the optimised transform of Peters and Klein
-2015, sec. 5 (:mod:`._moment_quantization`: 4 codes, ``b_0`` in float32, 12 bytes).  Default
-'msm' in 'unorm16', 'scaled' elsewhere (experiment ``moment_storage``).
+the moments over the per-texel scale ``b_0`` (:mod:`._precision`, 14 bytes); 'msm' stores the
+transform of Peters and Klein 2015, sec. 5 (:mod:`._moment_quantization`, 12 bytes).
+Default 'msm' in 'unorm16', 'scaled' elsewhere.
 
-Family 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`
-(phase ``phi = (pi/2) x``, bound through the Cayley transform).  The schema's ``constraint``
-rejects counts a family does not take.  ``monotone`` False (bounds non-decreasing in exact
-arithmetic, not the float reconstruction).  ``nbytes_per_texel`` = ``(moments + 1)`` itemsize
-(+ 2 itemsize per-texel range; with ``precision`` as :mod:`._precision` counts it).
+Family 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`.
+``monotone`` False (the bounds are non-decreasing in exact arithmetic only).
 """
 from __future__ import annotations
 
