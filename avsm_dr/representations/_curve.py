@@ -1,16 +1,12 @@
-"""The exact transmittance curve as a list of points per texel, for the kinds that choose
-their nodes from it (``greedy``, ``optimal``, ``avsm_march``).
+"""The exact transmittance curve as points per texel, for the kinds that choose their nodes
+from it (``greedy``, ``optimal``, ``avsm_march``), and their helpers (gradients of stored
+curve values, texel buckets for padded NumPy work, a per-segments cache, node lists).
 
-Between the texel's sorted unique segment ends ("breakpoints") the optical depth is
-linear, so ``T = exp(-tau)`` is exactly exponential; a zero-length segment is a step.
-The points are, per breakpoint ``z_k``: ``(z_k, T(z_k^-))`` when a step sits there (the
-*left* point), then ``(z_k, T(z_k))``; with the slope ``s_k = d tau / dz`` of the interval
-that follows.  Between consecutive points ``p``, ``q`` the curve is
-``T(x) = T_p exp(-s_p (x - z_p))``.  Breakpoints, optical depths and slopes come from
-:mod:`.dsm`'s phase A (:mod:`._dsm_polyline`) (event sort, compensated prefix sums, float64).
-
-Also the helpers of those kinds: gradients of stored curve values, texel buckets for padded
-NumPy work, a per-segments cache and node lists from chosen points.
+Between the texel's sorted unique segment ends ("breakpoints") ``T = exp(-tau)`` is exactly
+exponential; a zero-length segment is a step.  Per breakpoint ``z_k`` the points are
+``(z_k, T(z_k^-))`` when a step sits there (the *left* point), then ``(z_k, T(z_k))``, with
+the slope ``s_k = d tau / dz`` after it: ``T(x) = T_p exp(-s_p (x - z_p))`` up to the next
+point.  Breakpoints, optical depths and slopes: :mod:`._dsm_polyline` (float64).
 """
 from __future__ import annotations
 

@@ -11,16 +11,11 @@ Chebyshev-Markov-Stieltjes bounds ``L = sum_{z_i < x_f} w_i <= F(x_f-)``,
 ``U = L + w_f >= F(x_f)`` for every distribution with these moments.
 
 Steps (:func:`hankel_bound`):
-1. bias: ``m = (1 - alpha) b / b_0 + alpha m*`` toward a target ``m*`` with a positive
-   definite Hankel matrix ``B*``; then ``B >= alpha B*`` (PSD order) and each LDL^T pivot
-   (a Schur complement) of ``B`` is at least ``alpha`` times that of ``B*`` (float64
-   Cholesky): the pivots are floored there, so rounding cannot make them vanish;
-2. LDL^T of ``B``, forward / back substitution for ``c``;
-3. roots of ``c``: degree 2 the stable quadratic formula, 3 Viete's trigonometric formula,
-   4 Ferrari's method (the resolvent cubic's largest root splits it into two real
-   quadratics); degrees 3 and 4 then take :data:`POLISH` safeguarded Newton steps on ``c``
-   itself (the closed forms on ``c / c_n`` lose digits where ``c_n`` nears 0).  Roots are
-   clipped to ``[-BIG, BIG]``;
+1. bias: ``m = (1 - alpha) b / b_0 + alpha m*`` toward a target with a positive definite
+   Hankel matrix ``B*``; then ``B >= alpha B*`` and each LDL^T pivot of ``B`` is at least
+   ``alpha`` times that of ``B*``: the pivots are floored there;
+2. LDL^T of ``B``, forward / back substitution for ``c`` (:func:`kernel_polynomial`);
+3. roots of ``c`` (:func:`real_roots`), clipped to ``[-BIG, BIG]``;
 4. weights by the Lagrange form on moments 0..n,
    ``w_p = E[prod_{r != p} (z - r)] / prod_{r != p} (p - r)``, clipped to [0, 1];
    ``L = sum_{z_i < x_f} w_i`` (``1 - w_f`` when ``x_f`` is behind every root),
@@ -255,7 +250,11 @@ def kernel_polynomial(m, xf, floors):
 
 
 def real_roots(c):
-    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n, n = 2, 3, 4 (steps 3)."""
+    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n (step 3): degree 2 the stable
+    quadratic formula, 3 Viete's trigonometric formula, 4 Ferrari's method (the resolvent
+    cubic's largest root splits it into two real quadratics); degrees 3 and 4 then take
+    :data:`POLISH` safeguarded Newton steps on ``c`` itself (the closed forms on ``c / c_n``
+    lose digits where ``c_n`` nears 0)."""
     n = len(c) - 1
     if n == 2:
         return list(quadratic_roots(*c))

@@ -1,33 +1,30 @@
 """Trigonometric moments of the absorbance (n = 2, 3, 4 complex moments) and their bound,
 branch-free Dr.Jit (Muenstermann, Krumpen, Klein, Peters 2018, "Moment-Based
-Order-Independent Transparency", sec. 4: trigonometric moments, Toeplitz matrix,
-canonical representations on the unit circle).
+Order-Independent Transparency", sec. 4: trigonometric moments, Toeplitz matrix, canonical
+representations on the unit circle).
 
-Phase: the warped depth x in [-1, 1] maps to ``phi = (pi / 2) x`` in [-pi/2, pi/2], half
-of the circle (the other half is the wrapping zone; the cut is at ``phi = pi``).  A texel
-stores ``b_0 = sum tau`` and ``Re b_k, Im b_k`` of ``b_k = sum_i tau_i E_i[e^{i k phi}]``,
-k = 1..n (2n + 1 reals).  Segment means, ``phi = (pi/2)(mid + h tau)``, ``w = k (pi/2) h``:
-linear warp ``E[e^{ik phi}] = e^{ik (pi/2) mid} sinc(w)``; log warp (density ~
-``e^{kappa tau}``, see :mod:`.moments`) ``e^{ik (pi/2) mid} G`` with
-``G = kappa sinh(kappa + i w) / ((kappa + i w) sinh kappa)``, written without cancellation
-as ``Re G = (kappa^2 cos w + q w^2 sinc w) / (kappa^2 + w^2)``,
+Phase: the warped depth x in [-1, 1] maps to ``phi = (pi / 2) x`` in [-pi/2, pi/2] (the cut
+is at ``phi = pi``).  A texel stores ``b_0 = sum tau`` and ``Re b_k, Im b_k`` of
+``b_k = sum_i tau_i E_i[e^{i k phi}]``, k = 1..n.  Segment means, ``phi = (pi/2)(mid + h tau)``,
+``w = k (pi/2) h``: linear warp ``e^{ik (pi/2) mid} sinc(w)``; log warp (density ~
+``e^{kappa tau}``, :mod:`.moments`) ``e^{ik (pi/2) mid} G``,
+``G = kappa sinh(kappa + i w) / ((kappa + i w) sinh kappa)``, without cancellation
+``Re G = (kappa^2 cos w + q w^2 sinc w) / (kappa^2 + w^2)``,
 ``Im G = kappa w ((q - 1) sinc w + (sinc w - cos w)) / (kappa^2 + w^2)``, ``q = kappa
-coth kappa`` (``q - 1`` and ``sinc w - cos w`` by Taylor series below 0.1).
+coth kappa`` (``q - 1`` and ``sinc w - cos w`` by Taylor series below :data:`SERIES_BELOW`).
 
-Bound.  The Cayley transform ``x = tan(phi / 2)`` maps the circle without ``phi = pi`` onto
-the real line, Laurent polynomials of degree n in ``e^{i phi}`` onto polynomials of degree
-2n over ``(1 + x^2)^n``: ``mu`` has trigonometric moments ``t_0..t_n`` exactly when
-``nu = mu / (1 + x^2)^n`` has the power moments ``M_j = E_mu[sin^j(phi/2) cos^(2n-j)(phi/2)]``
-(a linear map of ``t``, :func:`cayley_matrix`), with canonical representations point by
-point.  So the Toeplitz problem through ``phi_f`` is the Hankel problem of
-:mod:`._moment_bounds` for ``m = M / M_0`` through ``x_f = tan(phi_f / 2)``, and a support
-point ``psi = atan(x)`` weighs the Christoffel function ``w = M_0 / (s^T B_m^-1 s)``,
-``s_j = sin^j(psi) cos^(n-j)(psi)`` (finite at ``phi = pi``).  ``L = sum_{x_i < x_f} w_i``,
-``U = L + w_f`` (checked against the Toeplitz route in tests/reference/moments_ref.py).
+Bound.  The Cayley transform ``x = tan(phi / 2)`` maps Laurent polynomials of degree n in
+``e^{i phi}`` onto polynomials of degree 2n over ``(1 + x^2)^n``: ``mu`` has trigonometric
+moments ``t_0..t_n`` exactly when ``nu = mu / (1 + x^2)^n`` has the power moments
+``M_j = E_mu[sin^j(phi/2) cos^(2n-j)(phi/2)]`` (linear in ``t``, :func:`cayley_matrix`), with
+canonical representations point by point.  So the Toeplitz problem through ``phi_f`` is the
+Hankel problem of :mod:`._moment_bounds` for ``m = M / M_0`` through ``x_f = tan(phi_f / 2)``;
+a support point ``psi = atan(x)`` weighs ``w = M_0 / (s^T B_m^-1 s)``,
+``s_j = sin^j(psi) cos^(n-j)(psi)``; ``L = sum_{x_i < x_f} w_i``, ``U = L + w_f``.
 
-Bias: toward the uniform distribution on the circle (``t_k = 0``, Toeplitz matrix = I):
-``t = (1 - alpha) b / b_0``; the Hankel pivots of ``nu`` are then at least ``alpha`` times
-those of the uniform distribution's ``nu`` divided by ``M_0`` (floors, as for power moments).
+Bias toward the uniform distribution on the circle (``t_k = 0``): ``t = (1 - alpha) b / b_0``;
+the Hankel pivots of ``nu`` are floored at ``alpha`` times the uniform distribution's over
+``M_0``.
 """
 from __future__ import annotations
 

@@ -138,12 +138,6 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
     return out_d, out_t
 
 
-def area_metric(d, t, i):
-    """Area change when removing interior node i (Salvi et al. 2010, sec. 3.2.1)."""
-    return dr.abs((d[i + 1] - d[i - 1]) * (t[i + 1] - t[i])
-                  - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
-
-
 def interpolate(d, t, depth, mode: str):
     """Sample the node list at ``depth`` (Salvi et al. 2010, secs. 3.3 / 4.2): :func:`bracket`,
     then :func:`lerp`."""

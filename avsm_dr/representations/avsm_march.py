@@ -12,16 +12,12 @@ two nodes at one depth).  The last point is always a node.  A node added to a fu
 (``nodes`` = cap) pushes out the interior node of smallest AVSM area metric (Salvi et al.
 2010, sec. 3.2; ties: the deepest; first and last never).
 
-Storage (compacted, ``nbytes_per_texel`` counts all of it): a CSR offset per texel
-(uint32, 4 bytes), the texel's depth range ``[lo, hi]`` (2 floats of the segments' dtype)
-and per node a float16 depth ``q = (d - lo) / (hi - lo)`` in [0, 1] (2 bytes; error at
-most (hi - lo) 2^-12, where absolute float16 depths would err by up to |d| 2^-11) and its T
-(segments' dtype).  Dequantised on lookup as ``lo + q (hi - lo)`` (monotone: the nodes stay
-sorted).  With ``precision=p`` (:mod:`._precision`) q and T are both stored in ``p`` and the
-range in float32.
-
-Lookup as :mod:`.dsm`'s, interpolating as AVSM (default 'exp').  Node values are the exact
-curve's (float64 march), with its gradients at the fixed node depths.
+Storage (CSR): a 4-byte offset and the depth range ``[lo, hi]`` (2 floats of the segments'
+dtype) per texel, per node a float16 depth ``q = (d - lo) / (hi - lo)`` in [0, 1] (error at
+most (hi - lo) 2^-12; dequantised as ``lo + q (hi - lo)``, monotone) and its T (segments'
+dtype); ``precision=p``: q and T in ``p``, the range in float32.  Lookup:
+:func:`.avsm.csr_lookup` (default 'exp').  Node values are the exact curve's (float64 march),
+with its gradients at the fixed node depths.
 """
 from __future__ import annotations
 

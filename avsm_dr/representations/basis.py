@@ -417,16 +417,5 @@ class BasisRepresentation(Representation):
         u = self.normalized_depth(None, depth)
         return dr.clip(dr.exp(-self._reconstruct_from(flat, dr.arange(UInt32, R), u)), 0, 1)
 
-    def optical_depth(self, texel, depth):
-        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp) at (K,) texel
-        indices (not validated: a diagnostic) and (K,) or scalar depths.  Returns Float (K,)."""
-        tex = texel if A.is_drjit(texel) else A.to_uint32(np.asarray(texel).astype(np.uint32))
-        if A.is_drjit(depth):
-            d = A.to_float(depth, self.Float)
-        else:
-            d = A.to_float(np.broadcast_to(np.asarray(depth, np.float64), (dr.width(tex),)),
-                           self.Float)
-        return self._optical_depth(tex, d)
-
     def _eval_texels(self, texel, depth):
         return dr.clip(dr.exp(-self._optical_depth(texel, depth)), 0, 1)

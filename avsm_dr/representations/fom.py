@@ -144,9 +144,8 @@ class FourierOpacityMap(BasisRepresentation):
             e^{ika} = e^{i(k-1)a} e^{ia},   q_k = q_{k-1} cos h + cos((k-1) h),
             cos(k h) = cos((k-1) h) cos h - q_{k-1} sin(h)^2,   sinc(k h) = q_k sinc(h) / k
 
-        (q_k = sin(k h) / sin(h), finite at h = 0; sinc(h) in float64, :func:`sinc`).
-        Error (Higham 2002, sec. 3.6): cos(k a), sin(k a) within ~3.6 k eps (plus k times
-        the error of m), sinc(k h) within ~3 k eps + 3 eps.  Float64 segments and more than
+        (q_k = sin(k h) / sin(h), finite at h = 0; sinc(h) in float64, :func:`sinc`): errors
+        ~3.6 k eps (Higham 2002, sec. 3.6).  Float64 segments and more than
         :data:`RECURRENCE_HARMONICS` harmonics keep the base class' lanes."""
         seg = self.segments
         if seg.Float is not backend.types().Float32 or self.basis.n > RECURRENCE_HARMONICS:
@@ -194,12 +193,10 @@ class FourierOpacityMap(BasisRepresentation):
 
             e^{i(k+1)x} = e^{ikx} e^{ix},   D = a'_0 u / 2 + sum_k (a'_k cos(kx) + b'_k sin(kx)) sin(kx) / (pi k)
 
-        (sin(2 kx) = 2 sin(kx) cos(kx), 1 - cos(2 kx) = 2 sin(kx)^2: no cancellation).
-        Error (u_r: unit roundoff): sin(kx), cos(kx) within k delta, delta ~ 12 u_r (Higham
-        2002, sec. 3.6); the 1 / (pi k) weight keeps every term's error below
-        (2 delta / pi) (|a'_k| + |b'_k|) whatever k.  u = 0 and u = 1 are exact, so
-        T(near) = 1 and T(far) = exp(-a'_0 / 2).  Blocks of :data:`LOOKUP_UNROLL_HARMONICS`
-        beyond it; differentiable in both modes (no symbolic loop)."""
+        (sin(2 kx) = 2 sin(kx) cos(kx), 1 - cos(2 kx) = 2 sin(kx)^2: no cancellation); each
+        term's error below (2 delta / pi) (|a'_k| + |b'_k|), delta ~ 12 u_r (Higham 2002, sec.
+        3.6).  u = 0 and u = 1 are exact: T(near) = 1, T(far) = exp(-a'_0 / 2).  Blocks of
+        :data:`LOOKUP_UNROLL_HARMONICS` beyond it; no symbolic loop (both AD modes)."""
         Float, UInt32 = self.Float, backend.types().UInt32
         n, L = self.basis.n, LOOKUP_UNROLL_HARMONICS
         blocks = n > L

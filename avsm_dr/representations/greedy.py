@@ -1,19 +1,15 @@
 """Offline greedy: Visvalingam-Whyatt simplification of the exact curve (Visvalingam and
 Whyatt 1993, "Line generalisation by repeated elimination of points", The Cartographic
-Journal 30(1)), with AVSM's removal metric and tie rule.
-
-AVSM (Salvi et al. 2010, sec. 3.2) removes, while a texel holds more than N nodes, the
-interior node of smallest area metric ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])
-(t[i+1]-t[i-1])|`` (ties: the deepest), *while streaming* the segments in.  This kind runs
-the same removal on the whole exact curve at once (its points, :mod:`._curve`): the
-smallest-metric interior node is removed and its neighbours' metrics updated until N
-remain, the first and last point kept (the ``avsm_gap`` experiment: streaming vs greed).
+Journal 30(1)) with AVSM's removal metric and tie rule (Salvi et al. 2010, sec. 3.2), run on
+the whole exact curve at once (its points, :mod:`._curve`) instead of while streaming: the
+smallest-metric interior point is removed and its neighbours' metrics updated until N remain,
+the first and last point kept (experiment ``avsm_gap``: streaming vs greed).
 
 The removal order does not depend on N: computed once per segments (cached), ``nodes=N``
 keeps the N points removed last.  Host float64: texels up to :data:`HEAP_POINTS` points
 vectorised (O(K^2) per texel), larger ones with a heap (O(K log K); identical ranks).  Node
-values are the exact curve's (for 'exp' as :func:`._curve.exp_stored_values`), with its
-gradients at the fixed node depths.  Lookup as AVSM (:func:`.avsm.interpolate`).
+values are the exact curve's (:func:`._curve.store_nodes`), with its gradients at the fixed
+node depths; lookup as AVSM's.
 """
 from __future__ import annotations
 

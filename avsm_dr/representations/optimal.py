@@ -2,26 +2,20 @@
 points ("best breakpoint subset"), by dynamic programming.
 
 The candidates are the texel's exact-curve points (:mod:`._curve`; the last one is always
-kept).  Starting at point j costs the error of ``T = 1`` on ``[z_0, z_j)`` (the lookup gives
-1 in front of the first node; :func:`start_costs`).  Between chosen points ``i < j`` the
-curve is the chord of the lookup's interpolation (``'linear'``: AVSM's eq. 2; ``'exp'``:
-``T_i (T_j / T_i)^w``, linear where a value is 0; :func:`exp_stored_values`), with cost
-``C(i, j)`` on ``[z_i, z_j]``: ``norm='l2'`` ``int (T - chord)^2 dz`` (closed forms per
-interval, prefix sums of ``int T``, ``int z T``, ``int T^2``); ``norm='linf'``
-``max |T - chord|`` over the continuous curve (the points and the one interior extremum
-per interval).  DP over "at most n nodes": ``D_1(j) = S(j)``, ``D_n(j) = min(D_{n-1}(j),
-min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, O(N K^2) per texel; the answer ``D_N(K-1)``,
-backtracked.  Costs are formed in log space from the optical depths (finite for any input);
-a non-finite one raises RuntimeError.  With ``norm='l2'`` and linear interpolation the
-chosen nodes' values are then refitted by least squares (tridiagonal normal equations of
-the hat functions, first and last value pinned), kept where that lowers the texel's L2
-error: the best subset refitted, not the joint optimum over subsets and values.
+kept).  Starting at point j costs the error of ``T = 1`` on ``[z_0, z_j)`` (:func:`start_costs`);
+between chosen points ``i < j`` the curve is the lookup's chord (``'linear'``: AVSM's eq. 2;
+``'exp'``: ``T_i (T_j / T_i)^w``, linear where a value is 0), with cost ``C(i, j)``
+(:func:`pair_costs`): ``norm='l2'`` ``int (T - chord)^2 dz``, ``norm='linf'`` ``max |T - chord|``
+over the continuous curve.  DP over "at most n nodes": ``D_1(j) = S(j)``,
+``D_n(j) = min(D_{n-1}(j), min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, O(N K^2) per texel; the
+answer ``D_N(K-1)``, backtracked.  With ``norm='l2'`` and linear interpolation the chosen
+nodes' values are then refitted by least squares (:func:`refit_l2`) where that lowers the
+texel's L2 error: the best subset refitted, not the joint optimum over subsets and values.
 
 Host NumPy in float64 (depths normalised to [0, 1] per texel), vectorised over texels of
 similar point count.  Builds above :data:`MAX_WORK` work units or with a texel above
-:data:`MAX_POINTS` points raise ValueError before computing.  ``objective`` holds each
-texel's cost of the stored curve: RMS over ``[first, last point]`` (l2) or the max error
-(linf).
+:data:`MAX_POINTS` points raise ValueError before computing.  ``objective``: each texel's
+cost of the stored curve, RMS over ``[first, last point]`` (l2) or the max error (linf).
 """
 from __future__ import annotations
 
@@ -93,12 +87,12 @@ def linear_chord_l2(a0, a1, q, xa, xb, va, vb):
 
 def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
     """(B, K, K) costs of the chord from point i to point j (i < j < count; inf else), from
-    the points' depths ``x`` (normalised), optical depths ``tau`` and piece exponents ``a``
-    (:func:`piece_exponents`); ``store``: the dtype the node values are stored in.
-
-    The chord is the lookup's (:func:`.avsm.interpolate`) on the stored values: a line in
-    log space between two positive ones, a line in T where one is 0.  Formed from ``tau``,
-    logs of normal numbers and ratios in [0, 1], so every valid cost is finite."""
+    the points' normalised depths ``x``, optical depths ``tau`` and piece exponents ``a``;
+    ``store``: the dtype the node values are stored in.  l2: closed forms per interval from
+    :func:`prefix_integrals`; linf: the points and the one interior extremum per piece.
+    The chord is the lookup's (:func:`.avsm.interpolate`) on the stored values, formed from
+    ``tau``, logs of normal numbers and ratios in [0, 1]: every valid cost is finite
+    (RuntimeError otherwise)."""
     B, K = x.shape
     v = np.exp(-tau)
     ii = np.arange(K)[None, :, None]
@@ -421,10 +415,9 @@ class OptimalSubset(NodeList):
             sel_pt.append(off[tex[r]] + idx[r, m])
             slot.append(m)
             vals.append(V[r, m])
-        def cat(a, dt):
-            return np.concatenate(a) if a else np.zeros(0, dt)
-        sel_tex, sel_pt, slot = cat(sel_tex, np.int64), cat(sel_pt, np.int64), cat(slot, np.int64)
+        sel_tex, sel_pt, slot, vals = (np.concatenate(a) if a else np.zeros(0, np.int64)
+                                       for a in (sel_tex, sel_pt, slot, vals))
         self.node_counts = np.bincount(sel_tex, minlength=T)
         src = _curve.fill_slots(sel_tex, sel_pt, slot, N, T)
-        value = _curve.fill_slots(sel_tex, cat(vals, np.float64), slot, N, T, fill=1.0) if self._refit else None
+        value = _curve.fill_slots(sel_tex, vals.astype(np.float64), slot, N, T, fill=1.0) if self._refit else None
         self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value, exp=self.interp == "exp")

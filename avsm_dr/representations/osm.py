@@ -12,16 +12,11 @@ holding it) and the optical depth ``D(u) = sum_k a_k g_k(u)`` is piecewise linea
 exact at the slice boundaries ``u = j / n``.
 
 Stored form (texel-major, flat ``[texel * n + j - 1]``): the cumulative optical depths
-``C_j = D(j / n) = sum_{k<j} a_k``, ``j = 1..n`` (``n`` floats per texel, float64 running
-sums over the slice coefficients; ``C_0 = 0`` is implicit), so a lookup is two
-gathers and one interpolation, ``D(u) = min(C_j + (C_{j+1} - C_j)(n u - j), C_{j+1})``
-with ``j = min(floor(n u), n - 1)``.  The ``min`` keeps ``D`` non-decreasing under
-float rounding: ``a_k >= 0`` and ``g_k`` non-decreasing make ``T`` monotone
-(``monotone = True``; to one ulp, as Dr.Jit's float32 ``exp`` is itself not monotone at
-the ulp level).
-
-Projection: four scatters per segment whatever ``n`` (``_project``).  Depth range, clipping:
-see :mod:`avsm_dr.representations.basis`.
+``C_j = D(j / n) = sum_{k<j} a_k``, ``j = 1..n`` (float64 running sums; ``C_0 = 0``
+implicit), so a lookup is ``D(u) = min(C_j + (C_{j+1} - C_j)(n u - j), C_{j+1})`` with
+``j = min(floor(n u), n - 1)``; the ``min`` keeps ``D`` non-decreasing under rounding, so
+``T`` is monotone (to one ulp of Dr.Jit's float32 ``exp``).  Projection: four scatters per
+segment whatever ``n`` (``_project``); depth range and clipping as :mod:`.basis`.
 """
 from __future__ import annotations
 
@@ -112,10 +107,9 @@ class OpacityShadowMap(BasisRepresentation):
         return PiecewiseConstantBasis(self.params["slices"])
 
     def _build_bytes(self, K: int) -> float:
-        """Without gradients (:meth:`_build_chunked`): a_k, C_j and one chunk's parts,
-        ``(2 + 2 / BUILD_CHUNKS) itemsize`` per (texel, slice) plus 4 bytes per texel.  With
-        gradients (:meth:`_project` at full size): P, R, their float64 prefix sums and the
-        store, ``8 itemsize + 32`` bytes per (texel, slice), and ~12 words per segment."""
+        """Without gradients (:meth:`_build_chunked`): a_k, C_j and one chunk's parts; with
+        them (:meth:`_project`): P, R, their float64 prefix sums, the store and ~12 words per
+        segment."""
         seg = self.segments
         T, it = seg.n_texels, seg.itemsize
         if not seg.requires_grad:
@@ -134,11 +128,9 @@ class OpacityShadowMap(BasisRepresentation):
 
     def _build_chunked(self):
         """(a_k, C_j), flat texel-major, without gradients, in :data:`BUILD_CHUNKS` chunks of
-        texels.  Per chunk: one lane per non-empty texel adds its segments' parts in CSR
-        order into its own rows of P and R (:meth:`_add_parts`, no atomics), then one lane
-        per texel walks its slices with float64 running sums, ``a_j = P_j + sum_{i<=j} R_i``
-        clamped at 0 and ``C_{j+1} = sum_{k<=j} a_k``: the operations, in order, of the
-        dense form (:meth:`_project`, ``dr.block_prefix_sum``), so the same bits."""
+        texels: one lane per non-empty texel adds its segments' parts in CSR order into its
+        rows of P and R (:meth:`_add_parts`, no atomics), then walks its slices with float64
+        running sums: the operations, in order, of :meth:`_project` (the same bits)."""
         seg, n = self.segments, self.basis.n
         t = backend.types()
         Float, UInt32, F64 = seg.Float, t.UInt32, t.Float64

@@ -1,17 +1,12 @@
 """Parameter schemas: each representation declares its parameters once, and validation,
 ``ad.describe(kind)``, the experiments' sweeps and the docs' tables read them.
 
-One rule for every parameter (the reliability contract):
-
-* ``int``: an integral number (Python or NumPy), never ``bool``; range checked.
-* ``float``: a real, finite number (Python or NumPy, integers allowed), never ``bool`` or
-  ``str``; range checked (``min``/``max`` inclusive unless ``open_min``/``open_max``).
-* ``bool``: ``True``/``False`` (Python or NumPy bool) only.
-* ``choice``: one of ``choices`` (strings).
-* ``object``: passed through (validated by the representation itself).
-
-``nullable=True`` admits ``None`` (meaning: derived from the segments, e.g. near/far).
-Errors are ``ValueError("<name>: expected ..., got ...")``.
+One rule for every parameter: ``int`` an integral number (Python or NumPy, never ``bool``);
+``float`` a real, finite number (integers allowed, never ``bool`` or ``str``), ``min``/``max``
+inclusive unless ``open_min``/``open_max``; ``bool`` ``True``/``False`` only; ``choice`` one of
+``choices``; ``object`` passed through (validated by the representation).  ``nullable=True``
+admits ``None`` (derived from the segments, e.g. near/far).  Errors are
+``ValueError("<name>: expected ..., got ...")``.
 """
 from __future__ import annotations
 
@@ -77,18 +72,13 @@ class Param:
 
 @dataclass(frozen=True)
 class Schema:
-    """A kind's parameters, its size parameter and the size values experiments sweep.
-
-    ``size``: the parameter that trades memory for accuracy (None: no such parameter).
-    ``sweep`` / ``quick_sweep``: its values in the experiments (full / ``--quick``).
-    ``examples``: parameter sets the contract tests run (besides the defaults).
-    ``headline``: the configuration benchmarks and single-setting experiments use.
-    ``summary``, ``paper``: one line each for the docs' kinds table.
-    ``offline``: the build is an offline reference (host code, cost superlinear in the
-    segments per texel): benchmarks and full-size sweeps run it only where it fits.
-    ``constraint``: a rule across parameters, ``params -> message | None`` (the message
-    starts with the offending parameter's name), checked after the per-parameter rules;
-    :meth:`allows` asks it without raising, so sweeps can skip invalid combinations.
+    """A kind's parameters: ``size`` the one that trades memory for accuracy (or None),
+    ``sweep`` / ``quick_sweep`` its values in the experiments (full / ``--quick``),
+    ``examples`` parameter sets the contract tests run, ``headline`` the configuration
+    benchmarks use, ``summary`` / ``paper`` the docs' kinds table; ``offline``: an offline
+    reference (host code, cost superlinear in the segments per texel) that benchmarks run only
+    where it fits; ``constraint``: a rule across parameters, ``params -> message | None`` (the
+    message starts with the offending parameter's name), checked after the per-parameter ones.
     """
 
     params: tuple = ()
