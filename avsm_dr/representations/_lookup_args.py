@@ -1,12 +1,10 @@
-"""A lookup's arguments, checked and converted once: the argument handling of
-:meth:`~avsm_dr.representations.base.Representation.eval`.
+"""A lookup's arguments, checked and converted once (:meth:`.base.Representation.eval`).
 
 Three validation paths, cheapest first (:mod:`avsm_dr._device_checks`): 1. NumPy point
 lookups whose min / max prove them valid, evaluated in one launch; 2. Dr.Jit texels / depths,
-checked on the device (inside the point lookup's kernel, or one flag for filtered lookups);
-3. everything else: the host checks below, which raise the ``ValueError`` messages (naming
-``texel``, ``depth``, ``width``, ...) or handle the input (subnormals flushed, scalars
-broadcast).  :func:`lookup_args` returns a :class:`Lookup`.
+checked on the device; 3. the host checks below, which raise the ``ValueError`` messages
+(naming ``texel``, ``depth``, ``width``, ...) or handle the input (subnormals flushed,
+scalars broadcast).
 """
 from __future__ import annotations
 

@@ -1,11 +1,9 @@
 """Deep shadow maps (Lokovic and Veach 2000, "Deep shadow maps", SIGGRAPH; Salvi et al.
 2010, "Adaptive Volumetric Shadow Maps", secs. 2, 3.2 and 5 compare AVSM against them).
 
-Each texel stores a variable number of nodes ``(z_i, V_i)`` (depth, transmittance)
-that reproduce the texel's exact visibility function ``V(z)`` within a user tolerance
-``epsilon`` everywhere::
-
-    |DSM(z) - V(z)| <= epsilon   for every depth z        (Lokovic-Veach error bound)
+Each texel stores a variable number of nodes ``(z_i, V_i)`` (depth, transmittance) within
+a tolerance ``epsilon`` of its exact visibility ``V(z)``: ``|DSM(z) - V(z)| <= epsilon`` for
+every depth z (Lokovic-Veach error bound).
 
 1. **Exact curve as a polyline** (phase A, :mod:`._dsm_polyline`).  ``V(z) = exp(-tau(z))``
    with ``tau`` piecewise linear between the texel's sorted unique segment ends
@@ -27,14 +25,12 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
    fitted and restart from it.  ``placement="midslope"`` (default, the paper's): the node
    lies on the mid-slope line ``(lo + hi) / 2``; ``placement="curve"``: nodes are polyline
    vertices (exact curve values, differentiable with the node depths held fixed).
-   Error: polyline <= eps_p, compression <= delta, so ``|DSM - V| <= 3 epsilon / 4`` in
-   exact arithmetic; the remaining ``epsilon / 4`` absorbs the rounding of inserted depths.
-   Phases A and B run in float64; nodes are stored in the segments' dtype.
+   Error: ``|DSM - V| <= eps_p + delta = 3 epsilon / 4`` in exact arithmetic; the remaining
+   ``epsilon / 4`` absorbs the rounding of inserted depths.  Phases A and B run in float64 on
+   chunks of texels (:func:`next_chunk_segments`; the nodes do not depend on the chunking).
 
-3. **Lookup** (phase C): :func:`.avsm.csr_lookup`, linear between nodes.
-
-Storage: per texel its (depth, value) nodes and a 4-byte CSR offset.  Phases A and B run on
-chunks of texels (:func:`next_chunk_segments`; the nodes do not depend on the chunking).
+3. **Lookup** (phase C): :func:`.avsm.csr_lookup`, linear between nodes.  Storage: per
+   texel its (depth, value) nodes in the segments' dtype and a 4-byte CSR offset.
 """
 from __future__ import annotations
 

@@ -1,13 +1,12 @@
 """Uncompressed (exact) transmittance: the in-package ground truth.
 
-The transmittance at depth ``d`` of a texel's segments::
+The transmittance at depth ``d`` of a texel's segments (uniform density inside a segment,
+Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", eq. 1)::
 
     T(d) = prod_i exp(-tau_i * f_i(d)),   f_i(d) = clamp((d - z0_i) / (z1_i - z0_i), 0, 1)
 
-with f_i(d) = [d >= z0_i] for zero-length segments (uniform density inside a segment,
-Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", eq. 1).  One lane per receiver sums
-its texel's segments in float64 whatever the storage dtype, stopping once the optical depth
-reaches ``OPAQUE_OPTICAL_DEPTH`` (T is then exactly 0); reverse mode recomputes the loop.
+with f_i(d) = [d >= z0_i] for zero-length segments; summed in float64 whatever the storage
+dtype, stopping at ``OPAQUE_OPTICAL_DEPTH`` (T exactly 0).
 """
 from __future__ import annotations
 

@@ -8,18 +8,12 @@ packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (Jansen and Bavoil 2010, f
     D(u) = a'_0 u / 2 + sum_k [a'_k sin(2 pi k u) + b'_k (1 - cos(2 pi k u))] / (2 pi k)  (3)
     T(u) = clamp(exp(-D(u)), 0, 1)                                               (sec. 7.3)
 
-Segments are integrated analytically, not as points (eqs. 5, 6 are the
-zero-length limit): a segment ``[u0, u1]`` with optical depth ``tau`` adds ::
-
-    a'_k += 2 tau cos(2 pi k m) sinc(pi k du),   b'_k += 2 tau sin(2 pi k m) sinc(pi k du)
-
-with ``m = (u0 + u1) / 2``, ``du = u1 - u0`` (the segment mean of ``2 cos(2 pi k u)``
-written without cancellation).  Every angle is reduced before it is multiplied by pi
-(:func:`~avsm_dr.representations.basis_functions.sincos_pi`), so ``T(near) = 1`` and
-``T(far) = exp(-a'_0 / 2) = exp(-sum tau)`` hold to float rounding of the sum.
-
-Reconstruction rings (``monotone = False``) and is clamped to [0, 1].  Depth range, clipping
-and kernel layout: see :mod:`avsm_dr.representations.basis`.
+A segment ``[u0, u1]`` with optical depth ``tau`` adds (eqs. 5, 6 are its zero-length limit)
+``a'_k += 2 tau cos(2 pi k m) sinc(pi k du)``, ``b'_k += 2 tau sin(2 pi k m) sinc(pi k du)``,
+``m = (u0 + u1) / 2``, ``du = u1 - u0`` (no cancellation).  Angles are reduced before the
+multiply by pi (:func:`~.basis_functions.sincos_pi`): ``T(near) = 1`` and
+``T(far) = exp(-a'_0 / 2) = exp(-sum tau)`` to rounding of the sum.  Reconstruction rings
+(``monotone = False``) and is clamped to [0, 1]; depth range and layout as :mod:`.basis`.
 """
 from __future__ import annotations
 

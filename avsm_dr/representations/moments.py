@@ -263,7 +263,6 @@ class MomentShadowMap(BasisRepresentation):
             table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
             P["bias"] = table[n][self.precision or self.segments.dtype]
 
-
     def _apply_precision(self) -> None:
         """'msm': the moments through :mod:`._moment_quantization`, ranges as the base class."""
         if self.params["quantization"] != "msm":
