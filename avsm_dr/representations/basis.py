@@ -59,8 +59,7 @@ MAX_LIST_COEFFICIENTS = 1 << 12
 @register("basis")
 class BasisRepresentation(Representation):
     """Coefficient map of any :class:`Basis` (module docstring).  Attributes: ``coefficients``
-    (K Dr.Jit arrays of length T); ``near``, ``far``: floats (global) or Dr.Jit arrays
-    (texel).  ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
+    (K Dr.Jit arrays of length T); ``near``, ``far``: floats (global) or Dr.Jit arrays (texel).
     """
 
     # Best practice for every basis kind (inherited): per-texel range, opaque blockers apart.
@@ -84,14 +83,12 @@ class BasisRepresentation(Representation):
         self.basis = self._make_basis()
         self._check_coefficients()
         P, segments = self.params, self.segments
-        mode, near, far = P["depth_range"], P["near"], P["far"]
-        Float = segments.Float
-        if mode == "texel":
+        near, far = P["near"], P["far"]
+        if P["depth_range"] == "texel":
             if near is not None or far is not None:
                 name = "near" if near is not None else "far"
                 raise ValueError(f"{name}: near=/far= cannot be combined with depth_range='texel'")
-            lo, hi = segments.texel_bounds()
-            self.near, self.far = Float(A.aligned(lo)), Float(A.aligned(hi))
+            self.near, self.far = (segments.Float(A.aligned(b)) for b in segments.texel_bounds())
             self._per_texel = True
         else:
             self.near, self.far = depth_range(segments, near, far, open_range=True)   # base.py's rule
@@ -104,9 +101,7 @@ class BasisRepresentation(Representation):
     def _make_basis(self) -> Basis:
         """The basis this kind projects onto (from ``params``; subclasses fix it)."""
         basis, n = self.params["basis"], self.params["n"]
-        if isinstance(basis, str) and n is None:
-            n = 8
-        basis = make_basis(basis, n)
+        basis = make_basis(basis, 8 if isinstance(basis, str) and n is None else n)
         self.params["basis"] = basis.name if isinstance(self.params["basis"], str) else basis
         self.params["n"] = basis.n
         return basis
@@ -118,10 +113,8 @@ class BasisRepresentation(Representation):
         return type(self.basis)(v).n_coefficients
 
     def _build_bytes(self, K: int) -> float:
-        """Estimated peak bytes of the projection with K coefficients per texel (T texels,
-        S segments, in words of the storage dtype): the flat store and its copies, 2 T K,
-        plus one batch of (item, coefficient) lanes, ~8 words each (indexed bases), or
-        the K per-segment terms of the list form, 2.5 S K."""
+        """Estimated peak bytes of the projection with K coefficients per texel: the flat store
+        and its copies, plus one batch of (item, coefficient) lanes or the list form's terms."""
         seg = self.segments
         T, S, it = seg.n_texels, seg.n_segments, seg.itemsize
         if self.basis.indexed:

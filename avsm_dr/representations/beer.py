@@ -37,10 +37,8 @@ VARIANTS = ("cloud", "two_node")
 
 @register("beer")
 class BeerShadowMap(Representation):
-    """Beer shadow map (module docstring).  Attributes (Dr.Jit, one value per texel):
-    ``front`` (first entry), ``extent`` (last exit - first entry), ``tau_max`` (total optical
-    depth), ``t_back`` (``exp(-tau_max)``); property ``sigma_mean``.
-    """
+    """Beer shadow map (module docstring); per texel ``front`` (a), ``extent`` (e),
+    ``tau_max``, ``t_back`` (``exp(-tau_max)``) and the property ``sigma_mean``."""
 
     schema = Schema(
         params=(Param("variant", "choice", "cloud", "'cloud': (front depth, mean extinction, max optical "

@@ -55,9 +55,8 @@ BAND_SHARE = 0.5
 
 
 def compress(poly, delta: float, placement: str = "midslope"):
-    """Greedy slope-window compression of every texel's polyline (:func:`~._dsm_polyline.exact_polyline`)
-    within ``delta``.  Returns (counts (T,) int64, z, v, src): float64 NumPy node depths /
-    values and the vertex whose depth each node takes, in CSR by counts."""
+    """Phase B on every texel's polyline within ``delta``: (counts (T,) int64, z, v, src), the
+    float64 NumPy nodes and the vertex whose depth each takes, CSR by counts."""
     t = backend.types()
     F64, U32, Bool = t.Float64, t.UInt32, t.Bool
     off = poly["off"]

@@ -30,8 +30,7 @@ def segment_fraction(depth, z0, z1):
 
 @register("exact")
 class Exact(Representation):
-    """Stores the segments themselves; ``nbytes_per_texel`` = 12 bytes x mean segment count
-    (z0, z1, tau in the segments' dtype) plus the 4-byte CSR offset."""
+    """Stores the segments themselves (z0, z1, tau in the segments' dtype, a CSR offset)."""
 
     schema = Schema(summary="every occluder segment (uncompressed ground truth)", paper="-")
     _precision_note = ("; 'exact' is the uncompressed ground truth and reads the segments in their own "

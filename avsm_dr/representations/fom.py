@@ -101,8 +101,7 @@ RECURRENCE_HARMONICS = 16
 
 @register("fom")
 class FourierOpacityMap(BasisRepresentation):
-    """Fourier opacity map: n ``harmonics``; ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2
-    itemsize per-texel range).  ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (b[0] = None)."""
+    """Fourier opacity map: n ``harmonics``, ``coefficients`` in the paper's packing order."""
 
     schema = Schema(
         params=(
@@ -121,9 +120,8 @@ class FourierOpacityMap(BasisRepresentation):
         return FourierBasis(self.params["harmonics"])
 
     def _build_bytes(self, K: int) -> float:
-        """The recurrence path (:meth:`_project_texels`, float32, no gradients, up to
-        :data:`RECURRENCE_HARMONICS`): K sums per texel lane and the store, ``3 T K``
-        words; otherwise the base class' estimate."""
+        """The recurrence path (:meth:`_project_texels`): K sums per texel lane and the store;
+        otherwise the base class' estimate."""
         seg = self.segments
         if seg.Float is backend.types().Float32 and not seg.requires_grad and (K - 1) // 2 <= RECURRENCE_HARMONICS:
             return 3.0 * seg.itemsize * seg.n_texels * K
@@ -218,11 +216,3 @@ class FourierOpacityMap(BasisRepresentation):
                 D += (a * ck + b * sk) * (sk * w)
                 sk, ck = sk * c1 + ck * s1, ck * c1 - sk * s1
         return D
-
-    @property
-    def a(self) -> list:
-        return [self.coefficients[0]] + self.coefficients[1::2]
-
-    @property
-    def b(self) -> list:
-        return [None] + self.coefficients[2::2]

@@ -336,8 +336,7 @@ class MomentShadowMap(BasisRepresentation):
         return terms
 
     def bounds(self, texel, depth):
-        """(lower, upper) bounds of the absorbance fraction in front of each receiver
-        (Dr.Jit arrays; texel UInt32, depth Float)."""
+        """(lower, upper) bounds of the absorbance fraction in front of each receiver."""
         return self._bounded(self._store, texel, self.normalized_depth(texel, depth))[1:]
 
     def _bounded(self, store, row, u):

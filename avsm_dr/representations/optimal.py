@@ -197,9 +197,7 @@ def start_costs(x, tau, a, count, norm: str):
 
 def best_subset(C, S, count, N: int, norm: str):
     """(B, K) bool mask of the chosen points (at most N, the last included) and the (B,)
-    optimal cost, from the (B, K, K) pair costs ``C`` and the (B, K) start costs ``S``
-    (:func:`start_costs`).  ``D_1(j) = S(j)``, ``D_n(j) = min(D_{n-1}(j), min_i D_{n-1}(i)
-    (+|max) C(i, j))``; ties keep fewer nodes."""
+    optimal cost: the module docstring's DP on ``C`` and ``S``; ties keep fewer nodes."""
     B, K = C.shape[:2]
     rows = np.arange(B)
     dp = S.copy()

@@ -87,9 +87,8 @@ BUILD_CHUNKS = 2
 
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
-    """Opacity shadow map: n ``slices``; ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel
-    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  ``coefficients``:
-    a_k, the optical depth per slice; ``_cum``: the stored C_1..C_n, flat."""
+    """Opacity shadow map: n ``slices``; ``coefficients``: a_k, the optical depth per slice;
+    ``_cum``: the stored C_1..C_n, flat (``precision``: coded as ``optical_depth``)."""
 
     schema = Schema(
         params=(

@@ -45,8 +45,7 @@ class Param:
             raise ValueError(f"open_min: int parameter {self.name!r} takes closed bounds")
 
     def validate(self, value):
-        """The value converted to its Python type, or ValueError naming the parameter
-        (:mod:`avsm_dr.validation`'s rules and messages)."""
+        """The value converted to its Python type, or ValueError naming the parameter."""
         if (value is None and self.nullable) or self.type == "object":
             return value
         if self.type == "bool":
@@ -138,8 +137,7 @@ class Schema:
         return True
 
     def describe(self) -> dict:
-        """Plain-data description; private parameters (names starting with ``_``, e.g. a
-        benchmark's ablation switches) are left out."""
+        """Plain-data description, private ``_`` parameters left out."""
         return {"params": {p.name: p.describe() for p in self.params if not p.name.startswith("_")},
                 "size": self.size,
                 "sweep": list(self.sweep), "quick_sweep": list(self.quick_sweep or self.sweep),
