@@ -75,9 +75,7 @@ def breakpoints(offsets, z0, z1, tau):
     rate = np.where(pos, tau / np.where(pos, length, 1.0), 0.0)
 
     # events z0_0, z1_0, z0_1, z1_1, ...: texel t owns [2 off[t], 2 off[t+1])
-    ev_z = np.empty(2 * s)
-    ev_z[0::2] = z0
-    ev_z[1::2] = z1
+    ev_z = np.stack([z0, z1], axis=1, dtype=np.float64).ravel()
     ev_off = 2 * offsets
     first = np.zeros(2 * s, dtype=bool)               # first event of its texel
     first[ev_off[:-1][counts > 0]] = True

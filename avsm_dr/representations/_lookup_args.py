@@ -124,11 +124,7 @@ def lookup_args(rep, kernel, texel, depth, filter: str = "point", width: int | N
     if T is not None:
         return Lookup(T=T)
     seg, Float, UInt32 = rep.segments, rep.Float, backend.types().UInt32
-    tex_h = coords = None
-    if tex_dev is not None:
-        k = dr.width(tex_dev)
-    else:
-        tex_h, coords, k = _host_texels(texel, width, height)
+    tex_h, coords, k = (None, None, dr.width(tex_dev)) if tex_dev is not None else _host_texels(texel, width, height)
     if dep_dev is not None:
         depth_dr, d_size = A.to_float(dep_dev, Float), dr.width(dep_dev)
     else:

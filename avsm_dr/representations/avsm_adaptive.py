@@ -165,13 +165,12 @@ class AVSMAdaptive(Representation):
         P.update(zip(("near", "far"), depth_range(segments, P["near"], P["far"])))
         self._score = P.pop("_score")
         T, item = segments.n_texels, segments.itemsize
-        counts = segments.counts
         # the allocation's ~10 (T, options) arrays, the AVSM groups every non-empty texel at most
-        n_nz = int(np.count_nonzero(counts))
+        n_nz = int(np.count_nonzero(segments.counts))
         self._check_build_memory(lambda m: node_build_bytes(n_nz, m, item) + 80.0 * (ladder(m).size + 1) * T,
                                  name="max_nodes")
         self.budget_nodes = int((P["bytes_per_texel"] * T - OFFSET_BYTES * (T + 1)) // (2 * item))
-        least = int(2 * np.count_nonzero(counts))
+        least = 2 * n_nz
         if self.budget_nodes < least:
             need = (OFFSET_BYTES * (T + 1) + 2 * item * least) / T
             raise ValueError(f"bytes_per_texel: {P['bytes_per_texel']:g} is below the least storage of this map, "

@@ -141,8 +141,7 @@ class AVSMMarch(Representation):
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
         off = pts["off"]
-        n = np.diff(off)
-        nz = n > 0
+        nz = np.diff(off) > 0
         lo = np.zeros(seg.n_texels)
         hi = np.ones(seg.n_texels)
         lo[nz] = pts["z"][off[:-1][nz]]
@@ -150,11 +149,9 @@ class AVSMMarch(Representation):
         self.range_lo, self.range_hi = Float(A.aligned(lo.astype(dt))), Float(A.aligned(hi.astype(dt)))
         tex = np.repeat(np.arange(seg.n_texels), self.node_counts)
         span = (hi - lo)[tex]
-        q = np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0)
-        if self.precision is None:
-            self.node_q = t.Float16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
-        else:                       # quantised after the build (:meth:`_stored`)
-            self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
+        q = np.clip(np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0), 0.0, 1.0)
+        # float16 on store, or quantised after the build (:meth:`_stored`)
+        self.node_q = t.Float16(q.astype(np.float16)) if self.precision is None else Float(A.aligned(q.astype(dt)))
         value = Float(pts["v"][src].astype(dt))
         self.node_value = _curve.attach_exact_gradients(seg, value, tex, pts["z"][src], pts["left"][src])
 

@@ -290,12 +290,10 @@ class DeepShadowMap(Representation):
             t0 = t1
         self._set_nodes(counts)
         nz, nv, self.node_left = (concatenate(parts, k) for k in range(3))
-        Float = seg.Float
-        self.node_depth = Float(nz)
-        value = Float(nv)
+        self.node_depth, self.node_value = seg.Float(nz), seg.Float(nv)
         if self.placement == "curve":         # the exact curve's gradients at fixed node depths
-            value = _curve.attach_exact_gradients(seg, value, np.repeat(np.arange(n_tex), counts), nz, self.node_left)
-        self.node_value = value
+            self.node_value = _curve.attach_exact_gradients(seg, self.node_value, np.repeat(np.arange(n_tex), counts),
+                                                            nz, self.node_left)
 
     precisions = PRECISIONS
 
@@ -317,9 +315,8 @@ class DeepShadowMap(Representation):
 
     def _eval_texels(self, texel, depth):
         zs = self.node_depth
-        out = csr_lookup(self._offsets_dr, self._max_nodes, lambda i, active: dr.gather(self.Float, zs, i, active),
-                         self.node_value, texel, depth, "linear")
-        out = dr.clip(out, 0.0, 1.0)
+        out = dr.clip(csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, zs, i, a),
+                                 self.node_value, texel, depth, "linear"), 0.0, 1.0)
         if self.placement == "midslope" and self.segments.requires_grad and self._max_nodes:
             seg = self.segments     # a gradient request raises a clear ValueError, not Dr.Jit's
             out = dr.custom(_MidslopeNoGradient, out, seg.optical_depth, seg.z0, seg.z1)

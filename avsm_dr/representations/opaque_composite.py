@@ -42,17 +42,9 @@ class OpaqueComposite(Representation):
         big = float(np.finfo(self.segments.dtype).max)
         self.depth = A.to_float(np.minimum(self.depth, big), self.Float)   # +inf stored as the largest finite
 
-    @property
-    def monotone(self) -> bool:
-        return self.volume.monotone
-
-    @property
-    def differentiable(self) -> bool:
-        return self.volume.differentiable
-
-    @property
-    def unity_in_front(self) -> bool:
-        return self.volume.unity_in_front
+    # the volume's traits
+    monotone, differentiable, unity_in_front = (property(lambda self, n=n: getattr(self.volume, n))
+                                                for n in ("monotone", "differentiable", "unity_in_front"))
 
     @property
     def nbytes_per_texel(self) -> float:
