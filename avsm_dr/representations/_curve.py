@@ -130,7 +130,7 @@ def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None 
     ``v[src]``, with the exact curve's gradients attached; ``exp``: as
     :func:`exp_stored_values`); empty texels hold (0, 1)."""
     N, T = src.shape
-    dt = np.float32 if segments.dtype == "float32" else np.float64
+    dt = segments.dtype
     if exp and values is None:
         pts = {**pts, "v": exp_stored_values(pts["v"], dt)}
     Float = segments.Float
@@ -146,8 +146,7 @@ def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None 
     flat = np.flatnonzero(has.ravel())
     p = src.ravel()[flat]
     g = attach_exact_gradients(segments, dr.zeros(Float, flat.size), pts["texel"][p], pts["z"][p], pts["left"][p])
-    allv = Float(t.ravel().astype(dt))
     grad = dr.zeros(Float, N * T)
     dr.scatter(grad, g, UInt32(flat.astype(np.uint32)))
-    allv = allv + grad
+    allv = Float(t.ravel().astype(dt)) + grad
     return depths, [dr.gather(Float, allv, dr.arange(UInt32, T) + k * T) for k in range(N)]

@@ -263,8 +263,7 @@ def to_device(rep, orig, dec: np.ndarray):
     """Decoded values as the kind's Float, carrying the gradient of ``orig`` (straight
     through)."""
     Float = rep.Float
-    dt = np.float32 if rep.segments.dtype == "float32" else np.float64
-    out = Float(A.aligned(dec.astype(dt)))
+    out = Float(A.aligned(dec.astype(rep.segments.dtype)))
     if dr.grad_enabled(orig):
         out = dr.replace_grad(out, Float(orig))
     return out

@@ -98,13 +98,9 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
     src_np = np.stack([np.asarray(s.numpy(), np.int64) for s in src], axis=1)     # (L, cap)
     counts = np.zeros(n_tex, np.int64)
     counts[lanes_np] = cnt_np
-    node_off = np.concatenate([[0], np.cumsum(counts)])
-    out = np.zeros(int(node_off[-1]), np.int64)
-    cols = np.arange(cap)[None, :]
-    keep = cols < cnt_np[:, None]
-    pos = node_off[lanes_np][:, None] + cols
-    out[pos[keep]] = src_np[keep]
-    return counts, out
+    by_texel = np.argsort(lanes_np)                       # rows in texel order, nodes in row order: CSR
+    keep = np.arange(cap)[None, :] < cnt_np[by_texel, None]
+    return counts, src_np[by_texel][keep]
 
 
 @register("avsm_march")

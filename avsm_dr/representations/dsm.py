@@ -264,7 +264,6 @@ class DeepShadowMap(Representation):
 
     def _build(self):
         seg = self.segments
-        store = np.float32 if seg.dtype == "float32" else np.float64
         offsets = seg.offsets
         n_tex = seg.n_texels
         counts = np.zeros(n_tex, np.int64)
@@ -284,7 +283,7 @@ class DeepShadowMap(Representation):
             counts[t0:t1] = c
             left = poly["left"].numpy()[src] if src.size else np.zeros(0, bool)
             del poly
-            parts.append((nz.astype(store), nv.astype(store), left))
+            parts.append((nz.astype(seg.dtype), nv.astype(seg.dtype), left))
             node_bytes += 2 * nz.size * seg.itemsize
             del nz, nv, src
             t0 = t1

@@ -160,10 +160,7 @@ class GreedyVW(NodeList):
     def _build(self):
         segments = self.segments
         pts, rank = removal_ranks(segments)
-        off = pts["off"]
-        count = np.diff(off)[pts["texel"]]
-        keep = rank >= count - self.N
-        sel = np.flatnonzero(keep)
+        sel = np.flatnonzero(rank >= np.diff(pts["off"])[pts["texel"]] - self.N)     # the N removed last
         tex = pts["texel"][sel]
         node_off = np.concatenate([[0], np.cumsum(np.bincount(tex, minlength=segments.n_texels))])
         slot = np.arange(sel.size) - node_off[tex]

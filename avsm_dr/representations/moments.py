@@ -318,11 +318,10 @@ class MomentShadowMap(BasisRepresentation):
             at_near = [(-1.0) ** k for k in range(K)]      # f_k at x = -1: the part in front of near
 
         def terms(z0, z1, tau, texel):
-            sel = texel if self._per_texel else None
-            near, span = self._range(sel)
+            near, span = self._range(texel)          # global ranges ignore the texel
             _, _, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
             far = near + span
-            ln_near, ls = self._log_range(sel)
+            ln_near, ls = self._log_range(texel)
             w0 = (dr.log(dr.clip(z0, near, far)) - ln_near) / ls
             w1 = (dr.log(dr.clip(z1, near, far)) - ln_near) / ls
             x0, x1 = dr.clip(2 * w0 - 1, -1, 1), dr.clip(2 * w1 - 1, -1, 1)

@@ -384,7 +384,6 @@ class OptimalSubset(NodeList):
         seg, pts = self.segments, _curve.points(self.segments)
         T, N = seg.n_texels, self.N
         off = pts["off"]
-        store = np.float32 if seg.dtype == "float32" else np.float64
         self.objective = np.zeros(T)
         sel_tex, sel_pt, slot, vals = [], [], [], []
         for tex, kmax in _curve.buckets(off, power=2, max_elems=1 << 21):
@@ -398,7 +397,7 @@ class OptimalSubset(NodeList):
                 chosen = np.ones((tex.size, 1), bool)
                 cost = np.zeros(tex.size)
             else:
-                C = pair_costs(x, tau, a, count, self.norm, self.interp, store=store)
+                C = pair_costs(x, tau, a, count, self.norm, self.interp, store=seg.dtype)
                 S = start_costs(x, tau, a, count, self.norm)
                 chosen, cost = best_subset(C, S, count, N, self.norm)
             if self._refit and kmax > 1:
