@@ -202,17 +202,12 @@ class FourierOpacityMap(BasisRepresentation):
                 dr.eval(D, sk, ck, s1, c1, base)    # one kernel per block
             first = dr.opaque(UInt32, k0) if blocks else None
             for i in range(min(L, n - k0 + 1) if not blocks else L):
-                if blocks:                          # the same kernel for every block and n
-                    k = first + i
-                    on = k <= dr.opaque(UInt32, n)
-                    w = 1 / (math.pi * Float(k))
-                    a = dr.gather(Float, store, base + 2 * k - 1, on)
-                    b = dr.gather(Float, store, base + 2 * k, on)
-                else:
-                    k = k0 + i
-                    w = 1 / (math.pi * k)
-                    a = dr.gather(Float, store, base + (2 * k - 1))
-                    b = dr.gather(Float, store, base + 2 * k)
+                # blocks: opaque k, the same kernel for every block and n
+                k = first + i if blocks else k0 + i
+                w = 1 / (math.pi * Float(k)) if blocks else 1 / (math.pi * k)
+                on = k <= dr.opaque(UInt32, n) if blocks else True
+                a = dr.gather(Float, store, base + (2 * k - 1), on)
+                b = dr.gather(Float, store, base + 2 * k, on)
                 D += (a * ck + b * sk) * (sk * w)
                 sk, ck = sk * c1 + ck * s1, ck * c1 - sk * s1
         return D
