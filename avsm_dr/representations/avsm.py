@@ -413,16 +413,12 @@ class AVSM(NodeList):
         else:
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
-        d, t = list(state[5:5 + N]), list(state[5 + N:])
-
         for k in range(N):
-            dr.scatter(self.depths[k], d[k], lanes)
-            dr.scatter(self.values[k], t[k], lanes)
+            dr.scatter(self.depths[k], state[5 + k], lanes)
+            dr.scatter(self.values[k], state[5 + N + k], lanes)
         # one kernel: the counters read below would otherwise each re-run both loops
         dr.eval(self.depths, self.values, used, i, skipped, compressed)
-        used_np = np.zeros(T, np.int64)
-        used_np[lanes_np] = np.asarray(used.numpy(), np.int64)
-        self.used = used_np
+        self.used[lanes_np] = np.asarray(used.numpy(), np.int64)
         # skipped: behind an opaque point (sorted input: the rest of the texel counts too)
         n_skipped = int(dr.sum(skipped)[0]) + int(dr.sum(end - i)[0])
         self.stats = {"lanes": int(L), "segments": seg.n_segments, "skipped": n_skipped,

@@ -72,12 +72,8 @@ class PiecewiseConstantBasis(Basis):
         du = u1 - u0
         safe = dr.select(du > 0, du, 1)
         point = self.f(u0)
-        out = []
-        for k in range(self.n):
-            lo, hi = k / self.n, (k + 1) / self.n
-            overlap = dr.maximum(dr.minimum(u1, hi) - dr.maximum(u0, lo), 0)
-            out.append(dr.select(du > 0, overlap / safe, point[k]))
-        return out
+        return [dr.select(du > 0, dr.maximum(dr.minimum(u1, (k + 1) / self.n) - dr.maximum(u0, k / self.n), 0) / safe,
+                          point[k]) for k in range(self.n)]
 
 
 #: Texel chunks of the build without gradients (:meth:`OpacityShadowMap._build_chunked`):
