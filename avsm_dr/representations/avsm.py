@@ -43,8 +43,8 @@ from .schema import FAR, NEAR, Param, Schema
 INTERPOLATIONS = ("linear", "exp")
 #: Parameters of the node-list kinds (avsm, greedy, optimal).
 NODES = Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64)
-INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'linear' or 'exp' (as AVSM)",
-                      choices=INTERPOLATIONS)
+INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp' "
+                      "(uniform density)", choices=INTERPOLATIONS)
 
 
 def bracket(d, t, x):
@@ -256,8 +256,7 @@ class AVSM(NodeList):
             NODES,
             Param("sort", "bool", False, "insert segments sorted by depth per texel (deterministic) "
                   "instead of in the given order"),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' (the paper's eq. 2) or "
-                  "'exp' (uniform density)", choices=INTERPOLATIONS),
+            INTERPOLATION,
             Param("insertion", "choice", "stream", "what an overflow does: 'stream' (the paper's removal), "
                   "'refit' (area-preserving refit of the removed node's neighbours), 'refit_l2' (L2 "
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
@@ -358,10 +357,8 @@ class AVSM(NodeList):
             return (i < end) & ~done
 
         def body_insert(compress):
-            # compress: False (room left), True (full), None (ablation _split=False: one loop
-            # computing both steps, selecting per lane)
             def body(p, i, used, done, skipped, compressed, *dt):
-                full = used + 2 > N if compress is None else compress
+                full = used + 2 > N if compress is None else compress   # None: the _split=False ablation
                 skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), full)
                 if compress is not True:
                     used = dr.select(skip if compress is False else skip | full, used, used + 2)

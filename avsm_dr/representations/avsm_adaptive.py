@@ -32,7 +32,7 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
-from .avsm import AVSM, INTERPOLATIONS, csr_lookup
+from .avsm import AVSM, INTERPOLATION, csr_lookup
 from .base import SPARSE_OFFSET_BYTES as OFFSET_BYTES, Representation, depth_range, node_build_bytes
 from .registry import register
 from .schema import FAR, NEAR, Param, Schema
@@ -145,8 +145,7 @@ class AVSMAdaptive(Representation):
                   "(offsets included; total = bytes_per_texel x texels)", min=8.0, max=MAX_BYTES_PER_TEXEL),
             Param("max_nodes", "int", 32, "cap on the nodes of one texel", min=2, max=64),
             Param("sort", "bool", False, "insert segments sorted by depth per texel (as AVSM)"),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp'",
-                  choices=INTERPOLATIONS),
+            INTERPOLATION,
             NEAR, FAR,
             Param("_score", "choice", "complexity", "private: allocation score 'complexity' (span x drop^2), "
                   "'count' (segments only) or 'uniform' (one count for all non-empty texels)", choices=SCORES),

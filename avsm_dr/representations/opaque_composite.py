@@ -42,7 +42,6 @@ class OpaqueComposite(Representation):
         big = float(np.finfo(self.segments.dtype).max)
         self.depth = A.to_float(np.minimum(self.depth, big), self.Float)   # +inf stored as the largest finite
 
-    # the volume's traits
     monotone, differentiable, unity_in_front = (property(lambda self, n=n: getattr(self.volume, n))
                                                 for n in ("monotone", "differentiable", "unity_in_front"))
 
