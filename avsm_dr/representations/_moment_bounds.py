@@ -278,10 +278,8 @@ def hankel_bound(b, xf, alpha, beta, target, floors):
     roots = real_roots(c)
     # ---- weights of the canonical representation {xf, roots} (moments 0..n)
     wf = dr.clip(_lagrange_weight(m, xf, roots), 0, 1)
-    lower = 0
-    for i, z in enumerate(roots):
-        wi = dr.clip(_lagrange_weight(m, z, [xf] + roots[:i] + roots[i + 1:]), 0, 1)
-        lower = lower + dr.select(z < xf, wi, 0)
+    lower = sum(dr.select(z < xf, dr.clip(_lagrange_weight(m, z, [xf] + roots[:i] + roots[i + 1:]), 0, 1), 0)
+                for i, z in enumerate(roots))
     return bounded_depth(b0, empty, dr.select(xf <= roots[-1], lower, 1 - wf), wf, beta)
 
 

@@ -145,8 +145,6 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     roots = real_roots(c)
     scale = M0                                                 # weights of mu: M_0 / (s^T B_m^-1 s)
     wf = dr.clip(_christoffel(Lm, D, psi_f, n) * scale, 0, 1)
-    lower = 0
-    for z in roots:
-        wi = dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1)
-        lower = lower + dr.select(z < xf, wi, 0)
+    lower = sum(dr.select(z < xf, dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1), 0)
+                for z in roots)
     return bounded_depth(b0, empty, lower, wf, beta)
