@@ -95,18 +95,13 @@ def trig_means(x0, x1, n: int, lam=None):
 
 def delta_values(x, n: int):
     """[1, cos(k phi), sin(k phi), ..] at phi = (pi/2) x (Python float x)."""
-    out = [1.0]
-    for k in range(1, n + 1):
-        out += [math.cos(k * math.pi / 2 * x), math.sin(k * math.pi / 2 * x)]
-    return out
+    return [1.0] + [f(k * math.pi / 2 * x) for k in range(1, n + 1) for f in (math.cos, math.sin)]
 
 
 def _christoffel(Lm, D, psi, n):
     """1 / (s^T B^-1 s), s_j = sin^j(psi) cos^(n-j)(psi), with B = L D L^T (D_0 = 1)."""
     sn, cs = dr.sin(psi), dr.cos(psi)
-    s = [cs ** n if n else 1]
-    for j in range(1, n + 1):
-        s.append(sn ** j * cs ** (n - j))
+    s = [cs ** n if n else 1] + [sn ** j * cs ** (n - j) for j in range(1, n + 1)]
     y = [s[0]]
     q = s[0] * s[0]
     for i in range(1, n + 1):
@@ -129,13 +124,8 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     empty = b0 <= NEGLIGIBLE        # flushed higher moments: _moment_bounds.NEGLIGIBLE
     inv = (1 - alpha) / dr.select(empty, 1, b0)
     r = [1] + [bk * inv for bk in b[1:]]                       # biased t (uniform target: 0)
-    M = []
-    for j in range(2 * n + 1):
-        acc = float(A[j, 0]) + 0 * b0
-        for c in range(1, 2 * n + 1):
-            if A[j, c] != 0.0:
-                acc = acc + float(A[j, c]) * r[c]
-        M.append(acc)
+    M = [sum((float(A[j, c]) * r[c] for c in range(1, 2 * n + 1) if A[j, c] != 0.0), float(A[j, 0]) + 0 * b0)
+         for j in range(2 * n + 1)]                           # M = A r (module docstring)
     M0 = dr.maximum(M[0], 1e-30)
     m = [None] + [Mj / M0 for Mj in M[1:]]
     floors = [None] + [alpha * p / M0 for p in pivots[1:]]
