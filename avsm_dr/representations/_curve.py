@@ -33,18 +33,14 @@ def curve_points(segments) -> dict:
     step = bp["jump"] > 0
     per_bp = 1 + step.astype(np.int64)
     first = np.concatenate([[0], np.cumsum(per_bp)])[:-1]      # slot of each breakpoint's first point
-    n = int(per_bp.sum())
     z = np.repeat(bp["z"], per_bp)
-    tau = np.empty(n)
-    tau[first] = np.where(step, tl, tr)
+    tau = np.repeat(np.where(step, tl, tr), per_bp)            # a step's points: tau_left, tau_right
     tau[first[step] + 1] = tr[step]
-    left = np.zeros(n, bool)
+    left = np.zeros(z.size, bool)
     left[first[step]] = True
-    slope_p = np.repeat(slope, per_bp)
-    bp_tex = np.repeat(np.arange(n_tex), np.diff(bp["off"]))
-    texel = np.repeat(bp_tex, per_bp)
+    texel = np.repeat(np.repeat(np.arange(n_tex), np.diff(bp["off"])), per_bp)
     off = np.concatenate([[0], np.cumsum(np.bincount(texel, minlength=n_tex))]).astype(np.int64)
-    return dict(off=off, z=z, tau=tau, v=np.exp(-tau), slope=slope_p, left=left, texel=texel)
+    return dict(off=off, z=z, tau=tau, v=np.exp(-tau), slope=np.repeat(slope, per_bp), left=left, texel=texel)
 
 
 def attach_exact_gradients(segments, value, texel, z, left):

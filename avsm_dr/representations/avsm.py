@@ -280,13 +280,9 @@ class AVSM(NodeList):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         super()._resolve()
+        self.loop_state_words = 2 * self.N + 5         # N depths, N values, index, count, done, 2 counters
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
-
-    @property
-    def loop_state_words(self) -> int:
-        """N depths, N values, index, count, done flag and two counters."""
-        return 2 * self.N + 5
 
     def _build(self):
         seg = self.segments

@@ -81,6 +81,7 @@ class BasisRepresentation(Representation):
 
     def _resolve(self):
         self.basis = self._make_basis()
+        self.monotone = bool(self.basis.monotone)      # non-negative coefficients, non-decreasing g_k
         self._check_coefficients()
         P, segments = self.params, self.segments
         near, far = P["near"], P["far"]
@@ -149,11 +150,6 @@ class BasisRepresentation(Representation):
             lo, hi = (mid, hi) if self._coefficients_at(mid) <= K_max else (lo, mid)
         return lo
 
-    @property
-    def monotone(self) -> bool:
-        """The basis' guarantee (non-negative coefficients, non-decreasing g_k)."""
-        return bool(self.basis.monotone)
-
     unity_in_front = False
 
     def _native_bytes(self) -> float:
@@ -161,8 +157,10 @@ class BasisRepresentation(Representation):
         return (self.basis.n_coefficients + extra) * self.segments.itemsize
 
     precisions = PRECISIONS
-    #: The flat store :mod:`._precision` quantises (the one reconstruction reads, ``_store``).
+    #: The flat store ``[texel * K + k]`` reconstruction reads and :mod:`._precision` quantises:
+    #: a_k or a linear transform of them (OSM's cumulative sums), so prefiltering can weight it.
     _stored_attr = "_coef"
+    _store = property(lambda self: getattr(self, self._stored_attr))
 
     def _stored(self):
         """The stored map as coefficients (non-negative for monotone bases), the range."""
@@ -346,12 +344,6 @@ class BasisRepresentation(Representation):
         """u = clamp((depth - near) / (far - near), 0, 1) for each receiver."""
         near, span = self._range(texel)
         return dr.clip((depth - near) / span, 0, 1)
-
-    @property
-    def _store(self):
-        """The flat store ``[texel * K + k]`` reconstruction reads: a_k or a linear transform
-        of them (OSM's cumulative sums), so prefiltering can weight it."""
-        return self._coef
 
     def _optical_depth(self, texel, depth):
         """D at ``depth`` along texel ``texel``: :meth:`_reconstruct_from` the stored map."""

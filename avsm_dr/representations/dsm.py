@@ -256,11 +256,7 @@ class DeepShadowMap(Representation):
     def _resolve(self):
         self.tolerance = self.params["tolerance"]
         self.placement = self.params["placement"]
-
-    @property
-    def differentiable(self) -> bool:
-        """Only ``placement='curve'`` (node values on the exact curve) has gradients."""
-        return self.placement == "curve"
+        self.differentiable = self.placement == "curve"        # node values on the exact curve
 
     def _build(self):
         seg = self.segments

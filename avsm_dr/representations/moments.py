@@ -233,6 +233,8 @@ class MomentShadowMap(BasisRepresentation):
         class), ``near > 0`` for the log warp, ``bias`` (None: the default for the storage)."""
         P = self.params
         n = P["moments"]
+        self._trig = P["family"] == "trigonometric"
+        self._log = P["warp"] == "log"
         if P["quantization"] is None:                   # module docstring, "16-bit storage"
             msm = (P["family"], n, self.precision) == ("power", 4, MSM_DEFAULT_PRECISION)
             P["quantization"] = "msm" if msm else "scaled"
@@ -270,14 +272,6 @@ class MomentShadowMap(BasisRepresentation):
         nbytes = QZ.quantise_store(self, self._stored_attr, self.precision)
         rest = tuple(f for f in self._stored() if f.attr != self._stored_attr)
         self._stored_nbytes = nbytes + quantise(self, rest)
-
-    @property
-    def _trig(self) -> bool:
-        return self.params["family"] == "trigonometric"
-
-    @property
-    def _log(self) -> bool:
-        return self.params["warp"] == "log"
 
     def _check_log_range(self):
         """near > 0 for the log warp (ValueError naming near); empty texels get (1, 2)."""

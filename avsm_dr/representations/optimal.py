@@ -335,7 +335,11 @@ class OptimalSubset(NodeList):
 
     def _resolve(self):
         super()._resolve()
-        self.norm, self.interp = self.params["norm"], self.params["interpolation"]
+        P = self.params
+        self.norm, self.interp = P["norm"], P["interpolation"]
+        # the least-squares refit ('l2', linear) can overshoot a step and is a host solve (no gradients)
+        self._refit = self.norm == "l2" and self.interp == "linear" and P["_refit"]
+        self.monotone = self.differentiable = not self._refit
         counts = np.diff(_curve.points(self.segments)["off"])
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
@@ -364,21 +368,6 @@ class OptimalSubset(NodeList):
                 f"K = exact-curve points per texel, largest {int(counts.max())}), above MAX_WORK = "
                 f"{MAX_WORK:.3g} (avsm_dr.representations.optimal.MAX_WORK); fits: "
                 f"{'; '.join(fits)}; or use 'greedy' (O(K log K), no limit)")
-
-    @property
-    def monotone(self) -> bool:
-        """False for the refit ('l2', linear): least-squares values can overshoot a step."""
-        return not self._refit
-
-    @property
-    def differentiable(self) -> bool:
-        """Not for the refit (a host least-squares solve); else the exact curve's gradients."""
-        return not self._refit
-
-    @property
-    def _refit(self) -> bool:
-        P = self.params
-        return P["norm"] == "l2" and P["interpolation"] == "linear" and P["_refit"]
 
     def _build(self):
         seg, pts = self.segments, _curve.points(self.segments)

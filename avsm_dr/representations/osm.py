@@ -214,13 +214,8 @@ class OpacityShadowMap(BasisRepresentation):
         dr.eval(a)
         return a
 
-    @property
-    def _store(self):
-        """Reconstruction reads the cumulative sums C_j (linear in a_k: prefilterable)."""
-        return self._cum
-
-    #: ``precision`` quantises the cumulative sums (non-negative, non-decreasing: the
-    #: rounded codes stay non-decreasing, so T stays monotone); ``coefficients`` stay exact.
+    #: Reconstruction reads, and ``precision`` quantises, the cumulative sums (non-negative,
+    #: non-decreasing: the codes stay so, T stays monotone); ``coefficients`` stay exact.
     _stored_attr = "_cum"
 
     def _stored(self):
