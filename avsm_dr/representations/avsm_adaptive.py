@@ -175,16 +175,12 @@ class AVSMAdaptive(Representation):
             raise ValueError(f"bytes_per_texel: {P['bytes_per_texel']:g} is below the least storage of this map, "
                              f"{need:.6g} (offsets and 2 nodes of {2 * item} bytes per non-empty texel)")
 
-    @property
-    def loop_state_words(self) -> int:
-        """Those of the largest AVSM kernel run (2 N + 5)."""
-        return 2 * int(self.kernel.max(initial=0)) + 5
-
     def _build(self):
         seg, P = self.segments, self.params
         self.allocated = allocate(seg.counts, complexity(seg, self._score), self.budget_nodes, P["max_nodes"],
                                   uniform=self._score == "uniform")
         self.kernel = kernel_nodes(self.allocated, seg.counts, P["max_nodes"])
+        self.loop_state_words = 2 * int(self.kernel.max(initial=0)) + 5       # the largest AVSM kernel's
         Float, T, K = seg.Float, seg.n_texels, 2 * seg.counts
         stored = np.zeros(T, np.int64)
         runs = []

@@ -91,8 +91,11 @@ class Basis:
     #: coefficient) lanes, a trace whose size does not depend on K (module docstring).
     indexed = False
 
-    def __init__(self, n: int, arg: str = "n"):
-        self.n = V.integer(n, arg, 1)
+    #: The size parameter's name in messages.
+    arg = "n"
+
+    def __init__(self, n: int):
+        self.n = V.integer(n, self.arg, 1)
 
     @property
     def n_coefficients(self) -> int:

@@ -232,10 +232,9 @@ class DeepShadowMap(Representation):
 
     Attributes: ``node_counts`` (T,) and ``node_offsets`` (T+1,) int64 NumPy; ``node_depth``,
     ``node_value`` Dr.Jit arrays in CSR order; ``node_left`` (bool NumPy: the node's vertex
-    is the value just before a step at its depth); ``n_polyline_vertices`` (T,).
-    Raises ValueError naming the tolerance that fits when the phase-A polyline bound
-    (``BYTES_PER_VERTEX`` per vertex) summed over the chunks exceeds
-    ``_dsm_polyline.MEMORY_BUDGET_BYTES``, before allocating the chunk that crosses it.
+    is the value just before a step at its depth); ``n_polyline_vertices`` (T,).  ValueError
+    naming the tolerance that fits, before allocating, when the polyline summed over the
+    chunks would exceed its budget (:func:`._dsm_polyline.check_polyline_size`).
     """
 
     schema = Schema(

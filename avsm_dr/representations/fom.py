@@ -35,8 +35,7 @@ class FourierBasis(Basis):
     f = [2, 2 cos(2 pi k u), 2 sin(2 pi k u)],  g = [u/2, sin(2 pi k u)/(2 pi k),
     (1 - cos(2 pi k u))/(2 pi k)] (biorthogonal pair: int f_j g_k' = delta_jk)."""
 
-    def __init__(self, n: int, arg: str = "harmonics"):
-        super().__init__(n, arg)
+    arg = "harmonics"
 
     @property
     def n_coefficients(self) -> int:

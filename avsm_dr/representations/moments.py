@@ -33,11 +33,9 @@ alpha by storage precision (``self.precision``, else the segments' dtype) from
 :data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'; trigonometric: :data:`DEFAULT_TRIG_BIAS`.
 
 16-bit storage (``quantization``, 4 power moments in 'float16' / 'unorm16'): 'scaled' codes
-the moments over the per-texel scale ``b_0`` (:mod:`._precision`, 14 bytes); 'msm' stores the
-transform of Peters and Klein 2015, sec. 5 (:mod:`._moment_quantization`, 12 bytes).
-Default 'msm' in 'unorm16', 'scaled' elsewhere.
-
-Family 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`.
+the moments over the per-texel scale ``b_0`` (:mod:`._precision`); 'msm' (default in 'unorm16')
+the transform of Peters and Klein 2015, sec. 5 (:mod:`._moment_quantization`).  Family
+'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`.
 ``monotone`` False (the bounds are non-decreasing in exact arithmetic only).
 """
 from __future__ import annotations
@@ -89,8 +87,7 @@ class PowerMomentBasis(Basis):
     """f_k(u) = (2u - 1)^k, k = 0..n (n power moments plus the total; not orthonormal:
     only the projection is used)."""
 
-    def __init__(self, n: int = 4, arg: str = "moments"):
-        super().__init__(n, arg)
+    arg = "moments"
 
     @property
     def n_coefficients(self) -> int:
@@ -118,8 +115,7 @@ class TrigMomentBasis(Basis):
     """f = [1, cos(k phi), sin(k phi)], k = 1..n, phi = (pi/2)(2u - 1) (2n + 1 functions;
     only the projection is used)."""
 
-    def __init__(self, n: int = 2, arg: str = "moments"):
-        super().__init__(n, arg)
+    arg = "moments"
 
     @property
     def n_coefficients(self) -> int:

@@ -37,9 +37,7 @@ class PiecewiseConstantBasis(Basis):
     """``n`` slice indicators on [0, 1] (Jansen and Bavoil 2010, sec. 5.1, simplified scaling)."""
 
     monotone = True
-
-    def __init__(self, n: int, arg: str = "slices"):
-        super().__init__(n, arg)
+    arg = "slices"
 
     def _slice(self, u):
         """Index of the slice holding u (the last slice includes u = 1), as Float."""
