@@ -88,16 +88,6 @@ def _cubic_scale(p, q):
     return dr.maximum(dr.sqrt(dr.abs(p) * (1 / 3)), dr.maximum(1e-4 * dr.cbrt(dr.abs(q)), 1e-10))
 
 
-def _viete(p, q):
-    """Three real roots of t^3 + p t + q (p < 0), Viete's trigonometric formula:
-    t_k = 2 r cos(acos(-q / (2 r^3)) / 3 - 2 pi k / 3), r = sqrt(-p/3), ascending."""
-    r = _cubic_scale(dr.minimum(p, 0), q)
-    arg = dr.clip(-q / (2 * r * r * r), -1, 1)
-    th = dr.acos(arg) * (1 / 3)
-    two_r = 2 * r
-    return [two_r * dr.cos(th - 4 * math.pi / 3), two_r * dr.cos(th - 2 * math.pi / 3), two_r * dr.cos(th)]
-
-
 def _largest_cubic_root(p, q):
     """Largest real root of t^3 + p t + q without forming the discriminant (no overflow
     of p^3, q^2 in float32), with a = q / (2 r^3), r = :func:`_cubic_scale`:
@@ -147,14 +137,18 @@ def _polish(c, roots):
 
 
 def cubic_roots(c0, c1, c2, c3):
-    """Roots (ascending) of c0 + c1 z + c2 z^2 + c3 z^3, all real: Viete on the depressed
-    monic cubic (z = t - a2/3), then :func:`_polish`."""
+    """Roots (ascending) of c0 + c1 z + c2 z^2 + c3 z^3, all real: Viete's trigonometric
+    formula on the depressed monic cubic t^3 + p t + q (z = t - a2/3, p < 0),
+    t_k = 2 r cos(acos(-q / (2 r^3)) / 3 - 2 pi k / 3), r = sqrt(-p/3), then :func:`_polish`."""
     inv = 1 / _leading([c0, c1, c2, c3])
     a2, a1, a0 = c2 * inv, c1 * inv, c0 * inv
     s = a2 * (1 / 3)
     p = a1 - a2 * s
     q = (2 / 27) * a2 * a2 * a2 - s * a1 + a0
-    t = _viete(p, q)
+    r = _cubic_scale(dr.minimum(p, 0), q)
+    th = dr.acos(dr.clip(-q / (2 * r * r * r), -1, 1)) * (1 / 3)
+    two_r = 2 * r
+    t = [two_r * dr.cos(th - 4 * math.pi / 3), two_r * dr.cos(th - 2 * math.pi / 3), two_r * dr.cos(th)]
     return _polish([c0, c1, c2, c3], [dr.clip(tk - s, -BIG, BIG) for tk in t])
 
 
