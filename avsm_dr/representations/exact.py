@@ -21,13 +21,6 @@ from .base import Representation
 from .schema import Schema
 
 
-def segment_fraction(depth, z0, z1):
-    """f(d): fraction of a segment's optical depth in front of ``depth``."""
-    length = z1 - z0
-    safe = dr.select(length > 0, length, 1)
-    return dr.select(depth >= z1, 1, dr.clip((depth - z0) / safe, 0, 1))
-
-
 @register("exact")
 class Exact(Representation):
     """Stores the segments themselves (z0, z1, tau in the segments' dtype, a CSR offset)."""
@@ -68,7 +61,8 @@ def optical_depth_in_front(seg, i, end, depth, Acc, left=None, stop: bool = Fals
 
     def body(i, tau):
         z0, z1, od = (dr.gather(Float, x, i) for x in (seg.z0, seg.z1, seg.optical_depth))
-        f = segment_fraction(depth, z0, z1)
+        length = z1 - z0
+        f = dr.select(depth >= z1, 1, dr.clip((depth - z0) / dr.select(length > 0, length, 1), 0, 1))   # f_i(d)
         if left is not None:
             f = dr.select(left & (z0 == z1) & (depth == z0), 0.0, f)   # T(z^-) before a step
         return i + 1, tau + Acc(od * f)
