@@ -37,22 +37,6 @@ class Lookup:
     radius: float = 1.0
 
 
-def check_options(rep, filter, width, height, radius, prefilter) -> tuple:
-    """``(width, height, radius)`` checked (``filter`` and ``prefilter`` too): ValueError naming
-    the argument at fault."""
-    V.one_of(filter, "filter", FILTERS)
-    if not isinstance(prefilter, (bool, np.bool_)):
-        raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
-    if prefilter and not rep.prefilterable:
-        raise ValueError(f"prefilter: kind {rep.kind!r} is not linear in a stored map "
-                         "(prefilterable = False); filter its T instead (prefilter=False)")
-    if prefilter and filter == "point":
-        raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
-    width = None if width is None else V.integer(width, "width", 1)
-    height = None if height is None else V.integer(height, "height", 1)
-    return width, height, check_radius(radius, width, height)
-
-
 def _device_checked(rep, kernel, texel, depth, filter: str):
     """Paths 1 and 2: ``(T, None, None, False)`` when a point lookup was evaluated, else
     ``(None, tex_dev, dep_dev, tex_np)`` (None: the host checks take it; ``tex_np``: NumPy
@@ -119,7 +103,17 @@ def lookup_args(rep, kernel, texel, depth, filter: str = "point", width: int | N
     """The checked arguments of ``rep.eval(texel, depth, filter, width, height, radius,
     prefilter)`` (its docstring gives them); ``kernel``: ``rep``'s per-texel lookup
     ``(UInt32 texel, Float depth) -> Float``, run here by the point fast paths."""
-    width, height, radius = check_options(rep, filter, width, height, radius, prefilter)
+    V.one_of(filter, "filter", FILTERS)
+    if not isinstance(prefilter, (bool, np.bool_)):
+        raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
+    if prefilter and not rep.prefilterable:
+        raise ValueError(f"prefilter: kind {rep.kind!r} is not linear in a stored map "
+                         "(prefilterable = False); filter its T instead (prefilter=False)")
+    if prefilter and filter == "point":
+        raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
+    width = None if width is None else V.integer(width, "width", 1)
+    height = None if height is None else V.integer(height, "height", 1)
+    radius = check_radius(radius, width, height)
     T, tex_dev, dep_dev, tex_np = _device_checked(rep, kernel, texel, depth, filter)
     if T is not None:
         return Lookup(T=T)

@@ -33,12 +33,6 @@ TRAJECTORY_BUDGET_WORDS = 16384
 REVERSE_MODES = ("auto", "trajectory", "checkpoint")
 
 
-def trajectory_words(state_words: int, max_count: int) -> int:
-    """Per-lane trajectory words of reverse mode through a loop of ``state_words`` with
-    ``max_iterations = max_count``."""
-    return int(max_count) * int(state_words)
-
-
 def safe_chunk(state_words: int, budget: int = TRAJECTORY_BUDGET_WORDS) -> int:
     """Largest chunk length C whose trajectory ``C x state_words`` fits ``budget``."""
     return max(1, int(budget) // max(1, int(state_words)))

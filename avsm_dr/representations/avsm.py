@@ -48,10 +48,8 @@ INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'line
 
 
 def bracket(d, t, x):
-    """Nodes around x: the last node with d_k <= x and its successor, branch-free.
-
-    In front of the first node both carry T = 1; behind the last node both are the last
-    node.  Returns (d_l, t_l, d_r, t_r)."""
+    """Nodes around x, branch-free: (d_l, t_l, d_r, t_r) of the last node with d_k <= x and its
+    successor (both T = 1 in front of the first node, both the last node behind the last)."""
     n = len(d)
     one = dr.full(type(x), 1.0, dr.width(x))
     dl, tl, dr_, tr = x, one, x, one

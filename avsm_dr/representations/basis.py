@@ -43,8 +43,8 @@ from .basis_functions import BASES, LIST_CHUNK, LIST_UNROLL, Basis, clip_segment
 from .basis_functions import CosineBasis, LegendreBasis  # noqa: F401  (re-exported: their old home)
 from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
-#: Shortest depth range per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
-#: MIN_SPAN_ABS[dtype] (the dtype's smallest normal number: near = far = 0 does not divide by 0).
+#: Shortest depth range per storage dtype: ``MIN_SPAN_REL[dtype] max(|near|, |far|) +
+#: MIN_SPAN_ABS[dtype]`` (the dtype's smallest normal number: near = far = 0 does not divide by 0).
 MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
 MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
 #: (item, coefficient) lanes per kernel on the indexed path.

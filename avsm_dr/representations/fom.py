@@ -42,11 +42,7 @@ class FourierBasis(Basis):
         return 2 * self.n + 1
 
     def f(self, u):
-        out = [2 + 0 * u]
-        for k in range(1, self.n + 1):
-            s, c = sincos_pi(2 * k * u)
-            out += [2 * c, 2 * s]
-        return out
+        return [2 + 0 * u] + [2 * x for k in range(1, self.n + 1) for x in sincos_pi(2 * k * u)[::-1]]
 
     def g(self, u):
         # sin(2x) = 2 sin(x) cos(x),  1 - cos(2x) = 2 sin(x)^2  (x = pi k u, no cancellation)

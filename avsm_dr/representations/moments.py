@@ -123,11 +123,7 @@ class TrigMomentBasis(Basis):
 
     def f(self, u):
         phi = (math.pi / 2) * (2 * u - 1)
-        out = [1 + 0 * u]
-        for k in range(1, self.n + 1):
-            s, c = dr.sincos(k * phi)
-            out += [c, s]
-        return out
+        return [1 + 0 * u] + [x for k in range(1, self.n + 1) for x in dr.sincos(k * phi)[::-1]]   # cos, sin
 
     def average(self, u0, u1):
         return TM.trig_means(2 * u0 - 1, 2 * u1 - 1, self.n)
