@@ -234,8 +234,7 @@ class NodeList(Representation):
 
     def nodes_numpy(self) -> tuple[np.ndarray, np.ndarray]:
         """(T, N) node depths and transmittances as NumPy arrays."""
-        return (np.stack([np.asarray(x.numpy()) for x in self.depths], axis=1),
-                np.stack([np.asarray(x.numpy()) for x in self.values], axis=1))
+        return tuple(np.stack([np.asarray(x.numpy()) for x in b], axis=1) for b in (self.depths, self.values))
 
 
 @register("avsm")

@@ -58,8 +58,7 @@ class BeerShadowMap(Representation):
         if self.precision is not None and segments.n_segments:
             # empty texels (T = 1 whatever their bounds) must not widen the global depth range
             lo[empty] = segments.bounds()[0]
-        ext = np.where(empty, 0.0, hi - lo)
-        self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(ext))
+        self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(np.where(empty, 0.0, hi - lo)))
         self.tau_max = dr.zeros(Float, segments.n_texels)
         if segments.n_segments and segments.requires_grad:
             dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth,

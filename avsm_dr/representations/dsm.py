@@ -303,9 +303,7 @@ class DeepShadowMap(Representation):
     def nodes_numpy(self, texel: int) -> tuple[np.ndarray, np.ndarray]:
         """(depths, values) of one texel's nodes as float64 NumPy arrays."""
         s = slice(int(self.node_offsets[texel]), int(self.node_offsets[texel + 1]))
-        z = np.asarray(dr.detach(self.node_depth).numpy(), np.float64)
-        v = np.asarray(dr.detach(self.node_value).numpy(), np.float64)
-        return z[s], v[s]
+        return tuple(np.asarray(dr.detach(x).numpy(), np.float64)[s] for x in (self.node_depth, self.node_value))
 
     def _eval_texels(self, texel, depth):
         zs = self.node_depth
