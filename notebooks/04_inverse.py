@@ -145,6 +145,6 @@ plt.show()
 # %%
 seg = sh.capture.segments
 for kind, p in [('exact', {}), ('avsm', {'nodes': 8}), ('avsm', {'nodes': 32})]:
-    words = ck.trajectory_words(ad.build(kind, seg, **p).loop_state_words, seg.max_count)
+    words = ad.build(kind, seg, **p).loop_state_words * seg.max_count
     print(f"{kind:5s} {p}: {seg.max_count} segments per texel -> {words} trajectory words per lane "
           f"({'checkpointed' if words > ck.TRAJECTORY_BUDGET_WORDS else 'fits the budget'})")

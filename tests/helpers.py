@@ -1,5 +1,6 @@
 """Helpers of the test suite (not part of the package): the kernel-reuse counter, the
-in-process quick run of a study and the Monte Carlo agreement check."""
+in-process quick run of a study, the Monte Carlo agreement check and a basis kind's
+reconstructed optical depth."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,6 +8,8 @@ from typing import Callable
 
 import avsm_dr  # noqa: F401  (selects a working libLLVM before drjit loads)
 import drjit as dr
+import numpy as np
+from avsm_dr import _arrays as A
 
 
 
@@ -51,3 +54,14 @@ def build_peak(kind: str, arrays: Callable, **params):
         rep = avsm_dr.build(kind, seg, **params)
         dr.eval(*arrays(rep))
     return rep, m, rep.nbytes_per_texel * seg.n_texels
+
+
+def optical_depth(rep, texel, depth):
+    """A basis kind's reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp)
+    at (K,) texel indices (not validated) and (K,) or scalar depths: Float (K,)."""
+    tex = texel if A.is_drjit(texel) else A.to_uint32(np.asarray(texel).astype(np.uint32))
+    if A.is_drjit(depth):
+        d = A.to_float(depth, rep.Float)
+    else:
+        d = A.to_float(np.broadcast_to(np.asarray(depth, np.float64), (dr.width(tex),)), rep.Float)
+    return rep._optical_depth(tex, d)

@@ -413,16 +413,16 @@ def test_polyline_beyond_the_memory_budget_is_refused(monkeypatch):
     """tolerance=1e-9 on texels that go opaque: 44,727 levels, ~2.9 MB per texel (a 256^2
     map would need ~190 GB).  The bound 2 B + crossings is checked before allocating; the
     message names the tolerance that fits, and that tolerance builds."""
-    from avsm_dr.representations import _dsm_polyline, dsm
+    from avsm_dr.representations import _dsm_polyline
     T = 64
     seg = ad.Segments.from_arrays(np.arange(T + 1), np.zeros(T), np.ones(T), optical_depth=np.full(T, 30.0))
-    monkeypatch.setattr(_dsm_polyline, "MEMORY_BUDGET_BYTES", 64 * 20_000 * dsm.BYTES_PER_VERTEX)
+    monkeypatch.setattr(_dsm_polyline, "MEMORY_BUDGET_BYTES", 64 * 20_000 * _dsm_polyline.BYTES_PER_VERTEX)
     with pytest.raises(ValueError, match=r"^tolerance: 1e-09 needs a polyline of up to [\d,]+ vertices") as e:
         ad.build("dsm", seg, tolerance=1e-9)
     fits = float(str(e.value).split("tolerance >= ")[1].split(" fits")[0])
     rep = ad.build("dsm", seg, tolerance=fits * 1.1)
-    assert rep.n_polyline_vertices.sum() * dsm.BYTES_PER_VERTEX <= _dsm_polyline.MEMORY_BUDGET_BYTES
-    assert dsm.transmittance_levels(0.25e-9).size == 44727
+    assert rep.n_polyline_vertices.sum() * _dsm_polyline.BYTES_PER_VERTEX <= _dsm_polyline.MEMORY_BUDGET_BYTES
+    assert _dsm_polyline.transmittance_levels(0.25e-9).size == 44727
 
 
 # ----------------------------------------------------------------------------

@@ -79,12 +79,12 @@ def test_polyline_budget_is_summed_over_chunks(monkeypatch):
     _one_piece(monkeypatch)
     per_texel = int(ad.build("dsm", seg.select_texels(np.arange(1)), tolerance=1e-4).n_polyline_vertices[0])
     _chunked(monkeypatch, 1)
-    monkeypatch.setattr(_dsm_polyline, "MEMORY_BUDGET_BYTES", 20 * (per_texel + 2) * dsm.BYTES_PER_VERTEX)
+    monkeypatch.setattr(_dsm_polyline, "MEMORY_BUDGET_BYTES", 20 * (per_texel + 2) * _dsm_polyline.BYTES_PER_VERTEX)
     with pytest.raises(ValueError, match=r"^tolerance: 0.0001 needs a polyline of up to [\d,]+ vertices over "
                                          r"the first 2\d texels"):
         ad.build("dsm", seg, tolerance=1e-4)
     rep = ad.build("dsm", seg.select_texels(np.arange(10)), tolerance=1e-4)
-    assert rep.n_polyline_vertices.sum() * dsm.BYTES_PER_VERTEX <= _dsm_polyline.MEMORY_BUDGET_BYTES
+    assert rep.n_polyline_vertices.sum() * _dsm_polyline.BYTES_PER_VERTEX <= _dsm_polyline.MEMORY_BUDGET_BYTES
 
 
 def test_build_peak_within_4x_of_the_output():

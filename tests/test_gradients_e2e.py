@@ -301,7 +301,7 @@ def test_checkpointed_avsm_handles_long_texels():
     make = lambda s: ad.build("avsm", s, nodes=8)                     # noqa: E731  ('auto')
     rev, fwd, _ = _reverse_and_forward(data, tex, depth, w, make, v)
     np.testing.assert_allclose(fwd, rev @ v, rtol=1e-9)
-    assert ck.trajectory_words(2 * 8 + 5, M) > ck.TRAJECTORY_BUDGET_WORDS
+    assert (2 * 8 + 5) * M > ck.TRAJECTORY_BUDGET_WORDS                      # trajectory words per lane
     t = T64.Float64(data["tau"])
     dr.enable_grad(t)
     seg = ad.Segments.from_arrays(off, z0, z0 + 1e-3, optical_depth=t)

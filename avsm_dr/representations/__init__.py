@@ -11,19 +11,9 @@ from .base import Representation
 from .registry import REGISTRY, allows, build, configurations, describe, differentiable_configuration, kinds, register
 from .schema import Param, Schema
 
-# Each import registers its representation (a broken or misspelt module fails here).
-from . import exact  # noqa: E402,F401
-from . import avsm  # noqa: E402,F401
-from . import dsm  # noqa: E402,F401
-from . import basis  # noqa: E402,F401
-from . import fom  # noqa: E402,F401
-from . import osm  # noqa: E402,F401
-from . import moments  # noqa: E402,F401
-from . import beer  # noqa: E402,F401
-from . import greedy  # noqa: E402,F401
-from . import optimal  # noqa: E402,F401
-from . import avsm_march  # noqa: E402,F401
-from . import avsm_adaptive  # noqa: E402,F401
+# Each import registers its representation, in this order (a broken or misspelt module fails here).
+from . import (exact, avsm, dsm, basis, fom, osm, moments, beer, greedy, optimal,  # noqa: E402,F401
+               avsm_march, avsm_adaptive)
 
 __all__ = ["REGISTRY", "Param", "allows", "Representation", "Schema", "build", "configurations", "describe",
            "differentiable_configuration", "kinds", "register"]

@@ -1,38 +1,29 @@
 """AVSM insertion variants (the ``insertion`` parameter of :class:`.avsm.AVSM`): what happens
 when a texel's node list overflows (branch-free, like :mod:`.avsm`; measurements:
-``docs/research/insertion_order.md``).
-
-* ``stream`` (Salvi et al. 2010, sec. 3.2): each inserted segment adds two nodes, then the
-  interior node of least area metric is removed, twice; no node value ever changes.
-* ``refit``: the same removals, then the removed node's two neighbours are refitted so that
-  the area under the curve is kept (:func:`remove_refit` with ``fit="area"``).
-* ``refit_l2``: the removed node is the one of least squared-L2 loss (``c^2 / w``, see
-  below) and its neighbours are refitted by least squares to the curve before the removal
-  (:func:`remove_refit` with ``fit="l2"``).
-* ``staged`` / ``staged_refit_l2``: once the texel is full, segments are inserted 4 at a
-  time into a list of ``N + 8`` nodes, compressed back to N only then (plain, respectively
-  refitting).
+``docs/research/insertion_order.md``).  :data:`INSERTIONS`: ``stream`` (Salvi et al. 2010,
+sec. 3.2: remove the node of least area metric, twice); ``refit`` (then refit its neighbours
+to keep the area, ``fit="area"``); ``refit_l2`` (remove the node of least squared-L2 loss,
+refit its neighbours by least squares, ``fit="l2"``); ``staged`` / ``staged_refit_l2``
+(once full, insert 4 segments into ``N + 8`` nodes, then compress back to N).
 
 Removal of interior node ``i`` with neighbours ``l = i - 1``, ``r = i + 1`` (and ``ll = i - 2``,
-``rr = i + 2`` where they exist); ``c = (d_r - d_l)(t_r - t_i) - (d_r - d_i)(t_r - t_l)`` is
-``(d_r - d_l)`` times the chord's height above ``t_i``, so ``|c|`` is the paper's metric (twice
-the area lost), ``c^2 / (d_r - d_l)`` three times the squared L2 error of the chord, and
-``-c / 2`` the signed area lost.  Refits change ``t_l`` only when ``l`` is not the first node and
-``t_r`` only when ``r`` is not the last (first and last values are kept: the last one is the
-exact total transmittance):
+``rr = i + 2`` where they exist); ``c = (d_r - d_l)(t_r - t_i) - (d_r - d_i)(t_r - t_l)``:
+``|c|`` is the paper's metric (twice the area lost), ``c^2 / (d_r - d_l)`` three times the
+squared L2 error of the chord, ``-c / 2`` the signed area lost.  Refits change ``t_l`` only
+when ``l`` is not the first node and ``t_r`` only when ``r`` is not the last (the last value
+is the exact total transmittance):
 
-* ``fit="area"``: both movable neighbours move by the same ``delta = -c / w`` with
-  ``w = [l movable](d_r - d_ll) + [r movable](d_rr - d_l)`` (twice the area one unit of shift
-  adds), so the polyline keeps its area;
-* ``fit="l2"``: ``(delta_l, delta_r)`` minimise the L2 distance over ``[d_ll, d_rr]`` between
-  the new polyline and the one before the removal (closed form, 2 x 2 system with
-  ``L0 = d_l - d_ll``, ``L1 = d_r - d_l``, ``L2 = d_rr - d_r``, ``p = (d_i - d_l) / L1``):
+* ``fit="area"``: both movable neighbours move by ``delta = -c / w`` with
+  ``w = [l movable](d_r - d_ll) + [r movable](d_rr - d_l)``, keeping the polyline's area;
+* ``fit="l2"``: ``(delta_l, delta_r)`` minimise the L2 distance over ``[d_ll, d_rr]`` to the
+  polyline before the removal (``L0 = d_l - d_ll``, ``L1 = d_r - d_l``, ``L2 = d_rr - d_r``,
+  ``p = (d_i - d_l) / L1``):
   ``2 (L0 + L1) delta_l + L1 delta_r = -c (2 - p)``, ``L1 delta_l + 2 (L1 + L2) delta_r = -c (1 + p)``;
   a fixed neighbour's row is replaced by ``delta = 0``.
 
-Then both values are clipped to ``[lo, hi]`` with ``hi = t_ll`` (``t_l`` when ``l`` is first) and
-``lo = t_rr`` (``t_r`` when ``r`` is last), and where they would cross (``t_r' > t_l'``) both take
-their mean: values stay in [0, 1] and non-increasing whenever they were before.
+Then both values are clipped to ``[lo, hi]`` (``hi = t_ll``, ``t_l`` when ``l`` is first;
+``lo = t_rr``, ``t_r`` when ``r`` is last), and where they would cross both take their mean:
+values stay in [0, 1] and non-increasing whenever they were before.
 """
 from __future__ import annotations
 

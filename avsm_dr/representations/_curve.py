@@ -1,16 +1,12 @@
-"""The exact transmittance curve as a list of points per texel, for the kinds that choose
-their nodes from it (``greedy``, ``optimal``, ``avsm_march``).
+"""The exact transmittance curve as points per texel, for the kinds that choose their nodes
+from it (``greedy``, ``optimal``, ``avsm_march``), and their helpers (gradients of stored
+curve values, texel buckets for padded NumPy work, a per-segments cache, node lists).
 
-Between the texel's sorted unique segment ends ("breakpoints") the optical depth is
-linear, so ``T = exp(-tau)`` is exactly exponential; a zero-length segment is a step.
-The points are, per breakpoint ``z_k``: ``(z_k, T(z_k^-))`` when a step sits there (the
-*left* point), then ``(z_k, T(z_k))``; with the slope ``s_k = d tau / dz`` of the interval
-that follows.  Between consecutive points ``p``, ``q`` the curve is
-``T(x) = T_p exp(-s_p (x - z_p))``.  Breakpoints, optical depths and slopes come from
-:mod:`.dsm`'s phase A (:mod:`._dsm_polyline`) (event sort, compensated prefix sums, float64).
-
-Also the helpers of those kinds: gradients of stored curve values, texel buckets for padded
-NumPy work, a per-segments cache and node lists from chosen points.
+Between the texel's sorted unique segment ends ("breakpoints") ``T = exp(-tau)`` is exactly
+exponential; a zero-length segment is a step.  Per breakpoint ``z_k`` the points are
+``(z_k, T(z_k^-))`` when a step sits there (the *left* point), then ``(z_k, T(z_k))``, with
+the slope ``s_k = d tau / dz`` after it: ``T(x) = T_p exp(-s_p (x - z_p))`` up to the next
+point.  Breakpoints, optical depths and slopes: :mod:`._dsm_polyline` (float64).
 """
 from __future__ import annotations
 
@@ -37,18 +33,14 @@ def curve_points(segments) -> dict:
     step = bp["jump"] > 0
     per_bp = 1 + step.astype(np.int64)
     first = np.concatenate([[0], np.cumsum(per_bp)])[:-1]      # slot of each breakpoint's first point
-    n = int(per_bp.sum())
     z = np.repeat(bp["z"], per_bp)
-    tau = np.empty(n)
-    tau[first] = np.where(step, tl, tr)
+    tau = np.repeat(np.where(step, tl, tr), per_bp)            # a step's points: tau_left, tau_right
     tau[first[step] + 1] = tr[step]
-    left = np.zeros(n, bool)
+    left = np.zeros(z.size, bool)
     left[first[step]] = True
-    slope_p = np.repeat(slope, per_bp)
-    bp_tex = np.repeat(np.arange(n_tex), np.diff(bp["off"]))
-    texel = np.repeat(bp_tex, per_bp)
+    texel = np.repeat(np.repeat(np.arange(n_tex), np.diff(bp["off"])), per_bp)
     off = np.concatenate([[0], np.cumsum(np.bincount(texel, minlength=n_tex))]).astype(np.int64)
-    return dict(off=off, z=z, tau=tau, v=np.exp(-tau), slope=slope_p, left=left, texel=texel)
+    return dict(off=off, z=z, tau=tau, v=np.exp(-tau), slope=np.repeat(slope, per_bp), left=left, texel=texel)
 
 
 def attach_exact_gradients(segments, value, texel, z, left):
@@ -118,12 +110,25 @@ def fill_slots(sel_tex: np.ndarray, sel_pt: np.ndarray, slot: np.ndarray, N: int
     return src
 
 
-def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None = None):
+def exp_stored_values(v, store):
+    """Node values as the offline kinds store them for exponential interpolation: 0 where
+    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least its smallest
+    normal ``tiny``: the lookup never takes the log of a denormal (Dr.Jit's LLVM log is
+    inexact there), so the DP's chords are the lookup's exactly."""
+    v = np.asarray(v, np.float64)
+    return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
+
+
+
+def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None = None, exp: bool = False):
     """Node lists (N Dr.Jit Floats of length T) from the (N, T) point indices ``src``
     (:func:`fill_slots`): depths ``z[src]``, values ``values`` (default: the exact values
-    ``v[src]``, with the exact curve's gradients attached); empty texels hold (0, 1)."""
+    ``v[src]``, with the exact curve's gradients attached; ``exp``: as
+    :func:`exp_stored_values`); empty texels hold (0, 1)."""
     N, T = src.shape
-    dt = np.float32 if segments.dtype == "float32" else np.float64
+    dt = segments.dtype
+    if exp and values is None:
+        pts = {**pts, "v": exp_stored_values(pts["v"], dt)}
     Float = segments.Float
     has = src >= 0
     s = np.maximum(src, 0)
@@ -137,8 +142,7 @@ def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None 
     flat = np.flatnonzero(has.ravel())
     p = src.ravel()[flat]
     g = attach_exact_gradients(segments, dr.zeros(Float, flat.size), pts["texel"][p], pts["z"][p], pts["left"][p])
-    allv = Float(t.ravel().astype(dt))
     grad = dr.zeros(Float, N * T)
     dr.scatter(grad, g, UInt32(flat.astype(np.uint32)))
-    allv = allv + grad
+    allv = Float(t.ravel().astype(dt)) + grad
     return depths, [dr.gather(Float, allv, dr.arange(UInt32, T) + k * T) for k in range(N)]

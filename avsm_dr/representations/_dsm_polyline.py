@@ -75,9 +75,7 @@ def breakpoints(offsets, z0, z1, tau):
     rate = np.where(pos, tau / np.where(pos, length, 1.0), 0.0)
 
     # events z0_0, z1_0, z0_1, z1_1, ...: texel t owns [2 off[t], 2 off[t+1])
-    ev_z = np.empty(2 * s)
-    ev_z[0::2] = z0
-    ev_z[1::2] = z1
+    ev_z = np.stack([z0, z1], axis=1, dtype=np.float64).ravel()
     ev_off = 2 * offsets
     first = np.zeros(2 * s, dtype=bool)               # first event of its texel
     first[ev_off[:-1][counts > 0]] = True
@@ -274,8 +272,7 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
     n_lev = crossings(None, write=False)
     per_bp = 1 + dr.select(step, U32(1), U32(0)) + n_lev
     dr.eval(per_bp)
-    counts = per_bp.numpy().astype(np.int64)
-    base_np = np.concatenate([[0], np.cumsum(counts)])
+    base_np = np.concatenate([[0], np.cumsum(per_bp.numpy().astype(np.int64))])      # first vertex of each
     nv = int(base_np[-1])
     base = U32(A.aligned(base_np[:-1].astype(np.uint32)))
     out_z, out_tau = dr.zeros(F64, nv), dr.zeros(F64, nv)
@@ -288,7 +285,6 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
     crossings(base + 1 + dr.select(step, U32(1), U32(0)), write=True)
     v = dr.exp(-out_tau)
     dr.eval(out_z, out_tau, out_left, v)
-    off = base_np[bp["off"]].astype(np.int64)
-    return dict(off=off, z=out_z, tau=out_tau, v=v, left=out_left, bound=(nb, n_cross))
+    return dict(off=base_np[bp["off"]].astype(np.int64), z=out_z, tau=out_tau, v=v, left=out_left, bound=(nb, n_cross))
 
 

@@ -1,12 +1,10 @@
-"""A lookup's arguments, checked and converted once: the argument handling of
-:meth:`~avsm_dr.representations.base.Representation.eval`.
+"""A lookup's arguments, checked and converted once (:meth:`.base.Representation.eval`).
 
 Three validation paths, cheapest first (:mod:`avsm_dr._device_checks`): 1. NumPy point
 lookups whose min / max prove them valid, evaluated in one launch; 2. Dr.Jit texels / depths,
-checked on the device (inside the point lookup's kernel, or one flag for filtered lookups);
-3. everything else: the host checks below, which raise the ``ValueError`` messages (naming
-``texel``, ``depth``, ``width``, ...) or handle the input (subnormals flushed, scalars
-broadcast).  :func:`lookup_args` returns a :class:`Lookup`.
+checked on the device; 3. the host checks below, which raise the ``ValueError`` messages
+(naming ``texel``, ``depth``, ``width``, ...) or handle the input (subnormals flushed,
+scalars broadcast).
 """
 from __future__ import annotations
 
@@ -37,22 +35,6 @@ class Lookup:
     width: int | None = None
     height: int | None = None
     radius: float = 1.0
-
-
-def check_options(rep, filter, width, height, radius, prefilter) -> tuple:
-    """``(width, height, radius)`` checked (``filter`` and ``prefilter`` too): ValueError naming
-    the argument at fault."""
-    V.one_of(filter, "filter", FILTERS)
-    if not isinstance(prefilter, (bool, np.bool_)):
-        raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
-    if prefilter and not rep.prefilterable:
-        raise ValueError(f"prefilter: kind {rep.kind!r} is not linear in a stored map "
-                         "(prefilterable = False); filter its T instead (prefilter=False)")
-    if prefilter and filter == "point":
-        raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
-    width = None if width is None else V.integer(width, "width", 1)
-    height = None if height is None else V.integer(height, "height", 1)
-    return width, height, check_radius(radius, width, height)
 
 
 def _device_checked(rep, kernel, texel, depth, filter: str):
@@ -121,16 +103,22 @@ def lookup_args(rep, kernel, texel, depth, filter: str = "point", width: int | N
     """The checked arguments of ``rep.eval(texel, depth, filter, width, height, radius,
     prefilter)`` (its docstring gives them); ``kernel``: ``rep``'s per-texel lookup
     ``(UInt32 texel, Float depth) -> Float``, run here by the point fast paths."""
-    width, height, radius = check_options(rep, filter, width, height, radius, prefilter)
+    V.one_of(filter, "filter", FILTERS)
+    if not isinstance(prefilter, (bool, np.bool_)):
+        raise ValueError(f"prefilter: expected a bool, got {prefilter!r}")
+    if prefilter and not rep.prefilterable:
+        raise ValueError(f"prefilter: kind {rep.kind!r} is not linear in a stored map "
+                         "(prefilterable = False); filter its T instead (prefilter=False)")
+    if prefilter and filter == "point":
+        raise ValueError("prefilter: needs a non-point filter ('bilinear', 'box', 'gaussian')")
+    width = None if width is None else V.integer(width, "width", 1)
+    height = None if height is None else V.integer(height, "height", 1)
+    radius = check_radius(radius, width, height)
     T, tex_dev, dep_dev, tex_np = _device_checked(rep, kernel, texel, depth, filter)
     if T is not None:
         return Lookup(T=T)
     seg, Float, UInt32 = rep.segments, rep.Float, backend.types().UInt32
-    tex_h = coords = None
-    if tex_dev is not None:
-        k = dr.width(tex_dev)
-    else:
-        tex_h, coords, k = _host_texels(texel, width, height)
+    tex_h, coords, k = (None, None, dr.width(tex_dev)) if tex_dev is not None else _host_texels(texel, width, height)
     if dep_dev is not None:
         depth_dr, d_size = A.to_float(dep_dev, Float), dr.width(dep_dev)
     else:

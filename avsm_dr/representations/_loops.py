@@ -14,8 +14,7 @@ count writes past that array, so :func:`run_loop` refuses it (ValueError).
   state saved at each chunk boundary, the backward pass re-running one chunk at a time in
   reverse order.
 
-Also the deterministic per-texel sums of the linear kinds (:func:`texel_sums`).  Imports no
-concrete representation.
+Also the deterministic per-texel sums of the linear kinds (:func:`texel_sums`).
 """
 from __future__ import annotations
 
@@ -32,12 +31,6 @@ from .. import validation as V
 TRAJECTORY_BUDGET_WORDS = 16384
 #: Reverse-mode strategies accepted by every representation (``reverse=``).
 REVERSE_MODES = ("auto", "trajectory", "checkpoint")
-
-
-def trajectory_words(state_words: int, max_count: int) -> int:
-    """Per-lane trajectory size (words) of reverse mode through a loop of ``state_words``
-    with ``max_iterations = max_count``: the quantity that grows as segments x state."""
-    return int(max_count) * int(state_words)
 
 
 def safe_chunk(state_words: int, budget: int = TRAJECTORY_BUDGET_WORDS) -> int:

@@ -11,16 +11,11 @@ Chebyshev-Markov-Stieltjes bounds ``L = sum_{z_i < x_f} w_i <= F(x_f-)``,
 ``U = L + w_f >= F(x_f)`` for every distribution with these moments.
 
 Steps (:func:`hankel_bound`):
-1. bias: ``m = (1 - alpha) b / b_0 + alpha m*`` toward a target ``m*`` with a positive
-   definite Hankel matrix ``B*``; then ``B >= alpha B*`` (PSD order) and each LDL^T pivot
-   (a Schur complement) of ``B`` is at least ``alpha`` times that of ``B*`` (float64
-   Cholesky): the pivots are floored there, so rounding cannot make them vanish;
-2. LDL^T of ``B``, forward / back substitution for ``c``;
-3. roots of ``c``: degree 2 the stable quadratic formula, 3 Viete's trigonometric formula,
-   4 Ferrari's method (the resolvent cubic's largest root splits it into two real
-   quadratics); degrees 3 and 4 then take :data:`POLISH` safeguarded Newton steps on ``c``
-   itself (the closed forms on ``c / c_n`` lose digits where ``c_n`` nears 0).  Roots are
-   clipped to ``[-BIG, BIG]``;
+1. bias: ``m = (1 - alpha) b / b_0 + alpha m*`` toward a target with a positive definite
+   Hankel matrix ``B*``; then ``B >= alpha B*`` and each LDL^T pivot of ``B`` is at least
+   ``alpha`` times that of ``B*``: the pivots are floored there;
+2. LDL^T of ``B``, forward / back substitution for ``c`` (:func:`kernel_polynomial`);
+3. roots of ``c`` (:func:`real_roots`), clipped to ``[-BIG, BIG]``;
 4. weights by the Lagrange form on moments 0..n,
    ``w_p = E[prod_{r != p} (z - r)] / prod_{r != p} (p - r)``, clipped to [0, 1];
    ``L = sum_{z_i < x_f} w_i`` (``1 - w_f`` when ``x_f`` is behind every root),
@@ -48,10 +43,10 @@ NEGLIGIBLE = 1e-20
 LEAD = {False: 1e-3, True: 1e-6}
 
 
-def hankel_pivots(target) -> list[float]:
-    """LDL^T pivots of the Hankel matrix of ``(1, *target)`` (float64): the floors of step 1
+def hankel_pivots(target, m0: float = 1.0) -> list[float]:
+    """LDL^T pivots of the Hankel matrix of ``(m0, *target)`` (float64): the floors of step 1
     are ``alpha`` times these.  ValueError when the target's matrix is not positive definite."""
-    m = np.concatenate([[1.0], np.asarray(target, np.float64)])
+    m = np.concatenate([[m0], np.asarray(target, np.float64)])
     n = (m.size - 1) // 2
     H = np.array([[m[i + j] for j in range(n + 1)] for i in range(n + 1)])
     try:
@@ -91,16 +86,6 @@ def _cubic_scale(p, q):
     """r = sqrt(|p| / 3), floored at 1e-4 |q|^(1/3) and 1e-10 so that q / (2 r^3) stays
     finite in float32 (the formulas below tend to cbrt(-q) as p -> 0)."""
     return dr.maximum(dr.sqrt(dr.abs(p) * (1 / 3)), dr.maximum(1e-4 * dr.cbrt(dr.abs(q)), 1e-10))
-
-
-def _viete(p, q):
-    """Three real roots of t^3 + p t + q (p < 0), Viete's trigonometric formula:
-    t_k = 2 r cos(acos(-q / (2 r^3)) / 3 - 2 pi k / 3), r = sqrt(-p/3), ascending."""
-    r = _cubic_scale(dr.minimum(p, 0), q)
-    arg = dr.clip(-q / (2 * r * r * r), -1, 1)
-    th = dr.acos(arg) * (1 / 3)
-    two_r = 2 * r
-    return [two_r * dr.cos(th - 4 * math.pi / 3), two_r * dr.cos(th - 2 * math.pi / 3), two_r * dr.cos(th)]
 
 
 def _largest_cubic_root(p, q):
@@ -152,14 +137,18 @@ def _polish(c, roots):
 
 
 def cubic_roots(c0, c1, c2, c3):
-    """Roots (ascending) of c0 + c1 z + c2 z^2 + c3 z^3, all real: Viete on the depressed
-    monic cubic (z = t - a2/3), then :func:`_polish`."""
+    """Roots (ascending) of c0 + c1 z + c2 z^2 + c3 z^3, all real: Viete's trigonometric
+    formula on the depressed monic cubic t^3 + p t + q (z = t - a2/3, p < 0),
+    t_k = 2 r cos(acos(-q / (2 r^3)) / 3 - 2 pi k / 3), r = sqrt(-p/3), then :func:`_polish`."""
     inv = 1 / _leading([c0, c1, c2, c3])
     a2, a1, a0 = c2 * inv, c1 * inv, c0 * inv
     s = a2 * (1 / 3)
     p = a1 - a2 * s
     q = (2 / 27) * a2 * a2 * a2 - s * a1 + a0
-    t = _viete(p, q)
+    r = _cubic_scale(dr.minimum(p, 0), q)
+    th = dr.acos(dr.clip(-q / (2 * r * r * r), -1, 1)) * (1 / 3)
+    two_r = 2 * r
+    t = [two_r * dr.cos(th - 4 * math.pi / 3), two_r * dr.cos(th - 2 * math.pi / 3), two_r * dr.cos(th)]
     return _polish([c0, c1, c2, c3], [dr.clip(tk - s, -BIG, BIG) for tk in t])
 
 
@@ -255,7 +244,11 @@ def kernel_polynomial(m, xf, floors):
 
 
 def real_roots(c):
-    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n, n = 2, 3, 4 (steps 3)."""
+    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n (step 3): degree 2 the stable
+    quadratic formula, 3 Viete's trigonometric formula, 4 Ferrari's method (the resolvent
+    cubic's largest root splits it into two real quadratics); degrees 3 and 4 then take
+    :data:`POLISH` safeguarded Newton steps on ``c`` itself (the closed forms on ``c / c_n``
+    lose digits where ``c_n`` nears 0)."""
     n = len(c) - 1
     if n == 2:
         return list(quadratic_roots(*c))
@@ -279,10 +272,8 @@ def hankel_bound(b, xf, alpha, beta, target, floors):
     roots = real_roots(c)
     # ---- weights of the canonical representation {xf, roots} (moments 0..n)
     wf = dr.clip(_lagrange_weight(m, xf, roots), 0, 1)
-    lower = 0
-    for i, z in enumerate(roots):
-        wi = dr.clip(_lagrange_weight(m, z, [xf] + roots[:i] + roots[i + 1:]), 0, 1)
-        lower = lower + dr.select(z < xf, wi, 0)
+    lower = sum(dr.select(z < xf, dr.clip(_lagrange_weight(m, z, [xf] + roots[:i] + roots[i + 1:]), 0, 1), 0)
+                for i, z in enumerate(roots))
     return bounded_depth(b0, empty, dr.select(xf <= roots[-1], lower, 1 - wf), wf, beta)
 
 

@@ -1,26 +1,17 @@
 """Optimised 16-bit quantisation of 4 power moments (Peters and Klein 2015, "Moment Shadow
-Mapping", I3D, sec. 5; reused for translucent occluders by Peters, Muenstermann,
-Wetzstein and Klein 2017, JCGT).
+Mapping", I3D, sec. 5; Peters, Muenstermann, Wetzstein and Klein 2017, JCGT).
 
 For a texel's normalised moments of the warped depth ``u`` in [0, 1],
-``mu = (E u, E u^2, E u^3, E u^4)``, the stored vector is (row vectors)
-
-    q = mu @ MSM_MATRIX + MSM_OFFSET
-
-with the published matrix and offset below.  Every point moment vector ``(z, .., z^4)``,
-z in [0, 1], maps into [0, 1]^4 (to ~1e-7), so by convexity every distribution on [0, 1]
-does; the transform spreads the correlated power moments over the code range.  The inverse
-is computed in float64 (``numpy.linalg.inv``).
-
-Our moments are of ``x = 2u - 1`` (:mod:`.moments`), converted exactly:
-``E u^j = 2^-j sum_k C(j, k) E x^k`` and ``E x^k = sum_j C(k, j) 2^j (-1)^(k-j) E u^j``.
+``mu = (E u, E u^2, E u^3, E u^4)``, the stored vector is ``q = mu @ MSM_MATRIX + MSM_OFFSET``
+(row vectors, the published constants; every point moment vector ``(z, .., z^4)``, z in
+[0, 1], maps into [0, 1]^4, so by convexity every distribution does).  Our moments are of
+``x = 2u - 1`` (:mod:`.moments`): ``E u^j = 2^-j sum_k C(j, k) E x^k`` and
+``E x^k = sum_j C(k, j) 2^j (-1)^(k-j) E u^j``.
 
 Storage (:func:`encode_msm`): q as 4 codes of ``precision`` ('unorm16': ``round(q 65535)``,
-q clipped to [0, 1]; 'float16': IEEE half of q), and ``b_0`` (the texel's total optical
-depth) separately as float32: ``4 x 2 + 4 = 12`` bytes per texel.  Decoding
-(``q -> mu -> x-moments -> b_k = b_0 E x^k``) is done once, in float64, and rounded to the
-store's dtype, like every decoder of :mod:`._precision`.  Empty texels (``b_0 <= 0``) store
-zeros.
+q clipped to [0, 1]; 'float16': IEEE half) and ``b_0`` as float32, 12 bytes per texel;
+decoded (``q -> mu -> x-moments -> b_k = b_0 E x^k``) once, in float64 (the inverse by
+``numpy.linalg.inv``), and rounded to the store's dtype; empty texels (``b_0 <= 0``) store zeros.
 """
 from __future__ import annotations
 

@@ -1,61 +1,50 @@
 """Storage precision: quantise a representation's stored buffers on store, dequantise on
 lookup (``build(kind, seg, precision=...)``).
 
-``precision``: None (default: the segments' own dtype, nothing quantised), ``'float32'``,
-``'float16'``, ``'unorm16'`` or ``'unorm8'``.  Each kind declares its stored buffers
-(:class:`Stored`: attribute, meaning, layout) and :func:`quantise` codes them once, after
-the build.  Codes round to nearest (``unorm``: ``c = round(q M)``, ``M = 2^b - 1``, decoded
-``c / M``; ``float16``: IEEE half).  The buffers keep the *decoded* values in the segments'
-dtype (decoded in float64, rounded once: bit for bit what decoding at lookup returns), so
-every lookup kernel stays as it is.  ``nbytes_per_texel`` counts the codes plus the
-per-texel ranges and scales, stored in float32 (4 bytes each); float64 data beyond
-float32's range, or depths (lengths) all below float32's smallest normal number, raise
-ValueError naming ``precision``.
+``precision``: None (default: the segments' own dtype), ``'float32'``, ``'float16'``,
+``'unorm16'`` or ``'unorm8'``.  Each kind declares its stored buffers (:class:`Stored`) and
+:func:`quantise` codes them once, after the build: ``unorm`` ``c = round(q M)``,
+``M = 2^b - 1``, decoded ``c / M``; ``float16`` IEEE half.  The buffers keep the *decoded*
+values in the segments' dtype (decoded in float64, rounded once), so every lookup kernel
+stays as it is.  ``nbytes_per_texel`` counts the codes plus the per-texel ranges and scales
+(float32, 4 bytes each); float64 data beyond float32's range, or depths (lengths) all below
+float32's smallest normal number, raise ValueError naming ``precision``.
 
 Encodings by meaning (``q`` the value quantised, in [0, 1] or [-1, 1]):
 
-* ``depth``: ``'float32'``: the depth itself.  Otherwise ``q = (d - lo) / (hi - lo)`` over
-  the texel's stored depths (float32, rounded outward; 8 bytes per texel; a ``texel``
-  layout uses one global range).  Error <= (hi - lo) / (2 M) (unorm) or (hi - lo) 2^-12
-  (float16); monotone, so sorted nodes stay sorted.
-* ``unit``: already in [0, 1] (e.g. avsm_march's relative depths): the code of q itself.
-* ``transmittance``: T in [0, 1], zero-preserving (T = 0 stays 0, T > 0 stays positive, so
-  exponential interpolation takes the same branch).  ``'float32'``/``'float16'``: T itself;
-  ``'unorm16'``: linear, error <= 1 / (2 x 65535); ``'unorm8'``: **square-root optical
-  depth** ``tau = -ln T`` over the texel's ``tau_max`` (capped at :data:`TAU_CAP`; float32,
-  4 bytes), ``c = round(254 sqrt(tau / tau_max))`` decoded ``exp(-tau_max (c / 254)^2)``,
-  code 255 for T = 0.  ``|dtau| <= tau_max / 254``: relative T error
-  ``<= exp(tau_max / 254) - 1`` (4.5 % at the cap), absolute ``<= 0.0017 sqrt(tau_max)``;
-  ``T = 1`` exact, monotone in tau.
+* ``depth``: ``'float32'``: the depth.  Otherwise ``q = (d - lo) / (hi - lo)`` over the
+  texel's stored depths (float32, rounded outward; 8 bytes per texel; a ``texel`` layout:
+  one global range).  Error <= (hi - lo) / (2 M) (unorm) or (hi - lo) 2^-12 (float16);
+  monotone, so sorted nodes stay sorted.
+* ``unit``: already in [0, 1] (avsm_march's relative depths): the code of q itself.
+* ``transmittance``: T in [0, 1], zero-preserving (T = 0 stays 0, T > 0 stays positive).
+  ``'float32'``/``'float16'``: T; ``'unorm16'``: linear, error <= 1 / (2 x 65535);
+  ``'unorm8'``: **square-root optical depth** ``tau = -ln T`` over the texel's ``tau_max``
+  (capped at :data:`TAU_CAP`; float32, 4 bytes), ``c = round(254 sqrt(tau / tau_max))``
+  decoded ``exp(-tau_max (c / 254)^2)``, code 255 for T = 0.  ``|dtau| <= tau_max / 254``:
+  relative T error ``<= exp(tau_max / 254) - 1``, absolute ``<= 0.0017 sqrt(tau_max)``.
 * ``coefficient`` (basis kinds): scaled per texel by ``s = max_k |a_k|`` (float32, rounded
   up; 4 bytes; power moments ``s = b_0``).  Signed: unorm code of ``(a / s + 1) / 2``, error
   <= s / M; non-negative (``signed=False``): code of ``a / s``, error <= s / (2 M), monotone
   sequences stay monotone.  float16: ``fp16(a / s) s``.
-* ``optical_depth`` (OSM's cumulative ``C_j``, non-negative, non-decreasing; ``T = exp(-D)``,
-  D linear between two of them).  Floating formats: as a non-negative ``coefficient``.
-  unorm: **capped square-root optical depth**, per texel (two float32, 8 bytes) ``s`` the
-  largest ``C_j <= TAU_CAP`` and ``F`` the first ``C_j > TAU_CAP`` (both rounded up,
-  ``F >= s``).  With ``S = M - 1``, ``C <= TAU_CAP`` has the code ``round(S sqrt(C / s))``
-  decoded ``s (c / S)^2``, the rest the top code ``M`` decoded ``F``.  ``|dC| <= s / S``, so
-  ``T^ / T`` is within ``exp(+-s / S)`` (4.5 % unorm8, 1.7e-4 unorm16) where D comes from
-  codes below the cap; past it ``|T^ - T| < exp(-TAU_CAP) = 2^-16``.  ``C = 0`` stays 0 and
-  non-decreasing sequences stay non-decreasing (T monotone).  A scale ``max_j C_j`` would
-  let an opaque blocker behind thin smoke code the smoke to 0.
-* ``range``: per-texel ranges a kind stores itself (basis ``depth_range='texel'``,
-  avsm_march): float32 whatever the precision.
-* ``scalar``: an unbounded non-negative value per texel scaling a ramp (beer's ``x``,
-  ``T = exp(-x w)``, w in [0, 1]), one global scale; with ``x^ / x`` in ``[1/r, r]``,
-  ``|dT| <= (r - 1) / e``.  ``'float32'``: x; ``'float16'``: ``fp16(x / 2^p) 2^p``, ``2^p``
-  the smallest power of two with ``max x / 2^p <= 65504``.  unorm: **logarithmic code**
-  ``c = 1 + round((M - 1) ln(x / lo) / ln(hi / lo))``, decoded
-  ``lo (hi / lo)^((c - 1) / (M - 1))``, over ``hi = max x`` and
+* ``optical_depth`` (OSM's cumulative ``C_j``, non-negative, non-decreasing).  Floating
+  formats: a non-negative ``coefficient``.  unorm: **capped square-root optical depth**, per
+  texel (two float32) ``s`` the largest ``C_j <= TAU_CAP`` and ``F`` the first
+  ``C_j > TAU_CAP`` (both rounded up, ``F >= s``); with ``S = M - 1``, ``C <= TAU_CAP`` has
+  the code ``round(S sqrt(C / s))`` decoded ``s (c / S)^2``, the rest the top code ``M``
+  decoded ``F``.  ``|dC| <= s / S`` (``T^ / T`` within ``exp(+-s / S)``) below the cap,
+  ``|T^ - T| < exp(-TAU_CAP) = 2^-16`` past it; ``C = 0`` stays 0, order is kept.
+* ``range``: per-texel ranges a kind stores itself: float32 whatever the precision.
+* ``scalar``: a non-negative value scaling a ramp (beer's ``x``, ``T = exp(-x w)``, w in
+  [0, 1]), one global scale; ``x^ / x`` in ``[1/r, r]`` gives ``|dT| <= (r - 1) / e``.
+  ``'float16'``: ``fp16(x / 2^p) 2^p``, ``2^p`` the smallest power of two with
+  ``max x / 2^p <= 65504``.  unorm: **logarithmic code** ``c = 1 + round((M - 1) ln(x / lo) /
+  ln(hi / lo))``, decoded ``lo (hi / lo)^((c - 1) / (M - 1))``, ``hi = max x``,
   ``lo = max(min x > 0, hi 2^-LOG_OCTAVES)`` (float32, rounded outward); code 0 is 0, and
-  ``x < lo`` takes the nearer of 0 and ``lo``.  ``r = exp(ln(hi / lo) / (2 (M - 1)))``:
-  3.3 % (unorm8) and 3.4e-4 (unorm16).
+  ``x < lo`` takes the nearer of 0 and ``lo``; ``r = exp(ln(hi / lo) / (2 (M - 1)))``.
 
-Gradients: straight-through estimator, ``dr.replace_grad(decoded, x)`` (rounding has zero
-derivative almost everywhere; biased by at most the quantisation error).  Ranges and
-scales are constants of the build.
+Gradients: straight-through, ``dr.replace_grad(decoded, x)`` (biased by at most the
+quantisation error); ranges and scales are constants of the build.
 """
 from __future__ import annotations
 
@@ -274,8 +263,7 @@ def to_device(rep, orig, dec: np.ndarray):
     """Decoded values as the kind's Float, carrying the gradient of ``orig`` (straight
     through)."""
     Float = rep.Float
-    dt = np.float32 if rep.segments.dtype == "float32" else np.float64
-    out = Float(A.aligned(dec.astype(dt)))
+    out = Float(A.aligned(dec.astype(rep.segments.dtype)))
     if dr.grad_enabled(orig):
         out = dr.replace_grad(out, Float(orig))
     return out

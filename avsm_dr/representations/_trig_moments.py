@@ -1,33 +1,30 @@
 """Trigonometric moments of the absorbance (n = 2, 3, 4 complex moments) and their bound,
 branch-free Dr.Jit (Muenstermann, Krumpen, Klein, Peters 2018, "Moment-Based
-Order-Independent Transparency", sec. 4: trigonometric moments, Toeplitz matrix,
-canonical representations on the unit circle).
+Order-Independent Transparency", sec. 4: trigonometric moments, Toeplitz matrix, canonical
+representations on the unit circle).
 
-Phase: the warped depth x in [-1, 1] maps to ``phi = (pi / 2) x`` in [-pi/2, pi/2], half
-of the circle (the other half is the wrapping zone; the cut is at ``phi = pi``).  A texel
-stores ``b_0 = sum tau`` and ``Re b_k, Im b_k`` of ``b_k = sum_i tau_i E_i[e^{i k phi}]``,
-k = 1..n (2n + 1 reals).  Segment means, ``phi = (pi/2)(mid + h tau)``, ``w = k (pi/2) h``:
-linear warp ``E[e^{ik phi}] = e^{ik (pi/2) mid} sinc(w)``; log warp (density ~
-``e^{kappa tau}``, see :mod:`.moments`) ``e^{ik (pi/2) mid} G`` with
-``G = kappa sinh(kappa + i w) / ((kappa + i w) sinh kappa)``, written without cancellation
-as ``Re G = (kappa^2 cos w + q w^2 sinc w) / (kappa^2 + w^2)``,
+Phase: the warped depth x in [-1, 1] maps to ``phi = (pi / 2) x`` in [-pi/2, pi/2] (the cut
+is at ``phi = pi``).  A texel stores ``b_0 = sum tau`` and ``Re b_k, Im b_k`` of
+``b_k = sum_i tau_i E_i[e^{i k phi}]``, k = 1..n.  Segment means, ``phi = (pi/2)(mid + h tau)``,
+``w = k (pi/2) h``: linear warp ``e^{ik (pi/2) mid} sinc(w)``; log warp (density ~
+``e^{kappa tau}``, :mod:`.moments`) ``e^{ik (pi/2) mid} G``,
+``G = kappa sinh(kappa + i w) / ((kappa + i w) sinh kappa)``, without cancellation
+``Re G = (kappa^2 cos w + q w^2 sinc w) / (kappa^2 + w^2)``,
 ``Im G = kappa w ((q - 1) sinc w + (sinc w - cos w)) / (kappa^2 + w^2)``, ``q = kappa
-coth kappa`` (``q - 1`` and ``sinc w - cos w`` by Taylor series below 0.1).
+coth kappa`` (``q - 1`` and ``sinc w - cos w`` by Taylor series below :data:`SERIES_BELOW`).
 
-Bound.  The Cayley transform ``x = tan(phi / 2)`` maps the circle without ``phi = pi`` onto
-the real line, Laurent polynomials of degree n in ``e^{i phi}`` onto polynomials of degree
-2n over ``(1 + x^2)^n``: ``mu`` has trigonometric moments ``t_0..t_n`` exactly when
-``nu = mu / (1 + x^2)^n`` has the power moments ``M_j = E_mu[sin^j(phi/2) cos^(2n-j)(phi/2)]``
-(a linear map of ``t``, :func:`cayley_matrix`), with canonical representations point by
-point.  So the Toeplitz problem through ``phi_f`` is the Hankel problem of
-:mod:`._moment_bounds` for ``m = M / M_0`` through ``x_f = tan(phi_f / 2)``, and a support
-point ``psi = atan(x)`` weighs the Christoffel function ``w = M_0 / (s^T B_m^-1 s)``,
-``s_j = sin^j(psi) cos^(n-j)(psi)`` (finite at ``phi = pi``).  ``L = sum_{x_i < x_f} w_i``,
-``U = L + w_f`` (checked against the Toeplitz route in tests/reference/moments_ref.py).
+Bound.  The Cayley transform ``x = tan(phi / 2)`` maps Laurent polynomials of degree n in
+``e^{i phi}`` onto polynomials of degree 2n over ``(1 + x^2)^n``: ``mu`` has trigonometric
+moments ``t_0..t_n`` exactly when ``nu = mu / (1 + x^2)^n`` has the power moments
+``M_j = E_mu[sin^j(phi/2) cos^(2n-j)(phi/2)]`` (linear in ``t``, :func:`cayley_matrix`), with
+canonical representations point by point.  So the Toeplitz problem through ``phi_f`` is the
+Hankel problem of :mod:`._moment_bounds` for ``m = M / M_0`` through ``x_f = tan(phi_f / 2)``;
+a support point ``psi = atan(x)`` weighs ``w = M_0 / (s^T B_m^-1 s)``,
+``s_j = sin^j(psi) cos^(n-j)(psi)``; ``L = sum_{x_i < x_f} w_i``, ``U = L + w_f``.
 
-Bias: toward the uniform distribution on the circle (``t_k = 0``, Toeplitz matrix = I):
-``t = (1 - alpha) b / b_0``; the Hankel pivots of ``nu`` are then at least ``alpha`` times
-those of the uniform distribution's ``nu`` divided by ``M_0`` (floors, as for power moments).
+Bias toward the uniform distribution on the circle (``t_k = 0``): ``t = (1 - alpha) b / b_0``;
+the Hankel pivots of ``nu`` are floored at ``alpha`` times the uniform distribution's over
+``M_0``.
 """
 from __future__ import annotations
 
@@ -59,14 +56,6 @@ def cayley_matrix(n: int) -> np.ndarray:
             A[j, 2 * k] = 2 * np.mean(f * np.sin(k * phi))
     A[np.abs(A) < 1e-15] = 0.0
     return A
-
-
-def uniform_pivots(n: int) -> list[float]:
-    """LDL^T pivots of the Hankel matrix of the uniform distribution's M (unnormalised:
-    M_0 = E[cos^2n(phi/2)], D_0 = M_0)."""
-    M = cayley_matrix(n)[:, 0]
-    H = np.array([[M[i + j] for j in range(n + 1)] for i in range(n + 1)])
-    return [float(v) for v in np.diag(np.linalg.cholesky(H)) ** 2]
 
 
 def tilted_phase_mean(kappa, w):
@@ -106,18 +95,13 @@ def trig_means(x0, x1, n: int, lam=None):
 
 def delta_values(x, n: int):
     """[1, cos(k phi), sin(k phi), ..] at phi = (pi/2) x (Python float x)."""
-    out = [1.0]
-    for k in range(1, n + 1):
-        out += [math.cos(k * math.pi / 2 * x), math.sin(k * math.pi / 2 * x)]
-    return out
+    return [1.0] + [f(k * math.pi / 2 * x) for k in range(1, n + 1) for f in (math.cos, math.sin)]
 
 
 def _christoffel(Lm, D, psi, n):
     """1 / (s^T B^-1 s), s_j = sin^j(psi) cos^(n-j)(psi), with B = L D L^T (D_0 = 1)."""
     sn, cs = dr.sin(psi), dr.cos(psi)
-    s = [cs ** n if n else 1]
-    for j in range(1, n + 1):
-        s.append(sn ** j * cs ** (n - j))
+    s = [cs ** n if n else 1] + [sn ** j * cs ** (n - j) for j in range(1, n + 1)]
     y = [s[0]]
     q = s[0] * s[0]
     for i in range(1, n + 1):
@@ -133,19 +117,15 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     """Optical depth in front of warped depth ``xw`` and the bounds (module docstring).
 
     b: 2n + 1 Dr.Jit arrays [b_0, Re b_1, Im b_1, ..]; xw: Float in [-1, 1]; alpha, beta:
-    floats; A: :func:`cayley_matrix`; pivots: :func:`uniform_pivots`.  Returns (D, L, U)."""
+    floats; A: :func:`cayley_matrix`; pivots: :func:`._moment_bounds.hankel_pivots` of its first
+    column (the uniform distribution's M, unnormalised).  Returns (D, L, U)."""
     n = (len(b) - 1) // 2
     b0 = b[0]
     empty = b0 <= NEGLIGIBLE        # flushed higher moments: _moment_bounds.NEGLIGIBLE
     inv = (1 - alpha) / dr.select(empty, 1, b0)
     r = [1] + [bk * inv for bk in b[1:]]                       # biased t (uniform target: 0)
-    M = []
-    for j in range(2 * n + 1):
-        acc = float(A[j, 0]) + 0 * b0
-        for c in range(1, 2 * n + 1):
-            if A[j, c] != 0.0:
-                acc = acc + float(A[j, c]) * r[c]
-        M.append(acc)
+    M = [sum((float(A[j, c]) * r[c] for c in range(1, 2 * n + 1) if A[j, c] != 0.0), float(A[j, 0]) + 0 * b0)
+         for j in range(2 * n + 1)]                           # M = A r (module docstring)
     M0 = dr.maximum(M[0], 1e-30)
     m = [None] + [Mj / M0 for Mj in M[1:]]
     floors = [None] + [alpha * p / M0 for p in pivots[1:]]
@@ -155,8 +135,6 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
     roots = real_roots(c)
     scale = M0                                                 # weights of mu: M_0 / (s^T B_m^-1 s)
     wf = dr.clip(_christoffel(Lm, D, psi_f, n) * scale, 0, 1)
-    lower = 0
-    for z in roots:
-        wi = dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1)
-        lower = lower + dr.select(z < xf, wi, 0)
+    lower = sum(dr.select(z < xf, dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1), 0)
+                for z in roots)
     return bounded_depth(b0, empty, lower, wf, beta)

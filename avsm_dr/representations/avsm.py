@@ -2,34 +2,28 @@
 
 Each texel keeps N nodes ``(d_i, t_i)`` sorted by depth, cleared to ``(far, 1)``.
 
-* **Insertion** of a segment ``[a, b]`` with exit transmittance ``ts`` (sec. 3.1, 4.1):
-  the curve becomes ``T'(x) = T(x) R(x)`` with the segment's linear ramp
+* **Insertion** of a segment ``[a, b]`` with exit transmittance ``ts`` (secs. 3.1, 4.1):
+  ``T'(x) = T(x) R(x)`` with the segment's linear ramp
   ``R(x) = 1 (x <= a),  1 + (ts - 1)(x - a)/(b - a) (a < x < b),  ts (x >= b, x > a)``;
   existing nodes are multiplied by ``R(d_i)``; an entry node ``(a, T(a))`` and an exit
   node ``(b, T(b) ts)`` are added after existing nodes of equal depth.
 * **Compression** (sec. 3.2): while more than N nodes, remove the interior node with the
-  smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|``
-  (ties: the deepest such node); the first and last node are never removed and no
-  node is ever moved.
-* **Insertion variants** (``insertion``, default ``'stream'``: the above): :mod:`._avsm_insertion`.
+  smallest ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])(t[i+1]-t[i-1])|`` (ties: the
+  deepest); the first and last node are never removed, no node is moved.  Variants
+  (``insertion``): :mod:`._avsm_insertion`.
 * **Sampling** (sec. 3.3): T = 1 in front of the first node, the last node's value behind
-  the last one, and linear (eq. 2) or exponential interpolation in between.
+  the last one, linear (eq. 2) or exponential interpolation in between.
 
-Conventions made explicit here (the paper leaves them open):
-* Clear nodes ``(far, T)`` sort after every inserted node of equal depth and are the
-  first nodes dropped when the texel overflows: they carry zero area (their metric is
-  exactly 0), so this is the paper's metric with a fixed tie-break, and it means a
-  texel with room left does no compression work at all.
-* A segment whose entry lies where the curve is already 0 is not inserted: it cannot
-  change the curve (behind a fully opaque point nothing changes).  "0" is read from the
-  stored nodes (:func:`curve_at`), never from an interpolated value that rounded to 0.
+Conventions the paper leaves open: clear nodes ``(far, T)`` sort after every inserted node
+of equal depth and are dropped first when the texel overflows (their metric is exactly 0: the
+paper's metric with a fixed tie-break; a texel with room left does no compression work).  A
+segment whose entry lies where the stored nodes make the curve 0 (:func:`curve_at`) is not
+inserted (behind a fully opaque point nothing changes).
 
-Precision: node values are products of factors evaluated without cancellation
-(:func:`curve_at`, :func:`insert_segment`): after ``k`` insertions each lies within a relative
-``10 k u`` (``u`` the unit roundoff) of exact arithmetic on the stored inputs.
-
-Kernel: one lane per non-empty texel, the N nodes in registers (Python lists of Float,
-branch-free ``dr.select`` shifts); one loop inserts while the texel has room, one compresses.
+Precision: node values are products of factors evaluated without cancellation: after ``k``
+insertions each lies within a relative ``10 k u`` (``u`` the unit roundoff) of exact
+arithmetic on the stored inputs.  Kernel: one lane per non-empty texel, the N nodes in
+registers; one loop inserts while the texel has room, one compresses.
 """
 from __future__ import annotations
 
@@ -47,13 +41,15 @@ from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
+#: Parameters of the node-list kinds (avsm, greedy, optimal).
+NODES = Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64)
+INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp' "
+                      "(uniform density)", choices=INTERPOLATIONS)
 
 
 def bracket(d, t, x):
-    """Nodes around x: the last node with d_k <= x and its successor, branch-free.
-
-    In front of the first node both carry T = 1; behind the last node both are the last
-    node.  Returns (d_l, t_l, d_r, t_r)."""
+    """Nodes around x, branch-free: (d_l, t_l, d_r, t_r) of the last node with d_k <= x and its
+    successor (both T = 1 in front of the first node, both the last node behind the last)."""
     n = len(d)
     one = dr.full(type(x), 1.0, dr.width(x))
     dl, tl, dr_, tr = x, one, x, one
@@ -140,19 +136,6 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
     return out_d, out_t
 
 
-def area_metric(d, t, i):
-    """Area change when removing interior node i (Salvi et al. 2010, sec. 3.2.1)."""
-    return dr.abs((d[i + 1] - d[i - 1]) * (t[i + 1] - t[i])
-                  - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
-
-
-def remove_smallest(d, t, *extra):
-    """Remove the interior node of smallest area metric (ties: the deepest one) from the
-    node lists ``d``, ``t`` and any ``extra`` lists carried along (e.g. node sources);
-    returns the shortened lists in the same order (:func:`._avsm_insertion.remove_refit`)."""
-    return remove_refit(d, t, None, "area", extra)
-
-
 def interpolate(d, t, depth, mode: str):
     """Sample the node list at ``depth`` (Salvi et al. 2010, secs. 3.3 / 4.2): :func:`bracket`,
     then :func:`lerp`."""
@@ -174,19 +157,27 @@ def lerp(dl, tl, dr_, tr, depth, mode: str):
     return lin
 
 
-def csr_bracket(offsets, max_nodes: int, depth_at, texel, depth):
-    """Nodes around each receiver in a CSR node list (``offsets``: UInt32 (T+1,), nodes sorted
-    by depth per texel, at most ``max_nodes``; ``depth_at(i, active)``: node i's depth).
-    Binary search for the last node at or before ``depth``; returns (front, behind, il, ir):
-    in front of the first node (or an empty texel), behind the last, that node and its
-    successor (itself behind the last)."""
-    U32 = backend.types().UInt32
+def csr_lookup(offsets, max_nodes: int, depth_at, values, texel, depth, mode: str, hold_last: bool = True):
+    """T at receivers from a CSR node list (``offsets``: UInt32 (T+1,), at most ``max_nodes``
+    nodes per texel sorted by depth; ``depth_at(i, active)``: node i's depth; ``values``: the
+    nodes' T): binary search for the last node at or before ``depth``, then :func:`lerp` to its
+    successor; T = 1 in front of the first node and in empty texels, the last node's value
+    behind the last (DSM, avsm_march, avsm_adaptive; ``hold_last`` False: :func:`interpolate`
+    of the two nodes, the same value)."""
+    Float, U32 = type(depth), backend.types().UInt32
+    if max_nodes == 0:
+        return dr.full(Float, 1.0, dr.width(depth))
     start = dr.gather(U32, offsets, texel)
     count = dr.gather(U32, offsets, texel + 1) - start
     n_le = count_sorted(depth_at, start, count, depth, max_nodes)      # nodes at or before the depth
     front, behind = n_le == 0, n_le >= count
     il = start + dr.select(front, 0, n_le - 1)
-    return front, behind, il, dr.select(behind | front, il, il + 1)
+    ir = dr.select(behind | front, il, il + 1)
+    zl, zr = depth_at(il, ~front), depth_at(ir, ~front)
+    tl, tr = dr.gather(Float, values, il, ~front), dr.gather(Float, values, ir, ~front)
+    if not hold_last:
+        return dr.select(front, 1.0, interpolate([zl, zr], [tl, tr], depth, mode))
+    return dr.select(front, 1.0, dr.select(behind, tl, lerp(zl, tl, zr, tr, depth, mode)))
 
 
 class NodeList(Representation):
@@ -197,6 +188,10 @@ class NodeList(Representation):
     (:mod:`._precision`)."""
 
     precisions = PRECISIONS
+
+    def _resolve(self):
+        self.N = self.params["nodes"]
+        self._check_node_memory()
 
     def _stored(self):
         return (Stored("depths", "depth", "nodes"), Stored("values", "transmittance", "nodes"))
@@ -239,8 +234,7 @@ class NodeList(Representation):
 
     def nodes_numpy(self) -> tuple[np.ndarray, np.ndarray]:
         """(T, N) node depths and transmittances as NumPy arrays."""
-        return (np.stack([np.asarray(x.numpy()) for x in self.depths], axis=1),
-                np.stack([np.asarray(x.numpy()) for x in self.values], axis=1))
+        return tuple(np.stack([np.asarray(x.numpy()) for x in b], axis=1) for b in (self.depths, self.values))
 
 
 @register("avsm")
@@ -256,11 +250,10 @@ class AVSM(NodeList):
     PRESET_VARIANTS = {"linear": {"interpolation": "linear"}, "exp": {"interpolation": "exp"}}
     schema = Schema(
         params=(
-            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
+            NODES,
             Param("sort", "bool", False, "insert segments sorted by depth per texel (deterministic) "
                   "instead of in the given order"),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' (the paper's eq. 2) or "
-                  "'exp' (uniform density)", choices=INTERPOLATIONS),
+            INTERPOLATION,
             Param("insertion", "choice", "stream", "what an overflow does: 'stream' (the paper's removal), "
                   "'refit' (area-preserving refit of the removed node's neighbours), 'refit_l2' (L2 "
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
@@ -283,15 +276,10 @@ class AVSM(NodeList):
     def _resolve(self):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
-        self.N = P["nodes"]
-        self._check_node_memory()
+        super()._resolve()
+        self.loop_state_words = 2 * self.N + 5         # N depths, N values, index, count, done, 2 counters
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
         self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
-
-    @property
-    def loop_state_words(self) -> int:
-        """N depths, N values, index, count, done flag and two counters."""
-        return 2 * self.N + 5
 
     def _build(self):
         seg = self.segments
@@ -362,10 +350,8 @@ class AVSM(NodeList):
             return (i < end) & ~done
 
         def body_insert(compress):
-            # compress: False (room left), True (full), None (ablation _split=False: one loop
-            # computing both steps, selecting per lane)
             def body(p, i, used, done, skipped, compressed, *dt):
-                full = used + 2 > N if compress is None else compress
+                full = used + 2 > N if compress is None else compress   # None: the _split=False ablation
                 skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), full)
                 if compress is not True:
                     used = dr.select(skip if compress is False else skip | full, used, used + 2)
@@ -417,16 +403,12 @@ class AVSM(NodeList):
         else:
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
-        d, t = list(state[5:5 + N]), list(state[5 + N:])
-
         for k in range(N):
-            dr.scatter(self.depths[k], d[k], lanes)
-            dr.scatter(self.values[k], t[k], lanes)
+            dr.scatter(self.depths[k], state[5 + k], lanes)
+            dr.scatter(self.values[k], state[5 + N + k], lanes)
         # one kernel: the counters read below would otherwise each re-run both loops
         dr.eval(self.depths, self.values, used, i, skipped, compressed)
-        used_np = np.zeros(T, np.int64)
-        used_np[lanes_np] = np.asarray(used.numpy(), np.int64)
-        self.used = used_np
+        self.used[lanes_np] = np.asarray(used.numpy(), np.int64)
         # skipped: behind an opaque point (sorted input: the rest of the texel counts too)
         n_skipped = int(dr.sum(skipped)[0]) + int(dr.sum(end - i)[0])
         self.stats = {"lanes": int(L), "segments": seg.n_segments, "skipped": n_skipped,

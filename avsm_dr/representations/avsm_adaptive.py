@@ -16,18 +16,15 @@ drop ``1 - T_behind`` into ``n`` pieces).  ``e`` is convex in ``n``.  Water-fill
 the least option of every texel, upgrades to the next option are taken in order of
 decreasing gain per node ``(e(n) - e(n')) / (n' - n)`` (ties: lower texel, then smaller
 ``n``) while the node total fits the budget; upgrades that gain nothing are never taken.
-Ablations for the ``memory_budget`` experiment: ``_score='count'`` (``span = 1``,
-``tau = c``) and ``_score='uniform'`` (the largest count that fits, for every non-empty texel).
+Ablations (experiment ``memory_budget``): ``_score='count'`` (``span = 1``, ``tau = c``),
+``_score='uniform'`` (the largest count that fits, for every non-empty texel).
 
-Build: texels are grouped by their kernel N (the option's ladder value; ``K`` runs with the
-next ladder value, which never compresses) and :class:`~.avsm.AVSM` runs once per group on
-:meth:`~avsm_dr.Segments.select_texels` with the map's near/far: a texel's nodes are bit for
-bit those of ``build('avsm', seg, nodes=N)``.
-
-Storage (compacted, at most ``bytes_per_texel x T`` bytes): CSR node offsets (T+1 uint32),
-per node a depth and a transmittance; a texel allocated fewer than ``K`` nodes stores all N of
-its kernel, one allocated ``K`` its ``used`` inserted nodes.  Lookup as :mod:`.dsm`'s, with
-AVSM's :func:`~.avsm.interpolate`.
+Build: :class:`~.avsm.AVSM` once per kernel N (the option's ladder value; ``K`` runs with the
+next ladder value, which never compresses) on :meth:`~avsm_dr.Segments.select_texels` with the
+map's near/far: a texel's nodes are bit for bit those of ``build('avsm', seg, nodes=N)``.
+Storage (CSR, at most ``bytes_per_texel x T`` bytes): T+1 uint32 offsets, per node a depth and
+a transmittance (all N of its kernel where allocated fewer than ``K``, else the ``used`` ones).
+Lookup: :func:`~.avsm.csr_lookup`.
 """
 from __future__ import annotations
 
@@ -35,7 +32,7 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
-from .avsm import AVSM, INTERPOLATIONS, csr_bracket, interpolate
+from .avsm import AVSM, INTERPOLATION, csr_lookup
 from .base import SPARSE_OFFSET_BYTES as OFFSET_BYTES, Representation, depth_range, node_build_bytes
 from .registry import register
 from .schema import FAR, NEAR, Param, Schema
@@ -148,8 +145,7 @@ class AVSMAdaptive(Representation):
                   "(offsets included; total = bytes_per_texel x texels)", min=8.0, max=MAX_BYTES_PER_TEXEL),
             Param("max_nodes", "int", 32, "cap on the nodes of one texel", min=2, max=64),
             Param("sort", "bool", False, "insert segments sorted by depth per texel (as AVSM)"),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp'",
-                  choices=INTERPOLATIONS),
+            INTERPOLATION,
             NEAR, FAR,
             Param("_score", "choice", "complexity", "private: allocation score 'complexity' (span x drop^2), "
                   "'count' (segments only) or 'uniform' (one count for all non-empty texels)", choices=SCORES),
@@ -168,28 +164,23 @@ class AVSMAdaptive(Representation):
         P.update(zip(("near", "far"), depth_range(segments, P["near"], P["far"])))
         self._score = P.pop("_score")
         T, item = segments.n_texels, segments.itemsize
-        counts = segments.counts
         # the allocation's ~10 (T, options) arrays, the AVSM groups every non-empty texel at most
-        n_nz = int(np.count_nonzero(counts))
+        n_nz = int(np.count_nonzero(segments.counts))
         self._check_build_memory(lambda m: node_build_bytes(n_nz, m, item) + 80.0 * (ladder(m).size + 1) * T,
                                  name="max_nodes")
         self.budget_nodes = int((P["bytes_per_texel"] * T - OFFSET_BYTES * (T + 1)) // (2 * item))
-        least = int(2 * np.count_nonzero(counts))
+        least = 2 * n_nz
         if self.budget_nodes < least:
             need = (OFFSET_BYTES * (T + 1) + 2 * item * least) / T
             raise ValueError(f"bytes_per_texel: {P['bytes_per_texel']:g} is below the least storage of this map, "
                              f"{need:.6g} (offsets and 2 nodes of {2 * item} bytes per non-empty texel)")
-
-    @property
-    def loop_state_words(self) -> int:
-        """Those of the largest AVSM kernel run (2 N + 5)."""
-        return 2 * int(self.kernel.max(initial=0)) + 5
 
     def _build(self):
         seg, P = self.segments, self.params
         self.allocated = allocate(seg.counts, complexity(seg, self._score), self.budget_nodes, P["max_nodes"],
                                   uniform=self._score == "uniform")
         self.kernel = kernel_nodes(self.allocated, seg.counts, P["max_nodes"])
+        self.loop_state_words = 2 * int(self.kernel.max(initial=0)) + 5       # the largest AVSM kernel's
         Float, T, K = seg.Float, seg.n_texels, 2 * seg.counts
         stored = np.zeros(T, np.int64)
         runs = []
@@ -231,12 +222,6 @@ class AVSMAdaptive(Representation):
         return np.asarray(self.node_depth.numpy(), np.float64)
 
     def _eval_texels(self, texel, depth):
-        Float = self.Float
-        if self._max_nodes == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
-        zs, vs = self.node_depth, self.node_value
-        front, _, il, ir = csr_bracket(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(Float, zs, i, a),
-                                       texel, depth)
-        d = [dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)]
-        t = [dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)]
-        return dr.select(front, 1.0, interpolate(d, t, depth, self.params["interpolation"]))
+        zs = self.node_depth
+        return csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, zs, i, a),
+                          self.node_value, texel, depth, self.params["interpolation"], hold_last=False)

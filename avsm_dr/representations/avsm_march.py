@@ -12,16 +12,12 @@ two nodes at one depth).  The last point is always a node.  A node added to a fu
 (``nodes`` = cap) pushes out the interior node of smallest AVSM area metric (Salvi et al.
 2010, sec. 3.2; ties: the deepest; first and last never).
 
-Storage (compacted, ``nbytes_per_texel`` counts all of it): a CSR offset per texel
-(uint32, 4 bytes), the texel's depth range ``[lo, hi]`` (2 floats of the segments' dtype)
-and per node a float16 depth ``q = (d - lo) / (hi - lo)`` in [0, 1] (2 bytes; error at
-most (hi - lo) 2^-12, where absolute float16 depths would err by up to |d| 2^-11) and its T
-(segments' dtype).  Dequantised on lookup as ``lo + q (hi - lo)`` (monotone: the nodes stay
-sorted).  With ``precision=p`` (:mod:`._precision`) q and T are both stored in ``p`` and the
-range in float32.
-
-Lookup as :mod:`.dsm`'s, interpolating as AVSM (default 'exp').  Node values are the exact
-curve's (float64 march), with its gradients at the fixed node depths.
+Storage (CSR): a 4-byte offset and the depth range ``[lo, hi]`` (2 floats of the segments'
+dtype) per texel, per node a float16 depth ``q = (d - lo) / (hi - lo)`` in [0, 1] (error at
+most (hi - lo) 2^-12; dequantised as ``lo + q (hi - lo)``, monotone) and its T (segments'
+dtype); ``precision=p``: q and T in ``p``, the range in float32.  Lookup:
+:func:`.avsm.csr_lookup` (default 'exp').  Node values are the exact curve's (float64 march),
+with its gradients at the fixed node depths.
 """
 from __future__ import annotations
 
@@ -31,7 +27,8 @@ import numpy as np
 from .. import _arrays as A
 from .. import backend
 from . import _curve
-from .avsm import INTERPOLATIONS, csr_bracket, lerp, remove_smallest
+from ._avsm_insertion import remove_refit
+from .avsm import INTERPOLATIONS, csr_lookup
 from .base import Representation
 from ._dsm_polyline import lanes_by_length
 from ._precision import PRECISIONS, Stored
@@ -62,7 +59,7 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
         old = (d, v, src)
         ext = [[dr.select(U32(j) == cnt, new, o[j]) for j in range(cap)] + [new] for o, new in zip(old, (x, tv, k))]
         out = [[dr.select(active, dr.select(full, r[j], e[j]), o[j]) for j in range(cap)]
-               for o, e, r in zip(old, ext, remove_smallest(*ext))]
+               for o, e, r in zip(old, ext, remove_refit(*ext[:2], None, "area", ext[2:]))]
         return dr.select(active & ~full, cnt + 1, cnt), *out
 
     # state: k next point; cnt nodes held; (dn, tn, sn) last node and its extinction;
@@ -101,13 +98,9 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
     src_np = np.stack([np.asarray(s.numpy(), np.int64) for s in src], axis=1)     # (L, cap)
     counts = np.zeros(n_tex, np.int64)
     counts[lanes_np] = cnt_np
-    node_off = np.concatenate([[0], np.cumsum(counts)])
-    out = np.zeros(int(node_off[-1]), np.int64)
-    cols = np.arange(cap)[None, :]
-    keep = cols < cnt_np[:, None]
-    pos = node_off[lanes_np][:, None] + cols
-    out[pos[keep]] = src_np[keep]
-    return counts, out
+    by_texel = np.argsort(lanes_np)                       # rows in texel order, nodes in row order: CSR
+    keep = np.arange(cap)[None, :] < cnt_np[by_texel, None]
+    return counts, src_np[by_texel][keep]
 
 
 @register("avsm_march")
@@ -144,8 +137,7 @@ class AVSMMarch(Representation):
         Float, t = seg.Float, backend.types()
         dt = np.float32 if seg.dtype == "float32" else np.float64
         off = pts["off"]
-        n = np.diff(off)
-        nz = n > 0
+        nz = np.diff(off) > 0
         lo = np.zeros(seg.n_texels)
         hi = np.ones(seg.n_texels)
         lo[nz] = pts["z"][off[:-1][nz]]
@@ -153,11 +145,9 @@ class AVSMMarch(Representation):
         self.range_lo, self.range_hi = Float(A.aligned(lo.astype(dt))), Float(A.aligned(hi.astype(dt)))
         tex = np.repeat(np.arange(seg.n_texels), self.node_counts)
         span = (hi - lo)[tex]
-        q = np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0)
-        if self.precision is None:
-            self.node_q = t.Float16(np.clip(q, 0.0, 1.0).astype(np.float16))      # quantised on store
-        else:                       # quantised after the build (:meth:`_stored`)
-            self.node_q = Float(A.aligned(np.clip(q, 0.0, 1.0).astype(dt)))
+        q = np.clip(np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0), 0.0, 1.0)
+        # float16 on store, or quantised after the build (:meth:`_stored`)
+        self.node_q = t.Float16(q.astype(np.float16)) if self.precision is None else Float(A.aligned(q.astype(dt)))
         value = Float(pts["v"][src].astype(dt))
         self.node_value = _curve.attach_exact_gradients(seg, value, tex, pts["z"][src], pts["left"][src])
 
@@ -188,16 +178,11 @@ class AVSMMarch(Representation):
 
     def _eval_texels(self, texel, depth):
         Float = self.Float
-        if self._max_nodes == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
         lo = dr.gather(Float, self.range_lo, texel)
         span = dr.gather(Float, self.range_hi, texel) - lo
 
         def z(i, active=True):                  # dequantised node depth
             return lo + Float(dr.gather(type(self.node_q), self.node_q, i, active)) * span
 
-        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes, z, texel, depth)
-        tl = dr.gather(Float, self.node_value, il, ~front)
-        tr = dr.gather(Float, self.node_value, ir, ~front)
-        val = lerp(z(il, ~front), tl, z(ir, ~front), tr, depth, self.params["interpolation"])
-        return dr.select(front, 1.0, dr.select(behind, tl, val))
+        return csr_lookup(self._offsets_dr, self._max_nodes, z, self.node_value, texel, depth,
+                          self.params["interpolation"])

@@ -35,7 +35,7 @@ from .. import backend
 from .. import validation as V
 from ..filtering import filtered_eval
 from ..segments import Segments
-from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk, trajectory_words
+from ._loops import REVERSE_MODES, TRAJECTORY_BUDGET_WORDS, safe_chunk
 from ._precision import check_precision, code_bytes, quantise
 from .schema import Param, Schema
 from ._lookup_args import lookup_args
@@ -240,7 +240,7 @@ class Representation(abc.ABC):
         words = self.loop_state_words
         if words == 0 or not seg.requires_grad:
             return None
-        traj = trajectory_words(words, seg.max_count)
+        traj = int(seg.max_count) * int(words)            # per-lane trajectory words (:mod:`._loops`)
         if self.reverse == "trajectory":
             if traj > TRAJECTORY_BUDGET_WORDS:
                 raise ValueError(

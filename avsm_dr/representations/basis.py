@@ -8,37 +8,24 @@ and rebuilt from reconstruction integrals ``g_k``::
     a_k  = int_0^1 sigma(u) f_k(u) du                       (coefficient map, sec. 5)
     D(u) = sum_k a_k g_k(u),   T(u) = clamp(exp(-D(u)), 0, 1)
 
-For an orthonormal basis ``g_k(u) = F_k(u) = int_0^u f_k``; scaled pairs (the
-paper's Fourier ``a'_k``, the simplified piecewise-constant form of sec. 5.1)
-override ``g``.  Segments are integrated analytically, not as points: a segment
-``[u0, u1]`` with optical depth ``tau`` (uniform density ``tau / (u1 - u0)``) adds ::
+For an orthonormal basis ``g_k = F_k = int_0^u f_k``; scaled pairs (the paper's Fourier
+``a'_k``, the piecewise-constant form of sec. 5.1) override ``g``.  A segment ``[u0, u1]``
+with optical depth ``tau`` (uniform density) adds ``tau * (F_k(u1) - F_k(u0)) / (u1 - u0)``
+(:meth:`~.basis_functions.Basis.average`), a zero-length one the delta limit
+``tau * f_k(u0)`` (sec. 5: ``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  The bases live
+in :mod:`.basis_functions`.
 
-    a_k += tau * (F_k(u1) - F_k(u0)) / (u1 - u0)            (``Basis.average``)
+Depth range (``depth_range=``): ``"global"``, one ``[near, far]`` for all texels (default
+``Segments.bounds()``; an explicit range must contain every segment,
+:func:`~.base.depth_range`), or ``"texel"``, tight per-texel bounds stored per texel (2
+floats; ``near=``/``far=`` must not be given; constants of the build: gradients w.r.t.
+``z0``/``z1`` hold them fixed).  A range shorter than ``MIN_SPAN_REL max(|near|, |far|) +
+MIN_SPAN_ABS`` is widened to that length.  Normalised depths clip to [0, 1] (a part in front
+of ``u = 0`` counted as a delta there, one behind ``u = 1`` dropped); receiver depths clamp
+to the range.  ``precision=``: coefficients per texel as ``a_k / s``, ``s = max_k |a_k|``
+(:mod:`._precision`).
 
-and a zero-length segment the delta limit ``tau * f_k(u0)`` (sec. 5:
-``delta a_{i,k} = -ln(1 - alpha_i) f_k(d_i)``).  Short segments, where the difference
-quotient loses digits, use 3-point Gauss-Legendre on ``f`` (:meth:`Basis.average`); the
-Fourier and piecewise-constant bases override it with cancellation-free formulas.  The
-bases (:class:`~.basis_functions.Basis`, cosine, Legendre, ``register_basis``) live in
-:mod:`.basis_functions`.
-
-Depth range (``depth_range=``):
-* ``"global"``: one ``[near, far]`` for all texels (default: ``Segments.bounds()``; an
-  explicit range must contain every segment, :func:`~.base.depth_range`).
-* ``"texel"``: tight per-texel bounds ``Segments.texel_bounds()``, stored per texel
-  (2 floats, counted in ``nbytes_per_texel``); ``near=``/``far=`` must not be given.
-  Bounds are constants of the build: gradients w.r.t. ``z0``/``z1`` hold them fixed.
-A range shorter than ``MIN_SPAN_REL max(|near|, |far|) + MIN_SPAN_ABS`` is widened to that
-length.  The projection clips normalised depths to [0, 1] (a part in front of ``u = 0``
-counted as a delta there, one behind ``u = 1`` dropped); receiver depths clamp to the range.
-
-Storage precision (``precision=``, :mod:`._precision`): the stored map is quantised per
-texel as ``a_k / s`` with ``s = max_k |a_k|`` (float32, counted); a per-texel range is kept
-in float32.
-
-Kernel: coefficients stored flat, texel-major ``[texel * K + k]``, projected by
-:meth:`BasisRepresentation._project`; gradients w.r.t. ``optical_depth``, ``z0`` and ``z1``
-flow through its scatters and the lookup's gathers.
+Kernel: coefficients stored flat, texel-major ``[texel * K + k]`` (:meth:`BasisRepresentation._project`).
 """
 from __future__ import annotations
 
@@ -56,8 +43,8 @@ from .basis_functions import BASES, LIST_CHUNK, LIST_UNROLL, Basis, clip_segment
 from .basis_functions import CosineBasis, LegendreBasis  # noqa: F401  (re-exported: their old home)
 from .schema import DEPTH_RANGE, FAR, NEAR, Param, Schema
 
-#: Shortest depth range per storage dtype: MIN_SPAN_REL[dtype] max(|near|, |far|) +
-#: MIN_SPAN_ABS[dtype] (the dtype's smallest normal number: near = far = 0 does not divide by 0).
+#: Shortest depth range per storage dtype: ``MIN_SPAN_REL[dtype] max(|near|, |far|) +
+#: MIN_SPAN_ABS[dtype]`` (the dtype's smallest normal number: near = far = 0 does not divide by 0).
 MIN_SPAN_REL = {"float32": 1e-6, "float64": 1e-14}
 MIN_SPAN_ABS = {"float32": float(np.finfo(np.float32).tiny), "float64": float(np.finfo(np.float64).tiny)}
 #: (item, coefficient) lanes per kernel on the indexed path.
@@ -72,8 +59,7 @@ MAX_LIST_COEFFICIENTS = 1 << 12
 @register("basis")
 class BasisRepresentation(Representation):
     """Coefficient map of any :class:`Basis` (module docstring).  Attributes: ``coefficients``
-    (K Dr.Jit arrays of length T); ``near``, ``far``: floats (global) or Dr.Jit arrays
-    (texel).  ``nbytes_per_texel`` = K itemsize (+ 2 itemsize for a per-texel range).
+    (K Dr.Jit arrays of length T); ``near``, ``far``: floats (global) or Dr.Jit arrays (texel).
     """
 
     # Best practice for every basis kind (inherited): per-texel range, opaque blockers apart.
@@ -95,16 +81,15 @@ class BasisRepresentation(Representation):
 
     def _resolve(self):
         self.basis = self._make_basis()
+        self.monotone = bool(self.basis.monotone)      # non-negative coefficients, non-decreasing g_k
         self._check_coefficients()
         P, segments = self.params, self.segments
-        mode, near, far = P["depth_range"], P["near"], P["far"]
-        Float = segments.Float
-        if mode == "texel":
+        near, far = P["near"], P["far"]
+        if P["depth_range"] == "texel":
             if near is not None or far is not None:
                 name = "near" if near is not None else "far"
                 raise ValueError(f"{name}: near=/far= cannot be combined with depth_range='texel'")
-            lo, hi = segments.texel_bounds()
-            self.near, self.far = Float(A.aligned(lo)), Float(A.aligned(hi))
+            self.near, self.far = (segments.Float(A.aligned(b)) for b in segments.texel_bounds())
             self._per_texel = True
         else:
             self.near, self.far = depth_range(segments, near, far, open_range=True)   # base.py's rule
@@ -117,9 +102,7 @@ class BasisRepresentation(Representation):
     def _make_basis(self) -> Basis:
         """The basis this kind projects onto (from ``params``; subclasses fix it)."""
         basis, n = self.params["basis"], self.params["n"]
-        if isinstance(basis, str) and n is None:
-            n = 8
-        basis = make_basis(basis, n)
+        basis = make_basis(basis, 8 if isinstance(basis, str) and n is None else n)
         self.params["basis"] = basis.name if isinstance(self.params["basis"], str) else basis
         self.params["n"] = basis.n
         return basis
@@ -131,10 +114,8 @@ class BasisRepresentation(Representation):
         return type(self.basis)(v).n_coefficients
 
     def _build_bytes(self, K: int) -> float:
-        """Estimated peak bytes of the projection with K coefficients per texel (T texels,
-        S segments, in words of the storage dtype): the flat store and its copies, 2 T K,
-        plus one batch of (item, coefficient) lanes, ~8 words each (indexed bases), or
-        the K per-segment terms of the list form, 2.5 S K."""
+        """Estimated peak bytes of the projection with K coefficients per texel: the flat store
+        and its copies, plus one batch of (item, coefficient) lanes or the list form's terms."""
         seg = self.segments
         T, S, it = seg.n_texels, seg.n_segments, seg.itemsize
         if self.basis.indexed:
@@ -169,11 +150,6 @@ class BasisRepresentation(Representation):
             lo, hi = (mid, hi) if self._coefficients_at(mid) <= K_max else (lo, mid)
         return lo
 
-    @property
-    def monotone(self) -> bool:
-        """The basis' guarantee (non-negative coefficients, non-decreasing g_k)."""
-        return bool(self.basis.monotone)
-
     unity_in_front = False
 
     def _native_bytes(self) -> float:
@@ -181,8 +157,10 @@ class BasisRepresentation(Representation):
         return (self.basis.n_coefficients + extra) * self.segments.itemsize
 
     precisions = PRECISIONS
-    #: The flat store :mod:`._precision` quantises (the one reconstruction reads, ``_store``).
+    #: The flat store ``[texel * K + k]`` reconstruction reads and :mod:`._precision` quantises:
+    #: a_k or a linear transform of them (OSM's cumulative sums), so prefiltering can weight it.
     _stored_attr = "_coef"
+    _store = property(lambda self: getattr(self, self._stored_attr))
 
     def _stored(self):
         """The stored map as coefficients (non-negative for monotone bases), the range."""
@@ -367,12 +345,6 @@ class BasisRepresentation(Representation):
         near, span = self._range(texel)
         return dr.clip((depth - near) / span, 0, 1)
 
-    @property
-    def _store(self):
-        """The flat store ``[texel * K + k]`` reconstruction reads: a_k or a linear transform
-        of them (OSM's cumulative sums), so prefiltering can weight it."""
-        return self._coef
-
     def _optical_depth(self, texel, depth):
         """D at ``depth`` along texel ``texel``: :meth:`_reconstruct_from` the stored map."""
         return self._reconstruct_from(self._store, texel, self.normalized_depth(texel, depth))
@@ -429,17 +401,6 @@ class BasisRepresentation(Representation):
                 dr.eval(flat)
         u = self.normalized_depth(None, depth)
         return dr.clip(dr.exp(-self._reconstruct_from(flat, dr.arange(UInt32, R), u)), 0, 1)
-
-    def optical_depth(self, texel, depth):
-        """Reconstructed optical depth D = sum_k a_k g_k(u) (before exp and clamp) at (K,) texel
-        indices (not validated: a diagnostic) and (K,) or scalar depths.  Returns Float (K,)."""
-        tex = texel if A.is_drjit(texel) else A.to_uint32(np.asarray(texel).astype(np.uint32))
-        if A.is_drjit(depth):
-            d = A.to_float(depth, self.Float)
-        else:
-            d = A.to_float(np.broadcast_to(np.asarray(depth, np.float64), (dr.width(tex),)),
-                           self.Float)
-        return self._optical_depth(tex, d)
 
     def _eval_texels(self, texel, depth):
         return dr.clip(dr.exp(-self._optical_depth(texel, depth)), 0, 1)

@@ -1,10 +1,8 @@
-"""The bases of the linear kinds (:mod:`.basis`): sets of projection functions ``f_k`` on
-[0, 1] with antiderivatives ``F_k = int_0^u f_k`` and reconstruction integrals ``g_k``
-(Jansen and Bavoil 2010, "Fourier Opacity Mapping", I3D, sec. 5), their registry, exactly
-periodic trigonometry, and a segment's clipped place on the normalised depth range.
-
-Adding a basis is a few lines (an orthonormal one needs ``n_coefficients``, ``f``
-and ``F``; lists of Dr.Jit arrays, one per coefficient)::
+"""The bases of the linear kinds (:mod:`.basis`): projection functions ``f_k`` on [0, 1],
+antiderivatives ``F_k = int_0^u f_k`` and reconstruction integrals ``g_k`` (Jansen and Bavoil
+2010, "Fourier Opacity Mapping", I3D, sec. 5), their registry, exactly periodic trigonometry,
+and a segment's clipped place on the normalised depth range.  An orthonormal basis needs
+``f`` and ``F`` (lists of Dr.Jit arrays, one per coefficient)::
 
     @register_basis("cosine")
     class CosineBasis(Basis):
@@ -77,14 +75,12 @@ def sinc(x):
 
 
 class Basis:
-    """A set of ``n_coefficients`` projection functions on [0, 1].
+    """``n_coefficients`` projection functions on [0, 1] (``n``: the size parameter).
 
-    Subclasses give ``f(u)`` and ``F(u)`` (lists of arrays, one per coefficient), or,
-    when the reconstruction is not ``F`` (non-orthonormal scaling), ``g`` and ``average``
-    (also overridden where a cancellation-free segment mean is known).
-    ``n`` is the basis' size parameter (harmonics, slices, functions).  Below LIST_UNROLL
-    coefficients ``f`` and ``average`` are traced inside the projection's per-texel loop
-    (:meth:`BasisRepresentation._sum_per_texel`): they must not call ``dr.eval`` there.
+    Subclasses give ``f`` and ``F``, or, when the reconstruction is not ``F``, ``g`` and
+    ``average`` (also overridden where a cancellation-free segment mean is known).  Below
+    LIST_UNROLL coefficients ``f`` and ``average`` are traced inside the projection's
+    per-texel loop (:meth:`BasisRepresentation._sum_per_texel`): no ``dr.eval`` there.
     """
 
     name = "base"
@@ -95,8 +91,11 @@ class Basis:
     #: coefficient) lanes, a trace whose size does not depend on K (module docstring).
     indexed = False
 
-    def __init__(self, n: int, arg: str = "n"):
-        self.n = V.integer(n, arg, 1)
+    #: The size parameter's name in messages.
+    arg = "n"
+
+    def __init__(self, n: int):
+        self.n = V.integer(n, self.arg, 1)
 
     @property
     def n_coefficients(self) -> int:
@@ -111,7 +110,7 @@ class Basis:
         raise NotImplementedError
 
     def g(self, u) -> list:
-        """Reconstruction integrals: D(u) = sum_k a_k g_k(u).  Orthonormal: g = F."""
+        """Reconstruction integrals, D(u) = sum_k a_k g_k(u); orthonormal: g = F."""
         return self.F(u)
 
     def average(self, u0, u1) -> list:

@@ -1,33 +1,24 @@
 """Beer shadow map (Hillaire 2016, "Physically based sky, atmosphere and cloud rendering in
-Frostbite", SIGGRAPH 2016 course "Physically Based Shading in Theory and Practice", the
-clouds chapter's Beer shadow map): one homogeneous medium per texel, three numbers.
+Frostbite", SIGGRAPH course, the clouds chapter's Beer shadow map): one homogeneous medium per
+texel, three numbers.
 
-Per texel, with ``a`` = first entry (min z0), ``b`` = last exit (max z1) and
-``tau_max`` = the texel's total optical depth (sum of its segments' tau):
+Per texel, with ``a`` = first entry (min z0), ``b`` = last exit (max z1) and ``tau_max`` =
+the texel's total optical depth, stored as ``a``, the extent ``e = b - a`` and ``tau_max``
+('cloud') or ``exp(-tau_max)`` ('two_node'); with ``w = clamp((d - a) / e, 0, 1)``:
 
-* ``variant='cloud'`` (the paper's): front depth ``a``, mean extinction
-  ``sigma_mean = tau_max / (b - a)`` (the total optical depth spread uniformly over the
-  texel's content, empty gaps included) and ``tau_max``; ::
+* ``variant='cloud'`` (the paper's: mean extinction ``sigma_mean = tau_max / e``, the total
+  spread over the content, gaps included) ``T(d) = exp(-tau_max w)``, exact for one uniform
+  segment; ``e = 0`` (only zero-length segments at one depth) is a step at ``a`` (a receiver
+  at a step is behind it, as in :mod:`.exact`).
+* ``variant='two_node'``: nodes ``(a, 1)`` and ``(b, exp(-tau_max))``, *linear* between them
+  (exponential would be 'cloud'): ``T = 1 + w (exp(-tau_max) - 1)``.
 
-      T(d) = exp(-min(tau_max, sigma_mean * max(0, d - a)))
-
-  exact for one uniform segment.  A texel whose content has no extent (``b = a``: only
-  zero-length segments at one depth) has ``sigma_mean = 0`` and is a step at ``a``
-  (``T(a) = exp(-tau_max)``: a receiver at a step is behind it, as in :mod:`.exact`).
-* ``variant='two_node'``: nodes ``(a, 1)`` and ``(b, exp(-tau_max))`` (depth and T at the
-  entry and exit of the texel's content) stored as ``a, b - a, exp(-tau_max)``, *linear*
-  interpolation between them (with exponential interpolation it would be the cloud
-  variant), ``T = 1`` in front, ``exp(-tau_max)`` behind.
-
-Stored per texel: ``a``, the extent ``e = b - a`` and ``tau_max`` ('cloud') or
-``exp(-tau_max)`` ('two_node'); the mean extinction is formed at lookup
-(``T(d) = exp(-tau_max clamp((d - a) / e, 0, 1))``), so no stored value carries depth
-units (a stored extinction would underflow or saturate float16).  ``nbytes_per_texel =
-3 itemsize``; ``precision=`` (:mod:`._precision`) stores 3 codes: ``a`` relative to one
-global depth range, ``e`` over the largest extent, ``tau_max`` as a ``scalar``,
-``exp(-tau_max)`` as a ``transmittance`` (global ranges and scales count no bytes per texel).
-Gradients flow to the optical depths (``tau_max`` is their sum, per texel in CSR order
-without gradients, scatter-added with them); ``a`` and ``e`` carry none.
+No stored value carries depth units over extinction (a stored extinction would underflow or
+saturate float16).  ``precision=`` (:mod:`._precision`): ``a`` relative to one global depth
+range, ``e`` over the largest extent, ``tau_max`` a ``scalar``, ``exp(-tau_max)`` a
+``transmittance`` (global ranges and scales count no bytes per texel).  Gradients flow to the
+optical depths (``tau_max``: summed per texel in CSR order, scatter-added with gradients);
+``a`` and ``e`` carry none.
 """
 from __future__ import annotations
 
@@ -46,10 +37,8 @@ VARIANTS = ("cloud", "two_node")
 
 @register("beer")
 class BeerShadowMap(Representation):
-    """Beer shadow map (module docstring).  Attributes (Dr.Jit, one value per texel):
-    ``front`` (first entry), ``extent`` (last exit - first entry), ``tau_max`` (total optical
-    depth), ``t_back`` (``exp(-tau_max)``); property ``sigma_mean``.
-    """
+    """Beer shadow map (module docstring); per texel ``front`` (a), ``extent`` (e),
+    ``tau_max``, ``t_back`` (``exp(-tau_max)``) and the property ``sigma_mean``."""
 
     schema = Schema(
         params=(Param("variant", "choice", "cloud", "'cloud': (front depth, mean extinction, max optical "
@@ -69,8 +58,7 @@ class BeerShadowMap(Representation):
         if self.precision is not None and segments.n_segments:
             # empty texels (T = 1 whatever their bounds) must not widen the global depth range
             lo[empty] = segments.bounds()[0]
-        ext = np.where(empty, 0.0, hi - lo)
-        self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(ext))
+        self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(np.where(empty, 0.0, hi - lo)))
         self.tau_max = dr.zeros(Float, segments.n_texels)
         if segments.n_segments and segments.requires_grad:
             dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth,
@@ -91,8 +79,6 @@ class BeerShadowMap(Representation):
         return dr.select(e > 0, self.tau_max / dr.select(e > 0, e, 1), 0)
 
     def _stored(self):
-        """``front`` relative to one global depth range, ``extent`` over the largest
-        extent, then ``tau_max`` (a relative code) or ``t_back`` (module docstring)."""
         third = (Stored("tau_max", "scalar", "texel") if self.params["variant"] == "cloud"
                  else Stored("t_back", "transmittance", "texel"))
         return (Stored("front", "depth", "texel"), Stored("extent", "coefficient", "texel", signed=False, length=True),

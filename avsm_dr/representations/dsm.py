@@ -1,11 +1,9 @@
 """Deep shadow maps (Lokovic and Veach 2000, "Deep shadow maps", SIGGRAPH; Salvi et al.
 2010, "Adaptive Volumetric Shadow Maps", secs. 2, 3.2 and 5 compare AVSM against them).
 
-Each texel stores a variable number of nodes ``(z_i, V_i)`` (depth, transmittance)
-that reproduce the texel's exact visibility function ``V(z)`` within a user tolerance
-``epsilon`` everywhere::
-
-    |DSM(z) - V(z)| <= epsilon   for every depth z        (Lokovic-Veach error bound)
+Each texel stores a variable number of nodes ``(z_i, V_i)`` (depth, transmittance) within
+a tolerance ``epsilon`` of its exact visibility ``V(z)``: ``|DSM(z) - V(z)| <= epsilon`` for
+every depth z (Lokovic-Veach error bound).
 
 1. **Exact curve as a polyline** (phase A, :mod:`._dsm_polyline`).  ``V(z) = exp(-tau(z))``
    with ``tau`` piecewise linear between the texel's sorted unique segment ends
@@ -27,17 +25,12 @@ that reproduce the texel's exact visibility function ``V(z)`` within a user tole
    fitted and restart from it.  ``placement="midslope"`` (default, the paper's): the node
    lies on the mid-slope line ``(lo + hi) / 2``; ``placement="curve"``: nodes are polyline
    vertices (exact curve values, differentiable with the node depths held fixed).
-   Error: polyline <= eps_p, compression <= delta, so ``|DSM - V| <= 3 epsilon / 4`` in
-   exact arithmetic; the remaining ``epsilon / 4`` absorbs the rounding of inserted depths.
-   Phases A and B run in float64; nodes are stored in the segments' dtype.
+   Error: ``|DSM - V| <= eps_p + delta = 3 epsilon / 4`` in exact arithmetic; the remaining
+   ``epsilon / 4`` absorbs the rounding of inserted depths.  Phases A and B run in float64 on
+   chunks of texels (:func:`next_chunk_segments`; the nodes do not depend on the chunking).
 
-3. **Lookup** (phase C): binary search of the texel's nodes for the last node with
-   ``z_i <= z``, linear interpolation to the next one; ``V = 1`` in front of the first node
-   and in empty texels, the last node's value behind the last one.
-
-Storage: ``nbytes_per_texel`` = mean over texels of ``nodes x 2 x itemsize + 4`` (the
-(depth, value) pairs and a 4-byte CSR offset).  Phases A and B run on chunks of texels
-(:func:`next_chunk_segments`; the nodes do not depend on the chunking).
+3. **Lookup** (phase C): :func:`.avsm.csr_lookup`, linear between nodes.  Storage: per
+   texel its (depth, value) nodes in the segments' dtype and a 4-byte CSR offset.
 """
 from __future__ import annotations
 
@@ -48,13 +41,11 @@ from .. import _arrays as A
 from .. import backend
 from . import _curve
 from .registry import register
-from .avsm import csr_bracket, lerp
+from .avsm import csr_lookup
 from .base import Representation
 from ._precision import PRECISIONS, Stored
 from .schema import Param, Schema
-from ._dsm_polyline import (  # noqa: F401
-    BYTES_PER_VERTEX, MEMORY_BUDGET_BYTES, POLYLINE_SHARE, breakpoints, check_polyline_size, exact_polyline,
-    lanes_by_length, next_up, prefix_optical_depth, sort_within_texels, transmittance_levels)
+from ._dsm_polyline import POLYLINE_SHARE, exact_polyline, lanes_by_length
 
 #: smallest accepted tolerance (the level table has ~1/sqrt(2 eps_p) entries)
 MIN_TOLERANCE = 1e-9
@@ -64,9 +55,8 @@ BAND_SHARE = 0.5
 
 
 def compress(poly, delta: float, placement: str = "midslope"):
-    """Greedy slope-window compression of every texel's polyline (:func:`~._dsm_polyline.exact_polyline`)
-    within ``delta``.  Returns (counts (T,) int64, z, v, src): float64 NumPy node depths /
-    values and the vertex whose depth each node takes, in CSR by counts."""
+    """Phase B on every texel's polyline within ``delta``: (counts (T,) int64, z, v, src), the
+    float64 NumPy nodes and the vertex whose depth each takes, CSR by counts."""
     t = backend.types()
     F64, U32, Bool = t.Float64, t.UInt32, t.Bool
     off = poly["off"]
@@ -242,10 +232,9 @@ class DeepShadowMap(Representation):
 
     Attributes: ``node_counts`` (T,) and ``node_offsets`` (T+1,) int64 NumPy; ``node_depth``,
     ``node_value`` Dr.Jit arrays in CSR order; ``node_left`` (bool NumPy: the node's vertex
-    is the value just before a step at its depth); ``n_polyline_vertices`` (T,).
-    Raises ValueError naming the tolerance that fits when the phase-A polyline bound
-    (``BYTES_PER_VERTEX`` per vertex) summed over the chunks exceeds
-    ``_dsm_polyline.MEMORY_BUDGET_BYTES``, before allocating the chunk that crosses it.
+    is the value just before a step at its depth); ``n_polyline_vertices`` (T,).  ValueError
+    naming the tolerance that fits, before allocating, when the polyline summed over the
+    chunks would exceed its budget (:func:`._dsm_polyline.check_polyline_size`).
     """
 
     schema = Schema(
@@ -266,15 +255,10 @@ class DeepShadowMap(Representation):
     def _resolve(self):
         self.tolerance = self.params["tolerance"]
         self.placement = self.params["placement"]
-
-    @property
-    def differentiable(self) -> bool:
-        """Only ``placement='curve'`` (node values on the exact curve) has gradients."""
-        return self.placement == "curve"
+        self.differentiable = self.placement == "curve"        # node values on the exact curve
 
     def _build(self):
         seg = self.segments
-        store = np.float32 if seg.dtype == "float32" else np.float64
         offsets = seg.offsets
         n_tex = seg.n_texels
         counts = np.zeros(n_tex, np.int64)
@@ -294,18 +278,16 @@ class DeepShadowMap(Representation):
             counts[t0:t1] = c
             left = poly["left"].numpy()[src] if src.size else np.zeros(0, bool)
             del poly
-            parts.append((nz.astype(store), nv.astype(store), left))
+            parts.append((nz.astype(seg.dtype), nv.astype(seg.dtype), left))
             node_bytes += 2 * nz.size * seg.itemsize
             del nz, nv, src
             t0 = t1
         self._set_nodes(counts)
         nz, nv, self.node_left = (concatenate(parts, k) for k in range(3))
-        Float = seg.Float
-        self.node_depth = Float(nz)
-        value = Float(nv)
+        self.node_depth, self.node_value = seg.Float(nz), seg.Float(nv)
         if self.placement == "curve":         # the exact curve's gradients at fixed node depths
-            value = _curve.attach_exact_gradients(seg, value, np.repeat(np.arange(n_tex), counts), nz, self.node_left)
-        self.node_value = value
+            self.node_value = _curve.attach_exact_gradients(seg, self.node_value, np.repeat(np.arange(n_tex), counts),
+                                                            nz, self.node_left)
 
     precisions = PRECISIONS
 
@@ -321,22 +303,13 @@ class DeepShadowMap(Representation):
     def nodes_numpy(self, texel: int) -> tuple[np.ndarray, np.ndarray]:
         """(depths, values) of one texel's nodes as float64 NumPy arrays."""
         s = slice(int(self.node_offsets[texel]), int(self.node_offsets[texel + 1]))
-        z = np.asarray(dr.detach(self.node_depth).numpy(), np.float64)
-        v = np.asarray(dr.detach(self.node_value).numpy(), np.float64)
-        return z[s], v[s]
+        return tuple(np.asarray(dr.detach(x).numpy(), np.float64)[s] for x in (self.node_depth, self.node_value))
 
     def _eval_texels(self, texel, depth):
-        Float = self.Float
-        if self._max_nodes == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
-        zs, vs = self.node_depth, self.node_value
-        front, behind, il, ir = csr_bracket(self._offsets_dr, self._max_nodes,
-                                            lambda i, active: dr.gather(Float, zs, i, active), texel, depth)
-        za, zb = dr.gather(Float, zs, il, ~front), dr.gather(Float, zs, ir, ~front)
-        va, vb = dr.gather(Float, vs, il, ~front), dr.gather(Float, vs, ir, ~front)
-        out = dr.select(front, 1.0, dr.select(behind, va, lerp(za, va, zb, vb, depth, "linear")))
-        out = dr.clip(out, 0.0, 1.0)
-        if self.placement == "midslope" and self.segments.requires_grad:
+        zs = self.node_depth
+        out = dr.clip(csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, zs, i, a),
+                                 self.node_value, texel, depth, "linear"), 0.0, 1.0)
+        if self.placement == "midslope" and self.segments.requires_grad and self._max_nodes:
             seg = self.segments     # a gradient request raises a clear ValueError, not Dr.Jit's
             out = dr.custom(_MidslopeNoGradient, out, seg.optical_depth, seg.z0, seg.z1)
         return out

@@ -1,13 +1,12 @@
 """Uncompressed (exact) transmittance: the in-package ground truth.
 
-The transmittance at depth ``d`` of a texel's segments::
+The transmittance at depth ``d`` of a texel's segments (uniform density inside a segment,
+Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", eq. 1)::
 
     T(d) = prod_i exp(-tau_i * f_i(d)),   f_i(d) = clamp((d - z0_i) / (z1_i - z0_i), 0, 1)
 
-with f_i(d) = [d >= z0_i] for zero-length segments (uniform density inside a segment,
-Salvi et al. 2010, "Adaptive Volumetric Shadow Maps", eq. 1).  One lane per receiver sums
-its texel's segments in float64 whatever the storage dtype, stopping once the optical depth
-reaches ``OPAQUE_OPTICAL_DEPTH`` (T is then exactly 0); reverse mode recomputes the loop.
+with f_i(d) = [d >= z0_i] for zero-length segments; summed in float64 whatever the storage
+dtype, stopping at ``OPAQUE_OPTICAL_DEPTH`` (T exactly 0).
 """
 from __future__ import annotations
 
@@ -22,17 +21,9 @@ from .base import Representation
 from .schema import Schema
 
 
-def segment_fraction(depth, z0, z1):
-    """f(d): fraction of a segment's optical depth in front of ``depth``."""
-    length = z1 - z0
-    safe = dr.select(length > 0, length, 1)
-    return dr.select(depth >= z1, 1, dr.clip((depth - z0) / safe, 0, 1))
-
-
 @register("exact")
 class Exact(Representation):
-    """Stores the segments themselves; ``nbytes_per_texel`` = 12 bytes x mean segment count
-    (z0, z1, tau in the segments' dtype) plus the 4-byte CSR offset."""
+    """Stores the segments themselves (z0, z1, tau in the segments' dtype, a CSR offset)."""
 
     schema = Schema(summary="every occluder segment (uncompressed ground truth)", paper="-")
     _precision_note = ("; 'exact' is the uncompressed ground truth and reads the segments in their own "
@@ -50,53 +41,41 @@ class Exact(Representation):
 
     def _eval_texels(self, texel, depth):
         seg = self.segments
-        Float, UInt32 = seg.Float, backend.types().UInt32
         if seg.n_segments == 0:
-            return dr.full(Float, 1.0, dr.width(depth))
-        F64 = backend.types().Float64
-        offsets = seg.offsets_dr()
-        i = dr.gather(UInt32, offsets, texel)          # current segment
-        end = dr.gather(UInt32, offsets, texel + 1)    # one past the texel's last segment
-        tau = dr.zeros(F64, dr.width(depth))           # optical depth accumulated in front of depth
+            return dr.full(seg.Float, 1.0, dr.width(depth))
+        UInt32, offsets = backend.types().UInt32, seg.offsets_dr()
+        tau = optical_depth_in_front(seg, dr.gather(UInt32, offsets, texel), dr.gather(UInt32, offsets, texel + 1),
+                                     depth, backend.types().Float64, stop=True, label="exact_eval")
+        return seg.Float(dr.exp(-tau))
 
-        def cond(i, tau):
-            return (i < end) & (tau < OPAQUE_OPTICAL_DEPTH)
 
-        def body(i, tau):
-            z0 = dr.gather(Float, seg.z0, i)
-            z1 = dr.gather(Float, seg.z1, i)
-            od = dr.gather(Float, seg.optical_depth, i)
-            return i + 1, tau + F64(od * segment_fraction(depth, z0, z1))
+def optical_depth_in_front(seg, i, end, depth, Acc, left=None, stop: bool = False, label: str = "exact"):
+    """Optical depth in front of ``depth`` summed in ``Acc`` over segments ``[i, end)`` (one lane
+    per receiver; ``left``: left limits, a step at the depth not counted; ``stop``: at
+    ``OPAQUE_OPTICAL_DEPTH``).  A sum loop (tau only read by the condition): reverse mode
+    re-runs it (:mod:`._loops`)."""
+    Float = seg.Float
 
-        # a sum loop (tau only read by the condition): reverse mode re-runs it (_loops)
-        i, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="exact_eval")
-        return Float(dr.exp(-tau))
+    def cond(i, tau):
+        return (i < end) & (tau < OPAQUE_OPTICAL_DEPTH) if stop else i < end
+
+    def body(i, tau):
+        z0, z1, od = (dr.gather(Float, x, i) for x in (seg.z0, seg.z1, seg.optical_depth))
+        length = z1 - z0
+        f = dr.select(depth >= z1, 1, dr.clip((depth - z0) / dr.select(length > 0, length, 1), 0, 1))   # f_i(d)
+        if left is not None:
+            f = dr.select(left & (z0 == z1) & (depth == z0), 0.0, f)   # T(z^-) before a step
+        return i + 1, tau + Acc(od * f)
+
+    return dr.while_loop((i, dr.zeros(Acc, dr.width(depth))), cond, body, max_iterations=-1, label=label)[1]
 
 
 def exact_values(segments, texel: np.ndarray, z: np.ndarray, left: np.ndarray):
     """``T`` of the exact curve at depths ``z`` of texels ``texel`` (left limits where
-    ``left``), as a Dr.Jit Float of the segments' type carrying their AD graph.
-    One lane per point; a sum loop over the texel's segments (reverse mode recomputes it)."""
-    seg = segments
-    t = backend.types()
-    Float, UInt32 = seg.Float, t.UInt32
-    dt = np.float32 if seg.dtype == "float32" else np.float64
-    i = UInt32(seg.offsets[texel].astype(np.uint32))
-    end = UInt32(seg.offsets[texel + 1].astype(np.uint32))
-    zd = Float(A.aligned(np.asarray(z, dt)))
+    ``left``), as a Dr.Jit Float of the segments' type carrying their AD graph."""
+    seg, t = segments, backend.types()
+    i = t.UInt32(seg.offsets[texel].astype(np.uint32))
+    end = t.UInt32(seg.offsets[texel + 1].astype(np.uint32))
+    zd = seg.Float(A.aligned(np.asarray(z, np.dtype(seg.dtype).type)))
     is_left = t.Bool(A.aligned(np.asarray(left, bool)))
-    tau = dr.zeros(Float, z.size)
-
-    def cond(i, tau):
-        return i < end
-
-    def body(i, tau):
-        z0 = dr.gather(Float, seg.z0, i)
-        z1 = dr.gather(Float, seg.z1, i)
-        od = dr.gather(Float, seg.optical_depth, i)
-        f = segment_fraction(zd, z0, z1)
-        f = dr.select(is_left & (z0 == z1) & (zd == z0), 0.0, f)   # T(z^-) before a step
-        return i + 1, tau + od * f
-
-    _, tau = dr.while_loop((i, tau), cond, body, max_iterations=-1, label="curve_exact_values")
-    return dr.exp(-tau)
+    return dr.exp(-optical_depth_in_front(seg, i, end, zd, seg.Float, is_left, label="curve_exact_values"))

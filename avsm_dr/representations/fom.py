@@ -8,18 +8,12 @@ packing order ``[a'_0, a'_1, b'_1, ..., a'_n, b'_n]`` (Jansen and Bavoil 2010, f
     D(u) = a'_0 u / 2 + sum_k [a'_k sin(2 pi k u) + b'_k (1 - cos(2 pi k u))] / (2 pi k)  (3)
     T(u) = clamp(exp(-D(u)), 0, 1)                                               (sec. 7.3)
 
-Segments are integrated analytically, not as points (eqs. 5, 6 are the
-zero-length limit): a segment ``[u0, u1]`` with optical depth ``tau`` adds ::
-
-    a'_k += 2 tau cos(2 pi k m) sinc(pi k du),   b'_k += 2 tau sin(2 pi k m) sinc(pi k du)
-
-with ``m = (u0 + u1) / 2``, ``du = u1 - u0`` (the segment mean of ``2 cos(2 pi k u)``
-written without cancellation).  Every angle is reduced before it is multiplied by pi
-(:func:`~avsm_dr.representations.basis_functions.sincos_pi`), so ``T(near) = 1`` and
-``T(far) = exp(-a'_0 / 2) = exp(-sum tau)`` hold to float rounding of the sum.
-
-Reconstruction rings (``monotone = False``) and is clamped to [0, 1].  Depth range, clipping
-and kernel layout: see :mod:`avsm_dr.representations.basis`.
+A segment ``[u0, u1]`` with optical depth ``tau`` adds (eqs. 5, 6 are its zero-length limit)
+``a'_k += 2 tau cos(2 pi k m) sinc(pi k du)``, ``b'_k += 2 tau sin(2 pi k m) sinc(pi k du)``,
+``m = (u0 + u1) / 2``, ``du = u1 - u0`` (no cancellation).  Angles are reduced before the
+multiply by pi (:func:`~.basis_functions.sincos_pi`): ``T(near) = 1`` and
+``T(far) = exp(-a'_0 / 2) = exp(-sum tau)`` to rounding of the sum.  Reconstruction rings
+(``monotone = False``) and is clamped to [0, 1]; depth range and layout as :mod:`.basis`.
 """
 from __future__ import annotations
 
@@ -41,19 +35,14 @@ class FourierBasis(Basis):
     f = [2, 2 cos(2 pi k u), 2 sin(2 pi k u)],  g = [u/2, sin(2 pi k u)/(2 pi k),
     (1 - cos(2 pi k u))/(2 pi k)] (biorthogonal pair: int f_j g_k' = delta_jk)."""
 
-    def __init__(self, n: int, arg: str = "harmonics"):
-        super().__init__(n, arg)
+    arg = "harmonics"
 
     @property
     def n_coefficients(self) -> int:
         return 2 * self.n + 1
 
     def f(self, u):
-        out = [2 + 0 * u]
-        for k in range(1, self.n + 1):
-            s, c = sincos_pi(2 * k * u)
-            out += [2 * c, 2 * s]
-        return out
+        return [2 + 0 * u] + [2 * x for k in range(1, self.n + 1) for x in sincos_pi(2 * k * u)[::-1]]
 
     def g(self, u):
         # sin(2x) = 2 sin(x) cos(x),  1 - cos(2x) = 2 sin(x)^2  (x = pi k u, no cancellation)
@@ -107,8 +96,7 @@ RECURRENCE_HARMONICS = 16
 
 @register("fom")
 class FourierOpacityMap(BasisRepresentation):
-    """Fourier opacity map: n ``harmonics``; ``nbytes_per_texel`` = (2n + 1) itemsize (+ 2
-    itemsize per-texel range).  ``a[k]`` = a'_k (k = 0..n), ``b[k]`` = b'_k (b[0] = None)."""
+    """Fourier opacity map: n ``harmonics``, ``coefficients`` in the paper's packing order."""
 
     schema = Schema(
         params=(
@@ -127,9 +115,8 @@ class FourierOpacityMap(BasisRepresentation):
         return FourierBasis(self.params["harmonics"])
 
     def _build_bytes(self, K: int) -> float:
-        """The recurrence path (:meth:`_project_texels`, float32, no gradients, up to
-        :data:`RECURRENCE_HARMONICS`): K sums per texel lane and the store, ``3 T K``
-        words; otherwise the base class' estimate."""
+        """The recurrence path (:meth:`_project_texels`): K sums per texel lane and the store;
+        otherwise the base class' estimate."""
         seg = self.segments
         if seg.Float is backend.types().Float32 and not seg.requires_grad and (K - 1) // 2 <= RECURRENCE_HARMONICS:
             return 3.0 * seg.itemsize * seg.n_texels * K
@@ -144,9 +131,8 @@ class FourierOpacityMap(BasisRepresentation):
             e^{ika} = e^{i(k-1)a} e^{ia},   q_k = q_{k-1} cos h + cos((k-1) h),
             cos(k h) = cos((k-1) h) cos h - q_{k-1} sin(h)^2,   sinc(k h) = q_k sinc(h) / k
 
-        (q_k = sin(k h) / sin(h), finite at h = 0; sinc(h) in float64, :func:`sinc`).
-        Error (Higham 2002, sec. 3.6): cos(k a), sin(k a) within ~3.6 k eps (plus k times
-        the error of m), sinc(k h) within ~3 k eps + 3 eps.  Float64 segments and more than
+        (q_k = sin(k h) / sin(h), finite at h = 0; sinc(h) in float64, :func:`sinc`): errors
+        ~3.6 k eps (Higham 2002, sec. 3.6).  Float64 segments and more than
         :data:`RECURRENCE_HARMONICS` harmonics keep the base class' lanes."""
         seg = self.segments
         if seg.Float is not backend.types().Float32 or self.basis.n > RECURRENCE_HARMONICS:
@@ -194,12 +180,10 @@ class FourierOpacityMap(BasisRepresentation):
 
             e^{i(k+1)x} = e^{ikx} e^{ix},   D = a'_0 u / 2 + sum_k (a'_k cos(kx) + b'_k sin(kx)) sin(kx) / (pi k)
 
-        (sin(2 kx) = 2 sin(kx) cos(kx), 1 - cos(2 kx) = 2 sin(kx)^2: no cancellation).
-        Error (u_r: unit roundoff): sin(kx), cos(kx) within k delta, delta ~ 12 u_r (Higham
-        2002, sec. 3.6); the 1 / (pi k) weight keeps every term's error below
-        (2 delta / pi) (|a'_k| + |b'_k|) whatever k.  u = 0 and u = 1 are exact, so
-        T(near) = 1 and T(far) = exp(-a'_0 / 2).  Blocks of :data:`LOOKUP_UNROLL_HARMONICS`
-        beyond it; differentiable in both modes (no symbolic loop)."""
+        (sin(2 kx) = 2 sin(kx) cos(kx), 1 - cos(2 kx) = 2 sin(kx)^2: no cancellation); each
+        term's error below (2 delta / pi) (|a'_k| + |b'_k|), delta ~ 12 u_r (Higham 2002, sec.
+        3.6).  u = 0 and u = 1 are exact: T(near) = 1, T(far) = exp(-a'_0 / 2).  Blocks of
+        :data:`LOOKUP_UNROLL_HARMONICS` beyond it; no symbolic loop (both AD modes)."""
         Float, UInt32 = self.Float, backend.types().UInt32
         n, L = self.basis.n, LOOKUP_UNROLL_HARMONICS
         blocks = n > L
@@ -213,25 +197,12 @@ class FourierOpacityMap(BasisRepresentation):
                 dr.eval(D, sk, ck, s1, c1, base)    # one kernel per block
             first = dr.opaque(UInt32, k0) if blocks else None
             for i in range(min(L, n - k0 + 1) if not blocks else L):
-                if blocks:                          # the same kernel for every block and n
-                    k = first + i
-                    on = k <= dr.opaque(UInt32, n)
-                    w = 1 / (math.pi * Float(k))
-                    a = dr.gather(Float, store, base + 2 * k - 1, on)
-                    b = dr.gather(Float, store, base + 2 * k, on)
-                else:
-                    k = k0 + i
-                    w = 1 / (math.pi * k)
-                    a = dr.gather(Float, store, base + (2 * k - 1))
-                    b = dr.gather(Float, store, base + 2 * k)
+                # blocks: opaque k, the same kernel for every block and n
+                k = first + i if blocks else k0 + i
+                w = 1 / (math.pi * Float(k)) if blocks else 1 / (math.pi * k)
+                on = k <= dr.opaque(UInt32, n) if blocks else True
+                a = dr.gather(Float, store, base + (2 * k - 1), on)
+                b = dr.gather(Float, store, base + 2 * k, on)
                 D += (a * ck + b * sk) * (sk * w)
                 sk, ck = sk * c1 + ck * s1, ck * c1 - sk * s1
         return D
-
-    @property
-    def a(self) -> list:
-        return [self.coefficients[0]] + self.coefficients[1::2]
-
-    @property
-    def b(self) -> list:
-        return [None] + self.coefficients[2::2]

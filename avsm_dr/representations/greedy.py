@@ -1,29 +1,24 @@
 """Offline greedy: Visvalingam-Whyatt simplification of the exact curve (Visvalingam and
 Whyatt 1993, "Line generalisation by repeated elimination of points", The Cartographic
-Journal 30(1)), with AVSM's removal metric and tie rule.
-
-AVSM (Salvi et al. 2010, sec. 3.2) removes, while a texel holds more than N nodes, the
-interior node of smallest area metric ``|(d[i+1]-d[i-1])(t[i+1]-t[i]) - (d[i+1]-d[i])
-(t[i+1]-t[i-1])|`` (ties: the deepest), *while streaming* the segments in.  This kind runs
-the same removal on the whole exact curve at once (its points, :mod:`._curve`): the
-smallest-metric interior node is removed and its neighbours' metrics updated until N
-remain, the first and last point kept (the ``avsm_gap`` experiment: streaming vs greed).
+Journal 30(1)) with AVSM's removal metric and tie rule (Salvi et al. 2010, sec. 3.2), run on
+the whole exact curve at once (its points, :mod:`._curve`) instead of while streaming: the
+smallest-metric interior point is removed and its neighbours' metrics updated until N remain,
+the first and last point kept (experiment ``avsm_gap``: streaming vs greed).
 
 The removal order does not depend on N: computed once per segments (cached), ``nodes=N``
 keeps the N points removed last.  Host float64: texels up to :data:`HEAP_POINTS` points
 vectorised (O(K^2) per texel), larger ones with a heap (O(K log K); identical ranks).  Node
-values are the exact curve's (for 'exp' as :func:`.optimal.exp_stored_values`), with its
-gradients at the fixed node depths.  Lookup as AVSM (:func:`.avsm.interpolate`).
+values are the exact curve's (:func:`._curve.store_nodes`), with its gradients at the fixed
+node depths; lookup as AVSM's.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from . import _curve
-from .avsm import INTERPOLATIONS, NodeList
-from .optimal import exp_stored_values
+from .avsm import INTERPOLATION, NODES, NodeList
 from .registry import register
-from .schema import Param, Schema
+from .schema import Schema
 
 
 def vw_removal_rank(x: np.ndarray, v: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -60,12 +55,10 @@ def vw_removal_rank(x: np.ndarray, v: np.ndarray, count: np.ndarray) -> np.ndarr
         p, q = prev[r, i], nxt[r, i]
         nxt[r, p] = q
         prev[r, q] = p
-        upd = p >= 1
-        rp, pp = r[upd], p[upd]
-        area[rp, pp] = metric(rp, prev[rp, pp], pp, q[upd])
-        upd = q < count[r] - 1
-        rq, qq = r[upd], q[upd]
-        area[rq, qq] = metric(rq, p[upd], qq, nxt[rq, qq])
+        for j in (p, q):                       # the neighbours' new areas (interior ones)
+            upd = (j >= 1) & (j < count[r] - 1)
+            rj, jj = r[upd], j[upd]
+            area[rj, jj] = metric(rj, prev[rj, jj], jj, nxt[rj, jj])
     return rank
 
 
@@ -117,14 +110,11 @@ def vw_removal_rank_heap(x, v, n: int) -> np.ndarray:
         p, q = prev[i], nxt[i]
         nxt[p] = q
         prev[q] = p
-        if p >= 1:
-            o = prev[p]
-            cur[p] = b = bits(abs((xs[q] - xs[o]) * (vs[q] - vs[p]) - (xs[q] - xs[p]) * (vs[q] - vs[o])))
-            push(heap, (b << S) | (M - p))
-        if q < n - 1:
-            r = nxt[q]
-            cur[q] = b = bits(abs((xs[r] - xs[p]) * (vs[r] - vs[q]) - (xs[r] - xs[q]) * (vs[r] - vs[p])))
-            push(heap, (b << S) | (M - q))
+        for j in (p, q):                       # the neighbours' new areas (interior ones)
+            if 1 <= j < n - 1:
+                o, r = prev[j], nxt[j]
+                cur[j] = b = bits(abs((xs[r] - xs[o]) * (vs[r] - vs[j]) - (xs[r] - xs[j]) * (vs[r] - vs[o])))
+                push(heap, (b << S) | (M - j))
     return rank
 
 
@@ -158,9 +148,7 @@ class GreedyVW(NodeList):
 
     schema = Schema(
         params=(
-            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' or 'exp' (as AVSM)",
-                  choices=INTERPOLATIONS),
+            NODES, INTERPOLATION,
         ),
         size="nodes", sweep=(2, 4, 6, 8, 12, 16, 24, 32), quick_sweep=(2, 4, 8, 16),
         examples=({"nodes": 4}, {"nodes": 8, "interpolation": "exp"}),
@@ -169,23 +157,13 @@ class GreedyVW(NodeList):
         paper="Visvalingam & Whyatt 1993", offline=True,
     )
 
-    def _resolve(self):
-        self.N = self.params["nodes"]
-        self._check_node_memory()
-
     def _build(self):
         segments = self.segments
         pts, rank = removal_ranks(segments)
-        off = pts["off"]
-        count = np.diff(off)[pts["texel"]]
-        keep = rank >= count - self.N
-        sel = np.flatnonzero(keep)
+        sel = np.flatnonzero(rank >= np.diff(pts["off"])[pts["texel"]] - self.N)     # the N removed last
         tex = pts["texel"][sel]
         node_off = np.concatenate([[0], np.cumsum(np.bincount(tex, minlength=segments.n_texels))])
         slot = np.arange(sel.size) - node_off[tex]
         self.node_counts = np.diff(node_off)
         src = _curve.fill_slots(tex, sel, slot, self.N, segments.n_texels)
-        if self.params["interpolation"] == "exp":     # no denormal node values (as optimal)
-            store = np.float32 if segments.dtype == "float32" else np.float64
-            pts = {**pts, "v": exp_stored_values(pts["v"], store)}
-        self.depths, self.values = _curve.store_nodes(segments, src, pts)
+        self.depths, self.values = _curve.store_nodes(segments, src, pts, exp=self.params["interpolation"] == "exp")

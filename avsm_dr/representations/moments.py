@@ -1,59 +1,42 @@
 """Moment-based transmittance: 4, 6 or 8 power moments of the absorbance with the
-Hamburger bound (Peters and Klein 2015, "Moment Shadow Mapping", algorithm 2; Peters,
-Muenstermann, Wetzstein, Klein 2016, "Beyond Hard Shadows: Moment Shadow Maps for
-Single Scattering, Soft Shadows and Translucent Occluders", I3D, and its JCGT 2017
-version; Muenstermann, Krumpen, Klein, Peters 2018, "Moment-Based Order-Independent
-Transparency" (MBOIT), sec. 3-4, applied to optical depth as in the latter).
+Hamburger bound (Peters and Klein 2015, "Moment Shadow Mapping", algorithm 2; Peters et al.
+2016/2017, "Beyond Hard Shadows", I3D / JCGT; Muenstermann, Krumpen, Klein, Peters 2018,
+"Moment-Based Order-Independent Transparency" (MBOIT), secs. 3-4, on optical depth as there).
 
 Depth warp (``warp=``): ``u = (z - near) / (far - near)`` ('linear') or
-``u = (ln z - ln near) / (ln far - ln near)`` ('log', MBOIT's logarithmic depth warp;
-needs ``near > 0``), same ranges and clipping as :mod:`avsm_dr.representations.basis`;
-then ``x = 2 u - 1`` in [-1, 1].  A texel stores ``2n + 1`` values (``moments = 2n``) ::
+``u = (ln z - ln near) / (ln far - ln near)`` ('log', MBOIT's; needs ``near > 0``), ranges and
+clipping as :mod:`.basis`; then ``x = 2 u - 1`` in [-1, 1].  A texel stores ``2n + 1`` values
+(``moments = 2n``) ::
 
     b_0 = sum_i tau_i,    b_k = sum_i tau_i E_i[x^k]  (k = 1..2n),
 
-``E_i`` the mean over segment ``i`` with its optical depth uniform in ``z`` (a
-zero-length segment: ``x_i^k``).
+``E_i`` the mean over segment ``i`` with its optical depth uniform in ``z`` (a zero-length
+segment: ``x_i^k``).
 
 * linear warp: ``E[x^k] = sum_{j=0..k} x1^(k-j) x0^j / (k + 1)`` (no cancellation);
 * log warp: uniform in z is the density ``~ e^{lambda x}`` in x (``lambda =
   (ln far - ln near) / 2``), so with ``x = mid + h tau``, ``tau`` in [-1, 1],
-  ``E[x^k] = sum_j C(k, j) mid^(k-j) h^j mu_j(kappa)``, ``kappa = lambda h =
-  ln(z1 / z0) / 2`` and ``mu_j(kappa) = int tau^j e^{kappa tau} / int e^{kappa tau}``
-  in closed form: for ``kappa < KAPPA_SWITCH`` the positive series
-  ``int_{-1}^{1} tau^j e^{kappa tau} = sum_{i + j even} kappa^i / i! 2 / (i + j + 1)``
-  (no cancellation; truncation < 1e-16 at 34 terms for float64, < 1e-9 at 24 for
-  float32), else the recurrence ``mu_j = c_j - (j / kappa) mu_{j-1}`` (integration by
-  parts; ``c_j = 1`` for even j, ``coth kappa`` for odd j), whose error grows by
-  ``prod_{i<=j} i / kappa <= 8! / 4^8 < 1`` at ``kappa >= 4``.  Every term is at most 1
-  in magnitude (``|mid| + h <= 1``): absolute error ~ eps.
+  ``E[x^k] = sum_j C(k, j) mid^(k-j) h^j mu_j(kappa)``, ``kappa = lambda h`` and
+  ``mu_j(kappa) = int tau^j e^{kappa tau} / int e^{kappa tau}``: for ``kappa < KAPPA_SWITCH``
+  the positive series ``int_{-1}^{1} tau^j e^{kappa tau} = sum_{i + j even} kappa^i / i!
+  2 / (i + j + 1)``, else the recurrence ``mu_j = c_j - (j / kappa) mu_{j-1}`` (``c_j = 1``
+  for even j, ``coth kappa`` for odd j; its error grows by ``prod_{i<=j} i / kappa < 1``).
 
-Reconstruction (one lane per receiver): :func:`._moment_bounds.hankel_bound`, the bias
-``m = (1 - alpha) b / b_0 + alpha m*``, the canonical representation through ``x_f`` and
-``D = b_0 clamp(L + beta (U - L), 0, 1)``, ``T = exp(-D)`` with ``beta`` =
-``overestimation`` (0: the lower bound, light; 1: the upper bound, dark; MBOIT uses
-0.25).  ``T = 1`` at and in front of near, ``T = exp(-b_0)`` at and behind far.
+Reconstruction: :func:`._moment_bounds.hankel_bound` with bias ``alpha`` and
+``beta = overestimation`` (0: the lower bound, light; 1: the upper bound, dark; MBOIT: 0.25),
+``T = exp(-D)``; ``T = 1`` at and in front of near, ``T = exp(-b_0)`` at and behind far.
 
-Bias (``bias`` alpha, ``bias_target`` m*; ``bias=``/``bias_target=`` override the defaults).
-Target: MBOIT's float32 vectors :data:`MBOIT_TARGET` (Hankel matrices positive definite,
-checked at import); :data:`UNIFORM_TARGET` holds the uniform distribution's ``1/(k+1)``.
-alpha by storage precision (``self.precision``, else the segments' dtype):
-:data:`DEFAULT_BIAS` (MBOIT's 32-bit / 16-bit values; float64 and unorm8, 16-bit x 256 at
-most 0.5, are ours), :data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'.  Trigonometric moments
-bias toward the uniform distribution on the circle (:mod:`._trig_moments`), alpha
-:data:`DEFAULT_TRIG_BIAS`.
+Bias (``bias`` alpha, ``bias_target`` m*): target :data:`MBOIT_TARGET` (positive definite
+Hankel matrices, checked at import; :data:`UNIFORM_TARGET`: the uniform distribution's);
+alpha by storage precision (``self.precision``, else the segments' dtype) from
+:data:`DEFAULT_BIAS` (MBOIT's 32-bit / 16-bit values; float64 and unorm8 ours),
+:data:`MSM_UNORM16_BIAS` for 'msm' in 'unorm16'; trigonometric: :data:`DEFAULT_TRIG_BIAS`.
 
 16-bit storage (``quantization``, 4 power moments in 'float16' / 'unorm16'): 'scaled' codes
-the moments over the per-texel scale ``b_0`` like every basis kind (:mod:`._precision`, 5
-codes + a float32 scale, 14 bytes); 'msm' stores the optimised transform of Peters and Klein
-2015, sec. 5 (:mod:`._moment_quantization`: 4 codes, ``b_0`` in float32, 12 bytes).  Default
-'msm' in 'unorm16', 'scaled' elsewhere (experiment ``moment_storage``).
-
-Family 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`
-(phase ``phi = (pi/2) x``, bound through the Cayley transform).  The schema's ``constraint``
-rejects counts a family does not take.  ``monotone`` False (bounds non-decreasing in exact
-arithmetic, not the float reconstruction).  ``nbytes_per_texel`` = ``(moments + 1)`` itemsize
-(+ 2 itemsize per-texel range; with ``precision`` as :mod:`._precision` counts it).
+the moments over the per-texel scale ``b_0`` (:mod:`._precision`); 'msm' (default in 'unorm16')
+the transform of Peters and Klein 2015, sec. 5 (:mod:`._moment_quantization`).  Family
+'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`.
+``monotone`` False (the bounds are non-decreasing in exact arithmetic only).
 """
 from __future__ import annotations
 
@@ -104,8 +87,7 @@ class PowerMomentBasis(Basis):
     """f_k(u) = (2u - 1)^k, k = 0..n (n power moments plus the total; not orthonormal:
     only the projection is used)."""
 
-    def __init__(self, n: int = 4, arg: str = "moments"):
-        super().__init__(n, arg)
+    arg = "moments"
 
     @property
     def n_coefficients(self) -> int:
@@ -133,8 +115,7 @@ class TrigMomentBasis(Basis):
     """f = [1, cos(k phi), sin(k phi)], k = 1..n, phi = (pi/2)(2u - 1) (2n + 1 functions;
     only the projection is used)."""
 
-    def __init__(self, n: int = 2, arg: str = "moments"):
-        super().__init__(n, arg)
+    arg = "moments"
 
     @property
     def n_coefficients(self) -> int:
@@ -142,11 +123,7 @@ class TrigMomentBasis(Basis):
 
     def f(self, u):
         phi = (math.pi / 2) * (2 * u - 1)
-        out = [1 + 0 * u]
-        for k in range(1, self.n + 1):
-            s, c = dr.sincos(k * phi)
-            out += [c, s]
-        return out
+        return [1 + 0 * u] + [x for k in range(1, self.n + 1) for x in dr.sincos(k * phi)[::-1]]   # cos, sin
 
     def average(self, u0, u1):
         return TM.trig_means(2 * u0 - 1, 2 * u1 - 1, self.n)
@@ -248,6 +225,8 @@ class MomentShadowMap(BasisRepresentation):
         class), ``near > 0`` for the log warp, ``bias`` (None: the default for the storage)."""
         P = self.params
         n = P["moments"]
+        self._trig = P["family"] == "trigonometric"
+        self._log = P["warp"] == "log"
         if P["quantization"] is None:                   # module docstring, "16-bit storage"
             msm = (P["family"], n, self.precision) == ("power", 4, MSM_DEFAULT_PRECISION)
             P["quantization"] = "msm" if msm else "scaled"
@@ -258,7 +237,8 @@ class MomentShadowMap(BasisRepresentation):
             if P["bias_target"] is not None:
                 raise ValueError("bias_target: the trigonometric family biases toward the uniform "
                                  "distribution on the circle (no other target)")
-            self._cayley, self._pivots = TM.cayley_matrix(n), TM.uniform_pivots(n)
+            self._cayley = TM.cayley_matrix(n)
+            self._pivots = hankel_pivots(self._cayley[1:, 0], self._cayley[0, 0])   # of the uniform distribution
         else:
             target = MBOIT_TARGET[n] if P["bias_target"] is None else P["bias_target"]
             try:
@@ -277,7 +257,6 @@ class MomentShadowMap(BasisRepresentation):
             table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
             P["bias"] = table[n][self.precision or self.segments.dtype]
 
-
     def _apply_precision(self) -> None:
         """'msm': the moments through :mod:`._moment_quantization`, ranges as the base class."""
         if self.params["quantization"] != "msm":
@@ -285,14 +264,6 @@ class MomentShadowMap(BasisRepresentation):
         nbytes = QZ.quantise_store(self, self._stored_attr, self.precision)
         rest = tuple(f for f in self._stored() if f.attr != self._stored_attr)
         self._stored_nbytes = nbytes + quantise(self, rest)
-
-    @property
-    def _trig(self) -> bool:
-        return self.params["family"] == "trigonometric"
-
-    @property
-    def _log(self) -> bool:
-        return self.params["warp"] == "log"
 
     def _check_log_range(self):
         """near > 0 for the log warp (ValueError naming near); empty texels get (1, 2)."""
@@ -321,25 +292,22 @@ class MomentShadowMap(BasisRepresentation):
         ln_near, ls = self._log_range(texel)
         return dr.clip((dr.log(dr.maximum(depth, near)) - ln_near) / ls, 0, 1)
 
-    def _project(self):
-        """Linear warp: the basis projection.  Log warp: :func:`log_warp_means` per segment,
-        summed per texel like the basis."""
+    def _list_terms(self):
+        """Linear warp: the basis' terms.  Log warp: :func:`log_warp_means` per segment."""
         if not self._log:
-            return super()._project()             # the basis' average: power or trigonometric
+            return super()._list_terms()          # the basis' average: power or trigonometric
         seg = self.segments
         K = self.basis.n_coefficients
-        self._check_index_range(seg.n_texels, K)
         if self._trig:
             at_near = TM.delta_values(-1.0, self.basis.n)
         else:
             at_near = [(-1.0) ** k for k in range(K)]      # f_k at x = -1: the part in front of near
 
         def terms(z0, z1, tau, texel):
-            sel = texel if self._per_texel else None
-            near, span = self._range(sel)
+            near, span = self._range(texel)          # global ranges ignore the texel
             _, _, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
             far = near + span
-            ln_near, ls = self._log_range(sel)
+            ln_near, ls = self._log_range(texel)
             w0 = (dr.log(dr.clip(z0, near, far)) - ln_near) / ls
             w1 = (dr.log(dr.clip(z1, near, far)) - ln_near) / ls
             x0, x1 = dr.clip(2 * w0 - 1, -1, 1), dr.clip(2 * w1 - 1, -1, 1)
@@ -350,13 +318,10 @@ class MomentShadowMap(BasisRepresentation):
                 means = log_warp_means(x0, x1, 0.5 * ls, K - 1, seg.dtype)
             return [tau_in * means[k] + tau_front * at_near[k] for k in range(K)]
 
-        if seg.n_segments and not seg.requires_grad:
-            return self._sum_per_texel(terms)
-        return self._scatter_terms(terms)
+        return terms
 
     def bounds(self, texel, depth):
-        """(lower, upper) bounds of the absorbance fraction in front of each receiver
-        (Dr.Jit arrays; texel UInt32, depth Float)."""
+        """(lower, upper) bounds of the absorbance fraction in front of each receiver."""
         return self._bounded(self._store, texel, self.normalized_depth(texel, depth))[1:]
 
     def _bounded(self, store, row, u):

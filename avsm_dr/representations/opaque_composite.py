@@ -6,10 +6,9 @@ blocker is hit).  A lookup multiplies, per filter tap::
 
     T(texel, z) = T_volume(texel, z) * [z < z_o(texel)]
 
-This is how volumetric shadow maps are used with opaque geometry: Jansen and Bavoil,
-"Fourier Opacity Mapping", I3D 2010, sec. 4 (an opaque shadow map next to the opacity map),
-and Peters and Klein, "Moment Shadow Mapping", I3D 2015; the opaque step then never passes
-through a compressed form (no ringing of Fourier series or moments at the step).
+as volumetric shadow maps are used with opaque geometry (Jansen and Bavoil, "Fourier Opacity
+Mapping", I3D 2010, sec. 4; Peters and Klein, "Moment Shadow Mapping", I3D 2015): the opaque
+step never passes through a compressed form.
 """
 from __future__ import annotations
 
@@ -43,17 +42,8 @@ class OpaqueComposite(Representation):
         big = float(np.finfo(self.segments.dtype).max)
         self.depth = A.to_float(np.minimum(self.depth, big), self.Float)   # +inf stored as the largest finite
 
-    @property
-    def monotone(self) -> bool:
-        return self.volume.monotone
-
-    @property
-    def differentiable(self) -> bool:
-        return self.volume.differentiable
-
-    @property
-    def unity_in_front(self) -> bool:
-        return self.volume.unity_in_front
+    monotone, differentiable, unity_in_front = (property(lambda self, n=n: getattr(self.volume, n))
+                                                for n in ("monotone", "differentiable", "unity_in_front"))
 
     @property
     def nbytes_per_texel(self) -> float:

@@ -2,33 +2,28 @@
 points ("best breakpoint subset"), by dynamic programming.
 
 The candidates are the texel's exact-curve points (:mod:`._curve`; the last one is always
-kept).  Starting at point j costs the error of ``T = 1`` on ``[z_0, z_j)`` (the lookup gives
-1 in front of the first node; :func:`start_costs`).  Between chosen points ``i < j`` the
-curve is the chord of the lookup's interpolation (``'linear'``: AVSM's eq. 2; ``'exp'``:
-``T_i (T_j / T_i)^w``, linear where a value is 0; :func:`exp_stored_values`), with cost
-``C(i, j)`` on ``[z_i, z_j]``: ``norm='l2'`` ``int (T - chord)^2 dz`` (closed forms per
-interval, prefix sums of ``int T``, ``int z T``, ``int T^2``); ``norm='linf'``
-``max |T - chord|`` over the continuous curve (the points and the one interior extremum
-per interval).  DP over "at most n nodes": ``D_1(j) = S(j)``, ``D_n(j) = min(D_{n-1}(j),
-min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, O(N K^2) per texel; the answer ``D_N(K-1)``,
-backtracked.  Costs are formed in log space from the optical depths (finite for any input);
-a non-finite one raises RuntimeError.  With ``norm='l2'`` and linear interpolation the
-chosen nodes' values are then refitted by least squares (tridiagonal normal equations of
-the hat functions, first and last value pinned), kept where that lowers the texel's L2
-error: the best subset refitted, not the joint optimum over subsets and values.
+kept).  Starting at point j costs the error of ``T = 1`` on ``[z_0, z_j)`` (:func:`start_costs`);
+between chosen points ``i < j`` the curve is the lookup's chord (``'linear'``: AVSM's eq. 2;
+``'exp'``: ``T_i (T_j / T_i)^w``, linear where a value is 0), with cost ``C(i, j)``
+(:func:`pair_costs`): ``norm='l2'`` ``int (T - chord)^2 dz``, ``norm='linf'`` ``max |T - chord|``
+over the continuous curve.  DP over "at most n nodes": ``D_1(j) = S(j)``,
+``D_n(j) = min(D_{n-1}(j), min_{i<j} D_{n-1}(i) (+|max) C(i, j))``, O(N K^2) per texel; the
+answer ``D_N(K-1)``, backtracked.  With ``norm='l2'`` and linear interpolation the chosen
+nodes' values are then refitted by least squares (:func:`refit_l2`) where that lowers the
+texel's L2 error: the best subset refitted, not the joint optimum over subsets and values.
 
 Host NumPy in float64 (depths normalised to [0, 1] per texel), vectorised over texels of
 similar point count.  Builds above :data:`MAX_WORK` work units or with a texel above
-:data:`MAX_POINTS` points raise ValueError before computing.  ``objective`` holds each
-texel's cost of the stored curve: RMS over ``[first, last point]`` (l2) or the max error
-(linf).
+:data:`MAX_POINTS` points raise ValueError before computing.  ``objective``: each texel's
+cost of the stored curve, RMS over ``[first, last point]`` (l2) or the max error (linf).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from . import _curve
-from .avsm import INTERPOLATIONS, NodeList
+from ._curve import exp_stored_values
+from .avsm import INTERPOLATION, NODES, NodeList
 from .registry import register
 from .schema import Param, Schema
 
@@ -92,12 +87,12 @@ def linear_chord_l2(a0, a1, q, xa, xb, va, vb):
 
 def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
     """(B, K, K) costs of the chord from point i to point j (i < j < count; inf else), from
-    the points' depths ``x`` (normalised), optical depths ``tau`` and piece exponents ``a``
-    (:func:`piece_exponents`); ``store``: the dtype the node values are stored in.
-
-    The chord is the lookup's (:func:`.avsm.interpolate`) on the stored values: a line in
-    log space between two positive ones, a line in T where one is 0.  Formed from ``tau``,
-    logs of normal numbers and ratios in [0, 1], so every valid cost is finite."""
+    the points' normalised depths ``x``, optical depths ``tau`` and piece exponents ``a``;
+    ``store``: the dtype the node values are stored in.  l2: closed forms per interval from
+    :func:`prefix_integrals`; linf: the points and the one interior extremum per piece.
+    The chord is the lookup's (:func:`.avsm.interpolate`) on the stored values, formed from
+    ``tau``, logs of normal numbers and ratios in [0, 1]: every valid cost is finite
+    (RuntimeError otherwise)."""
     B, K = x.shape
     v = np.exp(-tau)
     ii = np.arange(K)[None, :, None]
@@ -170,15 +165,6 @@ def pair_costs(x, tau, a, count, norm: str, interp: str, store=np.float64):
     return C
 
 
-def exp_stored_values(v, store):
-    """Node values as the offline kinds store them for exponential interpolation: 0 where
-    ``store`` (np.float32 / np.float64) rounds the value to 0, else at least its smallest
-    normal ``tiny``: the lookup never takes the log of a denormal (Dr.Jit's LLVM log is
-    inexact there), so the DP's chords are the lookup's exactly."""
-    v = np.asarray(v, np.float64)
-    return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
-
-
 def _check_finite(C, valid):
     """Every valid pair cost is finite (the DP would otherwise skip or pick it silently)."""
     bad = valid & ~np.isfinite(C)
@@ -211,9 +197,7 @@ def start_costs(x, tau, a, count, norm: str):
 
 def best_subset(C, S, count, N: int, norm: str):
     """(B, K) bool mask of the chosen points (at most N, the last included) and the (B,)
-    optimal cost, from the (B, K, K) pair costs ``C`` and the (B, K) start costs ``S``
-    (:func:`start_costs`).  ``D_1(j) = S(j)``, ``D_n(j) = min(D_{n-1}(j), min_i D_{n-1}(i)
-    (+|max) C(i, j))``; ties keep fewer nodes."""
+    optimal cost: the module docstring's DP on ``C`` and ``S``; ties keep fewer nodes."""
     B, K = C.shape[:2]
     rows = np.arange(B)
     dp = S.copy()
@@ -333,11 +317,10 @@ class OptimalSubset(NodeList):
 
     schema = Schema(
         params=(
-            Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64),
+            NODES,
             Param("norm", "choice", "l2", "objective per texel, uniform in depth: 'l2' (squared error "
                   "integral) or 'linf' (max error over the continuous curve)", choices=NORMS),
-            Param("interpolation", "choice", "linear", "between nodes: 'linear' or 'exp' (as AVSM)",
-                  choices=INTERPOLATIONS),
+            INTERPOLATION,
             # Private ablation switch (the avsm_gap experiment): the subset's exact values
             Param("_refit", "bool", True, "private: refit the values for 'l2' + 'linear' (False: keep "
                   "the best subset's exact values)"),
@@ -351,9 +334,12 @@ class OptimalSubset(NodeList):
     )
 
     def _resolve(self):
+        super()._resolve()
         P = self.params
-        self.N, self.norm, self.interp = P["nodes"], P["norm"], P["interpolation"]
-        self._check_node_memory()
+        self.norm, self.interp = P["norm"], P["interpolation"]
+        # the least-squares refit ('l2', linear) can overshoot a step and is a host solve (no gradients)
+        self._refit = self.norm == "l2" and self.interp == "linear" and P["_refit"]
+        self.monotone = self.differentiable = not self._refit
         counts = np.diff(_curve.points(self.segments)["off"])
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
@@ -383,26 +369,10 @@ class OptimalSubset(NodeList):
                 f"{MAX_WORK:.3g} (avsm_dr.representations.optimal.MAX_WORK); fits: "
                 f"{'; '.join(fits)}; or use 'greedy' (O(K log K), no limit)")
 
-    @property
-    def monotone(self) -> bool:
-        """False for the refit ('l2', linear): least-squares values can overshoot a step."""
-        return not self._refit
-
-    @property
-    def differentiable(self) -> bool:
-        """Not for the refit (a host least-squares solve); else the exact curve's gradients."""
-        return not self._refit
-
-    @property
-    def _refit(self) -> bool:
-        P = self.params
-        return P["norm"] == "l2" and P["interpolation"] == "linear" and P["_refit"]
-
     def _build(self):
         seg, pts = self.segments, _curve.points(self.segments)
         T, N = seg.n_texels, self.N
         off = pts["off"]
-        store = np.float32 if seg.dtype == "float32" else np.float64
         self.objective = np.zeros(T)
         sel_tex, sel_pt, slot, vals = [], [], [], []
         for tex, kmax in _curve.buckets(off, power=2, max_elems=1 << 21):
@@ -416,7 +386,7 @@ class OptimalSubset(NodeList):
                 chosen = np.ones((tex.size, 1), bool)
                 cost = np.zeros(tex.size)
             else:
-                C = pair_costs(x, tau, a, count, self.norm, self.interp, store=store)
+                C = pair_costs(x, tau, a, count, self.norm, self.interp, store=seg.dtype)
                 S = start_costs(x, tau, a, count, self.norm)
                 chosen, cost = best_subset(C, S, count, N, self.norm)
             if self._refit and kmax > 1:
@@ -431,15 +401,9 @@ class OptimalSubset(NodeList):
             sel_pt.append(off[tex[r]] + idx[r, m])
             slot.append(m)
             vals.append(V[r, m])
-        def cat(a, dt):
-            return np.concatenate(a) if a else np.zeros(0, dt)
-        sel_tex, sel_pt, slot = cat(sel_tex, np.int64), cat(sel_pt, np.int64), cat(slot, np.int64)
+        sel_tex, sel_pt, slot, vals = (np.concatenate(a) if a else np.zeros(0, np.int64)
+                                       for a in (sel_tex, sel_pt, slot, vals))
         self.node_counts = np.bincount(sel_tex, minlength=T)
         src = _curve.fill_slots(sel_tex, sel_pt, slot, N, T)
-        if self._refit:
-            value = _curve.fill_slots(sel_tex, cat(vals, np.float64), slot, N, T, fill=1.0)
-            self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value)
-        else:
-            if self.interp == "exp":
-                pts = {**pts, "v": exp_stored_values(pts["v"], store)}
-            self.depths, self.values = _curve.store_nodes(seg, src, pts)
+        value = _curve.fill_slots(sel_tex, vals.astype(np.float64), slot, N, T, fill=1.0) if self._refit else None
+        self.depths, self.values = _curve.store_nodes(seg, src, pts, values=value, exp=self.interp == "exp")

@@ -12,16 +12,11 @@ holding it) and the optical depth ``D(u) = sum_k a_k g_k(u)`` is piecewise linea
 exact at the slice boundaries ``u = j / n``.
 
 Stored form (texel-major, flat ``[texel * n + j - 1]``): the cumulative optical depths
-``C_j = D(j / n) = sum_{k<j} a_k``, ``j = 1..n`` (``n`` floats per texel, float64 running
-sums over the slice coefficients; ``C_0 = 0`` is implicit), so a lookup is two
-gathers and one interpolation, ``D(u) = min(C_j + (C_{j+1} - C_j)(n u - j), C_{j+1})``
-with ``j = min(floor(n u), n - 1)``.  The ``min`` keeps ``D`` non-decreasing under
-float rounding: ``a_k >= 0`` and ``g_k`` non-decreasing make ``T`` monotone
-(``monotone = True``; to one ulp, as Dr.Jit's float32 ``exp`` is itself not monotone at
-the ulp level).
-
-Projection: four scatters per segment whatever ``n`` (``_project``).  Depth range, clipping:
-see :mod:`avsm_dr.representations.basis`.
+``C_j = D(j / n) = sum_{k<j} a_k``, ``j = 1..n`` (float64 running sums; ``C_0 = 0``
+implicit), so a lookup is ``D(u) = min(C_j + (C_{j+1} - C_j)(n u - j), C_{j+1})`` with
+``j = min(floor(n u), n - 1)``; the ``min`` keeps ``D`` non-decreasing under rounding, so
+``T`` is monotone (to one ulp of Dr.Jit's float32 ``exp``).  Projection: four scatters per
+segment whatever ``n`` (``_project``); depth range and clipping as :mod:`.basis`.
 """
 from __future__ import annotations
 
@@ -42,9 +37,7 @@ class PiecewiseConstantBasis(Basis):
     """``n`` slice indicators on [0, 1] (Jansen and Bavoil 2010, sec. 5.1, simplified scaling)."""
 
     monotone = True
-
-    def __init__(self, n: int, arg: str = "slices"):
-        super().__init__(n, arg)
+    arg = "slices"
 
     def _slice(self, u):
         """Index of the slice holding u (the last slice includes u = 1), as Float."""
@@ -77,12 +70,8 @@ class PiecewiseConstantBasis(Basis):
         du = u1 - u0
         safe = dr.select(du > 0, du, 1)
         point = self.f(u0)
-        out = []
-        for k in range(self.n):
-            lo, hi = k / self.n, (k + 1) / self.n
-            overlap = dr.maximum(dr.minimum(u1, hi) - dr.maximum(u0, lo), 0)
-            out.append(dr.select(du > 0, overlap / safe, point[k]))
-        return out
+        return [dr.select(du > 0, dr.maximum(dr.minimum(u1, (k + 1) / self.n) - dr.maximum(u0, k / self.n), 0) / safe,
+                          point[k]) for k in range(self.n)]
 
 
 #: Texel chunks of the build without gradients (:meth:`OpacityShadowMap._build_chunked`):
@@ -92,9 +81,8 @@ BUILD_CHUNKS = 2
 
 @register("osm")
 class OpacityShadowMap(BasisRepresentation):
-    """Opacity shadow map: n ``slices``; ``nbytes_per_texel`` = n itemsize (+ 2 itemsize per-texel
-    range; ``precision``: as :mod:`._precision` counts ``optical_depth``).  ``coefficients``:
-    a_k, the optical depth per slice; ``_cum``: the stored C_1..C_n, flat."""
+    """Opacity shadow map: n ``slices``; ``coefficients``: a_k, the optical depth per slice;
+    ``_cum``: the stored C_1..C_n, flat (``precision``: coded as ``optical_depth``)."""
 
     schema = Schema(
         params=(
@@ -112,10 +100,9 @@ class OpacityShadowMap(BasisRepresentation):
         return PiecewiseConstantBasis(self.params["slices"])
 
     def _build_bytes(self, K: int) -> float:
-        """Without gradients (:meth:`_build_chunked`): a_k, C_j and one chunk's parts,
-        ``(2 + 2 / BUILD_CHUNKS) itemsize`` per (texel, slice) plus 4 bytes per texel.  With
-        gradients (:meth:`_project` at full size): P, R, their float64 prefix sums and the
-        store, ``8 itemsize + 32`` bytes per (texel, slice), and ~12 words per segment."""
+        """Without gradients (:meth:`_build_chunked`): a_k, C_j and one chunk's parts; with
+        them (:meth:`_project`): P, R, their float64 prefix sums, the store and ~12 words per
+        segment."""
         seg = self.segments
         T, it = seg.n_texels, seg.itemsize
         if not seg.requires_grad:
@@ -134,11 +121,9 @@ class OpacityShadowMap(BasisRepresentation):
 
     def _build_chunked(self):
         """(a_k, C_j), flat texel-major, without gradients, in :data:`BUILD_CHUNKS` chunks of
-        texels.  Per chunk: one lane per non-empty texel adds its segments' parts in CSR
-        order into its own rows of P and R (:meth:`_add_parts`, no atomics), then one lane
-        per texel walks its slices with float64 running sums, ``a_j = P_j + sum_{i<=j} R_i``
-        clamped at 0 and ``C_{j+1} = sum_{k<=j} a_k``: the operations, in order, of the
-        dense form (:meth:`_project`, ``dr.block_prefix_sum``), so the same bits."""
+        texels: one lane per non-empty texel adds its segments' parts in CSR order into its
+        rows of P and R (:meth:`_add_parts`, no atomics), then walks its slices with float64
+        running sums: the operations, in order, of :meth:`_project` (the same bits)."""
         seg, n = self.segments, self.basis.n
         t = backend.types()
         Float, UInt32, F64 = seg.Float, t.UInt32, t.Float64
@@ -227,13 +212,8 @@ class OpacityShadowMap(BasisRepresentation):
         dr.eval(a)
         return a
 
-    @property
-    def _store(self):
-        """Reconstruction reads the cumulative sums C_j (linear in a_k: prefilterable)."""
-        return self._cum
-
-    #: ``precision`` quantises the cumulative sums (non-negative, non-decreasing: the
-    #: rounded codes stay non-decreasing, so T stays monotone); ``coefficients`` stay exact.
+    #: Reconstruction reads, and ``precision`` quantises, the cumulative sums (non-negative,
+    #: non-decreasing: the codes stay so, T stays monotone); ``coefficients`` stay exact.
     _stored_attr = "_cum"
 
     def _stored(self):

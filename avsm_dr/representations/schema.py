@@ -1,17 +1,12 @@
 """Parameter schemas: each representation declares its parameters once, and validation,
 ``ad.describe(kind)``, the experiments' sweeps and the docs' tables read them.
 
-One rule for every parameter (the reliability contract):
-
-* ``int``: an integral number (Python or NumPy), never ``bool``; range checked.
-* ``float``: a real, finite number (Python or NumPy, integers allowed), never ``bool`` or
-  ``str``; range checked (``min``/``max`` inclusive unless ``open_min``/``open_max``).
-* ``bool``: ``True``/``False`` (Python or NumPy bool) only.
-* ``choice``: one of ``choices`` (strings).
-* ``object``: passed through (validated by the representation itself).
-
-``nullable=True`` admits ``None`` (meaning: derived from the segments, e.g. near/far).
-Errors are ``ValueError("<name>: expected ..., got ...")``.
+One rule for every parameter: ``int`` an integral number (Python or NumPy, never ``bool``);
+``float`` a real, finite number (integers allowed, never ``bool`` or ``str``), ``min``/``max``
+inclusive unless ``open_min``/``open_max``; ``bool`` ``True``/``False`` only; ``choice`` one of
+``choices``; ``object`` passed through (validated by the representation).  ``nullable=True``
+admits ``None`` (derived from the segments, e.g. near/far).  Errors are
+``ValueError("<name>: expected ..., got ...")``.
 """
 from __future__ import annotations
 
@@ -50,8 +45,7 @@ class Param:
             raise ValueError(f"open_min: int parameter {self.name!r} takes closed bounds")
 
     def validate(self, value):
-        """The value converted to its Python type, or ValueError naming the parameter
-        (:mod:`avsm_dr.validation`'s rules and messages)."""
+        """The value converted to its Python type, or ValueError naming the parameter."""
         if (value is None and self.nullable) or self.type == "object":
             return value
         if self.type == "bool":
@@ -77,18 +71,13 @@ class Param:
 
 @dataclass(frozen=True)
 class Schema:
-    """A kind's parameters, its size parameter and the size values experiments sweep.
-
-    ``size``: the parameter that trades memory for accuracy (None: no such parameter).
-    ``sweep`` / ``quick_sweep``: its values in the experiments (full / ``--quick``).
-    ``examples``: parameter sets the contract tests run (besides the defaults).
-    ``headline``: the configuration benchmarks and single-setting experiments use.
-    ``summary``, ``paper``: one line each for the docs' kinds table.
-    ``offline``: the build is an offline reference (host code, cost superlinear in the
-    segments per texel): benchmarks and full-size sweeps run it only where it fits.
-    ``constraint``: a rule across parameters, ``params -> message | None`` (the message
-    starts with the offending parameter's name), checked after the per-parameter rules;
-    :meth:`allows` asks it without raising, so sweeps can skip invalid combinations.
+    """A kind's parameters: ``size`` the one that trades memory for accuracy (or None),
+    ``sweep`` / ``quick_sweep`` its values in the experiments (full / ``--quick``),
+    ``examples`` parameter sets the contract tests run, ``headline`` the configuration
+    benchmarks use, ``summary`` / ``paper`` the docs' kinds table; ``offline``: an offline
+    reference (host code, cost superlinear in the segments per texel) that benchmarks run only
+    where it fits; ``constraint``: a rule across parameters, ``params -> message | None`` (the
+    message starts with the offending parameter's name), checked after the per-parameter ones.
     """
 
     params: tuple = ()
@@ -148,8 +137,7 @@ class Schema:
         return True
 
     def describe(self) -> dict:
-        """Plain-data description; private parameters (names starting with ``_``, e.g. a
-        benchmark's ablation switches) are left out."""
+        """Plain-data description, private ``_`` parameters left out."""
         return {"params": {p.name: p.describe() for p in self.params if not p.name.startswith("_")},
                 "size": self.size,
                 "sweep": list(self.sweep), "quick_sweep": list(self.quick_sweep or self.sweep),

@@ -2,8 +2,8 @@
 ``learned_warp`` experiment's second part).
 
 The paper removes the interior node of smallest area change (Salvi, Vidimce, Lauritzen and
-Lefohn 2010, "Adaptive Volumetric Shadow Maps", sec. 3.2.1), ``A_i`` =
-:func:`avsm_dr.representations.avsm.area_metric`.  Here the metric is a blend
+Lefohn 2010, "Adaptive Volumetric Shadow Maps", sec. 3.2.1), ``A_i`` = :func:`area_metric`.
+Here the metric is a blend
 
     m_i = (1 - beta) A_i + beta G_i,   G_i = (d_{i+1} - d_{i-1}) (t_{i-1} - t_{i+1}),
 
@@ -32,7 +32,13 @@ import numpy as np
 
 from avsm_dr import _arrays as A
 from avsm_dr import backend
-from avsm_dr.representations.avsm import area_metric, curve_at, insert_segment, interpolate
+from avsm_dr.representations.avsm import curve_at, insert_segment, interpolate
+
+
+def area_metric(d, t, i):
+    """Area change when removing interior node i (Salvi et al. 2010, sec. 3.2.1)."""
+    return dr.abs((d[i + 1] - d[i - 1]) * (t[i + 1] - t[i])
+                  - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1]))
 
 
 def _remove(d, t, beta, temperature):
