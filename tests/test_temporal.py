@@ -183,6 +183,27 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
                 assert fl["b"] == "avsm-8 sorted"
                 assert rec[vs]["verdict"] == ("less" if fl["high"] < 1 else "more" if fl["low"] > 1
                                               else "indistinguishable")
+    # issue 23: every row records its capture order, sparse and dense bytes, the signed mean and
+    # leak share at the receivers and the depth-uniform L2 of the curve
+    order = {m[0]: m[3] for m in T.methods(quick=True)}
+    for r in rows:
+        assert r["order"] == order[r["method"]], r
+        for k in ("bytes", "bytes_dense", "signed_mean", "leak_share", "depth_l2"):
+            assert np.isfinite(float(r[k])), (k, r)
+        assert float(r["bytes_dense"]) == float(r["bytes_per_texel"]) and 0 < float(r["bytes"]) <= float(r["bytes_dense"]) + 1
+        assert 0 <= float(r["leak_share"]) <= 1 and float(r["depth_l2"]) >= 0
+        assert (float(r["depth_l2"]) == 0) == (r["method"] == "exact"), r
+    for setting in f["per_setting"]:
+        assert set(f["curves"][setting]) == methods
+        err = f["claims"][setting]["avsm_sorted_vs_unsorted_error"]
+        assert set(err["metrics"]) == {"receiver_rmse", "depth_l2"} and err["order"] == ["depth", "random"]
+        assert err["indicative"] and err["n_configs"] == 1 and err["interval_unit"] == "configuration"
+        for m in err["metrics"].values():
+            assert m["low"] <= m["estimate"] <= m["high"] and np.isfinite(m["estimate"])
+        assert err["metric_dependent"] == (min(m["high"] for m in err["metrics"].values()) < 1
+                                           < max(m["low"] for m in err["metrics"].values()))
+        ev = f["insertion"][setting]["avsm-8 refit_l2 unsorted"]["exact"]["error_vs_stream"]
+        assert set(ev["metrics"]) == {"receiver_rmse", "depth_l2"} and isinstance(ev["metric_dependent"], bool)
     cam = f["insertion"]["camera"]["avsm-8 submission"]["exact"]["flicker_vs_unsorted"]
     assert cam["high"] < 1    # content and light still: the same draw order gives the same map every frame
     from PIL import Image

@@ -22,10 +22,17 @@ it) does not flicker, whatever its size.  Two ratios:
 
 (for a stationary error of variance s^2, mean m and frame-to-frame correlation rho:
 flicker^2 = 2 s^2 (1 - rho), error^2 = s^2 + m^2).
+
+Per frame also the sign of the error (issue 23 item 5)::
+
+    signed_mean_t = mean_i e[t, i]                 (> 0: light leaking)
+    leak_share_t  = mean_i [e[t, i] > 0.02]        (avsm_dr.metrics.THRESHOLD)
 """
 from __future__ import annotations
 
 import numpy as np
+
+from avsm_dr.metrics import THRESHOLD
 
 SQRT2 = float(np.sqrt(2.0))
 
@@ -38,8 +45,9 @@ def _frames(x, name: str) -> np.ndarray:
 
 
 def per_frame(estimate, reference) -> dict:
-    """Per-frame series of the module docstring: ``error`` (F,), ``flicker`` and ``content``
-    (F,; NaN at t = 0) for (F, K) arrays ``estimate`` and ``reference``."""
+    """Per-frame series of the module docstring: ``error``, ``signed_mean``, ``leak_share``
+    (F,), ``flicker`` and ``content`` (F,; NaN at t = 0) for (F, K) arrays ``estimate`` and
+    ``reference``."""
     est, ref = _frames(estimate, "estimate"), _frames(reference, "reference")
     if est.shape != ref.shape:
         raise ValueError(f"reference: expected shape {est.shape} (as estimate), got {ref.shape}")
@@ -47,7 +55,8 @@ def per_frame(estimate, reference) -> dict:
     nan = np.full(1, np.nan)
     return {"error": np.sqrt(np.mean(e ** 2, axis=1)),
             "flicker": np.concatenate([nan, np.sqrt(np.mean(np.diff(e, axis=0) ** 2, axis=1))]),
-            "content": np.concatenate([nan, np.sqrt(np.mean(np.diff(ref, axis=0) ** 2, axis=1))])}
+            "content": np.concatenate([nan, np.sqrt(np.mean(np.diff(ref, axis=0) ** 2, axis=1))]),
+            "signed_mean": np.mean(e, axis=1), "leak_share": np.mean(e > THRESHOLD, axis=1)}
 
 
 def receiver_sums(estimate, reference) -> np.ndarray:
