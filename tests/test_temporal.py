@@ -59,6 +59,33 @@ def test_pooled_ci_brackets_the_estimate():
         assert v["low"] <= v["estimate"] <= v["high"] and v["high"] - v["low"] < 0.5 * v["estimate"]
 
 
+def test_pooled_ci_resamples_whole_blocks():
+    """With blocks (issue 23 item 4: 8 x 8 texel tiles), the block sums' bootstrap equals
+    avsm_dr.stats' block bootstrap of the receivers (same draws, to rounding); one receiver per
+    block is the receiver bootstrap; correlated receivers give a wider interval."""
+    from avsm_dr.stats import bootstrap_ci
+    rng = np.random.default_rng(2)
+    tiles = np.repeat(np.arange(40), 8)                       # 40 tiles of 8 receivers
+    ref = rng.random((5, tiles.size))
+    est = ref + 0.02 * rng.standard_normal((5, 40))[:, tiles] + 0.002 * rng.standard_normal(ref.shape)
+    sums = M.receiver_sums(est, ref)
+    got = M.pooled_ci(sums, 5, n_boot=300, blocks=tiles)
+
+    def err(x, axis):
+        i = x.astype(np.int64)
+        return np.sqrt(np.mean(sums[0][i], axis=-1) / 5)
+    want = bootstrap_ci(np.arange(tiles.size, dtype=np.float64), err, n_boot=300, blocks=tiles)
+    for k in ("estimate", "low", "high"):
+        assert got["error"][k] == pytest.approx(want[k], rel=1e-12)
+    one = M.pooled_ci(sums, 5, n_boot=300, blocks=np.arange(tiles.size))
+    plain = M.pooled_ci(sums, 5, n_boot=300)
+    for k in ("estimate", "low", "high"):
+        assert one["flicker"][k] == pytest.approx(plain["flicker"][k], rel=1e-12)
+    assert got["error"]["high"] - got["error"]["low"] > 1.5 * (plain["error"]["high"] - plain["error"]["low"])
+    with pytest.raises(ValueError, match="^blocks:"):
+        M.pooled_ci(sums, 5, n_boot=10, blocks=tiles[:-1])
+
+
 @pytest.mark.parametrize("est, ref, name", [(np.zeros((1, 3)), np.zeros((1, 3)), "estimate"),
                                             (np.zeros((3, 3)), np.zeros((3, 4)), "reference")])
 def test_metrics_reject_bad_shapes(est, ref, name):
@@ -155,6 +182,7 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
     moved = [float(r["content_rms"]) for r in exact if r["frame"] != "0"]
     assert min(moved) > 0                                                             # every animation moves
     f = json.loads((out / "findings.json").read_text())
+    assert "8 x 8 texel tiles" in f["intervals"]
     for setting, block in f["per_setting"].items():
         assert block["exact"]["exact"]["flicker"]["estimate"] == 0.0
         un = block["exact"]["avsm-8 unsorted"]

@@ -41,7 +41,9 @@ against the exact one (:func:`avsm_dr.evaluation.depth_l2` on the texels built);
 claims (sorted vs unsorted AVSM, each insertion variant vs stream AVSM) carry both metrics
 and ``metric_dependent`` (their intervals on opposite sides of 1: ``error_curves``' rule).
 
-Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`);
+Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`),
+resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames together;
+issue 23 item 4: receivers looked up through one map are not independent);
 paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
 variant vs sorted and vs same-order stream AVSM, submission-order rows also vs random-order
 stream AVSM: :func:`insertion_claims`) by
@@ -64,6 +66,7 @@ from .._headline import num
 from .._study import Option, Study
 from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_l2, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
+from ..error_curves import texel_blocks
 from ..ordering import shuffled
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -215,6 +218,7 @@ def _evaluate(frame, P, ms, rng, gif: bool):
         builders["submission"] = SubsetBuilder(drawn.segments, taps)
     exact = sub.build("exact", {})
     ex = probe.lookup(exact)
+    tiles = texel_blocks(probe.tex[0], cap.width)           # each receiver's 8 x 8 texel tile
     ex_curve = {}                                          # order -> exact curve on that order's grid
 
     def l2(order, rep) -> np.ndarray:
@@ -233,7 +237,7 @@ def _evaluate(frame, P, ms, rng, gif: bool):
         l2s[label] = l2(order, rep.rep)
         if image is not None and label in gl:
             image[label] = img.lookup(rep)
-    return ex, probe.truth, est, nbytes, l2s, image
+    return ex, probe.truth, est, nbytes, l2s, image, tiles
 
 
 # ========================================================================== run
@@ -255,7 +259,9 @@ def _compute(res, P: dict) -> dict:
                 acc = dict(exact=[], truth=[], est={m[0]: [] for m in ms}, bytes={m[0]: [] for m in ms},
                            l2={m[0]: [] for m in ms}, image=[])
                 for t in range(F):
-                    ex, tr, est, nbytes, l2s, image = _evaluate(anims[(setting, li)](t), P, ms, rng, gif)
+                    ex, tr, est, nbytes, l2s, image, tiles = _evaluate(anims[(setting, li)](t), P, ms, rng, gif)
+                    if t == 0:
+                        acc["blocks"] = tiles
                     acc["exact"].append(ex)
                     acc["truth"].append(tr)
                     for k, v in est.items():
@@ -271,7 +277,7 @@ def _compute(res, P: dict) -> dict:
                                                      for k, v in acc["bytes"].items()},
                                               sparse_bytes={k: float(np.mean([b[1] for b in v]))
                                                             for k, v in acc["bytes"].items()},
-                                              l2=acc["l2"], image=acc["image"])
+                                              l2=acc["l2"], image=acc["image"], blocks=acc["blocks"])
     bar.close()
     rows = _rows(series, ms)
     summary = findings(series, ms, P)
@@ -322,18 +328,22 @@ def findings(series, ms, P) -> dict:
                          "content = the same for T_ref; flicker_index = flicker / (sqrt(2) error)",
            "frames": F, "configs": sorted({k[1] for k in series}), "per_setting": {}, "claims": {}, "headline": {},
            "insertion": {}, "curves": {},
+           "intervals": "per method (per_setting): 95 % bootstrap over the receivers of all configurations, "
+                        "resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames); "
+                        "claims: avsm_dr.stats.claim, configurations then receivers x frames",
            "metrics": "flicker and error: RMS at fixed receivers (the study's subject: a depth-uniform flicker "
                       "is undefined when the map's texels and depth ranges move between frames); error claims "
                       "also under the depth-uniform L2 of the curve (depth_l2), metric_dependent when the two "
                       "disagree"}
     for setting in settings:
         cfgs = sorted(c for s, c in series if s == setting)
+        tiles = _tiles(series, setting, cfgs)
         block = {}
         for vs in ("exact", "truth"):
             per = {}
             for label, _, _, _ in ms:
                 sums = [receiver_sums(series[(setting, c)]["est"][label], series[(setting, c)][vs]) for c in cfgs]
-                ci = pooled_ci(np.concatenate(sums, axis=1), F, n_boot=P["n_boot"])
+                ci = pooled_ci(np.concatenate(sums, axis=1), F, n_boot=P["n_boot"], blocks=tiles)
                 ci["per_config"] = {c: {k: float(v) for k, v in pooled(sm, F).items()} for c, sm in zip(cfgs, sums)}
                 per[label] = ci
             block[vs] = per
@@ -353,6 +363,19 @@ def findings(series, ms, P) -> dict:
         out["insertion"][setting] = insertion_claims(series, setting, cfgs, ms, claim, P["n_boot"])
         out["curves"][setting] = curves(series, setting, cfgs, ms)
     return out
+
+
+def _tiles(series, setting, cfgs) -> np.ndarray | None:
+    """Block label of every receiver of the configurations side by side: its 8 x 8 texel tile
+    in frame 0, configurations kept apart (None when a series has no tiles)."""
+    if any("blocks" not in series[(setting, c)] for c in cfgs):
+        return None
+    out, base = [], 0
+    for c in cfgs:
+        b = np.asarray(series[(setting, c)]["blocks"], np.int64)
+        out.append(b + base)
+        base += int(b.max()) + 1 if b.size else 0
+    return np.concatenate(out)
 
 
 def curves(series, setting, cfgs, ms) -> dict:
