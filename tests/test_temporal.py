@@ -166,6 +166,15 @@ def test_insertion_claims_skip_stream_rows_not_run():
         assert rec["exact"]["verdict"] == "less"
 
 
+def test_claims_resample_each_receivers_tile_with_all_its_frames():
+    """Values of a claim are e[t, i] raveled frame by frame: each gets receiver i's tile."""
+    series = {("smoke", "c"): dict(blocks=np.array([4, 4, 9]))}
+    got = T._blocks_for(series, "smoke", ["c"], [np.zeros(6)])
+    assert np.array_equal(got[0], [4, 4, 9, 4, 4, 9])
+    assert T._blocks_for(series, "smoke", ["c"], [np.zeros(5)]) is None
+    assert T._blocks_for({("smoke", "c"): {}}, "smoke", ["c"], [np.zeros(6)]) is None
+
+
 def test_quick_temporal_run(tmp_path, monkeypatch):
     monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
     out = quick_cli_run("temporal", tmp_path)

@@ -47,8 +47,9 @@ issue 23 item 4: receivers looked up through one map are not independent);
 paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
 variant vs sorted and vs same-order stream AVSM, submission-order rows also vs random-order
 stream AVSM: :func:`insertion_claims`) by
-:func:`avsm_dr.stats.claim` (configurations, then receivers x frames within each), each
-``indicative`` below :data:`MIN_CONFIDENT` configurations (the full run has 2).
+:func:`avsm_dr.stats.claim` (configurations, then within each whole 8 x 8 texel tiles of
+receivers x frames; for ``depth_l2`` each frame's texels by their tile), each ``indicative``
+below :data:`MIN_CONFIDENT` configurations (the full run has 2).
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ from avsm_dr.metrics import THRESHOLD
 from . import scenes as S
 from .._headline import num
 from .._study import Option, Study
-from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_l2, light_variants, truth
+from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_grid, depth_l2, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
 from ..error_curves import texel_blocks
 from ..ordering import shuffled
@@ -221,6 +222,9 @@ def _evaluate(frame, P, ms, rng, gif: bool):
     tiles = texel_blocks(probe.tex[0], cap.width)           # each receiver's 8 x 8 texel tile
     ex_curve = {}                                          # order -> exact curve on that order's grid
 
+    counted = depth_grid(sub.segments)[0]                   # the texels of the per-texel L2, in order
+    l2_tiles = texel_blocks(sub.texels[counted], cap.width)
+
     def l2(order, rep) -> np.ndarray:
         seg = builders[order].segments
         if order not in ex_curve:
@@ -237,7 +241,7 @@ def _evaluate(frame, P, ms, rng, gif: bool):
         l2s[label] = l2(order, rep.rep)
         if image is not None and label in gl:
             image[label] = img.lookup(rep)
-    return ex, probe.truth, est, nbytes, l2s, image, tiles
+    return ex, probe.truth, est, nbytes, l2s, image, (tiles, l2_tiles)
 
 
 # ========================================================================== run
@@ -261,7 +265,8 @@ def _compute(res, P: dict) -> dict:
                 for t in range(F):
                     ex, tr, est, nbytes, l2s, image, tiles = _evaluate(anims[(setting, li)](t), P, ms, rng, gif)
                     if t == 0:
-                        acc["blocks"] = tiles
+                        acc["blocks"] = tiles[0]
+                    acc.setdefault("l2_blocks", []).append(tiles[1])
                     acc["exact"].append(ex)
                     acc["truth"].append(tr)
                     for k, v in est.items():
@@ -277,7 +282,8 @@ def _compute(res, P: dict) -> dict:
                                                      for k, v in acc["bytes"].items()},
                                               sparse_bytes={k: float(np.mean([b[1] for b in v]))
                                                             for k, v in acc["bytes"].items()},
-                                              l2=acc["l2"], image=acc["image"], blocks=acc["blocks"])
+                                              l2=acc["l2"], image=acc["image"], blocks=acc["blocks"],
+                                              l2_blocks=acc["l2_blocks"])
     bar.close()
     rows = _rows(series, ms)
     summary = findings(series, ms, P)
@@ -330,7 +336,8 @@ def findings(series, ms, P) -> dict:
            "insertion": {}, "curves": {},
            "intervals": "per method (per_setting): 95 % bootstrap over the receivers of all configurations, "
                         "resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames); "
-                        "claims: avsm_dr.stats.claim, configurations then receivers x frames",
+                        "claims: avsm_dr.stats.claim, configurations, then within each the same tiles (receivers "
+                        "x frames; depth_l2: each frame's texels by their tile)",
            "metrics": "flicker and error: RMS at fixed receivers (the study's subject: a depth-uniform flicker "
                       "is undefined when the map's texels and depth ranges move between frames); error claims "
                       "also under the depth-uniform L2 of the curve (depth_l2), metric_dependent when the two "
@@ -418,8 +425,9 @@ def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
             continue
         if all(np.all(x == 0) for x in _changes(series, setting, cfgs, b, "exact")):
             continue
-        out[name] = _paired(claim, _changes(series, setting, cfgs, a, "exact"),
-                            _changes(series, setting, cfgs, b, "exact"), cfgs, n_boot, a, b, "flicker_ratio")
+        ca = _changes(series, setting, cfgs, a, "exact")
+        out[name] = _paired(claim, ca, _changes(series, setting, cfgs, b, "exact"), cfgs, n_boot, a, b,
+                            "flicker_ratio", _blocks_for(series, setting, cfgs, ca))
         out[name]["order"] = [order[a], order[b]]
     # the error (not flicker) of sorted vs unsorted AVSM under both metrics (issue 23 item 5)
     a, b = labels.get(("avsm", "sorted")), labels.get(("avsm", "unsorted"))
@@ -440,12 +448,15 @@ def _error_claim(claim, series, setting, cfgs, a, b, vs, n_boot) -> dict | None:
     ea, eb = _errors(series, setting, cfgs, a, vs), _errors(series, setting, cfgs, b, vs)
     if all(np.all(x == 0) for x in eb):
         return None
-    out = _paired(claim, ea, eb, cfgs, n_boot, a, b, "ratio")
+    out = _paired(claim, ea, eb, cfgs, n_boot, a, b, "ratio", _blocks_for(series, setting, cfgs, ea))
     la = [np.concatenate(series[(setting, c)]["l2"][a]).astype(np.float64) for c in cfgs]
     lb = [np.concatenate(series[(setting, c)]["l2"][b]).astype(np.float64) for c in cfgs]
     m = {"receiver_rmse": {k: out[k] for k in ("low", "high", "n_configs", "indicative")} | {"estimate": out["ratio"]}}
     if all(x.size == y.size and x.size >= 2 and np.any(y > 0) for x, y in zip(la, lb)):
-        d = _paired(claim, la, lb, cfgs, n_boot, a, b, "ratio")
+        tb = [np.concatenate(series[(setting, c)]["l2_blocks"]) if "l2_blocks" in series[(setting, c)] else None
+              for c in cfgs]
+        tb = None if any(t is None or t.size != x.size for t, x in zip(tb, la)) else tb
+        d = _paired(claim, la, lb, cfgs, n_boot, a, b, "ratio", tb)
         m["depth_l2"] = {k: d[k] for k in ("low", "high", "n_configs", "indicative")} | {"estimate": d["ratio"]}
     out["metrics"] = m
     out["metric_dependent"] = metric_dependent(*m.values())
@@ -462,10 +473,23 @@ def _changes(series, setting, cfgs, label, vs) -> list[np.ndarray]:
     return [np.diff(series[(setting, c)]["est"][label] - series[(setting, c)][vs], axis=0).ravel() for c in cfgs]
 
 
-def _paired(claim, a, b, cfgs, n_boot, la, lb, key) -> dict:
+def _blocks_for(series, setting, cfgs, values) -> list | None:
+    """Per configuration the 8 x 8 texel tile of each of its values (receivers x frames,
+    raveled frame by frame: each receiver's frame-0 tile); None where a series has no tiles."""
+    out = []
+    for c, v in zip(cfgs, values):
+        t = series[(setting, c)].get("blocks")
+        if t is None or t.size == 0 or v.size % t.size:
+            return None
+        out.append(np.tile(t, v.size // t.size))
+    return out
+
+
+def _paired(claim, a, b, cfgs, n_boot, la, lb, key, blocks=None) -> dict:
     """RMS ratio ``la`` / ``lb`` by :func:`avsm_dr.stats.claim`: pooled over configurations
-    (the interval's unit), ``indicative`` with fewer than :data:`MIN_CONFIDENT` of them."""
-    cl = claim(a, b, statistic="rmse", configs=cfgs, n_boot=n_boot)
+    (the interval's unit), ``indicative`` with fewer than :data:`MIN_CONFIDENT` of them;
+    within each configuration whole ``blocks`` (8 x 8 texel tiles) are resampled when given."""
+    cl = claim(a, b, statistic="rmse", configs=cfgs, n_boot=n_boot, blocks_by_config=blocks)
     return {"a": la, "b": lb, key: cl["estimate"], "low": cl["low"], "high": cl["high"],
             "holds_in_every_configuration": cl["holds_in_every_configuration"], "holds_pooled": cl["holds_pooled"],
             "n_configs": cl["n_configs"], "indicative": cl["n_configs"] < MIN_CONFIDENT,
@@ -497,16 +521,18 @@ def insertion_claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
         for vs in ("exact", "truth"):
             ch = lambda lab: _changes(series, setting, cfgs, lab, vs)          # noqa: E731
             fl = ch(label)
-            r = {"flicker_vs_sorted": _paired(claim, fl, ch(sorted_), cfgs, n_boot, label, sorted_, "ratio")}
+            fb = _blocks_for(series, setting, cfgs, fl)
+            r = {"flicker_vs_sorted": _paired(claim, fl, ch(sorted_), cfgs, n_boot, label, sorted_, "ratio", fb)}
             if same is not None:
                 r["flicker_vs_stream"] = r["flicker_vs_sorted"] if same == sorted_ else \
-                    _paired(claim, fl, ch(same), cfgs, n_boot, label, same, "ratio")
+                    _paired(claim, fl, ch(same), cfgs, n_boot, label, same, "ratio", fb)
                 r["error_vs_stream"] = _error_claim(claim, series, setting, cfgs, label, same, vs, n_boot) or \
                     _paired(claim, _errors(series, setting, cfgs, label, vs), _errors(series, setting, cfgs, same, vs),
-                            cfgs, n_boot, label, same, "ratio")
+                            cfgs, n_boot, label, same, "ratio",
+                            _blocks_for(series, setting, cfgs, _errors(series, setting, cfgs, label, vs)))
             if order == "submission" and stream.get("random") is not None:
                 r["flicker_vs_unsorted"] = _paired(claim, fl, ch(stream["random"]), cfgs, n_boot, label,
-                                                   stream["random"], "ratio")
+                                                   stream["random"], "ratio", fb)
             f = r["flicker_vs_sorted"]
             r["verdict"] = "less" if f["high"] < 1 else "more" if f["low"] > 1 else "indistinguishable"
             rec[vs] = r
