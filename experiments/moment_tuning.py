@@ -25,7 +25,10 @@ texel's curve against the exact curve, RMS over the texels), ``rmse`` (receiver 
 in-volume receivers of :func:`avsm_dr.receivers.in_volume` against the exact curve of the
 same segments, bilinear lookups through :class:`avsm_dr.evaluation.Probe`) and
 ``signed_mean`` (mean of ``T_moments - T_exact`` at the receivers; > 0: light leaks
-through).
+through) and ``leak_share`` (receivers with that error above 0.02,
+:data:`avsm_dr.metrics.THRESHOLD`); each row also records the capture's insertion ``order``
+('depth'; moments do not depend on it), ``bytes`` (the sparse layout,
+``nbytes_sparse_per_texel``) and ``bytes_dense`` (= ``bytes_per_texel``).
 
 **Choice.**  Within each cell (scene, configuration, family, moment count) every setting's
 metric is divided by the least of the grid in that cell (``ratio_depth_l2``,
@@ -57,6 +60,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build, describe
+from avsm_dr.metrics import THRESHOLD
 from ._study import Option, Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -164,7 +168,9 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
                              default=is_default(target, factor, beta),
                              bytes_per_texel=float(rep.nbytes_per_texel),
                              depth_l2=depth_l2(rep, seg, exact=ex_curve, n_depths=P["n_depths"]),
-                             rmse=float(np.sqrt(np.mean(d * d))), signed_mean=float(np.mean(d))))
+                             rmse=float(np.sqrt(np.mean(d * d))), signed_mean=float(np.mean(d)),
+                             order="depth", bytes=float(rep.nbytes_sparse_per_texel),
+                             bytes_dense=float(rep.nbytes_per_texel), leak_share=float(np.mean(d > THRESHOLD))))
     return rows
 
 

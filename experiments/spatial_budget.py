@@ -15,6 +15,17 @@ configuration (seed x light) of every scene; receivers split into ``volume`` (in
 smoke) and ``surface`` (the receiver plane) besides ``all``.  Statistics
 (:mod:`avsm_dr.metrics`): RMSE, signed mean, leak / dark fractions, p99 / p99.9, optical-depth
 RMSE; a bootstrap 95 % interval of the RMSE over receivers (:mod:`avsm_dr.stats`).
+Per row also (issue 23): the capture's insertion ``order`` ('depth'), ``bytes`` (the sparse
+layout, ``nbytes_sparse_per_texel``) and ``bytes_dense`` (= ``bytes_per_texel``, the unit of
+the budgets), and ``depth_l2``, the depth-uniform L2 of the map's curve against the exact
+curve at the same resolution (:func:`avsm_dr.evaluation.depth_l2`; 0 for ``exact``);
+``mean_error`` is the signed mean and ``leak_fraction`` the leak share.  The claims (best
+resolution, vs the runner-up) use the receiver RMSE against the truth only: the depth-uniform
+L2 measures compression at one resolution and is blind to the spatial error the study
+trades against, so it cannot rank resolutions.  Intervals per resolution are over the
+receivers of all configurations (``interval_unit``); the comparison with the runner-up is
+over configurations (:func:`avsm_dr.stats.claim`), ``indicative`` below
+:data:`MIN_CONFIDENT` of them.
 Lookup cost per bilinear lookup, in each scene's first configuration: Dr.Jit kernel
 execution time of a batch (``lookup_ns``, median after warm-up, ``dr.kernel_history``) and
 wall time including host work and any recompilation (``lookup_wall_ns``).
@@ -29,6 +40,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import allows, build, describe, kinds
+from avsm_dr.evaluation import curve_values, depth_l2
 from avsm_dr.metrics import error_stats, optical_depth_error
 from avsm_dr.scene import DirectionalLight
 from ._common import measure
@@ -51,6 +63,8 @@ MAX_SIZE_VALUE = 256
 LIGHTS = [None, (0.6, -0.75, -0.3)]
 #: Receiver groups: scenes put half their receivers in the volume, half on the plane.
 GROUPS = ("all", "volume", "surface")
+#: Below this many configurations (seed x light) a comparison is ``indicative``.
+MIN_CONFIDENT = 4
 
 #: Parameters of the full and the quick run.
 FULL = dict(scenes=["plume", "simulated_plume", "hair_and_smoke"], seeds=[0, 1, 2, 3], lights=LIGHTS,
@@ -159,8 +173,12 @@ def _compute(res, params: dict) -> dict:
                 continue
             cap = capture(scene, resolution=r, step=step, order="depth")
             todo = [("exact", None, {})] + [(k, b, p) for b, k, p in need]
+            ex_curve = None
             for kind, b, p in todo:
                 rep = build(kind, cap.segments, **p)
+                if ex_curve is None:                   # exact comes first: the curves' reference
+                    ex_curve = curve_values(rep, cap.segments)
+                l2 = depth_l2(rep, cap.segments, exact=ex_curve)
                 # timed in each scene's first configuration only (the cost does not depend on
                 # seed or light); the batch starts with the receivers, so its first call gives
                 # the estimates too
@@ -181,7 +199,9 @@ def _compute(res, params: dict) -> dict:
                                      **{k: st[k] for k in ("rmse", "mean_error", "mean_abs_error", "leak_fraction",
                                                            "dark_fraction", "p99_error", "p999_error", "max_error",
                                                            "nan_count")},
-                                     tau_rmse=od["tau_rmse"], **cost))
+                                     tau_rmse=od["tau_rmse"], **cost, order="depth",
+                                     bytes=float(rep.nbytes_sparse_per_texel),
+                                     bytes_dense=float(rep.nbytes_per_texel), depth_l2=l2))
                 if kind != "exact":
                     errors[(name, b, kind, r, (seed, li))] = est - truth
     summary = _summarise(rows, errors, params, bootstrap_ci, claim)
@@ -218,7 +238,11 @@ def _summarise(rows, errors, params, bootstrap_ci, claim) -> dict:
                                configs=[f"seed{c[0]}_light{c[1]}" for c in cfgs])
                     item["vs_runner_up"] = dict(runner_up=second, rmse_ratio=cl["estimate"], low=cl["low"],
                                                 high=cl["high"],
-                                                holds_in_every_configuration=cl["holds_in_every_configuration"])
+                                                holds_in_every_configuration=cl["holds_in_every_configuration"],
+                                                n_configs=cl["n_configs"],
+                                                indicative=cl["n_configs"] < MIN_CONFIDENT,
+                                                interval_unit="configuration")
+                item["interval_unit"] = "receiver (per resolution, all configurations pooled)"
                 out[f"{name}_{b}B_{kind}"] = item
     return out
 

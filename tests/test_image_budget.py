@@ -15,7 +15,7 @@ from helpers import quick_cli_run
 
 pytestmark = pytest.mark.mitsuba
 
-TEXT = {"setting", "kind", "label", "size_param", "size", "best_kind", "best_label"}
+TEXT = {"setting", "kind", "label", "size_param", "size", "best_kind", "best_label", "order"}
 BOOL = {"fits", "invisible", "threshold"}
 FLIPS = ("flip", "flip_compression", "flip_spatial", "flip_resolution", "flip_render_noise", "flip_reference_noise")
 
@@ -52,6 +52,31 @@ def test_every_kind_budget_resolution_and_frame_is_present(quick):
     for r in rows:
         assert r["fits"] == (r["calibrated_bytes"] <= r["budget"]), r
         assert r["bytes_per_texel"] > 0
+
+
+def test_rows_carry_the_curve_metrics_of_their_maps(quick):
+    """Issue 23: every row records the capture order, sparse and dense bytes of the map that
+    made the image, and that map's depth-uniform L2, signed mean and leak share against the
+    exact curve (0 for exact; the smallest AVSM further from it than its largest)."""
+    rows, _, _, _, _ = quick
+    for r in rows:
+        assert r["order"] == "depth" and r["bytes_dense"] == r["bytes_per_texel"] and r["bytes"] > 0, r
+        for k in ("depth_l2", "curve_signed_mean", "curve_leak_share"):
+            assert np.isfinite(r[k]), (k, r)
+        assert 0 <= r["curve_leak_share"] <= 1 and r["depth_l2"] >= 0
+        assert (r["depth_l2"] == 0) == (r["kind"] == "exact"), r
+    l2 = {r["label"]: r["depth_l2"] for r in rows if r["kind"] == "avsm" and r["frame"] == 0}
+    assert l2["avsm-2"] > l2[max(l2, key=lambda s: int(s.split("-")[1]))]
+    _, cells, found, P, _ = quick
+    assert all(np.isfinite(c["best_depth_l2"]) for c in cells if c["best_kind"])
+    for s in P["settings"]:
+        for res in P["resolutions"]:
+            thr = found["thresholds"][s][str(res)]
+            assert thr["n_configs"] == 1 and thr["indicative"] and thr["interval_unit"] == "frame"
+            assert "B/texel" in found["headline"][f"{s} {res}^2"] or "visible" in found["headline"][f"{s} {res}^2"]
+            cur = found["curves"][s][str(res)]
+            assert set(cur) == {r["label"] for r in rows if (r["setting"], r["resolution"]) == (s, res)}
+            assert cur["exact"]["depth_l2"] == 0 and all(np.isfinite(v["depth_l2"]) for v in cur.values())
 
 
 def test_flips_and_the_error_split(quick):

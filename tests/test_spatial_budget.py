@@ -73,6 +73,10 @@ def test_quick_spatial_budget_run(tmp_path):
         assert float(r["lookup_ns"]) > 0
         if r["kind"] != "exact":
             assert int(float(r["map_bytes"])) <= int(r["budget_bytes"])
+        # issue 23: order, sparse / dense bytes and the depth-uniform L2 of the curve on every row
+        assert r["order"] == "depth" and float(r["bytes_dense"]) == float(r["bytes_per_texel"]) > 0
+        assert float(r["bytes"]) > 0 and np.isfinite(float(r["depth_l2"]))
+        assert (float(r["depth_l2"]) == 0) == (r["kind"] == "exact"), r
     # at equal bytes a finer map with fewer nodes is a different trade-off, not the same numbers
     avsm = {int(r["resolution"]): float(r["rmse"]) for r in rows if r["kind"] == "avsm" and r["receivers"] == "all"}
     assert len(avsm) == 2 and avsm[64] != avsm[128]
@@ -81,6 +85,8 @@ def test_quick_spatial_budget_run(tmp_path):
     assert item["best_resolution"] in (64, 128)
     for v in item["per_resolution"].values():
         assert v["low"] <= v["rmse"] <= v["high"]
+    ru = item["vs_runner_up"]
+    assert ru["n_configs"] == 1 and ru["indicative"] and ru["interval_unit"] == "configuration"
     assert sorted(p.name for p in out.glob("*.png")) == ["error_vs_resolution.png", "lookup_cost.png"]
     again = budget.run(quick=True, out=out)
     assert again.get("cached") is True

@@ -59,6 +59,33 @@ def test_pooled_ci_brackets_the_estimate():
         assert v["low"] <= v["estimate"] <= v["high"] and v["high"] - v["low"] < 0.5 * v["estimate"]
 
 
+def test_pooled_ci_resamples_whole_blocks():
+    """With blocks (issue 23 item 4: 8 x 8 texel tiles), the block sums' bootstrap equals
+    avsm_dr.stats' block bootstrap of the receivers (same draws, to rounding); one receiver per
+    block is the receiver bootstrap; correlated receivers give a wider interval."""
+    from avsm_dr.stats import bootstrap_ci
+    rng = np.random.default_rng(2)
+    tiles = np.repeat(np.arange(40), 8)                       # 40 tiles of 8 receivers
+    ref = rng.random((5, tiles.size))
+    est = ref + 0.02 * rng.standard_normal((5, 40))[:, tiles] + 0.002 * rng.standard_normal(ref.shape)
+    sums = M.receiver_sums(est, ref)
+    got = M.pooled_ci(sums, 5, n_boot=300, blocks=tiles)
+
+    def err(x, axis):
+        i = x.astype(np.int64)
+        return np.sqrt(np.mean(sums[0][i], axis=-1) / 5)
+    want = bootstrap_ci(np.arange(tiles.size, dtype=np.float64), err, n_boot=300, blocks=tiles)
+    for k in ("estimate", "low", "high"):
+        assert got["error"][k] == pytest.approx(want[k], rel=1e-12)
+    one = M.pooled_ci(sums, 5, n_boot=300, blocks=np.arange(tiles.size))
+    plain = M.pooled_ci(sums, 5, n_boot=300)
+    for k in ("estimate", "low", "high"):
+        assert one["flicker"][k] == pytest.approx(plain["flicker"][k], rel=1e-12)
+    assert got["error"]["high"] - got["error"]["low"] > 1.5 * (plain["error"]["high"] - plain["error"]["low"])
+    with pytest.raises(ValueError, match="^blocks:"):
+        M.pooled_ci(sums, 5, n_boot=10, blocks=tiles[:-1])
+
+
 @pytest.mark.parametrize("est, ref, name", [(np.zeros((1, 3)), np.zeros((1, 3)), "estimate"),
                                             (np.zeros((3, 3)), np.zeros((3, 4)), "reference")])
 def test_metrics_reject_bad_shapes(est, ref, name):
@@ -139,6 +166,15 @@ def test_insertion_claims_skip_stream_rows_not_run():
         assert rec["exact"]["verdict"] == "less"
 
 
+def test_claims_resample_each_receivers_tile_with_all_its_frames():
+    """Values of a claim are e[t, i] raveled frame by frame: each gets receiver i's tile."""
+    series = {("smoke", "c"): dict(blocks=np.array([4, 4, 9]))}
+    got = T._blocks_for(series, "smoke", ["c"], [np.zeros(6)])
+    assert np.array_equal(got[0], [4, 4, 9, 4, 4, 9])
+    assert T._blocks_for(series, "smoke", ["c"], [np.zeros(5)]) is None
+    assert T._blocks_for({("smoke", "c"): {}}, "smoke", ["c"], [np.zeros(6)]) is None
+
+
 def test_quick_temporal_run(tmp_path, monkeypatch):
     monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
     out = quick_cli_run("temporal", tmp_path)
@@ -155,6 +191,7 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
     moved = [float(r["content_rms"]) for r in exact if r["frame"] != "0"]
     assert min(moved) > 0                                                             # every animation moves
     f = json.loads((out / "findings.json").read_text())
+    assert "8 x 8 texel tiles" in f["intervals"]
     for setting, block in f["per_setting"].items():
         assert block["exact"]["exact"]["flicker"]["estimate"] == 0.0
         un = block["exact"]["avsm-8 unsorted"]
@@ -183,6 +220,27 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
                 assert fl["b"] == "avsm-8 sorted"
                 assert rec[vs]["verdict"] == ("less" if fl["high"] < 1 else "more" if fl["low"] > 1
                                               else "indistinguishable")
+    # issue 23: every row records its capture order, sparse and dense bytes, the signed mean and
+    # leak share at the receivers and the depth-uniform L2 of the curve
+    order = {m[0]: m[3] for m in T.methods(quick=True)}
+    for r in rows:
+        assert r["order"] == order[r["method"]], r
+        for k in ("bytes", "bytes_dense", "signed_mean", "leak_share", "depth_l2"):
+            assert np.isfinite(float(r[k])), (k, r)
+        assert float(r["bytes_dense"]) == float(r["bytes_per_texel"]) and 0 < float(r["bytes"]) <= float(r["bytes_dense"]) + 1
+        assert 0 <= float(r["leak_share"]) <= 1 and float(r["depth_l2"]) >= 0
+        assert (float(r["depth_l2"]) == 0) == (r["method"] == "exact"), r
+    for setting in f["per_setting"]:
+        assert set(f["curves"][setting]) == methods
+        err = f["claims"][setting]["avsm_sorted_vs_unsorted_error"]
+        assert set(err["metrics"]) == {"receiver_rmse", "depth_l2"} and err["order"] == ["depth", "random"]
+        assert err["indicative"] and err["n_configs"] == 1 and err["interval_unit"] == "configuration"
+        for m in err["metrics"].values():
+            assert m["low"] <= m["estimate"] <= m["high"] and np.isfinite(m["estimate"])
+        assert err["metric_dependent"] == (min(m["high"] for m in err["metrics"].values()) < 1
+                                           < max(m["low"] for m in err["metrics"].values()))
+        ev = f["insertion"][setting]["avsm-8 refit_l2 unsorted"]["exact"]["error_vs_stream"]
+        assert set(ev["metrics"]) == {"receiver_rmse", "depth_l2"} and isinstance(ev["metric_dependent"], bool)
     cam = f["insertion"]["camera"]["avsm-8 submission"]["exact"]["flicker_vs_unsorted"]
     assert cam["high"] < 1    # content and light still: the same draw order gives the same map every frame
     from PIL import Image

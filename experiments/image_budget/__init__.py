@@ -38,12 +38,23 @@ Per frame and resolution (display white S fixed per animation, :mod:`.render`):
   (every render of every frame uses the same seed, so the camera noise is a fixed pattern
   and cancels from the compression term).
 
+Curve metrics of the map that made each image (issue 23 items 1, 2, 5), per row: ``order``
+('depth': the integrator's capture), ``bytes`` (sparse layout, ``nbytes_sparse_per_texel``)
+and ``bytes_dense`` (= ``bytes_per_texel``, the budgets' unit), and against the exact curve
+of the same capture ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`), ``curve_signed_mean``
+and ``curve_leak_share`` (> 0.02) over the same depth grid (:func:`.render.curve_metrics`).
+The claims use FLIP of rendered frames only: the study asks what a viewer sees, and the
+receiver RMSE does not apply (an image integrates the light's T along every pixel's view
+ray, there are no receivers); the curve metrics are reported beside them
+(``findings.json['curves']``, ``best_depth_l2`` in ``map.csv``), not used to decide.
+
 Answer (:mod:`.analysis`): a kind's compression is invisible at a budget when its mean
 compression FLIP over frames is below the mean reference-noise FLIP; the map (``map.csv``)
 gives per (animation, resolution, budget) the cheapest invisible kind, or the least visible
 one; ``findings.json`` the threshold budget per animation and resolution with a bootstrap
-interval over frames (``indicative`` with fewer than :data:`MIN_FRAMES` frames), and the
-same against the renders' own noise (``flip_render_noise``) instead of the reference's.
+interval over frames (``indicative`` with fewer than :data:`MIN_FRAMES` frames or, always
+here, fewer than :data:`MIN_CONFIGS` configurations: one seed, one light), and the same
+against the renders' own noise (``flip_render_noise``) instead of the reference's.
 """
 from __future__ import annotations
 
@@ -81,6 +92,12 @@ EXTRA_SIZES = {"tolerance": (0.001, 0.0005, 0.0002, 0.0001)}
 LIGHT = (1.0, -0.3, 0.25)
 #: Fewer frames than this make a threshold ``indicative``.
 MIN_FRAMES = 4
+#: Fewer configurations (scene seed x light) than this make a threshold ``indicative`` (issue 23
+#: item 4); the study renders one.
+MIN_CONFIGS = 4
+#: Per-row curve metrics of the map that made the image, averaged per configuration in
+#: ``findings.json['curves']``.
+CURVE_COLUMNS = ("depth_l2", "curve_signed_mean", "curve_leak_share", "bytes", "bytes_dense")
 
 #: Parameters of the full and the quick run (``kinds`` None: every registered kind but
 #: :data:`SKIP_KINDS`, filled in; ``exact`` always first).
@@ -194,7 +211,7 @@ def _render_setting(mi, cls, frame_fn, P, bar):
     integs = {(res, lab): R.integrator(mi, cls, kind, params, res, P["march_steps"])
               for res in P["resolutions"] for lab, (kind, params) in configs[res].items()}
     noise_integ = {res: R.integrator(mi, cls, "exact", {}, res, P["march_steps"]) for res in P["resolutions"]}
-    imgs, nbytes, secs, refs = {}, {}, {}, []
+    imgs, nbytes, sparse, curves, secs, refs = {}, {}, {}, {}, {}, []
     for t in range(F):
         frame = frame_fn(t)
         scene = R.load_scene(mi, frame, P["image"])
@@ -202,16 +219,30 @@ def _render_setting(mi, cls, frame_fn, P, bar):
         refs.append((a, b))
         bar.update(1)
         for res in P["resolutions"]:
-            for lab in configs[res]:
+            ref_curve, ref_counts = None, None
+            for lab in configs[res]:           # exact first (``kinds`` starts with it): the curves' reference
                 integ = integs[(res, lab)]
                 t0 = time.perf_counter()
                 imgs[(t, res, lab)] = R.render(mi, scene, integ, P["spp"], P["render_seed"])
                 secs[(t, res, lab)] = time.perf_counter() - t0
                 nbytes[(t, res, lab)] = integ.bytes_per_texel
+                sparse[(t, res, lab)] = integ.sparse_bytes
+                seg, rep = integ.last_map
+                integ.last_map = None
+                if ref_curve is None:
+                    if configs[res][lab][0] != "exact":
+                        raise RuntimeError("image_budget: exact must be the first configuration of a resolution")
+                    ref_curve, ref_counts = R.exact_curve(mi, seg, rep), seg.counts
+                    curves[(t, res, lab)] = R.curve_metrics(mi, seg, rep, None)
+                else:
+                    if not np.array_equal(seg.counts, ref_counts):
+                        raise RuntimeError(f"image_budget: {lab}'s capture differs from exact's at {res}^2")
+                    curves[(t, res, lab)] = R.curve_metrics(mi, seg, rep, ref_curve)
                 bar.update(1)
             imgs[(t, res, "exact@seed2")] = R.render(mi, scene, noise_integ[res], P["spp"], P["render_seed"] + 1)
             bar.update(1)
-    return dict(choices=choices, configs=configs, imgs=imgs, nbytes=nbytes, secs=secs, refs=refs)
+    return dict(choices=choices, configs=configs, imgs=imgs, nbytes=nbytes, sparse=sparse, curves=curves, secs=secs,
+                refs=refs)
 
 
 def _rows(setting, out, P):
@@ -257,6 +288,8 @@ def _rows(setting, out, P):
                         row.update(flicker=float(np.mean(np.abs((img - ref[t]) - (prev - ref[t - 1]))) / white),
                                    flicker_compression=float(np.mean(np.abs((img - ex) - (prev - prev_ex)))) / white)
                     row["render_s"] = out["secs"][(t, res, lab)]
+                    row.update(order="depth", bytes=out["sparse"][(t, res, lab)],
+                               bytes_dense=out["nbytes"][(t, res, lab)], **out["curves"][(t, res, lab)])
                     rows.append(row)
     return rows, white
 
@@ -270,7 +303,12 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
                           "and at every larger budget of the grid, and the cheapest such kind (least stored bytes)"),
            "tonemap": f"sRGB(min(I / S, 1)), S = the {R.WHITE_PERCENTILE}th percentile of frame 0's reference per "
                       f"animation; FLIP LDR, 67 pixels per degree",
-           "reference": {}, "thresholds": {}, "thresholds_vs_render_noise": {}, "flicker": {}}
+           "reference": {}, "thresholds": {}, "thresholds_vs_render_noise": {}, "flicker": {}, "curves": {},
+           "metrics": ("claims (thresholds, the map): FLIP of rendered frames, the study's subject (receiver RMSE "
+                       "does not apply: the image integrates the light's T over every pixel's view ray); the "
+                       "maps' curve metrics (depth_l2, curve_signed_mean, curve_leak_share vs the exact curve) "
+                       "per row and under 'curves', not used by the claims"),
+           "configurations": 1}
     cells = []
     for setting in P["settings"]:
         sel = [r for r in rows if r["setting"] == setting]
@@ -283,6 +321,7 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
             noise_flip_mean=float(ref_noise.mean()), noise_flip_per_frame=ref_noise.tolist(),
             se_rms_over_white=float(ref_se.mean()))
         out["thresholds"][setting], out["thresholds_vs_render_noise"][setting], out["flicker"][setting] = {}, {}, {}
+        out["curves"][setting] = {}
         for res in P["resolutions"]:
             rr = [r for r in sel if r["resolution"] == res]
             idx = {(r["kind"], r["budget"], r["frame"]): r for r in rr}
@@ -294,9 +333,15 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
             noise = np.array([idx[(ks[0], budgets[0], t)]["flip_reference_noise"] for t in range(T)])
             rnoise = np.array([idx[(ks[0], budgets[0], t)]["flip_render_noise"] for t in range(T)])
             s = A.summarise(comp, nb, fits, noise, budgets, ks, labels, P["n_boot"], MIN_FRAMES)
-            out["thresholds"][setting][str(res)] = s["threshold"]
-            out["thresholds_vs_render_noise"][setting][str(res)] = A.summarise(
-                comp, nb, fits, rnoise, budgets, ks, labels, P["n_boot"], MIN_FRAMES)["threshold"]
+            out["thresholds"][setting][str(res)] = _one_configuration(s["threshold"])
+            out["thresholds_vs_render_noise"][setting][str(res)] = _one_configuration(A.summarise(
+                comp, nb, fits, rnoise, budgets, ks, labels, P["n_boot"], MIN_FRAMES)["threshold"])
+            once = {(r["label"], r["frame"]): r for r in rr}      # a configuration's rows agree at every budget
+            cur = {}
+            for (lab, _), r in once.items():
+                cur.setdefault(lab, []).append(r)
+            cur = {lab: {k: float(np.mean([r[k] for r in v])) for k in CURVE_COLUMNS} for lab, v in cur.items()}
+            out["curves"][setting][str(res)] = cur
             fl = {}
             for k, kind in enumerate(ks):
                 for b, budget in enumerate(budgets):
@@ -308,14 +353,23 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
             for c in s["cells"]:
                 flick = fl.get(c["best_label"], float("nan"))
                 cells.append(dict(setting=setting, resolution=res, **c, best_flicker_compression=flick,
-                                  threshold=c["budget"] == s["threshold"]["bytes"]))
+                                  threshold=c["budget"] == s["threshold"]["bytes"],
+                                  best_depth_l2=cur.get(c["best_label"], {}).get("depth_l2", float("nan"))))
     out["map"] = cells
-    out["headline"] = {f"{s} {res}^2": _headline(out["thresholds"][s][str(res)])
+    out["headline"] = {f"{s} {res}^2": _threshold_line(out["thresholds"][s][str(res)])
                        for s in P["settings"] for res in P["resolutions"]}
     return out, cells
 
 
-def _headline(thr: dict) -> str:
+def _one_configuration(thr: dict) -> dict:
+    """A threshold with its statistical basis (issue 23 item 4): one configuration (the plume's
+    seed, one light), so ``indicative`` whatever the frames (fewer than
+    :data:`MIN_CONFIGS`); the interval's unit stays the frame."""
+    return dict(thr, n_configs=1, indicative=bool(thr["indicative"] or 1 < MIN_CONFIGS), interval_unit="frame")
+
+
+def _threshold_line(thr: dict) -> str:
+    """findings.json's headline line of a threshold: budget, label, stored bytes and interval."""
     ci = thr["interval"]
 
     def b(v):

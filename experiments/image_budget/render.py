@@ -69,18 +69,55 @@ def load_scene(mi, frame, image: int):
 
 def recording_class(mi):
     """``avsm_single_scatter``'s class for the current variant, extended to record the bytes
-    per texel (``nbytes_per_texel``) of the representation each render builds."""
+    per texel of the representation each render builds (``bytes_per_texel``: dense,
+    ``nbytes_per_texel``; ``sparse_bytes``: ``nbytes_sparse_per_texel``) and the map itself
+    (``last_map``: (segments, representation) of the last render, for its curve metrics; the
+    caller clears it)."""
     from avsm_dr import mitsuba as am
     base = am.integrator_class()
 
     class Recording(base):
         bytes_per_texel = float("nan")
+        sparse_bytes = float("nan")
+        last_map = None
 
         def prepare_shadow(self, scene):
             shadow = super().prepare_shadow(scene)
             self.bytes_per_texel = float(shadow[1].nbytes_per_texel)
+            self.sparse_bytes = float(shadow[1].nbytes_sparse_per_texel)
+            self.last_map = (shadow[0].segments, shadow[1])
             return shadow
     return Recording
+
+
+def curve_metrics(mi, segments, rep, reference) -> dict:
+    """The curve metrics of one render's map (issue 23 item 5) against ``reference``, the exact
+    curve's :func:`avsm_dr.evaluation.curve_values` on the same segments (None: ``rep`` is the
+    exact curve, all zero): ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`), and over the
+    same depth grid (opaque interiors left out) ``curve_signed_mean``, the mean of
+    ``T_rep - T_exact`` (> 0: light leaking), and ``curve_leak_share``, the share above 0.02
+    (:func:`avsm_dr.metrics.error_stats`).  Evaluated on the Mitsuba variant's backend."""
+    from avsm_dr import backend
+    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
+    from avsm_dr.metrics import error_stats
+    if reference is None:
+        return dict(depth_l2=0.0, curve_signed_mean=0.0, curve_leak_share=0.0)
+    with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+        est = curve_values(rep, segments)
+        l2 = depth_l2(rep, segments, exact=reference)
+    keep = depth_grid(segments)[2]
+    s = error_stats(est[keep], np.asarray(reference)[keep])
+    return dict(depth_l2=float(l2), curve_signed_mean=float(s["mean_error"]),
+                curve_leak_share=float(s["leak_fraction"]))
+
+
+def exact_curve(mi, segments, rep) -> np.ndarray:
+    """:func:`avsm_dr.evaluation.curve_values` of the exact map ``rep`` on ``segments`` (the
+    ``reference`` of :func:`curve_metrics`), on the Mitsuba variant's backend."""
+    from avsm_dr import backend
+    from avsm_dr.evaluation import curve_values
+    with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
+        return curve_values(rep, segments)
 
 
 def integrator(mi, cls, kind: str, params: dict, resolution: int, march_steps: int):

@@ -42,7 +42,11 @@ compression error: the warp changes nothing else):
   looked up at ``w(z)``; with its signed mean (``signed_mean``, > 0: light leaking) and leak
   share (``leak_share``: error > 0.02, :func:`avsm_dr.metrics.error_stats`).
 
-Captures are front to back (``order='depth'``; the linear kinds do not depend on the order).
+Captures are front to back (``order='depth'``; the linear kinds do not depend on the order),
+recorded per row (``order``), with ``bytes`` (the sparse layout of the kind at the row's
+size on that scene; the warp adds none) and ``bytes_dense`` (= ``bytes_per_texel``).
+Every interval is over configurations, none within a map, so none needs the 8 x 8 texel
+block bootstrap of issue 23 item 4.
 
 Second part, AVSM's removal metric (:mod:`.avsm`): the blend
 ``(1 - beta) area + beta depth-gap`` learned through a softmin surrogate of the removal
@@ -279,13 +283,15 @@ def _compute(res, P: dict) -> dict:
         bpt = build(kind, train_s[0].seg, **params).nbytes_per_texel
         for split, scenes in (("train", train_s), ("held_out", held_s)):
             for d in scenes:
+                sparse = float(build(kind, d.seg, **params).nbytes_sparse_per_texel)    # the warp stores no more
                 for method, th in warps[kind].items():
                     rows.append(dict(split=split, group=d.group, scene=d.name, seed=d.seed, light=d.light, kind=kind,
                                      params=json.dumps(th if isinstance(th, dict) else params),
                                      bytes_per_texel=bpt, method=method,
                                      log_ratio=best_r if method == "log" else "", knots=P["knots"],
                                      **errors(d, kind, params, th),
-                                     **receiver_errors(d, _receiver_rep(d, kind, params, th))))
+                                     **receiver_errors(d, _receiver_rep(d, kind, params, th)),
+                                     order="depth", bytes=sparse, bytes_dense=bpt))
     bar.close()
     metric_rows, metric_loss, sweep = _avsm_metric(train_s, held_s, P)
     summary = findings(rows)
@@ -321,7 +327,9 @@ def _avsm_metric(train_s, held_s, P):
                 rows.append(dict(split=split, group=d.group, scene=d.name, seed=d.seed,
                                  light=d.light, kind="avsm", nodes=N, bytes_per_texel=2 * N * d.seg.itemsize,
                                  method=method, beta=b, depth_l2=rmse(d, N, b),
-                                 **receiver_errors(d, NodeLists(d.seg, N, b))))
+                                 **receiver_errors(d, NodeLists(d.seg, N, b)), order="depth",
+                                 bytes=float(build("avsm", d.seg, nodes=N).nbytes_sparse_per_texel),
+                                 bytes_dense=2 * N * d.seg.itemsize))
     return rows, loss_rows, sweep
 
 

@@ -31,11 +31,25 @@ flicker per frame and pooled, as defined in :mod:`.metrics`::
     flicker = sqrt(mean_{t >= 1, i} (e[t, i] - e[t-1, i])^2)       content = same with T_ref for e
     flicker_index = flicker / (sqrt(2) error)                       (0 frozen, 1 uncorrelated)
 
-Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`);
+Metrics (issue 23 item 5): flicker and error are measured at the fixed receivers, the
+study's subject (what a viewer sees move); a depth-uniform flicker is not defined, as the
+map's texels and depth ranges move between frames.  Every row also records the capture's
+insertion ``order`` (``'depth'``, ``'random'``: a fresh order per frame, ``'submission'``),
+``bytes`` (sparse layout) and ``bytes_dense``, the receivers' ``signed_mean`` and
+``leak_share`` (error > 0.02), and ``depth_l2``, the frame's depth-uniform L2 of the curve
+against the exact one (:func:`avsm_dr.evaluation.depth_l2` on the texels built); error
+claims (sorted vs unsorted AVSM, each insertion variant vs stream AVSM) carry both metrics
+and ``metric_dependent`` (their intervals on opposite sides of 1: ``error_curves``' rule).
+
+Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`),
+resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames together;
+issue 23 item 4: receivers looked up through one map are not independent);
 paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
 variant vs sorted and vs same-order stream AVSM, submission-order rows also vs random-order
 stream AVSM: :func:`insertion_claims`) by
-:func:`avsm_dr.stats.claim` (configurations, then receivers x frames within each).
+:func:`avsm_dr.stats.claim` (configurations, then within each whole 8 x 8 texel tiles of
+receivers x frames; for ``depth_l2`` each frame's texels by their tile), each ``indicative``
+below :data:`MIN_CONFIDENT` configurations (the full run has 2).
 """
 
 from __future__ import annotations
@@ -47,11 +61,13 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import builtin_scenes, capture, describe, kinds, procedural
+from avsm_dr.metrics import THRESHOLD
 from . import scenes as S
 from .._headline import num
 from .._study import Option, Study
-from avsm_dr.evaluation import Probe, SubsetBuilder, light_variants, truth
+from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_grid, depth_l2, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
+from ..error_curves import texel_blocks
 from ..ordering import shuffled
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -72,6 +88,10 @@ GIF_METHODS = (("avsm", "unsorted"), ("avsm_march", ""), ("fom", ""))
 #: Kinds of the quick run (the test suite's time budget); the full run takes every registered kind
 #: but those of :data:`SKIP_KINDS`.
 QUICK_KINDS = ("exact", "avsm", "avsm_march", "fom", "moments")
+#: Below this many configurations (seed x light) a claim is ``indicative`` (issue 23 item 4).
+MIN_CONFIDENT = 4
+#: A receiver's error above this (in T) counts as leaking light (:data:`avsm_dr.metrics.THRESHOLD`).
+LEAK = THRESHOLD
 #: Left out: the offline best-subset oracle costs 3.5-4 s per frame on the receivers' texels
 #: at 128^2 (measured, 2 shared cores), 25 min for the full run's 384 frames, and is no
 #: real-time method.
@@ -177,8 +197,12 @@ def _animations(P, seed, light_names):
 
 def _evaluate(frame, P, ms, rng, gif: bool):
     """Lookups of every method in one frame: (exact (K,), truth (K,), {label: (K,)},
-    {label: bytes per texel}, image dict or None).  Rows in ``'submission'`` order are built
-    on a second capture of the same frame in that order (the same texels' segments)."""
+    {label: (dense, sparse) bytes per texel}, {label: (T',) float32 per-texel depth-uniform
+    L2}, image dict or None).  Rows in ``'submission'`` order are built on a second capture of
+    the same frame in that order (the same texels' segments).  The L2 is
+    :func:`avsm_dr.evaluation.depth_l2` (``per_texel``) of the build against the exact curve of
+    the depth-order capture, on the grid of the segments it was built on (the same texels and
+    depth ranges in every order: a texel's range does not depend on its segments' order)."""
     cap = capture(frame.scene, resolution=P["resolution"], bounds=frame.bounds, order="depth")
     probe = Probe(cap, frame.scene, frame.receivers, 0, truth_at_points=truth(frame.scene, frame.receivers))
     img = Probe(cap, frame.scene, frame.image, 0, truth_at_points=np.ones(len(frame.image))) \
@@ -195,17 +219,29 @@ def _evaluate(frame, P, ms, rng, gif: bool):
         builders["submission"] = SubsetBuilder(drawn.segments, taps)
     exact = sub.build("exact", {})
     ex = probe.lookup(exact)
-    est, nbytes, image = {}, {}, None
+    tiles = texel_blocks(probe.tex[0], cap.width)           # each receiver's 8 x 8 texel tile
+    ex_curve = {}                                          # order -> exact curve on that order's grid
+
+    counted = depth_grid(sub.segments)[0]                   # the texels of the per-texel L2, in order
+    l2_tiles = texel_blocks(sub.texels[counted], cap.width)
+
+    def l2(order, rep) -> np.ndarray:
+        seg = builders[order].segments
+        if order not in ex_curve:
+            ex_curve[order] = curve_values(exact.rep, seg)
+        return depth_l2(rep, seg, exact=ex_curve[order], per_texel=True).astype(np.float32)
+    est, nbytes, l2s, image = {}, {}, {}, None
     if img is not None:
         image = {"exact": img.lookup(exact)}
     gl = set(_gif_labels(ms))
     for label, kind, params, order in ms:
         rep = exact if kind == "exact" else builders[order].build(kind, params)
         est[label] = ex if kind == "exact" else probe.lookup(rep)
-        nbytes[label] = float(rep.rep.nbytes_per_texel)
+        nbytes[label] = (float(rep.rep.nbytes_per_texel), float(rep.rep.nbytes_sparse_per_texel))
+        l2s[label] = l2(order, rep.rep)
         if image is not None and label in gl:
             image[label] = img.lookup(rep)
-    return ex, probe.truth, est, nbytes, image
+    return ex, probe.truth, est, nbytes, l2s, image, (tiles, l2_tiles)
 
 
 # ========================================================================== run
@@ -224,21 +260,30 @@ def _compute(res, P: dict) -> dict:
             for setting in P["settings"]:      # seeded by the animation's name: a narrowed run draws the same orders
                 rng = np.random.default_rng([seed, SETTINGS.index(setting), LIGHTS.index(li)])
                 gif = [seed, li] == list(P["configs"][0]) and setting in P["gif_settings"]
-                acc = dict(exact=[], truth=[], est={m[0]: [] for m in ms}, bytes={m[0]: [] for m in ms}, image=[])
+                acc = dict(exact=[], truth=[], est={m[0]: [] for m in ms}, bytes={m[0]: [] for m in ms},
+                           l2={m[0]: [] for m in ms}, image=[])
                 for t in range(F):
-                    ex, tr, est, nbytes, image = _evaluate(anims[(setting, li)](t), P, ms, rng, gif)
+                    ex, tr, est, nbytes, l2s, image, tiles = _evaluate(anims[(setting, li)](t), P, ms, rng, gif)
+                    if t == 0:
+                        acc["blocks"] = tiles[0]
+                    acc.setdefault("l2_blocks", []).append(tiles[1])
                     acc["exact"].append(ex)
                     acc["truth"].append(tr)
                     for k, v in est.items():
                         acc["est"][k].append(v)
                         acc["bytes"][k].append(nbytes[k])
+                        acc["l2"][k].append(l2s[k])
                     if image is not None:
                         acc["image"].append(image)
                     bar.update(1)
                 series[(setting, cfg)] = dict(exact=np.stack(acc["exact"]), truth=np.stack(acc["truth"]),
                                               est={k: np.stack(v) for k, v in acc["est"].items()},
-                                              bytes={k: float(np.mean(v)) for k, v in acc["bytes"].items()},
-                                              image=acc["image"])
+                                              bytes={k: float(np.mean([b[0] for b in v]))
+                                                     for k, v in acc["bytes"].items()},
+                                              sparse_bytes={k: float(np.mean([b[1] for b in v]))
+                                                            for k, v in acc["bytes"].items()},
+                                              l2=acc["l2"], image=acc["image"], blocks=acc["blocks"],
+                                              l2_blocks=acc["l2_blocks"])
     bar.close()
     rows = _rows(series, ms)
     summary = findings(series, ms, P)
@@ -250,15 +295,27 @@ def _compute(res, P: dict) -> dict:
 
 
 def _rows(series, ms) -> list[dict]:
+    """data.csv: per animation, configuration, method, reference (``vs``) and frame the
+    receiver RMS error, flicker and content change (:mod:`.metrics`), then (issue 23) the
+    capture's insertion ``order``, ``bytes`` (sparse layout, mean over frames, of the texels
+    built) and ``bytes_dense`` (= ``bytes_per_texel``), the error's ``signed_mean`` and
+    ``leak_share`` at the receivers against ``vs``, and ``depth_l2``: the frame's
+    depth-uniform L2 of the curve against the exact curve (:func:`avsm_dr.evaluation.depth_l2`
+    over the texels the receivers' taps touch; the same value in both ``vs`` rows)."""
     rows = []
     for (setting, cfg), s in series.items():
-        for label, kind, _, _ in ms:
+        for label, kind, _, order in ms:
+            l2 = [float(np.sqrt(np.mean(np.square(x, dtype=np.float64)))) if x.size else float("nan")
+                  for x in s["l2"][label]]
             for vs in ("exact", "truth"):
                 pf = per_frame(s["est"][label], s[vs])
                 for t in range(pf["error"].size):
                     rows.append(dict(setting=setting, config=cfg, method=label, kind=kind, vs=vs, frame=t,
                                      bytes_per_texel=s["bytes"][label], error_rms=pf["error"][t],
-                                     flicker_rms=pf["flicker"][t], content_rms=pf["content"][t]))
+                                     flicker_rms=pf["flicker"][t], content_rms=pf["content"][t], order=order,
+                                     bytes=s["sparse_bytes"][label], bytes_dense=s["bytes"][label],
+                                     signed_mean=pf["signed_mean"][t], leak_share=pf["leak_share"][t],
+                                     depth_l2=l2[t]))
     return rows
 
 
@@ -276,15 +333,24 @@ def findings(series, ms, P) -> dict:
     out = {"definition": "e = T_rep - T_ref at fixed receivers; flicker = sqrt(mean_{t>=1,i} (e_t - e_{t-1})^2); "
                          "content = the same for T_ref; flicker_index = flicker / (sqrt(2) error)",
            "frames": F, "configs": sorted({k[1] for k in series}), "per_setting": {}, "claims": {}, "headline": {},
-           "insertion": {}}
+           "insertion": {}, "curves": {},
+           "intervals": "per method (per_setting): 95 % bootstrap over the receivers of all configurations, "
+                        "resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames); "
+                        "claims: avsm_dr.stats.claim, configurations, then within each the same tiles (receivers "
+                        "x frames; depth_l2: each frame's texels by their tile)",
+           "metrics": "flicker and error: RMS at fixed receivers (the study's subject: a depth-uniform flicker "
+                      "is undefined when the map's texels and depth ranges move between frames); error claims "
+                      "also under the depth-uniform L2 of the curve (depth_l2), metric_dependent when the two "
+                      "disagree"}
     for setting in settings:
         cfgs = sorted(c for s, c in series if s == setting)
+        tiles = _tiles(series, setting, cfgs)
         block = {}
         for vs in ("exact", "truth"):
             per = {}
             for label, _, _, _ in ms:
                 sums = [receiver_sums(series[(setting, c)]["est"][label], series[(setting, c)][vs]) for c in cfgs]
-                ci = pooled_ci(np.concatenate(sums, axis=1), F, n_boot=P["n_boot"])
+                ci = pooled_ci(np.concatenate(sums, axis=1), F, n_boot=P["n_boot"], blocks=tiles)
                 ci["per_config"] = {c: {k: float(v) for k, v in pooled(sm, F).items()} for c, sm in zip(cfgs, sums)}
                 per[label] = ci
             block[vs] = per
@@ -302,13 +368,55 @@ def findings(series, ms, P) -> dict:
             least_flicker_vs_error=min(rel, key=rel.get) if rel else None)
         out["claims"][setting] = _claims(series, setting, cfgs, base, claim, P["n_boot"])
         out["insertion"][setting] = insertion_claims(series, setting, cfgs, ms, claim, P["n_boot"])
+        out["curves"][setting] = curves(series, setting, cfgs, ms)
     return out
+
+
+def _tiles(series, setting, cfgs) -> np.ndarray | None:
+    """Block label of every receiver of the configurations side by side: its 8 x 8 texel tile
+    in frame 0, configurations kept apart (None when a series has no tiles)."""
+    if any("blocks" not in series[(setting, c)] for c in cfgs):
+        return None
+    out, base = [], 0
+    for c in cfgs:
+        b = np.asarray(series[(setting, c)]["blocks"], np.int64)
+        out.append(b + base)
+        base += int(b.max()) + 1 if b.size else 0
+    return np.concatenate(out)
+
+
+def curves(series, setting, cfgs, ms) -> dict:
+    """Per label: the capture's insertion ``order``, ``bytes`` (sparse) and ``bytes_dense``
+    per texel (mean over configurations), ``depth_l2`` (the depth-uniform L2 of the curve
+    against the exact one, RMS over the configurations' frames and texels, and per
+    configuration), and the receivers' ``signed_mean`` and ``leak_share`` per reference,
+    pooled over configurations, frames and receivers (no intervals: the claims carry them)."""
+    out = {}
+    for label, _, _, order in ms:
+        per = {c: _pooled_l2(series[(setting, c)]["l2"][label]) for c in cfgs}
+        allv = [x for c in cfgs for x in series[(setting, c)]["l2"][label]]
+        rec = dict(order=order, bytes=float(np.mean([series[(setting, c)]["sparse_bytes"][label] for c in cfgs])),
+                   bytes_dense=float(np.mean([series[(setting, c)]["bytes"][label] for c in cfgs])),
+                   depth_l2=_pooled_l2(allv), depth_l2_per_config=per)
+        for vs in ("exact", "truth"):
+            e = np.concatenate(_errors(series, setting, cfgs, label, vs))
+            rec[f"signed_mean_vs_{vs}"] = float(np.mean(e))
+            rec[f"leak_share_vs_{vs}"] = float(np.mean(e > LEAK))
+        out[label] = rec
+    return out
+
+
+def _pooled_l2(per_frame_texels) -> float:
+    """RMS over every frame's per-texel L2 (the depth-uniform L2 of the frames pooled)."""
+    x = np.concatenate([np.asarray(v, np.float64).ravel() for v in per_frame_texels]) if per_frame_texels else []
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
 
 
 def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
     """Paired flicker comparisons (ratio of RMS frame-to-frame error changes, vs exact) in
     every configuration and pooled: sorted / unsorted AVSM, avsm_march / sorted AVSM."""
     labels = {(k, lab.split(" ")[-1] if k == "avsm" else ""): lab for lab, k, _, _ in ms}
+    order = {lab: o for lab, _, _, o in ms}
     pairs = {"avsm_sorted_vs_unsorted": (labels.get(("avsm", "sorted")), labels.get(("avsm", "unsorted"))),
              "avsm_march_vs_avsm_sorted": (labels.get(("avsm_march", "")), labels.get(("avsm", "sorted")))}
     out = {}
@@ -317,8 +425,41 @@ def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
             continue
         if all(np.all(x == 0) for x in _changes(series, setting, cfgs, b, "exact")):
             continue
-        out[name] = _paired(claim, _changes(series, setting, cfgs, a, "exact"),
-                            _changes(series, setting, cfgs, b, "exact"), cfgs, n_boot, a, b, "flicker_ratio")
+        ca = _changes(series, setting, cfgs, a, "exact")
+        out[name] = _paired(claim, ca, _changes(series, setting, cfgs, b, "exact"), cfgs, n_boot, a, b,
+                            "flicker_ratio", _blocks_for(series, setting, cfgs, ca))
+        out[name]["order"] = [order[a], order[b]]
+    # the error (not flicker) of sorted vs unsorted AVSM under both metrics (issue 23 item 5)
+    a, b = labels.get(("avsm", "sorted")), labels.get(("avsm", "unsorted"))
+    if a is not None and b is not None:
+        c = _error_claim(claim, series, setting, cfgs, a, b, "exact", n_boot)
+        if c is not None:
+            out["avsm_sorted_vs_unsorted_error"] = dict(c, order=[order[a], order[b]])
+    return out
+
+
+def _error_claim(claim, series, setting, cfgs, a, b, vs, n_boot) -> dict | None:
+    """The RMS error ratio ``a`` / ``b`` at the receivers (against ``vs``) with
+    ``metrics``: ``receiver_rmse`` and ``depth_l2`` (per-texel L2 of every frame, paired:
+    the same texels; against the exact curve whatever ``vs``), and ``metric_dependent``
+    (:func:`experiments.learned_warp.metric_dependent`: the two intervals on opposite sides
+    of 1).  None when ``b`` has no error."""
+    from ..learned_warp import metric_dependent
+    ea, eb = _errors(series, setting, cfgs, a, vs), _errors(series, setting, cfgs, b, vs)
+    if all(np.all(x == 0) for x in eb):
+        return None
+    out = _paired(claim, ea, eb, cfgs, n_boot, a, b, "ratio", _blocks_for(series, setting, cfgs, ea))
+    la = [np.concatenate(series[(setting, c)]["l2"][a]).astype(np.float64) for c in cfgs]
+    lb = [np.concatenate(series[(setting, c)]["l2"][b]).astype(np.float64) for c in cfgs]
+    m = {"receiver_rmse": {k: out[k] for k in ("low", "high", "n_configs", "indicative")} | {"estimate": out["ratio"]}}
+    if all(x.size == y.size and x.size >= 2 and np.any(y > 0) for x, y in zip(la, lb)):
+        tb = [np.concatenate(series[(setting, c)]["l2_blocks"]) if "l2_blocks" in series[(setting, c)] else None
+              for c in cfgs]
+        tb = None if any(t is None or t.size != x.size for t, x in zip(tb, la)) else tb
+        d = _paired(claim, la, lb, cfgs, n_boot, a, b, "ratio", tb)
+        m["depth_l2"] = {k: d[k] for k in ("low", "high", "n_configs", "indicative")} | {"estimate": d["ratio"]}
+    out["metrics"] = m
+    out["metric_dependent"] = metric_dependent(*m.values())
     return out
 
 
@@ -332,10 +473,27 @@ def _changes(series, setting, cfgs, label, vs) -> list[np.ndarray]:
     return [np.diff(series[(setting, c)]["est"][label] - series[(setting, c)][vs], axis=0).ravel() for c in cfgs]
 
 
-def _paired(claim, a, b, cfgs, n_boot, la, lb, key) -> dict:
-    cl = claim(a, b, statistic="rmse", configs=cfgs, n_boot=n_boot)
+def _blocks_for(series, setting, cfgs, values) -> list | None:
+    """Per configuration the 8 x 8 texel tile of each of its values (receivers x frames,
+    raveled frame by frame: each receiver's frame-0 tile); None where a series has no tiles."""
+    out = []
+    for c, v in zip(cfgs, values):
+        t = series[(setting, c)].get("blocks")
+        if t is None or t.size == 0 or v.size % t.size:
+            return None
+        out.append(np.tile(t, v.size // t.size))
+    return out
+
+
+def _paired(claim, a, b, cfgs, n_boot, la, lb, key, blocks=None) -> dict:
+    """RMS ratio ``la`` / ``lb`` by :func:`avsm_dr.stats.claim`: pooled over configurations
+    (the interval's unit), ``indicative`` with fewer than :data:`MIN_CONFIDENT` of them;
+    within each configuration whole ``blocks`` (8 x 8 texel tiles) are resampled when given."""
+    cl = claim(a, b, statistic="rmse", configs=cfgs, n_boot=n_boot, blocks_by_config=blocks)
     return {"a": la, "b": lb, key: cl["estimate"], "low": cl["low"], "high": cl["high"],
-            "holds_in_every_configuration": cl["holds_in_every_configuration"], "holds_pooled": cl["holds_pooled"]}
+            "holds_in_every_configuration": cl["holds_in_every_configuration"], "holds_pooled": cl["holds_pooled"],
+            "n_configs": cl["n_configs"], "indicative": cl["n_configs"] < MIN_CONFIDENT,
+            "interval_unit": "configuration"}
 
 
 def insertion_claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
@@ -347,7 +505,9 @@ def insertion_claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
     variant's own gain; not for ``avsm-8 submission`` itself), for submission-order rows
     ``flicker_vs_unsorted`` (over stream AVSM's in a fresh random order per frame);
     ``verdict``: the flicker-vs-sorted interval lies below 1 (``less``), above it (``more``)
-    or across it (``indistinguishable``).  A comparison whose stream row was not run is left out."""
+    or across it (``indistinguishable``).  A comparison whose stream row was not run is left out.
+    ``error_vs_stream`` also carries ``metrics`` (receiver RMSE and depth-uniform L2) and
+    ``metric_dependent`` (:func:`_error_claim`); every ratio ``n_configs`` and ``indicative``."""
     stream = {order: lab for lab, k, p, order in ms if k == "avsm" and "insertion" not in p and not p.get("sort")}
     stream["depth"] = next((lab for lab, k, p, _ in ms if k == "avsm" and "insertion" not in p and p.get("sort")),
                            None)
@@ -361,16 +521,18 @@ def insertion_claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
         for vs in ("exact", "truth"):
             ch = lambda lab: _changes(series, setting, cfgs, lab, vs)          # noqa: E731
             fl = ch(label)
-            r = {"flicker_vs_sorted": _paired(claim, fl, ch(sorted_), cfgs, n_boot, label, sorted_, "ratio")}
+            fb = _blocks_for(series, setting, cfgs, fl)
+            r = {"flicker_vs_sorted": _paired(claim, fl, ch(sorted_), cfgs, n_boot, label, sorted_, "ratio", fb)}
             if same is not None:
                 r["flicker_vs_stream"] = r["flicker_vs_sorted"] if same == sorted_ else \
-                    _paired(claim, fl, ch(same), cfgs, n_boot, label, same, "ratio")
-                r["error_vs_stream"] = _paired(claim, _errors(series, setting, cfgs, label, vs),
-                                               _errors(series, setting, cfgs, same, vs), cfgs, n_boot, label, same,
-                                               "ratio")
+                    _paired(claim, fl, ch(same), cfgs, n_boot, label, same, "ratio", fb)
+                r["error_vs_stream"] = _error_claim(claim, series, setting, cfgs, label, same, vs, n_boot) or \
+                    _paired(claim, _errors(series, setting, cfgs, label, vs), _errors(series, setting, cfgs, same, vs),
+                            cfgs, n_boot, label, same, "ratio",
+                            _blocks_for(series, setting, cfgs, _errors(series, setting, cfgs, label, vs)))
             if order == "submission" and stream.get("random") is not None:
                 r["flicker_vs_unsorted"] = _paired(claim, fl, ch(stream["random"]), cfgs, n_boot, label,
-                                                   stream["random"], "ratio")
+                                                   stream["random"], "ratio", fb)
             f = r["flicker_vs_sorted"]
             r["verdict"] = "less" if f["high"] < 1 else "more" if f["low"] > 1 else "indistinguishable"
             rec[vs] = r

@@ -22,10 +22,17 @@ it) does not flicker, whatever its size.  Two ratios:
 
 (for a stationary error of variance s^2, mean m and frame-to-frame correlation rho:
 flicker^2 = 2 s^2 (1 - rho), error^2 = s^2 + m^2).
+
+Per frame also the sign of the error (issue 23 item 5)::
+
+    signed_mean_t = mean_i e[t, i]                 (> 0: light leaking)
+    leak_share_t  = mean_i [e[t, i] > 0.02]        (avsm_dr.metrics.THRESHOLD)
 """
 from __future__ import annotations
 
 import numpy as np
+
+from avsm_dr.metrics import THRESHOLD
 
 SQRT2 = float(np.sqrt(2.0))
 
@@ -38,8 +45,9 @@ def _frames(x, name: str) -> np.ndarray:
 
 
 def per_frame(estimate, reference) -> dict:
-    """Per-frame series of the module docstring: ``error`` (F,), ``flicker`` and ``content``
-    (F,; NaN at t = 0) for (F, K) arrays ``estimate`` and ``reference``."""
+    """Per-frame series of the module docstring: ``error``, ``signed_mean``, ``leak_share``
+    (F,), ``flicker`` and ``content`` (F,; NaN at t = 0) for (F, K) arrays ``estimate`` and
+    ``reference``."""
     est, ref = _frames(estimate, "estimate"), _frames(reference, "reference")
     if est.shape != ref.shape:
         raise ValueError(f"reference: expected shape {est.shape} (as estimate), got {ref.shape}")
@@ -47,7 +55,8 @@ def per_frame(estimate, reference) -> dict:
     nan = np.full(1, np.nan)
     return {"error": np.sqrt(np.mean(e ** 2, axis=1)),
             "flicker": np.concatenate([nan, np.sqrt(np.mean(np.diff(e, axis=0) ** 2, axis=1))]),
-            "content": np.concatenate([nan, np.sqrt(np.mean(np.diff(ref, axis=0) ** 2, axis=1))])}
+            "content": np.concatenate([nan, np.sqrt(np.mean(np.diff(ref, axis=0) ** 2, axis=1))]),
+            "signed_mean": np.mean(e, axis=1), "leak_share": np.mean(e > THRESHOLD, axis=1)}
 
 
 def receiver_sums(estimate, reference) -> np.ndarray:
@@ -74,18 +83,32 @@ def pooled(sums, frames: int, axis: int = -1) -> dict:
                 "flicker_per_content": np.where(co > 0, fl / np.where(co > 0, co, 1.0), np.nan)}
 
 
-def pooled_ci(sums, frames: int, n_boot: int = 1000, seed: int = 0) -> dict:
+def pooled_ci(sums, frames: int, n_boot: int = 1000, seed: int = 0, blocks=None) -> dict:
     """Each statistic of :func:`pooled` with a bootstrap 95 % percentile interval over the
     receivers (columns of the (3, K) ``sums``, e.g. the receivers of all configurations
-    side by side), through :func:`avsm_dr.stats.bootstrap_ci` on the receiver indices."""
+    side by side), through :func:`avsm_dr.stats.bootstrap_ci` on the receiver indices;
+    ``blocks`` (K,): a block label per receiver (e.g. the 8 x 8 texel tile it looks up in):
+    whole blocks are resampled (the spatial block bootstrap of :mod:`avsm_dr.stats`), as the
+    ordinary bootstrap of the blocks' sums and sizes (the same draws, vectorised)."""
     from avsm_dr.stats import bootstrap_ci
     s = np.asarray(sums, np.float64)
+    if blocks is not None:
+        b = np.asarray(blocks).ravel()
+        if b.size != s.shape[1]:
+            raise ValueError(f"blocks: expected {s.shape[1]} block labels (one per receiver), got {b.size}")
+        _, inv = np.unique(b, return_inverse=True)
+        size = np.bincount(inv).astype(np.float64)
+        s = np.stack([np.bincount(inv, weights=s[k]) for k in range(3)])       # (3, G) block sums
     idx = np.arange(s.shape[1], dtype=np.float64)
     out = {}
     for key in ("error", "flicker", "content", "flicker_index", "flicker_per_content"):
         def stat(x, axis, key=key):
             i = x.astype(np.int64)
-            means = np.stack([np.mean(s[k][i], axis=-1) for k in range(3)])[..., None]   # one gather at a time
+            if blocks is None:
+                means = np.stack([np.mean(s[k][i], axis=-1) for k in range(3)])[..., None]   # one gather at a time
+            else:
+                n = np.sum(size[i], axis=-1)
+                means = np.stack([np.sum(s[k][i], axis=-1) / n for k in range(3)])[..., None]
             return pooled(means, frames, axis=-1)[key]
         ci = bootstrap_ci(idx, stat, n_boot=n_boot, seed=seed)
         out[key] = {"estimate": ci["estimate"], "low": ci["low"], "high": ci["high"]}
