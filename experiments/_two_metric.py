@@ -22,6 +22,16 @@ def direction(m: dict) -> str | None:
     return "below" if m["high"] < 1 else "above" if m["low"] > 1 else None
 
 
+def metric_dependent(a: dict, b: dict) -> bool:
+    """True when both intervals (dicts with ``low`` and ``high``) establish a direction against 1
+    and the directions differ (``error_curves``' rule; a single configuration has no interval,
+    so no direction)."""
+    if "low" not in a or "low" not in b:
+        return False
+    d1, d2 = direction(a), direction(b)
+    return bool(d1 and d2 and d1 != d2)
+
+
 def side(errors) -> dict:
     """Signed mean and leak share of one side's receiver errors, pooled over configurations."""
     from avsm_dr.metrics import THRESHOLD

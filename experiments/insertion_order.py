@@ -70,6 +70,7 @@ from avsm_dr import build
 from ._free_vertex import free_vertex_l2
 from ._headline import num, wrap
 from ._study import Option, Study
+from ._two_metric import metric_dependent
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -255,7 +256,7 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
                                   beats_optimal_texels=float(np.mean([r["beats_optimal_texels"] for r in rk])),
                                   free_vertex=_free_interval(rk, n_boot))
                 for k, e in per.items():
-                    e["metric_dependent"] = _metric_dependent(e["rmse"], e["depth_l2"])
+                    e["metric_dependent"] = metric_dependent(e["rmse"], e["depth_l2"])
                 d[order] = per
                 rank[order] = sorted(per, key=lambda k: per[k]["depth_l2"]["estimate"])
             d["order_over_depth"] = _order_over_depth([r for r in rows if r["scene"] == scene and r["nodes"] == n],
@@ -271,16 +272,6 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
             d["goal"] = _goal(d, [r for r in rows if r["scene"] == scene and r["nodes"] == n])
             out.setdefault(scene, {})[f"N={n}"] = d
     return out
-
-
-def _metric_dependent(a: dict, b: dict) -> bool:
-    """Both intervals establish a direction against 1 and the directions differ
-    (``error_curves``' rule; a single configuration has no interval, so no direction)."""
-    from ._two_metric import direction
-    if "low" not in a or "low" not in b:
-        return False
-    d1, d2 = direction(a), direction(b)
-    return bool(d1 and d2 and d1 != d2)
 
 
 def _order_over_depth(rows: list[dict], n_boot: int) -> dict:
@@ -299,7 +290,7 @@ def _order_over_depth(rows: list[dict], n_boot: int) -> dict:
             if not rk or any(base[r["config"]][m] <= 0 for r in rk for m in ("rmse", "depth_l2")):
                 continue
             e = {m: _interval([r[m] / base[r["config"]][m] for r in rk], n_boot) for m in ("rmse", "depth_l2")}
-            e["metric_dependent"] = _metric_dependent(e["rmse"], e["depth_l2"])
+            e["metric_dependent"] = metric_dependent(e["rmse"], e["depth_l2"])
             out.setdefault(k, {})[o] = e
     return out
 

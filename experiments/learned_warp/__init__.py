@@ -75,6 +75,7 @@ from avsm_dr import allows, build, describe
 from avsm_dr.stats import paired_bootstrap
 from .._headline import interval
 from .._study import Study
+from .._two_metric import metric_dependent
 from .depth_warp import DepthWarp, log_values
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -372,24 +373,10 @@ def findings(rows) -> dict:
                     c[k] = {"ratio": ci["estimate"], "low": ci["low"], "high": ci["high"],
                             "p_learned_smaller": ci["p_a_smaller"],
                             "learned_smaller_in": int(np.sum(by["learned", k] < by[base, k]))}
-                c["metric_dependent"] = metric_dependent(*c.values())
+                c["metric_dependent"] = len(c) == 2 and metric_dependent(*c.values())
                 e[f"learned_over_{base}"] = c
             d[g] = e
     return out
-
-
-def _direction(c) -> str | None:
-    """'below' / 'above' when the interval of ``c`` lies entirely below / above 1, else None."""
-    return "below" if c["high"] < 1 else "above" if c["low"] > 1 else None
-
-
-def metric_dependent(*cis) -> bool:
-    """True when two metrics' intervals (dicts with ``low`` and ``high``) both establish a
-    direction against 1 and the directions differ (``error_curves``' rule)."""
-    if len(cis) != 2:
-        return False
-    d1, d2 = (_direction(c) for c in cis)
-    return bool(d1 and d2 and d1 != d2)
 
 
 __all__ = ["run", "findings", "metric_dependent", "train", "errors", "receiver_errors", "kind_log_params",

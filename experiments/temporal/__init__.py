@@ -442,9 +442,9 @@ def _error_claim(claim, series, setting, cfgs, a, b, vs, n_boot) -> dict | None:
     """The RMS error ratio ``a`` / ``b`` at the receivers (against ``vs``) with
     ``metrics``: ``receiver_rmse`` and ``depth_l2`` (per-texel L2 of every frame, paired:
     the same texels; against the exact curve whatever ``vs``), and ``metric_dependent``
-    (:func:`experiments.learned_warp.metric_dependent`: the two intervals on opposite sides
+    (:func:`experiments._two_metric.metric_dependent`: the two intervals on opposite sides
     of 1).  None when ``b`` has no error."""
-    from ..learned_warp import metric_dependent
+    from .._two_metric import metric_dependent
     ea, eb = _errors(series, setting, cfgs, a, vs), _errors(series, setting, cfgs, b, vs)
     if all(np.all(x == 0) for x in eb):
         return None
@@ -459,7 +459,7 @@ def _error_claim(claim, series, setting, cfgs, a, b, vs, n_boot) -> dict | None:
         d = _paired(claim, la, lb, cfgs, n_boot, a, b, "ratio", tb)
         m["depth_l2"] = {k: d[k] for k in ("low", "high", "n_configs", "indicative")} | {"estimate": d["ratio"]}
     out["metrics"] = m
-    out["metric_dependent"] = metric_dependent(*m.values())
+    out["metric_dependent"] = len(m) == 2 and metric_dependent(*m.values())
     return out
 
 
