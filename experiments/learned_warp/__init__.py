@@ -30,7 +30,7 @@ Per kind (at its size, the same for every warp):
   + range = 32 B, FOM 2 harmonics + range = 28 B); absent where no size fits (moments: 4
   moments at the preset take 28 B, not 20).
 
-Two metrics (issue 23 item 5), both against the exact curve of the same segments (the
+Two metrics, both against the exact curve of the same segments (the
 compression error: the warp changes nothing else):
 
 * ``depth_l2``: the RMSE at receivers uniform in depth over each non-empty texel's content
