@@ -1,4 +1,4 @@
-"""A claim "a below b" on both metrics of issue 23, for the studies that keep their own error
+"""A claim "a below b" on both metrics (receiver RMSE and depth-uniform L2), for the studies that keep their own error
 arrays (``avsm_gap``, ``memory_budget``): the receiver RMSE ratio (signed errors at the same
 receivers, paired) and the depth-uniform L2 ratio (:func:`avsm_dr.evaluation.depth_l2` per
 texel, paired), each by :func:`avsm_dr.stats.claim` (pooled: geometric mean of the

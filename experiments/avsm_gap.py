@@ -33,7 +33,7 @@ that do not depend on it).  The headline rows (``method == "avsm"`` without a su
 ``findings.json``) are front to back, as before; ``avsm_over_optimal_by_order`` gives each
 order's ratio and ``intervals`` each order's interval (``avsm@<order>_over_optimal``).
 
-The columns every study carries (issue 23): ``rmse``, ``signed_mean`` and ``leak_share``
+The columns every study carries: ``rmse``, ``signed_mean`` and ``leak_share``
 (error > 0.02) at the in-volume receivers; ``depth_l2``, the harness's depth-uniform L2
 (:func:`avsm_dr.evaluation.depth_l2`, 64 midpoints per texel: the same measure as
 ``depth_rms`` by another quadrature, within 2.1 % on the quick run); ``bytes`` (the sparse
@@ -90,7 +90,7 @@ RECEIVERS = "in_volume"
 ORDERS = ["depth", "submission", "reverse_depth", "random"]
 
 #: Full mode: error_curves' ten configurations (4 seeds x both directional lights, 2 seeds x the
-#: spot light; issue 23: >= 10 per scene, one a spot light).
+#: spot light: at least 10 per scene, one of them a spot light).
 FULL_CONFIGS = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
 
 FULL = dict(scenes=SCENES, resolution=128, nodes=[2, 4, 8, 16, 32], configs=FULL_CONFIGS,

@@ -28,7 +28,7 @@ The claims (rankings) use these image metrics: the study is about the pictures, 
 receiver RMSE of the shadow-map harness does not apply (the pixels are the receivers here,
 and their signed mean and leak share are ``mean_signed`` and ``leak_pixels``).  Beside them
 every row carries the curve metrics of the map that made the image, cheap at the map's
-resolution (issue 23): ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2` against the exact
+resolution: ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2` against the exact
 curve of the same capture), ``order`` ('depth' for the kinds whose build depends on the
 insertion order: the capture is front to back; '-' otherwise), ``bytes`` (sparse layout) and
 ``bytes_dense``.  One configuration per scene: no interval.

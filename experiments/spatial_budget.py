@@ -15,7 +15,7 @@ configuration (seed x light) of every scene; receivers split into ``volume`` (in
 smoke) and ``surface`` (the receiver plane) besides ``all``.  Statistics
 (:mod:`avsm_dr.metrics`): RMSE, signed mean, leak / dark fractions, p99 / p99.9, optical-depth
 RMSE; a bootstrap 95 % interval of the RMSE over receivers (:mod:`avsm_dr.stats`).
-Per row also (issue 23): the capture's insertion ``order`` ('depth'), ``bytes`` (the sparse
+Per row also: the capture's insertion ``order`` ('depth'), ``bytes`` (the sparse
 layout, ``nbytes_sparse_per_texel``) and ``bytes_dense`` (= ``bytes_per_texel``, the unit of
 the budgets), and ``depth_l2``, the depth-uniform L2 of the map's curve against the exact
 curve at the same resolution (:func:`avsm_dr.evaluation.depth_l2`; 0 for ``exact``);

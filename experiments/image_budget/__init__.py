@@ -38,7 +38,7 @@ Per frame and resolution (display white S fixed per animation, :mod:`.render`):
   (every render of every frame uses the same seed, so the camera noise is a fixed pattern
   and cancels from the compression term).
 
-Curve metrics of the map that made each image (issue 23 items 1, 2, 5), per row: ``order``
+Curve metrics of the map that made each image, per row: ``order``
 ('depth': the integrator's capture), ``bytes`` (sparse layout, ``nbytes_sparse_per_texel``)
 and ``bytes_dense`` (= ``bytes_per_texel``, the budgets' unit), and against the exact curve
 of the same capture ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`), ``curve_signed_mean``
@@ -92,8 +92,8 @@ EXTRA_SIZES = {"tolerance": (0.001, 0.0005, 0.0002, 0.0001)}
 LIGHT = (1.0, -0.3, 0.25)
 #: Fewer frames than this make a threshold ``indicative``.
 MIN_FRAMES = 4
-#: Fewer configurations (scene seed x light) than this make a threshold ``indicative`` (issue 23
-#: item 4); the study renders one.
+#: Fewer configurations (scene seed x light) than this make a threshold ``indicative``; the study
+#: renders one.
 MIN_CONFIGS = 4
 #: Per-row curve metrics of the map that made the image, averaged per configuration in
 #: ``findings.json['curves']``.
@@ -362,7 +362,7 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
 
 
 def _one_configuration(thr: dict) -> dict:
-    """A threshold with its statistical basis (issue 23 item 4): one configuration (the plume's
+    """A threshold with its statistical basis: one configuration (the plume's
     seed, one light), so ``indicative`` whatever the frames (fewer than
     :data:`MIN_CONFIGS`); the interval's unit stays the frame."""
     return dict(thr, n_configs=1, indicative=bool(thr["indicative"] or 1 < MIN_CONFIGS), interval_unit="frame")

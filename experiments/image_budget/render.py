@@ -91,7 +91,7 @@ def recording_class(mi):
 
 
 def curve_metrics(mi, segments, rep, reference) -> dict:
-    """The curve metrics of one render's map (issue 23 item 5) against ``reference``, the exact
+    """The curve metrics of one render's map against ``reference``, the exact
     curve's :func:`avsm_dr.evaluation.curve_values` on the same segments (None: ``rep`` is the
     exact curve, all zero): ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`), and over the
     same depth grid (opaque interiors left out) ``curve_signed_mean``, the mean of

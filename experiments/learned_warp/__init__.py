@@ -46,7 +46,7 @@ Captures are front to back (``order='depth'``; the linear kinds do not depend on
 recorded per row (``order``), with ``bytes`` (the sparse layout of the kind at the row's
 size on that scene; the warp adds none) and ``bytes_dense`` (= ``bytes_per_texel``).
 Every interval is over configurations, none within a map, so none needs the 8 x 8 texel
-block bootstrap of issue 23 item 4.
+block bootstrap used for within-map intervals.
 
 Second part, AVSM's removal metric (:mod:`.avsm`): the blend
 ``(1 - beta) area + beta depth-gap`` learned through a softmin surrogate of the removal

@@ -54,7 +54,7 @@ so fixed AVSM-N and adaptive AVSM are built again with it (``exp`` rows, under e
 ``optimal``); findings give the exp savings (``bytes_saved_at_equal_rmse_by_order_exp`` per
 order), the exp / linear RMSE ratios and adaptive / fixed within exp.
 
-Both metrics (issue 23): every row carries ``rmse``, ``signed_mean`` and ``leak_share``
+Both metrics: every row carries ``rmse``, ``signed_mean`` and ``leak_share``
 (error > 0.02) at the receivers, ``depth_rms`` (the quadrature of :class:`.avsm_gap.UniformObjective`)
 and ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`, 64 midpoints: the same measure by the
 harness), ``bytes`` (sparse) and ``bytes_dense``.  ``findings.json``'s ``claims``

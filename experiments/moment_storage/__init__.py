@@ -26,7 +26,7 @@ with ``bytes_per_texel`` per variant and the tuned alphas.  ``data.csv``: one ro
 scene, opaque mode, configuration, variant and alpha choice (RMSE, max and mean error);
 ``tuning.csv``: the held-out seed's RMSE per alpha.
 
-Both metrics (issue 23): each row also carries ``signed_mean`` and ``leak_share`` (error >
+Both metrics: each row also carries ``signed_mean`` and ``leak_share`` (error >
 0.02) at the receivers, ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2` against the exact
 curve, per texel then RMS), ``bytes`` (sparse layout) and ``bytes_dense``, and ``order``
 (``-``: moments do not depend on the insertion order).  Every claim carries, besides the

@@ -31,7 +31,7 @@ flicker per frame and pooled, as defined in :mod:`.metrics`::
     flicker = sqrt(mean_{t >= 1, i} (e[t, i] - e[t-1, i])^2)       content = same with T_ref for e
     flicker_index = flicker / (sqrt(2) error)                       (0 frozen, 1 uncorrelated)
 
-Metrics (issue 23 item 5): flicker and error are measured at the fixed receivers, the
+Metrics: flicker and error are measured at the fixed receivers, the
 study's subject (what a viewer sees move); a depth-uniform flicker is not defined, as the
 map's texels and depth ranges move between frames.  Every row also records the capture's
 insertion ``order`` (``'depth'``, ``'random'``: a fresh order per frame, ``'submission'``),
@@ -42,8 +42,8 @@ claims (sorted vs unsorted AVSM, each insertion variant vs stream AVSM) carry bo
 and ``metric_dependent`` (their intervals on opposite sides of 1: ``error_curves``' rule).
 
 Intervals: bootstrap 95 % over the receivers of all configurations (:func:`avsm_dr.stats.bootstrap_ci`),
-resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames together;
-issue 23 item 4: receivers looked up through one map are not independent);
+resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames together:
+receivers looked up through one map are not independent);
 paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
 variant vs sorted and vs same-order stream AVSM, submission-order rows also vs random-order
 stream AVSM: :func:`insertion_claims`) by
@@ -88,7 +88,7 @@ GIF_METHODS = (("avsm", "unsorted"), ("avsm_march", ""), ("fom", ""))
 #: Kinds of the quick run (the test suite's time budget); the full run takes every registered kind
 #: but those of :data:`SKIP_KINDS`.
 QUICK_KINDS = ("exact", "avsm", "avsm_march", "fom", "moments")
-#: Below this many configurations (seed x light) a claim is ``indicative`` (issue 23 item 4).
+#: Below this many configurations (seed x light) a claim is ``indicative``.
 MIN_CONFIDENT = 4
 #: A receiver's error above this (in T) counts as leaking light (:data:`avsm_dr.metrics.THRESHOLD`).
 LEAK = THRESHOLD
@@ -296,7 +296,7 @@ def _compute(res, P: dict) -> dict:
 
 def _rows(series, ms) -> list[dict]:
     """data.csv: per animation, configuration, method, reference (``vs``) and frame the
-    receiver RMS error, flicker and content change (:mod:`.metrics`), then (issue 23) the
+    receiver RMS error, flicker and content change (:mod:`.metrics`), then the
     capture's insertion ``order``, ``bytes`` (sparse layout, mean over frames, of the texels
     built) and ``bytes_dense`` (= ``bytes_per_texel``), the error's ``signed_mean`` and
     ``leak_share`` at the receivers against ``vs``, and ``depth_l2``: the frame's
@@ -429,7 +429,7 @@ def _claims(series, setting, cfgs, ms, claim, n_boot) -> dict:
         out[name] = _paired(claim, ca, _changes(series, setting, cfgs, b, "exact"), cfgs, n_boot, a, b,
                             "flicker_ratio", _blocks_for(series, setting, cfgs, ca))
         out[name]["order"] = [order[a], order[b]]
-    # the error (not flicker) of sorted vs unsorted AVSM under both metrics (issue 23 item 5)
+    # the error (not flicker) of sorted vs unsorted AVSM under both metrics
     a, b = labels.get(("avsm", "sorted")), labels.get(("avsm", "unsorted"))
     if a is not None and b is not None:
         c = _error_claim(claim, series, setting, cfgs, a, b, "exact", n_boot)

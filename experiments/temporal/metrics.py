@@ -23,7 +23,7 @@ it) does not flicker, whatever its size.  Two ratios:
 (for a stationary error of variance s^2, mean m and frame-to-frame correlation rho:
 flicker^2 = 2 s^2 (1 - rho), error^2 = s^2 + m^2).
 
-Per frame also the sign of the error (issue 23 item 5)::
+Per frame also the sign of the error::
 
     signed_mean_t = mean_i e[t, i]                 (> 0: light leaking)
     leak_share_t  = mean_i [e[t, i] > 0.02]        (avsm_dr.metrics.THRESHOLD)
