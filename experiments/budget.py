@@ -25,7 +25,7 @@ wall times in the first configuration (after a warm-up call; a lookup is one bat
 receivers).  Kinds that
 fit in no setting are listed as such.  The run ends with a short table.
 
-Issue 23's columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on
+Fair-comparison columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on
 it; '-' otherwise), ``signed_mean`` and ``leak_share`` (error > 0.02) at the receivers, mean
 over configurations, beside ``rmse`` and ``depth_l2``; the summary names the setting of least
 ``depth_l2`` too and ``metric_dependent`` when it is not the setting of least RMSE.  The

@@ -3,7 +3,7 @@ temporal flicker (the change of T between two random insertion orders of the sam
 segments, as unordered GPU capture would produce frame to frame), with and without
 sorting, for several node counts.
 
-Issue 23's columns: ``order`` ('random': the shuffled orders as inserted; 'depth': the same
+Fair-comparison columns: ``order`` ('random': the shuffled orders as inserted; 'depth': the same
 shuffles sorted front to back by ``build(..., sort=True)``), ``signed_mean`` and
 ``leak_share`` (error > 0.02) at the scene's receivers and ``depth_l2``
 (:func:`avsm_dr.evaluation.depth_l2`), each averaged over the shuffled orders (RMS for

@@ -4,7 +4,7 @@ with the Pareto front (no other setting is both faster and more accurate).
 Times: median of repeats after a warm-up call (JIT compile excluded, reported as
 ``first_call_s``); error: RMSE against the exact curve at the scene's receivers.
 
-Issue 23's columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on
+Fair-comparison columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on
 it; '-' otherwise), ``signed_mean`` and ``leak_share`` (error > 0.02) at the receivers,
 ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2` against the exact curve), ``bytes`` (sparse
 layout) and ``bytes_dense`` (= ``bytes_per_texel``); ``pareto_depth_l2`` marks the front of

@@ -227,7 +227,8 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
         assert r["order"] == order[r["method"]], r
         for k in ("bytes", "bytes_dense", "signed_mean", "leak_share", "depth_l2"):
             assert np.isfinite(float(r[k])), (k, r)
-        assert float(r["bytes_dense"]) == float(r["bytes_per_texel"]) and 0 < float(r["bytes"]) <= float(r["bytes_dense"]) + 1
+        assert float(r["bytes_dense"]) == float(r["bytes_per_texel"])
+        assert 0 < float(r["bytes"]) <= float(r["bytes_dense"]) + 1
         assert 0 <= float(r["leak_share"]) <= 1 and float(r["depth_l2"]) >= 0
         assert (float(r["depth_l2"]) == 0) == (r["method"] == "exact"), r
     for setting in f["per_setting"]:
