@@ -1,5 +1,5 @@
-"""A claim "a below b" on both metrics (receiver RMSE and depth-uniform L2), for the studies that keep their own error
-arrays (``avsm_gap``, ``memory_budget``): the receiver RMSE ratio (signed errors at the same
+"""A claim "a below b" on both metrics (receiver RMSE and depth-uniform L2), for the studies
+that keep their own error arrays (``avsm_gap``, ``memory_budget``): the receiver RMSE ratio (signed errors at the same
 receivers, paired) and the depth-uniform L2 ratio (:func:`avsm_dr.evaluation.depth_l2` per
 texel, paired), each by :func:`avsm_dr.stats.claim` (pooled: geometric mean of the
 per-configuration ratios, two-stage bootstrap; the unit is the configuration, scene seed x
@@ -58,9 +58,8 @@ def claim(receivers: tuple, l2: tuple, configs, blocks: tuple = (None, None), n_
                              per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]]
                                          for pc in r["per_config"]})
     rm = metrics["receiver_rmse"]
-    d1, d2 = direction(rm), direction(metrics["depth_l2"])
     return dict(estimate=rm["estimate"], low=rm["low"], high=rm["high"], n_configs=rm["n_configs"],
                 indicative=rm["n_configs"] < MIN_CONFIDENT, interval_unit="configuration",
                 within_configuration="8x8 texel blocks" if all(b is not None for b in blocks)
-                else "receivers / texels", metrics=metrics, metric_dependent=bool(d1 and d2 and d1 != d2),
+                else "receivers / texels", metrics=metrics, metric_dependent=metric_dependent(rm, metrics["depth_l2"]),
                 sides={"a": side(receivers[0]), "b": side(receivers[1])})
