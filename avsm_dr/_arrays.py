@@ -104,17 +104,14 @@ def aligned(a: np.ndarray, dtype=None) -> np.ndarray:
 
 
 def to_float(x: Any, Float) -> Any:
-    """``x`` as the Dr.Jit type ``Float``; Dr.Jit input keeps its AD graph."""
+    """``x`` as the Dr.Jit type ``Float`` (or ``UInt32``); Dr.Jit input keeps its AD graph."""
     if is_drjit(x):
         x = flat_array(x)
         return x if type(x) is Float else Float(x)
-    dt = np.float64 if dr.type_v(Float) == dr.VarType.Float64 else np.float32
+    dt = {dr.VarType.Float64: np.float64, dr.VarType.UInt32: np.uint32}.get(dr.type_v(Float), np.float32)
     return Float(aligned(np.asarray(x, dtype=dt).ravel()))
 
 
 def to_uint32(x: Any) -> Any:
-    UInt32 = backend.types().UInt32
-    if is_drjit(x):
-        x = flat_array(x)
-        return x if type(x) is UInt32 else UInt32(x)
-    return UInt32(aligned(np.asarray(x, dtype=np.uint32).ravel()))
+    """``x`` as the backend's Dr.Jit ``UInt32`` (:func:`to_float`)."""
+    return to_float(x, backend.types().UInt32)

@@ -19,18 +19,16 @@ THRESHOLD = 0.02
 T_FLOOR = 1e-4
 
 
-def _pair(estimate, reference):
+def _pair(estimate, reference, threshold):
+    """(estimate, reference, which estimates are finite) as flat float64, checked."""
     est = np.asarray(estimate, dtype=np.float64).ravel()
     ref = np.asarray(reference, dtype=np.float64).ravel()
     if est.shape != ref.shape:
         raise ValueError(f"estimate: shape {est.shape} does not match reference {ref.shape}")
     if not np.all(np.isfinite(ref)):
         raise ValueError("reference: contains NaN or inf")
-    return est, ref
-
-
-def _check_threshold(threshold):
-    return V.real(threshold, "threshold", 0.0)
+    V.real(threshold, "threshold", 0.0)
+    return est, ref, np.isfinite(est)
 
 
 _KEYS = ("rmse", "max_error", "mean_error", "mean_abs_error", "leak_fraction", "dark_fraction",
@@ -57,9 +55,7 @@ def error_stats(estimate, reference, threshold: float = THRESHOLD) -> dict:
     bounds_violations (estimates outside [0, 1]) and n (all values).  Non-finite
     estimates are counted and excluded from the error statistics.
     """
-    est, ref = _pair(estimate, reference)
-    _check_threshold(threshold)
-    finite = np.isfinite(est)
+    est, ref, finite = _pair(estimate, reference, threshold)
     out = _summary(est[finite] - ref[finite], float(threshold))
     out.update({
         "nan_count": int(np.count_nonzero(np.isnan(est))),
@@ -86,9 +82,7 @@ def optical_depth_error(estimate, reference, floor: float = T_FLOOR, threshold: 
     tau_dark_fraction (|e_tau| > ``threshold``, default 0.1: about 10 % relative error
     in T), tau_p99_error, tau_p999_error, tau_floor.
     """
-    est, ref = _pair(estimate, reference)
-    _check_threshold(threshold)
-    finite = np.isfinite(est)
+    est, ref, finite = _pair(estimate, reference, threshold)
     diff = optical_depth(ref[finite], floor) - optical_depth(est[finite], floor)
     out = _summary(diff, float(threshold), prefix="tau_")
     out["tau_floor"] = float(floor)
