@@ -38,26 +38,26 @@ NUMERIC_VARTYPES = (dr.VarType.Int8, dr.VarType.UInt8, dr.VarType.Int16, dr.VarT
                     dr.VarType.Float16, dr.VarType.Float32, dr.VarType.Float64)
 
 
-def host(x: Any, name: str, dtype=np.float64) -> np.ndarray:
+def host(x: Any, name: str, dtype=np.float64, what: str = "a numeric (integer or float) array",
+         copy: bool = False) -> np.ndarray:
     """A NumPy copy of ``x`` (NumPy, list, scalar or Dr.Jit array) as ``dtype``, for
-    validation.  Only numbers are read: boolean, complex, string and object input
-    (NumPy ``astype`` would turn ``True`` into 1, drop an imaginary part, parse ``'0.5'``)
-    and Dr.Jit ``Bool`` arrays raise ``ValueError`` naming ``name``."""
+    validation (NumPy input of that dtype itself unless ``copy``).  Only numbers are read:
+    boolean, complex, string and object input (NumPy ``astype`` would turn ``True`` into 1,
+    drop an imaginary part, parse ``'0.5'``) and Dr.Jit ``Bool`` arrays raise
+    ``ValueError("<name>: expected <what>...")``."""
     if is_drjit(x):
         if dr.type_v(x) not in NUMERIC_VARTYPES:
-            raise ValueError(f"{name}: expected a numeric (integer or float) array, got {type(x).__name__}")
+            raise ValueError(f"{name}: expected {what}, got {type(x).__name__}")
         dr.eval(x)
-        arr = np.asarray(dr.detach(x).numpy(), dtype=dtype)
-    else:
-        try:
-            raw = np.asarray(x)
-        except (TypeError, ValueError) as exc:                # ragged nesting
-            raise ValueError(f"{name}: cannot convert to a numeric array ({exc})") from None
-        if raw.dtype.kind not in "iuf":
-            raise ValueError(f"{name}: expected a numeric (integer or float) array, got dtype {raw.dtype}")
-        with np.errstate(over="ignore", invalid="ignore"):
-            arr = raw.astype(dtype, copy=False)
-    return arr
+        return np.asarray(dr.detach(x).numpy(), dtype=dtype)
+    try:
+        raw = np.asarray(x)
+    except (TypeError, ValueError) as exc:                # ragged nesting
+        raise ValueError(f"{name}: expected {what} ({exc})") from None
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name}: expected {what}, got dtype {raw.dtype}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        return raw.astype(dtype, copy=copy)
 
 
 def flat_array(x: Any):
