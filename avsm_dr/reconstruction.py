@@ -242,7 +242,6 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
             params: dict | None = None, iterations: int = 100, lr: float = 0.5, init: str = "empty",
             init_value: float = 0.0, smooth: float = 0.0, resolution: int = 64, step: float | None = None,
             epsilon: float = 1e-4, filter: str = "point", reverse: str = "auto", truth=None,
-            check_gradients: bool = True,
             callback: Callable[[int, dict], None] | None = None) -> Recovery:
     """Recover ``scene``'s density grid (shape and box) from shadow images.
 
@@ -250,9 +249,9 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
     ``receivers[l]`` (K_l, 3).  kind/params: the differentiable shadow model.
     init: 'empty' (all 0) or 'uniform' (``init_value`` everywhere).  smooth: weight
     lambda of the smoothness prior.  resolution, step, epsilon, filter, reverse: of
-    :func:`shadow`.  truth: the known grid, for the error history.
-    check_gradients: run :func:`gradient_check` (reverse vs forward mode) at the start;
-    RuntimeError when they disagree.  callback(iteration, record) after every step.
+    :func:`shadow`.  truth: the known grid, for the error history.  callback(iteration,
+    record) after every step.  :func:`gradient_check` (reverse vs forward mode) runs at the
+    start: RuntimeError when they disagree.
     """
     if scene.density is None or scene.bbox is None:
         raise ValueError("scene: needs a density grid and its bbox (shape and box of the unknown)")
@@ -274,14 +273,12 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
         reg = smoothness(xt, pairs) if smooth > 0 else 0
         return data, reg, data + smooth * reg if smooth > 0 else data
 
-    out = Recovery(start.astype(np.float32))
-    if check_gradients:
-        # float32: the two modes sum in different orders (relative ~1e-6); a wrong loop bound
-        # gives O(1) errors.  An empty start is checked at 0.5 everywhere (every segment absorbs).
-        chk = gradient_check(lambda xt: losses(xt)[2], x + 0.5 if init == "empty" else x, rtol=1e-3)
-        out.gradient_check = chk
-        if not chk["ok"]:
-            raise RuntimeError(f"gradient check failed (reverse vs forward mode): {chk}")
+    # float32: the two modes sum in different orders (relative ~1e-6); a wrong loop bound
+    # gives O(1) errors.  An empty start is checked at 0.5 everywhere (every segment absorbs).
+    chk = gradient_check(lambda xt: losses(xt)[2], x + 0.5 if init == "empty" else x, rtol=1e-3)
+    if not chk["ok"]:
+        raise RuntimeError(f"gradient check failed (reverse vs forward mode): {chk}")
+    out = Recovery(start.astype(np.float32), gradient_check=chk)
     opt = ProjectedAdam(lr=lr, params={"sigma": x})
     for it in range(int(iterations) + 1):
         t0 = time.perf_counter()

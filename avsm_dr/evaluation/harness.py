@@ -39,14 +39,16 @@ from numbers import Integral
 import drjit as dr
 import numpy as np
 
+from .. import builtin_scenes
 from .. import validation as V
 from ..capture import ORDERS as CAPTURE_ORDERS
 from ..capture.opaque_map import OPAQUE_MODES, compose
 from ..metrics import THRESHOLD, error_stats
 from ..receivers import BYTES_PER_POINT, receiver_sets
 from ..receivers import NAMES as RECEIVER_SETS
-from ..representations import REGISTRY, Representation, describe
+from ..representations import REGISTRY, Representation, build, describe
 from ..scene import Scene
+from ..segments import Segments
 from .configuration import Configuration
 from .configuration import configurations as _configurations
 from .curves import DEPTHS, curve_values, depth_l2, rms
@@ -69,7 +71,6 @@ _Method = collections.namedtuple("_Method", "label cls params kind")
 def _methods(methods) -> list[_Method]:
     if not isinstance(methods, dict) or not methods:
         raise ValueError(f"methods: expected a non-empty dict {{label: (kind, params)}}, got {methods!r}")
-    from ..segments import Segments
     toy = Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
     out = []
     for label, spec in methods.items():
@@ -99,8 +100,7 @@ def _methods(methods) -> list[_Method]:
 
 
 def _scenes(scenes) -> list[tuple[str, object]]:
-    from .. import builtin_scenes
-    known = getattr(builtin_scenes, "SCENES", {})
+    known = builtin_scenes.SCENES
     out = []
     for s in _names(scenes, "scenes"):
         if not isinstance(s, (str, Scene)):
@@ -216,8 +216,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
 
     from tqdm import tqdm
-
-    from .. import builtin_scenes
     rows: list[dict] = []
     cells = [(s, c) for s in scs for c in cfgs]
     for (label, spec), cfg in tqdm(cells, desc="evaluate", unit="cell", disable=not progress):
@@ -246,7 +244,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
 
 def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths) -> list[dict]:
     """The rows of every method on one capture."""
-    from ..representations import build
     if subset:
         sub = SubsetBuilder(cap.segments, np.concatenate([p.tex.ravel() for p in probes.values()]),
                             cap.opaque_depth)
