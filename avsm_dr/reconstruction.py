@@ -48,7 +48,6 @@ from .scene import DirectionalLight, Scene
 from .checks import check_gradients
 
 
-# ============================================================== lights, receivers
 def light_from_angles(azimuth: float, elevation: float, irradiance: float = 1.0) -> DirectionalLight:
     """Directional light coming from azimuth/elevation (degrees; azimuth about +y from
     +x towards +z, elevation above the horizon); ``direction`` is where it travels."""
@@ -82,7 +81,6 @@ def with_light(scene: Scene, light, density=None) -> Scene:
     return dataclasses.replace(scene, light=light, **({} if density is None else {"density": density}))
 
 
-# ================================================================= the pipeline
 def density_tensor(density, dtype: str = "float32", grad: bool = True):
     """A Dr.Jit 3-D tensor (``TensorXf`` / ``TensorXf64``) of ``density`` (z, y, x), with
     gradients enabled when ``grad``."""
@@ -178,7 +176,6 @@ def smoothness(x, pairs=None):
     return dr.mean(dr.square(dr.gather(Float, x.array, A.to_uint32(a)) - dr.gather(Float, x.array, A.to_uint32(b))))
 
 
-# ================================================================ optimisation
 class ProjectedAdam(drjit.opt.Adam):
     """Dr.Jit's Adam (``drjit.opt.Adam``: Kingma and Ba 2015) followed, after every step,
     by projection of each parameter onto ``[lower, inf)`` (the moments are kept)::

@@ -42,13 +42,10 @@ METHODS = ("percentile", "bca")
 _BLOCK = 1 << 24
 
 
-# ================================================================== validation
 def _stat(statistic) -> Callable:
-    if callable(statistic):
-        return statistic
-    if statistic not in STATISTICS:
+    if not (callable(statistic) or statistic in STATISTICS):
         raise ValueError(f"statistic: expected one of {sorted(STATISTICS)} or a callable, got {statistic!r}")
-    return STATISTICS[statistic]
+    return statistic if callable(statistic) else STATISTICS[statistic]
 
 
 def _sample(x, name: str) -> np.ndarray:
@@ -72,7 +69,6 @@ def _pair(a, b, name_a: str, name_b: str):
     return x, y
 
 
-# ==================================================================== kernels
 def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
     """(count,) values of ``fn(rows(a, b))`` (index rows a..b-1 of length ~n), :data:`_BLOCK`
     entries at a time."""
@@ -155,7 +151,6 @@ def _result(theta, boot, level, method, jack, **extra) -> dict:
                 std_error=float(np.std(boot, ddof=1)), **extra)
 
 
-# ===================================================================== public
 def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, method: str = "percentile",
                  seed: int = 0, blocks=None) -> dict:
     """Bootstrap ``level`` interval for ``statistic`` of the sample ``x`` (1-D, >= 2 values).

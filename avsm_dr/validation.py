@@ -195,7 +195,6 @@ def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndar
     return out
 
 
-# ---------------------------------------------------------------------------- memory
 #: Bytes one build may allocate; None (default): :data:`MEMORY_FRACTION` of the smaller of
 #: the physical memory (``os.sysconf``) and the process' address-space limit
 #: (``RLIMIT_AS``), a number that depends on the machine, not on its load.

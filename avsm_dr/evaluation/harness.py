@@ -137,7 +137,6 @@ def _names(value, name, choices=None) -> list:
     return vals
 
 
-# ====================================================================== steps
 def _synced_build(cls, segments, params):
     """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
     rep = cls(segments, **params)
@@ -174,7 +173,6 @@ def _stats(probe, est, exact) -> dict:
                 nonfinite=s["nan_count"] + s["inf_count"])
 
 
-# ====================================================================== public
 def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surface"), metrics=METRICS,
              resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,

@@ -89,7 +89,6 @@ class Probe:
                 "total_decomp": estimate[:m] - self.truth[:m]}
 
 
-# ================================================================ subset builds
 @dataclasses.dataclass
 class Built:
     """A representation built on a subset of a map's texels: ``rep`` over the subset,
