@@ -14,15 +14,12 @@ rmse                                       RMS of ``T_rep - T`` at the receivers
 compression_rms, capture_rms, spatial_rms  RMS of the terms of :mod:`.probe`: vs the exact curve,
                                            and capture / spatial on the first ``n_decomp`` receivers
 signed_mean                                mean of ``T_rep - T`` (> 0: light leaking)
-leak_share, dark_share                     shares of receivers with ``T_rep - T`` above
-                                           ``+threshold`` / below ``-threshold`` (0.02,
-                                           :data:`avsm_dr.metrics.THRESHOLD`)
+leak_share, dark_share                     shares of receivers with ``T_rep - T`` above +0.02 /
+                                           below -0.02 (:data:`avsm_dr.metrics.THRESHOLD`)
 p99, p99_9, max                            99th / 99.9th percentile and maximum of ``|T_rep - T|``
 nonfinite                                  receivers with a NaN or inf estimate (left out above)
 depth_l2                                   :func:`~.curves.depth_l2` over the map's non-empty texels
-bytes                                      ``nbytes_sparse_per_texel``: the sparse layout (an
-                                           occupancy bit per texel, each non-empty texel's payload
-                                           and CSR offset), the same rule for every kind
+bytes                                      ``nbytes_sparse_per_texel`` (sparse layout, every kind alike)
 bytes_dense                                ``nbytes_per_texel`` (dense: every texel stored)
 build_s, lookup_s                          wall seconds of the build and of the row's lookups, median
                                            after one warm-up call (:func:`~.timing.measure`)

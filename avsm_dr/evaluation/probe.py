@@ -50,8 +50,7 @@ class Probe:
         self.tex, self.weights = bilinear_taps(coords, cap.width, cap.height)     # (4, K) int64, float64
         self.truth = truth(scene, p) if truth_at_points is None else np.asarray(truth_at_points, np.float64)
         # truth along each tap's texel ray to the receiver's depth, on the first n_decomp receivers
-        self.n_decomp = min(int(n_decomp), self.k)
-        m = self.n_decomp
+        m = self.n_decomp = min(int(n_decomp), self.k)
         o, d = cap.camera.rays(self.tex[:, :m].ravel())
         q = o + np.tile(self.depth[:m], 4)[:, None] * d
         t_taps = truth(scene, q).reshape(4, m)
