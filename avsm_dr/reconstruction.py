@@ -28,10 +28,9 @@ the density.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import drjit as dr
@@ -78,7 +77,7 @@ def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05)
 
 def with_light(scene: Scene, light, density=None) -> Scene:
     """A copy of ``scene`` lit by ``light`` (and holding ``density`` when given)."""
-    return dataclasses.replace(scene, light=light, **({} if density is None else {"density": density}))
+    return replace(scene, light=light, **({} if density is None else {"density": density}))
 
 
 def density_tensor(density, dtype: str = "float32", grad: bool = True):
