@@ -20,7 +20,11 @@ import dataclasses
 
 import numpy as np
 
+from . import groundtruth
 from . import validation as V
+from .geometry import check_bbox, orthonormal_basis
+from .groundtruth.images import receiver_plane
+from .groundtruth.tracking import default_step
 from .scene import PointLight, Scene
 
 #: Candidates drawn per kept in-volume receiver (sampling-importance-resampling).
@@ -76,14 +80,12 @@ def voxel_step(scene: Scene, fraction: float) -> float | None:
     """``fraction`` of the smallest voxel side of ``scene``'s grid (None without a grid)."""
     if scene.density is None:
         return None
-    from .groundtruth.tracking import default_step
     return default_step(scene.density, *(np.asarray(b, np.float64) for b in scene.bbox), fraction)
 
 
 def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
     """(K,) float64 transmittance from ``scene.light`` to the (K, 3) ``points``: the ground
     truth's float64 ray march (``method='raymarch'``), step ``step_fraction`` voxels."""
-    from . import groundtruth
     p = np.asarray(points, np.float64)
     if p.shape[0] == 0:
         return np.zeros(0)
@@ -93,9 +95,7 @@ def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
 def lattice(bbox, counts) -> np.ndarray:
     """(nx*ny*nz, 3) float64 cell-centred lattice of points inside ``bbox = (min_xyz, max_xyz)``,
     ``counts = (nx, ny, nz)`` cells per axis (x slowest)."""
-    lo, hi = (V.vec3(v, "bbox") for v in bbox)
-    if np.any(hi <= lo):
-        raise ValueError(f"bbox: expected min < max on every axis, got {lo.tolist()} and {hi.tolist()}")
+    lo, hi = check_bbox(bbox)
     n = [int(V.integer(c, "counts", 1)) for c in counts]
     if len(n) != 3:
         raise ValueError(f"counts: expected 3 cell counts, got {len(n)}")
@@ -115,8 +115,7 @@ def in_volume(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
         return np.zeros((0, 3))
     w = visibility(scene, cand)
     if scene.receiver_plane is not None:
-        from .groundtruth import default_camera
-        w = w * visibility(scene, cand, origin=default_camera(scene).origin)
+        w = w * visibility(scene, cand, origin=groundtruth.default_camera(scene).origin)
     if not np.any(w > 0):
         w = np.ones_like(w)
     # keep n of the candidates, without replacement, with probability ~ w
@@ -131,8 +130,6 @@ def surface(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
     _check(scene, n, seed)
     if scene.receiver_plane is None or n == 0:
         return np.zeros((0, 3))
-    from .geometry import orthonormal_basis
-    from .groundtruth.images import receiver_plane
     c, normal, half = receiver_plane(scene)
     u, v, _ = orthonormal_basis(normal)
     m = int(np.ceil(np.sqrt(n)))

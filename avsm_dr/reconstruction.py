@@ -41,10 +41,11 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .capture import capture as _capture
-from .geometry import orthonormal_basis
+from .geometry import check_bbox, orthonormal_basis
 from .representations import build, differentiable_configuration, kinds
 from .scene import DirectionalLight, Scene
 from .checks import check_gradients
+from .shading import irradiance
 
 
 def light_from_angles(azimuth: float, elevation: float, irradiance: float = 1.0) -> DirectionalLight:
@@ -64,7 +65,7 @@ def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05)
     if not isinstance(light, DirectionalLight):
         raise ValueError(f"light: expected a DirectionalLight, got {type(light).__name__}")
     n = V.integer(n, "n", 1)
-    lo, hi = (np.asarray(v, np.float64).reshape(3) for v in bbox)
+    lo, hi = check_bbox(bbox)
     u, v, w = orthonormal_basis(light.direction)
     c = 0.5 * (lo + hi)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]) - c
@@ -131,7 +132,6 @@ def radiance_weights(light, points, normal=None, albedo: float = 1.0) -> np.ndar
     radiance of diffuse receivers (the model of :func:`avsm_dr.shading.shade_receivers`);
     ``normal`` (3,) one-sided, ``cos = max(0, n . l)`` with ``l`` the unit direction to the
     light; default: receivers facing the light (cos = 1)."""
-    from .shading import irradiance
     p = np.asarray(points, np.float64).reshape(-1, 3)
     cos = np.ones(p.shape[0])
     if normal is not None:

@@ -13,6 +13,7 @@ from numbers import Integral
 import numpy as np
 
 from .. import validation as V
+from ..groundtruth.content import check_scene, content_sphere
 from ..scene import DirectionalLight, Light, SpotLight
 
 #: Light names a configuration takes (:func:`light_variants`).
@@ -37,7 +38,6 @@ def light_variants(scene, tilt: float = 25.0) -> dict:
     axis /= np.linalg.norm(axis)
     a = np.radians(tilt)                                     # Rodrigues rotation of d about the axis
     tilted = d * np.cos(a) + np.cross(axis, d) * np.sin(a) + axis * (axis @ d) * (1 - np.cos(a))
-    from ..groundtruth.content import check_scene, content_sphere
     c, R = content_sphere(check_scene(scene))
     dist = 2.5 * R
     fov = min(170.0, 2.2 * float(np.degrees(np.arcsin(R / dist))))

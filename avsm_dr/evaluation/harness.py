@@ -38,7 +38,7 @@ import numpy as np
 
 from .. import builtin_scenes
 from .. import validation as V
-from ..capture import ORDERS as CAPTURE_ORDERS
+from ..capture import ORDERS as CAPTURE_ORDERS, capture
 from ..capture.opaque_map import OPAQUE_MODES, compose
 from ..metrics import THRESHOLD, error_stats
 from ..receivers import BYTES_PER_POINT, receiver_sets
@@ -146,7 +146,6 @@ def _synced_build(cls, segments, params):
 
 def _capture(scene, resolution, order, opaque, seed):
     """``ad.capture`` -> (capture, its recorded order); 'random' shuffles with ``seed``."""
-    from .. import capture
     cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
                   **({"order_seed": seed} if order == "random" else {}))
     return cap, cap.order

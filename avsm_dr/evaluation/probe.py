@@ -29,6 +29,7 @@ import numpy as np
 from ..capture.opaque_map import compose
 from ..filtering import bilinear_taps
 from ..receivers import marched
+from ..representations import build, describe
 
 
 def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
@@ -118,7 +119,6 @@ class SubsetBuilder:
     def params(self, kind, params: dict) -> dict:
         """``params`` with the full map's near/far added where ``kind`` (a registered name or
         a :class:`~avsm_dr.Representation` subclass) takes a global range."""
-        from ..representations import describe
         schema = kind.schema.describe()["params"] if isinstance(kind, type) else describe(kind)["params"]
         p = dict(params)
         if "near" in schema and "far" in schema and p.get("depth_range", "global") == "global" \
@@ -129,7 +129,6 @@ class SubsetBuilder:
     def build(self, kind, params: dict) -> Built:
         """``kind`` (a registered name or a :class:`~avsm_dr.Representation` subclass) with
         ``params`` on the subset."""
-        from ..representations import build
         p = self.params(kind, params)
         rep = kind(self.segments, **p) if isinstance(kind, type) else build(kind, self.segments, **p)
         return Built(rep, self.remap, self.opaque_depth)
