@@ -45,10 +45,8 @@ def measure(fns: dict, repeats: int = 3) -> dict:
     kernel execution from ``dr.kernel_history``), first_s, first_cpu_s, jit_s (codegen +
     backend compile of the first call), compiled, from_disk, kernels (JIT launches per
     call), out (last result)); medians over the repeats (``repeats=0``: the first call)."""
-    flag = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
     res = {}
-    try:
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         for name, fn in fns.items():
             out, first, first_cpu, jit = _run(fn)
             res[name] = dict(first_s=first, first_cpu_s=first_cpu, out=out, wall=[], cpu=[], kern=[], kernels=0,
@@ -64,9 +62,7 @@ def measure(fns: dict, repeats: int = 3) -> dict:
                 r["kern"].append(sum(k.get("execution_time", 0) for k in jit) / 1e3)
                 r["kernels"] = len(jit)
                 r["out"] = out
-    finally:
-        dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+        dr.kernel_history()                                        # cleared for the next reader
     for r in res.values():
         r["wall_s"] = statistics.median(r.pop("wall")) if repeats else r["first_s"]
         r["cpu_s"] = statistics.median(r.pop("cpu")) if repeats else r["first_cpu_s"]
