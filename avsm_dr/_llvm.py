@@ -10,6 +10,7 @@ import order as the cause of an LLVM < 16).
 """
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import re
@@ -70,11 +71,9 @@ def ensure_libllvm() -> None:
 
 def _loaded_path() -> str | None:
     """Path of the libLLVM mapped into this process (Linux /proc only), else None."""
-    try:
-        with open("/proc/self/maps") as f:
-            paths = {line.split()[-1] for line in f if "libLLVM" in line}
-    except OSError:
-        return None
+    paths = set()
+    with contextlib.suppress(OSError), open("/proc/self/maps") as f:
+        paths = {line.split()[-1] for line in f if "libLLVM" in line}
     return sorted(paths)[0] if len(paths) == 1 else None
 
 
