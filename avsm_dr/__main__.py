@@ -1,8 +1,5 @@
-"""``python -m experiments``: the studies moved to the repository's ``experiments/`` folder.
-
-From a checkout, ``python -m experiments <name> ...`` still runs ``python -m experiments <name> ...``
-(the same command line); an installed copy without the repository says where the studies are.
-"""
+"""``python -m avsm_dr`` (the ``avsm-dr`` script): ``python -m experiments`` from a checkout of the
+repository; an installed copy without it says where the studies are."""
 import sys
 
 

@@ -38,26 +38,26 @@ NUMERIC_VARTYPES = (dr.VarType.Int8, dr.VarType.UInt8, dr.VarType.Int16, dr.VarT
                     dr.VarType.Float16, dr.VarType.Float32, dr.VarType.Float64)
 
 
-def host(x: Any, name: str, dtype=np.float64) -> np.ndarray:
+def host(x: Any, name: str, dtype=np.float64, what: str = "a numeric (integer or float) array",
+         copy: bool = False) -> np.ndarray:
     """A NumPy copy of ``x`` (NumPy, list, scalar or Dr.Jit array) as ``dtype``, for
-    validation.  Only numbers are read: boolean, complex, string and object input
-    (NumPy ``astype`` would turn ``True`` into 1, drop an imaginary part, parse ``'0.5'``)
-    and Dr.Jit ``Bool`` arrays raise ``ValueError`` naming ``name``."""
+    validation (NumPy input of that dtype itself unless ``copy``).  Only numbers are read:
+    boolean, complex, string and object input (NumPy ``astype`` would turn ``True`` into 1,
+    drop an imaginary part, parse ``'0.5'``) and Dr.Jit ``Bool`` arrays raise
+    ``ValueError("<name>: expected <what>...")``."""
     if is_drjit(x):
         if dr.type_v(x) not in NUMERIC_VARTYPES:
-            raise ValueError(f"{name}: expected a numeric (integer or float) array, got {type(x).__name__}")
+            raise ValueError(f"{name}: expected {what}, got {type(x).__name__}")
         dr.eval(x)
-        arr = np.asarray(dr.detach(x).numpy(), dtype=dtype)
-    else:
-        try:
-            raw = np.asarray(x)
-        except (TypeError, ValueError) as exc:                # ragged nesting
-            raise ValueError(f"{name}: cannot convert to a numeric array ({exc})") from None
-        if raw.dtype.kind not in "iuf":
-            raise ValueError(f"{name}: expected a numeric (integer or float) array, got dtype {raw.dtype}")
-        with np.errstate(over="ignore", invalid="ignore"):
-            arr = raw.astype(dtype, copy=False)
-    return arr
+        return np.asarray(dr.detach(x).numpy(), dtype=dtype)
+    try:
+        raw = np.asarray(x)
+    except (TypeError, ValueError) as exc:                # ragged nesting
+        raise ValueError(f"{name}: expected {what} ({exc})") from None
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name}: expected {what}, got dtype {raw.dtype}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        return raw.astype(dtype, copy=copy)
 
 
 def flat_array(x: Any):
@@ -104,17 +104,14 @@ def aligned(a: np.ndarray, dtype=None) -> np.ndarray:
 
 
 def to_float(x: Any, Float) -> Any:
-    """``x`` as the Dr.Jit type ``Float``; Dr.Jit input keeps its AD graph."""
+    """``x`` as the Dr.Jit type ``Float`` (or ``UInt32``); Dr.Jit input keeps its AD graph."""
     if is_drjit(x):
         x = flat_array(x)
         return x if type(x) is Float else Float(x)
-    dt = np.float64 if dr.type_v(Float) == dr.VarType.Float64 else np.float32
+    dt = {dr.VarType.Float64: np.float64, dr.VarType.UInt32: np.uint32}.get(dr.type_v(Float), np.float32)
     return Float(aligned(np.asarray(x, dtype=dt).ravel()))
 
 
 def to_uint32(x: Any) -> Any:
-    UInt32 = backend.types().UInt32
-    if is_drjit(x):
-        x = flat_array(x)
-        return x if type(x) is UInt32 else UInt32(x)
-    return UInt32(aligned(np.asarray(x, dtype=np.uint32).ravel()))
+    """``x`` as the backend's Dr.Jit ``UInt32`` (:func:`to_float`)."""
+    return to_float(x, backend.types().UInt32)

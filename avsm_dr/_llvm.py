@@ -10,6 +10,7 @@ import order as the cause of an LLVM < 16).
 """
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import re
@@ -58,33 +59,21 @@ DRJIT_IMPORTED_FIRST = False
 _USER_PATH: str | None = None
 
 
-def ensure_libllvm() -> str | None:
+def ensure_libllvm() -> None:
     """Set ``DRJIT_LIBLLVM_PATH`` to a libLLVM >= 16 unless the user set it or ``drjit``
-    is already imported (too late: Dr.Jit loads its libLLVM at import).
-
-    Returns the value of ``DRJIT_LIBLLVM_PATH`` afterwards (None when unset).
-    """
+    is already imported (too late: Dr.Jit loads its libLLVM at import)."""
     global DRJIT_IMPORTED_FIRST, _USER_PATH
     DRJIT_IMPORTED_FIRST = "drjit" in sys.modules
-    current = os.environ.get("DRJIT_LIBLLVM_PATH")
-    if current:
-        _USER_PATH = current
-        return current
-    if DRJIT_IMPORTED_FIRST:
-        return None
-    path = find_libllvm()
-    if path is not None:
+    _USER_PATH = os.environ.get("DRJIT_LIBLLVM_PATH") or None
+    if not (_USER_PATH or DRJIT_IMPORTED_FIRST) and (path := find_libllvm()) is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = path
-    return path
 
 
 def _loaded_path() -> str | None:
     """Path of the libLLVM mapped into this process (Linux /proc only), else None."""
-    try:
-        with open("/proc/self/maps") as f:
-            paths = {line.split()[-1] for line in f if "libLLVM" in line}
-    except OSError:
-        return None
+    paths = set()
+    with contextlib.suppress(OSError), open("/proc/self/maps") as f:
+        paths = {line.split()[-1] for line in f if "libLLVM" in line}
     return sorted(paths)[0] if len(paths) == 1 else None
 
 
@@ -113,9 +102,9 @@ def problem(version: tuple | None, drjit_first: bool, user_path: str | None, fou
     return INSTALL_HINT
 
 
-def check_loaded() -> str | None:
+def check_loaded() -> None:
     """Ask Dr.Jit (already imported) which libLLVM it loaded; set :data:`LIBLLVM` and
-    :data:`PROBLEM`.  Returns :data:`LIBLLVM`."""
+    :data:`PROBLEM`."""
     global LIBLLVM, PROBLEM
     import drjit as dr
     try:
@@ -124,12 +113,8 @@ def check_loaded() -> str | None:
         path = os.environ.get("DRJIT_LIBLLVM_PATH")
         version = (_major_version(path) or 0, 0, 0) if path else None
     PROBLEM = problem(version, DRJIT_IMPORTED_FIRST, _USER_PATH, find_libllvm())
-    if PROBLEM:
-        LIBLLVM = None
-    else:
-        LIBLLVM = (_loaded_path() or os.environ.get("DRJIT_LIBLLVM_PATH")
-                   or f"libLLVM {'.'.join(map(str, version))}")
-    return LIBLLVM
+    LIBLLVM = None if PROBLEM else (_loaded_path() or os.environ.get("DRJIT_LIBLLVM_PATH")
+                                    or f"libLLVM {'.'.join(map(str, version))}")
 
 
 if __name__ == "__main__":  # used by scripts/setup.sh before the package is installed

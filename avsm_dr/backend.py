@@ -23,12 +23,9 @@ _current: str | None = None
 
 def available_backends() -> list[str]:
     """Backends usable in this process, e.g. ``['llvm']`` or ``['llvm', 'cuda']``."""
-    out = []
-    if dr.has_backend(dr.JitBackend.LLVM) and _llvm.LIBLLVM is not None:
-        out.append("llvm")
-    if dr.has_backend(dr.JitBackend.CUDA):
-        out.append("cuda")
-    return out
+    usable = {"llvm": dr.has_backend(dr.JitBackend.LLVM) and _llvm.LIBLLVM is not None,
+              "cuda": dr.has_backend(dr.JitBackend.CUDA)}
+    return [name for name in _BACKENDS if usable[name]]
 
 
 def default_backend() -> str:

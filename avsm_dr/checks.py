@@ -114,8 +114,7 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
         if n < 0:
             raise ValueError(f"fd: expected a count >= 0 or a sequence of indices, got {fd!r}")
         order = np.argsort(-np.abs(g).ravel(), kind="stable")
-        top = order[: (n + 1) // 2]
-        rest = order[(n + 1) // 2:]
+        top, rest = np.split(order, [(n + 1) // 2])
         pick = np.concatenate([top, rng.choice(rest, n - top.size, replace=False)]).astype(np.int64)
     else:
         pick = np.asarray(fd, np.int64).ravel()

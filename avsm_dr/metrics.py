@@ -1,6 +1,4 @@
-"""Error metrics between transmittance estimates and a reference: :func:`error_stats` in T,
-:func:`optical_depth_error` in ``tau = -ln max(T, floor)`` (dense media, where T -> 0 hides
-errors; floor 1e-4, the capture's default stop threshold).
+"""Error metrics between transmittance estimates and a reference: :func:`error_stats`.
 
 Sign convention: ``error = estimate - reference``; positive = light leaking (the estimate
 is brighter than the truth), negative = over-darkening.  All statistics are over the
@@ -15,30 +13,27 @@ from . import validation as V
 
 #: Default |error| above which a receiver counts as leaking / over-darkening.
 THRESHOLD = 0.02
-#: Default transmittance floor of :func:`optical_depth_error` (tau <= -ln 1e-4 = 9.21).
-T_FLOOR = 1e-4
 
 
-def _pair(estimate, reference):
+def checked(estimate, reference, threshold):
+    """(estimate, reference, which estimates are finite) as flat float64, checked."""
     est = np.asarray(estimate, dtype=np.float64).ravel()
     ref = np.asarray(reference, dtype=np.float64).ravel()
     if est.shape != ref.shape:
         raise ValueError(f"estimate: shape {est.shape} does not match reference {ref.shape}")
     if not np.all(np.isfinite(ref)):
         raise ValueError("reference: contains NaN or inf")
-    return est, ref
-
-
-def _check_threshold(threshold):
-    return V.real(threshold, "threshold", 0.0)
+    V.real(threshold, "threshold", 0.0)
+    return est, ref, np.isfinite(est)
 
 
 _KEYS = ("rmse", "max_error", "mean_error", "mean_abs_error", "leak_fraction", "dark_fraction",
          "p99_error", "p999_error")
 
 
-def _summary(diff: np.ndarray, threshold: float, prefix: str = "") -> dict:
-    """Statistics of signed errors ``diff`` (finite), NaN when there are none."""
+def summary(diff: np.ndarray, threshold: float, prefix: str = "") -> dict:
+    """Statistics of signed errors ``diff`` (finite; the keys of :func:`error_stats` up to
+    ``p999_error``, each with ``prefix``), NaN when there are none."""
     if diff.size == 0:
         return {prefix + k: float("nan") for k in _KEYS}
     a = np.abs(diff)
@@ -57,39 +52,12 @@ def error_stats(estimate, reference, threshold: float = THRESHOLD) -> dict:
     bounds_violations (estimates outside [0, 1]) and n (all values).  Non-finite
     estimates are counted and excluded from the error statistics.
     """
-    est, ref = _pair(estimate, reference)
-    _check_threshold(threshold)
-    finite = np.isfinite(est)
-    out = _summary(est[finite] - ref[finite], float(threshold))
+    est, ref, finite = checked(estimate, reference, threshold)
+    out = summary(est[finite] - ref[finite], float(threshold))
     out.update({
         "nan_count": int(np.count_nonzero(np.isnan(est))),
         "inf_count": int(np.count_nonzero(np.isinf(est))),
         "bounds_violations": int(np.count_nonzero((est[finite] < 0) | (est[finite] > 1))),
         "n": int(est.size),
     })
-    return out
-
-
-def optical_depth(transmittance, floor: float = T_FLOOR) -> np.ndarray:
-    """``-ln max(T, floor)`` (float64): optical depth, capped at ``-ln floor``."""
-    V.real(floor, "floor", 0.0, 1.0, open_min=True, open_max=True)
-    return -np.log(np.maximum(np.asarray(transmittance, np.float64), floor))
-
-
-def optical_depth_error(estimate, reference, floor: float = T_FLOOR, threshold: float = 0.1) -> dict:
-    """Errors in the log domain: ``e_tau = tau(reference) - tau(estimate)`` with
-    ``tau = -ln max(T, floor)`` (so e_tau > 0 is light leaking, as in :func:`error_stats`).
-
-    Both sides are clamped at ``floor`` (default 1e-4), so a receiver where both are
-    below it has no error and the largest possible |e_tau| is ``-ln floor``.  Keys:
-    tau_rmse, tau_max_error, tau_mean_error, tau_mean_abs_error, tau_leak_fraction /
-    tau_dark_fraction (|e_tau| > ``threshold``, default 0.1: about 10 % relative error
-    in T), tau_p99_error, tau_p999_error, tau_floor.
-    """
-    est, ref = _pair(estimate, reference)
-    _check_threshold(threshold)
-    finite = np.isfinite(est)
-    diff = optical_depth(ref[finite], floor) - optical_depth(est[finite], floor)
-    out = _summary(diff, float(threshold), prefix="tau_")
-    out["tau_floor"] = float(floor)
     return out

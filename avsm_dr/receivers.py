@@ -20,8 +20,11 @@ import dataclasses
 
 import numpy as np
 
+from . import groundtruth
 from . import validation as V
-from .camera import PinholeCamera
+from .geometry import check_bbox, orthonormal_basis
+from .groundtruth.images import receiver_plane
+from .groundtruth.tracking import default_step
 from .scene import PointLight, Scene
 
 #: Candidates drawn per kept in-volume receiver (sampling-importance-resampling).
@@ -45,13 +48,10 @@ def _density_candidates(scene: Scene, m: int, rng) -> np.ndarray:
     """(m, 3) points drawn proportionally to the extinction of the grid or the particles."""
     if scene.density is not None and float(np.max(scene.density)) > 0:
         d = np.asarray(scene.density, np.float64)
-        nz, ny, nx = d.shape
         lo, hi = (np.asarray(b, np.float64) for b in scene.bbox)
         p = d.ravel() / d.sum()
-        pick = rng.choice(p.size, size=m, p=p)
-        kz, rem = np.divmod(pick, ny * nx)
-        ky, kx = np.divmod(rem, nx)
-        h = (hi - lo) / np.array([nx, ny, nz])
+        kz, ky, kx = np.unravel_index(rng.choice(p.size, size=m, p=p), d.shape)
+        h = (hi - lo) / np.array(d.shape[::-1])
         return lo + (np.stack([kx, ky, kz], 1) + rng.random((m, 3))) * h
     if scene.particles is not None:
         c, r, s = (np.asarray(getattr(scene.particles, k), np.float64) for k in ("centers", "radii", "density"))
@@ -80,14 +80,12 @@ def voxel_step(scene: Scene, fraction: float) -> float | None:
     """``fraction`` of the smallest voxel side of ``scene``'s grid (None without a grid)."""
     if scene.density is None:
         return None
-    from .groundtruth.tracking import default_step
     return default_step(scene.density, *(np.asarray(b, np.float64) for b in scene.bbox), fraction)
 
 
 def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
     """(K,) float64 transmittance from ``scene.light`` to the (K, 3) ``points``: the ground
     truth's float64 ray march (``method='raymarch'``), step ``step_fraction`` voxels."""
-    from . import groundtruth
     p = np.asarray(points, np.float64)
     if p.shape[0] == 0:
         return np.zeros(0)
@@ -97,9 +95,7 @@ def marched(scene: Scene, points, step_fraction: float) -> np.ndarray:
 def lattice(bbox, counts) -> np.ndarray:
     """(nx*ny*nz, 3) float64 cell-centred lattice of points inside ``bbox = (min_xyz, max_xyz)``,
     ``counts = (nx, ny, nz)`` cells per axis (x slowest)."""
-    lo, hi = (V.vec3(v, "bbox") for v in bbox)
-    if np.any(hi <= lo):
-        raise ValueError(f"bbox: expected min < max on every axis, got {lo.tolist()} and {hi.tolist()}")
+    lo, hi = check_bbox(bbox)
     n = [int(V.integer(c, "counts", 1)) for c in counts]
     if len(n) != 3:
         raise ValueError(f"counts: expected 3 cell counts, got {len(n)}")
@@ -107,12 +103,10 @@ def lattice(bbox, counts) -> np.ndarray:
     return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
 
 
-def in_volume(scene: Scene, n: int, seed: int = 0, camera=None) -> np.ndarray:
-    """(n, 3) points in the medium, drawn ~ density x T_light x T_view (module docstring).
-
-    camera: a :class:`~avsm_dr.camera.PinholeCamera` or a dict with ``origin`` (the viewpoint; default
-    :func:`avsm_dr.groundtruth.default_camera`, or no view term for a scene without a
-    receiver plane).  Returns (0, 3) for a scene with neither grid nor particles.
+def in_volume(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) points in the medium, drawn ~ density x T_light x T_view (module docstring; no
+    view term for a scene without a receiver plane).  Returns (0, 3) for a scene with
+    neither grid nor particles.
     """
     _check(scene, n, seed)
     rng = np.random.default_rng(seed)
@@ -120,15 +114,8 @@ def in_volume(scene: Scene, n: int, seed: int = 0, camera=None) -> np.ndarray:
     if cand.shape[0] == 0 or n == 0:
         return np.zeros((0, 3))
     w = visibility(scene, cand)
-    if camera is None and scene.receiver_plane is not None:
-        from .groundtruth import default_camera
-        camera = default_camera(scene)
-    if camera is not None:
-        origin = camera.origin if isinstance(camera, PinholeCamera) else (
-            camera.get("origin") if isinstance(camera, dict) else None)
-        if origin is None:
-            raise ValueError(f"camera: expected a PinholeCamera or a dict with 'origin', got {camera!r}")
-        w = w * visibility(scene, cand, origin=origin)
+    if scene.receiver_plane is not None:
+        w = w * visibility(scene, cand, origin=groundtruth.default_camera(scene).origin)
     if not np.any(w > 0):
         w = np.ones_like(w)
     # keep n of the candidates, without replacement, with probability ~ w
@@ -143,8 +130,6 @@ def surface(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
     _check(scene, n, seed)
     if scene.receiver_plane is None or n == 0:
         return np.zeros((0, 3))
-    from .geometry import orthonormal_basis
-    from .groundtruth.images import receiver_plane
     c, normal, half = receiver_plane(scene)
     u, v, _ = orthonormal_basis(normal)
     m = int(np.ceil(np.sqrt(n)))
@@ -156,10 +141,10 @@ def surface(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
 
 
 def receiver_sets(scene: Scene, n_volume: int = 4096, n_surface: int = 1024, seed: int = 0,
-                  camera=None, names=NAMES) -> dict[str, np.ndarray]:
+                  names=NAMES) -> dict[str, np.ndarray]:
     """{'in_volume': :func:`in_volume`, 'surface': :func:`surface`, 'uniform':
     ``scene.receivers``} of the sets ``names`` (in their order); empty sets are left out."""
-    make = {"in_volume": lambda: in_volume(scene, n_volume, seed, camera),
+    make = {"in_volume": lambda: in_volume(scene, n_volume, seed),
             "surface": lambda: surface(scene, n_surface, seed),
             "uniform": lambda: V.points(scene.receivers, "receivers", allow_empty=True)}
     out = {k: make[V.one_of(k, "names", NAMES)]() for k in names}

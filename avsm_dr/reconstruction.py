@@ -28,10 +28,9 @@ the density.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import drjit as dr
@@ -42,13 +41,13 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .capture import capture as _capture
-from .geometry import orthonormal_basis
+from .geometry import check_bbox, orthonormal_basis
 from .representations import build, differentiable_configuration, kinds
 from .scene import DirectionalLight, Scene
 from .checks import check_gradients
+from .shading import irradiance
 
 
-# ============================================================== lights, receivers
 def light_from_angles(azimuth: float, elevation: float, irradiance: float = 1.0) -> DirectionalLight:
     """Directional light coming from azimuth/elevation (degrees; azimuth about +y from
     +x towards +z, elevation above the horizon); ``direction`` is where it travels."""
@@ -66,7 +65,7 @@ def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05)
     if not isinstance(light, DirectionalLight):
         raise ValueError(f"light: expected a DirectionalLight, got {type(light).__name__}")
     n = V.integer(n, "n", 1)
-    lo, hi = (np.asarray(v, np.float64).reshape(3) for v in bbox)
+    lo, hi = check_bbox(bbox)
     u, v, w = orthonormal_basis(light.direction)
     c = 0.5 * (lo + hi)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]) - c
@@ -79,10 +78,9 @@ def receiver_grid(bbox, light: DirectionalLight, n: int = 32, gap: float = 0.05)
 
 def with_light(scene: Scene, light, density=None) -> Scene:
     """A copy of ``scene`` lit by ``light`` (and holding ``density`` when given)."""
-    return dataclasses.replace(scene, light=light, **({} if density is None else {"density": density}))
+    return replace(scene, light=light, **({} if density is None else {"density": density}))
 
 
-# ================================================================= the pipeline
 def density_tensor(density, dtype: str = "float32", grad: bool = True):
     """A Dr.Jit 3-D tensor (``TensorXf`` / ``TensorXf64``) of ``density`` (z, y, x), with
     gradients enabled when ``grad``."""
@@ -134,7 +132,6 @@ def radiance_weights(light, points, normal=None, albedo: float = 1.0) -> np.ndar
     radiance of diffuse receivers (the model of :func:`avsm_dr.shading.shade_receivers`);
     ``normal`` (3,) one-sided, ``cos = max(0, n . l)`` with ``l`` the unit direction to the
     light; default: receivers facing the light (cos = 1)."""
-    from .shading import irradiance
     p = np.asarray(points, np.float64).reshape(-1, 3)
     cos = np.ones(p.shape[0])
     if normal is not None:
@@ -178,7 +175,6 @@ def smoothness(x, pairs=None):
     return dr.mean(dr.square(dr.gather(Float, x.array, A.to_uint32(a)) - dr.gather(Float, x.array, A.to_uint32(b))))
 
 
-# ================================================================ optimisation
 class ProjectedAdam(drjit.opt.Adam):
     """Dr.Jit's Adam (``drjit.opt.Adam``: Kingma and Ba 2015) followed, after every step,
     by projection of each parameter onto ``[lower, inf)`` (the moments are kept)::
@@ -242,7 +238,6 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
             params: dict | None = None, iterations: int = 100, lr: float = 0.5, init: str = "empty",
             init_value: float = 0.0, smooth: float = 0.0, resolution: int = 64, step: float | None = None,
             epsilon: float = 1e-4, filter: str = "point", reverse: str = "auto", truth=None,
-            check_gradients: bool = True,
             callback: Callable[[int, dict], None] | None = None) -> Recovery:
     """Recover ``scene``'s density grid (shape and box) from shadow images.
 
@@ -250,9 +245,9 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
     ``receivers[l]`` (K_l, 3).  kind/params: the differentiable shadow model.
     init: 'empty' (all 0) or 'uniform' (``init_value`` everywhere).  smooth: weight
     lambda of the smoothness prior.  resolution, step, epsilon, filter, reverse: of
-    :func:`shadow`.  truth: the known grid, for the error history.
-    check_gradients: run :func:`gradient_check` (reverse vs forward mode) at the start;
-    RuntimeError when they disagree.  callback(iteration, record) after every step.
+    :func:`shadow`.  truth: the known grid, for the error history.  callback(iteration,
+    record) after every step.  :func:`gradient_check` (reverse vs forward mode) runs at the
+    start: RuntimeError when they disagree.
     """
     if scene.density is None or scene.bbox is None:
         raise ValueError("scene: needs a density grid and its bbox (shape and box of the unknown)")
@@ -274,14 +269,12 @@ def recover(scene: Scene, lights: Sequence, targets: Sequence, receivers: Sequen
         reg = smoothness(xt, pairs) if smooth > 0 else 0
         return data, reg, data + smooth * reg if smooth > 0 else data
 
-    out = Recovery(start.astype(np.float32))
-    if check_gradients:
-        # float32: the two modes sum in different orders (relative ~1e-6); a wrong loop bound
-        # gives O(1) errors.  An empty start is checked at 0.5 everywhere (every segment absorbs).
-        chk = gradient_check(lambda xt: losses(xt)[2], x + 0.5 if init == "empty" else x, rtol=1e-3)
-        out.gradient_check = chk
-        if not chk["ok"]:
-            raise RuntimeError(f"gradient check failed (reverse vs forward mode): {chk}")
+    # float32: the two modes sum in different orders (relative ~1e-6); a wrong loop bound
+    # gives O(1) errors.  An empty start is checked at 0.5 everywhere (every segment absorbs).
+    chk = gradient_check(lambda xt: losses(xt)[2], x + 0.5 if init == "empty" else x, rtol=1e-3)
+    if not chk["ok"]:
+        raise RuntimeError(f"gradient check failed (reverse vs forward mode): {chk}")
+    out = Recovery(start.astype(np.float32), gradient_check=chk)
     opt = ProjectedAdam(lr=lr, params={"sigma": x})
     for it in range(int(iterations) + 1):
         t0 = time.perf_counter()

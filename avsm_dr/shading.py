@@ -44,7 +44,6 @@ from .scene import OpaquePlane, Scene, check_light
 CHUNK = 1 << 18
 
 
-# ================================================================== lighting
 def irradiance(light, points) -> np.ndarray:
     """(K,) unshadowed irradiance E on a surface facing the light at ``points``
     (:meth:`~avsm_dr.scene.Light.irradiance_at`)."""
@@ -84,7 +83,6 @@ def shade_receivers(scene: Scene, transmittance, points=None, normals=None,
     return albedo / math.pi * irradiance(scene.light, p) * T * cos
 
 
-# ================================================================ ray casting
 def _hit_blockers(o, d, blockers):
     """Nearest t > 0 of rays with any opaque blocker (inf = none)."""
     t = np.full(o.shape[0], np.inf)
@@ -102,7 +100,6 @@ def _light_T(fn, x, mask):
     return T
 
 
-# ==================================================================== images
 def render_plane(scene: Scene, light_transmittance, width: int = 128, height: int = 128,
                  camera=None, supersample: int = 2, reflectance: float = 1.0,
                  albedo: float = 0.0, step: float | None = None) -> np.ndarray:
@@ -142,8 +139,7 @@ def render_plane(scene: Scene, light_transmittance, width: int = 128, height: in
 
     if albedo > 0 and content["grid"] is not None:
         radiance += _single_scattering(scene, content, o, d, t_end, light_transmittance, albedo, step)
-    return radiance.reshape(height, width, s * s).mean(axis=2) if s > 1 else \
-        radiance.reshape(height, width)
+    return radiance.reshape(height, width, s * s).mean(axis=2)
 
 
 def _view_tau(content, o, d, L):

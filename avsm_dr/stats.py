@@ -42,13 +42,10 @@ METHODS = ("percentile", "bca")
 _BLOCK = 1 << 24
 
 
-# ================================================================== validation
 def _stat(statistic) -> Callable:
-    if callable(statistic):
-        return statistic
-    if statistic not in STATISTICS:
+    if not (callable(statistic) or statistic in STATISTICS):
         raise ValueError(f"statistic: expected one of {sorted(STATISTICS)} or a callable, got {statistic!r}")
-    return STATISTICS[statistic]
+    return statistic if callable(statistic) else STATISTICS[statistic]
 
 
 def _sample(x, name: str) -> np.ndarray:
@@ -72,7 +69,6 @@ def _pair(a, b, name_a: str, name_b: str):
     return x, y
 
 
-# ==================================================================== kernels
 def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
     """(count,) values of ``fn(rows(a, b))`` (index rows a..b-1 of length ~n), :data:`_BLOCK`
     entries at a time."""
@@ -85,11 +81,19 @@ def _rows(fn: Callable, n: int, count: int, rows: Callable) -> np.ndarray:
 
 
 def _replicates(fn: Callable, n: int, n_boot: int, rng, layout=None) -> np.ndarray:
-    """(n_boot,) values of ``fn(idx)``: ``idx`` (B, n) value indices drawn with replacement,
-    or with ``layout`` (:func:`_layout`) the values of drawn blocks (:func:`_block_replicates`)."""
-    if layout is not None:
-        return _block_replicates(fn, layout, n_boot, rng)
-    return _rows(fn, n, n_boot, lambda a, b: rng.integers(0, n, size=(b - a, n)))
+    """(n_boot,) values of ``fn(idx)``: ``idx`` (B, n) value indices drawn with replacement, or
+    with ``layout`` (:func:`_layout`) one row per replicate: the members of G blocks drawn with
+    replacement (``rng.integers(0, G, size=(n_boot, G))``, G blocks), concatenated in the order drawn."""
+    if layout is None:
+        return _rows(fn, n, n_boot, lambda a, b: rng.integers(0, n, size=(b - a, n)))
+    members, starts, counts = layout
+    picks = rng.integers(0, counts.size, size=(n_boot, counts.size))
+    out = np.empty(n_boot)
+    for r in range(n_boot):
+        lens = counts[picks[r]]
+        first = np.repeat(starts[picks[r]] - np.r_[0, np.cumsum(lens)[:-1]], lens)
+        out[r] = fn(members[first + np.arange(lens.sum())][None, :])[0]
+    return out
 
 
 def _layout(blocks, n: int, method: str = "percentile", name: str = "blocks"):
@@ -108,24 +112,8 @@ def _layout(blocks, n: int, method: str = "percentile", name: str = "blocks"):
     return members, np.r_[0, np.cumsum(counts)[:-1]], counts
 
 
-def _block_replicates(fn: Callable, layout, n_boot: int, rng) -> np.ndarray:
-    """(n_boot,) values of ``fn(idx[None, :])`` where each replicate's ``idx`` is the
-    members of G blocks drawn with replacement (G = number of blocks), concatenated in the
-    order drawn; draws ``rng.integers(0, G, size=(n_boot, G))``, as :func:`_replicates`
-    draws value indices."""
-    members, starts, counts = layout
-    G = counts.size
-    picks = rng.integers(0, G, size=(n_boot, G))
-    out = np.empty(n_boot)
-    for r in range(n_boot):
-        lens = counts[picks[r]]
-        first = np.repeat(starts[picks[r]] - np.r_[0, np.cumsum(lens)[:-1]], lens)
-        out[r] = fn(members[first + np.arange(lens.sum())][None, :])[0]
-    return out
-
-
 def _block_mean_replicates(x, y, pre_post, compare, layout, n_boot: int, rng):
-    """(replicates, how many have stat(a) < stat(b)) of :func:`_block_replicates` (same draws)
+    """(replicates, how many have stat(a) < stat(b)) of :func:`_replicates` with blocks (same draws)
     for ``post(mean(pre(v)))``, from per-block sums instead of each replicate's indices."""
     (pre, post), (members, starts, counts) = pre_post, layout
     picks = rng.integers(0, counts.size, size=(n_boot, counts.size))
@@ -141,8 +129,9 @@ def _jackknife(fn: Callable, n: int) -> np.ndarray:
     return _rows(fn, n, n, lambda a, b: base + (base >= np.arange(a, b)[:, None]))     # row r skips index r
 
 
-def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: Callable | None) -> tuple:
-    """(low, high) of the percentile or BCa interval from bootstrap replicates ``boot``."""
+def _result(theta, boot, level, method, jack, **extra) -> dict:
+    """The result dict of the percentile or BCa interval from bootstrap replicates ``boot``;
+    ``jack()``: the jackknife values (BCa's acceleration)."""
     alpha = (1.0 - level) / 2
     q = np.array([alpha, 1.0 - alpha])
     if method == "bca":
@@ -158,16 +147,10 @@ def _interval(theta: float, boot: np.ndarray, level: float, method: str, jack: C
         adj = z0 + (z0 + z) / (1 - acc * (z0 + z))
         q = np.array([nd.cdf(v) for v in adj])
     lo, hi = np.quantile(boot, q)
-    return float(lo), float(hi)
-
-
-def _result(theta, boot, level, method, jack, **extra) -> dict:
-    lo, hi = _interval(theta, boot, level, method, jack)
-    return dict(estimate=float(theta), low=lo, high=hi, level=level, method=method, n_boot=int(boot.size),
+    return dict(estimate=float(theta), low=float(lo), high=float(hi), level=level, method=method, n_boot=int(boot.size),
                 std_error=float(np.std(boot, ddof=1)), **extra)
 
 
-# ===================================================================== public
 def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, method: str = "percentile",
                  seed: int = 0, blocks=None) -> dict:
     """Bootstrap ``level`` interval for ``statistic`` of the sample ``x`` (1-D, >= 2 values).
@@ -224,10 +207,8 @@ def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
     else:
         boot = _replicates(rep, x.size, n_boot, rng, layout)
     sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])
-    jack = lambda: _jackknife(lambda idx: _compare(f(x[idx], axis=1), f(y[idx], axis=1), compare),  # noqa: E731
-                              x.size)
-    res = _result(float(_compare(np.array(sa), np.array(sb), compare)), boot, level, method, jack,
-                  n=int(x.size), a=sa, b=sb, p_a_smaller=float(sum(smaller)) / n_boot)
+    res = _result(float(_compare(np.array(sa), np.array(sb), compare)), boot, level, method,
+                  lambda: _jackknife(rep, x.size), n=int(x.size), a=sa, b=sb, p_a_smaller=float(sum(smaller)) / n_boot)
     return res, boot
 
 

@@ -77,25 +77,11 @@ def integer(value: Any, name: str, min: int | None = None, max: int | None = Non
 def array(value: Any, name: str, dtype=np.float64, finite: bool = True) -> np.ndarray:
     """A NumPy copy of a numeric array (NumPy, nested lists, scalar or Dr.Jit) as ``dtype``;
     boolean, string and object input is refused, and NaN/inf unless ``finite=False``."""
-    if A.is_drjit(value):
-        out = A.host(value, name, dtype)
-    else:
-        try:
-            raw = np.asarray(value)
-        except (TypeError, ValueError) as exc:                # ragged nesting
-            raise ValueError(f"{name}: expected a numeric array ({exc})") from None
-        if raw.dtype.kind not in "iuf":
-            raise ValueError(f"{name}: expected a numeric array, got dtype {raw.dtype}")
-        if finite:
-            A.check_finite(raw, name)
-        with np.errstate(over="ignore", invalid="ignore"):
-            out = raw.astype(dtype)
-        if finite and out.dtype.kind == "f" and out.size and not np.all(np.isfinite(out)):
-            raise ValueError(f"{name}: values beyond the {np.dtype(dtype).name} range "
-                             f"(largest {np.finfo(dtype).max:.3g})")
-        return out
-    if finite:
-        A.check_finite(out, name)
+    out = A.host(value, name, dtype, "a numeric array", copy=True)
+    if finite and out.size and not np.all(np.isfinite(out)):
+        A.check_finite(out if A.is_drjit(value) else np.asarray(value), name)      # NaN / inf given
+        raise ValueError(f"{name}: values beyond the {np.dtype(dtype).name} range "
+                         f"(largest {np.finfo(dtype).max:.3g})")
     return out
 
 
@@ -194,13 +180,10 @@ def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndar
     boolean grids are refused), 3-D, non-empty, finite in ``dtype``, >= 0.
     """
     grid_dtype(value, name)
-    if A.is_drjit(value):
-        if not dr.is_tensor_v(value):
-            raise ValueError(f"{name}: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
-        dr.eval(value)
-        raw = np.asarray(dr.detach(value).numpy())
-    else:
-        raw = np.asarray(value)
+    drjit = A.is_drjit(value)
+    if drjit and not dr.is_tensor_v(value):
+        raise ValueError(f"{name}: a Dr.Jit density must be a 3-D tensor (TensorXf) of shape (z, y, x)")
+    raw = A.host(value, name, None) if drjit else np.asarray(value)       # its own dtype
     if raw.ndim != 3:
         raise ValueError(f"{name}: expected a 3-D (z, y, x) array, got shape {raw.shape}")
     if min(raw.shape) < 1:
@@ -212,7 +195,6 @@ def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndar
     return out
 
 
-# ---------------------------------------------------------------------------- memory
 #: Bytes one build may allocate; None (default): :data:`MEMORY_FRACTION` of the smaller of
 #: the physical memory (``os.sysconf``) and the process' address-space limit
 #: (``RLIMIT_AS``), a number that depends on the machine, not on its load.

@@ -41,11 +41,12 @@ from tqdm import tqdm
 
 from avsm_dr import allows, build, describe, kinds
 from avsm_dr.evaluation import curve_values, depth_l2
-from avsm_dr.metrics import error_stats, optical_depth_error
+from avsm_dr.metrics import error_stats
 from avsm_dr.scene import DirectionalLight
 from ._common import measure
 from ._headline import interval, num
 from ._study import Study
+from ._tau import optical_depth_error
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (

@@ -1,4 +1,5 @@
-"""Error metrics (avsm_dr.metrics): signed, tail and log-domain errors on known cases."""
+"""Error metrics (avsm_dr.metrics; the studies' log-domain errors, experiments._tau): signed,
+tail and log-domain errors on known cases."""
 from __future__ import annotations
 
 import math
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 
 from avsm_dr import metrics
+from experiments import _tau
 
 
 def test_error_stats_known_values():
@@ -43,7 +45,7 @@ def test_non_finite_estimates_are_counted_not_averaged():
 def test_optical_depth_error_sign_and_floor():
     ref = np.array([math.exp(-3.0), 1e-6, 1e-9, 0.5])
     est = np.array([math.exp(-2.0), 0.0, 1e-3, 0.5])
-    s = metrics.optical_depth_error(est, ref)                      # floor 1e-4
+    s = _tau.optical_depth_error(est, ref)                      # floor 1e-4
     e = np.array([1.0, 0.0, -math.log(1e-4) + math.log(1e-3), 0.0])  # tau(ref) - tau(est)
     assert s["tau_max_error"] == pytest.approx(e.max(), rel=1e-12)
     assert s["tau_mean_error"] == pytest.approx(e.mean(), rel=1e-12)
@@ -51,19 +53,19 @@ def test_optical_depth_error_sign_and_floor():
     assert s["tau_floor"] == 1e-4
     # a finer floor resolves the 1e-6 vs 0 receiver (over-dark by ln(1e-6 / 1e-8), capped by the
     # floor) and widens the third receiver's leak to ln(1e-3 / 1e-8)
-    s2 = metrics.optical_depth_error(est, ref, floor=1e-8)
+    s2 = _tau.optical_depth_error(est, ref, floor=1e-8)
     assert s2["tau_max_error"] == pytest.approx(math.log(1e-3 / 1e-8), rel=1e-12)
     assert s2["tau_dark_fraction"] == 1 / 4 and s2["tau_leak_fraction"] == 2 / 4
     assert s2["tau_mean_error"] == pytest.approx((1.0 - math.log(1e-6 / 1e-8) + math.log(1e-3 / 1e-8)) / 4,
                                                  rel=1e-12)
-    assert metrics.optical_depth([0.0, 1.0]).tolist() == pytest.approx([-math.log(1e-4), 0.0])
+    assert _tau.optical_depth([0.0, 1.0]).tolist() == pytest.approx([-math.log(1e-4), 0.0])
 
 
 @pytest.mark.parametrize("call, name", [
     (lambda: metrics.error_stats([0.5, 0.5], [0.5]), "estimate"),
     (lambda: metrics.error_stats([0.5], [np.nan]), "reference"),
     (lambda: metrics.error_stats([0.5], [0.5], threshold=-1), "threshold"),
-    (lambda: metrics.optical_depth_error([0.5], [0.5], floor=0.0), "floor"),
+    (lambda: _tau.optical_depth_error([0.5], [0.5], floor=0.0), "floor"),
 ])
 def test_bad_input_names_the_argument(call, name):
     with pytest.raises(ValueError, match=f"^{name}:"):

@@ -104,11 +104,10 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     if metric not in table.columns:
         raise ValueError(f"metric: no column {metric!r}; columns: {table.columns}")
     sets = list(dict.fromkeys(table.column("receivers")))
+    if receivers is None and "in_volume" not in sets and len(sets) > 1:
+        raise ValueError(f"receivers: the table holds several receiver sets {sets}; choose one")
     if receivers is None:
-        if "in_volume" in sets or len(sets) == 1:
-            receivers = "in_volume" if "in_volume" in sets else sets[0]
-        else:
-            raise ValueError(f"receivers: the table holds several receiver sets {sets}; choose one")
+        receivers = "in_volume" if "in_volume" in sets else sets[0]
     elif receivers not in sets:
         raise ValueError(f"receivers: no rows at receiver set {receivers!r}; sets: {sets}")
     filt = dict(where, receivers=receivers)

@@ -13,6 +13,7 @@ from numbers import Integral
 import numpy as np
 
 from .. import validation as V
+from ..groundtruth.content import check_scene, content_sphere
 from ..scene import DirectionalLight, Light, SpotLight
 
 #: Light names a configuration takes (:func:`light_variants`).
@@ -20,12 +21,6 @@ LIGHTS = ("dir_a", "dir_b", "spot")
 #: Host bytes per configuration while :func:`configurations` builds them (measured peak: 268),
 #: checked before allocating.
 BYTES_PER_CONFIGURATION = 300
-
-
-def _rotate(v, axis, degrees):
-    """Rodrigues rotation of v about the unit axis."""
-    a = np.radians(degrees)
-    return v * np.cos(a) + np.cross(axis, v) * np.sin(a) + axis * (axis @ v) * (1 - np.cos(a))
 
 
 def light_variants(scene, tilt: float = 25.0) -> dict:
@@ -41,12 +36,13 @@ def light_variants(scene, tilt: float = 25.0) -> dict:
     up = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
     axis = np.cross(d, up)
     axis /= np.linalg.norm(axis)
-    from ..groundtruth.content import check_scene, content_sphere
+    a = np.radians(tilt)                                     # Rodrigues rotation of d about the axis
+    tilted = d * np.cos(a) + np.cross(axis, d) * np.sin(a) + axis * (axis @ d) * (1 - np.cos(a))
     c, R = content_sphere(check_scene(scene))
     dist = 2.5 * R
     fov = min(170.0, 2.2 * float(np.degrees(np.arcsin(R / dist))))
     return {"dir_a": light,
-            "dir_b": DirectionalLight(direction=_rotate(d, axis, tilt), irradiance=light.irradiance),
+            "dir_b": DirectionalLight(direction=tilted, irradiance=light.irradiance),
             "spot": SpotLight(position=c - dist * d, direction=d, fov=fov)}
 
 
@@ -87,16 +83,14 @@ def configurations(seeds=1, lights=("dir_a",)) -> list[Configuration]:
     """Every seed x light, seeds outermost: ``seeds`` an integer n (seeds 0..n-1) or a
     sequence of seeds; ``lights`` a sequence of names of :data:`LIGHTS` and light objects
     (or one of them)."""
+    lights = [lights] if isinstance(lights, (str, Light)) else list(lights)
     if isinstance(seeds, Integral) and not isinstance(seeds, bool):
         seeds = range(V.integer(seeds, "seeds", 1))
-        n_lights = 1 if isinstance(lights, (str, Light)) else len(lights) if hasattr(lights, "__len__") else 1
-        V.check_memory("seeds", len(seeds), lambda n: float(n) * max(n_lights, 1) * BYTES_PER_CONFIGURATION,
+        V.check_memory("seeds", len(seeds), lambda n: float(n) * max(len(lights), 1) * BYTES_PER_CONFIGURATION,
                        lo=1, what="configurations")
     elif isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
         raise ValueError(f"seeds: expected a count or a sequence of seeds, got {seeds!r}")
-    if isinstance(lights, (str, Light)):
-        lights = [lights]
-    seeds, lights = list(seeds), list(lights)
+    seeds = list(seeds)
     if not seeds:
         raise ValueError("seeds: no seed given")
     if not lights:

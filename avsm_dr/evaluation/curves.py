@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from .. import validation as V
-from ..segments import OPAQUE_OPTICAL_DEPTH
+from ..representations import build
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments
 
 #: Midpoints per texel of :func:`depth_l2`.
 DEPTHS = 64
@@ -35,7 +36,6 @@ BYTES_PER_DEPTH = 24
 def _check(rep, segments, n_depths, texels):
     """(n_depths, texels as int64 or None) checked for ``segments`` and ``rep`` (None: no
     representation); ValueError naming the argument."""
-    from ..segments import Segments
     if not isinstance(segments, Segments):
         raise ValueError(f"segments: expected avsm_dr.Segments, got {type(segments).__name__}")
     if rep is not None and not callable(getattr(rep, "eval", None)):
@@ -140,7 +140,6 @@ def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per
     """
     n, texels = _check(rep, segments, n_depths, texels)
     if exact is None:
-        from ..representations import build
         exact = build("exact", segments)
     if callable(getattr(exact, "eval", None)):
         ref = curve_values(exact, segments, n, texels)

@@ -14,15 +14,12 @@ rmse                                       RMS of ``T_rep - T`` at the receivers
 compression_rms, capture_rms, spatial_rms  RMS of the terms of :mod:`.probe`: vs the exact curve,
                                            and capture / spatial on the first ``n_decomp`` receivers
 signed_mean                                mean of ``T_rep - T`` (> 0: light leaking)
-leak_share, dark_share                     shares of receivers with ``T_rep - T`` above
-                                           ``+threshold`` / below ``-threshold`` (0.02,
-                                           :data:`avsm_dr.metrics.THRESHOLD`)
+leak_share, dark_share                     shares of receivers with ``T_rep - T`` above +0.02 /
+                                           below -0.02 (:data:`avsm_dr.metrics.THRESHOLD`)
 p99, p99_9, max                            99th / 99.9th percentile and maximum of ``|T_rep - T|``
 nonfinite                                  receivers with a NaN or inf estimate (left out above)
 depth_l2                                   :func:`~.curves.depth_l2` over the map's non-empty texels
-bytes                                      ``nbytes_sparse_per_texel``: the sparse layout (an
-                                           occupancy bit per texel, each non-empty texel's payload
-                                           and CSR offset), the same rule for every kind
+bytes                                      ``nbytes_sparse_per_texel`` (sparse layout, every kind alike)
 bytes_dense                                ``nbytes_per_texel`` (dense: every texel stored)
 build_s, lookup_s                          wall seconds of the build and of the row's lookups, median
                                            after one warm-up call (:func:`~.timing.measure`)
@@ -39,14 +36,16 @@ from numbers import Integral
 import drjit as dr
 import numpy as np
 
+from .. import builtin_scenes
 from .. import validation as V
-from ..capture import ORDERS as CAPTURE_ORDERS
+from ..capture import ORDERS as CAPTURE_ORDERS, capture
 from ..capture.opaque_map import OPAQUE_MODES, compose
 from ..metrics import THRESHOLD, error_stats
 from ..receivers import BYTES_PER_POINT, receiver_sets
 from ..receivers import NAMES as RECEIVER_SETS
-from ..representations import REGISTRY, Representation, describe
+from ..representations import REGISTRY, Representation, build, describe
 from ..scene import Scene
+from ..segments import Segments
 from .configuration import Configuration
 from .configuration import configurations as _configurations
 from .curves import DEPTHS, curve_values, depth_l2, rms
@@ -69,7 +68,6 @@ _Method = collections.namedtuple("_Method", "label cls params kind")
 def _methods(methods) -> list[_Method]:
     if not isinstance(methods, dict) or not methods:
         raise ValueError(f"methods: expected a non-empty dict {{label: (kind, params)}}, got {methods!r}")
-    from ..segments import Segments
     toy = Segments.from_arrays([0, 1], [0.2], [0.4], optical_depth=[0.5])
     out = []
     for label, spec in methods.items():
@@ -99,8 +97,7 @@ def _methods(methods) -> list[_Method]:
 
 
 def _scenes(scenes) -> list[tuple[str, object]]:
-    from .. import builtin_scenes
-    known = getattr(builtin_scenes, "SCENES", {})
+    known = builtin_scenes.SCENES
     out = []
     for s in _names(scenes, "scenes"):
         if not isinstance(s, (str, Scene)):
@@ -137,7 +134,6 @@ def _names(value, name, choices=None) -> list:
     return vals
 
 
-# ====================================================================== steps
 def _synced_build(cls, segments, params):
     """``cls(segments, **params)`` with its Dr.Jit buffers evaluated (lazy ones too)."""
     rep = cls(segments, **params)
@@ -150,7 +146,6 @@ def _synced_build(cls, segments, params):
 
 def _capture(scene, resolution, order, opaque, seed):
     """``ad.capture`` -> (capture, its recorded order); 'random' shuffles with ``seed``."""
-    from .. import capture
     cap = capture(scene, resolution=resolution, opaque=opaque, order=order,
                   **({"order_seed": seed} if order == "random" else {}))
     return cap, cap.order
@@ -174,7 +169,6 @@ def _stats(probe, est, exact) -> dict:
                 nonfinite=s["nan_count"] + s["inf_count"])
 
 
-# ====================================================================== public
 def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surface"), metrics=METRICS,
              resolution: int = 256, order="depth", *, n_volume: int = N_VOLUME, n_surface: int = N_SURFACE,
              n_decomp: int = N_DECOMP, opaque="inline", subset: bool = False, n_depths: int = DEPTHS,
@@ -216,8 +210,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     want_l2, want_time = "depth_l2" in metrics, "timing" in metrics
 
     from tqdm import tqdm
-
-    from .. import builtin_scenes
     rows: list[dict] = []
     cells = [(s, c) for s in scs for c in cfgs]
     for (label, spec), cfg in tqdm(cells, desc="evaluate", unit="cell", disable=not progress):
@@ -246,7 +238,6 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
 
 def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths) -> list[dict]:
     """The rows of every method on one capture."""
-    from ..representations import build
     if subset:
         sub = SubsetBuilder(cap.segments, np.concatenate([p.tex.ravel() for p in probes.values()]),
                             cap.opaque_depth)

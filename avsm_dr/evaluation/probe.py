@@ -29,6 +29,7 @@ import numpy as np
 from ..capture.opaque_map import compose
 from ..filtering import bilinear_taps
 from ..receivers import marched
+from ..representations import build, describe
 
 
 def truth(scene, points, step_fraction: float = 0.125) -> np.ndarray:
@@ -50,8 +51,7 @@ class Probe:
         self.tex, self.weights = bilinear_taps(coords, cap.width, cap.height)     # (4, K) int64, float64
         self.truth = truth(scene, p) if truth_at_points is None else np.asarray(truth_at_points, np.float64)
         # truth along each tap's texel ray to the receiver's depth, on the first n_decomp receivers
-        self.n_decomp = min(int(n_decomp), self.k)
-        m = self.n_decomp
+        m = self.n_decomp = min(int(n_decomp), self.k)
         o, d = cap.camera.rays(self.tex[:, :m].ravel())
         q = o + np.tile(self.depth[:m], 4)[:, None] * d
         t_taps = truth(scene, q).reshape(4, m)
@@ -89,7 +89,6 @@ class Probe:
                 "total_decomp": estimate[:m] - self.truth[:m]}
 
 
-# ================================================================ subset builds
 @dataclasses.dataclass
 class Built:
     """A representation built on a subset of a map's texels: ``rep`` over the subset,
@@ -120,7 +119,6 @@ class SubsetBuilder:
     def params(self, kind, params: dict) -> dict:
         """``params`` with the full map's near/far added where ``kind`` (a registered name or
         a :class:`~avsm_dr.Representation` subclass) takes a global range."""
-        from ..representations import describe
         schema = kind.schema.describe()["params"] if isinstance(kind, type) else describe(kind)["params"]
         p = dict(params)
         if "near" in schema and "far" in schema and p.get("depth_range", "global") == "global" \
@@ -131,7 +129,6 @@ class SubsetBuilder:
     def build(self, kind, params: dict) -> Built:
         """``kind`` (a registered name or a :class:`~avsm_dr.Representation` subclass) with
         ``params`` on the subset."""
-        from ..representations import build
         p = self.params(kind, params)
         rep = kind(self.segments, **p) if isinstance(kind, type) else build(kind, self.segments, **p)
         return Built(rep, self.remap, self.opaque_depth)

@@ -36,27 +36,23 @@ def _run(fn):
     return out, wall, cpu, jit_kernels(dr.kernel_history())
 
 
-def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
-    """Time each callable in ``fns`` (name -> fn): a first call (JIT compile included),
-    ``warmup - 1`` more, then ``repeats`` rounds run interleaved across ``fns`` (so load
-    from other processes hits each alike).  Every call is followed by :func:`sync`.
+def measure(fns: dict, repeats: int = 3) -> dict:
+    """Time each callable in ``fns`` (name -> fn): a first call (the warm-up, JIT compile
+    included), then ``repeats`` rounds run interleaved across ``fns`` (so load from other
+    processes hits each alike).  Every call is followed by :func:`sync`.
 
     Returns name -> dict(wall_s, cpu_s (process CPU time, all threads), kernel_s (Dr.Jit
     kernel execution from ``dr.kernel_history``), first_s, first_cpu_s, jit_s (codegen +
     backend compile of the first call), compiled, from_disk, kernels (JIT launches per
     call), out (last result)); medians over the repeats (``repeats=0``: the first call)."""
-    flag = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
     res = {}
-    try:
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         for name, fn in fns.items():
             out, first, first_cpu, jit = _run(fn)
             res[name] = dict(first_s=first, first_cpu_s=first_cpu, out=out, wall=[], cpu=[], kern=[], kernels=0,
                              jit_s=sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in jit) / 1e3,
                              compiled=sum(1 for k in jit if not k.get("cache_hit")),
                              from_disk=sum(1 for k in jit if k.get("cache_disk")))
-            for _ in range(max(warmup - 1, 0)):
-                sync(fn())
         for _ in range(repeats):
             for name, fn in fns.items():
                 out, w, c, jit = _run(fn)
@@ -66,9 +62,7 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
                 r["kern"].append(sum(k.get("execution_time", 0) for k in jit) / 1e3)
                 r["kernels"] = len(jit)
                 r["out"] = out
-    finally:
-        dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+        dr.kernel_history()                                        # cleared for the next reader
     for r in res.values():
         r["wall_s"] = statistics.median(r.pop("wall")) if repeats else r["first_s"]
         r["cpu_s"] = statistics.median(r.pop("cpu")) if repeats else r["first_cpu_s"]
@@ -76,8 +70,8 @@ def measure(fns: dict, repeats: int = 3, warmup: int = 1) -> dict:
     return res
 
 
-def timed(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> tuple[float, float, Any]:
+def timed(fn: Callable[[], Any], repeats: int = 5) -> tuple[float, float, Any]:
     """(median wall seconds after warm-up, first-call seconds incl. JIT compile, last
     result) of :func:`measure` for one callable."""
-    r = measure({"fn": fn}, repeats, warmup)["fn"]
+    r = measure({"fn": fn}, repeats)["fn"]
     return r["wall_s"], r["first_s"], r["out"]

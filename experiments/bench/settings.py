@@ -32,9 +32,9 @@ HEAVY_MAX_SEGMENTS = 8_000_000
 OFFLINE_MAX_SEGMENTS = 200_000
 
 
-def one(fn, repeats=3, warmup=1) -> dict:
+def one(fn, repeats=3) -> dict:
     """:func:`~experiments._common.measure` of a single callable."""
-    return measure({"x": fn}, repeats, warmup)["x"]
+    return measure({"x": fn}, repeats)["x"]
 
 
 def counts_map(side: int, mean: int, seed: int = 1) -> Segments:

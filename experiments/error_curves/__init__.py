@@ -12,7 +12,7 @@ What is measured (module :mod:`avsm_dr.evaluation.probe` states the formulas):
 * **Signed and tail errors** (:func:`avsm_dr.metrics.error_stats`): mean signed error
   (> 0: light leaking), the shares leaking / over-darkening by > 0.02, p99 / p99.9 of
   |error| over thousands of receivers, and the optical-depth error
-  (:func:`avsm_dr.metrics.optical_depth_error`).
+  (:func:`experiments._tau.optical_depth_error`).
 * **Receiver sets** (:mod:`avsm_dr.receivers`): in-volume receivers drawn by contribution,
   surface receivers (wall / ground / table top), and the scene's own uniform set (base
   configuration only), in separate rows (column ``receivers``).
@@ -40,10 +40,11 @@ import numpy as np
 
 from avsm_dr import allows, build, configurations, describe
 from avsm_dr import kinds as all_kinds
-from avsm_dr.metrics import error_stats, optical_depth_error
+from avsm_dr.metrics import error_stats
 from avsm_dr.segments import Segments
 from . import findings as F
 from .._study import Option, Study
+from .._tau import optical_depth_error
 from .labels import ORDERS, PRECISIONS, TUNING, with_size, label, order_dependent, tuned  # noqa: F401  (re-exported)
 from avsm_dr.evaluation import Built, Probe, SubsetBuilder, curve_values, depth_l2, light_variants
 from avsm_dr import validation as V
