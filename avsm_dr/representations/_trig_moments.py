@@ -93,11 +93,6 @@ def trig_means(x0, x1, n: int, lam=None):
     return out
 
 
-def delta_values(x, n: int):
-    """[1, cos(k phi), sin(k phi), ..] at phi = (pi/2) x (Python float x)."""
-    return [1.0] + [f(k * math.pi / 2 * x) for k in range(1, n + 1) for f in (math.cos, math.sin)]
-
-
 def _christoffel(Lm, D, psi, n):
     """1 / (s^T B^-1 s), s_j = sin^j(psi) cos^(n-j)(psi), with B = L D L^T (D_0 = 1)."""
     sn, cs = dr.sin(psi), dr.cos(psi)
