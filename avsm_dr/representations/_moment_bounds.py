@@ -226,15 +226,9 @@ def kernel_polynomial(m, xf, floors):
 
 
 def real_roots(c):
-    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n (step 3): degree 2 the stable
-    quadratic formula, 3 Viete's trigonometric formula, 4 Ferrari's method (the resolvent
-    cubic's largest root splits it into two real quadratics); degrees 3 and 4 then take
-    :data:`POLISH` safeguarded Newton steps on ``c`` itself (the closed forms on ``c / c_n``
-    lose digits where ``c_n`` nears 0)."""
-    n = len(c) - 1
-    if n == 2:
-        return list(quadratic_roots(*c))
-    return cubic_roots(*c) if n == 3 else quartic_roots(*c)
+    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n, n = 2, 3, 4 (step 3):
+    :func:`quadratic_roots`, :func:`cubic_roots` (Viete) or :func:`quartic_roots` (Ferrari)."""
+    return list(quadratic_roots(*c)) if len(c) == 3 else cubic_roots(*c) if len(c) == 4 else quartic_roots(*c)
 
 
 def hankel_bound(b, xf, alpha, beta, target, floors):

@@ -109,10 +109,8 @@ class Stored:
 # Host codecs: float64 NumPy in, float64 decoded values out.
 def round_unit(q: np.ndarray, precision: str) -> np.ndarray:
     """q in [0, 1] (or [-1, 1] for float formats) through the code of ``precision``."""
-    if precision == "float32":
-        return q.astype(np.float32).astype(np.float64)
-    if precision == "float16":
-        return q.astype(np.float16).astype(np.float64)
+    if precision in ("float32", "float16"):
+        return q.astype(precision).astype(np.float64)
     M = UNORM_MAX[precision]
     return np.rint(np.clip(q, 0.0, 1.0) * M) / M
 

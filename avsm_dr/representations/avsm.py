@@ -114,23 +114,20 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
             # clear nodes stand behind every blocker: they always take the full ts
             factor = dr.select(real, inner, ts)
         scaled.append(t[k] * factor)
+    def pick(mask, node_d, node_t, cd, ct):
+        return dr.select(mask, node_d, cd), dr.select(mask, node_t, ct)
+
     out_d, out_t = [], []
     for j in range(n + 2):
         # slot j holds existing node j - (inserted nodes in front of it); x > e, so an
         # exit in front implies an entry in front
         cd, ct = (d[j], scaled[j]) if j < n else (a, ta)
         if 1 <= j <= n:
-            past_e = e < j
-            cd = dr.select(past_e, d[j - 1], cd)
-            ct = dr.select(past_e, scaled[j - 1], ct)
+            cd, ct = pick(e < j, d[j - 1], scaled[j - 1], cd, ct)
         if 2 <= j <= n + 1:
-            past_x = x < j
-            cd = dr.select(past_x, d[j - 2], cd)
-            ct = dr.select(past_x, scaled[j - 2], ct)
-        cd = dr.select(x == j, b, cd)
-        ct = dr.select(x == j, tb, ct)
-        cd = dr.select(e == j, a, cd)
-        ct = dr.select(e == j, ta, ct)
+            cd, ct = pick(x < j, d[j - 2], scaled[j - 2], cd, ct)
+        cd, ct = pick(x == j, b, tb, cd, ct)
+        cd, ct = pick(e == j, a, ta, cd, ct)
         out_d.append(cd)
         out_t.append(ct)
     return out_d, out_t

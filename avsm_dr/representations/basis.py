@@ -137,10 +137,8 @@ class BasisRepresentation(Representation):
             hint = "" if not searchable else f"; {self.schema.size} <= {self._largest_within(cap)} fits"
             raise ValueError(f"{name}: {K} coefficients per texel, above the {cap} a texel may hold "
                              f"(avsm_dr.representations.basis.{cap_name}){hint}")
-        if searchable:
-            self._check_build_memory(lambda v: self._build_bytes(self._coefficients_at(v)))
-        else:
-            self._check_build_memory(lambda v: self._build_bytes(K), name=name, search=False)
+        self._check_build_memory(lambda v: self._build_bytes(self._coefficients_at(v) if searchable else K),
+                                 name=name, search=searchable)
 
     def _largest_within(self, K_max: int) -> int:
         """Largest size-parameter value with at most ``K_max`` coefficients (bisection)."""

@@ -313,8 +313,16 @@ class MomentShadowMap(BasisRepresentation):
                 raise ValueError(f"bias_target: expected {n} finite real numbers, got {target!r}")
             self._target, self._floors = target, hankel_pivots(target)
         super()._resolve()
-        if self._log:
-            self._check_log_range()
+        if self._log and self._per_texel:             # near > 0 for the log warp; empty texels get (1, 2)
+            near, far = np.asarray(self.near, np.float64), np.asarray(self.far, np.float64)
+            empty = self.segments.counts == 0
+            if np.any(near[~empty] <= 0):
+                raise ValueError(f"near: warp='log' needs depths > 0; texel near bounds go down to "
+                                 f"{near[~empty].min():g}")
+            near, far = np.where(empty, 1.0, near), np.where(empty, 2.0, far)
+            self.near, self.far = self.Float(near), self.Float(far)
+        elif self._log and not self.near > 0:
+            raise ValueError(f"near: warp='log' needs near > 0, got near={self.near:g}")
         if P["bias"] is None and P["quantization"] == "msm" and self.precision == MSM_DEFAULT_PRECISION:
             P["bias"] = MSM_UNORM16_BIAS
         elif P["bias"] is None:
@@ -330,19 +338,6 @@ class MomentShadowMap(BasisRepresentation):
         self._coef = to_device(self, buf, encode_msm(to_host(buf).reshape(-1, 5), self.precision).ravel())
         rest = tuple(f for f in self._stored() if f.attr != self._stored_attr)
         self._stored_nbytes = MSM_BYTES + quantise(self, rest)
-
-    def _check_log_range(self):
-        """near > 0 for the log warp (ValueError naming near); empty texels get (1, 2)."""
-        if self._per_texel:
-            near, far = np.asarray(self.near, np.float64), np.asarray(self.far, np.float64)
-            empty = self.segments.counts == 0
-            if np.any(near[~empty] <= 0):
-                raise ValueError(f"near: warp='log' needs depths > 0; texel near bounds go down to "
-                                 f"{near[~empty].min():g}")
-            near, far = np.where(empty, 1.0, near), np.where(empty, 2.0, far)
-            self.near, self.far = self.Float(near), self.Float(far)
-        elif not self.near > 0:
-            raise ValueError(f"near: warp='log' needs near > 0, got near={self.near:g}")
 
     def _log_range(self, texel=None):
         """(ln near, ln far - ln near floored at MIN_SPAN_REL[dtype]) for the texels, or global."""
