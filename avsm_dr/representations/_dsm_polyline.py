@@ -139,9 +139,6 @@ def prefix_optical_depth(bp):
         c = c + dr.select(dr.abs(s) >= dr.abs(x), (s - total) + x, (x - total) + s)
         return total, c
 
-    def cond(k, tau, rate, comp, n_open, z_prev, slope):
-        return k < end
-
     def body(k, tau, rate, comp, n_open, z_prev, slope):
         zk = dr.gather(F64, z, k)
         tl = dr.select(k == start, 0.0, tau + slope * (zk - z_prev))   # tau(z_k^-)
@@ -161,7 +158,7 @@ def prefix_optical_depth(bp):
     n = lanes.size
     state = (U32(start), dr.zeros(F64, n), dr.zeros(F64, n), dr.zeros(F64, n),
              dr.zeros(I32, n), dr.zeros(F64, n), dr.zeros(F64, n))
-    dr.while_loop(state, cond, body, label="dsm_prefix_optical_depth")
+    dr.while_loop(state, lambda k, *_: k < end, body, label="dsm_prefix_optical_depth")
     dr.eval(tau_left, tau_right, slope_out)
     return tau_left, tau_right, slope_out
 
@@ -246,9 +243,6 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
         its crossing depth rounded to the storage dtype (at least the next representable
         depth after the previous vertex), kept before the next breakpoint.  Counts them;
         ``write``: scatters them from ``base``."""
-        def cond(i, n, z_prev, tau_prev):
-            return i < i1
-
         def body(i, n, z_prev, tau_prev):
             lam_i = dr.gather(F64, lam, i)
             zc = bz + (lam_i - tr) / safe_slope
@@ -264,7 +258,7 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
             return (i + 1, n + dr.select(keep, U32(1), U32(0)), dr.select(keep, zc, z_prev),
                     dr.select(keep, tc, tau_prev))
 
-        _, n, _, _ = dr.while_loop((U32(i0), dr.zeros(U32, nb), F64(bz), F64(tr)), cond, body,
+        _, n, _, _ = dr.while_loop((U32(i0), dr.zeros(U32, nb), F64(bz), F64(tr)), lambda i, *_: i < i1, body,
                                    label="dsm_level_crossings")
         return n
 

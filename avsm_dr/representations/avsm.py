@@ -56,10 +56,7 @@ def bracket(d, t, x):
     for k in range(n):
         c = d[k] <= x
         nxt = min(k + 1, n - 1)
-        dl = dr.select(c, d[k], dl)
-        tl = dr.select(c, t[k], tl)
-        dr_ = dr.select(c, d[nxt], dr_)
-        tr = dr.select(c, t[nxt], tr)
+        dl, tl, dr_, tr = (dr.select(c, new, old) for new, old in zip((d[k], t[k], d[nxt], t[nxt]), (dl, tl, dr_, tr)))
     return dl, tl, dr_, tr
 
 
@@ -319,9 +316,8 @@ class AVSM(NodeList):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
             if view is not None:
                 i = dr.gather(UInt32, view[0], i, active)  # the texel's next segment in depth order
-            a = dr.gather(Float, p[0], i, active)
-            b = dr.gather(Float, p[1], i, active)
-            return a, b, dr.exp(-dr.gather(Float, p[2], i, active))
+            a, b, tau = (dr.gather(Float, x, i, active) for x in p)
+            return a, b, dr.exp(-tau)
 
         def insert(p, i, used, done, d, t, compress):
             # compress: False (room left), True (full), or a Bool mask (_split=False ablation)

@@ -368,9 +368,7 @@ class MomentShadowMap(BasisRepresentation):
             _, _, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
             far = near + span
             ln_near, ls = self._log_range(texel)
-            w0 = (dr.log(dr.clip(z0, near, far)) - ln_near) / ls
-            w1 = (dr.log(dr.clip(z1, near, far)) - ln_near) / ls
-            x0, x1 = dr.clip(2 * w0 - 1, -1, 1), dr.clip(2 * w1 - 1, -1, 1)
+            x0, x1 = (dr.clip(2 * ((dr.log(dr.clip(z, near, far)) - ln_near) / ls) - 1, -1, 1) for z in (z0, z1))
             x1 = dr.maximum(x1, x0)
             if self._trig:
                 means = TM.trig_means(x0, x1, self.basis.n, 0.5 * ls)
