@@ -75,8 +75,7 @@ def padded(off: np.ndarray, texels: np.ndarray, kmax: int, *arrays):
     texel's last point; also returns the (B,) point counts."""
     start = off[texels]
     count = off[texels + 1] - start
-    cols = np.arange(kmax)
-    idx = start[:, None] + np.minimum(cols[None, :], count[:, None] - 1)
+    idx = start[:, None] + np.minimum(np.arange(kmax)[None, :], count[:, None] - 1)
     return count, [a[idx] for a in arrays]
 
 

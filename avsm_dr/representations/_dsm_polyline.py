@@ -52,8 +52,7 @@ def sort_within_texels(off: np.ndarray, values: np.ndarray) -> np.ndarray:
     for b in np.unique(bucket):
         tex = busy[bucket == b]
         c = counts[tex]
-        width = int(c.max())
-        cols = np.arange(width)
+        cols = np.arange(int(c.max()))
         idx = off[tex][:, None] + cols[None, :]
         valid = cols[None, :] < c[:, None]
         block = np.where(valid, values[np.minimum(idx, values.size - 1)], np.inf)
@@ -102,9 +101,8 @@ def breakpoints(offsets, z0, z1, tau):
     rate_out = np.bincount(bp_end, weights=rate, minlength=nb)
     active = (np.bincount(bp_start, weights=pos, minlength=nb)
               - np.bincount(bp_end, weights=pos, minlength=nb)).astype(np.int32)
-    per_tex = np.add.reduceat(new, ev_off[:-1][counts > 0]) if s else np.zeros(0, np.int64)
     bp_count = np.zeros(n_tex, np.int64)
-    bp_count[counts > 0] = per_tex
+    bp_count[counts > 0] = np.add.reduceat(new, ev_off[:-1][counts > 0]) if s else np.zeros(0, np.int64)
     off = np.concatenate([[0], np.cumsum(bp_count)]).astype(np.int64)
     return dict(off=off, z=bp_z, jump=jump, rate_in=rate_in, rate_out=rate_out, active=active)
 
@@ -263,8 +261,7 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
         return n
 
     out_z = out_tau = None
-    n_lev = crossings(None, write=False)
-    per_bp = 1 + dr.select(step, U32(1), U32(0)) + n_lev
+    per_bp = 1 + dr.select(step, U32(1), U32(0)) + crossings(None, write=False)
     dr.eval(per_bp)
     base_np = np.concatenate([[0], np.cumsum(per_bp.numpy().astype(np.int64))])      # first vertex of each
     nv = int(base_np[-1])

@@ -93,8 +93,7 @@ def _leading(c):
     M = dr.abs(c[0])
     for ck in c[1:]:
         M = dr.maximum(M, dr.abs(ck))
-    eps = LEAD[dr.type_v(M) == dr.VarType.Float64]
-    floor = dr.maximum(eps * M, TINY)
+    floor = dr.maximum(LEAD[dr.type_v(M) == dr.VarType.Float64] * M, TINY)
     cn = c[-1]
     return dr.select(dr.abs(cn) >= floor, cn, dr.select(cn < 0, -floor, floor))
 

@@ -123,13 +123,11 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
          for j in range(2 * n + 1)]                           # M = A r (module docstring)
     M0 = dr.maximum(M[0], 1e-30)
     m = [None] + [Mj / M0 for Mj in M[1:]]
-    floors = [None] + [alpha * p / M0 for p in pivots[1:]]
     psi_f = (math.pi / 4) * xw
     xf = dr.tan(psi_f)
-    Lm, D, c = kernel_polynomial(m, xf, floors)
-    roots = real_roots(c)
+    Lm, D, c = kernel_polynomial(m, xf, [None] + [alpha * p / M0 for p in pivots[1:]])
     # weights of mu: M_0 / (s^T B_m^-1 s)
     wf = dr.clip(_christoffel(Lm, D, psi_f, n) * M0, 0, 1)
     lower = sum(dr.select(z < xf, dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * M0, 0, 1), 0)
-                for z in roots)
+                for z in real_roots(c))
     return bounded_depth(b0, empty, lower, wf, beta)

@@ -220,6 +220,5 @@ class AVSMAdaptive(Representation):
         return np.asarray(self.node_depth.numpy(), np.float64)
 
     def _eval_texels(self, texel, depth):
-        zs = self.node_depth
-        return csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, zs, i, a),
+        return csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, self.node_depth, i, a),
                           self.node_value, texel, depth, self.params["interpolation"], hold_last=False)

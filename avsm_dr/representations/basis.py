@@ -151,8 +151,7 @@ class BasisRepresentation(Representation):
     unity_in_front = False
 
     def _native_bytes(self) -> float:
-        extra = 2 if self._per_texel else 0
-        return (self.basis.n_coefficients + extra) * self.segments.itemsize
+        return (self.basis.n_coefficients + (2 if self._per_texel else 0)) * self.segments.itemsize
 
     precisions = PRECISIONS
     #: The flat store ``[texel * K + k]`` reconstruction reads and :mod:`._precision` quantises:

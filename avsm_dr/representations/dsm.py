@@ -133,8 +133,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
             zk, vk, a, b, vertical, sdz = vertex(k, zo)
             sk = (vk - vo) / sdz
             feasible = vertical | ((sk >= lo) & (sk <= hi))
-            in_band = (vo >= a) & (vo <= b)
-            nlo = dr.select(vertical, dr.select(in_band, lo, inf), dr.maximum(lo, (a - vo) / sdz))
+            nlo = dr.select(vertical, dr.select((vo >= a) & (vo <= b), lo, inf), dr.maximum(lo, (a - vo) / sdz))
             nhi = dr.select(vertical, hi, dr.minimum(hi, (b - vo) / sdz))
             brk = ~feasible
             cnt = emit(cnt, brk, zp, vp, ip)

@@ -326,8 +326,7 @@ class MomentShadowMap(BasisRepresentation):
         if P["bias"] is None and P["quantization"] == "msm" and self.precision == MSM_DEFAULT_PRECISION:
             P["bias"] = MSM_UNORM16_BIAS
         elif P["bias"] is None:
-            table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
-            P["bias"] = table[n][self.precision or self.segments.dtype]
+            P["bias"] = (DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS)[n][self.precision or self.segments.dtype]
 
     def _apply_precision(self) -> None:
         """'msm': the flat (T x 5) moment store replaced by its :func:`encode_msm` values
@@ -336,8 +335,7 @@ class MomentShadowMap(BasisRepresentation):
             return super()._apply_precision()
         buf = self._coef
         self._coef = to_device(self, buf, encode_msm(to_host(buf).reshape(-1, 5), self.precision).ravel())
-        rest = tuple(f for f in self._stored() if f.attr != self._stored_attr)
-        self._stored_nbytes = MSM_BYTES + quantise(self, rest)
+        self._stored_nbytes = MSM_BYTES + quantise(self, self._stored()[1:])       # the ranges (basis' _stored)
 
     def _log_range(self, texel=None):
         """(ln near, ln far - ln near floored at MIN_SPAN_REL[dtype]) for the texels, or global."""
