@@ -22,7 +22,6 @@ import pytest
 
 import avsm_dr as ad
 from avsm_dr import backend
-from avsm_dr.representations import _moment_quantization as Q
 from avsm_dr.representations import moments as MOD
 from cases import random_segments, to_segments
 from reference import moments_ref as MR
@@ -50,26 +49,26 @@ def stored(rep):
 
 def test_transform_maps_moment_vectors_into_the_unit_cube(rng):
     m = random_distributions(rng)
-    q = Q.msm_forward(m)
+    q = MOD.msm_forward(m)
     assert q.min() >= -2e-7 and q.max() <= 1 + 2e-7, (q.min(), q.max())
     qr = np.array([ref.forward(v) for v in m])
     np.testing.assert_allclose(q, qr, rtol=0, atol=1e-12)
     z = np.linspace(0, 1, 2001)                              # the point masses themselves
-    qz = Q.msm_forward(np.stack([(2 * z - 1) ** j for j in range(1, 5)], axis=1))
+    qz = MOD.msm_forward(np.stack([(2 * z - 1) ** j for j in range(1, 5)], axis=1))
     assert qz.min() >= -2e-7 and qz.max() <= 1 + 2e-7
     assert qz.min() < 1e-3 and qz.max() > 1 - 1e-3           # and spans the code range
 
 
 def test_float64_round_trip(rng):
     m = random_distributions(rng, 500)
-    np.testing.assert_allclose(Q.msm_inverse(Q.msm_forward(m)), m, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(Q.u_to_x(Q.x_to_u(m)), m, rtol=0, atol=1e-14)
-    np.testing.assert_allclose(Q.MSM_INVERSE @ Q.MSM_MATRIX, np.eye(4), rtol=0, atol=1e-12)
-    q = Q.msm_forward(m[:50])
-    np.testing.assert_allclose(Q.msm_inverse(q), [ref.inverse(v) for v in q], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(MOD.msm_inverse(MOD.msm_forward(m)), m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(MOD.u_to_x(MOD.x_to_u(m)), m, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(MOD.MSM_INVERSE @ MOD.MSM_MATRIX, np.eye(4), rtol=0, atol=1e-12)
+    q = MOD.msm_forward(m[:50])
+    np.testing.assert_allclose(MOD.msm_inverse(q), [ref.inverse(v) for v in q], rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("precision", Q.MSM_PRECISIONS)
+@pytest.mark.parametrize("precision", MOD.MSM_PRECISIONS)
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_stored_moments_match_reference(precision, dtype, rng):
     case = random_segments(rng, texels=40, max_count=10)
@@ -83,7 +82,7 @@ def test_stored_moments_match_reference(precision, dtype, rng):
     else:
         assert np.all(np.abs(got - want) <= 2.0 ** -23 * want[:, :1] + 1e-30), np.abs(got - want).max()
     np.testing.assert_array_equal(got[:, 0], native[:, 0].astype(np.float32))       # b_0 in float32
-    assert rep.nbytes_per_texel == Q.MSM_BYTES == 12
+    assert rep.nbytes_per_texel == MOD.MSM_BYTES == 12
     texel = ad.build("moments", seg, precision=precision, quantization="msm", depth_range="texel")
     assert texel.nbytes_per_texel == 12 + 8                                         # + float32 range
 
@@ -171,7 +170,7 @@ def test_adversarial_texels_finite(dtype):
     """One segment (rank-1 moments), a point mass at near / far, a huge optical depth."""
     seg = ad.Segments.from_arrays([0, 1, 2, 3, 4, 4], [0.3, 0.0, 1.0, 0.2], [0.3, 0.0, 1.0, 0.6],
                                   optical_depth=[0.7, 2.0, 1.0, 1e4], dtype=dtype)
-    for p in Q.MSM_PRECISIONS:
+    for p in MOD.MSM_PRECISIONS:
         rep = ad.build("moments", seg, precision=p, quantization="msm", near=0.0, far=1.0)
         tex = np.repeat(np.arange(5), 11)
         T = np.asarray(rep.eval(tex, np.tile(np.linspace(-0.1, 1.1, 11), 5)))

@@ -53,13 +53,12 @@ def attach_exact_gradients(segments, value, texel, z, left):
     return value + (v - dr.detach(v))
 
 
-def buckets(off: np.ndarray, texels: np.ndarray | None = None, max_elems: int = 1 << 22,
-            power: int = 2):
+def buckets(off: np.ndarray, max_elems: int = 1 << 22, power: int = 2):
     """Groups of non-empty texels of similar point count K (same power of two), each
     small enough that ``len(group) * Kmax**power <= max_elems``: yields
     ``(texels, Kmax)``."""
     counts = np.diff(off)
-    tex = np.flatnonzero(counts > 0) if texels is None else np.asarray(texels)
+    tex = np.flatnonzero(counts > 0)
     if tex.size == 0:
         return
     key = np.ceil(np.log2(np.maximum(counts[tex], 1))).astype(np.int64)
@@ -76,8 +75,7 @@ def padded(off: np.ndarray, texels: np.ndarray, kmax: int, *arrays):
     texel's last point; also returns the (B,) point counts."""
     start = off[texels]
     count = off[texels + 1] - start
-    cols = np.arange(kmax)
-    idx = start[:, None] + np.minimum(cols[None, :], count[:, None] - 1)
+    idx = start[:, None] + np.minimum(np.arange(kmax)[None, :], count[:, None] - 1)
     return count, [a[idx] for a in arrays]
 
 
@@ -117,7 +115,6 @@ def exp_stored_values(v, store):
     inexact there), so the DP's chords are the lookup's exactly."""
     v = np.asarray(v, np.float64)
     return np.where(v.astype(store) == 0, 0.0, np.maximum(v, np.finfo(store).tiny))
-
 
 
 def store_nodes(segments, src: np.ndarray, pts: dict, values: np.ndarray | None = None, exp: bool = False):

@@ -52,8 +52,7 @@ def sort_within_texels(off: np.ndarray, values: np.ndarray) -> np.ndarray:
     for b in np.unique(bucket):
         tex = busy[bucket == b]
         c = counts[tex]
-        width = int(c.max())
-        cols = np.arange(width)
+        cols = np.arange(int(c.max()))
         idx = off[tex][:, None] + cols[None, :]
         valid = cols[None, :] < c[:, None]
         block = np.where(valid, values[np.minimum(idx, values.size - 1)], np.inf)
@@ -102,9 +101,8 @@ def breakpoints(offsets, z0, z1, tau):
     rate_out = np.bincount(bp_end, weights=rate, minlength=nb)
     active = (np.bincount(bp_start, weights=pos, minlength=nb)
               - np.bincount(bp_end, weights=pos, minlength=nb)).astype(np.int32)
-    per_tex = np.add.reduceat(new, ev_off[:-1][counts > 0]) if s else np.zeros(0, np.int64)
     bp_count = np.zeros(n_tex, np.int64)
-    bp_count[counts > 0] = per_tex
+    bp_count[counts > 0] = np.add.reduceat(new, ev_off[:-1][counts > 0]) if s else np.zeros(0, np.int64)
     off = np.concatenate([[0], np.cumsum(bp_count)]).astype(np.int64)
     return dict(off=off, z=bp_z, jump=jump, rate_in=rate_in, rate_out=rate_out, active=active)
 
@@ -139,9 +137,6 @@ def prefix_optical_depth(bp):
         c = c + dr.select(dr.abs(s) >= dr.abs(x), (s - total) + x, (x - total) + s)
         return total, c
 
-    def cond(k, tau, rate, comp, n_open, z_prev, slope):
-        return k < end
-
     def body(k, tau, rate, comp, n_open, z_prev, slope):
         zk = dr.gather(F64, z, k)
         tl = dr.select(k == start, 0.0, tau + slope * (zk - z_prev))   # tau(z_k^-)
@@ -161,7 +156,7 @@ def prefix_optical_depth(bp):
     n = lanes.size
     state = (U32(start), dr.zeros(F64, n), dr.zeros(F64, n), dr.zeros(F64, n),
              dr.zeros(I32, n), dr.zeros(F64, n), dr.zeros(F64, n))
-    dr.while_loop(state, cond, body, label="dsm_prefix_optical_depth")
+    dr.while_loop(state, lambda k, *_: k < end, body, label="dsm_prefix_optical_depth")
     dr.eval(tau_left, tau_right, slope_out)
     return tau_left, tau_right, slope_out
 
@@ -246,9 +241,6 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
         its crossing depth rounded to the storage dtype (at least the next representable
         depth after the previous vertex), kept before the next breakpoint.  Counts them;
         ``write``: scatters them from ``base``."""
-        def cond(i, n, z_prev, tau_prev):
-            return i < i1
-
         def body(i, n, z_prev, tau_prev):
             lam_i = dr.gather(F64, lam, i)
             zc = bz + (lam_i - tr) / safe_slope
@@ -264,13 +256,12 @@ def exact_polyline(offsets, z0, z1, tau, eps_p: float, dtype: str = "float64", b
             return (i + 1, n + dr.select(keep, U32(1), U32(0)), dr.select(keep, zc, z_prev),
                     dr.select(keep, tc, tau_prev))
 
-        _, n, _, _ = dr.while_loop((U32(i0), dr.zeros(U32, nb), F64(bz), F64(tr)), cond, body,
+        _, n, _, _ = dr.while_loop((U32(i0), dr.zeros(U32, nb), F64(bz), F64(tr)), lambda i, *_: i < i1, body,
                                    label="dsm_level_crossings")
         return n
 
     out_z = out_tau = None
-    n_lev = crossings(None, write=False)
-    per_bp = 1 + dr.select(step, U32(1), U32(0)) + n_lev
+    per_bp = 1 + dr.select(step, U32(1), U32(0)) + crossings(None, write=False)
     dr.eval(per_bp)
     base_np = np.concatenate([[0], np.cumsum(per_bp.numpy().astype(np.int64))])      # first vertex of each
     nv = int(base_np[-1])

@@ -64,13 +64,7 @@ def _device_checked(rep, kernel, texel, depth, filter: str):
 def _host_texels(texel, width, height):
     """Path 3 for ``texel``: ``(indices, coords, k)``, float64 host indices (K,) or
     continuous coordinates (K, 2) (then ``indices`` is None), checked finite."""
-    if A.is_drjit(texel):
-        tex_h = A.host(texel, "texel", np.float64)
-    else:
-        tex_h = np.asarray(texel)
-        if tex_h.dtype.kind not in "iuf":
-            raise ValueError(f"texel: expected a numeric array, got dtype {tex_h.dtype}")
-        tex_h = tex_h.astype(np.float64)
+    tex_h = A.host(texel, "texel", np.float64)      # numbers only (no bool, str, complex)
     coords = None
     if tex_h.ndim == 2:
         if tex_h.shape[1] != 2:

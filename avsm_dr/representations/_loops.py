@@ -40,15 +40,8 @@ def safe_chunk(state_words: int, budget: int = TRAJECTORY_BUDGET_WORDS) -> int:
 
 def _run_chunk(state, params, cond, body, chunk: int):
     """At most ``chunk`` iterations of the loop (cond, body)(params, *state)."""
-    UInt32 = backend.types().UInt32
-
-    def cond_k(k, s):
-        return cond(params, *s) & (k < chunk)
-
-    def body_k(k, s):
-        return k + 1, tuple(body(params, *s))
-
-    return dr.while_loop((UInt32(0), tuple(state)), cond_k, body_k, max_iterations=chunk,
+    return dr.while_loop((backend.types().UInt32(0), tuple(state)), lambda k, s: cond(params, *s) & (k < chunk),
+                         lambda k, s: (k + 1, tuple(body(params, *s))), max_iterations=chunk,
                          label="checkpoint_chunk")[1]
 
 

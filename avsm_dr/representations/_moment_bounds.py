@@ -56,21 +56,6 @@ def hankel_pivots(target, m0: float = 1.0) -> list[float]:
     return [float(v) for v in np.diag(L) ** 2]
 
 
-def _safe(x):
-    """x with |x| >= TINY (sign kept; 0 -> TINY)."""
-    return dr.select(dr.abs(x) > TINY, x, dr.select(x < 0, -TINY, TINY))
-
-
-def _sort(z):
-    """Sorting network (ascending) over a list of 2..4 arrays."""
-    z = list(z)
-    pairs = {2: [(0, 1)], 3: [(0, 1), (1, 2), (0, 1)],
-             4: [(0, 1), (2, 3), (0, 2), (1, 3), (1, 2)]}[len(z)]
-    for i, j in pairs:
-        z[i], z[j] = dr.minimum(z[i], z[j]), dr.maximum(z[i], z[j])
-    return z
-
-
 def quadratic_roots(c0, c1, c2):
     """Roots (z2 <= z3) of c0 + c1 z + c2 z^2 (real-rooted; stable form, a vanishing c2
     sends one root to +-BIG)."""
@@ -108,8 +93,7 @@ def _leading(c):
     M = dr.abs(c[0])
     for ck in c[1:]:
         M = dr.maximum(M, dr.abs(ck))
-    eps = LEAD[dr.type_v(M) == dr.VarType.Float64]
-    floor = dr.maximum(eps * M, TINY)
+    floor = dr.maximum(LEAD[dr.type_v(M) == dr.VarType.Float64] * M, TINY)
     cn = c[-1]
     return dr.select(dr.abs(cn) >= floor, cn, dr.select(cn < 0, -floor, floor))
 
@@ -124,16 +108,19 @@ def _horner(c, z):
 
 
 def _polish(c, roots):
-    """POLISH safeguarded Newton steps on c for each root (kept where |c| decreases)."""
+    """POLISH safeguarded Newton steps on c for each root (kept where |c| decreases; the
+    derivative kept at least TINY in magnitude), then the 3 or 4 roots sorted ascending."""
     out = []
     for z in roots:
         for _ in range(POLISH):
             p, dp = _horner(c, z)
-            zn = dr.clip(z - p / _safe(dp), -BIG, BIG)
+            zn = dr.clip(z - p / dr.select(dr.abs(dp) > TINY, dp, dr.select(dp < 0, -TINY, TINY)), -BIG, BIG)
             pn, _ = _horner(c, zn)
             z = dr.select(dr.abs(pn) < dr.abs(p), zn, z)
         out.append(z)
-    return _sort(out)
+    for i, j in {3: [(0, 1), (1, 2), (0, 1)], 4: [(0, 1), (2, 3), (0, 2), (1, 3), (1, 2)]}[len(out)]:
+        out[i], out[j] = dr.minimum(out[i], out[j]), dr.maximum(out[i], out[j])     # sorting network
+    return out
 
 
 def cubic_roots(c0, c1, c2, c3):
@@ -183,20 +170,14 @@ def quartic_roots(c0, c1, c2, c3, c4):
     return _polish([c0, c1, c2, c3, c4], [dr.clip(z, -BIG, BIG) for z in roots])
 
 
-def _elementary(others):
-    """Elementary symmetric polynomials e_0 = 1, e_1, .., e_k of the arrays ``others``."""
+def _lagrange_weight(m, p, others):
+    """Weight at p of the distribution on {p} + others with moments m_0..m_n (Lagrange):
+    E[prod_r (z - r)] / prod_r (p - r), from the elementary symmetric polynomials e_k of ``others``."""
+    n = len(others)
     e = [1, others[0]]
     for r in others[1:]:
         e = [1] + [e[k] + (r if k == 1 else r * e[k - 1]) if k < len(e) else r * e[k - 1]
                    for k in range(1, len(e) + 1)]
-    return e
-
-
-def _lagrange_weight(m, p, others):
-    """Weight at p of the distribution on {p} + others with moments m_0..m_n (Lagrange):
-    E[prod_r (z - r)] / prod_r (p - r)."""
-    n = len(others)
-    e = _elementary(others)
     num = m[n]
     for k in range(1, n + 1):       # + (-1)^k e_k m_{n-k}
         term = e[k] if n - k == 0 else m[n - k] * e[k]
@@ -244,15 +225,9 @@ def kernel_polynomial(m, xf, floors):
 
 
 def real_roots(c):
-    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n (step 3): degree 2 the stable
-    quadratic formula, 3 Viete's trigonometric formula, 4 Ferrari's method (the resolvent
-    cubic's largest root splits it into two real quadratics); degrees 3 and 4 then take
-    :data:`POLISH` safeguarded Newton steps on ``c`` itself (the closed forms on ``c / c_n``
-    lose digits where ``c_n`` nears 0)."""
-    n = len(c) - 1
-    if n == 2:
-        return list(quadratic_roots(*c))
-    return cubic_roots(*c) if n == 3 else quartic_roots(*c)
+    """Roots (ascending) of the real-rooted c_0 + .. + c_n z^n, n = 2, 3, 4 (step 3):
+    :func:`quadratic_roots`, :func:`cubic_roots` (Viete) or :func:`quartic_roots` (Ferrari)."""
+    return list(quadratic_roots(*c)) if len(c) == 3 else cubic_roots(*c) if len(c) == 4 else quartic_roots(*c)
 
 
 def hankel_bound(b, xf, alpha, beta, target, floors):

@@ -109,10 +109,8 @@ class Stored:
 # Host codecs: float64 NumPy in, float64 decoded values out.
 def round_unit(q: np.ndarray, precision: str) -> np.ndarray:
     """q in [0, 1] (or [-1, 1] for float formats) through the code of ``precision``."""
-    if precision == "float32":
-        return q.astype(np.float32).astype(np.float64)
-    if precision == "float16":
-        return q.astype(np.float16).astype(np.float64)
+    if precision in ("float32", "float16"):
+        return q.astype(precision).astype(np.float64)
     M = UNORM_MAX[precision]
     return np.rint(np.clip(q, 0.0, 1.0) * M) / M
 
@@ -150,8 +148,6 @@ def _per_element(x, tex, n_tex, op, fill: float, rnd):
 
 def encode_depth(d, tex, n_tex, precision):
     """Decoded depths and the per-texel bytes (see the module docstring, ``depth``)."""
-    if precision == "float32":
-        return round_unit(d, "float32"), 0.0
     lo_t, e_lo = _per_element(d, tex, n_tex, np.minimum, np.inf, float32_down)
     hi_t, e_hi = _per_element(d, tex, n_tex, np.maximum, -np.inf, float32_up)
     span = hi_t - lo_t
@@ -178,8 +174,6 @@ def encode_transmittance(t, tex, n_tex, precision):
 
 def encode_coefficient(a, tex, n_tex, precision, signed: bool):
     """Decoded coefficients and the per-texel bytes (module docstring)."""
-    if precision == "float32":
-        return round_unit(a, "float32"), 0.0
     s, extra = _per_element(np.abs(a), tex, n_tex, np.maximum, 0.0, float32_up)
     q = np.where(s > 0, a / np.where(s > 0, s, 1.0), 0.0)
     if not signed:
@@ -212,14 +206,14 @@ def encode_optical_depth(c, tex, n_tex, precision):
 def encode(meaning, x, tex, n_tex, precision, signed=True):
     """Decoded values (float64) and the per-texel bytes of ranges / scales for one buffer.
     ``tex``: the texel of each element, or None for one global range / scale."""
+    if meaning == "range" or (precision == "float32" and meaning in ("depth", "coefficient", "optical_depth")):
+        return round_unit(x, "float32"), 0.0        # ranges, and float32 depths / coefficients: the values
     if meaning == "coefficient":
         return encode_coefficient(x, tex, n_tex, precision, signed)
     if meaning in _BY_TEXEL:
         return _BY_TEXEL[meaning](x, tex, n_tex, precision)
     if meaning == "unit":
         return round_unit(np.clip(x, 0.0, 1.0), precision), 0.0
-    if meaning == "range":
-        return round_unit(x, "float32"), 0.0
     return encode_scalar(x, precision), 0.0
 
 

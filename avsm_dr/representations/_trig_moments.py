@@ -93,11 +93,6 @@ def trig_means(x0, x1, n: int, lam=None):
     return out
 
 
-def delta_values(x, n: int):
-    """[1, cos(k phi), sin(k phi), ..] at phi = (pi/2) x (Python float x)."""
-    return [1.0] + [f(k * math.pi / 2 * x) for k in range(1, n + 1) for f in (math.cos, math.sin)]
-
-
 def _christoffel(Lm, D, psi, n):
     """1 / (s^T B^-1 s), s_j = sin^j(psi) cos^(n-j)(psi), with B = L D L^T (D_0 = 1)."""
     sn, cs = dr.sin(psi), dr.cos(psi)
@@ -128,13 +123,11 @@ def trig_bound(b, xw, alpha, beta, A, pivots):
          for j in range(2 * n + 1)]                           # M = A r (module docstring)
     M0 = dr.maximum(M[0], 1e-30)
     m = [None] + [Mj / M0 for Mj in M[1:]]
-    floors = [None] + [alpha * p / M0 for p in pivots[1:]]
     psi_f = (math.pi / 4) * xw
     xf = dr.tan(psi_f)
-    Lm, D, c = kernel_polynomial(m, xf, floors)
-    roots = real_roots(c)
-    scale = M0                                                 # weights of mu: M_0 / (s^T B_m^-1 s)
-    wf = dr.clip(_christoffel(Lm, D, psi_f, n) * scale, 0, 1)
-    lower = sum(dr.select(z < xf, dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * scale, 0, 1), 0)
-                for z in roots)
+    Lm, D, c = kernel_polynomial(m, xf, [None] + [alpha * p / M0 for p in pivots[1:]])
+    # weights of mu: M_0 / (s^T B_m^-1 s)
+    wf = dr.clip(_christoffel(Lm, D, psi_f, n) * M0, 0, 1)
+    lower = sum(dr.select(z < xf, dr.clip(_christoffel(Lm, D, dr.atan(dr.clip(z, -BIG, BIG)), n) * M0, 0, 1), 0)
+                for z in real_roots(c))
     return bounded_depth(b0, empty, lower, wf, beta)

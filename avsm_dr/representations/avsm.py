@@ -56,10 +56,7 @@ def bracket(d, t, x):
     for k in range(n):
         c = d[k] <= x
         nxt = min(k + 1, n - 1)
-        dl = dr.select(c, d[k], dl)
-        tl = dr.select(c, t[k], tl)
-        dr_ = dr.select(c, d[nxt], dr_)
-        tr = dr.select(c, t[nxt], tr)
+        dl, tl, dr_, tr = (dr.select(c, new, old) for new, old in zip((d[k], t[k], d[nxt], t[nxt]), (dl, tl, dr_, tr)))
     return dl, tl, dr_, tr
 
 
@@ -114,23 +111,20 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
             # clear nodes stand behind every blocker: they always take the full ts
             factor = dr.select(real, inner, ts)
         scaled.append(t[k] * factor)
+    def pick(mask, node_d, node_t, cd, ct):
+        return dr.select(mask, node_d, cd), dr.select(mask, node_t, ct)
+
     out_d, out_t = [], []
     for j in range(n + 2):
         # slot j holds existing node j - (inserted nodes in front of it); x > e, so an
         # exit in front implies an entry in front
         cd, ct = (d[j], scaled[j]) if j < n else (a, ta)
         if 1 <= j <= n:
-            past_e = e < j
-            cd = dr.select(past_e, d[j - 1], cd)
-            ct = dr.select(past_e, scaled[j - 1], ct)
+            cd, ct = pick(e < j, d[j - 1], scaled[j - 1], cd, ct)
         if 2 <= j <= n + 1:
-            past_x = x < j
-            cd = dr.select(past_x, d[j - 2], cd)
-            ct = dr.select(past_x, scaled[j - 2], ct)
-        cd = dr.select(x == j, b, cd)
-        ct = dr.select(x == j, tb, ct)
-        cd = dr.select(e == j, a, cd)
-        ct = dr.select(e == j, ta, ct)
+            cd, ct = pick(x < j, d[j - 2], scaled[j - 2], cd, ct)
+        cd, ct = pick(x == j, b, tb, cd, ct)
+        cd, ct = pick(e == j, a, ta, cd, ct)
         out_d.append(cd)
         out_t.append(ct)
     return out_d, out_t
@@ -322,9 +316,8 @@ class AVSM(NodeList):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
             if view is not None:
                 i = dr.gather(UInt32, view[0], i, active)  # the texel's next segment in depth order
-            a = dr.gather(Float, p[0], i, active)
-            b = dr.gather(Float, p[1], i, active)
-            return a, b, dr.exp(-dr.gather(Float, p[2], i, active))
+            a, b, tau = (dr.gather(Float, x, i, active) for x in p)
+            return a, b, dr.exp(-tau)
 
         def insert(p, i, used, done, d, t, compress):
             # compress: False (room left), True (full), or a Bool mask (_split=False ablation)

@@ -90,10 +90,8 @@ def complexity(segments, score: str) -> np.ndarray:
     if score == "count":
         return np.expm1(-c.astype(np.float64)) ** 2
     lo, hi = segments.texel_bounds()
-    tau = np.zeros(c.size)
-    if segments.n_segments:
-        t = A.host(segments.optical_depth, "optical_depth")
-        tau = np.bincount(np.repeat(np.arange(c.size), c), weights=t, minlength=c.size)
+    tau = np.bincount(np.repeat(np.arange(c.size), c), weights=A.host(segments.optical_depth, "optical_depth"),
+                      minlength=c.size)
     return np.where(c > 0, (hi - lo) * np.expm1(-tau) ** 2, 0.0)
 
 
@@ -222,6 +220,5 @@ class AVSMAdaptive(Representation):
         return np.asarray(self.node_depth.numpy(), np.float64)
 
     def _eval_texels(self, texel, depth):
-        zs = self.node_depth
-        return csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, zs, i, a),
+        return csr_lookup(self._offsets_dr, self._max_nodes, lambda i, a: dr.gather(self.Float, self.node_depth, i, a),
                           self.node_value, texel, depth, self.params["interpolation"], hold_last=False)

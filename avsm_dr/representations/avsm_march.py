@@ -65,9 +65,6 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
     # state: k next point; cnt nodes held; (dn, tn, sn) last node and its extinction;
     # (xp, tp, sp, kp) previous point; p_node: the previous point is a node;
     # node depths d_0.., values v_0.., source points src_0..
-    def cond(k, *_):
-        return k < end
-
     def body(k, cnt, dn, tn, sn, xp, tp, sp, kp, p_node, *lists):
         d, v, src = list(lists[:cap]), list(lists[cap:2 * cap]), list(lists[2 * cap:])
         xk, tk, sk = dr.gather(F64, px, k), dr.gather(F64, pv, k), dr.gather(F64, ps, k)
@@ -75,21 +72,18 @@ def march(pts: dict, cap: int, abs_error: float, rel_error: float):
         depart = dr.abs(tk - tn * dr.exp(-sn * (xk - dn))) > tol
         add_prev = depart & ~p_node
         cnt, d, v, src = append(cnt, d, v, src, add_prev, xp, tp, kp)
-        dn = dr.select(add_prev, xp, dn)
-        tn = dr.select(add_prev, tp, tn)
-        sn = dr.select(add_prev, sp, sn)
+        dn, tn, sn = (dr.select(add_prev, p, n) for p, n in zip((xp, tp, sp), (dn, tn, sn)))
         add_cur = depart & (dr.abs(tk - tn * dr.exp(-sn * (xk - dn))) > tol)
         cnt, d, v, src = append(cnt, d, v, src, add_cur, xk, tk, k)
-        dn = dr.select(add_cur, xk, dn)
-        tn = dr.select(add_cur, tk, tn)
-        sn = dr.select(add_cur, sk, sn)
+        dn, tn, sn = (dr.select(add_cur, p, n) for p, n in zip((xk, tk, sk), (dn, tn, sn)))
         return (k + 1, cnt, dn, tn, sn, xk, tk, sk, k, add_cur, *d, *v, *src)
 
     x0, t0, s0 = dr.gather(F64, px, start), dr.gather(F64, pv, start), dr.gather(F64, ps, start)
     state = (start + 1, dr.full(U32, 1, L), x0, t0, s0, F64(x0), F64(t0), F64(s0), U32(start),
              dr.full(Bool, True, L), *[F64(x0) for _ in range(cap)], *[F64(t0) for _ in range(cap)],
              *[U32(start) for _ in range(cap)])
-    k, cnt, dn, tn, sn, xp, tp, sp, kp, p_node, *lists = dr.while_loop(state, cond, body, label="avsm_march")
+    k, cnt, dn, tn, sn, xp, tp, sp, kp, p_node, *lists = dr.while_loop(state, lambda k, *_: k < end, body,
+                                                                         label="avsm_march")
     d, v, src = lists[:cap], lists[cap:2 * cap], lists[2 * cap:]
     # the last point is always a node
     cnt, d, v, src = append(cnt, d, v, src, ~p_node, xp, tp, kp)

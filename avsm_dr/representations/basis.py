@@ -137,10 +137,8 @@ class BasisRepresentation(Representation):
             hint = "" if not searchable else f"; {self.schema.size} <= {self._largest_within(cap)} fits"
             raise ValueError(f"{name}: {K} coefficients per texel, above the {cap} a texel may hold "
                              f"(avsm_dr.representations.basis.{cap_name}){hint}")
-        if searchable:
-            self._check_build_memory(lambda v: self._build_bytes(self._coefficients_at(v)))
-        else:
-            self._check_build_memory(lambda v: self._build_bytes(K), name=name, search=False)
+        self._check_build_memory(lambda v: self._build_bytes(self._coefficients_at(v) if searchable else K),
+                                 name=name, search=searchable)
 
     def _largest_within(self, K_max: int) -> int:
         """Largest size-parameter value with at most ``K_max`` coefficients (bisection)."""
@@ -153,8 +151,7 @@ class BasisRepresentation(Representation):
     unity_in_front = False
 
     def _native_bytes(self) -> float:
-        extra = 2 if self._per_texel else 0
-        return (self.basis.n_coefficients + extra) * self.segments.itemsize
+        return (self.basis.n_coefficients + (2 if self._per_texel else 0)) * self.segments.itemsize
 
     precisions = PRECISIONS
     #: The flat store ``[texel * K + k]`` reconstruction reads and :mod:`._precision` quantises:
@@ -289,12 +286,9 @@ class BasisRepresentation(Representation):
         T, K = seg.n_texels, self.basis.n_coefficients
         flat = dr.zeros(Float, T * K)
         if K < LIST_UNROLL:
-            z0, z1, tau = seg.z0, seg.z1, seg.optical_depth
-
-            def gathered(i, texel):
-                return terms(dr.gather(Float, z0, i), dr.gather(Float, z1, i), dr.gather(Float, tau, i), texel)
-
-            texel, sums = texel_sums(seg, gathered, K, label="basis_project")
+            arrays = (seg.z0, seg.z1, seg.optical_depth)
+            texel, sums = texel_sums(seg, lambda i, t: terms(*(dr.gather(Float, x, i) for x in arrays), t), K,
+                                     label="basis_project")
             for k, s in enumerate(sums):
                 dr.scatter(flat, s, texel * K + k)
             dr.eval(flat)
@@ -390,12 +384,8 @@ class BasisRepresentation(Representation):
         idx = dr.arange(UInt32, R) * K
         for k in range(K):
             kk = dr.opaque(UInt32, k) if K > LIST_UNROLL else k
-
-            def coefficient(tex, _depth, kk=kk):
-                return dr.gather(Float, store, tex * K + kk)
-
-            a_k = filtered_eval(coefficient, coords, depth, width, height, filter, radius,
-                                Float, UInt32, Int32)
+            a_k = filtered_eval(lambda tex, _depth, kk=kk: dr.gather(Float, store, tex * K + kk), coords, depth,
+                                width, height, filter, radius, Float, UInt32, Int32)
             dr.scatter(flat, a_k, idx + kk)
             if K > LIST_UNROLL and k % LIST_CHUNK == LIST_CHUNK - 1:
                 dr.eval(flat)

@@ -7,9 +7,9 @@ and a segment's clipped place on the normalised depth range.  An orthonormal bas
     @register_basis("cosine")
     class CosineBasis(Basis):
         def f(self, u):   # 1, sqrt(2) cos(pi k u)
-            return [1 + 0 * u] + [SQRT2 * cos_pi(k * u) for k in range(1, self.n)]
+            return [1 + 0 * u] + [SQRT2 * sincos_pi(k * u)[1] for k in range(1, self.n)]
         def F(self, u):   # u, sqrt(2) sin(pi k u) / (pi k)
-            return [u] + [SQRT2 * sin_pi(k * u) / (math.pi * k) for k in range(1, self.n)]
+            return [u] + [SQRT2 * sincos_pi(k * u)[0] / (math.pi * k) for k in range(1, self.n)]
 
     rep = ad.build("basis", seg, basis="cosine", n=8)    # or basis=CosineBasis(8)
 """
@@ -51,16 +51,6 @@ def sincos_pi(y):
     sign = 1 - 2 * (n - 2 * dr.floor(0.5 * n))    # (-1)^n
     s, c = dr.sincos(math.pi * r)
     return sign * s, sign * c
-
-
-def sin_pi(y):
-    """sin(pi y) with exact argument reduction (see :func:`sincos_pi`)."""
-    return sincos_pi(y)[0]
-
-
-def cos_pi(y):
-    """cos(pi y) with exact argument reduction (see :func:`sincos_pi`)."""
-    return sincos_pi(y)[1]
 
 
 def sinc(x):
@@ -158,20 +148,20 @@ class CosineBasis(Basis):
     k < n.  F_k(1) = 0 for k >= 1, so T(far) = exp(-total tau) exactly."""
 
     def f(self, u):
-        return [1 + 0 * u] + [SQRT2 * cos_pi(k * u) for k in range(1, self.n)]
+        return [1 + 0 * u] + [SQRT2 * sincos_pi(k * u)[1] for k in range(1, self.n)]
 
     def F(self, u):
-        return [u + 0] + [SQRT2 / (math.pi * k) * sin_pi(k * u) for k in range(1, self.n)]
+        return [u + 0] + [SQRT2 / (math.pi * k) * sincos_pi(k * u)[0] for k in range(1, self.n)]
 
     indexed = True
 
     def f_at(self, j, u):
         k = type(u)(j)
-        return dr.select(j == 0, 1.0, SQRT2 * cos_pi(k * u))
+        return dr.select(j == 0, 1.0, SQRT2 * sincos_pi(k * u)[1])
 
     def F_at(self, j, u):
         k = type(u)(j)
-        return dr.select(j == 0, u, (SQRT2 / math.pi) / dr.maximum(k, 1) * sin_pi(k * u))
+        return dr.select(j == 0, u, (SQRT2 / math.pi) / dr.maximum(k, 1) * sincos_pi(k * u)[0])
 
 
 @register_basis("legendre")

@@ -64,8 +64,8 @@ class BeerShadowMap(Representation):
             dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth,
                               segments.texel_of_segment())
         elif segments.n_segments:                 # CSR order: the same bits every run
-            tau = segments.optical_depth
-            texel, (total,) = texel_sums(segments, lambda i, _t: [dr.gather(Float, tau, i)], 1, label="beer_tau")
+            texel, (total,) = texel_sums(segments, lambda i, _t: [dr.gather(Float, segments.optical_depth, i)], 1,
+                                         label="beer_tau")
             dr.scatter(self.tau_max, total, texel)
         self.t_back = dr.exp(-self.tau_max)
         dr.eval(self.tau_max, self.t_back)
@@ -97,5 +97,4 @@ class BeerShadowMap(Representation):
         w = dr.select(e > 0, w, dr.select(depth >= a, 1, 0))
         if self.params["variant"] == "cloud":
             return dr.exp(-dr.gather(Float, self.tau_max, texel) * w)
-        tb = dr.gather(Float, self.t_back, texel)
-        return 1 + w * (tb - 1)
+        return 1 + w * (dr.gather(Float, self.t_back, texel) - 1)

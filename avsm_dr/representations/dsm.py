@@ -73,12 +73,6 @@ def compress(poly, delta: float, placement: str = "midslope"):
     n = lanes.size
     inf = float("inf")
 
-    # the first vertex is always the first node
-    zo, vo = dr.gather(F64, pz, start), dr.gather(F64, pv, start)
-    dr.scatter(out_z, zo, start)
-    dr.scatter(out_v, vo, start)
-    dr.scatter(out_src, start, start)
-
     def vertex(k, zo):
         """Vertex k, its band of admissible values [max(v - delta, 0), min(v + delta, 1)], whether
         it lies at the origin's depth zo and its (safe) depth step from it."""
@@ -89,10 +83,12 @@ def compress(poly, delta: float, placement: str = "midslope"):
 
     def emit(cnt, active, z_new, v_new, src):
         idx = start + cnt
-        dr.scatter(out_z, z_new, idx, active)
-        dr.scatter(out_v, v_new, idx, active)
-        dr.scatter(out_src, src, idx, active)
+        for buf, x in ((out_z, z_new), (out_v, v_new), (out_src, src)):
+            dr.scatter(buf, x, idx, active)
         return cnt + dr.select(active, U32(1), U32(0))
+
+    zo, vo = dr.gather(F64, pz, start), dr.gather(F64, pv, start)
+    emit(0, True, zo, vo, start)                # the first vertex is always the first node
 
     def cond(k, *_):
         return k < end
@@ -129,9 +125,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
                  dr.zeros(Bool, n), F64(zo), U32(start), dr.full(U32, 1, n))
         k, zo, vo, lo, hi, has_w, zp, ip, cnt = dr.while_loop(state, cond, body,
                                                               label="dsm_compress_midslope")
-        v_last = dr.maximum(vo + 0.5 * (lo + hi) * (zp - zo), 0.0)
-        flat_tail = (lo <= 0) & (hi >= 0)      # the origin's value holds to the end
-        cnt = emit(cnt, has_w & ~flat_tail, zp, v_last, ip)
+        tail, v_tail = has_w, dr.maximum(vo + 0.5 * (lo + hi) * (zp - zo), 0.0)
     elif placement == "curve":
         # state: k next vertex, (zo, vo) origin, [lo, hi] slopes of chords that keep the
         # vertices between origin and k within delta, (zp, vp, ip) last feasible vertex
@@ -139,19 +133,14 @@ def compress(poly, delta: float, placement: str = "midslope"):
             zk, vk, a, b, vertical, sdz = vertex(k, zo)
             sk = (vk - vo) / sdz
             feasible = vertical | ((sk >= lo) & (sk <= hi))
-            in_band = (vo >= a) & (vo <= b)
-            nlo = dr.select(vertical, dr.select(in_band, lo, inf), dr.maximum(lo, (a - vo) / sdz))
+            nlo = dr.select(vertical, dr.select((vo >= a) & (vo <= b), lo, inf), dr.maximum(lo, (a - vo) / sdz))
             nhi = dr.select(vertical, hi, dr.minimum(hi, (b - vo) / sdz))
             brk = ~feasible
             cnt = emit(cnt, brk, zp, vp, ip)
             lo = dr.select(feasible, nlo, -inf)
             hi = dr.select(feasible, nhi, inf)
-            zo = dr.select(brk, zp, zo)
-            vo = dr.select(brk, vp, vo)
-            io = dr.select(brk, ip, io)
-            zp = dr.select(feasible, zk, zp)
-            vp = dr.select(feasible, vk, vp)
-            ip = dr.select(feasible, k, ip)
+            zo, vo, io = (dr.select(brk, p, o) for p, o in zip((zp, vp, ip), (zo, vo, io)))
+            zp, vp, ip = (dr.select(feasible, x, p) for x, p in zip((zk, vk, k), (zp, vp, ip)))
             k = dr.select(feasible, k + 1, k)
             return k, zo, vo, io, lo, hi, zp, vp, ip, cnt
 
@@ -159,10 +148,11 @@ def compress(poly, delta: float, placement: str = "midslope"):
                  F64(zo), F64(vo), U32(start), dr.full(U32, 1, n))
         k, zo, vo, io, lo, hi, zp, vp, ip, cnt = dr.while_loop(state, cond, body,
                                                               label="dsm_compress_curve")
-        flat_tail = (lo <= 0) & (hi >= 0)      # the origin's value holds to the end
-        cnt = emit(cnt, (ip != io) & ~flat_tail, zp, vp, ip)
+        tail, v_tail = ip != io, vp
     else:
         raise ValueError(f"placement: expected one of {PLACEMENTS}, got {placement!r}")
+    flat_tail = (lo <= 0) & (hi >= 0)          # the origin's value holds to the end
+    cnt = emit(cnt, tail & ~flat_tail, zp, v_tail, ip)
 
     dr.eval(out_z, out_v, out_src, cnt)
     counts = np.zeros(n_tex, np.int64)

@@ -36,8 +36,7 @@ class Exact(Representation):
         return self._csr_payload(self.segments.counts, 3 * self.segments.itemsize)
 
     def _native_bytes(self) -> float:
-        mean = self.segments.n_segments / max(self.segments.n_texels, 1)
-        return 3 * self.segments.itemsize * mean + 4
+        return 3 * self.segments.itemsize * (self.segments.n_segments / max(self.segments.n_texels, 1)) + 4
 
     def _eval_texels(self, texel, depth):
         seg = self.segments

@@ -163,7 +163,6 @@ class GreedyVW(NodeList):
         sel = np.flatnonzero(rank >= np.diff(pts["off"])[pts["texel"]] - self.N)     # the N removed last
         tex = pts["texel"][sel]
         node_off = np.concatenate([[0], np.cumsum(np.bincount(tex, minlength=segments.n_texels))])
-        slot = np.arange(sel.size) - node_off[tex]
         self.node_counts = np.diff(node_off)
-        src = _curve.fill_slots(tex, sel, slot, self.N, segments.n_texels)
+        src = _curve.fill_slots(tex, sel, np.arange(sel.size) - node_off[tex], self.N, segments.n_texels)
         self.depths, self.values = _curve.store_nodes(segments, src, pts, exp=self.params["interpolation"] == "exp")

@@ -34,7 +34,12 @@ alpha by storage precision (``self.precision``, else the segments' dtype) from
 
 16-bit storage (``quantization``, 4 power moments in 'float16' / 'unorm16'): 'scaled' codes
 the moments over the per-texel scale ``b_0`` (:mod:`._precision`); 'msm' (default in 'unorm16')
-the transform of Peters and Klein 2015, sec. 5 (:mod:`._moment_quantization`).  Family
+the optimised transform of Peters and Klein 2015, sec. 5 (Peters, Muenstermann, Wetzstein and
+Klein 2017, JCGT): for a texel's normalised moments of ``u``, ``mu = (E u, .., E u^4)``, it
+stores ``q = mu @ MSM_MATRIX + MSM_OFFSET`` (row vectors, the published constants; every
+point moment vector ``(z, .., z^4)``, z in [0, 1], maps into [0, 1]^4, so by convexity every
+distribution does), from ``E u^j = 2^-j sum_k C(j, k) E x^k`` and back by
+``E x^k = sum_j C(k, j) 2^j (-1)^(k-j) E u^j`` (:func:`encode_msm`).  Family
 'trigonometric' (n = 2, 3, 4 complex moments, 2n + 1 reals): :mod:`._trig_moments`.
 ``monotone`` False (the bounds are non-decreasing in exact arithmetic only).
 """
@@ -45,10 +50,9 @@ import math
 import drjit as dr
 import numpy as np
 
-from . import _moment_quantization as QZ
 from . import _trig_moments as TM
 from ._moment_bounds import hankel_bound, hankel_pivots
-from ._precision import quantise
+from ._precision import quantise, round_unit, to_device, to_host
 from .basis import MIN_SPAN_REL, BasisRepresentation
 from .basis_functions import Basis, clip_segment, register_basis
 from .registry import register
@@ -80,6 +84,66 @@ _SERIES_TERMS = {"float32": 12, "float64": 17}     # terms in kappa^2
 
 for _n, _t in MBOIT_TARGET.items():                 # positive definite (raises otherwise)
     hankel_pivots(_t)
+
+#: MSM transform (module docstring; Peters and Klein 2015, sec. 5), row-vector convention
+#: q = mu @ M + c, and its inverse in float64.
+MSM_MATRIX = np.array([[-2.07224649, 13.7948857237, 0.105877704, 9.7924062118],
+                       [32.23703778, -59.4683975703, -1.9077466311, -33.7652110555],
+                       [-68.571074599, 82.0359750338, 9.3496555107, 47.9456096605],
+                       [39.3703274134, -35.364903257, -6.6543490743, -23.9728048165]])
+MSM_OFFSET = np.array([0.035955884801, 0.0, 0.0, 0.0])
+MSM_INVERSE = np.linalg.inv(MSM_MATRIX)
+#: Storage precisions the transform applies to (16-bit codes), the ``quantization`` values.
+MSM_PRECISIONS = ("float16", "unorm16")
+QUANTIZATIONS = ("scaled", "msm")
+#: Bytes per texel: four 16-bit codes and b_0 in float32.
+MSM_BYTES = 4 * 2 + 4
+# x -> u and u -> x moment maps as (5, 5) matrices on (1, m_1, .., m_4) (row vectors)
+_X_TO_U = np.array([[math.comb(j, k) * 2.0 ** -j if k <= j else 0.0 for j in range(5)] for k in range(5)])
+_U_TO_X = np.array([[math.comb(k, j) * 2.0 ** j * (-1.0) ** (k - j) if j <= k else 0.0 for k in range(5)]
+                    for j in range(5)])
+
+
+def x_to_u(m: np.ndarray) -> np.ndarray:
+    """(..., 4) moments E x^k, k = 1..4 -> E u^j, j = 1..4 (u = (x + 1) / 2)."""
+    m = np.asarray(m, np.float64)
+    return (np.concatenate([np.ones(m.shape[:-1] + (1,)), m], axis=-1) @ _X_TO_U)[..., 1:]
+
+
+def u_to_x(mu: np.ndarray) -> np.ndarray:
+    """(..., 4) moments E u^j -> E x^k (x = 2u - 1)."""
+    mu = np.asarray(mu, np.float64)
+    return (np.concatenate([np.ones(mu.shape[:-1] + (1,)), mu], axis=-1) @ _U_TO_X)[..., 1:]
+
+
+def msm_forward(m: np.ndarray) -> np.ndarray:
+    """q = mu @ MSM_MATRIX + MSM_OFFSET from the x-moments m (..., 4)."""
+    return x_to_u(m) @ MSM_MATRIX + MSM_OFFSET
+
+
+def msm_inverse(q: np.ndarray) -> np.ndarray:
+    """x-moments (..., 4) from q: mu = (q - MSM_OFFSET) @ MSM_INVERSE."""
+    return u_to_x((np.asarray(q, np.float64) - MSM_OFFSET) @ MSM_INVERSE)
+
+
+def encode_msm(b: np.ndarray, precision: str) -> np.ndarray:
+    """Decoded moments (T, 5) from the texels' (T, 5) ``b_0..b_4`` (float64): q as 4 codes of
+    ``precision`` ('unorm16': ``round(q 65535)``, q clipped to [0, 1]; 'float16': IEEE half)
+    and ``b_0`` as float32 (:data:`MSM_BYTES`), decoded (``q -> mu -> x-moments -> b_k = b_0
+    E x^k``) once, in float64 (the inverse by ``numpy.linalg.inv``); empty texels (``b_0 <=
+    0``) store zeros.  The caller rounds them to the store's dtype."""
+    if precision not in MSM_PRECISIONS:
+        raise ValueError(f"precision: the MSM quantisation takes {MSM_PRECISIONS}, got {precision!r}")
+    b = np.asarray(b, np.float64)
+    b0 = b[:, 0].astype(np.float32).astype(np.float64)
+    full = b[:, 0] > 0
+    m = b[:, 1:] / np.where(full, b[:, 0], 1.0)[:, None]
+    q = round_unit(msm_forward(m), precision)
+    out = np.zeros_like(b)
+    out[:, 0] = b0
+    out[:, 1:] = b0[:, None] * msm_inverse(q)
+    out[~full] = 0.0
+    return out
 
 
 @register_basis("power_moments")
@@ -202,7 +266,7 @@ class MomentShadowMap(BasisRepresentation):
                   min=0.0, max=1.0),
             Param("quantization", "choice", None, "16-bit storage of 4 power moments: 'scaled' (per-texel "
                   "scale, as every basis kind) or 'msm' (Peters & Klein 2015's optimised transform, b_0 in "
-                  "float32); None: 'msm' for 4 power moments in unorm16, else 'scaled'", choices=QZ.QUANTIZATIONS,
+                  "float32); None: 'msm' for 4 power moments in unorm16, else 'scaled'", choices=QUANTIZATIONS,
                   nullable=True),
             NEAR, FAR, DEPTH_RANGE,
         ),
@@ -230,8 +294,8 @@ class MomentShadowMap(BasisRepresentation):
         if P["quantization"] is None:                   # module docstring, "16-bit storage"
             msm = (P["family"], n, self.precision) == ("power", 4, MSM_DEFAULT_PRECISION)
             P["quantization"] = "msm" if msm else "scaled"
-        elif P["quantization"] == "msm" and self.precision not in QZ.MSM_PRECISIONS:
-            raise ValueError(f"quantization: 'msm' needs precision in {QZ.MSM_PRECISIONS}, "
+        elif P["quantization"] == "msm" and self.precision not in MSM_PRECISIONS:
+            raise ValueError(f"quantization: 'msm' needs precision in {MSM_PRECISIONS}, "
                              f"got precision={self.precision!r}")
         if self._trig:
             if P["bias_target"] is not None:
@@ -249,25 +313,7 @@ class MomentShadowMap(BasisRepresentation):
                 raise ValueError(f"bias_target: expected {n} finite real numbers, got {target!r}")
             self._target, self._floors = target, hankel_pivots(target)
         super()._resolve()
-        if self._log:
-            self._check_log_range()
-        if P["bias"] is None and P["quantization"] == "msm" and self.precision == MSM_DEFAULT_PRECISION:
-            P["bias"] = MSM_UNORM16_BIAS
-        elif P["bias"] is None:
-            table = DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS
-            P["bias"] = table[n][self.precision or self.segments.dtype]
-
-    def _apply_precision(self) -> None:
-        """'msm': the moments through :mod:`._moment_quantization`, ranges as the base class."""
-        if self.params["quantization"] != "msm":
-            return super()._apply_precision()
-        nbytes = QZ.quantise_store(self, self._stored_attr, self.precision)
-        rest = tuple(f for f in self._stored() if f.attr != self._stored_attr)
-        self._stored_nbytes = nbytes + quantise(self, rest)
-
-    def _check_log_range(self):
-        """near > 0 for the log warp (ValueError naming near); empty texels get (1, 2)."""
-        if self._per_texel:
+        if self._log and self._per_texel:             # near > 0 for the log warp; empty texels get (1, 2)
             near, far = np.asarray(self.near, np.float64), np.asarray(self.far, np.float64)
             empty = self.segments.counts == 0
             if np.any(near[~empty] <= 0):
@@ -275,8 +321,21 @@ class MomentShadowMap(BasisRepresentation):
                                  f"{near[~empty].min():g}")
             near, far = np.where(empty, 1.0, near), np.where(empty, 2.0, far)
             self.near, self.far = self.Float(near), self.Float(far)
-        elif not self.near > 0:
+        elif self._log and not self.near > 0:
             raise ValueError(f"near: warp='log' needs near > 0, got near={self.near:g}")
+        if P["bias"] is None and P["quantization"] == "msm" and self.precision == MSM_DEFAULT_PRECISION:
+            P["bias"] = MSM_UNORM16_BIAS
+        elif P["bias"] is None:
+            P["bias"] = (DEFAULT_TRIG_BIAS if self._trig else DEFAULT_BIAS)[n][self.precision or self.segments.dtype]
+
+    def _apply_precision(self) -> None:
+        """'msm': the flat (T x 5) moment store replaced by its :func:`encode_msm` values
+        (straight-through gradient, as :mod:`._precision`), ranges as the base class."""
+        if self.params["quantization"] != "msm":
+            return super()._apply_precision()
+        buf = self._coef
+        self._coef = to_device(self, buf, encode_msm(to_host(buf).reshape(-1, 5), self.precision).ravel())
+        self._stored_nbytes = MSM_BYTES + quantise(self, self._stored()[1:])       # the ranges (basis' _stored)
 
     def _log_range(self, texel=None):
         """(ln near, ln far - ln near floored at MIN_SPAN_REL[dtype]) for the texels, or global."""
@@ -298,19 +357,16 @@ class MomentShadowMap(BasisRepresentation):
             return super()._list_terms()          # the basis' average: power or trigonometric
         seg = self.segments
         K = self.basis.n_coefficients
-        if self._trig:
-            at_near = TM.delta_values(-1.0, self.basis.n)
-        else:
-            at_near = [(-1.0) ** k for k in range(K)]      # f_k at x = -1: the part in front of near
+        # f_k at x = -1 (phi = -pi/2 for the trigonometric family): the part in front of near
+        at_near = ([1.0] + [f(-k * math.pi / 2) for k in range(1, self.basis.n + 1) for f in (math.cos, math.sin)]
+                   if self._trig else [(-1.0) ** k for k in range(K)])
 
         def terms(z0, z1, tau, texel):
             near, span = self._range(texel)          # global ranges ignore the texel
             _, _, tau_in, tau_front = clip_segment(z0, z1, tau, near, span)
             far = near + span
             ln_near, ls = self._log_range(texel)
-            w0 = (dr.log(dr.clip(z0, near, far)) - ln_near) / ls
-            w1 = (dr.log(dr.clip(z1, near, far)) - ln_near) / ls
-            x0, x1 = dr.clip(2 * w0 - 1, -1, 1), dr.clip(2 * w1 - 1, -1, 1)
+            x0, x1 = (dr.clip(2 * ((dr.log(dr.clip(z, near, far)) - ln_near) / ls) - 1, -1, 1) for z in (z0, z1))
             x1 = dr.maximum(x1, x0)
             if self._trig:
                 means = TM.trig_means(x0, x1, self.basis.n, 0.5 * ls)

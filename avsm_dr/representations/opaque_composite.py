@@ -51,5 +51,4 @@ class OpaqueComposite(Representation):
 
     def _eval_texels(self, texel, depth):
         T = self.volume._eval_texels(texel, depth)
-        zo = dr.gather(type(self.depth), self.depth, texel)
-        return dr.select(depth < zo, T, 0.0)
+        return dr.select(depth < dr.gather(type(self.depth), self.depth, texel), T, 0.0)

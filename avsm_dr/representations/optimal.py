@@ -204,10 +204,9 @@ def best_subset(C, S, count, N: int, norm: str):
     parents = []
     for _ in range(1, N):
         cand = (np.maximum(dp[:, :, None], C) if norm == "linf" else dp[:, :, None] + C)
-        arg = np.argmin(cand, axis=1)
         best = cand.min(axis=1)
         better = best < dp
-        parents.append(np.where(better, arg, -1))
+        parents.append(np.where(better, np.argmin(cand, axis=1), -1))
         dp = np.where(better, best, dp)
     last = count - 1
     cost = dp[rows, last]

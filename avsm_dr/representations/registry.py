@@ -65,8 +65,7 @@ def configurations(kind: str, quick: bool = False) -> list[dict]:
     base = dict(d["headline"])
     if d["size"] is None:
         return [base]
-    values = d["quick_sweep"] if quick else d["sweep"]
-    return [dict(base, **{d["size"]: v}) for v in values]
+    return [dict(base, **{d["size"]: v}) for v in (d["quick_sweep"] if quick else d["sweep"])]
 
 
 def allows(kind: str, params: dict) -> bool:

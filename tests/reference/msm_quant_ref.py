@@ -1,6 +1,6 @@
 """The optimised 16-bit quantisation of 4 power moments (Peters and Klein 2015, "Moment
 Shadow Mapping", I3D, sec. 5) in float64 NumPy, one texel at a time, by a different route
-from avsm_dr/representations/_moment_quantization.py: the x <-> u moment maps by expanding
+from avsm_dr/representations/moments.py (the MSM part): the x <-> u moment maps by expanding
 ((1 + x) / 2)^j and (2u - 1)^k with numpy.polynomial, the inverse transform by
 numpy.linalg.solve, float16 codes from precision_ref (written out from the exponent).
 Row-vector convention q = mu @ M + c, mu = (E u, .., E u^4), u in [0, 1], x = 2u - 1."""
