@@ -215,22 +215,21 @@ class StableFluids:
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
         C = self.C
-        ux, uy, uz = uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
+        uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
         dr.eval(uc)
 
         def dd(f, axis):       # central difference along axis (one-sided-ish at walls via clamping)
             s = [int(a == axis) for a in range(3)]
             return 0.5 * (C.neighbour(f, *s) - C.neighbour(f, *[-x for x in s]))
-        om = [dd(uz, 1) - dd(uy, 2), dd(ux, 2) - dd(uz, 0), dd(uy, 0) - dd(ux, 1)]
+        b, c = (1, 2, 0), (2, 0, 1)            # (a, b[a], c[a]) cyclic: omega_a = d_b u_c - d_c u_b
+        om = [dd(uc[c[a]], b[a]) - dd(uc[b[a]], c[a]) for a in range(3)]
         dr.eval(om)
         mag = dr.sqrt(om[0] ** 2 + om[1] ** 2 + om[2] ** 2)
         dr.eval(mag)
         g = [dd(mag, a) for a in range(3)]
         inv = dr.rcp(dr.sqrt(g[0] ** 2 + g[1] ** 2 + g[2] ** 2) + 1e-6)
         n = [x * inv for x in g]
-        eps = self.vorticity
-        f = [eps * (n[1] * om[2] - n[2] * om[1]), eps * (n[2] * om[0] - n[0] * om[2]),
-             eps * (n[0] * om[1] - n[1] * om[0])]
+        f = [self.vorticity * (n[b[a]] * om[c[a]] - n[c[a]] * om[b[a]]) for a in range(3)]
         dr.eval(f)
         return f
 

@@ -1,6 +1,6 @@
 """Ray geometry shared by capture, ground truth, shading, area lights and the integrator.
 
-One home for ray-box, ray-sphere, ray-capsule, the package's orthonormal frame and the box check.
+One home for ray-box, ray-sphere, ray-capsule, the package's orthonormal frame, box corners and the box check.
 Convention: ``f`` works on NumPy float64 host arrays, ``f_dr`` is the same formula in
 Dr.Jit (any float type: ``Float``/``Float64`` lanes, Mitsuba's ``Float``).  In float64
 :func:`ray_box_dr` equals :func:`ray_box` bit for bit (the same operations in the same
@@ -35,6 +35,14 @@ def check_bbox(bbox, name: str = "bbox", flat: bool = False) -> tuple[np.ndarray
     if np.any(hi < lo) or (not flat and np.any(hi == lo)):
         raise ValueError(f"{name}: zero-size or inverted box {lo.tolist()} .. {hi.tolist()}")
     return lo, hi
+
+
+def box_corners(bmin, bmax) -> np.ndarray:
+    """(N, 8, 3) corners of N axis-aligned boxes [bmin, bmax] ((N, 3) or (3,) each)."""
+    bmin = np.asarray(bmin, np.float64).reshape(-1, 3)
+    bmax = np.asarray(bmax, np.float64).reshape(-1, 3)
+    sel = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
+    return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
 
 
 def ray_box(o, d, lo, hi, t_min: float = -math.inf):

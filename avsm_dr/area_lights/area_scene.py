@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import validation as V
 from ..camera import PinholeCamera
-from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
+from ..geometry import box_corners, check_bbox, ray_box_dr, ray_sphere_dr
 from ..scene import OpaqueBox, OpaqueSphere
 
 
@@ -185,8 +185,7 @@ class Box(OpaqueBox, Occluder):
     def light_frame_extent(self, vpls, frame):
         eu, ev, n = frame
         a, b = self.bounds()
-        corners = np.array([[x, y, z] for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
-        d = corners[None, :, :] - vpls[:, None, :]                      # (K, 8, 3)
+        d = box_corners(a, b) - vpls[:, None, :]                        # (K, 8, 3)
         x, y, z = d @ eu, d @ ev, d @ n
         r_lo = np.linalg.norm(np.maximum(np.maximum(a[None] - vpls, 0), vpls - b[None]), axis=1)   # to the box
         return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)

@@ -107,16 +107,13 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
         raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
     if method == "naive_voxel" and voxelization != "rays":
         raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
-    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
-        V.integer(value, name, lo)
-    if points_per_vpl is not None:
-        V.integer(points_per_vpl, "points_per_vpl", 1)
+    K, R, N = (V.integer(v, name, lo) for v, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2),
+                                                          (steps, "steps", 1)))
+    M = 4 * R * R if points_per_vpl is None else V.integer(points_per_vpl, "points_per_vpl", 1)
     c = V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
     if surface_bias is not None:
         V.real(surface_bias, "surface_bias", 0.0)
     A.float_type(dtype)  # raises ValueError naming dtype
-    K, R, N = int(vpls), int(resolution), int(steps)
-    M = int(points_per_vpl) if points_per_vpl is not None else 4 * R * R
     k = kit(dtype)
     cam = scene.camera
     n_pix = cam.width * cam.height

@@ -179,10 +179,8 @@ def boundary_mask(S, grid: LightGrid, k: Kit):
     i = tex - j * R
 
     def pass_(a, o, step, c):
-        lo_a = dr.gather(k.UInt32, a, lane - step, c > 0)
-        hi_a = dr.gather(k.UInt32, a, lane + step, c < R - 1)
-        lo_o = dr.gather(k.UInt32, o, lane - step, c > 0)
-        hi_o = dr.gather(k.UInt32, o, lane + step, c < R - 1)
+        lo_a, lo_o = (dr.gather(k.UInt32, x, lane - step, c > 0) for x in (a, o))
+        hi_a, hi_o = (dr.gather(k.UInt32, x, lane + step, c < R - 1) for x in (a, o))
         return a & lo_a & hi_a, o | lo_o | hi_o
 
     a1, o1 = pass_(S, S, W, i)
