@@ -132,7 +132,8 @@ class StableFluids:
         self.U = _Layout(m, (nz, ny, nx + 1), (0.0, 0.5, 0.5))
         self.V = _Layout(m, (nz, ny + 1, nx), (0.5, 0.0, 0.5))
         self.W = _Layout(m, (nz + 1, ny, nx), (0.5, 0.5, 0.0))
-        self.u, self.v, self.w = (dr.zeros(m.Float, L.n) for L in (self.U, self.V, self.W))
+        self._faces = (self.U, self.V, self.W)
+        self.u, self.v, self.w = (dr.zeros(m.Float, L.n) for L in self._faces)
         self.d = dr.zeros(m.Float, self.C.n)
         self.p = dr.zeros(m.Float, self.C.n)
         C = self.C
@@ -159,7 +160,7 @@ class StableFluids:
         """Replace the face velocities (shapes (nz, ny, nx+1), (nz, ny+1, nx), (nz+1, ny, nx));
         boundary faces are set to 0 (closed box)."""
         out = []
-        for name, a, L, inner in zip("uvw", (u, v, w), self._faces(), self._interior):
+        for name, a, L, inner in zip("uvw", (u, v, w), self._faces, self._interior):
             a = V.array(a, name, np.float32)
             if a.shape != L.dims:
                 raise ValueError(f"{name}: expected shape {L.dims}, got {a.shape}")
@@ -202,20 +203,17 @@ class StableFluids:
             self._update_faces(lambda a, L, q: q + dt * self._to_faces(f[a], L, a))
         dr.eval(self.u, self.v, self.w)
 
-    def _faces(self):
-        return self.U, self.V, self.W
-
     def _update_faces(self, fn, *also) -> None:
         """``u, v, w = fn(axis, layout, field)`` on interior faces, 0 on the walls (a closed box);
         evaluated together with ``also``.  ``fn`` of a cell-centred field uses :meth:`_to_faces`."""
         self.u, self.v, self.w = (dr.select(inner, fn(a, L, f), 0.0) for a, (L, f, inner) in
-                                  enumerate(zip(self._faces(), (self.u, self.v, self.w), self._interior)))
+                                  enumerate(zip(self._faces, (self.u, self.v, self.w), self._interior)))
         dr.eval(*also, self.u, self.v, self.w)
 
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
         C = self.C
-        uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
+        uc = [L.sample(q, *C.pos) for L, q in zip(self._faces, (self.u, self.v, self.w))]
         dr.eval(uc)
 
         def dd(f, axis):       # central difference along axis (one-sided-ish at walls via clamping)

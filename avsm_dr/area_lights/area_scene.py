@@ -66,8 +66,7 @@ class QuadLight:
         self.edge_u = V.vec3(self.edge_u, "edge_u")
         self.edge_v = V.vec3(self.edge_v, "edge_v")
         self.radiance = V.real(self.radiance, "radiance", 0.0)
-        cr = np.cross(self.edge_u, self.edge_v)
-        if np.linalg.norm(cr) <= 1e-12 * max(1.0, np.linalg.norm(self.edge_u) * np.linalg.norm(self.edge_v)):
+        if self.area <= 1e-12 * max(1.0, np.linalg.norm(self.edge_u) * np.linalg.norm(self.edge_v)):
             raise ValueError("edge_u: edge_u and edge_v must be non-zero and not parallel")
 
     @property

@@ -73,7 +73,7 @@ def voxelize_rays(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_vp
     """Occupancy by exact ray casting: one ray per texel centre from each VPL,
     marking the entry bin of every occluder it meets.  P: Vec3 positions (width n_vpl).
     Returns UInt32 words (n_vpl R^2 W)."""
-    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
+    words = dr.zeros(k.UInt32, n_vpl * grid.R ** 2 * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     eu, ev, n = frame
@@ -125,7 +125,7 @@ def voxelize_points(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_
     texels whose centre lies inside its projected ellipse (radii ``rho / (Z ds)``,
     ``rho / (Z dt)`` texels); it marks them at its own distance bin.  No hole filling.
     Lanes are (VPL, point); returns UInt32 words (n_vpl R^2 W)."""
-    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
+    words = dr.zeros(k.UInt32, n_vpl * grid.R ** 2 * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     M, R = points_per_vpl, grid.R
