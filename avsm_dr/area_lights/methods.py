@@ -116,7 +116,6 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
     A.float_type(dtype)  # raises ValueError naming dtype
     k = kit(dtype)
     cam = scene.camera
-    n_pix = cam.width * cam.height
     P_np = sample_vpls(scene.light, K, jitter, seed)
     P = k.vec_array(P_np)
     grid = fit_grid(scene, P_np, R)
@@ -149,7 +148,7 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
     img = np.asarray(image.numpy(), dtype=np.float64).reshape(cam.height, cam.width)
     stats = dict(grid=grid.__dict__.copy() if voxels else None,
                  boundary_lookups=int(np.asarray(boundary.numpy()).ravel()[0]),
-                 lookups=n_pix * K * N)
+                 lookups=cam.width * cam.height * K * N)
     return AreaLightRender(img, dict(clock.t), params, stats)
 
 
