@@ -377,15 +377,11 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
 def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations):
     """Checked parameters of the plume, source radius resolved."""
     shape = _check_shape(shape)
-    seed = V.integer(seed, "seed", 0)
-    dt = V.real(dt, "dt", 0.0, open_min=True)
-    source_speed = V.real(source_speed, "source_speed", 0.0, open_min=True)
-    wobble = V.real(wobble, "wobble", 0.0)
-    V.integer(iterations, "iterations", 0)
     radius = shape[2] / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
-    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=V.real(buoyancy, "buoyancy"),
-                vorticity=V.real(vorticity, "vorticity", 0.0), source_speed=float(source_speed),
-                source_radius=radius, wobble=float(wobble), iterations=int(iterations))
+    return dict(shape=list(shape), seed=V.integer(seed, "seed", 0), dt=V.real(dt, "dt", 0.0, open_min=True),
+                buoyancy=V.real(buoyancy, "buoyancy"), vorticity=V.real(vorticity, "vorticity", 0.0),
+                source_speed=V.real(source_speed, "source_speed", 0.0, open_min=True), source_radius=radius,
+                wobble=V.real(wobble, "wobble", 0.0), iterations=V.integer(iterations, "iterations", 0))
 
 
 def _plume_frames(p):

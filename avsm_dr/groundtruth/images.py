@@ -53,9 +53,7 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
     if n @ l < 0:
         n = -n
     u, w, _ = orthonormal_basis(n)
-    grid = None
-    if scene.density is not None and scene.bbox is not None:
-        grid = check_grid(scene.density, scene.bbox)
+    grid = check_grid(scene.density, scene.bbox) if scene.density is not None and scene.bbox is not None else None
 
     def place(v):
         dist = distance
