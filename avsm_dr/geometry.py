@@ -25,9 +25,7 @@ def check_bbox(bbox, name: str = "bbox", flat: bool = False) -> tuple[np.ndarray
     """(lo, hi) float64 (3,) corners of a finite box with ``hi > lo`` on every axis (``hi >= lo``
     with ``flat``); ValueError naming ``name`` for anything else (zero-size or inverted boxes)."""
     try:
-        lo, hi = bbox
-        lo = np.asarray(lo, np.float64).reshape(3)
-        hi = np.asarray(hi, np.float64).reshape(3)
+        lo, hi = (np.asarray(end, np.float64).reshape(3) for end in bbox)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected (min_xyz, max_xyz), got {bbox!r}") from None
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
@@ -39,8 +37,7 @@ def check_bbox(bbox, name: str = "bbox", flat: bool = False) -> tuple[np.ndarray
 
 def box_corners(bmin, bmax) -> np.ndarray:
     """(N, 8, 3) corners of N axis-aligned boxes [bmin, bmax] ((N, 3) or (3,) each)."""
-    bmin = np.asarray(bmin, np.float64).reshape(-1, 3)
-    bmax = np.asarray(bmax, np.float64).reshape(-1, 3)
+    bmin, bmax = (np.asarray(end, np.float64).reshape(-1, 3) for end in (bmin, bmax))
     sel = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
     return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
 
@@ -54,10 +51,8 @@ def ray_box(o, d, lo, hi, t_min: float = -math.inf):
     A ray parallel to a slab (``d_a = 0``) is inside it for all t when ``lo_a <= o_a <= hi_a``
     (the closed slab) and misses the box otherwise (``t_near = inf``, ``t_far = -inf``).
     """
-    o = np.asarray(o, np.float64)
-    d = np.asarray(d, np.float64)
-    lo = np.asarray(lo, np.float64).reshape(3)
-    hi = np.asarray(hi, np.float64).reshape(3)
+    o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
+    lo, hi = (np.asarray(end, np.float64).reshape(3) for end in (lo, hi))
     t0 = np.full(o.shape[0], float(t_min))
     t1 = np.full(o.shape[0], np.inf)
     for a in range(3):

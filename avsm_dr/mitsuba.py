@@ -70,9 +70,7 @@ def scene_medium(scene):
     if data.ndim != 4 or data.shape[3] != 1:
         raise ValueError(f"scene: the medium's sigma_t grid must have one channel, got shape {data.shape}")
     density = mi.TensorXf(data.array * float(params["scale"]), tuple(int(s) for s in data.shape[:3]))
-    b = shape.bbox()
-    lo = np.array([float(v) for v in b.min], np.float64)
-    hi = np.array([float(v) for v in b.max], np.float64)
+    lo, hi = (np.array([float(v) for v in end], np.float64) for end in (shape.bbox().min, shape.bbox().max))
     return medium, density, lo, hi
 
 

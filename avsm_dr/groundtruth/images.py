@@ -151,8 +151,7 @@ def camera_rays(scene: Scene, width: int, height: int, camera=None, supersample:
     v = ((y + (sy + 0.5) / s) / height).ravel()
     ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))),
                                mi.Point2f(0.5, 0.5))
-    o = np.stack([np.asarray(ray.o[i].numpy(), np.float64) for i in range(3)], axis=1)
-    d = np.stack([np.asarray(ray.d[i].numpy(), np.float64) for i in range(3)], axis=1)
+    o, d = (np.stack([np.asarray(v[i].numpy(), np.float64) for i in range(3)], axis=1) for v in (ray.o, ray.d))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return o, d
 
