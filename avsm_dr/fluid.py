@@ -140,10 +140,7 @@ class StableFluids:
         # Neumann walls: a cell's stencil counts only neighbours inside the box
         self._has = [(C.i > 0, -1, 0, 0), (C.i < nx - 1, 1, 0, 0), (C.j > 0, 0, -1, 0),
                      (C.j < ny - 1, 0, 1, 0), (C.k > 0, 0, 0, -1), (C.k < nz - 1, 0, 0, 1)]
-        cnt = m.Float(0.0)
-        for has, *_ in self._has:
-            cnt += dr.select(has, 1.0, 0.0)
-        self._count = cnt
+        self._count = sum((dr.select(has, 1.0, 0.0) for has, *_ in self._has), m.Float(0.0))
         self._red = ((C.i + C.j + C.k) & 1) == 0
         self._interior = [(c > 0) & (c < n) for c, n in ((self.U.i, nx), (self.V.j, ny), (self.W.k, nz))]
         dr.eval(self._count, self._red, self._interior)
@@ -284,9 +281,7 @@ class StableFluids:
         w = self.omega
         for _ in range(iters):
             for colour in (True, False):
-                s = m.Float(0.0)
-                for has, di, dj, dk in self._has:
-                    s += dr.select(has, C.neighbour(p, di, dj, dk), 0.0)
+                s = sum((dr.select(has, C.neighbour(p, *ijk), 0.0) for has, *ijk in self._has), m.Float(0.0))
                 gs = (s - div) / self._count
                 p = dr.select(self._red == colour, p + w * (gs - p), p)
                 dr.eval(p)
