@@ -266,5 +266,6 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
                   {"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
 
 
-for _name, _factory in procedural.SCENES.items():    # grids; Gaussian blobs are particles (nested spheres)
-    SCENES.register(_factory, name=_name, content=("particles",) if _name == "gaussian_blobs" else ("grid",))
+for _factory, _content in ((procedural.cumulus, "grid"), (procedural.fog_bank, "grid"),
+                          (procedural.gaussian_blobs, "particles"), (procedural.tall_column, "grid")):
+    SCENES.register(_factory, content=(_content,))      # Gaussian blobs are particles (nested spheres)
