@@ -184,11 +184,8 @@ def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bia
                     voxelization, seed, coverage, clock):
     """Voxel methods: one buffer for the K grids (imperfect VSVs; naive_voxel: K = 1 per pass), one
     scan, one (pixel, VPL) gather as a thunk."""
-    if voxelization == "points":
-        words = clock("t_visibility", lambda: voxelize_points(scene, grid, k, frame, P, K, M, seed,
-                                                              coverage))
-    else:
-        words = clock("t_visibility", lambda: voxelize_rays(scene, grid, k, frame, P, K))
+    words = clock("t_visibility", lambda: voxelize_points(scene, grid, k, frame, P, K, M, seed, coverage)
+                  if voxelization == "points" else voxelize_rays(scene, grid, k, frame, P, K))
     S = clock("t_scan", lambda: scan(words, grid, k))
     stride = 2 if interpolation == "boundary" else 1
     if stride == 2:                     # the boundary mask interleaved with S (S words at 2 * index)
