@@ -78,11 +78,9 @@ class _Layout:
     def neighbour(self, field, di=0, dj=0, dk=0):
         """``field`` at (i + di, j + dj, k + dk), indices clamped to the grid."""
         m = self.m
-        Z, Y, X = self.dims
-        i = dr.clip(m.Int32(self.i) + di, 0, X - 1)
-        j = dr.clip(m.Int32(self.j) + dj, 0, Y - 1)
-        k = dr.clip(m.Int32(self.k) + dk, 0, Z - 1)
-        return dr.gather(m.Float, field, m.UInt32(self.index(i, j, k)))
+        ijk = (dr.clip(m.Int32(c) + dc, 0, n - 1) for c, dc, n in zip((self.i, self.j, self.k), (di, dj, dk),
+                                                                       self.dims[::-1]))
+        return dr.gather(m.Float, field, m.UInt32(self.index(*ijk)))
 
     def sample(self, field, x, y, z, bounds: bool = False):
         """Trilinear interpolation of ``field`` at positions (x, y, z) (cell units), clamped

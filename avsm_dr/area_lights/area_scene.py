@@ -62,9 +62,7 @@ class QuadLight:
     radiance: float = 1.0
 
     def __post_init__(self):
-        self.center = V.vec3(self.center, "center")
-        self.edge_u = V.vec3(self.edge_u, "edge_u")
-        self.edge_v = V.vec3(self.edge_v, "edge_v")
+        self.center, self.edge_u, self.edge_v = (V.vec3(getattr(self, n), n) for n in ("center", "edge_u", "edge_v"))
         self.radiance = V.real(self.radiance, "radiance", 0.0)
         if self.area <= 1e-12 * max(1.0, np.linalg.norm(self.edge_u) * np.linalg.norm(self.edge_v)):
             raise ValueError("edge_u: edge_u and edge_v must be non-zero and not parallel")
