@@ -45,8 +45,7 @@ class Medium:
     g: float = 0.0
 
     def __post_init__(self):
-        self.sigma_s = V.real(self.sigma_s, "sigma_s", 0.0)
-        self.sigma_t = V.real(self.sigma_t, "sigma_t", 0.0)
+        self.sigma_s, self.sigma_t = (V.real(getattr(self, n), n, 0.0) for n in ("sigma_s", "sigma_t"))
         if self.sigma_s > self.sigma_t:
             raise ValueError(f"sigma_s: must be <= sigma_t ({self.sigma_t}), got {self.sigma_s}")
         self.g = V.real(self.g, "g", -1.0, 1.0, open_min=True, open_max=True)
