@@ -109,10 +109,6 @@ class SceneRegistry(Mapping):
         return tuple(n for n, e in self._entries.items()
                      if (tag is None or tag in e.tags) and (content is None or content in e.content))
 
-    def build(self, name: str, **kwargs) -> Scene:
-        """The scene ``name`` built with ``kwargs``; ValueError for an unknown name."""
-        return self.entry(name).factory(**kwargs)
-
     def __repr__(self) -> str:
         return f"SceneRegistry({list(self)})"
 
@@ -248,8 +244,8 @@ def smoke_over_table(size: int = 24, seed: int = 0, density_scale: float = 25.0,
 
 
 def get(name: str, **kwargs) -> Scene:
-    """Scene by name (see :data:`SCENES`)."""
-    return SCENES.build(name, **kwargs)
+    """The scene ``name`` of :data:`SCENES` built with ``kwargs``; ValueError for an unknown name."""
+    return SCENES.entry(name).factory(**kwargs)
 
 
 @register_scene(content=("grid",), tags=("core",))
@@ -270,5 +266,6 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
                   {"seed": seed, "size": size, "steps": steps, "density_scale": density_scale})
 
 
-for _name, _factory in procedural.SCENES.items():    # grids; Gaussian blobs are particles (nested spheres)
-    SCENES.register(_factory, name=_name, content=("particles",) if _name == "gaussian_blobs" else ("grid",))
+for _factory, _content in ((procedural.cumulus, "grid"), (procedural.fog_bank, "grid"),
+                          (procedural.gaussian_blobs, "particles"), (procedural.tall_column, "grid")):
+    SCENES.register(_factory, content=(_content,))      # Gaussian blobs are particles (nested spheres)

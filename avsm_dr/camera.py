@@ -49,9 +49,7 @@ class PinholeCamera:
     height: int = 32
 
     def __post_init__(self):
-        self.origin = V.vec3(self.origin, "origin")
-        self.target = V.vec3(self.target, "target")
-        self.up = V.vec3(self.up, "up")
+        self.origin, self.target, self.up = (V.vec3(getattr(self, n), n) for n in ("origin", "target", "up"))
         self.fov = V.real(self.fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
         self.width = V.integer(self.width, "width", 1, MAX_SIDE)
         self.height = V.integer(self.height, "height", 1, MAX_SIDE)

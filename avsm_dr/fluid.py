@@ -78,11 +78,9 @@ class _Layout:
     def neighbour(self, field, di=0, dj=0, dk=0):
         """``field`` at (i + di, j + dj, k + dk), indices clamped to the grid."""
         m = self.m
-        Z, Y, X = self.dims
-        i = dr.clip(m.Int32(self.i) + di, 0, X - 1)
-        j = dr.clip(m.Int32(self.j) + dj, 0, Y - 1)
-        k = dr.clip(m.Int32(self.k) + dk, 0, Z - 1)
-        return dr.gather(m.Float, field, m.UInt32(self.index(i, j, k)))
+        ijk = (dr.clip(m.Int32(c) + dc, 0, n - 1) for c, dc, n in zip((self.i, self.j, self.k), (di, dj, dk),
+                                                                       self.dims[::-1]))
+        return dr.gather(m.Float, field, m.UInt32(self.index(*ijk)))
 
     def sample(self, field, x, y, z, bounds: bool = False):
         """Trilinear interpolation of ``field`` at positions (x, y, z) (cell units), clamped
@@ -132,17 +130,15 @@ class StableFluids:
         self.U = _Layout(m, (nz, ny, nx + 1), (0.0, 0.5, 0.5))
         self.V = _Layout(m, (nz, ny + 1, nx), (0.5, 0.0, 0.5))
         self.W = _Layout(m, (nz + 1, ny, nx), (0.5, 0.5, 0.0))
-        self.u, self.v, self.w = (dr.zeros(m.Float, L.n) for L in (self.U, self.V, self.W))
+        self._faces = (self.U, self.V, self.W)
+        self.u, self.v, self.w = (dr.zeros(m.Float, L.n) for L in self._faces)
         self.d = dr.zeros(m.Float, self.C.n)
         self.p = dr.zeros(m.Float, self.C.n)
         C = self.C
         # Neumann walls: a cell's stencil counts only neighbours inside the box
         self._has = [(C.i > 0, -1, 0, 0), (C.i < nx - 1, 1, 0, 0), (C.j > 0, 0, -1, 0),
                      (C.j < ny - 1, 0, 1, 0), (C.k > 0, 0, 0, -1), (C.k < nz - 1, 0, 0, 1)]
-        cnt = m.Float(0.0)
-        for has, *_ in self._has:
-            cnt += dr.select(has, 1.0, 0.0)
-        self._count = cnt
+        self._count = sum((dr.select(has, 1.0, 0.0) for has, *_ in self._has), m.Float(0.0))
         self._red = ((C.i + C.j + C.k) & 1) == 0
         self._interior = [(c > 0) & (c < n) for c, n in ((self.U.i, nx), (self.V.j, ny), (self.W.k, nz))]
         dr.eval(self._count, self._red, self._interior)
@@ -159,7 +155,7 @@ class StableFluids:
         """Replace the face velocities (shapes (nz, ny, nx+1), (nz, ny+1, nx), (nz+1, ny, nx));
         boundary faces are set to 0 (closed box)."""
         out = []
-        for name, a, L, inner in zip("uvw", (u, v, w), self._faces(), self._interior):
+        for name, a, L, inner in zip("uvw", (u, v, w), self._faces, self._interior):
             a = V.array(a, name, np.float32)
             if a.shape != L.dims:
                 raise ValueError(f"{name}: expected shape {L.dims}, got {a.shape}")
@@ -202,35 +198,31 @@ class StableFluids:
             self._update_faces(lambda a, L, q: q + dt * self._to_faces(f[a], L, a))
         dr.eval(self.u, self.v, self.w)
 
-    def _faces(self):
-        return self.U, self.V, self.W
-
     def _update_faces(self, fn, *also) -> None:
         """``u, v, w = fn(axis, layout, field)`` on interior faces, 0 on the walls (a closed box);
         evaluated together with ``also``.  ``fn`` of a cell-centred field uses :meth:`_to_faces`."""
         self.u, self.v, self.w = (dr.select(inner, fn(a, L, f), 0.0) for a, (L, f, inner) in
-                                  enumerate(zip(self._faces(), (self.u, self.v, self.w), self._interior)))
+                                  enumerate(zip(self._faces, (self.u, self.v, self.w), self._interior)))
         dr.eval(*also, self.u, self.v, self.w)
 
     def _confinement(self):
         """eps * (N x omega) at cell centres; omega = curl u by central differences."""
         C = self.C
-        ux, uy, uz = uc = [L.sample(q, *C.pos) for L, q in zip(self._faces(), (self.u, self.v, self.w))]
+        uc = [L.sample(q, *C.pos) for L, q in zip(self._faces, (self.u, self.v, self.w))]
         dr.eval(uc)
 
         def dd(f, axis):       # central difference along axis (one-sided-ish at walls via clamping)
             s = [int(a == axis) for a in range(3)]
             return 0.5 * (C.neighbour(f, *s) - C.neighbour(f, *[-x for x in s]))
-        om = [dd(uz, 1) - dd(uy, 2), dd(ux, 2) - dd(uz, 0), dd(uy, 0) - dd(ux, 1)]
+        b, c = (1, 2, 0), (2, 0, 1)            # (a, b[a], c[a]) cyclic: omega_a = d_b u_c - d_c u_b
+        om = [dd(uc[c[a]], b[a]) - dd(uc[b[a]], c[a]) for a in range(3)]
         dr.eval(om)
         mag = dr.sqrt(om[0] ** 2 + om[1] ** 2 + om[2] ** 2)
         dr.eval(mag)
         g = [dd(mag, a) for a in range(3)]
         inv = dr.rcp(dr.sqrt(g[0] ** 2 + g[1] ** 2 + g[2] ** 2) + 1e-6)
         n = [x * inv for x in g]
-        eps = self.vorticity
-        f = [eps * (n[1] * om[2] - n[2] * om[1]), eps * (n[2] * om[0] - n[0] * om[2]),
-             eps * (n[0] * om[1] - n[1] * om[0])]
+        f = [self.vorticity * (n[b[a]] * om[c[a]] - n[c[a]] * om[b[a]]) for a in range(3)]
         dr.eval(f)
         return f
 
@@ -287,9 +279,7 @@ class StableFluids:
         w = self.omega
         for _ in range(iters):
             for colour in (True, False):
-                s = m.Float(0.0)
-                for has, di, dj, dk in self._has:
-                    s += dr.select(has, C.neighbour(p, di, dj, dk), 0.0)
+                s = sum((dr.select(has, C.neighbour(p, *ijk), 0.0) for has, *ijk in self._has), m.Float(0.0))
                 gs = (s - div) / self._count
                 p = dr.select(self._red == colour, p + w * (gs - p), p)
                 dr.eval(p)
@@ -380,15 +370,11 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
 def _plume_params(shape, seed, dt, buoyancy, vorticity, source_speed, source_radius, wobble, iterations):
     """Checked parameters of the plume, source radius resolved."""
     shape = _check_shape(shape)
-    seed = V.integer(seed, "seed", 0)
-    dt = V.real(dt, "dt", 0.0, open_min=True)
-    source_speed = V.real(source_speed, "source_speed", 0.0, open_min=True)
-    wobble = V.real(wobble, "wobble", 0.0)
-    V.integer(iterations, "iterations", 0)
     radius = shape[2] / 8 if source_radius is None else V.real(source_radius, "source_radius", 0.0, open_min=True)
-    return dict(shape=list(shape), seed=int(seed), dt=float(dt), buoyancy=V.real(buoyancy, "buoyancy"),
-                vorticity=V.real(vorticity, "vorticity", 0.0), source_speed=float(source_speed),
-                source_radius=radius, wobble=float(wobble), iterations=int(iterations))
+    return dict(shape=list(shape), seed=V.integer(seed, "seed", 0), dt=V.real(dt, "dt", 0.0, open_min=True),
+                buoyancy=V.real(buoyancy, "buoyancy"), vorticity=V.real(vorticity, "vorticity", 0.0),
+                source_speed=V.real(source_speed, "source_speed", 0.0, open_min=True), source_radius=radius,
+                wobble=V.real(wobble, "wobble", 0.0), iterations=V.integer(iterations, "iterations", 0))
 
 
 def _plume_frames(p):

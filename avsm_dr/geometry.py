@@ -1,6 +1,6 @@
 """Ray geometry shared by capture, ground truth, shading, area lights and the integrator.
 
-One home for ray-box, ray-sphere, ray-capsule, the package's orthonormal frame and the box check.
+One home for ray-box, ray-sphere, ray-capsule, the package's orthonormal frame, box corners and the box check.
 Convention: ``f`` works on NumPy float64 host arrays, ``f_dr`` is the same formula in
 Dr.Jit (any float type: ``Float``/``Float64`` lanes, Mitsuba's ``Float``).  In float64
 :func:`ray_box_dr` equals :func:`ray_box` bit for bit (the same operations in the same
@@ -25,9 +25,7 @@ def check_bbox(bbox, name: str = "bbox", flat: bool = False) -> tuple[np.ndarray
     """(lo, hi) float64 (3,) corners of a finite box with ``hi > lo`` on every axis (``hi >= lo``
     with ``flat``); ValueError naming ``name`` for anything else (zero-size or inverted boxes)."""
     try:
-        lo, hi = bbox
-        lo = np.asarray(lo, np.float64).reshape(3)
-        hi = np.asarray(hi, np.float64).reshape(3)
+        lo, hi = (np.asarray(end, np.float64).reshape(3) for end in bbox)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected (min_xyz, max_xyz), got {bbox!r}") from None
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
@@ -35,6 +33,13 @@ def check_bbox(bbox, name: str = "bbox", flat: bool = False) -> tuple[np.ndarray
     if np.any(hi < lo) or (not flat and np.any(hi == lo)):
         raise ValueError(f"{name}: zero-size or inverted box {lo.tolist()} .. {hi.tolist()}")
     return lo, hi
+
+
+def box_corners(bmin, bmax) -> np.ndarray:
+    """(N, 8, 3) corners of N axis-aligned boxes [bmin, bmax] ((N, 3) or (3,) each)."""
+    bmin, bmax = (np.asarray(end, np.float64).reshape(-1, 3) for end in (bmin, bmax))
+    sel = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
+    return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
 
 
 def ray_box(o, d, lo, hi, t_min: float = -math.inf):
@@ -46,10 +51,8 @@ def ray_box(o, d, lo, hi, t_min: float = -math.inf):
     A ray parallel to a slab (``d_a = 0``) is inside it for all t when ``lo_a <= o_a <= hi_a``
     (the closed slab) and misses the box otherwise (``t_near = inf``, ``t_far = -inf``).
     """
-    o = np.asarray(o, np.float64)
-    d = np.asarray(d, np.float64)
-    lo = np.asarray(lo, np.float64).reshape(3)
-    hi = np.asarray(hi, np.float64).reshape(3)
+    o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
+    lo, hi = (np.asarray(end, np.float64).reshape(3) for end in (lo, hi))
     t0 = np.full(o.shape[0], float(t_min))
     t1 = np.full(o.shape[0], np.inf)
     for a in range(3):
@@ -133,13 +136,8 @@ def ray_capsule(o, d, pa, pb, r, t_min: float = -math.inf):
     spheres (:func:`ray_sphere`), a capsule being convex.  Cylinder, with ``b = pb - pa``:
     ``|q|^2 |b|^2 - (q . b)^2 = r^2 |b|^2`` for ``q = o - pa + t d``, kept where
     ``0 <= q . b <= |b|^2``; rays parallel to the axis are left to the end spheres.  float64."""
-    ba = pb - pa
-    L2 = np.einsum("ij,ij->i", ba, ba)
-    oa = o - pa
-    bd = np.einsum("ij,ij->i", ba, d)
-    boa = np.einsum("ij,ij->i", ba, oa)
-    od = np.einsum("ij,ij->i", oa, d)
-    oo = np.einsum("ij,ij->i", oa, oa)
+    ba, oa = pb - pa, o - pa
+    L2, bd, boa, od, oo = (np.einsum("ij,ij->i", x, y) for x, y in ((ba, ba), (ba, d), (ba, oa), (oa, d), (oa, oa)))
     t_in = np.full(o.shape[0], np.inf)
     t_out = np.full(o.shape[0], -np.inf)
     a = L2 - bd * bd

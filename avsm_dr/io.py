@@ -72,6 +72,4 @@ def read_vol(path, with_bbox: bool = False):
     data = data.reshape(nz, ny, nx, nc).astype(np.float32)
     if nc == 1:
         data = data[..., 0]
-    if with_bbox:
-        return data, (bb[:3], bb[3:])
-    return data
+    return (data, (bb[:3], bb[3:])) if with_bbox else data

@@ -35,7 +35,7 @@ from .filtering import FILTERS
 from .geometry import ray_box_dr
 from .groundtruth.media import mitsuba as _mitsuba_with_variant, sample_grid
 from .representations import REGISTRY, build, describe
-from .representations.schema import BASE_PARAMETERS
+from .representations.schema import BASE_PARAMETERS, Param
 from .scene import Light, Scene
 
 NAME = "avsm_single_scatter"
@@ -70,9 +70,7 @@ def scene_medium(scene):
     if data.ndim != 4 or data.shape[3] != 1:
         raise ValueError(f"scene: the medium's sigma_t grid must have one channel, got shape {data.shape}")
     density = mi.TensorXf(data.array * float(params["scale"]), tuple(int(s) for s in data.shape[:3]))
-    b = shape.bbox()
-    lo = np.array([float(v) for v in b.min], np.float64)
-    hi = np.array([float(v) for v in b.max], np.float64)
+    lo, hi = (np.array([float(v) for v in end], np.float64) for end in (shape.bbox().min, shape.bbox().max))
     return medium, density, lo, hi
 
 
@@ -92,17 +90,14 @@ def check_box(medium, density, lo, hi, n: int = 64) -> None:
 
 
 # ======================================================================= integrator
-_LO, _HI = RESOLUTION_RANGE
-#: The plugin's own options: name -> (default, test, what a bad value is told).
-_OPTIONS = {
-    "resolution": (256, lambda v: type(v) is int and _LO <= v <= _HI, f"expected an integer in [{_LO}, {_HI}]"),
-    "filter": ("bilinear", lambda v: v in FILTERS, f"expected one of {FILTERS}"),
-    "max_depth": (2, lambda v: type(v) is int and v in (1, 2), f"{NAME} renders paths of at most two segments "
-                  f"(1: emitters seen directly, 2: + single scattering and direct surface light)"),
-    "march_steps": (64, lambda v: type(v) is int and 1 <= v <= 4096, "expected an integer in [1, 4096]"),
-    "hide_emitters": (False, lambda v: isinstance(v, bool), "expected a boolean"),
-    "capture_method": ("march", lambda v: v in CAPTURE_METHODS, f"expected one of {CAPTURE_METHODS}"),
-}
+#: The plugin's own options, checked as a representation's parameters are.
+_OPTIONS = (Param("resolution", "int", 256, min=RESOLUTION_RANGE[0], max=RESOLUTION_RANGE[1]),
+            Param("filter", "choice", "bilinear", choices=FILTERS),
+            Param("max_depth", "int", 2, "paths of at most two segments: 1 emitters seen directly, 2 also "
+                  "single scattering and direct surface light", min=1, max=2),
+            Param("march_steps", "int", 64, min=1, max=4096),
+            Param("hide_emitters", "bool", False),
+            Param("capture_method", "choice", "march", choices=CAPTURE_METHODS))
 
 
 def _check_properties(props) -> dict:
@@ -123,10 +118,8 @@ def _check_properties(props) -> dict:
             msg += f"; {NAME} properties: {list(OWN_PROPERTIES)}{V.did_you_mean(name, OWN_PROPERTIES)}"
         raise ValueError(msg)
     opts = {"kind": kind}
-    for name, (default, ok, expected) in _OPTIONS.items():
-        opts[name] = value = props.get(name, default)
-        if not ok(value):
-            raise ValueError(f"{name}: {expected}, got {value!r}")
+    for p in _OPTIONS:
+        opts[p.name] = p.validate(props.get(p.name, p.default))
     extra = {k: given.pop(k) for k in BASE_PARAMETERS if k in given}
     precisions = describe(kind)["precisions"]
     if extra.get("precision") is not None and extra["precision"] not in precisions:

@@ -237,7 +237,3 @@ def tall_column(size: int = 40, seed: int = 0, steps: int | None = None, density
     return _grid_scene("tall_column", dens, bmin, bmax, light, (1.0, -0.3, 0.25), seed, n_receivers,
                        ((0.8, 1.5, 0.0), (-1.0, 0.0, 0.0), 1.5),
                        {"size": size, "steps": steps, "density_scale": density_scale})
-
-
-#: The scenes of this module by name (registered in :data:`avsm_dr.builtin_scenes.SCENES`).
-SCENES = {"cumulus": cumulus, "fog_bank": fog_bank, "gaussian_blobs": gaussian_blobs, "tall_column": tall_column}

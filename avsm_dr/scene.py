@@ -219,8 +219,7 @@ class Particles:
         ValueError names ``particles.<field>``.  At least one particle (an empty cloud is
         ``Scene.particles = None``), radii > 0, density >= 0."""
         c = V.array(self.centers, "particles.centers")
-        r = V.array(self.radii, "particles.radii").reshape(-1)
-        s = V.array(self.density, "particles.density").reshape(-1)
+        r, s = (V.array(getattr(self, n), f"particles.{n}").reshape(-1) for n in ("radii", "density"))
         if c.ndim != 2 or c.shape[1] != 3:
             raise ValueError(f"particles.centers: expected shape (P, 3), got {c.shape}")
         P = c.shape[0]

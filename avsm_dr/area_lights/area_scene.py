@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import validation as V
 from ..camera import PinholeCamera
-from ..geometry import check_bbox, ray_box_dr, ray_sphere_dr
+from ..geometry import box_corners, check_bbox, ray_box_dr, ray_sphere_dr
 from ..scene import OpaqueBox, OpaqueSphere
 
 
@@ -45,8 +45,7 @@ class Medium:
     g: float = 0.0
 
     def __post_init__(self):
-        self.sigma_s = V.real(self.sigma_s, "sigma_s", 0.0)
-        self.sigma_t = V.real(self.sigma_t, "sigma_t", 0.0)
+        self.sigma_s, self.sigma_t = (V.real(getattr(self, n), n, 0.0) for n in ("sigma_s", "sigma_t"))
         if self.sigma_s > self.sigma_t:
             raise ValueError(f"sigma_s: must be <= sigma_t ({self.sigma_t}), got {self.sigma_s}")
         self.g = V.real(self.g, "g", -1.0, 1.0, open_min=True, open_max=True)
@@ -62,12 +61,9 @@ class QuadLight:
     radiance: float = 1.0
 
     def __post_init__(self):
-        self.center = V.vec3(self.center, "center")
-        self.edge_u = V.vec3(self.edge_u, "edge_u")
-        self.edge_v = V.vec3(self.edge_v, "edge_v")
+        self.center, self.edge_u, self.edge_v = (V.vec3(getattr(self, n), n) for n in ("center", "edge_u", "edge_v"))
         self.radiance = V.real(self.radiance, "radiance", 0.0)
-        cr = np.cross(self.edge_u, self.edge_v)
-        if np.linalg.norm(cr) <= 1e-12 * max(1.0, np.linalg.norm(self.edge_u) * np.linalg.norm(self.edge_v)):
+        if self.area <= 1e-12 * max(1.0, np.linalg.norm(self.edge_u) * np.linalg.norm(self.edge_v)):
             raise ValueError("edge_u: edge_u and edge_v must be non-zero and not parallel")
 
     @property
@@ -185,8 +181,7 @@ class Box(OpaqueBox, Occluder):
     def light_frame_extent(self, vpls, frame):
         eu, ev, n = frame
         a, b = self.bounds()
-        corners = np.array([[x, y, z] for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
-        d = corners[None, :, :] - vpls[:, None, :]                      # (K, 8, 3)
+        d = box_corners(a, b) - vpls[:, None, :]                        # (K, 8, 3)
         x, y, z = d @ eu, d @ ev, d @ n
         r_lo = np.linalg.norm(np.maximum(np.maximum(a[None] - vpls, 0), vpls - b[None]), axis=1)   # to the box
         return x.min(1), x.max(1), y.min(1), y.max(1), z.min(1), z.max(1), r_lo, np.linalg.norm(d, axis=2).max(axis=1)

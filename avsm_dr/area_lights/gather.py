@@ -38,7 +38,7 @@ def phase_hg(cos_theta, g: float):
     return (1.0 - g * g) / (4.0 * math.pi) * dr.rsqrt(denom * denom * denom)
 
 
-def light_terms(k: Kit, ln, x, p):
+def light_terms(ln, x, p):
     """(w, r, max(0, n . w) / r^2): direction from the VPL, distance, cosine falloff."""
     v = x - p
     r2 = dr.squared_norm(v)
@@ -53,7 +53,7 @@ def _step(k: Kit, med, ln, o, d, dt, j, p):
     exp(-sigma_t (t_j + r_j))`` (the module docstring's sum without ``V`` and ``I dt``)."""
     t = (k.Float(j) + 0.5) * dt
     x = o + t * d
-    w, r, falloff = light_terms(k, ln, x, p)
+    w, r, falloff = light_terms(ln, x, p)
     return x, med.sigma_s * phase_hg(-dr.dot(w, d), med.g) * falloff * dr.exp(-med.sigma_t * (t + r))
 
 
@@ -103,7 +103,7 @@ def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, 
     ns = dr.gather(k.Vec3, hits.n, pix)
     rho = dr.gather(k.Float, hits.albedo, pix)
     xs = o + t_end * d
-    w, r, falloff = light_terms(k, ln, xs, p)
+    w, r, falloff = light_terms(ln, xs, p)
     cos_s = dr.maximum(-dr.dot(ns, w), 0)
     lit = (kind == DIFFUSE) & (cos_s > 0) & (falloff > 0)
     Vs = dr.select(lit, vis_surface(xs + bias * ns), 0)

@@ -72,19 +72,16 @@ class CameraHits:
 
 def camera_hits(scene: AreaLightScene, k: Kit) -> CameraHits:
     """Closest hit of each pixel-centre camera ray with floor, occluders, light and box."""
-    cam = scene.camera
-    o = k.vec(cam.origin)
-    d = k.vec_array(cam.rays())
+    o = k.vec(scene.camera.origin)
+    d = k.vec_array(scene.camera.rays())
     n_pix = dr.width(d)
     lo, hi = scene.bounds
-    Float, Vec3 = k.Float, k.Vec3
 
     # -- medium box exit (the camera is inside) ------------------------------------
-    _, t_exit, _ = ray_box_dr(o, safe_dir(d), k.vec(lo), k.vec(hi))
-    t_best = t_exit
+    _, t_best, _ = ray_box_dr(o, safe_dir(d), k.vec(lo), k.vec(hi))
     kind = dr.full(k.UInt32, EXIT, n_pix)
-    nrm = Vec3(0, 1, 0) + dr.zeros(Vec3, n_pix)
-    alb = dr.zeros(Float, n_pix)
+    nrm = k.Vec3(0, 1, 0) + dr.zeros(k.Vec3, n_pix)
+    alb = dr.zeros(k.Float, n_pix)
 
     # -- floor: the bottom face y = lo_y; it wins near-ties with the box exit (the two
     #    distances round differently, which left unlit speckles on the floor) ---------

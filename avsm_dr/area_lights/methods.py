@@ -107,19 +107,15 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
         raise ValueError("interpolation: naive_exact has exact visibility, nothing to interpolate")
     if method == "naive_voxel" and voxelization != "rays":
         raise ValueError("voxelization: naive_voxel voxelizes with exact texel rays ('rays')")
-    for value, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2), (steps, "steps", 1)):
-        V.integer(value, name, lo)
-    if points_per_vpl is not None:
-        V.integer(points_per_vpl, "points_per_vpl", 1)
+    K, R, N = (V.integer(v, name, lo) for v, name, lo in ((vpls, "vpls", 1), (resolution, "resolution", 2),
+                                                          (steps, "steps", 1)))
+    M = 4 * R * R if points_per_vpl is None else V.integer(points_per_vpl, "points_per_vpl", 1)
     c = V.real(splat_coverage, "splat_coverage", 0.0, open_min=True)
     if surface_bias is not None:
         V.real(surface_bias, "surface_bias", 0.0)
     A.float_type(dtype)  # raises ValueError naming dtype
-    K, R, N = int(vpls), int(resolution), int(steps)
-    M = int(points_per_vpl) if points_per_vpl is not None else 4 * R * R
     k = kit(dtype)
     cam = scene.camera
-    n_pix = cam.width * cam.height
     P_np = sample_vpls(scene.light, K, jitter, seed)
     P = k.vec_array(P_np)
     grid = fit_grid(scene, P_np, R)
@@ -152,7 +148,7 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
     img = np.asarray(image.numpy(), dtype=np.float64).reshape(cam.height, cam.width)
     stats = dict(grid=grid.__dict__.copy() if voxels else None,
                  boundary_lookups=int(np.asarray(boundary.numpy()).ravel()[0]),
-                 lookups=n_pix * K * N)
+                 lookups=cam.width * cam.height * K * N)
     return AreaLightRender(img, dict(clock.t), params, stats)
 
 
@@ -188,11 +184,8 @@ def _render_batched(scene, k: Kit, grid, frame, hits, P, K, N, M, intensity, bia
                     voxelization, seed, coverage, clock):
     """Voxel methods: one buffer for the K grids (imperfect VSVs; naive_voxel: K = 1 per pass), one
     scan, one (pixel, VPL) gather as a thunk."""
-    if voxelization == "points":
-        words = clock("t_visibility", lambda: voxelize_points(scene, grid, k, frame, P, K, M, seed,
-                                                              coverage))
-    else:
-        words = clock("t_visibility", lambda: voxelize_rays(scene, grid, k, frame, P, K))
+    words = clock("t_visibility", lambda: voxelize_points(scene, grid, k, frame, P, K, M, seed, coverage)
+                  if voxelization == "points" else voxelize_rays(scene, grid, k, frame, P, K))
     S = clock("t_scan", lambda: scan(words, grid, k))
     stride = 2 if interpolation == "boundary" else 1
     if stride == 2:                     # the boundary mask interleaved with S (S words at 2 * index)

@@ -57,7 +57,7 @@ def project(grid: LightGrid, k: Kit, frame, x, p) -> GridCoords:
     return GridCoords(inside, fs, ft, b)
 
 
-def _word_index(grid: LightGrid, k: Kit, vpl, i, j, b):
+def _word_index(grid: LightGrid, vpl, i, j, b):
     return ((vpl * grid.R + j) * grid.R + i) * grid.words + (b >> 5)
 
 
@@ -66,14 +66,14 @@ def _set_bin(grid: LightGrid, k: Kit, words, vpl, i, j, r, active) -> None:
     fb = (r - grid.r_near) * (1.0 / grid.dr_bin)
     b = k.UInt32(dr.clip(fb, 0, grid.R - 2))
     bit = k.UInt32(1) << (b & 31)
-    dr.scatter_reduce(dr.ReduceOp.Or, words, bit, _word_index(grid, k, vpl, i, j, b), active)
+    dr.scatter_reduce(dr.ReduceOp.Or, words, bit, _word_index(grid, vpl, i, j, b), active)
 
 
 def voxelize_rays(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_vpl: int):
     """Occupancy by exact ray casting: one ray per texel centre from each VPL,
     marking the entry bin of every occluder it meets.  P: Vec3 positions (width n_vpl).
     Returns UInt32 words (n_vpl R^2 W)."""
-    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
+    words = dr.zeros(k.UInt32, n_vpl * grid.R ** 2 * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     eu, ev, n = frame
@@ -125,7 +125,7 @@ def voxelize_points(scene: AreaLightScene, grid: LightGrid, k: Kit, frame, P, n_
     texels whose centre lies inside its projected ellipse (radii ``rho / (Z ds)``,
     ``rho / (Z dt)`` texels); it marks them at its own distance bin.  No hole filling.
     Lanes are (VPL, point); returns UInt32 words (n_vpl R^2 W)."""
-    words = dr.zeros(k.UInt32, n_vpl * grid.n_texels * grid.words)      # zeroed occupancy bits
+    words = dr.zeros(k.UInt32, n_vpl * grid.R ** 2 * grid.words)      # zeroed occupancy bits
     if grid.empty:
         return words
     M, R = points_per_vpl, grid.R
@@ -179,10 +179,8 @@ def boundary_mask(S, grid: LightGrid, k: Kit):
     i = tex - j * R
 
     def pass_(a, o, step, c):
-        lo_a = dr.gather(k.UInt32, a, lane - step, c > 0)
-        hi_a = dr.gather(k.UInt32, a, lane + step, c < R - 1)
-        lo_o = dr.gather(k.UInt32, o, lane - step, c > 0)
-        hi_o = dr.gather(k.UInt32, o, lane + step, c < R - 1)
+        lo_a, lo_o = (dr.gather(k.UInt32, x, lane - step, c > 0) for x in (a, o))
+        hi_a, hi_o = (dr.gather(k.UInt32, x, lane + step, c < R - 1) for x in (a, o))
         return a & lo_a & hi_a, o | lo_o | hi_o
 
     a1, o1 = pass_(S, S, W, i)
@@ -210,7 +208,7 @@ def bit_at(k: Kit, S, idx, b, active, stride: int = 1):
 
 def _nearest_word(grid: LightGrid, k: Kit, vpl, c: GridCoords):
     i, j = (k.UInt32(dr.clip(f, 0, grid.R - 1)) for f in (c.fs, c.ft))
-    return _word_index(grid, k, vpl, i, j, c.b)
+    return _word_index(grid, vpl, i, j, c.b)
 
 
 def lookup_point(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, stride: int = 1):
@@ -218,7 +216,7 @@ def lookup_point(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, stride: int = 1
     return 1 - k.Float(bit_at(k, S, _nearest_word(grid, k, vpl, c), c.b, c.inside, stride))
 
 
-def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, active=True, stride: int = 1):
+def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, stride: int = 1):
     """Bilinear visibility over the 2 x 2 texels around (f_s, f_t) at bin b; taps
     outside the map are lit."""
     R = grid.R
@@ -230,8 +228,8 @@ def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, active=True,
     for dx, dy, w in ((0, 0, (1 - wx) * (1 - wy)), (1, 0, wx * (1 - wy)),
                       (0, 1, (1 - wx) * wy), (1, 1, wx * wy)):
         tx, ty = ix + dx, iy + dy
-        ok = c.inside & (tx >= 0) & (tx < R) & (ty >= 0) & (ty < R) & active
-        idx = _word_index(grid, k, vpl, k.UInt32(dr.maximum(tx, 0)), k.UInt32(dr.maximum(ty, 0)), c.b)
+        ok = c.inside & (tx >= 0) & (tx < R) & (ty >= 0) & (ty < R)
+        idx = _word_index(grid, vpl, k.UInt32(dr.maximum(tx, 0)), k.UInt32(dr.maximum(ty, 0)), c.b)
         V += w * (1 - k.Float(bit_at(k, S, idx, c.b, ok, stride)))
     return V
 

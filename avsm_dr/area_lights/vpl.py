@@ -80,10 +80,6 @@ class LightGrid:
     def dr_bin(self) -> float:
         return (self.r_far - self.r_near) / (self.R - 1)
 
-    @property
-    def n_texels(self) -> int:
-        return self.R * self.R
-
 
 def fit_grid(scene: AreaLightScene, vpls: np.ndarray, R: int) -> LightGrid:
     """The frustum and depth range of every VPL's grid around all occluders: an occluder with

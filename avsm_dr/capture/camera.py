@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..geometry import orthonormal_basis
+from ..geometry import box_corners, orthonormal_basis
 
 
 def _rect_from_coords(x, y, res):
@@ -40,14 +40,6 @@ def _rect_from_coords(x, y, res):
     empty = (x1 < 0) | (y1 < 0) | (x0 > res - 1) | (y0 > res - 1)
     x0, x1, y0, y1 = (np.clip(v, 0, res - 1) for v in (x0, x1, y0, y1))
     return x0, np.where(empty, x0 - 1, x1), y0, y1
-
-
-def _box_corners(bmin, bmax):
-    """(N, 8, 3) corners of N axis-aligned boxes."""
-    bmin = np.asarray(bmin, np.float64).reshape(-1, 3)
-    bmax = np.asarray(bmax, np.float64).reshape(-1, 3)
-    sel = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
-    return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
 
 
 #: (box, texel) pairs enumerated at once by :meth:`LightCamera.footprint_chunks` (host memory:
@@ -194,7 +186,7 @@ class OrthoCamera(LightCamera):
         texel on each side (so edge-clamped lookups outside the content read an empty texel),
         with the reference plane in front of all of it."""
         u, v, d = orthonormal_basis(direction)
-        corners = _box_corners(bmin, bmax).reshape(-1, 3)
+        corners = box_corners(bmin, bmax).reshape(-1, 3)
         pu, pv, pd = corners @ u, corners @ v, corners @ d
         size = max(np.ptp(pu), np.ptp(pv), np.ptp(pd), 1e-6)
         ext = max(np.ptp(pu), np.ptp(pv), 1e-6 * size)
@@ -226,7 +218,7 @@ class OrthoCamera(LightCamera):
         return np.full(np.shape(t), self.texel_size)
 
     def footprint_rects(self, bmin, bmax):
-        x, y, _ = self._coords(_box_corners(bmin, bmax))               # (N, 8) each
+        x, y, _ = self._coords(box_corners(bmin, bmax))               # (N, 8) each
         return [(*_rect_from_coords(x, y, self.res), 0)]
 
 
@@ -268,7 +260,7 @@ class PerspectiveCamera(LightCamera):
         return np.asarray(t) * (2 * self.tan_half / self.res) / (cos * cos)
 
     def footprint_rects(self, bmin, bmax):
-        x, y, zc = self._coords(_box_corners(bmin, bmax) - self.position)
+        x, y, zc = self._coords(box_corners(bmin, bmax) - self.position)
         tiny = 1e-9
         front = np.all(zc > tiny, axis=1)
         behind = np.all(zc <= tiny, axis=1)

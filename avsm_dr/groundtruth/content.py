@@ -205,12 +205,11 @@ def hair_tau(hair, o, d, L):
             m = (comp == k) & ~np.isnan(a)
             ca = np.where(m, a, np.inf).min(axis=1)
             cb = np.where(m, b, -np.inf).max(axis=1)
-            has = np.isfinite(ca)
             Lc = L[cand]
             ca0 = np.maximum(ca, 0.0)
             length = cb - ca0
             frac = np.where(length > 0, np.clip((Lc - ca0) / np.where(length > 0, length, 1.0), 0, 1),
                             (Lc >= ca0).astype(float))
-            frac = np.where(has & (cb > 0), frac, 0.0)
+            frac = np.where(np.isfinite(ca) & (cb > 0), frac, 0.0)
             tau[cand] += tau_c * frac
     return tau

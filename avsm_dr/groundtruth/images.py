@@ -53,9 +53,7 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
     if n @ l < 0:
         n = -n
     u, w, _ = orthonormal_basis(n)
-    grid = None
-    if scene.density is not None and scene.bbox is not None:
-        grid = check_grid(scene.density, scene.bbox)
+    grid = check_grid(scene.density, scene.bbox) if scene.density is not None and scene.bbox is not None else None
 
     def place(v):
         dist = distance
@@ -153,8 +151,7 @@ def camera_rays(scene: Scene, width: int, height: int, camera=None, supersample:
     v = ((y + (sy + 0.5) / s) / height).ravel()
     ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))),
                                mi.Point2f(0.5, 0.5))
-    o = np.stack([np.asarray(ray.o[i].numpy(), np.float64) for i in range(3)], axis=1)
-    d = np.stack([np.asarray(ray.d[i].numpy(), np.float64) for i in range(3)], axis=1)
+    o, d = (np.stack([np.asarray(v[i].numpy(), np.float64) for i in range(3)], axis=1) for v in (ray.o, ray.d))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return o, d
 
