@@ -52,11 +52,6 @@ def has_subnormal(host_arr: np.ndarray, dtype: str) -> bool:
     return bool(host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)))
 
 
-def flush_subnormal(x, host_arr: np.ndarray, dtype: str):
-    """Dr.Jit ``x`` (type Float) with its subnormal values set to 0 (AD graph kept)."""
-    return flushed(x, dtype) if has_subnormal(host_arr, dtype) else x
-
-
 def flushed(x, dtype: str):
     """Dr.Jit ``x`` with values below the smallest normal number of ``dtype`` set to 0."""
     tiny = float(np.finfo(np_dtype(dtype)).tiny)

@@ -505,9 +505,6 @@ class Segments:
         texels = arr.astype(np.int64)
         off = np.concatenate([[0], np.cumsum(self.counts[texels])]).astype(np.int64)
         idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels])
-        if idx.size == 0:
-            Float = self.Float
-            return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth, order=self.order)
         return self._gathered(off, A.to_uint32(idx), self.sorted_by_depth)
 
     def __repr__(self) -> str:

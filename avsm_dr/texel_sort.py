@@ -319,15 +319,11 @@ _MIX = (0x7FEB352D, 0x846CA68B)
 def shuffle_key(seed: int, texel, rank):
     """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
     ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
-    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: uint32
-    NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
-    opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
-    (seed, texel, its segment count) only, not on threads or on the order it came in."""
-    c = tuple(np.uint32(m) for m in _MIX)
-    s = int(_mix32(np.array([seed], np.uint32), *c)[0])
-    if isinstance(texel, np.ndarray):
-        with np.errstate(over="ignore"):
-            return _mix32(_mix32(texel.astype(np.uint32) + np.uint32(s), *c) + rank.astype(np.uint32), *c)
+    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: Dr.Jit
+    UInt32 (the seed enters as an opaque scalar, one kernel for every seed).  A texel's
+    shuffle therefore depends on (seed, texel, its segment count) only, not on threads or on
+    the order it came in."""
+    s = int(_mix32(np.array([seed], np.uint32), *(np.uint32(m) for m in _MIX))[0])
     return _mix32(_mix32(texel + dr.opaque(type(texel), s), *_MIX) + rank, *_MIX)
 
 
@@ -339,9 +335,6 @@ def rank_in_ranges(lo, hi, keys):
     UInt32 = backend.types().UInt32
     i = dr.arange(UInt32, dr.width(lo))
 
-    def cond(j, rank):
-        return j < hi
-
     def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
         before = j < i
         for k in reversed(keys):
@@ -349,4 +342,5 @@ def rank_in_ranges(lo, hi, keys):
             before = (kj < k) | ((kj == k) & before)
         return j + 1, rank + dr.select(before, 1, 0)
 
-    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), cond, body, labels=("j", "rank"))[1]
+    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), lambda j, rank: j < hi, body,
+                         labels=("j", "rank"))[1]
