@@ -26,7 +26,7 @@ import numpy as np
 from . import _arrays as A
 from . import backend
 from . import validation as V
-from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
+from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
 from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels_view,
                          view_order)
 from .texel_sort import plan as sort_plan
@@ -223,8 +223,7 @@ class Segments:
         z1_raw = _recipe(z1 if A.is_drjit(z1) else z1f, Float, dtype, has_subnormal(z1h, dtype))
         z1_of = z1_raw
         if n:   # lengths whose density tau / length overflows float64 become steps (docstring)
-            ft = np_dtype(dtype)
-            length = z1f.astype(ft) - z0f.astype(ft)
+            length = z1f.astype(dtype) - z0f.astype(dtype)
             short = (length > 0) & (length < MIN_LENGTH)
             if short.any():
                 short_d = backend.types().Bool(short)
@@ -333,15 +332,12 @@ class Segments:
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""
-        near = np.zeros(self.n_texels)
-        far = np.ones(self.n_texels)
+        near, far = np.zeros(self.n_texels), np.ones(self.n_texels)
         nz = self.counts > 0
         if nz.any():
-            z0 = A.host(self.z0, "z0")
-            z1 = A.host(self.z1, "z1")
             starts = self.offsets[:-1][nz]
-            near[nz] = np.minimum.reduceat(z0, starts)
-            far[nz] = np.maximum.reduceat(z1, starts)
+            near[nz] = np.minimum.reduceat(A.host(self.z0, "z0"), starts)
+            far[nz] = np.maximum.reduceat(A.host(self.z1, "z1"), starts)
         return near, far
 
     def numpy(self) -> dict[str, np.ndarray]:

@@ -179,16 +179,14 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             lanes.append(sel)
             packets.append(pos // sizes[c] + np.arange(sel.size))
             pos += sel.size * sizes[c]
-    n = int(counts.sum())
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
-    out = dict(off=off, n=n, sizes=sizes, slots=slots, big=None)
+    out = dict(n=int(counts.sum()), sizes=sizes, big=None, total=slots)
     if lanes:
         lane_t = _u32(np.concatenate(lanes))
         out["start"] = dr.gather(UInt32, off, lane_t)
         out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
         out["packet"] = _u32(np.concatenate(packets))
     big_t = np.flatnonzero(counts > MAX_NETWORK)
-    out["total"] = slots
     if big_t.size:                                    # blocks of MAX_NETWORK, then merges
         cb = counts[big_t]
         nblk = -(-cb // MAX_NETWORK)

@@ -255,8 +255,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         boxes.insert(0, grid.occupied if grid.occupied is not None else (grid.bmin, grid.bmax))
     if bounds is not None:
         boxes = [check_bbox(bounds, "bounds", flat=True)]
-    bmin = np.array([b[0] for b in boxes])
-    bmax = np.array([b[1] for b in boxes])
+    bmin, bmax = (np.array([b[k] for b in boxes]) for k in (0, 1))
     pos = getattr(scene.light, "position", None)           # a light at a point (spot, point)
     _check_range(bmin, bmax, pos, dtype)
     diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0

@@ -98,8 +98,7 @@ class GridVolume:
         """
         if isinstance(density, GridVolume):
             return density
-        if not isinstance(block, (int, np.integer)) or block < 1:
-            raise ValueError(f"block: expected an integer >= 1, got {block!r}")
+        V.integer(block, "block", 1)
         if isinstance(density, (str, os.PathLike)):
             path = density
             density, file_bbox = read_vol(path, with_bbox=True)

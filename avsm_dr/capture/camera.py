@@ -44,8 +44,7 @@ def _rect_from_coords(x, y, res):
 
 def _box_corners(bmin, bmax):
     """(N, 8, 3) corners of N axis-aligned boxes."""
-    bmin = np.asarray(bmin, np.float64).reshape(-1, 3)
-    bmax = np.asarray(bmax, np.float64).reshape(-1, 3)
+    bmin, bmax = (np.asarray(b, np.float64).reshape(-1, 3) for b in (bmin, bmax))
     sel = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
     return np.where(sel[None], bmax[:, None, :], bmin[:, None, :])
 
@@ -67,14 +66,10 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     """All (item, texel) pairs of inclusive rectangles; texel = offset + y * res + x."""
     wx = np.maximum(x1 - x0 + 1, 0)
     counts = _rect_areas(x0, x1, y0, y1)
-    total = int(counts.sum())
     item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     starts = np.cumsum(counts) - counts
-    local = np.arange(total, dtype=np.int64) - starts[item]
-    lx = local % wx[item]
-    ly = local // wx[item]
-    texel = texel_offset + (y0[item] + ly) * res + (x0[item] + lx)
-    return item, texel
+    ly, lx = np.divmod(np.arange(int(counts.sum()), dtype=np.int64) - starts[item], wx[item])
+    return item, texel_offset + (y0[item] + ly) * res + (x0[item] + lx)
 
 
 class LightCamera:
@@ -144,10 +139,12 @@ class LightCamera:
                     yield item + start, texel
                 start = stop
 
-    def footprint_rays(self, bmin, bmax, chunk: int = 1, name: str | None = None):
-        """Yield ``(item, texel, origins, directions)`` of :meth:`footprint_chunks` (with
-        :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles);
-        with ``name``, ValueError naming it when the footprints hold more than
+    def footprint_hits(self, bmin, bmax, hit, n_values: int, chunk: int = 1, name: str | None = None) -> list:
+        """``[item, texel, *values]``: int64, int64 and ``n_values`` float64 NumPy arrays over the
+        candidate pairs of :meth:`footprint_chunks`, ``chunk`` boxes at a time (bounding the host
+        memory of their rectangles), whose rays (:meth:`rays`) ``hit(item, origins, directions)
+        -> (*values, mask)`` keeps (a ray-shape intersection of :mod:`avsm_dr.geometry`); with
+        ``name``, ValueError naming it when the footprints hold more than
         :data:`MAX_CANDIDATES` pairs (counted without enumerating them)."""
         total = name and sum(int(_rect_areas(*r[:4]).sum()) for s in range(0, bmin.shape[0], chunk)
                              for r in self.footprint_rects(bmin[s:s + chunk], bmax[s:s + chunk]))
@@ -155,18 +152,11 @@ class LightCamera:
             raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
                              f"{MAX_CANDIDATES:.3g} one capture handles; use fewer or smaller items, or a "
                              f"lower resolution")
+        out = [(np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * n_values]
         for start in range(0, bmin.shape[0], chunk):
             for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
-                yield (item + start, texel, *self.rays(texel))
-
-    def footprint_hits(self, bmin, bmax, hit, n_values: int, chunk: int = 1, name: str | None = None) -> list:
-        """``[item, texel, *values]``: int64, int64 and ``n_values`` float64 NumPy arrays over
-        the rays of :meth:`footprint_rays` that ``hit(item, origins, directions) -> (*values,
-        mask)`` keeps (a ray-shape intersection of :mod:`avsm_dr.geometry`)."""
-        out = [(np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * n_values]
-        for item, texel, o, d in self.footprint_rays(bmin, bmax, chunk, name):
-            *values, m = hit(item, o, d)
-            out.append((item[m], texel[m], *(v[m] for v in values)))
+                *values, m = hit(item + start, *self.rays(texel))
+                out.append(((item + start)[m], texel[m], *(v[m] for v in values)))
         return [np.concatenate(a) for a in zip(*out)]
 
     def texel_width(self, texels, t) -> np.ndarray:
@@ -269,9 +259,7 @@ class PerspectiveCamera(LightCamera):
 
     def footprint_rects(self, bmin, bmax):
         x, y, zc = self._coords(_box_corners(bmin, bmax) - self.position)
-        tiny = 1e-9
-        front = np.all(zc > tiny, axis=1)
-        behind = np.all(zc <= tiny, axis=1)
+        front, behind = np.all(zc > 1e-9, axis=1), np.all(zc <= 1e-9, axis=1)
         x0, x1, y0, y1 = _rect_from_coords(x, y, self.res)
         straddle = ~front & ~behind          # box crosses the light's plane: whole face
         x0 = np.where(straddle, 0, x0)

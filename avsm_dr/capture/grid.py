@@ -30,6 +30,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 from ._grid_lanes import ROUND_CAPACITY, SLOT_BUDGET, hit_lanes, lane_output, slot_rounds, write_slots
 from ._grid_volume import DualCorners, GridVolume, MarchKernel
 
@@ -45,9 +46,7 @@ def check_method(method, step) -> str:
     with 'exact', which has no step)."""
     if method is None:
         return "march"
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    if method == "exact" and step is not None:
+    if V.one_of(method, "method", METHODS) == "exact" and step is not None:
         raise ValueError("step: the 'exact' grid capture has no step (one segment per dual-cell "
                          "crossing); pass method='march' to march with a step")
     return method
