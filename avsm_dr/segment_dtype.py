@@ -1,7 +1,6 @@
-"""Storage-dtype rules of :class:`~avsm_dr.segments.Segments` depths and optical depths:
-finite once stored in float32 / float64 (``ValueError`` naming the argument otherwise), and
-values below the dtype's smallest normal number set to 0 (Dr.Jit's CPU worker threads flush
-subnormals to zero, the calling thread does not: :mod:`avsm_dr.segments`).
+"""Storage-dtype rules of :class:`~avsm_dr.segments.Segments` depths and optical depths
+(:mod:`avsm_dr.segments`): finite once stored in float32 / float64 (``ValueError`` naming the
+argument otherwise), values below the dtype's smallest normal number set to 0.
 """
 from __future__ import annotations
 

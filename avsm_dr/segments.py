@@ -222,14 +222,13 @@ class Segments:
         z0_of = _recipe(z0 if A.is_drjit(z0) else z0f, Float, dtype, has_subnormal(z0h, dtype))
         z1_raw = _recipe(z1 if A.is_drjit(z1) else z1f, Float, dtype, has_subnormal(z1h, dtype))
         z1_of = z1_raw
-        if n:   # lengths whose density tau / length overflows float64 become steps (docstring)
-            length = z1f.astype(dtype) - z0f.astype(dtype)
-            short = (length > 0) & (length < MIN_LENGTH)
-            if short.any():
-                short_d = backend.types().Bool(short)
+        length = z1f.astype(dtype) - z0f.astype(dtype)   # a density tau / length overflowing float64: a step
+        short = (length > 0) & (length < MIN_LENGTH)
+        if short.any():
+            short_d = backend.types().Bool(short)
 
-                def z1_of():
-                    return dr.select(short_d, z0_of(), z1_raw())
+            def z1_of():
+                return dr.select(short_d, z0_of(), z1_raw())
         z0d, z1d = z0_of(), z1_of()
         if transmittance is not None:
             th = _per_segment(transmittance, "transmittance", n)
@@ -377,8 +376,8 @@ class Segments:
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
             if device_sortable(self.counts):                    # equal z0 (runs of r cost r^2): z1, position
-                z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
-                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
+                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0),
+                                 dr.detached_t(self.Float)(dr.detach(self.z1)))
                 dr.eval(pay)
                 return UInt32(pay), UInt32(start)
         if device_sortable(self.counts):

@@ -6,10 +6,7 @@ optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments o
 one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
 content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
 texel sorted by ``(zq, concatenation index)``, ``zq`` z0 quantised to 32 bits over its range
-(:func:`~avsm_dr.segments.key_order`).  That is the ``"depth"`` order;
-``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
-``"reverse_depth"`` and ``"random"`` reorder the depth order
-(:meth:`~avsm_dr.segments.Segments.in_order`).
+(:func:`~avsm_dr.segments.key_order`), or by draw keys (the insertion orders: :func:`combine`).
 """
 from __future__ import annotations
 

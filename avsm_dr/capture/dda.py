@@ -84,14 +84,13 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
     :func:`~avsm_dr.capture.grid.march`."""
     t = backend.types()
     Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
-    stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}
-    empty = (np.zeros(0, np.int64), Float(), Float(), Float(), stats0)
     clock = time.perf_counter()
     # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
     lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
     L = lanes.size
     if L == 0:
-        return empty
+        return np.zeros(0, np.int64), Float(), Float(), Float(), dict.fromkeys(
+            ("lanes", "iterations", "crossings", "segments", "max_iterations", "rounds"), 0)
     const, cell, _ = lane_constants(grid, o, d, t_in, t_out)
     times = {"lanes_s": time.perf_counter() - clock}
 

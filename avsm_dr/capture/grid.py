@@ -71,7 +71,6 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     """
     t = backend.types()
     Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
-    empty = (np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0})
     clock = time.perf_counter()
     nb = np.array(grid.occupancy.shape[::-1], np.int64)               # (nbx, nby, nbz)
     bs = grid.voxel * grid.block                                        # block size (x, y, z)
@@ -90,7 +89,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, slots)
     L = lanes.size
     if L == 0:
-        return empty
+        return np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0}
     times = {"lanes_s": time.perf_counter() - clock}
 
     # ---- DDA initialisation over the block grid (float64 on the device)
