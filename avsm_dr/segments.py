@@ -27,8 +27,7 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
-from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels_view,
-                         view_order)
+from .texel_sort import TIE, UNSORTED, break_ties, float_key, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -461,12 +460,20 @@ class Segments:
         inverted = same & ((b0 < a0) | ((b0 == a0) & (b1 < a1)))
         if not bool(dr.any(inverted)[0]):
             return None
-        # ---- rank of every segment inside its texel
+        # ---- rank of every segment inside its texel: a loop over j in [o_t, o_{t+1})
         off = self.offsets_dr()
-        lo = dr.gather(UInt32, off, tex)
-        rank = rank_in_ranges(lo, dr.gather(UInt32, off, tex + 1), [z0, z1])
+        lo, hi = dr.gather(UInt32, off, tex), dr.gather(UInt32, off, tex + 1)
+        me = dr.arange(UInt32, n)
+
+        def body(j, rank):                  # rank: segments found before this one
+            before = j < me
+            for k in (z1, z0):
+                kj = dr.gather(Float, k, j)
+                before = (kj < k) | ((kj == k) & before)
+            return j + 1, rank + dr.select(before, 1, 0)
+        rank = dr.while_loop((UInt32(lo), dr.zeros(UInt32, n)), lambda j, rank: j < hi, body, labels=("j", "rank"))[1]
         perm = dr.zeros(UInt32, n)
-        dr.scatter(perm, dr.arange(UInt32, n), lo + rank)
+        dr.scatter(perm, me, lo + rank)
         return perm
 
     def check_depth(self, value, name: str):

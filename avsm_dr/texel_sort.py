@@ -17,8 +17,7 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
   equal keys by a second key, then position.
 
 Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segments.in_order>`
-and :meth:`Segments.sorted <avsm_dr.segments.Segments.sorted>`: the seeded 32-bit shuffle hash
-(:func:`shuffle_key`) and ranks within index ranges (:func:`rank_in_ranges`).
+(the ``"random"`` order): the seeded 32-bit shuffle hash :func:`shuffle_key`.
 """
 from __future__ import annotations
 
@@ -324,21 +323,3 @@ def shuffle_key(seed: int, texel, rank):
     s = int(_mix32(np.array([seed], np.uint32), *(np.uint32(m) for m in _MIX))[0])
     return _mix32(_mix32(texel + dr.opaque(type(texel), s), *_MIX) + rank, *_MIX)
 
-
-def rank_in_ranges(lo, hi, keys):
-    """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
-    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., j) < (keys[0]_i, ..., i)}``,
-    lexicographic (equal keys keep their stored order, a stable sort), on the device (one lane
-    per element, ``hi - lo`` gathers each); keys: Dr.Jit arrays (S,) compared in order."""
-    UInt32 = backend.types().UInt32
-    i = dr.arange(UInt32, dr.width(lo))
-
-    def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
-        before = j < i
-        for k in reversed(keys):
-            kj = dr.gather(type(k), k, j)
-            before = (kj < k) | ((kj == k) & before)
-        return j + 1, rank + dr.select(before, 1, 0)
-
-    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), lambda j, rank: j < hi, body,
-                         labels=("j", "rank"))[1]
