@@ -197,8 +197,7 @@ class OrthoCamera(LightCamera):
         F64 = backend.types().Float64
         res = dr.opaque(type(texels), self.res)
         ts, half = (dr.opaque(F64, v) for v in (self.texel_size, self.half))
-        x = (F64(texels % res) + 0.5) * ts - half
-        y = (F64(texels // res) + 0.5) * ts - half
+        x, y = ((F64(c) + 0.5) * ts - half for c in (texels % res, texels // res))
         c, u, v, d = (_opaque_vec(a) for a in (self.center, self.u, self.v, self.d))
         o = [c[a] + x * u[a] + y * v[a] for a in range(3)]
         return o, [dr.full(F64, 0.0, dr.width(texels)) + d[a] for a in range(3)]
@@ -240,8 +239,7 @@ class PerspectiveCamera(LightCamera):
     def _coords(self, q):
         zc = q @ self.w
         safe = np.where(zc > 0, zc, 1.0)
-        x = ((q @ self.u) / (safe * self.tan_half) + 1) * 0.5 * self.res
-        y = ((q @ self.v) / (safe * self.tan_half) + 1) * 0.5 * self.res
+        x, y = (((q @ a) / (safe * self.tan_half) + 1) * 0.5 * self.res for a in (self.u, self.v))
         return x, y, zc
 
     def project(self, points):
@@ -289,10 +287,8 @@ class CubeCamera(LightCamera):
         UInt32 = type(texels)
         n2 = dr.opaque(UInt32, self.res * self.res)
         face = texels // n2
-        basis = []
-        for name in ("u", "v", "w"):
-            tab = [F64(np.ascontiguousarray([getattr(c, name)[a] for c in self.faces])) for a in range(3)]
-            basis.append([dr.gather(F64, tab[a], UInt32(face)) for a in range(3)])
+        basis = [[dr.gather(F64, F64(np.ascontiguousarray([getattr(c, name)[a] for c in self.faces])), UInt32(face))
+                  for a in range(3)] for name in ("u", "v", "w")]
         return _perspective_rays(texels - face * n2, self.res, self.faces[0].tan_half, *basis,
                                  _opaque_vec(self.position))
 
@@ -306,10 +302,9 @@ class CubeCamera(LightCamera):
         xy = np.empty((q.shape[0], 2))
         for f, cam in enumerate(self.faces):
             m = face == f
-            if m.any():
-                x, y, _ = cam._coords(q[m])
-                xy[m, 0] = np.clip(x, 0.5, self.res - 0.5)
-                xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
+            x, y, _ = cam._coords(q[m])
+            xy[m, 0] = np.clip(x, 0.5, self.res - 0.5)
+            xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
         return xy, np.linalg.norm(q, axis=1)
 
     def texel_width(self, texels, t):
@@ -335,8 +330,7 @@ def _perspective_rays(t, res: int, tan_half: float, u, v, w, position):
     F64 = backend.types().Float64
     r = dr.opaque(type(t), int(res))
     rf, th = dr.opaque(F64, float(res)), dr.opaque(F64, float(tan_half))
-    sx = ((F64(t % r) + 0.5) / rf * 2 - 1) * th
-    sy = ((F64(t // r) + 0.5) / rf * 2 - 1) * th
+    sx, sy = (((F64(c) + 0.5) / rf * 2 - 1) * th for c in (t % r, t // r))
     d = [w[a] + sx * u[a] + sy * v[a] for a in range(3)]
     norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     zero = dr.zeros(F64, dr.width(t))
