@@ -203,10 +203,7 @@ class MarchKernel:
             return dr.gather(self.Float, data, self.UInt32((k * self.ny + j) * self.nx + i), active)
 
         # gathers interleaved with the blends: the AD graph's order, hence the gradient sums
-        c00 = dr.lerp(g(x0, y0, z0), g(x1, y0, z0), wx)
-        c10 = dr.lerp(g(x0, y1, z0), g(x1, y1, z0), wx)
-        c01 = dr.lerp(g(x0, y0, z1), g(x1, y0, z1), wx)
-        c11 = dr.lerp(g(x0, y1, z1), g(x1, y1, z1), wx)
+        c00, c10, c01, c11 = (dr.lerp(g(x0, y, z), g(x1, y, z), wx) for z in (z0, z1) for y in (y0, y1))
         return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
 
     def trilinear_corners(self, corners, x, y, z, active=True):
@@ -219,10 +216,7 @@ class MarchKernel:
 
 def _lerp8(v, wx, wy, wz):
     """Trilinear blend of corners ``v[4 k + 2 j + i]`` (i along x, j along y, k along z)."""
-    c00 = dr.lerp(v[0], v[1], wx)
-    c10 = dr.lerp(v[2], v[3], wx)
-    c01 = dr.lerp(v[4], v[5], wx)
-    c11 = dr.lerp(v[6], v[7], wx)
+    c00, c10, c01, c11 = (dr.lerp(v[2 * m], v[2 * m + 1], wx) for m in range(4))
     return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
 
 
