@@ -206,8 +206,7 @@ class Segments:
             dtype = "float64" if f64 else "float32"
         Float = A.float_type(dtype)
         z0h, z1h = _per_segment(z0, "z0", n), _per_segment(z1, "z1", n)
-        z0f = check_in_dtype(z0h, "z0", dtype)
-        z1f = check_in_dtype(z1h, "z1", dtype)
+        z0f, z1f = (check_in_dtype(h, name, dtype) for h, name in ((z0h, "z0"), (z1h, "z1")))
         if np.any(z1h < z0h):
             raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
         if n:   # the depth range (basis spans), hence every length, must be finite in dtype too
@@ -455,8 +454,7 @@ class Segments:
         # ---- already in order?  pairs (i, i+1) inside one texel
         i = dr.arange(UInt32, n - 1)
         same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
-        a0, b0 = dr.gather(Float, z0, i), dr.gather(Float, z0, i + 1)
-        a1, b1 = dr.gather(Float, z1, i), dr.gather(Float, z1, i + 1)
+        (a0, b0), (a1, b1) = ((dr.gather(Float, z, i), dr.gather(Float, z, i + 1)) for z in (z0, z1))
         inverted = same & ((b0 < a0) | ((b0 == a0) & (b1 < a1)))
         if not bool(dr.any(inverted)[0]):
             return None

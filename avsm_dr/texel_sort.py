@@ -303,10 +303,8 @@ def break_ties(payloads, base, offsets_dr, texel_of, key, second):
 def _mix32(x, c1, c2):
     """Chris Wellons' "lowbias32" integer hash (x ^= x >> 16; x *= c1; x ^= x >> 15; x *= c2;
     x ^= x >> 16) on uint32 NumPy or Dr.Jit UInt32 arrays (products modulo 2^32)."""
-    x = x ^ (x >> 16)
-    x = x * c1
-    x = x ^ (x >> 15)
-    x = x * c2
+    x = (x ^ (x >> 16)) * c1
+    x = (x ^ (x >> 15)) * c2
     return x ^ (x >> 16)
 
 
