@@ -260,10 +260,9 @@ class PerspectiveCamera(LightCamera):
         front, behind = np.all(zc > 1e-9, axis=1), np.all(zc <= 1e-9, axis=1)
         x0, x1, y0, y1 = _rect_from_coords(x, y, self.res)
         straddle = ~front & ~behind          # box crosses the light's plane: whole face
-        x0 = np.where(straddle, 0, x0)
-        y0 = np.where(straddle, 0, y0)
-        x1 = np.where(straddle, self.res - 1, np.where(behind, x0 - 1, x1))
+        x1 = np.where(straddle, self.res - 1, np.where(behind, x0 - 1, x1))   # behind the light: empty
         y1 = np.where(straddle, self.res - 1, y1)
+        x0, y0 = (np.where(straddle, 0, v) for v in (x0, y0))
         return [(x0, x1, y0, y1, self.texel_offset)]
 
 
