@@ -126,9 +126,8 @@ class Capture:
         """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
         coords, depth = self.camera.project(V.points(points, "points", allow_empty=True))
         out = ~self.camera.covers(coords)
-        if out.any():
-            depth = np.where(out, OUTSIDE_DEPTH, depth)
-            coords[out] = np.clip(coords[out], 0.5, [self.width - 0.5, self.height - 0.5])
+        depth = np.where(out, OUTSIDE_DEPTH, depth)
+        coords[out] = np.clip(coords[out], 0.5, [self.width - 0.5, self.height - 0.5])
         return coords, depth, out
 
     def covers(self, points) -> np.ndarray:

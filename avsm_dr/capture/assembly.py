@@ -110,7 +110,7 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
         one = None
     if ready:
         return np.concatenate([[0], np.cumsum(counts)]), None
-    tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
+    tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64))
                    for t in texels], UInt32)
     n = dr.width(tex)
     if one is None:
