@@ -1,7 +1,6 @@
-"""Storage-dtype rules of :class:`~avsm_dr.segments.Segments` depths and optical depths:
-finite once stored in float32 / float64 (``ValueError`` naming the argument otherwise), and
-values below the dtype's smallest normal number set to 0 (Dr.Jit's CPU worker threads flush
-subnormals to zero, the calling thread does not: :mod:`avsm_dr.segments`).
+"""Storage-dtype rules of :class:`~avsm_dr.segments.Segments` depths and optical depths
+(:mod:`avsm_dr.segments`): finite once stored in float32 / float64 (``ValueError`` naming the
+argument otherwise), values below the dtype's smallest normal number set to 0.
 """
 from __future__ import annotations
 
@@ -12,15 +11,10 @@ import numpy as np
 OVERFLOW_HINT = {"float32": " or use dtype='float64'", "float64": ""}
 
 
-def np_dtype(dtype: str):
-    """The NumPy type of storage dtype ``dtype`` ('float32' or 'float64')."""
-    return np.float32 if dtype == "float32" else np.float64
-
-
 def check_in_dtype(arr: np.ndarray, name: str, dtype: str) -> np.ndarray:
     """``arr`` (float64 host values, finite) checked to be finite once stored in
     ``dtype``; returns it with subnormal values (in ``dtype``) set to 0."""
-    info = np.finfo(np_dtype(dtype))
+    info = np.finfo(dtype)
     with np.errstate(over="ignore"):
         bad = ~np.isfinite(arr.astype(info.dtype))
     if bad.any():
@@ -33,31 +27,25 @@ def check_in_dtype(arr: np.ndarray, name: str, dtype: str) -> np.ndarray:
 
 def check_tiny(arr: np.ndarray, dtype: str) -> np.ndarray:
     """``arr`` with values below the smallest normal number of ``dtype`` set to 0."""
-    tiny = float(np.finfo(np_dtype(dtype)).tiny)
+    tiny = float(np.finfo(dtype).tiny)
     return np.where(np.abs(arr) < tiny, 0.0, arr) if arr.size else arr
 
 
 def check_span(lo: float, hi: float, dtype: str, name: str, what: str, hint: str = "") -> None:
     """ValueError naming ``name`` when ``hi - lo`` (``what``) overflows the ``dtype`` storage."""
-    ft = np_dtype(dtype)
     with np.errstate(over="ignore"):
-        span = ft(hi) - ft(lo)
+        span = np.dtype(dtype).type(hi) - np.dtype(dtype).type(lo)
     if not np.isfinite(span):
         raise ValueError(f"{name}: {what} = {hi - lo:.6g} overflows the {dtype} storage{hint}")
 
 
 def has_subnormal(host_arr: np.ndarray, dtype: str) -> bool:
     """True when ``host_arr`` holds a nonzero value below the smallest normal of ``dtype``."""
-    tiny = float(np.finfo(np_dtype(dtype)).tiny)
+    tiny = float(np.finfo(dtype).tiny)
     return bool(host_arr.size and np.any((host_arr != 0) & (np.abs(host_arr) < tiny)))
-
-
-def flush_subnormal(x, host_arr: np.ndarray, dtype: str):
-    """Dr.Jit ``x`` (type Float) with its subnormal values set to 0 (AD graph kept)."""
-    return flushed(x, dtype) if has_subnormal(host_arr, dtype) else x
 
 
 def flushed(x, dtype: str):
     """Dr.Jit ``x`` with values below the smallest normal number of ``dtype`` set to 0."""
-    tiny = float(np.finfo(np_dtype(dtype)).tiny)
+    tiny = float(np.finfo(dtype).tiny)
     return dr.select(dr.abs(x) < tiny, 0.0, x)

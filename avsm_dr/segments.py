@@ -26,9 +26,8 @@ import numpy as np
 from . import _arrays as A
 from . import backend
 from . import validation as V
-from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal, np_dtype
-from .texel_sort import (TIE, UNSORTED, break_ties, float_key, rank_in_ranges, shuffle_key, sort_texels_view,
-                         view_order)
+from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
+from .texel_sort import TIE, UNSORTED, break_ties, float_key, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -207,8 +206,7 @@ class Segments:
             dtype = "float64" if f64 else "float32"
         Float = A.float_type(dtype)
         z0h, z1h = _per_segment(z0, "z0", n), _per_segment(z1, "z1", n)
-        z0f = check_in_dtype(z0h, "z0", dtype)
-        z1f = check_in_dtype(z1h, "z1", dtype)
+        z0f, z1f = (check_in_dtype(h, name, dtype) for h, name in ((z0h, "z0"), (z1h, "z1")))
         if np.any(z1h < z0h):
             raise ValueError(f"z1: {int(np.count_nonzero(z1h < z0h))} segment(s) have z1 < z0")
         if n:   # the depth range (basis spans), hence every length, must be finite in dtype too
@@ -222,15 +220,13 @@ class Segments:
         z0_of = _recipe(z0 if A.is_drjit(z0) else z0f, Float, dtype, has_subnormal(z0h, dtype))
         z1_raw = _recipe(z1 if A.is_drjit(z1) else z1f, Float, dtype, has_subnormal(z1h, dtype))
         z1_of = z1_raw
-        if n:   # lengths whose density tau / length overflows float64 become steps (docstring)
-            ft = np_dtype(dtype)
-            length = z1f.astype(ft) - z0f.astype(ft)
-            short = (length > 0) & (length < MIN_LENGTH)
-            if short.any():
-                short_d = backend.types().Bool(short)
+        length = z1f.astype(dtype) - z0f.astype(dtype)   # a density tau / length overflowing float64: a step
+        short = (length > 0) & (length < MIN_LENGTH)
+        if short.any():
+            short_d = backend.types().Bool(short)
 
-                def z1_of():
-                    return dr.select(short_d, z0_of(), z1_raw())
+            def z1_of():
+                return dr.select(short_d, z0_of(), z1_raw())
         z0d, z1d = z0_of(), z1_of()
         if transmittance is not None:
             th = _per_segment(transmittance, "transmittance", n)
@@ -333,15 +329,12 @@ class Segments:
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""
-        near = np.zeros(self.n_texels)
-        far = np.ones(self.n_texels)
+        near, far = np.zeros(self.n_texels), np.ones(self.n_texels)
         nz = self.counts > 0
         if nz.any():
-            z0 = A.host(self.z0, "z0")
-            z1 = A.host(self.z1, "z1")
             starts = self.offsets[:-1][nz]
-            near[nz] = np.minimum.reduceat(z0, starts)
-            far[nz] = np.maximum.reduceat(z1, starts)
+            near[nz] = np.minimum.reduceat(A.host(self.z0, "z0"), starts)
+            far[nz] = np.maximum.reduceat(A.host(self.z1, "z1"), starts)
         return near, far
 
     def numpy(self) -> dict[str, np.ndarray]:
@@ -381,8 +374,8 @@ class Segments:
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
             if device_sortable(self.counts):                    # equal z0 (runs of r cost r^2): z1, position
-                z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
-                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0), z1)
+                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0),
+                                 dr.detached_t(self.Float)(dr.detach(self.z1)))
                 dr.eval(pay)
                 return UInt32(pay), UInt32(start)
         if device_sortable(self.counts):
@@ -461,17 +454,24 @@ class Segments:
         # ---- already in order?  pairs (i, i+1) inside one texel
         i = dr.arange(UInt32, n - 1)
         same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
-        a0, b0 = dr.gather(Float, z0, i), dr.gather(Float, z0, i + 1)
-        a1, b1 = dr.gather(Float, z1, i), dr.gather(Float, z1, i + 1)
+        (a0, b0), (a1, b1) = ((dr.gather(Float, z, i), dr.gather(Float, z, i + 1)) for z in (z0, z1))
         inverted = same & ((b0 < a0) | ((b0 == a0) & (b1 < a1)))
         if not bool(dr.any(inverted)[0]):
             return None
-        # ---- rank of every segment inside its texel
+        # ---- rank of every segment inside its texel: a loop over j in [o_t, o_{t+1})
         off = self.offsets_dr()
-        lo = dr.gather(UInt32, off, tex)
-        rank = rank_in_ranges(lo, dr.gather(UInt32, off, tex + 1), [z0, z1])
+        lo, hi = dr.gather(UInt32, off, tex), dr.gather(UInt32, off, tex + 1)
+        me = dr.arange(UInt32, n)
+
+        def body(j, rank):                  # rank: segments found before this one
+            before = j < me
+            for k in (z1, z0):
+                kj = dr.gather(Float, k, j)
+                before = (kj < k) | ((kj == k) & before)
+            return j + 1, rank + dr.select(before, 1, 0)
+        rank = dr.while_loop((UInt32(lo), dr.zeros(UInt32, n)), lambda j, rank: j < hi, body, labels=("j", "rank"))[1]
         perm = dr.zeros(UInt32, n)
-        dr.scatter(perm, dr.arange(UInt32, n), lo + rank)
+        dr.scatter(perm, me, lo + rank)
         return perm
 
     def check_depth(self, value, name: str):
@@ -505,9 +505,6 @@ class Segments:
         texels = arr.astype(np.int64)
         off = np.concatenate([[0], np.cumsum(self.counts[texels])]).astype(np.int64)
         idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels])
-        if idx.size == 0:
-            Float = self.Float
-            return Segments(off, Float(), Float(), Float(), self.dtype, self.sorted_by_depth, order=self.order)
         return self._gathered(off, A.to_uint32(idx), self.sorted_by_depth)
 
     def __repr__(self) -> str:

@@ -17,8 +17,7 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
   equal keys by a second key, then position.
 
 Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segments.in_order>`
-and :meth:`Segments.sorted <avsm_dr.segments.Segments.sorted>`: the seeded 32-bit shuffle hash
-(:func:`shuffle_key`) and ranks within index ranges (:func:`rank_in_ranges`).
+(the ``"random"`` order): the seeded 32-bit shuffle hash :func:`shuffle_key`.
 """
 from __future__ import annotations
 
@@ -179,16 +178,14 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             lanes.append(sel)
             packets.append(pos // sizes[c] + np.arange(sel.size))
             pos += sel.size * sizes[c]
-    n = int(counts.sum())
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
-    out = dict(off=off, n=n, sizes=sizes, slots=slots, big=None)
+    out = dict(n=int(counts.sum()), sizes=sizes, big=None, total=slots)
     if lanes:
         lane_t = _u32(np.concatenate(lanes))
         out["start"] = dr.gather(UInt32, off, lane_t)
         out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
         out["packet"] = _u32(np.concatenate(packets))
     big_t = np.flatnonzero(counts > MAX_NETWORK)
-    out["total"] = slots
     if big_t.size:                                    # blocks of MAX_NETWORK, then merges
         cb = counts[big_t]
         nblk = -(-cb // MAX_NETWORK)
@@ -306,10 +303,8 @@ def break_ties(payloads, base, offsets_dr, texel_of, key, second):
 def _mix32(x, c1, c2):
     """Chris Wellons' "lowbias32" integer hash (x ^= x >> 16; x *= c1; x ^= x >> 15; x *= c2;
     x ^= x >> 16) on uint32 NumPy or Dr.Jit UInt32 arrays (products modulo 2^32)."""
-    x = x ^ (x >> 16)
-    x = x * c1
-    x = x ^ (x >> 15)
-    x = x * c2
+    x = (x ^ (x >> 16)) * c1
+    x = (x ^ (x >> 15)) * c2
     return x ^ (x >> 16)
 
 
@@ -319,34 +314,10 @@ _MIX = (0x7FEB352D, 0x846CA68B)
 def shuffle_key(seed: int, texel, rank):
     """Sort key of the ``"random"`` order (:meth:`Segments.in_order`): the 32-bit hash
     ``h(h(h(seed) + texel) + rank)`` (``h``: :func:`_mix32`, sums modulo 2^32) of the seed,
-    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: uint32
-    NumPy arrays (returns NumPy) or Dr.Jit UInt32 (returns UInt32; the seed enters as an
-    opaque scalar, one kernel for every seed).  A texel's shuffle therefore depends on
-    (seed, texel, its segment count) only, not on threads or on the order it came in."""
-    c = tuple(np.uint32(m) for m in _MIX)
-    s = int(_mix32(np.array([seed], np.uint32), *c)[0])
-    if isinstance(texel, np.ndarray):
-        with np.errstate(over="ignore"):
-            return _mix32(_mix32(texel.astype(np.uint32) + np.uint32(s), *c) + rank.astype(np.uint32), *c)
+    the texel and the segment's rank in the texel's depth order.  ``texel``, ``rank``: Dr.Jit
+    UInt32 (the seed enters as an opaque scalar, one kernel for every seed).  A texel's
+    shuffle therefore depends on (seed, texel, its segment count) only, not on threads or on
+    the order it came in."""
+    s = int(_mix32(np.array([seed], np.uint32), *(np.uint32(m) for m in _MIX))[0])
     return _mix32(_mix32(texel + dr.opaque(type(texel), s), *_MIX) + rank, *_MIX)
 
-
-def rank_in_ranges(lo, hi, keys):
-    """Rank of every lane ``i`` among the lanes ``j`` of its range ``[lo_i, hi_i)`` (which
-    contains ``i``): ``#{j : (keys[0]_j, keys[1]_j, ..., j) < (keys[0]_i, ..., i)}``,
-    lexicographic (equal keys keep their stored order, a stable sort), on the device (one lane
-    per element, ``hi - lo`` gathers each); keys: Dr.Jit arrays (S,) compared in order."""
-    UInt32 = backend.types().UInt32
-    i = dr.arange(UInt32, dr.width(lo))
-
-    def cond(j, rank):
-        return j < hi
-
-    def body(j, rank):                  # j: lane compared with i; rank: lanes found before i
-        before = j < i
-        for k in reversed(keys):
-            kj = dr.gather(type(k), k, j)
-            before = (kj < k) | ((kj == k) & before)
-        return j + 1, rank + dr.select(before, 1, 0)
-
-    return dr.while_loop((UInt32(lo), dr.zeros(UInt32, dr.width(lo))), cond, body, labels=("j", "rank"))[1]

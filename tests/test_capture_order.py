@@ -14,11 +14,12 @@ import pytest
 import avsm_dr as ad
 import drjit as dr
 from avsm_dr import segments as S
+from avsm_dr import texel_sort as TS
 from avsm_dr.capture import ORDERS
 from avsm_dr.capture import GridVolume
 from avsm_dr.capture._grid_lanes import SUBMISSION_BRICK
 from avsm_dr.scene import DirectionalLight, Hair, OpaqueSphere, Particles, Scene, SpotLight
-from avsm_dr.segments import OPAQUE_OPTICAL_DEPTH, Segments, shuffle_key
+from avsm_dr.segments import OPAQUE_OPTICAL_DEPTH, Segments
 
 RES = 64
 #: Built-in scenes covering every content kind: grid, particles, grid + hair, grid + blockers.
@@ -95,7 +96,10 @@ def test_hair_alone_is_sorted_by_depth():
 def _random_reference(depth_seg, seed):
     """The 'random' order from the depth order in NumPy: per texel by (shuffle_key, rank)."""
     h, tex, rank = _texels(depth_seg)
-    key = shuffle_key(seed, tex.astype(np.uint32), rank.astype(np.uint32))
+    mix = [np.uint32(m) for m in TS._MIX]
+    with np.errstate(over="ignore"):                # texel_sort.shuffle_key's hash, in NumPy
+        s = TS._mix32(np.array([seed], np.uint32), *mix)[0]
+        key = TS._mix32(TS._mix32(tex.astype(np.uint32) + s, *mix) + rank.astype(np.uint32), *mix)
     perm = np.lexsort((rank, key, tex))
     return {k: h[k][perm] for k in ("z0", "z1", "optical_depth")}
 

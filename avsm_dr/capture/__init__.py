@@ -126,9 +126,8 @@ class Capture:
         """(coords, depth, outside) with the border convention of :meth:`lookup` applied."""
         coords, depth = self.camera.project(V.points(points, "points", allow_empty=True))
         out = ~self.camera.covers(coords)
-        if out.any():
-            depth = np.where(out, OUTSIDE_DEPTH, depth)
-            coords[out] = np.clip(coords[out], 0.5, [self.width - 0.5, self.height - 0.5])
+        depth = np.where(out, OUTSIDE_DEPTH, depth)
+        coords[out] = np.clip(coords[out], 0.5, [self.width - 0.5, self.height - 0.5])
         return coords, depth, out
 
     def covers(self, points) -> np.ndarray:
@@ -255,8 +254,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
         boxes.insert(0, grid.occupied if grid.occupied is not None else (grid.bmin, grid.bmax))
     if bounds is not None:
         boxes = [check_bbox(bounds, "bounds", flat=True)]
-    bmin = np.array([b[0] for b in boxes])
-    bmax = np.array([b[1] for b in boxes])
+    bmin, bmax = (np.array([b[k] for b in boxes]) for k in (0, 1))
     pos = getattr(scene.light, "position", None)           # a light at a point (spot, point)
     _check_range(bmin, bmax, pos, dtype)
     diag = float(np.linalg.norm(bmax.max(0) - bmin.min(0))) or 1.0

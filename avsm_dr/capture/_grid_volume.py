@@ -98,8 +98,7 @@ class GridVolume:
         """
         if isinstance(density, GridVolume):
             return density
-        if not isinstance(block, (int, np.integer)) or block < 1:
-            raise ValueError(f"block: expected an integer >= 1, got {block!r}")
+        V.integer(block, "block", 1)
         if isinstance(density, (str, os.PathLike)):
             path = density
             density, file_bbox = read_vol(path, with_bbox=True)
@@ -204,10 +203,7 @@ class MarchKernel:
             return dr.gather(self.Float, data, self.UInt32((k * self.ny + j) * self.nx + i), active)
 
         # gathers interleaved with the blends: the AD graph's order, hence the gradient sums
-        c00 = dr.lerp(g(x0, y0, z0), g(x1, y0, z0), wx)
-        c10 = dr.lerp(g(x0, y1, z0), g(x1, y1, z0), wx)
-        c01 = dr.lerp(g(x0, y0, z1), g(x1, y0, z1), wx)
-        c11 = dr.lerp(g(x0, y1, z1), g(x1, y1, z1), wx)
+        c00, c10, c01, c11 = (dr.lerp(g(x0, y, z), g(x1, y, z), wx) for z in (z0, z1) for y in (y0, y1))
         return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
 
     def trilinear_corners(self, corners, x, y, z, active=True):
@@ -220,10 +216,7 @@ class MarchKernel:
 
 def _lerp8(v, wx, wy, wz):
     """Trilinear blend of corners ``v[4 k + 2 j + i]`` (i along x, j along y, k along z)."""
-    c00 = dr.lerp(v[0], v[1], wx)
-    c10 = dr.lerp(v[2], v[3], wx)
-    c01 = dr.lerp(v[4], v[5], wx)
-    c11 = dr.lerp(v[6], v[7], wx)
+    c00, c10, c01, c11 = (dr.lerp(v[2 * m], v[2 * m + 1], wx) for m in range(4))
     return dr.lerp(dr.lerp(c00, c10, wy), dr.lerp(c01, c11, wy), wz)
 
 
@@ -311,7 +304,9 @@ class DualCorners:
 
     def __init__(self, grid):
         t = backend.types()
-        self.table, self.pad, self.Float, self.UInt32 = corner_table(grid), dual_grid(grid)[0], grid.Float, t.UInt32
+        self.table = corner_table(grid)
+        self.pad = dual_grid(grid)[0]
+        self.Float, self.UInt32 = grid.Float, t.UInt32
         self.ArrX = t.ArrayXf if grid.Float is t.Float else t.ArrayXf64
         wz, wy, wx = grid.window_shape
         self.cx, self.cy, self.px, self.py = (dr.opaque(t.Int32, int(v)) for v in (wx + 1, wy + 1, wx + 2, wy + 2))

@@ -6,10 +6,7 @@ optical depth (Dr.Jit or NumPy).  :func:`combine` orders each texel's segments o
 one grid piece is in texel and depth order already (offsets from its per-ray counts); merged
 content is grouped by texel (``dr.scatter_inc`` slots, a prefix sum for the offsets) and every
 texel sorted by ``(zq, concatenation index)``, ``zq`` z0 quantised to 32 bits over its range
-(:func:`~avsm_dr.segments.key_order`).  That is the ``"depth"`` order;
-``"submission"`` sorts by the pieces' draw keys instead (:func:`texel_key_order`);
-``"reverse_depth"`` and ``"random"`` reorder the depth order
-(:meth:`~avsm_dr.segments.Segments.in_order`).
+(:func:`~avsm_dr.segments.key_order`), or by draw keys (the insertion orders: :func:`combine`).
 """
 from __future__ import annotations
 
@@ -70,15 +67,9 @@ def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed:
         return Segments.from_arrays(np.zeros(n_texels + 1, np.int64), Float(), Float(),
                                     optical_depth=Float(), dtype=dtype, order=order)
     z0, z1, tau = (_concat([A.to_float(p[i], Float) for p in pieces], Float) for i in (1, 2, 3))
-    offsets = np.zeros(n_texels + 1, np.int64)
-    single = pieces[0][0] if len(pieces) == 1 and order != "submission" else None
-    if isinstance(single, TexelRuns):                                   # one grid: in order already
-        np.cumsum(single.texel_counts(n_texels), out=offsets[1:])
-    elif single is not None and _texel_depth_sorted(single, pieces[0][1]):   # one piece in order
-        np.cumsum(np.bincount(np.asarray(single, np.int64), minlength=n_texels), out=offsets[1:])
-    else:
-        key = None if order != "submission" else _concat([A.to_uint32(k) for k in keys], backend.types().UInt32)
-        offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels, z0=z0)
+    key = None if order != "submission" else _concat([A.to_uint32(k) for k in keys], backend.types().UInt32)
+    offsets, perm = texel_key_order([p[0] for p in pieces], key, n_texels, z0=z0)
+    if perm is not None:
         z0, z1, tau = (dr.gather(Float, a, perm) for a in (z0, z1, tau))
     # every piece was validated at the boundary and is finite with z0 <= z1 and tau >= 0:
     # build the CSR directly (Segments.from_arrays would copy everything to the host again)
@@ -87,16 +78,6 @@ def combine(pieces, n_texels: int, Float, order: str = "depth", keys=None, seed:
         return Segments(offsets, z0, z1, tau, dtype, order="submission")
     seg = Segments(offsets, z0, z1, tau, dtype, sorted_by_depth=True)
     return seg if order == "depth" else seg.in_order(order, seed)
-
-
-def _texel_depth_sorted(texel, z0) -> bool:
-    """True when a host piece is in (texel, z0) order: texels non-decreasing, and z0
-    non-decreasing inside each texel (a hair piece comes by texel, then strand)."""
-    tex = np.asarray(texel, np.int64)
-    if not np.all(np.diff(tex) >= 0):
-        return False
-    z = A.host(z0, "z0")          # float64 of the stored float32 / float64 depths
-    return bool(np.all((np.diff(z) >= 0) | (np.diff(tex) > 0)))
 
 
 def quantised_depth(z0):
@@ -113,18 +94,26 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
     """(offsets (T+1,) int64 NumPy, permutation Dr.Jit UInt32 (S,)) ordering the segments of
     the concatenated ``texels`` (NumPy arrays or :class:`TexelRuns`) by ``(texel, key,
     concatenation index)``: ``key`` a Dr.Jit UInt32 (S,) per concatenated segment (None:
-    ``z0`` quantised, :func:`quantised_depth`); :func:`~avsm_dr.segments.key_order`."""
+    ``z0`` quantised, :func:`quantised_depth`); :func:`~avsm_dr.segments.key_order`.  The
+    permutation is None when ``key`` is None and one piece is in that order already: a
+    :class:`TexelRuns` (a grid: each ray front to back), or texels and, inside each, z0
+    non-decreasing (a hair piece comes by texel, then strand)."""
     UInt32 = backend.types().UInt32
-    tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64).astype(np.uint32))
-                   for t in texels], UInt32)
-    n = dr.width(tex)
     one = texels[0] if len(texels) == 1 else None         # one piece in texel order: grouped already
+    ready = False                                         # ... and in (texel, key) order too
     if isinstance(one, TexelRuns):
-        counts = one.texel_counts(n_texels)
+        counts, ready = one.texel_counts(n_texels), key is None
     elif one is not None and np.all(np.diff(np.asarray(one, np.int64)) >= 0):
         counts = np.bincount(np.asarray(one, np.int64), minlength=n_texels)
+        ready = key is None and bool(np.all((np.diff(A.host(z0, "z0")) >= 0) | (np.diff(np.asarray(one)) > 0)))
     else:
         one = None
+    if ready:
+        return np.concatenate([[0], np.cumsum(counts)]), None
+    tex = _concat([t.device() if isinstance(t, TexelRuns) else A.to_uint32(np.asarray(t, np.int64))
+                   for t in texels], UInt32)
+    n = dr.width(tex)
+    if one is None:
         cnt = dr.zeros(UInt32, n_texels)
         slot = dr.scatter_inc(cnt, tex)                    # arbitrary order inside a texel
         dr.eval(cnt, slot)

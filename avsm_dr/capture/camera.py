@@ -59,14 +59,10 @@ def expand_rects(x0, x1, y0, y1, res: int, texel_offset: int = 0):
     """All (item, texel) pairs of inclusive rectangles; texel = offset + y * res + x."""
     wx = np.maximum(x1 - x0 + 1, 0)
     counts = _rect_areas(x0, x1, y0, y1)
-    total = int(counts.sum())
     item = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     starts = np.cumsum(counts) - counts
-    local = np.arange(total, dtype=np.int64) - starts[item]
-    lx = local % wx[item]
-    ly = local // wx[item]
-    texel = texel_offset + (y0[item] + ly) * res + (x0[item] + lx)
-    return item, texel
+    ly, lx = np.divmod(np.arange(int(counts.sum()), dtype=np.int64) - starts[item], wx[item])
+    return item, texel_offset + (y0[item] + ly) * res + (x0[item] + lx)
 
 
 class LightCamera:
@@ -136,10 +132,12 @@ class LightCamera:
                     yield item + start, texel
                 start = stop
 
-    def footprint_rays(self, bmin, bmax, chunk: int = 1, name: str | None = None):
-        """Yield ``(item, texel, origins, directions)`` of :meth:`footprint_chunks` (with
-        :meth:`rays`), ``chunk`` boxes at a time (bounding the host memory of their rectangles);
-        with ``name``, ValueError naming it when the footprints hold more than
+    def footprint_hits(self, bmin, bmax, hit, n_values: int, chunk: int = 1, name: str | None = None) -> list:
+        """``[item, texel, *values]``: int64, int64 and ``n_values`` float64 NumPy arrays over the
+        candidate pairs of :meth:`footprint_chunks`, ``chunk`` boxes at a time (bounding the host
+        memory of their rectangles), whose rays (:meth:`rays`) ``hit(item, origins, directions)
+        -> (*values, mask)`` keeps (a ray-shape intersection of :mod:`avsm_dr.geometry`); with
+        ``name``, ValueError naming it when the footprints hold more than
         :data:`MAX_CANDIDATES` pairs (counted without enumerating them)."""
         total = name and sum(int(_rect_areas(*r[:4]).sum()) for s in range(0, bmin.shape[0], chunk)
                              for r in self.footprint_rects(bmin[s:s + chunk], bmax[s:s + chunk]))
@@ -147,18 +145,11 @@ class LightCamera:
             raise ValueError(f"{name}: the footprints cover {total:.3g} (item, texel) pairs, more than the "
                              f"{MAX_CANDIDATES:.3g} one capture handles; use fewer or smaller items, or a "
                              f"lower resolution")
+        out = [(np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * n_values]
         for start in range(0, bmin.shape[0], chunk):
             for item, texel in self.footprint_chunks(bmin[start:start + chunk], bmax[start:start + chunk]):
-                yield (item + start, texel, *self.rays(texel))
-
-    def footprint_hits(self, bmin, bmax, hit, n_values: int, chunk: int = 1, name: str | None = None) -> list:
-        """``[item, texel, *values]``: int64, int64 and ``n_values`` float64 NumPy arrays over
-        the rays of :meth:`footprint_rays` that ``hit(item, origins, directions) -> (*values,
-        mask)`` keeps (a ray-shape intersection of :mod:`avsm_dr.geometry`)."""
-        out = [(np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * n_values]
-        for item, texel, o, d in self.footprint_rays(bmin, bmax, chunk, name):
-            *values, m = hit(item, o, d)
-            out.append((item[m], texel[m], *(v[m] for v in values)))
+                *values, m = hit(item + start, *self.rays(texel))
+                out.append(((item + start)[m], texel[m], *(v[m] for v in values)))
         return [np.concatenate(a) for a in zip(*out)]
 
     def texel_width(self, texels, t) -> np.ndarray:
@@ -199,8 +190,7 @@ class OrthoCamera(LightCamera):
         F64 = backend.types().Float64
         res = dr.opaque(type(texels), self.res)
         ts, half = (dr.opaque(F64, v) for v in (self.texel_size, self.half))
-        x = (F64(texels % res) + 0.5) * ts - half
-        y = (F64(texels // res) + 0.5) * ts - half
+        x, y = ((F64(c) + 0.5) * ts - half for c in (texels % res, texels // res))
         c, u, v, d = (_opaque_vec(a) for a in (self.center, self.u, self.v, self.d))
         o = [c[a] + x * u[a] + y * v[a] for a in range(3)]
         return o, [dr.full(F64, 0.0, dr.width(texels)) + d[a] for a in range(3)]
@@ -242,8 +232,7 @@ class PerspectiveCamera(LightCamera):
     def _coords(self, q):
         zc = q @ self.w
         safe = np.where(zc > 0, zc, 1.0)
-        x = ((q @ self.u) / (safe * self.tan_half) + 1) * 0.5 * self.res
-        y = ((q @ self.v) / (safe * self.tan_half) + 1) * 0.5 * self.res
+        x, y = (((q @ a) / (safe * self.tan_half) + 1) * 0.5 * self.res for a in (self.u, self.v))
         return x, y, zc
 
     def project(self, points):
@@ -266,10 +255,9 @@ class PerspectiveCamera(LightCamera):
         behind = np.all(zc <= tiny, axis=1)
         x0, x1, y0, y1 = _rect_from_coords(x, y, self.res)
         straddle = ~front & ~behind          # box crosses the light's plane: whole face
-        x0 = np.where(straddle, 0, x0)
-        y0 = np.where(straddle, 0, y0)
-        x1 = np.where(straddle, self.res - 1, np.where(behind, x0 - 1, x1))
+        x1 = np.where(straddle, self.res - 1, np.where(behind, x0 - 1, x1))   # behind the light: empty
         y1 = np.where(straddle, self.res - 1, y1)
+        x0, y0 = (np.where(straddle, 0, v) for v in (x0, y0))
         return [(x0, x1, y0, y1, self.texel_offset)]
 
 
@@ -293,10 +281,8 @@ class CubeCamera(LightCamera):
         UInt32 = type(texels)
         n2 = dr.opaque(UInt32, self.res * self.res)
         face = texels // n2
-        basis = []
-        for name in ("u", "v", "w"):
-            tab = [F64(np.ascontiguousarray([getattr(c, name)[a] for c in self.faces])) for a in range(3)]
-            basis.append([dr.gather(F64, tab[a], UInt32(face)) for a in range(3)])
+        basis = [[dr.gather(F64, F64(np.ascontiguousarray([getattr(c, name)[a] for c in self.faces])), UInt32(face))
+                  for a in range(3)] for name in ("u", "v", "w")]
         return _perspective_rays(texels - face * n2, self.res, self.faces[0].tan_half, *basis,
                                  _opaque_vec(self.position))
 
@@ -310,10 +296,9 @@ class CubeCamera(LightCamera):
         xy = np.empty((q.shape[0], 2))
         for f, cam in enumerate(self.faces):
             m = face == f
-            if m.any():
-                x, y, _ = cam._coords(q[m])
-                xy[m, 0] = np.clip(x, 0.5, self.res - 0.5)
-                xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
+            x, y, _ = cam._coords(q[m])
+            xy[m, 0] = np.clip(x, 0.5, self.res - 0.5)
+            xy[m, 1] = np.clip(y, 0.5, self.res - 0.5) + f * self.res
         return xy, np.linalg.norm(q, axis=1)
 
     def texel_width(self, texels, t):
@@ -339,8 +324,7 @@ def _perspective_rays(t, res: int, tan_half: float, u, v, w, position):
     F64 = backend.types().Float64
     r = dr.opaque(type(t), int(res))
     rf, th = dr.opaque(F64, float(res)), dr.opaque(F64, float(tan_half))
-    sx = ((F64(t % r) + 0.5) / rf * 2 - 1) * th
-    sy = ((F64(t // r) + 0.5) / rf * 2 - 1) * th
+    sx, sy = (((F64(c) + 0.5) / rf * 2 - 1) * th for c in (t % r, t // r))
     d = [w[a] + sx * u[a] + sy * v[a] for a in range(3)]
     norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     zero = dr.zeros(F64, dr.width(t))

@@ -84,14 +84,13 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
     :func:`~avsm_dr.capture.grid.march`."""
     t = backend.types()
     Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
-    stats0 = {"lanes": 0, "iterations": 0, "crossings": 0, "segments": 0, "max_iterations": 0, "rounds": 0}
-    empty = (np.zeros(0, np.int64), Float(), Float(), Float(), stats0)
     clock = time.perf_counter()
     # ---- lane rays and constants (float64 on the device, one kernel), the hit lanes compacted
     lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, lambda *r: lane_constants(grid, *r)[2])
     L = lanes.size
     if L == 0:
-        return empty
+        return np.zeros(0, np.int64), Float(), Float(), Float(), dict.fromkeys(
+            ("lanes", "iterations", "crossings", "segments", "max_iterations", "rounds"), 0)
     const, cell, _ = lane_constants(grid, o, d, t_in, t_out)
     times = {"lanes_s": time.perf_counter() - clock}
 
@@ -126,12 +125,10 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
             # ---- the block of the current cell; next plane: the cell's exit face or the block's
             bx, by, bz = (cx + 1) // bs, (cy + 1) // bs, (cz + 1) // bs
             occupied = dr.gather(UInt32, occ, UInt32((bz * NBY + by) * NBX + bx)) > 0
-            px = dr.select(occupied, cx + psx, bs * (bx + psx) - 1)
-            py = dr.select(occupied, cy + psy, bs * (by + psy) - 1)
-            pz = dr.select(occupied, cz + psz, bs * (bz + psz) - 1)
-            sx = dr.select(ivx != 0, (Float(px) - ux) * ivx, far)
-            sy = dr.select(ivy != 0, (Float(py) - uy) * ivy, far)
-            sz = dr.select(ivz != 0, (Float(pz) - uz) * ivz, far)
+            px, py, pz = (dr.select(occupied, c + ps, bs * (b + ps) - 1)
+                          for c, b, ps in ((cx, bx, psx), (cy, by, psy), (cz, bz, psz)))
+            sx, sy, sz = (dr.select(iv != 0, (Float(p) - u) * iv, far)
+                          for p, u, iv in ((px, ux, ivx), (py, uy, ivy), (pz, uz, ivz)))
             m = dr.minimum(dr.minimum(sx, sy), sz)
             s1 = dr.maximum(dr.minimum(m, send), s)
             # ---- exact integral over [s, s1]: Simpson on the cell's cubic

@@ -30,6 +30,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from .. import validation as V
 from ._grid_lanes import ROUND_CAPACITY, SLOT_BUDGET, hit_lanes, lane_output, slot_rounds, write_slots
 from ._grid_volume import DualCorners, GridVolume, MarchKernel
 
@@ -45,9 +46,7 @@ def check_method(method, step) -> str:
     with 'exact', which has no step)."""
     if method is None:
         return "march"
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    if method == "exact" and step is not None:
+    if V.one_of(method, "method", METHODS) == "exact" and step is not None:
         raise ValueError("step: the 'exact' grid capture has no step (one segment per dual-cell "
                          "crossing); pass method='march' to march with a step")
     return method
@@ -72,7 +71,6 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     """
     t = backend.types()
     Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
-    empty = (np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0})
     clock = time.perf_counter()
     nb = np.array(grid.occupancy.shape[::-1], np.int64)               # (nbx, nby, nbz)
     bs = grid.voxel * grid.block                                        # block size (x, y, z)
@@ -91,7 +89,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
     lanes, o, d, t_in, t_out, cap = hit_lanes(grid, camera, slots)
     L = lanes.size
     if L == 0:
-        return empty
+        return np.zeros(0, np.int64), Float(), Float(), Float(), {"lanes": 0, "iterations": 0}
     times = {"lanes_s": time.perf_counter() - clock}
 
     # ---- DDA initialisation over the block grid (float64 on the device)
@@ -148,12 +146,8 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
             ax = crossed & (mx <= my) & (mx <= mz)
             ay = crossed & ~ax & (my <= mz)
             az = crossed & ~ax & ~ay
-            bx = bx + dr.select(ax, sx, 0)
-            by = by + dr.select(ay, sy, 0)
-            bz = bz + dr.select(az, sz, 0)
-            mx = mx + dr.select(ax, tdx, 0)
-            my = my + dr.select(ay, tdy, 0)
-            mz = mz + dr.select(az, tdz, 0)
+            bx, by, bz = (b + dr.select(a, s, 0) for b, a, s in ((bx, ax, sx), (by, ay, sy), (bz, az, sz)))
+            mx, my, mz = (m + dr.select(a, td, 0) for m, a, td in ((mx, ax, tdx), (my, ay, tdy), (mz, az, tdz)))
             it = it + 1
             outside = (bx < 0) | (by < 0) | (bz < 0) | (bx >= nbx) | (by >= nby) | (bz >= nbz)
             done = (t1 >= t_end) | (tau > tau_max) | outside | (it >= it_max)

@@ -137,10 +137,9 @@ def capture_hair(camera, hair):
     pa = s[:, :-1].reshape(-1, 3)
     pb = s[:, 1:].reshape(-1, 3)
     strand_of = np.repeat(np.arange(S), V - 1)
-    bmin = np.minimum(pa, pb) - r
-    bmax = np.maximum(pa, pb) + r
-    cid, tex, t_in, t_out = camera.footprint_hits(
-        bmin, bmax, lambda i, o, d: ray_capsule(o, d, pa[i], pb[i], r, t_min=0.0), 2, CHUNK, "hair")
+    cid, tex, t_in, t_out = camera.footprint_hits(np.minimum(pa, pb) - r, np.maximum(pa, pb) + r,
+                                                  lambda i, o, d: ray_capsule(o, d, pa[i], pb[i], r, t_min=0.0),
+                                                  2, CHUNK, "hair")
     texel, _, z0, z1, first = merge_crossings(tex, strand_of[cid], t_in, t_out, cid)
     tau = OPAQUE_OPTICAL_DEPTH if op >= 1.0 else -np.log1p(-op)
     return texel, z0, z1, np.full(texel.size, tau), first

@@ -39,20 +39,14 @@ OPAQUE_MODES = ("inline", "separate")
 def capture_opaque(camera, blockers, bias: float, thickness: float, slope: float = 2.0):
     """(texel, z0, z1) float64 NumPy for every (texel, blocker) hit (tau is OPAQUE_OPTICAL_DEPTH)
     and the (S,) int64 index of each segment's blocker in the list."""
-    tex, z0, bid = [], [], []
-    for i, b in enumerate(blockers):
-        lo, hi = b.bounds()
-        for _, texel, o, d in camera.footprint_rays(lo[None], hi[None]):
-            t, hit, cos = b.first_hit(o, d)
-            texel, t, cos = texel[hit], t[hit], cos[hit]
-            tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)
-            tex.append(texel)
-            z0.append(t + bias + slope * camera.texel_width(texel, t) * (tan + 0.5))
-            bid.append(np.full(texel.size, i, np.int64))
-    if not tex:
-        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
-    tex, z0 = np.concatenate(tex), np.concatenate(z0)
-    return tex, z0, z0 + thickness, np.concatenate(bid)
+    def hit(item, o, d):                    # one blocker per chunk (chunk = 1 box)
+        t, m, cos = blockers[item[0]].first_hit(o, d)
+        return t, cos, m
+    lo, hi = (np.array([b.bounds()[k] for b in blockers], np.float64).reshape(-1, 3) for k in (0, 1))
+    bid, tex, t, cos = camera.footprint_hits(lo, hi, hit, 2)
+    tan = np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 0.1)
+    z0 = t + bias + slope * camera.texel_width(tex, t) * (tan + 0.5)
+    return tex, z0, z0 + thickness, bid
 
 
 def depth_map(texel: np.ndarray, z0: np.ndarray, n_texels: int) -> np.ndarray:

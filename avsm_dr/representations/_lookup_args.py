@@ -19,7 +19,7 @@ from .. import _device_checks as DC
 from .. import backend
 from .. import validation as V
 from ..filtering import FILTERS, check_radius
-from ..segment_dtype import flush_subnormal
+from ..segment_dtype import flushed, has_subnormal
 
 
 @dataclass
@@ -88,7 +88,9 @@ def _host_depths(seg, depth, Float):
     if raw.ndim > 1:
         raise ValueError(f"depth: expected shape (K,), got {raw.shape}")
     d_h = seg.check_depth(raw, "depth")                  # finite in the storage dtype
-    depth_dr = flush_subnormal(A.to_float(depth, Float), raw, seg.dtype) if A.is_drjit(depth) else None
+    depth_dr = A.to_float(depth, Float) if A.is_drjit(depth) else None
+    if depth_dr is not None and has_subnormal(raw, seg.dtype):
+        depth_dr = flushed(depth_dr, seg.dtype)
     return d_h, depth_dr
 
 
