@@ -407,9 +407,9 @@ def test_build_template_runs_its_steps_in_order():
 
 # ------------------------------------------------------------- the package's size
 #: Most lines (``find avsm_dr -name '*.py' | xargs cat | wc -l``) the installed package may hold.
-#: The issue's target is 16,000 (from 23,548); lower this constant as the package shrinks,
-#: never raise it (study-only code belongs in ``experiments/``, dead code nowhere).
-PACKAGE_LINE_BUDGET = 17061
+#: The issue's target was 16,000 (from 23,548), reached at 15,941; lower this constant as the
+#: package shrinks, never raise it (study-only code belongs in ``experiments/``, dead code nowhere).
+PACKAGE_LINE_BUDGET = 15941
 #: Most lines of one module of the package.
 MODULE_LINE_LIMIT = 600
 #: Modules allowed above MODULE_LINE_LIMIT: path under the repository root -> reason.  An entry
@@ -425,7 +425,7 @@ def _package_lines() -> dict:
 
 
 def test_the_package_stays_within_its_line_budget():
-    """The installed package shrinks toward the issue's 16,000 lines and never grows back:
+    """The installed package stays within the issue's 16,000 lines and never grows back:
     its total is at most PACKAGE_LINE_BUDGET, and no module is above MODULE_LINE_LIMIT lines
     except those listed (with a reason) in LARGE_MODULES_ALLOWED."""
     lines = _package_lines()
