@@ -125,10 +125,12 @@ def traverse(grid, camera, epsilon: float, keep_zero: bool = False, capacity: in
             # ---- the block of the current cell; next plane: the cell's exit face or the block's
             bx, by, bz = (cx + 1) // bs, (cy + 1) // bs, (cz + 1) // bs
             occupied = dr.gather(UInt32, occ, UInt32((bz * NBY + by) * NBX + bx)) > 0
-            px, py, pz = (dr.select(occupied, c + ps, bs * (b + ps) - 1)
-                          for c, b, ps in ((cx, bx, psx), (cy, by, psy), (cz, bz, psz)))
-            sx, sy, sz = (dr.select(iv != 0, (Float(p) - u) * iv, far)
-                          for p, u, iv in ((px, ux, ivx), (py, uy, ivy), (pz, uz, ivz)))
+            px = dr.select(occupied, cx + psx, bs * (bx + psx) - 1)
+            py = dr.select(occupied, cy + psy, bs * (by + psy) - 1)
+            pz = dr.select(occupied, cz + psz, bs * (bz + psz) - 1)
+            sx = dr.select(ivx != 0, (Float(px) - ux) * ivx, far)
+            sy = dr.select(ivy != 0, (Float(py) - uy) * ivy, far)
+            sz = dr.select(ivz != 0, (Float(pz) - uz) * ivz, far)
             m = dr.minimum(dr.minimum(sx, sy), sz)
             s1 = dr.maximum(dr.minimum(m, send), s)
             # ---- exact integral over [s, s1]: Simpson on the cell's cubic

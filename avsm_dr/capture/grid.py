@@ -146,8 +146,12 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
             ax = crossed & (mx <= my) & (mx <= mz)
             ay = crossed & ~ax & (my <= mz)
             az = crossed & ~ax & ~ay
-            bx, by, bz = (b + dr.select(a, s, 0) for b, a, s in ((bx, ax, sx), (by, ay, sy), (bz, az, sz)))
-            mx, my, mz = (m + dr.select(a, td, 0) for m, a, td in ((mx, ax, tdx), (my, ay, tdy), (mz, az, tdz)))
+            bx = bx + dr.select(ax, sx, 0)
+            by = by + dr.select(ay, sy, 0)
+            bz = bz + dr.select(az, sz, 0)
+            mx = mx + dr.select(ax, tdx, 0)
+            my = my + dr.select(ay, tdy, 0)
+            mz = mz + dr.select(az, tdz, 0)
             it = it + 1
             outside = (bx < 0) | (by < 0) | (bz < 0) | (bx >= nbx) | (by >= nby) | (bz >= nbz)
             done = (t1 >= t_end) | (tau > tau_max) | outside | (it >= it_max)
