@@ -136,8 +136,13 @@ def ray_capsule(o, d, pa, pb, r, t_min: float = -math.inf):
     spheres (:func:`ray_sphere`), a capsule being convex.  Cylinder, with ``b = pb - pa``:
     ``|q|^2 |b|^2 - (q . b)^2 = r^2 |b|^2`` for ``q = o - pa + t d``, kept where
     ``0 <= q . b <= |b|^2``; rays parallel to the axis are left to the end spheres.  float64."""
-    ba, oa = pb - pa, o - pa
-    L2, bd, boa, od, oo = (np.einsum("ij,ij->i", x, y) for x, y in ((ba, ba), (ba, d), (ba, oa), (oa, d), (oa, oa)))
+    ba = pb - pa
+    oa = o - pa
+    L2 = np.einsum("ij,ij->i", ba, ba)
+    bd = np.einsum("ij,ij->i", ba, d)
+    boa = np.einsum("ij,ij->i", ba, oa)
+    od = np.einsum("ij,ij->i", oa, d)
+    oo = np.einsum("ij,ij->i", oa, oa)
     t_in = np.full(o.shape[0], np.inf)
     t_out = np.full(o.shape[0], -np.inf)
     a = L2 - bd * bd
