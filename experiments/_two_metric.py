@@ -13,6 +13,25 @@ from __future__ import annotations
 
 import numpy as np
 
+from avsm_dr import validation as V
+
+#: Side in texels of the square tiles of :func:`texel_blocks`.
+BLOCK_TEXELS = 8
+
+
+def texel_blocks(texels, width: int, size: int = BLOCK_TEXELS) -> np.ndarray:
+    """(n,) int64 block label of each texel index (row-major, ``y * width + x``): the tile
+    ``(y // size, x // size)`` of ``size`` x ``size`` texels, numbered row-major (the
+    ``blocks`` of :mod:`avsm_dr.stats`)."""
+    t = V.array(texels, "texels").ravel()
+    width, size = V.integer(width, "width", 1), V.integer(size, "size", 1)
+    if np.any(t < 0) or np.any(t != np.round(t)):
+        raise ValueError("texels: expected non-negative integer texel indices")
+    t = t.astype(np.int64)
+    y, x = t // width, t % width
+    return (y // size) * (-(-width // size)) + x // size
+
+
 #: Below this many configurations a claim is ``indicative`` (``error_curves``' rule).
 MIN_CONFIDENT = 4
 

@@ -63,7 +63,7 @@ from avsm_dr import build, kinds
 from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
 from avsm_dr.metrics import error_stats
 from ._common import front_to_back_first
-from .error_curves import texel_blocks
+from ._two_metric import texel_blocks
 from ._headline import interval
 from ._study import Option, Study
 

@@ -1,4 +1,4 @@
-"""Spatial block bootstrap of avsm_dr.stats (``blocks=``, :func:`experiments.error_curves.texel_blocks`)
+"""Spatial block bootstrap of avsm_dr.stats (``blocks=``, :func:`experiments._two_metric.texel_blocks`)
 against a slow NumPy reference written out replicate by replicate."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from avsm_dr import stats
-from experiments.error_curves import texel_blocks
+from experiments._two_metric import texel_blocks
 
 
 def _reference_replicates(x, y, blocks, statistic, n_boot, seed, compare="ratio"):

@@ -45,9 +45,9 @@ from avsm_dr.segments import Segments
 from . import findings as F
 from .._study import Option, Study
 from .._tau import optical_depth_error
+from .._two_metric import texel_blocks
 from .labels import ORDERS, PRECISIONS, TUNING, with_size, label, order_dependent, tuned  # noqa: F401  (re-exported)
 from avsm_dr.evaluation import Built, Probe, SubsetBuilder, curve_values, depth_l2, light_variants
-from avsm_dr import validation as V
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -78,23 +78,6 @@ MITSUBA_FLOOR = 1e-6
 #: Largest |T| difference between a build on the probes' texels and one on the whole map
 #: (float32 kernels on the same segments: rounding only).
 SUBSET_TOLERANCE = 1e-5
-#: Side in texels of the square tiles of :func:`texel_blocks`.
-BLOCK_TEXELS = 8
-
-
-def texel_blocks(texels, width: int, size: int = BLOCK_TEXELS) -> np.ndarray:
-    """(n,) int64 block label of each texel index (row-major, ``y * width + x``): the tile
-    ``(y // size, x // size)`` of ``size`` x ``size`` texels, numbered row-major (the
-    ``blocks`` of :mod:`avsm_dr.stats`)."""
-    t = V.array(texels, "texels").ravel()
-    width, size = V.integer(width, "width", 1), V.integer(size, "size", 1)
-    if np.any(t < 0) or np.any(t != np.round(t)):
-        raise ValueError("texels: expected non-negative integer texel indices")
-    t = t.astype(np.int64)
-    y, x = t // width, t % width
-    return (y // size) * (-(-width // size)) + x // size
-
-
 #: Parameters of the full and the quick run (``scenes`` / ``kinds``: options; ``kinds`` None:
 #: every registered kind; ``variants`` is filled in from the kinds).
 FULL = dict(scenes=SCENES, resolution=256,

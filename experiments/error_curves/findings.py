@@ -6,7 +6,7 @@ in every configuration (seed x light) where both exist, with
 effect (geometric mean of ratios, or mean of differences) with its two-stage interval,
 and whether it holds in every configuration.  The unit of every pooled interval is the
 configuration (scene seed x light); within a configuration receivers are resampled in tiles
-of 8 x 8 texels of the map they are looked up in (:func:`experiments.error_curves.texel_blocks`), as
+of 8 x 8 texels of the map they are looked up in (:func:`experiments._two_metric.texel_blocks`), as
 are the texels of the depth-uniform L2.  Verdicts:
 
 * ``holds in every configuration``: every per-configuration 95 % interval is below the
@@ -37,6 +37,7 @@ import numpy as np
 
 from avsm_dr import describe, kinds, stats
 from avsm_dr.builtin_scenes import SCENES
+from .._two_metric import side as side_summary
 from .labels import ORDERS, label, order_dependent, with_size
 
 #: Every scene ``error_curves`` can run (claims about scenes not run are left out).
@@ -56,8 +57,6 @@ PRECISION_BOUND = 1.01
 MIN_EVERY = 8
 #: Below this many configurations a claim is ``indicative``.
 MIN_CONFIDENT = 4
-#: Errors above this (in T) count as leaking light (:data:`avsm_dr.metrics.THRESHOLD`).
-LEAK = 0.02
 
 #: (kind, size) of the depth-range study (the AVSM paper's comparison).
 RANGE_KINDS = (("avsm", 8), ("fom", 8), ("osm", 32))
@@ -285,12 +284,6 @@ def _order(side) -> str:
     return side.get("order", "depth") if kind in kinds() and order_dependent(kind) else "-"
 
 
-def _side_summary(errors) -> dict:
-    """Signed mean and leak share (> :data:`LEAK`) of one side's errors, pooled over configurations."""
-    e = np.concatenate(errors)
-    return dict(mean_signed_error=float(np.mean(e)), leak_share=float(np.mean(e > LEAK)))
-
-
 def _direction(m, below) -> str | None:
     """'below' / 'above' when the pooled interval of metric ``m`` lies entirely on one side
     of ``below``, else None (no direction established)."""
@@ -342,7 +335,7 @@ def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_
                within_configuration="8x8 texel blocks" if blk is not None else "receivers",
                order=next((o for o in (_order(spec["a"]), _order(spec["b"])) if o != "-"), "-"),
                preset={k: not preset_differences(spec[k], separate) for k in ("a", "b")},
-               sides={"a": _side_summary(a_all), "b": _side_summary(b_all)})
+               sides={"a": side_summary(a_all), "b": side_summary(b_all)})
     out["metrics"] = {"receiver_rmse": _metric(r), "depth_l2": _depth_l2_claim(spec, l2, blocks, configs, n_boot)}
     d1, d2 = (_direction(m, r["below"]) for m in out["metrics"].values())
     out["metric_dependent"] = bool(d1 and d2 and d1 != d2)

@@ -242,7 +242,7 @@ def _config_rows(name, config, P, rows, errors, heat, l2=None, blocks=None):
     from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
     from avsm_dr.metrics import error_stats
     from ..avsm_gap import UniformObjective
-    from ..error_curves import texel_blocks
+    from .._two_metric import texel_blocks
     seed, light = config.seed, config.light_label
     scene = builtin_scenes.get(name, seed=seed)
     scene = dataclasses.replace(scene, light=config.light_for(scene))

@@ -132,7 +132,7 @@ def views(name: str, seed: int, light: str, P: dict, curves: bool = False) -> di
         v = _View(pr, cap.segments, pr.lookup(exact))
         if curves:
             from avsm_dr.evaluation import curve_values, depth_grid
-            from ..error_curves import texel_blocks
+            from .._two_metric import texel_blocks
             nearest = pr.tex[np.argmax(pr.weights, axis=0), np.arange(pr.k)]
             v.curve = curve_values(exact, cap.segments)
             v.tiles = (texel_blocks(nearest, cap.width), texel_blocks(depth_grid(cap.segments)[0], cap.width))

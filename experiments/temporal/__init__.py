@@ -67,7 +67,7 @@ from .._headline import num
 from .._study import Option, Study
 from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_grid, depth_l2, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
-from ..error_curves import texel_blocks
+from .._two_metric import texel_blocks
 from ..ordering import shuffled
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
