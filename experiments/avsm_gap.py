@@ -49,7 +49,7 @@ them; quick mode seed 0 with the scene's light only) by :func:`avsm_dr.stats.cla
 order's AVSM over front-to-back AVSM on both metrics, receiver RMSE and depth L2, with
 ``metric_dependent``, ``indicative`` (fewer than :data:`._two_metric.MIN_CONFIDENT` configurations:
 always in quick mode), the order, ``preset`` (AVSM here interpolates
-linearly; its preset is ``exp``) and each side's signed mean and leak share.
+linearly, its preset) and each side's signed mean and leak share.
 """
 
 from __future__ import annotations

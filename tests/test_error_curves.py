@@ -219,7 +219,7 @@ def test_claims_report_intervals_per_configuration():
     assert r["low"] <= r["estimate"] <= r["high"] < 1
     assert all(p["low"] <= p["estimate"] <= p["high"] for p in r["per_config"])
     assert r["verdict"] == "holds in every configuration" and r["indicative"] is False
-    assert r["order"] == "depth" and r["preset"] == {"a": False, "b": False}   # AVSM's preset: exp; FOM's: texel range
+    assert r["order"] == "depth" and r["preset"] == {"a": True, "b": False}    # AVSM's preset linear, FOM's texel range
     swapped = dict(spec, a=spec["b"], b=spec["a"])
     assert F.evaluate(swapped, store, sorted({k[1] for k in store}), n_boot=200)["verdict"] == "does not hold"
     json.dumps(r)                                                      # serialisable as findings.json
@@ -267,7 +267,7 @@ def test_claims_off_the_presets_name_it_and_have_a_preset_companion():
     counts only where the scene has opaque content.  Every headline comparison of two kinds
     has an ``_at_preset`` companion with both sides at their presets."""
     assert F.at_preset("fom-16") == "fom-16/depth_range=texel"
-    assert F.at_preset("avsm-8") == "avsm-8/interpolation=exp"
+    assert F.at_preset("avsm-8") == "avsm-8" and F.at_preset("avsm-8", "exp") == "avsm-8/interpolation=exp"
     beta = ad.describe("moments")["preset"]["overestimation"]          # tuned for media (moment_tuning)
     assert F.at_preset("moments-2/family=trigonometric") == \
         f"moments-2/depth_range=texel/family=trigonometric/overestimation={beta}"
@@ -277,10 +277,14 @@ def test_claims_off_the_presets_name_it_and_have_a_preset_companion():
     claims = {c["id"]: c for c in F._claims()}
     cfgs = sorted({k[1] for k in store})
     r = F.evaluate(claims["avsm12_vs_fom16_hair_smoke_compression"], store, cfgs, n_boot=100)
-    assert "[not at preset: avsm-12 interpolation=linear (preset exp); fom-16 depth_range=global " \
-           "(preset texel)]" in r["statement"] and "opaque" not in r["statement"].split("[")[1]
+    assert "[not at preset: fom-16 depth_range=global (preset texel)]" in r["statement"] \
+        and "opaque" not in r["statement"].split("[")[1]
     comp = claims["avsm12_vs_fom16_hair_smoke_compression_at_preset"]
-    assert (comp["a"]["variant"], comp["b"]["variant"]) == ("avsm-12/interpolation=exp", "fom-16/depth_range=texel")
+    assert (comp["a"]["variant"], comp["b"]["variant"]) == ("avsm-12", "fom-16/depth_range=texel")
+    exp = claims["avsm12_vs_fom16_hair_smoke_compression_at_preset_exp"]    # AVSM's other interpolation too
+    assert (exp["a"]["variant"], exp["b"]["variant"]) == ("avsm-12/interpolation=exp", "fom-16/depth_range=texel")
+    assert {c for c in claims if c.startswith("avsm8_vs_beer_particles")} == {
+        f"avsm8_vs_beer_particles{s}" for s in ("", "_at_preset", "_at_preset_exp")}
     for v in ("avsm-12/interpolation=exp", "fom-16/depth_range=texel"):    # the same errors as the defaults
         for c in cfgs:
             store[(F.H, c, v, "inline", F.C, "main", "depth")] = store[(F.H, c, v.split("/")[0], "inline", F.C,
@@ -288,9 +292,10 @@ def test_claims_off_the_presets_name_it_and_have_a_preset_companion():
     r = F.evaluate(comp, store, cfgs, n_boot=100)        # no separate capture in the store: inline
     assert r["preset"] == {"a": True, "b": True} and "not at preset" not in r["statement"]
     assert {c[:-len("_at_preset")] for c in claims if c.endswith("_at_preset")} >= set(F.PRESET_COMPANIONS)
-    assert all(claims[c]["a"]["variant"] != claims[c[:-len("_at_preset")]]["a"]["variant"]
-               or claims[c]["b"]["variant"] != claims[c[:-len("_at_preset")]]["b"]["variant"]
-               for c in claims if c.endswith("_at_preset"))
+    assert all(not F.preset_differences(claims[c][k], False)        # companions' sides are at the presets
+               for c in claims if c.endswith("_at_preset") for k in "ab")
+    exp_sides = [claims[c][k]["variant"] for c in claims if c.endswith("_at_preset_exp") for k in "ab"]
+    assert all(v.endswith("/interpolation=exp") for v in exp_sides if v.startswith("avsm-"))
     line = F.summary_lines({"claims": {"x": r}})["x"]
     assert line.startswith(f"{r['estimate']:.3g} [{r['low']:.3g}, {r['high']:.3g}]") and "4 configs" in line
     assert "\n" not in line and "{" not in line

@@ -115,8 +115,8 @@ def test_quick_run_compares_at_equal_bytes(quick):
     # measured on the quick plume, front to back at N = 2: exp over linear AVSM 1.34 [1.15, 1.63] at the
     # receivers, 0.85 [0.77, 0.94] in depth L2: the metrics disagree
     assert c["avsm/exp_over_avsm"]["metric_dependent"] is True
-    assert c["avsm/exp_over_avsm"]["preset"] == {"a": True, "b": False}        # AVSM's preset is exp
-    assert c["adaptive@random_over_avsm@random"]["preset"] == {"a": True, "b": False}
+    assert c["avsm/exp_over_avsm"]["preset"] == {"a": False, "b": True}        # AVSM's preset is linear
+    assert c["adaptive@random_over_avsm@random"]["preset"] == {"a": True, "b": True}
     assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
     assert {p.name for p in quick.glob("*.pdf")} == {"error_vs_bytes.pdf", "allocation.pdf"}   # vector beside PNG
     again = MB.run(quick=True, out=quick)
@@ -130,7 +130,7 @@ def test_full_mode_configurations():
     cfgs = [Configuration(s, li) for s, li in MB.FULL["configs"]]
     assert len({c.label for c in cfgs}) == len(cfgs) >= 10
     assert any(c.light == "spot" for c in cfgs)
-    assert MB.FULL["interpolations"] == ["linear", "exp"] and ad.describe("avsm")["preset"]["interpolation"] == "exp"
+    assert MB.FULL["interpolations"] == ["linear", "exp"] and ad.describe("avsm")["preset"]["interpolation"] == "linear"
     with pytest.raises(ValueError, match="light"):
         MB._resolve(dict(MB.QUICK, configs=[[0, "sun"]]), quick=True)
 

@@ -232,7 +232,7 @@ def test_avsm_gap_quick(tmp_path):
                 assert all(0 <= s["leak_share"] <= 1 and math.isfinite(s["mean_signed_error"])
                            for s in c["sides"].values())
             assert d["avsm_over_optimal"]["order"] == "depth" and d["greedy_over_optimal"]["order"] == "-"
-            assert d["avsm_over_optimal"]["preset"] == {"a": False, "b": True}     # AVSM's preset is exp
+            assert d["avsm_over_optimal"]["preset"] == {"a": True, "b": True}      # AVSM's preset is linear
     assert set(findings) == {"plume", "three_columns", "hair_and_smoke"} == set(intervals)
     assert all("avsm_over_optimal" in d for s in findings.values() for d in s.values())
     for scene in intervals.values():                  # paired bootstrap over texels, per N

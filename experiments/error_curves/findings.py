@@ -142,9 +142,10 @@ PRESET_COMPANIONS = ("avsm12_vs_fom16_hair_smoke_compression", "avsm12_vs_osm32_
                      "avsm12_vs_fom16_hair_smoke_total", "fom16_vs_avsm16_three_columns")
 
 
-def at_preset(variant: str) -> str:
+def at_preset(variant: str, also: str | None = None) -> str:
     """``variant`` with its kind's preset applied (same size and other settings), e.g.
-    ``'fom-16'`` -> ``'fom-16/depth_range=texel'``; non-kinds unchanged."""
+    ``'fom-16'`` -> ``'fom-16/depth_range=texel'``, then the kind's preset variant ``also``
+    (a key of ``describe(kind)['preset_variants']``) when given; non-kinds unchanged."""
     kind = _kind(variant)
     if kind not in kinds():
         return variant
@@ -157,17 +158,26 @@ def at_preset(variant: str) -> str:
         k, v = x.split("=", 1)
         params[k] = v
     params.update(d["preset"])
+    if also is not None:
+        params.update(d["preset_variants"][also])
     return label(kind, params)
 
 
-def _at_preset_side(side) -> dict:
-    """``side`` with its variant at its kind's preset and the capture's opaque mode the preset's."""
+def _at_preset_side(side, also: str | None = None) -> dict:
+    """``side`` with its variant at its kind's preset (then its preset variant ``also`` where
+    the kind has it) and the capture's opaque mode the preset's."""
     kind = _kind(side["variant"])
-    opaque = describe(kind)["preset_capture"].get("opaque", side["opaque"]) if kind in kinds() else side["opaque"]
-    return dict(side, variant=at_preset(side["variant"]), opaque=opaque)
+    if kind not in kinds():
+        return dict(side)
+    also = also if also in describe(kind)["preset_variants"] else None
+    opaque = describe(kind)["preset_capture"].get("opaque", side["opaque"])
+    return dict(side, variant=at_preset(side["variant"], also), opaque=opaque)
 
 
 def _with_preset_companions(claims: list[dict]) -> list[dict]:
+    """Each claim comparing two kinds, again with both at their presets (``<id>_at_preset``),
+    and once per preset variant that departs from a side's preset (``<id>_at_preset_<variant>``,
+    e.g. AVSM with ``interpolation='exp'``: both interpolations reported)."""
     out = list(claims)
     for c in claims:
         if c["id"] in PRESET_COMPANIONS or c["id"].startswith("avsm8_vs_beer") \
@@ -176,6 +186,13 @@ def _with_preset_companions(claims: list[dict]) -> list[dict]:
                 continue
             out.append(dict(c, id=c["id"] + "_at_preset", statement=c["statement"] + " (both at their presets)",
                             a=_at_preset_side(c["a"]), b=_at_preset_side(c["b"])))
+            variants = {v for s in (c["a"], c["b"]) if _kind(s["variant"]) in kinds()
+                        for v, p in describe(_kind(s["variant"]))["preset_variants"].items()
+                        if p != {k: describe(_kind(s["variant"]))["preset"].get(k) for k in p}}
+            for v in sorted(variants):
+                out.append(dict(c, id=f"{c['id']}_at_preset_{v}", a=_at_preset_side(c["a"], v),
+                                b=_at_preset_side(c["b"], v),
+                                statement=c["statement"] + f" (both at their presets, {v} variant)"))
     return out
 
 
@@ -222,8 +239,8 @@ def _kind(variant: str) -> str:
 
 
 def preset_differences(side, opaque_matters: bool = True) -> list[str]:
-    """How the side's setting departs from its kind's preset, e.g. ``['interpolation=linear
-    (preset exp)', 'opaque inline (preset separate)']`` (empty at the preset; the exact
+    """How the side's setting departs from its kind's preset, e.g. ``['interpolation=exp
+    (preset linear)', 'opaque inline (preset separate)']`` (empty at the preset; the exact
     curve, the truth and non-kinds have none)."""
     kind = _kind(side["variant"])
     if kind not in kinds():
@@ -242,8 +259,8 @@ def preset_differences(side, opaque_matters: bool = True) -> list[str]:
 
 
 def _preset_note(spec, opaque_matters: bool = True) -> str:
-    """'' when both sides are at their presets, else ' [not at preset: avsm-12 interpolation=linear
-    (preset exp); ...]': a claim off the presets names it in its statement."""
+    """'' when both sides are at their presets, else ' [not at preset: avsm-12 interpolation=exp
+    (preset linear); ...]': a claim off the presets names it in its statement."""
     parts = []
     for k in ("a", "b"):
         diff = preset_differences(spec[k], opaque_matters)

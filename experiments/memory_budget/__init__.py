@@ -48,8 +48,8 @@ it), and ``bytes_saved_at_equal_rmse_by_order`` compares adaptive and fixed AVSM
 order.
 
 Interpolation: the headline AVSM rows (``interpolation`` = ``linear``) sample the node list
-linearly; AVSM's registry preset is ``interpolation='exp'`` (``describe('avsm')['preset']``),
-so fixed AVSM-N and adaptive AVSM are built again with it (``exp`` rows, under every order of
+linearly (AVSM's registry preset, ``describe('avsm')['preset']``); its other preset variant,
+``interpolation='exp'``, is built again for fixed AVSM-N and adaptive AVSM (``exp`` rows, under every order of
 ``orders`` like the linear rows, same segments and receivers; ``-`` for DSM and
 ``optimal``); findings give the exp savings (``bytes_saved_at_equal_rmse_by_order_exp`` per
 order), the exp / linear RMSE ratios and adaptive / fixed within exp.
@@ -111,7 +111,7 @@ ADAPTIVE = (("adaptive", {}), ("adaptive_uniform", {"_score": "uniform"}), ("ada
 MIN_CONFIDENT = 4
 #: Insertion orders of the AVSM rows (the first is the headline's).
 ORDERS = ["depth", "submission", "reverse_depth", "random"]
-#: AVSM's interpolations: the headline's (linear) and the registry preset's (exp).
+#: AVSM's interpolations: the headline's and registry preset's (linear) and its other preset variant (exp).
 INTERPOLATIONS = ["linear", "exp"]
 #: Configurations (seed, light) of the full run: error_curves' ten (4 seeds x both directional
 #: lights, 2 seeds x the spot light), :class:`avsm_dr.evaluation.Configuration`.
@@ -442,7 +442,7 @@ def claims(errors: dict, l2: dict, blocks: dict | None = None, n_boot: int = 100
 
 def _at_preset(label: str, n: int) -> bool:
     """Whether the method of an errors label (:func:`key`) is at its kind's preset
-    (``describe(kind)['preset']``: AVSM's is the exp interpolation; adaptive AVSM, DSM and
+    (``describe(kind)['preset']``: AVSM's is the linear interpolation; adaptive AVSM, DSM and
     optimal have none beyond the settings searched here)."""
     from ..error_curves.findings import preset_differences
     kind = {"avsm": "avsm", "adaptive": "avsm_adaptive", "dsm": "dsm", "optimal": "optimal"}[
@@ -459,7 +459,7 @@ def findings(rows, errors, n_boot: int, l2: dict | None = None, blocks: dict | N
     """``findings.json``: savings at equal error (receivers and uniform in depth) and the
     RMSE ratios of adaptive AVSM to the others at equal bytes, front to back with linear
     interpolation; the savings again within each insertion order, with either interpolation;
-    with the exp interpolation (the preset) the savings, adaptive / fixed and exp / linear;
+    with the exp interpolation (AVSM's other preset variant) the savings, adaptive / fixed and exp / linear;
     with ``l2`` the two-metric claims of :func:`claims` under ``claims``."""
     orders = list(dict.fromkeys(r.get("order", "depth") for r in rows if r.get("order", "-") != "-"))
     by_order = {o: savings([r for r in rows if r.get("order", "-") == o and _linear(r)], "rmse") for o in orders}
@@ -482,7 +482,7 @@ def findings(rows, errors, n_boot: int, l2: dict | None = None, blocks: dict | N
         out_exp["claims"] = claims(errors, l2, blocks, n_boot, orders)
     return {
         "avsm_order": "depth",
-        "avsm_interpolation": "linear (headline keys); exp, the preset: keys ending in _exp",
+        "avsm_interpolation": "linear, the preset (headline keys); exp: keys ending in _exp",
         "bytes_saved_at_equal_rmse_by_order": by_order,
         "bytes_saved_at_equal_rmse": savings(rows, "rmse"),
         "bytes_saved_at_equal_depth_rms": savings(rows, "depth_rms"),
