@@ -36,18 +36,19 @@ def texel_blocks(texels, width: int, size: int = BLOCK_TEXELS) -> np.ndarray:
 MIN_CONFIDENT = 4
 
 
-def direction(m: dict) -> str | None:
-    """'below' / 'above' when the interval ``[low, high]`` of ``m`` lies entirely below / above 1."""
-    return "below" if m["high"] < 1 else "above" if m["low"] > 1 else None
+def direction(m: dict | None, below: float = 1.0) -> str | None:
+    """'below' / 'above' when the interval ``[low, high]`` of ``m`` lies entirely below / above
+    ``below`` (1 for a ratio), else None (no direction established, or no interval)."""
+    if m is None or "low" not in m:
+        return None
+    return "below" if m["high"] < below else "above" if m["low"] > below else None
 
 
-def metric_dependent(a: dict, b: dict) -> bool:
-    """True when both intervals (dicts with ``low`` and ``high``) establish a direction against 1
-    and the directions differ (``error_curves``' rule; a single configuration has no interval,
-    so no direction)."""
-    if "low" not in a or "low" not in b:
-        return False
-    d1, d2 = direction(a), direction(b)
+def metric_dependent(a: dict | None, b: dict | None, below: float = 1.0) -> bool:
+    """True when both intervals (dicts with ``low`` and ``high``) establish a direction against
+    ``below`` and the directions differ (a single configuration has no interval, so no
+    direction)."""
+    d1, d2 = direction(a, below), direction(b, below)
     return bool(d1 and d2 and d1 != d2)
 
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from avsm_dr import describe, kinds, stats
 from avsm_dr.builtin_scenes import SCENES
-from .._two_metric import side as side_summary
+from .._two_metric import metric_dependent, side as side_summary
 from .labels import ORDERS, label, order_dependent, with_size
 
 #: Every scene ``error_curves`` can run (claims about scenes not run are left out).
@@ -301,14 +301,6 @@ def _order(side) -> str:
     return side.get("order", "depth") if kind in kinds() and order_dependent(kind) else "-"
 
 
-def _direction(m, below) -> str | None:
-    """'below' / 'above' when the pooled interval of metric ``m`` lies entirely on one side
-    of ``below``, else None (no direction established)."""
-    if m is None:
-        return None
-    return "below" if m["high"] < below else "above" if m["low"] > below else None
-
-
 def _metric(r) -> dict:
     return dict(estimate=r["estimate"], low=r["low"], high=r["high"], n_configs=r["n_configs"], verdict=_verdict(r),
                 indicative=r["n_configs"] < MIN_CONFIDENT)
@@ -354,8 +346,7 @@ def evaluate(spec, store, configs, n_boot: int = 1000, l2=None, blocks=None, by_
                preset={k: not preset_differences(spec[k], separate) for k in ("a", "b")},
                sides={"a": side_summary(a_all), "b": side_summary(b_all)})
     out["metrics"] = {"receiver_rmse": _metric(r), "depth_l2": _depth_l2_claim(spec, l2, blocks, configs, n_boot)}
-    d1, d2 = (_direction(m, r["below"]) for m in out["metrics"].values())
-    out["metric_dependent"] = bool(d1 and d2 and d1 != d2)
+    out["metric_dependent"] = metric_dependent(*out["metrics"].values(), below=r["below"])
     if out["metric_dependent"]:
         out["verdict"] = "metric-dependent"
     if by_order and out["order"] != "-":
