@@ -7,8 +7,11 @@ import math
 
 from .scaling import slopes
 
-#: Columns of ``machine.csv`` (one row per benchmarked setting).
-MACHINE_COLUMNS = ("setting", "loop", "ops_per_insertion_packet", "lanes", "ops_per_insertion", "limit_per_core_s",
+#: Columns of ``machine.csv`` (one row per benchmarked setting).  ``lanes``: float32 lanes per
+#: SIMD packet (the LLVM vector width); ``isa``, ``llvm_cpu``, ``executed_bits`` (the vector
+#: datapath: 256 on AMD Zen 4, which runs 512-bit operations as two halves): the same on every row.
+MACHINE_COLUMNS = ("setting", "loop", "ops_per_insertion_packet", "lanes", "isa", "llvm_cpu", "executed_bits",
+                   "ops_per_insertion", "limit_per_core_s",
                    "measured_map", "measured_per_cpu_s", "fraction_of_limit", "measured_best_per_cpu_s",
                    "fraction_of_limit_best", "note")
 
@@ -48,7 +51,7 @@ def machine_rows(data: list[dict], machine: dict) -> list[dict]:
     out = []
     for setting in machine.get("kinds", {}):
         lim = _limit_row(machine, setting)
-        row = {k: lim.get(k, "") for k in MACHINE_COLUMNS}
+        row = {k: lim.get(k, machine.get(k, "")) for k in MACHINE_COLUMNS}
         row["setting"] = setting
         n, lanes = lim.get("ops_per_insertion_packet"), lim.get("lanes")
         ours = [r for r in data if r.get("impl") == "drjit" and r.get("setting") == setting
