@@ -26,7 +26,7 @@ def _data():
     row = dict(impl="drjit", setting="avsm-nodes=8", map="32^2 x 10", mean_count=10,
                insertions_per_cpu_s=20e6, insertions_per_cpu_s_best=24e6)
     return [row, dict(row, map="32^2 x 1000", mean_count=1000, insertions_per_cpu_s=30e6,
-                      insertions_per_cpu_s_best=45e6),
+                      insertions_per_cpu_s_best=45e6, build_s=0.2, build_kernel_s=0.15),
             dict(row, impl="numba", map="32^2 x 1000", mean_count=1000),
             dict(impl="drjit", setting="fom-harmonics=8", map="32^2 x 1000", mean_count=1000,
                  insertions_per_cpu_s=100e6),
@@ -55,6 +55,7 @@ def test_machine_rows_one_per_setting_on_the_densest_map():
     assert avsm["measured_map"] == "32^2 x 1000" and avsm["ops_per_insertion"] == 75
     assert all((r["isa"], r["llvm_cpu"], r["executed_bits"]) == ("avx2", "znver3", 256) for r in rows.values())
     assert rows["greedy"]["lanes"] == ""                       # no kernel: no packet width
+    assert avsm["kernel_share"] == pytest.approx(0.75) and rows["fom-harmonics=8"]["kernel_share"] == ""
     assert avsm["fraction_of_limit"] == pytest.approx(0.5) and avsm["fraction_of_limit_best"] == pytest.approx(0.75)
     assert rows["fom-harmonics=8"]["fraction_of_limit_best"] == ""
     assert rows["greedy"]["note"] and rows["greedy"]["fraction_of_limit"] == ""
