@@ -197,7 +197,10 @@ def _machine_limit(P, data_rows) -> dict:
     cpu = _cpuinfo()
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     peak = _peak_vector_rate(P["peak_iters"])
-    simd = target()                 # ISA, lanes per packet, executed (datapath) bits, nominal ops/cycle
+    try:                            # ISA, lanes per packet, executed (datapath) bits, nominal ops/cycle
+        simd = target()
+    except (OSError, AttributeError) as exc:        # no libdrjit-core.so (macOS, Windows): as before
+        simd = dict(target_note=f"LLVM target not read: {type(exc).__name__}: {exc}", nominal_ops_per_cycle=2.0)
     opc = simd["nominal_ops_per_cycle"]
     out = dict(cpu=cpu["model"], mhz=cpu["mhz"], cores=cores,
                avx512="avx512f" in cpu["flags"], avx2="avx2" in cpu["flags"], **simd,
