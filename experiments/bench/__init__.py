@@ -29,9 +29,11 @@ Writes into ``results/bench/`` (or ``<--out>/bench/``); one module per table:
   insertion counted in the kernel's LLVM IR (``dr.kernel_history()``), the best vector
   operation rate this CPU reaches in a Dr.Jit loop of the same kind of operations
   (compare / select / multiply, measured in CPU time) and the nominal one (clock x
-  issue width), times SIMD lanes, per core; our measured insertions per CPU-second as a
-  fraction of it; ``machine.csv`` has the same figures for every setting (also columns of
-  ``data.csv``), with the fraction from the median and from the fastest repeat.
+  issue width at the vector width the CPU executes: AMD Zen 4 runs a 512-bit operation as two
+  256-bit halves: :mod:`experiments.bench.simd`), times SIMD lanes, per core; our measured insertions per
+  CPU-second as a fraction of it; the LLVM target (ISA, lanes per packet, executed bits);
+  ``machine.csv`` has the same figures for every setting (also columns of ``data.csv``), with
+  the fraction from the median and from the fastest repeat and the build's kernel-time share.
 * ``scaling.csv`` / ``scaling.png`` - build and lookup time against texels, segments per
   texel and N (stored floats per texel), with fitted log-log slopes.
 * ``skipping.csv`` / ``skipping.png`` - each kind of skipped work as a measured saving:

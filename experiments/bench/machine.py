@@ -1,7 +1,12 @@
 """The machine's limit for AVSM insertion (``machine.json``): vector operations per
 insertion counted in the kernel's LLVM IR, the best vector-operation rate this CPU
 reaches in a Dr.Jit loop of the same kind of operations, and the nominal one; the same
-operation count and achieved fraction for every registered kind (``kinds``)."""
+operation count and achieved fraction for every registered kind (``kinds``).
+
+The nominal rate is per packet-wide operation at the width the CPU executes
+(:func:`.simd.target`): AMD Zen 4 runs a 512-bit AVX-512 operation as two 256-bit halves on
+four 256-bit pipes, so 2 packet operations per cycle at 16 lanes and 4 at 8 lanes (32 float
+lanes per cycle either way); elsewhere 2 per cycle at the register width."""
 from __future__ import annotations
 
 import os
@@ -15,10 +20,7 @@ import numpy as np
 from avsm_dr import backend, build
 from avsm_dr.evaluation.timing import jit_kernels, sync
 from .settings import counts_map
-
-#: Vector instructions one core issues per cycle, nominal, for 512-bit registers on a core
-#: with four 256-bit FP pipes (AMD Zen 4 runs a 512-bit op as two 256-bit halves).
-NOMINAL_VECTOR_OPS_PER_CYCLE = 2.0
+from .simd import target
 
 _SKIP_OPS = {"phi", "insertelement", "shufflevector", "getelementptr", "bitcast", "br"}
 
@@ -74,12 +76,12 @@ def kernel_ops(ir: str) -> tuple[Counter, int, str]:
     return ops, width, ""
 
 
-def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float) -> dict:
+def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle: float) -> dict:
     """Every benchmarked setting (the registry's kinds, :func:`.settings.settings`): vector
     operations per packet of insertions in its build's main kernel (:func:`kernel_ops` of
     the kernel with the most, on a 16^2 x 40 map), the insertion rate that operation count
     allows at the peak vector-op rate (the larger of the microbenchmark's and the nominal,
-    as for AVSM), and our measured insertions per CPU-second
+    ``mhz x ops_per_cycle``, as for AVSM), and our measured insertions per CPU-second
     (``data.csv``, map with the most segments per texel) as a fraction of it."""
     from .settings import SETTINGS, label, settings
     seg = counts_map(16, 40)
@@ -111,7 +113,7 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float) -> dict:
                    ops_by_kind={k: round(v, 1) for k, v in ops.most_common(8)})
         if n and width:
             measured = peak["vector_ops_per_cpu_s"] * width / n
-            nominal = mhz * 1e6 * NOMINAL_VECTOR_OPS_PER_CYCLE * width / n
+            nominal = mhz * 1e6 * ops_per_cycle * width / n
             lim = max(measured, nominal) if np.isfinite(nominal) else measured     # as for AVSM above
             row.update(limit_per_core_s=lim, microbench_limit_per_core_s=measured, nominal_limit_per_core_s=nominal,
                        limit_machine_per_s=lim * cores)
@@ -195,9 +197,14 @@ def _machine_limit(P, data_rows) -> dict:
     cpu = _cpuinfo()
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     peak = _peak_vector_rate(P["peak_iters"])
+    try:                            # ISA, lanes per packet, executed (datapath) bits, nominal ops/cycle
+        simd = target()
+    except (OSError, AttributeError) as exc:        # no libdrjit-core.so (macOS, Windows): as before
+        simd = dict(target_note=f"LLVM target not read: {type(exc).__name__}: {exc}", nominal_ops_per_cycle=2.0)
+    opc = simd["nominal_ops_per_cycle"]
     out = dict(cpu=cpu["model"], mhz=cpu["mhz"], cores=cores,
-               avx512="avx512f" in cpu["flags"], avx2="avx2" in cpu["flags"],
-               peak_microbench=peak, nominal_vector_ops_per_cycle=NOMINAL_VECTOR_OPS_PER_CYCLE, avsm={})
+               avx512="avx512f" in cpu["flags"], avx2="avx2" in cpu["flags"], **simd,
+               peak_microbench=peak, nominal_vector_ops_per_cycle=opc, avsm={})
     seg = counts_map(16, 40)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     for nodes in (4, 8, 16):
@@ -208,7 +215,7 @@ def _machine_limit(P, data_rows) -> dict:
         comp, width = loop_ops(ir, "avsm_compress")
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())
-        nominal_core = cpu["mhz"] * 1e6 * NOMINAL_VECTOR_OPS_PER_CYCLE * width / n_comp
+        nominal_core = cpu["mhz"] * 1e6 * opc * width / n_comp
         measured_core = peak["vector_ops_per_cpu_s"] * width / n_comp
         lim_core = max(measured_core, nominal_core) if np.isfinite(nominal_core) else measured_core
         row = dict(ops_per_insertion_packet=n_comp, insert_only_ops=sum(ins.values()), lanes=width,
@@ -224,7 +231,7 @@ def _machine_limit(P, data_rows) -> dict:
                        fraction_of_limit=best["insertions_per_cpu_s"] / lim_core,
                        fraction_of_nominal=best["insertions_per_cpu_s"] / nominal_core)
         out["avsm"][nodes] = row
-    out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"])
+    out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"], opc)
     out["gpu"] = "not measured: no GPU in this run (run with --backend cuda on a GPU machine)"
     return out
 

@@ -7,10 +7,15 @@ import math
 
 from .scaling import slopes
 
-#: Columns of ``machine.csv`` (one row per benchmarked setting).
-MACHINE_COLUMNS = ("setting", "loop", "ops_per_insertion_packet", "lanes", "ops_per_insertion", "limit_per_core_s",
+#: Columns of ``machine.csv`` (one row per benchmarked setting).  ``lanes``: float32 lanes per
+#: SIMD packet (the LLVM vector width); ``isa``, ``llvm_cpu``, ``executed_bits`` (the vector
+#: datapath: 256 on AMD Zen 4, which runs 512-bit operations as two halves): the same on every row.
+#: ``kernel_share``: the build's Dr.Jit kernel time over its wall time on the measured map (low:
+#: host work, e.g. DSM's float64 polyline, dominates and the operation count says little).
+MACHINE_COLUMNS = ("setting", "loop", "ops_per_insertion_packet", "lanes", "isa", "llvm_cpu", "executed_bits",
+                   "ops_per_insertion", "limit_per_core_s",
                    "measured_map", "measured_per_cpu_s", "fraction_of_limit", "measured_best_per_cpu_s",
-                   "fraction_of_limit_best", "note")
+                   "fraction_of_limit_best", "kernel_share", "note")
 
 
 def _limit_row(machine: dict, setting: str) -> dict:
@@ -48,7 +53,7 @@ def machine_rows(data: list[dict], machine: dict) -> list[dict]:
     out = []
     for setting in machine.get("kinds", {}):
         lim = _limit_row(machine, setting)
-        row = {k: lim.get(k, "") for k in MACHINE_COLUMNS}
+        row = {k: lim.get(k, machine.get(k, "")) for k in MACHINE_COLUMNS}
         row["setting"] = setting
         n, lanes = lim.get("ops_per_insertion_packet"), lim.get("lanes")
         ours = [r for r in data if r.get("impl") == "drjit" and r.get("setting") == setting
@@ -61,6 +66,8 @@ def machine_rows(data: list[dict], machine: dict) -> list[dict]:
                        fraction_of_limit=best["fraction_of_limit"],
                        measured_best_per_cpu_s=best.get("insertions_per_cpu_s_best", ""),
                        fraction_of_limit_best=best.get("fraction_of_limit_best", ""))
+            if best.get("build_s"):
+                row["kernel_share"] = best.get("build_kernel_s", math.nan) / best["build_s"]
         out.append(row)
     return out
 
