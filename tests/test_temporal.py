@@ -111,6 +111,45 @@ def test_plume_sequence_matches_simulate_plume_bit_for_bit(tmp_path):
         fluid.simulate_plume_sequence(shape, frames=1, start=1, cache=False, steps=3)
 
 
+def test_turned_spot_orbits_its_aim_point():
+    """A spot light turned about the vertical axis keeps its distance to its aim point (the point
+    of its axis nearest the centre) and still aims at it; at 0 degrees it is unchanged; a
+    directional light's direction turns alike."""
+    from avsm_dr.scene import DirectionalLight, SpotLight
+    spot = SpotLight(position=[2.0, 1.0, 0.5], direction=[-2.0, -0.25, -0.5], fov=40.0)
+    centre = np.array([0.0, 0.75, 0.0])
+    aim = spot.position + np.dot(centre - spot.position, spot.direction) * spot.direction
+    assert np.allclose(S.turned(spot, 0.0, centre).position, spot.position)
+    for deg in (0.25, 10.0, 90.0):
+        t = S.turned(spot, deg, centre)
+        v = aim - t.position
+        assert isinstance(t, SpotLight) and t.fov == 40.0
+        np.testing.assert_allclose(v / np.linalg.norm(v), t.direction, atol=1e-12)
+        assert np.linalg.norm(v) == pytest.approx(np.linalg.norm(aim - spot.position), rel=1e-12)
+        np.testing.assert_allclose(t.direction, S.rotate_y(spot.direction, deg), atol=1e-12)
+    d = S.turned(DirectionalLight(direction=(1.0, -0.3, 0.25)), 5.0, centre).direction
+    np.testing.assert_allclose(d, S.rotate_y(np.array([1.0, -0.3, 0.25]) / np.linalg.norm([1.0, -0.3, 0.25]), 5.0))
+
+
+def test_full_run_has_ten_configurations_and_seeds_change_every_animation(tmp_path, monkeypatch):
+    """FULL: >= 10 distinct configurations, every light of LIGHTS (the spot included); a
+    different seed gives different content in every animation (frame-0 densities and hair
+    strands of seeds 0 and 1, under the spot light; tiny grids)."""
+    from avsm_dr.scene import SpotLight
+    cfgs = [tuple(c) for c in T.FULL["configs"]]
+    assert len(set(cfgs)) == len(cfgs) >= 10 and {li for _, li in cfgs} == set(T.LIGHTS) and "spot" in T.LIGHTS
+    monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path)
+    P = dict(T.QUICK, frames=2, start_steps=2, n_receivers=64, hair_strands=20)
+    a0, a1 = (T._animations(P, seed, ["spot"]) for seed in (0, 1))
+    for setting in T.SETTINGS:
+        f0, f1 = a0[(setting, "spot")](0), a1[(setting, "spot")](0)
+        assert isinstance(f0.scene.light, SpotLight), setting
+        assert not np.array_equal(f0.scene.density, f1.scene.density), setting
+        if setting == "hair":
+            assert not np.array_equal(f0.scene.hair.strands, f1.scene.hair.strands)
+    assert not np.allclose(a0[("light", "spot")](1).scene.light.position, a0[("light", "spot")](0).scene.light.position)
+
+
 def test_camera_receivers_stay_in_the_box_and_move():
     lo, hi = S.PLUME_BOX
     a, b = S.camera_points(S.PLUME_BOX, 0.0, 6), S.camera_points(S.PLUME_BOX, 10.0, 6)
@@ -166,6 +205,13 @@ def test_insertion_claims_skip_stream_rows_not_run():
         assert set(rec["exact"]) == {"flicker_vs_sorted", "verdict"}
         assert rec["exact"]["flicker_vs_sorted"]["ratio"] == pytest.approx(0.5, rel=1e-12)
         assert rec["exact"]["verdict"] == "less"
+        fl = rec["exact"]["flicker_vs_sorted"]       # holds in its one configuration, but 1 < MIN_EVERY
+        assert fl["high"] < 1 and fl["indicative"] and not fl["holds_in_every_configuration"]
+    cfgs = [f"s{s}-dir_a" for s in range(T.MIN_EVERY)]
+    many = T.insertion_claims({("camera", c): series[("camera", "s0-dir_a")] for c in cfgs}, "camera", cfgs, ms,
+                              claim, 100)
+    fl = many["avsm-8 refit_l2 unsorted"]["exact"]["flicker_vs_sorted"]
+    assert fl["n_configs"] == T.MIN_EVERY and fl["holds_in_every_configuration"] and not fl["indicative"]
 
 
 def test_claims_resample_each_receivers_tile_with_all_its_frames():
