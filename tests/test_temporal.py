@@ -268,7 +268,7 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
                 assert fl["b"] == "avsm-8 sorted"
                 assert rec[vs]["verdict"] == ("less" if fl["high"] < 1 else "more" if fl["low"] > 1
                                               else "indistinguishable")
-    # issue 23: every row records its capture order, sparse and dense bytes, the signed mean and
+    # every row records its capture order, sparse and dense bytes, the signed mean and
     # leak share at the receivers and the depth-uniform L2 of the curve
     order = {m[0]: m[3] for m in T.methods(quick=True)}
     for r in rows:
