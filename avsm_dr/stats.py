@@ -13,6 +13,8 @@ replicate then draws as many blocks as there are, with replacement, and keeps ev
 of each drawn block (the moving-block idea of Kuensch 1989 on fixed, non-overlapping tiles:
 Lahiri, "Resampling Methods for Dependent Data", 2003, sec. 2.6), so the interval keeps the
 correlation within a tile; with one value per block it is the ordinary bootstrap, draw for draw.
+Statistics of means (``'mean'``, ``'rmse'``, ``'mean_abs'``, :func:`bootstrap_means_ci`) take a
+replicate's means from per-block sums: the same draws and values (to rounding), no gather.
 
 Statistics are names (``'mean'``, ``'median'``, ``'rmse'``, ``'mean_abs'``, ``'p99'``,
 ``'max'``) or callables ``f(x, axis) -> array`` reducing along ``axis``.
@@ -35,8 +37,8 @@ STATISTICS: dict[str, Callable] = {
     "max": lambda x, axis: np.max(np.abs(x), axis=axis),
 }
 #: Statistics ``post(mean(pre(x)))``: block-bootstrap replicates from per-block sums.
-_MEAN_OF = {STATISTICS["mean"]: (None, None), STATISTICS["rmse"]: (np.square, np.sqrt),
-            STATISTICS["mean_abs"]: (np.abs, None)}
+_MEAN_OF = {STATISTICS["mean"]: (np.asarray, np.asarray), STATISTICS["rmse"]: (np.square, np.sqrt),
+            STATISTICS["mean_abs"]: (np.abs, np.asarray)}
 METHODS = ("percentile", "bca")
 #: Bound on the entries of one (replicates x samples) index block (host memory).
 _BLOCK = 1 << 24
@@ -112,15 +114,16 @@ def _layout(blocks, n: int, method: str = "percentile", name: str = "blocks"):
     return members, np.r_[0, np.cumsum(counts)[:-1]], counts
 
 
-def _block_mean_replicates(x, y, pre_post, compare, layout, n_boot: int, rng):
-    """(replicates, how many have stat(a) < stat(b)) of :func:`_replicates` with blocks (same draws)
-    for ``post(mean(pre(v)))``, from per-block sums instead of each replicate's indices."""
-    (pre, post), (members, starts, counts) = pre_post, layout
+def _block_means(cols, layout, n_boot: int, rng) -> np.ndarray:
+    """(m, n_boot) means of the rows of ``cols`` (m, n) over the values of each replicate's
+    blocks (the draws of :func:`_replicates` with ``layout``), from per-block sums."""
+    members, starts, counts = layout
     picks = rng.integers(0, counts.size, size=(n_boot, counts.size))
     n = counts[picks].sum(axis=1).astype(np.float64)
-    m = [np.add.reduceat((v if pre is None else pre(v))[members], starts)[picks].sum(axis=1) / n for v in (x, y)]
-    sa, sb = m if post is None else (post(m[0]), post(m[1]))
-    return _compare(sa, sb, compare), int(np.count_nonzero(sa < sb))
+    sums = np.add.reduceat(cols[:, members], starts, axis=1)                  # (m, G)
+    per = max(1, _BLOCK // counts.size)
+    return np.stack([np.concatenate([row[picks[a:a + per]].sum(axis=1) for a in range(0, n_boot, per)])
+                     for row in sums]) / n
 
 
 def _jackknife(fn: Callable, n: int) -> np.ndarray:
@@ -165,8 +168,27 @@ def bootstrap_ci(x, statistic="mean", n_boot: int = 2000, level: float = 0.95, m
     f = _stat(statistic)
     rng = np.random.default_rng(seed)
     fn = lambda idx: f(a[idx], axis=1)  # noqa: E731
+    if layout is not None and f in _MEAN_OF:               # from per-block sums (same draws)
+        pre, post = _MEAN_OF[f]
+        return bootstrap_means_ci(pre(a)[None], lambda m: post(m[0]), n_boot, level, seed, blocks)
     boot = _replicates(fn, a.size, n_boot, rng, layout)
     return _result(f(a[None, :], axis=1)[0], boot, level, method, lambda: _jackknife(fn, a.size), n=int(a.size))
+
+
+def bootstrap_means_ci(x, function: Callable, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
+                       blocks=None) -> dict:
+    """Percentile interval of ``function(means)``, the means of the m rows of ``x`` (m, n)
+    (e.g. a ratio of means); ``function``: (m, B) means -> (B,).  The draws of
+    :func:`bootstrap_ci` (``blocks``: whole blocks), the means from per-block sums.  Returns
+    the keys of :func:`bootstrap_ci`."""
+    a = V.array(x, "x")
+    if a.ndim != 2 or a.shape[1] < 2:
+        raise ValueError(f"x: expected (quantities, values >= 2) values, got shape {a.shape}")
+    _check(n_boot, level, "percentile")
+    layout = _layout(np.arange(a.shape[1]) if blocks is None else blocks, a.shape[1])
+    boot = np.asarray(function(_block_means(a, layout, n_boot, np.random.default_rng(seed))), np.float64)
+    theta = np.asarray(function(a.mean(axis=1, keepdims=True)), np.float64).ravel()[0]
+    return _result(theta, boot, level, "percentile", None, n=int(a.shape[1]))
 
 
 def _compare(sa, sb, compare):
@@ -201,9 +223,11 @@ def _paired(x, y, f, compare, n_boot, level, method, seed, layout=None):
         sa, sb = f(x[idx], axis=1), f(y[idx], axis=1)
         smaller.append(np.count_nonzero(sa < sb))
         return _compare(sa, sb, compare)
-    if layout is not None and f in _MEAN_OF:
-        boot, count = _block_mean_replicates(x, y, _MEAN_OF[f], compare, layout, n_boot, rng)
-        smaller.append(count)
+    if layout is not None and f in _MEAN_OF:               # from per-block sums (same draws)
+        pre, post = _MEAN_OF[f]
+        ma, mb = post(_block_means(np.stack([pre(x), pre(y)]), layout, n_boot, rng))
+        boot = _compare(ma, mb, compare)
+        smaller.append(np.count_nonzero(ma < mb))
     else:
         boot = _replicates(rep, x.size, n_boot, rng, layout)
     sa, sb = float(f(x[None], axis=1)[0]), float(f(y[None], axis=1)[0])

@@ -138,3 +138,43 @@ def test_block_sums_give_the_replicates_of_the_generic_path(statistic, compare, 
     for p, q in zip(fast["per_config"], slow["per_config"]):
         assert (p["low"], p["high"]) == pytest.approx((q["low"], q["high"]), rel=1e-12, abs=1e-15)
         assert p["p_a_smaller"] == q["p_a_smaller"]
+
+
+def test_bootstrap_ci_with_blocks_takes_block_sums_for_means(monkeypatch):
+    """bootstrap_ci's block bootstrap of 'mean' / 'rmse' / 'mean_abs' from per-block sums equals
+    its generic path (each replicate's values gathered): the same draws, to rounding."""
+    rng = np.random.default_rng(4)
+    x, blocks = rng.standard_normal(700) + 0.3, rng.integers(0, 50, 700)
+    fast = {s: stats.bootstrap_ci(x, s, n_boot=300, seed=2, blocks=blocks) for s in ("mean", "rmse", "mean_abs")}
+    monkeypatch.setattr(stats, "_MEAN_OF", {})
+    for s, r in fast.items():
+        slow = stats.bootstrap_ci(x, s, n_boot=300, seed=2, blocks=blocks)
+        for k in ("estimate", "low", "high", "std_error"):
+            assert r[k] == pytest.approx(slow[k], rel=1e-12), (s, k)
+
+
+@pytest.mark.parametrize("case", ["random", "singletons", "none"])
+def test_function_of_means_matches_the_slow_reference(case):
+    """bootstrap_means_ci of a ratio of two means, sqrt(mean(u) / mean(v)), replicate by replicate
+    against the slow reference (whole blocks drawn and their values gathered); without blocks
+    it is bootstrap_ci's ordinary bootstrap, draw for draw."""
+    rng = np.random.default_rng(8)
+    n = 120
+    u, v = rng.random(n) + 0.5, rng.random(n) + 1.0
+    blocks = {"random": rng.integers(0, 15, n), "singletons": np.arange(n), "none": None}[case]
+    got = stats.bootstrap_means_ci(np.stack([u, v]), lambda m: np.sqrt(m[0] / m[1]), n_boot=200, seed=6, blocks=blocks)
+    lab = np.arange(n) if blocks is None else blocks
+    ru = _reference_replicates(u, None, lab, "mean", 200, 6)
+    rv = _reference_replicates(v, None, lab, "mean", 200, 6)
+    ref = np.sqrt(ru / rv)
+    assert got["estimate"] == pytest.approx(np.sqrt(u.mean() / v.mean()), rel=1e-14)
+    assert [got["low"], got["high"]] == pytest.approx(list(_percentile(ref)), rel=1e-12)
+    assert got["std_error"] == pytest.approx(np.std(ref, ddof=1), rel=1e-10) and got["n"] == n
+    if blocks is None:
+        idx = stats.bootstrap_ci(np.arange(n, dtype=np.float64), lambda i, axis: np.sqrt(
+            np.mean(u[i.astype(int)], axis=axis) / np.mean(v[i.astype(int)], axis=axis)), n_boot=200, seed=6)
+        assert (got["low"], got["high"]) == pytest.approx((idx["low"], idx["high"]), rel=1e-12)
+    with pytest.raises(ValueError, match="^x:"):
+        stats.bootstrap_means_ci(u, np.mean)
+    with pytest.raises(ValueError, match="^blocks:"):
+        stats.bootstrap_means_ci(np.stack([u, v]), np.mean, blocks=np.zeros(n - 1))

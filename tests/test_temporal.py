@@ -60,9 +60,10 @@ def test_pooled_ci_brackets_the_estimate():
 
 
 def test_pooled_ci_resamples_whole_blocks():
-    """With blocks (issue 23 item 4: 8 x 8 texel tiles), the block sums' bootstrap equals
-    avsm_dr.stats' block bootstrap of the receivers (same draws, to rounding); one receiver per
-    block is the receiver bootstrap; correlated receivers give a wider interval."""
+    """With blocks (8 x 8 texel tiles), the intervals from block sums (avsm_dr.stats.bootstrap_means_ci)
+    equal the generic block bootstrap of the receivers (a callable statistic, each replicate's
+    receivers gathered: the same draws, to rounding); one receiver per block is the receiver
+    bootstrap; correlated receivers give a wider interval."""
     from avsm_dr.stats import bootstrap_ci
     rng = np.random.default_rng(2)
     tiles = np.repeat(np.arange(40), 8)                       # 40 tiles of 8 receivers
@@ -71,19 +72,20 @@ def test_pooled_ci_resamples_whole_blocks():
     sums = M.receiver_sums(est, ref)
     got = M.pooled_ci(sums, 5, n_boot=300, blocks=tiles)
 
-    def err(x, axis):
-        i = x.astype(np.int64)
-        return np.sqrt(np.mean(sums[0][i], axis=-1) / 5)
-    want = bootstrap_ci(np.arange(tiles.size, dtype=np.float64), err, n_boot=300, blocks=tiles)
-    for k in ("estimate", "low", "high"):
-        assert got["error"][k] == pytest.approx(want[k], rel=1e-12)
+    for key in got:
+        def stat(x, axis, key=key):
+            i = x.astype(np.int64)
+            return M.pooled(np.stack([np.mean(s[i], axis=-1) for s in sums])[..., None], 5)[key]
+        want = bootstrap_ci(np.arange(tiles.size, dtype=np.float64), stat, n_boot=300, blocks=tiles)
+        for k in ("estimate", "low", "high"):
+            assert got[key][k] == pytest.approx(want[k], rel=1e-12), (key, k)
     one = M.pooled_ci(sums, 5, n_boot=300, blocks=np.arange(tiles.size))
     plain = M.pooled_ci(sums, 5, n_boot=300)
     for k in ("estimate", "low", "high"):
         assert one["flicker"][k] == pytest.approx(plain["flicker"][k], rel=1e-12)
     assert got["error"]["high"] - got["error"]["low"] > 1.5 * (plain["error"]["high"] - plain["error"]["low"])
     with pytest.raises(ValueError, match="^blocks:"):
-        M.pooled_ci(sums, 5, n_boot=10, blocks=tiles[:-1])
+        M.pooled_ci(sums, 5, n_boot=100, blocks=tiles[:-1])
 
 
 @pytest.mark.parametrize("est, ref, name", [(np.zeros((1, 3)), np.zeros((1, 3)), "estimate"),
@@ -107,6 +109,45 @@ def test_plume_sequence_matches_simulate_plume_bit_for_bit(tmp_path):
         fluid.simulate_plume_sequence(shape, frames=0, cache=False)
     with pytest.raises(ValueError, match="^kwargs:"):
         fluid.simulate_plume_sequence(shape, frames=1, start=1, cache=False, steps=3)
+
+
+def test_turned_spot_orbits_its_aim_point():
+    """A spot light turned about the vertical axis keeps its distance to its aim point (the point
+    of its axis nearest the centre) and still aims at it; at 0 degrees it is unchanged; a
+    directional light's direction turns alike."""
+    from avsm_dr.scene import DirectionalLight, SpotLight
+    spot = SpotLight(position=[2.0, 1.0, 0.5], direction=[-2.0, -0.25, -0.5], fov=40.0)
+    centre = np.array([0.0, 0.75, 0.0])
+    aim = spot.position + np.dot(centre - spot.position, spot.direction) * spot.direction
+    assert np.allclose(S.turned(spot, 0.0, centre).position, spot.position)
+    for deg in (0.25, 10.0, 90.0):
+        t = S.turned(spot, deg, centre)
+        v = aim - t.position
+        assert isinstance(t, SpotLight) and t.fov == 40.0
+        np.testing.assert_allclose(v / np.linalg.norm(v), t.direction, atol=1e-12)
+        assert np.linalg.norm(v) == pytest.approx(np.linalg.norm(aim - spot.position), rel=1e-12)
+        np.testing.assert_allclose(t.direction, S.rotate_y(spot.direction, deg), atol=1e-12)
+    d = S.turned(DirectionalLight(direction=(1.0, -0.3, 0.25)), 5.0, centre).direction
+    np.testing.assert_allclose(d, S.rotate_y(np.array([1.0, -0.3, 0.25]) / np.linalg.norm([1.0, -0.3, 0.25]), 5.0))
+
+
+def test_full_run_has_ten_configurations_and_seeds_change_every_animation(tmp_path, monkeypatch):
+    """FULL: >= 10 distinct configurations, every light of LIGHTS (the spot included); a
+    different seed gives different content in every animation (frame-0 densities and hair
+    strands of seeds 0 and 1, under the spot light; tiny grids)."""
+    from avsm_dr.scene import SpotLight
+    cfgs = [tuple(c) for c in T.FULL["configs"]]
+    assert len(set(cfgs)) == len(cfgs) >= 10 and {li for _, li in cfgs} == set(T.LIGHTS) and "spot" in T.LIGHTS
+    monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path)
+    P = dict(T.QUICK, frames=2, start_steps=2, n_receivers=64, hair_strands=20)
+    a0, a1 = (T._animations(P, seed, ["spot"]) for seed in (0, 1))
+    for setting in T.SETTINGS:
+        f0, f1 = a0[(setting, "spot")](0), a1[(setting, "spot")](0)
+        assert isinstance(f0.scene.light, SpotLight), setting
+        assert not np.array_equal(f0.scene.density, f1.scene.density), setting
+        if setting == "hair":
+            assert not np.array_equal(f0.scene.hair.strands, f1.scene.hair.strands)
+    assert not np.allclose(a0[("light", "spot")](1).scene.light.position, a0[("light", "spot")](0).scene.light.position)
 
 
 def test_camera_receivers_stay_in_the_box_and_move():
@@ -164,6 +205,13 @@ def test_insertion_claims_skip_stream_rows_not_run():
         assert set(rec["exact"]) == {"flicker_vs_sorted", "verdict"}
         assert rec["exact"]["flicker_vs_sorted"]["ratio"] == pytest.approx(0.5, rel=1e-12)
         assert rec["exact"]["verdict"] == "less"
+        fl = rec["exact"]["flicker_vs_sorted"]       # holds in its one configuration, but 1 < MIN_EVERY
+        assert fl["high"] < 1 and fl["indicative"] and not fl["holds_in_every_configuration"]
+    cfgs = [f"s{s}-dir_a" for s in range(T.MIN_EVERY)]
+    many = T.insertion_claims({("camera", c): series[("camera", "s0-dir_a")] for c in cfgs}, "camera", cfgs, ms,
+                              claim, 100)
+    fl = many["avsm-8 refit_l2 unsorted"]["exact"]["flicker_vs_sorted"]
+    assert fl["n_configs"] == T.MIN_EVERY and fl["holds_in_every_configuration"] and not fl["indicative"]
 
 
 def test_claims_resample_each_receivers_tile_with_all_its_frames():
@@ -220,7 +268,7 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
                 assert fl["b"] == "avsm-8 sorted"
                 assert rec[vs]["verdict"] == ("less" if fl["high"] < 1 else "more" if fl["low"] > 1
                                               else "indistinguishable")
-    # issue 23: every row records its capture order, sparse and dense bytes, the signed mean and
+    # every row records its capture order, sparse and dense bytes, the signed mean and
     # leak share at the receivers and the depth-uniform L2 of the curve
     order = {m[0]: m[3] for m in T.methods(quick=True)}
     for r in rows:

@@ -85,31 +85,14 @@ def pooled(sums, frames: int, axis: int = -1) -> dict:
 
 def pooled_ci(sums, frames: int, n_boot: int = 1000, seed: int = 0, blocks=None) -> dict:
     """Each statistic of :func:`pooled` with a bootstrap 95 % percentile interval over the
-    receivers (columns of the (3, K) ``sums``, e.g. the receivers of all configurations
-    side by side), through :func:`avsm_dr.stats.bootstrap_ci` on the receiver indices;
-    ``blocks`` (K,): a block label per receiver (e.g. the 8 x 8 texel tile it looks up in):
-    whole blocks are resampled (the spatial block bootstrap of :mod:`avsm_dr.stats`), as the
-    ordinary bootstrap of the blocks' sums and sizes (the same draws, vectorised)."""
-    from avsm_dr.stats import bootstrap_ci
-    s = np.asarray(sums, np.float64)
-    if blocks is not None:
-        b = np.asarray(blocks).ravel()
-        if b.size != s.shape[1]:
-            raise ValueError(f"blocks: expected {s.shape[1]} block labels (one per receiver), got {b.size}")
-        _, inv = np.unique(b, return_inverse=True)
-        size = np.bincount(inv).astype(np.float64)
-        s = np.stack([np.bincount(inv, weights=s[k]) for k in range(3)])       # (3, G) block sums
-    idx = np.arange(s.shape[1], dtype=np.float64)
+    receivers (columns of the (3, K) ``sums``, e.g. the receivers of all configurations side
+    by side; ``blocks`` (K,): a block label per receiver, e.g. the 8 x 8 texel tile it looks up
+    in, whole blocks resampled): :func:`avsm_dr.stats.bootstrap_means_ci`, as each statistic is a
+    function of the three sums' means.  The same draws for every statistic (``seed``)."""
+    from avsm_dr.stats import bootstrap_means_ci
     out = {}
     for key in ("error", "flicker", "content", "flicker_index", "flicker_per_content"):
-        def stat(x, axis, key=key):
-            i = x.astype(np.int64)
-            if blocks is None:
-                means = np.stack([np.mean(s[k][i], axis=-1) for k in range(3)])[..., None]   # one gather at a time
-            else:
-                n = np.sum(size[i], axis=-1)
-                means = np.stack([np.sum(s[k][i], axis=-1) / n for k in range(3)])[..., None]
-            return pooled(means, frames, axis=-1)[key]
-        ci = bootstrap_ci(idx, stat, n_boot=n_boot, seed=seed)
-        out[key] = {"estimate": ci["estimate"], "low": ci["low"], "high": ci["high"]}
+        ci = bootstrap_means_ci(sums, lambda m, key=key: pooled(m[..., None], frames)[key], n_boot=n_boot,
+                                seed=seed, blocks=blocks)
+        out[key] = {k: ci[k] for k in ("estimate", "low", "high")}
     return out

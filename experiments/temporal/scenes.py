@@ -7,9 +7,10 @@ fixed: the same world points in every frame, except under a moving camera, where
 * ``smoke``   the stable-fluids plume (:func:`avsm_dr.fluid.simulate_plume_sequence`), one
               frame per solver step; light fixed; the map fitted to the grid's box, so only
               the content moves.
-* ``light``   the last smoke frame, still; the light direction turns about the vertical
-              axis by ``light_step`` degrees per frame: the map (refitted to the box for
-              each direction) swims over the content.
+* ``light``   the last smoke frame, still; the light turns about the vertical axis by
+              ``light_step`` degrees per frame (:func:`turned`: a directional light's
+              direction; a spot light orbits the vertical line through its aim point, aiming
+              at it): the map (refitted to the box for each direction) swims over the content.
 * ``camera``  the last smoke frame and the light still; the receivers are the points at 1/3
               and 2/3 of each pixel's view ray through the box for a camera orbiting the
               plume by ``camera_step`` degrees per frame (Stam-style volume shading
@@ -24,7 +25,7 @@ import dataclasses
 
 import numpy as np
 
-from avsm_dr.scene import DirectionalLight, Hair, Scene
+from avsm_dr.scene import DirectionalLight, Hair, Scene, SpotLight
 
 #: The plume's box (that of :func:`avsm_dr.builtin_scenes.simulated_plume`) and receiver wall.
 PLUME_BOX = (np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5]))
@@ -82,13 +83,27 @@ def smoke(base: Scene, frames: np.ndarray, image_n: int):
     return frame
 
 
+def turned(light, degrees: float, centre):
+    """``light`` turned about the vertical axis by ``degrees``: a DirectionalLight's direction;
+    a SpotLight orbits the vertical line through its aim point ``a = p + ((c - p) . d) d`` (the
+    point of its axis nearest ``centre`` c: the content's centre, at which
+    :func:`avsm_dr.evaluation.light_variants` aims it), its direction turned alike, so it keeps
+    aiming at ``a`` and its distance to it."""
+    if isinstance(light, SpotLight):
+        p, d = light.position, light.direction
+        a = p + np.dot(np.asarray(centre, np.float64) - p, d) * d
+        return dataclasses.replace(light, position=a + rotate_y(p - a, degrees), direction=rotate_y(d, degrees))
+    return DirectionalLight(direction=rotate_y(light.direction, degrees), irradiance=light.irradiance)
+
+
 def light(base: Scene, density, step: float, image_n: int):
-    """``frame(t)`` of the ``light`` animation: the light turned by ``t * step`` degrees."""
+    """``frame(t)`` of the ``light`` animation: the light :func:`turned` by ``t * step``
+    degrees about the box's centre."""
     img = slice_points(base.bbox, image_n) if image_n else None
-    d0 = np.asarray(base.light.direction, np.float64)
+    centre = 0.5 * (np.asarray(base.bbox[0], np.float64) + np.asarray(base.bbox[1], np.float64))
 
     def frame(t):
-        li = DirectionalLight(direction=rotate_y(d0, t * step), irradiance=base.light.irradiance)
+        li = turned(base.light, t * step, centre)
         return Frame(dataclasses.replace(base, density=density, light=li), base.bbox, base.receivers, img)
     return frame
 
