@@ -369,7 +369,9 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
     """findings.json and map.csv's rows from data.csv's rows (:mod:`.analysis`): per animation
     and resolution the arrays of :mod:`.analysis` with one entry per configuration (its mean
     over frames), the threshold with its interval over configurations, and the claim that the
-    threshold kind's compression is below the noise (:func:`avsm_dr.stats.claim`)."""
+    threshold kind's compression is below the noise (:func:`avsm_dr.stats.claim`).  A kind's
+    size at a budget can differ between configurations (its bytes follow the content); the
+    ``label`` of a threshold or map cell is the most common one."""
     budgets, ks, T, r0 = P["budgets"], P["kinds"], P["frames"], P["resolutions"][0]
     cfgs = [Configuration(s, li).label for s, li in P["configs"]]
     out = {"definition": ("compression invisible at a budget: FLIP(render with the kind, render with exact; same "

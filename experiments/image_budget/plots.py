@@ -71,7 +71,8 @@ def budget_map(res, cells, P):
                           label="outline: threshold (invisible from here on)")]
         fig.legend(handles=handles, loc="outside lower center", ncol=2 if len(settings) == 1 else 3, fontsize=6.5)
         fig.suptitle("Cheapest kind whose compression is invisible, else the least visible\n"
-                     "cell text: configuration; its compression FLIP / the reference-noise FLIP", fontsize=7.5)
+                     "cell text: its size (the most common over configurations); its compression FLIP / the "
+                     "reference-noise FLIP", fontsize=7.5)
         res.save_figure(fig, "budget_map.png")
 
 
@@ -122,7 +123,8 @@ def flip_vs_bytes(res, rows, found, P):
                 ax.set_title(f"{setting}, {resolution}$^2$ map")
                 if i == len(settings) - 1:
                     ax.set_xlabel("stored bytes per texel")
-        fig.supylabel("compression FLIP: FLIP(kind, exact), mean over configurations and frames", fontsize=8)
+        for row in axes:                 # on the panels (a figure-wide label runs into a one-panel legend)
+            row[0].set_ylabel("compression FLIP, mean")
         plotstyle.legend_below(fig, ncol=5)
         res.save_figure(fig, "flip_vs_bytes.png")
 
