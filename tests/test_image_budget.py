@@ -253,6 +253,12 @@ def test_seeds_change_the_plume_and_the_spot_light_turns_about_it():
         assert np.allclose(v / np.linalg.norm(v), li.direction, atol=1e-9)
     assert np.linalg.norm(c - s0.position) == pytest.approx(np.linalg.norm(c - s1.position))
     assert np.degrees(np.arccos(np.clip(s0.direction @ s1.direction, -1, 1))) > 0.5 * P["light_step"]
+    # the light animation's frame 0 is the smoke animation's last frame: one key, rendered once
+    last = P["frames"] - 1
+    for anim in (a, b):
+        assert S.frame_key(anim["light"](0)) == S.frame_key(anim["smoke"](last))
+        assert S.frame_key(anim["light"](1)) != S.frame_key(anim["light"](0)) != S.frame_key(anim["smoke"](0))
+    assert S.frame_key(a["smoke"](0)) != S.frame_key(b["smoke"](0))
 
 
 def test_every_configuration_wording_needs_eight():

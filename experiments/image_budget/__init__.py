@@ -11,7 +11,9 @@ under ``spot``, :func:`avsm_dr.evaluation.light_variants` of the temporal study'
 Frames (:mod:`experiments.temporal.scenes`), per configuration: ``smoke``, the stable-fluids
 plume stepping with the light fixed; ``light``, its last frame with the light turning about the
 vertical axis through the plume box's centre (:func:`turning`: a spot light turns its position
-and direction).  Scene, camera and tonemap: :mod:`.render`.
+and direction).  The ``light`` animation's frame 0 is the ``smoke`` animation's last frame (same
+density, light not yet turned): it is rendered once (:func:`frame_key`), and both animations'
+rows carry it.  Scene, camera and tonemap: :mod:`.render`.
 
 Size candidates: each kind of ``kinds`` at its preset (``describe(kind)['preset']``) merged
 with its size parameter (``describe(kind)['size']``); the candidate sizes are the kind's sweep
@@ -39,6 +41,8 @@ as long as all renders of one resolution):
 * ``budgets`` up to 256 -> up to 128 B (and :data:`EXTRA_SIZES` without DSM's 0.0002 and
   0.0001, which only reached 256 B): every threshold was 32 B, and the 128 B and 256 B cells
   had the same best kind and size;
+* no trade: the frame both animations share is rendered once (a sixth of the renders with 3
+  frames per animation);
 * kept: ``image`` 48 x 48, ``spp`` 32 and ``reference_spp`` 1024 per half.  The reference's
   Monte Carlo noise is the bar every compression FLIP is ranked against (below); at 1024 spp per
   half it was FLIP 0.0099-0.0102 (mean over frames), while the threshold kinds' compression
@@ -93,6 +97,7 @@ against the renders' own noise (``flip_render_noise``) instead of the reference'
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import time
 from collections import Counter
 
@@ -261,8 +266,9 @@ def turning(base: Scene, density, step: float):
 
 
 # ========================================================================== run
-def _render_setting(mi, cls, frame_fn, P, bar):
-    """Every configuration in every frame of one animation: images, bytes, times, choices."""
+def _render_setting(mi, cls, frame_fn, P, bar, cache: dict):
+    """Every size in every frame of one animation: images, bytes, times, choices; ``cache``
+    (:func:`frame_key` -> renders) holds the configuration's renders across its animations."""
     F, budgets = P["frames"], P["budgets"]
     f0 = frame_fn(0)
     choices, configs = {}, {}          # res -> {kind: [choice per budget]}, res -> {label: (kind, params)}
@@ -283,35 +289,55 @@ def _render_setting(mi, cls, frame_fn, P, bar):
     imgs, nbytes, sparse, curves, secs, refs = {}, {}, {}, {}, {}, []
     for t in range(F):
         frame = frame_fn(t)
+        done = cache.setdefault(frame_key(frame), {})      # this scene's renders so far, in any animation
         scene = R.load_scene(mi, frame, P["image"])
-        a, b = R.reference_halves(mi, scene, P["reference_spp"], (10_000 + 2 * t, 10_001 + 2 * t))
-        refs.append((a, b))
+        if "reference" not in done:
+            done["reference"] = R.reference_halves(mi, scene, P["reference_spp"], (10_000 + 2 * t, 10_001 + 2 * t))
+        refs.append(done["reference"])
         bar.update(1)
         for res in P["resolutions"]:
-            ref_curve, ref_counts = None, None
             for lab in configs[res]:           # exact first (``kinds`` starts with it): the curves' reference
-                integ = integs[(res, lab)]
-                t0 = time.perf_counter()
-                imgs[(t, res, lab)] = R.render(mi, scene, integ, P["spp"], P["render_seed"])
-                secs[(t, res, lab)] = time.perf_counter() - t0
-                nbytes[(t, res, lab)] = integ.bytes_per_texel
-                sparse[(t, res, lab)] = integ.sparse_bytes
-                seg, rep = integ.last_map
-                integ.last_map = None
-                if ref_curve is None:
-                    if configs[res][lab][0] != "exact":
-                        raise RuntimeError("image_budget: exact must be the first configuration of a resolution")
-                    ref_curve, ref_counts = R.exact_curve(mi, seg, rep), seg.counts
-                    curves[(t, res, lab)] = R.curve_metrics(mi, seg, rep, None)
-                else:
-                    if not np.array_equal(seg.counts, ref_counts):
-                        raise RuntimeError(f"image_budget: {lab}'s capture differs from exact's at {res}^2")
-                    curves[(t, res, lab)] = R.curve_metrics(mi, seg, rep, ref_curve)
+                if (res, lab) not in done:
+                    done[(res, lab)] = _render_one(mi, scene, integs[(res, lab)], P, done, res, lab)
+                imgs[(t, res, lab)], nbytes[(t, res, lab)], sparse[(t, res, lab)], curves[(t, res, lab)], \
+                    secs[(t, res, lab)] = done[(res, lab)]
                 bar.update(1)
-            imgs[(t, res, "exact@seed2")] = R.render(mi, scene, noise_integ[res], P["spp"], P["render_seed"] + 1)
+            if (res, "exact@seed2") not in done:
+                done[(res, "exact@seed2")] = R.render(mi, scene, noise_integ[res], P["spp"], P["render_seed"] + 1)
+            imgs[(t, res, "exact@seed2")] = done[(res, "exact@seed2")]
             bar.update(1)
     return dict(choices=choices, configs=configs, imgs=imgs, nbytes=nbytes, sparse=sparse, curves=curves, secs=secs,
                 refs=refs)
+
+
+def _render_one(mi, scene, integ, P, done: dict, res: int, lab: str) -> tuple:
+    """(image, dense and sparse bytes per texel, curve metrics, seconds) of one render; the
+    first render of a resolution is ``exact``'s, whose curve (kept in ``done``) the others'
+    curve metrics compare against."""
+    t0 = time.perf_counter()
+    img = R.render(mi, scene, integ, P["spp"], P["render_seed"])
+    sec = time.perf_counter() - t0
+    seg, rep = integ.last_map
+    integ.last_map = None
+    if ("curve", res) not in done:
+        if integ.kind != "exact":
+            raise RuntimeError("image_budget: exact must be the first configuration of a resolution")
+        done[("curve", res)] = (R.exact_curve(mi, seg, rep), seg.counts)
+        return img, integ.bytes_per_texel, integ.sparse_bytes, R.curve_metrics(mi, seg, rep, None), sec
+    ref_curve, ref_counts = done[("curve", res)]
+    if not np.array_equal(seg.counts, ref_counts):
+        raise RuntimeError(f"image_budget: {lab}'s capture differs from exact's at {res}^2")
+    return img, integ.bytes_per_texel, integ.sparse_bytes, R.curve_metrics(mi, seg, rep, ref_curve), sec
+
+
+def frame_key(frame) -> tuple:
+    """Identity of a frame's scene: its density's digest and its light's class and numbers
+    (to 1e-12).  The ``light`` animation's frame 0 is the ``smoke`` animation's last frame
+    (same density, light not yet turned): :func:`_render_setting` renders it once."""
+    li = frame.scene.light
+    nums = np.concatenate([np.atleast_1d(np.asarray(v, np.float64)).ravel() for v in dataclasses.astuple(li)])
+    digest = hashlib.sha1(np.ascontiguousarray(frame.scene.density).tobytes()).hexdigest()
+    return digest, type(li).__name__, tuple(np.round(nums, 12).tolist())
 
 
 def _rows(setting, config, out, P):
@@ -496,10 +522,10 @@ def _compute(res, P: dict) -> dict:
     bar = tqdm(total=0, desc="image_budget", unit="render")     # grows as each animation's configurations are known
     for ci, (seed, light) in enumerate(P["configs"]):
         cfg = Configuration(seed, light).label
-        anims = animations(P, seed, light)
+        anims, cache = animations(P, seed, light), {}
         for setting in P["settings"]:
             bar.set_description(f"image_budget {cfg} {setting} ({ci + 1}/{len(P['configs'])})")
-            out = _render_setting(mi, cls, anims[setting], P, bar)
+            out = _render_setting(mi, cls, anims[setting], P, bar, cache)
             r, whites[(cfg, setting)] = _rows(setting, cfg, out, P)
             rows += r
             if ci == 0:                  # the figures' images: the first configuration's frame 0
