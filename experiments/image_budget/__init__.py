@@ -26,11 +26,12 @@ compression baseline and a candidate where its bytes fit.  Every candidate chose
 budget is rendered in every frame; ``bytes_per_texel`` in the table is what that frame's map
 stored.
 
-Full-run settings and what was traded for ten configurations (the previous full run, one
-configuration with 6 frames, 64/128/256^2 maps and budgets up to 256 B, took 2,064 s on 2
-shared cores; its profile on this revision: the renders' captures and builds at 256^2 about
-half the render time, DSM's builds the costliest, the 2 x 1024-spp reference of a frame about
-as long as all renders of one resolution):
+Full-run settings and what was traded for ten configurations.  The previous full run (one
+configuration, 6 frames, 64/128/256^2 maps, budgets up to 256 B) took 2,064 s on 2 shared
+cores.  Profile of one animation with 2 frames of those settings (626 s on 2 cores at load
+about 8): the kinds' renders 286 s (256^2: 154 s, 128^2: 77 s, 64^2: 56 s; the captures and
+builds inside them 185 s), the curve metrics 131 s (each curve was evaluated twice, now once),
+the references 97 s, the size calibration 65 s (DSM's builds the costliest), FLIP 40 s.
 
 * ``frames`` 6 -> 3 per animation: the interval's unit is now the configuration, and consecutive
   frames of one simulation are strongly correlated; on the previous run's table, frames 0-2 give
@@ -46,7 +47,7 @@ as long as all renders of one resolution):
 * kept: ``image`` 48 x 48, ``spp`` 32 and ``reference_spp`` 1024 per half.  The reference's
   Monte Carlo noise is the bar every compression FLIP is ranked against (below); at 1024 spp per
   half it was FLIP 0.0099-0.0102 (mean over frames), while the threshold kinds' compression
-  FLIPs sit at 0.45-0.99x of it and the 16 B kinds' at 1.4-2.3x: fewer samples would raise the
+  FLIPs sat at 0.45-0.99x of it and the best 16 B kind's at 1.4-2.3x: fewer samples would raise the
   bar (one development frame: 0.016 at 256 spp, 0.0093 at 1024, 0.0056 at 4096) and move the
   threshold, so it stays.  The bar is now the mean over configurations of each configuration's
   mean over frames; ``findings.json['reference']`` gives it per configuration.
