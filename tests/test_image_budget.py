@@ -265,3 +265,20 @@ def test_every_configuration_wording_needs_eight():
     r = dict(holds_in_every_configuration=True, holds_pooled=True, low=0.5, below=1.0, n_configs=S.MIN_EVERY - 1)
     assert S._verdict(r) == "holds pooled"
     assert S._verdict(dict(r, n_configs=S.MIN_EVERY)) == "holds in every configuration"
+
+
+def test_summary_pools_configurations_and_keeps_each_ones_threshold():
+    """Two configurations: one invisible from 32 B, the other from 64 B; the pooled threshold
+    uses the means over configurations, and a kind that does not fit in one of them is out."""
+    comp = np.array([[[0.5, 0.5], [0.05, 0.3], [0.01, 0.05], [0.01, 0.01]],      # kind 0: (B=4, C=2)
+                     [[0.5, 0.5], [0.01, 0.01], [0.01, 0.01], [0.01, 0.01]]])    # kind 1: never fits in config 1
+    nbytes = np.ones_like(comp)
+    fits = np.ones(comp.shape, bool)
+    fits[1, :, 1] = False
+    s = A.summarise(comp, nbytes, fits, np.array([0.1, 0.1]), [16, 32, 64, 128], ["a", "b"],
+                    [["a"] * 4, ["b"] * 4], n_boot=200, min_configs=4)
+    thr = s["threshold"]
+    assert thr["per_config"] == [32.0, 64.0] and thr["n_configs"] == 2 and thr["indicative"]
+    assert thr["bytes"] == 64.0 and thr["kind"] == "a"                       # mean at 32 B: 0.175 > 0.1
+    assert [c["kinds_within_budget"] for c in s["cells"]] == [1, 1, 1, 1]
+    assert thr["interval"]["unit"] == "configuration" and thr["interval"]["n"] == 2

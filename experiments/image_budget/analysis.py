@@ -70,7 +70,7 @@ def threshold_ci(comp, nbytes, fits, noise, budgets, n_boot: int = 1000, seed: i
     fits = np.asarray(fits, bool)
     budgets = np.asarray(budgets, np.float64)
     beyond = 2.0 * float(budgets.max())
-    T = comp.shape[2]
+    C = comp.shape[2]
 
     def stat(x, axis):
         idx = np.atleast_2d(np.asarray(x)).astype(np.int64)
@@ -80,9 +80,9 @@ def threshold_ci(comp, nbytes, fits, noise, budgets, n_boot: int = 1000, seed: i
                                    noise[sel].mean())
             out[r] = beyond if b is None else budgets[b]
         return out
-    ci = bootstrap_ci(np.arange(T, dtype=np.float64), stat, n_boot=n_boot, seed=seed)
+    ci = bootstrap_ci(np.arange(C, dtype=np.float64), stat, n_boot=n_boot, seed=seed)
     return {k: (None if ci[k] >= beyond else float(ci[k])) for k in ("estimate", "low", "high")} | {
-        "level": ci["level"], "n": int(T), "unit": "configuration"}
+        "level": ci["level"], "n": int(C), "unit": "configuration"}
 
 
 def summarise(comp, nbytes, fits, noise, budgets, kinds, labels, n_boot: int, min_configs: int) -> dict:
