@@ -8,14 +8,15 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from avsm_dr.evaluation import read_csv
+from avsm_dr.evaluation import Configuration, read_csv
+from avsm_dr.scene import SpotLight
 from experiments import image_budget as S
 from experiments.image_budget import analysis as A
 from helpers import quick_cli_run
 
 pytestmark = pytest.mark.mitsuba
 
-TEXT = {"setting", "kind", "label", "size_param", "size", "best_kind", "best_label", "order"}
+TEXT = {"setting", "config", "kind", "label", "size_param", "size", "best_kind", "best_label", "order"}
 BOOL = {"fits", "invisible", "threshold"}
 FLIPS = ("flip", "flip_compression", "flip_spatial", "flip_resolution", "flip_render_noise", "flip_reference_noise")
 
@@ -24,7 +25,7 @@ def _typed(row: dict) -> dict:
     out = {}
     for k, v in row.items():
         out[k] = (v if k in TEXT else (v == "True") if k in BOOL
-                  else int(v) if k in ("frame", "resolution") else float(v))
+                  else int(v) if k in ("frame", "resolution", "n_configs") else float(v))
     return out
 
 
@@ -39,9 +40,10 @@ def quick(tmp_path_factory):
 
 def test_every_kind_budget_resolution_and_frame_is_present(quick):
     rows, _, _, P, out = quick
-    keys = [(r["setting"], r["kind"], r["budget"], r["resolution"], r["frame"]) for r in rows]
+    keys = [(r["setting"], r["config"], r["kind"], r["budget"], r["resolution"], r["frame"]) for r in rows]
     assert len(keys) == len(set(keys))
-    want = set(itertools.product(P["settings"], P["kinds"], P["budgets"], P["resolutions"], range(P["frames"])))
+    cfgs = [Configuration(s, li).label for s, li in P["configs"]]
+    want = set(itertools.product(P["settings"], cfgs, P["kinds"], P["budgets"], P["resolutions"], range(P["frames"])))
     assert set(keys) == want and P["kinds"][0] == "exact" and len(P["kinds"]) >= 4
     for name in ("budget_map", "flip_vs_bytes", "frames"):
         assert (out / f"{name}.png").is_file() and (out / f"{name}.pdf").is_file()
@@ -55,7 +57,7 @@ def test_every_kind_budget_resolution_and_frame_is_present(quick):
 
 
 def test_rows_carry_the_curve_metrics_of_their_maps(quick):
-    """Issue 23: every row records the capture order, sparse and dense bytes of the map that
+    """Every row records the capture order, sparse and dense bytes of the map that
     made the image, and that map's depth-uniform L2, signed mean and leak share against the
     exact curve (0 for exact; the smallest AVSM further from it than its largest)."""
     rows, _, _, _, _ = quick
@@ -65,14 +67,16 @@ def test_rows_carry_the_curve_metrics_of_their_maps(quick):
             assert np.isfinite(r[k]), (k, r)
         assert 0 <= r["curve_leak_share"] <= 1 and r["depth_l2"] >= 0
         assert (r["depth_l2"] == 0) == (r["kind"] == "exact"), r
-    l2 = {r["label"]: r["depth_l2"] for r in rows if r["kind"] == "avsm" and r["frame"] == 0}
+    first = rows[0]["config"]
+    l2 = {r["label"]: r["depth_l2"] for r in rows if r["kind"] == "avsm" and r["frame"] == 0 and r["config"] == first}
     assert l2["avsm-2"] > l2[max(l2, key=lambda s: int(s.split("-")[1]))]
     _, cells, found, P, _ = quick
     assert all(np.isfinite(c["best_depth_l2"]) for c in cells if c["best_kind"])
     for s in P["settings"]:
         for res in P["resolutions"]:
             thr = found["thresholds"][s][str(res)]
-            assert thr["n_configs"] == 1 and thr["indicative"] and thr["interval_unit"] == "frame"
+            assert thr["n_configs"] == len(P["configs"]) and thr["interval_unit"] == "configuration"
+            assert thr["indicative"] is (len(P["configs"]) < S.MIN_CONFIGS)
             assert "B/texel" in found["headline"][f"{s} {res}^2"] or "visible" in found["headline"][f"{s} {res}^2"]
             cur = found["curves"][s][str(res)]
             assert set(cur) == {r["label"] for r in rows if (r["setting"], r["resolution"]) == (s, res)}
@@ -94,23 +98,31 @@ def test_flips_and_the_error_split(quick):
     # a configuration is rendered once per frame and resolution: its rows agree at every budget
     by = defaultdict(set)
     for r in rows:
-        by[(r["setting"], r["frame"], r["resolution"], r["label"])].add((r["flip"], r["flip_compression"],
-                                                                         r["bytes_per_texel"]))
+        by[(r["setting"], r["config"], r["frame"], r["resolution"], r["label"])].add(
+            (r["flip"], r["flip_compression"], r["bytes_per_texel"]))
     assert all(len(v) == 1 for v in by.values())
     # the smallest AVSM loses to its largest (the study resolves compression)
-    avsm = {r["label"]: r["flip_compression"] for r in rows if r["kind"] == "avsm" and r["frame"] == 0}
+    avsm = {r["label"]: r["flip_compression"] for r in rows
+            if r["kind"] == "avsm" and r["frame"] == 0 and r["config"] == rows[0]["config"]}
     assert len(avsm) >= 2 and avsm["avsm-2"] > avsm[max(avsm, key=lambda s: int(s.split("-")[1]))]
 
 
 def _means(rows, setting, res, budget):
-    """{label: (mean compression FLIP, mean bytes, kind)} of the configurations within budget, and the noise."""
+    """{label: (mean compression FLIP, mean bytes, kind)} of the kinds within budget in every
+    configuration (a kind's most common label), and the noise; every configuration has as
+    many frames, so the mean over rows is the mean over configurations of their means."""
     sel = [r for r in rows if (r["setting"], r["resolution"], r["budget"]) == (setting, res, budget)]
     acc = defaultdict(list)
     for r in sel:
-        if r["fits"]:
-            acc[(r["label"], r["kind"])].append((r["flip_compression"], r["bytes_per_texel"]))
+        acc[r["kind"]].append(r)
     noise = np.mean([r["flip_reference_noise"] for r in sel if r["kind"] == "exact"])
-    return {lab: (*np.mean(v, axis=0), kind) for (lab, kind), v in acc.items()}, noise
+    out = {}
+    for kind, rs in acc.items():
+        if all(r["fits"] for r in rs):
+            labels = [r["label"] for r in rs]
+            out[max(labels, key=labels.count)] = (np.mean([r["flip_compression"] for r in rs]),
+                                                  np.mean([r["bytes_per_texel"] for r in rs]), kind)
+    return out, noise
 
 
 def test_map_is_the_cheapest_invisible_or_least_visible_kind(quick):
@@ -146,8 +158,13 @@ def test_thresholds_and_their_intervals(quick):
             for key in ("thresholds", "thresholds_vs_render_noise"):
                 thr = found[key][setting][str(res)]
                 ci = thr["interval"]
-                assert thr["indicative"] is (P["frames"] < S.MIN_FRAMES) and ci["unit"] == "frame"
-                assert ci["n"] == P["frames"]
+                assert thr["indicative"] is (len(P["configs"]) < S.MIN_CONFIGS) and ci["unit"] == "configuration"
+                assert ci["n"] == len(P["configs"]) == thr["n_configs"]
+                if thr["reached"] and thr["kind"] != "exact":
+                    cl = thr["claim"]
+                    assert cl["n_configs"] == len(P["configs"]) and cl["low"] <= cl["estimate"] <= cl["high"]
+                    assert cl["indicative"] is (len(P["configs"]) < S.MIN_CONFIGS)
+                    assert cl["verdict"] != "holds in every configuration" or cl["n_configs"] >= S.MIN_EVERY
                 if ci["low"] is not None and ci["high"] is not None:
                     assert ci["low"] <= ci["high"]
                 if thr["reached"]:
@@ -195,15 +212,73 @@ def test_cell_rules_and_ties():
     assert A.best_in_cell(comp, nbytes, np.zeros(4, bool), 0.5) == (None, False)
 
 
-def test_interval_over_frames():
-    """Frames disagree: the bootstrap interval spans the budgets they point to."""
+def test_interval_over_configurations():
+    """Configurations disagree: the bootstrap interval spans the budgets they point to."""
     rng = np.random.default_rng(0)
-    T = 8
+    C = 8
     base = np.array([[0.3, 0.2, 0.05, 0.01]])[..., None]
-    comp = base * np.exp(rng.normal(0, 0.8, (1, 4, T)))
-    ci = A.threshold_ci(comp, np.ones((1, 4, T)), np.ones((1, 4), bool), np.full(T, 0.1), [16, 32, 64, 128], n_boot=300)
-    assert ci["unit"] == "frame" and ci["n"] == T
+    comp = base * np.exp(rng.normal(0, 0.8, (1, 4, C)))
+    ci = A.threshold_ci(comp, np.ones((1, 4, C)), np.ones((1, 4, C), bool), np.full(C, 0.1), [16, 32, 64, 128],
+                        n_boot=300)
+    assert ci["unit"] == "configuration" and ci["n"] == C
+    assert ci["low"] != ci["high"]
     lo = ci["low"] if ci["low"] is not None else 256
     hi = ci["high"] if ci["high"] is not None else 256
     est = ci["estimate"] if ci["estimate"] is not None else 256
     assert lo <= est <= hi
+
+
+def test_full_mode_runs_ten_configurations_with_a_spot_light():
+    P, _ = S.STUDY.params(quick=False)
+    cfgs = [Configuration(s, li) for s, li in P["configs"]]
+    assert len({c.label for c in cfgs}) == len(cfgs) >= 10
+    assert any(c.light == "spot" for c in cfgs) and len({c.seed for c in cfgs}) >= 4
+    assert len(cfgs) >= S.MIN_EVERY > S.MIN_CONFIGS
+    with pytest.raises(ValueError, match="configs"):
+        S._resolve(dict(P, configs=[[0, "dir_a"]]), False)
+    with pytest.raises(ValueError, match="light"):
+        S._resolve(dict(P, configs=[[0, "dir_a"], [1, "sun"]]), False)
+
+
+def test_seeds_change_the_plume_and_the_spot_light_turns_about_it():
+    P, _ = S.STUDY.params(quick=True)
+    P = dict(P, settings=["smoke", "light"])
+    a, b = S.animations(P, 0, "dir_a"), S.animations(P, 1, "spot")
+    assert not np.array_equal(a["smoke"](0).scene.density, b["smoke"](0).scene.density)
+    s0, s1 = b["light"](0).scene.light, b["light"](1).scene.light
+    assert isinstance(s0, SpotLight) and isinstance(s1, SpotLight)
+    c = 0.5 * (np.asarray(S.S.PLUME_BOX[0]) + np.asarray(S.S.PLUME_BOX[1]))
+    for li in (s0, s1):        # still aimed at the plume's centre, at the same distance
+        v = c - li.position
+        assert np.allclose(v / np.linalg.norm(v), li.direction, atol=1e-9)
+    assert np.linalg.norm(c - s0.position) == pytest.approx(np.linalg.norm(c - s1.position))
+    assert np.degrees(np.arccos(np.clip(s0.direction @ s1.direction, -1, 1))) > 0.5 * P["light_step"]
+    # the light animation's frame 0 is the smoke animation's last frame: one key, rendered once
+    last = P["frames"] - 1
+    for anim in (a, b):
+        assert S.frame_key(anim["light"](0)) == S.frame_key(anim["smoke"](last))
+        assert S.frame_key(anim["light"](1)) != S.frame_key(anim["light"](0)) != S.frame_key(anim["smoke"](0))
+    assert S.frame_key(a["smoke"](0)) != S.frame_key(b["smoke"](0))
+
+
+def test_every_configuration_wording_needs_eight():
+    r = dict(holds_in_every_configuration=True, holds_pooled=True, low=0.5, below=1.0, n_configs=S.MIN_EVERY - 1)
+    assert S._verdict(r) == "holds pooled"
+    assert S._verdict(dict(r, n_configs=S.MIN_EVERY)) == "holds in every configuration"
+
+
+def test_summary_pools_configurations_and_keeps_each_ones_threshold():
+    """Two configurations: one invisible from 32 B, the other from 64 B; the pooled threshold
+    uses the means over configurations, and a kind that does not fit in one of them is out."""
+    comp = np.array([[[0.5, 0.5], [0.05, 0.3], [0.01, 0.05], [0.01, 0.01]],      # kind 0: (B=4, C=2)
+                     [[0.5, 0.5], [0.01, 0.01], [0.01, 0.01], [0.01, 0.01]]])    # kind 1: never fits in config 1
+    nbytes = np.ones_like(comp)
+    fits = np.ones(comp.shape, bool)
+    fits[1, :, 1] = False
+    s = A.summarise(comp, nbytes, fits, np.array([0.1, 0.1]), [16, 32, 64, 128], ["a", "b"],
+                    [["a"] * 4, ["b"] * 4], n_boot=200, min_configs=4)
+    thr = s["threshold"]
+    assert thr["per_config"] == [32.0, 64.0] and thr["n_configs"] == 2 and thr["indicative"]
+    assert thr["bytes"] == 64.0 and thr["kind"] == "a"                       # mean at 32 B: 0.175 > 0.1
+    assert [c["kinds_within_budget"] for c in s["cells"]] == [1, 1, 1, 1]
+    assert thr["interval"]["unit"] == "configuration" and thr["interval"]["n"] == 2

@@ -71,16 +71,19 @@ def budget_map(res, cells, P):
                           label="outline: threshold (invisible from here on)")]
         fig.legend(handles=handles, loc="outside lower center", ncol=2 if len(settings) == 1 else 3, fontsize=6.5)
         fig.suptitle("Cheapest kind whose compression is invisible, else the least visible\n"
-                     "cell text: configuration; its compression FLIP / the reference-noise FLIP", fontsize=7.5)
+                     "cell text: its size (the most common over configurations); its compression FLIP / the "
+                     "reference-noise FLIP", fontsize=7.5)
         res.save_figure(fig, "budget_map.png")
 
 
 def _distinct(rows, setting, resolution):
-    """{kind: [(mean bytes, mean compression FLIP, label)]} over frames, one entry per configuration."""
+    """{kind: [(mean bytes, mean compression FLIP, label)]} over configurations and frames, one
+    entry per size label."""
     acc = {}
     for r in rows:
-        if r["setting"] == setting and r["resolution"] == resolution:          # a configuration's rows agree
-            acc.setdefault((r["kind"], r["label"]), {})[r["frame"]] = (r["bytes_per_texel"], r["flip_compression"])
+        if r["setting"] == setting and r["resolution"] == resolution:          # a label's rows agree at every budget
+            acc.setdefault((r["kind"], r["label"]), {})[(r["config"], r["frame"])] = (r["bytes_per_texel"],
+                                                                                      r["flip_compression"])
     out = {}
     for (kind, lab), by_frame in acc.items():
         v = np.array(list(by_frame.values()))
@@ -90,7 +93,7 @@ def _distinct(rows, setting, resolution):
 
 def flip_vs_bytes(res, rows, found, P):
     """``flip_vs_bytes.png``: rows = animations, columns = resolutions; compression FLIP (mean
-    over frames) against stored bytes per texel, one line per kind, with the reference's and
+    over configurations and frames) against stored bytes per texel, one line per kind, with the reference's and
     the renders' noise FLIP as horizontal lines."""
     from .. import _plotstyle as plotstyle
     _plt()
@@ -120,15 +123,17 @@ def flip_vs_bytes(res, rows, found, P):
                 ax.set_title(f"{setting}, {resolution}$^2$ map")
                 if i == len(settings) - 1:
                     ax.set_xlabel("stored bytes per texel")
-        fig.supylabel("compression FLIP: FLIP(kind, exact), mean over frames", fontsize=8)
+        for row in axes:                 # on the panels (a figure-wide label runs into a one-panel legend)
+            row[0].set_ylabel("compression FLIP, mean")
         plotstyle.legend_below(fig, ncol=5)
         res.save_figure(fig, "flip_vs_bytes.png")
 
 
 def frame_images(res, found, frames0, whites, P):
-    """``frames.png``: frame 0 of each animation at the finest resolution: the reference, exact,
-    the threshold configuration (or the least visible at the largest budget) and the best at
-    the smallest budget, tonemapped as measured, with each one's compression FLIP."""
+    """``frames.png``: frame 0 of each animation in the first configuration at the finest
+    resolution: the reference, exact, the threshold's size (or the least visible at the largest
+    budget) and the best at the smallest budget, tonemapped as measured, with each one's
+    compression FLIP."""
     from . import render as R
     _plt()
     from .. import _plotstyle as plotstyle
@@ -161,7 +166,8 @@ def frame_images(res, found, frames0, whites, P):
                 ax.grid(False)
                 for spine in ax.spines.values():
                     spine.set_visible(False)
-        fig.suptitle(f"Frame 0, {finest}$^2$ map: the reference, exact, and two budgets' best kinds", fontsize=7.5)
+        fig.suptitle(f"Frame 0 of the first configuration, {finest}$^2$ map: the reference, exact, and two budgets' "
+                     "best kinds", fontsize=7.5)
         res.save_figure(fig, "frames.png")
 
 

@@ -5,16 +5,20 @@ renders with ``avsm_single_scatter`` (recording the bytes per texel of the map i
 Scene (one per frame): the plume's density grid (:data:`experiments.temporal.scenes.PLUME_BOX`)
 as a ``heterogeneous`` medium (albedo :data:`ALBEDO`) in a null-BSDF cube, the receiver wall of
 the temporal study (:data:`experiments.temporal.scenes.PLUME_WALL`, diffuse, reflectance
-:data:`WALL_REFLECTANCE`) behind it, the frame's directional light (irradiance
-:data:`IRRADIANCE`), a pinhole camera (:data:`CAMERA`) that sees the smoke's self-shadowing and
-its shadow on the wall; box pixel filter.
+:data:`WALL_REFLECTANCE`) behind it, the frame's light, a pinhole camera (:data:`CAMERA`) that
+sees the smoke's self-shadowing and its shadow on the wall; box pixel filter.  The light: a
+directional light of irradiance :data:`IRRADIANCE`, or a spot light (the configurations'
+``spot``) of intensity ``IRRADIANCE * d^2``, the same irradiance at the plume box's centre at
+distance ``d`` (Mitsuba's ``spot``: cutoff half the light's ``fov``).
 
 Tonemap (fixed per animation, so frames and kinds compare): ``sRGB(min(I / S, 1))`` with the
-display white ``S`` = the 99.5th percentile of frame 0's reference; FLIP
+display white ``S`` = the 99.5th percentile of frame 0's reference (per configuration); FLIP
 (``flip_evaluator``, LDR mode, its default 67 pixels per degree) of the encoded images, the
 red channel replicated (grey light and media).
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -41,7 +45,20 @@ def mitsuba():
     return mi
 
 
-def scene_dict(mi, density, direction, image: int) -> dict:
+def emitter(mi, light) -> dict:
+    """``load_dict`` description of the frame's light (module docstring): a DirectionalLight
+    or a SpotLight."""
+    from avsm_dr.scene import DirectionalLight, SpotLight
+    if isinstance(light, DirectionalLight):
+        return {"type": "directional", "direction": [float(v) for v in light.direction], "irradiance": IRRADIANCE}
+    if isinstance(light, SpotLight):
+        c = 0.5 * (np.asarray(S.PLUME_BOX[0], np.float64) + np.asarray(S.PLUME_BOX[1], np.float64))
+        d2 = float(np.sum((c - light.position) ** 2))
+        return dataclasses.replace(light, intensity=IRRADIANCE * d2).to_mitsuba(mi)
+    raise ValueError(f"light: expected a DirectionalLight or SpotLight, got {type(light).__name__}")
+
+
+def scene_dict(mi, density, light, image: int) -> dict:
     """``load_dict`` description of one frame (module docstring), ``image`` x ``image`` pixels."""
     from avsm_dr.groundtruth import media
     lo, hi = (np.asarray(b, np.float64) for b in S.PLUME_BOX)
@@ -54,7 +71,7 @@ def scene_dict(mi, density, direction, image: int) -> dict:
                    "to_world": T().look_at(origin=CAMERA["origin"], target=CAMERA["target"], up=CAMERA["up"]),
                    "film": {"type": "hdrfilm", "width": int(image), "height": int(image),
                             "rfilter": {"type": "box"}}},
-        "light": {"type": "directional", "direction": [float(v) for v in direction], "irradiance": IRRADIANCE},
+        "light": emitter(mi, light),
         "smoke": {"type": "cube", "bsdf": {"type": "null"}, "to_world": cube,
                   "interior": media.medium_dict(mi, np.asarray(density, np.float32), lo, hi, ALBEDO)},
         "wall": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": WALL_REFLECTANCE},
@@ -64,7 +81,7 @@ def scene_dict(mi, density, direction, image: int) -> dict:
 
 def load_scene(mi, frame, image: int):
     """The Mitsuba scene of a temporal :class:`~experiments.temporal.scenes.Frame`."""
-    return mi.load_dict(scene_dict(mi, frame.scene.density, frame.scene.light.direction, image))
+    return mi.load_dict(scene_dict(mi, frame.scene.density, frame.scene.light, image))
 
 
 def recording_class(mi):
@@ -96,17 +113,20 @@ def curve_metrics(mi, segments, rep, reference) -> dict:
     exact curve, all zero): ``depth_l2`` (:func:`avsm_dr.evaluation.depth_l2`), and over the
     same depth grid (opaque interiors left out) ``curve_signed_mean``, the mean of
     ``T_rep - T_exact`` (> 0: light leaking), and ``curve_leak_share``, the share above 0.02
-    (:func:`avsm_dr.metrics.error_stats`).  Evaluated on the Mitsuba variant's backend."""
+    (:func:`avsm_dr.metrics.error_stats`).  Evaluated on the Mitsuba variant's backend; the
+    curve is evaluated once (``depth_l2``'s formula on its values: the RMS over texels of
+    ``sqrt(mean over the kept depths of (T_rep - T_exact)^2)``)."""
     from avsm_dr import backend
-    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
+    from avsm_dr.evaluation import curve_values, depth_grid
+    from avsm_dr.evaluation.curves import rms
     from avsm_dr.metrics import error_stats
     if reference is None:
         return dict(depth_l2=0.0, curve_signed_mean=0.0, curve_leak_share=0.0)
     with backend.use_backend("cuda" if mi.variant().startswith("cuda") else "llvm"):
         est = curve_values(rep, segments)
-        l2 = depth_l2(rep, segments, exact=reference)
-    keep = depth_grid(segments)[2]
-    s = error_stats(est[keep], np.asarray(reference)[keep])
+    keep, ref = depth_grid(segments)[2], np.asarray(reference, np.float64)
+    l2 = rms(np.sqrt(np.sum(np.square(est - ref) * keep, axis=1) / np.maximum(keep.sum(axis=1), 1)))
+    s = error_stats(est[keep], ref[keep])
     return dict(depth_l2=float(l2), curve_signed_mean=float(s["mean_error"]),
                 curve_leak_share=float(s["leak_fraction"]))
 
