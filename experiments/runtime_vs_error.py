@@ -12,14 +12,23 @@ Time, per configuration (:func:`avsm_dr.evaluation.timing.measure`, every call s
 ``lookup_s`` the median of ``repeats`` lookups after a warm-up; ``build_s`` the median of
 ``build_repeats`` builds, with a warm-up build (``first_call_s``, JIT compile included) only
 in the scene's first configuration, so later configurations time warm kernels without a
-second warm-up (the trade that keeps ten configurations within the run time of the old
-single one's seven repeats: 11 builds per setting and scene instead of 8).  ``time_ratio``:
+second warm-up (full mode: 11 builds per setting and scene, where one configuration timed
+with seven repeats took 8).  ``time_ratio``:
 build + lookup time over :data:`REFERENCE`'s in the same configuration (same process).
 Per setting the time is the median over configurations of ``time_ratio``, the error the
 mean over configurations of ``rmse`` (``depth_l2``); ``pareto`` (``pareto_depth_l2``) marks
 the settings on the scene's front of that time against that error (repeated on every
 configuration's row), ``pareto_in_config`` (``pareto_depth_l2_in_config``) the settings on
 the configuration's own front of ``time_ratio`` against ``rmse`` (``depth_l2``).
+
+The trade that keeps the full run near 20 minutes of CPU time for ten configurations
+(one of them at full parameters, extrapolated per scene): ``optimal`` (the best breakpoint
+subset, a host NumPy DP and the costliest build: 86 of 128 CPU seconds of simulated_plume's
+first configuration, 63 of 90 of three_columns') is left out (``exclude``, both modes); built
+with the quick parameters (64^2, plume and three_columns, two configurations each) it took 3
+to 220 times AVSM-8's time and
+no setting of it was on any front, pooled or per configuration.  ``avsm_gap`` and
+``insertion_order`` measure it against AVSM over the same configurations.
 
 Other columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on it;
 '-' otherwise), ``bytes`` (sparse layout) and ``bytes_dense`` (= ``bytes_per_texel``).
@@ -63,9 +72,10 @@ MIN_EVERY = 8
 #: Full mode: 4 seeds x both directional lights and 2 seeds x the spot light (error_curves').
 FULL_CONFIGS = [[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2]
 
-#: Parameters of the full and the quick run (``sweeps``: every kind's settings, filled in).
+#: Parameters of the full and the quick run (``sweeps``: the settings of every kind but those
+#: of ``exclude``, filled in).
 FULL = dict(scenes=SCENES, resolution=256, repeats=7, build_repeats=1, configs=FULL_CONFIGS, n_volume=4096,
-            n_boot=1000, sweeps=None)
+            n_boot=1000, exclude=["optimal"], sweeps=None)
 QUICK = dict(FULL, scenes=SCENES[:2], resolution=64, repeats=3, configs=[[0, "dir_a"], [1, "spot"]],
              n_volume=256, n_boot=200)
 
@@ -80,8 +90,9 @@ def pareto(points):
 
 
 def _resolve(params: dict, quick: bool) -> dict:
-    """Every registered kind's size sweep (``ad.configurations``); the time reference must be in it."""
-    P = dict(params, sweeps={k: configurations(k, quick) for k in kinds() if k != "exact"})
+    """Every registered kind's size sweep (``ad.configurations``) but ``exclude``'s; the time
+    reference must be in it."""
+    P = dict(params, sweeps={k: configurations(k, quick) for k in kinds() if k not in ["exact", *params["exclude"]]})
     kind, n = REFERENCE.split("-")
     if {"nodes": int(n)} not in P["sweeps"].get(kind, []):
         raise ValueError(f"sweeps: the time reference {REFERENCE} is not among the settings")
