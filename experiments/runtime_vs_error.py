@@ -21,14 +21,15 @@ the settings on the scene's front of that time against that error (repeated on e
 configuration's row), ``pareto_in_config`` (``pareto_depth_l2_in_config``) the settings on
 the configuration's own front of ``time_ratio`` against ``rmse`` (``depth_l2``).
 
-The trade that keeps the full run near 20 minutes of CPU time for ten configurations
-(one of them at full parameters, extrapolated per scene): ``optimal`` (the best breakpoint
-subset, a host NumPy DP and the costliest build: 86 of 128 CPU seconds of simulated_plume's
-first configuration, 63 of 90 of three_columns') is left out (``exclude``, both modes); built
-with the quick parameters (64^2, plume and three_columns, two configurations each) it took 3
-to 220 times AVSM-8's time and
-no setting of it was on any front, pooled or per configuration.  ``avsm_gap`` and
-``insertion_order`` measure it against AVSM over the same configurations.
+The trade that keeps the full run to about 25 minutes of CPU time (1490 s summed over the
+ten scenes, extrapolated from each scene's first configuration and one other measured at
+full parameters; less wall time on 2 idle cores, the kernels using both): ``optimal`` (the
+best breakpoint subset, a host NumPy DP and the costliest build: 86 of 128 CPU seconds of
+simulated_plume's first configuration, 63 of 90 of three_columns') is left out (``exclude``,
+both modes).  Built with the quick parameters (64^2, plume and three_columns, two
+configurations each) it took 3 to 220 times AVSM-8's time and no setting of it was on any
+front, pooled or per configuration; ``avsm_gap`` and ``insertion_order`` measure it against
+AVSM over the same configurations.
 
 Other columns: ``order`` (the capture's, 'depth', for the kinds whose build depends on it;
 '-' otherwise), ``bytes`` (sparse layout) and ``bytes_dense`` (= ``bytes_per_texel``).
