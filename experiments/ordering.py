@@ -40,7 +40,7 @@ from avsm_dr.metrics import error_stats
 from avsm_dr.segments import Segments
 from ._headline import num, wrap
 from ._study import Study
-from ._two_metric import MIN_CONFIDENT, claim, side
+from ._two_metric import MIN_CONFIDENT, claim, metric_dependent, side
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -141,12 +141,11 @@ def flicker_claim(a: tuple, b: tuple, configs, blocks: tuple, n_boot: int = 1000
                              if r["n_configs"] >= MIN_EVERY else None,
                              per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]]
                                          for pc in r["per_config"]})
-    rm, dl = metrics["receiver_rmse"], metrics["depth_l2"]
-    sign = [("below" if m["high"] < 0 else "above" if m["low"] > 0 else None) for m in (rm, dl)]
+    rm = metrics["receiver_rmse"]
     return dict(estimate=rm["estimate"], low=rm["low"], high=rm["high"], n_configs=rm["n_configs"],
                 indicative=rm["n_configs"] < MIN_CONFIDENT, interval_unit="configuration",
                 holds_in_every_configuration=rm["holds_in_every_configuration"], metrics=metrics,
-                metric_dependent=bool(all(sign) and sign[0] != sign[1]))
+                metric_dependent=metric_dependent(rm, metrics["depth_l2"], below=0.0))
 
 
 def _claims(store: dict, configs: list[str], nodes, n_boot: int) -> dict:
