@@ -102,7 +102,8 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         assert len(checks) >= 10 and sum(int(r["failures"]) for r in checks) == 0, checks
     if name == "ordering":
         sorted_rows = [r for r in rows if r["sorted"] == "True"]
-        assert all(float(r["flicker_rms"]) == 0.0 for r in sorted_rows)  # sorting removes flicker
+        assert all(float(r["flicker_rms"]) == 0.0 == float(r["flicker_depth_l2"]) for r in sorted_rows)  # no flicker
+        assert all(float(r["flicker_depth_l2"]) > 0 for r in rows if r["sorted"] == "False")
         assert {r["order"] for r in sorted_rows} == {"depth"} and {r["order"] for r in rows} == {"depth", "random"}
         assert all(float(r["depth_l2"]) > 0 and 0 <= float(r["leak_share"]) <= 1 for r in rows)
     if name == "inverse":                                   # the insertion order each model's build saw
@@ -119,8 +120,26 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
         for r in rows:
             for k in ("depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
                 assert math.isfinite(float(r[k])), (name, k, r)
+    if name in ("runtime_vs_error", "ordering"):                  # one row set per configuration, claims
+        configs = {f"s{seed}-{light}" for seed, light in meta["params"]["configs"]}
+        assert {r["config"] for r in rows} == configs and len(configs) == 2
+        found = json.loads((out / "findings.json").read_text())
+        claims = [c for f in found.values() for c in (f["claims"].values() if name == "runtime_vs_error" else
+                                                      [c for per_n in f["claims"].values() for c in per_n.values()])]
+        assert claims and all(f["n_configs"] == 2 and f["indicative"] for f in found.values())
+        for c in claims:
+            assert c["n_configs"] == 2 and c["indicative"] is True and isinstance(c["metric_dependent"], bool)
+            assert c["order"] in (("depth", "-") if name == "runtime_vs_error" else ("depth / random",)), c["order"]
+            assert set(c["metrics"]) == {"receiver_rmse", "depth_l2"}
+            assert all(m["low"] <= m["estimate"] <= m["high"] for m in c["metrics"].values()), c
+            assert all({"mean_signed_error", "leak_share"} <= set(s) for s in c["sides"].values())
+    if name == "ordering":                     # sorted: no flicker on either metric, in every configuration
+        for per_n in json.loads((out / "findings.json").read_text())["three_columns"]["claims"].values():
+            assert all(m["high"] < 0 for m in per_n["sorting_removes_flicker"]["metrics"].values())
     if name == "runtime_vs_error":
         from experiments.error_curves.labels import order_dependent
+        assert all(math.isfinite(float(r["time_ratio"])) for r in rows)
+        assert all(float(r["time_ratio"]) == 1.0 for r in rows if (r["method"], r["param"]) == ("avsm", "8"))
         assert all(r["order"] == ("depth" if r["method"] != "exact" and order_dependent(r["method"]) else "-")
                    for r in rows)
         assert {r["pareto_depth_l2"] for r in rows if r["method"] != "exact"} == {"True", "False"}
@@ -132,6 +151,17 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
     # a second run with the same parameters reuses the results
     again = __import__(f"experiments.{name}", fromlist=["run"]).run(quick=True, out=out)
     assert again.get("cached") is True
+
+
+@pytest.mark.parametrize("name", ["runtime_vs_error", "ordering"])
+def test_full_mode_runs_ten_configurations_per_scene_with_a_spot_light(name):
+    """The claims of a full run rest on >= 10 configurations (scene seed x light) per scene, a
+    spot light among them, all distinct; the quick run keeps to one or two."""
+    study = cli.study(name)
+    configs = [tuple(c) for c in study.full["configs"]]
+    assert len(configs) >= 10 and len(set(configs)) == len(configs)
+    assert any(light == "spot" for _, light in configs) and {"dir_a", "dir_b"} <= {li for _, li in configs}
+    assert 1 <= len(study.quick["configs"]) <= 2
 
 
 @pytest.mark.parametrize("name", sorted(TINY))
