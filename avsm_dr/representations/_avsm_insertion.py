@@ -5,7 +5,7 @@ sec. 3.2: remove the node of least area metric, twice); ``refit`` (then refit it
 to keep the area, ``fit="area"``); ``refit_l2`` (remove the node of least squared-L2 loss,
 refit its neighbours by least squares, ``fit="l2"``); ``staged`` / ``staged_refit_l2``
 (once full, insert 4 segments into ``N + 8`` nodes, then compress back to N); ``spare_refit_l2``
-(``refit_l2`` on ``N + 8`` nodes while streaming, then 8 removals of least ``post`` metric).
+(``refit_l2`` on ``N + 8`` nodes while streaming, then down to N by least ``post`` metric).
 
 Removal of interior node ``i`` with neighbours ``l = i - 1``, ``r = i + 1`` (and ``ll = i - 2``,
 ``rr = i + 2`` where they exist); ``c = (d_r - d_l)(t_r - t_i) - (d_r - d_i)(t_r - t_l)``:
@@ -22,8 +22,8 @@ is the exact total transmittance):
   ``2 (L0 + L1) delta_l + L1 delta_r = -c (2 - p)``, ``L1 delta_l + 2 (L1 + L2) delta_r = -c (1 + p)``;
   a fixed neighbour's row is replaced by ``delta = 0``.
 
-The ``post`` metric is the squared L2 left after the least-squares refit (unclipped):
-``c^2 / (d_r - d_l) + (c / 2)((2 - p) delta_l + (1 + p) delta_r)`` (times 3, floored at 0).
+The ``post`` metric, 3 x the squared L2 left after the unclipped least-squares refit (>= 0):
+``c^2 / (d_r - d_l) + (c / 2)((2 - p) delta_l + (1 + p) delta_r)``.
 
 Then both values are clipped to ``[lo, hi]`` (``hi = t_ll``, ``t_l`` when ``l`` is first;
 ``lo = t_rr``, ``t_r`` when ``r`` is last), and where they would cross both take their mean:
@@ -124,6 +124,5 @@ def l2_deltas(nb, move_l, move_r):
     b1 = dr.select(move_l, -c * (2 - p), zero)
     b2 = dr.select(move_r, -c * (1 + p), zero)
     det = a11 * a22 - a12 * a12
-    ok = det > 0
-    inv = 1 / dr.select(ok, det, 1)
+    ok, inv = det > 0, 1 / dr.select(det > 0, det, 1)
     return dr.select(ok, (b1 * a22 - a12 * b2) * inv, zero), dr.select(ok, (a11 * b2 - a12 * b1) * inv, zero), p

@@ -273,8 +273,7 @@ class AVSM(NodeList):
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         super()._resolve()
         self._refit, self._metric, self._stage, self._spare = INSERTIONS[P["insertion"]]
-        # W = N + spare depths and values, index, count, done, 2 counters
-        self.loop_state_words = 2 * (self.N + self._spare) + 5
+        self.loop_state_words = 2 * (self.N + self._spare) + 5   # W = N + spare depths, values; 5 counters
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
 
     def _build(self):
@@ -400,16 +399,12 @@ class AVSM(NodeList):
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
         dt = state[5:]
-        if spare:                                         # compress to N nodes, "post" metric
-
+        if spare:         # to N nodes by "post"; the last node: the used ones', all W once compressing
             def body_spare(p, last, *dt):
                 d, t = remove_refit(dt[:W], dt[W:], refit, "post", last=last)
                 return (last - 1, *d, d[-1], *t, t[-1])
-
-            # last node: the used ones' (behind them clear nodes), all W once a segment compressed
-            last = dr.select(compressed > 0, W - 1, used - 1)
-            dt = run_loop((last, *dt), params, lambda p, last, *r: (last >= N) & (last < W), body_spare,
-                          spare, chunk, "avsm_spare", iterations=spare)[1:]
+            dt = run_loop((dr.select(compressed > 0, W - 1, used - 1), *dt), params, lambda p, last, *r:
+                          (last >= N) & (last < W), body_spare, spare, chunk, "avsm_spare", iterations=spare)[1:]
             used = dr.minimum(used, N)
         for k in range(N):
             dr.scatter(self.depths[k], dt[k], lanes)
