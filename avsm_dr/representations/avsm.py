@@ -399,12 +399,13 @@ class AVSM(NodeList):
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
         dt = state[5:]
-        if spare:         # to N nodes by "post"; the last node: the used ones', all W once compressing
+        if spare:   # down to N nodes by "post"; the list ends at the used nodes (all W once compressing)
             def body_spare(p, last, *dt):
                 d, t = remove_refit(dt[:W], dt[W:], refit, "post", last=last)
-                return (last - 1, *d, d[-1], *t, t[-1])
-            dt = run_loop((dr.select(compressed > 0, W - 1, used - 1), *dt), params, lambda p, last, *r:
-                          (last >= N) & (last < W), body_spare, spare, chunk, "avsm_spare", iterations=spare)[1:]
+                return (last - 1, *d, d[-1], *t, t[-1])      # the last node repeated: W nodes again
+            last = dr.select(compressed > 0, W - 1, used - 1)   # last < W below: not a lane of 0 nodes
+            dt = run_loop((last, *dt), params, lambda p, last, *r: (last >= N) & (last < W), body_spare,
+                          spare, chunk, "avsm_spare", iterations=spare)[1:]
             used = dr.minimum(used, N)
         for k in range(N):
             dr.scatter(self.depths[k], dt[k], lanes)
