@@ -83,7 +83,8 @@ REPRODUCES = (
 ORDERS = ("submission", "depth", "reverse_depth", "random")
 #: AVSM's insertion variants compared: method name -> the ``insertion`` parameter.
 INSERTION_METHODS = {"avsm": "stream", "avsm_refit": "refit", "avsm_refit_l2": "refit_l2",
-                     "avsm_staged": "staged", "avsm_staged_refit_l2": "staged_refit_l2"}
+                     "avsm_staged": "staged", "avsm_staged_refit_l2": "staged_refit_l2",
+                     "avsm_spare_refit_l2": "spare_refit_l2"}
 #: Streaming (order-dependent) methods and the offline references (order-independent).
 STREAMING = tuple(INSERTION_METHODS) + ("avsm_march",)
 REFERENCES = ("greedy", "optimal")

@@ -253,7 +253,8 @@ class AVSM(NodeList):
             Param("insertion", "choice", "stream", "what an overflow does: 'stream' (the paper's removal), "
                   "'refit' (area-preserving refit of the removed node's neighbours), 'refit_l2' (L2 "
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
-                  "every 4 segments); see avsm_dr.representations._avsm_insertion",
+                  "every 4 segments), 'spare_refit_l2' ('refit_l2' on N + 8 nodes, compressed to N at "
+                  "the end); see avsm_dr.representations._avsm_insertion",
                   choices=tuple(INSERTIONS)),
             NEAR, FAR,
             # Private ablation switches (benchmarks only; the nodes are the same either way):
@@ -273,9 +274,9 @@ class AVSM(NodeList):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         super()._resolve()
-        self.loop_state_words = 2 * self.N + 5         # N depths, N values, index, count, done, 2 counters
+        self._refit, self._metric, self._stage, self._spare = INSERTIONS[P["insertion"]]
+        self.loop_state_words = 2 * (self.N + self._spare) + 5   # W = N + spare depths, values; 5 counters
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
-        self._refit, self._metric, self._stage = INSERTIONS[P["insertion"]]
 
     def _build(self):
         seg = self.segments
@@ -309,7 +310,8 @@ class AVSM(NodeList):
         lane_max = int(counts[lanes_np].max())            # ... checked against the lanes' own counts
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
-        refit, metric, stage = self._refit, self._metric, self._stage
+        refit, metric, stage, spare = self._refit, self._metric, self._stage, self._spare
+        W = N + spare                                     # nodes while streaming
 
         def remove(d, t):                                 # 'stream' / 'staged': the paper's removal
             return remove_refit(d, t, refit, metric)
@@ -330,24 +332,24 @@ class AVSM(NodeList):
                 nd, nt = remove(*remove(nd, nt))
             elif compress is not False:
                 cd, ct = remove(*remove(nd, nt))
-                nd = [dr.select(compress, cd[k], nd[k]) for k in range(N)]
-                nt = [dr.select(compress, ct[k], nt[k]) for k in range(N)]
-            d = [dr.select(skip, d[k], nd[k]) for k in range(N)]
-            t = [dr.select(skip, t[k], nt[k]) for k in range(N)]
+                nd = [dr.select(compress, cd[k], nd[k]) for k in range(W)]
+                nt = [dr.select(compress, ct[k], nt[k]) for k in range(W)]
+            d = [dr.select(skip, d[k], nd[k]) for k in range(W)]
+            t = [dr.select(skip, t[k], nt[k]) for k in range(W)]
             return skip, (skip if sorted_input else done), d, t
 
         # state: i (next segment), used (inserted nodes kept, <= N), done (sorted and behind
         # an opaque point), skipped, compressed (counters), node depths d_k, transmittances t_k
         def cond_room(p, i, used, done, *rest):
-            return (i < end) & (used + 2 <= N) & ~done
+            return (i < end) & (used + 2 <= W) & ~done
 
         def cond_full(p, i, used, done, *rest):
             return (i < end) & ~done
 
         def body_insert(compress):
             def body(p, i, used, done, skipped, compressed, *dt):
-                full = used + 2 > N if compress is None else compress   # None: the _split=False ablation
-                skip, done, d, t = insert(p, i, used, done, list(dt[:N]), list(dt[N:]), full)
+                full = used + 2 > W if compress is None else compress   # None: the _split=False ablation
+                skip, done, d, t = insert(p, i, used, done, list(dt[:W]), list(dt[W:]), full)
                 if compress is not True:
                     used = dr.select(skip if compress is False else skip | full, used, used + 2)
                 if compress is not False:
@@ -359,7 +361,7 @@ class AVSM(NodeList):
         # removals; a segment not inserted appends two copies of the last node (zero metric,
         # deepest: dropped first), so ``used`` is the same after the batch as before it.
         def body_staged(p, i, used, done, skipped, compressed, *dt):
-            d, t = list(dt[:N]), list(dt[N:])
+            d, t = list(dt[:W]), list(dt[W:])
             grow = used
             for _ in range(stage):
                 n = len(d)
@@ -388,7 +390,7 @@ class AVSM(NodeList):
 
         state = (first, dr.zeros(UInt32, L), dr.zeros(Bool, L),
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L),
-                 *[dr.opaque(Float, far, L) for _ in range(N)], *[dr.full(Float, 1.0, L) for _ in range(N)])
+                 *[dr.opaque(Float, far, L) for _ in range(W)], *[dr.full(Float, 1.0, L) for _ in range(W)])
         if stage > 1:                                     # staged: always the two loops
             state = run(state, cond_room, body_insert(False), "avsm_insert")
             state = run(state, cond_full, body_staged, "avsm_staged")
@@ -398,9 +400,18 @@ class AVSM(NodeList):
         else:
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
+        dt = state[5:]
+        if spare:   # down to N nodes by "post"; the list ends at the used nodes (all W once compressing)
+            def body_spare(p, last, *dt):
+                d, t = remove_refit(dt[:W], dt[W:], refit, "post", last=last)
+                return (last - 1, *d, d[-1], *t, t[-1])      # the last node repeated: W nodes again
+            last = dr.select(compressed > 0, W - 1, used - 1)   # last < W below: not a lane of 0 nodes
+            dt = run_loop((last, *dt), params, lambda p, last, *r: (last >= N) & (last < W), body_spare,
+                          spare, chunk, "avsm_spare", iterations=spare)[1:]
+            used = dr.minimum(used, N)
         for k in range(N):
-            dr.scatter(self.depths[k], state[5 + k], lanes)
-            dr.scatter(self.values[k], state[5 + N + k], lanes)
+            dr.scatter(self.depths[k], dt[k], lanes)
+            dr.scatter(self.values[k], dt[W + k], lanes)
         # one kernel: the counters read below would otherwise each re-run both loops
         dr.eval(self.depths, self.values, used, i, skipped, compressed)
         self.used[lanes_np] = np.asarray(used.numpy(), np.int64)
