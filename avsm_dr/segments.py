@@ -27,7 +27,7 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
-from .texel_sort import TIE, UNSORTED, break_ties, float_key, shuffle_key, sort_texels_view, view_order
+from .texel_sort import TIE, UNSORTED, float_key, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -73,16 +73,12 @@ def run_index(starts, n: int):
 def key_order(counts: np.ndarray, offsets_dr, texel, key, group=None, layout=None):
     """The permutation (Dr.Jit UInt32, S) sorting segments by ``(texel, key, index)``: ``texel``
     and ``key`` (< 2^32) UInt32 per segment; ``group`` = (index, texel) of every CSR position
-    when the segments are not in texel order (None: they are).  On the device (words ``key << 32
-    | index``, :func:`~avsm_dr.texel_sort.sort_texels_view` with ``layout``) where
-    :func:`device_sortable`, else one stable host argsort of ``texel << 32 | key``."""
+    when the segments are not in texel order (None: they are).  On the device for any counts
+    (words ``key << 32 | index``, :func:`~avsm_dr.texel_sort.sort_texels_view` with ``layout``)."""
     UInt32 = backend.types().UInt32
-    if not device_sortable(counts):
-        word = (np.asarray(texel.numpy(), np.uint64) << np.uint64(32)) | np.asarray(key.numpy(), np.uint64)
-        return A.to_uint32(np.argsort(word, kind="stable").astype(np.uint32))
     U32 = dr.detached_t(UInt32)
     index, gtex = (dr.arange(UInt32, dr.width(texel)), texel) if group is None else group
-    pay, base, _ = sort_texels_view(counts, offsets_dr, "index", (U32(index), U32(key)), ties=False, layout=layout)
+    pay, base, _, _ = sort_texels_view(counts, offsets_dr, "index", (U32(index), U32(key)), ties=False, layout=layout)
     return UInt32(view_order(pay, base, U32(offsets_dr), U32(gtex)))
 
 
@@ -361,23 +357,21 @@ class Segments:
         ``index[start[t] + r]``.
 
         float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
-        | position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
-        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
-        :func:`device_sortable` is false and ranks or ties are needed."""
+        | position``), texels with equal z0 sorted again by (z1, position) then (z0, that order)
+        (:meth:`_untie`); float64: by rank (:meth:`_rank_order`), a host lexsort (same order)
+        where :func:`device_sortable` is false."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         UInt32 = backend.types().UInt32
         if self.dtype == "float32":                             # words key(z0) << 32 | position
             z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
-            pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
+            pay, start, flags, tied = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
                                                  layout=self._sort_plan())
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
-            if device_sortable(self.counts):                    # equal z0 (runs of r cost r^2): z1, position
-                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0),
-                                 dr.detached_t(self.Float)(dr.detach(self.z1)))
-                dr.eval(pay)
-                return UInt32(pay), UInt32(start)
+            pay = self._untie(pay, start, tied, float_key(z0))    # equal z0: by z1, then position
+            dr.eval(pay)
+            return UInt32(pay), UInt32(start)
         if device_sortable(self.counts):
             idx = self._rank_order()
         else:
@@ -385,6 +379,34 @@ class Segments:
             tex = np.repeat(np.arange(self.n_texels), self.counts)
             idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
         return None if idx is None else (UInt32(idx), self.offsets_dr())
+
+    def _untie(self, pay, start, texels, k0):
+        """``pay`` (a :func:`~avsm_dr.texel_sort.sort_texels_view` layout by ``(k0, position)``,
+        ``k0`` the UInt32 z0 keys) with ``texels`` (NumPy, those where two segments share
+        ``k0``) re-sorted by ``(z0, z1, position)`` (:meth:`_key_sort`)."""
+        U32 = type(pay)
+        k1 = float_key(dr.detached_t(self.Float)(dr.detach(self.z1)))
+        idx, soff, stex = self._key_sort(texels, (k0, k1))
+        local = dr.arange(U32, dr.width(idx)) - dr.gather(U32, soff, stex)
+        first = dr.gather(U32, start, U32(A.aligned(texels, np.uint32)))    # each texel's first slot
+        dr.scatter(pay, idx, dr.gather(U32, first, stex) + local)
+        return pay
+
+    def _key_sort(self, texels: np.ndarray, keys):
+        """``(index, offsets, texel)`` (Dr.Jit UInt32): the ``r``-th segment of texel ``texels[j]``
+        by ``(keys[0], keys[1], ..., position)`` is segment ``index[offsets[j] + r]``, and
+        ``texel[offsets[j] + r] = j``.  One stable
+        :func:`key_order` pass per key (UInt32 per segment), the last key first (least
+        significant digit first), on the segments of ``texels`` (NumPy ints) only."""
+        U32 = dr.detached_t(backend.types().UInt32)
+        c = self.counts[texels]
+        sub = np.concatenate([[0], np.cumsum(c)])
+        soff, stex = U32(A.aligned(sub.astype(np.uint32))), U32(A.aligned(np.repeat(np.arange(c.size), c), np.uint32))
+        idx = U32(A.aligned(np.repeat(self.offsets[texels] - sub[:-1], c) + np.arange(sub[-1]), np.uint32))
+        lay = sort_plan(c, soff)
+        for key in reversed(keys):
+            idx = dr.gather(U32, idx, U32(key_order(c, soff, stex, dr.gather(U32, key, idx), layout=lay)))
+        return idx, soff, stex
 
     def _layout_cache(self) -> dict:
         """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""

@@ -208,7 +208,7 @@ def test_sorts_right_under_debug_and_kernel_history_flags(backend, rng):
             seg = ad.Segments.from_arrays(np.r_[0, np.cumsum(counts)], rng.uniform(0, 1, n),
                                           rng.uniform(1, 2, n), optical_depth=np.ones(n))
             z0 = dr.detached_t(seg.Float)(seg.z0)
-            pay, base, _ = TS.sort_texels_view(counts, seg.offsets_dr(), "float", (z0,))
+            pay, base, _, _ = TS.sort_texels_view(counts, seg.offsets_dr(), "float", (z0,))
             dr.kernel_history()
             p, b, z, off = np.asarray(pay), np.asarray(base), np.asarray(z0), np.r_[0, np.cumsum(counts)]
             got = np.concatenate([p[b[t]:b[t] + counts[t]] for t in range(texels)])
@@ -240,7 +240,7 @@ _CONCURRENT_SORTS = textwrap.dedent("""
                                               rng.uniform(1, 2, n), optical_depth=np.ones(n))
                 z0 = dr.detached_t(seg.Float)(seg.z0)
                 barrier.wait()                        # the threads record each key at once
-                pay, base, _ = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,), ties)
+                pay, base, _, _ = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,), ties)
                 pay, base, h = np.asarray(pay), np.asarray(base), seg.numpy()["z0"].astype(np.float32)
                 for t in np.flatnonzero(counts):
                     o, c = seg.offsets[t], counts[t]
