@@ -27,7 +27,7 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
-from .texel_sort import TIE, UNSORTED, float_key, shuffle_key, sort_texels_view, view_order
+from .texel_sort import TIE, UNSORTED, float_key, float_keys, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -38,9 +38,6 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
 #: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: Sorts that cost up to ``count`` comparisons per segment run on the device while ``sum
-#: count^2 <= DEVICE_SORT_WORK * S`` (:func:`device_sortable`), else on the host.
-DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
 #: Segments: front to back, back to front, a seeded shuffle (:func:`shuffle_key`).
@@ -48,13 +45,6 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
-
-
-def device_sortable(counts: np.ndarray) -> bool:
-    """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
-    comparisons per segment runs on the device (else on the host)."""
-    c = np.asarray(counts).astype(np.float64)
-    return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
 
 
 def run_index(starts, n: int):
@@ -358,27 +348,27 @@ class Segments:
 
         float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
         | position``), texels with equal z0 sorted again by (z1, position) then (z0, that order)
-        (:meth:`_untie`); float64: by rank (:meth:`_rank_order`), a host lexsort (same order)
-        where :func:`device_sortable` is false."""
+        (:meth:`_untie`); float64: by the four 32-bit halves of the z0 and z1 keys
+        (:meth:`_key_sort`, after a check that some texel is out of order).  On the device for
+        any counts."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         UInt32 = backend.types().UInt32
+        z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
         if self.dtype == "float32":                             # words key(z0) << 32 | position
-            z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
             pay, start, flags, tied = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
-                                                 layout=self._sort_plan())
+                                                       layout=self._sort_plan())
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
             pay = self._untie(pay, start, tied, float_key(z0))    # equal z0: by z1, then position
             dr.eval(pay)
             return UInt32(pay), UInt32(start)
-        if device_sortable(self.counts):
-            idx = self._rank_order()
-        else:
-            h = self.numpy()
-            tex = np.repeat(np.arange(self.n_texels), self.counts)
-            idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
-        return None if idx is None else (UInt32(idx), self.offsets_dr())
+        if self._in_order():
+            return None
+        z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
+        idx, off, _ = self._key_sort(np.arange(self.n_texels), float_keys(z0) + float_keys(z1))
+        dr.eval(idx)
+        return UInt32(idx), UInt32(off)
 
     def _untie(self, pay, start, texels, k0):
         """``pay`` (a :func:`~avsm_dr.texel_sort.sort_texels_view` layout by ``(k0, position)``,
@@ -460,41 +450,15 @@ class Segments:
                        {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
 
-    def _rank_order(self):
-        """:meth:`depth_order` by rank, any dtype and ties.
-
-        One lane per segment ``i`` of texel ``t``: its rank among the texel's segments,
-        ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic),
-        is its sorted slot, ``perm[o_t + r_i] = i``: ``sum_t count_t^2`` comparisons, no
-        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel (None:
-        in order; at least 2 segments)."""
+    def _in_order(self) -> bool:
+        """Every texel's ``(z0, z1)`` non-decreasing (pairs of neighbours in one texel, on the device)."""
         UInt32 = backend.types().UInt32
-        n = self.n_segments
         z0, z1 = dr.detach(self.z0), dr.detach(self.z1)
-        tex = self.texel_of_segment()
-        Float = type(z0)
-        # ---- already in order?  pairs (i, i+1) inside one texel
-        i = dr.arange(UInt32, n - 1)
+        tex, Float = self.texel_of_segment(), type(z0)
+        i = dr.arange(UInt32, self.n_segments - 1)
         same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
         (a0, b0), (a1, b1) = ((dr.gather(Float, z, i), dr.gather(Float, z, i + 1)) for z in (z0, z1))
-        inverted = same & ((b0 < a0) | ((b0 == a0) & (b1 < a1)))
-        if not bool(dr.any(inverted)[0]):
-            return None
-        # ---- rank of every segment inside its texel: a loop over j in [o_t, o_{t+1})
-        off = self.offsets_dr()
-        lo, hi = dr.gather(UInt32, off, tex), dr.gather(UInt32, off, tex + 1)
-        me = dr.arange(UInt32, n)
-
-        def body(j, rank):                  # rank: segments found before this one
-            before = j < me
-            for k in (z1, z0):
-                kj = dr.gather(Float, k, j)
-                before = (kj < k) | ((kj == k) & before)
-            return j + 1, rank + dr.select(before, 1, 0)
-        rank = dr.while_loop((UInt32(lo), dr.zeros(UInt32, n)), lambda j, rank: j < hi, body, labels=("j", "rank"))[1]
-        perm = dr.zeros(UInt32, n)
-        dr.scatter(perm, me, lo + rank)
-        return perm
+        return not bool(dr.any(same & ((b0 < a0) | ((b0 == a0) & (b1 < a1))))[0])
 
     def check_depth(self, value, name: str):
         """``value`` (a depth: scalar or 1-D array) checked against the storage dtype:

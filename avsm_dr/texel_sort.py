@@ -73,6 +73,18 @@ def float_key(z):
     return u ^ ((UInt32(0) - (u >> 31)) | 0x80000000)
 
 
+def float_keys(z) -> tuple:
+    """Order-preserving UInt32 keys of float ``z``, most significant first: ``(float_key(z),)``
+    for float32; for float64 the high and low halves of its 64-bit key (the same rule on 64 bits)."""
+    if dr.type_v(z) != dr.VarType.Float64:
+        return (float_key(z),)
+    UInt32, UInt64 = _types()[:2]
+    u = UInt64(dr.reinterpret_array(dr.uint64_array_t(type(z)), dr.detach(z)))
+    u = dr.select(u == 1 << 63, 0, u)
+    k = u ^ ((UInt64(0) - (u >> 63)) | (1 << 63))
+    return UInt32(k >> 32), UInt32(k & 0xFFFFFFFF)
+
+
 def _network_branch(word_at, size: int, out, ties: bool):
     """``f(start, count, packet) -> flags``: one lane per run ``[start, start + count)``
     (``count <= size``): its words ``word_at(position, valid)`` sorted in registers, stored
