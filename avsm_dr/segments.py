@@ -27,7 +27,7 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
-from .texel_sort import TIE, UNSORTED, float_key, float_keys, shuffle_key, sort_texels_view, view_order
+from .texel_sort import TIE, UNSORTED, float_keys, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -38,6 +38,10 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
 #: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
+#: float64 depth orders rank every segment against its texel (``count`` comparisons per
+#: segment, :meth:`Segments._rank_order`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
+#: (:func:`device_sortable`), else sort by stable key passes (more memory, any counts).
+DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
 #: Segments: front to back, back to front, a seeded shuffle (:func:`shuffle_key`).
@@ -45,6 +49,13 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
+
+
+def device_sortable(counts: np.ndarray) -> bool:
+    """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
+    comparisons per segment is cheap enough (:data:`DEVICE_SORT_WORK`)."""
+    c = np.asarray(counts).astype(np.float64)
+    return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
 
 
 def run_index(starts, n: int):
@@ -348,9 +359,9 @@ class Segments:
 
         float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
         | position``), texels with equal z0 sorted again by (z1, position) then (z0, that order)
-        (:meth:`_untie`); float64: by the four 32-bit halves of the z0 and z1 keys
-        (:meth:`_key_sort`, after a check that some texel is out of order).  On the device for
-        any counts."""
+        (:meth:`_untie`); float64 (after a check that some texel is out of order): by rank
+        (:meth:`_rank_order`) where :func:`device_sortable`, else by the four 32-bit halves of
+        the z0 and z1 keys (:meth:`_key_sort`).  On the device for any counts."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         UInt32 = backend.types().UInt32
@@ -360,42 +371,54 @@ class Segments:
                                                        layout=self._sort_plan())
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
-            pay = self._untie(pay, start, tied, float_key(z0))    # equal z0: by z1, then position
+            pay = self._untie(pay, start, tied)                   # equal z0: by z1, then position
             dr.eval(pay)
             return UInt32(pay), UInt32(start)
         if self._in_order():
             return None
-        z1 = dr.detached_t(self.Float)(dr.detach(self.z1))
-        idx, off, _ = self._key_sort(np.arange(self.n_texels), float_keys(z0) + float_keys(z1))
-        dr.eval(idx)
+        if device_sortable(self.counts):                        # less memory than key passes
+            return UInt32(self._rank_order()), self.offsets_dr()
+        idx, off, _ = self._key_sort(np.arange(self.n_texels), self._depth_keys())
         return UInt32(idx), UInt32(off)
 
-    def _untie(self, pay, start, texels, k0):
-        """``pay`` (a :func:`~avsm_dr.texel_sort.sort_texels_view` layout by ``(k0, position)``,
-        ``k0`` the UInt32 z0 keys) with ``texels`` (NumPy, those where two segments share
-        ``k0``) re-sorted by ``(z0, z1, position)`` (:meth:`_key_sort`)."""
+    def _untie(self, pay, start, texels):
+        """``pay`` (a :func:`~avsm_dr.texel_sort.sort_texels_view` layout by ``(z0, position)``)
+        with ``texels`` (NumPy, those where two segments share z0) re-sorted by ``(z0, z1,
+        position)`` (:meth:`_key_sort`)."""
         U32 = type(pay)
-        k1 = float_key(dr.detached_t(self.Float)(dr.detach(self.z1)))
-        idx, soff, stex = self._key_sort(texels, (k0, k1))
+        idx, soff, stex = self._key_sort(texels, self._depth_keys())
         local = dr.arange(U32, dr.width(idx)) - dr.gather(U32, soff, stex)
         first = dr.gather(U32, start, U32(A.aligned(texels, np.uint32)))    # each texel's first slot
         dr.scatter(pay, idx, dr.gather(U32, first, stex) + local)
         return pay
 
+    def _depth_keys(self) -> list:
+        """Functions ``key(index)`` (UInt32 of segments ``index``), most significant first: the
+        order-preserving keys of z0, then of z1 (:func:`~avsm_dr.texel_sort.float_keys`: one
+        each for float32, two halves each for float64)."""
+        F = dr.detached_t(self.Float)
+        z0, z1 = F(dr.detach(self.z0)), F(dr.detach(self.z1))
+        halves = 1 if self.dtype == "float32" else 2
+        return [lambda i, z=z, h=h: float_keys(dr.gather(F, z, i))[h] for z in (z0, z1) for h in range(halves)]
+
     def _key_sort(self, texels: np.ndarray, keys):
         """``(index, offsets, texel)`` (Dr.Jit UInt32): the ``r``-th segment of texel ``texels[j]``
         by ``(keys[0], keys[1], ..., position)`` is segment ``index[offsets[j] + r]``, and
-        ``texel[offsets[j] + r] = j``.  One stable
-        :func:`key_order` pass per key (UInt32 per segment), the last key first (least
-        significant digit first), on the segments of ``texels`` (NumPy ints) only."""
+        ``texel[offsets[j] + r] = j``.  One stable :func:`key_order` pass per key (``key(index)``:
+        UInt32 keys of segments ``index``), the last key first (least significant digit first),
+        on the segments of ``texels`` (NumPy ints) only."""
         U32 = dr.detached_t(backend.types().UInt32)
         c = self.counts[texels]
         sub = np.concatenate([[0], np.cumsum(c)])
-        soff, stex = U32(A.aligned(sub.astype(np.uint32))), U32(A.aligned(np.repeat(np.arange(c.size), c), np.uint32))
-        idx = U32(A.aligned(np.repeat(self.offsets[texels] - sub[:-1], c) + np.arange(sub[-1]), np.uint32))
+        soff, n = U32(A.aligned(sub, np.uint32)), int(sub[-1])
+        stex = U32(run_index(dr.gather(U32, soff, dr.arange(U32, 1, c.size)), n))
+        first = dr.gather(U32, U32(self.offsets_dr()), U32(A.aligned(texels, np.uint32)))
+        idx = dr.gather(U32, first, stex) + dr.arange(U32, n) - dr.gather(U32, soff, stex)
+        dr.eval(stex, idx)
         lay = sort_plan(c, soff)
         for key in reversed(keys):
-            idx = dr.gather(U32, idx, U32(key_order(c, soff, stex, dr.gather(U32, key, idx), layout=lay)))
+            idx = dr.gather(U32, idx, U32(key_order(c, soff, stex, key(idx), layout=lay)))
+            dr.eval(idx)
         return idx, soff, stex
 
     def _layout_cache(self) -> dict:
@@ -459,6 +482,27 @@ class Segments:
         same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
         (a0, b0), (a1, b1) = ((dr.gather(Float, z, i), dr.gather(Float, z, i + 1)) for z in (z0, z1))
         return not bool(dr.any(same & ((b0 < a0) | ((b0 == a0) & (b1 < a1))))[0])
+
+    def _rank_order(self):
+        """:meth:`depth_order` by rank: one lane per segment ``i`` of texel ``t``, its rank
+        ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic)
+        is its sorted slot, ``perm[o_t + r_i] = i`` (``sum_t count_t^2`` comparisons)."""
+        UInt32 = backend.types().UInt32
+        n, z0, z1 = self.n_segments, dr.detach(self.z0), dr.detach(self.z1)
+        tex, off, Float = self.texel_of_segment(), self.offsets_dr(), type(z0)
+        lo, hi = dr.gather(UInt32, off, tex), dr.gather(UInt32, off, tex + 1)
+        me = dr.arange(UInt32, n)
+
+        def body(j, rank):                  # rank: segments found before this one
+            before = j < me
+            for k in (z1, z0):
+                kj = dr.gather(Float, k, j)
+                before = (kj < k) | ((kj == k) & before)
+            return j + 1, rank + dr.select(before, 1, 0)
+        rank = dr.while_loop((UInt32(lo), dr.zeros(UInt32, n)), lambda j, rank: j < hi, body, labels=("j", "rank"))[1]
+        perm = dr.zeros(UInt32, n)
+        dr.scatter(perm, me, lo + rank)
+        return perm
 
     def check_depth(self, value, name: str):
         """``value`` (a depth: scalar or 1-D array) checked against the storage dtype:
