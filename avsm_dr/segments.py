@@ -27,7 +27,7 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
-from .texel_sort import TIE, UNSORTED, float_keys, shuffle_key, sort_texels_view, view_order
+from .texel_sort import TIE, UNSORTED, break_ties, float_keys, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -38,8 +38,9 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
 #: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: float64 depth orders rank every segment against its texel (``count`` comparisons per
-#: segment, :meth:`Segments._rank_order`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
+#: float64 depth orders (and float32 maps with many equal z0) rank segments inside their
+#: texel (up to ``count`` comparisons per segment, :meth:`Segments._rank_order`,
+#: :func:`~avsm_dr.texel_sort.break_ties`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
 #: (:func:`device_sortable`), else sort by stable key passes (more memory, any counts).
 DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
@@ -359,9 +360,12 @@ class Segments:
 
         float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
         | position``), texels with equal z0 sorted again by (z1, position) then (z0, that order)
-        (:meth:`_untie`); float64 (after a check that some texel is out of order): by rank
-        (:meth:`_rank_order`) where :func:`device_sortable`, else by the four 32-bit halves of
-        the z0 and z1 keys (:meth:`_key_sort`).  On the device for any counts."""
+        (:meth:`_untie`), or, where they hold over 1/8 of the segments and
+        :func:`device_sortable`, ranked in place by (z1, position) inside their runs of equal z0
+        (:func:`~avsm_dr.texel_sort.break_ties`: less memory and time there); float64 (after a
+        check that some texel is out of order): by rank (:meth:`_rank_order`) where
+        :func:`device_sortable`, else by the four 32-bit halves of the z0 and z1 keys
+        (:meth:`_key_sort`).  On the device for any counts."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         UInt32 = backend.types().UInt32
@@ -371,7 +375,11 @@ class Segments:
                                                        layout=self._sort_plan())
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
-            pay = self._untie(pay, start, tied)                   # equal z0: by z1, then position
+            if device_sortable(self.counts) and 8 * int(self.counts[tied].sum()) > self.n_segments:
+                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_keys(z0)[0],
+                                 dr.detached_t(self.Float)(dr.detach(self.z1)))  # many ties: in place
+            else:
+                pay = self._untie(pay, start, tied)               # equal z0: by z1, then position
             dr.eval(pay)
             return UInt32(pay), UInt32(start)
         if self._in_order():
@@ -417,7 +425,9 @@ class Segments:
         dr.eval(stex, idx)
         lay = sort_plan(c, soff)
         for key in reversed(keys):
-            idx = dr.gather(U32, idx, U32(key_order(c, soff, stex, key(idx), layout=lay)))
+            k = key(idx)
+            dr.eval(k)                                # gathered by the sort: an array, not an expression
+            idx = dr.gather(U32, idx, U32(key_order(c, soff, stex, k, layout=lay)))
             dr.eval(idx)
         return idx, soff, stex
 

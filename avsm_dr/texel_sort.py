@@ -13,6 +13,8 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
   symbolic conditionals, lanes grouped by class).
 * Longer texels: blocks of 64, then bottom-up merges of pairs of sorted runs, one lane per
   pair with both heads in registers.
+* Equal keys (:func:`break_ties`): one lane per segment ranks itself inside its run of
+  equal keys by a second key, then position.
 
 Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segments.in_order>`
 (the ``"random"`` order): the seeded 32-bit shuffle hash :func:`shuffle_key`.
@@ -282,6 +284,42 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
         if same is not None:
             tied.append(big["texel"][dr.compress(same).numpy()])
     return pay, lay["base"], flags, np.sort(np.concatenate(tied))
+
+
+def break_ties(payloads, base, offsets_dr, texel_of, key, second):
+    """The order of :func:`sort_texels_view` (words ``key << 32 | position``) with equal keys
+    ordered by ``second``, then position: a stable sort by ``(key, second, position)``.
+
+    One lane per segment of texel ``t``, rank ``r``: slot ``base[t] + r`` keeps its payload
+    ``p`` unless a neighbour holds the same key; inside a run ``[r0, r1]`` of equal keys
+    (found by scanning both ways) ``p`` moves to slot ``base[t] + r0 + #{j in run:
+    (second_j, j) < (second_p, p)}``.  Returns new payloads (same layout, same ``base``).
+    key: (S,) UInt32 per segment; second: (S,) float per segment (float comparison: ``-0.0 ==
+    0.0``, then position decides)."""
+    UInt32 = _types()[0]
+    n = dr.width(texel_of)
+    tex, offsets_dr = UInt32(texel_of), UInt32(offsets_dr)
+    o = dr.gather(UInt32, offsets_dr, tex)
+    c = dr.gather(UInt32, offsets_dr, tex + 1) - o
+    b = dr.gather(UInt32, base, tex)
+    r = dr.arange(UInt32, n) - o
+    p = dr.gather(UInt32, payloads, b + r)
+    k, s = dr.gather(UInt32, key, p), dr.gather(type(second), second, p)
+
+    def same(j, ok):                                  # slot j of the texel holds key k
+        return ok & (dr.gather(UInt32, key, dr.gather(UInt32, payloads, b + j, ok), ok) == k)
+    r0 = dr.while_loop((UInt32(r),), lambda j: same(j - 1, j > 0), lambda j: (j - 1,), label="tie_run_start")[0]
+    r1 = dr.while_loop((UInt32(r),), lambda j: same(j + 1, j + 1 < c), lambda j: (j + 1,), label="tie_run_end")[0]
+
+    def rank_body(j, rank):
+        pj = dr.gather(UInt32, payloads, b + j)
+        sj = dr.gather(type(second), second, pj)
+        return j + 1, rank + UInt32((sj < s) | ((sj == s) & (pj < p)))
+    rank = dr.while_loop((UInt32(r0), dr.zeros(UInt32, n)), lambda j, rank: (j <= r1) & (r0 < r1), rank_body,
+                         label="tie_rank")[1]
+    out = dr.empty(UInt32, dr.width(payloads))
+    dr.scatter(out, p, b + dr.select(r0 < r1, r0 + rank, r))
+    return out
 
 
 def _mix32(x, c1, c2):
