@@ -287,15 +287,9 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
 
 
 def break_ties(payloads, base, offsets_dr, texel_of, key, second):
-    """The order of :func:`sort_texels_view` (words ``key << 32 | position``) with equal keys
-    ordered by ``second``, then position: a stable sort by ``(key, second, position)``.
-
-    One lane per segment of texel ``t``, rank ``r``: slot ``base[t] + r`` keeps its payload
-    ``p`` unless a neighbour holds the same key; inside a run ``[r0, r1]`` of equal keys
-    (found by scanning both ways) ``p`` moves to slot ``base[t] + r0 + #{j in run:
-    (second_j, j) < (second_p, p)}``.  Returns new payloads (same layout, same ``base``).
-    key: (S,) UInt32 per segment; second: (S,) float per segment (float comparison: ``-0.0 ==
-    0.0``, then position decides)."""
+    """:func:`sort_texels_view`'s payloads (words ``key << 32 | position``; ``key`` UInt32 and
+    ``second`` float per segment) with each run of equal keys ordered by ``(second, position)``:
+    one lane per segment counts the run's members before it (float ``second``: ``-0.0 == 0.0``)."""
     UInt32 = _types()[0]
     n = dr.width(texel_of)
     tex, offsets_dr = UInt32(texel_of), UInt32(offsets_dr)
