@@ -27,7 +27,7 @@ from . import _arrays as A
 from . import backend
 from . import validation as V
 from .segment_dtype import OVERFLOW_HINT, check_in_dtype, check_span, check_tiny, flushed, has_subnormal
-from .texel_sort import TIE, UNSORTED, break_ties, float_key, shuffle_key, sort_texels_view, view_order
+from .texel_sort import TIE, UNSORTED, break_ties, float_keys, shuffle_key, sort_texels_view, view_order
 from .texel_sort import plan as sort_plan
 
 #: Optical depth stored for a fully opaque segment (exit transmittance exactly 0).
@@ -38,8 +38,10 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
 #: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: Sorts that cost up to ``count`` comparisons per segment run on the device while ``sum
-#: count^2 <= DEVICE_SORT_WORK * S`` (:func:`device_sortable`), else on the host.
+#: float64 depth orders (and float32 maps with many equal z0) rank segments inside their
+#: texel (up to ``count`` comparisons per segment, :meth:`Segments._rank_order`,
+#: :func:`~avsm_dr.texel_sort.break_ties`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
+#: (:func:`device_sortable`), else sort by stable key passes (more memory, any counts).
 DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
@@ -52,7 +54,7 @@ ORDERS = REORDERS + ("submission", "unknown")
 
 def device_sortable(counts: np.ndarray) -> bool:
     """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
-    comparisons per segment runs on the device (else on the host)."""
+    comparisons per segment is cheap enough (:data:`DEVICE_SORT_WORK`)."""
     c = np.asarray(counts).astype(np.float64)
     return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
 
@@ -73,16 +75,12 @@ def run_index(starts, n: int):
 def key_order(counts: np.ndarray, offsets_dr, texel, key, group=None, layout=None):
     """The permutation (Dr.Jit UInt32, S) sorting segments by ``(texel, key, index)``: ``texel``
     and ``key`` (< 2^32) UInt32 per segment; ``group`` = (index, texel) of every CSR position
-    when the segments are not in texel order (None: they are).  On the device (words ``key << 32
-    | index``, :func:`~avsm_dr.texel_sort.sort_texels_view` with ``layout``) where
-    :func:`device_sortable`, else one stable host argsort of ``texel << 32 | key``."""
+    when the segments are not in texel order (None: they are).  On the device for any counts
+    (words ``key << 32 | index``, :func:`~avsm_dr.texel_sort.sort_texels_view` with ``layout``)."""
     UInt32 = backend.types().UInt32
-    if not device_sortable(counts):
-        word = (np.asarray(texel.numpy(), np.uint64) << np.uint64(32)) | np.asarray(key.numpy(), np.uint64)
-        return A.to_uint32(np.argsort(word, kind="stable").astype(np.uint32))
     U32 = dr.detached_t(UInt32)
     index, gtex = (dr.arange(UInt32, dr.width(texel)), texel) if group is None else group
-    pay, base, _ = sort_texels_view(counts, offsets_dr, "index", (U32(index), U32(key)), ties=False, layout=layout)
+    pay, base, _, _ = sort_texels_view(counts, offsets_dr, "index", (U32(index), U32(key)), ties=False, layout=layout)
     return UInt32(view_order(pay, base, U32(offsets_dr), U32(gtex)))
 
 
@@ -361,30 +359,77 @@ class Segments:
         ``index[start[t] + r]``.
 
         float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
-        | position``), equal z0 by z1 then position (:func:`~avsm_dr.texel_sort.break_ties`);
-        float64: by rank (:meth:`_rank_order`); a host lexsort (same order) where
-        :func:`device_sortable` is false and ranks or ties are needed."""
+        | position``), texels with equal z0 sorted again by (z1, position) then (z0, that order)
+        (:meth:`_untie`), or, where they hold over 1/8 of the segments and
+        :func:`device_sortable`, ranked in place by (z1, position) inside their runs of equal z0
+        (:func:`~avsm_dr.texel_sort.break_ties`: less memory and time there); float64 (after a
+        check that some texel is out of order): by rank (:meth:`_rank_order`) where
+        :func:`device_sortable`, else by the four 32-bit halves of the z0 and z1 keys
+        (:meth:`_key_sort`).  On the device for any counts."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
         UInt32 = backend.types().UInt32
+        z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
         if self.dtype == "float32":                             # words key(z0) << 32 | position
-            z0 = dr.detached_t(self.Float)(dr.detach(self.z0))
-            pay, start, flags = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
-                                                 layout=self._sort_plan())
+            pay, start, flags, tied = sort_texels_view(self.counts, self.offsets_dr(), "float", (z0,),
+                                                       layout=self._sort_plan())
             if not flags & TIE:
                 return (UInt32(pay), UInt32(start)) if flags & UNSORTED else None
-            if device_sortable(self.counts):                    # equal z0 (runs of r cost r^2): z1, position
-                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_key(z0),
-                                 dr.detached_t(self.Float)(dr.detach(self.z1)))
-                dr.eval(pay)
-                return UInt32(pay), UInt32(start)
-        if device_sortable(self.counts):
-            idx = self._rank_order()
-        else:
-            h = self.numpy()
-            tex = np.repeat(np.arange(self.n_texels), self.counts)
-            idx = A.to_uint32(np.lexsort((h["z1"], h["z0"], tex)).astype(np.uint32))
-        return None if idx is None else (UInt32(idx), self.offsets_dr())
+            if device_sortable(self.counts) and 8 * int(self.counts[tied].sum()) > self.n_segments:
+                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_keys(z0)[0],
+                                 dr.detached_t(self.Float)(dr.detach(self.z1)))  # many ties: in place
+            else:
+                pay = self._untie(pay, start, tied)               # equal z0: by z1, then position
+            dr.eval(pay)
+            return UInt32(pay), UInt32(start)
+        if self._in_order():
+            return None
+        if device_sortable(self.counts):                        # less memory than key passes
+            return UInt32(self._rank_order()), self.offsets_dr()
+        idx, off, _ = self._key_sort(np.arange(self.n_texels), self._depth_keys())
+        return UInt32(idx), UInt32(off)
+
+    def _untie(self, pay, start, texels):
+        """``pay`` (a :func:`~avsm_dr.texel_sort.sort_texels_view` layout by ``(z0, position)``)
+        with ``texels`` (NumPy, those where two segments share z0) re-sorted by ``(z0, z1,
+        position)`` (:meth:`_key_sort`)."""
+        U32 = type(pay)
+        idx, soff, stex = self._key_sort(texels, self._depth_keys())
+        local = dr.arange(U32, dr.width(idx)) - dr.gather(U32, soff, stex)
+        first = dr.gather(U32, start, U32(A.aligned(texels, np.uint32)))    # each texel's first slot
+        dr.scatter(pay, idx, dr.gather(U32, first, stex) + local)
+        return pay
+
+    def _depth_keys(self) -> list:
+        """Functions ``key(index)`` (UInt32 of segments ``index``), most significant first: the
+        order-preserving keys of z0, then of z1 (:func:`~avsm_dr.texel_sort.float_keys`: one
+        each for float32, two halves each for float64)."""
+        F = dr.detached_t(self.Float)
+        z0, z1 = F(dr.detach(self.z0)), F(dr.detach(self.z1))
+        halves = 1 if self.dtype == "float32" else 2
+        return [lambda i, z=z, h=h: float_keys(dr.gather(F, z, i))[h] for z in (z0, z1) for h in range(halves)]
+
+    def _key_sort(self, texels: np.ndarray, keys):
+        """``(index, offsets, texel)`` (Dr.Jit UInt32): the ``r``-th segment of texel ``texels[j]``
+        by ``(keys[0], keys[1], ..., position)`` is segment ``index[offsets[j] + r]``, and
+        ``texel[offsets[j] + r] = j``.  One stable :func:`key_order` pass per key (``key(index)``:
+        UInt32 keys of segments ``index``), the last key first (least significant digit first),
+        on the segments of ``texels`` (NumPy ints) only."""
+        U32 = dr.detached_t(backend.types().UInt32)
+        c = self.counts[texels]
+        sub = np.concatenate([[0], np.cumsum(c)])
+        soff, n = U32(A.aligned(sub, np.uint32)), int(sub[-1])
+        stex = U32(run_index(dr.gather(U32, soff, dr.arange(U32, 1, c.size)), n))
+        first = dr.gather(U32, U32(self.offsets_dr()), U32(A.aligned(texels, np.uint32)))
+        idx = dr.gather(U32, first, stex) + dr.arange(U32, n) - dr.gather(U32, soff, stex)
+        dr.eval(stex, idx)
+        lay = sort_plan(c, soff)
+        for key in reversed(keys):
+            k = key(idx)
+            dr.eval(k)                                # gathered by the sort: an array, not an expression
+            idx = dr.gather(U32, idx, U32(key_order(c, soff, stex, k, layout=lay)))
+            dr.eval(idx)
+        return idx, soff, stex
 
     def _layout_cache(self) -> dict:
         """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""
@@ -438,28 +483,23 @@ class Segments:
                        {} if cache is None else cache, self.order if order is None else order)
         return out._link(**fns)
 
-    def _rank_order(self):
-        """:meth:`depth_order` by rank, any dtype and ties.
-
-        One lane per segment ``i`` of texel ``t``: its rank among the texel's segments,
-        ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic),
-        is its sorted slot, ``perm[o_t + r_i] = i``: ``sum_t count_t^2`` comparisons, no
-        host copy.  A first pass checks ``(z0, z1)`` non-decreasing inside every texel (None:
-        in order; at least 2 segments)."""
+    def _in_order(self) -> bool:
+        """Every texel's ``(z0, z1)`` non-decreasing (pairs of neighbours in one texel, on the device)."""
         UInt32 = backend.types().UInt32
-        n = self.n_segments
         z0, z1 = dr.detach(self.z0), dr.detach(self.z1)
-        tex = self.texel_of_segment()
-        Float = type(z0)
-        # ---- already in order?  pairs (i, i+1) inside one texel
-        i = dr.arange(UInt32, n - 1)
+        tex, Float = self.texel_of_segment(), type(z0)
+        i = dr.arange(UInt32, self.n_segments - 1)
         same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
         (a0, b0), (a1, b1) = ((dr.gather(Float, z, i), dr.gather(Float, z, i + 1)) for z in (z0, z1))
-        inverted = same & ((b0 < a0) | ((b0 == a0) & (b1 < a1)))
-        if not bool(dr.any(inverted)[0]):
-            return None
-        # ---- rank of every segment inside its texel: a loop over j in [o_t, o_{t+1})
-        off = self.offsets_dr()
+        return not bool(dr.any(same & ((b0 < a0) | ((b0 == a0) & (b1 < a1))))[0])
+
+    def _rank_order(self):
+        """:meth:`depth_order` by rank: one lane per segment ``i`` of texel ``t``, its rank
+        ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic)
+        is its sorted slot, ``perm[o_t + r_i] = i`` (``sum_t count_t^2`` comparisons)."""
+        UInt32 = backend.types().UInt32
+        n, z0, z1 = self.n_segments, dr.detach(self.z0), dr.detach(self.z1)
+        tex, off, Float = self.texel_of_segment(), self.offsets_dr(), type(z0)
         lo, hi = dr.gather(UInt32, off, tex), dr.gather(UInt32, off, tex + 1)
         me = dr.arange(UInt32, n)
 

@@ -75,6 +75,18 @@ def float_key(z):
     return u ^ ((UInt32(0) - (u >> 31)) | 0x80000000)
 
 
+def float_keys(z) -> tuple:
+    """Order-preserving UInt32 keys of float ``z``, most significant first: ``(float_key(z),)``
+    for float32; for float64 the high and low halves of its 64-bit key (the same rule on 64 bits)."""
+    if dr.type_v(z) != dr.VarType.Float64:
+        return (float_key(z),)
+    UInt32, UInt64 = _types()[:2]
+    u = UInt64(dr.reinterpret_array(dr.uint64_array_t(type(z)), dr.detach(z)))
+    u = dr.select(u == 1 << 63, 0, u)
+    k = u ^ ((UInt64(0) - (u >> 63)) | (1 << 63))
+    return UInt32(k >> 32), UInt32(k & 0xFFFFFFFF)
+
+
 def _network_branch(word_at, size: int, out, ties: bool):
     """``f(start, count, packet) -> flags``: one lane per run ``[start, start + count)``
     (``count <= size``): its words ``word_at(position, valid)`` sorted in registers, stored
@@ -118,7 +130,8 @@ def word_function(kind: str, sources):
 
 def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
     """Sort the runs of all lanes (by decreasing size class) in one kernel, a chain of symbolic
-    conditionals picking each lane's network; returns the flags summed (UInt64, width 1)."""
+    conditionals picking each lane's network; returns the flags summed (UInt64, width 1) and
+    per lane (UInt64)."""
     UInt32, UInt64, _, _ = _types()
     word_at = word_function(kind, sources)
 
@@ -130,7 +143,7 @@ def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
     flags = chain(len(sizes) - 1)(start, count, packet)
     counter = dr.zeros(UInt64, 1)             # one atomic add per SIMD packet
     dr.scatter_reduce(dr.ReduceOp.Add, counter, flags, UInt32(0), flags != 0, mode=dr.ReduceMode.Local)
-    return counter
+    return counter, flags
 
 
 def _merge_pass(cur, out, a0, mid, end, n, dst, tie: bool):
@@ -181,7 +194,8 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
     out = dict(n=int(counts.sum()), sizes=sizes, big=None, total=slots)
     if lanes:
-        lane_t = _u32(np.concatenate(lanes))
+        out["texel"] = np.concatenate(lanes)
+        lane_t = _u32(out["texel"])
         out["start"] = dr.gather(UInt32, off, lane_t)
         out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
         out["packet"] = _u32(np.concatenate(packets))
@@ -213,7 +227,7 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             w *= 2
         size = int(region[-1])
         out["big"] = dict(
-            start=start, count=_u32(blk_n), packet=_u32(dest // np.asarray(sizes)[blk_c]),
+            texel=big_t, start=start, count=_u32(blk_n), packet=_u32(dest // np.asarray(sizes)[blk_c]),
             size=size + MAX_NETWORK * (size == out["n"]), passes=passes)   # widths as for the lanes
     out["total"] += MAX_NETWORK * (out["total"] == out["n"])                # never the segments' width
     out["base"] = _u32(base)
@@ -230,23 +244,25 @@ def view_order(payloads, base, offsets_dr, texel_of):
 
 
 def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):
-    """``(payloads, base, flags)``: texel ``t``'s ``r``-th smallest word has its payload (low
-    32 bits) at ``payloads[base[t] + r]`` (both Dr.Jit UInt32, evaluated; the permutation:
-    :func:`view_order`); ``flags`` the :data:`TIE` / :data:`UNSORTED` bits (a Python int).
+    """``(payloads, base, flags, tied)``: texel ``t``'s ``r``-th smallest word has its payload
+    (low 32 bits) at ``payloads[base[t] + r]`` (both Dr.Jit UInt32, evaluated; the permutation:
+    :func:`view_order`); ``flags`` the :data:`TIE` / :data:`UNSORTED` bits (a Python int);
+    ``tied`` the texels (NumPy int64, ascending) where two words share their key.
 
     counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; kind, sources:
-    the words (:func:`word_function`), distinct inside a texel; ties: look for equal keys;
-    layout: :func:`plan` of these counts (computed when None)."""
+    the words (:func:`word_function`), distinct inside a texel; ties: look for equal keys
+    (else ``tied`` is empty); layout: :func:`plan` of these counts (computed when None)."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay = dr.empty(UInt32, lay["total"])
-    counter = dr.zeros(UInt64, 1)
+    counter, lane_flags, same = dr.zeros(UInt64, 1), None, None
     if "start" in lay:
-        counter = _sort_lanes(kind, sources, lay["start"], lay["count"], lay["packet"], lay["sizes"], pay, ties)
+        counter, lane_flags = _sort_lanes(kind, sources, lay["start"], lay["count"], lay["packet"], lay["sizes"],
+                                          pay, ties)
     big = lay["big"]
     if big is not None:
         cur = dr.empty(UInt64, big["size"])
-        counter += _sort_lanes(kind, sources, big["start"], big["count"], big["packet"], lay["sizes"], cur, False)
+        counter += _sort_lanes(kind, sources, big["start"], big["count"], big["packet"], lay["sizes"], cur, False)[0]
         dr.eval(cur, counter)
         for p in big["passes"]:
             if p["final"]:                            # payloads to their place, equal keys side by side
@@ -258,22 +274,22 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
                 _merge_pass(cur, nxt, p["a0"], p["mid"], p["end"], p["n"], p["dst"], False)
                 dr.eval(nxt)
                 cur = nxt
-    dr.eval(pay, counter)
+    dr.eval(pay, counter, lane_flags if ties else None, same if ties else None)
     n_tie, n_unsorted = int(counter[0]) & 0xFFFFFFFF, int(counter[0]) >> 32
     flags = (TIE if n_tie else 0) | (UNSORTED if n_unsorted or big is not None else 0)   # blocks: not checked
-    return pay, lay["base"], flags
+    tied = [np.zeros(0, np.int64)]
+    if ties and n_tie:                                # lanes whose words share a key -> their texels
+        if lane_flags is not None:
+            tied.append(lay["texel"][dr.compress((lane_flags & 0xFFFFFFFF) != 0).numpy()])
+        if same is not None:
+            tied.append(big["texel"][dr.compress(same).numpy()])
+    return pay, lay["base"], flags, np.sort(np.concatenate(tied))
 
 
 def break_ties(payloads, base, offsets_dr, texel_of, key, second):
-    """The order of :func:`sort_texels_view` (words ``key << 32 | position``) with equal keys
-    ordered by ``second``, then position: a stable sort by ``(key, second, position)``.
-
-    One lane per segment of texel ``t``, rank ``r``: slot ``base[t] + r`` keeps its payload
-    ``p`` unless a neighbour holds the same key; inside a run ``[r0, r1]`` of equal keys
-    (found by scanning both ways) ``p`` moves to slot ``base[t] + r0 + #{j in run:
-    (second_j, j) < (second_p, p)}``.  Returns new payloads (same layout, same ``base``).
-    key: (S,) UInt32 per segment; second: (S,) float per segment (float comparison: ``-0.0 ==
-    0.0``, then position decides)."""
+    """:func:`sort_texels_view`'s payloads (words ``key << 32 | position``; ``key`` UInt32 and
+    ``second`` float per segment) with each run of equal keys ordered by ``(second, position)``:
+    one lane per segment counts the run's members before it (float ``second``: ``-0.0 == 0.0``)."""
     UInt32 = _types()[0]
     n = dr.width(texel_of)
     tex, offsets_dr = UInt32(texel_of), UInt32(offsets_dr)

@@ -55,7 +55,7 @@ def _segments(counts, z0, rng, z1=None):
 
 def _check(seg, network: bool):
     """sorted() equals the host lexsort; ``network``: the networks saw distinct z0 in every
-    texel (else equal z0 were flagged and :func:`TS.break_ties` ordered them by z1)."""
+    texel (else equal z0 were flagged and sorted again by z1, then z0)."""
     z0 = dr.detached_t(seg.Float)(dr.detach(seg.z0))
     flags = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,))[2]
     assert bool(flags & TS.TIE) != network
@@ -121,6 +121,41 @@ def test_long_texel_with_equal_depths_in_different_blocks(backend, rng):
     _check(_segments(np.array([200]), z0, rng), network=False)
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_long_texels_with_ties_sort_on_the_device(backend, rng, dtype, monkeypatch):
+    """Texels of 3000 and 700 segments with z0 and z1 from a few values (long runs of equal
+    keys, once a host lexsort's case): the device order equals the host lexsort, and no host
+    copy of the segments is made for it."""
+    counts = np.array([3000, 0, 700, 5])
+    n = int(counts.sum())
+    z0 = rng.integers(0, 7, n) * 0.5
+    seg = ad.Segments.from_arrays(np.r_[0, np.cumsum(counts)], z0, z0 + rng.integers(0, 3, n) * 0.25,
+                                  optical_depth=rng.uniform(0.0, 2.0, n), dtype=dtype)
+    want = _host(seg)
+    with monkeypatch.context() as m:
+        m.setattr(ad.Segments, "numpy", lambda self: pytest.fail("host copy"))
+        got = seg.sorted()
+        dr.eval(got.z0, got.z1, got.optical_depth)
+    for k, v in got.numpy().items():
+        if k != "offsets":
+            assert np.array_equal(v, want[k]), k
+
+
+def test_tied_texels_are_reported(backend, rng):
+    """``sort_texels_view``'s ``tied``: exactly the texels holding two equal keys, network
+    lanes and merged long texels alike."""
+    counts = np.array([5, 40, 0, 3, 200, 150, 9])
+    z0 = _distinct(rng, int(counts.sum()))
+    off = np.r_[0, np.cumsum(counts)]
+    for t in (1, 4, 6):                              # a repeat inside texels 1, 4 and 6
+        z0[off[t] + counts[t] - 1] = z0[off[t]]
+    seg = _segments(counts, z0, rng)
+    z = dr.detached_t(seg.Float)(dr.detach(seg.z0))
+    _, _, flags, tied = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z,))
+    assert flags & TS.TIE and tied.tolist() == [1, 4, 6]
+    assert TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z,), ties=False)[3].size == 0
+
+
 def test_gradients_follow_the_permutation(backend, rng):
     counts = np.array([3, 0, 4])
     z0 = _distinct(rng, 7)
@@ -138,7 +173,7 @@ def test_gradients_follow_the_permutation(backend, rng):
 def _map(rng, counts, ties=False):
     """Random-order segments with texels ``counts`` and light optical depths (compression
     runs); ``ties``: z0 on a grid of 1 and z1 of 0.5, so equal z0 and equal (z0, z1) in most
-    texels (:func:`TS.break_ties` decides, by z1 then position)."""
+    texels (sorted again by z1 then position)."""
     n = int(np.sum(counts))
     z0 = _distinct(rng, n)
     z1 = z0 + rng.uniform(0.0, 1.0, n)
@@ -208,7 +243,7 @@ def test_sorts_right_under_debug_and_kernel_history_flags(backend, rng):
             seg = ad.Segments.from_arrays(np.r_[0, np.cumsum(counts)], rng.uniform(0, 1, n),
                                           rng.uniform(1, 2, n), optical_depth=np.ones(n))
             z0 = dr.detached_t(seg.Float)(seg.z0)
-            pay, base, _ = TS.sort_texels_view(counts, seg.offsets_dr(), "float", (z0,))
+            pay, base, _, _ = TS.sort_texels_view(counts, seg.offsets_dr(), "float", (z0,))
             dr.kernel_history()
             p, b, z, off = np.asarray(pay), np.asarray(base), np.asarray(z0), np.r_[0, np.cumsum(counts)]
             got = np.concatenate([p[b[t]:b[t] + counts[t]] for t in range(texels)])
@@ -240,7 +275,7 @@ _CONCURRENT_SORTS = textwrap.dedent("""
                                               rng.uniform(1, 2, n), optical_depth=np.ones(n))
                 z0 = dr.detached_t(seg.Float)(seg.z0)
                 barrier.wait()                        # the threads record each key at once
-                pay, base, _ = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,), ties)
+                pay, base, _, _ = TS.sort_texels_view(seg.counts, seg.offsets_dr(), "float", (z0,), ties)
                 pay, base, h = np.asarray(pay), np.asarray(base), seg.numpy()["z0"].astype(np.float32)
                 for t in np.flatnonzero(counts):
                     o, c = seg.offsets[t], counts[t]

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, device_sortable, key_order, run_index
+from ..segments import OPAQUE_OPTICAL_DEPTH, Segments, key_order, run_index
 
 
 @dataclass
@@ -122,7 +122,7 @@ def texel_key_order(texels, key, n_texels: int, z0=None):
     np.cumsum(counts, out=offsets[1:])
     off = A.to_uint32(offsets)
     group = None
-    if one is None and device_sortable(counts):     # group by texel (slots from the atomic counter)
+    if one is None:                                 # group by texel (slots from the atomic counter)
         gid = dr.zeros(UInt32, n)
         dr.scatter(gid, dr.arange(UInt32, n), dr.gather(UInt32, off, tex) + slot)   # index at its slot
         group = (gid, dr.gather(UInt32, tex, gid))

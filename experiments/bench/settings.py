@@ -24,7 +24,7 @@ SCENE_SETTINGS = [("avsm", {"nodes": 8}), ("exact", {}), ("osm", {"slices": 32})
 #: Settings whose build is slow per segment (DSM compresses on the host, about 1 us of CPU
 #: per segment; its peak memory is ~2x its output since the chunked build) or sorts in
 #: superlinear time (sort=True: sorting networks per texel on the device, a block merge for
-#: texels over 64 segments, the rank / host lexsort fallbacks for ties and float64):
+#: texels over 64 segments, stable re-sorts for tied texels and float64):
 #: skipped, with a note, on larger maps.
 HEAVY = ("dsm", "sort")
 HEAVY_MAX_SEGMENTS = 8_000_000
