@@ -348,15 +348,33 @@ def _compute(res, P: dict) -> dict:
     return dict(rows=rows, findings=found, summary=summary)
 
 
+#: Figure style per method: AVSM's insertion variants get colours of their own (they are not
+#: registered kinds), avsm_march and greedy keep their kinds' fixed style.
+METHOD_COLOURS = {"avsm": "rose", "avsm_refit": "sand", "avsm_refit_l2": "olive", "avsm_staged": "wine",
+                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple"}
+#: The node count the figure shows (the tables in findings.json have every N).
+PLOT_NODES = 8
+
+
+def _method_style(k: str) -> dict:
+    from . import _plotstyle as plotstyle
+    if k in METHOD_COLOURS:
+        markers = ("o", "s", "D", "v", "P", "X")
+        return dict(color=plotstyle.PALETTE[METHOD_COLOURS[k]], linestyle="-",
+                    marker=markers[list(METHOD_COLOURS).index(k)])
+    return plotstyle.style(k)
+
+
 def _plot(res, found: dict, names, nodes):
     """Small multiples: a panel per scene and metric (two rows of panels per :data:`PANELS_PER_ROW`
-    scenes); ratio to optimal against the order."""
+    scenes); each method's ratio to optimal against the order at :data:`PLOT_NODES` nodes (or
+    the first N run), one fixed colour and marker per method."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.ticker
     from . import _plotstyle as plotstyle
     x = np.arange(len(ORDERS))
-    markers = ("o", "s", "^", "D", "v")
+    n = PLOT_NODES if PLOT_NODES in nodes else nodes[0]
     with plotstyle.context():
         cols = min(len(names), PANELS_PER_ROW)
         blocks = -(-len(names) // cols)
@@ -366,20 +384,22 @@ def _plot(res, found: dict, names, nodes):
             axes[-1][j].set_visible(False)
         for p, name in enumerate(names):
             b, j = divmod(p, cols)
+            cell = found[name][f"N={n}"]
+            methods = [k for k in STREAMING + ("greedy",) if k in cell[ORDERS[0]]]
             for i, (metric, label) in enumerate((("depth_l2", "depth-uniform L2 / optimal"),
                                                  ("rmse", "receiver RMSE / optimal"))):
                 ax = axes[2 * b + i][j]
-                for kk, k in enumerate(STREAMING + ("greedy",)):
-                    for m, n in enumerate(nodes):
-                        v = [found[name][f"N={n}"][o][k][metric] for o in ORDERS]
-                        y = np.array([e["estimate"] for e in v])
-                        lo = np.array([e.get("low", e["estimate"]) for e in v])
-                        hi = np.array([e.get("high", e["estimate"]) for e in v])
-                        st = plotstyle.style(k)
-                        ax.errorbar(x + 0.05 * (kk - 3), y, yerr=[y - lo, hi - y], color=st.get("color"),
-                                    marker=markers[m % len(markers)], linestyle=st.get("linestyle", "-"),
-                                    capsize=2, label=f"{k} N={n}")
+                for kk, k in enumerate(methods):
+                    v = [cell[o][k][metric] for o in ORDERS]
+                    y = np.array([e["estimate"] for e in v])
+                    lo = np.array([e.get("low", e["estimate"]) for e in v])
+                    hi = np.array([e.get("high", e["estimate"]) for e in v])
+                    st = _method_style(k)
+                    ax.errorbar(x + 0.04 * (kk - len(methods) / 2), y, yerr=[y - lo, hi - y], color=st["color"],
+                                marker=st["marker"], linestyle=st.get("linestyle", "-"), markersize=4,
+                                capsize=2, label=k)
                 ax.axhline(1.0, color="k", linewidth=0.8, linestyle=":")
+                ax.axhline(GOAL_RATIO, color="0.5", linewidth=0.8, linestyle="--")
                 ax.set_yscale("log")
                 ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
                 ax.yaxis.set_minor_locator(matplotlib.ticker.LogLocator(subs=(2.0, 3.0, 5.0)))
@@ -389,10 +409,12 @@ def _plot(res, found: dict, names, nodes):
                     ax.set_ylabel(label)
                 if i == 0:
                     ax.set_title(name)
-        fig.suptitle("ratio to optimal: geometric mean over configurations, 95 % interval", fontsize=9)
+        fig.suptitle(f"N = {n}: ratio to optimal, geometric mean over configurations with its 95 % interval "
+                     f"(dotted: 1, dashed: the goal {GOAL_RATIO:g})", fontsize=9)
         handles, labels = axes[0][0].get_legend_handles_labels()
-        plotstyle.legend_below(fig, axes[-1], ncol=min(len(labels), 6), handles=handles, labels=labels)
+        plotstyle.legend_below(fig, axes[-1], ncol=min(len(labels), 4), handles=handles, labels=labels)
         res.save_figure(fig, "insertion_order.png")
+
 
 def _headline(s: dict) -> list[str]:
     """Per scene and N: AVSM's depth-uniform L2 over the optimum per insertion order, each
