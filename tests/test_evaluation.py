@@ -293,7 +293,7 @@ def test_a_method_at_its_preset():
     fom, explicit = tab.where(method="fom")[0], tab.where(method="fom-texel")[0]
     assert fom["params"] == ad.describe("fom")["preset"] == {"depth_range": "texel"}
     assert (fom["rmse"], fom["bytes"]) == (explicit["rmse"], explicit["bytes"])
-    assert tab.where(method="avsm")[0]["params"] == {"interpolation": "exp"}
+    assert tab.where(method="avsm")[0]["params"] == {"interpolation": "linear"}
     assert tab.where(method="beer")[0]["params"] == {}                # Representation.PRESET: defaults
     with pytest.raises(ValueError, match=r"methods\['fom'\]: expected \(kind, params dict or 'preset'\)"):
         evaluate({"fom": ("fom", "best")}, [scene], **kw)
