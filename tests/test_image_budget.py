@@ -282,3 +282,14 @@ def test_summary_pools_configurations_and_keeps_each_ones_threshold():
     assert thr["bytes"] == 64.0 and thr["kind"] == "a"                       # mean at 32 B: 0.175 > 0.1
     assert [c["kinds_within_budget"] for c in s["cells"]] == [1, 1, 1, 1]
     assert thr["interval"]["unit"] == "configuration" and thr["interval"]["n"] == 2
+
+
+def test_frame_panel_falls_back_to_the_kinds_setting_of_the_first_configuration():
+    """The frame figure shows configuration 0's images; a budget's most common label may be
+    another size of the same kind there (sizes differ between configurations): the full run
+    crashed on it with a KeyError."""
+    from experiments.image_budget.plots import _shown
+    imgs = {"exact": 0, "dsm-0.05": 1, "avsm-4": 2}
+    assert _shown("avsm-4", imgs) == "avsm-4"
+    assert _shown("dsm-0.005", imgs) == "dsm-0.05"
+    assert _shown("fom-8", imgs) == "exact"

@@ -129,6 +129,16 @@ def flip_vs_bytes(res, rows, found, P):
         res.save_figure(fig, "flip_vs_bytes.png")
 
 
+def _shown(label: str, imgs: dict) -> str:
+    """``label`` if frame 0 (the first configuration's) has its image, else the same kind's
+    setting that configuration rendered (sizes within a budget differ between configurations:
+    ``label`` is the most common one), else ``'exact'``."""
+    if label in imgs:
+        return label
+    kind = label.split("-")[0]
+    return next((k for k in imgs if k.split("-")[0] == kind), "exact")
+
+
 def frame_images(res, found, frames0, whites, P):
     """``frames.png``: frame 0 of each animation in the first configuration at the finest
     resolution: the reference, exact, the threshold's size (or the least visible at the largest
@@ -147,6 +157,7 @@ def frame_images(res, found, frames0, whites, P):
             thr = found["thresholds"][setting][finest]
             low = cells[0]["best_label"] or "exact"
             high = thr["label"] if thr["reached"] else (cells[-1]["best_label"] or "exact")
+            high, low = _shown(high, imgs), _shown(low, imgs)
             panels = [("reference", ref), ("exact", imgs["exact"]), (high, imgs[high]), (low, imgs[low])]
             for j, (name, img) in enumerate(panels):
                 ax = axes[i][j]
