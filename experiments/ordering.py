@@ -77,17 +77,12 @@ def _config(name: str, ci: int, P: dict, store: dict) -> list[dict]:
     """Rows of configuration ``P['configs'][ci]`` of scene ``name``; per (N, sorted) its
     receiver errors, per-texel depth L2, receiver flicker and per-texel flicker L2 (each
     pooled over the shuffles or their pairs) and the 8 x 8 tiles into ``store``."""
-    import dataclasses
-    from avsm_dr import builtin_scenes, capture, receivers
-    from avsm_dr.evaluation import Configuration, curve_values, depth_grid, depth_l2
+    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
+    from ._common import configuration_capture
     from ._two_metric import texel_blocks
     seed, light = P["configs"][ci]
-    cfg = Configuration(seed, light)
-    sc0 = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(sc0, light=cfg.light_for(sc0))
-    cap = capture(scene, resolution=P["resolution"], order="depth")
+    cfg, cap, (texel, depth) = configuration_capture(name, seed, light, P["resolution"], P["n_volume"])
     seg = cap.segments
-    texel, depth = cap.lookup(receivers.in_volume(scene, P["n_volume"], seed))
     ex_rep = build("exact", seg)
     exact = np.asarray(ex_rep.eval(texel, depth), np.float64)
     curve = curve_values(ex_rep, seg)

@@ -113,17 +113,12 @@ def _timed(fn, repeats: int, warm_up: bool) -> tuple[float, float, object]:
 def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict) -> list[dict]:
     """Rows of one configuration (every setting); its receiver errors, per-texel depth L2
     and the 8 x 8 tiles of both into ``store`` (keyed by setting label and config)."""
-    import dataclasses
-    from avsm_dr import builtin_scenes, capture, receivers
-    from avsm_dr.evaluation import Configuration, curve_values, depth_grid, depth_l2
+    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
+    from ._common import configuration_capture
     from ._two_metric import texel_blocks
     from .error_curves.labels import order_dependent
-    cfg = Configuration(seed, light)
-    sc0 = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(sc0, light=cfg.light_for(sc0))
-    cap = capture(scene, resolution=P["resolution"], order="depth")
+    cfg, cap, (texel, depth) = configuration_capture(name, seed, light, P["resolution"], P["n_volume"])
     seg = cap.segments
-    texel, depth = cap.lookup(receivers.in_volume(scene, P["n_volume"], seed))
     store.setdefault("tiles", {})[cfg.label] = (texel_blocks(texel, cap.width),
                                                 texel_blocks(depth_grid(seg)[0], cap.width))
     ex_rep = build("exact", seg)
