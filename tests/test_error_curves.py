@@ -338,3 +338,41 @@ def test_share_interval_is_the_bootstrap_of_a_proportion():
     ref = stats.bootstrap_ci(m.astype(float), "mean", n_boot=4000)
     assert p == ref["estimate"] and abs(lo - ref["low"]) < 2e-3 and abs(hi - ref["high"]) < 2e-3
     assert F.share_ci(np.zeros(10, bool)) == [0.0, 0.0, 0.0]
+
+
+# ------------------------------------------------------------------ slow kinds: no clock
+def _optimal_settings(out):
+    import csv
+    return sorted({(r["config"], r["setting"]) for r in csv.DictReader((out / "data.csv").open())
+                   if r["method"] == "optimal"})
+
+
+def test_slow_kinds_are_chosen_by_work_not_by_a_clock(tmp_path, monkeypatch):
+    """Which variants a configuration builds reads the kind's work estimate, never a clock: a
+    process_time that jumps an hour per call (every build "slow" by CPU time) gives the same
+    rows; a SLOW_WORK below every build leaves the offline optimum at its headline setting."""
+    import itertools
+    import time
+    opts = dict(quick=True, scenes=["plume"], kinds=["optimal"])
+    every = sorted(("s0-dir_a", E.label("optimal", p)) for p, _ in E.variants("optimal", True, sweep=True))
+    clock = itertools.count(0.0, 3600.0)
+    monkeypatch.setattr(time, "process_time", lambda: next(clock))
+    E.run(out=tmp_path / "loaded", **opts)
+    assert _optimal_settings(tmp_path / "loaded") == every and len(every) > 3
+    assert json.loads((tmp_path / "loaded" / "findings.json").read_text())["slow_kinds"] == {}
+    monkeypatch.setattr(E, "SLOW_WORK", 0.0)
+    E.run(out=tmp_path / "tiny", **opts)
+    assert _optimal_settings(tmp_path / "tiny") == [("s0-dir_a", "optimal-8")]
+    slow = json.loads((tmp_path / "tiny" / "findings.json").read_text())["slow_kinds"]
+    assert set(slow) == {"optimal"} and slow["optimal"] > 0
+
+
+def test_optimal_work_estimate_follows_the_cost_model():
+    """build_work: 150 per point, N K^2 and (3 linf + 2 exp) K^3 per texel on the padded block."""
+    from avsm_dr.representations import optimal
+    seg = ad.Segments.from_arrays([0, 2, 3], [0.1, 0.2, 0.5], [0.4, 0.3, 0.9], optical_depth=[0.5, 1.0, 2.0])
+    k = np.diff(optimal._curve.points(seg)["off"])
+    assert list(k) == [4, 2]                                 # two texels' exact-curve points, own buckets
+    assert optimal.build_work(seg, {}) == 150 * 6 + 8 * (16 + 4)
+    assert optimal.build_work(seg, {"nodes": 4, "norm": "linf", "interpolation": "exp", "precision": "float16"}) \
+        == 150 * 6 + 4 * (16 + 4) + 5 * (64 + 8)

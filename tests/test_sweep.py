@@ -131,7 +131,7 @@ def test_interrupted_error_curves_resume_equals_the_serial_run(tmp_path, monkeyp
     assert serial["summary"] == resumed["summary"]
     fa = (tmp_path / "serial" / "findings.json").read_text()
     fb = (tmp_path / "resumed" / "findings.json").read_text()
-    timing = ("run_seconds", "cells_seconds", "slow_kinds")
+    timing = ("run_seconds", "cells_seconds")
     strip = lambda t: {k: v for k, v in json.loads(t).items() if k not in timing}  # noqa: E731
     assert strip(fa) == strip(fb)
 
