@@ -45,6 +45,19 @@ def _json_default(v):
     return v.item() if isinstance(v, np.generic) else str(v)
 
 
+def write_data(res: Results, output: dict) -> str:
+    """A compute's data files: ``rows`` as data.csv, its ``tables``, its ``findings`` as
+    findings.json (each atomic); returns data.csv's path.  :meth:`Study.run` calls it after
+    ``compute``; a compute calls it before its figures too, so that a figure that fails
+    leaves the data of a long run (rewritten, with the final timings, at the end)."""
+    csv = res.write_csv(output["rows"])
+    for filename, rows in output.get("tables", {}).items():
+        res.write_csv(rows, filename)
+    if "findings" in output:
+        res.write_json("findings.json", output["findings"], indent=1, default=_json_default)
+    return str(csv)
+
+
 @dataclasses.dataclass(frozen=True)
 class Study:
     """One study of ``python -m experiments``.
@@ -130,13 +143,9 @@ class Study:
             return dict(hit, figures=[str(res.dir / f) for f in meta.get("figures", [])],
                         summary=meta.get("summary", {}))
         output = self.compute(res, P, **runtime)
-        csv = res.write_csv(output["rows"])
-        for filename, rows in output.get("tables", {}).items():
-            res.write_csv(rows, filename)
-        if "findings" in output:
-            res.write_json("findings.json", output["findings"], indent=1, default=_json_default)
+        csv = write_data(res, output)
         res.write_meta(output["summary"])
-        return {"csv": str(csv), "out": str(res.dir), "figures": list(res.figures), "summary": output["summary"],
+        return {"csv": csv, "out": str(res.dir), "figures": list(res.figures), "summary": output["summary"],
                 **output.get("result", {})}
 
     def headline_lines(self, summary) -> list[str]:

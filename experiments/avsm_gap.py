@@ -65,7 +65,7 @@ from avsm_dr.metrics import error_stats
 from ._common import front_to_back_first
 from ._two_metric import texel_blocks
 from ._headline import interval
-from ._study import Option, Study
+from ._study import Option, Study, write_data
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -407,6 +407,7 @@ def _compute(res, P: dict) -> dict:
     first = {}
     for r in rows:
         first.setdefault(r["scene"], r["config"])
+    write_data(res, dict(rows=rows, findings=summary))        # before the figures
     _plot(res, [r for r in rows if r["config"] == first[r["scene"]] and r.get("order") in ("-", "depth")], names)
     return dict(rows=rows, findings=summary, summary=summary)
 

@@ -69,7 +69,7 @@ from tqdm import tqdm
 from avsm_dr import build
 from ._free_vertex import free_vertex_l2
 from ._headline import num, wrap
-from ._study import Option, Study
+from ._study import Option, Study, write_data
 from ._two_metric import metric_dependent
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -337,6 +337,7 @@ def _compute(res, P: dict) -> dict:
     for name, seed, light in tqdm(jobs, desc="insertion_order", unit="config"):
         rows += _config_rows(name, seed, light, P)
     found = findings(rows, P["n_boot"])
+    write_data(res, dict(rows=rows, findings=found))          # before the figures
     _plot(res, found, P["scenes"], P["nodes"])
     summary = {f"{s}_N{n}_avsm_over_optimal_{o}": found[s][f"N={n}"][o]["avsm"]["depth_l2"]["estimate"]
                for s in P["scenes"] for n in P["nodes"] for o in ORDERS}

@@ -61,7 +61,7 @@ from tqdm import tqdm
 
 from avsm_dr import build, describe
 from avsm_dr.metrics import THRESHOLD
-from ._study import Option, Study
+from ._study import Option, Study, write_data
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -454,6 +454,7 @@ def _compute(res, P: dict) -> dict:
     table = sensitivity(rows)
     found = findings(rows, table, P)
     found["run_seconds"] = time.perf_counter() - t0
+    write_data(res, dict(rows=rows, tables={"sensitivity.csv": table}, findings=found))   # before the figures
     _plot(res, table, found, [tuple(g) for g in P["groups"]])
     summary = {}
     for g, d in found["groups"].items():          # at most 100 characters per line

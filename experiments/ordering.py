@@ -39,7 +39,7 @@ from avsm_dr import build
 from avsm_dr.metrics import error_stats
 from avsm_dr.segments import Segments
 from ._headline import num, wrap
-from ._study import Study
+from ._study import Study, write_data
 from ._two_metric import MIN_CONFIDENT, claim, metric_dependent, side
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -177,6 +177,7 @@ def _compute(res, params: dict) -> dict:
         configs = list(store["tiles"])
         found[name] = dict(n_configs=len(configs), configs=configs, indicative=len(configs) < MIN_CONFIDENT,
                            claims=_claims(store, configs, params["nodes"], params["n_boot"]))
+    write_data(res, dict(rows=rows, findings=found))          # before the figures
     _plot(res, rows, names)
     def mean_flicker(*key):
         return float(np.mean([r["flicker_rms"] for r in rows if (r["scene"], r["param"], r["sorted"]) == key]))

@@ -55,7 +55,7 @@ from avsm_dr import build, configurations, describe, kinds
 from avsm_dr.metrics import error_stats
 from ._common import measure
 from ._headline import wrap
-from ._study import Study
+from ._study import Study, write_data
 from ._two_metric import MIN_CONFIDENT, claim
 from .error_curves import SCENES
 
@@ -220,6 +220,7 @@ def _compute(res, params: dict) -> dict:
         rows += _config(name, seed, light, params, first, store)
         if [seed, light] == list(params["configs"][-1]):
             found[name] = _scene_findings([r for r in rows if r["scene"] == name], store, params["n_boot"])
+    write_data(res, dict(rows=rows, findings=found))          # before the figures
     _plot(res, rows, found, names)
     summary = {name: [d["setting"] for d in f["front"]] for name, f in found.items()}
     front_l2 = {name: [d["setting"] for d in f["front_depth_l2"]] for name, f in found.items()}

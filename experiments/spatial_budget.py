@@ -45,7 +45,7 @@ from avsm_dr.metrics import error_stats
 from avsm_dr.scene import DirectionalLight
 from ._common import measure
 from ._headline import interval, num
-from ._study import Study
+from ._study import Study, write_data
 from ._tau import optical_depth_error
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -206,6 +206,7 @@ def _compute(res, params: dict) -> dict:
                 if kind != "exact":
                     errors[(name, b, kind, r, (seed, li))] = est - truth
     summary = _summarise(rows, errors, params, bootstrap_ci, claim)
+    write_data(res, dict(rows=rows, findings=summary))        # before the figures
     _plot(res, rows, params, summary)
     return dict(rows=rows, findings=summary, summary=summary)
 

@@ -293,3 +293,23 @@ def test_frame_panel_falls_back_to_the_kinds_setting_of_the_first_configuration(
     assert _shown("avsm-4", imgs) == "avsm-4"
     assert _shown("dsm-0.005", imgs) == "dsm-0.05"
     assert _shown("fom-8", imgs) == "exact"
+
+
+def test_a_failing_figure_leaves_the_data(tmp_path, monkeypatch):
+    """The data files are written before the figures: a figure that raises (after a long run)
+    leaves data.csv, map.csv and findings.json (a tiny run: two configurations, two kinds)."""
+    from experiments._common import Results
+    from experiments.image_budget import plots
+    P, _ = S.STUDY.params(quick=True)
+    P.update(configs=[[0, "dir_a"], [1, "dir_b"]], frames=2, size=8, start_steps=2, image=8, spp=1,
+             reference_spp=4, resolutions=[64], budgets=[16], kinds=["exact", "beer"], n_boot=100)
+
+    def boom(*_, **__):
+        raise RuntimeError("a figure failed")
+    monkeypatch.setattr(plots, "plot_all", boom)
+    with pytest.raises(RuntimeError, match="a figure failed"):
+        S._compute(Results("image_budget", tmp_path, True, P), P)
+    rows = read_csv(tmp_path / "data.csv")
+    assert {r["kind"] for r in rows} == {"exact", "beer"} and len(rows) == 2 * 2 * 2
+    assert read_csv(tmp_path / "map.csv") and "headline" in json.loads((tmp_path / "findings.json").read_text())
+    assert not (tmp_path / "meta.json").exists()                # not a finished (cached) result

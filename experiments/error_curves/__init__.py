@@ -44,7 +44,7 @@ from avsm_dr.metrics import error_stats
 from avsm_dr.representations import optimal
 from avsm_dr.segments import Segments
 from . import findings as F
-from .._study import Option, Study
+from .._study import Option, Study, write_data
 from .._tau import optical_depth_error
 from .._two_metric import texel_blocks
 from .labels import ORDERS, PRECISIONS, TUNING, with_size, label, order_dependent, tuned  # noqa: F401  (re-exported)
@@ -473,6 +473,7 @@ def _compute(res, P: dict, workers=None, address=None) -> dict:
                    whole_map_kinds={n: w for n, w in whole.items() if w},
                    subset_max_difference={k: v for c in base for k, v in c["subset_check"].items()})
     from . import plots as _error_plots
+    write_data(res, dict(rows=rows, findings=summary))        # before the figures
     _error_plots.plot_all(res, rows, names)
     # the whole computation: cells, findings and figures (cells_seconds: the cells alone)
     summary.update(cells_seconds=elapsed, run_seconds=time.perf_counter() - t0)

@@ -113,7 +113,7 @@ from avsm_dr.stats import claim
 from . import analysis as A
 from . import render as R
 from .._headline import num
-from .._study import Option, Study
+from .._study import Option, Study, write_data
 from ..temporal import scenes as S
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -538,6 +538,7 @@ def _compute(res, P: dict) -> dict:
     first = Configuration(*P["configs"][0]).label
     res.write_npz("frame0.npz", **{f"{s}__{k}": v.astype(np.float32) for s, d in frames0.items()
                                    for k, v in [("reference", d["reference"])] + list(d["images"].items())})
+    write_data(res, dict(rows=rows, tables={"map.csv": cells}, findings=found))   # before the figures
     from . import plots
     plots.plot_all(res, rows, found, cells, frames0, {s: whites[(first, s)] for s in P["settings"]}, P)
     found["run_seconds"] = time.perf_counter() - t_start

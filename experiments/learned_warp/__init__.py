@@ -74,7 +74,7 @@ from tqdm import tqdm
 from avsm_dr import allows, build, describe
 from avsm_dr.stats import paired_bootstrap
 from .._headline import interval
-from .._study import Study
+from .._study import Study, write_data
 from .._two_metric import metric_dependent
 from .depth_warp import DepthWarp, log_values
 
@@ -301,11 +301,12 @@ def _compute(res, P: dict) -> dict:
                                   beta_best_in_sweep=min(sweep, key=lambda r: r["train_rmse"])["beta"]
                                   if sweep else None,
                                   evaluated_with="the hard algorithm (equal to the avsm kind at beta = 0)")
+    tables = {"losses.csv": loss_rows, "warps.csv": warp_rows, "avsm_metric.csv": metric_rows,
+              "avsm_metric_loss.csv": metric_loss, **({"avsm_metric_sweep.csv": sweep} if sweep else {})}
+    write_data(res, dict(rows=rows, tables=tables, findings=summary))   # before the figures
     from .plots import plot, plot_metric
     plot(res, rows, loss_rows, warp_rows)
     plot_metric(res, metric_loss, sweep)
-    tables = {"losses.csv": loss_rows, "warps.csv": warp_rows, "avsm_metric.csv": metric_rows,
-              "avsm_metric_loss.csv": metric_loss, **({"avsm_metric_sweep.csv": sweep} if sweep else {})}
     return dict(rows=rows, tables=tables, findings=summary, summary=summary)
 
 

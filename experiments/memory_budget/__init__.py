@@ -87,7 +87,7 @@ from avsm_dr.evaluation import Configuration
 from avsm_dr.stats import bootstrap_ci, claim
 from .._common import front_to_back_first
 from .._headline import interval, num
-from .._study import Option, Study
+from .._study import Option, Study, write_data
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -508,6 +508,7 @@ def _compute(res, P: dict) -> dict:
     for name, config in tqdm(_configs(P), desc="memory_budget", unit="config"):
         _config_rows(name, config, P, rows, errors, heat, l2, blocks)
     summary = findings(rows, errors, P["n_boot"], l2, blocks)
+    write_data(res, dict(rows=rows, findings=summary))        # before the figures
     from .plots import plot_curves, plot_heat
     plot_curves(res, [r for r in rows if r["order"] in ("-", "depth")], P["scenes"])
     plot_heat(res, heat)

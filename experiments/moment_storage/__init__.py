@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from avsm_dr import build
 from .._headline import interval, num, wrap
-from .._study import Option, Study
+from .._study import Option, Study, write_data
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
 REPRODUCES = (
@@ -252,6 +252,7 @@ def _compute(res, P: dict) -> dict:
     best, tune_rows = tune(P)
     rows, errs, nbytes, l2s, tiles = evaluate(P, best)
     summary = findings(errs, nbytes, best, n_boot=P["n_boot"], l2s=l2s, tiles=tiles)
+    write_data(res, dict(rows=rows, tables={"tuning.csv": tune_rows}, findings=summary))   # before the figures
     from .plots import plot_ratios
     plot_ratios(res, summary, [label(*v) for v in VARIANTS], TAGS, REFERENCE)
     return dict(rows=rows, tables={"tuning.csv": tune_rows}, findings=summary,

@@ -74,7 +74,7 @@ from avsm_dr import builtin_scenes, capture, describe, kinds, procedural
 from avsm_dr.metrics import THRESHOLD
 from . import scenes as S
 from .._headline import num
-from .._study import Option, Study
+from .._study import Option, Study, write_data
 from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_grid, depth_l2, light_variants, truth
 from .metrics import per_frame, pooled, pooled_ci, receiver_sums
 from .._two_metric import texel_blocks
@@ -303,6 +303,7 @@ def _compute(res, P: dict) -> dict:
     summary = findings(series, ms, P)
     summary["run_seconds"] = time.perf_counter() - t0
     from . import plots as _temporal_plots
+    write_data(res, dict(rows=rows, findings=summary))        # before the figures
     _temporal_plots.plot_all(res, rows, summary, series, P, _gif_labels(ms))
     return dict(rows=rows, findings=summary, summary={k: summary[k] for k in ("headline", "run_seconds")},
                 result={"summary": summary["headline"]})
