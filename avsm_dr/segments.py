@@ -326,13 +326,23 @@ class Segments:
         return self._cache["bounds"]
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""
+        """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1).  One
+        lane per texel loops over its CSR range on the device (min z0, max z1): buffers of T
+        values, no host copy of the S segments (a float64 one was 16x a Beer map's output)."""
         near, far = np.zeros(self.n_texels), np.ones(self.n_texels)
         nz = self.counts > 0
         if nz.any():
-            starts = self.offsets[:-1][nz]
-            near[nz] = np.minimum.reduceat(A.host(self.z0, "z0"), starts)
-            far[nz] = np.maximum.reduceat(A.host(self.z1, "z1"), starts)
+            UInt32, F = backend.types().UInt32, dr.detached_t(self.Float)
+            z0, z1, off, T = F(dr.detach(self.z0)), F(dr.detach(self.z1)), self.offsets_dr(), self.n_texels
+
+            def body(i, lo, hi):
+                return i + 1, dr.minimum(lo, dr.gather(F, z0, i)), dr.maximum(hi, dr.gather(F, z1, i))
+            t = dr.arange(UInt32, T)
+            stop = dr.gather(UInt32, off, t + 1)
+            _, lo, hi = dr.while_loop((dr.gather(UInt32, off, t), dr.full(F, np.inf, T), dr.full(F, -np.inf, T)),
+                                      lambda i, lo, hi: i < stop, body, labels=("i", "lo", "hi"))
+            dr.eval(lo, hi)
+            near[nz], far[nz] = lo.numpy()[nz], hi.numpy()[nz]
         return near, far
 
     def numpy(self) -> dict[str, np.ndarray]:
