@@ -12,7 +12,9 @@ from numbers import Integral
 
 import numpy as np
 
+from .. import builtin_scenes, receivers
 from .. import validation as V
+from ..capture import capture as _capture
 from ..groundtruth.content import check_scene, content_sphere
 from ..scene import DirectionalLight, Light, SpotLight
 
@@ -77,6 +79,23 @@ class Configuration:
         if not isinstance(self.light, str):
             return self.light
         return scene.light if self.light == "dir_a" else light_variants(scene)[self.light]
+
+    def scene(self, scene):
+        """``scene`` in this configuration: a built-in scene name regenerated with :attr:`seed`
+        (its noise), or a :class:`~avsm_dr.Scene` kept as it is, lit by :meth:`light_for`."""
+        base = builtin_scenes.get(scene, seed=self.seed) if isinstance(scene, str) else scene
+        return dataclasses.replace(base, light=self.light_for(base))
+
+    def capture(self, scene, resolution: int, order: str = "depth", **options):
+        """``(configured scene, its capture)``: :meth:`scene`, then :func:`avsm_dr.capture` of it
+        at ``resolution`` in insertion ``order`` with the other capture ``options``."""
+        scene = self.scene(scene)
+        return scene, _capture(scene, resolution=resolution, order=order, **options)
+
+    def in_volume_receivers(self, scene, n: int) -> np.ndarray:
+        """``n`` receivers inside the configured ``scene``'s content, drawn with :attr:`seed`
+        (:func:`avsm_dr.receivers.in_volume`)."""
+        return receivers.in_volume(scene, n, self.seed)
 
 
 def configurations(seeds=1, lights=("dir_a",)) -> list[Configuration]:
