@@ -12,8 +12,7 @@ from numbers import Integral
 
 import numpy as np
 
-from .. import builtin_scenes, receivers
-from .. import validation as V
+from .. import builtin_scenes, receivers, validation as V
 from ..capture import capture as _capture
 from ..groundtruth.content import check_scene, content_sphere
 from ..scene import DirectionalLight, Light, SpotLight
@@ -81,20 +80,17 @@ class Configuration:
         return scene.light if self.light == "dir_a" else light_variants(scene)[self.light]
 
     def scene(self, scene):
-        """``scene`` in this configuration: a built-in scene name regenerated with :attr:`seed`
-        (its noise), or a :class:`~avsm_dr.Scene` kept as it is, lit by :meth:`light_for`."""
+        """``scene`` (a built-in scene's name: regenerated with :attr:`seed`) lit by :meth:`light_for`."""
         base = builtin_scenes.get(scene, seed=self.seed) if isinstance(scene, str) else scene
         return dataclasses.replace(base, light=self.light_for(base))
 
     def capture(self, scene, resolution: int, order: str = "depth", **options):
-        """``(configured scene, its capture)``: :meth:`scene`, then :func:`avsm_dr.capture` of it
-        at ``resolution`` in insertion ``order`` with the other capture ``options``."""
+        """(:meth:`scene`, its :func:`avsm_dr.capture` at ``resolution`` in ``order`` with ``options``)."""
         scene = self.scene(scene)
         return scene, _capture(scene, resolution=resolution, order=order, **options)
 
     def in_volume_receivers(self, scene, n: int) -> np.ndarray:
-        """``n`` receivers inside the configured ``scene``'s content, drawn with :attr:`seed`
-        (:func:`avsm_dr.receivers.in_volume`)."""
+        """:func:`avsm_dr.receivers.in_volume`: ``n`` receivers in ``scene`` drawn with :attr:`seed`."""
         return receivers.in_volume(scene, n, self.seed)
 
 
