@@ -356,16 +356,3 @@ def front_to_back_first(orders, allowed) -> list[str]:
         raise ValueError(f"orders: unknown insertion order {bad[0]!r}; expected some of {list(allowed)}")
     return ["depth"] + [o for o in dict.fromkeys(orders) if o != "depth"]
 
-
-def configuration_capture(name: str, seed: int, light: str, resolution: int, n_volume: int):
-    """Built-in scene ``name`` at configuration (``seed``, ``light``): its depth-ordered capture
-    at ``resolution`` and ``n_volume`` in-volume receivers (by contribution) looked up in it.
-    Returns ``(configuration, capture, (texel, depth))``."""
-    import dataclasses
-    from avsm_dr import builtin_scenes, capture, receivers
-    from avsm_dr.evaluation import Configuration
-    cfg = Configuration(seed, light)
-    sc0 = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(sc0, light=cfg.light_for(sc0))
-    cap = capture(scene, resolution=resolution, order="depth")
-    return cfg, cap, cap.lookup(receivers.in_volume(scene, n_volume, seed))

@@ -34,7 +34,6 @@ choice itself stays by receiver RMSE (the shadows a viewer sees).
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -178,10 +177,7 @@ def _configurations(P: dict):
 
 def _first_capture(spec, cfg, resolution):
     """The first configuration's capture, as ``evaluate`` makes it (depth order)."""
-    from avsm_dr import builtin_scenes, capture
-    scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec
-    scene = dataclasses.replace(scene, light=cfg.light_for(scene))
-    return capture(scene, resolution=resolution, order="depth")
+    return cfg.capture(spec, resolution)[1]
 
 
 # ====================================================================== settings

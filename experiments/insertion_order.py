@@ -158,16 +158,12 @@ def _stats(est, ref) -> tuple[float, float, float]:
 
 def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
     """Rows of one configuration: every kind x N x order."""
-    import dataclasses
-    from avsm_dr import builtin_scenes, capture, receivers
     from avsm_dr.evaluation import Configuration, Probe, curve_values, depth_l2
     cfg = Configuration(seed, light)
-    sc0 = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(sc0, light=cfg.light_for(sc0))
-    cap = capture(scene, resolution=P["resolution"], order="submission")
+    scene, cap = cfg.capture(name, P["resolution"], order="submission")
     seg = cap.segments
     segs = {o: seg if o == "submission" else seg.in_order(o, seed=seed if o == "random" else None) for o in ORDERS}
-    points = receivers.in_volume(scene, P["n_volume"], seed)
+    points = cfg.in_volume_receivers(scene, P["n_volume"])
     probe = Probe(cap, scene, points, n_decomp=0)
     base = segs["depth"]
     exact = build("exact", base)

@@ -52,7 +52,6 @@ for every family and count under both metrics.
 """
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import time
 
@@ -142,15 +141,12 @@ def build_params(family: str, n: int, target: str, factor: float, beta: float, d
 # ========================================================================= rows
 def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
     """Every grid point of every family and count in one configuration (scene, seed, light)."""
-    from avsm_dr import builtin_scenes, capture, receivers
     from avsm_dr.evaluation import Configuration, Probe, curve_values, depth_l2
     cfg = Configuration(seed, light)
-    sc0 = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(sc0, light=cfg.light_for(sc0))
     opaque = describe("moments")["preset_capture"].get("opaque", "inline")
-    cap = capture(scene, resolution=P["resolution"], opaque=opaque, order="depth")
+    scene, cap = cfg.capture(name, P["resolution"], opaque=opaque)
     seg = cap.segments
-    points = receivers.in_volume(scene, P["n_volume"], seed)
+    points = cfg.in_volume_receivers(scene, P["n_volume"])
     probe = Probe(cap, scene, points, n_decomp=0, truth_at_points=np.zeros(len(points)))  # truth unused
     exact = build("exact", seg)
     ex_lookup = probe.lookup(exact)

@@ -77,11 +77,12 @@ def _config(name: str, ci: int, P: dict, store: dict) -> list[dict]:
     """Rows of configuration ``P['configs'][ci]`` of scene ``name``; per (N, sorted) its
     receiver errors, per-texel depth L2, receiver flicker and per-texel flicker L2 (each
     pooled over the shuffles or their pairs) and the 8 x 8 tiles into ``store``."""
-    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
-    from ._common import configuration_capture
+    from avsm_dr.evaluation import Configuration, curve_values, depth_grid, depth_l2
     from ._two_metric import texel_blocks
     seed, light = P["configs"][ci]
-    cfg, cap, (texel, depth) = configuration_capture(name, seed, light, P["resolution"], P["n_volume"])
+    cfg = Configuration(seed, light)
+    scene, cap = cfg.capture(name, P["resolution"])
+    texel, depth = cap.lookup(cfg.in_volume_receivers(scene, P["n_volume"]))
     seg = cap.segments
     ex_rep = build("exact", seg)
     exact = np.asarray(ex_rep.eval(texel, depth), np.float64)

@@ -113,11 +113,12 @@ def _timed(fn, repeats: int, warm_up: bool) -> tuple[float, float, object]:
 def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict) -> list[dict]:
     """Rows of one configuration (every setting); its receiver errors, per-texel depth L2
     and the 8 x 8 tiles of both into ``store`` (keyed by setting label and config)."""
-    from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
-    from ._common import configuration_capture
+    from avsm_dr.evaluation import Configuration, curve_values, depth_grid, depth_l2
     from ._two_metric import texel_blocks
     from .error_curves.labels import order_dependent
-    cfg, cap, (texel, depth) = configuration_capture(name, seed, light, P["resolution"], P["n_volume"])
+    cfg = Configuration(seed, light)
+    scene, cap = cfg.capture(name, P["resolution"])
+    texel, depth = cap.lookup(cfg.in_volume_receivers(scene, P["n_volume"]))
     seg = cap.segments
     store.setdefault("tiles", {})[cfg.label] = (texel_blocks(texel, cap.width),
                                                 texel_blocks(depth_grid(seg)[0], cap.width))

@@ -312,6 +312,25 @@ def test_configurations():
         Configuration(-1)
 
 
+def test_configuration_builds_its_scene_capture_and_receivers():
+    from avsm_dr import builtin_scenes, receivers
+    cfg = Configuration(1, "dir_b")
+    scene = cfg.scene("plume")
+    base = builtin_scenes.get("plume", seed=1)                      # regenerated with the seed
+    assert np.array_equal(scene.density, base.density)
+    assert not np.array_equal(scene.density, builtin_scenes.get("plume").density)
+    assert np.allclose(scene.light.direction, ad.evaluation.light_variants(base)["dir_b"].direction)
+    own = ad.Scene.from_grid(np.ones((4, 4, 4)))                    # a Scene object keeps its content
+    lit = cfg.scene(own)
+    assert lit.density is own.density and not np.allclose(lit.light.direction, own.light.direction)
+    scene2, cap = cfg.capture("plume", 64, order="submission")
+    ref = ad.capture(scene, resolution=64, order="submission")
+    assert np.array_equal(cap.segments.z0, ref.segments.z0) and np.array_equal(scene2.density, scene.density)
+    pts = cfg.in_volume_receivers(scene, 16)
+    assert np.array_equal(pts, receivers.in_volume(scene, 16, 1))
+    assert not np.array_equal(pts, receivers.in_volume(scene, 16, 0))
+
+
 def test_moved_names_are_public():
     from avsm_dr import evaluation
     from experiments import _common

@@ -50,42 +50,53 @@ def test_uncorrelated_errors_have_flicker_index_one():
     assert M.pooled(M.receiver_sums(est, ref), 4)["flicker_index"] == pytest.approx(1.0, rel=0.02)
 
 
-def test_pooled_ci_brackets_the_estimate():
-    rng = np.random.default_rng(1)
-    ref = rng.random((5, 300))
-    est = ref + 0.02 * rng.standard_normal(ref.shape)
-    ci = M.pooled_ci(M.receiver_sums(est, ref), 5, n_boot=200)
-    for v in ci.values():
-        assert v["low"] <= v["estimate"] <= v["high"] and v["high"] - v["low"] < 0.5 * v["estimate"]
+def _disagreeing_series(F=4):
+    """Four configurations whose errors disagree: |e| = 0.01, 0.02, 0.03, 0.04 at every receiver
+    and frame (random signs), the last with 4x the receivers; pooled over all receivers the RMS
+    error would be 0.0334 with a tight interval, per configuration first their mean is 0.025."""
+    rng = np.random.default_rng(3)
+    ms = [("exact", "exact", {}, "depth"), ("fom-4", "fom", {}, "depth")]
+    series = {}
+    for i, level in enumerate((0.01, 0.02, 0.03, 0.04)):
+        K = 64 * (4 if i == 3 else 1)
+        ref = rng.uniform(0.2, 0.8, (F, K))
+        est = ref + level * rng.choice([-1.0, 1.0], (F, K))
+        series[("smoke", f"c{i}")] = dict(exact=ref, truth=ref, est={"exact": ref, "fom-4": est},
+                                          l2={m[0]: [np.ones(2, np.float32)] * F for m in ms},
+                                          bytes={m[0]: 8.0 for m in ms}, sparse_bytes={m[0]: 8.0 for m in ms})
+    return series, ms
 
 
-def test_pooled_ci_resamples_whole_blocks():
-    """With blocks (8 x 8 texel tiles), the intervals from block sums (avsm_dr.stats.bootstrap_means_ci)
-    equal the generic block bootstrap of the receivers (a callable statistic, each replicate's
-    receivers gathered: the same draws, to rounding); one receiver per block is the receiver
-    bootstrap; correlated receivers give a wider interval."""
-    from avsm_dr.stats import bootstrap_ci
-    rng = np.random.default_rng(2)
-    tiles = np.repeat(np.arange(40), 8)                       # 40 tiles of 8 receivers
-    ref = rng.random((5, tiles.size))
-    est = ref + 0.02 * rng.standard_normal((5, 40))[:, tiles] + 0.002 * rng.standard_normal(ref.shape)
-    sums = M.receiver_sums(est, ref)
-    got = M.pooled_ci(sums, 5, n_boot=300, blocks=tiles)
+def test_per_setting_intervals_take_the_configuration_as_unit():
+    """Each configuration's statistic first, then the mean and its interval over configurations:
+    an interval over the texels / receivers of the configurations pooled fails both asserts."""
+    series, ms = _disagreeing_series()
+    f = T.findings(series, ms, dict(frames=4, n_boot=500))
+    v = f["per_setting"]["smoke"]["exact"]["fom-4"]
+    assert v["n_configs"] == 4
+    assert [v["per_config"][f"c{i}"]["error"] for i in range(4)] == pytest.approx([0.01, 0.02, 0.03, 0.04], rel=1e-12)
+    assert v["error"]["estimate"] == pytest.approx(0.025, rel=1e-12)          # not the pooled 0.0334
+    assert v["error"]["low"] < 0.02 and v["error"]["high"] > 0.03              # the configurations' spread
+    assert f["per_setting"]["smoke"]["exact"]["exact"]["error"] == {"estimate": 0.0, "low": 0.0, "high": 0.0}
 
-    for key in got:
-        def stat(x, axis, key=key):
-            i = x.astype(np.int64)
-            return M.pooled(np.stack([np.mean(s[i], axis=-1) for s in sums])[..., None], 5)[key]
-        want = bootstrap_ci(np.arange(tiles.size, dtype=np.float64), stat, n_boot=300, blocks=tiles)
-        for k in ("estimate", "low", "high"):
-            assert got[key][k] == pytest.approx(want[k], rel=1e-12), (key, k)
-    one = M.pooled_ci(sums, 5, n_boot=300, blocks=np.arange(tiles.size))
-    plain = M.pooled_ci(sums, 5, n_boot=300)
-    for k in ("estimate", "low", "high"):
-        assert one["flicker"][k] == pytest.approx(plain["flicker"][k], rel=1e-12)
-    assert got["error"]["high"] - got["error"]["low"] > 1.5 * (plain["error"]["high"] - plain["error"]["low"])
-    with pytest.raises(ValueError, match="^blocks:"):
-        M.pooled_ci(sums, 5, n_boot=100, blocks=tiles[:-1])
+
+def test_recomputation_from_rows_matches_the_run():
+    """data.csv's per-frame rows (as strings) give every configuration's statistics of the
+    series (to rounding), hence the same intervals; one configuration: no interval."""
+    series, ms = _disagreeing_series()
+    f = T.findings(series, ms, dict(frames=4, n_boot=500))
+    rows = [{k: str(v) for k, v in r.items()} for r in T._rows(series, ms)]
+    per = M.per_config_from_rows(rows)
+    again, headline = T.per_setting(per, ["smoke"], ms, 500)
+    for vs in ("exact", "truth"):
+        for label, _, _, _ in ms:
+            got, want = again["smoke"][vs][label], f["per_setting"]["smoke"][vs][label]
+            for key in M.STATISTICS:
+                for k in ("estimate", "low", "high"):
+                    assert got[key][k] == pytest.approx(want[key][k], rel=1e-8, abs=1e-15), (vs, label, key, k)
+    assert headline["smoke"]["most_flicker"] == f["headline"]["smoke"]["most_flicker"] == "fom-4"
+    one = M.config_ci({"c0": per[("smoke", "exact", "fom-4")]["c0"]})
+    assert one["n_configs"] == 1 and one["error"]["estimate"] == pytest.approx(0.01) and np.isnan(one["error"]["low"])
 
 
 @pytest.mark.parametrize("est, ref, name", [(np.zeros((1, 3)), np.zeros((1, 3)), "estimate"),
@@ -239,12 +250,21 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
     moved = [float(r["content_rms"]) for r in exact if r["frame"] != "0"]
     assert min(moved) > 0                                                             # every animation moves
     f = json.loads((out / "findings.json").read_text())
-    assert "8 x 8 texel tiles" in f["intervals"]
+    assert "8 x 8 texel tiles" in f["intervals"] and "over the configurations" in f["intervals"]
     for setting, block in f["per_setting"].items():
         assert block["exact"]["exact"]["flicker"]["estimate"] == 0.0
-        un = block["exact"]["avsm-8 unsorted"]
-        assert un["error"]["low"] <= un["error"]["estimate"] <= un["error"]["high"]
+        un = block["exact"]["avsm-8 unsorted"]                 # one configuration: its value, no interval
+        assert un["n_configs"] == 1 and un["error"]["estimate"] == un["per_config"]["s0-dir_a"]["error"] > 0
+        assert np.isnan(un["error"]["low"]) and np.isnan(un["error"]["high"])
         assert f["headline"][setting]["most_flicker"] in methods
+    from experiments.temporal.recompute import recompute      # the same numbers from data.csv
+    again = recompute(out, tmp_path / "recomputed")
+    assert (tmp_path / "recomputed" / "flicker_vs_error.png").stat().st_size > 0
+    for setting, block in f["per_setting"].items():
+        for label, v in block["truth"].items():
+            assert again["per_setting"][setting]["truth"][label]["error"]["estimate"] == \
+                pytest.approx(v["error"]["estimate"], rel=1e-8), (setting, label)
+    assert again["claims"] == f["claims"] and again["headline"].keys() == f["headline"].keys()
     variants = {f"avsm-8 {ins} {order}" for ins in T.insertion_variants()
                 for order in ("unsorted", "sorted", "submission")} | {"avsm-8 submission"}
     assert "stream" not in T.insertion_variants() and variants <= methods

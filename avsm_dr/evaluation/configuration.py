@@ -12,7 +12,8 @@ from numbers import Integral
 
 import numpy as np
 
-from .. import validation as V
+from .. import builtin_scenes, receivers, validation as V
+from ..capture import capture as _capture
 from ..groundtruth.content import check_scene, content_sphere
 from ..scene import DirectionalLight, Light, SpotLight
 
@@ -77,6 +78,20 @@ class Configuration:
         if not isinstance(self.light, str):
             return self.light
         return scene.light if self.light == "dir_a" else light_variants(scene)[self.light]
+
+    def scene(self, scene):
+        """``scene`` (a built-in scene's name: regenerated with :attr:`seed`) lit by :meth:`light_for`."""
+        base = builtin_scenes.get(scene, seed=self.seed) if isinstance(scene, str) else scene
+        return dataclasses.replace(base, light=self.light_for(base))
+
+    def capture(self, scene, resolution: int, order: str = "depth", **options):
+        """(:meth:`scene`, its :func:`avsm_dr.capture` at ``resolution`` in ``order`` with ``options``)."""
+        scene = self.scene(scene)
+        return scene, _capture(scene, resolution=resolution, order=order, **options)
+
+    def in_volume_receivers(self, scene, n: int) -> np.ndarray:
+        """:func:`avsm_dr.receivers.in_volume`: ``n`` receivers in ``scene`` drawn with :attr:`seed`."""
+        return receivers.in_volume(scene, n, self.seed)
 
 
 def configurations(seeds=1, lights=("dir_a",)) -> list[Configuration]:

@@ -29,7 +29,6 @@ build_first_s                              the first build, JIT compilation incl
 from __future__ import annotations
 
 import collections
-import dataclasses
 import inspect
 from numbers import Integral
 
@@ -213,8 +212,7 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     rows: list[dict] = []
     cells = [(s, c) for s in scs for c in cfgs]
     for (label, spec), cfg in tqdm(cells, desc="evaluate", unit="cell", disable=not progress):
-        scene = builtin_scenes.get(spec, seed=cfg.seed) if isinstance(spec, str) else spec   # regenerated with the seed
-        scene = dataclasses.replace(scene, light=cfg.light_for(scene))
+        scene = cfg.scene(spec)                  # a built-in one regenerated with the seed
         points = fixed if fixed is not None else receiver_sets(scene, n_volume, n_surface, cfg.seed, names=receivers)
         if not points:
             raise ValueError(f"receivers: scene {label!r} has none of the receiver sets {list(receivers)}")

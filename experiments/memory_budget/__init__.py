@@ -76,7 +76,6 @@ themselves (and so the RMSE ratios "at equal bytes") are still dense: ``8 N`` by
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
@@ -238,16 +237,14 @@ def _config_rows(name, config, P, rows, errors, heat, l2=None, blocks=None):
     """Rows of one configuration; each row's receiver errors into ``errors[(config, key, N)]``,
     its per-texel depth L2 into ``l2`` (same keys), the 8 x 8 texel tiles of the texels and
     receivers into ``blocks[config]`` / ``blocks[(config, 'receivers')]``."""
-    from avsm_dr import builtin_scenes, capture, receivers
+    from avsm_dr import capture
     from avsm_dr.evaluation import curve_values, depth_grid, depth_l2
     from avsm_dr.metrics import error_stats
     from ..avsm_gap import UniformObjective
     from .._two_metric import texel_blocks
     seed, light = config.seed, config.light_label
-    scene = builtin_scenes.get(name, seed=seed)
-    scene = dataclasses.replace(scene, light=config.light_for(scene))
-    cap = capture(scene, resolution=P["resolution"], order="depth")
-    points = receivers.in_volume(scene, P["n_volume"], seed=seed)
+    scene, cap = config.capture(name, P["resolution"])
+    points = config.in_volume_receivers(scene, P["n_volume"])
     look = NormalisedLookup(cap, points)
     seg = look.segments
     exact_rep = build("exact", seg)

@@ -50,13 +50,13 @@ against the exact one (:func:`avsm_dr.evaluation.depth_l2` on the texels built);
 claims (sorted vs unsorted AVSM, each insertion variant vs stream AVSM) carry both metrics
 and ``metric_dependent`` (their intervals on opposite sides of 1: ``error_curves``' rule).
 
-Intervals: bootstrap 95 % over the receivers of all configurations (:func:`.metrics.pooled_ci`),
-resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames together:
-receivers looked up through one map are not independent);
-paired comparisons (unsorted vs sorted AVSM, ``avsm_march`` vs sorted AVSM, each insertion
-variant vs sorted and vs same-order stream AVSM, submission-order rows also vs random-order
-stream AVSM: :func:`insertion_claims`) by
-:func:`avsm_dr.stats.claim` (configurations, then within each whole 8 x 8 texel tiles of
+Intervals: the configuration is the unit.  Per method, each configuration's statistic first
+(over its receivers and frames), then their mean with a bootstrap 95 % interval over the
+configurations (:func:`.metrics.config_ci`; ``python -m experiments.temporal.recompute`` redoes
+this from a run's ``data.csv``); paired comparisons (unsorted vs sorted AVSM, ``avsm_march``
+vs sorted AVSM, each insertion variant vs sorted and vs same-order stream AVSM, submission-order
+rows also vs random-order stream AVSM: :func:`insertion_claims`) by :func:`avsm_dr.stats.claim`
+(configurations, then within each whole 8 x 8 texel tiles of
 receivers x frames; for ``depth_l2`` each frame's texels by their tile), each ``indicative``
 below :data:`MIN_CONFIDENT` configurations and ``holds_in_every_configuration`` only in at least
 :data:`MIN_EVERY` of them.
@@ -76,7 +76,7 @@ from . import scenes as S
 from .._headline import num
 from .._study import Option, Study, write_data
 from avsm_dr.evaluation import Probe, SubsetBuilder, curve_values, depth_grid, depth_l2, light_variants, truth
-from .metrics import per_frame, pooled, pooled_ci, receiver_sums
+from .metrics import config_ci, per_frame, pooled, receiver_sums
 from .._two_metric import texel_blocks
 from ..ordering import shuffled
 
@@ -105,6 +105,12 @@ MIN_CONFIDENT = 4
 MIN_EVERY = 8
 #: A receiver's error above this (in T) counts as leaking light (:data:`avsm_dr.metrics.THRESHOLD`).
 LEAK = THRESHOLD
+#: How findings.json's intervals are made (its ``intervals`` entry).
+INTERVALS = ("per method (per_setting): each configuration's statistic (over its receivers and frames), then "
+             "the mean over configurations with a 95 % bootstrap percentile interval over the configurations "
+             "(none with one); claims: avsm_dr.stats.claim, configurations, then within each whole 8 x 8 texel "
+             "tiles (receivers x frames, each receiver's tile in frame 0; depth_l2: each frame's texels by "
+             "their tile)")
 #: Left out: the offline best-subset oracle costs 3.5-4 s per frame on the receivers' texels
 #: at 128^2 (measured, 2 shared cores), 30 min for the full run's 480 frames, and is no
 #: real-time method.
@@ -336,10 +342,8 @@ def _rows(series, ms) -> list[dict]:
 
 # ===================================================================== findings
 def findings(series, ms, P) -> dict:
-    """Pooled statistics per animation, reference and method with intervals (module
-    docstring), per-configuration values, the kind that flickers most (absolute and
-    relative to its error; one row per kind: AVSM's insertion variants and submission-order
-    rows are left out), the
+    """Per animation, reference and method the statistics over configurations with their
+    intervals and per-configuration values, and the headline (:func:`per_setting`), the
     paired AVSM comparisons and, under ``insertion``, those of :func:`insertion_claims`."""
     from avsm_dr.stats import claim
     F = P["frames"]
@@ -349,55 +353,47 @@ def findings(series, ms, P) -> dict:
                          "content = the same for T_ref; flicker_index = flicker / (sqrt(2) error)",
            "frames": F, "configs": sorted({k[1] for k in series}), "per_setting": {}, "claims": {}, "headline": {},
            "insertion": {}, "curves": {},
-           "intervals": "per method (per_setting): 95 % bootstrap over the receivers of all configurations, "
-                        "resampling whole 8 x 8 texel tiles (each receiver's tile in frame 0, all its frames); "
-                        "claims: avsm_dr.stats.claim, configurations, then within each the same tiles (receivers "
-                        "x frames; depth_l2: each frame's texels by their tile)",
+           "intervals": INTERVALS,
            "metrics": "flicker and error: RMS at fixed receivers (the study's subject: a depth-uniform flicker "
                       "is undefined when the map's texels and depth ranges move between frames); error claims "
                       "also under the depth-uniform L2 of the curve (depth_l2), metric_dependent when the two "
                       "disagree"}
+    per_config = {(s, vs, label): {c: pooled(receiver_sums(series[(s, c)]["est"][label], series[(s, c)][vs]), F)
+                                   for c in sorted(c for s2, c in series if s2 == s)}
+                  for s in settings for vs in ("exact", "truth") for label, _, _, _ in ms}
+    out["per_setting"], out["headline"] = per_setting(per_config, settings, ms, P["n_boot"])
     for setting in settings:
         cfgs = sorted(c for s, c in series if s == setting)
-        tiles = _tiles(series, setting, cfgs)
-        block = {}
-        for vs in ("exact", "truth"):
-            per = {}
-            for label, _, _, _ in ms:
-                sums = [receiver_sums(series[(setting, c)]["est"][label], series[(setting, c)][vs]) for c in cfgs]
-                ci = pooled_ci(np.concatenate(sums, axis=1), F, n_boot=P["n_boot"], blocks=tiles)
-                ci["per_config"] = {c: {k: float(v) for k, v in pooled(sm, F).items()} for c, sm in zip(cfgs, sums)}
-                per[label] = ci
-            block[vs] = per
-        out["per_setting"][setting] = block
-        kinds_ = {m[0] for m in base}
-        rel = {m: v["flicker_index"]["estimate"] for m, v in block["exact"].items()
-               if m in kinds_ and v["error"]["estimate"] > 0}
-        absf = {m: v["flicker"]["estimate"] for m, v in block["exact"].items() if m in kinds_}
-        top_rel = max(rel, key=rel.get) if rel else None
-        top_abs = max(absf, key=absf.get)
-        out["headline"][setting] = dict(
-            content_change=block["exact"][ms[0][0]]["content"]["estimate"],
-            most_flicker=top_abs, most_flicker_value=absf[top_abs],
-            most_flicker_vs_error=top_rel, most_flicker_index=rel.get(top_rel),
-            least_flicker_vs_error=min(rel, key=rel.get) if rel else None)
         out["claims"][setting] = _claims(series, setting, cfgs, base, claim, P["n_boot"])
         out["insertion"][setting] = insertion_claims(series, setting, cfgs, ms, claim, P["n_boot"])
         out["curves"][setting] = curves(series, setting, cfgs, ms)
     return out
 
 
-def _tiles(series, setting, cfgs) -> np.ndarray | None:
-    """Block label of every receiver of the configurations side by side: its 8 x 8 texel tile
-    in frame 0, configurations kept apart (None when a series has no tiles)."""
-    if any("blocks" not in series[(setting, c)] for c in cfgs):
-        return None
-    out, base = [], 0
-    for c in cfgs:
-        b = np.asarray(series[(setting, c)]["blocks"], np.int64)
-        out.append(b + base)
-        base += int(b.max()) + 1 if b.size else 0
-    return np.concatenate(out)
+def per_setting(per_config: dict, settings, ms, n_boot: int) -> tuple[dict, dict]:
+    """(``per_setting``, ``headline``) of the findings from ``per_config``: {(setting, vs,
+    label): {configuration: :func:`.metrics.pooled` dict}} (from the series, or from a run's
+    ``data.csv``: :func:`.metrics.per_config_from_rows`).  per_setting[setting][vs][label]:
+    :func:`.metrics.config_ci` (each configuration's statistic first, then the mean and its
+    interval over configurations); headline: the kind (one row per kind: insertion variants
+    and submission-order rows left out) that flickers most, absolute and relative to its
+    error, and the one that flickers least relative to its error."""
+    kinds_ = {m[0] for m in ms if "insertion" not in m[2] and m[3] != "submission"}
+    blocks, headline = {}, {}
+    for setting in settings:
+        block = blocks[setting] = {vs: {label: config_ci(per_config[(setting, vs, label)], n_boot)
+                                        for label, _, _, _ in ms} for vs in ("exact", "truth")}
+        rel = {m: v["flicker_index"]["estimate"] for m, v in block["exact"].items()
+               if m in kinds_ and v["error"]["estimate"] > 0}
+        absf = {m: v["flicker"]["estimate"] for m, v in block["exact"].items() if m in kinds_}
+        top_rel = max(rel, key=rel.get) if rel else None
+        top_abs = max(absf, key=absf.get)
+        headline[setting] = dict(
+            content_change=block["exact"][ms[0][0]]["content"]["estimate"],
+            most_flicker=top_abs, most_flicker_value=absf[top_abs],
+            most_flicker_vs_error=top_rel, most_flicker_index=rel.get(top_rel),
+            least_flicker_vs_error=min(rel, key=rel.get) if rel else None)
+    return blocks, headline
 
 
 def curves(series, setting, cfgs, ms) -> dict:

@@ -35,6 +35,8 @@ import numpy as np
 from avsm_dr.metrics import THRESHOLD
 
 SQRT2 = float(np.sqrt(2.0))
+#: The pooled statistics (:func:`pooled`), in the order of the tables.
+STATISTICS = ("error", "flicker", "content", "flicker_index", "flicker_per_content")
 
 
 def _frames(x, name: str) -> np.ndarray:
@@ -62,7 +64,7 @@ def per_frame(estimate, reference) -> dict:
 def receiver_sums(estimate, reference) -> np.ndarray:
     """(3, K) per-receiver sums over frames: sum_t e^2, sum_{t>=1} (e_t - e_{t-1})^2 and
     sum_{t>=1} (T_ref_t - T_ref_{t-1})^2; pooled statistics (:func:`pooled`) are ratios of
-    their means, so receivers can be resampled (:func:`pooled_ci`)."""
+    their means."""
     est, ref = _frames(estimate, "estimate"), _frames(reference, "reference")
     e = est - ref
     return np.stack([np.sum(e ** 2, axis=0), np.sum(np.diff(e, axis=0) ** 2, axis=0),
@@ -83,16 +85,39 @@ def pooled(sums, frames: int, axis: int = -1) -> dict:
                 "flicker_per_content": np.where(co > 0, fl / np.where(co > 0, co, 1.0), np.nan)}
 
 
-def pooled_ci(sums, frames: int, n_boot: int = 1000, seed: int = 0, blocks=None) -> dict:
-    """Each statistic of :func:`pooled` with a bootstrap 95 % percentile interval over the
-    receivers (columns of the (3, K) ``sums``, e.g. the receivers of all configurations side
-    by side; ``blocks`` (K,): a block label per receiver, e.g. the 8 x 8 texel tile it looks up
-    in, whole blocks resampled): :func:`avsm_dr.stats.bootstrap_means_ci`, as each statistic is a
-    function of the three sums' means.  The same draws for every statistic (``seed``)."""
-    from avsm_dr.stats import bootstrap_means_ci
+def config_ci(per_config: dict, n_boot: int = 1000, seed: int = 0) -> dict:
+    """Each statistic of :func:`pooled`: the mean over configurations of each configuration's
+    own value (``per_config``: {configuration: :func:`pooled` dict}; the configuration is the
+    unit: every one weighs the same, whatever its receivers) with a bootstrap 95 % percentile
+    interval over the configurations (:func:`avsm_dr.stats.bootstrap_ci` of the mean; NaN
+    bounds with one configuration); also ``per_config`` and ``n_configs``."""
+    from avsm_dr.stats import bootstrap_ci
     out = {}
-    for key in ("error", "flicker", "content", "flicker_index", "flicker_per_content"):
-        ci = bootstrap_means_ci(sums, lambda m, key=key: pooled(m[..., None], frames)[key], n_boot=n_boot,
-                                seed=seed, blocks=blocks)
-        out[key] = {k: ci[k] for k in ("estimate", "low", "high")}
+    for key in STATISTICS:
+        v = np.array([float(p[key]) for p in per_config.values()], np.float64)
+        ci = bootstrap_ci(v, "mean", n_boot=n_boot, seed=seed) if v.size >= 2 else {"low": np.nan, "high": np.nan}
+        out[key] = {"estimate": float(np.mean(v)), "low": float(ci["low"]), "high": float(ci["high"])}
+    out["per_config"] = {c: {k: float(p[k]) for k in STATISTICS} for c, p in per_config.items()}
+    out["n_configs"] = len(per_config)
     return out
+
+
+def per_config_from_rows(rows) -> dict:
+    """{(setting, vs, method): {config: :func:`pooled` dict}} from a run's per-frame rows
+    (``data.csv``: ``error_rms``, ``flicker_rms``, ``content_rms`` per frame, strings or
+    numbers).  Every frame has the same receivers, so ``error = sqrt(mean_t error_t^2)``,
+    ``flicker = sqrt(mean_{t>=1} flicker_t^2)``, ``content`` likewise: the values of
+    :func:`receiver_sums` to rounding."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["setting"], r["vs"], r["method"]), {}).setdefault(r["config"], []).append(r)
+    out = {}
+    for key, by_config in groups.items():
+        out[key] = {}
+        for c, rs in by_config.items():
+            rs = sorted(rs, key=lambda r: int(r["frame"]))
+            e, f, c2 = (np.array([float(r[k]) for r in rs]) for k in ("error_rms", "flicker_rms", "content_rms"))
+            sums = np.array([[np.sum(e ** 2)], [np.sum(f[1:] ** 2)], [np.sum(c2[1:] ** 2)]])
+            out[key][c] = {k: float(v) for k, v in pooled(sums, len(rs)).items()}
+    return out
+

@@ -15,12 +15,15 @@ def _plt():
 
 def _log(ax, x: bool = False):
     """Log axes with a few plain '1e-02' labels and no minor ticks (Matplotlib's default
-    log ticks and mathtext labels cost most of the figures' drawing time)."""
+    log ticks and mathtext labels cost most of the figures' drawing time): at 1 and 3 per
+    decade, only at 1 where the data span more than three decades (labels would overlap)."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullLocator
     fmt = FuncFormatter(lambda v, _: f"{v:.0e}")
     for axis, on in ((ax.yaxis, True), (ax.xaxis, x)):
         if on:
-            axis.set_major_locator(LogLocator(subs=(1.0, 3.0), numticks=8))
+            lo, hi = sorted(axis.get_view_interval())
+            wide = lo > 0 and hi / lo > 1e3
+            axis.set_major_locator(LogLocator(subs=(1.0,) if wide else (1.0, 3.0), numticks=8))
             axis.set_major_formatter(fmt)
             axis.set_minor_locator(NullLocator())
 
@@ -28,8 +31,8 @@ def _log(ax, x: bool = False):
 def _series(rows, setting, method, vs, key):
     """Per frame, the RMS over configurations of ``key``."""
     sel = [r for r in rows if r["setting"] == setting and r["method"] == method and r["vs"] == vs]
-    frames = sorted({r["frame"] for r in sel})
-    y = [np.sqrt(np.mean([r[key] ** 2 for r in sel if r["frame"] == t])) for t in frames]
+    frames = sorted({int(r["frame"]) for r in sel})
+    y = [np.sqrt(np.mean([float(r[key]) ** 2 for r in sel if int(r["frame"]) == t])) for t in frames]
     return np.array(frames), np.array(y)
 
 
@@ -43,10 +46,28 @@ def _style(label: str) -> dict:
     return dict(st, markersize=3.5)
 
 
+def _bar(v) -> list:
+    """Errorbar extent [[estimate - low], [high - estimate]] of an interval dict (0 where it
+    has no bounds: one configuration)."""
+    lo, hi = v["estimate"] - v["low"], v["high"] - v["estimate"]
+    return [[lo if lo == lo else 0.0], [hi if hi == hi else 0.0]]
+
+
 def plot_all(res, rows, summary, series, P, gif_labels):
-    """Write ``error_flicker_per_frame.png``, ``flicker_vs_error.png``,
-    ``insertion_flicker.png`` (:func:`plot_insertion`) and one ``shadow_<setting>.gif`` per
+    """Write the figures of :func:`plot_summary` and one ``shadow_<setting>.gif`` per
     animation with slice images (first configuration)."""
+    plot_summary(res, rows, summary)
+    cfg0 = "s{}-{}".format(*P["configs"][0])
+    for s in P["gif_settings"]:
+        images = series.get((s, cfg0), {}).get("image")
+        if images:
+            _gif(res, s, images, gif_labels, P["image"])
+
+
+def plot_summary(res, rows, summary):
+    """Write ``error_flicker_per_frame.png`` (from the per-frame ``rows``, numbers or the strings
+    of a ``data.csv``), ``flicker_vs_error.png`` and ``insertion_flicker.png``
+    (:func:`plot_insertion`) from the findings' ``summary``."""
     from matplotlib.ticker import MaxNLocator
     from .. import _plotstyle as plotstyle
     _plt()                        # the Agg backend
@@ -87,9 +108,7 @@ def plot_all(res, rows, summary, series, P, gif_labels):
                 if x["estimate"] <= 0:
                     continue
                 st = _style(m)
-                ax.errorbar(x["estimate"], y["estimate"],
-                            xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
-                            yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
+                ax.errorbar(x["estimate"], y["estimate"], xerr=_bar(x), yerr=_bar(y), linestyle="none",
                             color=st["color"], marker=st["marker"], markerfacecolor=st.get("markerfacecolor"),
                             markersize=5, capsize=2, elinewidth=0.8, label=m)
                 lo_hi += [x["estimate"], y["estimate"]]
@@ -101,19 +120,13 @@ def plot_all(res, rows, summary, series, P, gif_labels):
             ax.set_xscale("log")
             ax.set_yscale("log")
             _log(ax, x=True)
-            ax.set_xlabel("RMS error of T vs exact (pooled)")
+            ax.set_xlabel("RMS error of T vs exact\n(mean over configurations)")
             ax.set_title(s)
         axes[0][0].set_ylabel("flicker (RMS change of the error\nbetween frames)")
         plotstyle.legend_below(fig, ncol=4)
         res.save_figure(fig, "flicker_vs_error.png")
         if variants:
             plot_insertion(res, summary, labels, sorted(variants))
-
-    cfg0 = "s{}-{}".format(*P["configs"][0])
-    for s in P["gif_settings"]:
-        images = series.get((s, cfg0), {}).get("image")
-        if images:
-            _gif(res, s, images, gif_labels, P["image"])
 
 
 #: Markers of :func:`plot_insertion` per insertion order (the label's last word).
@@ -144,9 +157,7 @@ def plot_insertion(res, summary, labels, variants):
             for m in stream + list(variants):
                 x, y = blk[m]["error"], blk[m]["flicker"]
                 name, order = " ".join(m.split(" ")[1:-1]), m.split(" ")[-1]
-                ax.errorbar(x["estimate"], y["estimate"],
-                            xerr=[[x["estimate"] - x["low"]], [x["high"] - x["estimate"]]],
-                            yerr=[[y["estimate"] - y["low"]], [y["high"] - y["estimate"]]], linestyle="none",
+                ax.errorbar(x["estimate"], y["estimate"], xerr=_bar(x), yerr=_bar(y), linestyle="none",
                             color=colour[name], marker=MARKERS.get(order, "o"),
                             markerfacecolor="none" if order == "sorted" else colour[name], markersize=4.5,
                             capsize=2, elinewidth=0.8, label=f"{name or 'stream'} {order}")
@@ -160,7 +171,7 @@ def plot_insertion(res, summary, labels, variants):
             ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
             ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
             ax.set_title(f"{s}, vs {vs}")
-            ax.set_xlabel(f"RMS error vs {vs} (pooled)")
+            ax.set_xlabel(f"RMS error vs {vs}\n(mean over configurations)")
         axes[row][0].set_ylabel("flicker (RMS change of\nthe error between frames)")
     handles = {lab: h for h, lab in zip(*axes[0][0].get_legend_handles_labels())}
     columns = [[h for lab, h in handles.items() if lab.rsplit(" ", 1)[0] == (n or "stream")] for n in [""] + names]
