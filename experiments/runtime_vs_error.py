@@ -23,9 +23,9 @@ the settings on the scene's front of that time against that error (repeated on e
 configuration's row), ``pareto_in_config`` (``pareto_depth_l2_in_config``) the settings on
 the configuration's own front of ``time_ratio`` against ``rmse`` (``depth_l2``).
 
-The trade that keeps the full run to about 25 minutes of CPU time (1490 s summed over the
-ten scenes, extrapolated from each scene's first configuration and one other measured at
-full parameters; less wall time on 2 idle cores, the kernels using both): ``optimal`` (the
+The trade that keeps the full run to about 28 minutes of CPU time (1707 s user and system,
+measured on a full run with every build timed cold; 28 min 29 s wall on 2 busy cores):
+``optimal`` (the
 best breakpoint subset, a host NumPy DP and the costliest build: 86 of 128 CPU seconds of
 simulated_plume's first configuration, 63 of 90 of three_columns') is left out (``exclude``,
 both modes).  Built with the quick parameters (64^2, plume and three_columns, two
