@@ -25,10 +25,9 @@ the configuration's own front of ``time_ratio`` against ``rmse`` (``depth_l2``).
 
 The trade that keeps the full run to about 28 minutes of CPU time (1707 s user and system,
 measured on a full run with every build timed cold; 28 min 29 s wall on 2 busy cores):
-``optimal`` (the
-best breakpoint subset, a host NumPy DP and the costliest build: 86 of 128 CPU seconds of
-simulated_plume's first configuration, 63 of 90 of three_columns') is left out (``exclude``,
-both modes).  Built with the quick parameters (64^2, plume and three_columns, two
+``optimal`` (the best breakpoint subset, a host NumPy DP and the costliest build: 86 of 128
+CPU seconds of simulated_plume's first configuration, 63 of 90 of three_columns') is left out
+(``exclude``, both modes).  Built with the quick parameters (64^2, plume and three_columns, two
 configurations each) it took 3 to 220 times AVSM-8's time and no setting of it was on any
 front, pooled or per configuration; ``avsm_gap`` and ``insertion_order`` measure it against
 AVSM over the same configurations.
