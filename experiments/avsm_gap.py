@@ -404,43 +404,49 @@ def _compute(res, P: dict) -> dict:
         _scene_rows(name, P, rows, quick, seed, light, texel_errors, receiver_errors, l2_errors, blocks)
     summary = findings(rows, texel_errors, n_boot=P["n_boot"], receiver_errors=receiver_errors,
                        l2_errors=l2_errors, blocks=blocks)
-    first = {}
-    for r in rows:
-        first.setdefault(r["scene"], r["config"])
     write_data(res, dict(rows=rows, findings=summary))        # before the figures
-    _plot(res, [r for r in rows if r["config"] == first[r["scene"]] and r.get("order") in ("-", "depth")], names)
+    _plot(res, [r for r in rows if r.get("order") in ("-", "depth")], names)
     return dict(rows=rows, findings=summary, summary=summary)
 
 
 def _style(label: str) -> dict:
     """Plot keywords of a compared method: its kind's style (``experiments._plotstyle``); the two
-    other variants of ``optimal`` hollow, the L-infinity one dotted."""
+    other variants of ``optimal`` hollow in colours of their own, the L-infinity one dotted."""
     from . import _plotstyle as plotstyle
     if label == "optimal_subset":
-        return plotstyle.variant_style("optimal")
+        return dict(plotstyle.variant_style("optimal"), color=plotstyle.PALETTE["olive"], alpha=1)
     if label == "optimal_linf":
-        return dict(plotstyle.variant_style("optimal"), linestyle=":")
+        return dict(plotstyle.variant_style("optimal"), color=plotstyle.PALETTE["indigo"], alpha=1, linestyle=":")
     return plotstyle.style(dict((m[0], m[1]) for m in methods(0)).get(label, label))
 
 
 def _plot(res, rows, names):
+    """Per scene and N, each method's error (front-to-back rows) as the mean over
+    configurations, bars from the smallest to the largest configuration."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.ticker
     from . import _plotstyle as plotstyle
     labels = [m[0] for m in methods(0)]
+    n_cfg = len({r["config"] for r in rows})
     for key, fname, ylabel in (("depth_rms", "gap_depth.png", "RMS error of T, uniform in depth per texel"),
                                ("rmse_in_volume", "gap_receivers.png", "RMSE of T at in-volume receivers")):
         with plotstyle.context():
             fig, axes = plotstyle.grid(1, len(names), panel=(2.8, 2.4), sharex=False)
             for ax, name in zip(axes[0], names):
                 for lab in labels:
-                    rs = [r for r in rows if r["scene"] == name and r["method"] == lab and key in r]
-                    if rs:
-                        ax.plot([r["nodes"] for r in rs], [max(r[key], 1e-7) for r in rs], **_style(lab), label=lab)
-                beer = [r for r in rows if r["scene"] == name and r["method"] == "beer" and key in r]
+                    per: dict = {}
+                    for r in rows:
+                        if r["scene"] == name and r["method"] == lab and key in r:
+                            per.setdefault(r["nodes"], []).append(max(r[key], 1e-7))
+                    if per:
+                        ns = sorted(per)
+                        y = np.array([np.mean(per[n]) for n in ns])
+                        bars = [y - [min(per[n]) for n in ns], [max(per[n]) for n in ns] - y]
+                        ax.errorbar(ns, y, yerr=bars, capsize=2, **_style(lab), label=lab)
+                beer = [max(r[key], 1e-7) for r in rows if r["scene"] == name and r["method"] == "beer" and key in r]
                 if beer:
-                    ax.axhline(max(beer[0][key], 1e-7), color="k", linestyle=":", linewidth=0.8,
+                    ax.axhline(float(np.mean(beer)), color="k", linestyle=":", linewidth=0.8,
                                label="beer (3 floats)")
                 ax.set_title(name)
                 ax.set_xlabel("nodes N")
@@ -450,8 +456,11 @@ def _plot(res, rows, names):
                 ax.set_xticks(ns, [str(n) for n in ns])
                 ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             axes[0][0].set_ylabel(ylabel)
+            fig.suptitle(f"mean over {n_cfg} configuration{'s' * (n_cfg > 1)} (bars: min to max), "
+                         "front-to-back AVSM", fontsize=9)
             plotstyle.legend_below(fig, axes[0], ncol=7)
             res.save_figure(fig, fname)
+
 
 def _headline(s: dict) -> list[str]:
     """Per scene and N: AVSM's and greedy's uniform-in-depth RMS over the optimal N-node

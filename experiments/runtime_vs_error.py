@@ -13,7 +13,9 @@ Time, per configuration (:func:`avsm_dr.evaluation.timing.measure`, every call s
 ``build_repeats`` builds, with a warm-up build (``first_call_s``, JIT compile included) only
 in the scene's first configuration, so later configurations time warm kernels without a
 second warm-up (full mode: 11 builds per setting and scene, where one configuration timed
-with seven repeats took 8).  ``time_ratio``:
+with seven repeats took 8).  Every timed build starts from the segments as the exact curve's
+set-up left them (:func:`_uncached`): nothing an earlier build cached on them (``greedy``'s
+removal order, the curve points) is reused.  ``time_ratio``:
 build + lookup time over :data:`REFERENCE`'s in the same configuration (same process).
 Per setting the time is the median over configurations of ``time_ratio``, the error the
 mean over configurations of ``rmse`` (``depth_l2``); ``pareto`` (``pareto_depth_l2``) marks
@@ -21,12 +23,11 @@ the settings on the scene's front of that time against that error (repeated on e
 configuration's row), ``pareto_in_config`` (``pareto_depth_l2_in_config``) the settings on
 the configuration's own front of ``time_ratio`` against ``rmse`` (``depth_l2``).
 
-The trade that keeps the full run to about 25 minutes of CPU time (1490 s summed over the
-ten scenes, extrapolated from each scene's first configuration and one other measured at
-full parameters; less wall time on 2 idle cores, the kernels using both): ``optimal`` (the
-best breakpoint subset, a host NumPy DP and the costliest build: 86 of 128 CPU seconds of
-simulated_plume's first configuration, 63 of 90 of three_columns') is left out (``exclude``,
-both modes).  Built with the quick parameters (64^2, plume and three_columns, two
+The trade that keeps the full run to about 28 minutes of CPU time (1707 s user and system,
+measured on a full run with every build timed cold; 28 min 29 s wall on 2 busy cores):
+``optimal`` (the best breakpoint subset, a host NumPy DP and the costliest build: 86 of 128
+CPU seconds of simulated_plume's first configuration, 63 of 90 of three_columns') is left out
+(``exclude``, both modes).  Built with the quick parameters (64^2, plume and three_columns, two
 configurations each) it took 3 to 220 times AVSM-8's time and no setting of it was on any
 front, pooled or per configuration; ``avsm_gap`` and ``insertion_order`` measure it against
 AVSM over the same configurations.
@@ -110,6 +111,16 @@ def _timed(fn, repeats: int, warm_up: bool) -> tuple[float, float, object]:
     return statistics.median(g["wall_s"] for g in got), float("nan"), got[-1]["out"]
 
 
+def _uncached(seg, keep: set):
+    """``seg`` without what earlier builds cached on it (every key but ``keep``'s: the offline
+    kinds' curve points and removal order, layout arrays), so that each timed build computes
+    everything it needs, as a single build would: ``greedy``'s Visvalingam-Whyatt order is
+    otherwise computed once per segments and reused by every later ``greedy`` setting."""
+    for k in set(seg._cache) - keep:
+        del seg._cache[k]
+    return seg
+
+
 def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict) -> list[dict]:
     """Rows of one configuration (every setting); its receiver errors, per-texel depth L2
     and the 8 x 8 tiles of both into ``store`` (keyed by setting label and config)."""
@@ -126,6 +137,7 @@ def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict)
     t_ex, first_ex, exact = _timed(lambda: ex_rep.eval(texel, depth), P["repeats"], True)
     exact = np.asarray(exact, dtype=np.float64)
     curve = curve_values(ex_rep, seg)
+    keep = set(seg._cache)                          # what the exact curve's set-up cached
     head = dict(scene=name, config=cfg.label, seed=seed, light=light, segments=seg.n_segments, receivers=len(texel))
     rows = [dict(head, method="exact", param="", build_s=0.0, lookup_s=t_ex, first_call_s=first_ex, rmse=0.0,
                  max_error=0.0, signed_mean=0.0, leak_share=0.0, depth_l2=0.0, order="-",
@@ -135,7 +147,7 @@ def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict)
         size = describe(kind)["size"]
         for p in settings:
             v = p.get(size, "") if size else ""
-            t_b, first_b, rep = _timed(lambda: build(kind, seg, **p), P["build_repeats"], first)
+            t_b, first_b, rep = _timed(lambda: build(kind, _uncached(seg, keep), **p), P["build_repeats"], first)
             t_l, first_l, est = _timed(lambda: rep.eval(texel, depth), P["repeats"], True)
             err = np.asarray(est, np.float64) - exact
             st = error_stats(est, exact)
@@ -232,6 +244,19 @@ def _compute(res, params: dict) -> dict:
                 result={"summary": summary})
 
 
+def _distinct_colours(kinds_: list[str], plotstyle) -> dict:
+    """Each kind's colour (``_plotstyle.style``), except that a kind whose colour an earlier
+    kind of ``kinds_`` already has takes the first palette colour none of them has (grey when
+    none is left): every kind is drawn in this figure, so no two may share a colour."""
+    spare = [c for name, c in plotstyle.PALETTE.items() if name != "black"
+             and c not in {plotstyle.style(k)["color"] for k in kinds_}] + ["#777777"]
+    out: dict = {}
+    for k in kinds_:
+        c = plotstyle.style(k)["color"]
+        out[k] = spare.pop(0) if c in out.values() and spare else c
+    return out
+
+
 def _plot(res, rows: list[dict], found: dict, names):
     """Per scene: mean RMSE over configurations against the median time ratio, each kind's
     settings joined, the front dotted."""
@@ -249,11 +274,12 @@ def _plot(res, rows: list[dict], found: dict, names):
             for r in rows:
                 if r["scene"] == name and r["method"] != "exact":
                     pts.setdefault(r["method"], {}).setdefault(r["param"], []).append(r)
+            colours = _distinct_colours(list(pts), plotstyle)
             for kind, per in pts.items():
                 x = [float(np.median([r["time_ratio"] for r in rs])) for rs in per.values()]
                 y = [max(float(np.mean([r["rmse"] for r in rs])), 1e-6) for rs in per.values()]
                 st = plotstyle.style(kind)
-                ax.loglog(x, y, marker=st.get("marker", "o"), color=st.get("color"), ms=3, lw=1, label=kind)
+                ax.loglog(x, y, marker=st.get("marker", "o"), color=colours[kind], ms=3, lw=1, label=kind)
             fr = f["front"]
             ax.loglog([d["time_ratio"] for d in fr], [max(d["rmse"], 1e-6) for d in fr], "k:", lw=1,
                       label="Pareto front")

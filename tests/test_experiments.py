@@ -164,6 +164,23 @@ def test_full_mode_runs_ten_configurations_per_scene_with_a_spot_light(name):
     assert 1 <= len(study.quick["configs"]) <= 2
 
 
+def test_runtime_vs_error_times_every_greedy_build_from_the_segments(monkeypatch):
+    """greedy caches its Visvalingam-Whyatt order on the segments: every timed build (warm-up
+    and repeat alike) must compute the curve points again, not reuse an earlier setting's."""
+    from avsm_dr.representations import _curve
+    from experiments import runtime_vs_error as rve
+    calls = []
+    real = _curve.curve_points
+    monkeypatch.setattr(_curve, "curve_points", lambda seg: calls.append(1) or real(seg))
+    P = dict(rve.QUICK, resolution=64, n_volume=64, sweeps={"avsm": [{"nodes": 8}],
+                                                            "greedy": [{"nodes": 2}, {"nodes": 4}]})
+    for first, builds in ((True, 4), (False, 2)):      # warm-up + one repeat, or one build, per setting
+        calls.clear()
+        rows = rve._config("three_columns", 0, "dir_a", P, first, {})
+        assert len(calls) == builds
+        assert all(r["build_s"] > 0 for r in rows if r["method"] == "greedy")
+
+
 @pytest.mark.parametrize("name", sorted(TINY))
 def test_slow_study_runs_end_to_end_on_tiny_parameters(name, tmp_path):
     """The default run's check of a study whose quick run is slow: the same ``compute`` on
