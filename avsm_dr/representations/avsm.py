@@ -100,9 +100,10 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None, tau=None):
     x = UInt32(1)          # slot of the exit node  = inserted nodes with d <= b, + 1
     scaled = []
     for k in range(n):
-        ramp = ts + opacity * ((b - d[k]) * inv_len)
-        ramp = dr.replace_grad(dr.minimum(ramp, 1), ramp)            # in [ts, 1]
-        if tau is not None:
+        if tau is None:
+            ramp = ts + opacity * ((b - d[k]) * inv_len)
+            ramp = dr.replace_grad(dr.minimum(ramp, 1), ramp)        # in [ts, 1]
+        else:
             ramp = dr.exp(-tau * dr.clip((d[k] - a) * inv_len, 0, 1))
         inner = dr.select(d[k] > a, dr.select(d[k] >= b, ts, ramp), 1)
         if full and k < n - 1:
