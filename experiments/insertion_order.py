@@ -358,7 +358,7 @@ def _compute(res, P: dict) -> dict:
 #: Figure style per method: AVSM's insertion variants get colours of their own (they are not
 #: registered kinds), avsm_march and greedy keep their kinds' fixed style.
 METHOD_COLOURS = {"avsm": "rose", "avsm_refit": "sand", "avsm_refit_l2": "olive", "avsm_staged": "wine",
-                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple", "avsm_spare_exp": "teal"}
+                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple", "avsm_spare_exp": "green"}
 #: The node count the figure shows (the tables in findings.json have every N).
 PLOT_NODES = 8
 
