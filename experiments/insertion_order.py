@@ -84,7 +84,7 @@ ORDERS = ("submission", "depth", "reverse_depth", "random")
 #: AVSM's insertion variants compared: method name -> the ``insertion`` parameter.
 INSERTION_METHODS = {"avsm": "stream", "avsm_refit": "refit", "avsm_refit_l2": "refit_l2",
                      "avsm_staged": "staged", "avsm_staged_refit_l2": "staged_refit_l2",
-                     "avsm_spare_refit_l2": "spare_refit_l2"}
+                     "avsm_spare_refit_l2": "spare_refit_l2", "avsm_spare_exp": "spare_exp"}
 #: Streaming (order-dependent) methods and the offline references (order-independent).
 STREAMING = tuple(INSERTION_METHODS) + ("avsm_march",)
 REFERENCES = ("greedy", "optimal")
@@ -105,7 +105,7 @@ PANELS_PER_ROW = 5
 #: error_curves' ten configurations, 4 seeds x both directional lights and 2 seeds x the spot light).
 FULL = dict(scenes=None, resolution=128, nodes=[4, 8, 16],
             configs=[[s, li] for s in range(4) for li in ("dir_a", "dir_b", "spot") if li != "spot" or s < 2],
-            n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7, free_texels=16, free_nodes=[8])
+            n_volume=2048, n_depths=64, n_boot=2000, timing_repeats=7, free_texels=16, free_nodes=[8], insertions=None)
 QUICK = dict(FULL, scenes=["three_columns", "plume"], resolution=64, nodes=[8], configs=[[0, "dir_a"], [1, "dir_b"]],
              n_volume=256, n_boot=500, free_texels=12)
 #: Default interleaved builds per AVSM insertion method, order and N (the least time counts).
@@ -119,8 +119,8 @@ def _method(name: str) -> tuple[str, dict]:
     return name, {}
 
 
-def _timed_avsm_builds(seg, n: int, repeats: int = TIMING_REPEATS) -> dict:
-    """{method: (rep, wall seconds, kernel seconds)} of every AVSM insertion method on ``seg``:
+def _timed_avsm_builds(seg, n: int, repeats: int = TIMING_REPEATS, methods=tuple(INSERTION_METHODS)) -> dict:
+    """{method: (rep, wall seconds, kernel seconds)} of the AVSM insertion ``methods`` on ``seg``:
     ``repeats`` rounds of interleaved builds (each method compiled first), the least wall
     time and the least total execution time of its JIT kernels (Dr.Jit's kernel history,
     switched on for the measurement and restored)."""
@@ -130,11 +130,11 @@ def _timed_avsm_builds(seg, n: int, repeats: int = TIMING_REPEATS) -> dict:
     was = dr.flag(flag)
     dr.set_flag(flag, True)
     try:
-        reps = {m: build("avsm", seg, nodes=n, **_method(m)[1]) for m in INSERTION_METHODS}   # compile
-        wall = {m: [] for m in INSERTION_METHODS}
-        kern = {m: [] for m in INSERTION_METHODS}
+        reps = {m: build("avsm", seg, nodes=n, **_method(m)[1]) for m in methods}   # compile
+        wall = {m: [] for m in methods}
+        kern = {m: [] for m in methods}
         for _ in range(repeats):
-            for m in INSERTION_METHODS:
+            for m in methods:
                 dr.sync_thread()
                 dr.kernel_history()                          # clears it
                 t0 = time.perf_counter()
@@ -146,7 +146,7 @@ def _timed_avsm_builds(seg, n: int, repeats: int = TIMING_REPEATS) -> dict:
     finally:
         dr.kernel_history()
         dr.set_flag(flag, was)
-    return {m: (reps[m], min(wall[m]), min(kern[m])) for m in INSERTION_METHODS}
+    return {m: (reps[m], min(wall[m]), min(kern[m])) for m in methods}
 
 
 def _stats(est, ref) -> tuple[float, float, float]:
@@ -197,14 +197,15 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
         free_rms = float(np.sqrt(np.mean(free ** 2))) if free.size else nan
         for order in ORDERS:
             got = dict(ref)
-            timed = _timed_avsm_builds(segs[order], n, P["timing_repeats"])
+            timed = _timed_avsm_builds(segs[order], n, P["timing_repeats"], P["insertions"])
             _, wall0, kern0 = timed["avsm"]
-            for k in STREAMING:
+            streaming = tuple(P["insertions"]) + ("avsm_march",)
+            for k in streaming:
                 rep = timed[k][0] if k in timed else build(k, segs[order], nodes=n)
                 got[k] = measure(rep, segs[order])
             opt, opt_tex = got["optimal"]
             gr = got["greedy"][0]
-            for k in STREAMING + REFERENCES:
+            for k in streaming + REFERENCES:
                 m, per = got[k]
                 wall, kern = timed[k][1:] if k in timed else (nan, nan)
                 kern_ratio = kern / kern0 if kern0 > 0 else nan
@@ -244,7 +245,7 @@ def findings(rows: list[dict], n_boot: int = 2000) -> dict:
             for order in ORDERS:
                 sel = [r for r in rows if r["scene"] == scene and r["nodes"] == n and r["order"] == order]
                 per = {}
-                for k in STREAMING + ("greedy",):
+                for k in (k for k in STREAMING + ("greedy",) if any(r["kind"] == k for r in sel)):
                     rk = sorted((r for r in sel if r["kind"] == k), key=lambda r: r["config"])
                     per[k] = dict(depth_l2=_interval([r["ratio_to_optimal"] for r in rk], n_boot),
                                   rmse=_interval([r["ratio_to_optimal_rmse"] for r in rk], n_boot),
@@ -277,7 +278,7 @@ def _order_over_depth(rows: list[dict], n_boot: int) -> dict:
     geometric means over configurations with intervals (:func:`_interval`), and
     ``metric_dependent``."""
     out: dict = {}
-    for k in STREAMING:
+    for k in (k for k in STREAMING if any(r["kind"] == k for r in rows)):
         base = {r["config"]: r for r in rows if r["kind"] == k and r["order"] == "depth"}
         for o in ORDERS:
             if o == "depth":
@@ -303,7 +304,7 @@ def _goal(d: dict, rows: list[dict]) -> dict:
     geometric means over configurations and orders of its build and kernel time ratios to
     stream AVSM, and whether it meets :data:`GOAL_RATIO` / :data:`GOAL_BUILD`."""
     out = {}
-    for k in INSERTION_METHODS:
+    for k in (k for k in INSERTION_METHODS if k in d[ORDERS[0]]):
         worst = max(d[o][k]["depth_l2"]["estimate"] for o in ORDERS)
         rk = [r for r in rows if r["kind"] == k]
         build_ratio = float(np.exp(np.mean(np.log([r["build_ratio"] for r in rk]))))
@@ -317,12 +318,18 @@ def _goal(d: dict, rows: list[dict]) -> dict:
 
 
 def _resolve(P: dict, quick: bool) -> dict:
-    """Every built-in scene when ``scenes`` is None; checks of the names."""
+    """Every built-in scene when ``scenes`` is None, every AVSM insertion method when
+    ``insertions`` is None (stream ``avsm`` always: the timing reference); checks of the names."""
     from avsm_dr.builtin_scenes import SCENES
     P["scenes"] = list(SCENES) if P["scenes"] is None else list(P["scenes"])
     for s in P["scenes"]:
         if s not in SCENES:
             raise ValueError(f"scenes: unknown scene {s!r}; known: {sorted(SCENES)}")
+    chosen = set(INSERTION_METHODS if P.get("insertions") is None else P["insertions"]) | {"avsm"}
+    if chosen - set(INSERTION_METHODS):
+        raise ValueError(f"insertions: unknown methods {sorted(chosen - set(INSERTION_METHODS))}; "
+                         f"known: {list(INSERTION_METHODS)}")
+    P["insertions"] = [m for m in INSERTION_METHODS if m in chosen]
     return P
 
 
@@ -338,7 +345,7 @@ def _compute(res, P: dict) -> dict:
     summary = {f"{s}_N{n}_avsm_over_optimal_{o}": found[s][f"N={n}"][o]["avsm"]["depth_l2"]["estimate"]
                for s in P["scenes"] for n in P["nodes"] for o in ORDERS}
     summary.update({f"{s}_N{n}_{k}_worst_order_over_optimal": found[s][f"N={n}"]["goal"][k]["worst_ratio"]
-                    for s in P["scenes"] for n in P["nodes"] for k in INSERTION_METHODS})
+                    for s in P["scenes"] for n in P["nodes"] for k in P["insertions"]})
     summary.update({f"{s}_N{n}_optimal_over_free_vertex": (found[s][f"N={n}"]["optimal_over_free_vertex"]
                                                             or {}).get("estimate")
                     for s in P["scenes"] for n in P["nodes"]})
@@ -348,7 +355,7 @@ def _compute(res, P: dict) -> dict:
 #: Figure style per method: AVSM's insertion variants get colours of their own (they are not
 #: registered kinds), avsm_march and greedy keep their kinds' fixed style.
 METHOD_COLOURS = {"avsm": "rose", "avsm_refit": "sand", "avsm_refit_l2": "olive", "avsm_staged": "wine",
-                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple"}
+                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple", "avsm_spare_exp": "green"}
 #: The node count the figure shows (the tables in findings.json have every N).
 PLOT_NODES = 8
 
@@ -356,7 +363,7 @@ PLOT_NODES = 8
 def _method_style(k: str) -> dict:
     from . import _plotstyle as plotstyle
     if k in METHOD_COLOURS:
-        markers = ("o", "s", "D", "v", "P", "X")
+        markers = ("o", "s", "D", "v", "P", "X", "*")
         return dict(color=plotstyle.PALETTE[METHOD_COLOURS[k]], linestyle="-",
                     marker=markers[list(METHOD_COLOURS).index(k)])
     return plotstyle.style(k)
@@ -438,6 +445,8 @@ def _headline(s: dict) -> list[str]:
 STUDY = Study(
     "insertion_order", "AVSM and avsm_march under four insertion orders, against greedy and the optimum",
     REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
-    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),),
+    options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
+             Option("insertions", "AVSM insertion methods to run (default: all; stream 'avsm' always)", nargs="+",
+                    metavar="METHOD")),
     headline=_headline)
 run = STUDY.run

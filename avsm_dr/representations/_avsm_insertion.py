@@ -5,7 +5,8 @@ sec. 3.2: remove the node of least area metric, twice); ``refit`` (then refit it
 to keep the area, ``fit="area"``); ``refit_l2`` (remove the node of least squared-L2 loss,
 refit its neighbours by least squares, ``fit="l2"``); ``staged`` / ``staged_refit_l2``
 (once full, insert 4 segments into ``N + 8`` nodes, then compress back to N); ``spare_refit_l2``
-(``refit_l2`` on ``N + 8`` nodes while streaming, then down to N by least ``post`` metric).
+(``refit_l2`` on ``N + 8`` nodes while streaming, then down to N by least ``post`` metric);
+``spare_exp`` (``spare_refit_l2`` with exponential ramps: :func:`.avsm.insert_segment`'s ``tau``).
 
 Removal of interior node ``i`` with neighbours ``l = i - 1``, ``r = i + 1`` (and ``ll = i - 2``,
 ``rr = i + 2`` where they exist); ``c = (d_r - d_l)(t_r - t_i) - (d_r - d_i)(t_r - t_l)``:
@@ -36,14 +37,16 @@ import drjit as dr
 from .. import backend
 
 #: insertion name -> (refit: None / "area" / "l2", removal metric: "area" / "l2", segments per
-#: batch, spare nodes kept while streaming (removed at the end by the "post" metric))
+#: batch, spare nodes kept while streaming (removed at the end by the "post" metric), segment
+#: ramp: "linear" (the paper's) / "exp")
 INSERTIONS = {
-    "stream": (None, "area", 1, 0),
-    "refit": ("area", "area", 1, 0),
-    "refit_l2": ("l2", "l2", 1, 0),
-    "staged": (None, "area", 4, 0),
-    "staged_refit_l2": ("l2", "l2", 4, 0),
-    "spare_refit_l2": ("l2", "l2", 1, 8),
+    "stream": (None, "area", 1, 0, "linear"),
+    "refit": ("area", "area", 1, 0, "linear"),
+    "refit_l2": ("l2", "l2", 1, 0, "linear"),
+    "staged": (None, "area", 4, 0, "linear"),
+    "staged_refit_l2": ("l2", "l2", 4, 0, "linear"),
+    "spare_refit_l2": ("l2", "l2", 1, 8, "linear"),
+    "spare_exp": ("l2", "l2", 1, 8, "exp"),
 }
 
 

@@ -76,7 +76,7 @@ def curve_at(d, t, x):
     return value, (tl == 0) & ((tr == 0) | (x == dl))
 
 
-def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
+def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None, tau=None):
     """Nodes after inserting segment [a, b] (exit transmittance ts): N + 2 entries.
 
     ``used``: number of inserted (non-clear) nodes, which come first in the list.
@@ -84,12 +84,15 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
     last node can be a clear node - the same result with fewer instructions.
     ``ta``: ``curve_at(d, t, a)[0]`` when the caller has it.
     Nodes inside the segment take the ramp as ``R = ts + (1 - ts)(b - d_k) / (b - a)``,
-    capped at 1 (two terms >= 0: within a relative ``7 u`` of the exact ramp).
+    capped at 1 (two terms >= 0: within a relative ``7 u`` of the exact ramp).  ``tau``: the
+    segment's optical depth for the exponential ramp ``R = exp(-tau (d_k - a) / (b - a))`` and
+    an exponential interpolation of ``T(b)`` (the caller's ``ta`` likewise): exact for uniform
+    density, so a list that never compressed holds the exact curve's values in any order.
     """
     n = len(d)
     UInt32 = type(used)
     ta = curve_at(d, t, a)[0] if ta is None else ta
-    tb = curve_at(d, t, b)[0] * ts
+    tb = (curve_at(d, t, b)[0] if tau is None else interpolate(d, t, b, "exp")) * ts
     length = b - a
     inv_len = 1 / dr.select(length > 0, length, 1)
     opacity = 1 - ts
@@ -97,8 +100,11 @@ def insert_segment(d, t, used, a, b, ts, full: bool = False, ta=None):
     x = UInt32(1)          # slot of the exit node  = inserted nodes with d <= b, + 1
     scaled = []
     for k in range(n):
-        ramp = ts + opacity * ((b - d[k]) * inv_len)
-        ramp = dr.replace_grad(dr.minimum(ramp, 1), ramp)            # in [ts, 1]
+        if tau is None:
+            ramp = ts + opacity * ((b - d[k]) * inv_len)
+            ramp = dr.replace_grad(dr.minimum(ramp, 1), ramp)        # in [ts, 1]
+        else:
+            ramp = dr.exp(-tau * dr.clip((d[k] - a) * inv_len, 0, 1))
         inner = dr.select(d[k] > a, dr.select(d[k] >= b, ts, ramp), 1)
         if full and k < n - 1:
             e += UInt32(d[k] <= a)
@@ -254,7 +260,8 @@ class AVSM(NodeList):
                   "'refit' (area-preserving refit of the removed node's neighbours), 'refit_l2' (L2 "
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
                   "every 4 segments), 'spare_refit_l2' ('refit_l2' on N + 8 nodes, compressed to N at "
-                  "the end); see avsm_dr.representations._avsm_insertion",
+                  "the end), 'spare_exp' (the same with exponential segment ramps); see "
+                  "avsm_dr.representations._avsm_insertion",
                   choices=tuple(INSERTIONS)),
             NEAR, FAR,
             # Private ablation switches (benchmarks only; the nodes are the same either way):
@@ -274,7 +281,7 @@ class AVSM(NodeList):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         super()._resolve()
-        self._refit, self._metric, self._stage, self._spare = INSERTIONS[P["insertion"]]
+        self._refit, self._metric, self._stage, self._spare, self._ramp = INSERTIONS[P["insertion"]]
         self.loop_state_words = 2 * (self.N + self._spare) + 5   # W = N + spare depths, values; 5 counters
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
 
@@ -321,13 +328,15 @@ class AVSM(NodeList):
             if view is not None:
                 i = dr.gather(UInt32, view[0], i, active)  # the texel's next segment in depth order
             a, b, tau = (dr.gather(Float, x, i, active) for x in p)
-            return a, b, dr.exp(-tau)
+            return a, b, dr.exp(-tau), tau
 
         def insert(p, i, used, done, d, t, compress):
             # compress: False (room left), True (full), or a Bool mask (_split=False ablation)
-            a, b, ts = segment(p, i)
+            a, b, ts, tau = segment(p, i)
             ta, skip = curve_at(d, t, a)                  # skip: the stored curve is 0 at a
-            nd, nt = insert_segment(d, t, used, a, b, ts, full=compress is True, ta=ta)
+            tau = tau if self._ramp == "exp" else None
+            ta = ta if tau is None else interpolate(d, t, a, "exp")
+            nd, nt = insert_segment(d, t, used, a, b, ts, full=compress is True, ta=ta, tau=tau)
             if compress is True:
                 nd, nt = remove(*remove(nd, nt))
             elif compress is not False:
@@ -366,7 +375,7 @@ class AVSM(NodeList):
             for _ in range(stage):
                 n = len(d)
                 active = (i < end) & ~done
-                a, b, ts = segment(p, i, active)
+                a, b, ts, _ = segment(p, i, active)
                 ta, zero = curve_at(d, t, a)
                 nd, nt = insert_segment(d, t, grow, a, b, ts, ta=ta)
                 put = active & ~zero
