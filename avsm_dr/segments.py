@@ -326,14 +326,14 @@ class Segments:
         return self._cache["bounds"]
 
     def texel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1)."""
-        near, far = np.zeros(self.n_texels), np.ones(self.n_texels)
-        nz = self.counts > 0
-        if nz.any():
-            starts = self.offsets[:-1][nz]
-            near[nz] = np.minimum.reduceat(A.host(self.z0, "z0"), starts)
-            far[nz] = np.maximum.reduceat(A.host(self.z1, "z1"), starts)
-        return near, far
+        """Tight per-texel (near, far) as float64 NumPy arrays; empty texels get (0, 1).  One lane per
+        texel takes min z0 / max z1 over its CSR range on the device (no float64 host copy of S segments)."""
+        U, F, off, T = backend.types().UInt32, dr.detached_t(self.Float), self.offsets_dr(), self.n_texels
+        z0, z1 = (F(dr.detach(z)) if self.n_segments else F(0.0) for z in (self.z0, self.z1))   # F(0): never read
+        _, lo, hi = dr.while_loop((dr.gather(U, off, dr.arange(U, T)), dr.full(F, np.inf, T), dr.full(F, -np.inf, T)),
+                                  lambda i, lo, hi: i < dr.gather(U, off, dr.arange(U, 1, T + 1)), lambda i, lo, hi: (
+                                      i + 1, dr.minimum(lo, dr.gather(F, z0, i)), dr.maximum(hi, dr.gather(F, z1, i))))
+        return tuple(np.where(self.counts > 0, x.numpy(), e).astype(np.float64) for x, e in ((lo, 0), (hi, 1)))
 
     def numpy(self) -> dict[str, np.ndarray]:
         """Host copies (float64) of offsets, z0, z1, optical_depth."""

@@ -191,3 +191,27 @@ def test_offsets_beyond_uint32_are_refused():
     """offsets[-1] = 1e20 overflowed int64 silently and blamed z0's length."""
     with pytest.raises(ValueError, match="^offsets: .*2\\^32"):
         ad.Segments.from_arrays([0, 1e20], [0.0], [1.0], optical_depth=[1.0])
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_texel_bounds_match_host_reduction(dtype):
+    """The device loop of texel_bounds equals a host min/max reduction exactly (min and max
+    round nothing): random texels, empty ones, single segments, equal depths, negative and
+    large depths, a texel of 300 segments."""
+    rng = np.random.default_rng(5)
+    counts = np.concatenate([rng.integers(0, 12, 500), [0, 1, 0, 300, 1, 0]])
+    off = np.concatenate([[0], np.cumsum(counts)])
+    n = int(off[-1])
+    z0 = rng.uniform(-1e6, 1e6, n) * rng.choice([1e-6, 1.0], n)
+    z0[:40] = 7.0                                   # ties
+    z1 = z0 + rng.exponential(1.0, n) * rng.integers(0, 2, n)   # half zero-length
+    seg = ad.Segments.from_arrays(off, z0, z1, optical_depth=rng.uniform(0, 2, n), dtype=dtype)
+    h = seg.numpy()
+    nz = counts > 0
+    want_near, want_far = np.zeros(counts.size), np.ones(counts.size)
+    want_near[nz] = np.minimum.reduceat(h["z0"], off[:-1][nz])
+    want_far[nz] = np.maximum.reduceat(h["z1"], off[:-1][nz])
+    near, far = seg.texel_bounds()
+    assert near.dtype == far.dtype == np.float64
+    np.testing.assert_array_equal(near, want_near)
+    np.testing.assert_array_equal(far, want_far)
