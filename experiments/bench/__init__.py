@@ -103,7 +103,8 @@ def _compute(res, P: dict) -> dict:
         notes.append("warp-lang not installed: Warp peers skipped (pip install 'avsm_dr[bench]')")
     t_start = time.perf_counter()
     n_steps = (len(P["maps"]) * len(settings(SETTINGS)) + 5 + len(P["scale_texels"])
-               + len(P["scale_counts"]) + len(P["scale_nodes"]) + 5 + len(SCENE_SETTINGS) + 2)
+               + len(P["scale_counts"]) + len(P["scale_nodes"]) + 5 + len(SCENE_SETTINGS)
+               + len(settings(memory.MEMORY_SETTINGS)))
     tqdm.monitor_interval = 0                         # no monitor thread in timed code
     with tqdm(total=n_steps, desc="bench", unit="step") as progress:
         data = throughput.throughput(P, notes, progress)

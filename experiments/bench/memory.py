@@ -2,22 +2,33 @@
 texels`` (``memory.csv``, ``memory.png``), with the common :class:`~experiments._common.Meter`.
 
 ``build_peak_over_formula`` = build peak / (``nbytes_per_texel x texels``), the output's
-size; :data:`BUILD_PEAK_TARGETS` holds the targets (DSM within 4x of its output: 70x at
-6.5 M segments before its build ran in chunks of texels) and each row says whether it meets its own.
+size; every online setting's target is :data:`BUILD_PEAK_TARGET` (DSM was 70x at 6.5 M segments before
+its build ran in chunks of texels) and each row says whether it meets it.  Rows:
+:data:`MEMORY_SETTINGS` and every other registered kind with its ``headline`` parameters
+(offline kinds only on maps they run on, :func:`~.settings.max_segments`).
 """
 from __future__ import annotations
 
 import drjit as dr
 import numpy as np
 
-from avsm_dr import build, kinds
+from avsm_dr import build, describe
 from .._common import Meter, sync
-from .settings import SCENE_SETTINGS, counts_map, label, lookups, pyplot
+from .settings import SCENE_SETTINGS, counts_map, heavy, label, lookups, max_segments, pyplot, settings
 
 
-#: Largest build peak over the output's size that a kind is meant to reach on the memory
-#: map (kinds not listed have no target).
-BUILD_PEAK_TARGETS = {"dsm": 4.0, "osm": 4.0}
+#: Largest build peak over the output's size that every setting is meant to reach on the memory
+#: map; offline kinds (host dynamic programs, references) have none.
+BUILD_PEAK_TARGET = 4.0
+#: Settings of the memory table besides each registered kind's headline one.
+MEMORY_SETTINGS = SCENE_SETTINGS + [("avsm", {"nodes": 16}), ("avsm", {"nodes": 8, "sort": True}),
+                                    ("fom", {"harmonics": 16}), ("fom", {"harmonics": 8, "depth_range": "texel"})]
+
+
+def memory_settings(n_segments: int) -> list:
+    """:data:`MEMORY_SETTINGS` and every other registered kind's headline setting, less those
+    :func:`~.settings.heavy` beyond their :func:`~.settings.max_segments`."""
+    return [(k, p) for k, p in settings(MEMORY_SETTINGS) if not heavy(k, p) or n_segments <= max_segments(k)]
 
 
 def _malloc_returns_memory():
@@ -54,8 +65,7 @@ def memory(P, progress) -> list[dict]:
     rows = []
     _malloc_returns_memory()
     seg_bytes = seg.n_segments * 3 * 4 + (seg.n_texels + 1) * 8
-    for kind, p in [(k, p) for k, p in SCENE_SETTINGS + [("avsm", {"nodes": 16}), ("fom", {"harmonics": 16})]
-                    if k in kinds()]:
+    for kind, p in memory_settings(seg.n_segments):
         build(kind, seg, **p).eval(tex[:10], depth[:10])     # compile outside the measurement
         mb = peak_memory(lambda: build(kind, seg, **p))
         rep = mb["out"]
@@ -63,7 +73,7 @@ def memory(P, progress) -> list[dict]:
         formula = rep.nbytes_per_texel * seg.n_texels
         peak = max(mb["rss"], mb["jit"])
         ratio = peak / formula if formula else float("nan")
-        target = BUILD_PEAK_TARGETS.get(kind, float("nan"))
+        target = float("nan") if describe(kind)["offline"] else BUILD_PEAK_TARGET
         rows.append(dict(setting=label(kind, p), texels=seg.n_texels, segments=seg.n_segments,
                          nbytes_per_texel=rep.nbytes_per_texel, formula_bytes=formula, segments_bytes=seg_bytes,
                          build_peak_rss=mb["rss"], build_peak_jit=mb["jit"],
