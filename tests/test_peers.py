@@ -239,3 +239,11 @@ def test_kernel_ops_reads_the_per_segment_loop_or_the_whole_kernel():
     assert "basis_project" in [machine.kernel_ops(s)[2] for s in irs["moments"]]
     counted = [machine.kernel_ops(s) for s in irs["plain"]]
     assert all(lab == "" for _, _, lab in counted) and max(sum(o.values()) for o, _, _ in counted) > 10
+
+
+def test_memory_table_has_every_kind():
+    """The bench's memory table holds every registered kind (offline ones only on maps they run on)."""
+    from experiments.bench import memory
+    assert {k for k, _ in memory.memory_settings(10_000)} == set(ad.kinds())
+    assert {k for k, _ in memory.memory_settings(6_553_600)} == {k for k in ad.kinds() if not ad.describe(k)["offline"]}
+    assert ("avsm", {"nodes": 8, "sort": True}) in memory.memory_settings(6_553_600)
