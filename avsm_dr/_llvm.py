@@ -11,6 +11,7 @@ import order as the cause of an LLVM < 16).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import glob
 import os
 import re
@@ -102,11 +103,29 @@ def problem(version: tuple | None, drjit_first: bool, user_path: str | None, fou
     return INSTALL_HINT
 
 
+def wait_for_init(dr) -> tuple | None:
+    """Wait, without holding the GIL, until Dr.Jit's initialisation has finished; returns
+    the LLVM version it reports, None where the library or symbol is not found.
+
+    ``import drjit`` initialises in a background thread that holds Dr.Jit's lock and logs
+    its warnings (an LLVM it refuses, or none) through a Python callback that takes the GIL;
+    a first Dr.Jit call made holding the GIL waits for that lock while the callback waits
+    for the GIL, forever (seen under load).  A ctypes call releases the GIL while it waits.
+    """
+    with contextlib.suppress(OSError, AttributeError):   # other platforms: no such library
+        lib = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+        v = (ctypes.c_int * 3)()
+        lib._Z16jit_llvm_versionPiS_S_(ctypes.byref(v, 0), ctypes.byref(v, 4), ctypes.byref(v, 8))
+        return tuple(v)
+    return None
+
+
 def check_loaded() -> None:
     """Ask Dr.Jit (already imported) which libLLVM it loaded; set :data:`LIBLLVM` and
     :data:`PROBLEM`."""
     global LIBLLVM, PROBLEM
     import drjit as dr
+    wait_for_init(dr)
     try:
         version = tuple(dr.detail.llvm_version())
     except (AttributeError, RuntimeError):  # no such query: trust DRJIT_LIBLLVM_PATH
