@@ -111,12 +111,12 @@ def test_first_drjit_call_waits_for_its_init_without_the_gil():
     """Dr.Jit's background init holds its lock and logs a refused libLLVM through a Python
     callback that needs the GIL: a first Dr.Jit call holding the GIL then waits forever (3
     of 5 children hung with ``drjit.detail.llvm_version()`` right after ``import drjit``,
-    the GIL held by a long switch interval).  ``_llvm.wait_for_init`` waits without the GIL
-    and reports the same version."""
+    the GIL held by a long switch interval).  ``_llvm._llvm_version`` asks through ctypes, without
+    the GIL, and reports the same version."""
     import drjit as dr
     if sys.platform != "linux":
         pytest.skip("the GIL-free wait looks up libdrjit-core.so (Linux)")
-    assert _llvm.wait_for_init(dr) == tuple(dr.detail.llvm_version())
+    assert _llvm._llvm_version(dr) == tuple(dr.detail.llvm_version())
     old = sorted(p for pattern in _llvm._SEARCH_PATTERNS for p in glob.glob(pattern)
                  if (_llvm._major_version(p) or 99) < 16)
     if not old:
@@ -126,7 +126,7 @@ def test_first_drjit_call_waits_for_its_init_without_the_gil():
             "L = importlib.util.module_from_spec(spec); spec.loader.exec_module(L)\n"
             f"sys.setswitchinterval(1000); os.environ['DRJIT_LIBLLVM_PATH'] = {old[0]!r}\n"
             "import drjit\n"
-            "L.wait_for_init(drjit)\n"
+            "L._llvm_version(drjit)\n"
             "print(tuple(drjit.detail.llvm_version()), flush=True)\n"
             "os._exit(0)\n")
     for _ in range(3):
