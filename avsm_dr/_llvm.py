@@ -1,16 +1,14 @@
 """Find a libLLVM that Dr.Jit's LLVM backend can use, before ``drjit`` is imported.
 
-Dr.Jit 1.5 on LLVM 15 aborts the whole process at the first ``dr.maximum`` /
-``dr.minimum`` ("Cannot select: fmaximum"); LLVM >= 16 works.  Dr.Jit loads its
-libLLVM once, inside ``import drjit`` (``DRJIT_LIBLLVM_PATH`` if set, else its own
-search), so :func:`ensure_libllvm` points ``DRJIT_LIBLLVM_PATH`` at the newest libLLVM
->= 16 unless the user set it, before ``drjit`` is imported; :func:`check_loaded` then asks
-Dr.Jit which LLVM it loaded (when ``drjit`` was imported first, :data:`PROBLEM` names the
-import order as the cause of an LLVM < 16).
-"""
+Dr.Jit 1.5 on LLVM 15 aborts the process at the first ``dr.maximum`` ("Cannot select:
+fmaximum"); LLVM >= 16 works.  Dr.Jit loads its libLLVM once, in ``import drjit``
+(``DRJIT_LIBLLVM_PATH``, else its own search): :func:`ensure_libllvm` points that variable
+at the newest libLLVM >= 16 unless the user set it; :func:`check_loaded` then asks Dr.Jit
+which LLVM it loaded (:data:`PROBLEM` names the import order when drjit came first)."""
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import glob
 import os
 import re
@@ -18,27 +16,19 @@ import sys
 
 MIN_VERSION = 16
 
-INSTALL_HINT = (
-    "avsm_dr needs libLLVM >= 16 for Dr.Jit's LLVM (CPU) backend; the system's LLVM 15 "
-    "crashes Dr.Jit 1.5. Install it with:  apt-get install -y libllvm19   "
-    "(or set DRJIT_LIBLLVM_PATH=/path/to/libLLVM.so.<16 or newer>)."
-)
+INSTALL_HINT = ("avsm_dr needs libLLVM >= 16 for Dr.Jit's LLVM (CPU) backend; the system's LLVM 15 "
+                "crashes Dr.Jit 1.5. Install it with:  apt-get install -y libllvm19   "
+                "(or set DRJIT_LIBLLVM_PATH=/path/to/libLLVM.so.<16 or newer>).")
 
 _SEARCH_PATTERNS = (
-    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
-    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
-    "/usr/lib/llvm-*/lib/libLLVM*.so*",
-    "/usr/lib64/libLLVM*.so*",
-    "/usr/local/lib/libLLVM*.so*",
-    "/opt/homebrew/opt/llvm/lib/libLLVM*.dylib",
-    "/usr/local/opt/llvm/lib/libLLVM*.dylib",
-)
+    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*", "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*", "/usr/lib64/libLLVM*.so*", "/usr/local/lib/libLLVM*.so*",
+    "/opt/homebrew/opt/llvm/lib/libLLVM*.dylib", "/usr/local/opt/llvm/lib/libLLVM*.dylib")
 
 
 def _major_version(path: str) -> int | None:
     """LLVM major version encoded in a library file name, e.g. libLLVM.so.19.1 -> 19."""
-    name = os.path.basename(path)
-    match = re.search(r"libLLVM[-.](?:so\.)?(\d+)", name)
+    match = re.search(r"libLLVM[-.](?:so\.)?(\d+)", os.path.basename(path))
     return int(match.group(1)) if match else None
 
 
@@ -102,14 +92,24 @@ def problem(version: tuple | None, drjit_first: bool, user_path: str | None, fou
     return INSTALL_HINT
 
 
+def _llvm_version(dr) -> tuple | None:
+    """The LLVM version Dr.Jit loaded (None: it cannot tell), asked through ctypes, which
+    releases the GIL: Dr.Jit's init thread holds its lock while it logs (a refused libLLVM)
+    through a Python callback that takes the GIL, so a first query holding it can deadlock."""
+    with contextlib.suppress(OSError, AttributeError):              # Linux: libdrjit-core.so
+        lib, v = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so")), (ctypes.c_int * 3)()
+        lib._Z16jit_llvm_versionPiS_S_(*(ctypes.byref(v, 4 * i) for i in range(3)))
+        return tuple(v)
+    with contextlib.suppress(AttributeError, RuntimeError):
+        return tuple(dr.detail.llvm_version())     # else None
+
+
 def check_loaded() -> None:
     """Ask Dr.Jit (already imported) which libLLVM it loaded; set :data:`LIBLLVM` and
     :data:`PROBLEM`."""
     global LIBLLVM, PROBLEM
     import drjit as dr
-    try:
-        version = tuple(dr.detail.llvm_version())
-    except (AttributeError, RuntimeError):  # no such query: trust DRJIT_LIBLLVM_PATH
+    if (version := _llvm_version(dr)) is None:  # no such query: trust DRJIT_LIBLLVM_PATH
         path = os.environ.get("DRJIT_LIBLLVM_PATH")
         version = (_major_version(path) or 0, 0, 0) if path else None
     PROBLEM = problem(version, DRJIT_IMPORTED_FIRST, _USER_PATH, find_libllvm())

@@ -59,7 +59,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build, describe
-from avsm_dr.metrics import THRESHOLD
+from avsm_dr.metrics import error_stats
 from ._study import Option, Study, write_data
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -158,15 +158,15 @@ def _config_rows(name: str, seed: int, light: str, P: dict) -> list[dict]:
         for target, factor, beta in grid(P, family):
             params = build_params(family, n, target, factor, beta, seg.dtype)
             rep = build("moments", seg, **params)
-            d = probe.lookup(rep) - ex_lookup
+            s = error_stats(probe.lookup(rep), ex_lookup)
             rows.append(dict(head, group=group_label(family, n), family=family, moments=n, target=target,
                              alpha_factor=factor, alpha=float(rep.params["bias"]), beta=float(beta),
                              default=is_default(target, factor, beta),
                              bytes_per_texel=float(rep.nbytes_per_texel),
                              depth_l2=depth_l2(rep, seg, exact=ex_curve, n_depths=P["n_depths"]),
-                             rmse=float(np.sqrt(np.mean(d * d))), signed_mean=float(np.mean(d)),
+                             rmse=s["rmse"], signed_mean=s["mean_error"],
                              order="depth", bytes=float(rep.nbytes_sparse_per_texel),
-                             bytes_dense=float(rep.nbytes_per_texel), leak_share=float(np.mean(d > THRESHOLD))))
+                             bytes_dense=float(rep.nbytes_per_texel), leak_share=s["leak_fraction"]))
     return rows
 
 

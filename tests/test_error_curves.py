@@ -368,11 +368,11 @@ def test_slow_kinds_are_chosen_by_work_not_by_a_clock(tmp_path, monkeypatch):
 
 
 def test_optimal_work_estimate_follows_the_cost_model():
-    """build_work: 150 per point, N K^2 and (3 linf + 2 exp) K^3 per texel on the padded block."""
-    from avsm_dr.representations import optimal
+    """optimal_work: 150 per point, N K^2 and (3 linf + 2 exp) K^3 per texel on the padded block."""
+    from avsm_dr.representations import _curve
+    from experiments.error_curves.cost import optimal_work
     seg = ad.Segments.from_arrays([0, 2, 3], [0.1, 0.2, 0.5], [0.4, 0.3, 0.9], optical_depth=[0.5, 1.0, 2.0])
-    k = np.diff(optimal._curve.points(seg)["off"])
-    assert list(k) == [4, 2]                                 # two texels' exact-curve points, own buckets
-    assert optimal.build_work(seg, {}) == 150 * 6 + 8 * (16 + 4)
-    assert optimal.build_work(seg, {"nodes": 4, "norm": "linf", "interpolation": "exp", "precision": "float16"}) \
+    assert list(np.diff(_curve.points(seg)["off"])) == [4, 2]     # two texels' exact-curve points, own buckets
+    assert optimal_work(seg, {}) == 150 * 6 + 8 * (16 + 4)
+    assert optimal_work(seg, {"nodes": 4, "norm": "linf", "interpolation": "exp", "precision": "float16"}) \
         == 150 * 6 + 4 * (16 + 4) + 5 * (64 + 8)

@@ -116,7 +116,7 @@ def test_quick_experiment_writes_results(name, shared_out, capsys):
             assert math.isfinite(float(r["depth_l2"])) and float(r["bytes"]) > 0 and float(r["bytes_dense"]) > 0
             assert r["order"] == ("depth" if r["method"] == "avsm" else "-"), r
         assert all(float(r["depth_l2"]) == 0 for r in rows if r["method"] == "exact")
-    if name in ("runtime_vs_error", "ordering"):                  # issue 23's columns, finite
+    if name in ("runtime_vs_error", "ordering"):     # both metrics' columns (depth L2, signed, leak, bytes), finite
         for r in rows:
             for k in ("depth_l2", "signed_mean", "leak_share", "bytes", "bytes_dense"):
                 assert math.isfinite(float(r[k])), (name, k, r)

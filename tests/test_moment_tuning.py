@@ -74,7 +74,7 @@ def test_every_grid_point_in_every_cell(quick):
         assert all(np.isfinite(r[m]) and r[m] >= 0 for r in rs for m in S.METRICS)
     assert len(table) == sum(len(S.grid(P, f)) for f, _ in P["groups"])
     assert {r["opaque"] for r in rows} == {"separate"}                      # the preset's capture
-    # issue 23: the capture order, sparse and dense bytes and the leak share on every row
+    # both metrics: the capture order, sparse and dense bytes and the leak share on every row
     assert {r["order"] for r in rows} == {"depth"}
     assert all(r["bytes_dense"] == r["bytes_per_texel"] and 0 < r["bytes"] and 0 <= r["leak_share"] <= 1
                for r in rows)

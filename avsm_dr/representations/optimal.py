@@ -306,21 +306,6 @@ def work_units(count: np.ndarray, N: int, norm: str, interp: str) -> float:
     return float(np.sum(N * k * k + (3 * k ** 3 if cubic else 0.0)))
 
 
-def build_work(segments, params: dict) -> float:
-    """Deterministic estimate of a build's host work on ``segments`` with schema ``params``,
-    in units of about 7 ns of one core (the idle error_curves run on the built-in scenes):
-    ``sum_texels 150 K + N Kp^2 + (3 [linf] + 2 [exp]) Kp^3``, K the texel's exact-curve
-    points, Kp the largest K of its bucket (the padded blocks :meth:`OptimalSubset._build`
-    works on).  Reads no clock: the same segments and parameters give the same number."""
-    p = {k: v["default"] for k, v in OptimalSubset.schema.describe()["params"].items()} | dict(params)
-    off = _curve.points(segments)["off"]
-    cubic = 3 * (p["norm"] == "linf") + 2 * (p["interpolation"] == "exp")
-    work = 150.0 * off[-1]
-    for tex, kmax in _curve.buckets(off, power=2, max_elems=1 << 21):
-        work += tex.size * (p["nodes"] * kmax ** 2 + cubic * kmax ** 3)
-    return float(work)
-
-
 @register("optimal")
 class OptimalSubset(NodeList):
     """Best N-node breakpoint subset of the exact curve (DP, offline; module docstring), a

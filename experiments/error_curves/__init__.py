@@ -41,9 +41,9 @@ import numpy as np
 from avsm_dr import allows, build, configurations, describe
 from avsm_dr import kinds as all_kinds
 from avsm_dr.metrics import error_stats
-from avsm_dr.representations import optimal
 from avsm_dr.segments import Segments
 from . import findings as F
+from .cost import BUILD_WORK
 from .._study import Option, Study, write_data
 from .._tau import optical_depth_error
 from .._two_metric import texel_blocks
@@ -71,14 +71,11 @@ SPOT_SEEDS = 2
 #: dynamic-programming optimum): for the rest of that configuration (one cell of the sweep)
 #: it is built only at its headline setting, in the base configuration (``slow_kinds`` in
 #: findings.json: the largest estimate per kind).  The estimate is the kind's declared cost
-#: model in :data:`BUILD_WORK` on the segments built, never a clock, so the rows do not
+#: model in :data:`.cost.BUILD_WORK` on the segments built, never a clock, so the rows do not
 #: depend on the machine's load; 3.6e8 units (about 2.6 CPU seconds on the development
 #: machine) selects the rows an idle run selected with its former 3 CPU-second limit.
 #: Kinds whose schema says ``offline`` run in the base configuration of each scene only.
 SLOW_WORK = 3.6e8
-#: Declared cost models, ``(segments, params) -> work units`` (kinds without one are linear
-#: in the segments and never slow).
-BUILD_WORK = {"optimal": optimal.build_work}
 #: Mitsuba runs in float32: a path that meets no tentative collision returns T = 1 exactly
 #: (standard error 0) where the truth is 1 - 1e-9; differences below this are rounding.
 MITSUBA_FLOOR = 1e-6

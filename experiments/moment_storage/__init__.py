@@ -163,7 +163,7 @@ def evaluate(P: dict, best: dict, progress: bool = True) -> tuple[list, dict, di
     """(rows, errors {(scene, mode, config, variant, tag): (K,) signed errors}, bytes per
     texel {variant: bytes}, per-texel depth L2 {same keys}, tiles {(scene, mode, config):
     (receiver tiles, texel tiles)}) over the evaluation configurations."""
-    from avsm_dr.metrics import THRESHOLD
+    from avsm_dr.metrics import THRESHOLD, summary as error_summary
     rows, errs, nbytes, l2s, tiles = [], {}, {}, {}, {}
     jobs = [(n, s, li) for n in P["scenes"] for s, li in P["configs"]]
     for name, seed, light in tqdm(jobs, desc="moment_storage", unit="config", disable=not progress):
@@ -177,12 +177,13 @@ def evaluate(P: dict, best: dict, progress: bool = True) -> tuple[list, dict, di
                     errs[(name, mode, config, lab, tag)] = e
                     l2 = l2s[(name, mode, config, lab, tag)] = v.l2(rep)
                     nbytes[lab] = float(rep.nbytes_per_texel)
+                    st = error_summary(e, THRESHOLD)           # avsm_dr.metrics' statistics of the signed errors
                     rows.append(dict(scene=name, opaque=mode, config=config, seed=seed, light=light, variant=lab,
                                      precision=prec, quantization=q or "", tag=tag,
                                      alpha=float(rep.params["bias"]), bytes_per_texel=float(rep.nbytes_per_texel),
-                                     n=int(e.size), rmse=float(np.sqrt(np.mean(e ** 2))),
-                                     max_error=float(np.max(np.abs(e))), mean_error=float(np.mean(e)),
-                                     order="-", signed_mean=float(np.mean(e)), leak_share=float(np.mean(e > THRESHOLD)),
+                                     n=int(e.size), rmse=st["rmse"], max_error=st["max_error"],
+                                     mean_error=st["mean_error"], order="-", signed_mean=st["mean_error"],
+                                     leak_share=st["leak_fraction"],
                                      depth_l2=float(np.sqrt(np.mean(l2 ** 2))) if l2.size else float("nan"),
                                      bytes=float(rep.nbytes_sparse_per_texel), bytes_dense=float(rep.nbytes_per_texel)))
     return rows, errs, nbytes, l2s, tiles
