@@ -38,12 +38,13 @@ def available_bytes() -> float:
 
 def estimate_peak(kind, p, seg) -> tuple[float, float]:
     """(estimated build peak on ``seg`` in bytes, probe slope in bytes per segment) of
-    ``build(kind, seg, **p)`` (module docstring; compiled outside the measurement)."""
+    ``build(kind, seg, **p)`` (module docstring; compiled outside the measurement, on other
+segments: a kind may cache work on its segments, e.g. the exact curve's points)."""
     points = []
+    sync(build(kind, seg.select_texels(np.arange(min(4, seg.n_texels))), **p))    # compile
     for n in (PROBE_SEGMENTS // 2, PROBE_SEGMENTS):
         n_tex = max(1, int(np.searchsorted(seg.offsets, n, side="right")) - 1)
-        probe = seg.select_texels(np.arange(n_tex))
-        sync(build(kind, probe, **p))
+        probe = seg.select_texels(np.arange(n_tex))          # fresh: no cache of an earlier build
         with Meter() as m:
             out = build(kind, probe, **p)
             sync(out)
