@@ -23,12 +23,18 @@ def curve_points(segments) -> dict:
     and per point ``z``, ``tau``, ``v`` (``exp(-tau)``), ``slope`` (d tau / dz after it; a
     left point's: its right point's), ``left`` (value just before a step), ``texel``."""
     h = segments.numpy()
-    n_tex = segments.n_texels
-    if segments.n_segments == 0:
+    return host_curve_points(h["offsets"], h["z0"], h["z1"], h["optical_depth"])
+
+
+def host_curve_points(offsets, z0, z1, tau) -> dict:
+    """:func:`curve_points` of CSR segments given as host float64 arrays (a texel's points
+    depend only on its own segments: any run of whole texels gives the same points)."""
+    n_tex = offsets.size - 1
+    if z0.size == 0:
         e = np.zeros(0)
         return dict(off=np.zeros(n_tex + 1, np.int64), z=e, tau=e, v=e, slope=e,
                     left=np.zeros(0, bool), texel=np.zeros(0, np.int64))
-    bp = breakpoints(h["offsets"], h["z0"], h["z1"], h["optical_depth"])
+    bp = breakpoints(offsets, z0, z1, tau)
     tl, tr, slope = (np.asarray(x.numpy(), np.float64) for x in prefix_optical_depth(bp))
     step = bp["jump"] > 0
     per_bp = 1 + step.astype(np.int64)

@@ -24,16 +24,23 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
-from .. import _arrays as A
 from .. import backend
 from . import _curve
 from ._avsm_insertion import remove_refit
 from .avsm import INTERPOLATIONS, csr_lookup
 from .base import Representation
+from .dsm import chunk_end, concatenate, host_range, next_chunk_segments
 from ._dsm_polyline import lanes_by_length
 from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
+
+
+#: Fewest non-empty texels (lanes) in a chunk of the build, unless it holds them all: Dr.Jit
+#: runs a kernel of one SIMD packet (16 lanes on AVX-512) on the calling thread, which keeps
+#: the subnormals that its worker threads flush to zero (area metrics of nodes with T near
+#: 1e-300 then tie differently), so a one-packet chunk could place other nodes.
+MIN_LANES = 32
 
 
 def march(pts: dict, cap: int, abs_error: float, rel_error: float):
@@ -124,26 +131,48 @@ class AVSMMarch(Representation):
         self._check_node_memory()
 
     def _build(self):
-        seg, P = self.segments, self.params
-        pts = _curve.points(seg)
-        counts, src = march(pts, self.cap, P["abs_error"], P["rel_error"])
+        seg, P, t = self.segments, self.params, backend.types()
+        offsets, n_tex, Float = seg.offsets, seg.n_texels, seg.Float
+        counts, parts, t0, out_bytes = np.zeros(n_tex, np.int64), [], 0, 0
+        lanes = np.r_[0, np.cumsum(np.diff(offsets) > 0, dtype=np.int32)]        # non-empty texels before t
+        while t0 < n_tex:           # chunks of whole texels (as DSM's): the nodes do not depend on them
+            t1 = chunk_end(offsets, t0, next_chunk_segments(out_bytes, int(offsets[t0]), seg.n_segments))
+            # >= MIN_LANES lanes in every chunk, and as many left after it (or none)
+            t1 = max(t1, int(np.searchsorted(lanes, lanes[t0] + MIN_LANES)))
+            t1 = min(t1, int(np.searchsorted(lanes, lanes[-1] - MIN_LANES, side="right")) - 1)
+            t1 = t1 if t1 > t0 and lanes[t1] - lanes[t0] >= MIN_LANES else n_tex
+            s0, s1 = int(offsets[t0]), int(offsets[t1])
+            pts = _curve.host_curve_points(offsets[t0:t1 + 1] - s0,
+                                           *(host_range(x, s0, s1) for x in (seg.z0, seg.z1, seg.optical_depth)))
+            counts[t0:t1], src = march(pts, self.cap, P["abs_error"], P["rel_error"])
+            parts.append(self._chunk_nodes(pts, counts[t0:t1], src))
+            out_bytes += sum(a.nbytes for a in parts[-1][:4]) + 4 * (t1 - t0)
+            t0 = t1
         self._set_nodes(counts)
-        Float, t = seg.Float, backend.types()
-        dt = np.float32 if seg.dtype == "float32" else np.float64
-        off = pts["off"]
+        lo, hi, q, value, z, left = (concatenate(parts, k) for k in range(6))
+        self.range_lo, self.range_hi = Float(lo), Float(hi)
+        self.node_q = t.Float16(q) if self.precision is None else Float(q)
+        self.node_value = Float(value)
+        if seg.requires_grad:
+            self.node_value = _curve.attach_exact_gradients(seg, self.node_value, np.repeat(np.arange(n_tex), counts),
+                                                            z, left)
+
+    def _chunk_nodes(self, pts, counts, src):
+        """(range_lo, range_hi, q, value) of a chunk's texels and nodes in the stored dtypes
+        (q: float16 on store, else quantised after the build, :meth:`_stored`), and the
+        nodes' float64 depths and left flags where the segments carry gradients."""
+        dt = np.float32 if self.segments.dtype == "float32" else np.float64
+        off, z = pts["off"], pts["z"]
         nz = np.diff(off) > 0
-        lo = np.zeros(seg.n_texels)
-        hi = np.ones(seg.n_texels)
-        lo[nz] = pts["z"][off[:-1][nz]]
-        hi[nz] = pts["z"][off[1:][nz] - 1]
-        self.range_lo, self.range_hi = Float(A.aligned(lo.astype(dt))), Float(A.aligned(hi.astype(dt)))
-        tex = np.repeat(np.arange(seg.n_texels), self.node_counts)
+        lo, hi = np.zeros(counts.size), np.ones(counts.size)
+        lo[nz], hi[nz] = z[off[:-1][nz]], z[off[1:][nz] - 1]
+        tex = np.repeat(np.arange(counts.size), counts)
         span = (hi - lo)[tex]
-        q = np.clip(np.where(span > 0, (pts["z"][src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0), 0.0, 1.0)
-        # float16 on store, or quantised after the build (:meth:`_stored`)
-        self.node_q = t.Float16(q.astype(np.float16)) if self.precision is None else Float(A.aligned(q.astype(dt)))
-        value = Float(pts["v"][src].astype(dt))
-        self.node_value = _curve.attach_exact_gradients(seg, value, tex, pts["z"][src], pts["left"][src])
+        q = np.clip(np.where(span > 0, (z[src] - lo[tex]) / np.where(span > 0, span, 1.0), 0.0), 0.0, 1.0)
+        grad = self.segments.requires_grad
+        return (lo.astype(dt), hi.astype(dt), q.astype(np.float16 if self.precision is None else dt),
+                pts["v"][src].astype(dt), z[src] if grad else np.zeros(0),
+                pts["left"][src] if grad else np.zeros(0, bool))
 
     precisions = PRECISIONS
 

@@ -116,9 +116,9 @@ def _compute(res, P: dict) -> dict:
             notes.append(f"Mitsuba comparison skipped: {type(exc).__name__}: {exc}")
         machine = machine_limit(P, data)
         report.annotate(data, machine)                # machine figures as columns of our rows
-        scal = scaling.scaling(P, progress)
+        scal = scaling.scaling(P, progress, notes)
         skip = skipping.skipping(P, progress)
-        mem = memory.memory(P, progress)
+        mem = memory.memory(P, progress, notes)
     res.write_json("machine.json", machine, indent=2, default=str)
     throughput.plot(res, data)
     peers.plot(res, peer)

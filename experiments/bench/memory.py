@@ -14,6 +14,7 @@ import numpy as np
 
 from avsm_dr import build, describe
 from .._common import Meter, sync
+from . import memory_guard
 from .settings import SCENE_SETTINGS, counts_map, heavy, label, lookups, max_segments, pyplot, settings
 
 
@@ -57,8 +58,9 @@ def peak_memory(fn) -> dict:
     return dict(rss=m.rss_bytes, jit=m.heap_bytes, out=out)
 
 
-def memory(P, progress) -> list[dict]:
-    """Peak memory of build and lookup per setting against nbytes_per_texel x texels."""
+def memory(P, progress, notes) -> list[dict]:
+    """Peak memory of build and lookup per setting against nbytes_per_texel x texels (settings
+    that would not fit in memory skipped with a note, :mod:`.memory_guard`)."""
     seg = counts_map(P["memory_side"], 100)
     dr.eval(seg.z0, seg.z1, seg.optical_depth)
     tex, depth = lookups(seg.n_texels, P["lookups"])
@@ -66,6 +68,9 @@ def memory(P, progress) -> list[dict]:
     _malloc_returns_memory()
     seg_bytes = seg.n_segments * 3 * 4 + (seg.n_texels + 1) * 8
     for kind, p in memory_settings(seg.n_segments):
+        if memory_guard.too_big(kind, p, seg, f"memory map {P['memory_side']}^2 x 100", notes):
+            progress.update()
+            continue
         build(kind, seg, **p).eval(tex[:10], depth[:10])     # compile outside the measurement
         mb = peak_memory(lambda: build(kind, seg, **p))
         rep = mb["out"]

@@ -5,12 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from avsm_dr import build, kinds
+from . import memory_guard
 from .settings import counts_map, heavy, label, lookups, max_segments, one, pyplot
 
 
-def scaling(P, progress) -> list[dict]:
+def scaling(P, progress, notes) -> list[dict]:
     """Build and lookup (100k receivers) time against texels (100 segments each), segments
-    per texel and N (AVSM nodes, FOM harmonics, OSM slices; x = stored floats per texel)."""
+    per texel and N (AVSM nodes, FOM harmonics, OSM slices; x = stored floats per texel);
+    settings that would not fit in memory are skipped with a note (:mod:`.memory_guard`)."""
     rows = []
     K = 100_000
     meth = [(k, p) for k, p in [("avsm", {"nodes": 8}), ("fom", {"harmonics": 8}), ("osm", {"slices": 32}),
@@ -18,6 +20,8 @@ def scaling(P, progress) -> list[dict]:
 
     def run(axis, x, seg, kind, p):
         if heavy(kind, p) and seg.n_segments > max_segments(kind):
+            return
+        if memory_guard.too_big(kind, p, seg, f"scaling {axis}={x:g}", notes):
             return
         tex, depth = lookups(seg.n_texels, K)
         mb = one(lambda: build(kind, seg, **p), P["scale_repeats"])

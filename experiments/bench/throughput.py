@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from avsm_dr import build, kinds
+from . import memory_guard
 from .peer_kernels import numba_avsm, numba_fom, numpy_avsm, warp_avsm, warp_fom
 from .._common import measure, sync
 from .settings import (
@@ -61,6 +62,9 @@ def throughput(P, notes, progress) -> list[dict]:
             if heavy(kind, p) and S > max_segments(kind):
                 notes.append(f"{label(kind, p)} skipped on {name} ({S} segments > {max_segments(kind)}: "
                              "host memory / host sort / offline build)")
+                progress.update()
+                continue
+            if memory_guard.too_big(kind, p, seg, name, notes):     # its build would not fit in memory
                 progress.update()
                 continue
             s_in = seg.sorted() if p.get("sort") else seg     # sorted once, outside the timing
