@@ -19,9 +19,11 @@ from pathlib import Path
 
 from avsm_dr import REGISTRY, kinds
 
-#: Tol's muted colours by name, and black for the reference.
+#: Tol's muted colours by name, black for the reference, then two of Tol's vibrant colours (so
+#: that every built-in kind has a colour of its own).
 PALETTE = {"rose": "#CC6677", "indigo": "#332288", "sand": "#DDCC77", "green": "#117733", "cyan": "#88CCEE",
-           "wine": "#882255", "teal": "#44AA99", "olive": "#999933", "purple": "#AA4499", "black": "#000000"}
+           "wine": "#882255", "teal": "#44AA99", "olive": "#999933", "purple": "#AA4499", "black": "#000000",
+           "orange": "#EE7733", "blue": "#0077BB"}
 
 #: Families of the built-in kinds, in figure order: name -> (line style, kinds).
 FAMILIES = {
@@ -32,14 +34,13 @@ FAMILIES = {
     "reference": ((0, (1, 1)), ("exact",)),
 }
 
-#: The fixed style of each built-in kind: kind -> (colour name, marker).  Markers differ between
-#: all kinds; colours differ within a family and between the kinds most often drawn together
-#: (nine colours for eleven kinds: avsm_adaptive shares osm's, beer greedy's).
+#: The fixed style of each built-in kind: kind -> (colour name, marker).  Colours and markers
+#: differ between all kinds, so a figure that draws every kind needs no colours of its own.
 BUILTIN = {
     "avsm": ("rose", "o"), "avsm_adaptive": ("purple", "D"), "avsm_march": ("cyan", "v"),
     "dsm": ("wine", "s"), "greedy": ("teal", "^"), "optimal": ("green", "P"),
-    "fom": ("indigo", "<"), "osm": ("purple", ">"), "basis": ("sand", "p"),
-    "moments": ("olive", "*"), "beer": ("teal", "h"),
+    "fom": ("indigo", "<"), "osm": ("orange", ">"), "basis": ("sand", "p"),
+    "moments": ("olive", "*"), "beer": ("blue", "h"),
     "exact": ("black", "x"),
 }
 #: Line style of kinds outside :data:`FAMILIES` (a user's own kinds).

@@ -244,19 +244,6 @@ def _compute(res, params: dict) -> dict:
                 result={"summary": summary})
 
 
-def _distinct_colours(kinds_: list[str], plotstyle) -> dict:
-    """Each kind's colour (``_plotstyle.style``), except that a kind whose colour an earlier
-    kind of ``kinds_`` already has takes the first palette colour none of them has (grey when
-    none is left): every kind is drawn in this figure, so no two may share a colour."""
-    spare = [c for name, c in plotstyle.PALETTE.items() if name != "black"
-             and c not in {plotstyle.style(k)["color"] for k in kinds_}] + ["#777777"]
-    out: dict = {}
-    for k in kinds_:
-        c = plotstyle.style(k)["color"]
-        out[k] = spare.pop(0) if c in out.values() and spare else c
-    return out
-
-
 def _plot(res, rows: list[dict], found: dict, names):
     """Per scene: mean RMSE over configurations against the median time ratio, each kind's
     settings joined, the front dotted."""
@@ -274,12 +261,11 @@ def _plot(res, rows: list[dict], found: dict, names):
             for r in rows:
                 if r["scene"] == name and r["method"] != "exact":
                     pts.setdefault(r["method"], {}).setdefault(r["param"], []).append(r)
-            colours = _distinct_colours(list(pts), plotstyle)
             for kind, per in pts.items():
                 x = [float(np.median([r["time_ratio"] for r in rs])) for rs in per.values()]
                 y = [max(float(np.mean([r["rmse"] for r in rs])), 1e-6) for rs in per.values()]
                 st = plotstyle.style(kind)
-                ax.loglog(x, y, marker=st.get("marker", "o"), color=colours[kind], ms=3, lw=1, label=kind)
+                ax.loglog(x, y, marker=st.get("marker", "o"), color=st["color"], ms=3, lw=1, label=kind)
             fr = f["front"]
             ax.loglog([d["time_ratio"] for d in fr], [max(d["rmse"], 1e-6) for d in fr], "k:", lw=1,
                       label="Pareto front")

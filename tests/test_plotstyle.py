@@ -17,6 +17,8 @@ def test_every_builtin_kind_has_a_fixed_distinct_style():
     assert set(kinds) == set(plotstyle.BUILTIN), "give a new built-in kind a row in plotstyle.BUILTIN"
     pairs = [(plotstyle.style(k)["color"], plotstyle.style(k)["marker"]) for k in kinds]
     assert len(set(pairs)) == len(pairs)
+    # every built-in kind has a colour of its own (figures that draw all kinds, e.g. the time-error fronts)
+    assert len({c for c, _ in pairs}) == len(pairs)
     # the pair the issue found shared (avsm and osm one blue line) differs in colour, marker and line
     a, o = plotstyle.style("avsm"), plotstyle.style("osm")
     assert a["color"] != o["color"] and a["marker"] != o["marker"] and a["linestyle"] != o["linestyle"]
