@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from ._common import Meter as _Meter
 from ._headline import num, wrap
+from ._plotstyle import style
 from ._study import Study
 
 #: What this study reproduces (a paper's figure or table, or the guide's section).
@@ -109,6 +110,9 @@ def _stack_limit(n_nodes: int, segments: int, mode: str, texels: int = 64) -> di
 
 
 def _resolve(params: dict, quick: bool) -> dict:
+    """``kinds=None``: every differentiable online kind; a list restricts the run to those."""
+    if params.get("kinds") is not None:
+        return dict(params)
     return dict(params, kinds=[k for k, _ in differentiable_kinds()])
 
 
@@ -117,7 +121,10 @@ def _compute(res, params: dict) -> dict:
     import drjit as dr
     from avsm_dr import backend, builtin_scenes as scene_lib, reconstruction as inv
     from avsm_dr import build
-    KINDS = differentiable_kinds()
+    unknown = set(params["kinds"]) - {k for k, _ in differentiable_kinds()}
+    if unknown:
+        raise ValueError(f"kinds: {sorted(unknown)} are not differentiable online kinds")
+    KINDS = [(k, p) for k, p in differentiable_kinds() if k in params["kinds"]]
     from avsm_dr.capture import capture
     from avsm_dr.segments import Segments
     import matplotlib
@@ -251,18 +258,16 @@ def _compute(res, params: dict) -> dict:
     # ---- figures: reverse / forward time ratio and memory vs segments per texel
     pipe = [r for r in rows if r["table"] == "representation"]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    colors = {k: plt.cm.tab20(i % 20) for i, (k, _) in enumerate(KINDS)}     # more kinds than C0-C9
     for kind, _ in KINDS:
         rs = [r for r in pipe if r["kind"] == kind]
         fw = {r["step_fraction"]: r for r in rs if r["mode"] == "forward_ad"}
         rv = {r["step_fraction"]: r for r in rs if r["mode"] == "reverse"}
         xs = sorted(rv, key=lambda f: rv[f]["max_count"])
         mc = [rv[f]["max_count"] for f in xs]
-        axes[0].plot(mc, [rv[f]["seconds"] / fw[f]["seconds"] for f in xs], "o-", color=colors[kind], label=kind)
-        axes[1].plot(mc, [rv[f]["heap_mb"] for f in xs], "o-", color=colors[kind], label=kind)
+        axes[0].plot(mc, [rv[f]["seconds"] / fw[f]["seconds"] for f in xs], **style(kind), label=kind)
+        axes[1].plot(mc, [rv[f]["heap_mb"] for f in xs], **style(kind), label=kind)
         if kind in ("exact", "avsm", "dsm"):
-            axes[2].plot(mc, [max(rv[f]["trajectory_mb_all_lanes"], 1e-3) for f in xs], "o-", color=colors[kind],
-                         label=kind)
+            axes[2].plot(mc, [max(rv[f]["trajectory_mb_all_lanes"], 1e-3) for f in xs], **style(kind), label=kind)
     axes[0].set(xlabel="max segments per texel", ylabel="reverse time / forward (AD) time",
                 title="build + lookup: backward vs forward time")
     axes[1].set(xlabel="max segments per texel", ylabel="MB", title="reverse pass: Dr.Jit heap peak")

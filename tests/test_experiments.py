@@ -34,7 +34,8 @@ TINY = {
                   scene_repeats=1, mitsuba_spp=[4, 8], mitsuba_cap=256, mitsuba_reps=[("avsm", {"nodes": 4})],
                   scale_texels=[8, 16], scale_counts=[10, 30], scale_side=16, scale_nodes=[2, 4], scale_repeats=1,
                   skip_side=16, memory_side=16, dense_plume=16, skip_resolution=64, peak_iters=200),
-    "backward_cost": dict(size=8, resolution=64, step_fractions=[0.5], repeats=1, stack_cases=[(8, 200)]),
+    "backward_cost": dict(size=8, resolution=64, step_fractions=[0.5], repeats=1, stack_cases=[(8, 200)],
+                          kinds=["avsm", "fom"]),
 }
 
 
@@ -562,3 +563,13 @@ def test_study_declares_parameters_options_and_files(tmp_path, capsys):
         cli.main(["frame", "--help"])
     text = capsys.readouterr().out
     assert "--resolutions" in text and "--scenes" in text and "Parameters" in text
+
+
+def test_backward_cost_refuses_a_kind_it_cannot_differentiate(tmp_path):
+    """``kinds`` restricts backward_cost's run; a name outside the differentiable online kinds
+    (here the offline oracle) is refused by name before any work starts."""
+    module = __import__("experiments.backward_cost", fromlist=["STUDY"])
+    study = dataclasses.replace(module.STUDY, quick=dict(module.STUDY.quick,
+                                                         **dict(TINY["backward_cost"], kinds=["avsm", "optimal"])))
+    with pytest.raises(ValueError, match="kinds.*optimal"):
+        study.run(quick=True, out=tmp_path / "bc")
