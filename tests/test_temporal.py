@@ -4,6 +4,7 @@ receivers, and a quick run through the CLI."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -315,3 +316,25 @@ def test_quick_temporal_run(tmp_path, monkeypatch):
     from PIL import Image
     with Image.open(out / "shadow_smoke.gif") as im:
         assert im.n_frames == 5
+
+
+def test_the_page_is_recomputed_from_the_committed_full_run(tmp_path):
+    """docs/research/temporal/run holds the full run behind the temporal page (per-frame rows,
+    findings, meta): recomputing it reproduces the run's per-configuration statistics, and the
+    page's smoke table quotes them (Beer's error and flicker with their intervals)."""
+    import gzip
+    from experiments.temporal.recompute import recompute
+    root = Path(__file__).resolve().parents[1]
+    run = root / "docs" / "research" / "temporal" / "run"
+    old = json.loads(gzip.decompress((run / "findings.json.gz").read_bytes()))
+    new = recompute(run, tmp_path / "again")
+    assert json.loads((run / "meta.json").read_text())["params"]["quick"] is False
+    for setting, block in old["per_setting"].items():
+        for label, v in block["exact"].items():
+            for stat in ("error", "flicker"):
+                assert new["per_setting"][setting]["exact"][label][stat]["estimate"] == \
+                    pytest.approx(v[stat]["estimate"], rel=1e-8, abs=1e-12), (setting, label, stat)
+    beer = new["per_setting"]["smoke"]["exact"]["beer"]
+    row = "| beer | " + " | ".join(f"{beer[k]['estimate']:.4f} [{beer[k]['low']:.4f}, {beer[k]['high']:.4f}]"
+                                   for k in ("error", "flicker"))
+    assert row in (root / "docs" / "research" / "temporal.md").read_text()

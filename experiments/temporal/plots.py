@@ -172,11 +172,24 @@ def plot_insertion(res, summary, labels, variants):
             ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
             ax.set_title(f"{s}, vs {vs}")
             ax.set_xlabel(f"RMS error vs {vs}\n(mean over configurations)")
+            _note_shared_error(ax, [blk[m]["error"] for m in stream + list(variants)])
         axes[row][0].set_ylabel("flicker (RMS change of\nthe error between frames)")
     handles = {lab: h for h, lab in zip(*axes[0][0].get_legend_handles_labels())}
     columns = [[h for lab, h in handles.items() if lab.rsplit(" ", 1)[0] == (n or "stream")] for n in [""] + names]
     plotstyle.legend_columns(fig, columns + [[h for lab, h in handles.items() if lab.startswith("sorted stream")]])
     res.save_figure(fig, "insertion_flicker.png")
+
+
+def _note_shared_error(ax, errors) -> None:
+    """Say so in the panel when the methods' errors differ by less than their typical interval
+    half-width: an error common to all of them (e.g. the capture's against the truth) hides
+    what the insertions change, and the points only look like one."""
+    est = [e["estimate"] for e in errors]
+    half = np.nanmedian([(e["high"] - e["low"]) / 2 for e in errors])
+    if len(est) > 1 and np.isfinite(half) and max(est) - min(est) < half:
+        ax.text(0.03, 0.97, f"all within {max(est) - min(est):.1e} of each other:\nan error common to every"
+                f" method\n(mean {np.mean(est):.3g}) hides the differences", transform=ax.transAxes,
+                va="top", ha="left", fontsize=6, bbox=dict(facecolor="white", edgecolor="none", alpha=0.85))
 
 
 def _rgb(x, cmap, lo, hi):

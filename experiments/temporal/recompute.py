@@ -3,7 +3,8 @@ without rerunning it::
 
     python -m experiments.temporal.recompute RUN_DIR --out DIR
 
-``RUN_DIR`` holds a run's ``data.csv``, ``findings.json`` and ``meta.json``.  Each
+``RUN_DIR`` holds a run's ``data.csv``, ``findings.json`` and ``meta.json`` (the first two
+may be gzipped, ``data.csv.gz``, as in the committed full run ``docs/research/temporal/run``).  Each
 configuration's statistics come from ``data.csv``'s per-frame rows
 (:func:`.metrics.per_config_from_rows`: equal to the run's own per-configuration values to
 rounding), then :func:`per_setting <experiments.temporal.per_setting>` gives their mean and
@@ -16,8 +17,19 @@ need the receivers' errors, which ``data.csv`` does not hold: they are copied fr
 from __future__ import annotations
 
 import argparse
+import csv
+import gzip
+import io
 import json
 from pathlib import Path
+
+
+def _text(run_dir: Path, name: str) -> str:
+    """The text of ``run_dir/name``, or of ``run_dir/name.gz`` where only that exists."""
+    plain, packed = run_dir / name, run_dir / (name + ".gz")
+    if not plain.exists() and packed.exists():
+        return gzip.decompress(packed.read_bytes()).decode()
+    return plain.read_text()
 
 
 def recompute(run_dir, out) -> dict:
@@ -31,8 +43,8 @@ def recompute(run_dir, out) -> dict:
         raise ValueError("out: expected another folder than the run's (its files are the inputs)")
     try:
         meta = json.loads((run_dir / "meta.json").read_text())
-        old = json.loads((run_dir / "findings.json").read_text())
-        rows = _common.read_csv(run_dir / "data.csv")
+        old = json.loads(_text(run_dir, "findings.json"))
+        rows = list(csv.DictReader(io.StringIO(_text(run_dir, "data.csv"), newline="")))
     except (OSError, ValueError) as exc:
         raise ValueError(f"run_dir: {run_dir} does not hold a temporal run ({exc})") from None
     if meta.get("experiment") != "temporal":
