@@ -144,6 +144,24 @@ def legend_below(fig, axes=None, *, ncol: int | None = None, handles=None, label
     return fig.legend(handles, labels, loc="outside lower center", ncol=ncol)
 
 
+def log_ticks(ax, axis: str = "y") -> None:
+    """Labels of a log ``axis`` (``"x"`` or ``"y"``) of ``ax`` that never crowd: at 1, 2 and 5 x
+    10^k where the shown range spans at most 1.2 decades, at 1 and 3 x 10^k up to 3 decades,
+    else at every decade; plain numbers (``%g``), minor ticks unlabelled.  Call it after the
+    data are drawn (it reads the axis limits)."""
+    import numpy as np
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    if axis not in ("x", "y"):
+        raise ValueError(f"axis: expected 'x' or 'y', got {axis!r}")
+    lo, hi = sorted(ax.get_ylim() if axis == "y" else ax.get_xlim())
+    span = np.log10(hi / lo) if lo > 0 else np.inf
+    subs = (1.0, 2.0, 5.0) if span <= 1.2 else (1.0, 3.0) if span <= 3 else (1.0,)
+    a = ax.yaxis if axis == "y" else ax.xaxis
+    a.set_major_locator(LogLocator(base=10, subs=subs))
+    a.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    a.set_minor_formatter(NullFormatter())
+
+
 def kind_handle(kind: str, label: str | None = None, **kw):
     """A legend entry (``Line2D`` without data) in the style of ``kind``, labelled ``label``
     (default: the kind's name); ``kw`` override the style."""

@@ -446,8 +446,8 @@ def _plot(res, rows, names):
                         ax.errorbar(ns, y, yerr=bars, capsize=2, **_style(lab), label=lab)
                 beer = [max(r[key], 1e-7) for r in rows if r["scene"] == name and r["method"] == "beer" and key in r]
                 if beer:
-                    ax.axhline(float(np.mean(beer)), color="k", linestyle=":", linewidth=0.8,
-                               label="beer (3 floats)")
+                    ax.axhline(float(np.mean(beer)), color=plotstyle.style("beer")["color"], linestyle=":",
+                               linewidth=0.8, label="beer (3 floats)")
                 ax.set_title(name)
                 ax.set_xlabel("nodes N")
                 ax.set_xscale("log", base=2)

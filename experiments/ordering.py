@@ -197,8 +197,8 @@ def _plot(res, rows: list[dict], names):
     import matplotlib
     matplotlib.use("Agg")
     from . import _plotstyle as plotstyle
-    panels = (("rmse", "RMSE vs exact"), ("depth_l2", "depth L2 vs exact"),
-              ("flicker_rms", "flicker RMS (receivers)"), ("flicker_depth_l2", "flicker depth L2"))
+    panels = (("rmse", "RMSE of T vs exact (receivers)"), ("depth_l2", "depth L2 of T vs exact"),
+              ("flicker_rms", "flicker RMS of T (receivers)"), ("flicker_depth_l2", "flicker depth L2 of T"))
     colours = [plotstyle.PALETTE[c] for c in ("rose", "indigo", "teal", "sand", "wine", "olive", "cyan", "purple")]
     markers = ("o", "s", "^", "D", "v", "P", "<", ">")
     with plotstyle.context():
@@ -220,14 +220,23 @@ def _plot(res, rows: list[dict], names):
                                 capsize=2, label=f"{name} {'sorted' if sort else 'unsorted'}")
                     ax.set_yscale("log")
                     ax.set_ylabel(lab)
-                    ax.set_xlabel("AVSM nodes")
+                    ax.set_xlabel("AVSM nodes N")
+                    ax.set_xticks(ns)
         for ax, (col, _) in zip(axes[0], panels):
+            plotstyle.log_ticks(ax)           # the default labels minor ticks too (overlap below 2 decades)
             if col.startswith("flicker") and zero[col]:
                 ax.set_title("sorted: 0 in every configuration", fontsize=7)
         n = len({r["config"] for r in rows})
         fig.suptitle(f"mean over {n} configurations (bars: min to max)", fontsize=9)
         plotstyle.legend_below(fig, axes, ncol=3)
         res.save_figure(fig, "ordering.png")
+
+
+def redraw(res, rows: list[dict]) -> None:
+    """``ordering.png`` from rows read back from a table (a run's ``data.csv`` or the research
+    page's ``configs.csv``, typed by :func:`experiments._replot.typed`), scenes in row order:
+    ``python -m experiments._replot ordering TABLE --out DIR``."""
+    _plot(res, rows, list(dict.fromkeys(r["scene"] for r in rows)))
 
 
 def _headline(s: dict) -> list[str]:

@@ -64,3 +64,28 @@ def test_savefig_writes_png_and_pdf(tmp_path):
         plotstyle.savefig(fig, tmp_path / "fig.jpg")
     with pytest.raises(ValueError, match="n_cols"):
         plotstyle.grid(1, 0)
+
+
+@pytest.mark.parametrize("lo, hi", [(1.5e-3, 7e-2), (8e-4, 6e-2), (1e-3, 1.2e-1), (3e-3, 8e-3), (1e-7, 1e-1)])
+def test_log_ticks_label_a_few_values_without_overlap(lo, hi):
+    """The ordering figure's depth-L2 axis (under two decades) had matplotlib's minor labels
+    (2, 3, 4, 6 x 10^k) printed on top of each other: log_ticks labels a few values, none of
+    them overlapping, at least two inside the range, minor ticks unlabelled."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    with plotstyle.context():
+        fig, axes = plotstyle.grid(1, 1, panel=(3.0, 2.6))
+        ax = axes[0][0]
+        ax.semilogy([4, 8, 16], [hi, (lo * hi) ** 0.5, lo])
+        plotstyle.log_ticks(ax)
+        fig.canvas.draw()
+        ymin, ymax = ax.get_ylim()
+        major = [t for t in ax.yaxis.get_major_ticks() if ymin <= t.get_loc() <= ymax and t.label1.get_text()]
+        assert 2 <= len(major) <= 8, [t.label1.get_text() for t in major]
+        assert not [t.label1.get_text() for t in ax.yaxis.get_minor_ticks() if t.label1.get_text()]
+        boxes = sorted((t.label1.get_window_extent() for t in major), key=lambda b: b.y0)
+        assert all(a.y1 <= b.y0 for a, b in zip(boxes, boxes[1:])), [(b.y0, b.y1) for b in boxes]
+        with pytest.raises(ValueError, match="axis"):
+            plotstyle.log_ticks(ax, "z")
+    plt.close(fig)

@@ -10,16 +10,18 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from .. import _plotstyle as plotstyle
     kinds = list(dict.fromkeys(r["kind"] for r in rows))
 
     # ---- learned warp curves
     fig, axes = plt.subplots(1, len(kinds), figsize=(3.8 * len(kinds), 3.6), squeeze=False)
     for ax, kind in zip(axes[0], kinds):
         ax.plot([0, 1], [0, 1], "k:", lw=0.8, label="identity")
-        for method, style in (("log", "C1--"), ("learned", "C0o-")):
+        for method, style in (("log", dict(color="0.45", linestyle="--")),      # the learned warp in the kind's colour
+                              ("learned", dict(color=plotstyle.style(kind)["color"], marker="o", linestyle="-"))):
             w = [r for r in warp_rows if r["kind"] == kind and r["method"] == method]
             lab = method if method == "learned" else f"log (r={w[0]['log_ratio']:g})"
-            ax.plot([r["u"] for r in w], [r["w"] for r in w], style, ms=3, label=lab)
+            ax.plot([r["u"] for r in w], [r["w"] for r in w], ms=3, label=lab, **style)
         ax.set_title(kind)
         ax.set_xlabel("normalised depth u")
         ax.set_aspect("equal")
@@ -51,10 +53,10 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
 
     # ---- training loss
     fig, ax = plt.subplots(figsize=(4.8, 3.4))
-    for i, kind in enumerate(kinds):
+    for kind in kinds:
         ls = [r for r in loss_rows if r["kind"] == kind]
         v = np.array([r["train_mse"] for r in ls])
-        ax.semilogy([r["iteration"] for r in ls], v / v[0], color=f"C{i}", label=kind)
+        ax.semilogy([r["iteration"] for r in ls], v / v[0], color=plotstyle.style(kind)["color"], label=kind)
     ax.set_xlabel("Adam iteration")
     ax.set_ylabel("training MSE / MSE of the identity warp")
     ax.legend(fontsize=8)
