@@ -17,7 +17,8 @@ from .representations.base import Representation  # noqa: E402
 from .segments import OPAQUE_OPTICAL_DEPTH, Segments  # noqa: E402
 from . import builtin_scenes as scenes, groundtruth, shading  # noqa: E402
 from .capture import Capture, capture  # noqa: E402
-from .scene import DirectionalLight, PointLight, Scene, SpotLight  # noqa: E402
+from .scene import (DirectionalLight, Hair, OpaqueBox, OpaquePlane, OpaqueSphere, Particles, PointLight,  # noqa: E402
+                    Scene, SpotLight)
 from . import evaluation  # noqa: E402
 
 __version__ = "0.1.0"
@@ -26,5 +27,6 @@ __all__ = [
     "Segments", "allows", "build", "describe", "configurations", "kinds", "register", "REGISTRY", "Representation",
     "set_backend", "get_backend", "available_backends", "OPAQUE_OPTICAL_DEPTH",
     "capture", "Capture", "scenes", "groundtruth", "shading",
-    "Scene", "DirectionalLight", "SpotLight", "PointLight", "evaluation",
+    "Scene", "DirectionalLight", "SpotLight", "PointLight", "Particles", "Hair", "OpaqueSphere", "OpaqueBox",
+    "OpaquePlane", "evaluation",
 ]

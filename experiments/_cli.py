@@ -50,8 +50,8 @@ _ROLES = re.compile(r":(?:mod|func|class|meth|attr|data|obj):`~?\.?([^`]+)`")
 
 
 def plain(doc: str) -> str:
-    """A docstring as terminal text: reST roles and double back-quotes dropped."""
-    return _ROLES.sub(lambda m: m.group(1), doc or "").replace("``", "")
+    """A docstring as terminal text: reST roles, double back-quotes and Markdown bold dropped."""
+    return _ROLES.sub(lambda m: m.group(1), doc or "").replace("``", "").replace("**", "")
 
 
 def about(name: str) -> str:

@@ -339,7 +339,10 @@ def test_moved_names_are_public():
     for name in ("measure", "timed", "sync"):
         assert getattr(_common, name) is getattr(evaluation, name)
     assert not hasattr(evaluation, "Meter") and _common.Meter.__module__ == "experiments._common"   # studies only
-    assert {"Scene", "DirectionalLight", "SpotLight", "PointLight", "evaluation"} <= set(ad.__all__)
+    scene_parts = {"Scene", "DirectionalLight", "SpotLight", "PointLight", "Particles", "Hair", "OpaqueSphere",
+                   "OpaqueBox", "OpaquePlane"}          # a scene of one's own needs no private import
+    assert scene_parts | {"evaluation"} <= set(ad.__all__)
+    assert all(getattr(ad, n).__module__ == "avsm_dr.scene" for n in scene_parts)
 
 
 # ------------------------------------------------------------------ Scene.from_grid

@@ -435,7 +435,8 @@ def test_value_errors_of_a_run_are_one_line(tmp_path, monkeypatch, capsys):
 # ---------------------------------------------------------------------- recipes
 def test_every_study_says_what_it_reproduces_and_describes_itself(capsys):
     """Each study carries its recipe (REPRODUCES), and ``<study> --help`` prints its own
-    description, options and what it writes (plain text: no reST roles or double back-quotes)."""
+    description, options and what it writes (plain text: no reST roles, double back-quotes or
+    Markdown bold)."""
     names = cli.experiment_names()
     assert "error_curves" in names and "bench" in names
     for name in names:
@@ -446,7 +447,7 @@ def test_every_study_says_what_it_reproduces_and_describes_itself(capsys):
         assert exc.value.code == 0
         text = capsys.readouterr().out
         assert f"python -m experiments {name}" in text and "--quick" in text and f"DIR/{name}/" in text, name
-        assert ":mod:`" not in text and "``" not in text, name
+        assert ":mod:`" not in text and "``" not in text and "**" not in text, name
     with pytest.raises(SystemExit):
         cli.main(["--help"])
     listing = capsys.readouterr().out
