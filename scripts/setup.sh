@@ -17,7 +17,16 @@ sys.exit(0 if managed and sys.prefix == sys.base_prefix else 1)
 PYEOF
 then
     echo "[setup] $PY is externally managed (PEP 668): installing into .venv/ (then: . scripts/activate)" >&2
-    "$PY" -m venv .venv || { echo "[setup] error: '$PY -m venv' failed: install Debian's python3-venv" >&2; exit 1; }
+    if ! "$PY" -m venv .venv 2>/dev/null; then          # a minimal Debian lacks ensurepip: python3.X-venv
+        rm -rf .venv
+        VENV_PKG="python$("$PY" -c 'import sys; print("%d.%d" % sys.version_info[:2])')-venv"
+        echo "[setup] '$PY -m venv' failed: installing Debian's $VENV_PKG" >&2
+        SUDO=""
+        if [ "$(id -u)" != 0 ]; then SUDO=sudo; fi
+        $SUDO apt-get update -qq
+        $SUDO apt-get install -y -qq "$VENV_PKG" >/dev/null
+        "$PY" -m venv .venv || { echo "[setup] error: '$PY -m venv' still fails after installing $VENV_PKG" >&2; exit 1; }
+    fi
     PY=.venv/bin/python
 fi
 
