@@ -475,3 +475,17 @@ def test_avsm_march_default_unchanged(seg):
     assert type(rep.node_q).__name__ == "Float16"
     item = seg.itemsize
     assert rep.nbytes_per_texel == 4 + 2 * item + rep.node_counts.mean() * (2 + item)
+
+
+def test_dsm_float16_dense_bytes_exceed_float32_when_texels_are_mostly_empty():
+    """The 8-byte per-texel depth range is charged to every texel in the dense layout: with under
+    2 nodes per texel on average (most texels empty) float16 DSM takes more dense bytes than
+    float32, as the module says; the sparse layout, ranges on non-empty texels only, does not."""
+    counts = np.zeros(400, int)
+    counts[::10] = 3                                   # 10 % of texels hold 3 one-segment steps
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    z0 = np.concatenate([np.sort(np.random.default_rng(k).uniform(0, 1, c)) for k, c in enumerate(counts)])
+    seg = ad.Segments.from_arrays(offsets, z0, z0 + 0.01, transmittance=np.full(z0.size, 0.6))
+    f32, f16 = (ad.build("dsm", seg, tolerance=0.01, precision=p) for p in ("float32", "float16"))
+    assert f16.nbytes_per_texel > f32.nbytes_per_texel
+    assert f16.nbytes_sparse_per_texel < f32.nbytes_sparse_per_texel

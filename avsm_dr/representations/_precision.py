@@ -15,7 +15,9 @@ Encodings by meaning (``q`` the value quantised, in [0, 1] or [-1, 1]):
 * ``depth``: ``'float32'``: the depth.  Otherwise ``q = (d - lo) / (hi - lo)`` over the
   texel's stored depths (float32, rounded outward; 8 bytes per texel; a ``texel`` layout:
   one global range).  Error <= (hi - lo) / (2 M) (unorm) or (hi - lo) 2^-12 (float16);
-  monotone, so sorted nodes stay sorted.
+  monotone, so sorted nodes stay sorted.  The range costs what 2 float16 depths save: a
+  variable-count kind (DSM) whose texels hold under 2 nodes on average, empty ones included, takes
+  *more* dense bytes in float16 than in float32; the sparse layout charges ranges to non-empty texels.
 * ``unit``: already in [0, 1] (avsm_march's relative depths): the code of q itself.
 * ``transmittance``: T in [0, 1], zero-preserving (T = 0 stays 0, T > 0 stays positive).
   ``'float32'``/``'float16'``: T; ``'unorm16'``: linear, error <= 1 / (2 x 65535);
