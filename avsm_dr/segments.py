@@ -50,6 +50,11 @@ REORDERS = ("depth", "reverse_depth", "random")
 #: Values of :attr:`Segments.order`: :data:`REORDERS`, 'submission' (a renderer's draw order,
 #: made by :func:`~avsm_dr.capture.capture`) and 'unknown' (not recorded).
 ORDERS = REORDERS + ("submission", "unknown")
+#: The keys of a Segments' cache that depend on its offsets only: their device copy, each
+#: segment's texel, the sort plan (what :meth:`Segments.drop_cache` keeps by default).
+LAYOUT_KEYS = ("offsets", "texel_of", "sort_plan")
+#: Every key a Segments caches: the layout, the depth bounds, exact-curve points, greedy's ranks.
+CACHE_KEYS = LAYOUT_KEYS + ("bounds", "curve_points", "vw_removal_rank")
 
 
 def device_sortable(counts: np.ndarray) -> bool:
@@ -432,8 +437,20 @@ class Segments:
         return idx, soff, stex
 
     def _layout_cache(self) -> dict:
-        """The cached device copies that depend on the offsets only (offsets, texels, sort layout)."""
-        return {k: v for k, v in self._cache.items() if k in ("offsets", "texel_of", "sort_plan")}
+        """The cached device copies that depend on the offsets only (:data:`LAYOUT_KEYS`)."""
+        return {k: v for k, v in self._cache.items() if k in LAYOUT_KEYS}
+
+    def drop_cache(self, keep=LAYOUT_KEYS) -> "Segments":
+        """Forget what earlier calls and builds cached on these segments, but the keys ``keep``
+        (names from :data:`CACHE_KEYS`; default the layout, :data:`LAYOUT_KEYS`); returns self.
+
+        A later build then computes again what it needs, as on fresh segments: time a build
+        cold as ``build(kind, seg.drop_cache())`` (otherwise ``greedy`` and ``optimal`` reuse
+        the exact curve's points, and ``greedy`` its removal order, of an earlier build)."""
+        keep = {V.one_of(k, "keep", CACHE_KEYS) for k in (keep if isinstance(keep, (tuple, list, set)) else [keep])}
+        for k in set(self._cache) - keep:
+            del self._cache[k]
+        return self
 
     def in_order(self, order: str, seed: int | None = None) -> "Segments":
         """The segments of every texel in insertion order ``order`` (same offsets; gradients

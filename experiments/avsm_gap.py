@@ -37,7 +37,9 @@ The columns every study carries: ``rmse``, ``signed_mean`` and ``leak_share``
 (error > 0.02) at the in-volume receivers; ``depth_l2``, the harness's depth-uniform L2
 (:func:`avsm_dr.evaluation.depth_l2`, 64 midpoints per texel: the same measure as
 ``depth_rms`` by another quadrature, within 2.1 % on the quick run); ``bytes`` (the sparse
-layout, ``nbytes_sparse_per_texel``) and ``bytes_dense``.
+layout, ``nbytes_sparse_per_texel``) and ``bytes_dense``.  ``build_s``: wall seconds of the
+build, cold (after :meth:`avsm_dr.Segments.drop_cache`: no exact-curve points of an earlier
+build of the same segments reused).
 
 ``findings.json``: per scene and N, AVSM / greedy / optimal ``depth_rms`` and the
 ratios AVSM / optimal and greedy / optimal, with the in-volume RMSE likewise (first
@@ -215,8 +217,9 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None, 
             orders[o] = seg.in_order(o, seed=seed if o == "random" else None)
 
     def row(label, kind, params, n, order="-"):
+        on = orders.get(order, seg).drop_cache()     # a cold build: no curve points of an earlier one
         t0 = time.perf_counter()
-        rep = build(kind, orders.get(order, seg), **params)
+        rep = build(kind, on, **params)
         build_s = time.perf_counter() - t0
         m = obj.measure(rep)
         r = dict(head, method=label, kind=kind, order=order, nodes=n, bytes_per_texel=rep.nbytes_per_texel,

@@ -16,10 +16,14 @@ crossing, :mod:`avsm_dr.capture.dda`), one frame per representation kind of the 
 Timing (:func:`~experiments._common.measure`): every stage of one (scene,
 resolution) is called once (first call, JIT compile reported separately as
 ``*_first_s`` / ``*_jit_s``), then ``repeats`` rounds interleaved across all stages, so
-load from other processes hits them alike; medians.  A kind whose build is predicted
-(per segment, from the previous resolution or a probe on a subset of texels) to take
-longer than ``build_budget_s`` is skipped at that size with a note.  Resolutions above the capture's limit are skipped
-with a note.
+load from other processes hits them alike; medians.  A kind whose build's declared work
+estimate (:data:`.error_curves.cost.FRAME_WORK`: units of about 7 ns of one core, from the
+capture's segment and texel counts; never a clock, so which builds run does not depend on the
+machine's load) exceeds ``build_budget`` is skipped at that size with a note; kinds without a
+model are never skipped.  The budgets (:data:`BUILD_BUDGET`: about 1 s of one core quick, 60 s
+full) skip no built-in scene's build (the largest full-mode estimate, ``dsm`` on the marched
+``simulated_plume`` at 1024^2, about 41 M segments, is about 2.5e9 units): they guard user grids.
+Resolutions above the capture's limit are skipped with a note.
 
 The headline ratios (``meta.json`` summary, wall and process-CPU time): capture
 of the plume at the largest resolution over the AVSM-8 build on its output, per capture
@@ -71,18 +75,16 @@ METHODS = ("march", "exact")
 #: Grid resolution (voxels per unit, the scenes' ``size``) per mode; the plume at 48 is
 #: a 48 x 72 x 48 grid.
 SIZES = {"quick": 16, "full": 48}
-#: Skip a kind's build at a size where it is predicted to take longer than this (seconds).
-BUILD_BUDGET_S = {"quick": 1.0, "full": 60.0}
-#: A capture with more than 8x this many segments and no earlier size to predict a kind's
-#: build time from is probed on about 1x and 4x this many segments first.
-PROBE_SEGMENTS = 20000
+#: Skip a kind's build where its work estimate (:data:`.error_curves.cost.FRAME_WORK`, units of
+#: about 7 ns of one core) exceeds this: about 1 s (quick) and 60 s (full) of one core.
+BUILD_BUDGET = {"quick": 1.4e8, "full": 8.6e9}
 
 #: Parameters of the full and the quick run (``scenes`` None: every built-in scene; ``kinds``:
 #: the registry's, filled in).
 FULL = dict(scenes=None, resolutions=list(RESOLUTIONS), methods=list(METHODS), size=SIZES["full"], lookups=LOOKUPS,
-            repeats=3, kinds=None, build_budget_s=BUILD_BUDGET_S["full"])
+            repeats=3, kinds=None, build_budget=BUILD_BUDGET["full"])
 QUICK = dict(FULL, resolutions=list(QUICK_RESOLUTIONS), size=SIZES["quick"], lookups=QUICK_LOOKUPS, repeats=1,
-             build_budget_s=BUILD_BUDGET_S["quick"])
+             build_budget=BUILD_BUDGET["quick"])
 
 
 # ------------------------------------------------------------------ scenes
@@ -152,37 +154,14 @@ def _build_evaluated(kind: str, seg, params: dict):
     return rep
 
 
-def probe_seconds_per_segment(kind: str, seg, params: dict, n: int = None) -> float:
-    """Predicted build seconds per segment of ``kind`` on ``seg``: builds on about ``n`` and
-    ``4 n`` segments (every k-th non-empty texel; each the faster of two calls after one
-    that compiles), a line through both (fixed cost + cost per segment) evaluated at
-    ``seg.n_segments``."""
-    import time
-    n = PROBE_SEGMENTS if n is None else n
-    texels = np.flatnonzero(seg.counts > 0)
-    t, sizes = [], []
-    for m in (n, 4 * n):
-        sub = seg.select_texels(texels[::max(1, seg.n_segments // m)])
-        _build_evaluated(kind, sub, params)
-        best = math.inf
-        for _ in range(2):                               # the faster of two: load from other processes
-            t0 = time.perf_counter()
-            _build_evaluated(kind, sub, params)
-            dr.sync_thread()
-            best = min(best, time.perf_counter() - t0)
-        t.append(best)
-        sizes.append(max(sub.n_segments, 1))
-    slope = max((t[1] - t[0]) / max(sizes[1] - sizes[0], 1), 0.0)
-    return (t[1] + slope * (seg.n_segments - sizes[1])) / seg.n_segments
-
-
 # ------------------------------------------------------------------ one (scene, resolution)
 def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, repeats: int,
-               predicted: dict, budget_s: float, rng) -> list[dict]:
-    """Rows of one (scene, resolution): one per (method, kind); ``predicted`` maps kind ->
-    build seconds per segment measured at the previous size (updated in place)."""
+               budget: float, rng) -> list[dict]:
+    """Rows of one (scene, resolution): one per (method, kind); a kind whose work estimate
+    (:data:`.error_curves.cost.FRAME_WORK`) exceeds ``budget`` units is skipped with a note."""
     from avsm_dr import capture
     from avsm_dr import describe
+    from .error_curves.cost import FRAME_WORK
     from .error_curves.labels import order_dependent
     has_grid = scene.density is not None
     methods = methods if has_grid else methods[:1]          # no grid: the method changes nothing
@@ -201,12 +180,10 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
             if describe(kind)["offline"]:
                 notes[m, kind] = "skipped: offline reference (not part of a frame)"
                 continue
-            per = predicted.get(kind)
-            if per is None and seg.n_segments > 8 * PROBE_SEGMENTS:
-                per = predicted[kind] = probe_seconds_per_segment(kind, seg, params)
-            if per is not None and per * seg.n_segments > budget_s:
-                notes[m, kind] = (f"skipped: build predicted {per * seg.n_segments:.1f} s "
-                                  f"> budget {budget_s:g} s at {seg.n_segments} segments")
+            work = FRAME_WORK[kind](seg, params) if kind in FRAME_WORK else 0.0
+            if work > budget:
+                notes[m, kind] = (f"skipped: build work estimate {work:.3g} > limit {budget:.3g} units "
+                                  f"(about 7 ns of one core each) at {seg.n_segments} segments")
                 continue
             # the lookups read the representation of the build's latest call (measure() calls
             # every stage once, in this order, before the interleaved repeats)
@@ -251,8 +228,6 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
                 ru, rs = r["random", m, False], r["random", m, True]
                 row.update(random_unsorted_s=ru["wall_s"], random_sorted_s=rs["wall_s"],
                            random_unsorted_cpu_s=ru["cpu_s"], random_sorted_cpu_s=rs["cpu_s"])
-            if segs:
-                predicted[kind] = max(b["wall_s"], 1e-9) / segs
             row.update(build_s=b["wall_s"], build_first_s=b["first_s"], build_jit_s=b["jit_s"],
                        build_segments_per_s=segs / b["wall_s"] if b["wall_s"] > 0 else float("nan"),
                        lookups=n_lookups, lookup_s=lk["wall_s"], lookup_first_s=lk["first_s"],
@@ -338,14 +313,13 @@ def _compute(res, params: dict, grid=None) -> dict:
         scenes[user.name] = user
     rng = np.random.default_rng(0)
     rows, skipped = [], []
-    predicted: dict = {}                         # scene -> kind -> build seconds per segment
     todo = [(n, r) for n in scenes for r in sorted(reso)]
     for name, r in tqdm(todo, desc="frame", unit="size"):
         if not RESOLUTION_RANGE[0] <= r <= RESOLUTION_RANGE[1]:
             skipped.append(f"{name} {r}^2: outside the capture's resolutions {RESOLUTION_RANGE}")
             continue
         rows += frame_rows(name, scenes[name], r, list(methods), kinds, params["lookups"], params["repeats"],
-                           predicted.setdefault(name, {}), params["build_budget_s"], rng)
+                           params["build_budget"], rng)
     plot(rows, res, kinds)
 
     summary = {"skipped": skipped + [f"{r['scene']} {r['resolution']}^2 {r['method']} {r['kind']}: {r['note']}"

@@ -13,9 +13,9 @@ Time, per configuration (:func:`avsm_dr.evaluation.timing.measure`, every call s
 ``build_repeats`` builds, with a warm-up build (``first_call_s``, JIT compile included) only
 in the scene's first configuration, so later configurations time warm kernels without a
 second warm-up (full mode: 11 builds per setting and scene, where one configuration timed
-with seven repeats took 8).  Every timed build starts from the segments as the exact curve's
-set-up left them (:func:`_uncached`): nothing an earlier build cached on them (``greedy``'s
-removal order, the curve points) is reused.  ``time_ratio``:
+with seven repeats took 8).  Every timed build is cold (:meth:`avsm_dr.Segments.drop_cache`):
+nothing an earlier build cached on the segments (``greedy``'s removal order, the curve points)
+is reused, only their layout (device offsets).  ``time_ratio``:
 build + lookup time over :data:`REFERENCE`'s in the same configuration (same process).
 Per setting the time is the median over configurations of ``time_ratio``, the error the
 mean over configurations of ``rmse`` (``depth_l2``); ``pareto`` (``pareto_depth_l2``) marks
@@ -111,16 +111,6 @@ def _timed(fn, repeats: int, warm_up: bool) -> tuple[float, float, object]:
     return statistics.median(g["wall_s"] for g in got), float("nan"), got[-1]["out"]
 
 
-def _uncached(seg, keep: set):
-    """``seg`` without what earlier builds cached on it (every key but ``keep``'s: the offline
-    kinds' curve points and removal order, layout arrays), so that each timed build computes
-    everything it needs, as a single build would: ``greedy``'s Visvalingam-Whyatt order is
-    otherwise computed once per segments and reused by every later ``greedy`` setting."""
-    for k in set(seg._cache) - keep:
-        del seg._cache[k]
-    return seg
-
-
 def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict) -> list[dict]:
     """Rows of one configuration (every setting); its receiver errors, per-texel depth L2
     and the 8 x 8 tiles of both into ``store`` (keyed by setting label and config)."""
@@ -137,7 +127,6 @@ def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict)
     t_ex, first_ex, exact = _timed(lambda: ex_rep.eval(texel, depth), P["repeats"], True)
     exact = np.asarray(exact, dtype=np.float64)
     curve = curve_values(ex_rep, seg)
-    keep = set(seg._cache)                          # what the exact curve's set-up cached
     head = dict(scene=name, config=cfg.label, seed=seed, light=light, segments=seg.n_segments, receivers=len(texel))
     rows = [dict(head, method="exact", param="", build_s=0.0, lookup_s=t_ex, first_call_s=first_ex, rmse=0.0,
                  max_error=0.0, signed_mean=0.0, leak_share=0.0, depth_l2=0.0, order="-",
@@ -147,7 +136,9 @@ def _config(name: str, seed: int, light: str, P: dict, first: bool, store: dict)
         size = describe(kind)["size"]
         for p in settings:
             v = p.get(size, "") if size else ""
-            t_b, first_b, rep = _timed(lambda: build(kind, _uncached(seg, keep), **p), P["build_repeats"], first)
+            # cold: each call recomputes what earlier builds cached on the segments (greedy's
+            # removal order is otherwise computed once and reused by every later setting)
+            t_b, first_b, rep = _timed(lambda: build(kind, seg.drop_cache(), **p), P["build_repeats"], first)
             t_l, first_l, est = _timed(lambda: rep.eval(texel, depth), P["repeats"], True)
             err = np.asarray(est, np.float64) - exact
             st = error_stats(est, exact)

@@ -167,18 +167,21 @@ def test_full_mode_runs_ten_configurations_per_scene_with_a_spot_light(name):
 
 def test_runtime_vs_error_times_every_greedy_build_from_the_segments(monkeypatch):
     """greedy caches its Visvalingam-Whyatt order on the segments: every timed build (warm-up
-    and repeat alike) must compute the curve points again, not reuse an earlier setting's."""
+    and repeat alike, of every kind) starts from ``Segments.drop_cache()`` and computes the
+    curve points again, not reusing an earlier setting's."""
+    from avsm_dr import Segments
     from avsm_dr.representations import _curve
     from experiments import runtime_vs_error as rve
-    calls = []
-    real = _curve.curve_points
+    calls, drops = [], []
+    real, real_drop = _curve.curve_points, Segments.drop_cache
     monkeypatch.setattr(_curve, "curve_points", lambda seg: calls.append(1) or real(seg))
+    monkeypatch.setattr(Segments, "drop_cache", lambda seg, *a, **k: drops.append(1) or real_drop(seg, *a, **k))
     P = dict(rve.QUICK, resolution=64, n_volume=64, sweeps={"avsm": [{"nodes": 8}],
                                                             "greedy": [{"nodes": 2}, {"nodes": 4}]})
     for first, builds in ((True, 4), (False, 2)):      # warm-up + one repeat, or one build, per setting
-        calls.clear()
+        calls.clear(), drops.clear()
         rows = rve._config("three_columns", 0, "dir_a", P, first, {})
-        assert len(calls) == builds
+        assert len(calls) == builds and len(drops) == 3 * builds // 2      # 3 settings, 2 of them greedy
         assert all(r["build_s"] > 0 for r in rows if r["method"] == "greedy")
 
 

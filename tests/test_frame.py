@@ -60,8 +60,38 @@ def test_quick_frame_stage_times_rates_and_shares(quick):
         assert _f(r["capture_jit_s"]) >= 0 and _f(r["lookup_jit_s"]) >= 0
     for r in rows:
         if r["note"]:
-            assert r["note"].startswith(("skipped: build predicted", "skipped: offline reference")) \
+            assert r["note"].startswith(("skipped: build work estimate", "skipped: offline reference")) \
                     and math.isnan(_f(r["build_s"]))
+
+
+def test_skipped_builds_follow_the_work_estimate_not_a_clock(monkeypatch):
+    """Which builds a frame runs reads the kinds' declared work (FRAME_WORK), never a clock:
+    with time.perf_counter and time.process_time jumping an hour per call (every build "slow"),
+    the same cells are built and skipped, with the same notes; a budget at the middle of three
+    kinds' estimates skips the costliest alone; the quick budget skips none of them."""
+    import itertools
+    import time
+    from experiments.error_curves.cost import FRAME_WORK
+    scene = frame.builtin_scenes(frame.SIZES["quick"], ["plume"])["plume"]
+    seg = ad.capture(scene, resolution=64, method="exact", order="depth").segments
+    slow = ["dsm", "avsm_march", "avsm_adaptive"]
+    work = {k: FRAME_WORK[k](seg, ad.describe(k)["headline"]) for k in slow}
+    assert len(set(work.values())) == 3 and max(work.values()) < frame.BUILD_BUDGET["quick"]
+    budget = sorted(work.values())[1]
+
+    def cells():
+        rows = frame.frame_rows("plume", scene, 64, ["exact"], ["avsm", *slow], 256, 1, budget,
+                                np.random.default_rng(0))
+        return sorted((r["kind"], r["note"]) for r in rows)
+
+    calm = cells()
+    clock = itertools.count(0.0, 3600.0)
+    monkeypatch.setattr(time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(time, "process_time", lambda: next(clock))
+    assert cells() == calm
+    costliest = max(work, key=work.get)
+    assert [k for k, note in calm if note] == [costliest]
+    assert dict(calm)[costliest].startswith(f"skipped: build work estimate {work[costliest]:.3g} > limit")
 
 
 def test_quick_frame_exact_capture_has_fewer_iterations_and_segments(quick):

@@ -215,3 +215,35 @@ def test_texel_bounds_match_host_reduction(dtype):
     assert near.dtype == far.dtype == np.float64
     np.testing.assert_array_equal(near, want_near)
     np.testing.assert_array_equal(far, want_far)
+
+
+def test_drop_cache_makes_the_next_build_recompute_what_it_cached(monkeypatch):
+    """greedy caches the exact curve's points and its removal order on the segments: a second
+    build reuses them, a build after drop_cache computes them again; the layout (device
+    offsets) is kept unless ``keep`` says otherwise; every key a build caches is a CACHE_KEYS
+    name; an unknown ``keep`` key is a ValueError naming ``keep``."""
+    from avsm_dr import segments
+    from avsm_dr.representations import _curve, greedy
+    points, ranks = [], []
+    real_points, real_rank = _curve.curve_points, greedy.vw_removal_rank
+    monkeypatch.setattr(_curve, "curve_points", lambda seg: points.append(1) or real_points(seg))
+    monkeypatch.setattr(greedy, "vw_removal_rank", lambda *a: ranks.append(1) or real_rank(*a))
+    seg = make(transmittance=[0.5, 0.2, 0.7])
+    seg.offsets_dr()                                            # a layout array, cached
+    first = np.asarray(ad.build("greedy", seg, nodes=2).eval([0, 1], [0.25, 0.4]))
+    once = len(ranks)                                           # one call per bucket of point counts
+    assert len(points) == 1 and once > 0 and {"curve_points", "vw_removal_rank", "offsets"} <= set(seg._cache)
+    ad.build("greedy", seg, nodes=4)
+    assert (len(points), len(ranks)) == (1, once)               # reused
+    assert seg.drop_cache() is seg and set(seg._cache) <= set(segments.LAYOUT_KEYS) and "offsets" in seg._cache
+    again = np.asarray(ad.build("greedy", seg, nodes=2).eval([0, 1], [0.25, 0.4]))
+    assert (len(points), len(ranks)) == (2, 2 * once)           # recomputed, same result
+    np.testing.assert_array_equal(again, first)
+    for kind in ad.kinds():
+        ad.build(kind, seg)
+    assert set(seg._cache) <= set(segments.CACHE_KEYS) and {"bounds", "curve_points"} <= set(seg._cache)
+    assert set(seg.drop_cache(keep="bounds")._cache) == {"bounds"}
+    assert seg.drop_cache(keep=())._cache == {}
+    for bad in ("texels", ["offsets", "nope"], None):
+        with pytest.raises(ValueError, match="^keep: expected one of"):
+            seg.drop_cache(keep=bad)
