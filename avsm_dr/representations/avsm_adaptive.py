@@ -95,12 +95,11 @@ def complexity(segments, score: str) -> np.ndarray:
     if score == "count":
         return np.expm1(-c.astype(np.float64)) ** 2
     lo, hi = segments.texel_bounds()
-    F64, (texel, first, stop) = backend.types().Float64, texel_lanes(segments)
-    od = dr.detach(segments.optical_depth)        # tau: float64 sums in CSR order, one lane per texel
-    sums = dr.while_loop((first, dr.zeros(F64, dr.width(texel))), lambda i, t: i < stop,
-                         lambda i, t: (i + 1, t + F64(dr.gather(type(od), od, i))), label="texel_tau")[1]
-    tau = np.zeros(c.size)
-    tau[texel.numpy()] = sums.numpy()
+    od, tau = dr.detach(segments.optical_depth), np.zeros(c.size)   # tau: float64 sums in CSR order
+    if segments.n_segments:
+        F64, (texel, first, stop) = backend.types().Float64, texel_lanes(segments)
+        tau[texel.numpy()] = dr.while_loop((first, dr.zeros(F64, dr.width(texel))), lambda i, t: i < stop, lambda i, t:
+                                           (i + 1, t + F64(dr.gather(type(od), od, i))), label="texel_tau")[1].numpy()
     return np.where(c > 0, (hi - lo) * np.expm1(-tau) ** 2, 0.0)
 
 
