@@ -561,8 +561,17 @@ class Segments:
             raise ValueError(f"texels: indices must be integers in [0, {self.n_texels})")
         texels = arr.astype(np.int64)
         off = np.concatenate([[0], np.cumsum(self.counts[texels])]).astype(np.int64)
-        idx = np.concatenate([np.arange(self.offsets[t], self.offsets[t + 1]) for t in texels])
+        idx = np.repeat(self.offsets[texels] - off[:-1], self.counts[texels]) + np.arange(off[-1])
         return self._gathered(off, A.to_uint32(idx), self.sorted_by_depth)
+
+    def texel_range(self, t0: int, t1: int) -> "Segments":
+        """A new Segments with texels ``t0 .. t1 - 1`` (``0 <= t0 < t1 <= n_texels``): as
+        :meth:`select_texels` of that range, gathered without an index array."""
+        t0 = V.integer(t0, "t0", 0, self.n_texels - 1)
+        t1 = V.integer(t1, "t1", t0 + 1, self.n_texels)
+        s0, U32 = int(self.offsets[t0]), backend.types().UInt32
+        idx = dr.arange(U32, int(self.offsets[t1]) - s0) + dr.opaque(U32, s0)
+        return self._gathered(self.offsets[t0:t1 + 1] - s0, idx, self.sorted_by_depth)
 
     def __repr__(self) -> str:
         return (f"Segments(texels={self.n_texels}, segments={self.n_segments}, "

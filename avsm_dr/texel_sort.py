@@ -128,19 +128,22 @@ def word_function(kind: str, sources):
     return at
 
 
+def _network_chain(word_at, sizes, out, ties: bool, i: int):
+    """:func:`_network_branch` of each lane's size class among ``sizes[:i + 1]``, a chain of
+    symbolic conditionals (a module function: a nested recursive one is a reference cycle that
+    keeps the sort's buffers alive until a garbage collection)."""
+    if i == 0:
+        return _network_branch(word_at, sizes[0], out, ties)
+    return lambda s, c, p: dr.if_stmt((s, c, p), c > sizes[i - 1], _network_branch(word_at, sizes[i], out, ties),
+                                      _network_chain(word_at, sizes, out, ties, i - 1), label=f"network_{sizes[i]}")
+
+
 def _sort_lanes(kind, sources, start, count, packet, sizes, out, ties: bool):
     """Sort the runs of all lanes (by decreasing size class) in one kernel, a chain of symbolic
     conditionals picking each lane's network; returns the flags summed (UInt64, width 1) and
     per lane (UInt64)."""
     UInt32, UInt64, _, _ = _types()
-    word_at = word_function(kind, sources)
-
-    def chain(i):
-        if i == 0:
-            return _network_branch(word_at, sizes[0], out, ties)
-        return lambda s, c, p: dr.if_stmt((s, c, p), c > sizes[i - 1], _network_branch(word_at, sizes[i], out, ties),
-                                          chain(i - 1), label=f"network_{sizes[i]}")
-    flags = chain(len(sizes) - 1)(start, count, packet)
+    flags = _network_chain(word_function(kind, sources), sizes, out, ties, len(sizes) - 1)(start, count, packet)
     counter = dr.zeros(UInt64, 1)             # one atomic add per SIMD packet
     dr.scatter_reduce(dr.ReduceOp.Add, counter, flags, UInt32(0), flags != 0, mode=dr.ReduceMode.Local)
     return counter, flags

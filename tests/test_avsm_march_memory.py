@@ -1,14 +1,14 @@
 """avsm_march builds in chunks of whole texels sized by DSM's helpers
 (:func:`avsm_dr.representations.dsm.next_chunk_segments`), each of at least ``MIN_LANES``
-non-empty texels: every stored array and the gradients equal those of a build in one piece
-bit for bit, and the build's peak memory stays within 4x its output on the benchmark's
-memory map."""
+(:mod:`avsm_dr.representations._loops`) non-empty texels: every stored array and the gradients
+equal those of a build in one piece bit for bit, and the build's peak memory stays within 4x its
+output on the benchmark's memory map."""
 import drjit as dr
 import numpy as np
 import pytest
 
 import avsm_dr as ad
-from avsm_dr.representations import avsm_march, dsm
+from avsm_dr.representations import _loops, dsm
 from cases import random_segments
 from helpers import build_peak
 from test_dsm import adversarial
@@ -20,7 +20,7 @@ PARAMS = ({}, {"nodes": 3}, {"nodes": 16, "abs_error": 0.0, "rel_error": 0.0, "i
 def _chunks(monkeypatch, n):
     """Chunks of about ``n`` segments and at least 17 lanes, one SIMD packet more than
     Dr.Jit runs on the calling thread (None: one piece)."""
-    monkeypatch.setattr(avsm_march, "MIN_LANES", 17)
+    monkeypatch.setattr(_loops, "MIN_LANES", 17)
     n = 1 << 40 if n is None else n
     monkeypatch.setattr(dsm, "MIN_CHUNK_SEGMENTS", n)
     monkeypatch.setattr(dsm, "MAX_CHUNK_SEGMENTS", n)

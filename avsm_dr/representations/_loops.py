@@ -14,7 +14,8 @@ count writes past that array, so :func:`run_loop` refuses it (ValueError).
   state saved at each chunk boundary, the backward pass re-running one chunk at a time in
   reverse order.
 
-Also the deterministic per-texel sums of the linear kinds (:func:`texel_sums`).
+Also the deterministic per-texel sums of the linear kinds (:func:`texel_sums`) and the
+chunks of whole texels of the builds that bound their memory (:func:`chunk_stop`).
 """
 from __future__ import annotations
 
@@ -31,6 +32,11 @@ from .. import validation as V
 TRAJECTORY_BUDGET_WORDS = 16384
 #: Reverse-mode strategies accepted by every representation (``reverse=``).
 REVERSE_MODES = ("auto", "trajectory", "checkpoint")
+#: Fewest non-empty texels (lanes) in a chunk of a build, unless it holds them all: Dr.Jit
+#: runs a kernel of one SIMD packet (16 lanes on AVX-512) on the calling thread, which keeps
+#: the subnormals that its worker threads flush to zero (area metrics of nodes with T near
+#: 1e-300 then tie differently), so a one-packet chunk could place other nodes.
+MIN_LANES = 32
 
 
 def safe_chunk(state_words: int, budget: int = TRAJECTORY_BUDGET_WORDS) -> int:
@@ -158,6 +164,17 @@ def texel_lanes(segments):
     texel = A.to_uint32(np.nonzero(segments.counts > 0)[0])
     offsets = segments.offsets_dr()
     return texel, dr.gather(UInt32, offsets, texel), dr.gather(UInt32, offsets, texel + 1)
+
+
+def chunk_stop(offsets: np.ndarray, t0: int, per_chunk: int) -> int:
+    """End ``t1`` of the chunk of whole texels from ``t0`` (``offsets``: (T+1,) CSR) of about
+    ``per_chunk`` segments (at least one texel) with at least :data:`MIN_LANES` non-empty
+    texels and as many left after it; T (the rest) where that cannot be."""
+    n, lanes = offsets.size - 1, np.r_[0, np.cumsum(np.diff(offsets) > 0)]
+    t1 = max(int(np.searchsorted(offsets, offsets[t0] + per_chunk, side="right")) - 1, t0 + 1,
+             int(np.searchsorted(lanes, lanes[t0] + MIN_LANES)))
+    t1 = min(t1, int(np.searchsorted(lanes, lanes[-1] - MIN_LANES, side="right")) - 1)
+    return t1 if t1 > t0 and lanes[t1] - lanes[t0] >= MIN_LANES else n
 
 
 def texel_sums(segments, term, n: int, label: str = "texel_sum"):

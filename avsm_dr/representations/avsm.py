@@ -33,14 +33,21 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
+from ..texel_sort import MAX_NETWORK
 from .registry import register
 from ._avsm_insertion import INSERTIONS, remove_refit
-from ._loops import count_sorted, run_loop
+from ._loops import chunk_stop, count_sorted, run_loop
 from .base import Representation, depth_range
 from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
+#: A sorted build (``sort=True``, segments without gradients) whose sort buffers (estimated at 6
+#: bytes per segment, 20 in texels over ``MAX_NETWORK`` segments) exceed ``max(MIN_CHUNK_BYTES,
+#: output bytes)`` runs in chunks of whole texels within that budget (with their copy of the
+#: segments), each sorted and inserted before the next: its peak follows the output's size, not
+#: the segments'.
+MIN_CHUNK_BYTES = 1 << 18
 #: Parameters of the node-list kinds (avsm, greedy, optimal).
 NODES = Param("nodes", "int", 8, "N nodes (depth, transmittance) per texel", min=2, max=64)
 INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'linear' (AVSM's eq. 2) or 'exp' "
@@ -243,6 +250,8 @@ class AVSM(NodeList):
     (far, 1), stored as a :class:`NodeList`.  Attributes: ``used`` (NumPy (T,), inserted nodes
     kept per texel) and ``stats`` (lanes run, segments skipped behind opaque points, insertions
     that compressed).  Gradients flow to optical_depth and z0/z1 with the node layout held fixed.
+    ``sort=True`` on a large map (without gradients) sorts and inserts in chunks of texels
+    (:data:`MIN_CHUNK_BYTES`): the same nodes, a peak memory near the output's size.
     """
 
     # Linear (the paper's eq. 2) is the preset: at N = 8 it has the lower receiver error on every
@@ -286,7 +295,26 @@ class AVSM(NodeList):
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
 
     def _build(self):
-        seg = self.segments
+        seg, T, Float = self.segments, self.segments.n_texels, self.segments.Float
+        self.depths = [dr.opaque(Float, self.params["far"], T) for _ in range(self.N)]   # opaque: no kernel per far
+        self.values = [dr.full(Float, 1.0, T) for _ in range(self.N)]
+        self.used = np.zeros(T, np.int64)
+        self.stats = {"lanes": 0, "segments": seg.n_segments, "skipped": 0, "compressed": 0}
+        if seg.n_segments == 0:
+            return
+        sort_bytes = np.where(seg.counts > MAX_NETWORK, 20, 6) * seg.counts      # estimates, per texel
+        budget = max(MIN_CHUNK_BYTES, 2 * self.N * seg.itemsize * T)               # the output's bytes
+        chunked = self.params["sort"] and not seg.requires_grad and sort_bytes.sum() > budget
+        need, t0 = np.r_[0, np.cumsum(sort_bytes + 3 * seg.itemsize * seg.counts)], 0
+        while t0 < T:         # chunks of whole texels, each sorted and inserted (the nodes do not depend on them)
+            t1 = chunk_stop(need, t0, budget) if chunked else T
+            self._insert(seg if t1 - t0 == T else seg.texel_range(t0, t1), t0)
+            if chunked:       # the chunk's buffers, of sizes the next may not reuse, leave Dr.Jit's cache
+                dr.flush_malloc_cache()
+            t0 = t1
+
+    def _insert(self, seg, t0: int):
+        """Insert the segments of ``seg`` (this build's texels ``t0 ..``) into the nodes."""
         view = seg.depth_view() if self.params["sort"] else None
         t_ = backend.types()
         Float, UInt32, Bool = seg.Float, t_.UInt32, t_.Bool
@@ -297,10 +325,6 @@ class AVSM(NodeList):
         lanes_np = np.nonzero(counts > 0)[0] if ablate["_compact"] else np.arange(T)
         if ablate["_group"]:
             lanes_np = lanes_np[np.argsort(-counts[lanes_np], kind="stable")]
-        self.depths = [dr.opaque(Float, far, T) for _ in range(N)]   # opaque: no kernel per far
-        self.values = [dr.full(Float, 1.0, T) for _ in range(N)]
-        self.used = np.zeros(T, np.int64)
-        self.stats = {"lanes": 0, "segments": 0, "skipped": 0, "compressed": 0}
         if lanes_np.size == 0 or seg.n_segments == 0:
             return
         lanes = A.to_uint32(lanes_np)
@@ -313,7 +337,7 @@ class AVSM(NodeList):
             first = dr.gather(UInt32, view[1], lanes)
             end = first + count
         sorted_input = bool(self.params["sort"])
-        max_count = seg.max_count                         # the loops' bound (trajectory length) ...
+        max_count = self.segments.max_count               # the loops' bound (trajectory length) ...
         lane_max = int(counts[lanes_np].max())            # ... checked against the lanes' own counts
         params = [seg.z0, seg.z1, seg.optical_depth]      # what gradients flow to
 
@@ -418,14 +442,16 @@ class AVSM(NodeList):
             dt = run_loop((last, *dt), params, lambda p, last, *r: (last >= N) & (last < W), body_spare,
                           spare, chunk, "avsm_spare", iterations=spare)[1:]
             used = dr.minimum(used, N)
+        out = lanes if t0 == 0 else lanes + t0
         for k in range(N):
-            dr.scatter(self.depths[k], dt[k], lanes)
-            dr.scatter(self.values[k], dt[W + k], lanes)
+            dr.scatter(self.depths[k], dt[k], out)
+            dr.scatter(self.values[k], dt[W + k], out)
         # one kernel: the counters read below would otherwise each re-run both loops
         dr.eval(self.depths, self.values, used, i, skipped, compressed)
-        self.used[lanes_np] = np.asarray(used.numpy(), np.int64)
+        self.used[lanes_np + t0] = np.asarray(used.numpy(), np.int64)
         # skipped: behind an opaque point (sorted input: the rest of the texel counts too)
-        n_skipped = int(dr.sum(skipped)[0]) + int(dr.sum(end - i)[0])
-        self.stats = {"lanes": int(L), "segments": seg.n_segments, "skipped": n_skipped,
-                      "compressed": int(dr.sum(compressed)[0])}
+        st = self.stats
+        st["lanes"] += int(L)
+        st["skipped"] += int(dr.sum(skipped)[0]) + int(dr.sum(end - i)[0])
+        st["compressed"] += int(dr.sum(compressed)[0])
 

@@ -15,13 +15,15 @@ error of ``n`` nodes is modelled as ::
 drop ``1 - T_behind`` into ``n`` pieces).  ``e`` is convex in ``n``.  Water-filling: from
 the least option of every texel, upgrades to the next option are taken in order of
 decreasing gain per node ``(e(n) - e(n')) / (n' - n)`` (ties: lower texel, then smaller
-``n``) while the node total fits the budget; upgrades that gain nothing are never taken.
+``n``) while the node total fits the budget; upgrades that gain nothing are never taken (the
+first upgrade that does not fit found by bisection on the gain: no sort of all upgrades).
 Ablations (experiment ``memory_budget``): ``_score='count'`` (``span = 1``, ``tau = c``),
 ``_score='uniform'`` (the largest count that fits, for every non-empty texel).
 
-Build: :class:`~.avsm.AVSM` once per kernel N (the option's ladder value; ``K`` runs with the
-next ladder value, which never compresses) on :meth:`~avsm_dr.Segments.select_texels` with the
-map's near/far: a texel's nodes are bit for bit those of ``build('avsm', seg, nodes=N)``.
+Build: :class:`~.avsm.AVSM` per kernel N (the option's ladder value; ``K`` runs with the next
+ladder value, which never compresses) on :meth:`~avsm_dr.Segments.select_texels` of chunks of
+its texels (about the output's bytes of copied segments each; one per N under gradients) with
+the map's near/far: a texel's nodes are bit for bit those of ``build('avsm', seg, nodes=N)``.
 Storage (CSR, at most ``bytes_per_texel x T`` bytes): T+1 uint32 offsets, per node a depth and
 a transmittance (all N of its kernel where allocated fewer than ``K``, else the ``used`` ones).
 Lookup: :func:`~.avsm.csr_lookup`.
@@ -32,6 +34,9 @@ import drjit as dr
 import numpy as np
 
 from .. import _arrays as A
+from .. import backend
+from ._loops import chunk_stop, texel_lanes
+from . import avsm
 from .avsm import AVSM, INTERPOLATION, csr_lookup
 from .base import SPARSE_OFFSET_BYTES as OFFSET_BYTES, Representation, depth_range, node_build_bytes
 from .registry import register
@@ -90,8 +95,11 @@ def complexity(segments, score: str) -> np.ndarray:
     if score == "count":
         return np.expm1(-c.astype(np.float64)) ** 2
     lo, hi = segments.texel_bounds()
-    tau = np.bincount(np.repeat(np.arange(c.size), c), weights=A.host(segments.optical_depth, "optical_depth"),
-                      minlength=c.size)
+    od, tau = dr.detach(segments.optical_depth), np.zeros(c.size)   # tau: float64 sums in CSR order
+    if segments.n_segments:
+        F64, (texel, first, stop) = backend.types().Float64, texel_lanes(segments)
+        tau[texel.numpy()] = dr.while_loop((first, dr.zeros(F64, dr.width(texel))), lambda i, t: i < stop, lambda i, t:
+                                           (i + 1, t + F64(dr.gather(type(od), od, i))), label="texel_tau")[1].numpy()
     return np.where(c > 0, (hi - lo) * np.expm1(-tau) ** 2, 0.0)
 
 
@@ -101,9 +109,8 @@ def allocate(counts, weight, budget_nodes: int, max_nodes: int, uniform: bool = 
     ``uniform``: the largest ladder value ``n`` such that every non-empty texel taking
     ``min(n, K)`` fits.  The caller checks that the least options fit."""
     counts = np.asarray(counts, np.int64)
-    K = 2 * counts
-    opt = options(counts, max_nodes)
-    first = opt[:, 0]
+    K, B = 2 * counts, 2048                        # rows in blocks of B texels: bounded temporaries
+    first = np.concatenate([options(counts[a:a + B], max_nodes)[:, 0] for a in range(0, counts.size, B)] or [K])
     if uniform:
         best = first
         for n in ladder(max_nodes):
@@ -111,21 +118,35 @@ def allocate(counts, weight, budget_nodes: int, max_nodes: int, uniform: bool = 
             if cand.sum() <= budget_nodes:
                 best = cand
         return best
-    n0, n1 = opt[:, :-1], opt[:, 1:]
-    step = n1 > 0
-    Kc = np.broadcast_to(K[:, None], n0.shape)
-    w = np.broadcast_to(np.asarray(weight, np.float64)[:, None], n0.shape)
-    gain = (model_error(n0, Kc, w) - model_error(np.where(step, n1, n0), Kc, w)) / np.where(step, n1 - n0, 1)
-    gain = np.minimum.accumulate(gain, axis=1)     # non-increasing per texel (convex e; guards rounding)
-    step &= gain > 0                               # nothing is spent where the model gains nothing
-    tex = np.broadcast_to(np.arange(counts.size)[:, None], n0.shape)[step]
-    g, at, cost = gain[step], n0[step], (n1 - n0)[step]
-    order = np.lexsort((at, tex, -g))              # gain descending, then texel, then n
-    room = int(budget_nodes) - int(first.sum())
-    taken = int(np.searchsorted(np.cumsum(cost[order]), room, side="right"))
-    out = first.copy()
-    np.add.at(out, tex[order[:taken]], cost[order[:taken]])
-    return out
+    gain = np.zeros((counts.size, ladder(max_nodes).size))   # per upgrade step; 0: none
+    cost = np.zeros(gain.shape, np.int8)
+    for a in range(0, counts.size, B):
+        opt, sl = options(counts[a:a + B], max_nodes), slice(a, a + B)
+        n0, n1 = opt[:, :-1], opt[:, 1:]
+        step = n1 > 0
+        Kc = np.broadcast_to(K[sl, None], n0.shape)
+        w = np.broadcast_to(np.asarray(weight, np.float64)[sl, None], n0.shape)
+        g = (model_error(n0, Kc, w) - model_error(np.where(step, n1, n0), Kc, w)) / np.where(step, n1 - n0, 1)
+        g = np.minimum.accumulate(g, axis=1)       # non-increasing per texel (convex e; guards rounding)
+        step &= g > 0                              # nothing is spent where the model gains nothing
+        gain[sl], cost[sl] = np.where(step, g, 0.0), np.where(step, n1 - n0, 0)
+    # Steps are taken in the order (gain descending, texel, n) while their running cost fits the
+    # room: all those of gain above the gain g* of the first that does not fit, and those of gain
+    # g* in (texel, n) order up to it.  g* by bisection on the bits of the gains (positive floats).
+    room, bits = int(budget_nodes) - int(first.sum()), gain.view(np.int64)
+    def above(x):       # cost of the steps with gain bits >= x
+        return int(np.sum(cost, where=bits >= x, dtype=np.int64))
+    if room <= 0 or above(1) <= room:
+        return first + (cost.sum(axis=1, dtype=np.int64) if room > 0 else 0)
+    lo, hi = 1, int(bits.max()) + 1                # above(lo) > room >= above(hi)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if above(mid) > room else (lo, mid)
+    tie = np.flatnonzero(bits == lo)               # gain g*, in (texel, n) order
+    take = tie[:int(np.searchsorted(np.cumsum(cost.flat[tie]), room - above(lo + 1), side="right"))]
+    taken = (bits > lo).ravel()
+    taken[take] = True
+    return first + np.sum(cost, axis=1, where=taken.reshape(cost.shape), dtype=np.int64)
 
 
 @register("avsm_adaptive")
@@ -186,28 +207,53 @@ class AVSMAdaptive(Representation):
         # 'auto' checkpoints: plain loops over 3+ texel subsets of the same grad-enabled
         # segments gave wrong reverse-mode gradients (Dr.Jit 1.5, LLVM)
         reverse = "checkpoint" if self.reverse == "auto" and seg.requires_grad else self.reverse
+        budget = max(avsm.MIN_CHUNK_BYTES, P["bytes_per_texel"] * T)       # the output's bytes
         for N in np.unique(self.kernel[self.kernel > 0]):
             tex = np.flatnonzero(self.kernel == N)
             self.groups[int(N)] = tex
-            sub = AVSM(seg.select_texels(tex), nodes=int(N), sort=P["sort"], interpolation=P["interpolation"],
-                       near=P["near"], far=P["far"], reverse=reverse, chunk=self._chunk)
-            # compressing texels keep all N nodes, the others their inserted ones
-            stored[tex] = np.where(self.allocated[tex] < K[tex], int(N), sub.used)
-            runs.append((tex, sub))
+            # chunks of the group's texels (without gradients): their copies of the segments
+            # (and index arrays, ~8 + 5 itemsize bytes per segment) within the output's bytes
+            need = np.r_[0, np.cumsum((8 + 5 * seg.itemsize) * seg.counts[tex])]
+            i0 = 0
+            while i0 < tex.size:
+                i1 = tex.size if seg.requires_grad else chunk_stop(need, i0, budget)
+                t = tex[i0:i1]
+                sub = AVSM(seg.select_texels(t), nodes=int(N), sort=P["sort"], interpolation=P["interpolation"],
+                           near=P["near"], far=P["far"], reverse=reverse, chunk=self._chunk)
+                # compressing texels keep all N nodes, the others their inserted ones
+                stored[t] = np.where(self.allocated[t] < K[t], int(N), sub.used)
+                runs.append((t, self._compact(sub, stored[t])))
+                del sub
+                if i1 - i0 < tex.size:                     # as AVSM's chunks: buffers leave the cache
+                    dr.flush_malloc_cache()
+                i0 = i1
         self._set_nodes(stored)
         total = int(self.node_offsets[-1])
         self.node_depth = dr.zeros(Float, total)
         self.node_value = dr.zeros(Float, total)
-        for tex, sub in runs:
-            for k in range(sub.N):
-                lanes = np.flatnonzero(stored[tex] > k)
-                if lanes.size == 0:
-                    break
-                src = A.to_uint32(lanes)
-                dst = A.to_uint32(self.node_offsets[tex[lanes]] + k)
-                dr.scatter(self.node_depth, dr.gather(Float, sub.depths[k], src), dst)
-                dr.scatter(self.node_value, dr.gather(Float, sub.values[k], src), dst)
+        for j, (t, (depth, value)) in enumerate(runs):    # each run's nodes to their place, then freed
+            n = stored[t]
+            dst = A.to_uint32(np.repeat(self.node_offsets[t] - np.r_[0, np.cumsum(n)[:-1]], n) + np.arange(n.sum()))
+            dr.scatter(self.node_depth, depth, dst)
+            dr.scatter(self.node_value, value, dst)
+            dr.eval(self.node_depth, self.node_value)
+            runs[j] = None
         dr.eval(self.node_depth, self.node_value)
+
+    @staticmethod
+    def _compact(sub, stored):
+        """``sub``'s first ``stored[j]`` nodes of each texel ``j``, CSR in texel order (depths, values)."""
+        Float, off = sub.Float, np.r_[0, np.cumsum(stored)]
+        depth, value = dr.zeros(Float, int(off[-1])), dr.zeros(Float, int(off[-1]))
+        for k in range(sub.N):
+            lanes = np.flatnonzero(stored > k)
+            if lanes.size == 0:
+                break
+            src, dst = A.to_uint32(lanes), A.to_uint32(off[lanes] + k)
+            dr.scatter(depth, dr.gather(Float, sub.depths[k], src), dst)
+            dr.scatter(value, dr.gather(Float, sub.values[k], src), dst)
+        dr.eval(depth, value)
+        return depth, value
 
     variable_size = True                    # sparse payload: the stored (depth, value) nodes
 

@@ -29,18 +29,12 @@ from . import _curve
 from ._avsm_insertion import remove_refit
 from .avsm import INTERPOLATIONS, csr_lookup
 from .base import Representation
-from .dsm import chunk_end, concatenate, host_range, next_chunk_segments
+from ._loops import chunk_stop
+from .dsm import concatenate, host_range, next_chunk_segments
 from ._dsm_polyline import lanes_by_length
 from ._precision import PRECISIONS, Stored
 from .registry import register
 from .schema import Param, Schema
-
-
-#: Fewest non-empty texels (lanes) in a chunk of the build, unless it holds them all: Dr.Jit
-#: runs a kernel of one SIMD packet (16 lanes on AVX-512) on the calling thread, which keeps
-#: the subnormals that its worker threads flush to zero (area metrics of nodes with T near
-#: 1e-300 then tie differently), so a one-packet chunk could place other nodes.
-MIN_LANES = 32
 
 
 def march(pts: dict, cap: int, abs_error: float, rel_error: float):
@@ -134,13 +128,8 @@ class AVSMMarch(Representation):
         seg, P, t = self.segments, self.params, backend.types()
         offsets, n_tex, Float = seg.offsets, seg.n_texels, seg.Float
         counts, parts, t0, out_bytes = np.zeros(n_tex, np.int64), [], 0, 0
-        lanes = np.r_[0, np.cumsum(np.diff(offsets) > 0, dtype=np.int32)]        # non-empty texels before t
         while t0 < n_tex:           # chunks of whole texels (as DSM's): the nodes do not depend on them
-            t1 = chunk_end(offsets, t0, next_chunk_segments(out_bytes, int(offsets[t0]), seg.n_segments))
-            # >= MIN_LANES lanes in every chunk, and as many left after it (or none)
-            t1 = max(t1, int(np.searchsorted(lanes, lanes[t0] + MIN_LANES)))
-            t1 = min(t1, int(np.searchsorted(lanes, lanes[-1] - MIN_LANES, side="right")) - 1)
-            t1 = t1 if t1 > t0 and lanes[t1] - lanes[t0] >= MIN_LANES else n_tex
+            t1 = chunk_stop(offsets, t0, next_chunk_segments(out_bytes, int(offsets[t0]), seg.n_segments))
             s0, s1 = int(offsets[t0]), int(offsets[t1])
             pts = _curve.host_curve_points(offsets[t0:t1 + 1] - s0,
                                            *(host_range(x, s0, s1) for x in (seg.z0, seg.z1, seg.optical_depth)))

@@ -2,8 +2,9 @@
 texels`` (``memory.csv``, ``memory.png``), with the common :class:`~experiments._common.Meter`.
 
 ``build_peak_over_formula`` = build peak / (``nbytes_per_texel x texels``), the output's
-size; every online setting's target is :data:`BUILD_PEAK_TARGET` (DSM was 70x at 6.5 M segments before
-its build ran in chunks of texels) and each row says whether it meets it.  Rows:
+size; every online setting's target is :data:`BUILD_PEAK_TARGET` (at 6.5 M segments DSM was 70x, sorted
+AVSM-8 42x and avsm_adaptive 30x before their builds ran in chunks of texels) and each row says
+whether it meets it.  Rows:
 :data:`MEMORY_SETTINGS` and every other registered kind with its ``headline`` parameters
 (offline kinds only on maps they run on, :func:`~.settings.max_segments`).
 """
