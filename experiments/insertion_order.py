@@ -84,7 +84,8 @@ ORDERS = ("submission", "depth", "reverse_depth", "random")
 #: AVSM's insertion variants compared: method name -> the ``insertion`` parameter.
 INSERTION_METHODS = {"avsm": "stream", "avsm_refit": "refit", "avsm_refit_l2": "refit_l2",
                      "avsm_staged": "staged", "avsm_staged_refit_l2": "staged_refit_l2",
-                     "avsm_spare_refit_l2": "spare_refit_l2", "avsm_spare_exp": "spare_exp"}
+                     "avsm_spare_refit_l2": "spare_refit_l2", "avsm_spare_exp": "spare_exp",
+                     "avsm_spare_exp_fit": "spare_exp_fit"}
 #: Streaming (order-dependent) methods and the offline references (order-independent).
 STREAMING = tuple(INSERTION_METHODS) + ("avsm_march",)
 REFERENCES = ("greedy", "optimal")
@@ -356,7 +357,8 @@ def _compute(res, P: dict) -> dict:
 #: Figure style per method: AVSM's insertion variants get colours of their own (they are not
 #: registered kinds), avsm_march and greedy keep their kinds' fixed style.
 METHOD_COLOURS = {"avsm": "rose", "avsm_refit": "sand", "avsm_refit_l2": "olive", "avsm_staged": "wine",
-                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple", "avsm_spare_exp": "green"}
+                  "avsm_staged_refit_l2": "indigo", "avsm_spare_refit_l2": "purple", "avsm_spare_exp": "green",
+                  "avsm_spare_exp_fit": "orange"}
 #: The node count the figure shows (the tables in findings.json have every N).
 PLOT_NODES = 8
 
@@ -364,7 +366,7 @@ PLOT_NODES = 8
 def _method_style(k: str) -> dict:
     from . import _plotstyle as plotstyle
     if k in METHOD_COLOURS:
-        markers = ("o", "s", "D", "v", "P", "X", "*")
+        markers = ("o", "s", "D", "v", "P", "X", "*", "h")
         return dict(color=plotstyle.PALETTE[METHOD_COLOURS[k]], linestyle="-",
                     marker=markers[list(METHOD_COLOURS).index(k)])
     return plotstyle.style(k)

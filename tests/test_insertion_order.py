@@ -64,12 +64,14 @@ def test_ratios_to_optimal(quick):
     """``optimal`` minimises, per texel, the continuous uniform-in-depth L2 over node subsets
     of the exact curve; AVSM's nodes may leave the curve and ``depth_l2`` is a 64-point
     midpoint rule, so AVSM below optimal is possible on single texels (``beats_optimal_texels``)
-    but not expected in the RMS over a whole map: the bound is checked at float32 rounding."""
+    but not expected in the RMS over a whole map: the bound is checked at float32 rounding.
+    Not for ``spare_exp_fit``: its values are least-squares fitted as optimal's are, on a node
+    subset that need not be worse than optimal's (chosen for the chords, before the refit)."""
     rows, _, _ = quick
     for r in rows:
         if r["kind"] == "optimal":
             assert r["ratio_to_optimal"] == 1.0 and r["ratio_to_optimal_rmse"] == 1.0
-        if r["kind"] in S.INSERTION_METHODS:       # every AVSM insertion: nodes on segment ends
+        if r["kind"] in S.INSERTION_METHODS and r["insertion"] != "spare_exp_fit":   # nodes on segment ends
             assert r["ratio_to_optimal"] >= 1 - 1e-6, r
         assert 0.0 <= r["beats_optimal_texels"] <= 1.0
         assert r["depth_l2"] >= 0 and r["rmse"] >= 0 and r["rmse_truth"] >= 0

@@ -35,7 +35,7 @@ from .. import _arrays as A
 from .. import backend
 from ..texel_sort import MAX_NETWORK
 from .registry import register
-from ._avsm_insertion import INSERTIONS, remove_refit
+from ._avsm_insertion import INSERTIONS, KEEP_TOL, fit_values, piece_moments, remove_refit
 from ._loops import chunk_stop, count_sorted, run_loop
 from .base import Representation, depth_range
 from ._precision import PRECISIONS, Stored
@@ -269,7 +269,8 @@ class AVSM(NodeList):
                   "'refit' (area-preserving refit of the removed node's neighbours), 'refit_l2' (L2 "
                   "removal metric, least-squares refit), 'staged' / 'staged_refit_l2' (compress only "
                   "every 4 segments), 'spare_refit_l2' ('refit_l2' on N + 8 nodes, compressed to N at "
-                  "the end), 'spare_exp' (the same with exponential segment ramps); see "
+                  "the end), 'spare_exp' (the same with exponential segment ramps), 'spare_exp_fit' "
+                  "('spare_exp', then least-squares node values where streaming kept the exact curve); see "
                   "avsm_dr.representations._avsm_insertion",
                   choices=tuple(INSERTIONS)),
             NEAR, FAR,
@@ -290,8 +291,9 @@ class AVSM(NodeList):
         P, seg = self.params, self.segments
         P.update(zip(("near", "far"), depth_range(seg, P["near"], P["far"])))
         super()._resolve()
-        self._refit, self._metric, self._stage, self._spare, self._ramp = INSERTIONS[P["insertion"]]
-        self.loop_state_words = 2 * (self.N + self._spare) + 5   # W = N + spare depths, values; 5 counters
+        self._refit, self._metric, self._stage, self._spare, self._ramp, self._fit = INSERTIONS[P["insertion"]]
+        # W = N + spare depths and values; 5 counters (6 with the final fit's flag)
+        self.loop_state_words = 2 * (self.N + self._spare) + 5 + int(self._fit)
         self._ablation = {k: P.pop(k) for k in ("_compact", "_group", "_split")}
 
     def _build(self):
@@ -345,7 +347,8 @@ class AVSM(NodeList):
         W = N + spare                                     # nodes while streaming
 
         def remove(d, t):                                 # 'stream' / 'staged': the paper's removal
-            return remove_refit(d, t, refit, metric)
+            out = remove_refit(d, t, refit, metric, with_gap=self._fit)   # final fit: the chord gap too
+            return out if self._fit else (*out, 0.0)
 
         def segment(p, i, active=True):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
@@ -361,18 +364,25 @@ class AVSM(NodeList):
             tau = tau if self._ramp == "exp" else None
             ta = ta if tau is None else interpolate(d, t, a, "exp")
             nd, nt = insert_segment(d, t, used, a, b, ts, full=compress is True, ta=ta, tau=tau)
+            lost = False                                  # a removal changed the curve (final fit)
             if compress is True:
-                nd, nt = remove(*remove(nd, nt))
+                nd, nt, m1 = remove(nd, nt)
+                nd, nt, m2 = remove(nd, nt)
+                lost = ~skip & (dr.maximum(m1, m2) > KEEP_TOL) if self._fit else False
             elif compress is not False:
-                cd, ct = remove(*remove(nd, nt))
+                cd, ct, m1 = remove(nd, nt)
+                cd, ct, m2 = remove(cd, ct)
+                lost = compress & ~skip & (dr.maximum(m1, m2) > KEEP_TOL) if self._fit else False
                 nd = [dr.select(compress, cd[k], nd[k]) for k in range(W)]
                 nt = [dr.select(compress, ct[k], nt[k]) for k in range(W)]
             d = [dr.select(skip, d[k], nd[k]) for k in range(W)]
             t = [dr.select(skip, t[k], nt[k]) for k in range(W)]
-            return skip, (skip if sorted_input else done), d, t
+            return skip, (skip if sorted_input else done), d, t, lost
 
         # state: i (next segment), used (inserted nodes kept, <= N), done (sorted and behind
-        # an opaque point), skipped, compressed (counters), node depths d_k, transmittances t_k
+        # an opaque point), skipped, compressed (counters), [lossy: a removal changed the curve,
+        # final fit only], node depths d_k, transmittances t_k
+        E = int(self._fit)                                # extra state words before the nodes
         def cond_room(p, i, used, done, *rest):
             return (i < end) & (used + 2 <= W) & ~done
 
@@ -380,14 +390,16 @@ class AVSM(NodeList):
             return (i < end) & ~done
 
         def body_insert(compress):
-            def body(p, i, used, done, skipped, compressed, *dt):
+            def body(p, i, used, done, skipped, compressed, *rest):
+                lossy, dt = rest[:E], rest[E:]
                 full = used + 2 > W if compress is None else compress   # None: the _split=False ablation
-                skip, done, d, t = insert(p, i, used, done, list(dt[:W]), list(dt[W:]), full)
+                skip, done, d, t, lost = insert(p, i, used, done, list(dt[:W]), list(dt[W:]), full)
+                lossy = [x | lost for x in lossy]
                 if compress is not True:
                     used = dr.select(skip if compress is False else skip | full, used, used + 2)
                 if compress is not False:
                     compressed = compressed + UInt32(~skip if compress else ~skip & full)
-                return (i + 1, used, done, skipped + UInt32(skip), compressed, *d, *t)
+                return (i + 1, used, done, skipped + UInt32(skip), compressed, *lossy, *d, *t)
             return body
 
         # staged variants, once full: ``stage`` segments into N + 2 stage nodes, then 2 stage
@@ -413,7 +425,7 @@ class AVSM(NodeList):
                     done |= active & zero
                 i = dr.select(active, i + 1, i)
             for _ in range(2 * stage):
-                d, t = remove(d, t)
+                d, t, _ = remove(d, t)
             return (i, used, done, skipped, compressed, *d, *t)
 
         chunk = self.checkpoint_chunk(seg)
@@ -422,7 +434,7 @@ class AVSM(NodeList):
             return run_loop(state, params, cond, body, max_count, chunk, label, iterations=lane_max)
 
         state = (first, dr.zeros(UInt32, L), dr.zeros(Bool, L),
-                 dr.zeros(UInt32, L), dr.zeros(UInt32, L),
+                 dr.zeros(UInt32, L), dr.zeros(UInt32, L), *[dr.zeros(Bool, L)] * E,
                  *[dr.opaque(Float, far, L) for _ in range(W)], *[dr.full(Float, 1.0, L) for _ in range(W)])
         if stage > 1:                                     # staged: always the two loops
             state = run(state, cond_room, body_insert(False), "avsm_insert")
@@ -433,15 +445,25 @@ class AVSM(NodeList):
         else:
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]
-        dt = state[5:]
+        lossy, dt = state[5:5 + E], state[5 + E:]
         if spare:   # down to N nodes by "post"; the list ends at the used nodes (all W once compressing)
+            fit = self._fit                               # carry the piece moments S0, S1 too
             def body_spare(p, last, *dt):
-                d, t = remove_refit(dt[:W], dt[W:], refit, "post", last=last)
-                return (last - 1, *d, d[-1], *t, t[-1])      # the last node repeated: W nodes again
+                m = (dt[2 * W:3 * W], dt[3 * W:]) if fit else None
+                d, t, *m = remove_refit(dt[:W], dt[W:2 * W], refit, "post", last=last, moments=m)
+                zero = [dr.zeros(type(t[0]), dr.width(t[0]))] * bool(fit)   # a zero-width last piece
+                return (last - 1, *d, d[-1], *t, t[-1], *(x for mm in m for x in (*mm, *zero)))
             last = dr.select(compressed > 0, W - 1, used - 1)   # last < W below: not a lane of 0 nodes
+            count = dr.minimum(last + 1, N)                     # real nodes after the compression
+            if fit:
+                dt = (*dt, *(x for mm in piece_moments(dt[:W], dt[W:], last + 1) for x in mm))
             dt = run_loop((last, *dt), params, lambda p, last, *r: (last >= N) & (last < W), body_spare,
                           spare, chunk, "avsm_spare", iterations=spare)[1:]
             used = dr.minimum(used, N)
+            if fit:   # least-squares values where every removal kept the curve (exact nodes)
+                t = fit_values(dt[:N], dt[W:W + N], dt[2 * W:2 * W + N], dt[3 * W:3 * W + N], count - 1,
+                               ~lossy[0])
+                dt = (*dt[:W], *t, *dt[W + N:2 * W])
         out = lanes if t0 == 0 else lanes + t0
         for k in range(N):
             dr.scatter(self.depths[k], dt[k], out)
