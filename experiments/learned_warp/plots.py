@@ -25,8 +25,8 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
         ax.set_title(kind)
         ax.set_xlabel("normalised depth u")
         ax.set_aspect("equal")
+        ax.legend(fontsize=8)                 # per panel: the log ratio is chosen per kind
     axes[0][0].set_ylabel("warped depth w(u)")
-    axes[0][0].legend(fontsize=8)
     res.save_figure(fig, "warps.png")
 
     # ---- per scene, both metrics: learned vs no warp and vs the kind at its preset (where it has one)
