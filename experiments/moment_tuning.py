@@ -404,7 +404,8 @@ def _plot(res, table: list[dict], found: dict, groups) -> None:
                 ax.yaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
                 ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
                 ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-                ax.set_title(f"{family} {n}{' (complex)' if family == 'trigonometric' else ''}: "
+                ax.set_title(f"{'trig.' if family == 'trigonometric' else family} {n}"
+                             f"{' (complex)' if family == 'trigonometric' else ''}: "
                              + ("depth-uniform L2" if i == 0 else "receiver RMSE"), fontsize=8)
                 if b == len(families) - 1 and i == len(rows_) - 1 or j >= len(counts[families[-1]]) \
                         and i == len(rows_) - 1:
@@ -412,9 +413,9 @@ def _plot(res, table: list[dict], found: dict, groups) -> None:
                     ax.xaxis.set_tick_params(labelbottom=True)
                 if j == 0:
                     ax.set_ylabel(f"{ylabel} / cell's best\n(geometric mean)")
-        n_cfg = found["groups"][group_label(*groups[0])]["tuned_over_default"]["depth_l2"]["n_configs"]
         fig.suptitle(f"moments on held-out seeds {', '.join(map(str, found['held_out_seeds']))}: error against beta,\n"
-                     f"default bias target, {n_cfg} configurations per point", fontsize=9)
+                     f"default bias target, {len(found['scenes'])} scenes x {len(found['configurations'])} "
+                     f"configurations per point", fontsize=9)
         plotstyle.legend_below(fig, axes, ncol=min(len(factors) + 2, 4))
         res.save_figure(fig, "moment_tuning.png")
 
