@@ -165,6 +165,39 @@ def test_full_mode_runs_ten_configurations_per_scene_with_a_spot_light(name):
     assert 1 <= len(study.quick["configs"]) <= 2
 
 
+def test_moment_tuning_full_mode_runs_error_curves_layout_on_held_out_seeds():
+    """moment_tuning's full run: 10 configurations per scene in error_curves' layout (two
+    directional lights on every seed, the spot light on the first two), on seeds error_curves
+    never evaluates; its quick run keeps to three."""
+    from experiments import error_curves, moment_tuning
+    configs = [tuple(c) for c in moment_tuning.FULL["configs"]]
+    assert len(configs) >= 10 and len(set(configs)) == len(configs)
+    assert sum(li == "spot" for _, li in configs) == 2 and {"dir_a", "dir_b"} <= {li for _, li in configs}
+    held = sorted({s for s, _ in configs})
+    layout = [(held.index(s), li) for s, li in configs]
+    assert layout == [tuple(c) for c in error_curves.FULL["configs"]]
+    assert not set(held) & {s for s, _ in error_curves.FULL["configs"]}
+    assert len(moment_tuning.QUICK["configs"]) == 3
+
+
+def test_learned_warp_full_mode_runs_ten_configurations_per_held_out_scene_with_a_spot_light():
+    """learned_warp's full run: every held-out group has >= 10 distinct configurations (seed x
+    light), a spot light among them; the new plume seeds use no training light; the quick
+    run keeps a spot light so that its path is exercised."""
+    from experiments import learned_warp as lw
+    train_lights = {li for *_, li in lw.FULL["train"]}
+    groups = {}
+    for group, name, seed, light in lw.FULL["held"]:
+        groups.setdefault(group, []).append((name, seed, light))
+    assert len(groups) == 5
+    for group, configs in groups.items():
+        assert len(configs) >= 10 and len(set(configs)) == len(configs), group
+        assert any(li == lw.SPOT for *_, li in configs), group
+    assert not {li for *_, li in groups["smoke_new_seeds"]} & train_lights
+    assert lw.SPOT not in train_lights
+    assert any(li == lw.SPOT for *_, li in lw.QUICK["held"])
+
+
 def test_runtime_vs_error_times_every_greedy_build_from_the_segments(monkeypatch):
     """greedy caches its Visvalingam-Whyatt order on the segments: every timed build (warm-up
     and repeat alike, of every kind) starts from ``Segments.drop_cache()`` and computes the

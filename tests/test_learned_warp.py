@@ -69,7 +69,7 @@ def test_training_lowers_the_loss(quick_run):
         e = f[kind]["held_out_all"]
         assert {"preset_depth_l2", "preset_receiver_rmse", "learned_over_preset"} <= set(e)
         assert e["indicative"] is False
-        assert 0 <= e["learned_over_preset"]["receiver_rmse"]["learned_smaller_in"] <= e["n_scenes"]
+        assert 0 <= e["learned_over_preset"]["receiver_rmse"]["learned_smaller_in"] <= e["n_configs"]
     assert "preset_depth_l2" not in f["moments"]["train"]   # no moment count fits 20 B with a range
     m = f["avsm_metric"]
     assert 0 < m["beta_learned"] < 1 and m["bytes_per_texel"] == 64
@@ -86,8 +86,8 @@ def test_findings_on_hand_made_rows():
                 rows.append(dict(split=split, group=group, kind="osm", bytes_per_texel=32, method=m,
                                  depth_l2=v * (s + 1), receiver_rmse=rec * (s + 1)))
     f = learned_warp.findings(rows)["osm"]
-    assert f["train"]["n_scenes"] == 3 and f["hair_and_smoke"]["n_scenes"] == 2
-    assert f["held_out_other_types"]["n_scenes"] == 2
+    assert f["train"]["n_configs"] == 3 and f["hair_and_smoke"]["n_configs"] == 2
+    assert f["held_out_other_types"]["n_configs"] == 2
     ident, log = f["train"]["learned_over_identity"], f["train"]["learned_over_log"]
     assert ident["depth_l2"]["ratio"] == pytest.approx(0.5) and ident["receiver_rmse"]["ratio"] == pytest.approx(2.0)
     assert ident["metric_dependent"] is True           # smaller in depth L2, larger at the receivers

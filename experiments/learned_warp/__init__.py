@@ -66,6 +66,7 @@ configurations); ``avsm_metric`` likewise for the learned beta vs the paper's me
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -103,18 +104,31 @@ METRIC = dict(metric_nodes=8, metric_lr=0.3, metric_fd=0.05, metric_tau=[0.1, 0.
 _COMMON = dict(kinds=[[k, p] for k, p in KINDS], log_ratios=list(LOG_RATIOS), lights=LIGHTS,
                loss_receivers="uniform in depth per non-empty texel (stratified), point lookups")
 
+#: The spot-light configuration's light name: :func:`avsm_dr.evaluation.light_variants`
+#: spot light of the scene lit from the held-out direction ``LIGHTS[2]`` (as in error_curves,
+#: where 'spot' is the spot light of a scene's directional light); never used in training.
+SPOT = "spot"
+#: Configurations (seed, light) of each held-out scene type: error_curves' layout of 10, four
+#: seeds with two directional lights and the spot light with the first two.
+HELD_LAYOUT = [(s, li) for s in range(4) for li in (0, 2)] + [(s, SPOT) for s in range(2)]
+
+
+def _held(group: str, name: str, layout=HELD_LAYOUT) -> list[tuple]:
+    """(group, scene, seed, light) of every configuration of ``layout``."""
+    return [(group, name, s, li) for s, li in layout]
+
+
 #: Parameters of the full and the quick run; train / held-out: lists of (group, scene, seed,
-#: light index).
+#: light: an index into LIGHTS or SPOT).  Held out: 10 configurations per group, a spot light
+#: among them; the new plume seeds keep to lights unseen in training (LIGHTS[2] and the spot).
 FULL = dict(train=[("smoke", "plume", s, li) for s in (0, 1, 2, 3) for li in (0, 1)],
-            held=[("smoke_new_seeds", "plume", s, 2) for s in (10, 11, 12, 13, 14, 15)]
-            + [("simulated_plume", "simulated_plume", s, li) for s in (0, 1) for li in (0, 2)]
-            + [("hair_and_smoke", "hair_and_smoke", s, li) for s in (0, 1, 2) for li in (0, 2)]
-            + [("three_columns", "three_columns", s, li) for s in (0, 1, 2) for li in (0, 2)]
-            + [("particles", "particles", s, li) for s in (0, 1, 2) for li in (0, 2)],
+            held=_held("smoke_new_seeds", "plume", [(s, 2) for s in range(10, 18)] + [(10, SPOT), (11, SPOT)])
+            + _held("simulated_plume", "simulated_plume") + _held("hair_and_smoke", "hair_and_smoke")
+            + _held("three_columns", "three_columns") + _held("particles", "particles"),
             size=20, resolution=64, knots=16, iterations=80, lr=0.05, receivers_per_texel=8, n_volume=2048, **METRIC,
             metric_iterations=15, metric_sweep=[0.0, 0.003, 0.01, 0.03, 0.1, 0.3, 0.6, 0.9], **_COMMON)
 QUICK = dict(train=[("smoke", "plume", s, 0) for s in (0, 1)],
-             held=[("smoke_new_seeds", "plume", s, 2) for s in (10, 11)]
+             held=[("smoke_new_seeds", "plume", 10, 2), ("smoke_new_seeds", "plume", 11, SPOT)]
              + [("hair_and_smoke", "hair_and_smoke", s, 0) for s in (0, 1)],
              size=10, resolution=64, knots=8, iterations=12, lr=0.1, receivers_per_texel=4, n_volume=512, **METRIC,
              metric_iterations=3, metric_sweep=[], **_COMMON)
@@ -130,8 +144,12 @@ class SceneData:
         from avsm_dr import builtin_scenes, capture, receivers
         from avsm_dr.evaluation import Probe
         from avsm_dr.reconstruction import light_from_angles
+        from avsm_dr.evaluation import light_variants
         kw = {} if name == "particles" else {"size": P["size"]}
-        scene = getattr(builtin_scenes, name)(seed=seed, light=light_from_angles(*LIGHTS[light]), **kw)
+        direction = LIGHTS[2 if light == SPOT else light]
+        scene = getattr(builtin_scenes, name)(seed=seed, light=light_from_angles(*direction), **kw)
+        if light == SPOT:
+            scene = dataclasses.replace(scene, light=light_variants(scene)[SPOT])
         self.group, self.name, self.seed, self.light = group, name, seed, light
         cap = capture(scene, resolution=P["resolution"], order="depth")
         self.seg = cap.segments
@@ -342,8 +360,9 @@ def findings(rows) -> dict:
     the warps, the paper's metric for AVSM): per metric the ratio of means with a paired
     bootstrap 95 % interval over the group's configurations (needs >= 2) and the
     configurations where learned is the smaller; ``metric_dependent`` when the two metrics'
-    intervals lie entirely on opposite sides of 1.  ``indicative``: fewer than
-    :data:`MIN_CONFIGS` configurations."""
+    intervals lie entirely on opposite sides of 1.  ``n_configs``: the group's configurations
+    (scene seed x light: one ``learned`` row each); ``indicative``: fewer than
+    :data:`MIN_CONFIGS` of them."""
     out = {}
     kinds = list(dict.fromkeys(r["kind"] for r in rows))
     metrics = [m for m in METRICS if rows and m in rows[0]]
@@ -360,8 +379,8 @@ def findings(rows) -> dict:
         d = out.setdefault(kind, {"bytes_per_texel": mine[0]["bytes_per_texel"]})
         methods = list(dict.fromkeys(r["method"] for r in mine))
         for g, rs in ((g, rs) for g, rs in groups.items() if rs):
-            n = sum(1 for r in rs if r["method"] == "learned")
-            e = {"n_scenes": n, "indicative": n < MIN_CONFIGS}
+            n = sum(1 for r in rs if r["method"] == "learned")          # one row per configuration
+            e = {"n_configs": n, "indicative": n < MIN_CONFIGS}
             by = {(m, k): np.array([r[k] for r in rs if r["method"] == m], np.float64)
                   for m in methods for k in metrics}
             e.update({f"{m}_{k}": float(v.mean()) for (m, k), v in by.items()})
@@ -396,7 +415,7 @@ def _headline(s: dict) -> list[str]:
         for metric, what in (("depth_l2", "depth-uniform L2"), ("receiver_rmse", "receiver RMSE")):
             ratios = [f"{b} {interval(v[metric])}" for b, v in cmp.items() if metric in v]
             if ratios:
-                out.append(f"{name}{where}, {h.get('n_scenes', '?')} held-out scenes, learned {what} over "
+                out.append(f"{name}{where}, {h.get('n_configs', '?')} held-out configurations, learned {what} over "
                            + ", ".join(ratios))
         dep = [b for b, v in cmp.items() if v.get("metric_dependent")]
         if dep:

@@ -25,8 +25,8 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
         ax.set_title(kind)
         ax.set_xlabel("normalised depth u")
         ax.set_aspect("equal")
+        ax.legend(fontsize=8)                 # per panel: the log ratio is chosen per kind
     axes[0][0].set_ylabel("warped depth w(u)")
-    axes[0][0].legend(fontsize=8)
     res.save_figure(fig, "warps.png")
 
     # ---- per scene, both metrics: learned vs no warp and vs the kind at its preset (where it has one)
@@ -65,7 +65,7 @@ def plot(res, rows, loss_rows, warp_rows) -> None:
 
 def _scatter(ax, rows, kind, base_method, groups, metric="depth_l2") -> None:
     """Per configuration: ``metric`` of ``base_method`` (x) against the learned warp's (y),
-    log axes, y = x dotted."""
+    log axes, y = x dotted; spot-light configurations as hollow squares."""
     import matplotlib.ticker
     lo, hi = np.inf, 0.0
     for gi, g in enumerate(groups):
@@ -73,9 +73,14 @@ def _scatter(ax, rows, kind, base_method, groups, metric="depth_l2") -> None:
         lrn = [r for r in rows if r["kind"] == kind and r["group"] == g and r["method"] == "learned"]
         x = np.array([r[metric] for r in base])
         y = np.array([r[metric] for r in lrn])
-        ax.scatter(x, y, s=16, color=f"C{gi}", marker="o" if base[0]["split"] == "train" else "^",
+        spot = np.array([str(r["light"]) == "spot" for r in base])
+        ax.scatter(x[~spot], y[~spot], s=16, color=f"C{gi}", marker="o" if base[0]["split"] == "train" else "^",
                    label=f"{g} ({base[0]['split']})")
+        if spot.any():                     # spot-light configurations: hollow squares in the group's colour
+            ax.scatter(x[spot], y[spot], s=22, marker="s", facecolors="none", edgecolors=f"C{gi}", linewidths=1.0)
         lo, hi = min(lo, x.min(), y.min()), max(hi, x.max(), y.max())
+    if any(str(r["light"]) == "spot" for r in rows):
+        ax.scatter([], [], s=22, marker="s", facecolors="none", edgecolors="0.3", label="spot light (any group)")
     lim = (lo / 1.2, hi * 1.2)
     ax.plot(lim, lim, "k:", lw=0.8)
     ax.set_xscale("log")
