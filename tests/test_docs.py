@@ -323,3 +323,114 @@ def test_migration_page_new_names_exist():
         except (ImportError, AttributeError):
             missing.append(n)
     assert not missing, missing
+
+
+def _settings_rows():
+    """error_settings.csv rows of two kinds on one scene: presets, and a non-preset FOM that is better."""
+    def row(method, setting, configs, b, dense, rmse, l2, total):
+        return dict(scene="plume", method=method, setting=setting, configs=str(configs), bytes=str(b),
+                    bytes_per_texel=str(dense), rmse=str(rmse), depth_l2=str(l2), total_rmse=str(total),
+                    mean_error="0.001", leak_fraction="0.05", p99_error="0.1")
+    return [row("avsm", "avsm-8", 10, 30.1, 64, 0.02, 0.03, 0.025),
+            row("fom", "fom-4/depth_range=texel", 10, 15.4, 44, 0.04, 0.02, 0.02),
+            row("fom", "fom-4", 10, 17.2, 36, 0.001, 0.001, 0.001),           # not the preset: left out
+            row("avsm", "avsm-2", 1, 7.6, 16, 0.2, 0.3, 0.25)]                 # base configuration only
+
+
+def _table_header(md: str, first: str) -> str:
+    return next(line for line in md.splitlines() if line.startswith(f"| {first} |"))
+
+
+def test_measured_tables_show_sparse_bytes_and_both_metrics(tmp_path):
+    """Every generated measured table (each kind's page, the choosing page's budget table) has a
+    sparse bytes column beside the dense one and both metrics (receiver RMSE, depth-uniform L2),
+    and says which settings and configurations it uses; the kind pages and the budget table use
+    the kinds' presets measured in every configuration, not their headline settings."""
+    ext = _ext()
+    ext.generate(tmp_path)
+    for page in (tmp_path / "representations").glob("*.md"):
+        if "| scene |" in page.read_text():
+            head = _table_header(page.read_text(), "scene")
+            assert "sparse bytes" in head and "dense bytes" in head and "depth L2" in head, page.name
+            assert "receiver RMSE" in head and "signed mean" in head and "leak share" in head, page.name
+            assert "configuration" in page.read_text().split("## Measured error")[1].split("| scene |")[0]
+    settings = _settings_rows()
+    meta = {"params": {"configs": [[0, "dir_a"], [0, "spot"]] + [[s, "dir_b"] for s in range(8)]}}
+    table = ext.choosing_table(settings, meta)
+    head = _table_header(table, "scene")
+    assert "sparse" in head and "depth L2" in head and "receiver RMSE" in head
+    assert "`avsm-8`" in table and "`fom-4/depth_range=texel`" in table and "`fom-4`" not in table
+    assert "`avsm-2`" not in table and "s0-dir_a" in table.splitlines()[0] and "all 10 configurations" in table
+    # budget in sparse bytes: at <= 32 B AVSM-8 (30.1 sparse, 64 dense) fits and has the lowest RMSE
+    assert "| plume | <= 32 | `avsm-8` | 30.1 / 64 | 0.02 / 0.03 | depth L2: `fom-4/depth_range=texel` 0.02; " \
+           "vs truth: `fom-4/depth_range=texel` 0.02 |" in table
+    assert "| plume | <= 16 | `fom-4/depth_range=texel` | 15.4 / 44 | 0.04 / 0.02 | - |" in table
+    assert "| plume | <= 8 | none fits |" in table
+    page = ext.kind_page("fom", sweep=[], settings=settings, bench=[])
+    assert "| plume | 15.4 | 44 | 0.04 | 0.02 | 0.02 | 0.001 | 0.05 | 2 / 1 of 2 |" in page
+    assert "`fom-4/depth_range=texel`" in page.split("| scene |")[0]
+
+
+def test_claims_without_depth_l2_say_why():
+    ext = _ext()
+    rows = [dict(name="c1", scene="plume", statement="A", order="-", at_preset="True", estimate="0.5", low="0.4",
+                 high="0.6", depth_l2_estimate="", depth_l2_low="", depth_l2_high="",
+                 depth_l2_note=ext.L2_NOTES["compare"], n_configs="10", verdict="holds pooled")]
+    assert "| n/a (a difference of errors) |" in ext.claims_table(rows)
+    assert ext._l2_note({"compare": "difference"}) == ext.L2_NOTES["compare"]
+    assert ext._l2_note({"a": {"study": "global_range"}, "b": {"study": "global_range"}}) == ext.L2_NOTES["study"]
+    assert ext._l2_note({"metrics": {"depth_l2": {"estimate": 1.0}}}) == ""
+
+
+def test_reduce_data_keeps_sparse_bytes_depth_l2_and_presets(tmp_path):
+    """``reduce_data`` on a tiny run: the sweep keeps the presets' rows of the base configuration,
+    the settings' medians include sparse bytes and depth L2; a run without those columns is refused."""
+    import csv
+    import json
+    ext = _ext()
+    ec = tmp_path / "run" / "error_curves"
+    ec.mkdir(parents=True)
+    common = dict(scene="plume", receivers="in_volume", study="main", opaque="inline", order="-", method="fom",
+                  param="4", curve="False", base="False", total_rmse="0.05", mean_error="0", leak_fraction="0",
+                  p99_error="0.1", bytes_per_texel="44")
+    rows = [dict(common, config="s0-dir_a", base="True", setting="fom-4/depth_range=texel", bytes="20",
+                 rmse="0.01", depth_l2="0.02"),
+            dict(common, config="s0-dir_a", base="True", setting="fom-4", curve="True", bytes="18", rmse="0.03",
+                 depth_l2="0.04", bytes_per_texel="36"),
+            dict(common, config="s1-dir_b", setting="fom-4/depth_range=texel", bytes="22", rmse="0.03",
+                 depth_l2="0.06")]
+    with open(ec / "data.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    claims = {"c": {"statement": "s", "scene": "plume", "estimate": 0.5, "compare": "difference",
+                    "a": {"study": "main"}, "b": {"study": "main"}}}
+    (ec / "findings.json").write_text(json.dumps({"claims": claims, "run_seconds": 1.0}))
+    (ec / "meta.json").write_text(json.dumps({"params": {"configs": [[0, "dir_a"], [1, "dir_b"]]}}))
+    ext.reduce_data(tmp_path / "run", tmp_path / "out")
+    read = {n: list(csv.DictReader(open(tmp_path / "out" / n))) for n in ("error_sweep.csv", "error_settings.csv",
+                                                                        "error_claims.csv")}
+    sweep = {r["setting"]: r for r in read["error_sweep.csv"]}
+    assert sweep["fom-4/depth_range=texel"]["preset"] == "True" and sweep["fom-4"]["preset"] == "False"
+    assert sweep["fom-4"]["curve"] == "True" and sweep["fom-4"]["bytes"] == "18"
+    preset = next(r for r in read["error_settings.csv"] if r["setting"] == "fom-4/depth_range=texel")
+    assert (preset["configs"], preset["bytes"], preset["rmse"], preset["depth_l2"]) == ("2", "21", "0.02", "0.04")
+    assert read["error_claims.csv"][0]["depth_l2_note"] == ext.L2_NOTES["compare"]
+    for r in rows:
+        del r["depth_l2"]
+    with open(ec / "data.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    with pytest.raises(ValueError, match="depth_l2"):
+        ext.reduce_data(tmp_path / "run", tmp_path / "out2")
+
+
+def test_committed_data_has_sparse_bytes_and_depth_l2():
+    """docs/data is reduced from a run with sparse bytes and the depth-uniform L2 (else the tables
+    above show '-'): regenerate with ``python docs/_ext/avsm_docs.py data DIR``."""
+    ext = _ext()
+    settings, sweep = ext.read_rows("error_settings.csv"), ext.read_rows("error_sweep.csv")
+    assert settings and {"bytes", "depth_l2"} <= set(settings[0]), "regenerate docs/data"
+    assert sweep and "preset" in sweep[0] and {"bytes", "depth_l2"} <= set(sweep[0])
+    assert "depth_l2_note" in ext.read_rows("error_claims.csv")[0]

@@ -189,22 +189,72 @@ def _g(x, digits=2) -> str:
     return "-" if not math.isfinite(x) else f"{x:.{digits}g}" if abs(x) < 1e4 else f"{x:.3g}"
 
 
-#: Columns kept from ``error_curves/data.csv`` (the sweep and settings tables).
-ERROR_COLUMNS = ("scene", "method", "param", "setting", "bytes_per_texel", "rmse", "total_rmse", "mean_error",
-                 "max_error", "p99_error", "leak_fraction", "dark_fraction", "capture_rms", "spatial_rms")
+#: Columns kept from ``error_curves/data.csv`` for the size sweep: ``bytes`` is the sparse layout
+#: (an occupancy bit per texel, the non-empty texels' payload, offsets where the size varies),
+#: ``bytes_per_texel`` the dense one (every texel stored); ``rmse`` the receiver RMSE and
+#: ``depth_l2`` the depth-uniform L2, both against the exact curve.
+ERROR_COLUMNS = ("scene", "config", "method", "param", "setting", "bytes", "bytes_per_texel", "rmse", "depth_l2",
+                 "total_rmse", "mean_error", "max_error", "p99_error", "leak_fraction", "dark_fraction",
+                 "capture_rms", "spatial_rms")
+#: Columns of ``error_settings.csv``: medians over the configurations that measured the setting.
+SETTING_COLUMNS = ("bytes", "bytes_per_texel", "rmse", "depth_l2", "total_rmse", "mean_error", "leak_fraction",
+                   "p99_error")
+#: Why a claim has no depth-uniform L2 (``depth_l2_note`` of ``error_claims.csv``).
+L2_NOTES = {"statistic": "a signed mean, not an RMSE", "compare": "a difference of errors",
+            "study": "depth-range study: receivers only", "exact": "a side is the exact map (L2 0)",
+            "none": "not measured"}
+
+
+def preset_settings(kind: str) -> set[str]:
+    """Setting labels of ``kind`` at its best-practice preset (``ad.describe(kind)["preset"]``),
+    one per size of its sweep and its headline size (``fom-8/depth_range=texel``)."""
+    d = _describe(kind)
+    sizes = ([d["headline"].get(d["size"]), *d.get("sweep", ())] if d["size"] else [None])
+    out = set()
+    for v in sizes:
+        params = dict(d["headline"], **({d["size"]: v} if d["size"] and v is not None else {}))
+        out.add(_label_of(kind, dict(params, **(d.get("preset") or {})), d))
+    return out
+
+
+def headline_preset(kind: str) -> str:
+    """The label of ``kind``'s preset at its headline size (the kind pages' setting)."""
+    d = _describe(kind)
+    return _label_of(kind, dict(d["headline"], **(d.get("preset") or {})), d)
+
+
+def _l2_note(claim: dict) -> str:
+    """Why ``claim`` (of ``findings.json``) has no depth-uniform L2; "" when it has one."""
+    if (claim.get("metrics") or {}).get("depth_l2"):
+        return ""
+    sides = [claim.get(k) or {} for k in ("a", "b")]
+    if claim.get("statistic", "rmse") != "rmse":
+        return L2_NOTES["statistic"]
+    if claim.get("compare", "ratio") != "ratio":
+        return L2_NOTES["compare"]
+    if any(s.get("study", "main") != "main" for s in sides):
+        return L2_NOTES["study"]
+    if any(s.get("term") == "zero" or str(s.get("variant", "")).startswith("exact") for s in sides):
+        return L2_NOTES["exact"]
+    return L2_NOTES["none"]
 
 
 def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
     """Write the small CSVs the docs read from an experiment output folder ``results``
     (``results/error_curves/data.csv``, ``results/bench/data.csv``):
 
-    * ``error_sweep.csv`` - base configuration, in-volume receivers, every kind's size sweep
-      (``curve`` rows): error against the exact curve (``rmse``) and the truth (``total_rmse``);
+    * ``error_sweep.csv`` - base configuration, in-volume receivers, every kind's size sweep at
+      its default tuning (``curve`` True) and at its best-practice preset (``preset`` True), columns
+      :data:`ERROR_COLUMNS`: sparse and dense bytes, receiver RMSE and depth-uniform L2 against
+      the exact curve, RMSE against the truth;
     * ``error_settings.csv`` - every setting measured in every configuration (in-volume
       receivers, opaque content inline, main study, order-dependent kinds front to back):
-      medians over configurations;
-    * ``error_claims.csv`` - the papers' claims of ``findings.json`` (pooled estimate, interval, verdict);
+      ``configs`` (how many) and medians over them of :data:`SETTING_COLUMNS`;
+    * ``error_claims.csv`` - the papers' claims of ``findings.json`` (pooled estimate, interval,
+      verdict; the depth-uniform L2's, or in ``depth_l2_note`` why a claim has none);
     * ``bench.csv`` - the throughput table of ``bench`` as written (it is small).
+
+    ValueError when ``data.csv`` lacks the sparse bytes or depth L2 columns (a run older than them).
     """
     results, written = Path(results), []
     out.mkdir(parents=True, exist_ok=True)
@@ -212,7 +262,18 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
     if src.exists():
         with open(src, newline="") as f:
             rows = list(csv.DictReader(f))
-        sweep = [dict({k: r.get(k, "") for k in ERROR_COLUMNS}, curve="True") for r in rows if r.get("curve") == "True"]
+        lacking = [c for c in ("bytes", "depth_l2", "base") if rows and c not in rows[0]]
+        if lacking:
+            raise ValueError(f"results: {src} has no column {', '.join(lacking)} (rerun error_curves)")
+        sweep = []
+        for r in rows:
+            if not (r.get("base") == "True" and r["receivers"] == "in_volume" and r["study"] == "main"
+                    and r["opaque"] == "inline" and r.get("order", "-") in ("depth", "-") and r["setting"]):
+                continue
+            preset = r["method"] in _registry() and r["setting"] in preset_settings(r["method"])
+            if r.get("curve") == "True" or preset:
+                sweep.append(dict({k: r.get(k, "") for k in ERROR_COLUMNS}, curve=r.get("curve") == "True",
+                                  preset=preset))
         groups: dict = {}
         for r in rows:
             if r["receivers"] == "in_volume" and r["study"] == "main" and r["opaque"] == "inline" and r["setting"] \
@@ -220,9 +281,8 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
                 groups.setdefault((r["scene"], r["method"], r["setting"]), []).append(r)
         settings = []
         for (scene, method, setting), rs in sorted(groups.items()):
-            row = {"scene": scene, "method": method, "setting": setting, "configs": len(rs),
-                   "bytes_per_texel": rs[0]["bytes_per_texel"]}
-            for k in ("rmse", "total_rmse", "mean_error", "leak_fraction", "p99_error"):
+            row = {"scene": scene, "method": method, "setting": setting, "configs": len(rs)}
+            for k in SETTING_COLUMNS:
                 vals = [_num(r[k]) for r in rs if math.isfinite(_num(r[k]))]
                 row[k] = f"{statistics.median(vals):.6g}" if vals else ""
             settings.append(row)
@@ -235,14 +295,15 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
         claims = json.loads((results / "error_curves" / "findings.json").read_text()).get("claims", {})
         with open(out / "error_claims.csv", "w", newline="") as f:
             fields = ("name", "scene", "statement", "order", "at_preset", "estimate", "low", "high",
-                      "depth_l2_estimate", "depth_l2_low", "depth_l2_high", "n_configs", "indicative",
-                      "metric_dependent", "verdict")
+                      "depth_l2_estimate", "depth_l2_low", "depth_l2_high", "depth_l2_note", "n_configs",
+                      "indicative", "metric_dependent", "verdict")
             w = csv.DictWriter(f, fieldnames=fields)
             w.writeheader()
             for name, c in claims.items():
                 l2 = (c.get("metrics") or {}).get("depth_l2") or {}
                 row = {k: c.get(k, "") for k in fields}
                 row.update(name=name, at_preset=all((c.get("preset") or {"a": False}).values()),
+                           depth_l2_note=_l2_note(c),
                            **{f"depth_l2_{k}": l2.get(k, "") for k in ("estimate", "low", "high")})
                 w.writerow(row)
         written.append(out / "error_claims.csv")
@@ -258,6 +319,11 @@ def reduce_data(results: Path, out: Path = DATA) -> list[Path]:
         (out / "bench.csv").write_text(src.read_text())
         written.append(out / "bench.csv")
     return written
+
+
+def _registry():
+    import avsm_dr as ad
+    return ad.REGISTRY
 
 
 # ================================================================= kind pages
@@ -277,11 +343,20 @@ def _param_table(d: dict) -> list[str]:
     return lines
 
 
+def _preset_sweep(sweep: list[dict]) -> list[dict]:
+    """The rows of ``error_sweep.csv`` at each kind's preset (every size of its sweep)."""
+    return [r for r in sweep if r.get("preset") == "True"]
+
+
 def error_figures(kinds: list[str], sweep: list[dict], folder: Path) -> set[str]:
-    """``<kind>_error.png`` per kind with measurements: error against bytes per texel, one panel
-    per scene, the kind in colour over every other kind in grey.  One figure, redrawn per kind;
+    """``<kind>_error.png`` per kind with measurements: receiver RMSE against sparse bytes per
+    texel over the size sweep at the kinds' presets, one panel per scene, the kind in colour
+    over every other kind in grey.  One figure, redrawn per kind;
     skipped when ``folder`` holds figures of the same data (a hash of the rows and kinds)."""
+    sweep = _preset_sweep(sweep)
     have = [k for k in kinds if k != "exact" and any(r["method"] == k for r in sweep)]
+    if not have:
+        return set()
     stamp = folder / "error_figures.stamp"
     key = hashlib.sha1(json.dumps([sweep, have], sort_keys=True).encode()).hexdigest()
     if stamp.exists() and stamp.read_text() == key and all((folder / f"{k}_error.png").exists() for k in have):
@@ -297,15 +372,15 @@ def error_figures(kinds: list[str], sweep: list[dict], folder: Path) -> set[str]
     for ax, scene in zip(axes[0], scenes):
         for method in sorted({r["method"] for r in sweep} - {"exact"}):
             rs = sorted((r for r in sweep if r["scene"] == scene and r["method"] == method),
-                        key=lambda r: _num(r["bytes_per_texel"]))
-            x, y = [_num(r["bytes_per_texel"]) for r in rs], [max(_num(r["rmse"]), 1e-6) for r in rs]
+                        key=lambda r: _num(r["bytes"]))
+            x, y = [_num(r["bytes"]) for r in rs], [max(_num(r["rmse"]), 1e-6) for r in rs]
             lines[(scene, method)] = ax.loglog(x, y, ".-", color="0.75", lw=0.8, ms=3, zorder=1)[0]
         ax.set_title(scene, fontsize=9)
-        ax.set_xlabel("bytes per texel", fontsize=8)
+        ax.set_xlabel("sparse bytes per texel", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.xaxis.set_minor_locator(NullLocator())
         ax.yaxis.set_minor_locator(NullLocator())
-    axes[0][0].set_ylabel("RMSE vs exact curve", fontsize=8)
+    axes[0][0].set_ylabel("receiver RMSE vs exact curve", fontsize=8)
     for kind in have:
         mine = [ln for (_, m), ln in lines.items() if m == kind]
         for ln in mine:
@@ -323,12 +398,43 @@ def error_figures(kinds: list[str], sweep: list[dict], folder: Path) -> set[str]
     return set(have)
 
 
+def _meta() -> dict:
+    path = DATA / "error_curves_meta.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def config_labels(meta=None) -> list[str]:
+    """The committed run's configurations (``s0-dir_a``: seed 0, light ``dir_a``), the base one first."""
+    meta = _meta() if meta is None else meta
+    return [f"s{s}-{li}" for s, li in meta.get("params", {}).get("configs", [])]
+
+
+def configs_text(n, labels: list[str]) -> str:
+    """Which configurations a median over ``n`` of them is over, named from ``labels``."""
+    n = int(_num(n)) if math.isfinite(_num(n)) else 0
+    if labels and n == len(labels):
+        return f"medians over all {n} configurations ({', '.join(f'`{c}`' for c in labels)})"
+    if n == 1:
+        return "the base configuration" + (f" `{labels[0]}`" if labels else "") + " only"
+    return f"medians over {n} configurations"
+
+
+def _ranks(row: dict, peers: list[dict]) -> str:
+    """``row``'s rank by receiver RMSE and by depth L2 among ``peers`` (itself included)."""
+    out = []
+    for col in ("rmse", "depth_l2"):
+        vals = [_num(r.get(col)) for r in peers if math.isfinite(_num(r.get(col)))]
+        mine = _num(row.get(col))
+        out.append(f"{1 + sum(v < mine for v in vals)}" if math.isfinite(mine) else "-")
+    return f"{out[0]} / {out[1]} of {len(peers)}"
+
+
 def _measured_section(kind: str, d: dict, sweep: list[dict], settings: list[dict], bench: list[dict],
                       figure: str | None) -> list[str]:
     out = ["## Measured error", ""]
-    meta_path = DATA / "error_curves_meta.json"
-    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    meta = _meta()
     params = meta.get("params", {})
+    labels = config_labels(meta)
     source = (f"`python -m experiments error_curves` ({params.get('resolution', '?')}^2 maps, "
               f"{len(params.get('scenes', [])) or '?'} scenes, {params.get('n_volume', '?')} in-volume receivers "
               "per configuration; the command and files: [the data](../../data.md))")
@@ -336,31 +442,40 @@ def _measured_section(kind: str, d: dict, sweep: list[dict], settings: list[dict
     if not mine:
         out += [f"No measurement of `{kind}` in `docs/data/` yet: rerun the command in `docs/data/README.md`.", ""]
     else:
-        head = _label_of(kind, d["headline"], d)
-        scenes = sorted({r["scene"] for r in settings})
-        out += [f"From {source}. Medians over the configurations (seeds x lights) at the setting `{head}`, "
-                "in-volume receivers: error against the exact curve of the same segments (what the "
-                "compression loses), against the true transmittance (what a renderer sees), mean signed "
-                "error (> 0: light leaks) and the rank of that compression error among every kind's "
-                "headline setting.", "",
-                "| scene | bytes / texel | RMSE vs exact | RMSE vs truth | mean signed | rank |",
-                "| --- | --- | --- | --- | --- | --- |"]
-        heads = {k: _label_of(k, _describe(k)["headline"], _describe(k)) for k in {r["method"] for r in settings}}
-        for scene in scenes:
-            row = next((r for r in mine if r["scene"] == scene and r["setting"] == head), None)
-            if row is None:
-                continue
-            peers = sorted(_num(r["rmse"]) for r in settings if r["scene"] == scene and r["method"] != "exact"
-                           and r["setting"] == heads.get(r["method"]))
-            rank = (f"{1 + sum(v < _num(row['rmse']) for v in peers)} of {len(peers)}"
-                    if kind != "exact" else "-")
-            out.append(f"| {scene} | {_g(_num(row['bytes_per_texel']), 3)} | {_g(_num(row['rmse']))} | "
-                       f"{_g(_num(row['total_rmse']))} | {_g(_num(row['mean_error']))} | {rank} |")
+        setting = headline_preset(kind)
+        what = f'its best-practice preset (`ad.describe("{kind}")["preset"]`) at its headline size'
+        rows = {r["scene"]: r for r in mine if r["setting"] == setting}
+        if not rows:                        # a run that did not measure the preset (quick mode)
+            setting, what = _label_of(kind, d["headline"], d), "its headline setting (the run has no preset rows)"
+            rows = {r["scene"]: r for r in mine if r["setting"] == setting}
+        counts = sorted({r["configs"] for r in rows.values()}, key=_num)
+        heads = {k: headline_preset(k) for k in {r["method"] for r in settings} if k != "exact"}
+        out += [f"From {source}. Every row: `{setting}`, {what}; in-volume receivers, opaque content inline, "
+                f"built front to back; {'; '.join(configs_text(n, labels) for n in counts)}. Bytes per texel: "
+                "sparse (an occupancy bit per texel, the payload of the non-empty texels and offsets where the "
+                "size varies; what a map costs) and dense (every texel stored, `nbytes_per_texel`). Error against "
+                "the exact curve of the same segments (what the compression loses): receiver RMSE and "
+                "depth-uniform L2 (every depth of a texel weighted alike); receiver RMSE against the true "
+                "transmittance (what a renderer sees); signed mean error (> 0: light leaks); leak share "
+                "(receivers more than 0.02 too bright); rank of the receiver RMSE / depth L2 among every "
+                "kind's preset at its headline size measured in the same configurations.", "",
+                "| scene | sparse bytes / texel | dense bytes / texel | receiver RMSE vs exact | depth L2 vs exact "
+                "| RMSE vs truth | signed mean | leak share | rank (RMSE / L2) |",
+                "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for scene, row in sorted(rows.items()):
+            peers = [r for r in settings if r["scene"] == scene and r["setting"] == heads.get(r["method"])
+                     and r["configs"] == row["configs"]]
+            rank = _ranks(row, peers) if kind != "exact" else "-"
+            out.append(f"| {scene} | {_g(_num(row.get('bytes')), 3)} | {_g(_num(row['bytes_per_texel']), 3)} | "
+                       f"{_g(_num(row['rmse']))} | {_g(_num(row.get('depth_l2')))} | {_g(_num(row['total_rmse']))} | "
+                       f"{_g(_num(row['mean_error']))} | {_g(_num(row.get('leak_fraction')))} | {rank} |")
         out.append("")
     if figure:
-        out += [f"![error of {kind} against bytes per texel]({figure})", "",
-                "Error against the exact curve over the size sweep (base configuration, in-volume receivers); "
-                "grey: every other kind.", ""]
+        base = f"`{labels[0]}`" if labels else ""
+        out += [f"![error of {kind} against sparse bytes per texel]({figure})", "",
+                f"Receiver RMSE against the exact curve over the size sweep, every kind at its preset, against "
+                f"sparse bytes per texel: the base configuration {base} only (the sweep's sizes are measured "
+                "there alone), in-volume receivers, opaque content inline; grey: every other kind.", ""]
     out += ["## Measured speed", ""]
     mine = [r for r in bench if r.get("method") == kind and r.get("impl", "drjit") == "drjit"]
     if not mine:
@@ -372,7 +487,8 @@ def _measured_section(kind: str, d: dict, sweep: list[dict], settings: list[dict
                 "lookup = receivers/s; first call = the first build including JIT compilation. Rates on "
                 "small maps under load are lower bounds; [Performance](../../performance.md) gives the "
                 "full-size figures.", "",
-                "| map | setting | bytes / texel | build (insertions/s) | lookup (receivers/s) | first call (s) |",
+                "| map | setting | dense bytes / texel | build (insertions/s) | lookup (receivers/s) "
+                "| first call (s) |",
                 "| --- | --- | --- | --- | --- | --- |"]
         for r in mine:
             out.append(f"| {r['map']} | `{r['setting']}` | {_g(_num(r['nbytes_per_texel']), 3)} | "
@@ -388,7 +504,8 @@ _DESCRIBE_CACHE: dict = {}
 def _describe(kind):
     import avsm_dr as ad
     if kind not in _DESCRIBE_CACHE:
-        _DESCRIBE_CACHE[kind] = ad.describe(kind) if kind in ad.REGISTRY else {"headline": {}, "size": None}
+        _DESCRIBE_CACHE[kind] = ad.describe(kind) if kind in ad.REGISTRY else {"headline": {}, "size": None,
+                                                                             "preset": {}, "sweep": []}
     return _DESCRIBE_CACHE[kind]
 
 
@@ -443,31 +560,46 @@ def kind_page(kind: str, sweep=None, settings=None, bench=None, figure: str | No
 BUDGETS = (8, 16, 32, 64, 128)
 
 
-def choosing_table(sweep=None) -> str:
-    """Per scene and budget of bytes per texel: the streaming (not offline) setting with the
-    lowest error against the exact curve in the size sweeps of ``docs/data/error_sweep.csv``,
-    and the lowest error against the truth."""
+def choosing_table(settings=None, meta=None) -> str:
+    """Per scene and budget of sparse bytes per texel: among the streaming kinds' presets at every
+    size measured in all configurations (medians over them, ``docs/data/error_settings.csv``), the
+    setting with the lowest receiver RMSE against the exact curve within the budget (its sparse
+    and dense bytes, receiver RMSE and depth L2), and the settings with the lowest depth L2 and
+    the lowest RMSE against the truth where they differ."""
     import avsm_dr as ad
-    sweep = read_rows("error_sweep.csv") if sweep is None else sweep
-    rows = [r for r in sweep if r["method"] in ad.REGISTRY and r["method"] != "exact"
-            and not ad.describe(r["method"])["offline"] and math.isfinite(_num(r["rmse"]))]
+    settings = read_rows("error_settings.csv") if settings is None else settings
+    labels = config_labels(meta)
+    n_all = max((_num(r["configs"]) for r in settings), default=0)
+    rows = [r for r in settings if r["method"] in ad.REGISTRY and r["method"] != "exact"
+            and not ad.describe(r["method"])["offline"] and r["setting"] in preset_settings(r["method"])
+            and _num(r["configs"]) == n_all and math.isfinite(_num(r["rmse"])) and math.isfinite(_num(r.get("bytes")))]
     if not rows:
-        return "*(no measurements in `docs/data/error_sweep.csv`)*"
-    out = ["| scene | " + " | ".join(f"<= {b} bytes" for b in BUDGETS) + " |", "| --- |" + " --- |" * len(BUDGETS)]
+        return "*(no preset settings with sparse bytes in `docs/data/error_settings.csv`)*"
+    size = {r["setting"]: _num(r["setting"].rsplit("-", 1)[-1].split("/")[0]) for r in rows}
+    used = sorted(size, key=lambda x: (x.rsplit("-", 1)[0] if math.isfinite(size[x]) else x,
+                                       size[x] if math.isfinite(size[x]) else 0))
+    out = [f"Candidates: every streaming kind at its best-practice preset, at each size measured in all "
+           f"configurations ({', '.join(f'`{u}`' for u in used)}); in-volume receivers, opaque content inline, "
+           f"built front to back; {configs_text(n_all, labels)}. Budget and bytes: sparse bytes per texel "
+           "(median over the configurations), dense bytes beside them.", "",
+           "| scene | budget: sparse B / texel | lowest receiver RMSE vs exact | sparse / dense B "
+           "| receiver RMSE / depth L2 | where another setting wins |", "| --- | --- | --- | --- | --- | --- |"]
+
+    def finite_min(fit, col):
+        return min(fit, key=lambda r: _num(r.get(col)) if math.isfinite(_num(r.get(col))) else math.inf)
+
     for scene in sorted({r["scene"] for r in rows}):
-        cells = []
         for b in BUDGETS:
-            fit = [r for r in rows if r["scene"] == scene and _num(r["bytes_per_texel"]) <= b]
+            fit = [r for r in rows if r["scene"] == scene and _num(r["bytes"]) <= b]
             if not fit:
-                cells.append("-")
+                out.append(f"| {scene} | <= {b} | none fits | - | - | - |")
                 continue
             best = min(fit, key=lambda r: _num(r["rmse"]))
-            truth = min(fit, key=lambda r: _num(r["total_rmse"]))
-            cell = f"`{best['setting']}` {_g(_num(best['rmse']))}"
-            if truth["setting"] != best["setting"]:
-                cell += f" (truth: `{truth['setting']}` {_g(_num(truth['total_rmse']))})"
-            cells.append(cell)
-        out.append(f"| {scene} | " + " | ".join(cells) + " |")
+            others = [f"{name}: `{r['setting']}` {_g(_num(r[col]))}" for name, col in
+                      (("depth L2", "depth_l2"), ("vs truth", "total_rmse")) if (r := finite_min(fit, col)) is not best]
+            out.append(f"| {scene} | <= {b} | `{best['setting']}` | {_g(_num(best['bytes']), 3)} / "
+                       f"{_g(_num(best['bytes_per_texel']), 3)} | {_g(_num(best['rmse']))} / "
+                       f"{_g(_num(best.get('depth_l2')))} | {'; '.join(others) or '-'} |")
     return "\n".join(out)
 
 
@@ -550,7 +682,7 @@ def generate(gen: Path = GEN) -> list[str]:
     for kind in kinds:
         _write(gen / "representations" / f"{kind}.md",
                kind_page(kind, sweep, settings, bench, f"{kind}_error.png" if kind in figures else None) + "\n")
-    _write(gen / "fragments" / "choosing_table.md", choosing_table(sweep) + "\n")
+    _write(gen / "fragments" / "choosing_table.md", choosing_table(settings) + "\n")
     _write(gen / "fragments" / "claims_table.md", claims_table() + "\n")
     _write(gen / "fragments" / "experiments_table.md", experiments_table() + "\n")
     integrations, research = joined_pages_toctrees()
@@ -629,13 +761,13 @@ def claim_text(spec: str, claims=None) -> str:
 
 def measured_text(spec: str, settings=None) -> str:
     """The text of the ``{measured}`` role: ``scene:setting:column`` -> the median over
-    configurations in ``docs/data/error_settings.csv`` (2 significant digits; bytes per texel 3,
-    as the kinds' tables: ``136``, not ``1.4e+02``)."""
+    configurations in ``docs/data/error_settings.csv`` (2 significant digits; bytes per texel,
+    ``bytes`` sparse and ``bytes_per_texel`` dense, 3 as the kinds' tables: ``136``, not ``1.4e+02``)."""
     settings = read_rows("error_settings.csv") if settings is None else settings
     scene, setting, column = spec.split(":")
     for r in settings:
         if r["scene"] == scene and r["setting"] == setting:
-            return _g(_num(r[column]), 3 if column == "bytes_per_texel" else 2)
+            return _g(_num(r[column]), 3 if column in ("bytes", "bytes_per_texel") else 2)
     raise KeyError(f"no setting {setting!r} on {scene!r} in docs/data/error_settings.csv")
 
 
@@ -673,7 +805,8 @@ def claims_table(rows=None) -> str:
            "| configs | verdict |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     claims = {r["name"]: r for r in rows}
     for r in rows:
-        l2 = claim_text(r["name"] + ":depth_l2", claims) if math.isfinite(_num(r.get("depth_l2_estimate"))) else "-"
+        l2 = claim_text(r["name"] + ":depth_l2", claims) if math.isfinite(_num(r.get("depth_l2_estimate"))) \
+            else f"n/a ({r.get('depth_l2_note') or L2_NOTES['none']})"
         est = claim_text(r["name"], claims) if math.isfinite(_num(r["estimate"])) else "-"
         statement = r["statement"].replace("|", "/")
         out.append(f"| {statement} (`{r['name']}`) | {r['scene']} | {r.get('order', '-')} | "
