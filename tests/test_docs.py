@@ -243,13 +243,18 @@ def test_numbers_on_pages_come_from_the_committed_data():
                  n_configs="10", indicative="False", metric_dependent="False", verdict="holds pooled")]
     claims = {r["name"]: r for r in rows}
     assert ext.claim_text("c1", claims) == "0.18 [0.17, 0.19]"
-    assert ext.claim_text("c1:depth_l2", claims) == "0.5 [0.4, 0.61]"
+    assert ext.claim_text("c1:depth_l2", claims) == "0.50 [0.40, 0.61]"
+    # bounds that print alike at 2 digits get more (up to 6); trailing zeros stay
+    assert ext.interval_text(0.99997, 0.99991, 0.999998) == "1.000 [0.9999, 1.000]"
+    assert ext.interval_text(1.1, 1.04, 1.2) == "1.1 [1.0, 1.2]"
+    assert ext.interval_text(10.15, 7.8, 13.6) == "10 [7.8, 14]"
+    assert ext.interval_text(1.0, 1.0, 1.0) == "1.00000 [1.00000, 1.00000]"
     assert ext.claim_text("c1:configs", claims) == "10" and ext.claim_text("c1:verdict", claims) == "holds pooled"
     for bad in ("c2", "c1:nonsense"):
         with pytest.raises(KeyError):
             ext.claim_text(bad, claims)
     table = ext.claims_table(rows)
-    assert "| A / B (`c1`) | plume | depth | no | 0.18 [0.17, 0.19] | 0.5 [0.4, 0.61] | 10 | holds pooled |" in table
+    assert "| A / B (`c1`) | plume | depth | no | 0.18 [0.17, 0.19] | 0.50 [0.40, 0.61] | 10 | holds pooled |" in table
     settings = [dict(scene="plume", setting="avsm-8", rmse="0.01234", bytes_per_texel="136.0")]
     assert ext.measured_text("plume:avsm-8:rmse", settings) == "0.012"
     assert ext.measured_text("plume:avsm-8:bytes_per_texel", settings) == "136"      # not 1.4e+02

@@ -751,12 +751,26 @@ def claim_text(spec: str, claims=None) -> str:
         est, lo, hi = (_num(c[f"{pre}{k}"]) for k in ("estimate", "low", "high"))
         if not math.isfinite(est):
             raise KeyError(f"claim {cid!r} has no {field or 'receiver RMSE'} estimate")
-        return f"{est:.2g} [{lo:.2g}, {hi:.2g}]" if math.isfinite(lo) else f"{est:.2g}"
+        return interval_text(est, lo, hi)
     if field == "verdict":
         return c["verdict"]
     if field == "configs":
         return c["n_configs"]
     raise KeyError(f"claim {cid!r}: unknown field {field!r} (depth_l2, verdict, configs)")
+
+
+def interval_text(est: float, lo: float, hi: float) -> str:
+    """``est [lo, hi]`` with 2 significant digits, trailing zeros kept (``1.0``, not ``1``), and
+    more digits (up to 6) while the two bounds would print alike: a ratio of 0.99997 [0.99991,
+    1.0000] is not written ``1 [1, 1]``."""
+    def text(x, d):
+        return f"{x:#.{d}g}".rstrip(".")
+    if not math.isfinite(lo):
+        return text(est, 2)
+    d = 2
+    while d < 6 and text(lo, d) == text(hi, d):
+        d += 1
+    return f"{text(est, d)} [{text(lo, d)}, {text(hi, d)}]"
 
 
 def measured_text(spec: str, settings=None) -> str:
