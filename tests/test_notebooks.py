@@ -1,5 +1,7 @@
 """The notebooks (jupytext ``py:percent`` sources in notebooks/) run top to bottom at small sizes,
-so they cannot drift from the API; the docs build runs them at full size."""
+so they cannot drift from the API; the docs build runs them too (CI: at the small sizes, before
+the tests), and a test reads that build's executed copy instead of running a notebook twice when
+the copy is newer than everything the notebook runs."""
 from pathlib import Path
 
 import pytest
@@ -9,7 +11,22 @@ nbclient = pytest.importorskip("nbclient")
 
 #: matplotlib's backend in a Jupyter kernel (figures as image/png outputs; Agg would drop them).
 INLINE = "module://matplotlib_inline.backend_inline"
-NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9][0-9]_*.py"))
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("[0-9][0-9]_*.py"))
+#: Where the docs build (myst-nb, ``nb_execution_mode = "force"``) writes the notebooks it executed.
+BUILT = ROOT / "docs" / "_build" / "jupyter_execute" / "_generated" / "notebooks"
+
+
+def built_copy(path: Path):
+    """The docs build's executed copy of the notebook ``path`` when it was written after every
+    file it runs was last changed (its source, the package, the studies, docs/data): the build
+    ran this code and raises on a cell's error.  None otherwise (no build, or a stale one)."""
+    built = BUILT / f"{path.stem}.ipynb"
+    if not built.exists():
+        return None
+    inputs = [path, *(ROOT / "avsm_dr").rglob("*.py"), *(ROOT / "experiments").rglob("*.py"),
+              *(ROOT / "docs" / "data").iterdir()]
+    return built if built.stat().st_mtime > max(p.stat().st_mtime for p in inputs) else None
 
 
 def test_notebooks_found():
@@ -23,15 +40,38 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", INLINE)                # figures become outputs, as in the docs
     nb = jupytext.read(path, fmt="py:percent")
     assert nb.cells[0].cell_type == "markdown" and nb.cells[0].source.startswith("# "), "title cell first"
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                     resources={"metadata": {"path": str(tmp_path)}})
-    client.execute()
+    built = built_copy(path)
+    if built is not None:                                   # the docs build ran it: read its outputs
+        import nbformat
+        ran = nbformat.read(built, as_version=4)
+        assert [c.source for c in ran.cells if c.cell_type == "code"] == \
+            [c.source for c in nb.cells if c.cell_type == "code"], f"{built} is not this notebook"
+        nb = ran
+    else:
+        client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                                         resources={"metadata": {"path": str(tmp_path)}})
+        client.execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.output_type == "error"]
     # the notebook shows something: printed text, and figures wherever it draws
     assert any(o.output_type == "stream" for o in outputs)
     if "plt.show()" in path.read_text():
         assert any("image/png" in o.get("data", {}) for o in outputs), "no figure rendered"
+
+
+def test_a_stale_docs_build_is_not_read(tmp_path, monkeypatch):
+    """A built copy newer than every input is read; one older than an input (a notebook or a
+    module changed after the build) is run again, not trusted."""
+    import os
+    monkeypatch.setitem(globals(), "BUILT", tmp_path)
+    src = NOTEBOOKS[0]
+    copy = tmp_path / f"{src.stem}.ipynb"
+    copy.write_text("{}")
+    newest = max(p.stat().st_mtime for p in (ROOT / "avsm_dr").rglob("*.py"))
+    os.utime(copy, (newest + 3600, newest + 3600))
+    assert built_copy(src) == copy
+    os.utime(copy, (newest - 1, newest - 1))
+    assert built_copy(src) is None
 
 
 def test_your_volume_reads_a_vol_file(tmp_path, monkeypatch):
