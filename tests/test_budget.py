@@ -72,6 +72,31 @@ def test_chosen_settings_fit_and_have_the_lowest_rmse(quick_run):
     assert fits == {b["kind"] for b in chosen}
 
 
+def test_fixed_size_kinds_are_screened_at_their_measured_bytes(volume):
+    """A fixed-size kind's screened bytes are its measured ones, the largest over the
+    configurations: two lights that cover different shares of the map (the first map's
+    occupancy alone under-estimated the other's bytes and skipped the largest fitting size)."""
+    from avsm_dr import build
+    from experiments import budget
+    P = dict(budget.QUICK, volume=str(volume), box=[float(v) for v in BOX], bytes=BUDGET,
+             light=["0.8,-1,0.3", "dir_a"], resolution=64, seeds=1)
+    spec, cfgs = budget._scene(P), budget._configurations(P)
+    caps = [c.capture(spec, P["resolution"])[1] for c in cfgs]
+    occupancy = [budget._occupancy(c) for c in caps]
+    assert occupancy[1] > occupancy[0], occupancy            # the second light covers more texels
+    tried, _ = budget.screen_configurations(spec, cfgs, P)
+    fixed = [s for s in tried if s["kind"] in ("avsm", "fom", "osm")]
+    assert len(fixed) >= 6
+    for s in fixed:
+        measured = max(build(s["kind"], c.segments, **s["params"]).nbytes_sparse_per_texel for c in caps)
+        assert s["screened_bytes"] == pytest.approx(measured, rel=1e-6), s["setting"]
+    # the largest AVSM node count within the budget is among the settings measured
+    n = max(s["params"]["nodes"] for s in tried if s["kind"] == "avsm" and s["screened_bytes"] <= BUDGET)
+    params = next(s["params"] for s in tried if s["kind"] == "avsm" and s["params"]["nodes"] == n)
+    nxt = max(build("avsm", c.segments, **{**params, "nodes": n + 1}).nbytes_sparse_per_texel for c in caps)
+    assert nxt > BUDGET, (n, nxt)
+
+
 def test_map_floor_is_the_exact_kinds_rmse(quick_run):
     folder, _ = quick_run
     data, best = _common.read_csv(folder / "data.csv"), _common.read_csv(folder / "best.csv")
