@@ -23,7 +23,9 @@ machine's load) exceeds ``build_budget`` is skipped at that size with a note; ki
 model are never skipped.  The budgets (:data:`BUILD_BUDGET`: about 1 s of one core quick, 60 s
 full) skip no built-in scene's build (the largest full-mode estimate, ``dsm`` on the marched
 ``simulated_plume`` at 1024^2, about 41 M segments, is about 2.5e9 units): they guard user grids.
-Resolutions above the capture's limit are skipped with a note.
+Resolutions above the capture's limit are skipped with a note, and so is a build the memory
+guard refuses (its message; e.g. DSM at tolerance 0.01 on a 1024^2 map of ``three_columns`` on a
+machine with less memory).
 
 The headline ratios (``meta.json`` summary, wall and process-CPU time): capture
 of the plume at the largest resolution over the AVSM-8 build on its output, per capture
@@ -154,6 +156,26 @@ def _build_evaluated(kind: str, seg, params: dict):
     return rep
 
 
+#: Text in every memory guard's refusal (:func:`avsm_dr.validation.check_memory`, DSM's polyline bound).
+MEMORY_REFUSAL = "MEMORY_BUDGET_BYTES"
+
+
+def _build_or_refuse(built: dict, refused: dict, key, kind: str, seg, params: dict):
+    """``built[key]`` = :func:`_build_evaluated`, or None with ``refused[key]`` = the reason
+    when the memory guard refuses the build (a full run's largest maps: a DSM of 1024^2 texels
+    at a 0.01 tolerance); any other error propagates."""
+    if key in refused:
+        return None
+    try:
+        built[key] = _build_evaluated(kind, seg, params)
+    except ValueError as exc:
+        if MEMORY_REFUSAL not in str(exc):
+            raise
+        refused[key] = "build refused by the memory guard: " + " ".join(str(exc).split())
+        return None
+    return built[key]
+
+
 # ------------------------------------------------------------------ one (scene, resolution)
 def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, repeats: int,
                budget: float, rng) -> list[dict]:
@@ -168,7 +190,7 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
     caps = {m: capture(scene, resolution=resolution, method=m, order="depth") for m in methods}
     pts = lookup_points(scene, n_lookups, rng)
     t = backend.types()
-    fns, notes, built = {}, {}, {}
+    fns, notes, built, refused = {}, {}, {}, {}
     for m, cap in caps.items():
         fns["capture", m, ""] = (lambda m=m: capture(scene, resolution=resolution, method=m, order="depth"))
         seg = cap.segments
@@ -186,16 +208,19 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
                                   f"(about 7 ns of one core each) at {seg.n_segments} segments")
                 continue
             # the lookups read the representation of the build's latest call (measure() calls
-            # every stage once, in this order, before the interleaved repeats)
+            # every stage once, in this order, before the interleaved repeats); a build the
+            # memory guard refuses is noted and skipped, its lookups too
             fns["build", m, kind] = (lambda key=(m, kind), kind=kind, seg=seg, params=params:
-                                     built.__setitem__(key, _build_evaluated(kind, seg, params)) or built[key])
-            fns["lookup", m, kind] = (lambda key=(m, kind), a=tex_d, b=dep_d: built[key].eval(a, b))
+                                     _build_or_refuse(built, refused, key, kind, seg, params))
+            fns["lookup", m, kind] = (lambda key=(m, kind), a=tex_d, b=dep_d:
+                                      built[key].eval(a, b) if key in built else None)
             if kind == "avsm":                           # sorted vs unsorted on random-order input
                 shuffled = random_order(seg, rng)
                 for srt in (False, True):
                     fns["random", m, srt] = (lambda s=shuffled, srt=srt, params=params:
                                              _build_evaluated("avsm", s, dict(params, sort=srt)))
     r = measure(fns, repeats=repeats)
+    notes.update({key: f"skipped: {why}" for key, why in refused.items()})
 
     rows = []
     for m, cap in caps.items():

@@ -94,6 +94,20 @@ def test_skipped_builds_follow_the_work_estimate_not_a_clock(monkeypatch):
     assert dict(calm)[costliest].startswith(f"skipped: build work estimate {work[costliest]:.3g} > limit")
 
 
+def test_a_build_the_memory_guard_refuses_is_a_skipped_cell(monkeypatch):
+    """A build above the memory budget (here: 1.4 MB, which DSM's polyline at tolerance 0.01
+    exceeds on the plume at 64^2, 1.7 MB, and AVSM-8's build does not, 1.0 MB) is a row with a
+    note and no times; the other kinds of the frame are measured."""
+    from avsm_dr import validation
+    scene = frame.builtin_scenes(frame.SIZES["quick"], ["plume"])["plume"]
+    monkeypatch.setattr(validation, "MEMORY_BUDGET_BYTES", 1_400_000)
+    rows = {r["kind"]: r for r in frame.frame_rows("plume", scene, 64, ["exact"], ["avsm", "dsm"], 256, 1,
+                                                   frame.BUILD_BUDGET["quick"], np.random.default_rng(0))}
+    assert rows["dsm"]["note"].startswith("skipped: build refused by the memory guard: tolerance")
+    assert math.isnan(rows["dsm"]["build_s"]) and math.isnan(rows["dsm"]["lookup_s"])
+    assert rows["avsm"]["note"] == "" and rows["avsm"]["build_s"] > 0 and rows["avsm"]["lookup_s"] > 0
+
+
 def test_quick_frame_exact_capture_has_fewer_iterations_and_segments(quick):
     """Deterministic counts (no timing): per grid scene and resolution, the exact capture takes
     fewer iterations (and so density samples) per ray and emits fewer segments than the march."""
