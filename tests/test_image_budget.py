@@ -182,6 +182,44 @@ def test_thresholds_and_their_intervals(quick):
                 assert all(thr["kind"] in inv[b] for b in P["budgets"] if b >= thr["bytes"])
 
 
+def _pixels_differ(a, b) -> float:
+    """Share of pixels of two PNG files that differ by more than a quarter of full scale in some
+    channel (another FreeType build moves anti-aliasing by a level or two; a stale figure, a moved
+    point or another colour, changes thousands of pixels by far more)."""
+    from matplotlib.image import imread
+    x, y = imread(a), imread(b)
+    assert x.shape == y.shape, (a, b, x.shape, y.shape)
+    return float((np.abs(x - y).max(axis=-1) > 0.25).mean())
+
+
+def test_redraw_from_data_csv_gives_the_runs_figures(quick, tmp_path):
+    """``redraw`` (``python -m experiments._replot image_budget data.csv``) recomputes the map
+    from data.csv alone and draws the run's budget_map.png and flip_vs_bytes.png again."""
+    from experiments import _replot
+    rows, cells, _, P, out = quick
+    typed = _replot.typed(read_csv(out / "data.csv"))
+    got = S.params_from_rows(typed)
+    assert {k: got[k] for k in ("settings", "configs", "frames", "resolutions", "budgets", "kinds")} == \
+        {k: P[k] for k in ("settings", "configs", "frames", "resolutions", "budgets", "kinds")}
+    _, again = S.findings(typed, got)
+    assert [(c["setting"], c["resolution"], c["budget"], c["best_label"], c["invisible"], c["threshold"])
+            for c in again] == [(c["setting"], c["resolution"], c["budget"], c["best_label"], c["invisible"],
+                                 c["threshold"]) for c in cells]
+    files = _replot.replot("image_budget", out / "data.csv", tmp_path)
+    assert [f.name for f in files] == ["budget_map.png", "flip_vs_bytes.png"]
+    for f in files:
+        assert _pixels_differ(f, out / f.name) < 1e-3, f.name
+
+
+def test_params_from_rows_rejects_what_is_not_a_run():
+    with pytest.raises(ValueError, match="rows"):
+        S.params_from_rows([])
+    row = dict(setting="smoke", config="seed0", frame=0, resolution=64, budget=16, kind="exact")
+    with pytest.raises(ValueError, match="rows: config 'seed0'"):
+        S.params_from_rows([row])
+    assert S.params_from_rows([dict(row, config="s3-spot")])["configs"] == [[3, "spot"]]
+
+
 # ------------------------------------------------------------------ the rules, synthetic
 def test_threshold_needs_invisibility_at_every_larger_budget():
     fits = np.ones((2, 4), bool)
