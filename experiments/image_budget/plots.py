@@ -23,11 +23,10 @@ def _text_colour(hex_colour: str) -> str:
 
 def budget_map(res, cells, P):
     """``budget_map.png``: one panel per animation; rows = shadow-map resolutions, columns =
-    budgets; a cell shows its best kind in the kind's colour and marker
+    budgets; a cell names its best kind and shows it in the kind's colour
     (:mod:`experiments._plotstyle`): filled where compression is invisible, framed (white
     inside) where even the best kind within the budget is visible; the threshold cell is
     outlined in black."""
-    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch, Rectangle
     from .. import _plotstyle as plotstyle
     _plt()
@@ -45,8 +44,7 @@ def budget_map(res, cells, P):
                     ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, facecolor="white", edgecolor="0.7", lw=0.5))
                     ax.text(x, y, "none fits", ha="center", va="center", fontsize=6, color="0.4")
                     continue
-                st = plotstyle.style(c["best_kind"])
-                colour = st["color"]
+                colour = plotstyle.style(c["best_kind"])["color"]
                 if c["best_kind"] not in shown:
                     shown.append(c["best_kind"])
                 if c["invisible"]:
@@ -58,11 +56,9 @@ def budget_map(res, cells, P):
                     ax.add_patch(Rectangle((x - 0.46, y - 0.46), 0.92, 0.92, facecolor="none", edgecolor="black",
                                            lw=2.0))
                 tc = _text_colour(colour) if c["invisible"] else "black"
-                ax.plot(x - 0.33, y + 0.27, ls="none", marker=st["marker"], markersize=5,
-                        color=tc if c["invisible"] else colour)
                 ratio = c["best_flip_compression"] / c["noise_flip"] if c["noise_flip"] > 0 else float("nan")
-                ax.text(x, y + 0.08, c["best_label"], ha="center", va="center", fontsize=6.5, color=tc)
-                ax.text(x, y - 0.22, f"{ratio:.2g}x noise", ha="center", va="center", fontsize=5.5, color=tc)
+                ax.text(x, y + 0.13, c["best_label"], ha="center", va="center", fontsize=6.5, color=tc)
+                ax.text(x, y - 0.2, f"{ratio:.2g}x noise", ha="center", va="center", fontsize=5.5, color=tc)
             ax.set_xlim(-0.5, len(budgets) - 0.5)
             ax.set_ylim(-0.5, len(resolutions) - 0.5)
             ax.set_xticks(range(len(budgets)), [f"{b:g}" for b in budgets])
@@ -70,19 +66,15 @@ def budget_map(res, cells, P):
             ax.grid(False)
             ax.set_xlabel("budget (bytes per texel)")
             if j == 0:
-                ax.set_ylabel("map resolution (texels)")
+                ax.set_ylabel("map (texels)")
             ax.set_title(f"{setting}: best kind per budget")
-        handles = [(Patch(facecolor=plotstyle.style(k)["color"]),
-                    Line2D([], [], ls="none", marker=plotstyle.style(k)["marker"], markersize=4,
-                           color=_text_colour(plotstyle.style(k)["color"])))
-                   for k in shown]
-        labels = list(shown)
-        handles += [Patch(facecolor="0.45"), Patch(facecolor="white", edgecolor="0.45", lw=2.0),
-                    Patch(facecolor="none", edgecolor="black", lw=2.0)]
-        labels += ["filled: compression invisible (FLIP to exact < reference noise)",
-                   "framed: visible; the least visible kind within the budget",
-                   "black outline: threshold (invisible from here on)"]
-        fig.legend(handles, labels, loc="outside lower center", ncol=2 if len(settings) == 1 else 3, fontsize=6.5)
+        kinds_ = [Patch(facecolor=plotstyle.style(k)["color"], label=k) for k in shown]
+        marks = [Patch(facecolor="0.45", label="filled: compression invisible (FLIP to exact < reference noise)"),
+                 Patch(facecolor="white", edgecolor="0.45", lw=2.0,
+                       label="framed: visible; the least visible kind within the budget"),
+                 Patch(facecolor="none", edgecolor="black", lw=2.0, label="black outline: threshold (invisible from "
+                                                                         "here on)")]
+        plotstyle.legend_columns(fig, [kinds_[i:i + 3] for i in range(0, len(kinds_), 3)] + [marks])
         fig.suptitle("Cheapest kind whose compression is invisible, else the least visible\n"
                      "cell text: its size (the most common over configurations); its compression FLIP / the "
                      "reference-noise FLIP", fontsize=7.5)
