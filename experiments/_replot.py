@@ -2,7 +2,8 @@
 
     python -m experiments._replot ordering docs/research/ordering/configs.csv --out docs/research/ordering
 
-The table is a run's ``data.csv`` or the small CSV of a figure's data committed beside a research
+The table is a run's ``data.csv`` (or ``data.csv.gz``, as a committed full run under
+``docs/research/<study>/run/``) or the small CSV of a figure's data committed beside a research
 page's figures (``docs/research/<study>/``).  A study can be redrawn this way when its module
 declares ``redraw(res, rows)``: ``rows`` as :func:`typed` reads them back, ``res`` anything with
 ``save_figure(fig, filename)`` (here :class:`Figures`).  Writes the PNGs (what the pages show);
@@ -58,11 +59,21 @@ class Figures:
         return path
 
 
-def replot(study: str, table, out, pdf: bool = False) -> list[Path]:
-    """Redraw study ``study``'s figures from the rows of the CSV ``table`` into the folder
-    ``out``; returns the files written.  ``ValueError`` when the study declares no
-    ``redraw(res, rows)`` or the table holds no rows."""
+def read_table(table) -> list[dict]:
+    """The rows of the CSV ``table`` (gzipped where its name ends in ``.gz``), values as strings."""
+    import csv
+    import gzip
+    if str(table).endswith(".gz"):
+        with gzip.open(table, "rt", newline="") as fh:
+            return list(csv.DictReader(fh))
     from . import _common
+    return _common.read_csv(table)
+
+
+def replot(study: str, table, out, pdf: bool = False) -> list[Path]:
+    """Redraw study ``study``'s figures from the rows of the CSV ``table`` (gzipped where its
+    name ends in ``.gz``) into the folder ``out``; returns the files written.  ``ValueError``
+    when the study declares no ``redraw(res, rows)`` or the table holds no rows."""
     from ._cli import experiment_names
     if study not in experiment_names():
         raise ValueError(f"study: expected one of {experiment_names()}, got {study!r}")
@@ -70,8 +81,8 @@ def replot(study: str, table, out, pdf: bool = False) -> list[Path]:
     if not callable(redraw):
         raise ValueError(f"study: experiments.{study} declares no redraw(res, rows) to draw its figures from a table")
     try:
-        rows = typed(_common.read_csv(table))
-    except OSError as exc:
+        rows = typed(read_table(table))
+    except (OSError, EOFError) as exc:
         raise ValueError(f"table: cannot read {table} ({exc})") from None
     if not rows:
         raise ValueError(f"table: {table} holds no rows")

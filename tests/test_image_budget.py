@@ -4,6 +4,7 @@ on synthetic arrays."""
 import itertools
 import json
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -180,6 +181,99 @@ def test_thresholds_and_their_intervals(quick):
             assert thr["bytes"] == (min(stays) if stays else None)
             if thr["reached"]:
                 assert all(thr["kind"] in inv[b] for b in P["budgets"] if b >= thr["bytes"])
+
+
+def _pixels_differ(a, b) -> float:
+    """Share of pixels of two PNG files that differ by more than a quarter of full scale in some
+    channel (another FreeType build moves anti-aliasing by a level or two; a stale figure, a moved
+    point or another colour, changes thousands of pixels by far more)."""
+    from matplotlib.image import imread
+    x, y = imread(a), imread(b)
+    assert x.shape == y.shape, (a, b, x.shape, y.shape)
+    return float((np.abs(x - y).max(axis=-1) > 0.25).mean())
+
+
+def test_redraw_from_data_csv_gives_the_runs_figures(quick, tmp_path):
+    """``redraw`` (``python -m experiments._replot image_budget data.csv``) recomputes the map
+    from data.csv alone and draws the run's budget_map.png and flip_vs_bytes.png again."""
+    from experiments import _replot
+    rows, cells, _, P, out = quick
+    typed = _replot.typed(read_csv(out / "data.csv"))
+    got = S.params_from_rows(typed)
+    assert {k: got[k] for k in ("settings", "configs", "frames", "resolutions", "budgets", "kinds")} == \
+        {k: P[k] for k in ("settings", "configs", "frames", "resolutions", "budgets", "kinds")}
+    _, again = S.findings(typed, got)
+    assert [(c["setting"], c["resolution"], c["budget"], c["best_label"], c["invisible"], c["threshold"])
+            for c in again] == [(c["setting"], c["resolution"], c["budget"], c["best_label"], c["invisible"],
+                                 c["threshold"]) for c in cells]
+    files = _replot.replot("image_budget", out / "data.csv", tmp_path)
+    assert [f.name for f in files] == ["budget_map.png", "flip_vs_bytes.png"]
+    for f in files:
+        assert _pixels_differ(f, out / f.name) < 1e-3, f.name
+
+
+def test_params_from_rows_rejects_what_is_not_a_run():
+    with pytest.raises(ValueError, match="rows"):
+        S.params_from_rows([])
+    row = dict(setting="smoke", config="seed0", frame=0, resolution=64, budget=16, kind="exact")
+    with pytest.raises(ValueError, match="rows: config 'seed0'"):
+        S.params_from_rows([row])
+    assert S.params_from_rows([dict(row, config="s3-spot")])["configs"] == [[3, "spot"]]
+
+
+PAGE = Path(__file__).resolve().parents[1] / "docs" / "research" / "image_budget"
+RUN = PAGE / "run"
+_NO_RUN = pytest.mark.skipif(not (RUN / "data.csv.gz").is_file(),
+                             reason="docs/research/image_budget/run (the page's full run) is not committed")
+
+
+def threshold_row(setting: str, res, thr: dict) -> str:
+    """The start of the page's threshold table row of ``thr`` (findings.json's ``thresholds``),
+    up to its verdict: animation, map, budget [interval], label (stored bytes), compression /
+    noise [interval]."""
+    ci, cl = thr["interval"], thr["claim"]
+    return (f"| {setting} | {res}^2 | {thr['bytes']:g} B [{ci['low']:g}, {ci['high']:g}] | `{thr['label']}` "
+            f"({thr['stored_bytes']:.1f}) | {cl['estimate']:.2f} [{cl['low']:.2f}, {cl['high']:.2f}] | {cl['verdict']}")
+
+
+def map_row(setting: str, res, cells: list[dict]) -> str:
+    """The page's best-kind table row of one animation and resolution from map.csv's cells
+    (budgets in order): label and compression / noise ratio per budget, the threshold in bold."""
+    def cell(c):
+        text = f"`{c['best_label']}`, {c['best_flip_compression'] / c['noise_flip']:.2g}x"
+        return f"**{text}**" if c["threshold"] else text
+    return f"| {setting} | {res}^2 | " + " | ".join(cell(c) for c in cells) + " |"
+
+
+@_NO_RUN
+def test_page_figures_are_drawn_from_the_committed_full_run(tmp_path):
+    """docs/research/image_budget/{budget_map,flip_vs_bytes}.png are what the committed full
+    run's data draws with this revision's plot code (redraw with ``python -m experiments._replot
+    image_budget docs/research/image_budget/run/data.csv.gz --out docs/research/image_budget``)."""
+    from experiments import _replot
+    meta = json.loads((RUN / "meta.json").read_text())
+    assert meta["experiment"] == "image_budget" and meta["params"]["quick"] is False
+    files = _replot.replot("image_budget", RUN / "data.csv.gz", tmp_path)
+    assert [f.name for f in files] == ["budget_map.png", "flip_vs_bytes.png"]
+    for f in files:
+        assert _pixels_differ(f, PAGE / f.name) < 1e-3, f"{f.name}: redraw the figure (command above)"
+
+
+@_NO_RUN
+def test_page_quotes_the_committed_full_run():
+    """The page's noise line, threshold table and best-kind table are the committed run's
+    findings.json and map.csv."""
+    import gzip
+    found = json.loads(gzip.decompress((RUN / "findings.json.gz").read_bytes()))
+    cells = [_typed(r) for r in read_csv(RUN / "map.csv")]
+    page = " ".join((PAGE.parent / "image_budget.md").read_text().split())
+    for setting, ref in found["reference"].items():
+        per = ref["noise_flip_per_config"].values()
+        assert f"{ref['noise_flip_mean']:.4f} (`{setting}`, {min(per):.4f}-{max(per):.4f}" in page, setting
+        for res, thr in found["thresholds"][setting].items():
+            assert threshold_row(setting, res, thr) in page
+            row = [c for c in cells if c["setting"] == setting and c["resolution"] == int(res)]
+            assert map_row(setting, res, sorted(row, key=lambda c: c["budget"])) in page
 
 
 # ------------------------------------------------------------------ the rules, synthetic

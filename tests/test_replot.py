@@ -44,6 +44,20 @@ def test_replot_draws_the_studys_figure_from_a_table(tmp_path):
     assert again[0].read_bytes() == files[0].read_bytes()          # fixed metadata: same rows, same bytes
 
 
+def test_replot_reads_a_gzipped_table(tmp_path):
+    """A committed run's ``data.csv.gz`` draws the same figure as the plain table."""
+    import gzip
+    _ordering_table(tmp_path / "t.csv")
+    (tmp_path / "t.csv.gz").write_bytes(gzip.compress((tmp_path / "t.csv").read_bytes()))
+    assert _replot.read_table(tmp_path / "t.csv.gz") == _replot.read_table(tmp_path / "t.csv")
+    (plain,) = _replot.replot("ordering", tmp_path / "t.csv", tmp_path / "plain")
+    (packed,) = _replot.replot("ordering", tmp_path / "t.csv.gz", tmp_path / "packed")
+    assert packed.read_bytes() == plain.read_bytes()
+    (tmp_path / "bad.csv.gz").write_bytes(b"not gzip")
+    with pytest.raises(ValueError, match="table"):
+        _replot.replot("ordering", tmp_path / "bad.csv.gz", tmp_path / "out")
+
+
 def test_replot_errors_name_the_argument(tmp_path):
     _ordering_table(tmp_path / "t.csv")
     with pytest.raises(ValueError, match="study"):

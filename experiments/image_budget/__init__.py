@@ -392,13 +392,15 @@ def _rows(setting, config, out, P):
     return rows, white
 
 
-def findings(rows, P, whites) -> tuple[dict, list[dict]]:
+def findings(rows, P, whites=None) -> tuple[dict, list[dict]]:
     """findings.json and map.csv's rows from data.csv's rows (:mod:`.analysis`): per animation
     and resolution the arrays of :mod:`.analysis` with one entry per configuration (its mean
     over frames), the threshold with its interval over configurations, and the claim that the
     threshold kind's compression is below the noise (:func:`avsm_dr.stats.claim`).  A kind's
     size at a budget can differ between configurations (its bytes follow the content); the
-    ``label`` of a threshold or map cell is the most common one."""
+    ``label`` of a threshold or map cell is the most common one.  ``whites``: the display white
+    per (configuration, animation), reported under ``reference`` (None: not reported, as when
+    the findings are recomputed from data.csv, which does not hold it)."""
     budgets, ks, T, r0 = P["budgets"], P["kinds"], P["frames"], P["resolutions"][0]
     cfgs = [Configuration(s, li).label for s, li in P["configs"]]
     out = {"definition": ("compression invisible at a budget: FLIP(render with the kind, render with exact; same "
@@ -428,7 +430,8 @@ def findings(rows, P, whites) -> tuple[dict, list[dict]]:
         ref_se = np.array([frames(c, r0, ks[0], budgets[0], "reference_se") for c in cfgs])
         out["reference"][setting] = dict(
             integrator="volpath, max_depth 2", spp_per_half=P["reference_spp"],
-            white={c: whites[(c, setting)] for c in cfgs}, noise_flip_mean=float(ref_noise.mean()),
+            white=None if whites is None else {c: whites[(c, setting)] for c in cfgs},
+            noise_flip_mean=float(ref_noise.mean()),
             noise_flip_per_config=dict(zip(cfgs, ref_noise.mean(axis=1).tolist())),
             se_rms_over_white=float(ref_se.mean()))
         for key in ("thresholds", "thresholds_vs_render_noise", "flicker", "curves"):
@@ -546,6 +549,39 @@ def _compute(res, P: dict) -> dict:
                                                            for s, v in found["reference"].items()},
                    run_seconds=round(found["run_seconds"], 1))
     return dict(rows=rows, tables={"map.csv": cells}, findings=found, summary=summary)
+
+def params_from_rows(rows: list[dict]) -> dict:
+    """The parameters :func:`findings` and the figures read, from ``data.csv``'s rows (typed,
+    :func:`experiments._replot.typed`): animations, configurations and kinds in row order,
+    ``frames``, sorted ``resolutions`` and ``budgets``; ``n_boot`` of the full run."""
+    import re
+    if not rows:
+        raise ValueError("rows: expected data.csv's rows, got none")
+    configs = []
+    for c in dict.fromkeys(r["config"] for r in rows):
+        m = re.fullmatch(r"s(\d+)-(\w+)", str(c))
+        if not m or Configuration(int(m[1]), m[2]).label != c:
+            raise ValueError(f"rows: config {c!r} is not a configuration label (s<seed>-<light>)")
+        configs.append([int(m[1]), m[2]])
+    return dict(settings=list(dict.fromkeys(r["setting"] for r in rows)), configs=configs,
+                frames=max(int(r["frame"]) for r in rows) + 1,
+                resolutions=sorted({int(r["resolution"]) for r in rows}),
+                budgets=sorted({r["budget"] for r in rows}), kinds=list(dict.fromkeys(r["kind"] for r in rows)),
+                n_boot=FULL["n_boot"], reference_spp=None)
+
+
+def redraw(res, rows: list[dict]) -> None:
+    """``budget_map.png`` and ``flip_vs_bytes.png`` from a run's ``data.csv`` rows (typed by
+    :func:`experiments._replot.typed`; the map recomputed by :func:`findings`), as the run drew
+    them: ``python -m experiments._replot image_budget data.csv --out DIR`` (the committed full
+    run: ``docs/research/image_budget/run/data.csv.gz``).  ``frames.png`` needs the run's images
+    (``frame0.npz``) and is not redrawn."""
+    from . import plots
+    P = params_from_rows(rows)
+    _, cells = findings(rows, P)
+    plots.budget_map(res, cells, P)
+    plots.flip_vs_bytes(res, rows, P)
+
 
 def _headline(s: dict) -> list[str]:
     """Per animation and resolution: the budget from which compression is not visible (FLIP

@@ -23,9 +23,10 @@ def _text_colour(hex_colour: str) -> str:
 
 def budget_map(res, cells, P):
     """``budget_map.png``: one panel per animation; rows = shadow-map resolutions, columns =
-    budgets; a cell is filled with its best kind's colour, solid where compression is
-    invisible, pale where even the best kind within the budget is visible; the threshold
-    cell is outlined."""
+    budgets; a cell names its best kind and shows it in the kind's colour
+    (:mod:`experiments._plotstyle`): filled where compression is invisible, framed (white
+    inside) where even the best kind within the budget is visible; the threshold cell is
+    outlined in black."""
     from matplotlib.patches import Patch, Rectangle
     from .. import _plotstyle as plotstyle
     _plt()
@@ -46,13 +47,16 @@ def budget_map(res, cells, P):
                 colour = plotstyle.style(c["best_kind"])["color"]
                 if c["best_kind"] not in shown:
                     shown.append(c["best_kind"])
-                ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, facecolor=colour, alpha=1.0 if c["invisible"] else 0.3,
-                                       edgecolor="white", lw=1.0))
+                if c["invisible"]:
+                    ax.add_patch(Rectangle((x - 0.5, y - 0.5), 1, 1, facecolor=colour, edgecolor="white", lw=1.0))
+                else:                        # visible: the kind's colour as a frame, white inside
+                    ax.add_patch(Rectangle((x - 0.44, y - 0.44), 0.88, 0.88, facecolor="white", edgecolor=colour,
+                                           lw=3.0))
                 if c["threshold"]:
                     ax.add_patch(Rectangle((x - 0.46, y - 0.46), 0.92, 0.92, facecolor="none", edgecolor="black",
                                            lw=2.0))
-                ratio = c["best_flip_compression"] / c["noise_flip"] if c["noise_flip"] > 0 else float("nan")
                 tc = _text_colour(colour) if c["invisible"] else "black"
+                ratio = c["best_flip_compression"] / c["noise_flip"] if c["noise_flip"] > 0 else float("nan")
                 ax.text(x, y + 0.13, c["best_label"], ha="center", va="center", fontsize=6.5, color=tc)
                 ax.text(x, y - 0.2, f"{ratio:.2g}x noise", ha="center", va="center", fontsize=5.5, color=tc)
             ax.set_xlim(-0.5, len(budgets) - 0.5)
@@ -62,14 +66,15 @@ def budget_map(res, cells, P):
             ax.grid(False)
             ax.set_xlabel("budget (bytes per texel)")
             if j == 0:
-                ax.set_ylabel("map resolution")
+                ax.set_ylabel("map (texels)")
             ax.set_title(f"{setting}: best kind per budget")
-        handles = [Patch(facecolor=plotstyle.style(k)["color"], label=k) for k in shown]
-        handles += [Patch(facecolor="0.45", label="solid: compression invisible (FLIP to exact < reference noise)"),
-                    Patch(facecolor="0.45", alpha=0.3, label="pale: visible; least-visible kind within budget"),
-                    Patch(facecolor="none", edgecolor="black", lw=2.0,
-                          label="outline: threshold (invisible from here on)")]
-        fig.legend(handles=handles, loc="outside lower center", ncol=2 if len(settings) == 1 else 3, fontsize=6.5)
+        kinds_ = [Patch(facecolor=plotstyle.style(k)["color"], label=k) for k in shown]
+        marks = [Patch(facecolor="0.45", label="filled: compression invisible (FLIP to exact < reference noise)"),
+                 Patch(facecolor="white", edgecolor="0.45", lw=2.0,
+                       label="framed: visible; the least visible kind within the budget"),
+                 Patch(facecolor="none", edgecolor="black", lw=2.0, label="black outline: threshold (invisible from "
+                                                                         "here on)")]
+        plotstyle.legend_columns(fig, [kinds_[i:i + 3] for i in range(0, len(kinds_), 3)] + [marks])
         fig.suptitle("Cheapest kind whose compression is invisible, else the least visible\n"
                      "cell text: its size (the most common over configurations); its compression FLIP / the "
                      "reference-noise FLIP", fontsize=7.5)
@@ -91,13 +96,22 @@ def _distinct(rows, setting, resolution):
     return {k: sorted(v) for k, v in out.items()}
 
 
-def flip_vs_bytes(res, rows, found, P):
+def flip_vs_bytes(res, rows, P):
     """``flip_vs_bytes.png``: rows = animations, columns = resolutions; compression FLIP (mean
-    over configurations and frames) against stored bytes per texel, one line per kind, with the reference's and
-    the renders' noise FLIP as horizontal lines."""
+    over configurations and frames) against stored bytes per texel, one line per kind in its
+    fixed style (:mod:`experiments._plotstyle`), with the reference's and the renders' noise
+    FLIP as horizontal lines and ``exact``'s bytes as a vertical one; the legend below the
+    panels, one column per family of kinds."""
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
     from .. import _plotstyle as plotstyle
     _plt()
     settings, resolutions = P["settings"], P["resolutions"]
+    drawn = []
+    marks = [dict(color="black", ls="--", lw=0.9), dict(color="0.5", ls=":", lw=0.9),
+             dict(color="black", ls=(0, (1, 1)), lw=0.8)]           # reference noise, render noise, exact
+    lines = [Line2D([], [], **kw, label=lab) for kw, lab in zip(marks, (
+        "reference noise (FLIP of its halves)", "render noise (exact, two seeds)", "exact's bytes"))]
     with plotstyle.context():
         fig, axes = plotstyle.grid(len(settings), len(resolutions), panel=(2.7, 2.2))
         for i, setting in enumerate(settings):
@@ -110,22 +124,31 @@ def flip_vs_bytes(res, rows, found, P):
                     x = [p[0] for p in d[kind]]
                     y = [max(p[1], FLIP_FLOOR) for p in d[kind]]
                     ax.plot(x, y, **plotstyle.style(kind), label=kind)
+                    if kind not in drawn:
+                        drawn.append(kind)
                 sel = [r for r in rows if r["setting"] == setting and r["resolution"] == resolution
                        and r["kind"] == "exact" and r["budget"] == P["budgets"][0]]
-                ax.axhline(np.mean([r["flip_reference_noise"] for r in sel]), color="black", ls="--", lw=0.9,
-                           label="reference noise (FLIP between halves)")
-                ax.axhline(np.mean([r["flip_render_noise"] for r in sel]), color="0.5", ls=":", lw=0.9,
-                           label=f"render noise ({P['spp']} spp, two seeds)")
+                ax.axhline(np.mean([r["flip_reference_noise"] for r in sel]), **marks[0])
+                ax.axhline(np.mean([r["flip_render_noise"] for r in sel]), **marks[1])
                 if "exact" in d:
-                    ax.axvline(d["exact"][0][0], color="black", ls=(0, (1, 1)), lw=0.8, label="exact's bytes")
+                    ax.axvline(d["exact"][0][0], **marks[2])
                 ax.set_xscale("log", base=2)
                 ax.set_yscale("log")
                 ax.set_title(f"{setting}, {resolution}$^2$ map")
                 if i == len(settings) - 1:
                     ax.set_xlabel("stored bytes per texel")
+        lo, hi = axes[0][0].get_xlim()
+        ticks = [2.0 ** e for e in range(int(np.ceil(np.log2(lo))), int(np.floor(np.log2(hi))) + 1)]
+        for ax in axes.flat:             # shared axes: plain numbers at the powers of two
+            ax.xaxis.set_major_locator(FixedLocator(ticks))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.xaxis.set_minor_locator(NullLocator())
+            plotstyle.log_ticks(ax, "y")
         for row in axes:                 # on the panels (a figure-wide label runs into a one-panel legend)
-            row[0].set_ylabel("compression FLIP, mean")
-        plotstyle.legend_below(fig, ncol=5)
+            row[0].set_ylabel("compression FLIP to exact")
+        columns = [[plotstyle.kind_handle(k) for k in members]
+                   for members in plotstyle.families(drawn).values()] + [lines]
+        plotstyle.legend_columns(fig, columns)
         res.save_figure(fig, "flip_vs_bytes.png")
 
 
@@ -185,5 +208,5 @@ def frame_images(res, found, frames0, whites, P):
 def plot_all(res, rows, found, cells, frames0, whites, P):
     """Write the three figures."""
     budget_map(res, cells, P)
-    flip_vs_bytes(res, rows, found, P)
+    flip_vs_bytes(res, rows, P)
     frame_images(res, found, frames0, whites, P)
