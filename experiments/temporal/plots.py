@@ -185,8 +185,11 @@ def _note_shared_error(ax, errors) -> None:
     half-width: an error common to all of them (e.g. the capture's against the truth) hides
     what the insertions change, and the points only look like one."""
     est = [e["estimate"] for e in errors]
-    half = np.nanmedian([(e["high"] - e["low"]) / 2 for e in errors])
-    if len(est) > 1 and np.isfinite(half) and max(est) - min(est) < half:
+    halves = np.array([(e["high"] - e["low"]) / 2 for e in errors], float)
+    if not np.isfinite(halves).any():         # no interval (a quick run's single configuration)
+        return
+    half = np.nanmedian(halves)
+    if len(est) > 1 and max(est) - min(est) < half:
         ax.text(0.03, 0.97, f"all within {max(est) - min(est):.1e} of each other:\nan error common to every"
                 f" method\n(mean {np.mean(est):.3g}) hides the differences", transform=ax.transAxes,
                 va="top", ha="left", fontsize=6, bbox=dict(facecolor="white", edgecolor="none", alpha=0.85))
