@@ -515,6 +515,14 @@ def _compute(res, P: dict) -> dict:
     return dict(rows=rows, findings=summary, summary=summary)
 
 
+def redraw(res, rows) -> None:
+    """The error figures (:func:`.plots.plot_curves`) from a run's rows read back
+    (``python -m experiments._replot memory_budget DATA_CSV --out DIR``); the allocation map
+    needs the run itself."""
+    from .plots import plot_curves
+    plot_curves(res, [r for r in rows if r["order"] in ("-", "depth")], list(dict.fromkeys(r["scene"] for r in rows)))
+
+
 def _resolve(P: dict, quick: bool) -> dict:
     """Orders checked; front to back first (the headline's); configurations checked."""
     P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
