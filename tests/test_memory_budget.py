@@ -167,6 +167,9 @@ def test_full_mode_scenes_and_configurations():
     assert MB.FULL["interpolations"] == ["linear", "exp"] and ad.describe("avsm")["preset"]["interpolation"] == "linear"
     with pytest.raises(ValueError, match="light"):
         MB._resolve(dict(MB.QUICK, configs=[[0, "sun"]]), quick=True)
+    with pytest.raises(ValueError, match="scenes"):
+        MB.STUDY.params(quick=True, scenes=["plume", "nebula"])
+    assert MB.STUDY.params(quick=False, scenes=["tall_column"])[0]["scenes"] == ["tall_column"]
 
 
 def test_figure_layout_rows_of_at_most_five():

@@ -524,7 +524,11 @@ def redraw(res, rows) -> None:
 
 
 def _resolve(P: dict, quick: bool) -> dict:
-    """Orders checked; front to back first (the headline's); configurations checked."""
+    """Scenes and orders checked; front to back first (the headline's); configurations checked."""
+    P["scenes"] = list(P["scenes"])
+    for s in P["scenes"]:
+        if s not in SCENE_REGISTRY:
+            raise ValueError(f"scenes: unknown scene {s!r}; known: {list(SCENE_REGISTRY.names())}")
     P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
     for seed, light in P["configs"]:
         Configuration(seed, light)               # ValueError naming seed / light
@@ -571,7 +575,8 @@ def _headline(s: dict) -> list[str]:
 
 STUDY = Study("memory_budget", "A memory budget instead of a node count: every kind at equal bytes per texel",
               REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
-              options=(Option("orders", "insertion orders AVSM is built under besides front to back "
+              options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
+                       Option("orders", "insertion orders AVSM is built under besides front to back "
                                         "(default: submission reverse_depth random)", nargs="+", metavar="ORDER"),),
               headline=_headline)
 run = STUDY.run
