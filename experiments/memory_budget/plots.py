@@ -78,7 +78,7 @@ def plot_curves(res, rows, scenes):
             for ax in axes.flat:
                 if ax.get_visible():
                     plotstyle.log_ticks(ax, "x")
-            plotstyle.legend_below(fig, axes, ncol=4)
+            plotstyle.legend_below(fig, axes, ncol=4 if n_cols > 2 else 2)
             res.save_figure(fig, filename)
 
 
@@ -120,6 +120,6 @@ def plot_heat(res, heat):
             ax.set_title(names[j] if len(targets) == 1 else f"{names[j]}\n{target:g} B/texel budget")
         fig.colorbar(im, ax=axes, shrink=0.8, label="nodes per texel")
         if len(targets) == 1:
-            fig.suptitle(f"Adaptive AVSM at a {targets.pop():g} B/texel budget: nodes per texel "
-                         f"(first configuration of each scene)")
+            fig.suptitle(f"Adaptive AVSM, {targets.pop():g} B/texel budget:\nnodes per texel "
+                         f"(first configuration{' of each scene' if len(names) > 1 else ''})")
         res.save_figure(fig, "allocation.png")

@@ -3,8 +3,8 @@ run's rows, without rerunning it::
 
     python -m experiments.memory_budget.tables RUN_DIR
 
-``RUN_DIR`` holds a run's ``data.csv``, ``findings.json`` and ``meta.json`` (the first two
-may be gzipped, as in the committed full run ``docs/research/memory_budget/run``).  Prints
+``RUN_DIR`` holds a run's ``data.csv``, ``findings.json`` and ``meta.json`` (each may be
+gzipped, as in the committed run ``docs/research/memory_budget/run_gaussian_blobs``).  Prints
 every table of ``docs/research/memory_budget.md`` (Markdown, one per heading) from
 ``findings.json``.  :func:`recompute` redoes the savings at equal error from ``data.csv``'s
 rows (:func:`experiments.memory_budget.savings`); the RMSE ratios and claims need the
@@ -49,7 +49,7 @@ def load(run_dir) -> tuple[list[dict], dict, dict]:
     from .._replot import typed
     run_dir = Path(run_dir)
     try:
-        meta = json.loads((run_dir / "meta.json").read_text())
+        meta = json.loads(_text(run_dir, "meta.json"))
         findings = json.loads(_text(run_dir, "findings.json"))
         rows = typed(list(csv.DictReader(io.StringIO(_text(run_dir, "data.csv"), newline=""))))
     except (OSError, ValueError) as exc:
