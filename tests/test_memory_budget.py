@@ -117,22 +117,66 @@ def test_quick_run_compares_at_equal_bytes(quick):
     assert c["avsm/exp_over_avsm"]["metric_dependent"] is True
     assert c["avsm/exp_over_avsm"]["preset"] == {"a": False, "b": True}        # AVSM's preset is linear
     assert c["adaptive@random_over_avsm@random"]["preset"] == {"a": True, "b": True}
-    assert {p.name for p in quick.glob("*.png")} == {"error_vs_bytes.png", "allocation.png"}
-    assert {p.name for p in quick.glob("*.pdf")} == {"error_vs_bytes.pdf", "allocation.pdf"}   # vector beside PNG
+    figures = {"error_vs_bytes", "error_vs_bytes_depth", "allocation"}
+    assert {p.name for p in quick.glob("*.png")} == {f + ".png" for f in figures}
+    assert {p.name for p in quick.glob("*.pdf")} == {f + ".pdf" for f in figures}   # vector beside PNG
     again = MB.run(quick=True, out=quick)
     assert again.get("cached") is True
 
 
-def test_full_mode_configurations():
-    """Full mode: at least 10 configurations (seed x light) per scene, a spot light among
-    them, each a valid avsm_dr.evaluation.Configuration; a bad light names its argument."""
+def test_page_tables_and_savings_from_the_run_files(quick):
+    """The page's tables come from a run's files alone (one row, or one per metric or budget,
+    per scene), and the savings recomputed from data.csv equal the run's findings (the CSV
+    keeps 9 significant digits)."""
+    from experiments.memory_budget import tables as TB
+    rows, f, meta = TB.load(quick)
+    again = TB.recompute(rows)
+    assert set(again) == set(TB.SAVINGS)
+    for k, per_scene in again.items():
+        assert set(per_scene) == set(f[k]), k
+        for scene, per_n in per_scene.items():
+            for n, e in per_n.items():
+                assert e["configs"] == f[k][scene][n]["configs"] and e["censored"] == f[k][scene][n]["censored"]
+                want = f[k][scene][n].get("saving")
+                assert e.get("saving") == (None if want is None else pytest.approx(want, rel=1e-6, abs=1e-9)), \
+                    (k, scene, n)
+    t = TB.page_tables(TB.with_scenes(f, meta))
+    per_row = {"savings": 2, "savings_exp": 2, "by_order": 3, "by_order_exp": 3, "exp_over_linear_claims": 2}
+    for name, lines in t.items():
+        assert len(lines) == 2 + per_row.get(name, 1) * len(meta["params"]["scenes"]), name
+        assert lines[1].startswith("| --- |") and lines[2].startswith("| plume |")
+    # the table cell is the findings' value, two decimals
+    s = f["bytes_saved_at_equal_rmse"]["plume"]["N=2"]
+    assert t["savings"][2].split(" | ")[3].startswith(f"{s['saving']:.2f}")
+    with pytest.raises(ValueError, match="run_dir"):
+        TB.load(quick / "nowhere")
+
+
+def test_full_mode_scenes_and_configurations():
+    """Full mode: every built-in scene (error_curves' list), at least 10 configurations (seed x
+    light) per scene, a spot light among them, each a valid avsm_dr.evaluation.Configuration;
+    a bad light names its argument."""
+    from avsm_dr.builtin_scenes import SCENES
     from avsm_dr.evaluation import Configuration
+    from experiments import error_curves
+    assert MB.FULL["scenes"] == error_curves.FULL["scenes"] == list(SCENES.names())
+    assert len(MB.FULL["scenes"]) >= 10 and MB.QUICK["scenes"] == ["plume"]
     cfgs = [Configuration(s, li) for s, li in MB.FULL["configs"]]
     assert len({c.label for c in cfgs}) == len(cfgs) >= 10
     assert any(c.light == "spot" for c in cfgs)
     assert MB.FULL["interpolations"] == ["linear", "exp"] and ad.describe("avsm")["preset"]["interpolation"] == "linear"
     with pytest.raises(ValueError, match="light"):
         MB._resolve(dict(MB.QUICK, configs=[[0, "sun"]]), quick=True)
+    with pytest.raises(ValueError, match="scenes"):
+        MB.STUDY.params(quick=True, scenes=["plume", "nebula"])
+    assert MB.STUDY.params(quick=False, scenes=["tall_column"])[0]["scenes"] == ["tall_column"]
+
+
+def test_figure_layout_rows_of_at_most_five():
+    """Ten scene panels: two rows of five; four: one row; never more than five a row."""
+    from experiments.memory_budget.plots import _shape
+    assert _shape(10) == (2, 5) and _shape(4) == (1, 4) and _shape(1) == (1, 1) and _shape(6) == (2, 3)
+    assert all(r * c >= n and c <= 5 for n in range(1, 23) for r, c in [_shape(n)])
 
 
 @pytest.mark.parametrize("scene", ["smoke_over_table", "particles"])
@@ -148,3 +192,27 @@ def test_spot_light_configuration_runs(scene):
     assert {("avsm", "linear", 4), ("avsm", "exp", 4), ("adaptive", "linear", 2), ("adaptive", "exp", 2)} <= got
     assert all(r["light"] == "spot" and 0 <= r["rmse"] <= 1 for r in rows)
     assert all(math.isfinite(float(v)) for e in errors.values() for v in e)
+
+
+def test_the_page_quotes_the_committed_gaussian_blobs_run():
+    """docs/research/memory_budget/run_gaussian_blobs holds the full-mode run of the second
+    particle scene behind the page's section on it: its savings recompute from data.csv, and
+    the page quotes its tables verbatim."""
+    from pathlib import Path
+    from experiments.memory_budget import tables as TB
+    root = Path(__file__).resolve().parents[1]
+    rows, f, meta = TB.load(root / "docs" / "research" / "memory_budget" / "run_gaussian_blobs")
+    P = meta["params"]
+    assert P["quick"] is False and P["scenes"] == ["gaussian_blobs"] and P["configs"] == MB.FULL["configs"]
+    assert len({r["config"] for r in rows}) == len(MB.FULL["configs"])
+    again = TB.recompute(rows)
+    for k in ("bytes_saved_at_equal_rmse", "bytes_saved_at_equal_depth_rms"):
+        for n, e in f[k]["gaussian_blobs"].items():
+            got = again[k]["gaussian_blobs"][n]
+            # 9 significant digits in the CSV; 1 - a / b near 0 keeps them only in absolute terms
+            assert got["censored"] == e["censored"] and got.get("saving") == pytest.approx(e.get("saving"), abs=1e-7)
+    page = (root / "docs" / "research" / "memory_budget.md").read_text()
+    t = TB.page_tables(TB.with_scenes(f, meta))
+    for name in ("savings", "by_order", "savings_exp", "adaptive_over_avsm", "avsm_exp_over_linear",
+                 "uniform_allocation", "adaptive_over_uniform", "others"):
+        assert "\n".join(t[name]) in page, name

@@ -82,6 +82,7 @@ import numpy as np
 from tqdm import tqdm
 
 from avsm_dr import build
+from avsm_dr.builtin_scenes import SCENES as SCENE_REGISTRY
 from avsm_dr.evaluation import Configuration
 from avsm_dr.stats import bootstrap_ci, claim
 from .._common import front_to_back_first
@@ -97,7 +98,9 @@ REPRODUCES = (
 )
 
 
-SCENES = ["plume", "three_columns", "hair_and_smoke", "particles", "smoke_over_table", "simulated_plume"]
+#: Every built-in scene, registration order: ``error_curves``' list (the registry's names), so findings
+#: are reported per content type on each.
+SCENES = list(SCENE_REGISTRY.names())
 QUICK_SCENES = ["plume"]
 #: Bisection steps for the DSM tolerance matching a byte target.
 DSM_STEPS = 4
@@ -512,8 +515,20 @@ def _compute(res, P: dict) -> dict:
     return dict(rows=rows, findings=summary, summary=summary)
 
 
+def redraw(res, rows) -> None:
+    """The error figures (:func:`.plots.plot_curves`) from a run's rows read back
+    (``python -m experiments._replot memory_budget DATA_CSV --out DIR``); the allocation map
+    needs the run itself."""
+    from .plots import plot_curves
+    plot_curves(res, [r for r in rows if r["order"] in ("-", "depth")], list(dict.fromkeys(r["scene"] for r in rows)))
+
+
 def _resolve(P: dict, quick: bool) -> dict:
-    """Orders checked; front to back first (the headline's); configurations checked."""
+    """Scenes and orders checked; front to back first (the headline's); configurations checked."""
+    P["scenes"] = list(P["scenes"])
+    for s in P["scenes"]:
+        if s not in SCENE_REGISTRY:
+            raise ValueError(f"scenes: unknown scene {s!r}; known: {list(SCENE_REGISTRY.names())}")
     P["orders"] = front_to_back_first(P.get("orders"), ORDERS)
     for seed, light in P["configs"]:
         Configuration(seed, light)               # ValueError naming seed / light
@@ -560,7 +575,8 @@ def _headline(s: dict) -> list[str]:
 
 STUDY = Study("memory_budget", "A memory budget instead of a node count: every kind at equal bytes per texel",
               REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
-              options=(Option("orders", "insertion orders AVSM is built under besides front to back "
+              options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
+                       Option("orders", "insertion orders AVSM is built under besides front to back "
                                         "(default: submission reverse_depth random)", nargs="+", metavar="ORDER"),),
               headline=_headline)
 run = STUDY.run

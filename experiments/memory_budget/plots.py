@@ -1,7 +1,10 @@
 """Figures of the ``memory_budget`` experiment: error against total bytes per scene in the
-sparse layout, the headline's (geometric mean over configurations, min-max band), and the
-adaptive allocation's node count per texel."""
+sparse layout, the headline's (geometric mean over configurations, min-max band), one figure
+per metric, and the adaptive allocation's node count per texel; small multiples of at most
+:data:`COLUMNS` scenes a row."""
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -10,22 +13,44 @@ METHODS = ("avsm", "adaptive", "adaptive_uniform", "adaptive_count", "dsm", "opt
 #: colour, markers filled.
 CURVES = tuple((m, "exp" if m in ("avsm", "adaptive") and e else None) for e in (False, True) for m in METHODS
                if not e or m in ("avsm", "adaptive"))
+#: Scene panels per row of a figure.
+COLUMNS = 5
+#: The error figures: (file, row key, y label).
+METRICS = (("error_vs_bytes.png", "rmse", "RMSE, in-volume receivers"),
+           ("error_vs_bytes_depth.png", "depth_rms", "RMS, uniform in depth"))
+
+
+def _shape(n: int) -> tuple[int, int]:
+    """(rows, columns) of ``n`` scene panels: at most :data:`COLUMNS` a row, rows filled evenly."""
+    rows = math.ceil(n / COLUMNS)
+    return rows, math.ceil(n / rows)
+
+
+def _title(scene: str) -> str:
+    """The scene's name and its content types (``SCENES.entry(name).content``)."""
+    from avsm_dr.builtin_scenes import SCENES
+    content = SCENES.entry(scene).content if scene in SCENES else ()
+    return f"{scene}\n({', '.join(content)})" if content else scene
 
 
 def plot_curves(res, rows, scenes):
-    """``error_vs_bytes.png``: RMSE at in-volume receivers (top) and uniform-in-depth RMS
-    (bottom) against the map's total bytes in the sparse layout (``bytes_sparse`` x texels:
-    the layout the savings count), one column per scene; fixed and adaptive AVSM with the
-    exp interpolation (AVSM's preset) dashed beside their linear curves."""
+    """``error_vs_bytes.png`` (RMSE at in-volume receivers) and ``error_vs_bytes_depth.png``
+    (uniform-in-depth RMS) against the map's total bytes in the sparse layout (``bytes_sparse``
+    x texels: the layout the savings count), one panel per scene, axes shared; fixed and
+    adaptive AVSM with the exp interpolation (AVSM's preset variant) dashed beside their linear
+    curves."""
     import matplotlib
     matplotlib.use("Agg")
     from .. import _plotstyle as plotstyle
-    with plotstyle.context():
-        fig, axes = plotstyle.grid(2, len(scenes), panel=(3.0, 2.3), sharey="row")
-        for j, scene in enumerate(scenes):
-            for i, (key, ylab) in enumerate((("rmse", "RMSE, in-volume receivers"),
-                                             ("depth_rms", "RMS, uniform in depth"))):
-                ax = axes[i][j]
+    n_rows, n_cols = _shape(len(scenes))
+    for filename, key, ylab in METRICS:
+        with plotstyle.context():
+            fig, axes = plotstyle.grid(n_rows, n_cols, panel=(2.7, 2.3))
+            for j, ax in enumerate(axes.flat):
+                if j >= len(scenes):
+                    ax.set_visible(False)
+                    continue
+                scene = scenes[j]
                 for m, interp in CURVES:
                     rs = [r for r in rows if r["scene"] == scene and r["method"] == m
                           and (r.get("interpolation") == "exp") == (interp == "exp")]
@@ -44,14 +69,17 @@ def plot_curves(res, rows, scenes):
                                     alpha=0.12, linewidth=0)
                 ax.set_xscale("log")
                 ax.set_yscale("log")
-                if i == 0:
-                    ax.set_title(scene)
-                else:
-                    ax.set_xlabel("total bytes of the map, sparse (KiB)")
-                if j == 0:
+                ax.set_title(_title(scene))
+                if j % n_cols == 0:
                     ax.set_ylabel(ylab)
-        plotstyle.legend_below(fig, axes[0], ncol=min(4, 3 * len(scenes)))
-        res.save_figure(fig, "error_vs_bytes.png")
+                if j + n_cols >= len(scenes):           # the lowest panel of its column
+                    ax.set_xlabel("map bytes, sparse (KiB)")
+                    ax.xaxis.set_tick_params(labelbottom=True)
+            for ax in axes.flat:
+                if ax.get_visible():
+                    plotstyle.log_ticks(ax, "x")
+            plotstyle.legend_below(fig, axes, ncol=4 if n_cols > 2 else 2)
+            res.save_figure(fig, filename)
 
 
 def _style(method: str) -> dict:
@@ -67,19 +95,31 @@ def _style(method: str) -> dict:
 
 def plot_heat(res, heat):
     """``allocation.png``: nodes per texel of adaptive AVSM (first configuration of each
-    scene, the budget of AVSM-4)."""
+    scene, the budget of AVSM-4), one colour scale for every scene."""
     if not heat:
         return
     import matplotlib
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.colors import Normalize
+    from .. import _plotstyle as plotstyle
     names = list(heat)
-    fig, axes = plt.subplots(1, len(names), figsize=(3.4 * len(names), 3.2), squeeze=False)
-    for ax, name in zip(axes[0], names):
-        img, target = heat[name]
-        im = ax.imshow(img, origin="lower", cmap="magma", interpolation="nearest")
-        ax.set_title(f"{name}\n{target:g} B/texel budget", fontsize=9)
-        ax.set_xticks([])
-        ax.set_yticks([])
-        fig.colorbar(im, ax=ax, fraction=0.046, label="nodes per texel")
-    res.save_figure(fig, "allocation.png")
+    n_rows, n_cols = _shape(len(names))
+    norm = Normalize(0, max(float(np.max(heat[n][0])) for n in names))
+    targets = {heat[n][1] for n in names}
+    with plotstyle.context():
+        fig, axes = plotstyle.grid(n_rows, n_cols, panel=(2.3, 2.5))
+        im = None
+        for j, ax in enumerate(axes.flat):
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if j >= len(names):
+                ax.set_visible(False)
+                continue
+            img, target = heat[names[j]]
+            im = ax.imshow(img, origin="lower", cmap="magma", norm=norm, interpolation="nearest")
+            ax.set_title(names[j] if len(targets) == 1 else f"{names[j]}\n{target:g} B/texel budget")
+        fig.colorbar(im, ax=axes, shrink=0.8, label="nodes per texel")
+        if len(targets) == 1:
+            fig.suptitle(f"Adaptive AVSM, {targets.pop():g} B/texel budget:\nnodes per texel "
+                         f"(first configuration{' of each scene' if len(names) > 1 else ''})")
+        res.save_figure(fig, "allocation.png")
