@@ -449,7 +449,7 @@ STUDY = Study(
     "insertion_order", "AVSM and avsm_march under four insertion orders, against greedy and the optimum",
     REPRODUCES, FULL, QUICK, _compute, resolve=_resolve, writes=("data.csv", "findings.json"),
     options=(Option("scenes", "built-in scenes to run (default: the mode's)", nargs="+", metavar="SCENE"),
-             Option("insertions", "AVSM insertion methods to run (default: all; stream 'avsm' always)", nargs="+",
-                    metavar="METHOD")),
+             Option("insertions", f"AVSM insertion methods to run, of {' '.join(INSERTION_METHODS)} "
+                    "(default: all; stream 'avsm' always)", nargs="+", metavar="METHOD")),
     headline=_headline)
 run = STUDY.run

@@ -1,7 +1,12 @@
 """The order study (experiments/insertion_order.py): one quick run through the command line,
 its table's structure and the properties its numbers must have."""
+import csv
+import gzip
+import importlib.util
+import io
 import json
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -215,3 +220,46 @@ def test_free_vertex_ratios_in_the_table(quick):
         for d in per_n.values():
             assert d["optimal_over_free_vertex"]["estimate"] >= 1 - 1e-3
             assert d["depth"]["avsm"]["free_vertex"]["estimate"] >= d["optimal_over_free_vertex"]["estimate"]
+
+
+def test_the_spare_table_is_the_committed_full_run():
+    """docs/research/insertion_order/spare_exp_fit_run holds the full run behind the page's
+    spare-node tables (per-configuration rows and findings): the findings' ratios are the
+    rows' geometric means, and the page's stream, spare_exp and spare_exp_fit cells are what
+    scripts/insertion_order_table.py prints from them."""
+    root = Path(__file__).resolve().parents[1]
+    run = root / "docs" / "research" / "insertion_order" / "spare_exp_fit_run"
+    script = root / "scripts" / "insertion_order_table.py"
+    spec = importlib.util.spec_from_file_location("insertion_order_table", script)
+    T = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(T)
+    found = T.load(run)
+    text = gzip.decompress((run / "data.csv.gz").read_bytes()).decode()
+    rows = [_typed(r) for r in csv.DictReader(io.StringIO(text))]
+    methods = ("avsm", "avsm_spare_exp", "avsm_spare_exp_fit")
+    assert {r["scene"] for r in rows} == set(found) and len({r["config"] for r in rows}) == 10
+    for scene, per_n in found.items():
+        for key, cell in per_n.items():
+            sel = [r for r in rows if r["scene"] == scene and r["nodes"] == int(key.removeprefix("N="))]
+            for o in S.ORDERS:
+                for m in methods:
+                    for metric, col in (("depth_l2", "ratio_to_optimal"), ("rmse", "ratio_to_optimal_rmse")):
+                        r = [x[col] for x in sel if x["order"] == o and x["kind"] == m]
+                        assert len(r) == 10
+                        # data.csv keeps 9 significant digits: each value within 5e-9 of the run's
+                        assert cell[o][m][metric]["estimate"] == pytest.approx(np.exp(np.mean(np.log(r))), rel=1e-8)
+    page = (root / "docs" / "research" / "insertion_order.md").read_text()
+    def cells(line):
+        return tuple(c.strip() for c in line.strip().strip("|").split("|"))
+    lines = {cells(line) for line in page.splitlines() if line.startswith("| ")}
+    depth, rmse = T.tables(found, methods).split("Receiver RMSE")
+    table = [cells(line) for line in depth.splitlines()[4:] if line]
+    assert len(table) == 3 * len(found)
+    for scene, n, stream, exp, fit, _, fit_time in table:
+        # the page's spare-node table: scene | N | stream | spare_refit_l2 | spare_exp | spare_exp_fit | times
+        match = [c for c in lines if c[:3] == (scene, n, stream) and len(c) == 8]
+        assert len(match) == 1, (scene, n)
+        assert match[0][4:6] == (exp, fit) and match[0][7] == fit_time, (scene, n)
+    for line in rmse.splitlines()[4:]:
+        if line:
+            assert cells(line) in lines, line
