@@ -195,6 +195,10 @@ def density_grid(value: Any, name: str = "density", dtype=np.float32) -> np.ndar
     return out
 
 
+class MemoryBudgetError(ValueError):
+    """A build refused before allocating: its estimated peak exceeds :func:`memory_budget`."""
+
+
 #: Bytes one build may allocate; None (default): :data:`MEMORY_FRACTION` of the smaller of
 #: the physical memory (``os.sysconf``) and the process' address-space limit
 #: (``RLIMIT_AS``), a number that depends on the machine, not on its load.
@@ -225,7 +229,7 @@ def _gib(n: float) -> str:
 
 def check_memory(name: str, value, need: Callable[[Any], float], lo=None, what: str = "",
                  allowed: Callable[[Any], bool] | None = None) -> None:
-    """ValueError naming ``name`` when ``need(value)`` (estimated peak bytes of a build)
+    """:class:`MemoryBudgetError` (a ValueError) naming ``name`` when ``need(value)`` (estimated peak bytes of a build)
     exceeds :func:`memory_budget`, saying which value fits: the largest in ``[lo, value]``
     (bisection; ``need`` non-decreasing in the value; integers for an integer value, the
     largest one ``allowed`` accepts), or that none does.  ``lo`` None: no value is
@@ -253,4 +257,4 @@ def check_memory(name: str, value, need: Callable[[Any], float], lo=None, what: 
     shown = fit if fit is None or isinstance(fit, Integral) else float(f"{fit:.6g}")
     tail = (f"{name} <= {shown!r} fits" if fit is not None else
             "no value fits: build fewer texels at a time (Segments.select_texels) or raise the budget")
-    raise ValueError(head + tail)
+    raise MemoryBudgetError(head + tail)

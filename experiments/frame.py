@@ -156,21 +156,16 @@ def _build_evaluated(kind: str, seg, params: dict):
     return rep
 
 
-#: Text in every memory guard's refusal (:func:`avsm_dr.validation.check_memory`, DSM's polyline bound).
-MEMORY_REFUSAL = "MEMORY_BUDGET_BYTES"
-
-
 def _build_or_refuse(built: dict, refused: dict, key, kind: str, seg, params: dict):
     """``built[key]`` = :func:`_build_evaluated`, or None with ``refused[key]`` = the reason
     when the memory guard refuses the build (a full run's largest maps: a DSM of 1024^2 texels
     at a 0.01 tolerance); any other error propagates."""
     if key in refused:
         return None
+    from avsm_dr.validation import MemoryBudgetError
     try:
         built[key] = _build_evaluated(kind, seg, params)
-    except ValueError as exc:
-        if MEMORY_REFUSAL not in str(exc):
-            raise
+    except MemoryBudgetError as exc:
         refused[key] = "build refused by the memory guard: " + " ".join(str(exc).split())
         return None
     return built[key]

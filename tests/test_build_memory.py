@@ -110,7 +110,7 @@ def test_the_value_the_message_says_fits_does_fit(kind, monkeypatch):
     if lo is None or need(lo) >= need(value):
         pytest.skip(f"{kind}: the estimate does not grow with {name}")
     monkeypatch.setattr(V, "MEMORY_BUDGET_BYTES", int(need(value)) - 1)
-    with pytest.raises(ValueError, match=rf"^{name}: .* {name} <= (\S+) fits") as info:
+    with pytest.raises(V.MemoryBudgetError, match=rf"^{name}: .* {name} <= (\S+) fits") as info:
         ad.build(kind, seg, **params)
     fit = type(value)(info.value.args[0].rsplit(f"{name} <= ", 1)[1].split(" fits")[0])
     assert lo <= fit < value and need(fit) <= V.MEMORY_BUDGET_BYTES

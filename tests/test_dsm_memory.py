@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import avsm_dr as ad
+from avsm_dr import validation as V
 from avsm_dr.representations import _dsm_polyline, dsm
 from cases import random_segments
 from helpers import build_peak
@@ -80,7 +81,7 @@ def test_polyline_budget_is_summed_over_chunks(monkeypatch):
     per_texel = int(ad.build("dsm", seg.select_texels(np.arange(1)), tolerance=1e-4).n_polyline_vertices[0])
     _chunked(monkeypatch, 1)
     monkeypatch.setattr(_dsm_polyline, "MEMORY_BUDGET_BYTES", 20 * (per_texel + 2) * _dsm_polyline.BYTES_PER_VERTEX)
-    with pytest.raises(ValueError, match=r"^tolerance: 0.0001 needs a polyline of up to [\d,]+ vertices over "
+    with pytest.raises(V.MemoryBudgetError, match=r"^tolerance: 0.0001 needs a polyline of up to [\d,]+ vertices over "
                                          r"the first 2\d texels"):
         ad.build("dsm", seg, tolerance=1e-4)
     rep = ad.build("dsm", seg.select_texels(np.arange(10)), tolerance=1e-4)

@@ -187,7 +187,7 @@ def check_polyline_size(n_breakpoints: int, n_crossings: int, n_tex: int, eps_p:
     room = budget // BYTES_PER_VERTEX - 2 * int(n_breakpoints)
     fit = "no tolerance fits: fewer texels or segments" if room <= 0 else \
         f"tolerance >= {tol * (n_crossings / room) ** 2:.2g} fits"
-    raise ValueError(
+    raise V.MemoryBudgetError(
         f"tolerance: {tol:g} needs a polyline of up to {bound:,} vertices over "
         f"{'the first ' if partial else ''}{n_tex} texels "
         f"({need / 2**30:.3g} GiB > the {budget / 2**30:.3g} GiB of "
