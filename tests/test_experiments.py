@@ -218,7 +218,10 @@ def test_runtime_vs_error_times_every_greedy_build_from_the_segments(monkeypatch
         assert all(r["build_s"] > 0 for r in rows if r["method"] == "greedy")
 
 
-@pytest.mark.parametrize("name", sorted(TINY))
+#: bench's tiny run (56 s of the default run: Numba, Warp and Mitsuba peers) is slow too; its tables
+#: are checked by the bench unit tests (test_peers, test_bench_machine, test_bench_memory_guard).
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "bench" else n
+                                  for n in sorted(TINY)])
 def test_slow_study_runs_end_to_end_on_tiny_parameters(name, tmp_path):
     """The default run's check of a study whose quick run is slow: the same ``compute`` on
     TINY parameters writes every file it declares, a figure with its PDF, and meta.json."""

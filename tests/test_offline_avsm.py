@@ -183,6 +183,7 @@ def test_bad_parameters(kind, params, name):
 
 
 # -------------------------------------------------------------------- experiment
+@pytest.mark.slow   # 33 s of the default run; the page's numbers are tested from the committed runs
 def test_avsm_gap_quick(tmp_path, monkeypatch):
     """The study's quick mode at N = 8 alone (the same code and checks; with N = 4 too, the
     64^2 quick run took 2 min of the default run on 2 cores).  Every ``build_s`` is a cold

@@ -68,6 +68,7 @@ def test_cli_rejects_workers_for_serial_experiments(capsys, tmp_path):
 TIMING = {"build_lookup_cpu_s"}
 
 
+@pytest.mark.slow   # 22 s: starts a local Ray instance (the optional cluster path)
 def test_ray_sweep_equals_the_serial_sweep(tmp_path):
     """Bit-identical rows for node and linear kinds: the linear kinds' builds sum each
     texel's segments in CSR order without atomics (the same bits on one Dr.Jit thread per
@@ -90,6 +91,7 @@ def test_ray_sweep_equals_the_serial_sweep(tmp_path):
 LINEAR = ["moments", "basis", "osm", "fom", "beer"]
 
 
+@pytest.mark.slow   # 16 s: two error_curves runs
 def test_interrupted_error_curves_resume_equals_the_serial_run(tmp_path, monkeypatch):
     """An error_curves run interrupted after its first cell and resumed (in a process where
     other kinds were built in between, on another Dr.Jit thread count) writes the rows and

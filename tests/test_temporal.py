@@ -235,6 +235,7 @@ def test_claims_resample_each_receivers_tile_with_all_its_frames():
     assert T._blocks_for({("smoke", "c"): {}}, "smoke", ["c"], [np.zeros(6)]) is None
 
 
+@pytest.mark.slow   # 26 s; the page is tested against the committed full run
 def test_quick_temporal_run(tmp_path, monkeypatch):
     monkeypatch.setattr(fluid, "CACHE_DIR", tmp_path / "cache")
     out = quick_cli_run("temporal", tmp_path)
