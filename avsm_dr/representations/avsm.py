@@ -254,9 +254,9 @@ class AVSM(NodeList):
     (:data:`MIN_CHUNK_BYTES`): the same nodes, a peak memory near the output's size.
     """
 
-    # Linear (the paper's eq. 2) is the preset: at N = 8 it has the lower receiver error on every
-    # smoke and hair scene in every insertion order; exp wins inside thick uniform media
-    # (particles).  Both are reported (docs/research/memory_budget.md).
+    # Linear (the paper's eq. 2) is the preset: at N = 8 it has the lower receiver error on the smoke
+    # and hair scenes in every insertion order but the fog bank front to back; exp wins inside thick
+    # uniform media (particles).  Both are reported (docs/research/memory_budget.md).
     PRESET = {"interpolation": "linear"}
     PRESET_VARIANTS = {"linear": {"interpolation": "linear"}, "exp": {"interpolation": "exp"}}
     schema = Schema(
