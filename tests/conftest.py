@@ -68,13 +68,15 @@ def rng():
 
 # ------------------------------------------------------------------ process exit
 # One CI run (4 Dec 2026, a0b2875) passed every test and then aborted in interpreter teardown
-# ("corrupted double-linked list", exit status 134), so the suite's status was lost.  The process
-# holds three LLVM copies by then (Dr.Jit's libLLVM 19, Numba's llvmlite, Warp's CPU compiler)
-# plus Mitsuba, Ray and Jupyter clients, whose static destructors and worker threads run in an
-# unspecified order at exit.  Per-file runs under glibc's checking allocator
-# (libc_malloc_debug, MALLOC_CHECK_=3) did not reproduce it.  After pytest has written its
-# report, the process therefore ends with pytest's status without interpreter teardown;
-# AVSM_DR_TEST_FULL_EXIT=1 keeps the ordinary exit (to chase the crash).
+# ("corrupted double-linked list", exit status 134), so the suite's status was lost; a second
+# full run of the same revision ended with SIGSEGV (status 139) after "2725 passed".  Its core
+# dump: the main thread in glibc's free() (unlink_chunk) called from Dr.Jit's static
+# Registry::~Registry() (libdrjit-core.so) in the process's exit handlers, after Python had
+# finalised; the other threads were Ray's stats harvester and two OpenMP pools (libgomp, one of
+# them flip_evaluator's).  Per-file runs under glibc's checking allocator (libc_malloc_debug,
+# MALLOC_CHECK_=3) did not reproduce it.  After pytest has written its report, the process
+# therefore ends with pytest's status without the C++ exit handlers; AVSM_DR_TEST_FULL_EXIT=1
+# keeps the ordinary exit (to chase the crash).
 _SESSION = {}
 
 
