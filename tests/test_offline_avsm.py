@@ -286,3 +286,30 @@ def test_avsm_gap_full_configurations_and_a_spot_light():
     c = avsm_gap.claims(rec, l2, blocks, n_boot=100)["plume"]["N=4"]["avsm@random_over_avsm"]
     assert c["order"] == "random" and set(c["metrics"]) == {"receiver_rmse", "depth_l2"}
 
+
+
+def _gap_tables():
+    import importlib.util
+    script = Path(__file__).resolve().parents[1] / "scripts" / "avsm_gap_tables.py"
+    spec = importlib.util.spec_from_file_location("avsm_gap_tables", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_gap_tables_count_configurations_and_round_once():
+    """scripts/avsm_gap_tables.py: a claim's row per metric with the configurations whose own
+    interval lies below / above 1; the tables round the unrounded ratios once (2.2049 -> 2.20,
+    where the 4-digit CSV value 2.205 would give 2.21)."""
+    G = _gap_tables()
+    m = lambda e, lo, hi: dict(estimate=e, low=lo, high=hi, per_config={"a": [e, lo, hi], "b": [0.9, 0.8, 0.95],  # noqa: E731
+                                                                        "c": [1.0, 0.9, 1.1]})
+    f = {"claims": {"plume": {"N=4": {"avsm_over_optimal": dict(order="depth", metric_dependent=True, metrics=dict(
+            receiver_rmse=m(2.2049, 2.1, 2.3), depth_l2=m(0.5, 0.4, 0.6)))}}},
+         "intervals": {"plume": {"N=4": {"avsm_over_optimal": m(2.2049, 2.1, 2.3)}}}}
+    rows = G.claims_rows(f)
+    assert [(r["metric"], r["ratio"], r["configs_interval_below_1"], r["configs_interval_above_1"]) for r in rows] == [
+        ("receiver_rmse", 2.205, 1, 1), ("depth_l2", 0.5, 2, 0), ("depth_rms", 2.205, 1, 1)]
+    t = G.tables(G.claims_rows(f, digits=False), ["plume"], depth_ns=(4,), metric_ns=(4,))
+    assert t["depth"][2] == "| plume | 4 | 2.20 [2.10, 2.30] | - | - | - | - | - |"
+    assert t["metrics"][2] == "| plume | 4 | 2.20 [2.10, 2.30] | 0.50 [0.40, 0.60] | - | - |"
