@@ -86,6 +86,9 @@ BEATS_MARGIN = 1e-6
 MAX_POINTS = 16
 #: The receiver set of the ``rmse`` / ``signed_mean`` / ``leak_share`` columns and the claims.
 RECEIVERS = "in_volume"
+#: Key of the 8 x 8 tiles of the objective's texels (which keep texels holding only an opaque
+#: segment; the depth L2 cuts those to their front face and drops them).
+OBJECTIVE = "objective"
 
 #: Parameters of the full and the quick run (``scenes``: an option; ``methods`` filled in).
 #: Insertion orders AVSM is built under (the first is the headline's: front to back).
@@ -203,6 +206,7 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None, 
     if blocks is not None:
         blocks[(name, config)] = texel_blocks(l2_texels, cap.width)
         blocks[(name, config, RECEIVERS)] = texel_blocks(cap.lookup(sets[RECEIVERS])[0], cap.width)
+        blocks[(name, config, OBJECTIVE)] = texel_blocks(obj.texels, cap.width)
     head = dict(scene=name, config=config, resolution=P["resolution"], texels=int(obj.texels.size),
                 max_segments=int(seg.max_count))
 
@@ -286,7 +290,7 @@ def intervals(texel_errors: dict, n_boot: int = 1000, blocks: dict | None = None
             r = stats.claim([texel_errors[(scene, c, n, m)] for c in used],
                             [texel_errors[(scene, c, n, "optimal")] for c in used], statistic="rmse",
                             compare="ratio", below=1.0, configs=used, n_boot=n_boot,
-                            blocks_by_config=_blocks(blocks, scene, used))
+                            blocks_by_config=_blocks(blocks, scene, used, OBJECTIVE))
             out.setdefault(scene, {}).setdefault(f"N={n}", {})[f"{m}_over_optimal"] = dict(
                 estimate=r["estimate"], low=r["low"], high=r["high"], level=r["level"], n_configs=r["n_configs"],
                 per_config={pc["config"]: [pc["estimate"], pc["low"], pc["high"]] for pc in r["per_config"]})

@@ -1,8 +1,9 @@
 """The avsm_gap page's data files and tables from a run::
 
-    python scripts/avsm_gap_tables.py RUN_DIR [--csv OUT_DIR]
+    python scripts/avsm_gap_tables.py RUN_DIR [RUN_DIR ...] [--csv OUT_DIR]
 
-``RUN_DIR`` holds an avsm_gap run's ``findings.json`` and ``data.csv`` (either may be gzipped).
+Each ``RUN_DIR`` holds an avsm_gap run's ``findings.json`` and ``data.csv`` (either may be
+gzipped); several runs (one per scene) are merged.
 Prints the page's two tables (each ratio to ``optimal`` with its interval over the
 configurations: depth-uniform RMS for every AVSM order, greedy and the best subset; receiver
 RMSE and depth L2 for front-to-back AVSM and greedy); with ``--csv``, writes ``claims.csv``
@@ -121,22 +122,30 @@ def write_csv(path, rows: list[dict], columns) -> None:
         w.writerows(rows)
 
 
+def load(run_dirs) -> tuple[dict, list[dict], list[str]]:
+    """(findings with every run's ``claims`` and ``intervals`` merged by scene, data.csv rows of
+    every run, scenes in order) of one or more runs (e.g. one run per scene)."""
+    merged, rows = {"claims": {}, "intervals": {}}, []
+    for run in map(Path, run_dirs):
+        f = json.loads(_text(run, "findings.json"))
+        for k in merged:
+            merged[k].update(f.get(k, {}))
+        rows += list(csv.DictReader(io.StringIO(_text(run, "data.csv"), newline="")))
+    return merged, rows, list(dict.fromkeys(r["scene"] for r in rows))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("::")[0])
-    ap.add_argument("run_dir")
+    ap.add_argument("run_dir", nargs="+", help="one or more runs' folders (their scenes are merged)")
     ap.add_argument("--csv", help="folder for claims.csv and means.csv")
     a = ap.parse_args(argv)
-    run = Path(a.run_dir)
-    findings = json.loads(_text(run, "findings.json"))
-    rows = list(csv.DictReader(io.StringIO(_text(run, "data.csv"), newline="")))
-    claims = claims_rows(findings)
-    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    findings, rows, scenes = load(a.run_dir)
     for name, lines in tables(claims_rows(findings, digits=False), scenes).items():
         print(f"<!-- {name} -->\n" + "\n".join(lines) + "\n")
     if a.csv:
         out = Path(a.csv)
         out.mkdir(parents=True, exist_ok=True)
-        write_csv(out / "claims.csv", claims, CLAIM_COLUMNS)
+        write_csv(out / "claims.csv", claims_rows(findings), CLAIM_COLUMNS)
         write_csv(out / "means.csv", means_rows(rows), ("scene", "method", "order", "N", "configs", *MEAN_COLUMNS))
 
 

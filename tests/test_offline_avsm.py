@@ -288,6 +288,22 @@ def test_avsm_gap_full_configurations_and_a_spot_light():
 
 
 
+def test_avsm_gap_intervals_tile_the_objectives_texels():
+    """The depth-uniform RMS intervals resample the objective's texels in 8 x 8 tiles of those
+    texels: on smoke_over_table the objective keeps texels that hold only the opaque table top,
+    which the depth L2 drops (cut to the front face), and tiling them with the depth L2's texels
+    stopped the full run ("expected 7866 block labels (one per value), got 870")."""
+    from experiments import avsm_gap
+    P = avsm_gap._resolve(dict(avsm_gap.QUICK, nodes=[4], n_volume=128, n_surface=64, orders=["depth"]), True)
+    rows, te, rec, l2, blocks = [], {}, {}, {}, {}
+    avsm_gap._scene_rows("smoke_over_table", P, rows, True, 0, "dir_a", te, rec, l2, blocks)
+    key = ("smoke_over_table", "s0-dir_a")
+    assert blocks[key + (avsm_gap.OBJECTIVE,)].size == te[key + (4, "avsm")].size != blocks[key].size
+    assert blocks[key].size == l2[key + (4, "avsm")].size
+    got = avsm_gap.intervals(te, n_boot=100, blocks=blocks)["smoke_over_table"]["N=4"]["avsm_over_optimal"]
+    assert got["n_configs"] == 1 and got["low"] <= got["estimate"] <= got["high"]
+
+
 def _gap_tables():
     import importlib.util
     script = Path(__file__).resolve().parents[1] / "scripts" / "avsm_gap_tables.py"
