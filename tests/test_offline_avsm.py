@@ -329,3 +329,24 @@ def test_gap_tables_count_configurations_and_round_once():
     t = G.tables(G.claims_rows(f, digits=False), ["plume"], depth_ns=(4,), metric_ns=(4,))
     assert t["depth"][2] == "| plume | 4 | 2.20 [2.10, 2.30] | - | - | - | - | - |"
     assert t["metrics"][2] == "| plume | 4 | 2.20 [2.10, 2.30] | 0.50 [0.40, 0.60] | - | - |"
+
+
+def test_avsm_gap_notes_an_optimal_linf_above_the_work_limit(monkeypatch):
+    """optimal_linf (context, no claims) above optimal.MAX_WORK is a row with a note instead of
+    an error that stops the run (the cumulus and the simulated plume at 128^2); the other
+    methods run and the texel-beating shares stay on the front-to-back AVSM row."""
+    from avsm_dr.representations import optimal
+    from experiments import avsm_gap
+    P = avsm_gap._resolve(dict(avsm_gap.QUICK, nodes=[4], n_volume=128, n_surface=64, orders=["depth"]), True)
+    real = optimal.work_units
+    monkeypatch.setattr(optimal, "work_units",
+                        lambda c, n, norm, interp: 1e30 if norm == "linf" else real(c, n, norm, interp))
+    rows = []
+    avsm_gap._scene_rows("plume", P, rows, True, 0, "dir_a", {}, {}, {}, {})
+    linf = [r for r in rows if r["method"] == "optimal_linf"]
+    assert len(linf) == 1 and "rmse" not in linf[0]
+    assert linf[0]["note"].startswith("skipped: work above optimal.MAX_WORK")
+    assert {r["method"] for r in rows if "rmse" in r} >= {"avsm", "greedy", "optimal_subset", "optimal", "avsm_march"}
+    avsm_row = next(r for r in rows if r["method"] == "avsm")
+    assert "avsm_beats_optimal_texels" in avsm_row and not any("avsm_beats_optimal_texels" in r for r in rows
+                                                                 if r is not avsm_row)
