@@ -350,3 +350,36 @@ def test_avsm_gap_notes_an_optimal_linf_above_the_work_limit(monkeypatch):
     avsm_row = next(r for r in rows if r["method"] == "avsm")
     assert "avsm_beats_optimal_texels" in avsm_row and not any("avsm_beats_optimal_texels" in r for r in rows
                                                                  if r is not avsm_row)
+
+
+def test_the_page_quotes_the_committed_runs_of_four_more_scenes():
+    """docs/research/avsm_gap/more holds one full-mode run per scene (10 configurations each);
+    the page's two tables of that section are the script's output from them, and the committed
+    claims.csv / means.csv are what the script writes from the same runs."""
+    import csv as _csv
+    import io
+    G = _gap_tables()
+    more = Path(__file__).resolve().parents[1] / "docs" / "research" / "avsm_gap" / "more"
+    scenes = ["particles", "smoke_over_table", "fog_bank", "gaussian_blobs"]
+    findings, rows, got = G.load([more / s for s in scenes])
+    assert got == scenes
+    for s in scenes:
+        meta = json.loads(G._text(more / s, "meta.json"))
+        assert meta["params"]["quick"] is False and meta["params"]["scenes"] == [s]
+        assert len({r["config"] for r in rows if r["scene"] == s}) == 10
+    page = (Path(__file__).resolve().parents[1] / "docs" / "research" / "avsm_gap.md").read_text()
+    for name, lines in G.tables(G.claims_rows(findings, digits=False), scenes).items():
+        assert "\n".join(lines) in page, name
+
+    def as_text(rows_, columns):
+        buf = io.StringIO()
+        w = _csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\r\n")
+        w.writeheader()
+        w.writerows(rows_)
+        return buf.getvalue()
+    def raw(name):
+        with open(more / name, newline="") as fh:
+            return fh.read()
+    assert raw("claims.csv") == as_text(G.claims_rows(findings), G.CLAIM_COLUMNS)
+    assert raw("means.csv") == as_text(
+        G.means_rows(rows), ("scene", "method", "order", "N", "configs", *G.MEAN_COLUMNS))
