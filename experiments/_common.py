@@ -249,6 +249,16 @@ def atomic_write(path: Path, write) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def run_text(run_dir: str | Path, name: str) -> str:
+    """The text of ``run_dir/name``, or of ``run_dir/name.gz`` where only that exists (a
+    committed run keeps its tables gzipped)."""
+    import gzip
+    plain, packed = Path(run_dir) / name, Path(run_dir) / (name + ".gz")
+    if not plain.exists() and packed.exists():
+        return gzip.decompress(packed.read_bytes()).decode()
+    return plain.read_text()
+
+
 def file_sha256(path: str | Path) -> str:
     """SHA-256 (hex) of a file's bytes."""
     h = hashlib.sha256()

@@ -34,8 +34,11 @@ METRIC_COLUMNS = (("AVSM receiver RMSE", "avsm_over_optimal", "receiver_rmse"),
                   ("greedy depth L2", "greedy_over_optimal", "depth_l2"))
 
 
-def _text(run_dir: Path, name: str) -> str:
-    plain, packed = run_dir / name, run_dir / (name + ".gz")
+def run_text(run_dir, name: str) -> str:
+    """The text of ``run_dir/name``, or of ``run_dir/name.gz`` where only that exists
+    (``experiments._common.run_text``, repeated: the scripts here run without the repository on
+    ``sys.path``)."""
+    plain, packed = Path(run_dir) / name, Path(run_dir) / (name + ".gz")
     if not plain.exists() and packed.exists():
         return gzip.decompress(packed.read_bytes()).decode()
     return plain.read_text()
@@ -111,10 +114,6 @@ def tables(claims: list[dict], scenes, depth_ns=(4, 8, 16, 32), metric_ns=(4, 8,
     return {"depth": depth, "metrics": metric}
 
 
-def read_csv(path) -> list[dict]:
-    return list(csv.DictReader(io.StringIO(Path(path).read_text(), newline="")))
-
-
 def write_csv(path, rows: list[dict], columns) -> None:
     with open(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(columns))
@@ -127,10 +126,10 @@ def load(run_dirs) -> tuple[dict, list[dict], list[str]]:
     every run, scenes in order) of one or more runs (e.g. one run per scene)."""
     merged, rows = {"claims": {}, "intervals": {}}, []
     for run in map(Path, run_dirs):
-        f = json.loads(_text(run, "findings.json"))
+        f = json.loads(run_text(run, "findings.json"))
         for k in merged:
             merged[k].update(f.get(k, {}))
-        rows += list(csv.DictReader(io.StringIO(_text(run, "data.csv"), newline="")))
+        rows += list(csv.DictReader(io.StringIO(run_text(run, "data.csv"), newline="")))
     return merged, rows, list(dict.fromkeys(r["scene"] for r in rows))
 
 

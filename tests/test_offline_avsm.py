@@ -364,7 +364,7 @@ def test_the_page_quotes_the_committed_runs_of_four_more_scenes():
     findings, rows, got = G.load([more / s for s in scenes])
     assert got == scenes
     for s in scenes:
-        meta = json.loads(G._text(more / s, "meta.json"))
+        meta = json.loads(G.run_text(more / s, "meta.json"))
         assert meta["params"]["quick"] is False and meta["params"]["scenes"] == [s]
         assert len({r["config"] for r in rows if r["scene"] == s}) == 10
     page = (Path(__file__).resolve().parents[1] / "docs" / "research" / "avsm_gap.md").read_text()

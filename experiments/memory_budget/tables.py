@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import gzip
 import io
 import json
 from pathlib import Path
 
 from .._headline import interval
+from .._common import run_text as _text
 
 #: Budgets of the savings tables: (findings key, column heading).
 SAVING_BUDGETS = (("N=2", "16 B (N=2)"), ("N=4", "32 B (N=4)"), ("N=8", "64 B (N=8)"))
@@ -33,14 +33,6 @@ SAVINGS = {
     "bytes_saved_at_equal_depth_rms_exp": ("depth_rms", "adaptive", "bytes_sparse", "depth", "exp"),
 }
 METRICS = (("receiver RMSE", "rmse"), ("depth-uniform", "depth_rms"))
-
-
-def _text(run_dir: Path, name: str) -> str:
-    """The text of ``run_dir/name``, or of ``run_dir/name.gz`` where only that exists."""
-    plain, packed = run_dir / name, run_dir / (name + ".gz")
-    if not plain.exists() and packed.exists():
-        return gzip.decompress(packed.read_bytes()).decode()
-    return plain.read_text()
 
 
 def load(run_dir) -> tuple[list[dict], dict, dict]:

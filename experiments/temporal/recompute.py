@@ -18,18 +18,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import gzip
 import io
 import json
 from pathlib import Path
 
-
-def _text(run_dir: Path, name: str) -> str:
-    """The text of ``run_dir/name``, or of ``run_dir/name.gz`` where only that exists."""
-    plain, packed = run_dir / name, run_dir / (name + ".gz")
-    if not plain.exists() and packed.exists():
-        return gzip.decompress(packed.read_bytes()).decode()
-    return plain.read_text()
+from .._common import run_text as _text
 
 
 def recompute(run_dir, out) -> dict:
