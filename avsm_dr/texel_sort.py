@@ -185,23 +185,24 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     base = np.zeros(counts.size, np.int64)
     top = int(min(counts.max(initial=1), MAX_NETWORK))
     sizes = tuple(1 << b for b in range(1, max(top - 1, 1).bit_length() + 1))   # 2 .. next power of 2
-    cls = np.searchsorted(sizes, counts)                                         # counts <= sizes[cls]
-    lanes, packets, pos = [], [], 0
-    for c in range(len(sizes) - 1, -1, -1):           # largest first: packet offsets stay aligned
-        sel = np.flatnonzero((cls == c) & (counts > 0))
-        if sel.size:
-            base[sel] = pos + np.arange(sel.size) * sizes[c]
-            lanes.append(sel)
-            packets.append(pos // sizes[c] + np.arange(sel.size))
-            pos += sel.size * sizes[c]
+    # lanes: texels of 1 .. 64 segments by size class (the smallest size >= count), largest
+    # class first (every class then starts at a multiple of its size: packet offsets stay
+    # aligned), texel order inside a class (one radix sort of the class, order_by_count)
+    small = np.flatnonzero((counts > 0) & (counts <= MAX_NETWORK))
+    cls = np.searchsorted(sizes, np.arange(MAX_NETWORK + 1))[counts[small]]     # counts <= sizes[cls]
+    order = A.order_by_count(cls, descending=True)
+    lane_texel, lane_size = small[order], np.asarray(sizes, np.int64)[cls[order]]
+    slot = np.cumsum(lane_size) - lane_size
+    base[lane_texel] = slot
+    pos = int(lane_size.sum())
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
     out = dict(n=int(counts.sum()), sizes=sizes, big=None, total=slots)
-    if lanes:
-        out["texel"] = np.concatenate(lanes)
+    if small.size:
+        out["texel"] = lane_texel
         lane_t = _u32(out["texel"])
         out["start"] = dr.gather(UInt32, off, lane_t)
         out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
-        out["packet"] = _u32(np.concatenate(packets))
+        out["packet"] = _u32(slot // lane_size)
     big_t = np.flatnonzero(counts > MAX_NETWORK)
     if big_t.size:                                    # blocks of MAX_NETWORK, then merges
         cb = counts[big_t]
@@ -246,7 +247,8 @@ def view_order(payloads, base, offsets_dr, texel_of):
     return dr.gather(UInt32, payloads, dr.gather(UInt32, base, texel_of) + local)
 
 
-def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None):
+def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None,
+                     words: bool = False):
     """``(payloads, base, flags, tied)``: texel ``t``'s ``r``-th smallest word has its payload
     (low 32 bits) at ``payloads[base[t] + r]`` (both Dr.Jit UInt32, evaluated; the permutation:
     :func:`view_order`); ``flags`` the :data:`TIE` / :data:`UNSORTED` bits (a Python int);
@@ -254,10 +256,11 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
 
     counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; kind, sources:
     the words (:func:`word_function`), distinct inside a texel; ties: look for equal keys
-    (else ``tied`` is empty); layout: :func:`plan` of these counts (computed when None)."""
+    (else ``tied`` is empty); layout: :func:`plan` of these counts (computed when None);
+    words: ``payloads`` holds the whole sorted words (UInt64: key and payload) instead."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
-    pay = dr.empty(UInt32, lay["total"])
+    pay = dr.empty(UInt64 if words else UInt32, lay["total"])
     counter, lane_flags, same = dr.zeros(UInt64, 1), None, None
     if "start" in lay:
         counter, lane_flags = _sort_lanes(kind, sources, lay["start"], lay["count"], lay["packet"], lay["sizes"],
@@ -317,6 +320,15 @@ def break_ties(payloads, base, offsets_dr, texel_of, key, second):
     out = dr.empty(UInt32, dr.width(payloads))
     dr.scatter(out, p, b + dr.select(r0 < r1, r0 + rank, r))
     return out
+
+
+def float_of_key(key):
+    """The float32 (Dr.Jit Float32) whose :func:`float_key` is UInt32 ``key`` (``-0.0`` comes
+    back as ``+0.0``): keys with the top bit set are positives (flip it back), the others
+    negatives (flip every bit)."""
+    UInt32 = type(key)
+    u = key ^ dr.select(key >= 0x80000000, UInt32(0x80000000), UInt32(0xFFFFFFFF))
+    return dr.reinterpret_array(dr.float32_array_t(UInt32), u)
 
 
 def _mix32(x, c1, c2):

@@ -33,6 +33,8 @@ method; and sorted over unsorted AVSM-8 end to end (``build(..., sort=True)``, w
 each texel on the device, vs ``sort=False``) on the capture's segments shuffled inside every
 texel (``random_order``, shuffled once on the host outside the timing), per (scene,
 resolution, method): columns ``random_unsorted_s`` / ``random_sorted_s`` of the AVSM rows.
+Both builds start from the segments' empty cache (``drop_cache(keep=())``), as on a new
+capture: the sort's layout (``Segments._sort_plan``) is part of the sorted build's time.
 
     python -m experiments frame [--quick]
 
@@ -213,7 +215,7 @@ def frame_rows(name, scene, resolution: int, methods, kinds, n_lookups: int, rep
                 shuffled = random_order(seg, rng)
                 for srt in (False, True):
                     fns["random", m, srt] = (lambda s=shuffled, srt=srt, params=params:
-                                             _build_evaluated("avsm", s, dict(params, sort=srt)))
+                                             _build_evaluated("avsm", s.drop_cache(keep=()), dict(params, sort=srt)))
     r = measure(fns, repeats=repeats)
     notes.update({key: f"skipped: {why}" for key, why in refused.items()})
 

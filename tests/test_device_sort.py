@@ -177,28 +177,59 @@ def _map(rng, counts, ties=False):
     n = int(np.sum(counts))
     z0 = _distinct(rng, n)
     z1 = z0 + rng.uniform(0.0, 1.0, n)
-    if ties:
+    if ties == "few":                 # one texel (the 4th) tied: below 1/8 of the segments
+        tied = slice(int(np.sum(counts[:3])), int(np.sum(counts[:4])))
+        z0[tied] = np.round(z0[tied])
+        z1[tied] = z0[tied] + rng.integers(0, 3, counts[3]) * 0.5
+    elif ties:
         z0 = np.round(z0)
         z1 = z0 + rng.integers(0, 3, n) * 0.5
     return ad.Segments.from_arrays(np.concatenate([[0], np.cumsum(counts)]), z0, z1,
                                    optical_depth=rng.uniform(0.0, 0.2, n))
 
 
-@pytest.mark.parametrize("ties", [False, True])
+@pytest.mark.parametrize("ties", [False, "few", True])
 def test_depth_view_is_the_order_of_sorted(backend, rng, ties):
     """Texel t's r-th segment by (z0, z1, position) is ``index[start[t] + r]``: packets of
-    the size classes, and texels beyond 64 (three merge passes for 300) after them."""
+    the size classes, and texels beyond 64 (three merge passes for 300) after them; with
+    ``words`` the same positions in the low halves and the segments' z0 keys in the high ones
+    (ties: few go through ``_untie``, many through ``break_ties``)."""
     counts = np.array([4, 0, 64, 65, 300, 1, 17, 129, 40])
     seg = _map(rng, counts, ties)
     h = seg.numpy()
     perm = np.lexsort((h["z1"], h["z0"], np.repeat(np.arange(counts.size), counts)))
     idx, start = (np.asarray(a) for a in seg.depth_view())
+    words, start_w = seg.depth_view(words=True)
+    assert dr.type_v(words) == dr.VarType.UInt64 and np.array_equal(np.asarray(start_w), start)
+    z0_back = np.asarray(TS.float_of_key(ad.backend.types().UInt32(np.asarray(words >> 32).astype(np.uint32))))
+    words = np.asarray(words)
     off = seg.offsets
     for t, c in enumerate(counts):
         assert np.array_equal(idx[start[t]:start[t] + c], perm[off[t]:off[t + 1]]), t
+        assert np.array_equal(words[start[t]:start[t] + c] & 0xFFFFFFFF, perm[off[t]:off[t + 1]]), t
+        assert np.array_equal(z0_back[start[t]:start[t] + c], h["z0"][perm[off[t]:off[t + 1]]]), t
 
 
-@pytest.mark.parametrize("ties", [False, True])
+def test_float_of_key_inverts_float_key(backend):
+    z = np.array([0.0, -0.0, 1e-45, -1e-45, 1.5, -1.5, 3.4e38, -3.4e38, np.inf, -np.inf], np.float32)
+    key = TS.float_key(ad.backend.types().Float(z))
+    back = np.asarray(TS.float_of_key(key))
+    assert np.array_equal(back, np.where(z == 0, 0.0, z)) and not np.signbit(back[1])
+    assert np.all(np.diff(np.asarray(key)[np.argsort(z, kind="stable")].astype(np.int64)) >= 0)
+
+
+def test_float64_depth_view_gives_positions_with_words(backend, rng):
+    counts = np.array([3, 70, 5])
+    seg = _map(rng, counts)
+    seg64 = ad.Segments.from_arrays(seg.offsets, *(ad.backend.types().Float64(np.asarray(a, np.float64))
+                                                   for a in (seg.z0, seg.z1)),
+                                    optical_depth=ad.backend.types().Float64(np.asarray(seg.optical_depth, np.float64)))
+    view = seg64.depth_view(words=True)
+    assert dr.type_v(view[0]) == dr.VarType.UInt32
+    assert np.array_equal(np.asarray(view[0]), np.asarray(seg64.depth_view()[0]))
+
+
+@pytest.mark.parametrize("ties", [False, "few", True])
 def test_sorted_avsm_reads_the_order_bit_for_bit(backend, rng, ties):
     """AVSM with sort=True reads through :meth:`Segments.depth_view` (no sorted copies): its
     nodes, used counts and stats equal those built from ``sorted()`` bit for bit."""

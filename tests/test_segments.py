@@ -247,3 +247,25 @@ def test_drop_cache_makes_the_next_build_recompute_what_it_cached(monkeypatch):
     for bad in ("texels", ["offsets", "nope"], None):
         with pytest.raises(ValueError, match="^keep: expected one of"):
             seg.drop_cache(keep=bad)
+
+
+@pytest.mark.parametrize("high", [1, 300, 70000])
+@pytest.mark.parametrize("descending", [False, True])
+def test_order_by_count_is_numpys_stable_argsort(high, descending):
+    # 16-bit radix keys where the counts' range fits, int64 beyond it (high = 70000)
+    from avsm_dr._arrays import order_by_count
+    rng = np.random.default_rng(high)
+    for c in (rng.integers(0, high + 1, 5000), np.full(7, high), np.array([high, 0, high, 0]), np.zeros(0, int)):
+        want = np.argsort(-c if descending else c, kind="stable")
+        np.testing.assert_array_equal(order_by_count(c, descending), want)
+
+
+def test_device_sortable_matches_the_float_sum_and_counts_are_cached():
+    from avsm_dr.segments import DEVICE_SORT_WORK, device_sortable
+    rng = np.random.default_rng(3)
+    for c in (rng.integers(0, 600, 1000), np.array([0]), np.array([2**31, 1]), np.zeros(0, int)):
+        x = c.astype(np.float64)
+        assert device_sortable(c) == (float(x @ x) <= DEVICE_SORT_WORK * max(float(x.sum()), 1.0))
+    seg = ad.Segments.from_arrays([0, 2, 2, 5], np.zeros(5), np.ones(5), optical_depth=np.ones(5))
+    assert seg.counts is seg.counts and not seg.counts.flags.writeable
+    np.testing.assert_array_equal(seg.counts, [2, 0, 3])

@@ -112,7 +112,7 @@ def lanes_by_length(off: np.ndarray) -> np.ndarray:
     loops of similar length and empty texels cost nothing (DESIGN.md)."""
     counts = np.diff(off)
     lanes = np.flatnonzero(counts > 0)
-    return lanes[np.argsort(counts[lanes], kind="stable")]
+    return lanes[A.order_by_count(counts[lanes])]
 
 
 def prefix_optical_depth(bp):

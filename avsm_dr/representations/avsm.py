@@ -33,7 +33,7 @@ import numpy as np
 
 from .. import _arrays as A
 from .. import backend
-from ..texel_sort import MAX_NETWORK
+from ..texel_sort import MAX_NETWORK, float_of_key
 from .registry import register
 from ._avsm_insertion import INSERTIONS, KEEP_TOL, fit_values, piece_moments, remove_refit
 from ._loops import chunk_stop, count_sorted, run_loop
@@ -42,8 +42,9 @@ from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
-#: A sorted build (``sort=True``, segments without gradients) whose sort buffers (estimated at 6
-#: bytes per segment, 20 in texels over ``MAX_NETWORK`` segments) exceed ``max(MIN_CHUNK_BYTES,
+#: A sorted build (``sort=True``, segments without gradients) whose sort buffers (64-bit sort
+#: words, padded to the networks' sizes: estimated at 12 bytes per segment, 24 in texels over
+#: ``MAX_NETWORK`` segments, with the merge passes' two word buffers) exceed ``max(MIN_CHUNK_BYTES,
 #: output bytes)`` runs in chunks of whole texels within that budget (with their copy of the
 #: segments), each sorted and inserted before the next: its peak follows the output's size, not
 #: the segments'.
@@ -304,9 +305,10 @@ class AVSM(NodeList):
         self.stats = {"lanes": 0, "segments": seg.n_segments, "skipped": 0, "compressed": 0}
         if seg.n_segments == 0:
             return
-        sort_bytes = np.where(seg.counts > MAX_NETWORK, 20, 6) * seg.counts      # estimates, per texel
+        sort_bytes = np.where(seg.counts > MAX_NETWORK, 24, 12) * seg.counts    # estimates, per texel
         budget = max(MIN_CHUNK_BYTES, 2 * self.N * seg.itemsize * T)               # the output's bytes
-        chunked = self.params["sort"] and not seg.requires_grad and sort_bytes.sum() > budget
+        # in one piece while the sort buffers stay within twice the output (the peak within 4x)
+        chunked = self.params["sort"] and not seg.requires_grad and sort_bytes.sum() > 2 * budget
         need, t0 = np.r_[0, np.cumsum(sort_bytes + 3 * seg.itemsize * seg.counts)], 0
         while t0 < T:         # chunks of whole texels, each sorted and inserted (the nodes do not depend on them)
             t1 = chunk_stop(need, t0, budget) if chunked else T
@@ -317,7 +319,11 @@ class AVSM(NodeList):
 
     def _insert(self, seg, t0: int):
         """Insert the segments of ``seg`` (this build's texels ``t0 ..``) into the nodes."""
-        view = seg.depth_view() if self.params["sort"] else None
+        # without gradients the view holds sort words: z0 comes with the position (3 reads per
+        # segment, as unsorted input, instead of 4)
+        words = not seg.requires_grad and seg.dtype == "float32"
+        view = seg.depth_view(words=words) if self.params["sort"] else None
+        words = view is not None and dr.type_v(view[0]) == dr.VarType.UInt64
         t_ = backend.types()
         Float, UInt32, Bool = seg.Float, t_.UInt32, t_.Bool
         N, far, T = self.N, self.params["far"], seg.n_texels
@@ -326,7 +332,7 @@ class AVSM(NodeList):
         # Non-empty texels only, longest first: a SIMD packet runs as long as its longest lane.
         lanes_np = np.nonzero(counts > 0)[0] if ablate["_compact"] else np.arange(T)
         if ablate["_group"]:
-            lanes_np = lanes_np[np.argsort(-counts[lanes_np], kind="stable")]
+            lanes_np = lanes_np[A.order_by_count(counts[lanes_np], descending=True)]
         if lanes_np.size == 0 or seg.n_segments == 0:
             return
         lanes = A.to_uint32(lanes_np)
@@ -352,8 +358,14 @@ class AVSM(NodeList):
 
         def segment(p, i, active=True):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
+            if words:                                     # the texel's next segment in depth order
+                w = dr.gather(type(view[0]), view[0], i, active)
+                i = UInt32(w & 0xFFFFFFFF)
+                a = dr.select(active, Float(float_of_key(UInt32(w >> 32))), 0.0)
+                b, tau = (dr.gather(Float, x, i, active) for x in p[1:])
+                return a, b, dr.exp(-tau), tau
             if view is not None:
-                i = dr.gather(UInt32, view[0], i, active)  # the texel's next segment in depth order
+                i = dr.gather(UInt32, view[0], i, active)
             a, b, tau = (dr.gather(Float, x, i, active) for x in p)
             return a, b, dr.exp(-tau), tau
 
