@@ -199,6 +199,17 @@ class MemoryBudgetError(ValueError):
     """A build refused before allocating: its estimated peak exceeds :func:`memory_budget`."""
 
 
+class WorkLimitError(ValueError):
+    """A build refused before computing: its work estimate (``work``, in the kind's units)
+    exceeds the kind's ``limit`` (e.g. ``optimal``'s ``MAX_WORK``, or ``MAX_POINTS`` per texel).
+    The message says what fits; a caller that only wants context rows can catch this type
+    instead of repeating the kind's estimate."""
+
+    def __init__(self, message: str, work: float, limit: float):
+        super().__init__(message)
+        self.work, self.limit = float(work), float(limit)
+
+
 #: Bytes one build may allocate; None (default): :data:`MEMORY_FRACTION` of the smaller of
 #: the physical memory (``os.sysconf``) and the process' address-space limit
 #: (``RLIMIT_AS``), a number that depends on the machine, not on its load.

@@ -175,14 +175,6 @@ class UniformObjective:
                 "_texel_rms": np.sqrt(mse)}
 
 
-def _linf_too_big(counts, n: int) -> bool:
-    """Whether ``optimal_linf`` at ``n`` nodes exceeds :data:`avsm_dr.representations.optimal.MAX_WORK`
-    on texels of ``counts`` exact-curve points (its cubic term refuses the long texels of the
-    cumulus and the simulated plume)."""
-    from avsm_dr.representations import optimal
-    return optimal.work_units(counts, n, "linf", "linear") > optimal.MAX_WORK
-
-
 def _key(label: str, order: str) -> str:
     """The label of a method's errors: ``avsm`` front to back, ``avsm@<order>`` otherwise."""
     return label if order in ("-", "depth") else f"{label}@{order}"
@@ -257,19 +249,20 @@ def _scene_rows(name, P, rows, quick, seed=0, light="dir_a", texel_errors=None, 
         rows.append(r)
         return r, m["_texel_rms"]
 
-    from avsm_dr.representations import _curve
-    points = np.diff(_curve.points(seg)["off"]) if "optimal" in kinds() else None
+    from avsm_dr.validation import WorkLimitError
     for n in P["nodes"]:
         texel_rms, first = {}, len(rows)
         for label, kind, params in methods(n):
             if kind not in kinds():
                 continue
-            if label == "optimal_linf" and _linf_too_big(points, n):   # context only: noted, not built
+            try:
+                r, texel_rms[label] = row(label, kind, params, n, "depth" if kind == "avsm" else "-")
+            except WorkLimitError as exc:     # optimal_linf (context only, its L-inf DP is cubic in the
+                if label != "optimal_linf":   # points per texel): a row with a note; the claims' methods: raise
+                    raise
                 rows.append(dict(head, method=label, kind=kind, order="-", nodes=n,
-                                 note=f"skipped: work above optimal.MAX_WORK at N = {n} (its L-inf DP is cubic "
-                                      "in the points per texel)"))
-                continue
-            r, texel_rms[label] = row(label, kind, params, n, "depth" if kind == "avsm" else "-")
+                                 note=f"skipped: work above optimal.MAX_WORK at N = {n} ({exc.work:.3g} work "
+                                      f"units, limit {exc.limit:.3g})"))
         for o in orders:
             if o != "depth" and "avsm" in kinds():
                 _, texel_rms[f"avsm@{o}"] = row("avsm", "avsm", {"nodes": n}, n, o)

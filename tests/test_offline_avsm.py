@@ -157,8 +157,11 @@ def test_size_limits_raise_before_computing(monkeypatch):
         ad.build("optimal", seg, nodes=4)
     monkeypatch.setattr(optimal_mod, "MAX_POINTS", 2048)
     monkeypatch.setattr(optimal_mod, "MAX_WORK", 10.0)
-    with pytest.raises(ValueError, match="^segments: 'optimal'"):
+    with pytest.raises(ValueError, match="^segments: 'optimal'") as info:
         ad.build("optimal", seg, nodes=4, norm="linf")
+    # a typed refusal (a ValueError) that says how far above the limit the build was
+    from avsm_dr.validation import WorkLimitError
+    assert isinstance(info.value, WorkLimitError) and info.value.limit == 10.0 and info.value.work > 10.0
 
 
 def test_traits_and_storage():

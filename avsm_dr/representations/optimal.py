@@ -14,13 +14,14 @@ texel's L2 error: the best subset refitted, not the joint optimum over subsets a
 
 Host NumPy in float64 (depths normalised to [0, 1] per texel), vectorised over texels of
 similar point count.  Builds above :data:`MAX_WORK` work units or with a texel above
-:data:`MAX_POINTS` points raise ValueError before computing.  ``objective``: each texel's
+:data:`MAX_POINTS` points raise :class:`~avsm_dr.validation.WorkLimitError` (a ValueError) before computing.  ``objective``: each texel's
 cost of the stored curve, RMS over ``[first, last point]`` (l2) or the max error (linf).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from ..validation import WorkLimitError
 from . import _curve
 from ._curve import exp_stored_values
 from .avsm import INTERPOLATION, NODES, NodeList
@@ -342,14 +343,14 @@ class OptimalSubset(NodeList):
         counts = np.diff(_curve.points(self.segments)["off"])
         if counts.size and counts.max() > MAX_POINTS:
             t = int(np.argmax(counts))
-            raise ValueError(f"segments: texel {t} has {int(counts[t])} exact-curve points (segment ends, two "
+            raise WorkLimitError(f"segments: texel {t} has {int(counts[t])} exact-curve points (segment ends, two "
                              f"at a step), above the {MAX_POINTS} per texel that 'optimal' accepts "
                              f"(avsm_dr.representations.optimal.MAX_POINTS: a K x K float64 cost block per "
                              f"texel); {int(np.sum(counts > MAX_POINTS))} texels exceed it; 'greedy' has no "
-                             "such limit")
+                             "such limit", int(counts.max()), MAX_POINTS)
         work = work_units(counts, self.N, self.norm, self.interp)
         if work > MAX_WORK:
-            raise ValueError(self._work_message(counts, work))
+            raise WorkLimitError(self._work_message(counts, work), work, MAX_WORK)
 
     def _work_message(self, counts, work: float) -> str:
         """Why a build is refused above :data:`MAX_WORK`, and what fits."""
