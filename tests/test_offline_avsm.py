@@ -386,3 +386,72 @@ def test_the_page_quotes_the_committed_runs_of_more_scenes():
     assert raw("claims.csv") == as_text(G.claims_rows(findings), G.CLAIM_COLUMNS)
     assert raw("means.csv") == as_text(
         G.means_rows(rows), ("scene", "method", "order", "N", "configs", *G.MEAN_COLUMNS))
+
+
+def _uniform_objective_direct(obj, rep) -> dict:
+    """avsm_gap.UniformObjective.measure as it was before its exact-curve cache: every cut
+    sorted, every point of every piece looked up in both curves (the slow, obvious reference)."""
+    from experiments.avsm_gap import GAUSS_POINTS, MAX_POINTS, node_depths
+    nt, nd = node_depths(rep)
+    tex, z = np.r_[obj.ends_tex, nt], np.r_[obj.ends, nd]
+    keep = (z >= obj.lo[tex]) & (z <= obj.hi[tex])
+    tex, z = tex[keep], z[keep]
+    order = np.lexsort((z, tex))
+    tex, z = tex[order], z[order]
+    same = np.r_[False, (tex[1:] == tex[:-1])]
+    piece = np.flatnonzero(same & np.r_[False, z[1:] > z[:-1]])
+    a, b, pt = z[piece - 1], z[piece], tex[piece]
+    gx, gw = np.polynomial.legendre.leggauss(GAUSS_POINTS)
+    x = (0.5 * (a + b))[:, None] + (0.5 * (b - a))[:, None] * gx[None, :]
+    w = (0.5 * (b - a))[:, None] * gw[None, :]
+    qt = np.repeat(pt, GAUSS_POINTS)
+    u = (np.arange(MAX_POINTS) + 0.5) / MAX_POINTS
+    at = np.r_[qt, np.repeat(pt, MAX_POINTS), tex]
+    ax = np.r_[x.ravel(), (a[:, None] + (b - a)[:, None] * u[None, :]).ravel(), z]
+    err = np.asarray(rep.eval(at, ax), np.float64) - np.asarray(obj.exact.eval(at, ax), np.float64)
+    T = obj.seg.n_texels
+    span = np.where(obj.hi > obj.lo, obj.hi - obj.lo, 1.0)
+    mse = np.bincount(qt, weights=w.ravel() * err[:qt.size] ** 2, minlength=T) / span
+    mx = np.zeros(T)
+    np.maximum.at(mx, at, np.abs(err))
+    sel = obj.texels
+    return {"depth_rms": float(np.sqrt(mse[sel].mean())), "depth_max": float(mx[sel].max()),
+            "depth_mean_texel_max": float(mx[sel].mean()), "_texel_rms": np.sqrt(mse)}
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_uniform_objective_cache_gives_the_direct_values_bit_for_bit(dtype):
+    """The cached exact curve (pieces between segment ends, split only where a node falls)
+    gives every number of looking everything up, to the bit: node kinds, kinds without nodes,
+    nodes on segment ends, outside the texel's range, repeated, and empty texels."""
+    from experiments.avsm_gap import UniformObjective
+    rng = np.random.default_rng(7)
+    counts = rng.integers(0, 9, 40)
+    counts[:3] = (0, 1, 30)
+    off = np.r_[0, np.cumsum(counts)]
+    n = int(off[-1])
+    z0 = np.round(rng.uniform(0, 1, n), 2)                     # shared ends: duplicate cuts
+    z1 = np.where(rng.random(n) < 0.2, z0, z0 + np.round(rng.uniform(0.0, 0.4, n), 2))
+    seg = ad.Segments.from_arrays(off, z0, z1, optical_depth=rng.exponential(0.7, n), dtype=dtype)
+    obj = UniformObjective(seg)
+    reps = [ad.build(k, seg, **p) for k, p in (("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}),
+                                                ("greedy", {"nodes": 3}), ("optimal", {"nodes": 4}),
+                                                ("avsm_march", {"nodes": 6}), ("avsm_adaptive", {"bytes_per_texel": 64}),
+                                                ("fom", {"harmonics": 3}), ("beer", {}))]
+
+    class OnEnds:      # nodes at segment ends, beyond the range and repeated (node_depths' contract)
+        kind, n_texels = "avsm_adaptive", seg.n_texels
+        node_counts = np.minimum(counts, 3) + 1
+        def __init__(self):
+            h = seg.numpy()
+            d = [np.r_[h["z1"][off[t]:off[t] + c - 1], [-1.0 if t % 2 else 2.0]] for t, c in enumerate(self.node_counts)]
+            self._d = np.concatenate(d)
+        def node_depths(self):
+            return self._d
+        def eval(self, texel, depth):
+            return reps[0].eval(texel, depth)
+    for rep in reps + [OnEnds()]:
+        got, want = obj.measure(rep), _uniform_objective_direct(obj, rep)
+        for k in ("depth_rms", "depth_max", "depth_mean_texel_max"):
+            assert got[k] == want[k], (getattr(rep, "kind", rep), k)
+        assert got["_texel_rms"].tobytes() == want["_texel_rms"].tobytes()
