@@ -1,4 +1,4 @@
-"""Markdown summary of a ``scripts/device_check.sh`` run (issue 14, section 5).
+"""Markdown summary of a ``scripts/device_check.sh`` run.
 
     python scripts/device_table.py OUT > OUT/device_check.md
 

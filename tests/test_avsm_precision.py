@@ -1,4 +1,4 @@
-"""AVSM in float32 without cancellation (issue 21, item 4): the insertion's interpolation and
+"""AVSM in float32 without cancellation : the insertion's interpolation and
 ramp, and the "already opaque" skip, against the same algorithm in 60-digit arithmetic
 (tests/reference/avsm_ref.py driven with mpmath numbers) and against the exact curve.
 

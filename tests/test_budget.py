@@ -109,7 +109,7 @@ def test_map_floor_is_the_exact_kinds_rmse(quick_run):
 
 
 def test_order_signed_mean_leak_share_and_the_depth_l2_choice(quick_run):
-    """Issue 23: every setting (data.csv, best.csv) carries its order ('depth' for the AVSM family,
+    """Every setting (data.csv, best.csv) carries its order ('depth' for the AVSM family,
     '-' for kinds that do not depend on it), signed mean and leak share; configurations.csv
     per configuration; the summary names the depth-L2 choice and whether it differs."""
     from experiments.error_curves.labels import order_dependent

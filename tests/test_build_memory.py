@@ -1,6 +1,6 @@
 """Size parameters are bounded (schema maxima) and every build with a size parameter checks
 a byte estimate against :func:`avsm_dr.validation.memory_budget` before allocating
-(issue 21 item 8: ``osm slices=10**6`` on 1000 texels aborted the process, ``fom
+(``osm slices=10**6`` on 1000 texels aborted the process, ``fom
 harmonics=10**6`` segfaulted under a 6 GB cap, ``basis n=10**6`` ran 50 s into bad_alloc).
 
 Registry-driven: every kind's schema and every kind with a size parameter are covered.

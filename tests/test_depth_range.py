@@ -4,7 +4,7 @@ segment; one that cuts the content is refused with a ValueError naming the argum
 fault (``near``, ``far`` or both), its value and the content's span.
 
 Registry-driven: every kind whose schema has ``near`` and ``far`` is parametrised, so a new
-kind is covered without editing this file.  Issue 21 item 1: with segments [0.1, 0.3]
+kind is covered without editing this file.  With segments [0.1, 0.3]
 (T 0.5) and [0.35, 0.5] (T 0.7), ``near=0.3, far=0.45``, FOM returned 0.659 / 0.612 /
 0.394 at depths 0.32 / 0.4 / 0.48 (exact 0.5 / 0.444 / 0.367), while AVSM refused it
 naming ``far`` for a ``near`` at fault.
@@ -23,7 +23,7 @@ DTYPES = ["float32", "float64"]
 
 
 def test_every_kind_with_a_depth_range_is_covered():
-    """The kinds issue 21 names are among the parametrised ones (the list is not empty)."""
+    """The kinds whose depth range once went wrong are among the parametrised ones (the list is not empty)."""
     assert {"avsm", "avsm_adaptive", "basis", "fom", "moments", "osm"} <= set(RANGE_KINDS)
 
 

@@ -1,4 +1,4 @@
-"""Device-side paths of the pipeline (issue 14, section 2): filtered lookups reuse their
+"""Device-side paths of the pipeline: filtered lookups reuse their
 compiled kernels, ``Representation.eval`` validates Dr.Jit input without copying it to the
 host, and ``Segments.sorted()`` orders each texel on the device exactly like a host lexsort."""
 from __future__ import annotations

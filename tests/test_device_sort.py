@@ -1,4 +1,4 @@
-"""Per-texel sorting on the device (issue 14, section 2): the sorting networks of
+"""Per-texel sorting on the device: the sorting networks of
 :mod:`avsm_dr.texel_sort` and ``Segments.sorted()`` on adversarial input, always equal to
 a stable host lexsort by (texel, z0, z1)."""
 from __future__ import annotations

@@ -280,11 +280,12 @@ def test_main_job_time_is_the_committed_runs():
 
 
 def test_user_pages_have_no_internal_references():
-    """User text (pages, notebooks, the API's docstrings and the studies' ``--help``) never points
-    at the project's tracker ("issue 23", "stop 31"): a reader has no access to it, so the text
-    says what it means instead."""
+    """User text (pages, notebooks, the API's docstrings and the studies' ``--help``) and the tests'
+    docstrings never point at the project's tracker ("issue" or "stop" and a number): a reader has
+    no access to it, so the text says what it means instead."""
     pages = [ROOT / "README.md", *(ROOT / "docs").rglob("*.md"), *(ROOT / "notebooks").glob("*.py"),
-             *(ROOT / "avsm_dr").rglob("*.py"), *(ROOT / "experiments").rglob("*.py")]   # docstrings, --help
+             *(ROOT / "avsm_dr").rglob("*.py"), *(ROOT / "experiments").rglob("*.py"),   # docstrings, --help
+             *(ROOT / "tests").rglob("*.py"), *(ROOT / "scripts").glob("*.py")]
     pages = [p for p in pages if "_build" not in p.parts and "_generated" not in p.parts]
     hits = [f"{p.relative_to(ROOT)}:{i}" for p in pages for i, line in enumerate(p.read_text().splitlines(), 1)
             if re.search(r"\b(issue|stop) \d+\b", line, re.IGNORECASE)]

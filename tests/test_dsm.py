@@ -256,7 +256,7 @@ def test_property_error_bound(seed, tol, placement):
 
 
 # ----------------------------------------------------------------------------
-# the bound at the float resolution: curves that drop within an ulp (issue 11, item 7)
+# the bound at the float resolution: curves that drop within an ulp
 # ----------------------------------------------------------------------------
 def ulp_depths(z0, z1, dtype, ulps=6):
     """dense_depths plus the first ``ulps`` representable depths after every breakpoint

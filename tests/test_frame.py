@@ -40,7 +40,7 @@ def test_quick_frame_covers_every_scene_method_and_kind(quick):
                 assert got == kinds, (name, res, method)
     assert {int(r["resolution"]) for r in rows} == set(frame.QUICK_RESOLUTIONS)
     assert list(quick.glob("*.png")) == [quick / "frame.png"]
-    # the insertion order every build saw (issue 23): the capture's, front to back
+    # the insertion order every build saw: the capture's, front to back
     assert {r["order"] for r in rows if r["kind"] == "avsm"} == {"depth"}
     assert {r["order"] for r in rows if r["kind"] in ("fom", "exact")} == {"-"}
 

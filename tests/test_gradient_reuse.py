@@ -1,4 +1,4 @@
-"""One :class:`~avsm_dr.Segments` reused across ``dr.backward`` calls (issue 21, item 2).
+"""One :class:`~avsm_dr.Segments` reused across ``dr.backward`` calls.
 
 ``dr.backward`` frees the graph edges it traverses; a Segments array derived from the caller's
 grad-enabled leaf (a clamp, a cast, ``-ln`` of a transmittance, a sorted gather) used to be such

@@ -1,4 +1,4 @@
-"""``greedy`` on large texels (issue 21, item 9): the heap removal order
+"""``greedy`` on large texels: the heap removal order
 (:func:`avsm_dr.representations.greedy.vw_removal_rank_heap`, O(K log K)) equals the
 previous O(K^2) scan (tests/reference/greedy_ref.py) exactly, ties included, and texels
 above ``HEAP_POINTS`` points never take the scan."""

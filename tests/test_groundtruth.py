@@ -444,7 +444,7 @@ def test_orthonormal_basis_is_the_one_frame(rng):
         assert abs(u @ up) < 1e-15
 
 
-# ====================================================== capture vs Mitsuba (issue 3)
+# ====================================================== capture vs Mitsuba
 def texel_ray_receivers(cap, rng, k, margin=0.05):
     """k receivers on the rays of random occupied texels (so a point lookup reads exactly
     the texel whose ray passes through the receiver), at random depths around the content."""

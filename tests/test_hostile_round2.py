@@ -1,4 +1,4 @@
-"""Issue 21, hostile round 2: what a second round of hostile inputs found at the public
+"""Hostile round 2: what a second round of hostile inputs found at the public
 boundary (messages, refusals, crashes), one regression test each (crash cases in a subprocess)."""
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
-"""Hostile input to scenes, capture, ground truth, shading and I/O (issue 11).
+"""Hostile input to scenes, capture, ground truth, shading and I/O.
 
 Crash and memory cases run in a subprocess, so a regression fails one test instead of
-killing the run.  Item numbers are issue 11's.
+killing the run.
 """
 import struct
 import subprocess
@@ -34,7 +34,7 @@ def slab_scene(light, sigma=0.5):
                  bbox=(np.array([-2.0, -5.0, -5.0]), np.array([2.0, 5.0, 5.0])))
 
 
-# ====================================================== item 8: outside the light's map
+# ====================================================== outside the light's map
 def test_points_behind_or_beside_a_spot_light_are_lit():
     # Light at (-3, 0, 0) looking along +x; the slab fills its whole frustum.  A receiver
     # behind the light and one outside the cone are not shadowed (their paths miss the
@@ -90,7 +90,7 @@ def test_cube_map_covers_every_direction():
     np.testing.assert_allclose(T[-1], truth, atol=1e-4)
 
 
-# ================================================= item 3: ray march memory and time
+# ================================================= ray march memory and time
 def test_raymarch_refuses_a_step_that_cannot_fit():
     out = run_python("""
         import avsm_dr, numpy as np
@@ -221,7 +221,7 @@ BOX = Scene("box", DirectionalLight((0.0, 0.0, 1.0)), np.zeros((1, 3)),
                                                 hair=Hair(np.zeros((1, 2, 3)), 0.01, opacity=v)), 64)),
 ])
 def test_scalars_follow_one_rule(name, call, bad):
-    # real numbers only: no arrays, bool, str or NaN (issue 11, "one rule")
+    # real numbers only: no arrays, bool, str or NaN (the validation's "one rule")
     with pytest.raises(ValueError, match=f"^{name}: expected a finite real number"):
         call(bad)
 

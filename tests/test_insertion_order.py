@@ -102,7 +102,7 @@ def test_findings_per_order_with_intervals(quick):
 def test_both_metrics_leak_bytes_and_order_over_depth(quick):
     """Every row: leak shares in [0, 1], both byte layouts (sparse below dense on these maps
     with empty texels); findings: each kind's leak share per order, ``metric_dependent`` on
-    every kind and order, and each order over front to back on both metrics (issue 23)."""
+    every kind and order, and each order over front to back on both metrics."""
     rows, found, _ = quick
     for r in rows:
         assert 0 <= r["leak_share"] <= 1 and 0 <= r["leak_share_truth"] <= 1
@@ -128,7 +128,7 @@ def test_both_metrics_leak_bytes_and_order_over_depth(quick):
 
 
 def test_full_mode_configurations():
-    """Issue 23: full mode runs >= 10 configurations per scene, a spot light among them."""
+    """Full mode runs >= 10 configurations per scene, a spot light among them."""
     from avsm_dr.evaluation import Configuration
     cfgs = [Configuration(s, li) for s, li in S.FULL["configs"]]
     assert len({c.label for c in cfgs}) == len(cfgs) >= 10 and any(c.light == "spot" for c in cfgs)

@@ -35,7 +35,7 @@ def test_quick_run_writes_results(quick_run):
         assert float(r["depth_l2"]) > 0 and float(r["receiver_rmse"]) > 0 and 0 <= float(r["leak_share"]) <= 1
     metric_rows = _common.read_csv(quick_run / "avsm_metric.csv")
     assert all(float(r["receiver_rmse"]) > 0 for r in metric_rows)
-    for r in rows + metric_rows:             # issue 23: order and sparse / dense bytes on every row
+    for r in rows + metric_rows:             # order and sparse / dense bytes on every row
         assert r["order"] == "depth" and float(r["bytes_dense"]) == float(r["bytes_per_texel"]) > 0
         assert 0 < float(r["bytes"]) and np.isfinite(float(r["bytes"]))
     for kind in kinds:                       # equal bytes: one size per kind whatever the warp

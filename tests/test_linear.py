@@ -266,7 +266,7 @@ LARGE = [(("fom", {"harmonics": 45}), "float32"), (("fom", {"harmonics": 45}), "
 @pytest.mark.parametrize("config, dtype", LARGE, ids=lambda c: c if isinstance(c, str) else lin_id(c))
 def test_matches_reference_large_sizes(config, dtype, rng):
     """The indexed kernels (one lane per segment x coefficient) and the chunked list
-    path hold the same error bounds as the small sizes (issue 11, item 5)."""
+    path hold the same error bounds as the small sizes."""
     kind, params = config
     check_against_reference(kind, params, CASES["random"](rng), dtype)
 
@@ -297,7 +297,7 @@ def test_indexed_forms_equal_list_forms(basis, rng):
 def test_trace_does_not_grow_with_size(kind, arg, rng):
     """Build + eval trace the same kernels whatever the size (indexed bases) or a number
     of fixed-size chunks (legendre): the operations per kernel do not grow with N (one
-    kernel for all N made the cost quadratic; issue 11, item 5).  A structural check via
+    kernel for all N made the cost quadratic).  A structural check via
     dr.kernel_history, not a timing."""
     seg = to_segments(random_segments(rng, texels=8, max_count=10), "float32")
     extra = {"basis": "cosine"} if kind == "basis" else {}

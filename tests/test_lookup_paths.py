@@ -1,4 +1,4 @@
-"""Lookup fast paths (issue 14, section 4): node-list kinds read a texel's nodes with one
+"""Lookup fast paths: node-list kinds read a texel's nodes with one
 packet gather from a row-per-texel copy, and point lookups of plain NumPy input are
 checked by their extremes on the host and run as one launch.  Both must give the values
 of the general paths bit for bit (and the same ValueError where those raise)."""

@@ -83,7 +83,7 @@ def test_quick_run_claims_match_the_csv(quick):
 
 
 def test_quick_run_both_metrics(quick):
-    """Issue 23: every row carries the depth L2, signed mean, leak share, both byte layouts and
+    """Every row carries the depth L2, signed mean, leak share, both byte layouts and
     the order ('-': moments do not depend on it); every claim both metrics with configuration-level
     intervals, metric_dependent, indicative (2 configurations) and each side's signed mean and
     leak share; the receiver RMSE estimate is the claim's own."""

@@ -274,7 +274,7 @@ def test_avsm_gap_quick(tmp_path, monkeypatch):
 
 
 def test_avsm_gap_full_configurations_and_a_spot_light():
-    """Issue 23: full mode runs >= 10 configurations per scene, a spot light among them; a
+    """Full mode runs >= 10 configurations per scene, a spot light among them; a
     spot-light configuration runs (plume, N = 4, tiny receiver sets) with finite metrics and
     its claims on both metrics."""
     from avsm_dr.evaluation import Configuration

@@ -1,4 +1,4 @@
-"""``optimal`` as an oracle on hostile texels (issue 21, item 3): tiny transmittances,
+"""``optimal`` as an oracle on hostile texels: tiny transmittances,
 opaque segments, points whose value is a float64 denormal or 0, overlapping segments and
 coincident depths, for both norms and both interpolations.  Its error, measured by the
 accurate references of tests/reference/offline_ref.py (graded Gauss-Legendre L2 of the
@@ -29,7 +29,7 @@ TINY = np.finfo(np.float64).tiny
 MEASURE = {"l2": ref.l2_error_graded, "linf": ref.linf_error_golden}
 COMBOS = [("l2", "linear"), ("l2", "exp"), ("linf", "linear"), ("linf", "exp")]
 
-#: Issue 21's texel class: five overlapping T = 1e-6 segments and an opaque one; its point
+#: A hostile texel class: five overlapping T = 1e-6 segments and an opaque one; its point
 #: at z = 0.77 has T = 6.1e-318 (a float64 denormal: the old ``log(v_i / v_j)`` overflowed)
 ISSUE_Z0 = [0.77, 0.66, 0.89, 0.1, 0.69, 0.7]
 ISSUE_Z1 = [1.24, 0.85, 1.33, 0.12, 1.41, 1.69]

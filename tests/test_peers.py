@@ -1,4 +1,4 @@
-"""Benchmark peers run the same algorithms as our kernels (issue 7).
+"""Benchmark peers run the same algorithms as our kernels.
 
 The Numba peers (Numba: in the ``test`` and ``bench`` extras) are checked against the
 Dr.Jit kernels in float64; these tests need Numba (absent, they fail rather than skip),

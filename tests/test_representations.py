@@ -199,7 +199,7 @@ def test_property_bounds_all_kinds(seed):
 
 
 # ----------------------------------------------------------------------------
-# filters under hostile parameters (issue 11, items 6 and 10)
+# filters under hostile parameters
 # ----------------------------------------------------------------------------
 def _map(W, H, rng):
     data = random_segments(rng, texels=W * H, max_count=4, empty_fraction=0.0)

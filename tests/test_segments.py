@@ -72,7 +72,7 @@ def test_drjit_float64_input_selects_float64():
 
 
 # ----------------------------------------------------------------------------
-# the storage dtype's range (issue 11, item 1), subnormals, texel selection (item 11)
+# the storage dtype's range, subnormals, texel selection
 # ----------------------------------------------------------------------------
 def _run(code):
     import subprocess

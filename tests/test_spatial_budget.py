@@ -73,7 +73,7 @@ def test_quick_spatial_budget_run(tmp_path):
         assert float(r["lookup_ns"]) > 0
         if r["kind"] != "exact":
             assert int(float(r["map_bytes"])) <= int(r["budget_bytes"])
-        # issue 23: order, sparse / dense bytes and the depth-uniform L2 of the curve on every row
+        # order, sparse / dense bytes and the depth-uniform L2 of the curve on every row
         assert r["order"] == "depth" and float(r["bytes_dense"]) == float(r["bytes_per_texel"]) > 0
         assert float(r["bytes"]) > 0 and np.isfinite(float(r["depth_l2"]))
         assert (float(r["depth_l2"]) == 0) == (r["kind"] == "exact"), r

@@ -1,4 +1,4 @@
-"""avsm_dr.validation: one rule for numbers, vectors and points (issue 11, "one rule")."""
+"""avsm_dr.validation: one rule for numbers, vectors and points."""
 import numpy as np
 import pytest
 
@@ -82,7 +82,7 @@ def test_points():
         V.points([[0, np.nan, 0]])
 
 
-# ------------------------------------------------------------------ density grids (issue 21, item 7)
+# ------------------------------------------------------------------ density grids
 def _grid_entry_points():
     """Every public entry point that takes a density grid, as ``grid -> call``."""
     import avsm_dr as ad

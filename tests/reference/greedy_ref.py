@@ -1,5 +1,5 @@
 """The previous ``greedy`` removal order, kept as the slow reference for the heap
-(avsm_dr/representations/greedy.py before issue 21): Visvalingam-Whyatt with AVSM's
+(avsm_dr/representations/greedy.py before it used a heap): Visvalingam-Whyatt with AVSM's
 area metric on a (B, K) padded block, one argmin over every point per removal (O(K^2)
 per texel).  Ties: the deepest point; a NaN area first (``np.argmin``)."""
 from __future__ import annotations
