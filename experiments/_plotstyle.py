@@ -14,6 +14,8 @@ outside the data).  Matplotlib is imported only when a figure is made or saved.
 """
 from __future__ import annotations
 
+import math
+
 import zlib
 from pathlib import Path
 
@@ -112,6 +114,13 @@ def context():
     figures of a block in the common style without changing global settings."""
     import matplotlib
     return matplotlib.rc_context(RC)
+
+
+def panel_shape(n: int, columns: int = 5) -> tuple[int, int]:
+    """(rows, columns) of ``n`` small-multiple panels: at most ``columns`` a row, rows filled
+    evenly (7 panels at most 4 a row: 2 x 4, not 4 + 3 of unequal widths)."""
+    rows = math.ceil(n / columns)
+    return rows, math.ceil(n / rows)
 
 
 def grid(n_rows: int, n_cols: int, *, panel: tuple[float, float] = (2.6, 2.1), sharex=True, sharey=True,

@@ -485,11 +485,16 @@ def _style(label: str) -> dict:
     return plotstyle.style(dict((m[0], m[1]) for m in methods(0)).get(label, label))
 
 
+#: Scene panels a row in the figures (more scenes wrap onto rows filled evenly).
+PANEL_COLUMNS = 4
+
+
 def _plot(res, rows, names):
     """Per scene and N, each method's error (front-to-back rows) as the mean over
     configurations, bars from the smallest to the largest configuration."""
     import matplotlib
     matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
     import matplotlib.ticker
     from . import _plotstyle as plotstyle
     labels = [m[0] for m in methods(0)]
@@ -497,8 +502,12 @@ def _plot(res, rows, names):
     for key, fname, ylabel in (("depth_rms", "gap_depth.png", "RMS error of T, uniform in depth per texel"),
                                ("rmse_in_volume", "gap_receivers.png", "RMSE of T at in-volume receivers")):
         with plotstyle.context():
-            fig, axes = plotstyle.grid(1, len(names), panel=(2.8, 2.4), sharex=False)
-            for ax, name in zip(axes[0], names):
+            fig, axes = plotstyle.grid(*plotstyle.panel_shape(len(names), PANEL_COLUMNS), panel=(2.8, 2.4),
+                                       sharex=False)
+            panels = axes.ravel()
+            for ax in panels[len(names):]:
+                ax.set_visible(False)
+            for ax, name in zip(panels, names):
                 for lab in labels:
                     per: dict = {}
                     for r in rows:
@@ -520,10 +529,13 @@ def _plot(res, rows, names):
                 ns = sorted({r["nodes"] for r in rows if r["nodes"]})
                 ax.set_xticks(ns, [str(n) for n in ns])
                 ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-            axes[0][0].set_ylabel(ylabel)
+            if len(axes) > 1:                # one label for the rows (a long label per row overlaps)
+                fig.supylabel(ylabel, fontsize=plt.rcParams["axes.labelsize"])
+            else:
+                axes[0][0].set_ylabel(ylabel)
             fig.suptitle(f"mean over {n_cfg} configuration{'s' * (n_cfg > 1)} (bars: min to max), "
                          "front-to-back AVSM", fontsize=9)
-            plotstyle.legend_below(fig, axes[0], ncol=7)
+            plotstyle.legend_below(fig, panels[:len(names)], ncol=7)
             res.save_figure(fig, fname)
 
 

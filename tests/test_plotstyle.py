@@ -89,3 +89,10 @@ def test_log_ticks_label_a_few_values_without_overlap(lo, hi):
         with pytest.raises(ValueError, match="axis"):
             plotstyle.log_ticks(ax, "z")
     plt.close(fig)
+
+
+def test_panel_shape_fills_rows_evenly():
+    from experiments._plotstyle import panel_shape
+    assert panel_shape(7, 4) == (2, 4) and panel_shape(5, 4) == (2, 3) and panel_shape(3, 4) == (1, 3)
+    assert all(r * c >= n and c <= k and (r - 1) * c < n for k in (3, 4, 5) for n in range(1, 30)
+               for r, c in [panel_shape(n, k)])

@@ -4,7 +4,6 @@ per metric, and the adaptive allocation's node count per texel; small multiples 
 :data:`COLUMNS` scenes a row."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
@@ -22,8 +21,8 @@ METRICS = (("error_vs_bytes.png", "rmse", "RMSE, in-volume receivers"),
 
 def _shape(n: int) -> tuple[int, int]:
     """(rows, columns) of ``n`` scene panels: at most :data:`COLUMNS` a row, rows filled evenly."""
-    rows = math.ceil(n / COLUMNS)
-    return rows, math.ceil(n / rows)
+    from .. import _plotstyle as plotstyle
+    return plotstyle.panel_shape(n, COLUMNS)
 
 
 def _title(scene: str) -> str:
