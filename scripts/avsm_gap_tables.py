@@ -79,13 +79,16 @@ def claims_rows(findings: dict, digits: bool = True) -> list[dict]:
 
 
 def means_rows(rows: list[dict]) -> list[dict]:
-    """``means.csv``: per (scene, method, order, N) the mean of each column over the configurations."""
+    """``means.csv``: per (scene, method, order, N) the mean of each column over the configurations
+    where the method ran (``configs`` counts those: a row with a note, such as ``optimal_linf``
+    above its work limit, holds no values)."""
     groups = defaultdict(list)
     for r in rows:
         groups[(r["scene"], r["method"], r.get("order") or "-", int(float(r["nodes"])))].append(r)
     out = []
     for (scene, method, order, n), rs in groups.items():
-        row = dict(scene=scene, method=method, order=order, N=n, configs=len({r.get("config") for r in rs}))
+        ran = {r.get("config") for r in rs if any(r.get(k) not in (None, "") for k in MEAN_COLUMNS)}
+        row = dict(scene=scene, method=method, order=order, N=n, configs=len(ran))
         for k in MEAN_COLUMNS:
             vals = [float(r[k]) for r in rs if r.get(k) not in (None, "")]
             row[k] = _round(sum(vals) / len(vals)) if vals else ""

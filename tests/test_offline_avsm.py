@@ -363,7 +363,7 @@ def test_the_page_quotes_the_committed_runs_of_more_scenes():
     import io
     G = _gap_tables()
     more = Path(__file__).resolve().parents[1] / "docs" / "research" / "avsm_gap" / "more"
-    scenes = ["particles", "smoke_over_table", "fog_bank", "gaussian_blobs", "cumulus"]
+    scenes = ["particles", "smoke_over_table", "fog_bank", "gaussian_blobs", "cumulus", "simulated_plume", "tall_column"]
     findings, rows, got = G.load([more / s for s in scenes])
     assert got == scenes
     for s in scenes:
