@@ -455,3 +455,13 @@ def test_uniform_objective_cache_gives_the_direct_values_bit_for_bit(dtype):
         for k in ("depth_rms", "depth_max", "depth_mean_texel_max"):
             assert got[k] == want[k], (getattr(rep, "kind", rep), k)
         assert got["_texel_rms"].tobytes() == want["_texel_rms"].tobytes()
+
+
+def test_gap_means_count_only_the_configurations_where_a_method_ran():
+    G = _gap_tables()
+    rows = [dict(scene="s", method="optimal_linf", order="-", nodes="4", config=c, depth_rms=v)
+            for c, v in (("a", "0.5"), ("b", ""), ("c", "1.5"))]
+    rows.append(dict(scene="s", method="optimal_linf", order="-", nodes="8", config="a", note="skipped: work"))
+    got = {r["N"]: r for r in G.means_rows(rows)}
+    assert got[4]["configs"] == 2 and got[4]["depth_rms"] == 1.0
+    assert got[8]["configs"] == 0 and got[8]["depth_rms"] == ""
