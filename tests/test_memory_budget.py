@@ -194,58 +194,50 @@ def test_spot_light_configuration_runs(scene):
     assert all(math.isfinite(float(v)) for e in errors.values() for v in e)
 
 
-def test_the_page_quotes_the_committed_gaussian_blobs_run():
-    """docs/research/memory_budget/run_gaussian_blobs holds the full-mode run of the second
-    particle scene behind the page's section on it: its savings recompute from data.csv, and
-    the page quotes its tables verbatim."""
+def _committed_run(name: str):
+    """docs/research/memory_budget/<name>: a full-mode run (ten configurations per scene, the
+    full mode's configurations) whose savings recompute from its data.csv; returns its
+    findings, meta, the page's tables from it and the page's text."""
     from pathlib import Path
     from experiments.memory_budget import tables as TB
     root = Path(__file__).resolve().parents[1]
-    rows, f, meta = TB.load(root / "docs" / "research" / "memory_budget" / "run_gaussian_blobs")
-    P = meta["params"]
-    assert P["quick"] is False and P["scenes"] == ["gaussian_blobs"] and P["configs"] == MB.FULL["configs"]
-    assert len({r["config"] for r in rows}) == len(MB.FULL["configs"])
-    again = TB.recompute(rows)
-    for k in ("bytes_saved_at_equal_rmse", "bytes_saved_at_equal_depth_rms"):
-        for n, e in f[k]["gaussian_blobs"].items():
-            got = again[k]["gaussian_blobs"][n]
-            # 9 significant digits in the CSV; 1 - a / b near 0 keeps them only in absolute terms
-            assert got["censored"] == e["censored"] and got.get("saving") == pytest.approx(e.get("saving"), abs=1e-7)
-    page = (root / "docs" / "research" / "memory_budget.md").read_text()
-    t = TB.page_tables(TB.with_scenes(f, meta))
-    for name in ("savings", "by_order", "savings_exp", "adaptive_over_avsm", "avsm_exp_over_linear",
-                 "uniform_allocation", "adaptive_over_uniform", "others"):
-        assert "\n".join(t[name]) in page, name
-
-
-def test_the_page_quotes_the_committed_eight_scene_run():
-    """docs/research/memory_budget/run holds the full-mode run behind the page's findings (every
-    built-in scene but gaussian_blobs, run alone, and tall_column, not run): ten configurations
-    per scene, savings that recompute from data.csv, every table of the tables tool quoted
-    verbatim on the page."""
-    from pathlib import Path
-    from experiments.memory_budget import tables as TB
-    root = Path(__file__).resolve().parents[1]
-    rows, f, meta = TB.load(root / "docs" / "research" / "memory_budget" / "run")
+    rows, f, meta = TB.load(root / "docs" / "research" / "memory_budget" / name)
     P = meta["params"]
     assert P["quick"] is False and P["configs"] == MB.FULL["configs"]
-    assert set(P["scenes"]) == set(MB.FULL["scenes"]) - {"gaussian_blobs", "tall_column"}
     for scene in P["scenes"]:
         assert len({r["config"] for r in rows if r["scene"] == scene}) == len(MB.FULL["configs"]), scene
     again = TB.recompute(rows)
     for k in ("bytes_saved_at_equal_rmse", "bytes_saved_at_equal_depth_rms"):
         for scene, per_n in f[k].items():
-            # the CSV's 9 digits give 1e-7 in absolute terms, except smoke_over_table's depth RMS, about
-            # 0.5 at every N (the page's caveat): log-log interpolation between nearly equal errors
-            # magnifies the rounding (measured 6.7e-6 at N = 2)
+            # the CSV's 9 digits give 1e-7 in absolute terms (1 - a / b near 0 keeps them only so),
+            # except smoke_over_table's depth RMS, about 0.5 at every N (the page's caveat): log-log
+            # interpolation between nearly equal errors magnifies the rounding (measured 6.7e-6 at N = 2)
             tol = 1e-4 if scene == "smoke_over_table" and "depth" in k else 1e-7
             for n, e in per_n.items():
                 got = again[k][scene][n]
                 assert got["censored"] == e["censored"]
                 assert got.get("saving") == pytest.approx(e.get("saving"), abs=tol), (k, scene, n)
     page = (root / "docs" / "research" / "memory_budget.md").read_text()
+    return f, meta, TB.page_tables(TB.with_scenes(f, meta)), page
+
+
+def test_the_page_quotes_the_committed_gaussian_blobs_run():
+    """docs/research/memory_budget/run_gaussian_blobs holds the full-mode run of the second
+    particle scene behind the page's section on it, quoted verbatim."""
+    f, meta, t, page = _committed_run("run_gaussian_blobs")
+    assert meta["params"]["scenes"] == ["gaussian_blobs"]
+    for name in ("savings", "by_order", "savings_exp", "adaptive_over_avsm", "avsm_exp_over_linear",
+                 "uniform_allocation", "adaptive_over_uniform", "others"):
+        assert "\n".join(t[name]) in page, name
+
+
+def test_the_page_quotes_the_committed_nine_scene_run():
+    """docs/research/memory_budget/run holds the full-mode run behind the page's findings (every
+    built-in scene but gaussian_blobs, run alone): every table of the tables tool quoted verbatim
+    before the page's section on the second particle scene."""
+    f, meta, tables, page = _committed_run("run")
+    assert set(meta["params"]["scenes"]) == set(MB.FULL["scenes"]) - {"gaussian_blobs"}
     main = page.split("## The second particle scene")[0]
-    tables = TB.page_tables(TB.with_scenes(f, meta))
     assert len(tables) == 12
     for name, lines in tables.items():
         assert "\n".join(lines) in main, name
