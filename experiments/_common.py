@@ -74,6 +74,17 @@ def git_commit() -> str | None:
     return sha if out.returncode == 0 and sha else None
 
 
+def git_dirty() -> bool | None:
+    """Whether tracked files of the checkout differ from ``HEAD`` (``git status --porcelain
+    --untracked-files=no``), or None where :func:`git_commit` is None."""
+    try:
+        out = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=STUDIES_DIR,
+                             capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return bool(out.stdout.strip()) if out.returncode == 0 else None
+
+
 def cache_key() -> dict:
     """What, besides the parameters, must match for cached results to be reused:
     source hash, library versions and the Dr.Jit backend."""
@@ -108,6 +119,10 @@ class Results:
         self.figures: list[str] = []
         #: file name -> {"sha256", "bytes"[, "rows"]} of what this run wrote (recorded in meta.json)
         self.files: dict[str, dict] = {}
+        # the code this run starts with (a commit taken when meta.json is written, minutes or hours
+        # later, could name code the run never executed)
+        self._started = time.perf_counter()
+        self._provenance = {"cache_key": cache_key(), "git_commit": git_commit(), "git_dirty": git_dirty()}
 
     def meta(self) -> dict:
         """The folder's ``meta.json`` as a dict (empty when missing or unreadable)."""
@@ -214,8 +229,10 @@ class Results:
 
     def write_meta(self, summary: dict | None = None) -> Path:
         """``meta.json``: parameters, summary, figures, the files this run wrote (SHA-256,
-        bytes, rows of tables), cache key, git commit, versions, backend and machine.
-        Written last, atomically: it is what makes the folder a cached result."""
+        bytes, rows of tables), cache key, git commit and whether tracked files differed from it
+        (``git_dirty``), all three as at the start of the run, its wall seconds (``run_seconds``),
+        versions, backend and machine.  Written last, atomically: it is what makes the folder a
+        cached result."""
         from avsm_dr import backend
         meta = {
             "experiment": self.name,
@@ -223,8 +240,8 @@ class Results:
             "summary": summary or {},
             "figures": [Path(f).name for f in self.figures],
             "files": self.files,
-            "cache_key": cache_key(),
-            "git_commit": git_commit(),
+            **self._provenance,
+            "run_seconds": round(time.perf_counter() - self._started, 1),
             **versions(),
             "backend": backend.get_backend(),
             "machine": platform.platform(),

@@ -613,3 +613,17 @@ def test_backward_cost_refuses_a_kind_it_cannot_differentiate(tmp_path):
                                                          **dict(TINY["backward_cost"], kinds=["avsm", "optimal"])))
     with pytest.raises(ValueError, match="kinds.*optimal"):
         study.run(quick=True, out=tmp_path / "bc")
+
+
+def test_meta_names_the_code_the_run_started_with(monkeypatch, tmp_path):
+    """git commit, its dirtiness and the cache key are taken when the run starts: a commit made
+    while it runs is not the code it executed; run_seconds is the run's wall time."""
+    monkeypatch.setattr(_common, "git_commit", lambda: "a" * 40)
+    monkeypatch.setattr(_common, "git_dirty", lambda: False)
+    res = _common.Results("toy", tmp_path / "toy", True, {"x": 1})
+    monkeypatch.setattr(_common, "git_commit", lambda: "b" * 40)
+    monkeypatch.setattr(_common, "git_dirty", lambda: True)
+    meta = json.loads(res.write_meta({}).read_text())
+    assert meta["git_commit"] == "a" * 40 and meta["git_dirty"] is False
+    assert meta["cache_key"] == _common.cache_key() and meta["run_seconds"] >= 0
+    assert _common.git_dirty() in (True, False, None)
