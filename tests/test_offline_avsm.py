@@ -363,7 +363,8 @@ def test_the_page_quotes_the_committed_runs_of_more_scenes():
     import io
     G = _gap_tables()
     more = Path(__file__).resolve().parents[1] / "docs" / "research" / "avsm_gap" / "more"
-    scenes = ["particles", "smoke_over_table", "fog_bank", "gaussian_blobs", "cumulus", "simulated_plume", "tall_column"]
+    scenes = ["particles", "smoke_over_table", "fog_bank", "gaussian_blobs", "cumulus", "simulated_plume",
+              "tall_column"]
     findings, rows, got = G.load([more / s for s in scenes])
     assert got == scenes
     for s in scenes:
@@ -434,17 +435,18 @@ def test_uniform_objective_cache_gives_the_direct_values_bit_for_bit(dtype):
     z1 = np.where(rng.random(n) < 0.2, z0, z0 + np.round(rng.uniform(0.0, 0.4, n), 2))
     seg = ad.Segments.from_arrays(off, z0, z1, optical_depth=rng.exponential(0.7, n), dtype=dtype)
     obj = UniformObjective(seg)
-    reps = [ad.build(k, seg, **p) for k, p in (("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}),
-                                                ("greedy", {"nodes": 3}), ("optimal", {"nodes": 4}),
-                                                ("avsm_march", {"nodes": 6}), ("avsm_adaptive", {"bytes_per_texel": 64}),
-                                                ("fom", {"harmonics": 3}), ("beer", {}))]
+    kinds = (("avsm", {"nodes": 4}), ("avsm", {"nodes": 8}), ("greedy", {"nodes": 3}), ("optimal", {"nodes": 4}),
+             ("avsm_march", {"nodes": 6}), ("avsm_adaptive", {"bytes_per_texel": 64}), ("fom", {"harmonics": 3}),
+             ("beer", {}))
+    reps = [ad.build(k, seg, **p) for k, p in kinds]
 
     class OnEnds:      # nodes at segment ends, beyond the range and repeated (node_depths' contract)
         kind, n_texels = "avsm_adaptive", seg.n_texels
         node_counts = np.minimum(counts, 3) + 1
         def __init__(self):
             h = seg.numpy()
-            d = [np.r_[h["z1"][off[t]:off[t] + c - 1], [-1.0 if t % 2 else 2.0]] for t, c in enumerate(self.node_counts)]
+            d = [np.r_[h["z1"][off[t]:off[t] + c - 1], [-1.0 if t % 2 else 2.0]]
+                 for t, c in enumerate(self.node_counts)]
             self._d = np.concatenate(d)
         def node_depths(self):
             return self._d

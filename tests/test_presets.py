@@ -32,7 +32,8 @@ def test_the_presets_issue_23_names():
     assert avsm["preset"] == {"interpolation": "linear"}
     assert {v["interpolation"] for v in avsm["preset_variants"].values()} == {"linear", "exp"}
     moments = ad.describe("moments")
-    # beta tuned for media on held-out seeds (experiments/moment_tuning.py); alpha and the bias target hardly matter there, so they stay MBOIT's defaults
+    # beta tuned for media on held-out seeds (experiments/moment_tuning.py); alpha and the bias
+    # target hardly matter there, so they stay MBOIT's defaults
     assert moments["preset_tuned"] is True and "preset_note" not in moments
     assert moments["preset"]["overestimation"] == 0.45 != moments["params"]["overestimation"]["default"] == 0.25
     assert not {"bias", "bias_target"} & set(moments["preset"])

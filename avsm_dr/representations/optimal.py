@@ -14,7 +14,8 @@ texel's L2 error: the best subset refitted, not the joint optimum over subsets a
 
 Host NumPy in float64 (depths normalised to [0, 1] per texel), vectorised over texels of
 similar point count.  Builds above :data:`MAX_WORK` work units or with a texel above
-:data:`MAX_POINTS` points raise :class:`~avsm_dr.validation.WorkLimitError` (a ValueError) before computing.  ``objective``: each texel's
+:data:`MAX_POINTS` points raise :class:`~avsm_dr.validation.WorkLimitError` (a ValueError)
+before computing.  ``objective``: each texel's
 cost of the stored curve, RMS over ``[first, last point]`` (l2) or the max error (linf).
 """
 from __future__ import annotations
