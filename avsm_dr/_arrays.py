@@ -118,15 +118,9 @@ def to_uint32(x: Any) -> Any:
 
 
 def order_by_count(counts: np.ndarray, descending: bool = False) -> np.ndarray:
-    """Stable ``argsort`` of non-negative integer ``counts`` (ascending, or ``descending``):
-    as ``np.argsort(±counts, kind="stable")``, on 16-bit keys where the counts fit (NumPy's
-    stable sort is then a radix sort: 1.2 ms instead of 14 ms for 238 k texels, measured)."""
-    c = np.asarray(counts)
-    if c.size == 0:
-        return np.zeros(0, np.int64)
-    lo, hi = int(c.min()), int(c.max())
-    if hi - lo < 1 << 16:
-        key = (hi - c if descending else c - lo).astype(np.uint16)
-    else:
-        key = -c.astype(np.int64) if descending else c
-    return np.argsort(key, kind="stable")
+    """``np.argsort(±counts, kind="stable")`` of integer ``counts``, on 16-bit keys where their range fits
+    (a radix sort then: 1.2 ms instead of 14 ms for 238 k texels, measured)."""
+    c = np.asarray(counts, np.int64)
+    lo, hi = (int(c.min()), int(c.max())) if c.size else (0, 0)
+    key = hi - c if descending else c - lo
+    return np.argsort(key.astype(np.uint16) if hi - lo < 1 << 16 else key, kind="stable")

@@ -38,10 +38,9 @@ OPAQUE_OPTICAL_DEPTH = 1.0e4
 #: segments, OPAQUE_OPTICAL_DEPTH / length each, could overflow float64; shorter ones are
 #: stored as zero-length steps at z0 (only within ~1e-279 of depth 0 in float64).
 MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
-#: float64 depth orders (and float32 maps with many equal z0) rank segments inside their
-#: texel (up to ``count`` comparisons per segment, :meth:`Segments._rank_order`,
-#: :func:`~avsm_dr.texel_sort.break_ties`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
-#: (:func:`device_sortable`), else sort by stable key passes (more memory, any counts).
+#: float32 maps with many equal z0 rank segments inside their runs of equal z0
+#: (:func:`~avsm_dr.texel_sort.break_ties`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
+#: (:func:`device_sortable`), else sort them by stable key passes (more memory, any counts).
 DEVICE_SORT_WORK = 256
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
@@ -60,11 +59,8 @@ CACHE_KEYS = LAYOUT_KEYS + ("bounds", "curve_points", "vw_removal_rank")
 def device_sortable(counts: np.ndarray) -> bool:
     """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
     comparisons per segment is cheap enough (:data:`DEVICE_SORT_WORK`)."""
-    c = np.asarray(counts, np.int64)
-    total, top = int(c.sum()), int(c.max(initial=0))
-    # exact in int64 while sum count^2 <= max * sum < 2^62 (5x faster than float64 @)
-    work = int(np.dot(c, c)) if top * total < 1 << 62 else float(c.astype(np.float64) @ c)
-    return work <= DEVICE_SORT_WORK * max(total, 1)
+    c = np.asarray(counts).astype(np.float64)
+    return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
 
 
 def run_index(starts, n: int):
@@ -298,11 +294,10 @@ class Segments:
     @property
     def counts(self) -> np.ndarray:
         """(T,) number of segments per texel (cached, read-only)."""
-        if "counts" not in self._cache:
-            c = np.diff(self.offsets)
+        if (c := self._cache.get("counts")) is None:
+            c = self._cache["counts"] = np.diff(self.offsets)
             c.flags.writeable = False
-            self._cache["counts"] = c
-        return self._cache["counts"]
+        return c
 
     @property
     def max_count(self) -> int:
@@ -368,18 +363,15 @@ class Segments:
         """The order of :meth:`sorted` without sorted copies, for a consumer walking each texel
         (e.g. the AVSM build): None when every texel is already in order, else ``(index,
         start)`` (Dr.Jit UInt32): texel ``t``'s ``r``-th segment in (z0, z1) order is segment
-        ``index[start[t] + r]``.  ``words`` (float32 only): ``index`` holds that segment's sort
-        word ``key(z0) << 32 | position`` instead (UInt64; z0 back by
-        :func:`~avsm_dr.texel_sort.float_of_key` of the high half), which saves the consumer
-        one dependent read per segment; float64 gives positions either way.
+        ``index[start[t] + r]``; ``words`` (float32): its sort word ``key(z0) << 32 | position``
+        instead (UInt64, z0 from :func:`~avsm_dr.texel_sort.float_of_key`: one read less).
 
         float32: by z0 with :func:`~avsm_dr.texel_sort.sort_texels_view` (words ``key(z0) << 32
         | position``), texels with equal z0 sorted again by (z1, position) then (z0, that order)
         (:meth:`_untie`), or, where they hold over 1/8 of the segments and
         :func:`device_sortable`, ranked in place by (z1, position) inside their runs of equal z0
         (:func:`~avsm_dr.texel_sort.break_ties`: less memory and time there); float64 (after a
-        check that some texel is out of order): by rank (:meth:`_rank_order`) where
-        :func:`device_sortable`, else by the four 32-bit halves of the z0 and z1 keys
+        check that some texel is out of order): by the four 32-bit halves of the z0 and z1 keys
         (:meth:`_key_sort`).  On the device for any counts."""
         if self.sorted_by_depth or self.n_segments < 2:
             return None
@@ -391,20 +383,15 @@ class Segments:
             if not flags & TIE:
                 return (pay if words else UInt32(pay), UInt32(start)) if flags & UNSORTED else None
             if device_sortable(self.counts) and 8 * int(self.counts[tied].sum()) > self.n_segments:
-                words_in = pay if words else None               # ties reorder payloads inside runs of
-                pay = dr.detached_t(UInt32)(pay)                # one key: the high halves stay
-                pay = break_ties(pay, start, self.offsets_dr(), self.texel_of_segment(), float_keys(z0)[0],
-                                 dr.detached_t(self.Float)(dr.detach(self.z1)))  # many ties: in place
-                if words:
-                    pay = (words_in & 0xFFFFFFFF00000000) | type(words_in)(pay)
+                low = break_ties(dr.detached_t(UInt32)(pay), start, self.offsets_dr(), self.texel_of_segment(),
+                                 float_keys(z0)[0], dr.detached_t(self.Float)(dr.detach(self.z1)))  # in place
+                pay = (pay & 0xFFFFFFFF00000000) | type(pay)(low) if words else low   # a run's key stays
             else:
                 pay = self._untie(pay, start, tied)               # equal z0: by z1, then position
             dr.eval(pay)
             return pay if words else UInt32(pay), UInt32(start)
         if self._in_order():
             return None
-        if device_sortable(self.counts):                        # less memory than key passes
-            return UInt32(self._rank_order()), self.offsets_dr()
         idx, off, _ = self._key_sort(np.arange(self.n_texels), self._depth_keys())
         return UInt32(idx), UInt32(off)
 
@@ -525,27 +512,6 @@ class Segments:
         same = dr.gather(UInt32, tex, i) == dr.gather(UInt32, tex, i + 1)
         (a0, b0), (a1, b1) = ((dr.gather(Float, z, i), dr.gather(Float, z, i + 1)) for z in (z0, z1))
         return not bool(dr.any(same & ((b0 < a0) | ((b0 == a0) & (b1 < a1))))[0])
-
-    def _rank_order(self):
-        """:meth:`depth_order` by rank: one lane per segment ``i`` of texel ``t``, its rank
-        ``r_i = #{j in [o_t, o_{t+1}) : (z0_j, z1_j, j) < (z0_i, z1_i, i)}`` (lexicographic)
-        is its sorted slot, ``perm[o_t + r_i] = i`` (``sum_t count_t^2`` comparisons)."""
-        UInt32 = backend.types().UInt32
-        n, z0, z1 = self.n_segments, dr.detach(self.z0), dr.detach(self.z1)
-        tex, off, Float = self.texel_of_segment(), self.offsets_dr(), type(z0)
-        lo, hi = dr.gather(UInt32, off, tex), dr.gather(UInt32, off, tex + 1)
-        me = dr.arange(UInt32, n)
-
-        def body(j, rank):                  # rank: segments found before this one
-            before = j < me
-            for k in (z1, z0):
-                kj = dr.gather(Float, k, j)
-                before = (kj < k) | ((kj == k) & before)
-            return j + 1, rank + dr.select(before, 1, 0)
-        rank = dr.while_loop((UInt32(lo), dr.zeros(UInt32, n)), lambda j, rank: j < hi, body, labels=("j", "rank"))[1]
-        perm = dr.zeros(UInt32, n)
-        dr.scatter(perm, me, lo + rank)
-        return perm
 
     def check_depth(self, value, name: str):
         """``value`` (a depth: scalar or 1-D array) checked against the storage dtype:

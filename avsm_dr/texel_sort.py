@@ -185,9 +185,7 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     base = np.zeros(counts.size, np.int64)
     top = int(min(counts.max(initial=1), MAX_NETWORK))
     sizes = tuple(1 << b for b in range(1, max(top - 1, 1).bit_length() + 1))   # 2 .. next power of 2
-    # lanes: texels of 1 .. 64 segments by size class (the smallest size >= count), largest
-    # class first (every class then starts at a multiple of its size: packet offsets stay
-    # aligned), texel order inside a class (one radix sort of the class, order_by_count)
+    # texels of 1 .. 64 segments by size class, largest first (packet offsets stay aligned)
     small = np.flatnonzero((counts > 0) & (counts <= MAX_NETWORK))
     cls = np.searchsorted(sizes, np.arange(MAX_NETWORK + 1))[counts[small]]     # counts <= sizes[cls]
     order = A.order_by_count(cls, descending=True)
@@ -198,11 +196,9 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
     out = dict(n=int(counts.sum()), sizes=sizes, big=None, total=slots)
     if small.size:
-        out["texel"] = lane_texel
-        lane_t = _u32(out["texel"])
-        out["start"] = dr.gather(UInt32, off, lane_t)
+        lane_t = _u32(lane_texel)
+        out.update(texel=lane_texel, start=dr.gather(UInt32, off, lane_t), packet=_u32(slot // lane_size))
         out["count"] = dr.gather(UInt32, off, lane_t + 1) - out["start"]
-        out["packet"] = _u32(slot // lane_size)
     big_t = np.flatnonzero(counts > MAX_NETWORK)
     if big_t.size:                                    # blocks of MAX_NETWORK, then merges
         cb = counts[big_t]
@@ -247,8 +243,7 @@ def view_order(payloads, base, offsets_dr, texel_of):
     return dr.gather(UInt32, payloads, dr.gather(UInt32, base, texel_of) + local)
 
 
-def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None,
-                     words: bool = False):
+def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: bool = True, layout=None, words=False):
     """``(payloads, base, flags, tied)``: texel ``t``'s ``r``-th smallest word has its payload
     (low 32 bits) at ``payloads[base[t] + r]`` (both Dr.Jit UInt32, evaluated; the permutation:
     :func:`view_order`); ``flags`` the :data:`TIE` / :data:`UNSORTED` bits (a Python int);
@@ -257,7 +252,7 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
     counts: (T,) segments per texel (host); offsets_dr: (T+1,) UInt32 offsets; kind, sources:
     the words (:func:`word_function`), distinct inside a texel; ties: look for equal keys
     (else ``tied`` is empty); layout: :func:`plan` of these counts (computed when None);
-    words: ``payloads`` holds the whole sorted words (UInt64: key and payload) instead."""
+    words: the whole sorted words (UInt64) instead of payloads."""
     UInt32, UInt64, _, _ = _types()
     lay = plan(counts, offsets_dr) if layout is None else layout
     pay = dr.empty(UInt64 if words else UInt32, lay["total"])
@@ -323,12 +318,9 @@ def break_ties(payloads, base, offsets_dr, texel_of, key, second):
 
 
 def float_of_key(key):
-    """The float32 (Dr.Jit Float32) whose :func:`float_key` is UInt32 ``key`` (``-0.0`` comes
-    back as ``+0.0``): keys with the top bit set are positives (flip it back), the others
-    negatives (flip every bit)."""
-    UInt32 = type(key)
-    u = key ^ dr.select(key >= 0x80000000, UInt32(0x80000000), UInt32(0xFFFFFFFF))
-    return dr.reinterpret_array(dr.float32_array_t(UInt32), u)
+    """The Float32 whose :func:`float_key` is UInt32 ``key`` (``-0.0`` back as ``+0.0``)."""
+    u = key ^ dr.select(key >= 0x80000000, type(key)(0x80000000), type(key)(0xFFFFFFFF))
+    return dr.reinterpret_array(dr.float32_array_t(type(key)), u)
 
 
 def _mix32(x, c1, c2):

@@ -200,10 +200,8 @@ class MemoryBudgetError(ValueError):
 
 
 class WorkLimitError(ValueError):
-    """A build refused before computing: its work estimate (``work``, in the kind's units)
-    exceeds the kind's ``limit`` (e.g. ``optimal``'s ``MAX_WORK``, or ``MAX_POINTS`` per texel).
-    The message says what fits; a caller that only wants context rows can catch this type
-    instead of repeating the kind's estimate."""
+    """A build refused before computing: its work estimate ``work`` exceeds the kind's ``limit``
+    (``optimal``'s ``MAX_WORK`` or ``MAX_POINTS``); the message says what fits."""
 
     def __init__(self, message: str, work: float, limit: float):
         super().__init__(message)

@@ -42,10 +42,9 @@ from ._precision import PRECISIONS, Stored
 from .schema import FAR, NEAR, Param, Schema
 
 INTERPOLATIONS = ("linear", "exp")
-#: A sorted build (``sort=True``, segments without gradients) whose sort buffers (64-bit sort
-#: words, padded to the networks' sizes: estimated at 12 bytes per segment, 24 in texels over
-#: ``MAX_NETWORK`` segments, with the merge passes' two word buffers) exceed ``max(MIN_CHUNK_BYTES,
-#: output bytes)`` runs in chunks of whole texels within that budget (with their copy of the
+#: A sorted build (``sort=True``, segments without gradients) whose sort buffers (64-bit words,
+#: estimated at 12 bytes per segment, 24 in texels over ``MAX_NETWORK``) exceed ``max(MIN_CHUNK_BYTES,
+#: output bytes)`` twice runs in chunks of whole texels within that budget (with their copy of the
 #: segments), each sorted and inserted before the next: its peak follows the output's size, not
 #: the segments'.
 MIN_CHUNK_BYTES = 1 << 18
@@ -307,7 +306,6 @@ class AVSM(NodeList):
             return
         sort_bytes = np.where(seg.counts > MAX_NETWORK, 24, 12) * seg.counts    # estimates, per texel
         budget = max(MIN_CHUNK_BYTES, 2 * self.N * seg.itemsize * T)               # the output's bytes
-        # in one piece while the sort buffers stay within twice the output (the peak within 4x)
         chunked = self.params["sort"] and not seg.requires_grad and sort_bytes.sum() > 2 * budget
         need, t0 = np.r_[0, np.cumsum(sort_bytes + 3 * seg.itemsize * seg.counts)], 0
         while t0 < T:         # chunks of whole texels, each sorted and inserted (the nodes do not depend on them)
@@ -319,11 +317,8 @@ class AVSM(NodeList):
 
     def _insert(self, seg, t0: int):
         """Insert the segments of ``seg`` (this build's texels ``t0 ..``) into the nodes."""
-        # without gradients the view holds sort words: z0 comes with the position (3 reads per
-        # segment, as unsorted input, instead of 4)
-        words = not seg.requires_grad and seg.dtype == "float32"
+        words = not seg.requires_grad and seg.dtype == "float32"     # sort words: z0 with the position
         view = seg.depth_view(words=words) if self.params["sort"] else None
-        words = view is not None and dr.type_v(view[0]) == dr.VarType.UInt64
         t_ = backend.types()
         Float, UInt32, Bool = seg.Float, t_.UInt32, t_.Bool
         N, far, T = self.N, self.params["far"], seg.n_texels
@@ -358,15 +353,13 @@ class AVSM(NodeList):
 
         def segment(p, i, active=True):
             # (entry depth a, exit depth b, exit transmittance ts) of segment i (0 where not active)
-            if words:                                     # the texel's next segment in depth order
-                w = dr.gather(type(view[0]), view[0], i, active)
-                i = UInt32(w & 0xFFFFFFFF)
-                a = dr.select(active, Float(float_of_key(UInt32(w >> 32))), 0.0)
+            if view is not None and words:                # the texel's next segment in depth order:
+                w = dr.gather(type(view[0]), view[0], i, active)   # 3 reads, as unsorted input
+                i, a = UInt32(w & 0xFFFFFFFF), dr.select(active, Float(float_of_key(UInt32(w >> 32))), 0.0)
                 b, tau = (dr.gather(Float, x, i, active) for x in p[1:])
-                return a, b, dr.exp(-tau), tau
-            if view is not None:
-                i = dr.gather(UInt32, view[0], i, active)
-            a, b, tau = (dr.gather(Float, x, i, active) for x in p)
+            else:
+                i = i if view is None else dr.gather(UInt32, view[0], i, active)
+                a, b, tau = (dr.gather(Float, x, i, active) for x in p)
             return a, b, dr.exp(-tau), tau
 
         def insert(p, i, used, done, d, t, compress):
