@@ -400,11 +400,11 @@ class Segments:
         payloads or whole words) with ``texels`` (NumPy, those where two segments share z0)
         re-sorted by ``(z0, z1, position)`` (:meth:`_key_sort`)."""
         U32 = type(start)
-        idx, soff, stex = self._key_sort(texels, self._depth_keys())
+        idx, soff, stex = self._key_sort(texels, keys := self._depth_keys())
         local = dr.arange(U32, dr.width(idx)) - dr.gather(U32, soff, stex)
         first = dr.gather(U32, start, U32(A.aligned(texels, np.uint32)))    # each texel's first slot
         if dr.type_v(pay) == dr.VarType.UInt64:           # sort words (depth_view(words=True))
-            idx = (type(pay)(self._depth_keys()[0](idx)) << 32) | type(pay)(idx)
+            idx = (type(pay)(keys[0](idx)) << 32) | type(pay)(idx)
         dr.scatter(pay, idx, dr.gather(U32, first, stex) + local)
         return pay
 

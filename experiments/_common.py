@@ -141,7 +141,7 @@ class Results:
             return False
         meta = self.meta()
         same = json.loads(json.dumps(self.params, default=str))
-        if not (meta and meta.get("params") == same and meta.get("cache_key") == cache_key()):
+        if not (meta and meta.get("params") == same and meta.get("cache_key") == self._provenance["cache_key"]):
             return False
         files = meta.get("files")
         if not isinstance(files, dict) or csv_name not in files:

@@ -15,7 +15,6 @@ outside the data).  Matplotlib is imported only when a figure is made or saved.
 from __future__ import annotations
 
 import math
-
 import zlib
 from pathlib import Path
 
