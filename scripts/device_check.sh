@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# GPU readiness check (issue 14, section 5): on a GPU host, the contract tests on the CUDA
-# backend, `bench --quick` and `frame --quick`, each step timed, summarised in a Markdown
+# GPU readiness check: on a GPU host, the AVSM paper's Table 1 at equal work
+# (experiments.bench.paper_table), the contract tests on the CUDA backend, `bench --quick` and
+# `frame --quick`, each step timed, summarised in a Markdown
 # table (device_check.md).  Budget: under 8 minutes on a GPU host.
 #
 #   bash scripts/device_check.sh [OUT]          # OUT default: results/device_check
@@ -21,11 +22,17 @@ PY=${PYTHON:-python3}
 SMOKE=${DEVICE_CHECK_SMOKE:-0}
 mkdir -p "$OUT"
 
-if compgen -G ".whl/*.whl" >/dev/null; then
+if compgen -G ".whl/*.whl" >/dev/null && ! "$PY" -c "import drjit" 2>/dev/null; then   # only where drjit is missing
     "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
     export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+if [ -z "${DRJIT_LIBCUDA_PATH:-}" ]; then    # Dr.Jit finds the driver by name; help it where it is not on the path
+    lib=$(ldconfig -p 2>/dev/null | awk '/libcuda\.so(\.1)? /{print $NF; exit}')
+    [ -z "$lib" ] && lib=$(ls /usr/local/nvidia/lib64/libcuda.so* /usr/lib/x86_64-linux-gnu/libcuda.so* 2>/dev/null | head -n 1)
+    if [ -n "$lib" ]; then export DRJIT_LIBCUDA_PATH=$lib; fi
+fi
+STEP_TIMEOUT=${DEVICE_CHECK_STEP_TIMEOUT:-0}   # seconds per step, 0: none (a lease is short: one slow step must not take it all)
 export PYTHONUNBUFFERED=1
 
 BACKEND=$("$PY" -c "import avsm_dr; print('cuda' if 'cuda' in avsm_dr.available_backends() else 'llvm')")
@@ -38,11 +45,19 @@ step() {   # step NAME COMMAND...: run, time, record the exit status (a failed s
     local t0 t1 rc=0
     t0=$EPOCHREALTIME
     echo "[device_check] $name ($BACKEND)" >&2
-    "$@" > "$OUT/$name.log" 2>&1 || rc=$?
+    timeout "$STEP_TIMEOUT" "$@" > "$OUT/$name.log" 2>&1 || rc=$?
     t1=$EPOCHREALTIME
     awk -v n="$name" -v b="$BACKEND" -v a="$t0" -v z="$t1" -v r="$rc" 'BEGIN {printf "%s\t%s\t%.1f\t%s\n", n, b, z - a, r}' >> "$STEPS"
     tail -n 3 "$OUT/$name.log" >&2
 }
+
+# the AVSM paper's Table 1 at equal work first: the figure a GPU session exists for
+if [ "$SMOKE" = 1 ]; then
+    step paper_table "$PY" -m experiments.bench.paper_table --out "$OUT/paper_table" --sizes 16 --resolution 64 \
+        --lookups 1000 --repeats 1
+else
+    step paper_table "$PY" -m experiments.bench.paper_table --out "$OUT/paper_table"
+fi
 
 if [ "$BACKEND" = cuda ]; then
     step contract_tests "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/test_representations.py

@@ -2,9 +2,10 @@
 
     python scripts/device_table.py OUT > OUT/device_check.md
 
-Reads ``OUT/steps.tsv`` (step, backend, seconds, exit status), ``OUT/frame/data.csv``
+Reads ``OUT/steps.tsv`` (step, backend, seconds, exit status), ``OUT/paper_table/paper_table.md``,
+``OUT/frame/data.csv``
 (``python -m experiments frame``) and ``OUT/bench/data.csv`` (``python -m experiments bench``) where
-present, and prints three tables: the steps; per kind, the frame at the largest resolution
+present, and prints four tables: the steps; the paper table; per kind, the frame at the largest resolution
 of each scene (capture / build / lookup in ms, the frame's stage shares); per bench setting,
 build (M insertions/s) and lookup (M receivers/s) rates and the ratio to the Numba peer.
 Needs only the standard library (a GPU host may lack everything else).
@@ -86,6 +87,9 @@ def main(argv: list[str]) -> int:
     out = Path(argv[0])
     print("# Device check\n")
     print("## Steps\n\n" + steps_table(out) + "\n")
+    table1 = out / "paper_table" / "paper_table.md"
+    print("## The AVSM paper's Table 1 at equal work (python -m experiments.bench.paper_table)\n\n"
+          + (table1.read_text() if table1.is_file() else "(no paper table)") + "\n")
     print("## Frame (python -m experiments frame --quick)\n\n" + frame_table(out) + "\n")
     print("## Bench (python -m experiments bench --quick)\n\n" + bench_table(out))
     return 0

@@ -33,13 +33,16 @@ def test_cpu_fallback_smoke_without_mitsuba(tmp_path):
                        timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     steps = (out / "steps.tsv").read_text().splitlines()
-    assert [s.split("\t")[0] for s in steps[1:]] == ["contract_tests", "frame"]
+    assert [s.split("\t")[0] for s in steps[1:]] == ["paper_table", "contract_tests", "frame"]
     assert all(s.split("\t")[3] == "0" for s in steps[1:])
     assert "passed" in (out / "contract_tests.log").read_text()
     report = (out / "device_check.md").read_text()
     assert "| contract_tests | llvm |" in report
     assert "| plume | 64^2 | march | avsm |" in report          # the frame table has rows
     assert "(no bench results)" in report                         # smoke mode skips bench
+    # the paper's Table 1 beside ours: every setting, the paper's AVSM-8 lookup (5.4 ms) in parentheses
+    assert "| | AVSM 4 | AVSM 8 | AVSM 16 | OSM 32 | FOM 16 | DSM 0.01 | Uncompressed |" in report
+    assert "(5.4) |" in report.split("| Shadow lookup (bilinear) |")[1].splitlines()[0]
 
 
 def test_failed_step_fails_the_check(tmp_path):
@@ -54,4 +57,5 @@ def test_failed_step_fails_the_check(tmp_path):
                        capture_output=True, text=True, timeout=600)
     assert r.returncode != 0
     steps = (tmp_path / "out" / "steps.tsv").read_text().splitlines()
-    assert steps[1].split("\t")[0] == "contract_tests" and steps[1].split("\t")[3] != "0"
+    status = dict(s.split("\t")[::3] for s in steps[1:])
+    assert status["contract_tests"] != "0" and status["paper_table"] != "0"     # no tests, no experiments
