@@ -69,8 +69,7 @@ class SceneRegistry(Mapping):
     def __init__(self):
         self._entries: dict[str, SceneEntry] = {}
 
-    def register(self, factory=None, *, name: str | None = None, description: str | None = None,
-                 content=(), tags=()):
+    def register(self, factory=None, *, name: str | None = None, description: str | None = None, content=(), tags=()):
         """Register ``factory`` (default name: its ``__name__``; description: the first line
         of its docstring); used bare or with keywords as a decorator.  Returns the factory."""
         def add(fn):
@@ -125,8 +124,7 @@ _PLUME_WALL = ((0.8, 0.75, 0.0), (-1.0, 0.0, 0.0), 0.75)
 
 
 @register_scene(content=("grid",), tags=("core",))
-def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None,
-          n_receivers: int = 1024) -> Scene:
+def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None, n_receivers: int = 1024) -> Scene:
     """A smoke plume rising from y = 0 and widening with height, in the box
     [-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5], swaying with height; fBm noise (``seed``)
     breaks it into puffs.  Light: directional, mostly along +x, slightly down.

@@ -129,8 +129,7 @@ def _grid_scene(name, dens, bmin, bmax, light, direction, seed, n_receivers, pla
                  meta=dict(meta, seed=seed))
 
 
-def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=None,
-            n_receivers: int = 1024) -> Scene:
+def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=None, n_receivers: int = 1024) -> Scene:
     """A cumulus cloud in the box [-2, 2] x [0, 1.6] x [-1, 1]: a deck with a flat base at
     y = 0.3 and 16 seeded spherical puffs on it (tallest and largest near x = 0), eroded by
     :func:`perlin_worley` noise.  Extinction per unit up to ``density_scale`` (dense cores,
@@ -158,8 +157,7 @@ def cumulus(size: int = 16, seed: int = 0, density_scale: float = 4.0, light=Non
                        ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 2.0), {"size": size, "density_scale": density_scale})
 
 
-def fog_bank(size: int = 24, seed: int = 0, density_scale: float = 5.0, light=None,
-             n_receivers: int = 1024) -> Scene:
+def fog_bank(size: int = 24, seed: int = 0, density_scale: float = 5.0, light=None, n_receivers: int = 1024) -> Scene:
     """Ground fog in the box [-1.5, 1.5] x [0, 0.8] x [-1.5, 1.5]: extinction per unit
     ``density_scale`` x (0.75 + 0.5 fBm) below a gently rolling top surface y = h(x, z)
     (0.3 .. 0.55), exactly 0 above it: a sharp boundary, one voxel thick.  Light from above

@@ -142,8 +142,7 @@ class Capture:
         if filter == "point":
             T = rep.eval(self.camera.texel_index(coords), depth)
         else:
-            T = rep.eval(coords, depth, filter=filter, width=self.width, height=self.height,
-                         radius=radius)
+            T = rep.eval(coords, depth, filter=filter, width=self.width, height=self.height, radius=radius)
         if out.any():
             T = dr.select(backend.types().Bool(out), 1.0, T)
         return T

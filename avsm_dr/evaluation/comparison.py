@@ -148,5 +148,4 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
         ratio, low, high = math.exp(ci["estimate"]), math.exp(ci["low"]), math.exp(ci["high"])
     else:
         ratio, low, high = float(math.exp(logs[0])), float("nan"), float("nan")
-    return Comparison(a, b, metric, ratio, low, high, level, len(per), len(per) < MIN_CONFIGURATIONS, per,
-                      receivers)
+    return Comparison(a, b, metric, ratio, low, high, level, len(per), len(per) < MIN_CONFIGURATIONS, per, receivers)

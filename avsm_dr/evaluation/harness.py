@@ -237,8 +237,7 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
 def _run_capture(meths, cap, probes, head, subset, want_l2, want_time, n_depths) -> list[dict]:
     """The rows of every method on one capture."""
     if subset:
-        sub = SubsetBuilder(cap.segments, np.concatenate([p.tex.ravel() for p in probes.values()]),
-                            cap.opaque_depth)
+        sub = SubsetBuilder(cap.segments, np.concatenate([p.tex.ravel() for p in probes.values()]), cap.opaque_depth)
         segs, od = sub.segments, sub.opaque_depth
         exact = sub.build("exact", {})
     else:

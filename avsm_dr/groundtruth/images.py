@@ -28,8 +28,7 @@ MAX_RENDER_SAMPLES = 1 << 26
 MAX_RAYS = 1 << 24
 
 
-def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = None,
-                   direction=None) -> PinholeCamera:
+def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = None, direction=None) -> PinholeCamera:
     """A camera looking at the receiver plane's centre from the light's side of the plane.
 
     The view direction v (from the plane centre to the camera) is ``direction`` if given;
@@ -83,8 +82,7 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
             origin, f = place(cand)
             dv = targets - origin
             L = np.linalg.norm(dv, axis=1)
-            tau, _ = march(g.astype(np.float64), lo, hi, np.broadcast_to(origin, dv.shape),
-                           dv / L[:, None], L, step)
+            tau, _ = march(g.astype(np.float64), lo, hi, np.broadcast_to(origin, dv.shape), dv / L[:, None], L, step)
             score = float(np.mean(1 - np.exp(-tau))) + 0.05 * math.acos(np.clip(cand @ v0, -1, 1))
             if best is None or score < best[0] - 1e-12:
                 best = (score, cand)
@@ -145,8 +143,7 @@ def camera_rays(scene: Scene, width: int, height: int, camera=None, supersample:
         raise ValueError(f"supersample: {width} x {height} pixels x {s}^2 rays exceed {MAX_RAYS} (2^24)")
     mi = mitsuba()
     sensor = mi.load_dict(check_camera(scene, camera, width, height).sensor_dict(mi, 1))
-    y, x, sy, sx = np.meshgrid(np.arange(height), np.arange(width), np.arange(s), np.arange(s),
-                               indexing="ij")
+    y, x, sy, sx = np.meshgrid(np.arange(height), np.arange(width), np.arange(s), np.arange(s), indexing="ij")
     u = ((x + (sx + 0.5) / s) / width).ravel()
     v = ((y + (sy + 0.5) / s) / height).ravel()
     ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32))),

@@ -53,8 +53,7 @@ def _volume_dict(mi, grid, lo, hi) -> dict:
 
 def medium_dict(mi, grid, lo, hi, albedo: float) -> dict:
     """``load_dict`` description of the heterogeneous medium (sigma_t = grid, scale 1)."""
-    return {"type": "heterogeneous", "sigma_t": _volume_dict(mi, grid, lo, hi),
-            "albedo": float(albedo), "scale": 1.0}
+    return {"type": "heterogeneous", "sigma_t": _volume_dict(mi, grid, lo, hi), "albedo": float(albedo), "scale": 1.0}
 
 
 def mitsuba_volume(density, bbox):

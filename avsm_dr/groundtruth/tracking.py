@@ -181,8 +181,7 @@ def ratio_tracking(grid, lo, hi, o, d, L, spp: int, seed: int, f: float):
             maxt = dr.select(hit, maxt - mei.t, maxt)
             return p, maxt, Tr, hit & (Tr > 0), rng
 
-        _, _, Tr, _, _ = dr.while_loop((mi.Point3f(*g), maxt, Tr, active, rng), cond, body,
-                                       label="ratio_tracking")
+        _, _, Tr, _, _ = dr.while_loop((mi.Point3f(*g), maxt, Tr, active, rng), cond, body, label="ratio_tracking")
         samples = np.asarray(Tr.numpy(), np.float64).reshape(rec.size, spp)
         mean[rec] = samples.mean(axis=1)
         se[rec] = samples.std(axis=1, ddof=1) / math.sqrt(spp) if spp > 1 else np.inf

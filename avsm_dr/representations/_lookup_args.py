@@ -147,5 +147,4 @@ def lookup_args(rep, kernel, texel, depth, filter: str = "point", width: int | N
         raise ValueError(f"width: width*height = {width * height} does not match {rep.n_texels} texels")
     if coords.shape[0] == 1 and n > 1:
         coords = np.broadcast_to(coords, (n, 2))
-    return Lookup(coords=np.asarray(coords, np.float64), depth=depth_dr, width=width, height=height,
-                  radius=radius)
+    return Lookup(coords=np.asarray(coords, np.float64), depth=depth_dr, width=width, height=height, radius=radius)

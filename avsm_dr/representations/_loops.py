@@ -118,8 +118,7 @@ def checkpointed_while_loop(state, params, cond, body, max_iterations: int, chun
     is still active after it); ``chunk``: iterations per checkpoint (C): ``ceil(M / C)``
     saved states plus a C-iteration trajectory per lane."""
     V.integer(chunk, "chunk", 1)
-    out = dr.custom(_CheckpointedLoop, tuple(state), list(params), cond, body,
-                    int(max_iterations), int(chunk))
+    out = dr.custom(_CheckpointedLoop, tuple(state), list(params), cond, body, int(max_iterations), int(chunk))
     if dr.any(cond([dr.detach(p) for p in params], *[dr.detach(x) for x in out])):
         raise RuntimeError(f"checkpointed_while_loop: still active after max_iterations={max_iterations} "
                            "(a bound below the true iteration count would give wrong gradients)")

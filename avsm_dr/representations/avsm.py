@@ -466,8 +466,7 @@ class AVSM(NodeList):
                           spare, chunk, "avsm_spare", iterations=spare)[1:]
             used = dr.minimum(used, N)
             if fit:   # least-squares values where every removal kept the curve (exact nodes)
-                t = fit_values(dt[:N], dt[W:W + N], dt[2 * W:2 * W + N], dt[3 * W:3 * W + N], count - 1,
-                               ~lossy[0])
+                t = fit_values(dt[:N], dt[W:W + N], dt[2 * W:2 * W + N], dt[3 * W:3 * W + N], count - 1, ~lossy[0])
                 dt = (*dt[:W], *t, *dt[W + N:2 * W])
         out = lanes if t0 == 0 else lanes + t0
         for k in range(N):

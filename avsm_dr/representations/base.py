@@ -96,9 +96,10 @@ class Representation(abc.ABC):
 
     def __init__(self, segments: Segments, **params: Any):
         self._validate(segments, params)
-        self._resolve()
-        self._build()
-        self._apply_precision()
+        with backend.exact_float64(segments.Float):     # float64 on CUDA: IEEE rcp and derivatives
+            self._resolve()
+            self._build()
+            self._apply_precision()
 
     def _validate(self, segments: Segments, params: dict) -> None:
         """Check ``segments`` and the base parameters (``reverse``, ``chunk``, ``precision``),
@@ -314,16 +315,17 @@ class Representation(abc.ABC):
         Float
             Dr.Jit array of length K (``np.asarray`` works; AD graph kept).
         """
-        a = lookup_args(self, self._eval_texels, texel, depth, filter, width, height, radius, prefilter)
-        if a.T is not None:                       # a point lookup checked in its own kernel
-            return a.T
-        if a.coords is None:
-            return self._eval_texels(a.texel, a.depth)
-        if prefilter:
-            return self._prefiltered_eval(a.coords, a.depth, a.width, a.height, filter, a.radius)
-        t = backend.types()
-        return filtered_eval(self._eval_texels, a.coords, a.depth, a.width, a.height, filter, a.radius,
-                             self.Float, t.UInt32, t.Int32)
+        with backend.exact_float64(self.Float):
+            a = lookup_args(self, self._eval_texels, texel, depth, filter, width, height, radius, prefilter)
+            if a.T is not None:                       # a point lookup checked in its own kernel
+                return a.T
+            if a.coords is None:
+                return self._eval_texels(a.texel, a.depth)
+            if prefilter:
+                return self._prefiltered_eval(a.coords, a.depth, a.width, a.height, filter, a.radius)
+            t = backend.types()
+            return filtered_eval(self._eval_texels, a.coords, a.depth, a.width, a.height, filter, a.radius,
+                                 self.Float, t.UInt32, t.Int32)
 
     def __repr__(self) -> str:
         p = ", ".join(f"{k}={v!r}" for k, v in self.params.items())

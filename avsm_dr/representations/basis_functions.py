@@ -242,6 +242,5 @@ def clip_segment(z0, z1, tau, near, span):
     du = u1 - u0
     safe = dr.select(du > 0, du, 1)
     inside = dr.select(du > 0, (c1 - c0) / safe, dr.select((u0 >= 0) & (u0 <= 1), 1, 0))
-    front = dr.select(du > 0, (dr.minimum(u1, 0) - dr.minimum(u0, 0)) / safe,
-                      dr.select(u0 < 0, 1, 0))
+    front = dr.select(du > 0, (dr.minimum(u1, 0) - dr.minimum(u0, 0)) / safe, dr.select(u0 < 0, 1, 0))
     return c0, c1, tau * inside, tau * front

@@ -61,8 +61,7 @@ class BeerShadowMap(Representation):
         self.front, self.extent = Float(A.aligned(lo)), Float(A.aligned(np.where(empty, 0.0, hi - lo)))
         self.tau_max = dr.zeros(Float, segments.n_texels)
         if segments.n_segments and segments.requires_grad:
-            dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth,
-                              segments.texel_of_segment())
+            dr.scatter_reduce(dr.ReduceOp.Add, self.tau_max, segments.optical_depth, segments.texel_of_segment())
         elif segments.n_segments:                 # CSR order: the same bits every run
             texel, (total,) = texel_sums(segments, lambda i, _t: [dr.gather(Float, segments.optical_depth, i)], 1,
                                          label="beer_tau")

@@ -123,8 +123,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
 
         state = (start + 1, zo, vo, dr.full(F64, -inf, n), dr.zeros(F64, n),
                  dr.zeros(Bool, n), F64(zo), U32(start), dr.full(U32, 1, n))
-        k, zo, vo, lo, hi, has_w, zp, ip, cnt = dr.while_loop(state, cond, body,
-                                                              label="dsm_compress_midslope")
+        k, zo, vo, lo, hi, has_w, zp, ip, cnt = dr.while_loop(state, cond, body, label="dsm_compress_midslope")
         tail, v_tail = has_w, dr.maximum(vo + 0.5 * (lo + hi) * (zp - zo), 0.0)
     elif placement == "curve":
         # state: k next vertex, (zo, vo) origin, [lo, hi] slopes of chords that keep the
@@ -146,8 +145,7 @@ def compress(poly, delta: float, placement: str = "midslope"):
 
         state = (start + 1, zo, vo, U32(start), dr.full(F64, -inf, n), dr.full(F64, inf, n),
                  F64(zo), F64(vo), U32(start), dr.full(U32, 1, n))
-        k, zo, vo, io, lo, hi, zp, vp, ip, cnt = dr.while_loop(state, cond, body,
-                                                              label="dsm_compress_curve")
+        k, zo, vo, io, lo, hi, zp, vp, ip, cnt = dr.while_loop(state, cond, body, label="dsm_compress_curve")
         tail, v_tail = ip != io, vp
     else:
         raise ValueError(f"placement: expected one of {PLACEMENTS}, got {placement!r}")
