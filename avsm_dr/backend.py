@@ -94,7 +94,7 @@ def exact_float64(Float) -> Iterator[None]:
     """Trace float64 work on CUDA with Dr.Jit's fast math off (``JitFlag.FastMath``, on by default):
     with it on, float64 ``rcp`` / ``rsqrt``, tanh and the derivatives of sqrt, log, acos, ... (recorded
     when the forward op is traced) are good to ~1e-6 relative only (measured on an H200).  Float32 and
-    LLVM keep the flag (off, float32 builds on the H200 took 1.1-1.6x the kernel time)."""
+    LLVM keep the flag (off, float32 AVSM and OSM builds on the H200 took 1.3-1.6x the kernel time)."""
     off = dr.backend_v(Float) == dr.JitBackend.CUDA and dr.type_v(Float) == dr.VarType.Float64
     with dr.scoped_set_flag(dr.JitFlag.FastMath, dr.flag(dr.JitFlag.FastMath) and not off):
         yield

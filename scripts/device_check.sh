@@ -28,8 +28,8 @@ if compgen -G ".whl/*.whl" >/dev/null && ! "$PY" -c "import drjit" 2>/dev/null; 
 fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 if [ -z "${DRJIT_LIBCUDA_PATH:-}" ]; then    # Dr.Jit finds the driver by name; help it where it is not on the path
-    lib=$(ldconfig -p 2>/dev/null | awk '/libcuda\.so(\.1)? /{print $NF; exit}')
-    [ -z "$lib" ] && lib=$(ls /usr/local/nvidia/lib64/libcuda.so* /usr/lib/x86_64-linux-gnu/libcuda.so* 2>/dev/null | head -n 1)
+    lib=$(ldconfig -p 2>/dev/null | awk '/libcuda\.so(\.1)? /{print $NF; exit}' || true)
+    [ -z "$lib" ] && lib=$(ls /usr/local/nvidia/lib64/libcuda.so* /usr/lib/x86_64-linux-gnu/libcuda.so* 2>/dev/null | head -n 1 || true)
     if [ -n "$lib" ]; then export DRJIT_LIBCUDA_PATH=$lib; fi
 fi
 STEP_TIMEOUT=${DEVICE_CHECK_STEP_TIMEOUT:-0}   # seconds per step, 0: none (a lease is short: one slow step must not take it all)
