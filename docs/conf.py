@@ -29,8 +29,8 @@ extensions = [
     "avsm_docs",
 ]
 
-exclude_patterns = ["_build", "data/README.md", "representations/notes/*", "research/*/**", "_generated/fragments/*",
-                    "**.ipynb_checkpoints"]
+exclude_patterns = ["_build", "data/README.md", "data/gpu_h200/*", "representations/notes/*", "research/*/**",
+                    "_generated/fragments/*", "**.ipynb_checkpoints"]
 # Ambiguous Python cross-references (``max``, ``type``: attributes of several classes, named in
 # plain-text docstrings) resolve to the first target; every other warning is an error.
 suppress_warnings = ["ref.python"]
