@@ -7,7 +7,7 @@ comparing words is comparing ``(key, payload)``.  Output: for every CSR position
 ``o_t + r`` the payload of the ``r``-th smallest word of texel ``t``.
 
 * Texels of ``k <= 64`` segments: one lane per texel sorts its ``k`` words in registers
-  (padded with ``2^64 - 1`` up to its size class, the next power of two) with Batcher's
+  (padded with ``2^64 - 1`` up to its size class, :data:`SIZE_CLASSES`) with Batcher's
   odd-even merge sort network (K. E. Batcher, "Sorting networks and their applications",
   AFIPS 1968, section 2), comparators on pads pruned; all classes in one kernel (a chain of
   symbolic conditionals, lanes grouped by class).
@@ -31,6 +31,9 @@ from . import backend
 
 #: Largest texel sorted by a network in one lane; longer texels merge sorted blocks of it.
 MAX_NETWORK = 64
+#: Network sizes (a lane's texel padded to the next): the powers of two and the midpoints between
+#: them; on the plume's 1024^2 captures 13 % (exact) and 26 % (march) fewer comparators than powers of two.
+SIZE_CLASSES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
 #: Flag bits of :func:`sort_texels_view` (counted on the device): two words of a texel share
 #: their key; some texel's words were not already increasing in CSR order (always, above 64).
 TIE, UNSORTED = 1, 2
@@ -184,15 +187,19 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
     counts = np.asarray(counts, np.int64)
     base = np.zeros(counts.size, np.int64)
     top = int(min(counts.max(initial=1), MAX_NETWORK))
-    sizes = tuple(1 << b for b in range(1, max(top - 1, 1).bit_length() + 1))   # 2 .. next power of 2
-    # texels of 1 .. 64 segments by size class, largest first (packet offsets stay aligned)
+    sizes = SIZE_CLASSES[:int(np.searchsorted(SIZE_CLASSES, max(top, 2))) + 1]   # 2 .. the class of the longest
+    # texels of 1 .. 64 segments by size class, largest first, a class from a multiple of its size
     small = np.flatnonzero((counts > 0) & (counts <= MAX_NETWORK))
     cls = np.searchsorted(sizes, np.arange(MAX_NETWORK + 1))[counts[small]]     # counts <= sizes[cls]
-    order = A.order_by_count(cls, descending=True)
-    lane_texel, lane_size = small[order], np.asarray(sizes, np.int64)[cls[order]]
-    slot = np.cumsum(lane_size) - lane_size
+    order = A.order_by_count(counts[small], descending=True)     # classes descending; lanes as AVSM inserts them
+    cs, size_of = cls[order], np.asarray(sizes, np.int64)
+    lane_texel, lane_size, n_cls, pos = small[order], size_of[cs], np.bincount(cls, minlength=len(sizes)), 0
+    first, cstart = np.searchsorted(-cs, -np.arange(len(sizes))), np.zeros(len(sizes), np.int64)
+    for c in range(len(sizes) - 1, -1, -1):
+        cstart[c] = pos = -(-pos // sizes[c]) * sizes[c]
+        pos += int(n_cls[c]) * sizes[c]
+    slot = cstart[cs] + (np.arange(cs.size) - first[cs]) * lane_size
     base[lane_texel] = slot
-    pos = int(lane_size.sum())
     slots = -(-max(pos, 1) // MAX_NETWORK) * MAX_NETWORK
     out = dict(n=int(counts.sum()), sizes=sizes, big=None, total=slots)
     if small.size:
@@ -208,7 +215,8 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
         out["total"] = slots + -(-int(cb.sum()) // MAX_NETWORK) * MAX_NETWORK    # packet stores: whole packets
         blk_r = np.arange(nblk.sum()) - np.repeat(np.cumsum(nblk) - nblk, nblk)    # block within texel
         blk_n = np.minimum(np.repeat(cb, nblk) - blk_r * MAX_NETWORK, MAX_NETWORK)
-        blk_c = np.searchsorted(sizes, blk_n)         # a texel's last block: the network of its size class
+        p2 = tuple(x for x in sizes if x & (x - 1) == 0)   # blocks start at multiples of 64: powers of two
+        blk_c = np.searchsorted(p2, blk_n)            # a texel's last block: the network of its size class
         order = np.argsort(-blk_c, kind="stable")     # lanes grouped by class, largest first
         blk_t, blk_r, blk_n, blk_c = np.repeat(big_t, nblk)[order], blk_r[order], blk_n[order], blk_c[order]
         dest = np.repeat(region[:-1], nblk)[order] + blk_r * MAX_NETWORK              # a multiple of 64
@@ -227,9 +235,10 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
             w *= 2
         size = int(region[-1])
         out["big"] = dict(
-            texel=big_t, start=start, count=_u32(blk_n), packet=_u32(dest // np.asarray(sizes)[blk_c]),
+            texel=big_t, start=start, count=_u32(blk_n), packet=_u32(dest // np.asarray(p2)[blk_c]), sizes=p2,
             size=size + MAX_NETWORK * (size == out["n"]), passes=passes)   # widths as for the lanes
-    out["total"] += MAX_NETWORK * (out["total"] == out["n"])                # never the segments' width
+    total = -(-out["total"] // 192) * 192            # packet stores need a multiple of every size: lcm 192
+    out["total"] = total + 192 * (total == out["n"])  # and never the segments' width
     out["base"] = _u32(base)
     dr.eval({k: v for k, v in out.items() if dr.is_array_v(v)}, out["big"])
     return out
@@ -263,7 +272,7 @@ def sort_texels_view(counts: np.ndarray, offsets_dr, kind: str, sources, ties: b
     big = lay["big"]
     if big is not None:
         cur = dr.empty(UInt64, big["size"])
-        counter += _sort_lanes(kind, sources, big["start"], big["count"], big["packet"], lay["sizes"], cur, False)[0]
+        counter += _sort_lanes(kind, sources, big["start"], big["count"], big["packet"], big["sizes"], cur, False)[0]
         dr.eval(cur, counter)
         for p in big["passes"]:
             if p["final"]:                            # payloads to their place, equal keys side by side
