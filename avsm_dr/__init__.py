@@ -28,5 +28,4 @@ __all__ = [
     "set_backend", "get_backend", "available_backends", "OPAQUE_OPTICAL_DEPTH",
     "capture", "Capture", "scenes", "groundtruth", "shading",
     "Scene", "DirectionalLight", "SpotLight", "PointLight", "Particles", "Hair", "OpaqueSphere", "OpaqueBox",
-    "OpaquePlane", "evaluation",
-]
+    "OpaquePlane", "evaluation"]

@@ -115,5 +115,4 @@ class PinholeCamera:
                                                        up=self.up.tolist()),
             "film": {"type": "hdrfilm", "width": int(self.width), "height": int(self.height),
                      "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-            "sampler": {"type": "independent", "sample_count": V.integer(spp, "spp", 1)},
-        }
+            "sampler": {"type": "independent", "sample_count": V.integer(spp, "spp", 1)}}

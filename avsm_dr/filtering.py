@@ -29,6 +29,7 @@ import drjit as dr
 import numpy as np
 
 from . import _arrays as A
+from . import backend
 from . import validation as V
 
 FILTERS = ("point", "bilinear", "box", "gaussian")
@@ -37,6 +38,8 @@ LANES_PER_BATCH = 1 << 22
 #: Largest gaussian ``1 / (2 sigma^2)`` used: finite in float32 also times a squared
 #: distance of the support (<= 2 (r + 1)^2 for r <= 1: below 1e8).
 GAUSSIAN_INV2S2_MAX = 1e30
+#: Coordinates below the smallest normal float64 count as 0 on the host and on every device.
+TINY = float(np.finfo(np.float64).tiny)
 
 
 def check_radius(radius, width: int | None = None, height: int | None = None) -> float:
@@ -52,7 +55,7 @@ def split_coordinates(coords: np.ndarray, width: int, height: int, margin: int =
     """(ix, iy, fx, fy): integer texel (int64, clamped to [-margin - 1, size + margin]
     so that every tap of a support ``margin`` clamps as before) and offset inside it
     (float64 in [0, 1)) of float64 coordinates (K, 2)."""
-    x, y = coords[:, 0], coords[:, 1]
+    x, y = (np.where(np.abs(c) < TINY, 0.0, c) for c in (coords[:, 0], coords[:, 1]))   # subnormals are 0
     fx_, fy_ = np.floor(x), np.floor(y)
     fx, fy = x - fx_, y - fy_
     ix = np.clip(fx_, -margin - 1, width + margin).astype(np.int64)
@@ -73,6 +76,20 @@ def bilinear_taps(coords: np.ndarray, width: int, height: int):
             np.stack([(fx if dx else 1 - fx) * (fy if dy else 1 - fy) for dx, dy in taps]))
 
 
+def split_on_device(coords: np.ndarray, width: int, height: int, shift: float = 0.0, margin: int = 0):
+    """:func:`split_coordinates` of ``coords - shift`` on the device (ix, iy Int32; fx, fy Float64): the
+    same float64 operations, so the same taps, without the host's passes over every receiver (0.7 of a
+    bilinear lookup of 0.9 M receivers on 2 cores)."""
+    t = backend.types()
+    out = []
+    for c, size in ((0, width), (1, height)):
+        x = t.Float64(A.aligned(np.ascontiguousarray(coords[:, c]))) - shift
+        x = dr.select(dr.abs(x) < TINY, 0.0, x)      # subnormals are 0 (LLVM's threads flush them, CUDA does not)
+        f = dr.floor(x)
+        out += [t.Int32(dr.clip(f, -margin - 1, size + margin)), x - f]
+    return out[0], out[2], out[1], out[3]
+
+
 def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: int, filter: str,
                   radius: float, Float, UInt32, Int32):
     """Filtered transmittance of K receivers (module docstring).
@@ -81,23 +98,22 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
     coords: (K, 2) float64 host coordinates; depth: Float (K,) (AD graph kept).
     """
     k = coords.shape[0]
-    if filter == "point":
-        ix, iy, _, _ = split_coordinates(coords, width, height)
-        tex = _clamped_texel(ix, iy, width, height).astype(np.uint32)
-        return eval_texels(A.to_uint32(tex), depth)
-    if filter == "bilinear":
+    if filter in ("point", "bilinear"):               # the bilinear taps: (1-fx)(1-fy), fx (1-fy), (1-fx) fy, fx fy
+        ix, iy, fx, fy = split_on_device(coords, width, height, *((0.5, 1) if filter == "bilinear" else (0.0, 0)))
         total = Float(0)
-        for tex, w in zip(*bilinear_taps(coords, width, height)):
-            total = total + A.to_float(w, Float) * eval_texels(A.to_uint32(tex.astype(np.uint32)), depth)
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))[:4 if filter == "bilinear" else 1]:
+            tex = UInt32(dr.clip(iy + dy, 0, height - 1)) * width + UInt32(dr.clip(ix + dx, 0, width - 1))
+            if filter == "point":
+                return eval_texels(tex, depth)
+            total = total + Float((fx if dx else 1 - fx) * (fy if dy else 1 - fy)) * eval_texels(tex, depth)
         return total
 
     # box / gaussian: K x m lanes, lane = receiver * m + tap (receiver-major, block sums)
     r = int(math.ceil(radius))
     side = 2 * r + 1
     m = side * side
-    ix, iy, fx, fy = split_coordinates(coords, width, height, margin=r)
-    ix_d, iy_d = Int32(A.aligned(ix.astype(np.int32))), Int32(A.aligned(iy.astype(np.int32)))
-    fx_d, fy_d = A.to_float(fx, Float), A.to_float(fy, Float)
+    ix_d, iy_d, fx, fy = split_on_device(coords, width, height, margin=r)
+    fx_d, fy_d = Float(fx), Float(fy)
     # 1 / (2 sigma^2), capped where it would overflow float32 (radius < ~1e-19): an inf
     # times the own texel's exponent 0 made every weight NaN; at the cap the other taps'
     # weights are 0 and ties 1, the limit of the formula (the point filter).

@@ -58,6 +58,5 @@ def error_stats(estimate, reference, threshold: float = THRESHOLD) -> dict:
         "nan_count": int(np.count_nonzero(np.isnan(est))),
         "inf_count": int(np.count_nonzero(np.isinf(est))),
         "bounds_violations": int(np.count_nonzero((est[finite] < 0) | (est[finite] > 1))),
-        "n": int(est.size),
-    })
+        "n": int(est.size)})
     return out

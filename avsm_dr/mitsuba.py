@@ -411,5 +411,4 @@ mi.detail.add_variant_callback(lambda *_args: register())
 if not getattr(mi.render, "_avsm_dr_checked", False):
     mi.render = _checked_render(mi.render)
 
-__all__ = ["NAME", "register", "integrator_class", "supported_variant", "light_of",
-           "scene_medium"]
+__all__ = ["NAME", "register", "integrator_class", "supported_variant", "light_of", "scene_medium"]

@@ -248,8 +248,7 @@ class Segments:
                 # infinite derivative leaking into the AD graph.
                 t = A.to_float(transmittance, Float)
                 safe = dr.maximum(t, 1e-300 if dtype == "float64" else 1e-38)
-                return dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH),
-                                 OPAQUE_OPTICAL_DEPTH)
+                return dr.select(t > tiny, dr.minimum(-dr.log(safe), OPAQUE_OPTICAL_DEPTH), OPAQUE_OPTICAL_DEPTH)
         else:
             if A.is_drjit(optical_depth):   # clamped and flushed only where needed (recipe)
                 tau_of = _recipe(optical_depth, Float, dtype, has_subnormal(oh, dtype),

@@ -50,8 +50,7 @@ def irradiance(light, points) -> np.ndarray:
     return check_light(light).irradiance_at(V.points(points, allow_empty=True))
 
 
-def shade_receivers(scene: Scene, transmittance, points=None, normals=None,
-                    albedo: float = 1.0) -> np.ndarray:
+def shade_receivers(scene: Scene, transmittance, points=None, normals=None, albedo: float = 1.0) -> np.ndarray:
     """(K,) outgoing radiance ``albedo / pi * E * T * cos`` of diffuse receivers.
 
     transmittance: (K,) T at the points (any representation, or ground truth).
@@ -167,8 +166,7 @@ def _single_scattering(scene, content, o, d, t_end, light_T, albedo, step):
 
 
 def shade_plane(scene: Scene, rep, capture, width: int = 128, height: int = 128,
-                camera=None, filter: str = "point", radius: float = 1.0,
-                **kw) -> np.ndarray:
+                camera=None, filter: str = "point", radius: float = 1.0, **kw) -> np.ndarray:
     """The :func:`render_plane` image with shadows from representation ``rep``.
 
     T at a world point = ``capture.transmittance(rep, points, filter, radius)`` (1 where

@@ -34,8 +34,7 @@ STATISTICS: dict[str, Callable] = {
     "rmse": lambda x, axis: np.sqrt(np.mean(np.square(x), axis=axis)),
     "mean_abs": lambda x, axis: np.mean(np.abs(x), axis=axis),
     "p99": lambda x, axis: np.percentile(np.abs(x), 99.0, axis=axis),
-    "max": lambda x, axis: np.max(np.abs(x), axis=axis),
-}
+    "max": lambda x, axis: np.max(np.abs(x), axis=axis)}
 #: Statistics ``post(mean(pre(x)))``: block-bootstrap replicates from per-block sums.
 _MEAN_OF = {STATISTICS["mean"]: (np.asarray, np.asarray), STATISTICS["rmse"]: (np.square, np.sqrt),
             STATISTICS["mean_abs"]: (np.abs, np.asarray)}

@@ -120,3 +120,20 @@ def test_numpy_point_lookup_is_one_launch(backend, rng):
         dr.eval(rep.eval(tex, depth))
         kinds = [k["type"] for k in dr.kernel_history()]
     assert kinds == [dr.KernelType.JIT]
+
+
+@pytest.mark.parametrize("shift, margin", [(0.0, 0), (0.5, 1), (0.0, 3)])
+def test_filter_taps_split_on_the_device_equal_the_host_split(shift, margin):
+    """The point, bilinear, box and gaussian lookups split coordinates on the device: the same
+    float64 floor and subtraction as the host's :func:`split_coordinates`, so the same texels and
+    offsets bit for bit, on coordinates inside, on the edges of and far outside the map."""
+    from avsm_dr.filtering import split_coordinates, split_on_device
+    rng = np.random.default_rng(7)
+    w, h = 37, 21
+    coords = np.concatenate([rng.uniform(-3, 40, (4000, 2)), rng.uniform(-1e12, 1e12, (64, 2)),
+                             [[0, 0], [w, h], [w - 1e-9, h - 1e-9], [0.5, 0.5], [-0.5, -0.5], [2.0 ** 31, -2.0 ** 31]],
+                             np.nextafter(np.arange(8.0)[:, None].repeat(2, 1), -1)])
+    host = split_coordinates(coords - shift, w, h, margin=margin)
+    dev = split_on_device(coords, w, h, shift, margin=margin)
+    for a, b in zip(host, dev):
+        np.testing.assert_array_equal(np.asarray(b).astype(a.dtype), a)

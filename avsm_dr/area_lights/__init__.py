@@ -26,5 +26,4 @@ from .vpl import LightGrid, fit_grid, sample_vpls
 __all__ = [
     "AreaLightScene", "Box", "PinholeCamera", "Medium", "QuadLight", "Sphere", "default_scene",
     "render", "AreaLightRender", "METHODS", "INTERPOLATIONS", "render_mitsuba",
-    "LightGrid", "fit_grid", "sample_vpls",
-]
+    "LightGrid", "fit_grid", "sample_vpls"]

@@ -251,8 +251,7 @@ def default_scene(width: int = 32, height: int = 32, occluders: bool = True, sig
     if occluders:
         occ = [Sphere([0.35, 1.45, -0.05], 0.28, albedo=0.6),
                Box([-0.8, 1.05, -0.55], [-0.1, 1.2, 0.15], albedo=0.5),
-               Box([0.45, 0.0, -0.9], [0.8, 0.75, -0.55], albedo=0.5),
-               Sphere([-0.35, 0.3, 0.35], 0.22, albedo=0.7)]
+               Box([0.45, 0.0, -0.9], [0.8, 0.75, -0.55], albedo=0.5), Sphere([-0.35, 0.3, 0.35], 0.22, albedo=0.7)]
     cam = PinholeCamera(origin=[0.0, 1.05, 1.42], target=[0.0, 0.85, -0.6], fov=72.0, width=width, height=height)
     return AreaLightScene(Medium(sigma_s, sigma_t, g), light, cam, (lo, hi), occ, floor_albedo=0.5,
                           name="default" if occluders else "default_unoccluded")

@@ -49,8 +49,7 @@ def scene_dict(scene: AreaLightScene) -> dict:
                                 scene.light.center),
             "emitter": {"type": "area", "radiance": float(scene.light.radiance)},
             "bsdf": {"type": "diffuse", "reflectance": 0.0},
-        },
-    }
+        }}
     for i, o in enumerate(scene.occluders):
         d[f"occluder_{i}"] = o.to_mitsuba(mi, {"type": "diffuse", "reflectance": float(o.albedo)})
     return d

@@ -225,8 +225,7 @@ def lookup_bilinear(grid: LightGrid, k: Kit, S, vpl, c: GridCoords, stride: int 
     wx, wy = fx - x0, fy - y0
     ix, iy = k.Int32(x0), k.Int32(y0)
     V = dr.zeros(k.Float, dr.width(c.fs))
-    for dx, dy, w in ((0, 0, (1 - wx) * (1 - wy)), (1, 0, wx * (1 - wy)),
-                      (0, 1, (1 - wx) * wy), (1, 1, wx * wy)):
+    for dx, dy, w in ((0, 0, (1 - wx) * (1 - wy)), (1, 0, wx * (1 - wy)), (0, 1, (1 - wx) * wy), (1, 1, wx * wy)):
         tx, ty = ix + dx, iy + dy
         ok = c.inside & (tx >= 0) & (tx < R) & (ty >= 0) & (ty < R)
         idx = _word_index(grid, vpl, k.UInt32(dr.maximum(tx, 0)), k.UInt32(dr.maximum(ty, 0)), c.b)

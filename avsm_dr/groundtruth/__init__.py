@@ -15,8 +15,7 @@ statement of its convention), :mod:`.content` (light paths; particles, hair and 
 (:func:`mitsuba`), inside each call, never at import time.
 """
 from .content import EPS_REL, MAX_CHUNK, blocked, light_paths
-from .images import (PLANE_OFFSET, camera_rays, check_camera, default_camera, receiver_plane_for,
-                     render_reference)
+from .images import (PLANE_OFFSET, camera_rays, check_camera, default_camera, receiver_plane_for, render_reference)
 from .media import mitsuba, mitsuba_volume, sample_density
 from .tracking import MAX_LANES, MAX_SAMPLES, METHODS, raymarch_optical_depth, transmittance
 
@@ -24,5 +23,4 @@ __all__ = [
     "transmittance", "render_reference", "raymarch_optical_depth", "sample_density",
     "light_paths", "blocked", "mitsuba", "mitsuba_volume",
     "default_camera", "check_camera", "camera_rays", "receiver_plane_for",
-    "METHODS", "MAX_LANES", "MAX_SAMPLES", "MAX_CHUNK", "EPS_REL", "PLANE_OFFSET",
-]
+    "METHODS", "MAX_LANES", "MAX_SAMPLES", "MAX_CHUNK", "EPS_REL", "PLANE_OFFSET"]

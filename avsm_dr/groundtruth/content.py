@@ -42,8 +42,7 @@ def check_scene(scene) -> dict:
         "particles": None if scene.particles is None else scene.particles.validate(),
         "hair": None if scene.hair is None else scene.hair.validate(),
         "grid": None if scene.density is None else check_grid(scene.density, scene.bbox),
-        "blockers": validate_blockers(scene.blockers or []),
-    }
+        "blockers": validate_blockers(scene.blockers or [])}
     out["boxes"] = [] if out["grid"] is None else [out["grid"][1:]]
     out["boxes"] += [b.bounds() for b in (scene.particles, scene.hair, *out["blockers"]) if b is not None]
     if not out["boxes"]:

@@ -194,8 +194,7 @@ def render_reference(scene: Scene, width: int = 128, height: int = 128, spp: int
         "light": scene.light.to_mitsuba(mi),
         "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f(square_to_world(c, n, half)),
                   "bsdf": {"type": "twosided", "bsdf": {
-                      "type": "diffuse", "reflectance": {"type": "rgb", "value": [float(reflectance)] * 3}}}},
-    }
+                      "type": "diffuse", "reflectance": {"type": "rgb", "value": [float(reflectance)] * 3}}}}}
     if content["grid"] is not None:
         grid, lo, hi = content["grid"]
         d["volume"] = dict(OpaqueBox(lo, hi).to_mitsuba(mi, {"type": "null"}),

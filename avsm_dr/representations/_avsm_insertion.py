@@ -65,8 +65,7 @@ INSERTIONS = {
     "staged_refit_l2": ("l2", "l2", 4, 0, "linear", False),
     "spare_refit_l2": ("l2", "l2", 1, 8, "linear", False),
     "spare_exp": ("l2", "l2", 1, 8, "exp", False),
-    "spare_exp_fit": ("l2", "l2", 1, 8, "exp", True),
-}
+    "spare_exp_fit": ("l2", "l2", 1, 8, "exp", True)}
 #: A removal keeps the curve (final fit) when the removed node lies within this of its
 #: neighbours' chord (measured: 1e-4 never worse than no fit; 1e-3 worse on some scenes at N = 16).
 KEEP_TOL = 1e-4

@@ -284,8 +284,7 @@ class AVSM(NodeList):
         examples=({"nodes": 8}, {"nodes": 4, "sort": True}, {"nodes": 8, "interpolation": "exp"}),
         headline={"nodes": 8},
         summary="N (depth, transmittance) nodes, streaming insertion + area-based removal",
-        paper="Salvi et al. 2010",
-    )
+        paper="Salvi et al. 2010")
 
     def _resolve(self):
         P, seg = self.params, self.segments

@@ -175,8 +175,7 @@ class AVSMAdaptive(Representation):
                   {"bytes_per_texel": 96.0, "max_nodes": 8, "sort": True}),
         headline={"bytes_per_texel": 64.0},
         summary="AVSM with per-texel node counts under a total byte budget (complexity water-filling, CSR)",
-        paper="Salvi et al. 2010 (budgeted variant)",
-    )
+        paper="Salvi et al. 2010 (budgeted variant)")
 
     def _resolve(self):
         P, segments = self.params, self.segments

@@ -117,8 +117,7 @@ class AVSMMarch(Representation):
         examples=({"nodes": 4}, {"nodes": 8, "abs_error": 0.0, "rel_error": 0.0, "interpolation": "linear"}),
         headline={"nodes": 8},
         summary="AVSM placed while ray marching (error-driven, variable count <= cap, fp16 relative depths)",
-        paper="Salvi et al. 2010 (engine-style variant)",
-    )
+        paper="Salvi et al. 2010 (engine-style variant)")
 
     def _resolve(self):
         self.cap = self.params["nodes"]

@@ -76,8 +76,7 @@ class BasisRepresentation(Representation):
         examples=({"basis": "legendre", "n": 6}, {"basis": "cosine", "n": 6}),
         headline={"basis": "legendre", "n": 8},
         summary="any orthonormal basis of the absorption (FOM/OSM are two of them)",
-        paper="Jansen & Bavoil 2010, sec. 5",
-    )
+        paper="Jansen & Bavoil 2010, sec. 5")
 
     def _resolve(self):
         self.basis = self._make_basis()

@@ -47,8 +47,7 @@ class BeerShadowMap(Representation):
         examples=({"variant": "cloud"}, {"variant": "two_node"}),
         headline={"variant": "cloud"},
         summary="one homogeneous medium per texel: front depth, mean extinction, max optical depth",
-        paper="Hillaire 2016",
-    )
+        paper="Hillaire 2016")
 
     def _build(self):
         segments = self.segments

@@ -237,8 +237,7 @@ class DeepShadowMap(Representation):
         examples=({"tolerance": 0.01}, {"tolerance": 0.01, "placement": "curve"}),
         headline={"tolerance": 0.01},
         summary="error-bounded polyline (variable node count)",
-        paper="Lokovic & Veach 2000",
-    )
+        paper="Lokovic & Veach 2000")
 
     def _resolve(self):
         self.tolerance = self.params["tolerance"]

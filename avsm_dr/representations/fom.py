@@ -108,8 +108,7 @@ class FourierOpacityMap(BasisRepresentation):
         examples=({"harmonics": 4}, {"harmonics": 3, "depth_range": "texel"}),
         headline={"harmonics": 4},
         summary="2n+1 Fourier coefficients of the absorption",
-        paper="Jansen & Bavoil 2010",
-    )
+        paper="Jansen & Bavoil 2010")
 
     def _make_basis(self):
         return FourierBasis(self.params["harmonics"])

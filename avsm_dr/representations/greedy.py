@@ -154,8 +154,7 @@ class GreedyVW(NodeList):
         examples=({"nodes": 4}, {"nodes": 8, "interpolation": "exp"}),
         headline={"nodes": 8},
         summary="offline Visvalingam-Whyatt on the exact curve (AVSM's metric, whole curve known)",
-        paper="Visvalingam & Whyatt 1993", offline=True,
-    )
+        paper="Visvalingam & Whyatt 1993", offline=True)
 
     def _build(self):
         segments = self.segments

@@ -277,8 +277,7 @@ class MomentShadowMap(BasisRepresentation):
         headline={"moments": 4},
         constraint=_moment_count_rule,
         summary="4/6/8 power or 2/3/4 trigonometric moments of the absorbance, bounds (MBOIT)",
-        paper="Peters & Klein 2015; Peters et al. 2016; Muenstermann et al. 2018",
-    )
+        paper="Peters & Klein 2015; Peters et al. 2016; Muenstermann et al. 2018")
 
     def _make_basis(self):
         n = self.params["moments"]        # one the family takes (schema constraint)

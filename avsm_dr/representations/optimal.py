@@ -331,8 +331,7 @@ class OptimalSubset(NodeList):
                   {"nodes": 3, "norm": "linf", "interpolation": "exp"}),
         headline={"nodes": 8},
         summary="offline best N-node subset of the exact curve's breakpoints (DP; L2 values refitted)",
-        paper="-", offline=True,
-    )
+        paper="-", offline=True)
 
     def _resolve(self):
         super()._resolve()

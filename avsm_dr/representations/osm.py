@@ -93,8 +93,7 @@ class OpacityShadowMap(BasisRepresentation):
         examples=({"slices": 16},),
         headline={"slices": 32},
         summary="n uniform opacity slices",
-        paper="Kim & Neumann 2001",
-    )
+        paper="Kim & Neumann 2001")
 
     def _make_basis(self):
         return PiecewiseConstantBasis(self.params["slices"])

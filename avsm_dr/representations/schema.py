@@ -60,8 +60,7 @@ class Param:
 
     def describe(self) -> dict:
         """Plain-data description (for ``ad.describe`` and the docs)."""
-        out = {"default": self.default, "type": self.type, "min": self.min, "max": self.max,
-               "doc": self.doc}
+        out = {"default": self.default, "type": self.type, "min": self.min, "max": self.max, "doc": self.doc}
         if self.choices:
             out["choices"] = list(self.choices)
         if self.nullable:
