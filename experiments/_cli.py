@@ -41,6 +41,23 @@ def study(name: str) -> Study:
     return declared
 
 
+def preload(name: str) -> list[str]:
+    """Import now what a run of study ``name`` imports lazily: the shared ``experiments._*`` modules
+    and the study package's own modules (not its subpackages, e.g. the optional peer kernels), so
+    a run keeps the source it started with when experiments/ is edited while it runs (a run once
+    failed in its figures: its plotting module, read later, needed a newer ``_plotstyle`` than the
+    one loaded at its start).  Returns the names imported."""
+    import experiments
+    names = [f"experiments.{m.name}" for m in pkgutil.iter_modules(experiments.__path__)
+             if m.name.startswith("_") and m.name not in ("__main__", "_cli")]
+    pkg = importlib.import_module(f"experiments.{name}")
+    names += [f"{pkg.__name__}.{m.name}" for m in pkgutil.iter_modules(getattr(pkg, "__path__", []))
+              if not m.ispkg]
+    for n in names:
+        importlib.import_module(n)
+    return names
+
+
 def sweep_experiments() -> list[str]:
     """Experiments declared ``sweep=True`` (``workers``/``address``: cells through :mod:`experiments._sweep`)."""
     return [n for n in experiment_names() if study(n).sweep]
@@ -146,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, RuntimeError) as exc:         # RuntimeError: the backend is not available
         return _error(exc)
     s = study(args.experiment)
+    preload(args.experiment)
     extra = {k: v for k, v in (("workers", args.workers), ("address", args.address)) if v is not None}
     if extra and not s.sweep:
         print(f"experiments: error: --{next(iter(extra))}: experiment {args.experiment!r} runs serially only "

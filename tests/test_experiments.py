@@ -627,3 +627,17 @@ def test_meta_names_the_code_the_run_started_with(monkeypatch, tmp_path):
     assert meta["git_commit"] == "a" * 40 and meta["git_dirty"] is False
     assert meta["cache_key"] == _common.cache_key() and meta["run_seconds"] >= 0
     assert _common.git_dirty() in (True, False, None)
+
+
+def test_a_run_imports_its_lazily_imported_modules_at_its_start():
+    """``preload`` imports the shared ``experiments._*`` modules and the study package's own modules
+    before a run, so that an edit of experiments/ during a run cannot mix old and new source (a run
+    once failed in its figures that way); subpackages (bench's optional peer kernels) stay lazy."""
+    import sys
+    from experiments._cli import preload
+    names = preload("memory_budget")
+    assert {"experiments.memory_budget.plots", "experiments.memory_budget.tables", "experiments._plotstyle",
+            "experiments._common"} <= set(names)
+    assert all(n in sys.modules for n in names)
+    assert not any(n.startswith("experiments.bench.peer_kernels") for n in preload("bench"))
+    assert "experiments.bench.paper_table" in preload("bench")
