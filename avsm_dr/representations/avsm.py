@@ -467,7 +467,7 @@ class AVSM(NodeList):
             if fit:   # least-squares values where every removal kept the curve (exact nodes)
                 t = fit_values(dt[:N], dt[W:W + N], dt[2 * W:2 * W + N], dt[3 * W:3 * W + N], count - 1, ~lossy[0])
                 dt = (*dt[:W], *t, *dt[W + N:2 * W])
-        out = lanes if t0 == 0 else lanes + t0
+        out = lanes if t0 == 0 else A.to_uint32(lanes_np + t0)   # not lanes + t0: a literal, a kernel per chunk
         for k in range(N):
             dr.scatter(self.depths[k], dt[k], out)
             dr.scatter(self.values[k], dt[W + k], out)
