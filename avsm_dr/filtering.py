@@ -16,9 +16,9 @@ to the edge.
   sigma = radius / 2, c_0 the centre of the texel holding p (weight 1, so the sum never
   underflows to 0 however small the radius: a tiny radius becomes the point filter).
 
-Coordinates are split on the host in float64 into an integer texel (int64, clamped to the
-map) and the offset inside it, so texel selection is exact on any map and coordinates far
-outside it (>= 2^31) clamp to the edge.  ``radius``: finite, ``> 0`` and at most
+Coordinates are split on the device in float64 (:func:`split_on_device`) into an integer
+texel (clamped to the map) and the offset inside it, so texel selection is exact on any map
+and coordinates far outside it (>= 2^31) clamp to the edge.  ``radius``: finite, ``> 0`` and at most
 ``max(width, height)``.
 """
 from __future__ import annotations
@@ -38,7 +38,7 @@ LANES_PER_BATCH = 1 << 22
 #: Largest gaussian ``1 / (2 sigma^2)`` used: finite in float32 also times a squared
 #: distance of the support (<= 2 (r + 1)^2 for r <= 1: below 1e8).
 GAUSSIAN_INV2S2_MAX = 1e30
-#: Coordinates below the smallest normal float64 count as 0 on the host and on every device.
+#: Coordinates below the smallest normal float64 count as 0 on every device.
 TINY = float(np.finfo(np.float64).tiny)
 
 
@@ -51,43 +51,36 @@ def check_radius(radius, width: int | None = None, height: int | None = None) ->
     return r
 
 
-def split_coordinates(coords: np.ndarray, width: int, height: int, margin: int = 0):
-    """(ix, iy, fx, fy): integer texel (int64, clamped to [-margin - 1, size + margin]
-    so that every tap of a support ``margin`` clamps as before) and offset inside it
-    (float64 in [0, 1)) of float64 coordinates (K, 2)."""
-    x, y = (np.where(np.abs(c) < TINY, 0.0, c) for c in (coords[:, 0], coords[:, 1]))   # subnormals are 0
-    fx_, fy_ = np.floor(x), np.floor(y)
-    fx, fy = x - fx_, y - fy_
-    ix = np.clip(fx_, -margin - 1, width + margin).astype(np.int64)
-    iy = np.clip(fy_, -margin - 1, height + margin).astype(np.int64)
-    return ix, iy, fx, fy
-
-
-def _clamped_texel(ix, iy, width: int, height: int):
-    return np.clip(iy, 0, height - 1) * width + np.clip(ix, 0, width - 1)
-
-
-def bilinear_taps(coords: np.ndarray, width: int, height: int):
-    """(tex, weights): the (4, K) int64 texels (clamped to the map) and float64 weights
-    ``(1-fx)(1-fy), fx (1-fy), (1-fx) fy, fx fy`` of the bilinear filter at (K, 2) coordinates."""
-    ix, iy, fx, fy = split_coordinates(coords - 0.5, width, height, margin=1)
-    taps = ((0, 0), (1, 0), (0, 1), (1, 1))
-    return (np.stack([_clamped_texel(ix + dx, iy + dy, width, height) for dx, dy in taps]),
-            np.stack([(fx if dx else 1 - fx) * (fy if dy else 1 - fy) for dx, dy in taps]))
-
-
 def split_on_device(coords: np.ndarray, width: int, height: int, shift: float = 0.0, margin: int = 0):
-    """:func:`split_coordinates` of ``coords - shift`` on the device (ix, iy Int32; fx, fy Float64): the
-    same float64 operations, so the same taps, without the host's passes over every receiver (0.7 of a
-    bilinear lookup of 0.9 M receivers on 2 cores)."""
+    """(ix, iy, fx, fy) of (K, 2) float64 host coordinates minus ``shift``, on the device: the integer
+    texel (Int32, ``floor``, clamped to [-margin - 1, size + margin] so that every tap of a support
+    ``margin`` clamps as before) and the offset inside it (Float64 in [0, 1)); subnormal coordinates
+    count as 0 (LLVM's worker threads flush them, CUDA does not)."""
     t = backend.types()
     out = []
     for c, size in ((0, width), (1, height)):
         x = t.Float64(A.aligned(np.ascontiguousarray(coords[:, c]))) - shift
-        x = dr.select(dr.abs(x) < TINY, 0.0, x)      # subnormals are 0 (LLVM's threads flush them, CUDA does not)
+        x = dr.select(dr.abs(x) < TINY, 0.0, x)
         f = dr.floor(x)
         out += [t.Int32(dr.clip(f, -margin - 1, size + margin)), x - f]
     return out[0], out[2], out[1], out[3]
+
+
+def _taps(coords: np.ndarray, width: int, height: int, filter: str):
+    """(texel UInt32, weight Float64) of the point filter's one tap (weight None) or the bilinear
+    filter's four, weights ``(1-fx)(1-fy), fx (1-fy), (1-fx) fy, fx fy``; texels clamped to the map."""
+    UInt32, bilinear = backend.types().UInt32, filter == "bilinear"
+    ix, iy, fx, fy = split_on_device(coords, width, height, 0.5 if bilinear else 0.0, int(bilinear))
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))[:4 if bilinear else 1]:
+        tex = UInt32(dr.clip(iy + dy, 0, height - 1)) * width + UInt32(dr.clip(ix + dx, 0, width - 1))
+        yield tex, ((fx if dx else 1 - fx) * (fy if dy else 1 - fy) if bilinear else None)
+
+
+def bilinear_taps(coords: np.ndarray, width: int, height: int):
+    """(tex, weights): host copies of the bilinear filter's taps at (K, 2) coordinates, (4, K) int64
+    texels and float64 weights (:func:`_taps`)."""
+    taps = list(_taps(coords, width, height, "bilinear"))
+    return np.stack([t.numpy() for t, _ in taps]).astype(np.int64), np.stack([w.numpy() for _, w in taps])
 
 
 def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: int, filter: str,
@@ -98,14 +91,12 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
     coords: (K, 2) float64 host coordinates; depth: Float (K,) (AD graph kept).
     """
     k = coords.shape[0]
-    if filter in ("point", "bilinear"):               # the bilinear taps: (1-fx)(1-fy), fx (1-fy), (1-fx) fy, fx fy
-        ix, iy, fx, fy = split_on_device(coords, width, height, *((0.5, 1) if filter == "bilinear" else (0.0, 0)))
+    if filter == "point":
+        return eval_texels(next(_taps(coords, width, height, filter))[0], depth)
+    if filter == "bilinear":
         total = Float(0)
-        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))[:4 if filter == "bilinear" else 1]:
-            tex = UInt32(dr.clip(iy + dy, 0, height - 1)) * width + UInt32(dr.clip(ix + dx, 0, width - 1))
-            if filter == "point":
-                return eval_texels(tex, depth)
-            total = total + Float((fx if dx else 1 - fx) * (fy if dy else 1 - fy)) * eval_texels(tex, depth)
+        for tex, w in _taps(coords, width, height, filter):
+            total = total + Float(w) * eval_texels(tex, depth)
         return total
 
     # box / gaussian: K x m lanes, lane = receiver * m + tap (receiver-major, block sums)

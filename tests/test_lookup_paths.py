@@ -122,18 +122,30 @@ def test_numpy_point_lookup_is_one_launch(backend, rng):
     assert kinds == [dr.KernelType.JIT]
 
 
+def _split_reference(coords, width, height, shift, margin):
+    """NumPy reference of the filters' coordinate split: float64 ``x = c - shift`` (subnormals as
+    0), texel ``floor(x)`` clamped to [-margin - 1, size + margin], offset ``x - floor(x)``."""
+    out = []
+    for c, size in ((0, width), (1, height)):
+        x = coords[:, c] - shift
+        x = np.where(np.abs(x) < np.finfo(np.float64).tiny, 0.0, x)
+        f = np.floor(x)
+        out.append((np.clip(f, -margin - 1, size + margin).astype(np.int64), x - f))
+    return out[0][0], out[1][0], out[0][1], out[1][1]
+
+
 @pytest.mark.parametrize("shift, margin", [(0.0, 0), (0.5, 1), (0.0, 3)])
-def test_filter_taps_split_on_the_device_equal_the_host_split(shift, margin):
+def test_filter_taps_split_on_the_device_equal_the_numpy_split(shift, margin):
     """The point, bilinear, box and gaussian lookups split coordinates on the device: the same
-    float64 floor and subtraction as the host's :func:`split_coordinates`, so the same texels and
-    offsets bit for bit, on coordinates inside, on the edges of and far outside the map."""
-    from avsm_dr.filtering import split_coordinates, split_on_device
+    float64 floor and subtraction as a NumPy reference, so the same texels and offsets bit for bit,
+    on coordinates inside, on the edges of and far outside the map, and subnormal ones."""
+    from avsm_dr.filtering import split_on_device
     rng = np.random.default_rng(7)
     w, h = 37, 21
     coords = np.concatenate([rng.uniform(-3, 40, (4000, 2)), rng.uniform(-1e12, 1e12, (64, 2)),
                              [[0, 0], [w, h], [w - 1e-9, h - 1e-9], [0.5, 0.5], [-0.5, -0.5], [2.0 ** 31, -2.0 ** 31]],
                              np.nextafter(np.arange(8.0)[:, None].repeat(2, 1), -1)])
-    host = split_coordinates(coords - shift, w, h, margin=margin)
-    dev = split_on_device(coords, w, h, shift, margin=margin)
-    for a, b in zip(host, dev):
+    want = _split_reference(coords, w, h, shift, margin)
+    got = split_on_device(coords, w, h, shift, margin=margin)
+    for a, b in zip(want, got):
         np.testing.assert_array_equal(np.asarray(b).astype(a.dtype), a)
