@@ -21,6 +21,7 @@ Also the per-texel order keys of :meth:`Segments.in_order <avsm_dr.segments.Segm
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import drjit as dr
@@ -34,6 +35,8 @@ MAX_NETWORK = 64
 #: Network sizes (a lane's texel padded to the next): the powers of two and the midpoints between
 #: them; on the plume's 1024^2 captures 13 % (exact) and 26 % (march) fewer comparators than powers of two.
 SIZE_CLASSES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
+#: Packet stores (Dr.Jit's packet scatter) need a target size that every class divides.
+PACKET_ALIGN = math.lcm(*SIZE_CLASSES)
 #: Flag bits of :func:`sort_texels_view` (counted on the device): two words of a texel share
 #: their key; some texel's words were not already increasing in CSR order (always, above 64).
 TIE, UNSORTED = 1, 2
@@ -237,8 +240,8 @@ def plan(counts: np.ndarray, offsets_dr) -> dict:
         out["big"] = dict(
             texel=big_t, start=start, count=_u32(blk_n), packet=_u32(dest // np.asarray(p2)[blk_c]), sizes=p2,
             size=size + MAX_NETWORK * (size == out["n"]), passes=passes)   # widths as for the lanes
-    total = -(-out["total"] // 192) * 192            # packet stores need a multiple of every size: lcm 192
-    out["total"] = total + 192 * (total == out["n"])  # and never the segments' width
+    total = -(-out["total"] // PACKET_ALIGN) * PACKET_ALIGN
+    out["total"] = total + PACKET_ALIGN * (total == out["n"])   # never the segments' width
     out["base"] = _u32(base)
     dr.eval({k: v for k, v in out.items() if dr.is_array_v(v)}, out["big"])
     return out

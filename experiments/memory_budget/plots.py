@@ -4,7 +4,6 @@ per metric, and the adaptive allocation's node count per texel; small multiples 
 :data:`COLUMNS` scenes a row."""
 from __future__ import annotations
 
-
 import numpy as np
 
 METHODS = ("avsm", "adaptive", "adaptive_uniform", "adaptive_count", "dsm", "optimal")
