@@ -52,3 +52,26 @@ def test_scaling_skips_every_setting_under_a_fake_tiny_limit(monkeypatch, small_
     rows = scaling.scaling(P, _Progress(), notes)
     assert {r["setting"] for r in rows} == {"exact"} and len(notes) >= 4
     assert all(" skipped on scaling texels=256 " in n for n in notes)
+
+
+@pytest.mark.parametrize("rss, counted", [(64 * 1024, False), (float("nan"), False), (4 << 20, True)])
+def test_rss_page_noise_is_not_extrapolated(monkeypatch, small_probes, rss, counted):
+    """RSS growth under RSS_NOISE_BYTES (page noise of a build that allocates nothing, seen in
+    2 of 60 exact probes) estimates no peak; larger growth and the watermark count."""
+    class FakeMeter:
+        heap_bytes, rss_bytes = 0.0, rss
+
+        def __init__(self):
+            FakeMeter.rss_bytes = rss if not calls else 2 * rss          # growth between probes
+            calls.append(1)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+    calls = []
+    monkeypatch.setattr(memory_guard, "Meter", FakeMeter)
+    need, slope = memory_guard.estimate_peak("exact", {}, counts_map(16, 20))
+    assert len(calls) == 2
+    assert (need > 0 and slope > 0) if counted else (need == 0 and slope == 0)

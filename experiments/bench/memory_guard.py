@@ -1,9 +1,10 @@
 """Skip a setting whose build would not fit in memory, before it runs on a large map.
 
 Its build peak (the larger of process RSS growth and Dr.Jit's allocator watermark growth,
-:class:`~experiments._common.Meter`) is measured on two probes, the map's first texels
-holding about ``PROBE_SEGMENTS / 2`` and ``PROBE_SEGMENTS`` segments, and extrapolated
-linearly in the segments (the slope between the probes: fixed costs do not scale):
+:class:`~experiments._common.Meter`; RSS growth under ``RSS_NOISE_BYTES`` counts as none) is
+measured on two probes, the map's first texels holding about ``PROBE_SEGMENTS / 2`` and
+``PROBE_SEGMENTS`` segments, and extrapolated linearly in the segments (the slope between the
+probes: fixed costs do not scale):
 ``peak(S) = peak(n_2) + max(0, (peak(n_2) - peak(n_1)) / (n_2 - n_1)) (S - n_2)``.  A setting
 whose estimate exceeds ``MEMORY_SHARE`` x MemAvailable (``/proc/meminfo``) is skipped with a
 note in the run's notes, as heavy settings are; maps of up to ``PROBE_SEGMENTS`` segments
@@ -22,6 +23,10 @@ from .settings import label
 MEMORY_SHARE = 0.5
 #: Segments of the larger probe; maps no larger are not probed.
 PROBE_SEGMENTS = 1 << 18
+#: RSS growth below this is the interpreter's and allocator's page noise, not the build's: a
+#: build that allocates nothing (exact) grew RSS by up to 64 KiB in 2 of 60 probes, which the
+#: slope between small probes extrapolates about 12x.  Dr.Jit's watermark always counts.
+RSS_NOISE_BYTES = 1 << 20
 
 
 def available_bytes() -> float:
@@ -49,7 +54,8 @@ segments: a kind may cache work on its segments, e.g. the exact curve's points).
             out = build(kind, probe, **p)
             sync(out)
         del out
-        points.append((probe.n_segments, m.peak_bytes))
+        rss = m.rss_bytes if m.rss_bytes > RSS_NOISE_BYTES else 0.0      # NaN (no VmHWM): none
+        points.append((probe.n_segments, max(m.heap_bytes, rss)))
     (n1, p1), (n2, p2) = points
     slope = max(0.0, (p2 - p1) / (n2 - n1)) if n2 > n1 else p2 / max(n2, 1)
     return p2 + slope * (seg.n_segments - n2), slope
