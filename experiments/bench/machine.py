@@ -1,12 +1,15 @@
 """The machine's limit for AVSM insertion (``machine.json``): vector operations per
-insertion counted in the kernel's LLVM IR, the best vector-operation rate this CPU
-reaches in a Dr.Jit loop of the same kind of operations, and the nominal one; the same
-operation count and achieved fraction for every registered kind (``kinds``).
+insertion counted in the kernel's LLVM IR, and the best rate this CPU executes that kernel's own
+mix of operations (:mod:`.op_mix`, the limit); beside it, for context, a generic microbenchmark
+(compare, multiply, subtract, select) and the nominal rate; the same operation count, limit and
+achieved fraction for every registered kind (``kinds``).
 
 The nominal rate is per packet-wide operation at the width the CPU executes
 (:func:`.simd.target`): AMD Zen 4 runs a 512-bit AVX-512 operation as two 256-bit halves on
 four 256-bit pipes, so 2 packet operations per cycle at 16 lanes and 4 at 8 lanes (32 float
-lanes per cycle either way); elsewhere 2 per cycle at the register width."""
+lanes per cycle either way); elsewhere 2 per cycle at the register width.  It assumes every pipe
+takes every operation; on this mix (over 40 % selects) the CPU does not come near it, so it is
+no longer the limit (measured 4 Dec 2026: see docs/performance.md)."""
 from __future__ import annotations
 
 import os
@@ -19,6 +22,7 @@ import numpy as np
 
 from avsm_dr import backend, build
 from avsm_dr.evaluation.timing import jit_kernels, sync
+from .op_mix import mix_rate
 from .settings import counts_map
 from .simd import target
 
@@ -80,9 +84,10 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle:
     """Every benchmarked setting (the registry's kinds, :func:`.settings.settings`): vector
     operations per packet of insertions in its build's main kernel (:func:`kernel_ops` of
     the kernel with the most, on a 16^2 x 40 map), the insertion rate that operation count
-    allows at the peak vector-op rate (the larger of the microbenchmark's and the nominal,
-    ``mhz x ops_per_cycle``, as for AVSM), and our measured insertions per CPU-second
-    (``data.csv``, map with the most segments per texel) as a fraction of it."""
+    allows at the rate this CPU executes the kernel's own mix (:func:`.op_mix.mix_rate`, 8
+    chains: the limit; the microbenchmark's and the nominal ``mhz x ops_per_cycle`` beside it),
+    and our measured insertions per CPU-second (``data.csv``, map with the most segments per
+    texel) as a fraction of it."""
     from .settings import SETTINGS, label, settings
     seg = counts_map(16, 40)
     out = {}
@@ -112,11 +117,11 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle:
         row = dict(ops_per_insertion_packet=n, lanes=width, loop=loop, kernel_lanes=size,
                    ops_by_kind={k: round(v, 1) for k, v in ops.most_common(8)})
         if n and width:
-            measured = peak["vector_ops_per_cpu_s"] * width / n
-            nominal = mhz * 1e6 * ops_per_cycle * width / n
-            lim = max(measured, nominal) if np.isfinite(nominal) else measured     # as for AVSM above
-            row.update(limit_per_core_s=lim, microbench_limit_per_core_s=measured, nominal_limit_per_core_s=nominal,
-                       limit_machine_per_s=lim * cores)
+            mix = mix_rate(ops, P["peak_iters"], chains_tried=(8,), repeats=3)
+            lim = mix["vector_ops_per_cpu_s"] * width / n
+            row.update(limit_per_core_s=lim, limit_machine_per_s=lim * cores, mix_uncovered=mix["uncovered"],
+                       microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n,
+                       nominal_limit_per_core_s=mhz * 1e6 * ops_per_cycle * width / n)
             ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == name
                     and np.isfinite(r.get("insertions_per_cpu_s", float("nan")))]
             if ours:
@@ -216,12 +221,12 @@ def _machine_limit(P, data_rows) -> dict:
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())
         nominal_core = cpu["mhz"] * 1e6 * opc * width / n_comp
-        measured_core = peak["vector_ops_per_cpu_s"] * width / n_comp
-        lim_core = max(measured_core, nominal_core) if np.isfinite(nominal_core) else measured_core
+        mix = mix_rate(comp, P["peak_iters"])                    # the limit: this mix, best chain count
+        lim_core = mix["vector_ops_per_cpu_s"] * width / n_comp
         row = dict(ops_per_insertion_packet=n_comp, insert_only_ops=sum(ins.values()), lanes=width,
-                   ops_by_kind=dict(comp.most_common()),
+                   ops_by_kind=dict(comp.most_common()), op_mix=mix,
                    limit_per_core_s=lim_core, limit_machine_per_s=lim_core * cores,
-                   microbench_limit_per_core_s=measured_core,
+                   microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n_comp,
                    nominal_limit_per_core_s=nominal_core, nominal_limit_machine_per_s=nominal_core * cores)
         ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == f"avsm-nodes={nodes}"]
         if ours:
@@ -229,6 +234,7 @@ def _machine_limit(P, data_rows) -> dict:
             row.update(measured_map=best["map"], measured_per_cpu_s=best["insertions_per_cpu_s"],
                        measured_per_s=best["insertions_per_s"],
                        fraction_of_limit=best["insertions_per_cpu_s"] / lim_core,
+                       fraction_of_microbench=best["insertions_per_cpu_s"] / row["microbench_limit_per_core_s"],
                        fraction_of_nominal=best["insertions_per_cpu_s"] / nominal_core)
         out["avsm"][nodes] = row
     out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"], opc)

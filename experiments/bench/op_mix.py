@@ -1,0 +1,129 @@
+"""The op-count limit of one kernel on this CPU, measured: a register-only Dr.Jit loop that executes
+the kernel's own mix of vector operations (its LLVM IR histogram, :func:`.machine.kernel_ops`) in
+independent chains, and the best rate it reaches.
+
+A nominal rate (pipes x clock) assumes that every pipe takes every operation; they do not (on the
+AVX2 machine of 4 Dec 2026 this loop runs multiplications alone at 1.5 G per CPU-second, AVSM's
+mix, 44 % selects, at 4 G).  A generic microbenchmark has its own mix (and on AVX-512 its selects
+fold into masked operations).  This loop
+has the kernel's proportions of selects, float and integer compares, mask logic and arithmetic, so
+LLVM selects the same kinds of instructions for it and the CPU issues them to the same pipes; what
+it leaves out is what makes a real kernel slower than its op count: dependences between
+operations, register spills, gathers and lane divergence.
+
+Each chain holds one float ``x`` per lane; a step computes ``t = op(x)`` (one arithmetic operation
+of the mix), refreshes the mask from ``x`` (a float compare, an integer compare of its bits, or a
+mask operation on the previous mask) at the mix's rate, and keeps ``x = select(mask, t, x)``;
+the chains advance side by side.  Values stay in [1, 4] (no subnormal or special values: they
+start near 1.5; factors and offsets are near 1 and 0; ``floor`` gives 1, ``minimum`` caps at 4).
+Operations the loop does not reproduce (gathers, conversions, reductions; 1-2 % of AVSM's) and
+those too rare to get one step in ~150 are reported as ``uncovered``.  The limit is the best
+rate over :data:`CHAINS` (more chains: more independent work, but more registers)."""
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+import drjit as dr
+
+from avsm_dr import backend
+from avsm_dr.evaluation.timing import jit_kernels, sync
+
+#: One-operation arithmetic steps ``t = f(x)`` by LLVM opcode (as :func:`.machine.loop_ops` names them).
+_ARITH = {
+    "fsub": lambda x, U: x - 1e-7, "fadd": lambda x, U: x + 1e-7, "fmul": lambda x, U: x * 1.0000001,
+    "fdiv": lambda x, U: x / dr.opaque(type(x), 1.0000001),       # a literal divisor: a multiplication
+    "fabs": lambda x, U: dr.abs(x), "floor": lambda x, U: dr.floor(x),
+    "minimum": lambda x, U: dr.minimum(x, 4.0), "maximum": lambda x, U: dr.maximum(x, 0.25),
+    "fma": lambda x, U: dr.fma(x, 1.0000001, 1e-7),
+    "add": lambda x, U: dr.reinterpret_array(type(x), dr.reinterpret_array(U, x) + 1),       # one ulp
+}
+#: Mask refreshes by opcode: compares of x, or logic on the previous mask.
+_MASK = {"fcmp": lambda x, m, U: x < 1.6, "icmp": lambda x, m, U: dr.reinterpret_array(U, x) < 0x3FCCCCCD,
+         "and": lambda x, m, U: m & (x > 1.2), "or": lambda x, m, U: m | (x > 3.0),
+         "xor": lambda x, m, U: m ^ (x > 2.5)}
+#: Chain counts tried; the limit is the best.
+CHAINS = (4, 8, 12)
+
+
+def plan_steps(ops: dict, per_chain: int = 150) -> tuple[list, list, int, float]:
+    """The step sequence of one chain for the histogram ``ops`` (opcode -> count), scaled to about
+    ``per_chain`` operations: ``(arith, masks, selects, uncovered)`` with ``arith`` the arithmetic
+    opcodes in round-robin order, ``masks`` the mask opcodes, ``selects`` the number of selects,
+    ``uncovered`` the share of ``ops`` the loop does not reproduce."""
+    total = sum(ops.values())
+    if total <= 0:
+        raise ValueError(f"ops: expected a non-empty histogram of operation counts, got {ops!r}")
+    known = {k: v for k, v in ops.items() if k in _ARITH or k in _MASK or k == "select"}
+    scale = per_chain / max(sum(known.values()), 1)
+    n = {k: round(v * scale) for k, v in known.items() if round(v * scale) > 0}     # rarer ones: dropped
+    arith = _round_robin(Counter({k: v for k, v in n.items() if k in _ARITH})) or ["fsub"]
+    masks = _round_robin(Counter({k: v for k, v in n.items() if k in _MASK}))
+    first = next((i for i, k in enumerate(masks) if k in ("fcmp", "icmp")), None)   # the first: a compare
+    masks = ["fcmp"] + masks if first is None else [masks[first]] + masks[:first] + masks[first + 1:]
+    return arith, masks, n.get("select", 0), 1.0 - sum(known[k] for k in n) / total
+
+
+def _round_robin(n: Counter) -> list:
+    """The opcodes of ``n`` (opcode -> count) in turn, most frequent first in each round."""
+    out = []
+    while n:
+        for k in sorted(n, key=lambda k: (-n[k], k)):
+            out.append(k)
+            n[k] -= 1
+        n = +n
+    return out
+
+
+def _loop(Float, UInt32, steps, chains: int, iters: int, lanes: int):
+    arith, masks, selects, _ = steps
+    x = [dr.full(Float, 1.5 + 0.01 * k, lanes) + dr.arange(Float, lanes) * 1e-7 for k in range(chains)]
+    dr.eval(x)
+
+    def body(it, x):                                   # step by step across the chains: the CPU sees
+        v, t = list(x), list(x)                        # every chain's next operation side by side
+        m = [_MASK[masks[0]](vc, None, UInt32) for vc in v]         # a compare
+        rest = masks[1:]
+        every = max(1, len(arith) // max(len(rest), 1))
+        for i, op in enumerate(arith):                # masks spread over the steps, selects on the first ones
+            for c in range(chains):
+                t[c] = _ARITH[op](v[c], UInt32)
+                if i % every == 0 and i // every < len(rest):
+                    m[c] = _MASK[rest[i // every]](v[c], m[c], UInt32)
+                v[c] = dr.select(m[c], t[c], v[c]) if i < selects else t[c]
+        for _ in range(selects - len(arith)):           # selects beyond the arithmetic: between older values
+            for c in range(chains):
+                v[c], t[c] = dr.select(m[c], t[c], v[c]), v[c]
+        return it + 1, v
+    return dr.while_loop((dr.zeros(UInt32, lanes), x), lambda it, x: it < iters, body, label="op_mix")[1]
+
+
+def mix_rate(ops: dict, iters: int, chains_tried=CHAINS, lanes: int = 1 << 14, repeats: int = 5) -> dict:
+    """The best vector-operation rate (IR operations per CPU-second, counted in the loop's own IR as
+    :func:`.machine.loop_ops` counts the kernel's) of the loop for histogram ``ops``, over
+    ``chains_tried``; with the loop's own histogram, width and the rate per chain count."""
+    from .machine import loop_ops
+    t = backend.types()
+    Float, UInt32 = dr.detached_t(t.Float), dr.detached_t(t.UInt32)
+    steps = plan_steps(ops)
+    best, per_chains = None, {}
+    for chains in chains_tried:
+        sync(_loop(Float, UInt32, steps, chains, iters, lanes))                 # compile
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
+            ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
+                      if "ir" in k and "op_mix" in k["ir"].getvalue())
+        counted, width = loop_ops(ir, "op_mix")
+        cpu = []
+        for _ in range(repeats):
+            c0 = time.process_time()
+            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
+            cpu.append(time.process_time() - c0)
+        n_ops = sum(counted.values())
+        rate = (lanes // width) * iters * n_ops / min(cpu)
+        per_chains[chains] = rate
+        if best is None or rate > best["vector_ops_per_cpu_s"]:
+            best = dict(vector_ops_per_cpu_s=rate, chains=chains, width=width, ops_per_iteration=n_ops,
+                        ops=dict(counted.most_common()))
+    return dict(best, uncovered=steps[3], rate_by_chains=per_chains)

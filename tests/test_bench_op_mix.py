@@ -1,0 +1,41 @@
+"""The op-count limit measured on the kernel's own operation mix (experiments/bench/op_mix.py)."""
+import drjit as dr
+import numpy as np
+import pytest
+
+from avsm_dr import backend
+from experiments.bench import op_mix
+
+#: AVSM-8's compress loop on an AVX2 machine (machine.json of `bench --quick`, 4 Dec 2026).
+AVSM8 = {"select": 269, "fsub": 91, "fmul": 60, "icmp": 56, "fcmp": 53, "add": 20, "fabs": 15, "fadd": 11,
+         "minimum": 10, "fma": 9, "and": 4, "masked.gather": 3, "fdiv": 3, "floor": 2, "vector.reduce.or": 1,
+         "or": 1, "xor": 1, "fneg": 1, "fptosi": 1, "shl": 1}
+
+
+def test_the_loop_executes_the_kernels_proportions():
+    """The loop's own IR (counted as the kernel's is) has the histogram's shares of its main
+    opcodes to within the rounding of ~150 operations per chain (+-1/150) and the loop's control."""
+    r = op_mix.mix_rate(AVSM8, iters=20, chains_tried=(4,), lanes=256, repeats=1)
+    assert r["chains"] == 4 and r["width"] >= 1
+    got, n_got = r["ops"], r["ops_per_iteration"]
+    n_want = sum(AVSM8.values())
+    for op in ("select", "fsub", "fmul", "icmp", "fcmp", "add", "fabs"):
+        assert got[op] / n_got == pytest.approx(AVSM8[op] / n_want, abs=0.012), op
+    assert "masked.gather" not in got and r["uncovered"] == pytest.approx(11 / n_want)    # gather, ...; or, xor, floor: rare
+    assert r["vector_ops_per_cpu_s"] > 0 and set(r["rate_by_chains"]) == {4}
+
+
+def test_the_loop_stays_finite_and_normal():
+    """In [1, 4] after many iterations (no NaN, infinity or subnormal: the rate is not measured on slow paths)."""
+    t = backend.types()
+    F, U = dr.detached_t(t.Float), dr.detached_t(t.UInt32)
+    x = np.concatenate([v.numpy() for v in op_mix._loop(F, U, op_mix.plan_steps(AVSM8), 3, 3000, 64)])
+    assert np.all(np.isfinite(x)) and x.min() >= 1.0 and x.max() <= 4.0
+
+
+def test_plan_steps_rejects_an_empty_histogram_and_puts_a_compare_first():
+    with pytest.raises(ValueError, match="ops"):
+        op_mix.plan_steps({})
+    arith, masks, selects, uncovered = op_mix.plan_steps({"and": 10, "fmul": 20, "select": 15, "fptosi": 5})
+    assert masks[0] in ("fcmp", "icmp") and "and" in masks and selects == 15 * 150 // 45
+    assert set(arith) == {"fmul"} and uncovered == pytest.approx(5 / 50)
