@@ -80,17 +80,17 @@ def kernel_ops(ir: str) -> tuple[Counter, int, str]:
     return ops, width, ""
 
 
-def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle: float) -> dict:
+def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle: float, mixes=None) -> dict:
     """Every benchmarked setting (the registry's kinds, :func:`.settings.settings`): vector
     operations per packet of insertions in its build's main kernel (:func:`kernel_ops` of
     the kernel with the most, on a 16^2 x 40 map), the insertion rate that operation count
     allows at the rate this CPU executes the kernel's own mix (:func:`.op_mix.mix_rate`, 8
     chains: the limit; the microbenchmark's and the nominal ``mhz x ops_per_cycle`` beside it),
     and our measured insertions per CPU-second (``data.csv``, map with the most segments per
-    texel) as a fraction of it."""
+    texel) as a fraction of it.  ``mixes``: mix rates already measured, by histogram (reused)."""
     from .settings import SETTINGS, label, settings
     seg = counts_map(16, 40)
-    out = {}
+    out, mixes = {}, {} if mixes is None else mixes
     for kind, p in settings(SETTINGS):
         name = label(kind, p)
         try:
@@ -117,7 +117,8 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle:
         row = dict(ops_per_insertion_packet=n, lanes=width, loop=loop, kernel_lanes=size,
                    ops_by_kind={k: round(v, 1) for k, v in ops.most_common(8)})
         if n and width:
-            mix = mix_rate(ops, P["peak_iters"], chains_tried=(8,), repeats=3)
+            key = tuple(sorted(ops.items()))
+            mix = mixes[key] = mixes.get(key) or mix_rate(ops, P["peak_iters"], chains_tried=(8,), repeats=3)
             lim = mix["vector_ops_per_cpu_s"] * width / n
             row.update(limit_per_core_s=lim, limit_machine_per_s=lim * cores, mix_uncovered=mix["uncovered"],
                        microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n,
@@ -210,7 +211,7 @@ def _machine_limit(P, data_rows) -> dict:
     out = dict(cpu=cpu["model"], mhz=cpu["mhz"], cores=cores,
                avx512="avx512f" in cpu["flags"], avx2="avx2" in cpu["flags"], **simd,
                peak_microbench=peak, nominal_vector_ops_per_cycle=opc, avsm={})
-    seg = counts_map(16, 40)
+    seg, mixes = counts_map(16, 40), {}
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     for nodes in (4, 8, 16):
         dr.kernel_history()
@@ -221,7 +222,7 @@ def _machine_limit(P, data_rows) -> dict:
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())
         nominal_core = cpu["mhz"] * 1e6 * opc * width / n_comp
-        mix = mix_rate(comp, P["peak_iters"])                    # the limit: this mix, best chain count
+        mix = mixes[tuple(sorted(comp.items()))] = mix_rate(comp, P["peak_iters"])   # the limit: best chain count
         lim_core = mix["vector_ops_per_cpu_s"] * width / n_comp
         row = dict(ops_per_insertion_packet=n_comp, insert_only_ops=sum(ins.values()), lanes=width,
                    ops_by_kind=dict(comp.most_common()), op_mix=mix,
@@ -237,7 +238,7 @@ def _machine_limit(P, data_rows) -> dict:
                        fraction_of_microbench=best["insertions_per_cpu_s"] / row["microbench_limit_per_core_s"],
                        fraction_of_nominal=best["insertions_per_cpu_s"] / nominal_core)
         out["avsm"][nodes] = row
-    out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"], opc)
+    out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"], opc, mixes)
     out["gpu"] = "not measured: no GPU in this run (run with --backend cuda on a GPU machine)"
     return out
 
