@@ -1,24 +1,26 @@
-"""The op-count limit of one kernel on this CPU, measured: a register-only Dr.Jit loop that executes
-the kernel's own mix of vector operations (its LLVM IR histogram, :func:`.machine.kernel_ops`) in
-independent chains, and the best rate it reaches.
+"""A kernel's own operation mix, measured: a register-only Dr.Jit loop that executes the kernel's
+mix of vector operations (its LLVM IR histogram, :func:`.machine.kernel_ops`: selects, float and
+integer compares, mask logic, arithmetic in its proportions) in independent chains.
 
-A nominal rate (pipes x clock) assumes that every pipe takes every operation; they do not (on the
-AVX2 machine of 4 Dec 2026 this loop runs multiplications alone at 1.5 G per CPU-second, AVSM's
-mix, 44 % selects, at 4 G).  A generic microbenchmark has its own mix (and on AVX-512 its selects
-fold into masked operations).  This loop
-has the kernel's proportions of selects, float and integer compares, mask logic and arithmetic, so
-LLVM selects the same kinds of instructions for it and the CPU issues them to the same pipes; what
-it leaves out is what makes a real kernel slower than its op count: dependences between
-operations, register spills, gathers and lane divergence.
+Does the nominal limit (pipes x clock, :mod:`.machine`) hold for a kernel's mix, or do its
+operations crowd a few pipes?  Run at 64 lanes per packet (8x AVX2's independent operations per IR
+operation) the loop answers: on the AVX2 Zen 4 of 4 Dec 2026 AVSM-8's mix reaches 9.5 G eight-lane
+operations per CPU-second, 92 % of the nominal 10.4 G, so the nominal limit is honest for it.  Run
+at the kernel's own width, with chains as long as the kernel's (Dr.Jit emits each chain whole, so
+the CPU's window holds one or two), the loop is dependence-bound, 3.7 G, as the kernel is.  What
+the loop leaves out is what else makes a kernel slower: register spills, gathers, lane divergence.
+Mixes heavy in float arithmetic (FOM, Legendre) reach only ~2 G even at 64 lanes here, and the
+Legendre kernel itself runs faster than its loop: the loop is no bound for them, so the limit stays
+the larger of the nominal rate and the loop's best.
 
 Each chain holds one float ``x`` per lane; a step computes ``t = op(x)`` (one arithmetic operation
 of the mix), refreshes the mask from ``x`` (a float compare, an integer compare of its bits, or a
-mask operation on the previous mask) at the mix's rate, and keeps ``x = select(mask, t, x)``;
-the chains advance side by side.  Values stay in [1, 4] (no subnormal or special values: they
+mask operation on the previous mask) at the mix's rate, and keeps ``x = select(mask, t, x)``.
+Values stay in [1, 4] (no subnormal or special values: they
 start near 1.5; factors and offsets are near 1 and 0; ``floor`` gives 1, ``minimum`` caps at 4).
 Operations the loop does not reproduce (gathers, conversions, reductions; 1-2 % of AVSM's) and
-those too rare to get one step in ~150 are reported as ``uncovered``.  The limit is the best
-rate over :data:`CHAINS` (more chains: more independent work, but more registers)."""
+those too rare to get one step in ~150 are reported as ``uncovered``.  :func:`mix_rate` keeps the
+best rate over chain counts (more independent work, more registers) and vector widths."""
 from __future__ import annotations
 
 import time
@@ -80,8 +82,8 @@ def _loop(Float, UInt32, steps, chains: int, iters: int, lanes: int):
     x = [dr.full(Float, 1.5 + 0.01 * k, lanes) + dr.arange(Float, lanes) * 1e-7 for k in range(chains)]
     dr.eval(x)
 
-    def body(it, x):                                   # step by step across the chains: the CPU sees
-        v, t = list(x), list(x)                        # every chain's next operation side by side
+    def body(it, x):
+        v, t = list(x), list(x)
         m = [_MASK[masks[0]](vc, None, UInt32) for vc in v]         # a compare
         rest = masks[1:]
         every = max(1, len(arith) // max(len(rest), 1))
@@ -98,32 +100,44 @@ def _loop(Float, UInt32, steps, chains: int, iters: int, lanes: int):
     return dr.while_loop((dr.zeros(UInt32, lanes), x), lambda it, x: it < iters, body, label="op_mix")[1]
 
 
-def mix_rate(ops: dict, iters: int, chains_tried=CHAINS, lanes: int = 1 << 14, repeats: int = 5) -> dict:
-    """The best vector-operation rate (IR operations per CPU-second, counted in the loop's own IR as
-    :func:`.machine.loop_ops` counts the kernel's) of the loop for histogram ``ops``, over
-    ``chains_tried``; with the loop's own histogram, width and the rate per chain count."""
+def mix_rate(ops: dict, iters: int, chains_tried=CHAINS, lanes: int = 1 << 14, repeats: int = 5,
+             widths=(None,)) -> dict:
+    """The loop for histogram ``ops``: its best rate over ``chains_tried`` and ``widths`` (lanes
+    per packet, :func:`.simd.set_vector_width`; None: the current width, the kernels'), in
+    operations of the current width per CPU-second: the loop's IR operations, counted as
+    :func:`.machine.loop_ops` counts the kernel's, x loop width / current width (a wider packet is
+    that many independent operations).  With the best's histogram, chains and width, the rate by
+    width and chains, and ``rate_at_kernel_width`` (the best at the current width; NaN if not
+    tried).  The width is restored afterwards."""
     from .machine import loop_ops
+    from .simd import set_vector_width, target
     t = backend.types()
     Float, UInt32 = dr.detached_t(t.Float), dr.detached_t(t.UInt32)
-    steps = plan_steps(ops)
-    best, per_chains = None, {}
-    for chains in chains_tried:
-        sync(_loop(Float, UInt32, steps, chains, iters, lanes))                 # compile
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.kernel_history()
-            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
-            ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
-                      if "ir" in k and "op_mix" in k["ir"].getvalue())
-        counted, width = loop_ops(ir, "op_mix")
-        cpu = []
-        for _ in range(repeats):
-            c0 = time.process_time()
-            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
-            cpu.append(time.process_time() - c0)
-        n_ops = sum(counted.values())
-        rate = (lanes // width) * iters * n_ops / min(cpu)
-        per_chains[chains] = rate
-        if best is None or rate > best["vector_ops_per_cpu_s"]:
-            best = dict(vector_ops_per_cpu_s=rate, chains=chains, width=width, ops_per_iteration=n_ops,
-                        ops=dict(counted.most_common()))
-    return dict(best, uncovered=steps[3], rate_by_chains=per_chains)
+    steps, base = plan_steps(ops), target()["vector_width"]
+    best, rates, same = None, {}, float("nan")
+    try:
+        for w in widths:
+            set_vector_width(w or base)
+            for chains in chains_tried:
+                sync(_loop(Float, UInt32, steps, chains, iters, lanes))                 # compile
+                with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+                    dr.kernel_history()
+                    sync(_loop(Float, UInt32, steps, chains, iters, lanes))
+                    ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
+                              if "ir" in k and "op_mix" in k["ir"].getvalue())
+                counted, width = loop_ops(ir, "op_mix")
+                cpu = []
+                for _ in range(repeats):
+                    c0 = time.process_time()
+                    sync(_loop(Float, UInt32, steps, chains, iters, lanes))
+                    cpu.append(time.process_time() - c0)
+                n_ops = sum(counted.values())
+                rate = (lanes // width) * iters * n_ops / min(cpu) * width / base
+                rates[f"{width} lanes, {chains} chains"] = rate
+                same = rate if width == base and not rate <= same else same
+                if best is None or rate > best["vector_ops_per_cpu_s"]:
+                    best = dict(vector_ops_per_cpu_s=rate, chains=chains, width=width, ops_per_iteration=n_ops,
+                                ops=dict(counted.most_common()))
+    finally:
+        set_vector_width(base)
+    return dict(best, uncovered=steps[3], rate_by=rates, rate_at_kernel_width=same)
