@@ -42,6 +42,8 @@ MIN_LENGTH = OPAQUE_OPTICAL_DEPTH * 2.0**32 / float(np.finfo(np.float64).max)
 #: (:func:`~avsm_dr.texel_sort.break_ties`) while ``sum count^2 <= DEVICE_SORT_WORK * S``
 #: (:func:`device_sortable`), else sort them by stable key passes (more memory, any counts).
 DEVICE_SORT_WORK = 256
+#: Equal-z0 texels of at most this many segments re-sort on the host (an exact capture's few zero-length ones).
+HOST_UNTIE = 1 << 10
 _FIELDS = ("z0", "z1", "optical_depth")     # the per-segment arrays (class _Linked)
 #: Insertion orders of a texel's segments that :meth:`Segments.in_order` makes from any
 #: Segments: front to back, back to front, a seeded shuffle (:func:`shuffle_key`).
@@ -59,8 +61,8 @@ CACHE_KEYS = LAYOUT_KEYS + ("bounds", "curve_points", "vw_removal_rank")
 def device_sortable(counts: np.ndarray) -> bool:
     """``sum count^2 <= DEVICE_SORT_WORK * sum count``: a per-texel sort of ``count``
     comparisons per segment is cheap enough (:data:`DEVICE_SORT_WORK`)."""
-    c = np.asarray(counts).astype(np.float64)
-    return float(c @ c) <= DEVICE_SORT_WORK * max(float(c.sum()), 1.0)
+    c = np.asarray(counts, np.int64)                  # no float64 copy (page faults: ms at 10^6 texels)
+    return int(c @ c) <= DEVICE_SORT_WORK * max(int(c.sum()), 1)
 
 
 def run_index(starts, n: int):
@@ -398,12 +400,20 @@ class Segments:
         """``pay`` (a :func:`~avsm_dr.texel_sort.sort_texels_view` layout by ``(z0, position)``,
         payloads or whole words) with ``texels`` (NumPy, those where two segments share z0)
         re-sorted by ``(z0, z1, position)`` (:meth:`_key_sort`)."""
-        U32 = type(start)
+        U32, c = type(start), self.counts[texels]
+        if c.sum() <= HOST_UNTIE:                     # few: (texel, z0, z1, position) sorted by NumPy
+            t = np.repeat(np.arange(c.size), c)
+            slot = U32(A.aligned(np.repeat(dr.gather(U32, start, U32(A.aligned(texels, np.uint32))).numpy(), c)
+                                 + np.arange(t.size) - np.repeat(np.cumsum(c) - c, c), np.uint32))
+            w = dr.gather(type(pay), pay, slot).numpy()
+            pos, F = U32(A.aligned(w & 0xFFFFFFFF, np.uint32)), dr.detached_t(self.Float)
+            z0, z1 = (dr.gather(F, F(dr.detach(z)), pos).numpy() for z in (self.z0, self.z1))
+            dr.scatter(pay, type(pay)(A.aligned(w[np.lexsort((w & 0xFFFFFFFF, z1, z0, t))])), slot)
+            return pay
         idx, soff, stex = self._key_sort(texels, keys := self._depth_keys())
         local = dr.arange(U32, dr.width(idx)) - dr.gather(U32, soff, stex)
         first = dr.gather(U32, start, U32(A.aligned(texels, np.uint32)))    # each texel's first slot
-        if dr.type_v(pay) == dr.VarType.UInt64:           # sort words (depth_view(words=True))
-            idx = (type(pay)(keys[0](idx)) << 32) | type(pay)(idx)
+        idx = (type(pay)(keys[0](idx)) << 32) | type(pay)(idx) if dr.type_v(pay) == dr.VarType.UInt64 else idx  # words
         dr.scatter(pay, idx, dr.gather(U32, first, stex) + local)
         return pay
 

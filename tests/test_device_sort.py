@@ -188,14 +188,19 @@ def _map(rng, counts, ties=False):
                                    optical_depth=rng.uniform(0.0, 0.2, n))
 
 
-@pytest.mark.parametrize("ties", [False, "few", True])
-def test_depth_view_is_the_order_of_sorted(backend, rng, ties):
+@pytest.mark.parametrize("ties", [False, "few", "few by key passes", True])
+def test_depth_view_is_the_order_of_sorted(backend, rng, ties, monkeypatch):
     """Texel t's r-th segment by (z0, z1, position) is ``index[start[t] + r]``: packets of
     the size classes, and texels beyond 64 (three merge passes for 300) after them; with
     ``words`` the same positions in the low halves and the segments' z0 keys in the high ones
-    (ties: few go through ``_untie``, many through ``break_ties``)."""
+    (ties: few go through ``_untie``, on the host up to HOST_UNTIE segments, else by key
+    passes on the device; many through ``break_ties``)."""
     counts = np.array([4, 0, 64, 65, 300, 1, 17, 129, 40])
-    seg = _map(rng, counts, ties)
+    if ties == "few by key passes":
+        monkeypatch.setattr(ad.segments, "HOST_UNTIE", 0)
+    elif ties == "few":                               # 65 tied segments: NumPy, no key passes
+        monkeypatch.setattr(ad.Segments, "_key_sort", lambda *a: pytest.fail("key passes for 65 tied segments"))
+    seg = _map(rng, counts, "few" if ties == "few by key passes" else ties)
     h = seg.numpy()
     perm = np.lexsort((h["z1"], h["z0"], np.repeat(np.arange(counts.size), counts)))
     idx, start = (np.asarray(a) for a in seg.depth_view())

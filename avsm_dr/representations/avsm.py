@@ -324,9 +324,14 @@ class AVSM(NodeList):
         counts = seg.counts
         ablate = self._ablation
         # Non-empty texels only, longest first: a SIMD packet runs as long as its longest lane.
-        lanes_np = np.nonzero(counts > 0)[0] if ablate["_compact"] else np.arange(T)
-        if ablate["_group"]:
-            lanes_np = lanes_np[A.order_by_count(counts[lanes_np], descending=True)]
+        plan = seg._cache.get("sort_plan", {}) if view is not None and ablate["_compact"] and ablate["_group"] else {}
+        if "texel" in plan:                               # the long texels, then the sort's lanes (in this order)
+            lanes_np = np.concatenate([(b := np.flatnonzero(counts > MAX_NETWORK))[A.order_by_count(counts[b], True)],
+                                       plan["texel"]])
+        else:
+            lanes_np = np.nonzero(counts > 0)[0] if ablate["_compact"] else np.arange(T)
+            if ablate["_group"]:
+                lanes_np = lanes_np[A.order_by_count(counts[lanes_np], descending=True)]
         if lanes_np.size == 0 or seg.n_segments == 0:
             return
         lanes = A.to_uint32(lanes_np)
