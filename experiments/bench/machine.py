@@ -81,7 +81,7 @@ def kernel_ops(ir: str) -> tuple[Counter, int, str]:
 
 
 #: Loop widths of the op-mix measurement: the kernels' own and 64 lanes (8x AVX2's, 4x AVX-512's
-#: independent operations per IR operation: measured on AVX2, AVSM-8's mix goes from 3.7 G to 9.5 G
+#: independent operations per IR operation: measured on AVX2, AVSM-8's mix goes from 3.2-4.0 G to 9.5 G
 #: eight-lane operations per CPU-second, so at its own width the loop is dependence-bound).
 WIDE = (None, 64)
 

@@ -7,7 +7,7 @@ operations crowd a few pipes?  Run at 64 lanes per packet (8x AVX2's independent
 operation) the loop answers: on the AVX2 Zen 4 of 4 Dec 2026 AVSM-8's mix reaches 9.5 G eight-lane
 operations per CPU-second, 92 % of the nominal 10.4 G, so the nominal limit is honest for it.  Run
 at the kernel's own width, with chains as long as the kernel's (Dr.Jit emits each chain whole, so
-the CPU's window holds one or two), the loop is dependence-bound, 3.7 G, as the kernel is.  What
+the CPU's window holds one or two), the loop is dependence-bound, 3.2-4.0 G, as the kernel is.  What
 the loop leaves out is what else makes a kernel slower: register spills, gathers, lane divergence.
 Mixes heavy in float arithmetic (FOM, Legendre) reach only ~2 G even at 64 lanes here, and the
 Legendre kernel itself runs faster than its loop: the loop is no bound for them, so the limit stays
