@@ -174,7 +174,11 @@ def test_full_mode_scenes_and_configurations():
 
 def test_figure_layout_rows_of_at_most_five():
     """Ten scene panels: two rows of five; four: one row; never more than five a row."""
-    from experiments.memory_budget.plots import _shape
+    from experiments._plotstyle import panel_shape
+    from experiments.memory_budget.plots import COLUMNS
+
+    def _shape(n):
+        return panel_shape(n, COLUMNS)
     assert _shape(10) == (2, 5) and _shape(4) == (1, 4) and _shape(1) == (1, 1) and _shape(6) == (2, 3)
     assert all(r * c >= n and c <= 5 for n in range(1, 23) for r, c in [_shape(n)])
 

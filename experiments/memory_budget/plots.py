@@ -18,12 +18,6 @@ METRICS = (("error_vs_bytes.png", "rmse", "RMSE, in-volume receivers"),
            ("error_vs_bytes_depth.png", "depth_rms", "RMS, uniform in depth"))
 
 
-def _shape(n: int) -> tuple[int, int]:
-    """(rows, columns) of ``n`` scene panels: at most :data:`COLUMNS` a row, rows filled evenly."""
-    from .. import _plotstyle as plotstyle
-    return plotstyle.panel_shape(n, COLUMNS)
-
-
 def _title(scene: str) -> str:
     """The scene's name and its content types (``SCENES.entry(name).content``)."""
     from avsm_dr.builtin_scenes import SCENES
@@ -40,7 +34,7 @@ def plot_curves(res, rows, scenes):
     import matplotlib
     matplotlib.use("Agg")
     from .. import _plotstyle as plotstyle
-    n_rows, n_cols = _shape(len(scenes))
+    n_rows, n_cols = plotstyle.panel_shape(len(scenes), COLUMNS)   # at most COLUMNS a row
     for filename, key, ylab in METRICS:
         with plotstyle.context():
             fig, axes = plotstyle.grid(n_rows, n_cols, panel=(2.7, 2.3))
@@ -101,7 +95,7 @@ def plot_heat(res, heat):
     from matplotlib.colors import Normalize
     from .. import _plotstyle as plotstyle
     names = list(heat)
-    n_rows, n_cols = _shape(len(names))
+    n_rows, n_cols = plotstyle.panel_shape(len(names), COLUMNS)
     norm = Normalize(0, max(float(np.max(heat[n][0])) for n in names))
     targets = {heat[n][1] for n in names}
     with plotstyle.context():
