@@ -26,12 +26,14 @@ Writes into ``results/bench/`` (or ``<--out>/bench/``); one module per table:
   build + lookup).  RMSE against our exact curve is also given: it has a floor, the
   shadow map's own discretisation (exact vs ray march), that no spp removes.
 * ``machine.json`` - the machine's limit for AVSM insertion: vector operations per
-  insertion counted in the kernel's LLVM IR (``dr.kernel_history()``), the best vector
-  operation rate this CPU reaches in a Dr.Jit loop of the same kind of operations
-  (compare / select / multiply, measured in CPU time) and the nominal one (clock x
-  issue width at the vector width the CPU executes: AMD Zen 4 runs a 512-bit operation as two
-  256-bit halves: :mod:`experiments.bench.simd`), times SIMD lanes, per core; our measured insertions per
-  CPU-second as a fraction of it; the LLVM target (ISA, lanes per packet, executed bits);
+  insertion counted in the kernel's LLVM IR (``dr.kernel_history()``) against the larger of
+  the nominal rate (clock x issue width at the vector width the CPU executes: AMD Zen 4 runs a
+  512-bit operation as two 256-bit halves: :mod:`experiments.bench.simd`) and the best rate of a
+  register-only Dr.Jit loop of the kernel's own operation mix (:mod:`experiments.bench.op_mix`,
+  measured in CPU time at the kernel's width and at 64 lanes), times SIMD lanes, per core; the
+  mix at the kernel's width and a generic compare / select / multiply loop beside it; our
+  measured insertions per CPU-second as a fraction of it; the LLVM target (ISA, lanes per
+  packet, executed bits);
   ``machine.csv`` has the same figures for every setting (also columns of ``data.csv``), with
   the fraction from the median and from the fastest repeat and the build's kernel-time share.
 * ``scaling.csv`` / ``scaling.png`` - build and lookup time against texels, segments per
