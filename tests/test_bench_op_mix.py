@@ -14,7 +14,7 @@ AVSM8 = {"select": 269, "fsub": 91, "fmul": 60, "icmp": 56, "fcmp": 53, "add": 2
 
 def test_the_loop_executes_the_kernels_proportions():
     """The loop's own IR (counted as the kernel's is) has the histogram's shares of its main
-    opcodes to within the rounding of ~150 operations per chain (+-1/150) and the loop's control."""
+    opcodes to within the rounding of ~300 operations per iteration and the loop's control."""
     base = simd.target()["vector_width"]
     r = op_mix.mix_rate(AVSM8, iters=20, chains_tried=(4,), lanes=256, repeats=1, widths=(None, 2 * base))
     assert simd.target()["vector_width"] == base                  # restored
@@ -25,21 +25,28 @@ def test_the_loop_executes_the_kernels_proportions():
     n_want = sum(AVSM8.values())
     for op in ("select", "fsub", "fmul", "icmp", "fcmp", "add", "fabs"):
         assert got[op] / n_got == pytest.approx(AVSM8[op] / n_want, abs=0.012), op
-    assert "masked.gather" not in got and r["uncovered"] == pytest.approx(11 / n_want)    # gather, ...; or, xor, floor
+    assert "masked.gather" not in got and r["uncovered"] == pytest.approx(9 / n_want)     # gather, ...; or, xor: rare
     assert r["vector_ops_per_cpu_s"] == max(r["rate_by"].values())
 
 
-def test_the_loop_stays_finite_and_normal():
-    """In [1, 4] after many iterations (no NaN, infinity or subnormal: the rate is not measured on slow paths)."""
+#: A float-heavy mix (Legendre-8's basis projection, top opcodes).
+FLOATS = {"fmul": 211, "fsub": 65, "fadd": 33, "select": 23, "fdiv": 12, "fcmp": 5, "maximum": 4, "minimum": 4}
+
+
+@pytest.mark.parametrize("ops", [AVSM8, FLOATS], ids=["avsm8", "floats"])
+@pytest.mark.parametrize("chains", [3, 32])
+def test_the_loop_stays_finite_and_normal(ops, chains):
+    """Near [1, 4] after 8000 iterations, the full bench's count (no zero, NaN, infinity or
+    subnormal: no slow paths in the rate)."""
     t = backend.types()
     F, U = dr.detached_t(t.Float), dr.detached_t(t.UInt32)
-    x = np.concatenate([v.numpy() for v in op_mix._loop(F, U, op_mix.plan_steps(AVSM8), 3, 3000, 64)])
-    assert np.all(np.isfinite(x)) and x.min() >= 1.0 and x.max() <= 4.0
+    x = np.concatenate([v.numpy() for v in op_mix._loop(F, U, op_mix.plan_steps(ops), chains, 8000, 16)])
+    assert np.all(np.isfinite(x)) and x.min() >= 0.9 and x.max() <= 4.0
 
 
 def test_plan_steps_rejects_an_empty_histogram_and_puts_a_compare_first():
     with pytest.raises(ValueError, match="ops"):
         op_mix.plan_steps({})
     arith, masks, selects, uncovered = op_mix.plan_steps({"and": 10, "fmul": 20, "select": 15, "fptosi": 5})
-    assert masks[0] in ("fcmp", "icmp") and "and" in masks and selects == 15 * 150 // 45
+    assert masks[0] in ("fcmp", "icmp") and "and" in masks and selects == 15 * 300 // 45
     assert set(arith) == {"fmul"} and uncovered == pytest.approx(5 / 50)

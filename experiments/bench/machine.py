@@ -1,15 +1,15 @@
 """The machine's limit for AVSM insertion (``machine.json``): vector operations per
 insertion counted in the kernel's LLVM IR, and the rate this CPU can execute them at: the larger
 of the nominal rate and the best rate of a register-only loop of the kernel's own operation mix
-(:mod:`.op_mix`, at the kernel's vector width and at 64 lanes, i.e. with ample independent work);
-beside them the mix loop at the kernel's width (as dependence-bound as the kernel) and a generic
-microbenchmark (compare, multiply, subtract, select); the same for every registered kind (``kinds``).
+(:mod:`.op_mix`: the mix once per iteration, dealt out to 8-32 short independent chains); beside
+them a generic microbenchmark (compare, multiply, subtract, select); the same for every registered
+kind (``kinds``).
 
 The nominal rate is per packet-wide operation at the width the CPU executes
 (:func:`.simd.target`): AMD Zen 4 runs a 512-bit AVX-512 operation as two 256-bit halves on
 four 256-bit pipes, so 2 packet operations per cycle at 16 lanes and 4 at 8 lanes (32 float
 lanes per cycle either way); elsewhere 2 per cycle at the register width.  AVSM-8's mix reaches
-92 % of it at 64 lanes on the AVX2 Zen 4 of 4 Dec 2026 (docs/performance.md)."""
+86 % of it on the AVX2 Zen 4 of 4 Dec 2026 (docs/performance.md)."""
 from __future__ import annotations
 
 import os
@@ -80,21 +80,19 @@ def kernel_ops(ir: str) -> tuple[Counter, int, str]:
     return ops, width, ""
 
 
-#: Loop widths of the op-mix measurement: the kernels' own and 64 lanes (8x AVX2's, 4x AVX-512's
-#: independent operations per IR operation: measured on AVX2, AVSM-8's mix goes from 3.2-4.0 G to 9.5 G
-#: eight-lane operations per CPU-second, so at its own width the loop is dependence-bound).
-WIDE = (None, 64)
+#: Chain counts of the op-mix loop for the AVSM rows and for the other kinds (more chains, more
+#: independent work and registers: AVSM-8's mix peaks at 16-24 chains on AVX2, float mixes at 32).
+CHAINS, KIND_CHAINS = (8, 16, 24, 32), (16, 32)
 
 
 def _limits(mix: dict, n: int, width: int, peak: dict, nominal: float) -> dict:
     """Limits per core-second of a kernel of ``n`` operations per ``width``-lane packet: the op mix's
-    best (``mix_limit``), the mix at the kernel width (``mix_kernel_width``), the microbenchmark's,
-    the nominal; the limit is the larger of the mix's best and the nominal."""
+    best (``mix_limit``), the microbenchmark's, the nominal; the limit is the larger of the mix's
+    best and the nominal."""
     mix_lim = mix["vector_ops_per_cpu_s"] * width / n
     return dict(limit_per_core_s=max(mix_lim, nominal) if np.isfinite(nominal) else mix_lim,
-                mix_limit_per_core_s=mix_lim, mix_kernel_width_per_core_s=mix["rate_at_kernel_width"] * width / n,
-                microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n, nominal_limit_per_core_s=nominal,
-                mix_uncovered=mix["uncovered"])
+                mix_limit_per_core_s=mix_lim, microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n,
+                nominal_limit_per_core_s=nominal, mix_uncovered=mix["uncovered"])
 
 
 def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle: float, mixes=None) -> dict:
@@ -102,7 +100,7 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle:
     operations per packet of insertions in its build's main kernel (:func:`kernel_ops` of
     the kernel with the most, on a 16^2 x 40 map), the insertion rate that operation count
     allows at the larger of the nominal rate (``mhz x ops_per_cycle``) and the best rate of its own
-    operation mix (:func:`.op_mix.mix_rate`, 4 chains, :data:`WIDE`: the limit; :func:`_limits`),
+    operation mix (:func:`.op_mix.mix_rate`, :data:`KIND_CHAINS`: the limit; :func:`_limits`),
     and our measured insertions per CPU-second (``data.csv``, map with the most segments per
     texel) as a fraction of it.  ``mixes``: mix rates already measured, by histogram (reused)."""
     from .settings import SETTINGS, label, settings
@@ -135,7 +133,7 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle:
                    ops_by_kind={k: round(v, 1) for k, v in ops.most_common(8)})
         if n and width:
             key = tuple(sorted(ops.items()))
-            mix = mixes[key] = mixes.get(key) or mix_rate(ops, P["peak_iters"], (4,), repeats=3, widths=WIDE)
+            mix = mixes[key] = mixes.get(key) or mix_rate(ops, P["peak_iters"], KIND_CHAINS, repeats=3)
             row.update(_limits(mix, n, width, peak, mhz * 1e6 * ops_per_cycle * width / n))
             lim = row["limit_per_core_s"]
             row["limit_machine_per_s"] = lim * cores
@@ -238,7 +236,7 @@ def _machine_limit(P, data_rows) -> dict:
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())
         nominal_core = cpu["mhz"] * 1e6 * opc * width / n_comp
-        mix = mixes[tuple(sorted(comp.items()))] = mix_rate(comp, P["peak_iters"], (4, 8), widths=WIDE)
+        mix = mixes[tuple(sorted(comp.items()))] = mix_rate(comp, P["peak_iters"], CHAINS)
         row = dict(ops_per_insertion_packet=n_comp, insert_only_ops=sum(ins.values()), lanes=width,
                    ops_by_kind=dict(comp.most_common()), op_mix=mix,
                    **_limits(mix, n_comp, width, peak, nominal_core), nominal_limit_machine_per_s=nominal_core * cores)
@@ -250,7 +248,7 @@ def _machine_limit(P, data_rows) -> dict:
             row.update(measured_map=best["map"], measured_per_cpu_s=best["insertions_per_cpu_s"],
                        measured_per_s=best["insertions_per_s"],
                        fraction_of_limit=best["insertions_per_cpu_s"] / lim_core,
-                       fraction_of_mix_kernel_width=best["insertions_per_cpu_s"] / row["mix_kernel_width_per_core_s"],
+                       fraction_of_mix=best["insertions_per_cpu_s"] / row["mix_limit_per_core_s"],
                        fraction_of_nominal=best["insertions_per_cpu_s"] / nominal_core)
         out["avsm"][nodes] = row
     out["kinds"] = kind_limits(P, data_rows, peak, cores, cpu["mhz"], opc, mixes)

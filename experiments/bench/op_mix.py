@@ -1,25 +1,24 @@
 """A kernel's own operation mix, measured: a register-only Dr.Jit loop that executes the kernel's
 mix of vector operations (its LLVM IR histogram, :func:`.machine.kernel_ops`: selects, float and
-integer compares, mask logic, arithmetic in its proportions) in independent chains.
+integer compares, mask logic, arithmetic in its proportions), once per iteration, dealt out to
+8-32 short independent chains.
 
 Does the nominal limit (pipes x clock, :mod:`.machine`) hold for a kernel's mix, or do its
-operations crowd a few pipes?  Run at 64 lanes per packet (8x AVX2's independent operations per IR
-operation) the loop answers: on the AVX2 Zen 4 of 4 Dec 2026 AVSM-8's mix reaches 9.5 G eight-lane
-operations per CPU-second, 92 % of the nominal 10.4 G, so the nominal limit is honest for it.  Run
-at the kernel's own width, with chains as long as the kernel's (Dr.Jit emits each chain whole, so
-the CPU's window holds one or two), the loop is dependence-bound, 3.2-4.0 G, as the kernel is.  What
-the loop leaves out is what else makes a kernel slower: register spills, gathers, lane divergence.
-Mixes heavy in float arithmetic (FOM, Legendre) reach only ~2 G even at 64 lanes here, and the
-Legendre kernel itself runs faster than its loop: the loop is no bound for them, so the limit stays
-the larger of the nominal rate and the loop's best.
+operations crowd a few pipes?  On the AVX2 Zen 4 of 4 Dec 2026 AVSM-8's mix runs at 8.9 G
+eight-lane operations per CPU-second, 86 % of the nominal 10.4 G: the nominal limit is near, and
+it stays the limit (the larger of the two).  The chains must be short: Dr.Jit emits each chain
+whole, so the CPU's window holds only the next few; when every chain ran the whole mix (~150
+dependent operations each) the same loop reached 3.2-4.0 G at any chain count, and a loop of
+additions alone 1.55 G.  What the loop leaves out is what else makes a kernel slower: long
+dependence chains, register spills, gathers, lane divergence.
 
 Each chain holds one float ``x`` per lane; a step computes ``t = op(x)`` (one arithmetic operation
 of the mix), refreshes the mask from ``x`` (a float compare, an integer compare of its bits, or a
 mask operation on the previous mask) at the mix's rate, and keeps ``x = select(mask, t, x)``.
-Values stay in [1, 4] (no subnormal or special values: they
-start near 1.5; factors and offsets are near 1 and 0; ``floor`` gives 1, ``minimum`` caps at 4).
+Values stay near [1, 4] (no zero, subnormal or special values: they start near 1.5; factors and
+offsets are near 1 and 0; ``floor`` runs as ``ceil``, at least 1; ``minimum`` caps at 4).
 Operations the loop does not reproduce (gathers, conversions, reductions; 1-2 % of AVSM's) and
-those too rare to get one step in ~150 are reported as ``uncovered``.  :func:`mix_rate` keeps the
+those too rare to get one step in ~300 are reported as ``uncovered``.  :func:`mix_rate` keeps the
 best rate over chain counts (more independent work, more registers) and vector widths."""
 from __future__ import annotations
 
@@ -35,7 +34,7 @@ from avsm_dr.evaluation.timing import jit_kernels, sync
 _ARITH = {
     "fsub": lambda x, U: x - 1e-7, "fadd": lambda x, U: x + 1e-7, "fmul": lambda x, U: x * 1.0000001,
     "fdiv": lambda x, U: x / dr.opaque(type(x), 1.0000001),       # a literal divisor: a multiplication
-    "fabs": lambda x, U: dr.abs(x), "floor": lambda x, U: dr.floor(x),
+    "fabs": lambda x, U: dr.abs(x), "floor": lambda x, U: dr.ceil(x),      # one rounding instruction; >= 1
     "minimum": lambda x, U: dr.minimum(x, 4.0), "maximum": lambda x, U: dr.maximum(x, 0.25),
     "fma": lambda x, U: dr.fma(x, 1.0000001, 1e-7),
     "add": lambda x, U: dr.reinterpret_array(type(x), dr.reinterpret_array(U, x) + 1),       # one ulp
@@ -45,19 +44,19 @@ _MASK = {"fcmp": lambda x, m, U: x < 1.6, "icmp": lambda x, m, U: dr.reinterpret
          "and": lambda x, m, U: m & (x > 1.2), "or": lambda x, m, U: m | (x > 3.0),
          "xor": lambda x, m, U: m ^ (x > 2.5)}
 #: Chain counts tried; the limit is the best.
-CHAINS = (4, 8, 12)
+CHAINS = (4, 8, 12, 16)
 
 
-def plan_steps(ops: dict, per_chain: int = 150) -> tuple[list, list, int, float]:
-    """The step sequence of one chain for the histogram ``ops`` (opcode -> count), scaled to about
-    ``per_chain`` operations: ``(arith, masks, selects, uncovered)`` with ``arith`` the arithmetic
+def plan_steps(ops: dict, size: int = 300) -> tuple[list, list, int, float]:
+    """The step sequence of one iteration for the histogram ``ops`` (opcode -> count), scaled to
+    about ``size`` operations: ``(arith, masks, selects, uncovered)`` with ``arith`` the arithmetic
     opcodes in round-robin order, ``masks`` the mask opcodes, ``selects`` the number of selects,
     ``uncovered`` the share of ``ops`` the loop does not reproduce."""
     total = sum(ops.values())
     if total <= 0:
         raise ValueError(f"ops: expected a non-empty histogram of operation counts, got {ops!r}")
     known = {k: v for k, v in ops.items() if k in _ARITH or k in _MASK or k == "select"}
-    scale = per_chain / max(sum(known.values()), 1)
+    scale = size / max(sum(known.values()), 1)
     n = {k: round(v * scale) for k, v in known.items() if round(v * scale) > 0}     # rarer ones: dropped
     arith = _round_robin(Counter({k: v for k, v in n.items() if k in _ARITH})) or ["fsub"]
     masks = _round_robin(Counter({k: v for k, v in n.items() if k in _MASK}))
@@ -77,26 +76,32 @@ def _round_robin(n: Counter) -> list:
     return out
 
 
+def _chain(v, arith, masks, selects: int, UInt32):
+    """One chain's share of an iteration: ``arith`` steps ``t = op(v)``, ``masks`` refreshed
+    between them (a compare first), ``v = select(mask, t, v)`` on the first ``selects`` steps."""
+    first = masks[0] if masks and masks[0] in ("fcmp", "icmp") else "fcmp"
+    m, t, rest = _MASK[first](v, None, UInt32), v, masks[1:] if masks and masks[0] == first else masks
+    every = max(1, len(arith) // max(len(rest), 1))
+    for i, op in enumerate(arith):                    # masks spread over the steps, selects on the first ones
+        t = _ARITH[op](v, UInt32)
+        if i % every == 0 and i // every < len(rest):
+            m = _MASK[rest[i // every]](v, m, UInt32)
+        v = dr.select(m, t, v) if i < selects else t
+    for _ in range(selects - len(arith)):               # selects beyond the arithmetic: between older values
+        v, t = dr.select(m, t, v), v
+    return v
+
+
 def _loop(Float, UInt32, steps, chains: int, iters: int, lanes: int):
+    """The mix once per iteration, dealt out to ``chains`` independent chains (each a short
+    sequence: Dr.Jit emits a chain whole, and the CPU's window must hold several at once)."""
     arith, masks, selects, _ = steps
     x = [dr.full(Float, 1.5 + 0.01 * k, lanes) + dr.arange(Float, lanes) * 1e-7 for k in range(chains)]
     dr.eval(x)
 
     def body(it, x):
-        v, t = list(x), list(x)
-        m = [_MASK[masks[0]](vc, None, UInt32) for vc in v]         # a compare
-        rest = masks[1:]
-        every = max(1, len(arith) // max(len(rest), 1))
-        for i, op in enumerate(arith):                # masks spread over the steps, selects on the first ones
-            for c in range(chains):
-                t[c] = _ARITH[op](v[c], UInt32)
-                if i % every == 0 and i // every < len(rest):
-                    m[c] = _MASK[rest[i // every]](v[c], m[c], UInt32)
-                v[c] = dr.select(m[c], t[c], v[c]) if i < selects else t[c]
-        for _ in range(selects - len(arith)):           # selects beyond the arithmetic: between older values
-            for c in range(chains):
-                v[c], t[c] = dr.select(m[c], t[c], v[c]), v[c]
-        return it + 1, v
+        return it + 1, [_chain(x[c], arith[c::chains], masks[c::chains], selects // chains + (c < selects % chains),
+                               UInt32) for c in range(chains)]
     return dr.while_loop((dr.zeros(UInt32, lanes), x), lambda it, x: it < iters, body, label="op_mix")[1]
 
 

@@ -13,11 +13,10 @@ from .scaling import slopes
 #: ``kernel_share``: the build's Dr.Jit kernel time over its wall time on the measured map (low:
 #: host work, e.g. DSM's float64 polyline, dominates and the operation count says little).
 #: ``limit_per_core_s``: the larger of ``nominal_limit_per_core_s`` (pipes x clock) and
-#: ``mix_limit_per_core_s`` (a loop of the kernel's own operation mix with ample independent work,
-#: :mod:`.op_mix`); ``mix_kernel_width_per_core_s``: that loop at the kernel's width (dependence-bound).
+#: ``mix_limit_per_core_s`` (a loop of the kernel's own operation mix in short independent chains, :mod:`.op_mix`).
 MACHINE_COLUMNS = ("setting", "loop", "ops_per_insertion_packet", "lanes", "isa", "llvm_cpu", "executed_bits",
                    "ops_per_insertion", "limit_per_core_s", "nominal_limit_per_core_s", "mix_limit_per_core_s",
-                   "mix_kernel_width_per_core_s", "microbench_limit_per_core_s",
+                   "microbench_limit_per_core_s",
                    "measured_map", "measured_per_cpu_s", "fraction_of_limit", "measured_best_per_cpu_s",
                    "fraction_of_limit_best", "kernel_share", "note")
 
@@ -30,7 +29,7 @@ def _limit_row(machine: dict, setting: str) -> dict:
         if setting == f"avsm-nodes={n}":
             row.update({k: r[k] for k in ("ops_per_insertion_packet", "lanes", "limit_per_core_s",
                                                 "microbench_limit_per_core_s", "nominal_limit_per_core_s",
-                                                "mix_limit_per_core_s", "mix_kernel_width_per_core_s") if k in r})
+                                                "mix_limit_per_core_s") if k in r})
     return row
 
 
@@ -143,7 +142,7 @@ def print_report(data, peers, machine, skip, mem, summary):
     for n, r in machine.get("avsm", {}).items():
         print(f"machine AVSM-{n}: {r['ops_per_insertion_packet']} vector ops / {r['lanes']} insertions; limit "
               f"{r['limit_per_core_s'] / 1e6:.0f} M/core-s (nominal {r['nominal_limit_per_core_s'] / 1e6:.0f}, its op "
-              f"mix {r['mix_limit_per_core_s'] / 1e6:.0f}, at its width {r['mix_kernel_width_per_core_s'] / 1e6:.0f}); "
+              f"mix {r['mix_limit_per_core_s'] / 1e6:.0f}); "
               f"ours {r.get('measured_per_cpu_s', float('nan')) / 1e6:.1f} M/CPU-s = "
               f"{100 * r.get('fraction_of_limit', float('nan')):.0f} %{frac_best(f'avsm-nodes={n}')}")
     for name, r in machine.get("kinds", {}).items():
