@@ -80,18 +80,18 @@ def kernel_ops(ir: str) -> tuple[Counter, int, str]:
     return ops, width, ""
 
 
-#: Chain counts of the op-mix loop for the AVSM rows and for the other kinds (more chains, more
-#: independent work and registers: AVSM-8's mix peaks at 16-24 chains on AVX2, float mixes at 32).
-CHAINS, KIND_CHAINS = (8, 16, 24, 32), (16, 32)
+#: Chain counts of the op-mix loop for the kinds other than AVSM (which tries :data:`.op_mix.CHAINS`).
+KIND_CHAINS = (16, 32)
 
 
-def _limits(mix: dict, n: int, width: int, peak: dict, nominal: float) -> dict:
+def _limits(mix: dict, n: int, width: int, peak: dict, nominal: float, cores: int) -> dict:
     """Limits per core-second of a kernel of ``n`` operations per ``width``-lane packet: the op mix's
     best (``mix_limit``), the microbenchmark's, the nominal; the limit is the larger of the mix's
-    best and the nominal."""
+    best and the nominal (and ``cores`` times it for the machine)."""
     mix_lim = mix["vector_ops_per_cpu_s"] * width / n
-    return dict(limit_per_core_s=max(mix_lim, nominal) if np.isfinite(nominal) else mix_lim,
-                mix_limit_per_core_s=mix_lim, microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n,
+    lim = max(mix_lim, nominal) if np.isfinite(nominal) else mix_lim
+    return dict(limit_per_core_s=lim, limit_machine_per_s=lim * cores, mix_limit_per_core_s=mix_lim,
+                microbench_limit_per_core_s=peak["vector_ops_per_cpu_s"] * width / n,
                 nominal_limit_per_core_s=nominal, mix_uncovered=mix["uncovered"])
 
 
@@ -134,9 +134,8 @@ def kind_limits(P, data_rows, peak: dict, cores: int, mhz: float, ops_per_cycle:
         if n and width:
             key = tuple(sorted(ops.items()))
             mix = mixes[key] = mixes.get(key) or mix_rate(ops, P["peak_iters"], KIND_CHAINS, repeats=3)
-            row.update(_limits(mix, n, width, peak, mhz * 1e6 * ops_per_cycle * width / n))
+            row.update(_limits(mix, n, width, peak, mhz * 1e6 * ops_per_cycle * width / n, cores))
             lim = row["limit_per_core_s"]
-            row["limit_machine_per_s"] = lim * cores
             ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == name
                     and np.isfinite(r.get("insertions_per_cpu_s", float("nan")))]
             if ours:
@@ -236,12 +235,12 @@ def _machine_limit(P, data_rows) -> dict:
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())
         nominal_core = cpu["mhz"] * 1e6 * opc * width / n_comp
-        mix = mixes[tuple(sorted(comp.items()))] = mix_rate(comp, P["peak_iters"], CHAINS)
+        mix = mixes[tuple(sorted(comp.items()))] = mix_rate(comp, P["peak_iters"])
         row = dict(ops_per_insertion_packet=n_comp, insert_only_ops=sum(ins.values()), lanes=width,
-                   ops_by_kind=dict(comp.most_common()), op_mix=mix,
-                   **_limits(mix, n_comp, width, peak, nominal_core), nominal_limit_machine_per_s=nominal_core * cores)
+                   ops_by_kind=dict(comp.most_common()), op_mix=mix, **_limits(mix, n_comp, width, peak, nominal_core,
+                                                                               cores),
+                   nominal_limit_machine_per_s=nominal_core * cores)
         lim_core = row["limit_per_core_s"]
-        row["limit_machine_per_s"] = lim_core * cores
         ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == f"avsm-nodes={nodes}"]
         if ours:
             best = max(ours, key=lambda r: r["mean_count"])          # the compress loop dominates

@@ -19,7 +19,7 @@ Values stay near [1, 4] (no zero, subnormal or special values: they start near 1
 offsets are near 1 and 0; ``floor`` runs as ``ceil``, at least 1; ``minimum`` caps at 4).
 Operations the loop does not reproduce (gathers, conversions, reductions; 1-2 % of AVSM's) and
 those too rare to get one step in ~300 are reported as ``uncovered``.  :func:`mix_rate` keeps the
-best rate over chain counts (more independent work, more registers) and vector widths."""
+best rate over chain counts (more independent work, more registers)."""
 from __future__ import annotations
 
 import time
@@ -43,8 +43,9 @@ _ARITH = {
 _MASK = {"fcmp": lambda x, m, U: x < 1.6, "icmp": lambda x, m, U: dr.reinterpret_array(U, x) < 0x3FCCCCCD,
          "and": lambda x, m, U: m & (x > 1.2), "or": lambda x, m, U: m | (x > 3.0),
          "xor": lambda x, m, U: m ^ (x > 2.5)}
-#: Chain counts tried; the limit is the best.
-CHAINS = (4, 8, 12, 16)
+#: Chain counts tried; the limit is the best (more chains, more independent work and registers:
+#: AVSM-8's mix peaks at 16-24 chains on AVX2, float mixes at 32).
+CHAINS = (8, 16, 24, 32)
 
 
 def plan_steps(ops: dict, size: int = 300) -> tuple[list, list, int, float]:
@@ -84,9 +85,9 @@ def _chain(v, arith, masks, selects: int, UInt32):
     every = max(1, len(arith) // max(len(rest), 1))
     for i, op in enumerate(arith):                    # masks spread over the steps, selects on the first ones
         t = _ARITH[op](v, UInt32)
-        if i % every == 0 and i // every < len(rest):
-            m = _MASK[rest[i // every]](v, m, UInt32)
         v = dr.select(m, t, v) if i < selects else t
+        if i % every == 0 and i // every < len(rest):   # of the new value: not the first compare again (merged)
+            m = _MASK[rest[i // every]](v, m, UInt32)
     for _ in range(selects - len(arith)):               # selects beyond the arithmetic: between older values
         v, t = dr.select(m, t, v), v
     return v
@@ -94,8 +95,10 @@ def _chain(v, arith, masks, selects: int, UInt32):
 
 def _loop(Float, UInt32, steps, chains: int, iters: int, lanes: int):
     """The mix once per iteration, dealt out to ``chains`` independent chains (each a short
-    sequence: Dr.Jit emits a chain whole, and the CPU's window must hold several at once)."""
+    sequence: Dr.Jit emits a chain whole, and the CPU's window must hold several at once).  Each
+    chain's loop-state update is one of the mix's selects (Dr.Jit's masked loop), as in the kernel."""
     arith, masks, selects, _ = steps
+    selects = max(selects - chains, 0)
     x = [dr.full(Float, 1.5 + 0.01 * k, lanes) + dr.arange(Float, lanes) * 1e-7 for k in range(chains)]
     dr.eval(x)
 
@@ -105,44 +108,32 @@ def _loop(Float, UInt32, steps, chains: int, iters: int, lanes: int):
     return dr.while_loop((dr.zeros(UInt32, lanes), x), lambda it, x: it < iters, body, label="op_mix")[1]
 
 
-def mix_rate(ops: dict, iters: int, chains_tried=CHAINS, lanes: int = 1 << 14, repeats: int = 5,
-             widths=(None,)) -> dict:
-    """The loop for histogram ``ops``: its best rate over ``chains_tried`` and ``widths`` (lanes
-    per packet, :func:`.simd.set_vector_width`; None: the current width, the kernels'), in
-    operations of the current width per CPU-second: the loop's IR operations, counted as
-    :func:`.machine.loop_ops` counts the kernel's, x loop width / current width (a wider packet is
-    that many independent operations).  With the best's histogram, chains and width, the rate by
-    width and chains, and ``rate_at_kernel_width`` (the best at the current width; NaN if not
-    tried).  The width is restored afterwards."""
+def mix_rate(ops: dict, iters: int, chains_tried=CHAINS, lanes: int = 1 << 14, repeats: int = 5) -> dict:
+    """The loop for histogram ``ops`` at the current vector width (the kernels'): its best rate over
+    ``chains_tried`` in vector operations per CPU-second (the loop's IR operations, counted as
+    :func:`.machine.loop_ops` counts the kernel's), with the best's histogram, chains and width,
+    and the rate by chain count."""
     from .machine import loop_ops
-    from .simd import set_vector_width, target
     t = backend.types()
     Float, UInt32 = dr.detached_t(t.Float), dr.detached_t(t.UInt32)
-    steps, base = plan_steps(ops), target()["vector_width"]
-    best, rates, same = None, {}, float("nan")
-    try:
-        for w in widths:
-            set_vector_width(w or base)
-            for chains in chains_tried:
-                sync(_loop(Float, UInt32, steps, chains, iters, lanes))                 # compile
-                with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-                    dr.kernel_history()
-                    sync(_loop(Float, UInt32, steps, chains, iters, lanes))
-                    ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
-                              if "ir" in k and "op_mix" in k["ir"].getvalue())
-                counted, width = loop_ops(ir, "op_mix")
-                cpu = []
-                for _ in range(repeats):
-                    c0 = time.process_time()
-                    sync(_loop(Float, UInt32, steps, chains, iters, lanes))
-                    cpu.append(time.process_time() - c0)
-                n_ops = sum(counted.values())
-                rate = (lanes // width) * iters * n_ops / min(cpu) * width / base
-                rates[f"{width} lanes, {chains} chains"] = rate
-                same = rate if width == base and not rate <= same else same
-                if best is None or rate > best["vector_ops_per_cpu_s"]:
-                    best = dict(vector_ops_per_cpu_s=rate, chains=chains, width=width, ops_per_iteration=n_ops,
-                                ops=dict(counted.most_common()))
-    finally:
-        set_vector_width(base)
-    return dict(best, uncovered=steps[3], rate_by=rates, rate_at_kernel_width=same)
+    steps = plan_steps(ops)
+    best, rates = None, {}
+    for chains in chains_tried:
+        sync(_loop(Float, UInt32, steps, chains, iters, lanes))                 # compile
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
+            ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
+                      if "ir" in k and "op_mix" in k["ir"].getvalue())
+        counted, width = loop_ops(ir, "op_mix")
+        cpu = []
+        for _ in range(repeats):
+            c0 = time.process_time()
+            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
+            cpu.append(time.process_time() - c0)
+        n_ops = sum(counted.values())
+        rate = rates[f"{width} lanes, {chains} chains"] = (lanes // width) * iters * n_ops / min(cpu)
+        if best is None or rate > best["vector_ops_per_cpu_s"]:
+            best = dict(vector_ops_per_cpu_s=rate, chains=chains, width=width, ops_per_iteration=n_ops,
+                        ops=dict(counted.most_common()))
+    return dict(best, uncovered=steps[3], rate_by=rates)

@@ -28,8 +28,8 @@ def _limit_row(machine: dict, setting: str) -> dict:
     for n, r in machine.get("avsm", {}).items():
         if setting == f"avsm-nodes={n}":
             row.update({k: r[k] for k in ("ops_per_insertion_packet", "lanes", "limit_per_core_s",
-                                                "microbench_limit_per_core_s", "nominal_limit_per_core_s",
-                                                "mix_limit_per_core_s") if k in r})
+                                          "microbench_limit_per_core_s", "nominal_limit_per_core_s",
+                                          "mix_limit_per_core_s") if k in r})
     return row
 
 
