@@ -9,7 +9,7 @@ The nominal rate is per packet-wide operation at the width the CPU executes
 (:func:`.simd.target`): AMD Zen 4 runs a 512-bit AVX-512 operation as two 256-bit halves on
 four 256-bit pipes, so 2 packet operations per cycle at 16 lanes and 4 at 8 lanes (32 float
 lanes per cycle either way); elsewhere 2 per cycle at the register width.  AVSM-8's mix reaches
-86-93 % of it on the AVX2 Zen 4 of 4 Dec 2026 (docs/performance.md)."""
+80 % of it on the AVX2 Zen 4 of 4 Dec 2026 (docs/performance.md)."""
 from __future__ import annotations
 
 import os

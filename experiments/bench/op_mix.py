@@ -4,8 +4,8 @@ integer compares, mask logic, arithmetic in its proportions), once per iteration
 8-32 short independent chains.
 
 Does the nominal limit (pipes x clock, :mod:`.machine`) hold for a kernel's mix, or do its
-operations crowd a few pipes?  On the AVX2 Zen 4 of 4 Dec 2026 AVSM-8's mix runs at 8.9-9.4 G
-eight-lane operations per CPU-second, 86-93 % of the nominal 10.4 G: the nominal limit is near, and
+operations crowd a few pipes?  On the AVX2 Zen 4 of 4 Dec 2026 AVSM-8's mix runs at 8.3 G
+eight-lane operations per CPU-second, 80 % of the nominal 10.4 G: the nominal limit is near, and
 it stays the limit (the larger of the two).  The chains must be short: Dr.Jit emits each chain
 whole, so the CPU's window holds only the next few; when every chain ran the whole mix (~150
 dependent operations each) the same loop reached 3.2-4.0 G at any chain count, and a loop of
