@@ -124,3 +124,11 @@ def order_by_count(counts: np.ndarray, descending: bool = False) -> np.ndarray:
     lo, hi = (int(c.min()), int(c.max())) if c.size else (0, 0)
     key = hi - c if descending else c - lo
     return np.argsort(key.astype(np.uint16) if hi - lo < 1 << 16 else key, kind="stable")
+
+
+def pairwise(items: list, merge) -> Any:
+    """``items`` reduced by ``merge(left, right)`` of neighbours, level by level: for an associative ``merge``
+    the left fold's result in a chain of ``ceil(log2 n)`` dependent merges instead of ``n - 1``."""
+    while len(items) > 1:
+        items = [merge(a, b) for a, b in zip(items[::2], items[1::2])] + items[len(items) & ~1:]
+    return items[0]

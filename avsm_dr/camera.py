@@ -39,8 +39,7 @@ class PinholeCamera:
     fov : float
         Horizontal field of view in degrees, in (0, 180).
     width, height : int
-        Image size in pixels, in [1, ``MAX_SIDE``].
-    """
+        Image size in pixels, in [1, ``MAX_SIDE``]."""
     origin: np.ndarray
     target: np.ndarray
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))

@@ -52,6 +52,7 @@ import math
 
 import drjit as dr
 
+from .. import _arrays as A
 from .. import backend
 
 #: insertion name -> (refit: None / "area" / "l2", removal metric: "area" / "l2", segments per
@@ -85,8 +86,7 @@ def remove_refit(d, t, fit, metric: str = "area", extra=(), last=None, moments=N
     chord per lane: ``|c| / (d_r - d_l)``, 0 where ``d_r = d_l``)."""
     n = len(d)
     UInt32 = backend.types().UInt32
-    best = idx = gap = None
-    keep = {}
+    cands = []          # (metric, first index, [index, gap, *neighbourhood]) per interior node
     for i in range(1, n - 1):
         c = (d[i + 1] - d[i - 1]) * (t[i + 1] - t[i]) - (d[i + 1] - d[i]) * (t[i + 1] - t[i - 1])
         if metric == "area":
@@ -101,17 +101,16 @@ def remove_refit(d, t, fit, metric: str = "area", extra=(), last=None, moments=N
             dlt_l, dlt_r, p = l2_deltas(nb, i >= 2, i <= n - 3 if last is None else i + 2 <= last)
             m = dr.maximum(m + 0.5 * c * ((2 - p) * dlt_l + (1 + p) * dlt_r), 0)
         w = d[i + 1] - d[i - 1]
-        g = dr.abs(c) / dr.select(w > 0, w, 1) if with_gap else None
-        if i == 1:
-            best, idx, keep, gap = m, dr.full(UInt32, 1, dr.width(m)), nb, g
-            continue
-        take = m <= best if last is None else (m <= best) & (i < last)
-        best = dr.select(take, m, best)
-        idx = dr.select(take, UInt32(i), idx)
-        if with_gap:
-            gap = dr.select(take, g, gap)
-        if fit is not None:
-            keep = {k: dr.select(take, v, keep[k]) for k, v in nb.items()}
+        g = [dr.abs(c) / dr.select(w > 0, w, 1)] if with_gap else []
+        cands.append((m, i, [dr.full(UInt32, i, dr.width(m)), *g, *(nb.values() if fit is not None else ())]))
+    # least metric, ties to the deepest, by a tree (``last``: a subtree whose first node is not a candidate has none)
+    def merge(lt, rt):
+        (ml, il, pl), (mr, ir, pr) = lt, rt
+        take = mr <= ml if last is None else (mr <= ml) & (UInt32(ir) < last)
+        return dr.select(take, mr, ml), il, [dr.select(take, b, a) for a, b in zip(pl, pr)]
+    idx, *rest = A.pairwise(cands, merge)[2]
+    gap = rest.pop(0) if with_gap else None
+    keep = dict(zip(("c", "dll", "dl", "di", "dr", "drr", "tll", "tl", "tr", "trr"), rest))
     out = [[dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra)]
     if fit is not None:
         tl, tr = refit_values(keep, idx >= 2, idx <= n - 3 if last is None else idx + 2 <= last, fit)

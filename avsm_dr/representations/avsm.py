@@ -56,15 +56,13 @@ INTERPOLATION = Param("interpolation", "choice", "linear", "between nodes: 'line
 
 def bracket(d, t, x):
     """Nodes around x, branch-free: (d_l, t_l, d_r, t_r) of the last node with d_k <= x and its
-    successor (both T = 1 in front of the first node, both the last node behind the last)."""
+    successor (both T = 1 in front of the first node, both the last node behind the last); ``d`` sorted."""
     n = len(d)
+    c = [d[k] <= x for k in range(n)]      # true for a prefix (sorted d): tree, right over left where it starts true
+    parts = [(c[k], (d[k], t[k], d[min(k + 1, n - 1)], t[min(k + 1, n - 1)])) for k in range(n)]
+    _, best = A.pairwise(parts, lambda lt, rt: (lt[0], tuple(dr.select(rt[0], r, l) for l, r in zip(lt[1], rt[1]))))
     one = dr.full(type(x), 1.0, dr.width(x))
-    dl, tl, dr_, tr = x, one, x, one
-    for k in range(n):
-        c = d[k] <= x
-        nxt = min(k + 1, n - 1)
-        dl, tl, dr_, tr = (dr.select(c, new, old) for new, old in zip((d[k], t[k], d[nxt], t[nxt]), (dl, tl, dr_, tr)))
-    return dl, tl, dr_, tr
+    return tuple(dr.select(c[0], v, f) for v, f in zip(best, (x, one, x, one)))
 
 
 def curve_at(d, t, x):

@@ -155,8 +155,7 @@ class AVSMAdaptive(Representation):
     (module docstring; ValueError below the offsets plus 2 nodes per non-empty texel).
     Attributes: ``allocated``, ``kernel`` (T,) int64 (allocated counts, AVSM kernel N), the CSR
     nodes as DSM's, ``budget_nodes``, ``groups`` ({N: texels}).  Gradients flow as AVSM's;
-    with ``reverse='auto'`` the groups' loops run checkpointed.
-    """
+    with ``reverse='auto'`` the groups' loops run checkpointed."""
 
     schema = Schema(
         params=(

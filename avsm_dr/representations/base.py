@@ -86,8 +86,7 @@ class Representation(abc.ABC):
     ``__init__(segments, **params)``: :meth:`_validate`, :meth:`_resolve` (derived
     parameters and memory checks, once), :meth:`_build`, :meth:`_apply_precision`.
     Every kind also takes ``reverse`` and ``chunk`` (:meth:`checkpoint_chunk`) and
-    ``precision`` (:mod:`._precision`, of the buffers the kind declares in :meth:`_stored`).
-    """
+    ``precision`` (:mod:`._precision`, of the buffers the kind declares in :meth:`_stored`)."""
 
     kind: str = "base"
     schema: Schema = Schema()
@@ -313,8 +312,7 @@ class Representation(abc.ABC):
         Returns
         -------
         Float
-            Dr.Jit array of length K (``np.asarray`` works; AD graph kept).
-        """
+            Dr.Jit array of length K (``np.asarray`` works; AD graph kept)."""
         with backend.exact_float64(self.Float):
             a = lookup_args(self, self._eval_texels, texel, depth, filter, width, height, radius, prefilter)
             if a.T is not None:                       # a point lookup checked in its own kernel

@@ -222,8 +222,7 @@ class DeepShadowMap(Representation):
     ``node_value`` Dr.Jit arrays in CSR order; ``node_left`` (bool NumPy: the node's vertex
     is the value just before a step at its depth); ``n_polyline_vertices`` (T,).  ValueError
     naming the tolerance that fits, before allocating, when the polyline summed over the
-    chunks would exceed its budget (:func:`._dsm_polyline.check_polyline_size`).
-    """
+    chunks would exceed its budget (:func:`._dsm_polyline.check_polyline_size`)."""
 
     schema = Schema(
         params=(
