@@ -72,8 +72,7 @@ def problem(version: tuple | None, drjit_first: bool, user_path: str | None, fou
 
     version: the (major, minor, patch) Dr.Jit loaded, None or major < 0 when none;
     drjit_first: ``drjit`` was imported before ``avsm_dr``; user_path: the user's
-    ``DRJIT_LIBLLVM_PATH``; found: a libLLVM >= 16 on this machine (:func:`find_libllvm`).
-    """
+    ``DRJIT_LIBLLVM_PATH``; found: a libLLVM >= 16 on this machine (:func:`find_libllvm`)."""
     if version is not None and version[0] >= MIN_VERSION:
         return ""
     what = (f"libLLVM {'.'.join(map(str, version))}" if version is not None and version[0] >= 0
@@ -104,9 +103,44 @@ def _llvm_version(dr) -> tuple | None:
         return tuple(dr.detail.llvm_version())     # else None
 
 
+#: Appended to Dr.Jit's LLVM target features, which its kernels' IR quotes verbatim
+#: (``"target-features"="..."``): it closes that string and adds the attribute ``"stackrealign"``,
+#: so LLVM aligns each kernel's stack frame to its vector registers and spills with aligned moves.
+#: Without it spill slots keep the caller's 16-byte alignment: the thread's stack position (ASLR,
+#: per process) decided how many 32-byte spills straddle cache lines, and AVSM-8's build ran at
+#: 48-60 M insertions/CPU-s by process, 61-63 M with it (docs/performance.md).
+STACK_REALIGN = '" "stackrealign'
+#: Whether :func:`realign_stack` took effect (False: no such Dr.Jit entry points, e.g. not Linux).
+STACK_REALIGNED = False
+
+
+def core():
+    """Dr.Jit's core library (``libdrjit-core.so``) with its LLVM target functions typed (OSError
+    where there is none, AttributeError where it lacks them)."""
+    import drjit as dr
+    lib = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+    lib._Z19jit_llvm_target_cpuv.restype = lib._Z24jit_llvm_target_featuresv.restype = ctypes.c_char_p
+    lib._Z21jit_llvm_vector_widthv.restype = ctypes.c_uint32
+    lib._Z19jit_llvm_set_targetPKcS0_j.argtypes = (ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32)
+    return lib
+
+
+def realign_stack() -> None:
+    """Append :data:`STACK_REALIGN` to Dr.Jit's LLVM target (same CPU, features and vector width) for
+    every kernel compiled afterwards, once per process; sets :data:`STACK_REALIGNED`."""
+    global STACK_REALIGNED
+    tag = STACK_REALIGN.encode()
+    with contextlib.suppress(OSError, AttributeError):
+        lib = core()
+        cpu, feats = lib._Z19jit_llvm_target_cpuv(), lib._Z24jit_llvm_target_featuresv() or b""
+        if cpu and not feats.endswith(tag):
+            lib._Z19jit_llvm_set_targetPKcS0_j(cpu, feats + tag, lib._Z21jit_llvm_vector_widthv())
+        STACK_REALIGNED = bool(cpu) and (lib._Z24jit_llvm_target_featuresv() or b"").endswith(tag)
+
+
 def check_loaded() -> None:
     """Ask Dr.Jit (already imported) which libLLVM it loaded; set :data:`LIBLLVM` and
-    :data:`PROBLEM`."""
+    :data:`PROBLEM`; where it is usable, :func:`realign_stack`."""
     global LIBLLVM, PROBLEM
     import drjit as dr
     if (version := _llvm_version(dr)) is None:  # no such query: trust DRJIT_LIBLLVM_PATH
@@ -115,6 +149,8 @@ def check_loaded() -> None:
     PROBLEM = problem(version, DRJIT_IMPORTED_FIRST, _USER_PATH, find_libllvm())
     LIBLLVM = None if PROBLEM else (_loaded_path() or os.environ.get("DRJIT_LIBLLVM_PATH")
                                     or f"libLLVM {'.'.join(map(str, version))}")
+    if not PROBLEM:
+        realign_stack()
 
 
 if __name__ == "__main__":  # used by scripts/setup.sh before the package is installed

@@ -128,8 +128,7 @@ def plume(size: int = 24, seed: int = 0, density_scale: float = 60.0, light=None
     """A smoke plume rising from y = 0 and widening with height, in the box
     [-0.5, 0.5] x [0, 1.5] x [-0.5, 0.5], swaying with height; fBm noise (``seed``)
     breaks it into puffs.  Light: directional, mostly along +x, slightly down.
-    Receivers: half in the smoke, half on the wall x = 0.8 behind it (the receiver plane).
-    """
+    Receivers: half in the smoke, half on the wall x = 0.8 behind it (the receiver plane)."""
     procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.5, 0.5])
     shape, X, Y, Z = grid_box(bmin, bmax, size)
@@ -151,8 +150,7 @@ def three_columns(size: int = 16, seed: int = 0, density_scale: float = 14.0, li
     """Three vertical smoke columns at x = -1, 0, 1 in the box [-1.5, 1.5] x [0, 1] x [-0.5, 0.5],
     one behind the other along the (nearly horizontal, +x) light so each casts on the next:
     a translucent one nearest the light, a dense one, then a medium one (the AVSM paper's figures 4 and 7).
-    Receivers: half in the columns, half on the wall x = 1.8 behind them.
-    """
+    Receivers: half in the columns, half on the wall x = 1.8 behind them."""
     procedural.check_args(seed, light, n_receivers, density_scale)
     bmin, bmax = np.array([-1.5, 0.0, -0.5]), np.array([1.5, 1.0, 0.5])
     shape, X, Y, Z = grid_box(bmin, bmax, size)
@@ -177,8 +175,7 @@ def hair_and_smoke(size: int = 24, seed: int = 0, tfx_path=None, n_strands: int 
     Hair: ``n_strands`` procedural strands (:func:`~avsm_dr.capture.hair.procedural_strands`),
     or the strands of the TressFX file ``tfx_path`` scaled into the box.  Each crossing of a
     light ray with a strand absorbs ``hair_opacity``.  Light: directional, nearly horizontal
-    (+x).  Receivers: half in the smoke/hair, half on the wall x = 0.8 behind it.
-    """
+    (+x).  Receivers: half in the smoke/hair, half on the wall x = 0.8 behind it."""
     from .capture.hair import fit_strands, load_tfx, procedural_strands
     procedural.check_args(seed, light, n_receivers, density_scale)
     hair_radius = V.real(hair_radius, "hair_radius", 0.0, open_min=True)
@@ -252,8 +249,7 @@ def simulated_plume(size: int = 32, seed: int = 0, steps: int | None = None, den
     """A buoyant smoke plume simulated by :func:`avsm_dr.fluid.simulate_plume` (``steps``,
     default 1.25 x size; cached on disk) in the box of :func:`plume`: sharp fronts, curled sheets
     and holes that fBm noise lacks.  Density (peak ~1) times ``density_scale``; light, receivers
-    and receiver plane as in :func:`plume`.
-    """
+    and receiver plane as in :func:`plume`."""
     from .fluid import simulate_plume
     procedural.check_args(seed, light, n_receivers, density_scale)
     steps = int(round(1.25 * size)) if steps is None else V.integer(steps, "steps", 1)

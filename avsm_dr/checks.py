@@ -84,8 +84,7 @@ def check_gradients(loss: Callable, x, *, fd: int | Sequence[int] = 8, eps: floa
     non-differentiable point (e.g. a change of AVSM's node layout); at least 3/4 of the
     coordinates (all without ``accept``) must remain.  forward: also compare ``g . v`` with
     forward mode's ``dL/dx . v``, ``|rev - fwd| <= atol + rtol max(|rev|, |fwd|)`` (same
-    arithmetic in another order).
-    """
+    arithmetic in another order)."""
     rng = np.random.default_rng(0) if rng is None else rng
     eps = V.real(eps, "eps", 0, open_min=True)
     for name, val in (("fd_rtol", fd_rtol), ("fd_atol", fd_atol), ("rtol", rtol), ("atol", atol)):
@@ -200,8 +199,7 @@ def mc_agreement(estimate, reference, stderr, *, k: float = 3.0, min_fraction: f
       honest; a deterministic mismatch of ``d`` SE raises it to ``sqrt(1 + d^2)``);
     * ``mean_rtol`` / ``max_rtol``: mean / max of ``|e| / max(|reference|, rel_floor)``.
 
-    Optional checks are skipped when None.  Returns an :class:`MCAgreement`.
-    """
+    Optional checks are skipped when None.  Returns an :class:`MCAgreement`."""
     est = V.array(estimate, "estimate")
     ref = V.array(reference, "reference")
     if est.shape != ref.shape or est.size == 0:

@@ -88,8 +88,7 @@ def filtered_eval(eval_texels, coords: np.ndarray, depth, width: int, height: in
     """Filtered transmittance of K receivers (module docstring).
 
     eval_texels(texel UInt32, depth Float) -> Float: the representation's kernel;
-    coords: (K, 2) float64 host coordinates; depth: Float (K,) (AD graph kept).
-    """
+    coords: (K, 2) float64 host coordinates; depth: Float (K,) (AD graph kept)."""
     k = coords.shape[0]
     if filter == "point":
         return eval_texels(next(_taps(coords, width, height, filter))[0], depth)

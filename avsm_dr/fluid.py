@@ -113,8 +113,7 @@ class StableFluids:
 
     buoyancy: upward acceleration per unit density.  vorticity: confinement strength
     eps (0 = off).  iterations: red-black SOR sweeps per projection; omega: the SOR
-    relaxation factor in (0, 2).  maccormack: MacCormack density advection (:meth:`advect`).
-    """
+    relaxation factor in (0, 2).  maccormack: MacCormack density advection (:meth:`advect`)."""
 
     def __init__(self, shape, buoyancy: float = 0.25, vorticity: float = 0.3, iterations: int = 40,
                  omega: float = 1.8, maccormack: bool = True):
@@ -357,8 +356,7 @@ def simulate_plume(shape=(32, 48, 32), steps: int = 40, seed: int = 0, dt: float
     ``wobble`` (seeded random walk), then :meth:`StableFluids.step` with ``dt``: advection
     (MacCormack for the density), forces (``buoyancy`` per unit density, vorticity
     confinement ``vorticity``), projection (``iterations`` SOR sweeps).
-    cache: as in :func:`simulate_plume_sequence`, of which this is the one frame ``start = steps``.
-    """
+    cache: as in :func:`simulate_plume_sequence`, of which this is the one frame ``start = steps``."""
     solver = dict(dt=dt, buoyancy=buoyancy, vorticity=vorticity, source_speed=source_speed,
                   source_radius=source_radius, wobble=wobble, iterations=iterations)
     if V.integer(steps, "steps", 0) == 0:
@@ -403,8 +401,7 @@ def simulate_plume_sequence(shape=(32, 48, 32), frames: int = 48, start: int = 4
     the density after ``start + f * stride`` steps (frame 0 = ``simulate_plume(steps=start)``),
     one solver run for all frames.  kwargs: the solver parameters of :func:`simulate_plume`.
     cache: True (the folder :data:`CACHE_DIR`), a folder, or False: stored as ``plume_seq_<key>.npy``,
-    key = hash of the parameters, the backend and this module's source.  progress: a tqdm bar.
-    """
+    key = hash of the parameters, the backend and this module's source.  progress: a tqdm bar."""
     frames = V.integer(frames, "frames", 1, 100000)
     start = V.integer(start, "start", 1)
     stride = V.integer(stride, "stride", 1)

@@ -49,8 +49,7 @@ def ray_box(o, d, lo, hi, t_min: float = -math.inf):
     Per axis a: ``t_a = (lo_a - o_a) / d_a``, ``t'_a = (hi_a - o_a) / d_a``;
     ``t_near = max(t_min, max_a min(t_a, t'_a))``, ``t_far = min_a max(t_a, t'_a)``.
     A ray parallel to a slab (``d_a = 0``) is inside it for all t when ``lo_a <= o_a <= hi_a``
-    (the closed slab) and misses the box otherwise (``t_near = inf``, ``t_far = -inf``).
-    """
+    (the closed slab) and misses the box otherwise (``t_near = inf``, ``t_far = -inf``)."""
     o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
     lo, hi = (np.asarray(end, np.float64).reshape(3) for end in (lo, hi))
     t0 = np.full(o.shape[0], float(t_min))
@@ -103,8 +102,7 @@ def ray_sphere(o, d, c, r, t_min: float = -math.inf):
     With ``b = (c - o) . d`` and the perpendicular ``p = (c - o) - b d`` (Haines et al.,
     "Precision improvements for ray/sphere intersection", Ray Tracing Gems 2019, ch. 7:
     no cancellation in ``|c - o|^2 - b^2``): ``h^2 = r^2 - |p|^2``, ``s = sqrt(h^2)``,
-    ``t_near = max(b - s, t_min)``, ``t_far = b + s``, ``hit = (h^2 > 0) & (t_far > t_near)``.
-    """
+    ``t_near = max(b - s, t_min)``, ``t_far = b + s``, ``hit = (h^2 > 0) & (t_far > t_near)``."""
     oc = c - o
     b = np.einsum("ij,ij->i", oc, d)
     perp = oc - b[:, None] * d
@@ -176,8 +174,7 @@ def orthonormal_basis(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     u = normalize(up x w) with up = +y unless w is within ~8 degrees of +-y (then +x);
     v = w x u.  Deterministic; the one frame of the package: every light camera, the
     squares of :class:`~avsm_dr.scene.OpaquePlane` and the receiver plane (ground truth,
-    shading), the inverse problem's receiver grid.
-    """
+    shading), the inverse problem's receiver grid."""
     w = V.unit_vector(w, "w")
     up = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.99 else np.array([1.0, 0.0, 0.0])
     u = np.cross(up, w)

@@ -20,6 +20,26 @@ def test_libllvm_found_and_recent():
     assert dr.detail.llvm_version()[0] >= 16
 
 
+def test_kernels_realign_their_stack_frame():
+    """On Linux (where Dr.Jit's core library exports its LLVM target functions) the target features end with the
+    ``"stackrealign"`` attribute and a compiled kernel's IR carries it as a function attribute next
+    to (not inside) its target features; a second call appends nothing."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("libdrjit-core.so and its exported LLVM target functions: Linux")
+    assert _llvm.STACK_REALIGNED
+    lib = _llvm.core()
+    _llvm.realign_stack()
+    feats = lib._Z24jit_llvm_target_featuresv().decode()
+    assert feats.endswith(_llvm.STACK_REALIGN) and feats.count("stackrealign") == 1
+    x = dr.llvm.Float(np.linspace(0, 1, 37, dtype=np.float32))
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        dr.eval(dr.sqrt(x) * 3.25 + 0.125)       # a kernel not in this process's cache
+        ir = next(k["ir"].getvalue() for k in dr.kernel_history() if "ir" in k)
+    attrs = next(line for line in ir.splitlines() if line.startswith("attributes #0"))
+    assert re.search(r'"target-features"="[^"]*" "stackrealign"', attrs), attrs
+
+
 @pytest.mark.parametrize("name, version", [
     ("libLLVM.so.19.1", 19), ("libLLVM-15.so.1", 15), ("libLLVM-17.so", 17), ("libLLVM.dylib", None)])
 def test_version_from_file_name(name, version):

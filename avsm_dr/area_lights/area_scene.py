@@ -38,8 +38,7 @@ class Medium:
     sigma_s: scattering coefficient per unit (>= 0); sigma_t: extinction per unit
     (>= sigma_s); g: Henyey-Greenstein asymmetry in (-1, 1), 0 = isotropic.
     Phase function ``p(cos) = (1 - g^2) / (4 pi (1 + g^2 - 2 g cos)^(3/2))`` with
-    ``cos`` the cosine between the light's and the scattered light's directions of travel.
-    """
+    ``cos`` the cosine between the light's and the scattered light's directions of travel."""
     sigma_s: float
     sigma_t: float
     g: float = 0.0
@@ -101,8 +100,7 @@ class Occluder:
     ``hit_dr(k, o, d)``: ``(t0, t1, hit)`` of the chord;  ``normal_dr(k, x)``: the outward normal;
     ``sample_dr(k, u1, u2, u3)``: surface points uniform by area;  ``light_frame_extent(vpls,
     frame)``: per VPL (x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, r_lo, r_hi) in the light frame
-    (e_u, e_v, n) centred at the VPL (exact for spheres per axis).
-    """
+    (e_u, e_v, n) centred at the VPL (exact for spheres per axis)."""
     def __post_init__(self):        # the blocker's checks (ValueError names ``sphere.radius``, ...)
         checked = self.validate(type(self).__name__.lower())
         for f in dataclasses.fields(checked):

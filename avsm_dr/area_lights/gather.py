@@ -64,8 +64,7 @@ def gather(scene: AreaLightScene, k: Kit, hits: CameraHits, pix, p, steps: int, 
     vis_medium(x, j) -> (V, on_boundary Bool or None) at Riemann step j; vis_surface(x) -> V.
     intensity: I = L_e A / K (Float, opaque: K does not recompile kernels).  Returns (L Float
     per lane, flags): with ``boundaries``, ceil(N / 32) UInt32 arrays whose bit ``j & 31`` of
-    word ``j >> 5`` marks a boundary at step j (for :func:`boundary_correction`), else None.
-    """
+    word ``j >> 5`` marks a boundary at step j (for :func:`boundary_correction`), else None."""
     med = scene.medium
     ln = k.vec(scene.light.normal)
     o = hits.o

@@ -92,8 +92,7 @@ def render(scene: AreaLightScene, method: str = "imperfect", vpls: int = 16, res
         offset along the surface normal for surface shadow lookups
         (default: one depth bin for voxel methods, 1e-4 x scene size for exact).
     jitter, seed
-        jittered VPL strata; seed of the random surface points.
-    """
+        jittered VPL strata; seed of the random surface points."""
     if not isinstance(scene, AreaLightScene):
         raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
     V.one_of(method, "method", METHODS)

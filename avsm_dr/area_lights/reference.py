@@ -61,8 +61,7 @@ def render_mitsuba(scene: AreaLightScene, spp: int = 256, seed: int = 0, max_lan
 
     spp: samples per pixel (>= 16), split into >= 16 independent passes; the standard error is
     the spread of the pass means / sqrt(passes) (t-distributed z-scores, 15 dof at 16 passes).
-    max_depth: 2 = single scattering (3 adds double scattering).
-    """
+    max_depth: 2 = single scattering (3 adds double scattering)."""
     if not isinstance(scene, AreaLightScene):
         raise ValueError(f"scene: expected AreaLightScene, got {type(scene).__name__}")
     spp = check_count(spp, "spp", 16)

@@ -60,8 +60,7 @@ class LightGrid:
 
     R: texels per side and depth bins; s_min..t_max: the frustum in slope units
     (x / z, y / z in the light frame); r_near, r_far: occluder distance range;
-    ``dr_bin = (r_far - r_near) / (R - 1)``; words = ceil(R / 32) UInt32 per texel ray.
-    """
+    ``dr_bin = (r_far - r_near) / (R - 1)``; words = ceil(R / 32) UInt32 per texel ray."""
     R: int
     s_min: float
     s_max: float

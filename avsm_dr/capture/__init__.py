@@ -81,8 +81,7 @@ class Capture:
         counts and host/kernel timings of the capture.
     opaque_depth
         (texels,) float64 opaque depth map of ``opaque='separate'`` (+inf: no blocker),
-        composed with every representation at lookup; None when inline.
-    """
+        composed with every representation at lookup; None when inline."""
     segments: Segments
     camera: LightCamera
     light: Any
@@ -117,8 +116,7 @@ class Capture:
         square frustum, beside a directional map's window; a cube map covers everything)
         are lit, the border convention of shadow mapping: they get the nearest texel
         (coordinates clamped onto the map) and depth :data:`OUTSIDE_DEPTH`, in front of
-        every segment, so ``rep.eval`` returns 1 for them.
-        """
+        every segment, so ``rep.eval`` returns 1 for them."""
         coords, depth, _ = self._lookup(points)
         return (coords if continuous else self.camera.texel_index(coords)), depth
 
@@ -228,8 +226,7 @@ def capture(scene: Scene, resolution: int = 256, step: float | None = None, epsi
     Returns
     -------
     Capture
-        the segments, the light camera and the capture's statistics.
-    """
+        the segments, the light camera and the capture's statistics."""
     _check_params(scene, resolution, step, epsilon, opaque_bias, opaque_slope_bias)
     order, submission, order_seed = _check_order(order, submission, order_seed)
     drawn = order == "submission"          # pieces carry a draw key per segment
@@ -341,8 +338,7 @@ def _check_range(bmin, bmax, position, dtype: str) -> None:
     """Content and light coordinates small enough that depths fit the storage dtype.
 
     Depths are differences of coordinates (at most 4x the largest magnitude along the
-    map's rays), so the coordinates must stay below 1/16 of the dtype's largest value.
-    """
+    map's rays), so the coordinates must stay below 1/16 of the dtype's largest value."""
     reach = float(max(np.abs(a).max() for a in (bmin, bmax, position) if a is not None))
     limit = float(np.finfo(dtype).max) / 16
     if not reach <= limit:

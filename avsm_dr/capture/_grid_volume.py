@@ -55,8 +55,7 @@ class GridVolume:
     whole grid for Dr.Jit input (AD graph kept), otherwise only the occupied voxels
     plus one voxel of zeros, so padding a grid with empty space costs no device memory
     or upload time.  A prepared grid may be stored in ``Scene.density`` (or passed as
-    ``capture(density=...)``) to skip the host preparation on repeated captures.
-    """
+    ``capture(density=...)``) to skip the host preparation on repeated captures."""
     data: Any
     shape: tuple
     bmin: np.ndarray
@@ -94,8 +93,7 @@ class GridVolume:
         dtype
             'float32' | 'float64'; default float32, or float64 for TensorXf64 input.
         skip_empty
-            False marks every block occupied (no empty-space skipping).
-        """
+            False marks every block occupied (no empty-space skipping)."""
         if isinstance(density, GridVolume):
             return density
         V.integer(block, "block", 1)
@@ -225,8 +223,7 @@ def segment_tau(grid: GridVolume, o, d, counts, z0, z1):
     three Dr.Jit ``grid.Float`` arrays per lane; ``counts`` segments per lane, in lane order)
     from differentiable gathers of ``grid.data``, so gradients flow to the voxels::
 
-        tau = (z1 - z0) / 6 * (sigma(z0) + 4 sigma((z0 + z1) / 2) + sigma(z1))
-    """
+        tau = (z1 - z0) / 6 * (sigma(z0) + 4 sigma((z0 + z1) / 2) + sigma(z1))"""
     Float, kern = grid.Float, MarchKernel(grid)
     lane = A.to_uint32(np.repeat(np.arange(counts.size, dtype=np.uint32), counts))
     gx, gy, gz = (dr.gather(Float, v, lane) for v in o)
@@ -249,8 +246,7 @@ def dual_block_max(padded: np.ndarray, block: int) -> np.ndarray:
     voxels on every side; dual cell ``c`` (window voxel units, -1 <= c <= w - 1) has
     corners ``padded[c + 1]`` and ``padded[c + 2]`` along each axis; block ``B`` holds
     the cells with ``(c + 1) // block == B``, i.e. padded voxels ``[B block, (B + 1) block]``
-    (inclusive).  0 means sigma = 0 on the whole closed block.
-    """
+    (inclusive).  0 means sigma = 0 on the whole closed block."""
     return window_max(padded, block, 0, lambda n: (n - 2) // block + 1)
 
 

@@ -161,8 +161,7 @@ class OrthoCamera(LightCamera):
     """Orthographic map for a directional light travelling along ``direction``.
 
     center: (3,) point on the reference plane (depth 0) at the map centre.
-    half: half-size of the square window in world units; res: texels per side.
-    """
+    half: half-size of the square window in world units; res: texels per side."""
 
     def __init__(self, direction, center, half: float, res: int):
         self.u, self.v, self.d = orthonormal_basis(direction)

@@ -67,8 +67,7 @@ def march(grid: GridVolume, camera, step: float | None, epsilon: float, keep_zer
         the texels as :class:`~avsm_dr.capture.assembly.TexelRuns` (one run per ray).
     capacity, slot_budget
         segments a lane writes per round (:data:`~._grid_lanes.ROUND_CAPACITY`); most slots of
-        the one-round layout (:data:`~._grid_lanes.SLOT_BUDGET`; 0 forces rounds).
-    """
+        the one-round layout (:data:`~._grid_lanes.SLOT_BUDGET`; 0 forces rounds)."""
     t = backend.types()
     Float, UInt32, Int32 = grid.Float, t.UInt32, t.Int32
     clock = time.perf_counter()

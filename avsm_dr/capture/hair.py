@@ -33,8 +33,7 @@ def load_tfx(path, return_w: bool = False):
     Header: float32 version, uint32 numHairStrands, uint32 numVerticesPerStrand,
     uint32 offsetVertexPosition, ...; positions are S x V float32 (x, y, z, w) at that
     offset (w = 0 for fixed root vertices).  Returns (S, V, 3) float32 strands
-    (and the (S, V) w when ``return_w``).
-    """
+    (and the (S, V) w when ``return_w``)."""
     path = os.fspath(path)
     with open(path, "rb") as f:
         raw = f.read()
@@ -61,8 +60,7 @@ def procedural_strands(n_strands: int = 300, n_vertices: int = 16, root_center=(
     Roots uniform on the disc of ``root_radius`` around ``root_center``; each strand
     leaves at a random tilt away from the axis, its direction wandering by
     ``curl`` radians per unit length (deterministic for ``seed``).
-    Returns (n_strands, n_vertices, 3) float32.
-    """
+    Returns (n_strands, n_vertices, 3) float32."""
     n_strands = V.integer(n_strands, "n_strands", 1)
     n_vertices = V.integer(n_vertices, "n_vertices", 2)
     if n_strands * n_vertices > MAX_VERTICES:

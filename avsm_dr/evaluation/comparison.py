@@ -94,8 +94,7 @@ def compare(table, a: str, b: str, metric: str = "rmse", receivers: str | None =
     receivers: the receiver set (default 'in_volume' when the table has it, else its only set).
     scene: a scene name or a list of them (default: every scene, pooled).
     where: further column filters (``table.where``), e.g. ``order='depth'``, ``resolution=64``.
-    n_boot, level, seed: the bootstrap's replicates, interval level and seed.
-    """
+    n_boot, level, seed: the bootstrap's replicates, interval level and seed."""
     V.integer(n_boot, "n_boot", 100)
     V.integer(seed, "seed", 0)
     V.real(level, "level", 0.0, 1.0, open_min=True, open_max=True)

@@ -136,8 +136,7 @@ def depth_l2(rep, segments, exact=None, n_depths: int = DEPTHS, texels=None, per
     rep: built on ``segments`` (anything with ``eval(texel, depth)``).  exact: the reference,
     None (``build('exact', segments)``), a representation, or its :func:`curve_values` on
     the same grid (reused across many ``rep``).  n_depths: midpoints per texel.  texels:
-    restrict to these texels (default: every non-empty one).
-    """
+    restrict to these texels (default: every non-empty one)."""
     n, texels = _check(rep, segments, n_depths, texels)
     if exact is None:
         exact = build("exact", segments)

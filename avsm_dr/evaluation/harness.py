@@ -191,8 +191,7 @@ def evaluate(methods, scenes, configurations=None, receivers=("in_volume", "surf
     spatial terms.  opaque: 'inline' | 'separate' (or both; 'separate' only for scenes with
     blockers).  subset: build on the texels the receivers touch only
     (:class:`~.probe.SubsetBuilder`); ``bytes`` and ``depth_l2`` then cover those texels.
-    n_depths: depths per texel of ``depth_l2``.  progress: a progress bar over the cells.
-    """
+    n_depths: depths per texel of ``depth_l2``.  progress: a progress bar over the cells."""
     meths, scs, cfgs = _methods(methods), _scenes(scenes), _configs(configurations)
     fixed = {k: V.points(v, f"receivers[{k!r}]") for k, v in receivers.items()} if isinstance(receivers, dict) \
         else None

@@ -105,8 +105,7 @@ class SubsetBuilder:
     depth range, so kinds whose schema has ``near``/``far`` get the full map's bounds
     (unless ``depth_range='texel'`` or given).  Lookups through :class:`Probe` then equal
     those of a build on the whole map; ``nbytes_per_texel`` of variable-size kinds is the
-    mean over the subset.
-    """
+    mean over the subset."""
 
     def __init__(self, segments, texels, opaque_depth=None):
         self.texels = np.unique(np.asarray(texels, np.int64))

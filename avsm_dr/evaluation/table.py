@@ -24,8 +24,7 @@ class Table:
     """Rows (dicts) of one evaluation.
 
     ``len(t)``, ``t[i]`` (a row), iteration over rows, :meth:`column`, :meth:`where`,
-    :meth:`to_csv`; ``repr(t)`` is a short text table of :data:`SUMMARY_COLUMNS`.
-    """
+    :meth:`to_csv`; ``repr(t)`` is a short text table of :data:`SUMMARY_COLUMNS`."""
 
     def __init__(self, rows=()):
         if isinstance(rows, (str, bytes, dict)) or not hasattr(rows, "__iter__"):

@@ -33,8 +33,7 @@ def check_scene(scene) -> dict:
 
     Returns dict(grid=(g, lo, hi) | None, particles=(c, r, s) | None,
     hair=(strands, radius, opacity) | None, blockers=[...], boxes=[(lo, hi), ...]) with
-    ``boxes`` the world AABBs of every piece (each content type's ``bounds()``).
-    """
+    ``boxes`` the world AABBs of every piece (each content type's ``bounds()``)."""
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected avsm_dr.scene.Scene, got {type(scene).__name__}")
     check_light(scene.light, "scene.light")

@@ -404,8 +404,8 @@ class AVSM(NodeList):
                 lossy = [x | lost for x in lossy]
                 if compress is not True:
                     used = dr.select(skip if compress is False else skip | full, used, used + 2)
-                if compress is not False:
-                    compressed = compressed + UInt32(~skip if compress else ~skip & full)
+                if compress is None:    # compressing loop: iterations - skipped, after it (a state word less)
+                    compressed = compressed + UInt32(~skip & full)
                 return (i + 1, used, done, skipped + UInt32(skip), compressed, *lossy, *d, *t)
             return body
 
@@ -447,8 +447,9 @@ class AVSM(NodeList):
             state = run(state, cond_room, body_insert(False), "avsm_insert")
             state = run(state, cond_full, body_staged, "avsm_staged")
         elif ablate["_split"]:
-            state = run(state, cond_room, body_insert(False), "avsm_insert")
-            state = run(state, cond_full, body_insert(True), "avsm_compress")
+            mid = run(state, cond_room, body_insert(False), "avsm_insert")
+            state = run(mid, cond_full, body_insert(True), "avsm_compress")
+            state = (*state[:4], state[4] + (state[0] - mid[0]) - (state[3] - mid[3]), *state[5:])
         else:
             state = run(state, cond_full, body_insert(None), "avsm_one_loop")
         i, used, done, skipped, compressed = state[:5]

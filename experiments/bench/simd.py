@@ -13,9 +13,7 @@ with the spread over rounds."""
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -31,13 +29,8 @@ _REGISTER_BITS = {"avx512f": 512, "avx2": 256, "avx": 256, "neon": 128, "sse": 1
 
 def _core():
     """Dr.Jit's core library with its (C++-mangled) LLVM target functions typed."""
-    import drjit as dr
-    lib = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
-    lib._Z19jit_llvm_target_cpuv.restype = ctypes.c_char_p
-    lib._Z24jit_llvm_target_featuresv.restype = ctypes.c_char_p
-    lib._Z21jit_llvm_vector_widthv.restype = ctypes.c_uint32
-    lib._Z19jit_llvm_set_targetPKcS0_j.argtypes = (ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32)
-    return lib
+    from avsm_dr._llvm import core
+    return core()
 
 
 def target() -> dict:
