@@ -130,8 +130,7 @@ def _capsule_intervals(o, d, A0, A1, r):
     """Entry/exit (t0, t1) (K, C) of rays (K) with capsules A0-A1 (C) of radius r; NaN = miss.
 
     A capsule is convex, so the path meets it in one interval: the hull of its
-    chords through the two end spheres and through the finite cylinder.
-    """
+    chords through the two end spheres and through the finite cylinder."""
     t0 = np.full((o.shape[0], A0.shape[0]), np.inf)
     t1 = np.full_like(t0, -np.inf)
     for c in (A0, A1):                                             # end spheres

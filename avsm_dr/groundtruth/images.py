@@ -40,8 +40,7 @@ def default_camera(scene: Scene, fov: float = 40.0, distance: float | None = Non
     with a 15 % margin (``distance`` overrides); a camera inside the volume's box is
     moved out along v with the fov narrowed to keep the framing.
     Returns a :class:`~avsm_dr.camera.PinholeCamera` of 32 x 32 pixels (fov in degrees along x;
-    :meth:`~avsm_dr.camera.PinholeCamera.of` resizes it).
-    """
+    :meth:`~avsm_dr.camera.PinholeCamera.of` resizes it)."""
     fov = V.real(fov, "fov", 0.0, 180.0, open_min=True, open_max=True)
     if distance is not None:
         distance = V.real(distance, "distance", 0.0, open_min=True)

@@ -438,7 +438,9 @@ class AVSM(NodeList):
         chunk = self.checkpoint_chunk(seg)
 
         def run(state, cond, body, label):
-            return run_loop(state, params, cond, body, max_count, chunk, label, iterations=lane_max)
+            # without gradients not re-traced to drop unchanged state (LLVM drops it): 0.4 ms a build
+            with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, seg.requires_grad):   # (AD: Dr.Jit aborts)
+                return run_loop(state, params, cond, body, max_count, chunk, label, iterations=lane_max)
 
         state = (first, dr.zeros(UInt32, L), dr.zeros(Bool, L),
                  dr.zeros(UInt32, L), dr.zeros(UInt32, L), *[dr.zeros(Bool, L)] * E,
