@@ -127,8 +127,8 @@ def order_by_count(counts: np.ndarray, descending: bool = False) -> np.ndarray:
 
 
 def pairwise(items: list, merge) -> Any:
-    """``items`` reduced by ``merge(left, right)`` of neighbours, level by level: for an associative ``merge``
-    the left fold's result in a chain of ``ceil(log2 n)`` dependent merges instead of ``n - 1``."""
+    """``items`` (non-empty) reduced by ``merge(left, right)`` of neighbours, level by level: for an associative
+    ``merge`` the left fold's result in a chain of ``ceil(log2 n)`` dependent merges instead of ``n - 1``."""
     while len(items) > 1:
         items = [merge(a, b) for a, b in zip(items[::2], items[1::2])] + items[len(items) & ~1:]
     return items[0]

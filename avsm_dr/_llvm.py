@@ -108,7 +108,7 @@ def _llvm_version(dr) -> tuple | None:
 #: so LLVM aligns each kernel's stack frame to its vector registers and spills with aligned moves.
 #: Without it spill slots keep the caller's 16-byte alignment: the thread's stack position (ASLR,
 #: per process) decided how many 32-byte spills straddle cache lines, and AVSM-8's build ran at
-#: 48-60 M insertions/CPU-s by process, 61-63 M with it (docs/performance.md).
+#: 39-61 M insertions/CPU-s by process, 63-64 M with it (docs/performance.md).
 STACK_REALIGN = '" "stackrealign'
 #: Whether :func:`realign_stack` took effect (False: no such Dr.Jit entry points, e.g. not Linux).
 STACK_REALIGNED = False
