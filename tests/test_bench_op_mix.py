@@ -1,4 +1,6 @@
 """The op-count limit measured on the kernel's own operation mix (experiments/bench/op_mix.py)."""
+import re
+
 import drjit as dr
 import numpy as np
 import pytest
@@ -50,3 +52,29 @@ def test_plan_steps_rejects_an_empty_histogram_and_puts_a_compare_first():
     arith, masks, selects, uncovered = op_mix.plan_steps({"and": 10, "fmul": 20, "select": 15, "fptosi": 5})
     assert masks[0] in ("fcmp", "icmp") and "and" in masks and selects == 15 * 300 // 45
     assert set(arith) == {"fmul"} and uncovered == pytest.approx(5 / 50)
+
+
+def test_the_loops_selects_stay_blends_in_machine_code():
+    """The loop's IR compiled for this CPU (llvmlite, which Numba brings; AVX2 only) keeps a blend
+    instruction for >= 80 % of its IR selects, as the AVSM-8 kernel does (238 of 269): a select
+    between ``x - c`` and ``x`` compiles to ``x - (mask & c)``, which kept the first version at 84
+    of 133 (63 %) and left the pipes the kernel's blends occupy idle."""
+    llvm = pytest.importorskip("llvmlite.binding")
+    if simd.target()["isa"] != "avx2":
+        pytest.skip("AVX2's blend instruction (AVX-512 selects become masked moves)")
+    from experiments.bench.machine import loop_ops
+    t = backend.types()
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        dr.eval(op_mix._loop(dr.detached_t(t.Float), dr.detached_t(t.UInt32), op_mix.plan_steps(AVSM8), 16, 3, 64))
+        ir = next(k["ir"].getvalue() for k in dr.kernel_history() if "ir" in k and "op_mix" in k["ir"].getvalue())
+    selects = loop_ops(ir, "op_mix")[0]["select"]
+    llvm.initialize_native_target()
+    llvm.initialize_native_asmprinter()
+    cpu, feats = re.search(r'"target-cpu"="([^"]*)" "target-features"="([^"]*)"', ir).groups()
+    tm = llvm.Target.from_triple(llvm.get_process_triple()).create_target_machine(cpu=cpu, features=feats, opt=3)
+    mod = llvm.parse_assembly(ir)
+    pb = llvm.create_pass_builder(tm, llvm.PipelineTuningOptions(speed_level=3))   # as Dr.Jit: -O3, then codegen
+    pb.getModulePassManager().run(mod, pb)
+    blends = len(re.findall(r"\bvblendvps\b", tm.emit_assembly(mod)))
+    assert selects > 100 and blends >= 0.8 * selects, (blends, selects)
