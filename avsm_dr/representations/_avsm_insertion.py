@@ -110,7 +110,7 @@ def remove_refit(d, t, fit, metric: str = "area", extra=(), last=None, moments=N
         return dr.select(take, mr, ml), il, [dr.select(take, b, a) for a, b in zip(pl, pr)]
     idx, *rest = A.pairwise(cands, merge)[2]
     gap = rest.pop(0) if with_gap else None
-    keep = dict(zip(("c", "dll", "dl", "di", "dr", "drr", "tll", "tl", "tr", "trr"), rest))
+    keep = dict(zip(nb, rest))                  # the neighbourhood keys (every node's nb has the same)
     out = [[dr.select(idx <= j, x[j + 1], x[j]) for j in range(n - 1)] for x in (d, t, *extra)]
     if fit is not None:
         tl, tr = refit_values(keep, idx >= 2, idx <= n - 3 if last is None else idx + 2 <= last, fit)

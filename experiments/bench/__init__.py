@@ -29,9 +29,9 @@ Writes into ``results/bench/`` (or ``<--out>/bench/``); one module per table:
   insertion counted in the kernel's LLVM IR (``dr.kernel_history()``) against the larger of
   the nominal rate (clock x issue width at the vector width the CPU executes: AMD Zen 4 runs a
   512-bit operation as two 256-bit halves: :mod:`experiments.bench.simd`) and the best rate of a
-  register-only Dr.Jit loop of the kernel's own operation mix (:mod:`experiments.bench.op_mix`,
-  measured in CPU time at the kernel's width and at 64 lanes), times SIMD lanes, per core; the
-  mix at the kernel's width and a generic compare / select / multiply loop beside it; our
+  register-only Dr.Jit loop of the kernel's own operation mix (:mod:`experiments.bench.op_mix`:
+  once per iteration in 8-32 short independent chains, measured in CPU time at the kernel's
+  width), times SIMD lanes, per core; a generic compare / select / multiply loop beside it; our
   measured insertions per CPU-second as a fraction of it; the LLVM target (ISA, lanes per
   packet, executed bits);
   ``machine.csv`` has the same figures for every setting (also columns of ``data.csv``), with

@@ -85,7 +85,7 @@ def _chain(v, arith, masks, selects: int, UInt32):
     """One chain's share of an iteration: ``arith`` steps ``t = op(v)``, ``masks`` refreshed
     between them (a compare first), ``v = select(mask, t, v_prev)`` on the first ``selects`` steps."""
     first = masks[0] if masks and masks[0] in ("fcmp", "icmp") else "fcmp"
-    m, t, rest = _MASK[first](v, None, UInt32), v, masks[1:] if masks and masks[0] == first else masks
+    m, rest = _MASK[first](v, None, UInt32), masks[1:] if masks and masks[0] == first else masks
     every = max(1, len(arith) // max(len(rest), 1))
     prev, seen = None, [m]
     for i, op in enumerate(arith):                    # masks spread over the steps, selects from the second on
