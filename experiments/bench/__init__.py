@@ -35,7 +35,9 @@ Writes into ``results/bench/`` (or ``<--out>/bench/``); one module per table:
   measured insertions per CPU-second as a fraction of it; the LLVM target (ISA, lanes per
   packet, executed bits);
   ``machine.csv`` has the same figures for every setting (also columns of ``data.csv``), with
-  the fraction from the median and from the fastest repeat and the build's kernel-time share.
+  the fraction from the median and from the fastest repeat and the build's kernel-time share;
+  AVSM's rows add ``model_fraction``, the ceiling of that fraction by llvm-mca's model of this
+  CPU for the compress loop's machine code (:mod:`experiments.bench.mca`; empty without llvm-mca).
 * ``scaling.csv`` / ``scaling.png`` - build and lookup time against texels, segments per
   texel and N (stored floats per texel), with fitted log-log slopes.
 * ``skipping.csv`` / ``skipping.png`` - each kind of skipped work as a measured saving:
@@ -142,7 +144,8 @@ def _headline(s: dict) -> list[str]:
             f"{num(s['avsm8_speedup_vs_numba'])}x, Warp {num(s['avsm8_speedup_vs_warp'])}x; FOM-8 over Numba "
             f"{num(s['fom8_speedup_vs_numba'])}x, Warp {num(s['fom8_speedup_vs_warp'])}x",
             f"AVSM-8 at {num(s['machine_fraction_avsm8'])} of the machine's limit (best map "
-            f"{num(s['machine_fraction_avsm8_best'])})",
+            f"{num(s['machine_fraction_avsm8_best'])}; the pipeline model's ceiling "
+            f"{num(s.get('machine_model_fraction_avsm8'))})",
             f"run time {num(s['seconds'])} s; {len(s.get('notes') or [])} settings skipped (notes in meta.json)"]
 
 

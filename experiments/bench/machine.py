@@ -22,6 +22,7 @@ import numpy as np
 
 from avsm_dr import backend, build
 from avsm_dr.evaluation.timing import jit_kernels, sync
+from .mca import ceiling
 from .op_mix import mix_rate
 from .settings import counts_map
 from .simd import target
@@ -240,6 +241,7 @@ def _machine_limit(P, data_rows) -> dict:
                    ops_by_kind=dict(comp.most_common()), op_mix=mix, **_limits(mix, n_comp, width, peak, nominal_core,
                                                                                cores),
                    nominal_limit_machine_per_s=nominal_core * cores)
+        row.update(ceiling(ir, simd.get("llvm_cpu", ""), n_comp / opc))     # the pipeline model's ceiling
         lim_core = row["limit_per_core_s"]
         ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == f"avsm-nodes={nodes}"]
         if ours:

@@ -14,11 +14,13 @@ from .scaling import slopes
 #: host work, e.g. DSM's float64 polyline, dominates and the operation count says little).
 #: ``limit_per_core_s``: the larger of ``nominal_limit_per_core_s`` (pipes x clock) and
 #: ``mix_limit_per_core_s`` (a loop of the kernel's own operation mix in short independent chains, :mod:`.op_mix`).
+#: ``model_fraction`` (AVSM rows, where llvm-mca is installed): the most of the limit the compress loop's machine
+#: code can reach by llvm-mca's model of this CPU (:mod:`.mca`), the ceiling of ``fraction_of_limit``.
 MACHINE_COLUMNS = ("setting", "loop", "ops_per_insertion_packet", "lanes", "isa", "llvm_cpu", "executed_bits",
                    "ops_per_insertion", "limit_per_core_s", "nominal_limit_per_core_s", "mix_limit_per_core_s",
                    "microbench_limit_per_core_s",
                    "measured_map", "measured_per_cpu_s", "fraction_of_limit", "measured_best_per_cpu_s",
-                   "fraction_of_limit_best", "kernel_share", "note")
+                   "fraction_of_limit_best", "model_fraction", "kernel_share", "note")
 
 
 def _limit_row(machine: dict, setting: str) -> dict:
@@ -29,7 +31,7 @@ def _limit_row(machine: dict, setting: str) -> dict:
         if setting == f"avsm-nodes={n}":
             row.update({k: r[k] for k in ("ops_per_insertion_packet", "lanes", "limit_per_core_s",
                                           "microbench_limit_per_core_s", "nominal_limit_per_core_s",
-                                          "mix_limit_per_core_s") if k in r})
+                                          "mix_limit_per_core_s", "model_fraction") if k in r})
     return row
 
 
@@ -103,6 +105,7 @@ def summary(data, peers, machine, scal, skip, notes, seconds) -> dict:
         "machine_fraction_best_by_setting": {r["setting"]: r["fraction_of_limit_best"]
                                              for r in machine_rows(data, machine) if r["fraction_of_limit_best"] != ""},
         "machine_limit_avsm8_per_core_s": machine.get("avsm", {}).get(8, {}).get("limit_per_core_s"),
+        "machine_model_fraction_avsm8": machine.get("avsm", {}).get(8, {}).get("model_fraction"),
         "machine_fraction_by_setting": {k: r.get("fraction_of_limit") for k, r in machine.get("kinds", {}).items()},
         "ops_per_insertion_packet_by_setting": {k: r.get("ops_per_insertion_packet")
                                                 for k, r in machine.get("kinds", {}).items()},
