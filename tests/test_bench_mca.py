@@ -78,3 +78,12 @@ def test_the_model_reads_llvm_mca_cycles_and_pipes():
     assert m["bound"] == pytest.approx(2.0) and m["cycles"] == pytest.approx(2.0, abs=0.1)
     top = list(m["pipes"])[:2]
     assert sorted(top) == ["Zn4FP2", "Zn4FP3"] and m["pipes"]["Zn4FP2"] == pytest.approx(2.0)
+
+
+def test_the_ceiling_is_a_note_where_the_model_cannot_run():
+    """The bench goes on without the model: no CPU name, a CPU no llvm-mca knows, IR that does not parse."""
+    pytest.importorskip("llvmlite.binding")
+    assert mca.ceiling("", "", 100.0) == {"model_note": "no llvm-mca with a (unknown CPU) model"}
+    assert mca.ceiling("", "no_such_cpu", 100.0) == {"model_note": "no llvm-mca with a no_such_cpu model"}
+    if mca.llvm_mca() is not None:
+        assert mca.ceiling("not IR", "znver4", 100.0)["model_note"].startswith("pipeline model failed: ValueError")

@@ -136,6 +136,9 @@ def ceiling(ir: str, mcpu: str, nominal_cycles: float, label: str = "avsm_compre
     ``mcpu`` or the compilation is missing (the bench goes on without)."""
     try:
         import llvmlite.binding  # noqa: F401
+    except ImportError:
+        return dict(model_note="llvmlite not installed (pip install numba)")
+    try:
         path = llvm_mca(mcpu) if mcpu else None
         if path is None:
             return dict(model_note=f"no llvm-mca with a {mcpu or '(unknown CPU)'} model")
