@@ -22,7 +22,6 @@ import numpy as np
 
 from avsm_dr import backend, build
 from avsm_dr.evaluation.timing import jit_kernels, sync
-from .mca import ceiling
 from .op_mix import mix_rate
 from .settings import counts_map
 from .simd import target
@@ -214,6 +213,7 @@ def machine_limit(P, data_rows) -> dict:
 
 
 def _machine_limit(P, data_rows) -> dict:
+    from . import mca                     # here: ``python -m experiments.bench.mca`` imports the package first
     cpu = _cpuinfo()
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     peak = _peak_vector_rate(P["peak_iters"])
@@ -241,7 +241,7 @@ def _machine_limit(P, data_rows) -> dict:
                    ops_by_kind=dict(comp.most_common()), op_mix=mix, **_limits(mix, n_comp, width, peak, nominal_core,
                                                                                cores),
                    nominal_limit_machine_per_s=nominal_core * cores)
-        row.update(ceiling(ir, simd.get("llvm_cpu", ""), n_comp / opc))     # the pipeline model's ceiling
+        row.update(mca.ceiling(ir, simd.get("llvm_cpu", ""), n_comp / opc))     # the pipeline model's ceiling
         lim_core = row["limit_per_core_s"]
         ours = [r for r in data_rows if r.get("impl") == "drjit" and r.get("setting") == f"avsm-nodes={nodes}"]
         if ours:

@@ -13,7 +13,7 @@ pass, the pass's resource bound and the busiest pipes.  Against the bench's nomi
 limit the code as compiled can reach on an idle core with no host work: the ceiling of
 ``machine.csv``'s ``fraction_of_limit`` for that setting.
 
-    python -m experiments.bench.mca [--nodes 4,8,16] [--widths 8,16] [--json FILE]
+    python -m experiments.bench.mca [--nodes 4,8,16] [--widths 8,16] [--isas avx2,avx512] [--json FILE]
 
 A model, not a measurement: on the AVX2 Zen 4 of 5 Dec 2026 it gave 283 cycles per AVSM-8 pass
 where the kernel measured 318 (one thread, at the 2.84 GHz of a dependent-add chain)."""
@@ -200,10 +200,12 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--nodes", default="4,8,16")
     ap.add_argument("--widths", default="8,16")
+    ap.add_argument("--isas", default="avx2,avx512")
     ap.add_argument("--mcpu", default="znver4")
     ap.add_argument("--json", help="also write the rows to this file")
     a = ap.parse_args(argv)
-    r = rows(tuple(int(x) for x in a.nodes.split(",")), tuple(int(x) for x in a.widths.split(",")), mcpu=a.mcpu)
+    r = rows(tuple(int(x) for x in a.nodes.split(",")), tuple(int(x) for x in a.widths.split(",")),
+             tuple(a.isas.split(",")), mcpu=a.mcpu)
     print(f"{'setting':22s} {'IR ops':>6s} {'instr':>6s} {'stack':>6s} {'select':>6s} {'cycles':>7s} {'bound':>6s} "
           f"{'/8 lanes':>8s} {'nominal':>7s} {'model':>6s}  busiest pipes (cycles per pass)")
     for x in r:
