@@ -5,8 +5,8 @@ The build's kernel IR (traced here at 8 and 16 lanes, :func:`.simd.set_vector_wi
 compiled for AMD Zen 4 (``znver4``) with Dr.Jit's own target features, once as traced (AVX2 on
 this host) and once with the AVX-512 family enabled (32 vector registers, mask registers: selects
 become masked moves), by LLVM at ``-O3`` as Dr.Jit does (``llvmlite``, which Numba brings).
-The compress loop's body (condition and body, between two markers put into its IR; conditional
-branches fall through: the gathers' lanes are all taken) goes to ``llvm-mca -mcpu=znver4``
+The compress loop's body (between two markers put into its IR, without the loop condition's few
+operations; conditional branches fall through: every lane of a gather loads) goes to ``llvm-mca -mcpu=znver4``
 (LLVM >= 17 has Zen 4's model; Debian: ``apt-get install llvm-19``), which reports cycles per
 pass, the pass's resource bound and the busiest pipes.  Against the bench's nominal limit
 (:mod:`.machine`: ``ops / nominal_ops_per_cycle`` cycles per pass) that gives the fraction of the
@@ -15,7 +15,7 @@ limit the code as compiled can reach on an idle core with no host work: the ceil
 
     python -m experiments.bench.mca [--nodes 4,8,16] [--widths 8,16] [--isas avx2,avx512] [--json FILE]
 
-A model, not a measurement: on the AVX2 Zen 4 of 5 Dec 2026 it gave 283 cycles per AVSM-8 pass
+A model, not a measurement: on the AVX2 Zen 4 of 5 Dec 2026 it gave 281 cycles per AVSM-8 pass
 where the kernel measured 318 (one thread, at the 2.84 GHz of a dependent-add chain)."""
 from __future__ import annotations
 
