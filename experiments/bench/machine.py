@@ -212,6 +212,16 @@ def machine_limit(P, data_rows) -> dict:
         dr.set_flag(dr.JitFlag.KernelHistory, flag)
 
 
+def avsm_kernel_ir(nodes: int, seg=None) -> str:
+    """The LLVM IR of the AVSM build kernel (the one with the ``avsm_compress`` loop) for ``nodes``
+    on ``seg`` (default: 16^2 texels of 20-60 segments, :func:`.settings.counts_map`)."""
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        build("avsm", counts_map(16, 40) if seg is None else seg, nodes=nodes)
+        return next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
+                    if "ir" in k and "avsm_compress" in k["ir"].getvalue())
+
+
 def _machine_limit(P, data_rows) -> dict:
     from . import mca                     # here: ``python -m experiments.bench.mca`` imports the package first
     cpu = _cpuinfo()
@@ -228,10 +238,7 @@ def _machine_limit(P, data_rows) -> dict:
     seg, mixes = counts_map(16, 40), {}
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     for nodes in (4, 8, 16):
-        dr.kernel_history()
-        build("avsm", seg, nodes=nodes)
-        ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
-                  if "ir" in k and "avsm_compress" in k["ir"].getvalue())
+        ir = avsm_kernel_ir(nodes, seg)
         comp, width = loop_ops(ir, "avsm_compress")
         ins, _ = loop_ops(ir, "avsm_insert")
         n_comp = sum(comp.values())

@@ -149,21 +149,13 @@ def ceiling(ir: str, mcpu: str, nominal_cycles: float, label: str = "avsm_compre
 
 
 def kernel_ir(nodes: int, width: int) -> str:
-    """The IR of the AVSM build kernel (``nodes``, 16^2 texels of 20-60 segments) traced at
-    ``width`` lanes; Dr.Jit's width is restored afterwards."""
-    import drjit as dr
-    from avsm_dr import build
-    from avsm_dr.evaluation.timing import jit_kernels
-    from .settings import counts_map
+    """:func:`.machine.avsm_kernel_ir` traced at ``width`` lanes; Dr.Jit's width is restored afterwards."""
+    from .machine import avsm_kernel_ir
     from .simd import set_vector_width, target
     before = target()["vector_width"]
     set_vector_width(width)
     try:
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.kernel_history()
-            build("avsm", counts_map(16, 40), nodes=nodes)
-            return next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
-                        if "ir" in k and "avsm_compress" in k["ir"].getvalue())
+        return avsm_kernel_ir(nodes)
     finally:
         set_vector_width(before)
 
