@@ -59,22 +59,14 @@ def test_the_loops_selects_stay_blends_in_machine_code():
     instruction for >= 80 % of its IR selects, as the AVSM-8 kernel does (238 of 269): a select
     between ``x - c`` and ``x`` compiles to ``x - (mask & c)``, which kept the first version at 84
     of 133 (63 %) and left the pipes the kernel's blends occupy idle."""
-    llvm = pytest.importorskip("llvmlite.binding")
+    pytest.importorskip("llvmlite.binding")
     if simd.target()["isa"] != "avx2":
         pytest.skip("AVX2's blend instruction (AVX-512 selects become masked moves)")
-    from experiments.bench.machine import loop_ops
+    from experiments.bench.machine import loop_ops, traced_ir
+    from experiments.bench.mca import compile_ir
     t = backend.types()
-    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-        dr.kernel_history()
-        dr.eval(op_mix._loop(dr.detached_t(t.Float), dr.detached_t(t.UInt32), op_mix.plan_steps(AVSM8), 16, 3, 64))
-        ir = next(k["ir"].getvalue() for k in dr.kernel_history() if "ir" in k and "op_mix" in k["ir"].getvalue())
+    ir = traced_ir(lambda: dr.eval(op_mix._loop(dr.detached_t(t.Float), dr.detached_t(t.UInt32),
+                                                op_mix.plan_steps(AVSM8), 16, 3, 64)), "op_mix")
     selects = loop_ops(ir, "op_mix")[0]["select"]
-    llvm.initialize_native_target()
-    llvm.initialize_native_asmprinter()
-    cpu, feats = re.search(r'"target-cpu"="([^"]*)" "target-features"="([^"]*)"', ir).groups()
-    tm = llvm.Target.from_triple(llvm.get_process_triple()).create_target_machine(cpu=cpu, features=feats, opt=3)
-    mod = llvm.parse_assembly(ir)
-    pb = llvm.create_pass_builder(tm, llvm.PipelineTuningOptions(speed_level=3))   # as Dr.Jit: -O3, then codegen
-    pb.getModulePassManager().run(mod, pb)
-    blends = len(re.findall(r"\bvblendvps\b", tm.emit_assembly(mod)))
+    blends = len(re.findall(r"\bvblendvps\b", compile_ir(ir)))     # as Dr.Jit: -O3, then codegen
     assert selects > 100 and blends >= 0.8 * selects, (blends, selects)

@@ -212,14 +212,20 @@ def machine_limit(P, data_rows) -> dict:
         dr.set_flag(dr.JitFlag.KernelHistory, flag)
 
 
-def avsm_kernel_ir(nodes: int, seg=None) -> str:
-    """The LLVM IR of the AVSM build kernel (the one with the ``avsm_compress`` loop) for ``nodes``
-    on ``seg`` (default: 16^2 texels of 20-60 segments, :func:`.settings.counts_map`)."""
+def traced_ir(run, label: str) -> str:
+    """The LLVM IR of the kernel with the symbolic loop ``label`` among those ``run()`` launches
+    (Dr.Jit's kernel history, on for the call)."""
     with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         dr.kernel_history()
-        build("avsm", counts_map(16, 40) if seg is None else seg, nodes=nodes)
+        run()
         return next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
-                    if "ir" in k and "avsm_compress" in k["ir"].getvalue())
+                    if "ir" in k and f"; Symbolic loop: {label}" in k["ir"].getvalue())
+
+
+def avsm_kernel_ir(nodes: int, seg=None) -> str:
+    """The LLVM IR of the AVSM build kernel (its ``avsm_compress`` loop) for ``nodes`` on ``seg``
+    (default: 16^2 texels of 20-60 segments, :func:`.settings.counts_map`)."""
+    return traced_ir(lambda: build("avsm", counts_map(16, 40) if seg is None else seg, nodes=nodes), "avsm_compress")
 
 
 def _machine_limit(P, data_rows) -> dict:

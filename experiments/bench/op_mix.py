@@ -32,7 +32,7 @@ from collections import Counter
 import drjit as dr
 
 from avsm_dr import backend
-from avsm_dr.evaluation.timing import jit_kernels, sync
+from avsm_dr.evaluation.timing import sync
 
 #: One-operation arithmetic steps ``t = f(x)`` by LLVM opcode (as :func:`.machine.loop_ops` names them).
 _ARITH = {
@@ -120,18 +120,14 @@ def mix_rate(ops: dict, iters: int, chains_tried=CHAINS, lanes: int = 1 << 14, r
     ``chains_tried`` in vector operations per CPU-second (the loop's IR operations, counted as
     :func:`.machine.loop_ops` counts the kernel's), with the best's histogram, chains and width,
     and the rate by chain count."""
-    from .machine import loop_ops
+    from .machine import loop_ops, traced_ir
     t = backend.types()
     Float, UInt32 = dr.detached_t(t.Float), dr.detached_t(t.UInt32)
     steps = plan_steps(ops)
     best, rates = None, {}
     for chains in chains_tried:
         sync(_loop(Float, UInt32, steps, chains, iters, lanes))                 # compile
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.kernel_history()
-            sync(_loop(Float, UInt32, steps, chains, iters, lanes))
-            ir = next(k["ir"].getvalue() for k in jit_kernels(dr.kernel_history())
-                      if "ir" in k and "op_mix" in k["ir"].getvalue())
+        ir = traced_ir(lambda: sync(_loop(Float, UInt32, steps, chains, iters, lanes)), "op_mix")
         counted, width = loop_ops(ir, "op_mix")
         cpu = []
         for _ in range(repeats):
