@@ -62,7 +62,6 @@ def test_build_on_a_new_depth_range_reuses_kernels(backend, rng, kind):
     assert [_compiled(lambda: build(s)) for s in (1.7, 3.1)] == [0, 0]
 
 
-
 @pytest.mark.parametrize("grad", [False, True])
 def test_avsm_traces_each_loop_once(rng, capfd, grad):
     """Without gradients AVSM's loops run with ``OptimizeLoops`` off: Dr.Jit would trace each body a
